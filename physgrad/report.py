@@ -1,0 +1,94 @@
+"""`physgrad report`: the error-against-run-time table and comparison figure from results files alone."""
+
+from __future__ import annotations
+
+import math
+from collections import defaultdict
+from pathlib import Path
+
+import numpy as np
+
+from physgrad.results import Run, find_results, read_run
+
+COLUMNS = ("task", "variant", "seed", "status", "iters", "train loss", "test loss", "s/iter", "train s",
+           "t(thr) s", "note")
+
+
+def collect(paths) -> tuple[list[Run], list[tuple[Path, str]]]:
+    """Every readable run under paths, and (path, reason) for each file that is not a readable results file."""
+    runs, unreadable = [], []
+    for path in find_results(paths):
+        try:
+            runs.append(read_run(path))
+        except ValueError as error:
+            unreadable.append((path, str(error)))
+    return runs, unreadable
+
+
+def thresholds(runs: list[Run]) -> dict[str, float]:
+    """Per task, the worst final test loss among runs that have one: every such run reaches it."""
+    worst = defaultdict(lambda: -math.inf)
+    for run in runs:
+        final = run.final("eval")
+        if math.isfinite(final):
+            worst[run.attrs.get("task")] = max(worst[run.attrs.get("task")], final)
+    return dict(worst)
+
+
+def _fmt(value, digits=4) -> str:
+    if isinstance(value, float):
+        return "-" if math.isnan(value) else f"{value:.{digits}g}"
+    return str(value)
+
+
+def table_rows(runs: list[Run], threshold: float | None = None) -> list[dict]:
+    per_task = thresholds(runs)
+    rows = []
+    for run in sorted(runs, key=lambda r: (str(r.attrs.get("task")), r.variant, str(r.attrs.get("seed")))):
+        task = run.attrs.get("task")
+        limit = threshold if threshold is not None else per_task.get(task, math.nan)
+        train_loss = run.train.get("loss", np.empty(0))
+        rows.append({
+            "task": task, "variant": run.variant, "seed": run.attrs.get("seed"), "status": run.attrs.get("status"),
+            "iters": int(train_loss.size),
+            "train loss": float(np.median(train_loss[-10:])) if train_loss.size else math.nan,
+            "test loss": run.final("eval"),
+            "s/iter": run.seconds_per_iteration,
+            "train s": run.final("train", "wall_time"),
+            "t(thr) s": run.time_to_reach(limit) if math.isfinite(limit) else math.nan,
+            "note": run.attrs.get("reason", "") or "",
+        })
+    return rows
+
+
+def markdown_table(rows: list[dict]) -> str:
+    lines = ["| " + " | ".join(COLUMNS) + " |", "|" + "---|" * len(COLUMNS)]
+    for row in rows:
+        lines.append("| " + " | ".join(_fmt(row[c]) for c in COLUMNS) + " |")
+    return "\n".join(lines) + "\n"
+
+
+def write_report(paths, out_dir=None, threshold: float | None = None) -> str:
+    """Print-ready text; also writes report.md and loss_vs_time.png into out_dir (default: the first path's
+    folder)."""
+    runs, unreadable = collect(paths)
+    first = Path(paths[0])
+    out = Path(out_dir) if out_dir else (first if first.is_dir() else first.parent)
+    out.mkdir(parents=True, exist_ok=True)
+    rows = table_rows(runs, threshold)
+    if threshold is not None:
+        legend = f"t(thr): training seconds until the test loss first reached {threshold:.4g}."
+    else:
+        legend = "t(thr): training seconds until the test loss first reached the task's threshold (" + ", ".join(
+            f"{task}: {value:.4g}" for task, value in sorted(thresholds(runs).items())
+        ) + "; the worst final test loss of the task's runs, so every finished run reaches it; --threshold sets it)."
+    text = [f"{len(runs)} runs under {', '.join(map(str, paths))}", "", markdown_table(rows), legend,
+            "train loss: median of the last 10 minibatch losses; s/iter: median seconds per training step."]
+    for path, reason in unreadable:
+        text.append(f"unreadable: {reason}")
+    body = "\n".join(text) + "\n"
+    (out / "report.md").write_text(body)
+    from physgrad.plots import plot_comparison
+
+    plot_comparison(runs, out / "loss_vs_time.png")
+    return body + f"wrote {out / 'report.md'} and {out / 'loss_vs_time.png'}\n"

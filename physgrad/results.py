@@ -1,0 +1,151 @@
+"""Results files: one HDF5 file per run, written incrementally, and reading many of them into one table.
+
+Layout (see docs/results.md):
+  root attributes: task, optim, unroll (temporal scenes only), seed, status, reason, config, physgrad_version,
+                   jax_version, compile_seconds, created, and a few descriptive extras;
+  /train/{iteration, wall_time, loss, grad_norm, ...}: one row per iteration;
+  /eval/{iteration, wall_time, loss, <scene metrics>}: held-out evaluations.
+The file is opened, appended to and closed at every flush, so a run killed at any moment leaves a file that
+opens, holding every row flushed so far; readers never find it locked for long.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import h5py
+import numpy as np
+
+STATUSES = ("running", "completed", "diverged", "interrupted", "failed", "refused")
+GROUPS = ("train", "eval")
+
+
+class ResultsWriter:
+    """Buffers rows per group and appends them to resizable datasets on flush()."""
+
+    def __init__(self, path: str | os.PathLike, attrs: dict):
+        self.path = Path(path)
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        self._buffers: dict[str, dict[str, list]] = {group: {} for group in GROUPS}
+        with h5py.File(self.path, "w") as f:
+            for group in GROUPS:
+                f.create_group(group)
+            for key, value in {**attrs, "status": "running", "created": _now()}.items():
+                if value is not None:
+                    f.attrs[key] = value
+
+    def append(self, group: str, row: dict) -> None:
+        buffer = self._buffers[group]
+        if buffer and set(row) != set(buffer):
+            raise ValueError(f"/{group} row has columns {sorted(row)}, expected {sorted(buffer)}")
+        for key, value in row.items():
+            buffer.setdefault(key, []).append(value)
+
+    def pending(self, group: str = "train") -> int:
+        return len(next(iter(self._buffers[group].values()), []))
+
+    def flush(self) -> None:
+        if not any(self.pending(group) for group in GROUPS):
+            return
+        with h5py.File(self.path, "a") as f:
+            for group, buffer in self._buffers.items():
+                for key, values in buffer.items():
+                    if not values:
+                        continue
+                    column = np.asarray(values)
+                    if key not in f[group]:
+                        f[group].create_dataset(key, data=column, maxshape=(None,), chunks=(1024,))
+                    else:
+                        dataset = f[group][key]
+                        start = dataset.shape[0]
+                        dataset.resize((start + len(column),))
+                        dataset[start:] = column
+                    values.clear()
+
+    def set_attrs(self, **attrs) -> None:
+        with h5py.File(self.path, "a") as f:
+            for key, value in attrs.items():
+                if value is None:
+                    f.attrs.pop(key, None)
+                else:
+                    f.attrs[key] = value
+
+    def finish(self, status: str, reason: str | None = None, **attrs) -> None:
+        """Flush every buffered row, then record the final status (and the reason for anything but completed)."""
+        if status not in STATUSES:
+            raise ValueError(f"unknown status {status!r}")
+        self.flush()
+        self.set_attrs(status=status, reason=reason, finished=_now(), **attrs)
+
+
+def _now() -> str:
+    return time.strftime("%Y-%m-%dT%H:%M:%S%z")
+
+
+@dataclass
+class Run:
+    """One results file, read back: attributes and the /train and /eval columns as numpy arrays."""
+
+    path: Path
+    attrs: dict
+    train: dict
+    eval: dict
+
+    @property
+    def variant(self) -> str:
+        return str(self.attrs.get("variant", self.attrs.get("optim", "?")))
+
+    @property
+    def seconds_per_iteration(self) -> float:
+        wall = self.train.get("wall_time", np.empty(0))
+        return float(np.median(np.diff(np.concatenate([[0.0], wall])))) if wall.size else math.nan
+
+    def final(self, group: str, column: str = "loss") -> float:
+        values = getattr(self, group).get(column, np.empty(0))
+        return float(values[-1]) if values.size else math.nan
+
+    def time_to_reach(self, threshold: float) -> float:
+        """Training seconds at the first held-out evaluation with loss <= threshold (NaN if never)."""
+        loss, wall = self.eval.get("loss", np.empty(0)), self.eval.get("wall_time", np.empty(0))
+        hits = np.flatnonzero(loss <= threshold)
+        return float(wall[hits[0]]) if hits.size else math.nan
+
+
+def read_run(path: str | os.PathLike) -> Run:
+    """Read one results file; raises ValueError with a one-line reason if it is not a physgrad results file."""
+    path = Path(path)
+    try:
+        with h5py.File(path, "r", locking=False) as f:
+            if "status" not in f.attrs or "train" not in f or "eval" not in f:
+                raise ValueError(f"{path}: not a physgrad results file (no status attribute or /train, /eval)")
+            attrs = {key: _plain(value) for key, value in f.attrs.items()}
+            train = {key: f["train"][key][()] for key in f["train"]}
+            evaluation = {key: f["eval"][key][()] for key in f["eval"]}
+    except OSError as error:
+        raise ValueError(f"{path}: cannot be read as HDF5 ({str(error).splitlines()[0]})") from None
+    return Run(path, attrs, train, evaluation)
+
+
+def _plain(value):
+    if isinstance(value, bytes):
+        return value.decode()
+    if isinstance(value, np.generic):
+        return value.item()
+    return value
+
+
+def find_results(paths) -> list[Path]:
+    """Every results.h5 at or under the given files and folders, in sorted order."""
+    found = []
+    for path in map(Path, paths):
+        if path.is_file():
+            found.append(path)
+        elif path.is_dir():
+            found.extend(sorted(path.rglob("results.h5")))
+        else:
+            raise FileNotFoundError(f"{path}: no such file or folder")
+    return found

@@ -1,0 +1,76 @@
+"""Scenes: one module per physical setup behind the small `Scene` interface.
+
+A scene module provides
+- ``traits(task_cfg) -> Traits``: cheap, static facts the runner uses to refuse combinations that do not apply;
+- ``build(task_cfg, key) -> Scene``: data, network and differentiable physics, all seeded from ``key``.
+"""
+
+from __future__ import annotations
+
+import importlib
+from dataclasses import dataclass, field
+from typing import Any, Callable
+
+import jax
+import jax.numpy as jnp
+
+from physgrad import UserError
+
+TASK_MODULES = {"poisson": "physgrad.tasks.poisson"}
+
+
+@dataclass(frozen=True)
+class Traits:
+    """time_axis: the physics is rolled out in time (an unroll length applies).
+    controller: "open" (network -> whole control sequence), "closed" (network inside the loop) or None."""
+
+    time_axis: bool
+    controller: str | None = None
+
+
+@dataclass(frozen=True)
+class Scene:
+    """A network-through-physics problem.
+
+    sample_output(params, sample) -> y: the physical output of one sample (a flat vector of k components);
+    sample_loss(y, sample) -> scalar: the per-sample loss L_i(y); the batch loss is their MEAN;
+    sample_metrics(params, sample) -> {name: scalar}: extra held-out metrics, averaged over the test set;
+    sample_train(key, batch_size) -> batch: a training minibatch (pytree with a leading batch axis).
+    """
+
+    name: str
+    traits: Traits
+    init_params: Callable[[Any], Any]
+    sample_train: Callable[[Any, int], Any]
+    test_set: Any
+    sample_output: Callable[[Any, Any], jax.Array]
+    sample_loss: Callable[[jax.Array, Any], jax.Array]
+    sample_metrics: Callable[[Any, Any], dict] = field(default=lambda params, sample: {})
+
+    def batch_output(self, params, batch) -> jax.Array:
+        """y for a batch: shape (batch, k), sample major."""
+        return jax.vmap(self.sample_output, in_axes=(None, 0))(params, batch)
+
+    def batch_loss(self, y, batch) -> jax.Array:
+        """L(y) = mean_i L_i(y_i)."""
+        return jnp.mean(jax.vmap(self.sample_loss)(y, batch))
+
+    def evaluate(self, params, batch) -> dict:
+        """Held-out loss and scene metrics, each a mean over the samples of ``batch``."""
+        y = self.batch_output(params, batch)
+        metrics = jax.vmap(self.sample_metrics, in_axes=(None, 0))(params, batch)
+        return {"loss": self.batch_loss(y, batch), **{k: jnp.mean(v) for k, v in metrics.items()}}
+
+
+def task_module(name: str):
+    if name not in TASK_MODULES:
+        raise UserError(f"unknown task '{name}': choose one of {', '.join(sorted(TASK_MODULES))}")
+    return importlib.import_module(TASK_MODULES[name])
+
+
+def traits(task_cfg) -> Traits:
+    return task_module(task_cfg.name).traits(task_cfg)
+
+
+def build_scene(task_cfg, key) -> Scene:
+    return task_module(task_cfg.name).build(task_cfg, key)
