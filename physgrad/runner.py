@@ -56,7 +56,7 @@ def make_step(scene: Scene, rule: UpdateRule, batch_size: int, train_key):
         (grads,) = pullback(output_grad)
         extra = {"sample_output": scene.sample_output, "batch": batch, "output_grad": output_grad}
         updates, opt_state = rule.transform.update(grads, opt_state, params, **(extra if rule.uses_jacobian else {}))
-        logs = {"loss": loss, "grad_norm": optax.global_norm(grads), "update_norm": optax.global_norm(updates)}
+        logs = {"loss": loss, "grad_norm": optax.tree.norm(grads), "update_norm": optax.tree.norm(updates)}
         return optax.apply_updates(params, updates), opt_state, logs
 
     return step

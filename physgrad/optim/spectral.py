@@ -22,7 +22,7 @@ def truncated_spectral_direction(jac: jax.Array, output_grad: jax.Array, kappa: 
     An all-zero J has max(s) = 0, keeps nothing and gives a zero direction (never NaN)."""
     u, s, vt = jnp.linalg.svd(jac, full_matrices=False)
     keep = s > tau * jnp.max(s)
-    safe_s = jnp.where(keep, s, 1.0)  # keeps the power finite (and its gradient) where s is dropped
+    safe_s = jnp.where(keep, s, 1.0)  # 0 ** -kappa would be inf, and inf * 0 is NaN
     scale = jnp.where(keep, safe_s ** (-kappa), 0.0)
     return vt.T @ (scale * (u.T @ output_grad))
 

@@ -1,0 +1,119 @@
+"""End to end through the installed console script and the real HDF5 files."""
+
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import h5py
+import numpy as np
+import pytest
+
+from physgrad.results import read_run
+
+pytestmark = pytest.mark.slow
+PHYSGRAD = str(Path(sys.executable).with_name("physgrad"))
+SMALL = ["task.grid=4", "task.test_size=8", "trainer.batch_size=4"]
+
+
+def physgrad(*args, check=True, **kwargs):
+    result = subprocess.run([PHYSGRAD, *args], capture_output=True, text=True, timeout=300, **kwargs)
+    if check:
+        assert result.returncode == 0, result.stderr[-3000:]
+    return result
+
+
+def test_short_run_writes_the_results_schema(tmp_path):
+    physgrad("run", "optim=hig", "trainer.iterations=20", "trainer.eval_every=5", *SMALL, f"hydra.run.dir={tmp_path}")
+    with h5py.File(tmp_path / "results.h5", "r") as f:
+        attrs = dict(f.attrs)
+        for key in ("task", "optim", "seed", "status", "config", "physgrad_version", "jax_version",
+                    "compile_seconds", "created"):
+            assert key in attrs, key
+        assert "unroll" not in attrs and "reason" not in attrs
+        assert (attrs["task"], attrs["optim"], attrs["seed"], attrs["status"]) == ("poisson", "hig", 0, "completed")
+        assert "name: hig" in attrs["config"] and "iterations: 20" in attrs["config"]
+        assert set(f["train"]) >= {"iteration", "wall_time", "loss", "grad_norm"}
+        assert set(f["eval"]) >= {"iteration", "wall_time", "loss", "field_error"}
+        wall = f["train/wall_time"][()]
+        assert wall.shape == (20,) and np.all(np.diff(wall) > 0) and wall[0] > 0
+        assert f["eval/iteration"][()].tolist() == [0, 5, 10, 15, 20]
+    assert (tmp_path / "loss.png").stat().st_size > 1000
+
+
+def test_sweep_then_report(tmp_path):
+    sweep = tmp_path / "sweep"
+    result = physgrad("run", "-m", "optim=adam,hig,bptt", "seed=0,1", "trainer.iterations=10", "trainer.eval_every=5",
+                      *SMALL, f"hydra.sweep.dir={sweep}")
+    assert "skipped: optim=bptt needs a closed-loop controller" in result.stderr + result.stdout
+    files = sorted(sweep.rglob("results.h5"))
+    assert len(files) == 6
+    statuses = sorted(read_run(f).attrs["status"] for f in files)
+    assert statuses == ["completed"] * 4 + ["refused"] * 2
+    out = physgrad("report", str(sweep)).stdout
+    table = [line for line in out.splitlines() if line.startswith("| poisson")]
+    assert len(table) == 6
+    assert sum("| adam | " in line for line in table) == 2 and sum("| hig | " in line for line in table) == 2
+    assert sum("refused" in line for line in table) == 2
+    assert (sweep / "report.md").read_text().count("| poisson") == 6
+    assert (sweep / "loss_vs_time.png").stat().st_size > 1000
+
+
+def test_hydra_flags_keep_working(tmp_path):
+    cfg = physgrad("run", "--cfg", "job", "optim=hig").stdout
+    assert "name: hig" in cfg and "lr: 0.64" in cfg and "iterations: 2000" in cfg
+    assert "Configuration groups" in physgrad("run", "--help").stdout
+    assert "physgrad run" in physgrad("--help").stdout
+
+
+@pytest.mark.parametrize("args, fragment", [
+    (["task=nope"], "unknown task 'nope': choose one of poisson"),
+    (["optim=hgi"], "unknown optim 'hgi': choose one of adam, bptt, gauss_newton, gd, hig, stable_bptt"),
+    (["trainer.iteratons=5"], "did you mean trainer.iterations?"),
+    (["unroll=8"], "task=poisson has no time axis: remove unroll=8"),
+    (["optim=stable_bptt"], "optim=stable_bptt needs a closed-loop controller"),
+    (["seed=0,1"], "add -m"),
+])
+def test_user_mistakes_are_one_line_errors(args, fragment, tmp_path):
+    result = physgrad("run", *args, f"hydra.run.dir={tmp_path}", check=False)
+    assert result.returncode == 2
+    lines = result.stderr.strip().splitlines()
+    assert len(lines) == 1 and fragment in lines[0] and "Traceback" not in result.stderr, result.stderr
+
+
+def wait_for_rows(path: Path, rows: int, process, deadline=120.0):
+    start = time.time()
+    while time.time() - start < deadline:
+        assert process.poll() is None, process.communicate()
+        try:
+            with h5py.File(path, "r", locking=False) as f:
+                if "train/iteration" in f and f["train/iteration"].shape[0] >= rows:
+                    return
+        except (OSError, KeyError):
+            pass  # not created yet, or caught mid-flush
+        time.sleep(0.2)
+    raise AssertionError(f"no {rows} rows in {path} after {deadline} s")
+
+
+@pytest.mark.parametrize("sig, status", [(signal.SIGKILL, "running"), (signal.SIGINT, "interrupted"),
+                                         (signal.SIGTERM, "interrupted")])
+def test_killed_or_interrupted_run_leaves_a_readable_file(sig, status, tmp_path):
+    process = subprocess.Popen([PHYSGRAD, "run", "trainer.iterations=100000000", "trainer.flush_seconds=0.1",
+                                *SMALL, f"hydra.run.dir={tmp_path}"], stdout=subprocess.DEVNULL,
+                               stderr=subprocess.PIPE, text=True)
+    try:
+        wait_for_rows(tmp_path / "results.h5", 100, process)
+        os.kill(process.pid, sig)
+        _, stderr = process.communicate(timeout=60)
+    finally:
+        process.kill()
+    run = read_run(tmp_path / "results.h5")
+    assert run.attrs["status"] == status, stderr
+    rows = run.train["iteration"]
+    assert rows.size >= 100 and rows.tolist() == list(range(rows.size))
+    assert np.all(np.diff(run.train["wall_time"]) > 0)
+    if sig != signal.SIGKILL:
+        assert process.returncode == 130
+        assert f"after {rows.size} iterations" in run.attrs["reason"]

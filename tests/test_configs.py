@@ -1,0 +1,76 @@
+"""Every task x optim pair composes from the configs and either runs or is refused with its reason."""
+
+import pytest
+from hydra import compose, initialize_config_dir
+
+from physgrad.app import CONF_DIR
+from physgrad.experiment import run_experiment
+from physgrad.results import read_run
+from physgrad.tasks import traits
+
+TASKS = sorted(p.stem for p in (CONF_DIR / "task").glob("*.yaml"))
+OPTIMS = sorted(p.stem for p in (CONF_DIR / "optim").glob("*.yaml"))
+# smaller than the reference sizes, so that 2 iterations of every pair stay cheap
+SMALL = {"poisson": ["task.grid=4", "task.test_size=8", "trainer.batch_size=4"]}
+
+
+def load(*overrides):
+    with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
+        return compose("config", overrides=list(overrides))
+
+
+def test_every_task_and_optim_has_a_config():
+    assert set(TASKS) >= {"poisson"}
+    assert set(OPTIMS) == {"adam", "gd", "gauss_newton", "hig", "bptt", "stable_bptt"}
+
+
+@pytest.mark.parametrize("optim", OPTIMS)
+@pytest.mark.parametrize("task", TASKS)
+def test_pair_runs_two_iterations_or_is_refused(task, optim, tmp_path):
+    cfg = load(f"task={task}", f"optim={optim}", "trainer.iterations=2", "trainer.eval_every=1", *SMALL[task])
+    outcome, path = run_experiment(cfg, tmp_path)
+    run = read_run(path)
+    assert run.attrs["status"] == outcome.status
+    scene = traits(cfg.task)
+    if optim in ("bptt", "stable_bptt") and scene.controller != "closed":
+        assert outcome.status == "refused"
+        assert f"optim={optim}" in outcome.reason and f"task={task}" in outcome.reason
+        assert run.attrs["reason"] == outcome.reason
+    else:
+        assert outcome.status == "completed", outcome.reason
+        assert list(run.train["iteration"]) == [0, 1]
+        assert list(run.eval["iteration"]) == [0, 1, 2]
+        assert (tmp_path / "loss.png").stat().st_size > 0
+
+
+def test_per_scene_variant_settings_come_from_config():
+    assert load("optim=adam").optim.lr == 3e-4
+    hig = load("optim=hig")
+    assert (hig.optim.lr, hig.optim.tau, hig.optim.kappa, hig.trainer.batch_size) == (0.64, 1e-5, 0.5, 64)
+    assert load("optim=hig", "optim.lr=0.1").optim.lr == 0.1  # the command line wins
+    assert load("optim=gauss_newton").optim.kappa == 1.0
+
+
+def test_unroll_on_a_scene_without_time_is_refused(tmp_path):
+    outcome, path = run_experiment(load("unroll=32"), tmp_path)
+    assert outcome.status == "refused"
+    assert "no time axis" in outcome.reason and "unroll=32" in outcome.reason
+    assert "unroll" not in read_run(path).attrs or read_run(path).attrs["unroll"] == 32
+
+
+@pytest.mark.parametrize("override, fragment", [
+    ("trainer.iterations=0", "trainer.iterations=0"),
+    ("trainer.iterations=abc", "whole number"),
+    ("optim.lr=-1", "optim.lr=-1"),
+    ("precision=16", "choose one of 32, 64"),
+    ("trainer.time_budget=0", "trainer.time_budget"),
+])
+def test_bad_values_are_refused_with_the_key(override, fragment, tmp_path):
+    outcome, _ = run_experiment(load(override), tmp_path)
+    assert outcome.status == "refused"
+    assert fragment in outcome.reason and "\n" not in outcome.reason
+
+
+def test_hig_tau_out_of_range(tmp_path):
+    outcome, _ = run_experiment(load("optim=hig", "optim.tau=1.5"), tmp_path)
+    assert outcome.status == "refused" and "optim.tau" in outcome.reason

@@ -1,0 +1,101 @@
+"""The training loop: stopping rules, divergence, comparability across variants, precision, results files."""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from physgrad.experiment import run_experiment, set_precision
+from physgrad.results import ResultsWriter, read_run
+from physgrad.tasks import build_scene
+from tests.test_configs import load
+
+SMALL = ["task.grid=4", "task.test_size=8", "trainer.batch_size=4"]
+
+
+def test_divergence_is_an_outcome_with_the_curve_kept(tmp_path):
+    outcome, path = run_experiment(load("optim=gd", "optim.lr=1e30", "trainer.iterations=50", *SMALL), tmp_path)
+    run = read_run(path)
+    assert outcome.status == "diverged" == run.attrs["status"]
+    assert run.attrs["reason"].split()[0] in ("loss", "grad_norm", "update_norm")
+    bad_iteration = int(run.attrs["reason"].rsplit(" ", 1)[1])
+    assert bad_iteration < 49
+    assert run.train["iteration"].size == bad_iteration + 1  # every row up to and including the bad one
+    assert np.isfinite(run.train["loss"][0])
+
+
+def test_time_budget_stops_training(tmp_path):
+    outcome, path = run_experiment(load("trainer.iterations=100000000", "trainer.time_budget=0.5", *SMALL), tmp_path)
+    run = read_run(path)
+    assert outcome.status == "completed" and run.attrs["stopped_by"] == "time_budget"
+    assert 0.5 <= run.train["wall_time"][-1] == outcome.train_seconds
+    assert outcome.iterations < 100000000
+    assert run.eval["iteration"][-1] == outcome.iterations  # a final evaluation at the stopping point
+
+
+def test_iterations_stop_training_and_wall_time_is_monotone(tmp_path):
+    outcome, path = run_experiment(load("trainer.iterations=30", "trainer.eval_every=10", *SMALL), tmp_path)
+    run = read_run(path)
+    assert run.attrs["stopped_by"] == "iterations" and outcome.iterations == 30
+    assert list(run.train["iteration"]) == list(range(30))
+    assert np.all(np.diff(run.train["wall_time"]) > 0)
+    assert list(run.eval["iteration"]) == [0, 10, 20, 30]
+    np.testing.assert_array_equal(run.eval["wall_time"][1:], run.train["wall_time"][[9, 19, 29]])
+    assert run.attrs["compile_seconds"] > 0
+    assert run.eval["loss"][-1] < run.eval["loss"][0]  # Adam makes progress on this scene
+
+
+def test_same_seed_gives_same_data_and_initial_network_for_every_variant(tmp_path):
+    first = {}
+    for optim in ("adam", "gd", "hig", "gauss_newton"):
+        _, path = run_experiment(load(f"optim={optim}", "trainer.iterations=1", *SMALL), tmp_path / optim)
+        run = read_run(path)
+        first[optim] = (run.eval["loss"][0], run.train["loss"][0])
+    assert len(set(first.values())) == 1, first
+    _, path = run_experiment(load("seed=1", "trainer.iterations=1", *SMALL), tmp_path / "seed1")
+    assert read_run(path).eval["loss"][0] != first["adam"][0]
+
+
+@pytest.fixture
+def restore_precision():
+    previous = jax.config.jax_enable_x64
+    yield
+    jax.config.update("jax_enable_x64", previous)
+
+
+def test_precision_64_runs_in_float64(tmp_path, restore_precision):
+    cfg = load("precision=64", *SMALL)
+    set_precision(64)
+    scene = build_scene(cfg.task, jax.random.PRNGKey(0))
+    assert scene.test_set["target"].dtype == jnp.float64
+    assert all(leaf.dtype == jnp.float64 for leaf in jax.tree_util.tree_leaves(scene.init_params(jax.random.PRNGKey(1))))
+    outcome, path = run_experiment(load("precision=64", "optim=hig", "trainer.iterations=3", *SMALL), tmp_path)
+    assert outcome.status == "completed" and read_run(path).attrs["precision"] == "64"
+    set_precision(32)
+    assert build_scene(cfg.task, jax.random.PRNGKey(0)).test_set["target"].dtype == jnp.float32
+
+
+def test_writer_appends_in_flushes_and_checks_columns(tmp_path):
+    writer = ResultsWriter(tmp_path / "results.h5", {"task": "poisson", "optim": "adam", "seed": 0})
+    for i in range(5):
+        writer.append("train", {"iteration": i, "wall_time": 0.1 * i, "loss": 1.0 / (i + 1), "grad_norm": 1.0})
+        if i == 2:
+            writer.flush()
+            assert read_run(tmp_path / "results.h5").train["iteration"].tolist() == [0, 1, 2]
+    with pytest.raises(ValueError, match="columns"):
+        writer.append("train", {"iteration": 5, "loss": 0.0})
+    writer.finish("interrupted", "SIGINT after 5 iterations")
+    run = read_run(tmp_path / "results.h5")
+    assert run.train["iteration"].tolist() == list(range(5))
+    assert (run.attrs["status"], run.attrs["reason"]) == ("interrupted", "SIGINT after 5 iterations")
+
+
+def test_reading_a_foreign_or_corrupt_file_says_so(tmp_path):
+    import h5py
+
+    with h5py.File(tmp_path / "foreign.h5", "w") as f:
+        f["x"] = [1, 2]
+    (tmp_path / "corrupt.h5").write_bytes(b"not hdf5 at all")
+    for name in ("foreign.h5", "corrupt.h5"):
+        with pytest.raises(ValueError, match=name):
+            read_run(tmp_path / name)
