@@ -29,7 +29,7 @@ def job(cfg: DictConfig) -> str:
             sys.exit(2)
         log.warning("%s skipped: %s", name, outcome.reason)
         return outcome.status
-    test = outcome.final_eval.get("loss")
+    test = outcome.final_eval.get("loss") if outcome.status == "completed" else None
     log.info("%s %s after %d iterations, %.1f s of training%s%s -> %s", name, outcome.status, outcome.iterations,
              outcome.train_seconds, f", test loss {test:.4g}" if test is not None else "",
              f" ({outcome.reason})" if outcome.reason else "", path)
