@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import logging
-import numbers
 from pathlib import Path
 
 import jax
@@ -15,52 +14,25 @@ from physgrad.optim import BACKPROP_MODES, CLIPPING, OPTIMS, build_rule
 from physgrad.results import ResultsWriter
 from physgrad.runner import Outcome, TrainerSettings, train
 from physgrad.tasks import build_scene, traits
-
-
-def _number(cfg, key: str, low=None, high=None, integer=False, optional=False, open_low=False):
-    value = OmegaConf.select(cfg, key)
-    if value is None and optional:
-        return None
-    kind = "a whole number" if integer else "a number"
-    ok = isinstance(value, numbers.Integral if integer else numbers.Real) and not isinstance(value, bool)
-    if ok and low is not None:
-        ok = value > low if open_low else value >= low
-    if ok and high is not None:
-        ok = value < high
-    if not ok:
-        bounds = []
-        if low is not None:
-            bounds.append(f"{'>' if open_low else '>='} {low}")
-        if high is not None:
-            bounds.append(f"< {high}")
-        extra = " or null" if optional else ""
-        raise UserError(f"{key}={value!r} is not allowed: use {kind} {' and '.join(bounds)}{extra}".rstrip())
-    return value
-
-
-def _choice(cfg, key: str, choices):
-    value = OmegaConf.select(cfg, key)
-    if value not in choices:
-        raise UserError(f"{key}={value!r} is not allowed: choose one of {', '.join(map(str, choices))}")
-    return value
+from physgrad.validate import choice, number
 
 
 def check_config(cfg: DictConfig) -> TrainerSettings:
     """Every key the run reads, validated; combinations the scene cannot use are refused with the reason."""
-    _choice(cfg, "precision", (32, 64))
-    _number(cfg, "seed", 0, integer=True)
-    optim = _choice(cfg, "optim.name", OPTIMS)
-    _number(cfg, "optim.lr", 0, open_low=True)
+    choice(cfg, "precision", (32, 64))
+    number(cfg, "seed", 0, integer=True)
+    optim = choice(cfg, "optim.name", OPTIMS)
+    number(cfg, "optim.lr", 0, open_low=True)
     if optim in ("hig", "gauss_newton"):
-        _number(cfg, "optim.tau", 0, 1)
-        _number(cfg, "optim.kappa")
+        number(cfg, "optim.tau", 0, 1)
+        number(cfg, "optim.kappa")
     if optim in ("adam", "bptt", "stable_bptt"):
-        _number(cfg, "optim.b1", 0, 1)
-        _number(cfg, "optim.b2", 0, 1)
-        _number(cfg, "optim.eps", 0, open_low=True)
+        number(cfg, "optim.b1", 0, 1)
+        number(cfg, "optim.b2", 0, 1)
+        number(cfg, "optim.eps", 0, open_low=True)
     if optim in ("bptt", "stable_bptt"):
-        _choice(cfg, "optim.clip", CLIPPING)
-        _choice(cfg, "optim.backprop", BACKPROP_MODES)
+        choice(cfg, "optim.clip", CLIPPING)
+        choice(cfg, "optim.backprop", BACKPROP_MODES)
 
     scene_traits = traits(cfg.task)
     task = cfg.task.name
@@ -72,14 +44,14 @@ def check_config(cfg: DictConfig) -> TrainerSettings:
         raise UserError(f"optim={optim} needs a closed-loop controller in time, and task={task} {why}: "
                         "use adam, gd, gauss_newton or hig")
     if scene_traits.time_axis and cfg.get("unroll") is not None:
-        _number(cfg, "unroll", 1, integer=True)
+        number(cfg, "unroll", 1, integer=True)
 
     return TrainerSettings(
-        iterations=_number(cfg, "trainer.iterations", 1, integer=True),
-        time_budget=_number(cfg, "trainer.time_budget", 0, optional=True, open_low=True),
-        eval_every=_number(cfg, "trainer.eval_every", 1, integer=True),
-        batch_size=_number(cfg, "trainer.batch_size", 1, integer=True),
-        flush_seconds=_number(cfg, "trainer.flush_seconds", 0, open_low=True),
+        iterations=number(cfg, "trainer.iterations", 1, integer=True),
+        time_budget=number(cfg, "trainer.time_budget", 0, optional=True, open_low=True),
+        eval_every=number(cfg, "trainer.eval_every", 1, integer=True),
+        batch_size=number(cfg, "trainer.batch_size", 1, integer=True),
+        flush_seconds=number(cfg, "trainer.flush_seconds", 0, open_low=True),
     )
 
 
@@ -88,19 +60,20 @@ def set_precision(bits: int) -> None:
     jax.config.update("jax_enable_x64", bits == 64)
 
 
-def run_attributes(cfg: DictConfig) -> dict:
+def run_attributes(cfg: DictConfig, unroll: int | None = None) -> dict:
+    """Root attributes of results.h5; unroll is the effective number of time steps (temporal scenes only)."""
     attrs = {
         "task": cfg.task.name,
         "optim": cfg.optim.name,
         "variant": cfg.optim.name,
-        "seed": int(cfg.seed) if isinstance(cfg.seed, int) else str(cfg.seed),
+        "seed": cfg.seed if isinstance(cfg.seed, int) else str(cfg.seed),
         "precision": str(cfg.precision),
         "config": OmegaConf.to_yaml(cfg, resolve=True),
         "physgrad_version": physgrad.__version__,
         "jax_version": jax.__version__,
     }
-    if cfg.get("unroll") is not None:
-        attrs["unroll"] = cfg.unroll
+    if unroll is not None:
+        attrs["unroll"] = unroll
     return attrs
 
 
@@ -109,18 +82,21 @@ def run_experiment(cfg: DictConfig, out_dir: str | Path) -> tuple[Outcome, Path]
     path = Path(out_dir) / "results.h5"
     try:
         settings = check_config(cfg)
+        set_precision(cfg.precision)
+        logging.getLogger("jax").setLevel(logging.WARNING)
+        data_key, init_key, train_key = jax.random.split(jax.random.PRNGKey(cfg.seed), 3)
+        scene = build_scene(cfg.task, data_key, cfg.get("unroll"))
+        if scene.train_size is not None and settings.batch_size > scene.train_size:
+            raise UserError(f"trainer.batch_size={settings.batch_size} is larger than the training set: use at most "
+                            f"{scene.train_size} (task.train_size)")
+        rule = build_rule(cfg.optim)
     except UserError as error:
-        ResultsWriter(path, run_attributes(cfg)).finish("refused", str(error))
+        ResultsWriter(path, run_attributes(cfg, cfg.get("unroll"))).finish("refused", str(error))
         return Outcome("refused", str(error), 0, 0.0, {}), path
 
-    set_precision(cfg.precision)
-    logging.getLogger("jax").setLevel(logging.WARNING)
-    data_key, init_key, train_key = jax.random.split(jax.random.PRNGKey(cfg.seed), 3)
-    scene = build_scene(cfg.task, data_key)
-    rule = build_rule(cfg.optim)
     params = scene.init_params(init_key)
     writer = ResultsWriter(path, {
-        **run_attributes(cfg),
+        **run_attributes(cfg, scene.steps),
         "batch_size": settings.batch_size,
         "n_params": sum(leaf.size for leaf in jax.tree_util.tree_leaves(params)),
         "device": str(jax.devices()[0].device_kind),

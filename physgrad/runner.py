@@ -14,6 +14,7 @@ from contextlib import contextmanager
 from dataclasses import dataclass
 
 import jax
+import jax.numpy as jnp
 import numpy as np
 import optax
 from tqdm import tqdm
@@ -21,6 +22,7 @@ from tqdm import tqdm
 from physgrad.optim import UpdateRule
 from physgrad.results import ResultsWriter
 from physgrad.tasks import Scene
+from physgrad.unroll import MODES, PHYSICS_ONLY, combine_signs
 
 
 @dataclass(frozen=True)
@@ -45,21 +47,50 @@ def make_step(scene: Scene, rule: UpdateRule, batch_size: int, train_key):
     """(params, opt_state, iteration) -> (params, opt_state, logs); the minibatch is drawn inside from
     fold_in(train_key, iteration), so every variant with the same seed and batch size sees the same batches.
 
-    The gradient is the pullback of g = dL/dy through y = batch_output(params): one forward, one backward.
+    The gradient is the pullback of g = dL/dy through y = batch output: one forward, one backward. The BPTT
+    modes M and S take it through the scene's output with those gradient stops; C takes R and M and keeps
+    g_M where the signs agree (and logs cos(g_M, g_R) and the fraction of components it zeroes).
     Rules on the Jacobian route receive the per-sample output function, the batch and g as extra arguments.
     """
 
+    def value_and_grads(params, batch, sample_output):
+        y, pullback = jax.vjp(lambda p: jax.vmap(sample_output, in_axes=(None, 0))(p, batch), params)
+        loss, output_grad = jax.value_and_grad(scene.batch_loss)(y, batch)
+        return loss, output_grad, pullback(output_grad)[0]
+
     def step(params, opt_state, iteration):
         batch = scene.sample_train(jax.random.fold_in(train_key, iteration), batch_size)
-        y, pullback = jax.vjp(lambda p: scene.batch_output(p, batch), params)
-        loss, output_grad = jax.value_and_grad(scene.batch_loss)(y, batch)
-        (grads,) = pullback(output_grad)
+        logs = {}
+        if rule.backprop == "C":
+            loss, output_grad, g_regular = value_and_grads(params, batch, scene.sample_output)
+            _, _, g_physics = value_and_grads(params, batch, scene.backprop_output(PHYSICS_ONLY))
+            grads = combine_signs(g_physics, g_regular)
+            logs["cos_physics_regular"] = tree_cosine(g_physics, g_regular)
+            logs["zeroed_fraction"] = sign_disagreement(g_physics, g_regular)
+        else:
+            output = scene.sample_output if rule.backprop in (None, "R") else scene.backprop_output(
+                MODES[rule.backprop])
+            loss, output_grad, grads = value_and_grads(params, batch, output)
         extra = {"sample_output": scene.sample_output, "batch": batch, "output_grad": output_grad}
         updates, opt_state = rule.transform.update(grads, opt_state, params, **(extra if rule.uses_jacobian else {}))
-        logs = {"loss": loss, "grad_norm": optax.tree.norm(grads), "update_norm": optax.tree.norm(updates)}
+        logs = {"loss": loss, "grad_norm": optax.tree.norm(grads), "update_norm": optax.tree.norm(updates), **logs}
         return optax.apply_updates(params, updates), opt_state, logs
 
     return step
+
+
+def tree_cosine(a, b) -> jax.Array:
+    """<a, b> / (|a| |b|) over whole pytrees; 0 where either is the zero vector (the angle is undefined)."""
+    dot = sum(jnp.vdot(x, y) for x, y in zip(jax.tree_util.tree_leaves(a), jax.tree_util.tree_leaves(b)))
+    norms = optax.tree.norm(a) * optax.tree.norm(b)
+    return jnp.where(norms > 0, dot / jnp.where(norms > 0, norms, 1.0), 0.0)
+
+
+def sign_disagreement(a, b) -> jax.Array:
+    """Fraction of components where sign(a) != sign(b): the ones the combined gradient sets to zero."""
+    leaves = zip(jax.tree_util.tree_leaves(a), jax.tree_util.tree_leaves(b))
+    differ = sum(jnp.sum(jnp.sign(x) != jnp.sign(y)) for x, y in leaves)
+    return differ / sum(x.size for x in jax.tree_util.tree_leaves(a))
 
 
 @contextmanager

@@ -2,7 +2,8 @@
 
 A scene module provides
 - ``traits(task_cfg) -> Traits``: cheap, static facts the runner uses to refuse combinations that do not apply;
-- ``build(task_cfg, key) -> Scene``: data, network and differentiable physics, all seeded from ``key``.
+- ``build(task_cfg, key, unroll=None) -> Scene``: data, network and differentiable physics, all seeded from
+  ``key``; ``unroll`` (temporal scenes only) replaces the scene's reference number of time steps.
 """
 
 from __future__ import annotations
@@ -16,7 +17,7 @@ import jax.numpy as jnp
 
 from physgrad import UserError
 
-TASK_MODULES = {"poisson": "physgrad.tasks.poisson"}
+TASK_MODULES = {"oscillator": "physgrad.tasks.oscillator", "poisson": "physgrad.tasks.poisson"}
 
 
 @dataclass(frozen=True)
@@ -35,7 +36,10 @@ class Scene:
     sample_output(params, sample) -> y: the physical output of one sample (a flat vector of k components);
     sample_loss(y, sample) -> scalar: the per-sample loss L_i(y); the batch loss is their MEAN;
     sample_metrics(params, sample) -> {name: scalar}: extra held-out metrics, averaged over the test set;
-    sample_train(key, batch_size) -> batch: a training minibatch (pytree with a leading batch axis).
+    sample_train(key, batch_size) -> batch: a training minibatch (pytree with a leading batch axis);
+    backprop_output(Backprop) -> sample_output with the gradient stops of that BPTT mode (temporal scenes);
+    steps: the number of time steps of a temporal scene (None without a time axis);
+    train_size: the size of a fixed training set (None when every batch is drawn fresh).
     """
 
     name: str
@@ -46,6 +50,9 @@ class Scene:
     sample_output: Callable[[Any, Any], jax.Array]
     sample_loss: Callable[[jax.Array, Any], jax.Array]
     sample_metrics: Callable[[Any, Any], dict] = field(default=lambda params, sample: {})
+    backprop_output: Callable[[Any], Callable] | None = None
+    steps: int | None = None
+    train_size: int | None = None
 
     def batch_output(self, params, batch) -> jax.Array:
         """y for a batch: shape (batch, k), sample major."""
@@ -72,5 +79,5 @@ def traits(task_cfg) -> Traits:
     return task_module(task_cfg.name).traits(task_cfg)
 
 
-def build_scene(task_cfg, key) -> Scene:
-    return task_module(task_cfg.name).build(task_cfg, key)
+def build_scene(task_cfg, key, unroll: int | None = None) -> Scene:
+    return task_module(task_cfg.name).build(task_cfg, key, unroll)

@@ -59,7 +59,7 @@ def smooth_fields(key, count: int, n: int, smoothness: float, dtype) -> jax.Arra
     return field / field.std(axis=(-2, -1), keepdims=True)
 
 
-def build(task_cfg, key) -> Scene:
+def build(task_cfg, key, unroll: int | None = None) -> Scene:
     n = int(task_cfg.grid)
     if n < 2:
         raise UserError(f"task.grid={n} is too small: use a grid of at least 2 cells per side (reference 8)")

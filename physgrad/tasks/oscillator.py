@@ -1,0 +1,106 @@
+"""Coupled nonlinear oscillators (HIG paper): bring a chain of oscillators back to where it started.
+
+State x = [q_1..q_n, p_1..p_n];  dq_i/dt = p_i,
+    dp_i/dt = -q_i + alpha [(q_{i+1} - q_i)^3 + (q_{i-1} - q_i)^3] + gain * u(t) * [i == n]
+(free ends: a missing neighbour contributes 0), the Hamiltonian system of
+    H = sum_i (q_i^2 + p_i^2) / 2 + alpha sum_i (q_i - q_{i+1})^4 / 4
+plus the control on the last oscillator. Classic RK4 with u held over each step.
+Per-sample loss: sum_j (x_j(T) - x0_j)^2, with x0 ~ U[0,1)^(2n) the start and the target.
+"""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+
+from physgrad import UserError
+from physgrad.nets import apply_mlp, init_mlp
+from physgrad.tasks import Scene, Traits
+from physgrad.unroll import REGULAR, Backprop, rollout
+from physgrad.validate import number
+
+CONTROLLERS = {"open": "open", "feedback": "closed"}
+
+
+def traits(task_cfg) -> Traits:
+    if task_cfg.controller not in CONTROLLERS:
+        raise UserError(f"task.controller={task_cfg.controller!r} is not allowed: choose one of open, feedback")
+    return Traits(time_axis=True, controller=CONTROLLERS[task_cfg.controller])
+
+
+def vector_field(x, u, alpha, gain):
+    """dx/dt for one state x = [q, p] and a scalar control u."""
+    q, p = jnp.split(x, 2)
+    zero = jnp.zeros_like(q[:1])
+    to_right = jnp.concatenate([q[1:] - q[:-1], zero])  # q_{i+1} - q_i
+    to_left = jnp.concatenate([zero, q[:-1] - q[1:]])   # q_{i-1} - q_i
+    drive = jnp.zeros_like(q).at[-1].set(gain * u)
+    return jnp.concatenate([p, -q + alpha * (to_right ** 3 + to_left ** 3) + drive])
+
+
+def energy(x, alpha):
+    """H(q, p) without the control term."""
+    q, p = jnp.split(x, 2)
+    return 0.5 * jnp.sum(q ** 2 + p ** 2) + 0.25 * alpha * jnp.sum((q[:-1] - q[1:]) ** 4)
+
+
+def rk4_step(x, u, dt, alpha, gain):
+    """One classic Runge-Kutta step of size dt with u constant over the step."""
+    k1 = vector_field(x, u, alpha, gain)
+    k2 = vector_field(x + 0.5 * dt * k1, u, alpha, gain)
+    k3 = vector_field(x + 0.5 * dt * k2, u, alpha, gain)
+    k4 = vector_field(x + dt * k3, u, alpha, gain)
+    return x + dt / 6.0 * (k1 + 2.0 * k2 + 2.0 * k3 + k4)
+
+
+def build(task_cfg, key, unroll: int | None = None) -> Scene:
+    n = number(task_cfg, "oscillators", 1, integer=True, prefix="task")
+    steps = unroll if unroll is not None else number(task_cfg, "steps", 1, integer=True, prefix="task")
+    dt = number(task_cfg, "dt", 0, open_low=True, prefix="task")
+    alpha, gain = number(task_cfg, "alpha", prefix="task"), number(task_cfg, "gain", prefix="task")
+    train_size = number(task_cfg, "train_size", 1, integer=True, prefix="task")
+    test_size = number(task_cfg, "test_size", 1, integer=True, prefix="task")
+    feedback = traits(task_cfg).controller == "closed"
+    dtype = jnp.zeros(()).dtype
+    hidden = list(task_cfg.hidden)
+    # open loop: target -> every control at once; feedback: (state, target) -> the control of this step
+    sizes = [4 * n, *hidden, 1] if feedback else [2 * n, *hidden, steps]
+
+    def step(x, u):
+        return rk4_step(x, u, dt, alpha, gain)
+
+    def output_for(backprop: Backprop):
+        def sample_output(params, sample):
+            target = sample["x0"]
+            if feedback:
+                def policy(x, k):
+                    return apply_mlp(params, jnp.concatenate([x, target]), hidden="relu")[0]
+            else:
+                controls = apply_mlp(params, target, hidden="relu")
+
+                def policy(x, k):
+                    return controls[k]
+            final, _ = rollout(step, policy, sample["x0"], steps, backprop, checkpoint=bool(task_cfg.checkpoint))
+            return final
+
+        return sample_output
+
+    train_key, test_key = jax.random.split(key)
+    train_x0 = jax.random.uniform(train_key, (train_size, 2 * n), dtype)
+    test_x0 = jax.random.uniform(test_key, (test_size, 2 * n), dtype)
+
+    def sample_train(k, batch_size):
+        return {"x0": train_x0[jax.random.choice(k, train_x0.shape[0], (batch_size,), replace=False)]}
+
+    return Scene(
+        name="oscillator",
+        traits=traits(task_cfg),
+        init_params=lambda k: init_mlp(k, sizes, dtype),
+        sample_train=sample_train,
+        test_set={"x0": test_x0},
+        sample_output=output_for(REGULAR),
+        sample_loss=lambda y, sample: jnp.sum((y - sample["x0"]) ** 2),
+        backprop_output=output_for,
+        steps=steps,
+        train_size=train_size,
+    )
