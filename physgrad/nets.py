@@ -35,3 +35,32 @@ def apply_mlp(layers, x, hidden: str, output: str = "linear"):
 
 def count_params(tree) -> int:
     return sum(leaf.size for leaf in jax.tree_util.tree_leaves(tree))
+
+
+def init_control_cnn(key, points: int, dtype, filters: int = 60):
+    """The StableBPTT paper's quantum controller: psi as an (N, 2) image of (Re, Im) ->
+    conv2d 60 filters k=(3, 2) stride 2 tanh -> conv1d 60 k=3 stride 2 tanh -> dense 1 (valid padding).
+    11,701 parameters at N = 32. Glorot-uniform kernels with Keras' fans (kernel size times channels)."""
+    k1, k2, k3 = jax.random.split(key, 3)
+    length = ((points - 3) // 2 + 1 - 3) // 2 + 1
+
+    def glorot(k, shape, fan_in, fan_out):
+        limit = (6.0 / (fan_in + fan_out)) ** 0.5
+        return jax.random.uniform(k, shape, dtype, -limit, limit)
+
+    return {
+        "conv1": {"w": glorot(k1, (3, 2, 1, filters), 6, 6 * filters), "b": jnp.zeros((filters,), dtype)},
+        "conv2": {"w": glorot(k2, (3, filters, filters), 3 * filters, 3 * filters), "b": jnp.zeros((filters,), dtype)},
+        "dense": {"w": glorot(k3, (length * filters, 1), length * filters, 1), "b": jnp.zeros((1,), dtype)},
+    }
+
+
+def apply_control_cnn(params, image):
+    """image: (N, 2) real array -> scalar control."""
+    x = jax.lax.conv_general_dilated(image[None, :, :, None], params["conv1"]["w"], (2, 1), "VALID",
+                                     dimension_numbers=("NHWC", "HWIO", "NHWC"))
+    x = jnp.tanh(x[0, :, 0, :] + params["conv1"]["b"])  # (L1, filters)
+    x = jax.lax.conv_general_dilated(x[None], params["conv2"]["w"], (2,), "VALID",
+                                     dimension_numbers=("NWC", "WIO", "NWC"))
+    x = jnp.tanh(x[0] + params["conv2"]["b"])  # (L2, filters)
+    return (x.reshape(-1) @ params["dense"]["w"] + params["dense"]["b"])[0]

@@ -16,9 +16,12 @@ SMALL = {
     "poisson": ["task.grid=4", "task.test_size=8", "trainer.batch_size=4"],
     # the reference horizon: on very short ones (unroll=24) Gauss-Newton's first step blows the physics up
     "oscillator": ["task.train_size=64", "task.test_size=8", "trainer.batch_size=16"],
+    "quantum": ["task.train_size=32", "task.test_size=8", "trainer.batch_size=8", "unroll=64"],
+    "quantum_control": ["task.train_size=16", "task.test_size=8", "trainer.batch_size=4", "unroll=32"],
 }
 # every scene as configured by default, plus the settings that change which variants apply
-SCENES = [(task, []) for task in TASKS] + [("oscillator", ["task.controller=feedback"])]
+SCENES = [(task, []) for task in TASKS] + [("oscillator", ["task.controller=feedback"]),
+                                          ("quantum", ["task.controller=feedback"])]
 
 
 def load(*overrides):
@@ -27,7 +30,7 @@ def load(*overrides):
 
 
 def test_every_task_and_optim_has_a_config():
-    assert set(TASKS) >= {"poisson", "oscillator"} and set(SMALL) == set(TASKS)
+    assert set(TASKS) >= {"poisson", "oscillator", "quantum", "quantum_control"} and set(SMALL) == set(TASKS)
     assert set(OPTIMS) == {"adam", "gd", "gauss_newton", "hig", "bptt", "stable_bptt"}
 
 
@@ -60,6 +63,12 @@ def test_per_scene_variant_settings_come_from_config():
     assert (osc["adam"].optim.lr, osc["adam"].trainer.batch_size) == (3e-4, 512)
     assert (osc["hig"].optim.lr, osc["hig"].optim.tau, osc["hig"].trainer.batch_size) == (1.0, 1e-6, 128)
     assert (osc["gauss_newton"].optim.lr, osc["gauss_newton"].trainer.batch_size) == (1.0, 128)
+    quantum = {o: load("task=quantum", f"optim={o}") for o in ("adam", "hig")}
+    assert (quantum["adam"].optim.lr, quantum["adam"].trainer.batch_size) == (5e-4, 256)
+    assert (quantum["hig"].optim.lr, quantum["hig"].optim.tau, quantum["hig"].trainer.batch_size) == (0.5, 1e-5, 16)
+    for optim in ("adam", "bptt", "stable_bptt"):
+        control = load("task=quantum_control", f"optim={optim}")
+        assert (control.optim.lr, control.trainer.batch_size, control.task.steps) == (1e-3, 8, 128)
     assert load("optim=adam").optim.lr == 3e-4
     hig = load("optim=hig")
     assert (hig.optim.lr, hig.optim.tau, hig.optim.kappa, hig.trainer.batch_size) == (0.64, 1e-5, 0.5, 64)

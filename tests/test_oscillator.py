@@ -10,6 +10,7 @@ from physgrad.nets import apply_mlp
 from physgrad.tasks import build_scene
 from physgrad.tasks.oscillator import energy, rk4_step
 from physgrad.unroll import MODES, PHYSICS_ONLY, REGULAR, STOPPED, combine_signs, rollout
+from tests.reference import check_gradient, forward_states, loop_states
 from tests.test_configs import load
 
 
@@ -78,29 +79,6 @@ def test_unroll_sets_the_horizon_and_the_open_loop_output_size():
 
 # ---- the unroll combinator against a plain Python loop and finite differences (float64) ----
 
-def loop_output(params, x0, steps, feedback, backprop, frozen):
-    """Plain-loop reference: the stopped inputs of a mode are the forward states `frozen`, held constant."""
-    controls = None if feedback else apply_mlp(params, x0, hidden="relu")
-    x = x0
-    for k in range(steps):
-        policy_input = frozen[k] if backprop.stop_policy_input else x
-        physics_input = frozen[k] if backprop.stop_physics_input else x
-        u = apply_mlp(params, jnp.concatenate([policy_input, x0]), hidden="relu")[0] if feedback else controls[k]
-        x = rk4_step(physics_input, u, 0.125, 1.0, 3.0)
-    return x
-
-
-def forward_states(params, x0, steps, feedback):
-    """x_0..x_{steps-1} of the forward pass (the same values in every mode)."""
-    x, frozen = x0, []
-    controls = None if feedback else apply_mlp(params, x0, hidden="relu")
-    for k in range(steps):
-        frozen.append(x)
-        u = apply_mlp(params, jnp.concatenate([x, x0]), hidden="relu")[0] if feedback else controls[k]
-        x = rk4_step(x, u, 0.125, 1.0, 3.0)
-    return [jax.lax.stop_gradient(s) for s in frozen]
-
-
 @pytest.mark.parametrize("mode", ["R", "M", "S"])
 @pytest.mark.parametrize("controller", ["open", "feedback"])
 def test_scan_matches_loop_and_finite_differences(x64, controller, mode):
@@ -108,31 +86,27 @@ def test_scan_matches_loop_and_finite_differences(x64, controller, mode):
     cfg = load("task=oscillator", f"task.controller={controller}", "task.train_size=4", "task.test_size=4")
     scene = build_scene(cfg.task, jax.random.PRNGKey(3), steps)
     params = scene.init_params(jax.random.PRNGKey(4))
-    # a smooth, well-scaled point: ReLU kinks are avoided by finite differences of size 1e-6 in practice
     sample = {"x0": jax.random.uniform(jax.random.PRNGKey(5), (4,))}
-    feedback = controller == "feedback"
-    backprop = MODES[mode]
-    frozen = forward_states(params, sample["x0"], steps, feedback)
+    x0 = sample["x0"]
 
-    def scan_loss(p):
-        return scene.sample_loss(scene.backprop_output(backprop)(p, sample), sample)
+    def step(x, u):
+        return rk4_step(x, u, 0.125, 1.0, 3.0)
+
+    def policy_of(p):
+        if controller == "feedback":
+            return lambda x, k: apply_mlp(p, jnp.concatenate([x, x0]), hidden="relu")[0]
+        controls = apply_mlp(p, x0, hidden="relu")
+        return lambda x, k: controls[k]
+
+    frozen = forward_states(step, policy_of(params), x0, steps)
 
     def loop_loss(p):
-        return scene.sample_loss(loop_output(p, sample["x0"], steps, feedback, backprop, frozen), sample)
+        return scene.sample_loss(loop_states(step, policy_of(p), x0, steps, MODES[mode], frozen)[-1], sample)
 
-    np.testing.assert_allclose(scan_loss(params), loop_loss(params), rtol=1e-12)
-    g_scan, g_loop = jax.grad(scan_loss)(params), jax.grad(loop_loss)(params)
-    for a, b in zip(jax.tree_util.tree_leaves(g_scan), jax.tree_util.tree_leaves(g_loop)):
-        np.testing.assert_allclose(a, b, rtol=1e-9, atol=1e-12)
+    def scan_loss(p):
+        return scene.sample_loss(scene.backprop_output(MODES[mode])(p, sample), sample)
 
-    flat_grad = jax.flatten_util.ravel_pytree(g_scan)[0]
-    flat, unravel = jax.flatten_util.ravel_pytree(params)
-    for i in range(3):
-        direction = jax.random.normal(jax.random.PRNGKey(10 + i), flat.shape)
-        direction = direction / jnp.linalg.norm(direction)
-        eps = 1e-6
-        central = (loop_loss(unravel(flat + eps * direction)) - loop_loss(unravel(flat - eps * direction))) / (2 * eps)
-        np.testing.assert_allclose(central, flat_grad @ direction, rtol=1e-5, atol=1e-9)
+    check_gradient(loop_loss, scan_loss, params)
 
 
 def test_modes_on_a_linear_system_by_hand(x64):
@@ -163,6 +137,22 @@ def test_combined_gradient_takes_physics_gradient_where_signs_agree():
     np.testing.assert_array_equal(combined["w"], [1.0, 0.0, 3.0, 0.0, 0.0, -0.5])
     np.testing.assert_array_equal(combined["b"], [0.0])
     assert PHYSICS_ONLY == MODES["M"] and STOPPED == MODES["S"]
+
+
+def test_checkpointed_rollout_gives_the_same_loss_and_gradient(x64):
+    small = ["task=oscillator", "task.train_size=8", "task.test_size=8", "task.controller=feedback"]
+    plain = build_scene(load(*small).task, jax.random.PRNGKey(0), 32)
+    remat = build_scene(load(*small, "task.checkpoint=true").task, jax.random.PRNGKey(0), 32)
+    params = plain.init_params(jax.random.PRNGKey(1))
+
+    def loss_and_grad(scene):
+        return jax.value_and_grad(lambda p: scene.batch_loss(scene.batch_output(p, scene.test_set), scene.test_set))(
+            params)
+
+    (loss, grads), (loss_remat, grads_remat) = loss_and_grad(plain), loss_and_grad(remat)
+    np.testing.assert_allclose(loss_remat, loss, rtol=1e-13)
+    for a, b in zip(jax.tree_util.tree_leaves(grads), jax.tree_util.tree_leaves(grads_remat)):
+        np.testing.assert_allclose(b, a, rtol=1e-10, atol=1e-14)
 
 
 def test_long_unroll_runs_for_adam(tmp_path):

@@ -99,3 +99,27 @@ def test_reading_a_foreign_or_corrupt_file_says_so(tmp_path):
     for name in ("foreign.h5", "corrupt.h5"):
         with pytest.raises(ValueError, match=name):
             read_run(tmp_path / name)
+
+
+def test_no_recompilation_after_the_first_iteration(tmp_path):
+    """The step and the evaluation compile once per run, however many iterations follow."""
+    compiles = []
+
+    def listener(name, duration, **kwargs):
+        if name.endswith("backend_compile_duration"):
+            compiles.append(name)
+
+    overrides = ["task=oscillator", "task.controller=feedback", "optim=stable_bptt", "task.train_size=64",
+                 "task.test_size=8", "trainer.batch_size=8", "unroll=16", "trainer.eval_every=4"]
+    jax.monitoring.register_event_duration_secs_listener(listener)
+    try:
+        counts = []
+        for iterations in (1, 1, 25):  # the first run also warms the caches of eager set-up operations
+            compiles.clear()
+            outcome, _ = run_experiment(load(*overrides, f"trainer.iterations={iterations}"), tmp_path / str(len(counts)))
+            assert outcome.status == "completed"
+            counts.append(len(compiles))
+    finally:
+        jax.monitoring.unregister_event_duration_listener(listener)
+    assert counts[1] >= 2, counts  # at least the step and the evaluation
+    assert counts[2] == counts[1], counts

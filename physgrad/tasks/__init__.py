@@ -17,7 +17,12 @@ import jax.numpy as jnp
 
 from physgrad import UserError
 
-TASK_MODULES = {"oscillator": "physgrad.tasks.oscillator", "poisson": "physgrad.tasks.poisson"}
+TASK_MODULES = {
+    "oscillator": "physgrad.tasks.oscillator",
+    "poisson": "physgrad.tasks.poisson",
+    "quantum": "physgrad.tasks.quantum",
+    "quantum_control": "physgrad.tasks.quantum",  # the StableBPTT preset of the same scene
+}
 
 
 @dataclass(frozen=True)
@@ -35,7 +40,8 @@ class Scene:
 
     sample_output(params, sample) -> y: the physical output of one sample (a flat vector of k components);
     sample_loss(y, sample) -> scalar: the per-sample loss L_i(y); the batch loss is their MEAN;
-    sample_metrics(params, sample) -> {name: scalar}: extra held-out metrics, averaged over the test set;
+    sample_metrics(params, sample, y) -> {name: scalar}: extra held-out metrics (y = sample_output), averaged
+    over the test set;
     sample_train(key, batch_size) -> batch: a training minibatch (pytree with a leading batch axis);
     backprop_output(Backprop) -> sample_output with the gradient stops of that BPTT mode (temporal scenes);
     steps: the number of time steps of a temporal scene (None without a time axis);
@@ -49,7 +55,7 @@ class Scene:
     test_set: Any
     sample_output: Callable[[Any, Any], jax.Array]
     sample_loss: Callable[[jax.Array, Any], jax.Array]
-    sample_metrics: Callable[[Any, Any], dict] = field(default=lambda params, sample: {})
+    sample_metrics: Callable[[Any, Any, jax.Array], dict] = field(default=lambda params, sample, y: {})
     backprop_output: Callable[[Any], Callable] | None = None
     steps: int | None = None
     train_size: int | None = None
@@ -65,7 +71,7 @@ class Scene:
     def evaluate(self, params, batch) -> dict:
         """Held-out loss and scene metrics, each a mean over the samples of ``batch``."""
         y = self.batch_output(params, batch)
-        metrics = jax.vmap(self.sample_metrics, in_axes=(None, 0))(params, batch)
+        metrics = jax.vmap(self.sample_metrics, in_axes=(None, 0, 0))(params, batch, y)
         return {"loss": self.batch_loss(y, batch), **{k: jnp.mean(v) for k, v in metrics.items()}}
 
 

@@ -80,7 +80,7 @@ def build(task_cfg, key, unroll: int | None = None) -> Scene:
     def sample_loss(y, sample):
         return 0.5 * jnp.sum((y - sample["target"]) ** 2)
 
-    def sample_metrics(params, sample):
+    def sample_metrics(params, sample, y):
         return {"field_error": jnp.mean(jnp.abs(predict(params, sample) - sample["field"]))}
 
     return Scene(
