@@ -16,6 +16,7 @@ SMALL = {
     "poisson": ["task.grid=4", "task.test_size=8", "trainer.batch_size=4"],
     # the reference horizon: on very short ones (unroll=24) Gauss-Newton's first step blows the physics up
     "oscillator": ["task.train_size=64", "task.test_size=8", "trainer.batch_size=16"],
+    "multicart": ["task.poles=2", "task.train_size=16", "task.test_size=8", "unroll=20"],
     "quantum": ["task.train_size=32", "task.test_size=8", "trainer.batch_size=8", "unroll=64"],
     "quantum_control": ["task.train_size=16", "task.test_size=8", "trainer.batch_size=4", "unroll=32"],
 }
@@ -30,7 +31,7 @@ def load(*overrides):
 
 
 def test_every_task_and_optim_has_a_config():
-    assert set(TASKS) >= {"poisson", "oscillator", "quantum", "quantum_control"} and set(SMALL) == set(TASKS)
+    assert set(TASKS) >= {"poisson", "oscillator", "quantum", "quantum_control", "multicart"} and set(SMALL) == set(TASKS)
     assert set(OPTIMS) == {"adam", "gd", "gauss_newton", "hig", "bptt", "stable_bptt"}
 
 

@@ -19,6 +19,7 @@ from physgrad import UserError
 
 TASK_MODULES = {
     "oscillator": "physgrad.tasks.oscillator",
+    "multicart": "physgrad.tasks.multicart",
     "poisson": "physgrad.tasks.poisson",
     "quantum": "physgrad.tasks.quantum",
     "quantum_control": "physgrad.tasks.quantum",  # the StableBPTT preset of the same scene

@@ -1,0 +1,94 @@
+"""Multi-pole cart-pole swing-up (StableBPTT paper): n poles on one cart, one shared force F.
+
+theta = 0 is upright. With g = 9.8, pole mass m = 0.1, total mass M = 1.1 (not scaled with n), half length l:
+    A_i = (F + m l thetadot_i^2 sin theta_i) / M
+    thetaddot_i = (g sin theta_i - cos theta_i A_i) / (l (4/3 - m cos^2 theta_i / M))
+    xddot = (F + m l sum_i (thetadot_i^2 sin theta_i - thetaddot_i cos theta_i)) / M
+Semi-implicit Euler: velocities first, then positions with the new velocities.
+State: [x, theta_1..theta_n, xdot, thetadot_1..thetadot_n]. Loss: 1 - mean_i cos theta_i at the final step.
+"""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+
+from physgrad.nets import apply_mlp, init_mlp
+from physgrad.tasks import Scene, Traits
+from physgrad.unroll import REGULAR, Backprop, rollout
+from physgrad.validate import number
+
+GRAVITY, POLE_MASS, TOTAL_MASS = 9.8, 0.1, 1.1
+
+
+def traits(task_cfg) -> Traits:
+    return Traits(time_axis=True, controller="closed")
+
+
+def accelerations(theta, theta_dot, force, half_length):
+    """(xddot, thetaddot) of the equations above."""
+    sin, cos = jnp.sin(theta), jnp.cos(theta)
+    a = (force + POLE_MASS * half_length * theta_dot ** 2 * sin) / TOTAL_MASS
+    theta_ddot = (GRAVITY * sin - cos * a) / (half_length * (4.0 / 3.0 - POLE_MASS * cos ** 2 / TOTAL_MASS))
+    x_ddot = (force + POLE_MASS * half_length * jnp.sum(theta_dot ** 2 * sin - theta_ddot * cos)) / TOTAL_MASS
+    return x_ddot, theta_ddot
+
+
+def euler_step(state, force, dt, half_length):
+    """Semi-implicit Euler: v_{k+1} = v_k + dt a(q_k, v_k), q_{k+1} = q_k + dt v_{k+1}."""
+    half = state.shape[0] // 2
+    positions, velocities = state[:half], state[half:]
+    x_ddot, theta_ddot = accelerations(positions[1:], velocities[1:], force, half_length)
+    velocities = velocities + dt * jnp.concatenate([x_ddot[None], theta_ddot])
+    return jnp.concatenate([positions + dt * velocities, velocities])
+
+
+def build(task_cfg, key, unroll: int | None = None) -> Scene:
+    poles = number(task_cfg, "poles", 1, integer=True, prefix="task")
+    steps = unroll if unroll is not None else number(task_cfg, "steps", 1, integer=True, prefix="task")
+    dt = number(task_cfg, "dt", 0, open_low=True, prefix="task")
+    half_length = number(task_cfg, "half_length", 0, open_low=True, prefix="task")
+    train_size = number(task_cfg, "train_size", 1, integer=True, prefix="task")
+    test_size = number(task_cfg, "test_size", 1, integer=True, prefix="task")
+    dtype = jnp.zeros(()).dtype
+    sizes = [2 * (1 + poles), *list(task_cfg.hidden), 1]
+
+    def make_states(k, count):
+        """Hanging: theta_i = pi + U[-1, 1] pi/6; x, xdot and thetadot_i ~ U[-1, 1]."""
+        k_theta, k_rest = jax.random.split(k)
+        theta = jnp.pi + jax.random.uniform(k_theta, (count, poles), dtype, -1.0, 1.0) * jnp.pi / 6
+        rest = jax.random.uniform(k_rest, (count, 2 + poles), dtype, -1.0, 1.0)
+        return {"state": jnp.concatenate([rest[:, :1], theta, rest[:, 1:]], axis=1)}
+
+    def step(state, force):
+        return euler_step(state, force, dt, half_length)
+
+    def output_for(backprop: Backprop):
+        def sample_output(params, sample):
+            def policy(state, k):
+                return apply_mlp(params, state, hidden="tanh")[0]
+
+            final, _ = rollout(step, policy, sample["state"], steps, backprop, checkpoint=bool(task_cfg.checkpoint))
+            return jnp.cos(final[1:1 + poles])  # y: cos(theta_i) of every pole at the end
+
+        return sample_output
+
+    train_key, test_key = jax.random.split(key)
+    train_set = make_states(train_key, train_size)
+
+    def sample_train(k, batch_size):
+        return {"state": train_set["state"][jax.random.choice(k, train_size, (batch_size,), replace=False)]}
+
+    return Scene(
+        name="multicart",
+        traits=traits(task_cfg),
+        init_params=lambda k: init_mlp(k, sizes, dtype, zero_last=True),  # the initial force is exactly 0
+        sample_train=sample_train,
+        test_set=make_states(test_key, test_size),
+        sample_output=output_for(REGULAR),
+        sample_loss=lambda y, sample: 1.0 - jnp.mean(y),
+        sample_metrics=lambda params, sample, y: {"upright": jnp.mean(y > 0.9)},
+        backprop_output=output_for,
+        steps=steps,
+        train_size=train_size,
+    )
