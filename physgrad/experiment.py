@@ -60,12 +60,26 @@ def set_precision(bits: int) -> None:
     jax.config.update("jax_enable_x64", bits == 64)
 
 
+PRESET_BACKPROP = {"bptt": "R", "stable_bptt": "C"}
+
+
+def variant_label(optim_cfg) -> str:
+    """The optim name, plus the backprop mode and clipping where they differ from the preset's (so that a
+    report keeps `bptt` with mode M apart from plain `bptt`): e.g. bptt[M], stable_bptt[clip=norm]."""
+    name = optim_cfg.name
+    if name not in PRESET_BACKPROP:
+        return name
+    marks = [] if optim_cfg.backprop == PRESET_BACKPROP[name] else [str(optim_cfg.backprop)]
+    marks += [] if optim_cfg.clip == "none" else [f"clip={optim_cfg.clip}"]
+    return f"{name}[{','.join(marks)}]" if marks else name
+
+
 def run_attributes(cfg: DictConfig, unroll: int | None = None) -> dict:
     """Root attributes of results.h5; unroll is the effective number of time steps (temporal scenes only)."""
     attrs = {
         "task": cfg.task.name,
         "optim": cfg.optim.name,
-        "variant": cfg.optim.name,
+        "variant": variant_label(cfg.optim),
         "seed": cfg.seed if isinstance(cfg.seed, int) else str(cfg.seed),
         "precision": str(cfg.precision),
         "config": OmegaConf.to_yaml(cfg, resolve=True),

@@ -113,3 +113,16 @@ def test_bad_scene_settings_are_refused(tmp_path):
                                ("trainer.batch_size=10000", "at most 4096")]:
         outcome, _ = run_experiment(load("task=oscillator", override), tmp_path / override)
         assert outcome.status == "refused" and fragment in outcome.reason, (override, outcome.reason)
+
+
+def test_variant_labels_keep_bptt_modes_and_clipping_apart():
+    from physgrad.experiment import variant_label
+
+    def label(*overrides):
+        return variant_label(load("task=multicart", *overrides).optim)
+
+    assert label("optim=bptt") == "bptt" and label("optim=stable_bptt") == "stable_bptt"
+    assert label("optim=bptt", "optim.backprop=M") == "bptt[M]"
+    assert label("optim=stable_bptt", "optim.clip=norm") == "stable_bptt[clip=norm]"
+    assert label("optim=bptt", "optim.backprop=C", "optim.clip=value") == "bptt[C,clip=value]"
+    assert label("optim=hig") == "hig"
