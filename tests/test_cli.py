@@ -69,7 +69,7 @@ def test_hydra_flags_keep_working(tmp_path):
 
 
 @pytest.mark.parametrize("args, fragment", [
-    (["task=nope"], "unknown task 'nope': choose one of oscillator, poisson, quantum, quantum_control"),
+    (["task=nope"], "unknown task 'nope': choose one of multicart, oscillator, poisson, quantum, quantum_control"),
     (["optim=hgi"], "unknown optim 'hgi': choose one of adam, bptt, gauss_newton, gd, hig, stable_bptt"),
     (["trainer.iteratons=5"], "did you mean trainer.iterations?"),
     (["unroll=8"], "task=poisson has no time axis: remove unroll=8"),
