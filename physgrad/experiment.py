@@ -40,9 +40,10 @@ def check_config(cfg: DictConfig) -> TrainerSettings:
         raise UserError(f"task={task} has no time axis: remove unroll={cfg.unroll} "
                         "(unroll applies to temporal scenes only)")
     if optim in ("bptt", "stable_bptt") and scene_traits.controller != "closed":
-        why = "has no time axis" if not scene_traits.time_axis else "has an open-loop controller"
-        raise UserError(f"optim={optim} needs a closed-loop controller in time, and task={task} {why}: "
-                        "use adam, gd, gauss_newton or hig")
+        why = ("has no time axis" if not scene_traits.time_axis
+               else "has an open-loop controller: set task.controller=feedback, or")
+        raise UserError(f"optim={optim} needs a closed-loop controller in time, and task={task} {why}"
+                        f"{':' if not scene_traits.time_axis else ''} use adam, gd, gauss_newton or hig")
     if scene_traits.time_axis and cfg.get("unroll") is not None:
         number(cfg, "unroll", 1, integer=True)
 

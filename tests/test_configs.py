@@ -126,3 +126,8 @@ def test_variant_labels_keep_bptt_modes_and_clipping_apart():
     assert label("optim=stable_bptt", "optim.clip=norm") == "stable_bptt[clip=norm]"
     assert label("optim=bptt", "optim.backprop=C", "optim.clip=value") == "bptt[C,clip=value]"
     assert label("optim=hig") == "hig"
+
+
+def test_bptt_on_an_open_loop_controller_says_how_to_fix_it(tmp_path):
+    outcome, _ = run_experiment(load("task=oscillator", "optim=stable_bptt"), tmp_path)
+    assert outcome.status == "refused" and "set task.controller=feedback" in outcome.reason
