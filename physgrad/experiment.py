@@ -92,6 +92,13 @@ def run_attributes(cfg: DictConfig, unroll: int | None = None) -> dict:
     return attrs
 
 
+def _has_time_axis(cfg) -> bool:
+    try:
+        return traits(cfg.task).time_axis
+    except UserError:
+        return False
+
+
 def run_experiment(cfg: DictConfig, out_dir: str | Path) -> tuple[Outcome, Path]:
     """Run one job into out_dir/results.h5; a refused job leaves a file with status refused and the reason."""
     path = Path(out_dir) / "results.h5"
@@ -106,7 +113,8 @@ def run_experiment(cfg: DictConfig, out_dir: str | Path) -> tuple[Outcome, Path]
                             f"{scene.train_size} (task.train_size)")
         rule = build_rule(cfg.optim)
     except UserError as error:
-        ResultsWriter(path, run_attributes(cfg, cfg.get("unroll"))).finish("refused", str(error))
+        ResultsWriter(path, run_attributes(cfg, cfg.get("unroll") if _has_time_axis(cfg) else None)).finish(
+            "refused", str(error))
         return Outcome("refused", str(error), 0, 0.0, {}), path
 
     params = scene.init_params(init_key)

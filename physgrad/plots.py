@@ -44,16 +44,21 @@ def median_band(curves: list[tuple[np.ndarray, np.ndarray]], points: int = 200):
 
 
 def plot_comparison(runs: list[Run], path: str | Path, x_key: str = "wall_time") -> None:
-    """Held-out loss against training wall-clock (or iteration), one panel per task, one line per variant."""
+    """Held-out loss against training wall-clock (or iteration), one panel per scene (task and setting), one
+    line per variant."""
     by_task = defaultdict(lambda: defaultdict(list))
     for run in runs:
         loss = run.eval.get("loss")
         if loss is not None and loss.size and np.isfinite(loss).any():
             finite = np.isfinite(loss)
-            by_task[run.attrs.get("task", "?")][run.variant].append((run.eval[x_key][finite], loss[finite]))
+            by_task[run.scene][run.variant].append((run.eval[x_key][finite], loss[finite]))
     tasks = sorted(by_task) or ["(no runs with evaluations)"]
-    fig, axes = plt.subplots(1, len(tasks), figsize=(5.5 * len(tasks), 4), squeeze=False)
-    for ax, task in zip(axes[0], tasks):
+    columns = min(len(tasks), 4)
+    rows = -(-len(tasks) // columns)
+    fig, axes = plt.subplots(rows, columns, figsize=(5.5 * columns, 4 * rows), squeeze=False)
+    for ax in axes.flat[len(tasks):]:
+        ax.set_visible(False)
+    for ax, task in zip(axes.flat, tasks):
         for variant, curves in sorted(by_task.get(task, {}).items()):
             grid, median, low, high = median_band(curves)
             line, = ax.plot(grid, median, label=f"{variant} ({len(curves)} seed{'s' * (len(curves) > 1)})")

@@ -7,10 +7,11 @@ from collections import defaultdict
 from pathlib import Path
 
 import numpy as np
+import yaml
 
 from physgrad.results import Run, find_results, read_run
 
-COLUMNS = ("task", "variant", "seed", "status", "iters", "train loss", "test loss", "s/iter", "train s",
+COLUMNS = ("task", "setting", "variant", "seed", "status", "iters", "train loss", "test loss", "s/iter", "train s",
            "t(thr) s", "note")
 
 
@@ -25,13 +26,51 @@ def collect(paths) -> tuple[list[Run], list[tuple[Path, str]]]:
     return runs, unreadable
 
 
+# Settings that change the problem (not the method), shown and grouped by when they differ between runs.
+SETTING_KEYS = {"unroll": "unroll", "precision": "precision"}
+
+
+def _flat(tree: dict, prefix: str = "") -> dict:
+    flat = {}
+    for key, value in tree.items():
+        if isinstance(value, dict):
+            flat.update(_flat(value, f"{prefix}{key}."))
+        else:
+            flat[f"{prefix}{key}"] = value if not isinstance(value, list) else tuple(value)
+    return flat
+
+
+def label_settings(runs: list[Run]) -> None:
+    """Set run.setting to the problem settings that differ between runs of the same task (task.* keys other
+    than the batch size, unroll, precision), e.g. "poles=3": a difficulty sweep then gets one row group and one
+    panel per setting, never a median over different problems."""
+    configs = {}
+    for run in runs:
+        try:
+            config = _flat(yaml.safe_load(run.attrs.get("config", "")) or {})
+        except yaml.YAMLError:
+            config = {}
+        configs[run.path] = {k.removeprefix("task."): v for k, v in config.items()
+                             if (k.startswith("task.") and k not in ("task.name", "task.batch_size"))
+                             or k in SETTING_KEYS}
+    by_task = defaultdict(list)
+    for run in runs:
+        by_task[run.attrs.get("task")].append(run)
+    for task_runs in by_task.values():
+        keys = sorted({k for run in task_runs for k in configs[run.path]})
+        varying = [k for k in keys if len({repr(configs[run.path].get(k)) for run in task_runs}) > 1]
+        for run in task_runs:
+            run.setting = " ".join(f"{k}={configs[run.path].get(k)}" for k in varying)
+
+
 def thresholds(runs: list[Run]) -> dict[str, float]:
-    """Per task, the worst final test loss among runs that have one: every such run reaches it."""
+    """Per scene (task and setting), the worst final test loss among runs that have one: every such run
+    reaches it."""
     worst = defaultdict(lambda: -math.inf)
     for run in runs:
         final = run.final("eval")
         if math.isfinite(final):
-            worst[run.attrs.get("task")] = max(worst[run.attrs.get("task")], final)
+            worst[run.scene] = max(worst[run.scene], final)
     return dict(worst)
 
 
@@ -42,14 +81,13 @@ def _fmt(value, digits=4) -> str:
 
 
 def table_rows(runs: list[Run], threshold: float | None = None) -> list[dict]:
-    per_task = thresholds(runs)
+    per_scene = thresholds(runs)
     rows = []
-    for run in sorted(runs, key=lambda r: (str(r.attrs.get("task")), r.variant, str(r.attrs.get("seed")))):
-        task = run.attrs.get("task")
-        limit = threshold if threshold is not None else per_task.get(task, math.nan)
+    for run in sorted(runs, key=lambda r: (r.scene, r.variant, str(r.attrs.get("seed")))):
+        limit = threshold if threshold is not None else per_scene.get(run.scene, math.nan)
         train_loss = run.train.get("loss", np.empty(0))
         rows.append({
-            "task": task, "variant": run.variant, "seed": run.attrs.get("seed"), "status": run.attrs.get("status"),
+            "task": run.attrs.get("task"), "setting": run.setting, "variant": run.variant, "seed": run.attrs.get("seed"), "status": run.attrs.get("status"),
             "iters": int(train_loss.size),
             "train loss": float(np.median(train_loss[-10:])) if train_loss.size else math.nan,
             "test loss": run.final("eval"),
@@ -72,6 +110,7 @@ def write_report(paths, out_dir=None, threshold: float | None = None) -> str:
     """Print-ready text; also writes report.md and loss_vs_time.png into out_dir (default: the first path's
     folder)."""
     runs, unreadable = collect(paths)
+    label_settings(runs)
     first = Path(paths[0])
     out = Path(out_dir) if out_dir else (first if first.is_dir() else first.parent)
     out.mkdir(parents=True, exist_ok=True)
@@ -79,9 +118,9 @@ def write_report(paths, out_dir=None, threshold: float | None = None) -> str:
     if threshold is not None:
         legend = f"t(thr): training seconds until the test loss first reached {threshold:.4g}."
     else:
-        legend = "t(thr): training seconds until the test loss first reached the task's threshold (" + ", ".join(
-            f"{task}: {value:.4g}" for task, value in sorted(thresholds(runs).items())
-        ) + "; the worst final test loss of the task's runs, so every finished run reaches it; --threshold sets it)."
+        legend = "t(thr): training seconds until the test loss first reached the scene's threshold (" + ", ".join(
+            f"{scene}: {value:.4g}" for scene, value in sorted(thresholds(runs).items())
+        ) + "; the worst final test loss of the scene's runs, so every finished run reaches it; --threshold sets it)."
     text = [f"{len(runs)} runs under {', '.join(map(str, paths))}", "", markdown_table(rows), legend,
             "train loss: median of the last 10 minibatch losses; s/iter: median seconds per training step."]
     for path, reason in unreadable:

@@ -13,7 +13,9 @@ from __future__ import annotations
 
 import math
 import os
+import signal
 import time
+from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -24,6 +26,18 @@ STATUSES = ("running", "completed", "diverged", "interrupted", "failed", "refuse
 GROUPS = ("train", "eval")
 
 
+@contextmanager
+def signals_deferred():
+    """Hold SIGINT and SIGTERM back while the file is being written, so that an interrupt (raised as
+    KeyboardInterrupt by Python) never lands between a resize and its write; they arrive right after."""
+    held = {signal.SIGINT, signal.SIGTERM}
+    previous = signal.pthread_sigmask(signal.SIG_BLOCK, held)
+    try:
+        yield
+    finally:
+        signal.pthread_sigmask(signal.SIG_SETMASK, previous)
+
+
 class ResultsWriter:
     """Buffers rows per group and appends them to resizable datasets on flush()."""
 
@@ -31,7 +45,7 @@ class ResultsWriter:
         self.path = Path(path)
         self.path.parent.mkdir(parents=True, exist_ok=True)
         self._buffers: dict[str, dict[str, list]] = {group: {} for group in GROUPS}
-        with h5py.File(self.path, "w") as f:
+        with signals_deferred(), h5py.File(self.path, "w") as f:
             for group in GROUPS:
                 f.create_group(group)
             for key, value in {**attrs, "status": "running", "created": _now()}.items():
@@ -49,25 +63,26 @@ class ResultsWriter:
         return len(next(iter(self._buffers[group].values()), []))
 
     def flush(self) -> None:
+        """Append every complete buffered row (a row cut short by an interrupt in append() is dropped)."""
         if not any(self.pending(group) for group in GROUPS):
             return
-        with h5py.File(self.path, "a") as f:
+        with signals_deferred(), h5py.File(self.path, "a") as f:
             for group, buffer in self._buffers.items():
+                rows = min((len(values) for values in buffer.values()), default=0)
                 for key, values in buffer.items():
-                    if not values:
-                        continue
-                    column = np.asarray(values)
-                    if key not in f[group]:
-                        f[group].create_dataset(key, data=column, maxshape=(None,), chunks=(1024,))
-                    else:
-                        dataset = f[group][key]
-                        start = dataset.shape[0]
-                        dataset.resize((start + len(column),))
-                        dataset[start:] = column
+                    if rows:
+                        column = np.asarray(values[:rows])
+                        if key not in f[group]:
+                            f[group].create_dataset(key, data=column, maxshape=(None,), chunks=(1024,))
+                        else:
+                            dataset = f[group][key]
+                            start = dataset.shape[0]
+                            dataset.resize((start + rows,))
+                            dataset[start:] = column
                     values.clear()
 
     def set_attrs(self, **attrs) -> None:
-        with h5py.File(self.path, "a") as f:
+        with signals_deferred(), h5py.File(self.path, "a") as f:
             for key, value in attrs.items():
                 if value is None:
                     f.attrs.pop(key, None)
@@ -94,6 +109,12 @@ class Run:
     attrs: dict
     train: dict
     eval: dict
+    setting: str = ""  # the settings that tell this run apart from others of its task in a report
+
+    @property
+    def scene(self) -> str:
+        """The task, with the distinguishing settings: runs are only compared within one scene."""
+        return f"{self.attrs.get('task', '?')} {self.setting}".strip()
 
     @property
     def variant(self) -> str:

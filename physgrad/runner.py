@@ -115,14 +115,6 @@ def train(scene: Scene, rule: UpdateRule, params, settings: TrainerSettings, wri
           label: str = "") -> Outcome:
     """Compile, then iterate from params until trainer.iterations or trainer.time_budget (training seconds),
     whichever comes first. A non-finite loss, gradient norm or update norm ends the run with status diverged."""
-    opt_state = rule.transform.init(params)
-
-    start = time.perf_counter()
-    step = jax.jit(make_step(scene, rule, settings.batch_size, train_key)).lower(
-        params, opt_state, np.int32(0)).compile()
-    evaluate = jax.jit(scene.evaluate).lower(params, scene.test_set).compile()
-    writer.set_attrs(compile_seconds=time.perf_counter() - start)
-
     train_seconds, done = 0.0, 0
     status, reason = "completed", None
     latest_eval = {}
@@ -137,6 +129,13 @@ def train(scene: Scene, rule: UpdateRule, params, settings: TrainerSettings, wri
     bar = tqdm(total=settings.iterations, desc=label, mininterval=0.5, disable=None, leave=False)
     try:
         with sigterm_as_interrupt():
+            # compiling can take minutes: inside the guard, so a failure or an interrupt here is recorded too
+            opt_state = rule.transform.init(params)
+            start = time.perf_counter()
+            step = jax.jit(make_step(scene, rule, settings.batch_size, train_key)).lower(
+                params, opt_state, np.int32(0)).compile()
+            evaluate = jax.jit(scene.evaluate).lower(params, scene.test_set).compile()
+            writer.set_attrs(compile_seconds=time.perf_counter() - start)
             record_eval(0)
             last_flush = time.perf_counter()
             for iteration in range(settings.iterations):

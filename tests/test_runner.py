@@ -90,6 +90,15 @@ def test_writer_appends_in_flushes_and_checks_columns(tmp_path):
     assert (run.attrs["status"], run.attrs["reason"]) == ("interrupted", "SIGINT after 5 iterations")
 
 
+def test_a_row_cut_short_is_dropped_and_columns_stay_equal(tmp_path):
+    writer = ResultsWriter(tmp_path / "results.h5", {"task": "poisson"})
+    writer.append("train", {"iteration": 0, "loss": 1.0})
+    writer._buffers["train"]["iteration"].append(1)  # what an interrupt inside append() leaves behind
+    writer.finish("interrupted", "SIGINT after 1 iterations")
+    run = read_run(tmp_path / "results.h5")
+    assert run.train["iteration"].tolist() == [0] and run.train["loss"].tolist() == [1.0]
+
+
 def test_reading_a_foreign_or_corrupt_file_says_so(tmp_path):
     import h5py
 
