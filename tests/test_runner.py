@@ -132,3 +132,15 @@ def test_no_recompilation_after_the_first_iteration(tmp_path):
         jax.monitoring.unregister_event_duration_listener(listener)
     assert counts[1] >= 2, counts  # at least the step and the evaluation
     assert counts[2] == counts[1], counts
+
+
+def test_same_seed_same_precision_gives_bitwise_identical_curves(tmp_path):
+    for optim in ("adam", "hig"):
+        curves = []
+        for repeat in range(2):
+            _, path = run_experiment(load(f"optim={optim}", "trainer.iterations=15", "trainer.eval_every=5", *SMALL),
+                                     tmp_path / f"{optim}{repeat}")
+            run = read_run(path)
+            curves.append((run.train["loss"], run.train["grad_norm"], run.eval["loss"]))
+        for first, second in zip(*curves):
+            np.testing.assert_array_equal(first, second)
