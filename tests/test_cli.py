@@ -45,8 +45,8 @@ def test_short_run_writes_the_results_schema(tmp_path):
 
 def test_sweep_then_report(tmp_path):
     sweep = tmp_path / "sweep"
-    result = physgrad("run", "-m", "optim=adam,hig,bptt", "seed=0,1", "trainer.iterations=10", "trainer.eval_every=5",
-                      *SMALL, f"hydra.sweep.dir={sweep}")
+    result = physgrad("run", "-m", "optim=adam,hig,bptt", "seed=0,1", "trainer.iterations=5", "trainer.eval_every=5",
+                      "task.test_size=4", *SMALL[:1], "trainer.batch_size=2", f"hydra.sweep.dir={sweep}")
     assert "skipped: optim=bptt needs a closed-loop controller" in result.stderr + result.stdout
     files = sorted(sweep.rglob("results.h5"))
     assert len(files) == 6

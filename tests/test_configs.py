@@ -17,7 +17,7 @@ SMALL = {
     # the reference horizon: on very short ones (unroll=24) Gauss-Newton's first step blows the physics up
     "oscillator": ["task.train_size=64", "task.test_size=8", "trainer.batch_size=16"],
     "multicart": ["task.poles=2", "task.train_size=16", "task.test_size=8", "unroll=20"],
-    "quantum": ["task.train_size=32", "task.test_size=8", "trainer.batch_size=8", "unroll=64"],
+    "quantum": ["task.train_size=32", "task.test_size=8", "trainer.batch_size=4", "unroll=32"],
     "quantum_control": ["task.train_size=16", "task.test_size=8", "trainer.batch_size=4", "unroll=32"],
 }
 # every scene as configured by default, plus the settings that change which variants apply
