@@ -28,8 +28,8 @@ GROUPS = ("train", "eval")
 
 @contextmanager
 def signals_deferred():
-    """Hold SIGINT and SIGTERM back while the file is being written, so that an interrupt (raised as
-    KeyboardInterrupt by Python) never lands between a resize and its write; they arrive right after."""
+    """Hold SIGINT and SIGTERM back while the file is being written, so that an interrupt (a second Ctrl-C
+    raises KeyboardInterrupt at once) never lands between a resize and its write; they arrive right after."""
     held = {signal.SIGINT, signal.SIGTERM}
     previous = signal.pthread_sigmask(signal.SIG_BLOCK, held)
     try:

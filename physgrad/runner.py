@@ -93,22 +93,34 @@ def sign_disagreement(a, b) -> jax.Array:
     return differ / sum(x.size for x in jax.tree_util.tree_leaves(a))
 
 
+class StopRequest:
+    """Signal handler for SIGINT and SIGTERM: the first signal asks the loop to stop after the current step
+    (checked between steps, so no write is ever cut in half and no library frame swallows the interrupt);
+    a second one stops at once."""
+
+    def __init__(self):
+        self.signal_name: str | None = None
+
+    def __call__(self, signum, frame):
+        name = signal.Signals(signum).name
+        if self.signal_name is not None:
+            raise KeyboardInterrupt(name)
+        self.signal_name = name
+
+
 @contextmanager
-def sigterm_as_interrupt():
-    """SIGTERM (a scheduler's pre-emption, `kill`) ends the run like Ctrl-C: status interrupted, rows kept."""
-
-    def handler(signum, frame):
-        raise KeyboardInterrupt("SIGTERM")
-
+def stop_on_signals():
+    request = StopRequest()
     try:
-        previous = signal.signal(signal.SIGTERM, handler)
+        previous = {sig: signal.signal(sig, request) for sig in (signal.SIGINT, signal.SIGTERM)}
     except ValueError:  # not the main thread: leave signals alone
-        yield
+        yield request
         return
     try:
-        yield
+        yield request
     finally:
-        signal.signal(signal.SIGTERM, previous)
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)
 
 
 def train(scene: Scene, rule: UpdateRule, params, settings: TrainerSettings, writer: ResultsWriter, train_key,
@@ -128,7 +140,7 @@ def train(scene: Scene, rule: UpdateRule, params, settings: TrainerSettings, wri
 
     bar = tqdm(total=settings.iterations, desc=label, mininterval=0.5, disable=None, leave=False)
     try:
-        with sigterm_as_interrupt():
+        with stop_on_signals() as stop:
             # compiling can take minutes: inside the guard, so a failure or an interrupt here is recorded too
             opt_state = rule.transform.init(params)
             start = time.perf_counter()
@@ -139,6 +151,8 @@ def train(scene: Scene, rule: UpdateRule, params, settings: TrainerSettings, wri
             record_eval(0)
             last_flush = time.perf_counter()
             for iteration in range(settings.iterations):
+                if stop.signal_name is not None:
+                    raise KeyboardInterrupt(stop.signal_name)
                 tick = time.perf_counter()
                 new_params, opt_state, logs = step(params, opt_state, np.int32(iteration))
                 logs = jax.device_get(logs)

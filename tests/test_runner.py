@@ -144,3 +144,15 @@ def test_same_seed_same_precision_gives_bitwise_identical_curves(tmp_path):
             curves.append((run.train["loss"], run.train["grad_norm"], run.eval["loss"]))
         for first, second in zip(*curves):
             np.testing.assert_array_equal(first, second)
+
+
+def test_first_signal_asks_to_stop_second_stops_at_once():
+    import signal
+
+    from physgrad.runner import StopRequest
+
+    request = StopRequest()
+    request(signal.SIGINT, None)
+    assert request.signal_name == "SIGINT"
+    with pytest.raises(KeyboardInterrupt, match="SIGTERM"):
+        request(signal.SIGTERM, None)
