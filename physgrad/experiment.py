@@ -10,6 +10,7 @@ from omegaconf import DictConfig, OmegaConf
 
 import physgrad
 from physgrad import UserError
+from physgrad.nets import count_params
 from physgrad.optim import BACKPROP_MODES, CLIPPING, OPTIMS, build_rule
 from physgrad.results import ResultsWriter
 from physgrad.runner import Outcome, TrainerSettings, train
@@ -121,7 +122,7 @@ def run_experiment(cfg: DictConfig, out_dir: str | Path) -> tuple[Outcome, Path]
     writer = ResultsWriter(path, {
         **run_attributes(cfg, scene.steps),
         "batch_size": settings.batch_size,
-        "n_params": sum(leaf.size for leaf in jax.tree_util.tree_leaves(params)),
+        "n_params": count_params(params),
         "device": str(jax.devices()[0].device_kind),
     })
     label = f"{cfg.task.name}/{cfg.optim.name} seed {cfg.seed}"

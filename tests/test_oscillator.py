@@ -9,7 +9,7 @@ import pytest
 from physgrad.nets import apply_mlp
 from physgrad.tasks import build_scene
 from physgrad.tasks.oscillator import energy, rk4_step
-from physgrad.unroll import MODES, PHYSICS_ONLY, REGULAR, STOPPED, combine_signs, rollout
+from physgrad.unroll import MODES, PHYSICS_ONLY, STOPPED, combine_signs, rollout
 from tests.reference import check_gradient, forward_states, loop_states
 from tests.test_configs import load
 
