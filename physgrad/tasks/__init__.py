@@ -76,6 +76,18 @@ class Scene:
         return {"loss": self.batch_loss(y, batch), **{k: jnp.mean(v) for k, v in metrics.items()}}
 
 
+def sample_from(train_set) -> Callable[[Any, int], Any]:
+    """sample_train for a fixed training set: batch_size samples drawn without replacement, independently at
+    every iteration (from that iteration's key)."""
+    size = jax.tree_util.tree_leaves(train_set)[0].shape[0]
+
+    def sample_train(key, batch_size):
+        index = jax.random.choice(key, size, (batch_size,), replace=False)
+        return jax.tree_util.tree_map(lambda leaf: leaf[index], train_set)
+
+    return sample_train
+
+
 def task_module(name: str):
     if name not in TASK_MODULES:
         raise UserError(f"unknown task '{name}': choose one of {', '.join(sorted(TASK_MODULES))}")

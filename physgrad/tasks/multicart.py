@@ -14,7 +14,7 @@ import jax
 import jax.numpy as jnp
 
 from physgrad.nets import apply_mlp, init_mlp
-from physgrad.tasks import Scene, Traits
+from physgrad.tasks import Scene, Traits, sample_from
 from physgrad.unroll import REGULAR, Backprop, rollout
 from physgrad.validate import number
 
@@ -74,16 +74,12 @@ def build(task_cfg, key, unroll: int | None = None) -> Scene:
         return sample_output
 
     train_key, test_key = jax.random.split(key)
-    train_set = make_states(train_key, train_size)
-
-    def sample_train(k, batch_size):
-        return {"state": train_set["state"][jax.random.choice(k, train_size, (batch_size,), replace=False)]}
 
     return Scene(
         name="multicart",
         traits=traits(task_cfg),
         init_params=lambda k: init_mlp(k, sizes, dtype, zero_last=True),  # the initial force is exactly 0
-        sample_train=sample_train,
+        sample_train=sample_from(make_states(train_key, train_size)),
         test_set=make_states(test_key, test_size),
         sample_output=output_for(REGULAR),
         sample_loss=lambda y, sample: 1.0 - jnp.mean(y),

@@ -15,7 +15,7 @@ import jax.numpy as jnp
 
 from physgrad import UserError
 from physgrad.nets import apply_mlp, init_mlp
-from physgrad.tasks import Scene, Traits
+from physgrad.tasks import Scene, Traits, sample_from
 from physgrad.unroll import REGULAR, Backprop, rollout
 from physgrad.validate import number
 
@@ -89,14 +89,11 @@ def build(task_cfg, key, unroll: int | None = None) -> Scene:
     train_x0 = jax.random.uniform(train_key, (train_size, 2 * n), dtype)
     test_x0 = jax.random.uniform(test_key, (test_size, 2 * n), dtype)
 
-    def sample_train(k, batch_size):
-        return {"x0": train_x0[jax.random.choice(k, train_x0.shape[0], (batch_size,), replace=False)]}
-
     return Scene(
         name="oscillator",
         traits=traits(task_cfg),
         init_params=lambda k: init_mlp(k, sizes, dtype),
-        sample_train=sample_train,
+        sample_train=sample_from({"x0": train_x0}),
         test_set={"x0": test_x0},
         sample_output=output_for(REGULAR),
         sample_loss=lambda y, sample: jnp.sum((y - sample["x0"]) ** 2),

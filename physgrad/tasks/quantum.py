@@ -20,7 +20,7 @@ from jax.lax.linalg import tridiagonal_solve
 
 from physgrad import UserError
 from physgrad.nets import apply_control_cnn, apply_mlp, init_control_cnn, init_mlp
-from physgrad.tasks import Scene, Traits
+from physgrad.tasks import Scene, Traits, sample_from
 from physgrad.unroll import REGULAR, Backprop, rollout
 from physgrad.validate import choice, number
 
@@ -159,17 +159,12 @@ def build(task_cfg, key, unroll: int | None = None) -> Scene:
         return jnp.sum(1.0 - y) if every_step else 1.0 - final_fidelity(y, sample)
 
     train_key, test_key = jax.random.split(key)
-    train_set = make_samples(train_key, train_size)
-
-    def sample_train(k, batch_size):
-        index = jax.random.choice(k, train_size, (batch_size,), replace=False)
-        return jax.tree_util.tree_map(lambda a: a[index], train_set)
 
     return Scene(
         name=str(task_cfg.name),
         traits=traits(task_cfg),
         init_params=init,
-        sample_train=sample_train,
+        sample_train=sample_from(make_samples(train_key, train_size)),
         test_set=make_samples(test_key, test_size),
         sample_output=output_for(REGULAR),
         sample_loss=sample_loss,
