@@ -4,7 +4,7 @@ VENV ?= .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 
-.PHONY: setup run test test-fast clean
+.PHONY: setup run test test-fast bench check-stability reproduce-figures clean
 
 setup: $(STAMP)
 
@@ -22,6 +22,19 @@ test: setup
 
 test-fast: setup
 	$(BIN)/python -m pytest -q -m "not slow" tests
+
+# step time, compile time and peak memory per scene x variant, with floors; writes outputs/bench/benchmarks.md
+bench: setup
+	$(BIN)/python -m physgrad.bench $(ARGS)
+
+# stiff and extreme cases (physgrad check; ARGS=--small for the CI form); writes outputs/check/check.md
+check-stability: setup
+	$(BIN)/physgrad check $(ARGS)
+
+# every figure sweep of conf/experiment/, then outputs/figures/summary.md; PROFILE=paper for the papers' budgets
+PROFILE ?= quick
+reproduce-figures: setup
+	$(BIN)/python experiments/reproduce.py --profile $(PROFILE) $(if $(OVERWRITE),--overwrite,) $(ARGS)
 
 clean:
 	rm -rf $(VENV) outputs multirun .pytest_cache

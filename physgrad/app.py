@@ -17,12 +17,33 @@ CONF_DIR = Path(__file__).resolve().parent.parent / "conf"
 log = logging.getLogger("physgrad")
 
 
+def record_failure(cfg: DictConfig, path: Path, error: Exception) -> None:
+    """Make sure a failed job leaves a results file that says so (training records its own failures; this
+    covers errors before it starts)."""
+    from physgrad.experiment import run_attributes
+    from physgrad.results import ResultsWriter, read_run
+
+    try:
+        if read_run(path).attrs.get("status") == "failed":
+            return
+    except (ValueError, OSError):
+        pass
+    ResultsWriter(path, run_attributes(cfg)).finish("failed", f"{type(error).__name__}: {error}".splitlines()[0])
+
+
 @hydra.main(version_base="1.3", config_path=str(CONF_DIR), config_name="config")
 def job(cfg: DictConfig) -> str:
     hydra_cfg = HydraConfig.get()
     multirun = hydra_cfg.mode == RunMode.MULTIRUN
-    outcome, path = run_experiment(cfg, hydra_cfg.runtime.output_dir)
     name = f"{cfg.task.name}/{cfg.optim.name} seed {cfg.seed}"
+    try:
+        outcome, path = run_experiment(cfg, hydra_cfg.runtime.output_dir)
+    except Exception as error:  # noqa: BLE001 - one failed job must not end a sweep
+        if not multirun:
+            raise
+        record_failure(cfg, Path(hydra_cfg.runtime.output_dir) / "results.h5", error)
+        log.error("%s failed: %s: %s", name, type(error).__name__, error)
+        return "failed"
     if outcome.status == "refused":
         if not multirun:
             print(f"physgrad: error: {outcome.reason}", file=sys.stderr)

@@ -15,11 +15,12 @@ from pathlib import Path
 
 from physgrad import UserError
 
-USAGE = """usage: physgrad {run,report} ...
+USAGE = """usage: physgrad {run,report,check} ...
 
   physgrad run [HYDRA FLAGS] [key=value ...]   train one configuration, or sweep with -m
-  physgrad report PATH... [--out DIR] [--threshold LOSS]
+  physgrad report PATH... [--out DIR] [--threshold LOSS] [--note TEXT]
                                               table and figures from the results.h5 files under PATH
+  physgrad check [--small]                    stiff and extreme cases: what each variant does with them
 
 Examples:
   physgrad run task=poisson optim=hig
@@ -43,7 +44,12 @@ def main(argv: list[str] | None = None) -> int:
             return run_command(rest)
         if command == "report":
             return report_command(rest)
-        raise UserError(f"unknown command '{command}': use 'physgrad run ...' or 'physgrad report PATH...'")
+        if command == "check":
+            from physgrad.check import main as check_main
+
+            return check_main(rest)
+        raise UserError(f"unknown command '{command}': use 'physgrad run ...', 'physgrad report PATH...' or "
+                        "'physgrad check'")
     except UserError as error:
         print(f"physgrad: error: {error}", file=sys.stderr)
         return 2
@@ -55,11 +61,32 @@ def run_command(args: list[str]) -> int:
     parsed = get_args_parser().parse_args(args)
     if not INFO_FLAGS.intersection(args):
         check_overrides(parsed.overrides, multirun=parsed.multirun)
+        check_writable(parsed.overrides, multirun=parsed.multirun)
     from physgrad.app import job
 
     sys.argv = ["physgrad run", *args]
     job()
     return 0
+
+
+def check_writable(overrides: list[str], multirun: bool) -> None:
+    """UserError (one line) if the output folder cannot be created and written to. Checked before Hydra
+    starts, which would otherwise fail with a traceback; creates the folder's fixed part (up to the first
+    interpolation), which Hydra would create anyway."""
+    import os
+    import tempfile
+
+    key = "hydra.sweep.dir" if multirun else "hydra.run.dir"
+    target = next((o.split("=", 1)[1] for o in overrides if o.startswith(key + "=")), "outputs")
+    fixed = Path(target.split("${", 1)[0] or ".")
+    try:
+        fixed.mkdir(parents=True, exist_ok=True)
+        with tempfile.TemporaryFile(dir=fixed):
+            pass
+    except OSError as error:
+        why = error.strerror or type(error).__name__
+        raise UserError(f"cannot write results to {target}: {why} ({os.fspath(error.filename or fixed)}): "
+                        f"set {key}=<a writable folder>") from None
 
 
 def _config_options(conf_dir: Path, group: str) -> list[str]:
@@ -91,6 +118,8 @@ def check_overrides(overrides: list[str], multirun: bool) -> None:
             continue
         if key in group_names and override.package is None:
             options = _config_options(CONF_DIR, key)
+            if not options:  # e.g. `+experiment=...` before any experiment exists
+                raise UserError(f"no {key} configs in {CONF_DIR / key}")
             if isinstance(value, Glob):
                 values = value.filter(options)
             elif override.is_sweep_override():
@@ -100,7 +129,7 @@ def check_overrides(overrides: list[str], multirun: bool) -> None:
             for choice in values:
                 if choice not in options:
                     raise UserError(f"unknown {key} '{choice}': choose one of {', '.join(options)}")
-            group_values[key] = values
+            group_values[("+" if override.is_add() else "") + key] = values
         elif not override.is_add() and not override.is_force_add():
             keys.append(key)
 
@@ -140,11 +169,13 @@ def report_command(args: list[str]) -> int:
     parser.add_argument("--threshold", type=float, default=None,
                         help="test loss for the time-to-reach column (default: per task, the worst final test "
                              "loss among the runs, so every run that finished has a time)")
+    parser.add_argument("--note", default="", help="a line printed on every figure (e.g. the budget profile)")
     options = parser.parse_args(args)
     from physgrad.report import write_report
 
     try:
-        print(write_report(options.paths, out_dir=options.out, threshold=options.threshold), end="")
+        print(write_report(options.paths, out_dir=options.out, threshold=options.threshold, note=options.note),
+              end="")
     except FileNotFoundError as error:
         raise UserError(str(error)) from None
     return 0

@@ -43,34 +43,118 @@ def median_band(curves: list[tuple[np.ndarray, np.ndarray]], points: int = 200):
     return grid, 10 ** np.median(logs, axis=0), 10 ** logs.min(axis=0), 10 ** logs.max(axis=0)
 
 
-def plot_comparison(runs: list[Run], path: str | Path, x_key: str = "wall_time") -> None:
+def _panels(count: int, width: float = 5.5, height: float = 4.0, max_columns: int = 4):
+    columns = max(1, min(count, max_columns))
+    rows = max(1, -(-count // columns))
+    fig, axes = plt.subplots(rows, columns, figsize=(width * columns, height * rows), squeeze=False)
+    for ax in axes.flat[count:]:
+        ax.set_visible(False)
+    return fig, list(axes.flat)
+
+
+def _save(fig, path, note: str) -> None:
+    if note:
+        fig.suptitle(note, fontsize=9, color="dimgray")
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+def _seeds(count: int) -> str:
+    return f"{count} seed{'s' * (count > 1)}"
+
+
+def plot_comparison(runs: list[Run], path: str | Path, x_key: str = "wall_time", note: str = "") -> None:
     """Held-out loss against training wall-clock (or iteration), one panel per scene (task and setting), one
-    line per variant."""
+    line per variant: the median over seeds and the min-max band. A run started from another's network
+    begins where that run ended."""
     by_task = defaultdict(lambda: defaultdict(list))
     for run in runs:
         loss = run.eval.get("loss")
         if loss is not None and loss.size and np.isfinite(loss).any():
             finite = np.isfinite(loss)
-            by_task[run.scene][run.variant].append((run.eval[x_key][finite], loss[finite]))
+            by_task[run.scene][run.variant].append((run.eval[x_key][finite] + run.offset(x_key), loss[finite]))
     tasks = sorted(by_task) or ["(no runs with evaluations)"]
-    columns = min(len(tasks), 4)
-    rows = -(-len(tasks) // columns)
-    fig, axes = plt.subplots(rows, columns, figsize=(5.5 * columns, 4 * rows), squeeze=False)
-    for ax in axes.flat[len(tasks):]:
-        ax.set_visible(False)
-    for ax, task in zip(axes.flat, tasks):
+    fig, axes = _panels(len(tasks))
+    for ax, task in zip(axes, tasks):
         for variant, curves in sorted(by_task.get(task, {}).items()):
-            grid, median, low, high = median_band(curves)
-            line, = ax.plot(grid, median, label=f"{variant} ({len(curves)} seed{'s' * (len(curves) > 1)})")
+            start = min(x[0] for x, _ in curves)
+            grid, median, low, high = median_band([(x - start, y) for x, y in curves])
+            line, = ax.plot(grid + start, median, label=f"{variant} ({_seeds(len(curves))})")
             if len(curves) > 1:
-                ax.fill_between(grid, low, high, color=line.get_color(), alpha=0.2)
+                ax.fill_between(grid + start, low, high, color=line.get_color(), alpha=0.2)
         ax.set_title(task)
         ax.set_xlabel("training wall-clock [s]" if x_key == "wall_time" else x_key)
         ax.set_ylabel("test loss")
         ax.set_yscale("log")
         ax.grid(True, which="both", alpha=0.3)
         if by_task.get(task):
-            ax.legend()
-    fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
+            ax.legend(fontsize=8)
+    _save(fig, path, note)
+
+
+def plot_tradeoff(runs: list[Run], path: str | Path, note: str = "") -> None:
+    """Error against run time: per scene, every run's final test loss against its seconds per iteration (top)
+    and its total training time (bottom); one marker colour per variant, one point per seed."""
+    by_task = defaultdict(lambda: defaultdict(list))
+    for run in runs:
+        final = run.final("eval")
+        if np.isfinite(final) and np.isfinite(run.seconds_per_iteration):
+            total = run.final("train", "wall_time") + run.offset("wall_time")
+            by_task[run.scene][run.variant].append((run.seconds_per_iteration, total, final))
+    tasks = sorted(by_task) or ["(no finished runs)"]
+    fig, axes = plt.subplots(2, len(tasks), figsize=(4.5 * len(tasks), 7.5), squeeze=False)
+    for column, task in enumerate(tasks):
+        for variant, points in sorted(by_task.get(task, {}).items()):
+            per_iter, total, final = np.array(points).T
+            line, = axes[0, column].plot(per_iter, final, "o", label=f"{variant} ({_seeds(len(points))})")
+            axes[1, column].plot(total, final, "o", color=line.get_color())
+        for row, label in enumerate(("seconds per iteration", "total training time [s]")):
+            ax = axes[row, column]
+            ax.set_xscale("log")
+            ax.set_yscale("log")
+            ax.set_xlabel(label)
+            ax.set_ylabel("final test loss")
+            ax.grid(True, which="both", alpha=0.3)
+        axes[0, column].set_title(task)
+        if by_task.get(task):
+            axes[0, column].legend(fontsize=8)
+    _save(fig, path, note)
+
+
+def plot_unroll(runs: list[Run], path: str | Path, note: str = "") -> bool:
+    """Final test loss and seconds per iteration against the unroll length, per task and variant (median over
+    seeds, with min-max bars); False (and no file) when no task has runs at several unroll lengths."""
+    by_task = defaultdict(lambda: defaultdict(lambda: defaultdict(list)))
+    for run in runs:
+        unroll = run.attrs.get("unroll")
+        if unroll is not None:
+            scene = " ".join(word for word in run.scene.split() if not word.startswith("unroll="))
+            by_task[scene][run.variant][int(unroll)].append(
+                (run.final("eval"), run.seconds_per_iteration))
+    tasks = sorted(task for task, variants in by_task.items()
+                   if len({u for lengths in variants.values() for u in lengths}) > 1)
+    if not tasks:
+        return False
+    fig, axes = plt.subplots(2, len(tasks), figsize=(5 * len(tasks), 7.5), squeeze=False)
+    for column, task in enumerate(tasks):
+        for variant, lengths in sorted(by_task[task].items()):
+            unrolls = sorted(lengths)
+            for row in (0, 1):
+                values = [np.array([v[row] for v in lengths[u]], float) for u in unrolls]
+                median = np.array([np.median(v) for v in values])
+                low = median - np.array([np.nanmin(v) for v in values])
+                high = np.array([np.nanmax(v) for v in values]) - median
+                axes[row, column].errorbar(unrolls, median, yerr=[low, high], fmt="o-", capsize=3,
+                                           label=variant if row == 0 else None)
+        for row, label in enumerate(("final test loss", "seconds per iteration")):
+            ax = axes[row, column]
+            ax.set_xscale("log", base=2)
+            ax.set_yscale("log")
+            ax.set_xlabel("unroll length (time steps)")
+            ax.set_ylabel(label)
+            ax.grid(True, which="both", alpha=0.3)
+        axes[0, column].set_title(task)
+        axes[0, column].legend(fontsize=8)
+    _save(fig, path, note)
+    return True

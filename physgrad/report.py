@@ -106,9 +106,10 @@ def markdown_table(rows: list[dict]) -> str:
     return "\n".join(lines) + "\n"
 
 
-def write_report(paths, out_dir=None, threshold: float | None = None) -> str:
-    """Print-ready text; also writes report.md and loss_vs_time.png into out_dir (default: the first path's
-    folder)."""
+def write_report(paths, out_dir=None, threshold: float | None = None, note: str = "") -> str:
+    """Print-ready text; also writes into out_dir (default: the first path's folder) report.md and the figures:
+    loss_vs_time.png, loss_vs_iteration.png, tradeoff.png (final test loss against seconds per iteration and
+    total time) and, where runs differ in unroll length, unroll.png. ``note`` is printed on every figure."""
     runs, unreadable = collect(paths)
     label_settings(runs)
     first = Path(paths[0])
@@ -122,12 +123,21 @@ def write_report(paths, out_dir=None, threshold: float | None = None) -> str:
             f"{scene}: {value:.4g}" for scene, value in sorted(thresholds(runs).items())
         ) + "; the worst final test loss of the scene's runs, so every finished run reaches it; --threshold sets it)."
     text = [f"{len(runs)} runs under {', '.join(map(str, paths))}", "", markdown_table(rows), legend,
-            "train loss: median of the last 10 minibatch losses; s/iter: median seconds per training step."]
+            "train loss: median of the last 10 minibatch losses; s/iter: median seconds per training step; "
+            "train s: training seconds (a run started from another's network counts from its own start)."]
     for path, reason in unreadable:
         text.append(f"unreadable: {reason}")
     body = "\n".join(text) + "\n"
     (out / "report.md").write_text(body)
-    from physgrad.plots import plot_comparison
+    from physgrad.plots import plot_comparison, plot_tradeoff, plot_unroll
 
-    plot_comparison(runs, out / "loss_vs_time.png")
-    return body + f"wrote {out / 'report.md'} and {out / 'loss_vs_time.png'}\n"
+    plot_comparison(runs, out / "loss_vs_time.png", "wall_time", note)
+    plot_comparison(runs, out / "loss_vs_iteration.png", "iteration", note)
+    plot_tradeoff(runs, out / "tradeoff.png", note)
+    figures = [FIGURES[0], FIGURES[1], FIGURES[2]]
+    if plot_unroll(runs, out / "unroll.png", note):
+        figures.append(FIGURES[3])
+    return body + f"wrote {out / 'report.md'} and {', '.join(figures)}\n"
+
+
+FIGURES = ("loss_vs_time.png", "loss_vs_iteration.png", "tradeoff.png", "unroll.png")

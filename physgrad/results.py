@@ -4,7 +4,8 @@ Layout (see docs/results.md):
   root attributes: task, optim, unroll (temporal scenes only), seed, status, reason, config, physgrad_version,
                    jax_version, compile_seconds, created, and a few descriptive extras;
   /train/{iteration, wall_time, loss, grad_norm, ...}: one row per iteration;
-  /eval/{iteration, wall_time, loss, <scene metrics>}: held-out evaluations.
+  /eval/{iteration, wall_time, loss, <scene metrics>}: held-out evaluations;
+  /params: the final network as one flat vector (every run that did not diverge or fail).
 The file is opened, appended to and closed at every flush, so a run killed at any moment leaves a file that
 opens, holding every row flushed so far; readers never find it locked for long.
 """
@@ -39,12 +40,14 @@ def signals_deferred():
 
 
 class ResultsWriter:
-    """Buffers rows per group and appends them to resizable datasets on flush()."""
+    """Buffers rows per group (one tuple per row, so an interrupt can never leave a row half appended) and
+    appends them to resizable datasets on flush()."""
 
     def __init__(self, path: str | os.PathLike, attrs: dict):
         self.path = Path(path)
         self.path.parent.mkdir(parents=True, exist_ok=True)
-        self._buffers: dict[str, dict[str, list]] = {group: {} for group in GROUPS}
+        self._columns: dict[str, tuple[str, ...] | None] = {group: None for group in GROUPS}
+        self._rows: dict[str, list[tuple]] = {group: [] for group in GROUPS}
         with signals_deferred(), h5py.File(self.path, "w") as f:
             for group in GROUPS:
                 f.create_group(group)
@@ -52,34 +55,43 @@ class ResultsWriter:
                 if value is not None:
                     f.attrs[key] = value
 
+    def set_columns(self, group: str, names) -> None:
+        """Fix the columns of a group; append_row() then takes values in this order."""
+        names = tuple(names)
+        if self._columns[group] is not None and set(self._columns[group]) != set(names):
+            raise ValueError(f"/{group} row has columns {sorted(names)}, expected {sorted(self._columns[group])}")
+        if self._columns[group] is None:
+            self._columns[group] = names
+
     def append(self, group: str, row: dict) -> None:
-        buffer = self._buffers[group]
-        if buffer and set(row) != set(buffer):
-            raise ValueError(f"/{group} row has columns {sorted(row)}, expected {sorted(buffer)}")
-        for key, value in row.items():
-            buffer.setdefault(key, []).append(value)
+        self.set_columns(group, row)
+        self._rows[group].append(tuple(row[name] for name in self._columns[group]))
+
+    def append_row(self, group: str, values: tuple) -> None:
+        """The hot path of the training loop: values in the order given to set_columns()."""
+        self._rows[group].append(values)
 
     def pending(self, group: str = "train") -> int:
-        return len(next(iter(self._buffers[group].values()), []))
+        return len(self._rows[group])
 
     def flush(self) -> None:
-        """Append every complete buffered row (a row cut short by an interrupt in append() is dropped)."""
-        if not any(self.pending(group) for group in GROUPS):
+        """Append every buffered row to the file."""
+        if not any(self._rows.values()):
             return
         with signals_deferred(), h5py.File(self.path, "a") as f:
-            for group, buffer in self._buffers.items():
-                rows = min((len(values) for values in buffer.values()), default=0)
-                for key, values in buffer.items():
-                    if rows:
-                        column = np.asarray(values[:rows])
-                        if key not in f[group]:
-                            f[group].create_dataset(key, data=column, maxshape=(None,), chunks=(1024,))
-                        else:
-                            dataset = f[group][key]
-                            start = dataset.shape[0]
-                            dataset.resize((start + rows,))
-                            dataset[start:] = column
-                    values.clear()
+            for group, rows in self._rows.items():
+                if not rows:
+                    continue
+                for key, column in zip(self._columns[group], zip(*rows)):
+                    column = np.asarray(column)
+                    if key not in f[group]:
+                        f[group].create_dataset(key, data=column, maxshape=(None,), chunks=(1024,))
+                    else:
+                        dataset = f[group][key]
+                        start = dataset.shape[0]
+                        dataset.resize((start + len(rows),))
+                        dataset[start:] = column
+                rows.clear()
 
     def set_attrs(self, **attrs) -> None:
         with signals_deferred(), h5py.File(self.path, "a") as f:
@@ -88,6 +100,13 @@ class ResultsWriter:
                     f.attrs.pop(key, None)
                 else:
                     f.attrs[key] = value
+
+    def save_params(self, flat: np.ndarray) -> None:
+        """The network's final parameters as one flat vector (ravel_pytree order) in /params, replacing any."""
+        with signals_deferred(), h5py.File(self.path, "a") as f:
+            if "params" in f:
+                del f["params"]
+            f.create_dataset("params", data=flat)
 
     def finish(self, status: str, reason: str | None = None, **attrs) -> None:
         """Flush every buffered row, then record the final status (and the reason for anything but completed)."""
@@ -125,6 +144,12 @@ class Run:
         wall = self.train.get("wall_time", np.empty(0))
         return float(np.median(np.diff(np.concatenate([[0.0], wall])))) if wall.size else math.nan
 
+    def offset(self, x_key: str) -> float:
+        """Where this run's x axis starts: a run started from another's network (init_from) continues that
+        run's iterations and training seconds."""
+        key = {"wall_time": "init_train_seconds", "iteration": "init_iterations"}[x_key]
+        return float(self.attrs.get(key, 0.0))
+
     def final(self, group: str, column: str = "loss") -> float:
         values = getattr(self, group).get(column, np.empty(0))
         return float(values[-1]) if values.size else math.nan
@@ -149,6 +174,19 @@ def read_run(path: str | os.PathLike) -> Run:
     except OSError as error:
         raise ValueError(f"{path}: cannot be read as HDF5 ({str(error).splitlines()[0]})") from None
     return Run(path, attrs, train, evaluation)
+
+
+def read_params(path: str | os.PathLike) -> np.ndarray:
+    """The flat final parameters a run saved; ValueError (one line) if the file has none or is not readable."""
+    path = Path(path)
+    try:
+        with h5py.File(path, "r", locking=False) as f:
+            if "params" not in f:
+                status = _plain(f.attrs.get("status", "?"))
+                raise ValueError(f"{path} holds no final network (status {status}): use a run that finished")
+            return f["params"][()]
+    except OSError as error:
+        raise ValueError(f"{path}: cannot be read as HDF5 ({str(error).splitlines()[0]})") from None
 
 
 def _plain(value):

@@ -17,6 +17,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import optax
+from jax.flatten_util import ravel_pytree
 from tqdm import tqdm
 
 from physgrad.optim import UpdateRule
@@ -56,27 +57,59 @@ def make_step(scene: Scene, rule: UpdateRule, batch_size: int, train_key):
     def value_and_grads(params, batch, sample_output):
         y, pullback = jax.vjp(lambda p: jax.vmap(sample_output, in_axes=(None, 0))(p, batch), params)
         loss, output_grad = jax.value_and_grad(scene.batch_loss)(y, batch)
-        return loss, output_grad, pullback(output_grad)[0]
+        return loss, output_grad, pullback(output_grad)[0], jnp.max(jnp.abs(y))
 
     def step(params, opt_state, iteration):
         batch = scene.sample_train(jax.random.fold_in(train_key, iteration), batch_size)
         logs = {}
         if rule.backprop == "C":
-            loss, output_grad, g_regular = value_and_grads(params, batch, scene.sample_output)
-            _, _, g_physics = value_and_grads(params, batch, scene.backprop_output(PHYSICS_ONLY))
+            loss, output_grad, g_regular, state_max = value_and_grads(params, batch, scene.sample_output)
+            _, _, g_physics, _ = value_and_grads(params, batch, scene.backprop_output(PHYSICS_ONLY))
             grads = combine_signs(g_physics, g_regular)
             logs["cos_physics_regular"] = tree_cosine(g_physics, g_regular)
             logs["zeroed_fraction"] = sign_disagreement(g_physics, g_regular)
         else:
             output = scene.sample_output if rule.backprop in (None, "R") else scene.backprop_output(
                 MODES[rule.backprop])
-            loss, output_grad, grads = value_and_grads(params, batch, output)
+            loss, output_grad, grads, state_max = value_and_grads(params, batch, output)
         extra = {"sample_output": scene.sample_output, "batch": batch, "output_grad": output_grad}
         updates, opt_state = rule.transform.update(grads, opt_state, params, **(extra if rule.uses_jacobian else {}))
-        logs = {"loss": loss, "grad_norm": optax.tree.norm(grads), "update_norm": optax.tree.norm(updates), **logs}
+        if rule.uses_jacobian:
+            logs["svd_failures"] = optax.tree.get(opt_state, "failures")
+        logs = {"loss": loss, "grad_norm": optax.tree.norm(grads), "update_norm": optax.tree.norm(updates),
+                "state_max_abs": state_max, **logs}
         return optax.apply_updates(params, updates), opt_state, logs
 
     return step
+
+
+# checked for NaN/Inf after every step, in causal order: the physical output (the simulated state: a blow-up
+# of the physics shows here first), the loss, the gradient, the update; the first non-finite one is the reason
+GUARDED = ("state_max_abs", "loss", "grad_norm", "update_norm")
+QUANTITY = {"state_max_abs": "state", "loss": "loss", "grad_norm": "gradient", "update_norm": "update"}
+
+
+def divergence_reason(quantity: str, logs: dict, iteration: int, svd_failures_before: float) -> str:
+    """One line: which quantity went non-finite first, its value, the iteration, and a failed factorisation if
+    that is what happened at this step."""
+    reason = f"{QUANTITY[quantity]} became {logs[quantity]} at iteration {iteration} ({quantity})"
+    if logs.get("svd_failures", 0.0) > svd_failures_before:
+        reason += ("; the SVD/eigh of the Jacobian did not converge (optim.retry_float64=true retries it in "
+                   "float64, precision=64 runs everything in float64)")
+    return reason
+
+
+def packed_logs(step, names: list[str]):
+    """The step with its logged scalars stacked into one vector (one device-to-host transfer per iteration
+    instead of one per scalar); their names are stored into `names` when the step is traced."""
+
+    def packed(params, opt_state, iteration):
+        params, opt_state, logs = step(params, opt_state, iteration)
+        names[:] = sorted(logs)
+        dtype = logs["loss"].dtype
+        return params, opt_state, jnp.stack([jnp.asarray(logs[name], dtype) for name in names])
+
+    return packed
 
 
 def tree_cosine(a, b) -> jax.Array:
@@ -132,9 +165,9 @@ def train(scene: Scene, rule: UpdateRule, params, settings: TrainerSettings, wri
     latest_eval = {}
 
     def record_eval(iteration):
+        # written with the next periodic flush: a flush per evaluation cost 2% of a fast scene's wall time
         metrics = {k: float(v) for k, v in jax.device_get(evaluate(params, scene.test_set)).items()}
         writer.append("eval", {"iteration": iteration, "wall_time": train_seconds, **metrics})
-        writer.flush()
         latest_eval.clear()
         latest_eval.update(metrics, iteration=iteration)
 
@@ -144,28 +177,35 @@ def train(scene: Scene, rule: UpdateRule, params, settings: TrainerSettings, wri
             # compiling can take minutes: inside the guard, so a failure or an interrupt here is recorded too
             opt_state = rule.transform.init(params)
             start = time.perf_counter()
-            step = jax.jit(make_step(scene, rule, settings.batch_size, train_key)).lower(
+            log_names: list[str] = []
+            step = jax.jit(packed_logs(make_step(scene, rule, settings.batch_size, train_key), log_names)).lower(
                 params, opt_state, np.int32(0)).compile()
             evaluate = jax.jit(scene.evaluate).lower(params, scene.test_set).compile()
             writer.set_attrs(compile_seconds=time.perf_counter() - start)
+            writer.set_columns("train", ("iteration", "wall_time", *log_names))
+            guarded = [log_names.index(name) for name in GUARDED]
+            svd_at = log_names.index("svd_failures") if "svd_failures" in log_names else None
+            svd_failures = 0.0
             record_eval(0)
+            writer.flush()
             last_flush = time.perf_counter()
             for iteration in range(settings.iterations):
                 if stop.signal_name is not None:
                     raise KeyboardInterrupt(stop.signal_name)
                 tick = time.perf_counter()
                 new_params, opt_state, logs = step(params, opt_state, np.int32(iteration))
-                logs = jax.device_get(logs)
+                logs = np.asarray(logs).tolist()  # one transfer for every logged scalar
                 jax.block_until_ready(new_params)
                 train_seconds += time.perf_counter() - tick
                 params, done = new_params, iteration + 1
-                writer.append("train", {"iteration": iteration, "wall_time": train_seconds,
-                                        **{k: float(v) for k, v in logs.items()}})
-                bad = next((k for k in ("loss", "grad_norm", "update_norm") if not math.isfinite(logs[k])), None)
+                writer.append_row("train", (iteration, train_seconds, *logs))
+                bad = next((log_names[i] for i in guarded if not math.isfinite(logs[i])), None)
                 if bad is not None:
                     status = "diverged"
-                    reason = f"{bad} became {float(logs[bad])} at iteration {iteration}"
+                    reason = divergence_reason(bad, dict(zip(log_names, logs)), iteration, svd_failures)
                     break
+                if svd_at is not None:
+                    svd_failures = logs[svd_at]
                 if done % settings.eval_every == 0 and done < settings.iterations:
                     record_eval(done)
                 if settings.time_budget is not None and train_seconds >= settings.time_budget:
@@ -175,8 +215,8 @@ def train(scene: Scene, rule: UpdateRule, params, settings: TrainerSettings, wri
                 if now - last_flush >= settings.flush_seconds:
                     writer.flush()
                     last_flush = now
-                    bar.set_postfix(loss=f"{float(logs['loss']):.3e}", refresh=False)
-                bar.update(done - bar.n)
+                    bar.set_postfix(loss=f"{logs[guarded[1]]:.3e}", refresh=False)
+                    bar.update(done - bar.n)
             else:
                 writer.set_attrs(stopped_by="iterations")
             if status == "completed" and latest_eval["iteration"] != done:
@@ -190,5 +230,8 @@ def train(scene: Scene, rule: UpdateRule, params, settings: TrainerSettings, wri
         raise
     finally:
         bar.close()
+    flat = np.asarray(ravel_pytree(params)[0])
+    if status != "diverged" and np.isfinite(flat).all():  # a later run can start from it (init_from)
+        writer.save_params(flat)
     writer.finish(status, reason, iterations=done, train_seconds=train_seconds)
     return Outcome(status, reason, done, train_seconds, dict(latest_eval))

@@ -40,5 +40,19 @@ def choice(cfg, key: str, choices, prefix: str = ""):
     return value
 
 
+def flag(cfg, key: str, prefix: str = "") -> bool:
+    return choice(cfg, key, (False, True), prefix)
+
+
+def layer_widths(cfg, key: str, prefix: str = "") -> list[int]:
+    """A non-empty list of positive whole numbers (hidden layer widths)."""
+    value = OmegaConf.select(cfg, key)
+    widths = list(value) if OmegaConf.is_list(value) or isinstance(value, (list, tuple)) else None
+    if not widths or not all(isinstance(w, int) and not isinstance(w, bool) and w > 0 for w in widths):
+        raise UserError(f"{_name(prefix, key)}={value!r} is not allowed: use a list of positive layer widths, "
+                        "e.g. [20, 20]")
+    return widths
+
+
 def _name(prefix: str, key: str) -> str:
     return f"{prefix}.{key}" if prefix else key

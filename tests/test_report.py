@@ -59,3 +59,32 @@ def test_median_band_interpolates_in_log_loss():
     np.testing.assert_allclose(low, [1.0, 1e-2, 1e-4])
     np.testing.assert_allclose(high, [1.0, 1e-1, 1e-2])
     np.testing.assert_allclose(median, np.sqrt(low * high))
+
+
+def test_report_draws_the_tradeoff_and_unroll_figures(tmp_path):
+    for unroll in (16, 32, 64):
+        for variant, scale in (("bptt", 1.0), ("stable_bptt", 0.5)):
+            folder = tmp_path / f"{variant}_{unroll}"
+            config = yaml.safe_dump({"seed": 0, "precision": 32, "unroll": unroll,
+                                     "task": {"name": "multicart", "poles": 2, "batch_size": 8}})
+            writer = ResultsWriter(folder / "results.h5", {"task": "multicart", "optim": variant, "variant": variant,
+                                                           "seed": 0, "config": config, "unroll": unroll})
+            for i in range(3):
+                writer.append("train", {"iteration": i, "wall_time": (i + 1) * unroll * 1e-3, "loss": 1.0,
+                                        "grad_norm": 1.0})
+                writer.append("eval", {"iteration": i, "wall_time": i * unroll * 1e-3, "loss": scale / (i + 1)})
+            writer.finish("completed")
+    text = write_report([tmp_path])
+    for name in ("loss_vs_time.png", "loss_vs_iteration.png", "tradeoff.png", "unroll.png"):
+        assert (tmp_path / name).stat().st_size > 1000 and name in text
+    # six problems (one per unroll length) in the table, one unroll figure across them
+    runs, _ = collect([tmp_path])
+    label_settings(runs)
+    assert sorted({run.scene for run in runs}) == [f"multicart unroll={u}" for u in (16, 32, 64)]
+
+
+def test_report_without_an_unroll_axis_draws_no_unroll_figure(tmp_path):
+    fake_run(tmp_path / "a", "adam", 0, 1, [1.0, 0.5], [0.0, 1.0])
+    text = write_report([tmp_path])
+    assert not (tmp_path / "unroll.png").exists() and "unroll.png" not in text
+    assert (tmp_path / "tradeoff.png").stat().st_size > 1000

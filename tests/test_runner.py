@@ -1,5 +1,7 @@
 """The training loop: stopping rules, divergence, comparability across variants, precision, results files."""
 
+import re
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -17,11 +19,27 @@ def test_divergence_is_an_outcome_with_the_curve_kept(tmp_path):
     outcome, path = run_experiment(load("optim=gd", "optim.lr=1e30", "trainer.iterations=50", *SMALL), tmp_path)
     run = read_run(path)
     assert outcome.status == "diverged" == run.attrs["status"]
-    assert run.attrs["reason"].split()[0] in ("loss", "grad_norm", "update_norm")
-    bad_iteration = int(run.attrs["reason"].rsplit(" ", 1)[1])
+    match = re.fullmatch(r"(state|loss|gradient|update) became (\S+) at iteration (\d+) \((\w+)\)",
+                         run.attrs["reason"])
+    assert match and not np.isfinite(float(match[2])), run.attrs["reason"]
+    bad_iteration = int(match[3])
+    assert not np.isfinite(run.train[match[4]][-1]) and np.isfinite(run.train[match[4]][:-1]).all()
     assert bad_iteration < 49
     assert run.train["iteration"].size == bad_iteration + 1  # every row up to and including the bad one
     assert np.isfinite(run.train["loss"][0])
+
+
+def test_a_failed_factorisation_is_named_in_the_divergence_reason(tmp_path, monkeypatch):
+    from tests.test_spectral import float32_factorisation_fails
+
+    float32_factorisation_fails(monkeypatch)
+    outcome, path = run_experiment(load("optim=hig", "optim.retry_float64=false", "trainer.iterations=5", *SMALL),
+                                   tmp_path)
+    assert outcome.status == "diverged"
+    assert outcome.reason.startswith("update became nan at iteration 0 (update_norm); the SVD/eigh of the Jacobian "
+                                     "did not converge")
+    retried, _ = run_experiment(load("optim=hig", "trainer.iterations=5", *SMALL), tmp_path / "retry")
+    assert retried.status == "completed" and read_run(tmp_path / "retry" / "results.h5").train["svd_failures"][-1] == 0
 
 
 def test_time_budget_stops_training(tmp_path):
@@ -90,13 +108,16 @@ def test_writer_appends_in_flushes_and_checks_columns(tmp_path):
     assert (run.attrs["status"], run.attrs["reason"]) == ("interrupted", "SIGINT after 5 iterations")
 
 
-def test_a_row_cut_short_is_dropped_and_columns_stay_equal(tmp_path):
+def test_rows_are_whole_and_columns_fixed(tmp_path):
     writer = ResultsWriter(tmp_path / "results.h5", {"task": "poisson"})
-    writer.append("train", {"iteration": 0, "loss": 1.0})
-    writer._buffers["train"]["iteration"].append(1)  # what an interrupt inside append() leaves behind
-    writer.finish("interrupted", "SIGINT after 1 iterations")
+    writer.set_columns("train", ("iteration", "loss"))
+    writer.append_row("train", (0, 1.0))
+    writer.append("train", {"loss": 0.5, "iteration": 1})  # by name, in any order
+    with pytest.raises(ValueError, match="columns"):
+        writer.set_columns("train", ("iteration", "grad_norm"))
+    writer.finish("interrupted", "SIGINT after 2 iterations")
     run = read_run(tmp_path / "results.h5")
-    assert run.train["iteration"].tolist() == [0] and run.train["loss"].tolist() == [1.0]
+    assert run.train["iteration"].tolist() == [0, 1] and run.train["loss"].tolist() == [1.0, 0.5]
 
 
 def test_reading_a_foreign_or_corrupt_file_says_so(tmp_path):

@@ -6,8 +6,10 @@ import numpy as np
 import optax
 import pytest
 
-from physgrad.optim.spectral import (gauss_newton, hig, per_sample_jacobian, spectral_rule,
+from physgrad.optim.spectral import (gauss_newton, hig, per_sample_jacobian, resolve_route, spectral_rule,
                                      truncated_spectral_direction)
+
+ROUTES = pytest.mark.parametrize("route", ["svd", "gram"])
 
 
 def random_orthogonal(key, n):
@@ -15,42 +17,75 @@ def random_orthogonal(key, n):
     return q
 
 
+@ROUTES
 @pytest.mark.parametrize("kappa", [1.0, 0.5, 0.0, -1.0])
-def test_diagonal_jacobian_closed_form(x64, kappa):
+def test_diagonal_jacobian_closed_form(x64, kappa, route):
     s = jnp.array([4.0, 1.0, 0.25, 1e-9])
     jac = jnp.zeros((4, 6)).at[jnp.arange(4), jnp.arange(4)].set(s)
     g = jnp.array([1.0, -2.0, 3.0, 5.0])
-    direction = truncated_spectral_direction(jac, g, kappa, tau=1e-6)
+    direction = truncated_spectral_direction(jac, g, kappa, tau=1e-6, route=route)
     # s_i^-kappa * g_i on the kept diagonal entries; the entry with s = 1e-9 <= 1e-6 * 4 contributes exactly 0
     expected = jnp.zeros(6).at[:3].set(s[:3] ** -kappa * g[:3])
     np.testing.assert_allclose(direction, expected, rtol=1e-12, atol=0)
     assert direction[3] == 0.0
 
 
-def test_rotated_jacobian_closed_form(x64):
+@ROUTES
+def test_rotated_jacobian_closed_form(x64, route):
     """J = U diag(s) V^T with known factors: the direction is V diag(s^-1/2) U^T g."""
     u = random_orthogonal(jax.random.PRNGKey(0), 5)
     v = random_orthogonal(jax.random.PRNGKey(1), 8)[:, :5]
     s = jnp.array([3.0, 2.0, 1.0, 0.5, 0.1])
     jac = u @ jnp.diag(s) @ v.T
     g = jax.random.normal(jax.random.PRNGKey(2), (5,))
-    np.testing.assert_allclose(truncated_spectral_direction(jac, g, 0.5, 1e-6), v @ (s ** -0.5 * (u.T @ g)),
+    np.testing.assert_allclose(truncated_spectral_direction(jac, g, 0.5, 1e-6, route), v @ (s ** -0.5 * (u.T @ g)),
                                rtol=1e-10, atol=1e-12)
     # tau between 0.1/3 and 0.5/3 drops exactly the smallest singular value
-    truncated = truncated_spectral_direction(jac, g, 0.5, 0.1)
+    truncated = truncated_spectral_direction(jac, g, 0.5, 0.1, route)
     np.testing.assert_allclose(truncated, v[:, :4] @ (s[:4] ** -0.5 * (u.T @ g)[:4]), rtol=1e-10, atol=1e-12)
 
 
-def test_zero_jacobian_gives_zero_update(x64):
+@ROUTES
+def test_zero_jacobian_gives_zero_update(x64, route):
     for dtype in (jnp.float32, jnp.float64):
-        direction = truncated_spectral_direction(jnp.zeros((3, 7), dtype), jnp.ones(3, dtype), 0.5, 1e-6)
-        assert jnp.all(direction == 0.0) and direction.shape == (7,)
+        direction = truncated_spectral_direction(jnp.zeros((3, 7), dtype), jnp.ones(3, dtype), 0.5, 1e-6, route)
+        assert jnp.all(direction == 0.0) and direction.shape == (7,) and direction.dtype == dtype
 
 
-def test_kappa_minus_one_is_the_plain_gradient(x64):
+@ROUTES
+def test_kappa_minus_one_is_the_plain_gradient(x64, route):
     jac = jax.random.normal(jax.random.PRNGKey(3), (6, 10))
     g = jax.random.normal(jax.random.PRNGKey(4), (6,))
-    np.testing.assert_allclose(truncated_spectral_direction(jac, g, -1.0, 0.0), jac.T @ g, rtol=1e-10, atol=1e-12)
+    np.testing.assert_allclose(truncated_spectral_direction(jac, g, -1.0, 0.0, route), jac.T @ g, rtol=1e-10,
+                               atol=1e-12)
+
+
+def test_float32_gram_route_resolves_a_wide_spectrum():
+    """A float32 J with singular values from 1 down to 1e-5 and tau = 1e-6 keeps them all. The Gram route works
+    in float64 on J as given, so it reproduces the exact direction of that float32 J to ~1e-6 although s^2
+    spans 1e-10, which a float32 Gram matrix (relative error ~1e-7 of max s^2) could not resolve."""
+    m, n = 40, 90
+    u = np.linalg.qr(np.random.default_rng(0).normal(size=(m, m)))[0]
+    v = np.linalg.qr(np.random.default_rng(1).normal(size=(n, m)))[0]
+    s = np.logspace(0, -5, m)
+    jac32 = (u * s) @ v.T
+    jac32 = jac32.astype(np.float32)
+    g = np.random.default_rng(2).normal(size=m)
+    # the exact direction of the float32 matrix, from a float64 SVD of it
+    u64, s64, vt64 = np.linalg.svd(jac32.astype(np.float64), full_matrices=False)
+    exact = vt64.T @ (s64 ** -0.5 * (u64.T @ g))
+    gram = np.asarray(truncated_spectral_direction(jnp.asarray(jac32), jnp.asarray(g, jnp.float32), 0.5, 1e-6,
+                                                   "gram"))
+    assert gram.dtype == np.float32
+    # measured 5e-8; a float32 SVD of the same J misses by 1e-3
+    assert np.linalg.norm(gram - exact) / np.linalg.norm(exact) < 1e-6
+
+
+def test_auto_route_takes_gram_only_where_it_resolves_tau():
+    assert resolve_route("auto", 1e-6, (512, 2956)) == "gram"
+    assert resolve_route("auto", 1e-8, (512, 2956)) == "svd"  # s^2 below float64's reach
+    assert resolve_route("auto", 1e-5, (300, 200)) == "svd"  # tall J: its Gram matrix is the larger one
+    assert resolve_route("svd", 1e-2, (2, 5)) == "svd"
 
 
 def linear_problem(key, batch=3, outputs=2, params=7):
@@ -118,3 +153,48 @@ def test_missing_extra_arguments_are_an_error():
     params = {"w": jnp.ones(3)}
     with pytest.raises(TypeError):
         rule.update(params, rule.init(params), params)
+
+
+def float32_factorisation_fails(monkeypatch):
+    """A stand-in for LAPACK not converging: the kernel returns NaN for float32 input, the true result for
+    float64."""
+    import physgrad.optim.spectral as spectral
+
+    real = spectral.truncated_spectral_direction
+
+    def flaky(jac, g, kappa, tau, route="svd"):
+        result = real(jac, g, kappa, tau, route)
+        return result * jnp.nan if jac.dtype == jnp.float32 else result
+
+    monkeypatch.setattr(spectral, "truncated_spectral_direction", flaky)
+
+
+@pytest.mark.parametrize("retry", [True, False])
+def test_a_failed_factorisation_is_counted_and_retried_in_float64(monkeypatch, retry):
+    float32_factorisation_fails(monkeypatch)
+    data, theta, sample_output, batch_loss = linear_problem(jax.random.PRNGKey(9))
+    (loss, y), _ = jax.value_and_grad(batch_loss, has_aux=True)(theta)
+    g = (y - data["b"]) / 3
+    rule = spectral_rule(1.0, 0.5, 1e-6, "svd", retry_float64=retry)
+    updates, state = jax.jit(lambda p, s: rule.update(p, s, p, sample_output=sample_output, batch=data,
+                                                      output_grad=g))(theta, rule.init(theta))
+    failures = optax.tree.get(state, "failures")
+    if retry:
+        jac = per_sample_jacobian(sample_output, theta, data)
+        with jax.enable_x64(True):
+            expected = -truncated_spectral_direction(jac.astype(jnp.float64), g.ravel().astype(jnp.float64), 0.5,
+                                                     1e-6)
+        flat = jnp.concatenate([updates["c"], updates["w"]])
+        assert flat.dtype == jnp.float32 and failures == 0
+        np.testing.assert_allclose(flat, expected, rtol=1e-5, atol=1e-6)
+    else:
+        assert failures == 1 and not jnp.isfinite(updates["w"]).any()
+
+
+def test_non_finite_jacobian_is_not_counted_as_a_factorisation_failure():
+    rule = spectral_rule(1.0, 0.5, 1e-6, "svd")
+    params = {"w": jnp.ones(3)}
+    batch = {"a": jnp.full((2, 3), jnp.inf)}
+    _, state = rule.update(params, rule.init(params), params, sample_output=lambda p, s: s["a"] * p["w"],
+                           batch=batch, output_grad=jnp.ones((2, 3)))
+    assert optax.tree.get(state, "failures") == 0

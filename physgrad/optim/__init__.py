@@ -7,7 +7,7 @@ from typing import NamedTuple
 import optax
 
 from physgrad import UserError
-from physgrad.optim.spectral import spectral_rule
+from physgrad.optim.spectral import ROUTES, spectral_rule
 
 OPTIMS = ("adam", "gd", "gauss_newton", "hig", "bptt", "stable_bptt")
 CLIPPING = ("none", "value", "norm")
@@ -39,7 +39,8 @@ def build_rule(optim_cfg) -> UpdateRule:
     if name == "gd":
         return UpdateRule(optax.sgd(lr), False)
     if name in ("hig", "gauss_newton"):
-        return UpdateRule(spectral_rule(lr, float(optim_cfg.kappa), float(optim_cfg.tau)), True)
+        return UpdateRule(spectral_rule(lr, float(optim_cfg.kappa), float(optim_cfg.tau), optim_cfg.route,
+                                        bool(optim_cfg.retry_float64)), True)
     if name in ("bptt", "stable_bptt"):
         adam = optax.adam(lr, b1=optim_cfg.b1, b2=optim_cfg.b2, eps=optim_cfg.eps)
         return UpdateRule(optax.chain(clipping(optim_cfg.clip), adam), False, optim_cfg.backprop)

@@ -4,6 +4,8 @@ With J = dy/dtheta (m x n, m = batch * output components) and g = dL/dy, the fam
     d = V diag(s^-kappa) U^T g,    J = U diag(s) V^T (thin SVD),
 kappa = 1: Gauss-Newton (J^+ g), kappa = 1/2: half-inverse gradient, kappa = -1: the plain gradient J^T g.
 Truncation is relative: singular values s <= tau * max(s) are dropped and contribute exactly 0.
+Two routes compute it (`optim.route`): the thin SVD in the run's precision, or the m x m Gram matrix J J^T with
+eigh in float64 (about 5x faster at the reference sizes; docs/decisions.md has the measurements).
 """
 
 from __future__ import annotations
@@ -16,15 +18,54 @@ import optax
 from jax.flatten_util import ravel_pytree
 
 
-def truncated_spectral_direction(jac: jax.Array, output_grad: jax.Array, kappa: float, tau: float) -> jax.Array:
+ROUTES = ("auto", "svd", "gram")
+# The Gram route resolves singular values down to about sqrt(m * eps_64) * max(s) (~1e-6 at m = 4096), so it is
+# used for truncations at or above this; smaller tau (and m > n) take the SVD.
+GRAM_MIN_TAU = 1e-6
+
+
+def _kept_scale(s: jax.Array, kappa: float, tau: float, power: float = 1.0) -> jax.Array:
+    """s^(-kappa * power) where s > tau * max(s), exactly 0 elsewhere (never inf or NaN, also for s = 0)."""
+    keep = s > tau * jnp.max(s)
+    safe_s = jnp.where(keep, s, 1.0)  # 0 ** -kappa would be inf, and inf * 0 is NaN
+    return jnp.where(keep, safe_s ** (-kappa * power), 0.0)
+
+
+def svd_direction(jac: jax.Array, output_grad: jax.Array, kappa: float, tau: float) -> jax.Array:
+    """V diag(s^-kappa) U^T g from the thin SVD J = U diag(s) V^T, in J's precision."""
+    u, s, vt = jnp.linalg.svd(jac, full_matrices=False)
+    return vt.T @ (_kept_scale(s, kappa, tau) * (u.T @ output_grad))
+
+
+def gram_direction(jac: jax.Array, output_grad: jax.Array, kappa: float, tau: float) -> jax.Array:
+    """J^T U diag(lambda^-(kappa+1)/2) U^T g from J J^T = U diag(lambda) U^T, formed and decomposed in float64.
+
+    Equal to V diag(s^-kappa) U^T g because lambda = s^2 and V = J^T U diag(1/s); the m x m Gram matrix costs
+    O(m^2 n) like the SVD but runs as one matrix product, and float64 keeps the squared condition number
+    (1/tau^2) resolvable. Truncation: lambda > tau^2 max(lambda), i.e. s > tau max(s)."""
+    with jax.enable_x64(True):
+        jac64 = jac.astype(jnp.float64)
+        lam, u = jnp.linalg.eigh(jac64 @ jac64.T)
+        # eigh may return tiny negative eigenvalues; s = sqrt(max(lambda, 0)) and the rule drops them
+        s = jnp.sqrt(jnp.maximum(lam, 0.0))
+        weights = u @ (_kept_scale(s, kappa + 1.0, tau) * (u.T @ output_grad.astype(jnp.float64)))
+        return (jac64.T @ weights).astype(jac.dtype)
+
+
+def resolve_route(route: str, tau: float, shape: tuple[int, int]) -> str:
+    """auto: the float64 Gram route for a wide J (m <= n) and tau >= GRAM_MIN_TAU, else the SVD."""
+    if route != "auto":
+        return route
+    return "gram" if shape[0] <= shape[1] and tau >= GRAM_MIN_TAU else "svd"
+
+
+def truncated_spectral_direction(jac: jax.Array, output_grad: jax.Array, kappa: float, tau: float,
+                                 route: str = "svd") -> jax.Array:
     """V diag(s^-kappa) U^T g over the singular values with s > tau * max(s); the rest contribute 0.
 
     An all-zero J has max(s) = 0, keeps nothing and gives a zero direction (never NaN)."""
-    u, s, vt = jnp.linalg.svd(jac, full_matrices=False)
-    keep = s > tau * jnp.max(s)
-    safe_s = jnp.where(keep, s, 1.0)  # 0 ** -kappa would be inf, and inf * 0 is NaN
-    scale = jnp.where(keep, safe_s ** (-kappa), 0.0)
-    return vt.T @ (scale * (u.T @ output_grad))
+    route = resolve_route(route, tau, jac.shape)
+    return (gram_direction if route == "gram" else svd_direction)(jac, output_grad, kappa, tau)
 
 
 def per_sample_jacobian(sample_output, params, batch) -> jax.Array:
@@ -36,32 +77,52 @@ def per_sample_jacobian(sample_output, params, batch) -> jax.Array:
 
 
 class SpectralState(NamedTuple):
-    """Stateless: every step uses only the current Jacobian."""
+    """failures: steps whose factorisation returned non-finite values from finite inputs (LAPACK did not
+    converge), counted so that the runner can name the cause when the update turns non-finite."""
+
+    failures: jax.Array
 
 
-def spectral_direction(kappa: float, tau: float) -> optax.GradientTransformationExtraArgs:
+def spectral_direction(kappa: float, tau: float, route: str = "auto",
+                       retry_float64: bool = False) -> optax.GradientTransformationExtraArgs:
     """Replaces the gradient by V diag(s^-kappa) U^T g.
 
     Needs the extra arguments sample_output (params, sample) -> y_i, batch and output_grad g = dL/dy
     (shape (batch, k)); the incoming gradient itself is not used, since J^T g carries no more than J and g.
+    A factorisation that fails (non-finite direction from a finite J and g) is counted in the state; with
+    retry_float64 it is repeated in float64 first (the failed step only), and counted if that fails too.
     """
 
     def init(params):
-        return SpectralState()
+        return SpectralState(failures=jnp.zeros((), jnp.int32))
 
     def update(updates, state, params=None, *, sample_output, batch, output_grad):
         if params is None:
             raise ValueError("spectral_direction needs params to build the Jacobian")
         jac = per_sample_jacobian(sample_output, params, batch)
-        direction = truncated_spectral_direction(jac, output_grad.reshape(-1).astype(jac.dtype), kappa, tau)
+        g = output_grad.reshape(-1).astype(jac.dtype)
+        direction = truncated_spectral_direction(jac, g, kappa, tau, route)
+        inputs_finite = jnp.isfinite(jac).all() & jnp.isfinite(g).all()
+        failed = inputs_finite & ~jnp.isfinite(direction).all()
+        if retry_float64:
+            def in_float64():
+                with jax.enable_x64(True):
+                    wide = truncated_spectral_direction(jac.astype(jnp.float64), g.astype(jnp.float64), kappa,
+                                                        tau, route)
+                return wide.astype(jac.dtype)
+
+            direction = jax.lax.cond(failed, in_float64, lambda: direction)
+            failed = inputs_finite & ~jnp.isfinite(direction).all()
+        state = SpectralState(failures=state.failures + failed.astype(jnp.int32))
         return ravel_pytree(params)[1](direction), state
 
     return optax.GradientTransformationExtraArgs(init, update)
 
 
-def spectral_rule(learning_rate: float, kappa: float, tau: float) -> optax.GradientTransformationExtraArgs:
+def spectral_rule(learning_rate: float, kappa: float, tau: float, route: str = "auto",
+                  retry_float64: bool = False) -> optax.GradientTransformationExtraArgs:
     """theta <- theta - lr * V diag(s^-kappa) U^T g (lr in the mean-loss convention)."""
-    return optax.chain(spectral_direction(kappa, tau), optax.scale(-learning_rate))
+    return optax.chain(spectral_direction(kappa, tau, route, retry_float64), optax.scale(-learning_rate))
 
 
 def hig(learning_rate: float, tau: float) -> optax.GradientTransformationExtraArgs:

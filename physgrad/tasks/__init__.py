@@ -23,6 +23,7 @@ TASK_MODULES = {
     "poisson": "physgrad.tasks.poisson",
     "quantum": "physgrad.tasks.quantum",
     "quantum_control": "physgrad.tasks.quantum",  # the StableBPTT preset of the same scene
+    "toy": "physgrad.tasks.toy",
 }
 
 
@@ -78,11 +79,15 @@ class Scene:
 
 def sample_from(train_set) -> Callable[[Any, int], Any]:
     """sample_train for a fixed training set: batch_size samples drawn without replacement, independently at
-    every iteration (from that iteration's key)."""
+    every iteration (from that iteration's key).
+
+    The subset is the top batch_size of one uniform draw per sample (every subset equally likely): 0.17 ms for
+    512 of 4096 on the CI machine, where jax.random.choice(replace=False) shuffles all of them (1.9 ms, as much
+    as the oscillator's whole loss and gradient)."""
     size = jax.tree_util.tree_leaves(train_set)[0].shape[0]
 
     def sample_train(key, batch_size):
-        index = jax.random.choice(key, size, (batch_size,), replace=False)
+        index = jax.lax.top_k(jax.random.uniform(key, (size,)), batch_size)[1]
         return jax.tree_util.tree_map(lambda leaf: leaf[index], train_set)
 
     return sample_train

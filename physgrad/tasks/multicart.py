@@ -16,7 +16,7 @@ import jax.numpy as jnp
 from physgrad.nets import apply_mlp, init_mlp
 from physgrad.tasks import Scene, Traits, sample_from
 from physgrad.unroll import REGULAR, Backprop, rollout
-from physgrad.validate import number
+from physgrad.validate import flag, layer_widths, number
 
 GRAVITY, POLE_MASS, TOTAL_MASS = 9.8, 0.1, 1.1
 
@@ -51,7 +51,8 @@ def build(task_cfg, key, unroll: int | None = None) -> Scene:
     train_size = number(task_cfg, "train_size", 1, integer=True, prefix="task")
     test_size = number(task_cfg, "test_size", 1, integer=True, prefix="task")
     dtype = jnp.zeros(()).dtype
-    sizes = [2 * (1 + poles), *list(task_cfg.hidden), 1]
+    sizes = [2 * (1 + poles), *layer_widths(task_cfg, "hidden", prefix="task"), 1]
+    checkpoint = flag(task_cfg, "checkpoint", prefix="task")
 
     def make_states(k, count):
         """Hanging: theta_i = pi + U[-1, 1] pi/6; x, xdot and thetadot_i ~ U[-1, 1]."""
@@ -68,7 +69,7 @@ def build(task_cfg, key, unroll: int | None = None) -> Scene:
             def policy(state, k):
                 return apply_mlp(params, state, hidden="tanh")[0]
 
-            final, _ = rollout(step, policy, sample["state"], steps, backprop, checkpoint=bool(task_cfg.checkpoint))
+            final, _ = rollout(step, policy, sample["state"], steps, backprop, checkpoint=checkpoint)
             return jnp.cos(final[1:1 + poles])  # y: cos(theta_i) of every pole at the end
 
         return sample_output

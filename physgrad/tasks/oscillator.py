@@ -17,7 +17,7 @@ from physgrad import UserError
 from physgrad.nets import apply_mlp, init_mlp
 from physgrad.tasks import Scene, Traits, sample_from
 from physgrad.unroll import REGULAR, Backprop, rollout
-from physgrad.validate import number
+from physgrad.validate import flag, layer_widths, number
 
 CONTROLLERS = {"open": "open", "feedback": "closed"}
 
@@ -62,7 +62,8 @@ def build(task_cfg, key, unroll: int | None = None) -> Scene:
     test_size = number(task_cfg, "test_size", 1, integer=True, prefix="task")
     feedback = traits(task_cfg).controller == "closed"
     dtype = jnp.zeros(()).dtype
-    hidden = list(task_cfg.hidden)
+    hidden = layer_widths(task_cfg, "hidden", prefix="task")
+    checkpoint = flag(task_cfg, "checkpoint", prefix="task")
     # open loop: target -> every control at once; feedback: (state, target) -> the control of this step
     sizes = [4 * n, *hidden, 1] if feedback else [2 * n, *hidden, steps]
 
@@ -80,7 +81,7 @@ def build(task_cfg, key, unroll: int | None = None) -> Scene:
 
                 def policy(x, k):
                     return controls[k]
-            final, _ = rollout(step, policy, sample["x0"], steps, backprop, checkpoint=bool(task_cfg.checkpoint))
+            final, _ = rollout(step, policy, sample["x0"], steps, backprop, checkpoint=checkpoint)
             return final
 
         return sample_output

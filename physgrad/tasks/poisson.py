@@ -11,9 +11,9 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 
-from physgrad import UserError
 from physgrad.nets import apply_mlp, init_mlp
 from physgrad.tasks import Scene, Traits
+from physgrad.validate import number
 
 
 def traits(task_cfg) -> Traits:
@@ -60,15 +60,15 @@ def smooth_fields(key, count: int, n: int, smoothness: float, dtype) -> jax.Arra
 
 
 def build(task_cfg, key, unroll: int | None = None) -> Scene:
-    n = int(task_cfg.grid)
-    if n < 2:
-        raise UserError(f"task.grid={n} is too small: use a grid of at least 2 cells per side (reference 8)")
+    n = number(task_cfg, "grid", 2, integer=True, prefix="task")
+    smoothness = number(task_cfg, "smoothness", 0, prefix="task")
+    test_size = number(task_cfg, "test_size", 1, integer=True, prefix="task")
     dtype = jnp.zeros(()).dtype  # float64 under precision=64
     cells = n * n
     sizes = [cells, cells, 2 * cells, cells, cells]  # 64 -> 64 -> 128 -> 64 -> 64 at N = 8: 24,896 params
 
     def make_batch(k, count):
-        fields = smooth_fields(k, count, n, float(task_cfg.smoothness), dtype)
+        fields = smooth_fields(k, count, n, smoothness, dtype)
         return {"target": laplace(fields).reshape(count, cells), "field": fields.reshape(count, cells)}
 
     def predict(params, sample):
@@ -88,7 +88,7 @@ def build(task_cfg, key, unroll: int | None = None) -> Scene:
         traits=traits(task_cfg),
         init_params=lambda k: init_mlp(k, sizes, dtype),
         sample_train=make_batch,  # a fresh batch every iteration, as the reference does
-        test_set=make_batch(key, int(task_cfg.test_size)),
+        test_set=make_batch(key, test_size),
         sample_output=sample_output,
         sample_loss=sample_loss,
         sample_metrics=sample_metrics,

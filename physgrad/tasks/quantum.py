@@ -22,7 +22,7 @@ from physgrad import UserError
 from physgrad.nets import apply_control_cnn, apply_mlp, init_control_cnn, init_mlp
 from physgrad.tasks import Scene, Traits, sample_from
 from physgrad.unroll import REGULAR, Backprop, rollout
-from physgrad.validate import choice, number
+from physgrad.validate import choice, flag, layer_widths, number
 
 CONTROLLERS = {"open": "open", "feedback": "closed"}
 
@@ -114,7 +114,8 @@ def build(task_cfg, key, unroll: int | None = None) -> Scene:
             target = jnp.broadcast_to(phi[level - 1], (count, points))
         return {"psi0": psi0.astype(cplx), "target": target.astype(cplx)}
 
-    hidden = list(task_cfg.hidden)
+    hidden = layer_widths(task_cfg, "hidden", prefix="task")
+    checkpoint = flag(task_cfg, "checkpoint", prefix="task")
     if feedback and network == "cnn":
         init = lambda k: init_control_cnn(k, points, real)  # noqa: E731
 
@@ -144,7 +145,7 @@ def build(task_cfg, key, unroll: int | None = None) -> Scene:
                     return controls[k]
             observe = (lambda psi, u: fidelity(target, psi)) if every_step else None
             final, fidelities = rollout(step, policy, sample["psi0"], steps, backprop, observe=observe,
-                                        checkpoint=bool(task_cfg.checkpoint))
+                                        checkpoint=checkpoint)
             # y: the fidelity of every step (loss over all steps), or the final state as real numbers
             return fidelities if every_step else realify(final)
 

@@ -1,0 +1,118 @@
+"""`make reproduce-figures [PROFILE=quick|paper]`: run the figure sweeps of conf/experiment/ and write the
+figures and one markdown summary into outputs/figures/.
+
+The experiment configs hold the papers' budgets (PROFILE=paper). The quick profile (the default) runs the same
+sweeps with the budgets below, so that everything finishes within 45 minutes on a 2-core machine; every figure
+and the summary say so. Runs land in outputs/experiments/<profile>/<experiment>/<overrides>/results.h5; a second
+call skips every job that completed (so an interrupted reproduction resumes), unless OVERWRITE=1.
+Each figure is `physgrad report` of its runs: the same table and figures that command writes for any runs.
+"""
+
+from __future__ import annotations
+
+import argparse
+import subprocess
+import sys
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from physgrad.report import write_report
+
+
+@dataclass(frozen=True)
+class Figure:
+    name: str
+    title: str
+    experiments: tuple[str, ...]
+    shows: tuple[str, ...]  # which of the report's figures this one is
+    quick: dict[str, list[str]] = field(default_factory=dict)  # experiment -> overrides of the quick profile
+
+
+QUICK_POISSON = ["seed=0", "trainer.time_budget=45"]
+FIGURES = (
+    Figure("fig1_oscillator", "Oscillators: Adam, Gauss-Newton and HIG, test loss against training wall-clock",
+           ("fig1_oscillator",), ("loss_vs_time.png",),
+           {"fig1_oscillator": ["seed=0,1", "trainer.time_budget=45"]}),
+    Figure("fig2_quantum", "Quantum dipole (HIG preset): Adam and HIG against training wall-clock",
+           ("fig2_quantum",), ("loss_vs_time.png",),
+           {"fig2_quantum": ["seed=0,1", "trainer.time_budget=60"]}),
+    Figure("fig3_poisson", "Poisson: Adam and HIG, then both continuing from the Adam-trained network",
+           ("fig3_poisson", "fig3_poisson_continue"), ("loss_vs_time.png",),
+           {"fig3_poisson": QUICK_POISSON,
+            "fig3_poisson_continue": [*QUICK_POISSON, "init_from='outputs/experiments/quick/fig3_poisson/"
+                                                      "optim=adam,seed=${seed},trainer.time_budget=45/results.h5'"]}),
+    Figure("fig4_multicart", "Multicart: backprop modes R, M, S, C for 1 to 4 poles, test loss against iteration",
+           ("fig4_multicart",), ("loss_vs_iteration.png",),
+           {"fig4_multicart": ["seed=0", "trainer.iterations=1500", "trainer.eval_every=100"]}),
+    Figure("fig5_quantum_control", "Quantum control (StableBPTT preset): modes R, M, S, C for target levels 3, 4, 5",
+           ("fig5_quantum_control",), ("loss_vs_iteration.png",),
+           {"fig5_quantum_control": ["seed=0", "trainer.iterations=150", "trainer.eval_every=25"]}),
+    Figure("fig6_unroll", "Unroll length: final test loss and seconds per iteration",
+           ("fig6_unroll_bptt", "fig6_unroll_hig"), ("unroll.png",),
+           {"fig6_unroll_bptt": ["seed=0", "unroll=16,32,64,128,256", "trainer.iterations=1000",
+                                 "trainer.eval_every=250"],
+            "fig6_unroll_hig": ["seed=0", "unroll=16,32,64,128,256", "trainer.time_budget=15"]}),
+)
+TRADEOFF = "fig7_tradeoff"
+
+
+def run_sweep(experiment: str, profile: str, overrides: list[str], overwrite: bool) -> tuple[Path, int]:
+    """One named sweep through `physgrad run -m`; returns its folder and the exit code."""
+    folder = Path("outputs/experiments") / profile / experiment
+    command = [sys.executable, "-m", "physgrad.cli", "run", "-m", f"+experiment={experiment}",
+               f"hydra.sweep.dir={folder}", *overrides, *(["overwrite=true"] if overwrite else [])]
+    print("reproduce:", " ".join(command[2:]), flush=True)
+    return folder, subprocess.run(command).returncode
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(prog="make reproduce-figures", description=__doc__.split("\n\n")[0])
+    parser.add_argument("--profile", choices=("quick", "paper"), default="quick")
+    parser.add_argument("--only", default="", help="comma-separated figure names (default: all)")
+    parser.add_argument("--overwrite", action="store_true", help="rerun jobs that completed before")
+    parser.add_argument("--out", default="outputs/figures")
+    options = parser.parse_args(argv)
+    wanted = [f for f in FIGURES if not options.only or f.name in options.only.split(",")]
+    if options.only and len(wanted) != len(options.only.split(",")):
+        print(f"reproduce: error: --only takes names from {', '.join(f.name for f in FIGURES)}", file=sys.stderr)
+        return 2
+    note = ("QUICK PROFILE: budgets scaled down from the papers' (see experiments/reproduce.py)"
+            if options.profile == "quick" else "paper profile: the papers' budgets")
+    out = Path(options.out)
+    out.mkdir(parents=True, exist_ok=True)
+    start = time.perf_counter()
+    sections, all_folders, failed = [], [], []
+    for figure in wanted:
+        folders = []
+        for experiment in figure.experiments:
+            overrides = figure.quick.get(experiment, []) if options.profile == "quick" else []
+            folder, code = run_sweep(experiment, options.profile, overrides, options.overwrite)
+            if code != 0:
+                failed.append(f"{experiment} (exit {code})")
+            if folder.exists():
+                folders.append(folder)
+        all_folders += folders
+        if not folders:
+            sections.append(f"## {figure.name}: {figure.title}\n\nno results (the sweep did not start)\n")
+            continue
+        write_report([str(f) for f in folders], out_dir=out / figure.name, note=f"{figure.title}\n{note}")
+        images = "\n".join(f"![{figure.name}]({figure.name}/{image})" for image in figure.shows)
+        table = (out / figure.name / "report.md").read_text()
+        sections.append(f"## {figure.name}: {figure.title}\n\n{images}\n\n{table}")
+    if all_folders:
+        title = "Error against run time: final test loss against seconds per iteration and total training time"
+        write_report([str(f) for f in all_folders], out_dir=out / TRADEOFF, note=f"{title}\n{note}")
+        sections.append(f"## {TRADEOFF}: {title}\n\n![{TRADEOFF}]({TRADEOFF}/tradeoff.png)\n\n"
+                        f"(its table is the union of the tables above: {TRADEOFF}/report.md)\n")
+    minutes = (time.perf_counter() - start) / 60
+    header = [f"# physgrad figures ({options.profile} profile)", "", note + ".",
+              f"Wall time of this reproduction: {minutes:.1f} min (jobs completed before were skipped, not rerun).",
+              *(["", "Sweeps that did not finish cleanly: " + ", ".join(failed)] if failed else []), ""]
+    (out / "summary.md").write_text("\n".join(header) + "\n" + "\n".join(sections))
+    print(f"reproduce: wrote {out / 'summary.md'} in {minutes:.1f} min")
+    return 1 if failed else 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,296 @@
+"""`make bench`: step time, compile time and peak memory of every scene x variant at its reference size, with
+the floors it is measured against, as one markdown table.
+
+Every measurement runs in its own subprocess (a fresh peak-memory counter and no cache shared between variants);
+the table gives ratios against baselines measured in the same run, never absolute targets:
+- Jacobian variants (hig, gauss_newton): step / (bare per-sample Jacobian + the faster bare SVD of a random
+  matrix of J's shape, numpy LAPACK or jax);
+- adam: step / a bare jitted loss-and-gradient of the same function (minibatch draw, loss, gradient);
+- runner overhead: the share of a `physgrad run` training loop's wall time (compilation excluded) spent
+  neither in training steps nor in evaluations: row buffering, HDF5 flushes, NaN checks, progress bar, at the
+  default logging cadence.
+
+    python -m physgrad.bench [--out docs/benchmarks.md] [--scenes poisson,oscillator] [--quick]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import resource
+import statistics
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+SCENES = ("oscillator", "quantum", "poisson", "multicart", "quantum_control")
+OPTIMS = ("adam", "gd", "gauss_newton", "hig", "bptt", "stable_bptt")
+# variants that exist only as a precision sweep of another (the issue asks for Poisson HIG in both)
+EXTRA = {"poisson": [("hig", ["precision=64"])]}
+# temporal scenes whose Jacobian route would differentiate 128 x 64 outputs per sample: not a reference setup
+SKIP = {("quantum_control", "hig"), ("quantum_control", "gauss_newton"), ("quantum_control", "gd")}
+
+
+def _median_time(fn, repeats: int, min_seconds: float, warmup: bool = True,
+                 max_seconds: float = 120.0) -> tuple[float, int]:
+    """Median wall time of fn() (which must block until its results are ready) over at least `repeats` calls
+    and at least min_seconds, but stopping once max_seconds are spent (slow steps: fewer, long repeats),
+    after one untimed warm-up call."""
+    if warmup:
+        fn()
+    times: list[float] = []
+    while not times or ((len(times) < repeats or sum(times) < min_seconds) and sum(times) < max_seconds
+                        and len(times) < 100_000):
+        start = time.perf_counter()
+        fn()
+        times.append(time.perf_counter() - start)
+    return statistics.median(times), len(times)
+
+
+def _peak_rss_gb() -> float:
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2**20  # kB on Linux
+
+
+def _compose(overrides: list[str]):
+    from hydra import compose, initialize_config_dir
+
+    from physgrad.app import CONF_DIR
+
+    with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
+        return compose("config", overrides=overrides)
+
+
+def measure_variant(overrides: list[str], repeats: int, min_seconds: float) -> dict:
+    """Compile and time the step of one configuration; for adam also the bare loss-and-gradient and the runner's
+    overhead; for the Jacobian variants also the bare Jacobian."""
+    import jax
+    import numpy as np
+
+    from physgrad import UserError
+    from physgrad.experiment import check_config, set_precision
+    from physgrad.optim import build_rule
+    from physgrad.optim.spectral import per_sample_jacobian, resolve_route
+    from physgrad.runner import make_step
+    from physgrad.tasks import build_scene
+
+    cfg = _compose(overrides)
+    try:
+        settings = check_config(cfg)
+    except UserError as error:
+        return {"refused": str(error)}
+    set_precision(cfg.precision)
+    data_key, init_key, train_key = jax.random.split(jax.random.PRNGKey(cfg.seed), 3)
+    scene = build_scene(cfg.task, data_key, cfg.get("unroll"))
+    rule = build_rule(cfg.optim)
+    params = scene.init_params(init_key)
+    opt_state = rule.transform.init(params)
+
+    start = time.perf_counter()
+    step = jax.jit(make_step(scene, rule, settings.batch_size, train_key)).lower(
+        params, opt_state, np.int32(0)).compile()
+    result = {"compile_s": time.perf_counter() - start}
+    state = [params, opt_state]
+
+    def one_step():
+        state[0], state[1], logs = step(state[0], state[1], np.int32(0))
+        jax.block_until_ready(state[0])
+
+    result["step_s"], result["steps_timed"] = _median_time(one_step, repeats, min_seconds)
+    result["peak_rss_gb"] = _peak_rss_gb()
+
+    batch = scene.sample_train(jax.random.fold_in(train_key, 0), settings.batch_size)
+    if rule.uses_jacobian:
+        jacobian = jax.jit(lambda p, b: per_sample_jacobian(scene.sample_output, p, b))
+        shape = jacobian.eval_shape(params, batch).shape
+        result["jacobian_s"], _ = _median_time(lambda: jax.block_until_ready(jacobian(params, batch)), repeats, 0)
+        result["jac_shape"] = list(shape)
+        result["route"] = resolve_route(cfg.optim.route, float(cfg.optim.tau), shape)
+    if cfg.optim.name == "adam":
+        # the same function as the step's: draw the minibatch (as every step does), loss, gradient
+        def loss_and_grad(p, key):
+            batch = scene.sample_train(key, settings.batch_size)
+            return jax.value_and_grad(lambda q: scene.batch_loss(scene.batch_output(q, batch), batch))(p)
+
+        bare = jax.jit(loss_and_grad).lower(params, train_key).compile()
+        result["loss_grad_s"], _ = _median_time(lambda: jax.block_until_ready(bare(params, train_key)),
+                                                repeats, min_seconds)
+        result.update(runner_overhead(settings, scene, rule, params, train_key, result["step_s"]))
+    return result
+
+
+def runner_overhead(settings, scene, rule, params, train_key, step_s: float) -> dict:
+    """Run `train` as `physgrad run` does (default eval_every and flush cadence) for ~10 s and split its wall
+    time: the timed training steps (train_seconds, which include fetching the logged scalars), the evaluations
+    (count x their median time), and the rest, which is the runner's own work (row buffering, HDF5 flushes, NaN
+    checks, progress bar). Measured within one run, so the machine's drift between runs does not enter."""
+    import dataclasses
+
+    import jax
+    import h5py
+
+    from physgrad.results import ResultsWriter
+    from physgrad.runner import train
+
+    iterations = max(200, min(20_000, int(10.0 / step_s)))
+    settings = dataclasses.replace(settings, iterations=iterations, time_budget=None)
+    evaluate = jax.jit(scene.evaluate).lower(params, scene.test_set).compile()
+    eval_s, _ = _median_time(lambda: jax.block_until_ready(evaluate(params, scene.test_set)), 3, 0)
+    with tempfile.TemporaryDirectory() as folder:
+        path = Path(folder) / "results.h5"
+        start = time.perf_counter()
+        outcome = train(scene, rule, params, settings, ResultsWriter(path, {}), train_key)
+        total = time.perf_counter() - start
+        with h5py.File(path) as f:
+            compile_s = float(f.attrs["compile_seconds"])
+            evaluations = f["eval/iteration"].shape[0]
+    loop = total - compile_s
+    rest = loop - outcome.train_seconds - evaluations * eval_s
+    return {"overhead_iterations": iterations, "eval_share": evaluations * eval_s / loop,
+            "runner_overhead": rest / loop}
+
+
+def measure_floors(shape: tuple[int, int], precision: int, repeats: int) -> dict:
+    """The bare thin SVD of a random matrix of J's shape, in numpy (LAPACK gesdd) and in jax."""
+    import jax
+    import jax.numpy as jnp
+    import numpy as np
+
+    from physgrad.experiment import set_precision
+
+    set_precision(precision)
+    dtype = np.float64 if precision == 64 else np.float32
+    matrix = np.random.default_rng(0).standard_normal(shape).astype(dtype)
+    # no warm-up needed (numpy; jax compiled ahead): at the Poisson size one SVD takes a minute or more
+    numpy_s, _ = _median_time(lambda: np.linalg.svd(matrix, full_matrices=False), repeats, 0, warmup=False,
+                              max_seconds=60)
+    device_matrix = jnp.asarray(matrix)
+    svd = jax.jit(lambda a: jnp.linalg.svd(a, full_matrices=False)).lower(device_matrix).compile()
+    jax_s, _ = _median_time(lambda: jax.block_until_ready(svd(device_matrix)), repeats, 0, warmup=False,
+                            max_seconds=60)
+    return {"svd_numpy_s": numpy_s, "svd_jax_s": jax_s}
+
+
+def _subprocess(kind: str, payload: dict, timeout: float) -> dict:
+    command = [sys.executable, "-m", "physgrad.bench", f"--{kind}", json.dumps(payload)]
+    try:
+        done = subprocess.run(command, capture_output=True, text=True, timeout=timeout)
+    except subprocess.TimeoutExpired:
+        return {"error": f"no result within {timeout:.0f} s"}
+    if done.returncode != 0:
+        last = (done.stderr.strip().splitlines() or ["?"])[-1]
+        return {"error": f"exit {done.returncode}: {last}"}
+    return json.loads(done.stdout.strip().splitlines()[-1])
+
+
+def _fmt(seconds: float | None) -> str:
+    if seconds is None:
+        return ""
+    return f"{seconds * 1e3:.3g} ms" if seconds < 1 else f"{seconds:.3g} s"
+
+
+def run_bench(scenes, repeats: int, min_seconds: float, timeout: float) -> list[dict]:
+    rows = []
+    for task in scenes:
+        jobs = [(optim, [f"task={task}", f"optim={optim}"]) for optim in OPTIMS if (task, optim) not in SKIP]
+        jobs += [(optim, [f"task={task}", f"optim={optim}", *extra]) for optim, extra in EXTRA.get(task, [])]
+        for optim, overrides in jobs:
+            print(f"bench: {' '.join(overrides)}", file=sys.stderr, flush=True)
+            result = _subprocess("variant", {"overrides": overrides, "repeats": repeats,
+                                             "min_seconds": min_seconds}, timeout)
+            if "refused" in result:
+                continue
+            precision = 64 if "precision=64" in overrides else 32
+            if "jac_shape" in result:
+                key = (tuple(result["jac_shape"]), precision)
+                floors = next((r["floors"] for r in rows if r.get("floor_key") == key), None)
+                if floors is None:
+                    floors = _subprocess("floors", {"shape": key[0], "precision": precision,
+                                                    "repeats": repeats}, timeout)
+                result.update(floor_key=key, floors=floors)
+            rows.append({"task": task, "variant": optim + ("" if precision == 32 else " f64"),
+                         "precision": precision, **result})
+    return rows
+
+
+def table(rows: list[dict]) -> str:
+    lines = ["| scene | variant | s/iter | compile | peak RSS | J shape (route) | Jacobian | SVD floor numpy / jax "
+             "| step / (Jacobian + SVD floor) | step / bare draw+loss+grad | runner overhead |",
+             "|---|---|---|---|---|---|---|---|---|---|---|"]
+    for row in rows:
+        if "error" in row:
+            lines.append(f"| {row['task']} | {row['variant']} | {row['error']} |  |  |  |  |  |  |  |  |")
+            continue
+        jac = svd = ratio_floor = shape = ""
+        if "jac_shape" in row:
+            floors = row["floors"]
+            shape = f"{row['jac_shape'][0]} x {row['jac_shape'][1]} ({row['route']})"
+            jac = _fmt(row["jacobian_s"])
+            if "error" in floors:
+                svd = floors["error"]
+            else:
+                svd = f"{_fmt(floors['svd_numpy_s'])} / {_fmt(floors['svd_jax_s'])}"
+                floor = row["jacobian_s"] + min(floors["svd_numpy_s"], floors["svd_jax_s"])
+                ratio_floor = f"{row['step_s'] / floor:.2f}"
+        ratio_bare = f"{row['step_s'] / row['loss_grad_s']:.2f}" if "loss_grad_s" in row else ""
+        overhead = ""
+        if "runner_overhead" in row:
+            overhead = (f"{100 * row['runner_overhead']:.1f}% ({row['overhead_iterations']} it; evaluations "
+                        f"{100 * row['eval_share']:.0f}%)")
+        lines.append(f"| {row['task']} | {row['variant']} | {_fmt(row['step_s'])} | {_fmt(row['compile_s'])} | "
+                     f"{row['peak_rss_gb']:.2f} GB | {shape} | {jac} | {svd} | {ratio_floor} | {ratio_bare} | "
+                     f"{overhead} |")
+    return "\n".join(lines) + "\n"
+
+
+def machine() -> str:
+    import platform
+
+    import jax
+
+    return (f"{platform.processor() or platform.machine()}, {os.cpu_count()} cores, jax {jax.__version__} on "
+            f"{jax.devices()[0].device_kind}")
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(prog="python -m physgrad.bench", description=__doc__.split("\n\n")[0])
+    parser.add_argument("--out", default="outputs/bench/benchmarks.md", help="markdown table (and a .json beside)")
+    parser.add_argument("--scenes", default=",".join(SCENES), help="comma-separated tasks")
+    parser.add_argument("--repeats", type=int, default=5, help="timed steps at least (median), after a warm-up")
+    parser.add_argument("--min-seconds", type=float, default=3.0, help="and at least this long per measurement")
+    parser.add_argument("--timeout", type=float, default=1800, help="seconds per subprocess")
+    parser.add_argument("--variant", help=argparse.SUPPRESS)
+    parser.add_argument("--floors", help=argparse.SUPPRESS)
+    options = parser.parse_args(argv)
+    if options.variant:
+        payload = json.loads(options.variant)
+        print(json.dumps(measure_variant(payload["overrides"], payload["repeats"], payload["min_seconds"])))
+        return 0
+    if options.floors:
+        payload = json.loads(options.floors)
+        print(json.dumps(measure_floors(tuple(payload["shape"]), payload["precision"], payload["repeats"])))
+        return 0
+    scenes = [s for s in options.scenes.split(",") if s]
+    unknown = sorted(set(scenes) - set(SCENES))
+    if unknown:
+        print(f"physgrad bench: error: unknown scene {', '.join(unknown)}: choose from {', '.join(SCENES)}",
+              file=sys.stderr)
+        return 2
+    start = time.perf_counter()
+    rows = run_bench(scenes, options.repeats, options.min_seconds, options.timeout)
+    header = (f"# physgrad benchmark\n\nMachine: {machine()}. Reference sizes, float32 unless marked f64, "
+              f"median of >= {options.repeats} steps and >= {options.min_seconds:g} s after compilation; "
+              f"{time.perf_counter() - start:.0f} s in all.\n\n")
+    out = Path(options.out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    text = header + table(rows)
+    out.write_text(text)
+    out.with_suffix(".json").write_text(json.dumps(rows, indent=1, default=str))
+    print(text, end="")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,113 @@
+"""Stability suite (physgrad check), bad input of every kind, and the output folder check."""
+
+import re
+import subprocess
+
+import numpy as np
+import pytest
+
+from physgrad.check import markdown, run_check
+from physgrad.experiment import run_experiment
+from tests.test_configs import load
+
+
+@pytest.fixture(scope="module")
+def small_check(tmp_path_factory):
+    rows = run_check(small=True, out_dir=tmp_path_factory.mktemp("check"))
+    print(markdown(rows))
+    return rows
+
+
+def rows_of(rows, case_start):
+    found = [row for row in rows if row["case"].startswith(case_start)]
+    assert found, case_start
+    return found
+
+
+def test_small_check_has_no_failures_and_every_outcome_is_named(small_check):
+    for row in small_check:
+        assert row["outcome"] in ("converged", "stalled", "diverged", "refused", "finite"), row
+
+
+def test_far_too_large_learning_rates_end_as_outcomes(small_check):
+    for row in rows_of(small_check, "learning rate 1e6"):
+        assert row["outcome"] in ("diverged", "stalled"), row
+        if row["outcome"] == "diverged":
+            assert re.fullmatch(r"(state|loss|gradient|update) became \S+ at iteration \d+ \(\w+\)", row["detail"])
+
+
+def test_rank_deficient_jacobians_give_finite_directions(small_check):
+    rows = rows_of(small_check, "rank-deficient J")
+    assert len(rows) == 12 and all(row["outcome"] == "finite" for row in rows)
+    for row in rows:
+        errors = dict(re.findall(r"(\de[-+]\d+): (\S+?)(?:,|$)", row["detail"].split("tau ", 1)[1]))
+        if "all-zero" in row["case"]:
+            assert all(float(e) == 0.0 for e in errors.values())  # exactly the zero update
+        elif row["precision"] == "64":
+            # duplicated samples: rank m/2, the copies' singular values are exactly 0 and must be dropped
+            assert all(float(errors[t]) < 1e-6 for t in ("1e-06", "1e-04", "1e-02")), row
+
+
+def test_schroedinger_norm_drift_is_round_off(small_check):
+    for row in rows_of(small_check, "quantum norm"):
+        drift = float(row["detail"].rsplit("= ", 1)[1])
+        assert drift < (1e-12 if row["precision"] == "64" else 1e-3), row
+
+
+def test_bptt_gradient_growth_is_measured(small_check):
+    rows = {row["variant"]: row for row in rows_of(small_check, "multicart 4 poles: |gradient|")}
+    assert set(rows) == {"bptt[R]", "bptt[M]"} and all(row["outcome"] == "finite" for row in rows.values())
+
+
+@pytest.mark.parametrize("override, fragment", [
+    ("task.hidden=[0,20]", "task.hidden=[0, 20] is not allowed: use a list of positive layer widths"),
+    ("task.checkpoint=maybe", "task.checkpoint='maybe' is not allowed: choose one of False, True"),
+    ("task.alpha=strong", "task.alpha='strong' is not allowed: use a number"),
+    ("task.dt=-0.1", "task.dt=-0.1 is not allowed: use a number > 0"),
+    ("task.oscillators=1.5", "task.oscillators=1.5 is not allowed: use a whole number >= 1"),
+    ("trainer.eval_every=0", "trainer.eval_every=0 is not allowed: use a whole number >= 1"),
+    ("trainer.time_budget=-5", "trainer.time_budget=-5 is not allowed: use a number > 0 or null"),
+    ("precision=16", "precision=16 is not allowed: choose one of 32, 64"),
+    ("seed=-1", "seed=-1 is not allowed: use a whole number >= 0"),
+    ("optim=hig optim.tau=2", "optim.tau=2 is not allowed: use a number >= 0 and < 1"),
+    ("optim=hig optim.route=qr", "optim.route='qr' is not allowed: choose one of auto, svd, gram"),
+    ("optim=adam optim.lr=0", "optim.lr=0 is not allowed: use a number > 0"),
+    ("overwrite=sometimes", "overwrite='sometimes' is not allowed: choose one of False, True"),
+    ("unroll=0", "unroll=0 is not allowed: use a whole number >= 1"),
+])
+def test_bad_values_are_refused_with_the_key_and_what_is_allowed(override, fragment, tmp_path):
+    outcome, _ = run_experiment(load("task=oscillator", *override.split()), tmp_path)
+    assert outcome.status == "refused" and fragment in outcome.reason and "\n" not in outcome.reason, outcome.reason
+
+
+@pytest.mark.parametrize("override, fragment", [
+    ("task.grid=1", "task.grid=1 is not allowed: use a whole number >= 2"),
+    ("task.smoothness=-1", "task.smoothness=-1 is not allowed: use a number >= 0"),
+])
+def test_bad_poisson_values_are_refused(override, fragment, tmp_path):
+    outcome, _ = run_experiment(load(override), tmp_path)
+    assert outcome.status == "refused" and fragment in outcome.reason
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("make_target", ["under_a_file", "proc"])
+def test_an_unwritable_output_folder_is_a_one_line_error(tmp_path, make_target):
+    from tests.test_cli import physgrad
+
+    if make_target == "under_a_file":
+        (tmp_path / "file.txt").write_text("not a folder")
+        target = tmp_path / "file.txt" / "run"
+    else:
+        target = "/proc/physgrad/run"  # not writable, even for root
+    for args in (["run", f"hydra.run.dir={target}"], ["run", "-m", "optim=adam,gd", f"hydra.sweep.dir={target}"]):
+        result = physgrad(*args, "trainer.iterations=1", check=False)
+        lines = result.stderr.strip().splitlines()
+        assert result.returncode == 2 and len(lines) == 1 and "cannot write results to" in lines[0], result.stderr
+
+
+@pytest.mark.slow
+def test_check_command_is_wired():
+    from tests.test_cli import PHYSGRAD
+
+    result = subprocess.run([PHYSGRAD, "check", "--help"], capture_output=True, text=True)
+    assert result.returncode == 0 and "--small" in result.stdout

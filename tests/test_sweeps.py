@@ -1,0 +1,162 @@
+"""Named sweeps (conf/experiment/), resuming, continuing from another run's network, and sweeps that go on when
+a job fails."""
+
+import itertools
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+from hydra import compose, initialize_config_dir
+
+from physgrad.app import CONF_DIR
+from physgrad.cli import check_overrides
+from physgrad.experiment import check_config, run_experiment
+from physgrad.results import read_run
+from tests.test_configs import load
+
+EXPERIMENTS = sorted(p.stem for p in (CONF_DIR / "experiment").glob("*.yaml"))
+TINY = ["task=poisson", "task.grid=4", "task.test_size=8", "trainer.batch_size=4", "trainer.eval_every=5"]
+sys.path.insert(0, str(CONF_DIR.parent / "experiments"))
+import reproduce  # noqa: E402
+
+
+def sweep_jobs(experiment: str, extra=()):
+    """Every job's config of a named sweep: the product of its sweeper params, as Hydra's basic sweeper makes it."""
+    swept = {o.partition("=")[0]: o.partition("=")[2].split(",") for o in extra if "," in o}
+    fixed = [o for o in extra if "," not in o]
+    with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
+        base = compose("config", overrides=[f"+experiment={experiment}", *fixed], return_hydra_config=True)
+        params = {key: str(value).split(",") for key, value in base.hydra.sweeper.params.items()} | swept
+        for values in itertools.product(*params.values()):
+            overrides = [f"{key}={value}" for key, value in zip(params, values)]
+            yield compose("config", overrides=[f"+experiment={experiment}", *fixed, *overrides])
+
+
+def test_every_figure_has_its_experiments():
+    named = {e for figure in reproduce.FIGURES for e in figure.experiments}
+    assert named == set(EXPERIMENTS)
+    assert len(reproduce.FIGURES) == 6  # figure 7 is drawn from all of their runs
+
+
+@pytest.mark.parametrize("experiment", EXPERIMENTS)
+def test_every_job_of_a_named_sweep_is_valid(experiment):
+    jobs = list(sweep_jobs(experiment))
+    assert len(jobs) >= 6
+    for cfg in jobs:
+        check_config(cfg)  # raises on anything a run would refuse
+    # every variant sees the same seeds
+    seeds = {}
+    for cfg in jobs:
+        seeds.setdefault(str(cfg.optim.name) + str(cfg.optim.get("backprop")), set()).add(cfg.seed)
+    assert len({frozenset(s) for s in seeds.values()}) == 1
+
+
+@pytest.mark.parametrize("figure", reproduce.FIGURES, ids=lambda f: f.name)
+def test_quick_profile_overrides_are_valid(figure):
+    for experiment in figure.experiments:
+        overrides = figure.quick[experiment]
+        check_overrides([f"+experiment={experiment}", *overrides], multirun=True)
+        for cfg in sweep_jobs(experiment, [o for o in overrides if not o.startswith("init_from")]):
+            check_config(cfg)
+
+
+def test_missing_experiment_is_a_one_line_error():
+    with pytest.raises(Exception, match="unknown experiment 'fig9': choose one of fig1_oscillator"):
+        check_overrides(["+experiment=fig9"], multirun=True)
+
+
+def test_a_completed_job_is_skipped_unless_overwrite(tmp_path):
+    first, path = run_experiment(load(*TINY, "trainer.iterations=3"), tmp_path)
+    created = read_run(path).attrs["finished"]
+    again, _ = run_experiment(load(*TINY, "trainer.iterations=3"), tmp_path)
+    assert first.status == again.status == "completed" and "already completed" in again.reason
+    assert again.final_eval["loss"] == first.final_eval["loss"]
+    assert read_run(path).attrs["finished"] == created  # untouched
+    rerun, _ = run_experiment(load(*TINY, "trainer.iterations=3", "overwrite=true"), tmp_path)
+    assert rerun.reason is None
+    changed, _ = run_experiment(load(*TINY, "trainer.iterations=4"), tmp_path)  # another config: run again
+    assert changed.reason is None and read_run(path).train["iteration"].size == 4
+
+
+def test_an_interrupted_job_is_run_again(tmp_path):
+    run_experiment(load(*TINY, "trainer.iterations=3"), tmp_path)
+    from physgrad.results import ResultsWriter
+
+    ResultsWriter(tmp_path / "results.h5", {"config": read_run(tmp_path / "results.h5").attrs["config"]}).finish(
+        "interrupted", "SIGINT after 1 iterations")
+    outcome, path = run_experiment(load(*TINY, "trainer.iterations=3"), tmp_path)
+    assert outcome.reason is None and read_run(path).attrs["status"] == "completed"
+
+
+def test_init_from_continues_from_the_saved_network(tmp_path):
+    _, source = run_experiment(load(*TINY, "trainer.iterations=6"), tmp_path / "adam")
+    outcome, path = run_experiment(load(*TINY, "optim=gd", "trainer.iterations=2", f"init_from={source}"),
+                                   tmp_path / "gd")
+    first, second = read_run(source), read_run(path)
+    assert outcome.status == "completed"
+    # same seed, same test set: the continued run's first evaluation is the source's last
+    assert second.eval["loss"][0] == first.eval["loss"][-1]
+    assert second.variant == "gd (from adam)" and second.offset("iteration") == 6
+    assert second.offset("wall_time") == pytest.approx(first.final("train", "wall_time"))
+
+
+@pytest.mark.parametrize("source, fragment", [
+    ("missing.h5", "no such file"),
+    ("other", "that run trained a poisson network with"),
+])
+def test_init_from_a_wrong_run_is_refused(tmp_path, source, fragment):
+    if source == "other":
+        _, path = run_experiment(load(*TINY, "task.grid=3", "trainer.iterations=1"), tmp_path / "other")
+        source = str(path)
+    outcome, _ = run_experiment(load(*TINY, f"init_from={tmp_path / source}"), tmp_path / "run")
+    assert outcome.status == "refused" and fragment in outcome.reason and "\n" not in outcome.reason
+
+
+def test_a_failed_job_does_not_stop_the_sweep(tmp_path, monkeypatch):
+    import physgrad.experiment
+    from physgrad.cli import main
+
+    real = physgrad.experiment.build_rule
+
+    def broken_for_gd(optim_cfg):
+        if optim_cfg.name == "gd":
+            raise RuntimeError("simulated crash")
+        return real(optim_cfg)
+
+    monkeypatch.setattr(physgrad.experiment, "build_rule", broken_for_gd)
+    assert main(["run", "-m", "optim=gd,adam", "trainer.iterations=2", *TINY[1:], f"hydra.sweep.dir={tmp_path}"]) == 0
+    statuses = {read_run(p).attrs["optim"]: read_run(p) for p in tmp_path.rglob("results.h5")}
+    assert statuses["gd"].attrs["status"] == "failed"
+    assert statuses["gd"].attrs["reason"] == "RuntimeError: simulated crash"
+    assert statuses["adam"].attrs["status"] == "completed"
+    assert sorted(p.parent.name for p in tmp_path.rglob("results.h5")) == [
+        "optim=adam,task.grid=4,task.test_size=8,trainer.batch_size=4,trainer.eval_every=5,trainer.iterations=2",
+        "optim=gd,task.grid=4,task.test_size=8,trainer.batch_size=4,trainer.eval_every=5,trainer.iterations=2"]
+
+
+def test_params_are_saved_unless_the_run_diverged(tmp_path):
+    from physgrad.results import read_params
+
+    _, path = run_experiment(load(*TINY, "trainer.iterations=2"), tmp_path / "ok")
+    assert np.isfinite(read_params(path)).all() and read_params(path).size == read_run(path).attrs["n_params"]
+    _, diverged = run_experiment(load(*TINY, "optim=gd", "optim.lr=1e30", "trainer.iterations=50"), tmp_path / "bad")
+    assert read_run(diverged).attrs["status"] == "diverged"
+    with pytest.raises(ValueError, match="holds no final network"):
+        read_params(diverged)
+
+
+@pytest.mark.slow
+def test_submitit_local_sweep_and_resume(tmp_path):
+    """The SLURM path through Hydra's submitit launcher, with its local executor; a second call skips both jobs."""
+    from tests.test_cli import physgrad
+
+    args = ["run", "-m", "hydra/launcher=submitit_local", "optim=adam,gd", "trainer.iterations=3", *TINY[1:],
+            f"hydra.sweep.dir={tmp_path}"]
+    physgrad(*args)
+    files = sorted(tmp_path.rglob("results.h5"))
+    assert len(files) == 2 and all(read_run(f).attrs["status"] == "completed" for f in files)
+    finished = [read_run(f).attrs["finished"] for f in files]
+    physgrad(*args)
+    assert [read_run(f).attrs["finished"] for f in files] == finished
+    assert Path(tmp_path / ".submitit").is_dir()
