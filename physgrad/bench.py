@@ -89,13 +89,13 @@ def measure_variant(overrides: list[str], repeats: int, min_seconds: float) -> d
     opt_state = rule.transform.init(params)
 
     start = time.perf_counter()
-    step = jax.jit(make_step(scene, rule, settings.batch_size, train_key)).lower(
-        params, opt_state, np.int32(0)).compile()
+    step = jax.jit(make_step(scene, rule, settings.batch_size)).lower(
+        params, opt_state, np.int32(0), train_key, scene.train_set).compile()
     result = {"compile_s": time.perf_counter() - start}
     state = [params, opt_state]
 
     def one_step():
-        state[0], state[1], logs = step(state[0], state[1], np.int32(0))
+        state[0], state[1], logs = step(state[0], state[1], np.int32(0), train_key, scene.train_set)
         jax.block_until_ready(state[0])
 
     result["step_s"], result["steps_timed"] = _median_time(one_step, repeats, min_seconds)
@@ -132,7 +132,7 @@ def runner_overhead(settings, scene, rule, params, train_key, step_s: float) -> 
     import h5py
 
     from physgrad.results import ResultsWriter
-    from physgrad.runner import train
+    from physgrad.runner import Seeds, stack, train
 
     iterations = max(200, min(20_000, int(10.0 / step_s)))
     settings = dataclasses.replace(settings, iterations=iterations, time_budget=None)
@@ -140,8 +140,10 @@ def runner_overhead(settings, scene, rule, params, train_key, step_s: float) -> 
     eval_s, _ = _median_time(lambda: jax.block_until_ready(evaluate(params, scene.test_set)), 3, 0)
     with tempfile.TemporaryDirectory() as folder:
         path = Path(folder) / "results.h5"
+        seeds = Seeds(params=stack([params]), train_keys=train_key[None], train_sets=stack([scene.train_set]),
+                      test_sets=stack([scene.test_set]), writers=[ResultsWriter(path, {})])
         start = time.perf_counter()
-        outcome = train(scene, rule, params, settings, ResultsWriter(path, {}), train_key)
+        outcome, = train(scene, rule, seeds, settings)
         total = time.perf_counter() - start
         with h5py.File(path) as f:
             compile_s = float(f.attrs["compile_seconds"])
@@ -150,6 +152,37 @@ def runner_overhead(settings, scene, rule, params, train_key, step_s: float) -> 
     rest = loop - outcome.train_seconds - evaluations * eval_s
     return {"overhead_iterations": iterations, "eval_share": evaluations * eval_s / loop,
             "runner_overhead": rest / loop}
+
+
+def measure_seeds(overrides: list[str], count: int, repeats: int, min_seconds: float) -> dict:
+    """Seconds per iteration of `count` seeds in one vectorised step (what seeds=<count> runs)."""
+    import jax
+    import numpy as np
+
+    from physgrad.experiment import check_config, set_precision
+    from physgrad.optim import build_rule
+    from physgrad.runner import make_step, over_seeds, stack
+    from physgrad.tasks import build_scene
+
+    cfg = _compose(overrides)
+    settings = check_config(cfg)
+    set_precision(cfg.precision)
+    keys = [jax.random.split(jax.random.PRNGKey(cfg.seed + i), 3) for i in range(count)]
+    scenes = [build_scene(cfg.task, key[0], cfg.get("unroll")) for key in keys]
+    rule = build_rule(cfg.optim)
+    params = stack([scenes[0].init_params(key[1]) for key in keys])
+    opt_state = over_seeds(rule.transform.init, count, (0,))(params)
+    train_keys, train_sets = jax.numpy.stack([key[2] for key in keys]), stack([s.train_set for s in scenes])
+    step = jax.jit(over_seeds(make_step(scenes[0], rule, settings.batch_size), count, (0, 0, None, 0, 0))).lower(
+        params, opt_state, np.int32(0), train_keys, train_sets).compile()
+    state = [params, opt_state]
+
+    def one_step():
+        state[0], state[1], _ = step(state[0], state[1], np.int32(0), train_keys, train_sets)
+        jax.block_until_ready(state[0])
+
+    seconds, _ = _median_time(one_step, repeats, min_seconds)
+    return {"seeds": count, "step_s": seconds, "peak_rss_gb": _peak_rss_gb()}
 
 
 def measure_floors(shape: tuple[int, int], precision: int, repeats: int) -> dict:
@@ -171,6 +204,43 @@ def measure_floors(shape: tuple[int, int], precision: int, repeats: int) -> dict
     jax_s, _ = _median_time(lambda: jax.block_until_ready(svd(device_matrix)), repeats, 0, warmup=False,
                             max_seconds=60)
     return {"svd_numpy_s": numpy_s, "svd_jax_s": jax_s}
+
+
+# where vectorising over seeds is measured: cheap steps, where one seed leaves the cores idle
+SEED_CASES = (("oscillator", "adam"), ("oscillator", "hig"), ("quantum", "adam"), ("multicart", "bptt"),
+              ("multicart", "stable_bptt"), ("quantum_control", "stable_bptt"))
+# seeds > 1 needs the float64 retry off (docs/decisions.md); the single seed is measured the same way
+SEED_OVERRIDES = {"hig": ["optim.retry_float64=false"], "gauss_newton": ["optim.retry_float64=false"]}
+
+
+def run_seeds(scenes, count: int, repeats: int, min_seconds: float, timeout: float) -> list[dict]:
+    rows = []
+    for task, optim in SEED_CASES:
+        if task not in scenes:
+            continue
+        overrides = [f"task={task}", f"optim={optim}", *SEED_OVERRIDES.get(optim, [])]
+        print(f"bench: {' '.join(overrides)} seeds={count}", file=sys.stderr, flush=True)
+        single = _subprocess("seeds", {"overrides": overrides, "count": 1, "repeats": repeats,
+                                       "min_seconds": min_seconds}, timeout)
+        many = _subprocess("seeds", {"overrides": overrides, "count": count, "repeats": repeats,
+                                     "min_seconds": min_seconds}, timeout)
+        rows.append({"task": task, "variant": optim, "single": single, "many": many})
+    return rows
+
+
+def seeds_table(rows: list[dict]) -> str:
+    lines = ["| scene | variant | s/iter, 1 seed | s/iter, N seeds vectorised | throughput gain (N x t1 / tN) "
+             "| peak RSS, N seeds |", "|---|---|---|---|---|---|"]
+    for row in rows:
+        single, many = row["single"], row["many"]
+        if "error" in single or "error" in many:
+            lines.append(f"| {row['task']} | {row['variant']} | {single.get('error', '')} | {many.get('error', '')} "
+                         "|  |  |")
+            continue
+        gain = many["seeds"] * single["step_s"] / many["step_s"]
+        lines.append(f"| {row['task']} | {row['variant']} | {_fmt(single['step_s'])} | {_fmt(many['step_s'])} "
+                     f"(N = {many['seeds']}) | {gain:.2f}x | {many['peak_rss_gb']:.2f} GB |")
+    return "\n".join(lines) + "\n"
 
 
 def _subprocess(kind: str, payload: dict, timeout: float) -> dict:
@@ -263,7 +333,14 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--timeout", type=float, default=1800, help="seconds per subprocess")
     parser.add_argument("--variant", help=argparse.SUPPRESS)
     parser.add_argument("--floors", help=argparse.SUPPRESS)
+    parser.add_argument("--seeds", help=argparse.SUPPRESS)
+    parser.add_argument("--vectorised-seeds", type=int, default=8, help="N of the seeds=N throughput table")
     options = parser.parse_args(argv)
+    if options.seeds:
+        payload = json.loads(options.seeds)
+        print(json.dumps(measure_seeds(payload["overrides"], payload["count"], payload["repeats"],
+                                       payload["min_seconds"])))
+        return 0
     if options.variant:
         payload = json.loads(options.variant)
         print(json.dumps(measure_variant(payload["overrides"], payload["repeats"], payload["min_seconds"])))
@@ -280,14 +357,16 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     start = time.perf_counter()
     rows = run_bench(scenes, options.repeats, options.min_seconds, options.timeout)
+    seed_rows = run_seeds(scenes, options.vectorised_seeds, options.repeats, options.min_seconds, options.timeout)
     header = (f"# physgrad benchmark\n\nMachine: {machine()}. Reference sizes, float32 unless marked f64, "
               f"median of >= {options.repeats} steps and >= {options.min_seconds:g} s after compilation; "
               f"{time.perf_counter() - start:.0f} s in all.\n\n")
     out = Path(options.out)
     out.parent.mkdir(parents=True, exist_ok=True)
-    text = header + table(rows)
+    text = header + table(rows) + (f"\nSeeds in one process (`seeds={options.vectorised_seeds}`, one vmapped step):\n\n"
+                                    + seeds_table(seed_rows) if seed_rows else "")
     out.write_text(text)
-    out.with_suffix(".json").write_text(json.dumps(rows, indent=1, default=str))
+    out.with_suffix(".json").write_text(json.dumps({"variants": rows, "seeds": seed_rows}, indent=1, default=str))
     print(text, end="")
     return 0
 

@@ -17,7 +17,7 @@ from physgrad.nets import count_params
 from physgrad.optim import BACKPROP_MODES, CLIPPING, OPTIMS, build_rule
 from physgrad.optim.spectral import ROUTES
 from physgrad.results import ResultsWriter
-from physgrad.runner import Outcome, TrainerSettings, train
+from physgrad.runner import Outcome, Seeds, TrainerSettings, stack, train
 from physgrad.tasks import build_scene, traits
 from physgrad.validate import choice, number
 
@@ -29,6 +29,7 @@ def check_config(cfg: DictConfig) -> TrainerSettings:
     if cfg.get("init_from") is not None and not isinstance(cfg.init_from, str):
         raise UserError(f"init_from={cfg.init_from!r} is not allowed: use the path of a results.h5, or null")
     number(cfg, "seed", 0, integer=True)
+    number(cfg, "seeds", 1, integer=True)
     optim = choice(cfg, "optim.name", OPTIMS)
     number(cfg, "optim.lr", 0, open_low=True)
     if optim in ("hig", "gauss_newton"):
@@ -156,45 +157,81 @@ def start_from(path: str, params, scene_name: str) -> tuple[Any, dict]:
     return unravel(jnp.asarray(flat, own.dtype)), attrs
 
 
+def seed_paths(cfg: DictConfig, out_dir: str | Path) -> list[tuple[int, Path]]:
+    """(seed, results file) of every seed a job trains: out_dir/results.h5 for one seed, out_dir/seed=<s>/
+    results.h5 for seeds > 1 (seed, seed + 1, ...)."""
+    count = cfg.get("seeds", 1)
+    count = count if isinstance(count, int) and count > 0 else 1
+    if count == 1:
+        return [(cfg.seed, Path(out_dir) / "results.h5")]
+    return [(cfg.seed + i, Path(out_dir) / f"seed={cfg.seed + i}" / "results.h5") for i in range(count)]
+
+
+def job_outcome(outcomes: list[Outcome]) -> Outcome:
+    """One outcome for a job of several seeds: the first that did not complete, else the first seed's."""
+    if len(outcomes) == 1:
+        return outcomes[0]
+    worst = next((o for o in outcomes if o.status != "completed"), outcomes[0])
+    reasons = "; ".join(f"seed #{i}: {o.reason}" for i, o in enumerate(outcomes) if o.reason)
+    return Outcome(worst.status, reasons or None, worst.iterations, worst.train_seconds, outcomes[0].final_eval)
+
+
 def run_experiment(cfg: DictConfig, out_dir: str | Path) -> tuple[Outcome, Path]:
-    """Run one job into out_dir/results.h5; a refused job leaves a file with status refused and the reason.
+    """Run one job into out_dir/results.h5 (seeds > 1: one file per seed under out_dir/seed=<s>/, trained
+    together in one vectorised step); a refused job leaves a file with status refused and the reason.
     A job that completed before with the same config is not run again unless overwrite=true."""
-    path = Path(out_dir) / "results.h5"
+    paths = seed_paths(cfg, out_dir)
+    where = paths[0][1] if len(paths) == 1 else Path(out_dir)
     if not cfg.get("overwrite", False):
-        previous = finished_before(path, cfg)
-        if previous is not None:
-            return previous, path
+        previous = [finished_before(path, cfg) for _, path in paths]
+        if all(previous):
+            return job_outcome(previous), where
     try:
         settings = check_config(cfg)
+        if len(paths) > 1 and cfg.get("init_from"):
+            raise UserError(f"init_from starts one network: use seeds=1 (not seeds={len(paths)}) with it")
+        if len(paths) > 1 and cfg.optim.get("retry_float64"):
+            # its lax.cond traced under x64 does not batch under vmap (jax 0.10): a known limitation
+            raise UserError(f"seeds={len(paths)} cannot retry failed factorisations in float64: add "
+                            "optim.retry_float64=false, or use seeds=1")
         set_precision(cfg.precision)
         logging.getLogger("jax").setLevel(logging.WARNING)
-        data_key, init_key, train_key = jax.random.split(jax.random.PRNGKey(cfg.seed), 3)
-        scene = build_scene(cfg.task, data_key, cfg.get("unroll"))
+        keys = [jax.random.split(jax.random.PRNGKey(seed), 3) for seed, _ in paths]  # data, init, minibatches
+        scenes = [build_scene(cfg.task, key[0], cfg.get("unroll")) for key in keys]
+        scene = scenes[0]  # the physics and the network; only the data differ between seeds
         if scene.train_size is not None and settings.batch_size > scene.train_size:
             raise UserError(f"trainer.batch_size={settings.batch_size} is larger than the training set: use at most "
                             f"{scene.train_size} (task.train_size)")
         rule = build_rule(cfg.optim)
-        params, origin = scene.init_params(init_key), {}
+        params, origin = [scene.init_params(key[1]) for key in keys], {}
         if cfg.get("init_from"):
-            params, origin = start_from(cfg.init_from, params, cfg.task.name)
+            first, origin = start_from(cfg.init_from, params[0], cfg.task.name)
+            params = [first]
     except UserError as error:
-        ResultsWriter(path, run_attributes(cfg, cfg.get("unroll") if _has_time_axis(cfg) else None)).finish(
-            "refused", str(error))
-        return Outcome("refused", str(error), 0, 0.0, {}), path
+        for seed, path in paths:
+            attrs = run_attributes(cfg, cfg.get("unroll") if _has_time_axis(cfg) else None)
+            ResultsWriter(path, {**attrs, "seed": seed}).finish("refused", str(error))
+        return Outcome("refused", str(error), 0, 0.0, {}), where
 
     attrs = run_attributes(cfg, scene.steps)
     if origin:
         attrs["variant"] += f" (from {origin['init_variant']})"
-    writer = ResultsWriter(path, {
-        **attrs, **origin,
+    if len(paths) > 1:
+        attrs["wall_time_shared_by"] = len(paths)  # every seed's wall_time is the one shared vectorised run
+    writers = [ResultsWriter(path, {
+        **attrs, **origin, "seed": seed,
         "batch_size": settings.batch_size,
-        "n_params": count_params(params),
+        "n_params": count_params(params[0]),
         "device": str(jax.devices()[0].device_kind),
-    })
-    label = f"{cfg.task.name}/{cfg.optim.name} seed {cfg.seed}"
-    outcome = train(scene, rule, params, settings, writer, train_key, label=label)
+    }) for seed, path in paths]
+    seeds = Seeds(params=stack(params), train_keys=jnp.stack([key[2] for key in keys]),
+                  train_sets=stack([s.train_set for s in scenes]), test_sets=stack([s.test_set for s in scenes]),
+                  writers=writers)
+    label = f"{cfg.task.name}/{cfg.optim.name} seed {cfg.seed}" + (f" (+{len(paths) - 1})" if len(paths) > 1 else "")
+    outcomes = train(scene, rule, seeds, settings, label=label)
     from physgrad.plots import plot_run  # matplotlib only once training is over
     from physgrad.results import read_run
 
-    plot_run(read_run(path), path.with_name("loss.png"))
-    return outcome, path
+    for _, path in paths:
+        plot_run(read_run(path), path.with_name("loss.png"))
+    return job_outcome(outcomes), where

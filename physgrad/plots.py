@@ -46,7 +46,8 @@ def median_band(curves: list[tuple[np.ndarray, np.ndarray]], points: int = 200):
 def _panels(count: int, width: float = 5.5, height: float = 4.0, max_columns: int = 4):
     columns = max(1, min(count, max_columns))
     rows = max(1, -(-count // columns))
-    fig, axes = plt.subplots(rows, columns, figsize=(width * columns, height * rows), squeeze=False)
+    # at least 8 inches wide, so that the note above the panels fits
+    fig, axes = plt.subplots(rows, columns, figsize=(max(8.0, width * columns), height * rows), squeeze=False)
     for ax in axes.flat[count:]:
         ax.set_visible(False)
     return fig, list(axes.flat)
@@ -68,21 +69,31 @@ def plot_comparison(runs: list[Run], path: str | Path, x_key: str = "wall_time",
     """Held-out loss against training wall-clock (or iteration), one panel per scene (task and setting), one
     line per variant: the median over seeds and the min-max band. A run started from another's network
     begins where that run ended."""
-    by_task = defaultdict(lambda: defaultdict(list))
+    by_task = defaultdict(lambda: defaultdict(lambda: {"ok": [], "diverged": []}))
     for run in runs:
         loss = run.eval.get("loss")
         if loss is not None and loss.size and np.isfinite(loss).any():
             finite = np.isfinite(loss)
-            by_task[run.scene][run.variant].append((run.eval[x_key][finite] + run.offset(x_key), loss[finite]))
+            kind = "diverged" if run.attrs.get("status") == "diverged" else "ok"
+            by_task[run.scene][run.variant][kind].append((run.eval[x_key][finite] + run.offset(x_key), loss[finite]))
     tasks = sorted(by_task) or ["(no runs with evaluations)"]
     fig, axes = _panels(len(tasks))
     for ax, task in zip(axes, tasks):
-        for variant, curves in sorted(by_task.get(task, {}).items()):
-            start = min(x[0] for x, _ in curves)
-            grid, median, low, high = median_band([(x - start, y) for x, y in curves])
-            line, = ax.plot(grid + start, median, label=f"{variant} ({_seeds(len(curves))})")
-            if len(curves) > 1:
-                ax.fill_between(grid + start, low, high, color=line.get_color(), alpha=0.2)
+        for variant, kinds in sorted(by_task.get(task, {}).items()):
+            curves, diverged = kinds["ok"], kinds["diverged"]
+            label = f"{variant} ({_seeds(len(curves))}" + (f", {len(diverged)} diverged)" if diverged else ")")
+            color = None
+            if curves:
+                start = min(x[0] for x, _ in curves)
+                grid, median, low, high = median_band([(x - start, y) for x, y in curves])
+                line, = ax.plot(grid + start, median, label=label)
+                color = line.get_color()
+                if len(curves) > 1:
+                    ax.fill_between(grid + start, low, high, color=color, alpha=0.2)
+            for index, (x, y) in enumerate(diverged):  # each on its own, ending in a cross where it diverged
+                line, = ax.plot(x, y, "--", lw=0.8, color=color, label=label if color is None and not index else None)
+                color = line.get_color()
+                ax.plot(x[-1:], y[-1:], "x", ms=8, color=color)
         ax.set_title(task)
         ax.set_xlabel("training wall-clock [s]" if x_key == "wall_time" else x_key)
         ax.set_ylabel("test loss")
@@ -94,31 +105,36 @@ def plot_comparison(runs: list[Run], path: str | Path, x_key: str = "wall_time",
 
 
 def plot_tradeoff(runs: list[Run], path: str | Path, note: str = "") -> None:
-    """Error against run time: per scene, every run's final test loss against its seconds per iteration (top)
-    and its total training time (bottom); one marker colour per variant, one point per seed."""
+    """Error against run time: per scene, every completed run's final test loss against its seconds per
+    iteration (top) and its total training time (bottom); one marker colour per variant, one point per seed."""
     by_task = defaultdict(lambda: defaultdict(list))
     for run in runs:
         final = run.final("eval")
-        if np.isfinite(final) and np.isfinite(run.seconds_per_iteration):
+        if run.attrs.get("status") == "completed" and np.isfinite(final) and np.isfinite(run.seconds_per_iteration):
             total = run.final("train", "wall_time") + run.offset("wall_time")
             by_task[run.scene][run.variant].append((run.seconds_per_iteration, total, final))
     tasks = sorted(by_task) or ["(no finished runs)"]
-    fig, axes = plt.subplots(2, len(tasks), figsize=(4.5 * len(tasks), 7.5), squeeze=False)
-    for column, task in enumerate(tasks):
+    columns = min(len(tasks), 4)  # scenes per row; each scene is a pair of panels stacked vertically
+    rows = -(-len(tasks) // columns)
+    fig, axes = plt.subplots(2 * rows, columns, figsize=(max(8.0, 4.5 * columns), 7.0 * rows), squeeze=False)
+    for ax in axes[:, :].flat:
+        ax.set_visible(False)
+    for index, task in enumerate(tasks):
+        top, bottom = axes[2 * (index // columns), index % columns], axes[2 * (index // columns) + 1, index % columns]
         for variant, points in sorted(by_task.get(task, {}).items()):
             per_iter, total, final = np.array(points).T
-            line, = axes[0, column].plot(per_iter, final, "o", label=f"{variant} ({_seeds(len(points))})")
-            axes[1, column].plot(total, final, "o", color=line.get_color())
-        for row, label in enumerate(("seconds per iteration", "total training time [s]")):
-            ax = axes[row, column]
+            line, = top.plot(per_iter, final, "o", label=f"{variant} ({_seeds(len(points))})")
+            bottom.plot(total, final, "o", color=line.get_color())
+        for ax, label in ((top, "seconds per iteration"), (bottom, "total training time [s]")):
+            ax.set_visible(True)
             ax.set_xscale("log")
             ax.set_yscale("log")
             ax.set_xlabel(label)
             ax.set_ylabel("final test loss")
             ax.grid(True, which="both", alpha=0.3)
-        axes[0, column].set_title(task)
+        top.set_title(task)
         if by_task.get(task):
-            axes[0, column].legend(fontsize=8)
+            top.legend(fontsize=8)
     _save(fig, path, note)
 
 
@@ -130,21 +146,21 @@ def plot_unroll(runs: list[Run], path: str | Path, note: str = "") -> bool:
         unroll = run.attrs.get("unroll")
         if unroll is not None:
             scene = " ".join(word for word in run.scene.split() if not word.startswith("unroll="))
-            by_task[scene][run.variant][int(unroll)].append(
-                (run.final("eval"), run.seconds_per_iteration))
+            final = run.final("eval") if run.attrs.get("status") == "completed" else np.nan  # diverged: no loss
+            by_task[scene][run.variant][int(unroll)].append((final, run.seconds_per_iteration))
     tasks = sorted(task for task, variants in by_task.items()
                    if len({u for lengths in variants.values() for u in lengths}) > 1)
     if not tasks:
         return False
-    fig, axes = plt.subplots(2, len(tasks), figsize=(5 * len(tasks), 7.5), squeeze=False)
+    fig, axes = plt.subplots(2, len(tasks), figsize=(max(8.0, 5 * len(tasks)), 7.5), squeeze=False)
     for column, task in enumerate(tasks):
         for variant, lengths in sorted(by_task[task].items()):
             unrolls = sorted(lengths)
             for row in (0, 1):
                 values = [np.array([v[row] for v in lengths[u]], float) for u in unrolls]
-                median = np.array([np.median(v) for v in values])
-                low = median - np.array([np.nanmin(v) for v in values])
-                high = np.array([np.nanmax(v) for v in values]) - median
+                median = np.array([np.nanmedian(v) if np.isfinite(v).any() else np.nan for v in values])
+                low = median - np.array([np.nanmin(v) if np.isfinite(v).any() else np.nan for v in values])
+                high = np.array([np.nanmax(v) if np.isfinite(v).any() else np.nan for v in values]) - median
                 axes[row, column].errorbar(unrolls, median, yerr=[low, high], fmt="o-", capsize=3,
                                            label=variant if row == 0 else None)
         for row, label in enumerate(("final test loss", "seconds per iteration")):

@@ -64,12 +64,12 @@ def label_settings(runs: list[Run]) -> None:
 
 
 def thresholds(runs: list[Run]) -> dict[str, float]:
-    """Per scene (task and setting), the worst final test loss among runs that have one: every such run
-    reaches it."""
+    """Per scene (task and setting), the worst final test loss among the completed runs: every one of them
+    reaches it (a diverged or interrupted run's last evaluation says nothing about where training gets)."""
     worst = defaultdict(lambda: -math.inf)
     for run in runs:
         final = run.final("eval")
-        if math.isfinite(final):
+        if math.isfinite(final) and run.attrs.get("status") == "completed":
             worst[run.scene] = max(worst[run.scene], final)
     return dict(worst)
 
@@ -121,7 +121,7 @@ def write_report(paths, out_dir=None, threshold: float | None = None, note: str 
     else:
         legend = "t(thr): training seconds until the test loss first reached the scene's threshold (" + ", ".join(
             f"{scene}: {value:.4g}" for scene, value in sorted(thresholds(runs).items())
-        ) + "; the worst final test loss of the scene's runs, so every finished run reaches it; --threshold sets it)."
+        ) + "; the worst final test loss of the scene's completed runs, so each of them reaches it; --threshold sets it)."
     text = [f"{len(runs)} runs under {', '.join(map(str, paths))}", "", markdown_table(rows), legend,
             "train loss: median of the last 10 minibatch losses; s/iter: median seconds per training step; "
             "train s: training seconds (a run started from another's network counts from its own start)."]

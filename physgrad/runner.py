@@ -12,6 +12,7 @@ import signal
 import time
 from contextlib import contextmanager
 from dataclasses import dataclass
+from typing import Any
 
 import jax
 import jax.numpy as jnp
@@ -44,9 +45,10 @@ class Outcome:
     final_eval: dict
 
 
-def make_step(scene: Scene, rule: UpdateRule, batch_size: int, train_key):
-    """(params, opt_state, iteration) -> (params, opt_state, logs); the minibatch is drawn inside from
-    fold_in(train_key, iteration), so every variant with the same seed and batch size sees the same batches.
+def make_step(scene: Scene, rule: UpdateRule, batch_size: int):
+    """(params, opt_state, iteration, train_key, train_set) -> (params, opt_state, logs); the minibatch is drawn
+    inside from fold_in(train_key, iteration) (out of train_set, if the scene has a fixed one), so every variant
+    with the same seed and batch size sees the same batches.
 
     The gradient is the pullback of g = dL/dy through y = batch output: one forward, one backward. The BPTT
     modes M and S take it through the scene's output with those gradient stops; C takes R and M and keeps
@@ -59,8 +61,8 @@ def make_step(scene: Scene, rule: UpdateRule, batch_size: int, train_key):
         loss, output_grad = jax.value_and_grad(scene.batch_loss)(y, batch)
         return loss, output_grad, pullback(output_grad)[0], jnp.max(jnp.abs(y))
 
-    def step(params, opt_state, iteration):
-        batch = scene.sample_train(jax.random.fold_in(train_key, iteration), batch_size)
+    def step(params, opt_state, iteration, train_key, train_set):
+        batch = scene.draw_batch(jax.random.fold_in(train_key, iteration), batch_size, train_set)
         logs = {}
         if rule.backprop == "C":
             loss, output_grad, g_regular, state_max = value_and_grads(params, batch, scene.sample_output)
@@ -103,8 +105,8 @@ def packed_logs(step, names: list[str]):
     """The step with its logged scalars stacked into one vector (one device-to-host transfer per iteration
     instead of one per scalar); their names are stored into `names` when the step is traced."""
 
-    def packed(params, opt_state, iteration):
-        params, opt_state, logs = step(params, opt_state, iteration)
+    def packed(*args):
+        params, opt_state, logs = step(*args)
         names[:] = sorted(logs)
         dtype = logs["loss"].dtype
         return params, opt_state, jnp.stack([jnp.asarray(logs[name], dtype) for name in names])
@@ -156,82 +158,145 @@ def stop_on_signals():
             signal.signal(sig, handler)
 
 
-def train(scene: Scene, rule: UpdateRule, params, settings: TrainerSettings, writer: ResultsWriter, train_key,
-          label: str = "") -> Outcome:
-    """Compile, then iterate from params until trainer.iterations or trainer.time_budget (training seconds),
-    whichever comes first. A non-finite loss, gradient norm or update norm ends the run with status diverged."""
+@dataclass(frozen=True)
+class Seeds:
+    """What differs between the seeds trained together in one process, stacked on a leading axis: initial
+    networks, minibatch keys, fixed training sets (None if drawn fresh) and test sets; one writer per seed."""
+
+    params: Any
+    train_keys: jax.Array
+    train_sets: Any
+    test_sets: Any
+    writers: list
+
+    @property
+    def count(self) -> int:
+        return len(self.writers)
+
+
+def stack(trees: list):
+    """Stack pytrees along a new leading axis (None stays None)."""
+    if trees[0] is None:
+        return None
+    return jax.tree_util.tree_map(lambda *leaves: jnp.stack(leaves), *trees)
+
+
+def over_seeds(fn, count: int, in_axes: tuple):
+    """fn vectorised over the leading seed axis of the arguments marked 0 (jax.vmap); with one seed, the same
+    function on that seed's slice, without vmap, so a single run compiles exactly its own computation."""
+    if count > 1:
+        return jax.vmap(fn, in_axes=in_axes)
+
+    def single(*args):
+        args = [jax.tree_util.tree_map(lambda x: x[0], a) if axis == 0 else a for a, axis in zip(args, in_axes)]
+        return jax.tree_util.tree_map(lambda x: x[None], fn(*args))
+
+    return single
+
+
+def train(scene: Scene, rule: UpdateRule, seeds: Seeds, settings: TrainerSettings, label: str = "") -> list[Outcome]:
+    """Compile, then iterate until trainer.iterations or trainer.time_budget (training seconds), whichever
+    comes first, every seed in one vectorised step. A seed whose state, loss, gradient or update turns
+    non-finite ends with status diverged (its rows stop there) while the others go on; the wall time is the
+    shared one. Returns one Outcome per seed."""
+    count = seeds.count
     train_seconds, done = 0.0, 0
-    status, reason = "completed", None
-    latest_eval = {}
+    status, reason = ["completed"] * count, [None] * count
+    finished_at = [None] * count  # iterations done when a seed diverged
+    latest_eval = [{} for _ in range(count)]
+    params = seeds.params
 
     def record_eval(iteration):
         # written with the next periodic flush: a flush per evaluation cost 2% of a fast scene's wall time
-        metrics = {k: float(v) for k, v in jax.device_get(evaluate(params, scene.test_set)).items()}
-        writer.append("eval", {"iteration": iteration, "wall_time": train_seconds, **metrics})
-        latest_eval.clear()
-        latest_eval.update(metrics, iteration=iteration)
+        metrics = {k: np.asarray(v).tolist() for k, v in jax.device_get(evaluate(params, seeds.test_sets)).items()}
+        for index, writer in enumerate(seeds.writers):
+            if status[index] == "completed":
+                values = {k: v[index] for k, v in metrics.items()}
+                writer.append("eval", {"iteration": iteration, "wall_time": train_seconds, **values})
+                latest_eval[index] = {**values, "iteration": iteration}
+
+    def flush_all():
+        for writer in seeds.writers:
+            writer.flush()
 
     bar = tqdm(total=settings.iterations, desc=label, mininterval=0.5, disable=None, leave=False)
     try:
         with stop_on_signals() as stop:
             # compiling can take minutes: inside the guard, so a failure or an interrupt here is recorded too
-            opt_state = rule.transform.init(params)
+            opt_state = over_seeds(rule.transform.init, count, (0,))(params)
             start = time.perf_counter()
             log_names: list[str] = []
-            step = jax.jit(packed_logs(make_step(scene, rule, settings.batch_size, train_key), log_names)).lower(
-                params, opt_state, np.int32(0)).compile()
-            evaluate = jax.jit(scene.evaluate).lower(params, scene.test_set).compile()
-            writer.set_attrs(compile_seconds=time.perf_counter() - start)
-            writer.set_columns("train", ("iteration", "wall_time", *log_names))
+            one_step = packed_logs(make_step(scene, rule, settings.batch_size), log_names)
+            step = jax.jit(over_seeds(one_step, count, (0, 0, None, 0, 0))).lower(
+                params, opt_state, np.int32(0), seeds.train_keys, seeds.train_sets).compile()
+            evaluate = jax.jit(over_seeds(scene.evaluate, count, (0, 0))).lower(params, seeds.test_sets).compile()
+            for writer in seeds.writers:
+                writer.set_attrs(compile_seconds=time.perf_counter() - start)
+                writer.set_columns("train", ("iteration", "wall_time", *log_names))
             guarded = [log_names.index(name) for name in GUARDED]
             svd_at = log_names.index("svd_failures") if "svd_failures" in log_names else None
-            svd_failures = 0.0
+            svd_failures = [0.0] * count
+            running = list(range(count))
             record_eval(0)
-            writer.flush()
+            flush_all()
             last_flush = time.perf_counter()
             for iteration in range(settings.iterations):
                 if stop.signal_name is not None:
                     raise KeyboardInterrupt(stop.signal_name)
                 tick = time.perf_counter()
-                new_params, opt_state, logs = step(params, opt_state, np.int32(iteration))
-                logs = np.asarray(logs).tolist()  # one transfer for every logged scalar
+                new_params, opt_state, logs = step(params, opt_state, np.int32(iteration), seeds.train_keys,
+                                                   seeds.train_sets)
+                logs = np.asarray(logs).tolist()  # one transfer for every logged scalar of every seed
                 jax.block_until_ready(new_params)
                 train_seconds += time.perf_counter() - tick
                 params, done = new_params, iteration + 1
-                writer.append_row("train", (iteration, train_seconds, *logs))
-                bad = next((log_names[i] for i in guarded if not math.isfinite(logs[i])), None)
-                if bad is not None:
-                    status = "diverged"
-                    reason = divergence_reason(bad, dict(zip(log_names, logs)), iteration, svd_failures)
+                for index in running:
+                    row = logs[index]
+                    seeds.writers[index].append_row("train", (iteration, train_seconds, *row))
+                    bad = next((log_names[i] for i in guarded if not math.isfinite(row[i])), None)
+                    if bad is not None:
+                        status[index], finished_at[index] = "diverged", done
+                        reason[index] = divergence_reason(bad, dict(zip(log_names, row)), iteration,
+                                                          svd_failures[index])
+                    elif svd_at is not None:
+                        svd_failures[index] = row[svd_at]
+                running = [index for index in running if status[index] == "completed"]
+                if not running:
                     break
-                if svd_at is not None:
-                    svd_failures = logs[svd_at]
                 if done % settings.eval_every == 0 and done < settings.iterations:
                     record_eval(done)
                 if settings.time_budget is not None and train_seconds >= settings.time_budget:
-                    writer.set_attrs(stopped_by="time_budget")
+                    for writer in seeds.writers:
+                        writer.set_attrs(stopped_by="time_budget")
                     break
                 now = time.perf_counter()
                 if now - last_flush >= settings.flush_seconds:
-                    writer.flush()
+                    flush_all()
                     last_flush = now
-                    bar.set_postfix(loss=f"{logs[guarded[1]]:.3e}", refresh=False)
+                    bar.set_postfix(loss=f"{logs[running[0]][guarded[1]]:.3e}", refresh=False)
                     bar.update(done - bar.n)
             else:
-                writer.set_attrs(stopped_by="iterations")
-            if status == "completed" and latest_eval["iteration"] != done:
+                for writer in seeds.writers:
+                    writer.set_attrs(stopped_by="iterations")
+            if any(s == "completed" and latest_eval[i]["iteration"] != done for i, s in enumerate(status)):
                 record_eval(done)
     except KeyboardInterrupt as interrupt:
-        status = "interrupted"
-        reason = f"{interrupt.args[0] if interrupt.args else 'SIGINT'} after {done} iterations"
+        why = f"{interrupt.args[0] if interrupt.args else 'SIGINT'} after {done} iterations"
+        status = ["interrupted" if s == "completed" else s for s in status]
+        reason = [why if s == "interrupted" else r for s, r in zip(status, reason)]
     except BaseException as error:
-        writer.finish("failed", f"{type(error).__name__}: {str(error).splitlines()[0] if str(error) else ''}",
-                      iterations=done, train_seconds=train_seconds)
+        message = f"{type(error).__name__}: {str(error).splitlines()[0] if str(error) else ''}"
+        for index, writer in enumerate(seeds.writers):
+            writer.finish("failed", message, iterations=finished_at[index] or done, train_seconds=train_seconds)
         raise
     finally:
         bar.close()
-    flat = np.asarray(ravel_pytree(params)[0])
-    if status != "diverged" and np.isfinite(flat).all():  # a later run can start from it (init_from)
-        writer.save_params(flat)
-    writer.finish(status, reason, iterations=done, train_seconds=train_seconds)
-    return Outcome(status, reason, done, train_seconds, dict(latest_eval))
+    outcomes = []
+    for index, writer in enumerate(seeds.writers):
+        flat = np.asarray(ravel_pytree(jax.tree_util.tree_map(lambda x: x[index], params))[0])
+        if status[index] != "diverged" and np.isfinite(flat).all():  # a later run can start from it (init_from)
+            writer.save_params(flat)
+        iterations = finished_at[index] or done
+        writer.finish(status[index], reason[index], iterations=iterations, train_seconds=train_seconds)
+        outcomes.append(Outcome(status[index], reason[index], iterations, train_seconds, latest_eval[index]))
+    return outcomes

@@ -88,3 +88,13 @@ def test_report_without_an_unroll_axis_draws_no_unroll_figure(tmp_path):
     text = write_report([tmp_path])
     assert not (tmp_path / "unroll.png").exists() and "unroll.png" not in text
     assert (tmp_path / "tradeoff.png").stat().st_size > 1000
+
+
+def test_threshold_comes_from_completed_runs_only(tmp_path):
+    fake_run(tmp_path / "ok", "hig", 0, 1, [1.0, 0.1], [0.0, 1.0])
+    fake_run(tmp_path / "bad", "gauss_newton", 0, 1, [0.9], [0.0], status="diverged")
+    runs, _ = collect([tmp_path])
+    label_settings(runs)
+    from physgrad.report import thresholds
+
+    assert thresholds(runs) == {"multicart": 0.1}

@@ -160,3 +160,35 @@ def test_submitit_local_sweep_and_resume(tmp_path):
     physgrad(*args)
     assert [read_run(f).attrs["finished"] for f in files] == finished
     assert Path(tmp_path / ".submitit").is_dir()
+
+
+@pytest.mark.parametrize("task", [["task=poisson", "task.grid=4", "task.test_size=8", "trainer.batch_size=4"],
+                                  ["task=multicart", "task.train_size=16", "task.test_size=8", "unroll=20",
+                                   "optim=stable_bptt"]], ids=["fresh batches", "fixed training set"])
+def test_seeds_in_one_process_match_separate_runs(tmp_path, task):
+    """seeds=3 trains seeds 0, 1, 2 in one vmapped step; every seed's file has the curves of its own run."""
+    common = [*task, "precision=64", "trainer.iterations=6", "trainer.eval_every=3"]
+    outcome, folder = run_experiment(load(*common, "seeds=3"), tmp_path / "together")
+    assert outcome.status == "completed"
+    for seed in range(3):
+        together = read_run(folder / f"seed={seed}" / "results.h5")
+        _, path = run_experiment(load(*common, f"seed={seed}"), tmp_path / f"alone{seed}")
+        alone = read_run(path)
+        assert together.attrs["seed"] == seed and together.attrs["wall_time_shared_by"] == 3
+        for group in ("train", "eval"):
+            for column in ("iteration", "loss"):
+                np.testing.assert_allclose(getattr(together, group)[column], getattr(alone, group)[column],
+                                           rtol=1e-9, atol=1e-12)
+    assert (folder / "seed=1" / "loss.png").exists()
+
+
+def test_a_diverging_seed_leaves_the_others_running(tmp_path):
+    # GD at lr 1e-3 on the feedback oscillator with batches of 16 blows up from seed 0's initial network only
+    outcome, folder = run_experiment(load("task=oscillator", "task.controller=feedback", "optim=gd",
+                                          "task.train_size=64", "task.test_size=8", "trainer.batch_size=16",
+                                          "trainer.iterations=4", "seeds=3"), tmp_path)
+    runs = [read_run(folder / f"seed={seed}" / "results.h5") for seed in range(3)]
+    assert [run.attrs["status"] for run in runs] == ["diverged", "completed", "completed"]
+    assert outcome.status == "diverged" and "seed #0: state became nan at iteration 1" in outcome.reason
+    assert runs[0].train["iteration"].tolist() == [0, 1] and runs[1].train["iteration"].tolist() == [0, 1, 2, 3]
+    assert runs[1].eval["iteration"].tolist() == [0, 4]

@@ -14,7 +14,7 @@ import jax
 import jax.numpy as jnp
 
 from physgrad.nets import apply_mlp, init_mlp
-from physgrad.tasks import Scene, Traits, sample_from
+from physgrad.tasks import Scene, Traits, draw_from
 from physgrad.unroll import REGULAR, Backprop, rollout
 from physgrad.validate import flag, layer_widths, number
 
@@ -80,12 +80,12 @@ def build(task_cfg, key, unroll: int | None = None) -> Scene:
         name="multicart",
         traits=traits(task_cfg),
         init_params=lambda k: init_mlp(k, sizes, dtype, zero_last=True),  # the initial force is exactly 0
-        sample_train=sample_from(make_states(train_key, train_size)),
+        draw_batch=draw_from,
+        train_set=make_states(train_key, train_size),
         test_set=make_states(test_key, test_size),
         sample_output=output_for(REGULAR),
         sample_loss=lambda y, sample: 1.0 - jnp.mean(y),
         sample_metrics=lambda params, sample, y: {"upright": jnp.mean(y > 0.9)},
         backprop_output=output_for,
         steps=steps,
-        train_size=train_size,
     )

@@ -15,7 +15,7 @@ import jax.numpy as jnp
 
 from physgrad import UserError
 from physgrad.nets import apply_mlp, init_mlp
-from physgrad.tasks import Scene, Traits, sample_from
+from physgrad.tasks import Scene, Traits, draw_from
 from physgrad.unroll import REGULAR, Backprop, rollout
 from physgrad.validate import flag, layer_widths, number
 
@@ -94,11 +94,11 @@ def build(task_cfg, key, unroll: int | None = None) -> Scene:
         name="oscillator",
         traits=traits(task_cfg),
         init_params=lambda k: init_mlp(k, sizes, dtype),
-        sample_train=sample_from({"x0": train_x0}),
+        draw_batch=draw_from,
+        train_set={"x0": train_x0},
         test_set={"x0": test_x0},
         sample_output=output_for(REGULAR),
         sample_loss=lambda y, sample: jnp.sum((y - sample["x0"]) ** 2),
         backprop_output=output_for,
         steps=steps,
-        train_size=train_size,
     )

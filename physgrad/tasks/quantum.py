@@ -20,7 +20,7 @@ from jax.lax.linalg import tridiagonal_solve
 
 from physgrad import UserError
 from physgrad.nets import apply_control_cnn, apply_mlp, init_control_cnn, init_mlp
-from physgrad.tasks import Scene, Traits, sample_from
+from physgrad.tasks import Scene, Traits, draw_from
 from physgrad.unroll import REGULAR, Backprop, rollout
 from physgrad.validate import choice, flag, layer_widths, number
 
@@ -165,12 +165,12 @@ def build(task_cfg, key, unroll: int | None = None) -> Scene:
         name=str(task_cfg.name),
         traits=traits(task_cfg),
         init_params=init,
-        sample_train=sample_from(make_samples(train_key, train_size)),
+        draw_batch=draw_from,
+        train_set=make_samples(train_key, train_size),
         test_set=make_samples(test_key, test_size),
         sample_output=output_for(REGULAR),
         sample_loss=sample_loss,
         sample_metrics=lambda params, sample, y: {"fidelity": final_fidelity(y, sample)},
         backprop_output=output_for,
         steps=steps,
-        train_size=train_size,
     )
