@@ -119,20 +119,20 @@ def comparable_config(cfg: DictConfig) -> str:
 
 def finished_before(path: Path, cfg: DictConfig) -> Outcome | None:
     """The outcome recorded at path if that run completed with this same config (a sweep being re-run)."""
-    from physgrad.results import read_run
+    from physgrad.results import read_final
 
     if not path.exists():
         return None
     try:
-        run = read_run(path)
+        attrs, last_eval = read_final(path)
     except ValueError:
         return None
-    stored = OmegaConf.create(run.attrs.get("config", "{}"))
-    if run.attrs.get("status") != "completed" or comparable_config(stored) != comparable_config(cfg):
+    stored = OmegaConf.create(attrs.get("config", "{}"))
+    if attrs.get("status") != "completed" or comparable_config(stored) != comparable_config(cfg):
         return None
-    final = {k: float(v[-1]) for k, v in run.eval.items() if v.size and k not in ("iteration", "wall_time")}
+    final = {k: float(v) for k, v in last_eval.items() if k not in ("iteration", "wall_time")}
     return Outcome("completed", "already completed: skipped (overwrite=true runs it again)",
-                   int(run.attrs.get("iterations", 0)), float(run.attrs.get("train_seconds", 0)), final)
+                   int(attrs.get("iterations", 0)), float(attrs.get("train_seconds", 0)), final)
 
 
 def start_from(path: str, params, scene_name: str) -> tuple[Any, dict]:

@@ -176,6 +176,21 @@ def read_run(path: str | os.PathLike) -> Run:
     return Run(path, attrs, train, evaluation)
 
 
+def read_final(path: str | os.PathLike) -> tuple[dict, dict]:
+    """The attributes and the last /eval row of a results file, without reading the curves (a resumed sweep
+    checks every job this way); ValueError (one line) as read_run."""
+    path = Path(path)
+    try:
+        with h5py.File(path, "r", locking=False) as f:
+            if "status" not in f.attrs or "eval" not in f:
+                raise ValueError(f"{path}: not a physgrad results file (no status attribute or /eval)")
+            attrs = {key: _plain(value) for key, value in f.attrs.items()}
+            last = {key: _plain(f["eval"][key][-1]) for key in f["eval"] if f["eval"][key].shape[0]}
+    except OSError as error:
+        raise ValueError(f"{path}: cannot be read as HDF5 ({str(error).splitlines()[0]})") from None
+    return attrs, last
+
+
 def read_params(path: str | os.PathLike) -> np.ndarray:
     """The flat final parameters a run saved; ValueError (one line) if the file has none or is not readable."""
     path = Path(path)

@@ -250,19 +250,21 @@ def train(scene: Scene, rule: UpdateRule, seeds: Seeds, settings: TrainerSetting
                 jax.block_until_ready(new_params)
                 train_seconds += time.perf_counter() - tick
                 params, done = new_params, iteration + 1
+                diverged = False
                 for index in running:
                     row = logs[index]
                     seeds.writers[index].append_row("train", (iteration, train_seconds, *row))
                     bad = next((log_names[i] for i in guarded if not math.isfinite(row[i])), None)
                     if bad is not None:
-                        status[index], finished_at[index] = "diverged", done
+                        status[index], finished_at[index], diverged = "diverged", done, True
                         reason[index] = divergence_reason(bad, dict(zip(log_names, row)), iteration,
                                                           svd_failures[index])
                     elif svd_at is not None:
                         svd_failures[index] = row[svd_at]
-                running = [index for index in running if status[index] == "completed"]
-                if not running:
-                    break
+                if diverged:  # the running list changes only here, not at every step
+                    running = [index for index in running if status[index] == "completed"]
+                    if not running:
+                        break
                 if done % settings.eval_every == 0 and done < settings.iterations:
                     record_eval(done)
                 if settings.time_budget is not None and train_seconds >= settings.time_budget:
