@@ -63,48 +63,57 @@ def _compose(overrides: list[str]):
         return compose("config", overrides=overrides)
 
 
-def measure_variant(overrides: list[str], repeats: int, min_seconds: float) -> dict:
-    """Compile and time the step of one configuration; for adam also the bare loss-and-gradient and the runner's
-    overhead; for the Jacobian variants also the bare Jacobian."""
+def _compiled(cfg, seeds: list[int]):
+    """The scene, rule, seeds and compiled training step exactly as `physgrad run` builds them."""
     import jax
     import numpy as np
 
-    from physgrad import UserError
-    from physgrad.experiment import check_config, set_precision
+    from physgrad.experiment import build_seeds, check_config, set_precision
     from physgrad.optim import build_rule
-    from physgrad.optim.spectral import per_sample_jacobian, resolve_route
-    from physgrad.runner import make_step
-    from physgrad.tasks import build_scene
+    from physgrad.runner import compile_training
+
+    settings = check_config(cfg)
+    set_precision(cfg.precision)
+    scene, stacked = build_seeds(cfg, seeds, settings.batch_size)
+    rule = build_rule(cfg.optim)
+    start = time.perf_counter()
+    compiled = compile_training(scene, rule, stacked, settings.batch_size)
+    compile_s = time.perf_counter() - start
+
+    state = [compiled.params, compiled.opt_state]
+
+    def one_step():
+        state[0], state[1], _ = compiled.step(state[0], state[1], np.int32(0), stacked.train_keys,
+                                              stacked.train_sets)
+        jax.block_until_ready(state[0])
+
+    return settings, scene, rule, stacked, compile_s, one_step
+
+
+def measure_variant(overrides: list[str], repeats: int, min_seconds: float) -> dict:
+    """Compile and time the training step of one configuration (the runner's own compiled step); for adam also
+    the bare loss-and-gradient and the runner's overhead; for the Jacobian variants also the bare Jacobian."""
+    import jax
+
+    from physgrad import UserError
+    from physgrad.optim.spectral import output_and_jacobian, resolve_route
 
     cfg = _compose(overrides)
     try:
-        settings = check_config(cfg)
+        settings, scene, rule, seeds, compile_s, one_step = _compiled(cfg, [cfg.seed])
     except UserError as error:
         return {"refused": str(error)}
-    set_precision(cfg.precision)
-    data_key, init_key, train_key = jax.random.split(jax.random.PRNGKey(cfg.seed), 3)
-    scene = build_scene(cfg.task, data_key, cfg.get("unroll"))
-    rule = build_rule(cfg.optim)
-    params = scene.init_params(init_key)
-    opt_state = rule.transform.init(params)
-
-    start = time.perf_counter()
-    step = jax.jit(make_step(scene, rule, settings.batch_size)).lower(
-        params, opt_state, np.int32(0), train_key, scene.train_set).compile()
-    result = {"compile_s": time.perf_counter() - start}
-    state = [params, opt_state]
-
-    def one_step():
-        state[0], state[1], logs = step(state[0], state[1], np.int32(0), train_key, scene.train_set)
-        jax.block_until_ready(state[0])
-
+    result = {"compile_s": compile_s}
     result["step_s"], result["steps_timed"] = _median_time(one_step, repeats, min_seconds)
     result["peak_rss_gb"] = _peak_rss_gb()
 
+    # the baselines: the scene's own functions on its own parameter pytree, as a user would write them
+    params = jax.tree_util.tree_map(lambda leaf: leaf[0], seeds.params)
+    train_key = seeds.train_keys[0]
     batch = scene.sample_train(jax.random.fold_in(train_key, 0), settings.batch_size)
     if rule.uses_jacobian:
-        jacobian = jax.jit(lambda p, b: per_sample_jacobian(scene.sample_output, p, b))
-        shape = jacobian.eval_shape(params, batch).shape
+        jacobian = jax.jit(lambda p, b: output_and_jacobian(scene.sample_output, p, b))
+        shape = jacobian.eval_shape(params, batch)[1].shape
         result["jacobian_s"], _ = _median_time(lambda: jax.block_until_ready(jacobian(params, batch)), repeats, 0)
         result["jac_shape"] = list(shape)
         result["route"] = resolve_route(cfg.optim.route, float(cfg.optim.tau), shape)
@@ -117,33 +126,31 @@ def measure_variant(overrides: list[str], repeats: int, min_seconds: float) -> d
         bare = jax.jit(loss_and_grad).lower(params, train_key).compile()
         result["loss_grad_s"], _ = _median_time(lambda: jax.block_until_ready(bare(params, train_key)),
                                                 repeats, min_seconds)
-        result.update(runner_overhead(settings, scene, rule, params, train_key, result["step_s"]))
+        result.update(runner_overhead(settings, scene, rule, seeds, result["step_s"]))
     return result
 
 
-def runner_overhead(settings, scene, rule, params, train_key, step_s: float) -> dict:
+def runner_overhead(settings, scene, rule, seeds, step_s: float) -> dict:
     """Run `train` as `physgrad run` does (default eval_every and flush cadence) for ~10 s and split its wall
     time: the timed training steps (train_seconds, which include fetching the logged scalars), the evaluations
     (count x their median time), and the rest, which is the runner's own work (row buffering, HDF5 flushes, NaN
     checks, progress bar). Measured within one run, so the machine's drift between runs does not enter."""
     import dataclasses
 
-    import jax
     import h5py
+    import jax
 
     from physgrad.results import ResultsWriter
-    from physgrad.runner import Seeds, stack, train
+    from physgrad.runner import compile_training, train
 
     iterations = max(200, min(20_000, int(10.0 / step_s)))
     settings = dataclasses.replace(settings, iterations=iterations, time_budget=None)
-    evaluate = jax.jit(scene.evaluate).lower(params, scene.test_set).compile()
-    eval_s, _ = _median_time(lambda: jax.block_until_ready(evaluate(params, scene.test_set)), 3, 0)
+    compiled = compile_training(scene, rule, seeds, settings.batch_size)
+    eval_s, _ = _median_time(lambda: jax.block_until_ready(compiled.evaluate(compiled.params, seeds.test_sets)), 3, 0)
     with tempfile.TemporaryDirectory() as folder:
         path = Path(folder) / "results.h5"
-        seeds = Seeds(params=stack([params]), train_keys=train_key[None], train_sets=stack([scene.train_set]),
-                      test_sets=stack([scene.test_set]), writers=[ResultsWriter(path, {})])
         start = time.perf_counter()
-        outcome, = train(scene, rule, seeds, settings)
+        outcome, = train(scene, rule, seeds, [ResultsWriter(path, {})], settings)
         total = time.perf_counter() - start
         with h5py.File(path) as f:
             compile_s = float(f.attrs["compile_seconds"])
@@ -156,31 +163,8 @@ def runner_overhead(settings, scene, rule, params, train_key, step_s: float) -> 
 
 def measure_seeds(overrides: list[str], count: int, repeats: int, min_seconds: float) -> dict:
     """Seconds per iteration of `count` seeds in one vectorised step (what seeds=<count> runs)."""
-    import jax
-    import numpy as np
-
-    from physgrad.experiment import check_config, set_precision
-    from physgrad.optim import build_rule
-    from physgrad.runner import make_step, over_seeds, stack
-    from physgrad.tasks import build_scene
-
     cfg = _compose(overrides)
-    settings = check_config(cfg)
-    set_precision(cfg.precision)
-    keys = [jax.random.split(jax.random.PRNGKey(cfg.seed + i), 3) for i in range(count)]
-    scenes = [build_scene(cfg.task, key[0], cfg.get("unroll")) for key in keys]
-    rule = build_rule(cfg.optim)
-    params = stack([scenes[0].init_params(key[1]) for key in keys])
-    opt_state = over_seeds(rule.transform.init, count, (0,))(params)
-    train_keys, train_sets = jax.numpy.stack([key[2] for key in keys]), stack([s.train_set for s in scenes])
-    step = jax.jit(over_seeds(make_step(scenes[0], rule, settings.batch_size), count, (0, 0, None, 0, 0))).lower(
-        params, opt_state, np.int32(0), train_keys, train_sets).compile()
-    state = [params, opt_state]
-
-    def one_step():
-        state[0], state[1], _ = step(state[0], state[1], np.int32(0), train_keys, train_sets)
-        jax.block_until_ready(state[0])
-
+    *_, one_step = _compiled(cfg, [cfg.seed + i for i in range(count)])
     seconds, _ = _median_time(one_step, repeats, min_seconds)
     return {"seeds": count, "step_s": seconds, "peak_rss_gb": _peak_rss_gb()}
 

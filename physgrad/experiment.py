@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 from pathlib import Path
 from typing import Any
@@ -18,7 +19,7 @@ from physgrad.optim import BACKPROP_MODES, CLIPPING, OPTIMS, build_rule
 from physgrad.optim.spectral import ROUTES
 from physgrad.results import ResultsWriter
 from physgrad.runner import Outcome, Seeds, TrainerSettings, stack, train
-from physgrad.tasks import build_scene, traits
+from physgrad.tasks import Scene, build_scene, traits
 from physgrad.validate import choice, number
 
 
@@ -176,6 +177,21 @@ def job_outcome(outcomes: list[Outcome]) -> Outcome:
     return Outcome(worst.status, reasons or None, worst.iterations, worst.train_seconds, outcomes[0].final_eval)
 
 
+def build_seeds(cfg: DictConfig, seeds: list[int], batch_size: int) -> tuple[Scene, Seeds]:
+    """The scene and, stacked over the given seeds, what differs between them: data (test set, fixed training
+    set), initial network and minibatch key, each from its own split of PRNGKey(seed). UserError if the batch
+    does not fit the training set."""
+    keys = [jax.random.split(jax.random.PRNGKey(seed), 3) for seed in seeds]  # data, init, minibatches
+    scenes = [build_scene(cfg.task, key[0], cfg.get("unroll")) for key in keys]
+    scene = scenes[0]  # the physics and the network; only the data differ between seeds
+    if scene.train_size is not None and batch_size > scene.train_size:
+        raise UserError(f"trainer.batch_size={batch_size} is larger than the training set: use at most "
+                        f"{scene.train_size} (task.train_size)")
+    return scene, Seeds(params=stack([scene.init_params(key[1]) for key in keys]),
+                        train_keys=jnp.stack([key[2] for key in keys]), train_sets=stack([s.train_set for s in scenes]),
+                        test_sets=stack([s.test_set for s in scenes]))
+
+
 def run_experiment(cfg: DictConfig, out_dir: str | Path) -> tuple[Outcome, Path]:
     """Run one job into out_dir/results.h5 (seeds > 1: one file per seed under out_dir/seed=<s>/, trained
     together in one vectorised step); a refused job leaves a file with status refused and the reason.
@@ -196,17 +212,13 @@ def run_experiment(cfg: DictConfig, out_dir: str | Path) -> tuple[Outcome, Path]
                             "optim.retry_float64=false, or use seeds=1")
         set_precision(cfg.precision)
         logging.getLogger("jax").setLevel(logging.WARNING)
-        keys = [jax.random.split(jax.random.PRNGKey(seed), 3) for seed, _ in paths]  # data, init, minibatches
-        scenes = [build_scene(cfg.task, key[0], cfg.get("unroll")) for key in keys]
-        scene = scenes[0]  # the physics and the network; only the data differ between seeds
-        if scene.train_size is not None and settings.batch_size > scene.train_size:
-            raise UserError(f"trainer.batch_size={settings.batch_size} is larger than the training set: use at most "
-                            f"{scene.train_size} (task.train_size)")
+        scene, seeds = build_seeds(cfg, [seed for seed, _ in paths], settings.batch_size)
         rule = build_rule(cfg.optim)
-        params, origin = [scene.init_params(key[1]) for key in keys], {}
+        origin = {}
         if cfg.get("init_from"):
-            first, origin = start_from(cfg.init_from, params[0], cfg.task.name)
-            params = [first]
+            first, origin = start_from(cfg.init_from, jax.tree_util.tree_map(lambda x: x[0], seeds.params),
+                                       cfg.task.name)
+            seeds = dataclasses.replace(seeds, params=stack([first]))
     except UserError as error:
         for seed, path in paths:
             attrs = run_attributes(cfg, cfg.get("unroll") if _has_time_axis(cfg) else None)
@@ -221,14 +233,11 @@ def run_experiment(cfg: DictConfig, out_dir: str | Path) -> tuple[Outcome, Path]
     writers = [ResultsWriter(path, {
         **attrs, **origin, "seed": seed,
         "batch_size": settings.batch_size,
-        "n_params": count_params(params[0]),
+        "n_params": count_params(jax.tree_util.tree_map(lambda x: x[0], seeds.params)),
         "device": str(jax.devices()[0].device_kind),
     }) for seed, path in paths]
-    seeds = Seeds(params=stack(params), train_keys=jnp.stack([key[2] for key in keys]),
-                  train_sets=stack([s.train_set for s in scenes]), test_sets=stack([s.test_set for s in scenes]),
-                  writers=writers)
     label = f"{cfg.task.name}/{cfg.optim.name} seed {cfg.seed}" + (f" (+{len(paths) - 1})" if len(paths) > 1 else "")
-    outcomes = train(scene, rule, seeds, settings, label=label)
+    outcomes = train(scene, rule, seeds, writers, settings, label=label)
     from physgrad.plots import plot_run  # matplotlib only once training is over
     from physgrad.results import read_run
 

@@ -22,6 +22,7 @@ from jax.flatten_util import ravel_pytree
 from tqdm import tqdm
 
 from physgrad.optim import UpdateRule
+from physgrad.optim.spectral import output_and_jacobian
 from physgrad.results import ResultsWriter
 from physgrad.tasks import Scene
 from physgrad.unroll import MODES, PHYSICS_ONLY, combine_signs
@@ -53,7 +54,8 @@ def make_step(scene: Scene, rule: UpdateRule, batch_size: int):
     The gradient is the pullback of g = dL/dy through y = batch output: one forward, one backward. The BPTT
     modes M and S take it through the scene's output with those gradient stops; C takes R and M and keeps
     g_M where the signs agree (and logs cos(g_M, g_R) and the fraction of components it zeroes).
-    Rules on the Jacobian route receive the per-sample output function, the batch and g as extra arguments.
+    Rules on the Jacobian route take y and J = dy/dtheta from one per-sample reverse pass instead; their
+    gradient (logged as grad_norm) is J^T g, and they receive J and g as extra arguments.
     """
 
     def value_and_grads(params, batch, sample_output):
@@ -63,8 +65,14 @@ def make_step(scene: Scene, rule: UpdateRule, batch_size: int):
 
     def step(params, opt_state, iteration, train_key, train_set):
         batch = scene.draw_batch(jax.random.fold_in(train_key, iteration), batch_size, train_set)
-        logs = {}
-        if rule.backprop == "C":
+        logs, extra = {}, {}
+        if rule.uses_jacobian:
+            y, jac = output_and_jacobian(scene.sample_output, params, batch)
+            loss, output_grad = jax.value_and_grad(scene.batch_loss)(y, batch)
+            grads = ravel_pytree(params)[1](jac.T @ output_grad.reshape(-1).astype(jac.dtype))
+            state_max = jnp.max(jnp.abs(y))
+            extra = {"jacobian": jac, "output_grad": output_grad}
+        elif rule.backprop == "C":
             loss, output_grad, g_regular, state_max = value_and_grads(params, batch, scene.sample_output)
             _, _, g_physics, _ = value_and_grads(params, batch, scene.backprop_output(PHYSICS_ONLY))
             grads = combine_signs(g_physics, g_regular)
@@ -74,8 +82,7 @@ def make_step(scene: Scene, rule: UpdateRule, batch_size: int):
             output = scene.sample_output if rule.backprop in (None, "R") else scene.backprop_output(
                 MODES[rule.backprop])
             loss, output_grad, grads, state_max = value_and_grads(params, batch, output)
-        extra = {"sample_output": scene.sample_output, "batch": batch, "output_grad": output_grad}
-        updates, opt_state = rule.transform.update(grads, opt_state, params, **(extra if rule.uses_jacobian else {}))
+        updates, opt_state = rule.transform.update(grads, opt_state, params, **extra)
         if rule.uses_jacobian:
             logs["svd_failures"] = optax.tree.get(opt_state, "failures")
         logs = {"loss": loss, "grad_norm": optax.tree.norm(grads), "update_norm": optax.tree.norm(updates),
@@ -161,17 +168,16 @@ def stop_on_signals():
 @dataclass(frozen=True)
 class Seeds:
     """What differs between the seeds trained together in one process, stacked on a leading axis: initial
-    networks, minibatch keys, fixed training sets (None if drawn fresh) and test sets; one writer per seed."""
+    networks, minibatch keys, fixed training sets (None if drawn fresh) and test sets."""
 
     params: Any
     train_keys: jax.Array
     train_sets: Any
     test_sets: Any
-    writers: list
 
     @property
     def count(self) -> int:
-        return len(self.writers)
+        return self.train_keys.shape[0]
 
 
 def stack(trees: list):
@@ -194,43 +200,70 @@ def over_seeds(fn, count: int, in_axes: tuple):
     return single
 
 
-def train(scene: Scene, rule: UpdateRule, seeds: Seeds, settings: TrainerSettings, label: str = "") -> list[Outcome]:
+@dataclass(frozen=True)
+class CompiledTraining:
+    """The compiled step and evaluation of a training run over flat parameter vectors (one row per seed),
+    with the initial parameters and optimiser state they take and the names of the logged scalars."""
+
+    step: Any
+    evaluate: Any
+    params: jax.Array
+    opt_state: Any
+    log_names: list
+
+
+def compile_training(scene: Scene, rule: UpdateRule, seeds: Seeds, batch_size: int) -> CompiledTraining:
+    """Flatten each seed's network into one vector (Scene.over_flat_params), then compile the vectorised step
+    (params, opt_state, iteration, train_keys, train_sets) -> (params, opt_state, logs[seed, name]) and the
+    evaluation (params, test_sets) -> {name: [seed]}, ahead of time (what `make bench` times, too)."""
+    unravel = ravel_pytree(jax.tree_util.tree_map(lambda leaf: leaf[0], seeds.params))[1]
+    flat_scene = scene.over_flat_params(unravel)
+    params = jax.vmap(lambda tree: ravel_pytree(tree)[0])(seeds.params)
+    count = seeds.count
+    opt_state = over_seeds(rule.transform.init, count, (0,))(params)
+    log_names: list[str] = []
+    one_step = packed_logs(make_step(flat_scene, rule, batch_size), log_names)
+    step = jax.jit(over_seeds(one_step, count, (0, 0, None, 0, 0))).lower(
+        params, opt_state, np.int32(0), seeds.train_keys, seeds.train_sets).compile()
+    evaluate = jax.jit(over_seeds(flat_scene.evaluate, count, (0, 0))).lower(params, seeds.test_sets).compile()
+    return CompiledTraining(step, evaluate, params, opt_state, log_names)
+
+
+def train(scene: Scene, rule: UpdateRule, seeds: Seeds, writers: list[ResultsWriter], settings: TrainerSettings,
+          label: str = "") -> list[Outcome]:
     """Compile, then iterate until trainer.iterations or trainer.time_budget (training seconds), whichever
-    comes first, every seed in one vectorised step. A seed whose state, loss, gradient or update turns
-    non-finite ends with status diverged (its rows stop there) while the others go on; the wall time is the
-    shared one. Returns one Outcome per seed."""
+    comes first, every seed in one vectorised step (writers: one per seed). A seed whose state, loss, gradient
+    or update turns non-finite ends with status diverged (its rows stop there) while the others go on; the
+    wall time is the shared one. Returns one Outcome per seed."""
     count = seeds.count
     train_seconds, done = 0.0, 0
     status, reason = ["completed"] * count, [None] * count
     finished_at = [None] * count  # iterations done when a seed diverged
     latest_eval = [{} for _ in range(count)]
-    params = seeds.params
+    params = None
 
     def record_eval(iteration):
         # written with the next periodic flush: a flush per evaluation cost 2% of a fast scene's wall time
         metrics = {k: np.asarray(v).tolist() for k, v in jax.device_get(evaluate(params, seeds.test_sets)).items()}
-        for index, writer in enumerate(seeds.writers):
+        for index, writer in enumerate(writers):
             if status[index] == "completed":
                 values = {k: v[index] for k, v in metrics.items()}
                 writer.append("eval", {"iteration": iteration, "wall_time": train_seconds, **values})
                 latest_eval[index] = {**values, "iteration": iteration}
 
     def flush_all():
-        for writer in seeds.writers:
+        for writer in writers:
             writer.flush()
 
     bar = tqdm(total=settings.iterations, desc=label, mininterval=0.5, disable=None, leave=False)
     try:
         with stop_on_signals() as stop:
             # compiling can take minutes: inside the guard, so a failure or an interrupt here is recorded too
-            opt_state = over_seeds(rule.transform.init, count, (0,))(params)
             start = time.perf_counter()
-            log_names: list[str] = []
-            one_step = packed_logs(make_step(scene, rule, settings.batch_size), log_names)
-            step = jax.jit(over_seeds(one_step, count, (0, 0, None, 0, 0))).lower(
-                params, opt_state, np.int32(0), seeds.train_keys, seeds.train_sets).compile()
-            evaluate = jax.jit(over_seeds(scene.evaluate, count, (0, 0))).lower(params, seeds.test_sets).compile()
-            for writer in seeds.writers:
+            compiled = compile_training(scene, rule, seeds, settings.batch_size)
+            step, evaluate, log_names = compiled.step, compiled.evaluate, compiled.log_names
+            params, opt_state = compiled.params, compiled.opt_state
+            for writer in writers:
                 writer.set_attrs(compile_seconds=time.perf_counter() - start)
                 writer.set_columns("train", ("iteration", "wall_time", *log_names))
             guarded = [log_names.index(name) for name in GUARDED]
@@ -253,7 +286,7 @@ def train(scene: Scene, rule: UpdateRule, seeds: Seeds, settings: TrainerSetting
                 diverged = False
                 for index in running:
                     row = logs[index]
-                    seeds.writers[index].append_row("train", (iteration, train_seconds, *row))
+                    writers[index].append_row("train", (iteration, train_seconds, *row))
                     bad = next((log_names[i] for i in guarded if not math.isfinite(row[i])), None)
                     if bad is not None:
                         status[index], finished_at[index], diverged = "diverged", done, True
@@ -268,7 +301,7 @@ def train(scene: Scene, rule: UpdateRule, seeds: Seeds, settings: TrainerSetting
                 if done % settings.eval_every == 0 and done < settings.iterations:
                     record_eval(done)
                 if settings.time_budget is not None and train_seconds >= settings.time_budget:
-                    for writer in seeds.writers:
+                    for writer in writers:
                         writer.set_attrs(stopped_by="time_budget")
                     break
                 now = time.perf_counter()
@@ -278,7 +311,7 @@ def train(scene: Scene, rule: UpdateRule, seeds: Seeds, settings: TrainerSetting
                     bar.set_postfix(loss=f"{logs[running[0]][guarded[1]]:.3e}", refresh=False)
                     bar.update(done - bar.n)
             else:
-                for writer in seeds.writers:
+                for writer in writers:
                     writer.set_attrs(stopped_by="iterations")
             if any(s == "completed" and latest_eval[i]["iteration"] != done for i, s in enumerate(status)):
                 record_eval(done)
@@ -288,15 +321,15 @@ def train(scene: Scene, rule: UpdateRule, seeds: Seeds, settings: TrainerSetting
         reason = [why if s == "interrupted" else r for s, r in zip(status, reason)]
     except BaseException as error:
         message = f"{type(error).__name__}: {str(error).splitlines()[0] if str(error) else ''}"
-        for index, writer in enumerate(seeds.writers):
+        for index, writer in enumerate(writers):
             writer.finish("failed", message, iterations=finished_at[index] or done, train_seconds=train_seconds)
         raise
     finally:
         bar.close()
     outcomes = []
-    for index, writer in enumerate(seeds.writers):
-        flat = np.asarray(ravel_pytree(jax.tree_util.tree_map(lambda x: x[index], params))[0])
-        if status[index] != "diverged" and np.isfinite(flat).all():  # a later run can start from it (init_from)
+    for index, writer in enumerate(writers):
+        flat = None if params is None else np.asarray(params[index])
+        if flat is not None and status[index] != "diverged" and np.isfinite(flat).all():  # a later run can start from it (init_from)
             writer.save_params(flat)
         iterations = finished_at[index] or done
         writer.finish(status[index], reason[index], iterations=iterations, train_seconds=train_seconds)

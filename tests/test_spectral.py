@@ -6,7 +6,7 @@ import numpy as np
 import optax
 import pytest
 
-from physgrad.optim.spectral import (gauss_newton, hig, per_sample_jacobian, resolve_route, spectral_rule,
+from physgrad.optim.spectral import (gauss_newton, hig, output_and_jacobian, resolve_route, spectral_rule,
                                      truncated_spectral_direction)
 
 ROUTES = pytest.mark.parametrize("route", ["svd", "gram"])
@@ -107,14 +107,15 @@ def linear_problem(key, batch=3, outputs=2, params=7):
 def step(rule, params, data, sample_output, batch_loss):
     (loss, y), grads = jax.value_and_grad(batch_loss, has_aux=True)(params)
     output_grad = (y - data["b"]) / y.shape[0]  # dL/dy for the mean loss
-    updates, _ = rule.update(grads, rule.init(params), params, sample_output=sample_output, batch=data,
-                             output_grad=output_grad)
+    _, jac = output_and_jacobian(sample_output, params, data)
+    updates, _ = rule.update(grads, rule.init(params), params, jacobian=jac, output_grad=output_grad)
     return optax.apply_updates(params, updates), loss
 
 
-def test_per_sample_jacobian_matches_dense_jacobian(x64):
+def test_output_and_jacobian_match_the_dense_jacobian_and_the_forward_pass(x64):
     data, theta, sample_output, _ = linear_problem(jax.random.PRNGKey(5))
-    jac = per_sample_jacobian(sample_output, theta, data)
+    y, jac = output_and_jacobian(sample_output, theta, data)
+    np.testing.assert_allclose(y, jax.vmap(sample_output, in_axes=(None, 0))(theta, data), rtol=1e-12)
     # ravel_pytree orders leaves by key: "c" before "w"
     dense = jnp.concatenate([data["a"][..., 5:], data["a"][..., :5]], axis=-1).reshape(6, 7)
     np.testing.assert_allclose(jac, dense, rtol=1e-12)
@@ -133,8 +134,7 @@ def test_gauss_newton_solves_linear_least_squares_in_one_step(x64):
 def test_hig_transformation_equals_kernel(x64):
     data, theta, sample_output, batch_loss = linear_problem(jax.random.PRNGKey(7))
     new, _ = step(hig(0.3, 1e-6), theta, data, sample_output, batch_loss)
-    jac = per_sample_jacobian(sample_output, theta, data)
-    y = jax.vmap(sample_output, in_axes=(None, 0))(theta, data)
+    y, jac = output_and_jacobian(sample_output, theta, data)
     expected = -0.3 * truncated_spectral_direction(jac, ((y - data["b"]) / 3).ravel(), 0.5, 1e-6)
     flat = jnp.concatenate([new["c"] - theta["c"], new["w"] - theta["w"]])
     np.testing.assert_allclose(flat, expected, rtol=1e-10, atol=1e-14)
@@ -176,11 +176,10 @@ def test_a_failed_factorisation_is_counted_and_retried_in_float64(monkeypatch, r
     (loss, y), _ = jax.value_and_grad(batch_loss, has_aux=True)(theta)
     g = (y - data["b"]) / 3
     rule = spectral_rule(1.0, 0.5, 1e-6, "svd", retry_float64=retry)
-    updates, state = jax.jit(lambda p, s: rule.update(p, s, p, sample_output=sample_output, batch=data,
-                                                      output_grad=g))(theta, rule.init(theta))
+    _, jac = output_and_jacobian(sample_output, theta, data)
+    updates, state = jax.jit(lambda p, s: rule.update(p, s, p, jacobian=jac, output_grad=g))(theta, rule.init(theta))
     failures = optax.tree.get(state, "failures")
     if retry:
-        jac = per_sample_jacobian(sample_output, theta, data)
         with jax.enable_x64(True):
             expected = -truncated_spectral_direction(jac.astype(jnp.float64), g.ravel().astype(jnp.float64), 0.5,
                                                      1e-6)
@@ -195,6 +194,6 @@ def test_non_finite_jacobian_is_not_counted_as_a_factorisation_failure():
     rule = spectral_rule(1.0, 0.5, 1e-6, "svd")
     params = {"w": jnp.ones(3)}
     batch = {"a": jnp.full((2, 3), jnp.inf)}
-    _, state = rule.update(params, rule.init(params), params, sample_output=lambda p, s: s["a"] * p["w"],
-                           batch=batch, output_grad=jnp.ones((2, 3)))
+    _, jac = output_and_jacobian(lambda p, s: s["a"] * p["w"], params, batch)
+    _, state = rule.update(params, rule.init(params), params, jacobian=jac, output_grad=jnp.ones((2, 3)))
     assert optax.tree.get(state, "failures") == 0

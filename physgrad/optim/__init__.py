@@ -16,8 +16,9 @@ BACKPROP_MODES = ("R", "M", "S", "C")
 
 
 class UpdateRule(NamedTuple):
-    """transform: the optax transformation; uses_jacobian: it needs sample_output, batch and output_grad as
-    extra arguments (and so a per-sample Jacobian every step); backprop: mode for temporal scenes, or None."""
+    """transform: the optax transformation; uses_jacobian: it needs the per-sample Jacobian J and
+    output_grad g = dL/dy as extra arguments (so the step builds J every step); backprop: mode for temporal
+    scenes, or None."""
 
     transform: optax.GradientTransformation
     uses_jacobian: bool

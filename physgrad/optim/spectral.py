@@ -68,12 +68,19 @@ def truncated_spectral_direction(jac: jax.Array, output_grad: jax.Array, kappa: 
     return (gram_direction if route == "gram" else svd_direction)(jac, output_grad, kappa, tau)
 
 
-def per_sample_jacobian(sample_output, params, batch) -> jax.Array:
-    """J (m x n) from per-sample reverse mode, vmapped over the batch: rows are sample major, columns follow
-    ravel_pytree(params). Each sample's cotangent rows travel back through that sample only."""
+def output_and_jacobian(sample_output, params, batch) -> tuple[jax.Array, jax.Array]:
+    """y (batch, k) and J = dy/dtheta (m x n, m = batch * k) from one per-sample reverse-mode pass, vmapped
+    over the batch: J's rows are sample major, its columns follow ravel_pytree(params). The forward pass that
+    builds each sample's pullback also gives y, so a step needs no separate forward or gradient pass
+    (dL/dtheta = J^T g)."""
     flat, unravel = ravel_pytree(params)
-    jac = jax.vmap(jax.jacrev(lambda f, sample: sample_output(unravel(f), sample)), in_axes=(None, 0))(flat, batch)
-    return jac.reshape(-1, flat.size)
+
+    def output_twice(flat_params, sample):
+        y = sample_output(unravel(flat_params), sample)
+        return y, y
+
+    jac, y = jax.vmap(jax.jacrev(output_twice, has_aux=True), in_axes=(None, 0))(flat, batch)
+    return y, jac.reshape(-1, flat.size)
 
 
 class SpectralState(NamedTuple):
@@ -87,8 +94,9 @@ def spectral_direction(kappa: float, tau: float, route: str = "auto",
                        retry_float64: bool = False) -> optax.GradientTransformationExtraArgs:
     """Replaces the gradient by V diag(s^-kappa) U^T g.
 
-    Needs the extra arguments sample_output (params, sample) -> y_i, batch and output_grad g = dL/dy
-    (shape (batch, k)); the incoming gradient itself is not used, since J^T g carries no more than J and g.
+    Needs the extra arguments jacobian J (m x n, from output_and_jacobian) and output_grad g = dL/dy
+    (shape (batch, k)); the incoming gradient gives only the pytree structure, since J^T g carries no more
+    than J and g.
     A factorisation that fails (non-finite direction from a finite J and g) is counted in the state; with
     retry_float64 it is repeated in float64 first (the failed step only), and counted if that fails too.
     """
@@ -96,10 +104,8 @@ def spectral_direction(kappa: float, tau: float, route: str = "auto",
     def init(params):
         return SpectralState(failures=jnp.zeros((), jnp.int32))
 
-    def update(updates, state, params=None, *, sample_output, batch, output_grad):
-        if params is None:
-            raise ValueError("spectral_direction needs params to build the Jacobian")
-        jac = per_sample_jacobian(sample_output, params, batch)
+    def update(updates, state, params=None, *, jacobian, output_grad):
+        jac = jacobian
         g = output_grad.reshape(-1).astype(jac.dtype)
         direction = truncated_spectral_direction(jac, g, kappa, tau, route)
         inputs_finite = jnp.isfinite(jac).all() & jnp.isfinite(g).all()
@@ -114,7 +120,7 @@ def spectral_direction(kappa: float, tau: float, route: str = "auto",
             direction = jax.lax.cond(failed, in_float64, lambda: direction)
             failed = inputs_finite & ~jnp.isfinite(direction).all()
         state = SpectralState(failures=state.failures + failed.astype(jnp.int32))
-        return ravel_pytree(params)[1](direction), state
+        return ravel_pytree(updates)[1](direction), state
 
     return optax.GradientTransformationExtraArgs(init, update)
 
