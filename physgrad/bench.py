@@ -34,20 +34,31 @@ EXTRA = {"poisson": [("hig", ["precision=64"])]}
 SKIP = {("quantum_control", "hig"), ("quantum_control", "gauss_newton"), ("quantum_control", "gd")}
 
 
+def _median_times(fns: list, repeats: int, min_seconds: float, warmup: bool = True,
+                  max_seconds: float = 120.0) -> list[tuple[float, int]]:
+    """Median wall time of each fn() (which must block until its results are ready), called in turn, one call
+    each per round, so that a step and its baseline see the same machine (on 2 shared cores the speed drifts by
+    tens of percent between measurements taken a few seconds apart). At least `repeats` rounds and min_seconds,
+    but stopping once max_seconds are spent (slow steps: fewer, long repeats), after one untimed warm-up call
+    each. Returns (median seconds, calls timed) per fn."""
+    if warmup:
+        for fn in fns:
+            fn()
+    times: list[list[float]] = [[] for _ in fns]
+    spent = 0.0
+    while not times[0] or ((len(times[0]) < repeats or spent < min_seconds) and spent < max_seconds
+                           and len(times[0]) < 100_000):
+        for fn, fn_times in zip(fns, times):
+            start = time.perf_counter()
+            fn()
+            fn_times.append(time.perf_counter() - start)
+            spent += fn_times[-1]
+    return [(statistics.median(fn_times), len(fn_times)) for fn_times in times]
+
+
 def _median_time(fn, repeats: int, min_seconds: float, warmup: bool = True,
                  max_seconds: float = 120.0) -> tuple[float, int]:
-    """Median wall time of fn() (which must block until its results are ready) over at least `repeats` calls
-    and at least min_seconds, but stopping once max_seconds are spent (slow steps: fewer, long repeats),
-    after one untimed warm-up call."""
-    if warmup:
-        fn()
-    times: list[float] = []
-    while not times or ((len(times) < repeats or sum(times) < min_seconds) and sum(times) < max_seconds
-                        and len(times) < 100_000):
-        start = time.perf_counter()
-        fn()
-        times.append(time.perf_counter() - start)
-    return statistics.median(times), len(times)
+    return _median_times([fn], repeats, min_seconds, warmup, max_seconds)[0]
 
 
 def _peak_rss_gb() -> float:
@@ -104,17 +115,19 @@ def measure_variant(overrides: list[str], repeats: int, min_seconds: float) -> d
     except UserError as error:
         return {"refused": str(error)}
     result = {"compile_s": compile_s}
-    result["step_s"], result["steps_timed"] = _median_time(one_step, repeats, min_seconds)
+    one_step()  # the first call reaches the step's peak memory, before any baseline is built
     result["peak_rss_gb"] = _peak_rss_gb()
 
-    # the baselines: the scene's own functions on its own parameter pytree, as a user would write them
+    # the baselines: the scene's own functions on its own parameter pytree, as a user would write them; timed
+    # in turn with the step (one call each per round), so that drift of the machine cancels in the ratios
+    timed = {"step_s": one_step}
     params = jax.tree_util.tree_map(lambda leaf: leaf[0], seeds.params)
     train_key = seeds.train_keys[0]
     batch = scene.sample_train(jax.random.fold_in(train_key, 0), settings.batch_size)
     if rule.uses_jacobian:
         jacobian = jax.jit(lambda p, b: output_and_jacobian(scene.sample_output, p, b))
         shape = jacobian.eval_shape(params, batch)[1].shape
-        result["jacobian_s"], _ = _median_time(lambda: jax.block_until_ready(jacobian(params, batch)), repeats, 0)
+        timed["jacobian_s"] = lambda: jax.block_until_ready(jacobian(params, batch))
         result["jac_shape"] = list(shape)
         result["route"] = resolve_route(cfg.optim.route, float(cfg.optim.tau), shape)
     if cfg.optim.name == "adam":
@@ -124,8 +137,11 @@ def measure_variant(overrides: list[str], repeats: int, min_seconds: float) -> d
             return jax.value_and_grad(lambda q: scene.batch_loss(scene.batch_output(q, batch), batch))(p)
 
         bare = jax.jit(loss_and_grad).lower(params, train_key).compile()
-        result["loss_grad_s"], _ = _median_time(lambda: jax.block_until_ready(bare(params, train_key)),
-                                                repeats, min_seconds)
+        timed["loss_grad_s"] = lambda: jax.block_until_ready(bare(params, train_key))
+    medians = _median_times(list(timed.values()), repeats, min_seconds)
+    result.update({name: seconds for name, (seconds, _) in zip(timed, medians)})
+    result["steps_timed"] = medians[0][1]
+    if cfg.optim.name == "adam":
         result.update(runner_overhead(settings, scene, rule, seeds, result["step_s"]))
     return result
 
@@ -162,11 +178,13 @@ def runner_overhead(settings, scene, rule, seeds, step_s: float) -> dict:
 
 
 def measure_seeds(overrides: list[str], count: int, repeats: int, min_seconds: float) -> dict:
-    """Seconds per iteration of `count` seeds in one vectorised step (what seeds=<count> runs)."""
+    """Seconds per iteration of one seed and of `count` seeds in one vectorised step (what seeds=<count> runs),
+    timed in turn in one process."""
     cfg = _compose(overrides)
-    *_, one_step = _compiled(cfg, [cfg.seed + i for i in range(count)])
-    seconds, _ = _median_time(one_step, repeats, min_seconds)
-    return {"seeds": count, "step_s": seconds, "peak_rss_gb": _peak_rss_gb()}
+    *_, single = _compiled(cfg, [cfg.seed])
+    *_, many = _compiled(cfg, [cfg.seed + i for i in range(count)])
+    (single_s, _), (many_s, _) = _median_times([single, many], repeats, min_seconds)
+    return {"seeds": count, "single_step_s": single_s, "step_s": many_s, "peak_rss_gb": _peak_rss_gb()}
 
 
 def measure_floors(shape: tuple[int, int], precision: int, repeats: int) -> dict:
@@ -204,26 +222,22 @@ def run_seeds(scenes, count: int, repeats: int, min_seconds: float, timeout: flo
             continue
         overrides = [f"task={task}", f"optim={optim}", *SEED_OVERRIDES.get(optim, [])]
         print(f"bench: {' '.join(overrides)} seeds={count}", file=sys.stderr, flush=True)
-        single = _subprocess("seeds", {"overrides": overrides, "count": 1, "repeats": repeats,
+        result = _subprocess("seeds", {"overrides": overrides, "count": count, "repeats": repeats,
                                        "min_seconds": min_seconds}, timeout)
-        many = _subprocess("seeds", {"overrides": overrides, "count": count, "repeats": repeats,
-                                     "min_seconds": min_seconds}, timeout)
-        rows.append({"task": task, "variant": optim, "single": single, "many": many})
+        rows.append({"task": task, "variant": optim, **result})
     return rows
 
 
 def seeds_table(rows: list[dict]) -> str:
     lines = ["| scene | variant | s/iter, 1 seed | s/iter, N seeds vectorised | throughput gain (N x t1 / tN) "
-             "| peak RSS, N seeds |", "|---|---|---|---|---|---|"]
+             "| peak RSS (both in one process) |", "|---|---|---|---|---|---|"]
     for row in rows:
-        single, many = row["single"], row["many"]
-        if "error" in single or "error" in many:
-            lines.append(f"| {row['task']} | {row['variant']} | {single.get('error', '')} | {many.get('error', '')} "
-                         "|  |  |")
+        if "error" in row:
+            lines.append(f"| {row['task']} | {row['variant']} | {row['error']} |  |  |  |")
             continue
-        gain = many["seeds"] * single["step_s"] / many["step_s"]
-        lines.append(f"| {row['task']} | {row['variant']} | {_fmt(single['step_s'])} | {_fmt(many['step_s'])} "
-                     f"(N = {many['seeds']}) | {gain:.2f}x | {many['peak_rss_gb']:.2f} GB |")
+        gain = row["seeds"] * row["single_step_s"] / row["step_s"]
+        lines.append(f"| {row['task']} | {row['variant']} | {_fmt(row['single_step_s'])} | {_fmt(row['step_s'])} "
+                     f"(N = {row['seeds']}) | {gain:.2f}x | {row['peak_rss_gb']:.2f} GB |")
     return "\n".join(lines) + "\n"
 
 
@@ -343,7 +357,9 @@ def main(argv: list[str] | None = None) -> int:
     rows = run_bench(scenes, options.repeats, options.min_seconds, options.timeout)
     seed_rows = run_seeds(scenes, options.vectorised_seeds, options.repeats, options.min_seconds, options.timeout)
     header = (f"# physgrad benchmark\n\nMachine: {machine()}. Reference sizes, float32 unless marked f64, "
-              f"median of >= {options.repeats} steps and >= {options.min_seconds:g} s after compilation; "
+              f"median of >= {options.repeats} steps and >= {options.min_seconds:g} s after compilation, each step "
+              "timed in turn with its baselines (bare Jacobian, bare loss and gradient); compile: the step and the "
+              "evaluation, ahead of time; peak RSS: after the step's first call; "
               f"{time.perf_counter() - start:.0f} s in all.\n\n")
     out = Path(options.out)
     out.parent.mkdir(parents=True, exist_ok=True)

@@ -2,7 +2,7 @@
 
 import math
 
-from physgrad.bench import measure_floors, measure_variant, table
+from physgrad.bench import _median_times, measure_floors, measure_seeds, measure_variant, seeds_table, table
 
 
 def test_bench_measures_steps_floors_and_overhead():
@@ -24,3 +24,18 @@ def test_bench_measures_steps_floors_and_overhead():
 
 def test_a_refused_variant_is_left_out():
     assert "refused" in measure_variant(["task=poisson", "optim=bptt"], repeats=1, min_seconds=0)
+
+
+def test_timings_are_taken_in_turn_with_their_baseline():
+    calls = []
+    medians = _median_times([lambda: calls.append("step"), lambda: calls.append("bare")], repeats=3, min_seconds=0)
+    assert calls == ["step", "bare"] * 4  # one warm-up call each, then rounds of one call each
+    assert [count for _, count in medians] == [3, 3]
+
+
+def test_seeds_are_timed_against_one_seed_in_the_same_process():
+    small = ["task=poisson", "task.grid=4", "task.test_size=8", "trainer.batch_size=4", "optim=adam"]
+    result = measure_seeds(small, 2, repeats=2, min_seconds=0)
+    assert result["seeds"] == 2 and result["single_step_s"] > 0 and result["step_s"] > 0
+    gain = 2 * result["single_step_s"] / result["step_s"]
+    assert f"| {gain:.2f}x |" in seeds_table([{"task": "poisson", "variant": "adam", **result}])
