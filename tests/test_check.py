@@ -3,7 +3,6 @@
 import re
 import subprocess
 
-import numpy as np
 import pytest
 
 from physgrad.check import markdown, run_check
