@@ -7,7 +7,7 @@ from typing import NamedTuple
 import optax
 
 from physgrad import UserError
-from physgrad.optim.spectral import ROUTES, spectral_rule
+from physgrad.optim.spectral import spectral_rule
 
 OPTIMS = ("adam", "gd", "gauss_newton", "hig", "bptt", "stable_bptt")
 CLIPPING = ("none", "value", "norm")
