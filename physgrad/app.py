@@ -17,18 +17,20 @@ CONF_DIR = Path(__file__).resolve().parent.parent / "conf"
 log = logging.getLogger("physgrad")
 
 
-def record_failure(cfg: DictConfig, path: Path, error: Exception) -> None:
-    """Make sure a failed job leaves a results file that says so (training records its own failures; this
-    covers errors before it starts)."""
-    from physgrad.experiment import run_attributes
-    from physgrad.results import ResultsWriter, read_run
+def record_failure(cfg: DictConfig, out_dir: Path, error: Exception) -> None:
+    """Make sure a failed job leaves a results file per seed that says so (training records its own failures;
+    this covers errors before it starts)."""
+    from physgrad.experiment import run_attributes, seed_paths
+    from physgrad.results import ResultsWriter, read_final
 
-    try:
-        if read_run(path).attrs.get("status") == "failed":
-            return
-    except (ValueError, OSError):
-        pass
-    ResultsWriter(path, run_attributes(cfg)).finish("failed", f"{type(error).__name__}: {error}".splitlines()[0])
+    for seed, path in seed_paths(cfg, out_dir):
+        try:
+            if read_final(path)[0].get("status") == "failed":
+                continue
+        except (ValueError, OSError):
+            pass
+        ResultsWriter(path, {**run_attributes(cfg), "seed": seed}).finish(
+            "failed", f"{type(error).__name__}: {error}".splitlines()[0])
 
 
 @hydra.main(version_base="1.3", config_path=str(CONF_DIR), config_name="config")
@@ -41,7 +43,7 @@ def job(cfg: DictConfig) -> str:
     except Exception as error:  # noqa: BLE001 - one failed job must not end a sweep
         if not multirun:
             raise
-        record_failure(cfg, Path(hydra_cfg.runtime.output_dir) / "results.h5", error)
+        record_failure(cfg, Path(hydra_cfg.runtime.output_dir), error)
         log.error("%s failed: %s: %s", name, type(error).__name__, error)
         return "failed"
     if outcome.status == "refused":

@@ -75,7 +75,8 @@ def _compose(overrides: list[str]):
 
 
 def _compiled(cfg, seeds: list[int]):
-    """The scene, rule, seeds and compiled training step exactly as `physgrad run` builds them."""
+    """The scene, rule, seeds and compiled training exactly as `physgrad run` builds them, the compile time and
+    one_step() (one training step, blocking)."""
     import jax
     import numpy as np
 
@@ -98,7 +99,7 @@ def _compiled(cfg, seeds: list[int]):
                                               stacked.train_sets)
         jax.block_until_ready(state[0])
 
-    return settings, scene, rule, stacked, compile_s, one_step
+    return settings, scene, rule, stacked, compiled, compile_s, one_step
 
 
 def measure_variant(overrides: list[str], repeats: int, min_seconds: float) -> dict:
@@ -111,7 +112,7 @@ def measure_variant(overrides: list[str], repeats: int, min_seconds: float) -> d
 
     cfg = _compose(overrides)
     try:
-        settings, scene, rule, seeds, compile_s, one_step = _compiled(cfg, [cfg.seed])
+        settings, scene, rule, seeds, compiled, compile_s, one_step = _compiled(cfg, [cfg.seed])
     except UserError as error:
         return {"refused": str(error)}
     result = {"compile_s": compile_s}
@@ -121,7 +122,7 @@ def measure_variant(overrides: list[str], repeats: int, min_seconds: float) -> d
     # the baselines: the scene's own functions on its own parameter pytree, as a user would write them; timed
     # in turn with the step (one call each per round), so that drift of the machine cancels in the ratios
     timed = {"step_s": one_step}
-    params = jax.tree_util.tree_map(lambda leaf: leaf[0], seeds.params)
+    params = seeds.network()
     train_key = seeds.train_keys[0]
     batch = scene.sample_train(jax.random.fold_in(train_key, 0), settings.batch_size)
     if rule.uses_jacobian:
@@ -142,27 +143,26 @@ def measure_variant(overrides: list[str], repeats: int, min_seconds: float) -> d
     result.update({name: seconds for name, (seconds, _) in zip(timed, medians)})
     result["steps_timed"] = medians[0][1]
     if cfg.optim.name == "adam":
-        result.update(runner_overhead(settings, scene, rule, seeds, result["step_s"]))
+        eval_s, _ = _median_time(lambda: jax.block_until_ready(compiled.evaluate(compiled.params, seeds.test_sets)),
+                                 3, 0)
+        result.update(runner_overhead(settings, scene, rule, seeds, result["step_s"], eval_s))
     return result
 
 
-def runner_overhead(settings, scene, rule, seeds, step_s: float) -> dict:
+def runner_overhead(settings, scene, rule, seeds, step_s: float, eval_s: float) -> dict:
     """Run `train` as `physgrad run` does (default eval_every and flush cadence) for ~10 s and split its wall
     time: the timed training steps (train_seconds, which include fetching the logged scalars), the evaluations
-    (count x their median time), and the rest, which is the runner's own work (row buffering, HDF5 flushes, NaN
+    (count x eval_s, their median time), and the rest, which is the runner's own work (row buffering, HDF5 flushes, NaN
     checks, progress bar). Measured within one run, so the machine's drift between runs does not enter."""
     import dataclasses
 
     import h5py
-    import jax
 
     from physgrad.results import ResultsWriter
-    from physgrad.runner import compile_training, train
+    from physgrad.runner import train
 
     iterations = max(200, min(20_000, int(10.0 / step_s)))
     settings = dataclasses.replace(settings, iterations=iterations, time_budget=None)
-    compiled = compile_training(scene, rule, seeds, settings.batch_size)
-    eval_s, _ = _median_time(lambda: jax.block_until_ready(compiled.evaluate(compiled.params, seeds.test_sets)), 3, 0)
     with tempfile.TemporaryDirectory() as folder:
         path = Path(folder) / "results.h5"
         start = time.perf_counter()

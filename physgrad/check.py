@@ -202,9 +202,9 @@ def rank_deficient_kernels(small: bool) -> list[dict]:
         for name, jac in matrices.items():
             for variant, kappa in (("gauss_newton", 1.0), ("hig", 0.5)):
                 errors, finite = [], True
+                given = jac.astype(dtype)
+                u, s, vt = np.linalg.svd(given.astype(np.float64), full_matrices=False)
                 for tau in taus:
-                    given = jac.astype(dtype)
-                    u, s, vt = np.linalg.svd(given.astype(np.float64), full_matrices=False)
                     keep = s > tau * s.max() if s.max() > 0 else np.zeros_like(s, bool)
                     expected = vt[keep].T @ (s[keep] ** -kappa * (u[:, keep].T @ g))
                     for route in ("svd", "gram"):

@@ -20,13 +20,13 @@ from physgrad.optim.spectral import ROUTES
 from physgrad.results import ResultsWriter
 from physgrad.runner import Outcome, Seeds, TrainerSettings, stack, train
 from physgrad.tasks import Scene, build_scene, traits
-from physgrad.validate import choice, number
+from physgrad.validate import choice, flag, number
 
 
 def check_config(cfg: DictConfig) -> TrainerSettings:
     """Every key the run reads, validated; combinations the scene cannot use are refused with the reason."""
     choice(cfg, "precision", (32, 64))
-    choice(cfg, "overwrite", (False, True))
+    flag(cfg, "overwrite")
     if cfg.get("init_from") is not None and not isinstance(cfg.init_from, str):
         raise UserError(f"init_from={cfg.init_from!r} is not allowed: use the path of a results.h5, or null")
     number(cfg, "seed", 0, integer=True)
@@ -37,7 +37,7 @@ def check_config(cfg: DictConfig) -> TrainerSettings:
         number(cfg, "optim.tau", 0, 1)
         number(cfg, "optim.kappa")
         choice(cfg, "optim.route", ROUTES)
-        choice(cfg, "optim.retry_float64", (True, False))
+        flag(cfg, "optim.retry_float64")
     if optim in ("adam", "bptt", "stable_bptt"):
         number(cfg, "optim.b1", 0, 1)
         number(cfg, "optim.b2", 0, 1)
@@ -139,13 +139,13 @@ def finished_before(path: Path, cfg: DictConfig) -> Outcome | None:
 def start_from(path: str, params, scene_name: str) -> tuple[Any, dict]:
     """The final network of the run at path, in the structure and dtype of params, and attributes that record
     where it came from; UserError (one line) if it is missing or does not fit this scene's network."""
-    from physgrad.results import read_params, read_run
+    from physgrad.results import Run, read_final, read_params
 
     if not Path(path).is_file():
         raise UserError(f"init_from={path}: no such file: give the results.h5 of an earlier run")
     try:
         flat = read_params(path)
-        source = read_run(path)
+        source = Run(Path(path), read_final(path)[0], {}, {})  # attributes only, not the curves
     except ValueError as error:
         raise UserError(f"init_from={error}") from None
     own, unravel = ravel_pytree(params)
@@ -216,8 +216,7 @@ def run_experiment(cfg: DictConfig, out_dir: str | Path) -> tuple[Outcome, Path]
         rule = build_rule(cfg.optim)
         origin = {}
         if cfg.get("init_from"):
-            first, origin = start_from(cfg.init_from, jax.tree_util.tree_map(lambda x: x[0], seeds.params),
-                                       cfg.task.name)
+            first, origin = start_from(cfg.init_from, seeds.network(), cfg.task.name)
             seeds = dataclasses.replace(seeds, params=stack([first]))
     except UserError as error:
         for seed, path in paths:
@@ -233,7 +232,7 @@ def run_experiment(cfg: DictConfig, out_dir: str | Path) -> tuple[Outcome, Path]
     writers = [ResultsWriter(path, {
         **attrs, **origin, "seed": seed,
         "batch_size": settings.batch_size,
-        "n_params": count_params(jax.tree_util.tree_map(lambda x: x[0], seeds.params)),
+        "n_params": count_params(seeds.network()),
         "device": str(jax.devices()[0].device_kind),
     }) for seed, path in paths]
     label = f"{cfg.task.name}/{cfg.optim.name} seed {cfg.seed}" + (f" (+{len(paths) - 1})" if len(paths) > 1 else "")

@@ -71,9 +71,6 @@ class ResultsWriter:
         """The hot path of the training loop: values in the order given to set_columns()."""
         self._rows[group].append(values)
 
-    def pending(self, group: str = "train") -> int:
-        return len(self._rows[group])
-
     def flush(self) -> None:
         """Append every buffered row to the file."""
         if not any(self._rows.values()):

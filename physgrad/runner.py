@@ -179,6 +179,10 @@ class Seeds:
     def count(self) -> int:
         return self.train_keys.shape[0]
 
+    def network(self, index: int = 0):
+        """The initial network (parameter pytree) of one seed."""
+        return jax.tree_util.tree_map(lambda leaf: leaf[index], self.params)
+
 
 def stack(trees: list):
     """Stack pytrees along a new leading axis (None stays None)."""
@@ -216,7 +220,7 @@ def compile_training(scene: Scene, rule: UpdateRule, seeds: Seeds, batch_size: i
     """Flatten each seed's network into one vector (Scene.over_flat_params), then compile the vectorised step
     (params, opt_state, iteration, train_keys, train_sets) -> (params, opt_state, logs[seed, name]) and the
     evaluation (params, test_sets) -> {name: [seed]}, ahead of time (what `make bench` times, too)."""
-    unravel = ravel_pytree(jax.tree_util.tree_map(lambda leaf: leaf[0], seeds.params))[1]
+    unravel = ravel_pytree(seeds.network())[1]
     flat_scene = scene.over_flat_params(unravel)
     params = jax.vmap(lambda tree: ravel_pytree(tree)[0])(seeds.params)
     count = seeds.count

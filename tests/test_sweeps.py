@@ -135,6 +135,23 @@ def test_a_failed_job_does_not_stop_the_sweep(tmp_path, monkeypatch):
         "optim=gd,task.grid=4,task.test_size=8,trainer.batch_size=4,trainer.eval_every=5,trainer.iterations=2"]
 
 
+def test_a_failed_job_of_several_seeds_records_the_failure_in_every_seed_file(tmp_path, monkeypatch):
+    import physgrad.experiment
+    from physgrad.cli import main
+
+    def broken(optim_cfg):
+        raise RuntimeError("simulated crash")
+
+    monkeypatch.setattr(physgrad.experiment, "build_rule", broken)
+    assert main(["run", "-m", "seeds=2", "trainer.iterations=2", *TINY[1:], f"hydra.sweep.dir={tmp_path}"]) == 0
+    files = sorted(tmp_path.rglob("results.h5"))
+    assert [p.parent.name for p in files] == ["seed=0", "seed=1"]  # no stray file beside them
+    for seed, path in enumerate(files):
+        run = read_run(path)
+        assert (run.attrs["status"], run.attrs["seed"], run.attrs["reason"]) == ("failed", seed,
+                                                                                   "RuntimeError: simulated crash")
+
+
 def test_params_are_saved_unless_the_run_diverged(tmp_path):
     from physgrad.results import read_params
 

@@ -11,7 +11,7 @@ from physgrad.optim.spectral import spectral_rule
 
 OPTIMS = ("adam", "gd", "gauss_newton", "hig", "bptt", "stable_bptt")
 CLIPPING = ("none", "value", "norm")
-# Only the time-axis variants need a backprop mode; the values follow methods.md.
+# Only the time-axis variants need a backprop mode (the StableBPTT paper's modes, physgrad/unroll.py).
 BACKPROP_MODES = ("R", "M", "S", "C")
 
 

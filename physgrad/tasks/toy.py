@@ -1,4 +1,4 @@
-"""The badly scaled toy of the HIG paper (methods.md): learn x -> (sin 6x, cos 9x) through a "physics" that
+"""The badly scaled toy of the HIG paper: learn x -> (sin 6x, cos 9x) through a "physics" that
 scales its second component by lambda.
 
 Input x ~ U(-1, 1); the network predicts (a, b); the physical output is y = P(a, b) = (a, lambda b) and the
