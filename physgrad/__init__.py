@@ -1,7 +1,36 @@
-"""physgrad: which gradient should I train my physics-in-the-loop network with?"""
+"""physgrad: which gradient should I train my physics-in-the-loop network with?
+
+From Python (a notebook, a script):
+
+    import physgrad
+    run = physgrad.run("task=oscillator", "optim=hig", "trainer.iterations=200")
+    run.eval["loss"], run.train["wall_time"]          # numpy arrays
+    same = physgrad.read_run(run.path)                # any results.h5, read back the same way
+"""
 
 __version__ = "0.1.0"
 
 
 class UserError(Exception):
     """A mistake in what the user asked for; reported as one line, never as a traceback."""
+
+
+def run(*overrides: str, out_dir=None, config_dir=None):
+    """Train one configuration, given as the overrides `physgrad run` takes (e.g. "task=poisson", "optim=hig",
+    "trainer.iterations=100"), and return its results (physgrad.results.Run: attributes and the /train and
+    /eval columns as numpy arrays; a list of them, one per seed, with seeds=N > 1).
+
+    out_dir: the run's folder (default: outputs/runs/<date>/<time>_<task>_<optim>_s<seed>, as `physgrad run`);
+    config_dir: a folder of your own configs (like `physgrad run -cd DIR`). A configuration that does not apply
+    raises UserError with the reason; a run that diverges or is interrupted returns with that status."""
+    from physgrad.api import run_one
+
+    return run_one(list(overrides), out_dir=out_dir, config_dir=config_dir)
+
+
+def read_run(path):
+    """One results.h5 read back: attributes (run.attrs) and the /train and /eval columns (run.train["loss"],
+    run.eval["wall_time"], ...) as numpy arrays."""
+    from physgrad.results import read_run as read
+
+    return read(path)

@@ -11,9 +11,9 @@ from hydra.core.hydra_config import HydraConfig
 from hydra.types import RunMode
 from omegaconf import DictConfig
 
+from physgrad.configs import CONF_DIR
 from physgrad.experiment import run_experiment
 
-CONF_DIR = Path(__file__).resolve().parent.parent / "conf"
 log = logging.getLogger("physgrad")
 
 
@@ -36,8 +36,12 @@ def record_failure(cfg: DictConfig, out_dir: Path, error: Exception) -> None:
 @hydra.main(version_base="1.3", config_path=str(CONF_DIR), config_name="config")
 def job(cfg: DictConfig) -> str:
     hydra_cfg = HydraConfig.get()
+    # a scene or optimiser named by _target_ may live in the folder the command was started from, also when a
+    # launcher runs this job in another process
+    if hydra_cfg.runtime.cwd not in sys.path:
+        sys.path.append(hydra_cfg.runtime.cwd)
     multirun = hydra_cfg.mode == RunMode.MULTIRUN
-    name = f"{cfg.task.name}/{cfg.optim.name} seed {cfg.seed}"
+    name = f"{cfg.task.get('name')}/{cfg.optim.get('name')} seed {cfg.seed}"
     try:
         outcome, path = run_experiment(cfg, hydra_cfg.runtime.output_dir)
     except Exception as error:  # noqa: BLE001 - one failed job must not end a sweep

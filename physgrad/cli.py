@@ -8,8 +8,6 @@ every Hydra feature (-m, --cfg, --help, launchers) keeps working.
 from __future__ import annotations
 
 import argparse
-import difflib
-import itertools
 import sys
 from pathlib import Path
 
@@ -26,11 +24,12 @@ Examples:
   physgrad run task=poisson optim=hig
   physgrad run -m task=poisson optim=adam,hig seed=0,1
   physgrad report outputs/multirun/<date>/<time>
+  physgrad run -cd myconf task=pendulum        a scene (or optimiser) from your own config folder
   physgrad run --help                          Hydra's help: config groups and every key
+  eval "$(physgrad run -sc install=bash)"      tab completion of overrides in bash
 """
 
-INFO_FLAGS = {"-h", "--help", "-hh", "--hydra-help", "-i", "--info", "-sc", "--shell-completion"}
-_ABSENT = object()
+INFO_FLAGS = {"-h", "--help", "-hh", "--hydra-help", "-i", "--info"}
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -39,6 +38,8 @@ def main(argv: list[str] | None = None) -> int:
         print(USAGE, end="")
         return 0
     command, rest = argv[0], argv[1:]
+    if command in ("-sc", "--shell-completion"):  # what the installed completion script asks
+        command, rest = "run", argv
     try:
         if command == "run":
             return run_command(rest)
@@ -59,12 +60,41 @@ def run_command(args: list[str]) -> int:
     from hydra._internal.utils import get_args_parser
 
     parsed = get_args_parser().parse_args(args)
-    if not INFO_FLAGS.intersection(args):
-        check_overrides(parsed.overrides, multirun=parsed.multirun)
+    if parsed.shell_completion:
+        return shell_completion(args)
+    if not INFO_FLAGS.intersection(args) and parsed.config_path is None and parsed.config_name is None:
+        from physgrad.configs import check_overrides
+
+        check_overrides(parsed.overrides, multirun=parsed.multirun,
+                        config_dirs=[parsed.config_dir] if parsed.config_dir else [])
         check_writable(parsed.overrides, multirun=parsed.multirun)
     from physgrad.app import job
 
     sys.argv = ["physgrad run", *args]
+    job()
+    return 0
+
+
+def shell_completion(args: list[str]) -> int:
+    """Hydra's tab completion for `physgrad run`: `eval "$(physgrad run -sc install=bash)"` installs it; the
+    shell then asks `physgrad -sc query=bash` with the whole line, from which the subcommand is removed here
+    (Hydra completes overrides of one application; `run` is that application)."""
+    import os
+    import re
+
+    from physgrad.app import job
+
+    line = os.environ.get("COMP_LINE")
+    if line is not None:
+        words = line.split()
+        if len(words) < 2 or (len(words) == 2 and not line.endswith(" ")):  # completing the subcommand itself
+            prefix = words[1] if len(words) == 2 else ""
+            print(" ".join(c for c in ("run", "report", "check") if c.startswith(prefix)))
+            return 0
+        if words[1] != "run":
+            return 0
+        os.environ["COMP_LINE"] = re.sub(r"^(\s*\S+)\s+run\b", r"\1", line)
+    sys.argv = ["physgrad", *args]
     job()
     return 0
 
@@ -87,78 +117,6 @@ def check_writable(overrides: list[str], multirun: bool) -> None:
         why = error.strerror or type(error).__name__
         raise UserError(f"cannot write results to {target}: {why} ({os.fspath(error.filename or fixed)}): "
                         f"set {key}=<a writable folder>") from None
-
-
-def _config_options(conf_dir: Path, group: str) -> list[str]:
-    return sorted(p.stem for p in (conf_dir / group).glob("*.yaml"))
-
-
-def check_overrides(overrides: list[str], multirun: bool) -> None:
-    """Raise UserError (one line) for an unknown group option, a key no config has, or a sweep without -m."""
-    from hydra import compose, initialize_config_dir
-    from hydra.core.override_parser.overrides_parser import OverridesParser
-    from hydra.core.override_parser.types import Glob
-    from hydra.errors import HydraException
-
-    from physgrad.app import CONF_DIR
-
-    try:
-        parsed = OverridesParser.create().parse_overrides(overrides)
-    except HydraException as error:
-        raise UserError(f"cannot read the overrides: {str(error).splitlines()[0]}") from None
-
-    group_names = [p.name for p in CONF_DIR.iterdir() if p.is_dir() and not p.name.startswith("_")]
-    group_values: dict[str, list[str]] = {}
-    keys = []
-    for override in parsed:
-        key, value = override.key_or_group, override.value()
-        if override.is_sweep_override() and not multirun:
-            raise UserError(f"'{override.input_line}' sweeps several values: add -m (--multirun) to run them all")
-        if key.startswith("hydra") or override.is_delete():
-            continue
-        if key in group_names and override.package is None:
-            options = _config_options(CONF_DIR, key)
-            if not options:  # e.g. `+experiment=...` before any experiment exists
-                raise UserError(f"no {key} configs in {CONF_DIR / key}")
-            if isinstance(value, Glob):
-                values = value.filter(options)
-            elif override.is_sweep_override():
-                values = list(override.sweep_string_iterator())
-            else:
-                values = [override.get_value_element_as_str()]
-            for choice in values:
-                if choice not in options:
-                    raise UserError(f"unknown {key} '{choice}': choose one of {', '.join(options)}")
-            group_values[("+" if override.is_add() else "") + key] = values
-        elif not override.is_add() and not override.is_force_add():
-            keys.append(key)
-
-    combos = [dict(zip(group_values, combo)) for combo in itertools.product(*group_values.values())]
-    with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
-        for combo in combos:
-            try:
-                cfg = compose("config", overrides=[f"{g}={v}" for g, v in combo.items()])
-            except HydraException as error:
-                raise UserError(str(error).strip().splitlines()[0]) from None
-            for key in keys:
-                _check_key(cfg, key, combo)
-
-
-def _check_key(cfg, key: str, combo: dict) -> None:
-    from omegaconf import DictConfig, OmegaConf
-
-    if OmegaConf.select(cfg, key, default=_ABSENT) is not _ABSENT:
-        return
-    parent_key, _, leaf = key.rpartition(".")
-    parent = OmegaConf.select(cfg, parent_key, default=_ABSENT) if parent_key else cfg
-    if not isinstance(parent, DictConfig):
-        raise UserError(f"unknown key '{key}': '{parent_key}' is not a section of the config")
-    siblings = [k for k in parent.keys() if k != "_target_"]
-    close = difflib.get_close_matches(leaf, siblings, n=1)
-    where = f"{parent_key} has" if parent_key else "the top level has"
-    scope = "".join(f" with {g}={v}" for g, v in combo.items() if key.startswith(g + "."))
-    hint = f": did you mean {'.'.join(filter(None, [parent_key, close[0]]))}?" if close else ""
-    raise UserError(f"unknown key '{key}'{scope}{hint} ({where}: {', '.join(map(str, siblings))})")
 
 
 def report_command(args: list[str]) -> int:

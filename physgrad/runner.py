@@ -11,7 +11,7 @@ import math
 import signal
 import time
 from contextlib import contextmanager
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any
 
 import jax
@@ -21,20 +21,32 @@ import optax
 from jax.flatten_util import ravel_pytree
 from tqdm import tqdm
 
-from physgrad.optim import UpdateRule
-from physgrad.optim.spectral import output_and_jacobian
+from physgrad.optim import UpdateRule, state_logs
 from physgrad.results import ResultsWriter
 from physgrad.tasks import Scene
-from physgrad.unroll import MODES, PHYSICS_ONLY, combine_signs
+from physgrad.validate import number
 
 
 @dataclass(frozen=True)
 class TrainerSettings:
+    """The `trainer` config section: when to stop, evaluate and write."""
+
     iterations: int
     time_budget: float | None
     eval_every: int
     batch_size: int
     flush_seconds: float
+
+    @classmethod
+    def from_config(cls, trainer_cfg) -> "TrainerSettings":
+        return cls(
+            iterations=number("trainer.iterations", trainer_cfg.get("iterations"), 1, integer=True),
+            time_budget=number("trainer.time_budget", trainer_cfg.get("time_budget"), 0, optional=True,
+                               open_low=True),
+            eval_every=number("trainer.eval_every", trainer_cfg.get("eval_every"), 1, integer=True),
+            batch_size=number("trainer.batch_size", trainer_cfg.get("batch_size"), 1, integer=True),
+            flush_seconds=number("trainer.flush_seconds", trainer_cfg.get("flush_seconds"), 0, open_low=True),
+        )
 
 
 @dataclass(frozen=True)
@@ -49,53 +61,26 @@ class Outcome:
 def make_step(scene: Scene, rule: UpdateRule, batch_size: int):
     """(params, opt_state, iteration, train_key, train_set) -> (params, opt_state, logs); the minibatch is drawn
     inside from fold_in(train_key, iteration) (out of train_set, if the scene has a fixed one), so every variant
-    with the same seed and batch size sees the same batches.
-
-    The gradient is the pullback of g = dL/dy through y = batch output: one forward, one backward. The BPTT
-    modes M and S take it through the scene's output with those gradient stops; C takes R and M and keeps
-    g_M where the signs agree (and logs cos(g_M, g_R) and the fraction of components it zeroes).
-    Rules on the Jacobian route take y and J = dy/dtheta from one per-sample reverse pass instead; their
-    gradient (logged as grad_norm) is J^T g, and they receive J and g as extra arguments.
-    """
-
-    def value_and_grads(params, batch, sample_output):
-        y, pullback = jax.vjp(lambda p: jax.vmap(sample_output, in_axes=(None, 0))(p, batch), params)
-        loss, output_grad = jax.value_and_grad(scene.batch_loss)(y, batch)
-        return loss, output_grad, pullback(output_grad)[0], jnp.max(jnp.abs(y))
+    with the same seed and batch size sees the same batches. The rule's gradient route gives the loss, the
+    gradient, the rule's extra arguments and the route's logs (physgrad.gradients); the rule's state may add
+    logs of its own (physgrad.optim.state_logs)."""
 
     def step(params, opt_state, iteration, train_key, train_set):
         batch = scene.draw_batch(jax.random.fold_in(train_key, iteration), batch_size, train_set)
-        logs, extra = {}, {}
-        if rule.uses_jacobian:
-            y, jac = output_and_jacobian(scene.sample_output, params, batch)
-            loss, output_grad = jax.value_and_grad(scene.batch_loss)(y, batch)
-            grads = ravel_pytree(params)[1](jac.T @ output_grad.reshape(-1).astype(jac.dtype))
-            state_max = jnp.max(jnp.abs(y))
-            extra = {"jacobian": jac, "output_grad": output_grad}
-        elif rule.backprop == "C":
-            loss, output_grad, g_regular, state_max = value_and_grads(params, batch, scene.sample_output)
-            _, _, g_physics, _ = value_and_grads(params, batch, scene.backprop_output(PHYSICS_ONLY))
-            grads = combine_signs(g_physics, g_regular)
-            logs["cos_physics_regular"] = tree_cosine(g_physics, g_regular)
-            logs["zeroed_fraction"] = sign_disagreement(g_physics, g_regular)
-        else:
-            output = scene.sample_output if rule.backprop in (None, "R") else scene.backprop_output(
-                MODES[rule.backprop])
-            loss, output_grad, grads, state_max = value_and_grads(params, batch, output)
+        loss, grads, extra, route_logs = rule.gradient(scene, params, batch)
         updates, opt_state = rule.transform.update(grads, opt_state, params, **extra)
-        if rule.uses_jacobian:
-            logs["svd_failures"] = optax.tree.get(opt_state, "failures")
         logs = {"loss": loss, "grad_norm": optax.tree.norm(grads), "update_norm": optax.tree.norm(updates),
-                "state_max_abs": state_max, **logs}
+                **route_logs, **state_logs(opt_state)}
         return optax.apply_updates(params, updates), opt_state, logs
 
     return step
 
 
-# checked for NaN/Inf after every step, in causal order: the physical output (the simulated state: a blow-up
-# of the physics shows here first), the loss, the gradient, the update; the first non-finite one is the reason
-GUARDED = ("state_max_abs", "loss", "grad_norm", "update_norm")
-QUANTITY = {"state_max_abs": "state", "loss": "loss", "grad_norm": "gradient", "update_norm": "update"}
+# checked for NaN/Inf after every step, in causal order: the physical output (the simulated state or what is
+# read out of it: a blow-up of the physics shows here first), the loss, the gradient, the update; the first
+# non-finite one is the reason
+GUARDED = ("output_max_abs", "loss", "grad_norm", "update_norm")
+QUANTITY = {"output_max_abs": "output", "loss": "loss", "grad_norm": "gradient", "update_norm": "update"}
 
 
 def divergence_reason(quantity: str, logs: dict, iteration: int, svd_failures_before: float) -> str:
@@ -119,20 +104,6 @@ def packed_logs(step, names: list[str]):
         return params, opt_state, jnp.stack([jnp.asarray(logs[name], dtype) for name in names])
 
     return packed
-
-
-def tree_cosine(a, b) -> jax.Array:
-    """<a, b> / (|a| |b|) over whole pytrees; 0 where either is the zero vector (the angle is undefined)."""
-    dot = sum(jnp.vdot(x, y) for x, y in zip(jax.tree_util.tree_leaves(a), jax.tree_util.tree_leaves(b)))
-    norms = optax.tree.norm(a) * optax.tree.norm(b)
-    return jnp.where(norms > 0, dot / jnp.where(norms > 0, norms, 1.0), 0.0)
-
-
-def sign_disagreement(a, b) -> jax.Array:
-    """Fraction of components where sign(a) != sign(b): the ones the combined gradient sets to zero."""
-    leaves = zip(jax.tree_util.tree_leaves(a), jax.tree_util.tree_leaves(b))
-    differ = sum(jnp.sum(jnp.sign(x) != jnp.sign(y)) for x, y in leaves)
-    return differ / sum(x.size for x in jax.tree_util.tree_leaves(a))
 
 
 class StopRequest:
@@ -233,31 +204,45 @@ def compile_training(scene: Scene, rule: UpdateRule, seeds: Seeds, batch_size: i
     return CompiledTraining(step, evaluate, params, opt_state, log_names)
 
 
+@dataclass
+class SeedRun:
+    """What the loop tracks for one seed: its results file, how it ended so far, its last evaluation, and the
+    factorisation failures counted before the current step (to name them in a divergence reason)."""
+
+    writer: ResultsWriter
+    status: str = "completed"
+    reason: str | None = None
+    iterations: int | None = None  # set when the seed stops before the others (diverged)
+    latest_eval: dict = field(default_factory=dict)
+    svd_failures: float = 0.0
+
+    @property
+    def running(self) -> bool:
+        return self.status == "completed"
+
+
 def train(scene: Scene, rule: UpdateRule, seeds: Seeds, writers: list[ResultsWriter], settings: TrainerSettings,
           label: str = "") -> list[Outcome]:
     """Compile, then iterate until trainer.iterations or trainer.time_budget (training seconds), whichever
-    comes first, every seed in one vectorised step (writers: one per seed). A seed whose state, loss, gradient
+    comes first, every seed in one vectorised step (writers: one per seed). A seed whose output, loss, gradient
     or update turns non-finite ends with status diverged (its rows stop there) while the others go on; the
     wall time is the shared one. Returns one Outcome per seed."""
-    count = seeds.count
+    runs = [SeedRun(writer) for writer in writers]
     train_seconds, done = 0.0, 0
-    status, reason = ["completed"] * count, [None] * count
-    finished_at = [None] * count  # iterations done when a seed diverged
-    latest_eval = [{} for _ in range(count)]
     params = None
 
     def record_eval(iteration):
         # written with the next periodic flush: a flush per evaluation cost 2% of a fast scene's wall time
         metrics = {k: np.asarray(v).tolist() for k, v in jax.device_get(evaluate(params, seeds.test_sets)).items()}
-        for index, writer in enumerate(writers):
-            if status[index] == "completed":
+        for index, run in enumerate(runs):
+            if run.running:
                 values = {k: v[index] for k, v in metrics.items()}
-                writer.append("eval", {"iteration": iteration, "wall_time": train_seconds, **values})
-                latest_eval[index] = {**values, "iteration": iteration}
+                run.writer.append("eval", {"iteration": iteration, "wall_time": train_seconds, **values})
+                run.latest_eval = {**values, "iteration": iteration}
 
-    def flush_all():
-        for writer in writers:
-            writer.flush()
+    def for_every_writer(method: str, *args, **kwargs):
+        for run in runs:
+            getattr(run.writer, method)(*args, **kwargs)
 
     bar = tqdm(total=settings.iterations, desc=label, mininterval=0.5, disable=None, leave=False)
     try:
@@ -267,15 +252,13 @@ def train(scene: Scene, rule: UpdateRule, seeds: Seeds, writers: list[ResultsWri
             compiled = compile_training(scene, rule, seeds, settings.batch_size)
             step, evaluate, log_names = compiled.step, compiled.evaluate, compiled.log_names
             params, opt_state = compiled.params, compiled.opt_state
-            for writer in writers:
-                writer.set_attrs(compile_seconds=time.perf_counter() - start)
-                writer.set_columns("train", ("iteration", "wall_time", *log_names))
+            for_every_writer("set_attrs", compile_seconds=time.perf_counter() - start)
+            for_every_writer("set_columns", "train", ("iteration", "wall_time", *log_names))
             guarded = [log_names.index(name) for name in GUARDED]
             svd_at = log_names.index("svd_failures") if "svd_failures" in log_names else None
-            svd_failures = [0.0] * count
-            running = list(range(count))
+            running = list(enumerate(runs))
             record_eval(0)
-            flush_all()
+            for_every_writer("flush")
             last_flush = time.perf_counter()
             for iteration in range(settings.iterations):
                 if stop.signal_name is not None:
@@ -288,54 +271,52 @@ def train(scene: Scene, rule: UpdateRule, seeds: Seeds, writers: list[ResultsWri
                 train_seconds += time.perf_counter() - tick
                 params, done = new_params, iteration + 1
                 diverged = False
-                for index in running:
+                for index, run in running:
                     row = logs[index]
-                    writers[index].append_row("train", (iteration, train_seconds, *row))
+                    run.writer.append_row("train", (iteration, train_seconds, *row))
                     bad = next((log_names[i] for i in guarded if not math.isfinite(row[i])), None)
                     if bad is not None:
-                        status[index], finished_at[index], diverged = "diverged", done, True
-                        reason[index] = divergence_reason(bad, dict(zip(log_names, row)), iteration,
-                                                          svd_failures[index])
+                        run.status, run.iterations, diverged = "diverged", done, True
+                        run.reason = divergence_reason(bad, dict(zip(log_names, row)), iteration, run.svd_failures)
                     elif svd_at is not None:
-                        svd_failures[index] = row[svd_at]
+                        run.svd_failures = row[svd_at]
                 if diverged:  # the running list changes only here, not at every step
-                    running = [index for index in running if status[index] == "completed"]
+                    running = [(index, run) for index, run in running if run.running]
                     if not running:
                         break
                 if done % settings.eval_every == 0 and done < settings.iterations:
                     record_eval(done)
                 if settings.time_budget is not None and train_seconds >= settings.time_budget:
-                    for writer in writers:
-                        writer.set_attrs(stopped_by="time_budget")
+                    for_every_writer("set_attrs", stopped_by="time_budget")
                     break
                 now = time.perf_counter()
                 if now - last_flush >= settings.flush_seconds:
-                    flush_all()
+                    for_every_writer("flush")
                     last_flush = now
-                    bar.set_postfix(loss=f"{logs[running[0]][guarded[1]]:.3e}", refresh=False)
+                    bar.set_postfix(loss=f"{logs[running[0][0]][guarded[1]]:.3e}", refresh=False)
                     bar.update(done - bar.n)
             else:
-                for writer in writers:
-                    writer.set_attrs(stopped_by="iterations")
-            if any(s == "completed" and latest_eval[i]["iteration"] != done for i, s in enumerate(status)):
+                for_every_writer("set_attrs", stopped_by="iterations")
+            if any(run.running and run.latest_eval["iteration"] != done for run in runs):
                 record_eval(done)
     except KeyboardInterrupt as interrupt:
         why = f"{interrupt.args[0] if interrupt.args else 'SIGINT'} after {done} iterations"
-        status = ["interrupted" if s == "completed" else s for s in status]
-        reason = [why if s == "interrupted" else r for s, r in zip(status, reason)]
+        for run in runs:
+            if run.running:
+                run.status, run.reason = "interrupted", why
     except BaseException as error:
         message = f"{type(error).__name__}: {str(error).splitlines()[0] if str(error) else ''}"
-        for index, writer in enumerate(writers):
-            writer.finish("failed", message, iterations=finished_at[index] or done, train_seconds=train_seconds)
+        for run in runs:
+            run.writer.finish("failed", message, iterations=run.iterations or done, train_seconds=train_seconds)
         raise
     finally:
         bar.close()
     outcomes = []
-    for index, writer in enumerate(writers):
+    for index, run in enumerate(runs):
         flat = None if params is None else np.asarray(params[index])
-        if flat is not None and status[index] != "diverged" and np.isfinite(flat).all():  # a later run can start from it (init_from)
-            writer.save_params(flat)
-        iterations = finished_at[index] or done
-        writer.finish(status[index], reason[index], iterations=iterations, train_seconds=train_seconds)
-        outcomes.append(Outcome(status[index], reason[index], iterations, train_seconds, latest_eval[index]))
+        if flat is not None and run.status != "diverged" and np.isfinite(flat).all():  # a later run can start from it (init_from)
+            run.writer.save_params(flat)
+        iterations = run.iterations or done
+        run.writer.finish(run.status, run.reason, iterations=iterations, train_seconds=train_seconds)
+        outcomes.append(Outcome(run.status, run.reason, iterations, train_seconds, run.latest_eval))
     return outcomes

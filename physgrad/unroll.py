@@ -1,7 +1,7 @@
 """Rollouts over lax.scan with the backprop-through-time modes of the StableBPTT paper.
 
-A closed loop runs c_k = policy(x_k), x_{k+1} = step(x_k, c_k) for k = 0..n-1. The forward values are the same
-in every mode; the mode decides where gradients are stopped, at every step:
+A closed loop runs c_k = policy(x_k), x_{k+1} = step(x_k, c_k) for k = 0..unroll-1. The forward values are the
+same in every mode; the mode decides where gradients are stopped, at every step:
 
 | mode | policy input | physics input | meaning                                                       |
 |------|--------------|---------------|---------------------------------------------------------------|
@@ -9,12 +9,15 @@ in every mode; the mode decides where gradients are stopped, at every step:
 | M    | sg(x_k)      | x_k           | gradients travel back in time only through the physics        |
 | S    | sg(x_k)      | sg(x_k)       | no long-range backprop: each control sees its one-step effect |
 
-C (the stabilised gradient) is built on top from the M and R gradients: `combine_signs`.
+C (the stabilised gradient) is built on top from the M and R gradients: `physgrad.gradients.Combined`.
+A temporal scene describes its rollout once as `Dynamics`; `Dynamics.output(mode)` is its physical output
+y(params, sample) with that mode's gradient stops.
 """
 
 from __future__ import annotations
 
-from typing import Callable, NamedTuple
+from dataclasses import dataclass
+from typing import Any, Callable, NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -34,14 +37,15 @@ STOPPED = Backprop(True, True)
 MODES = {"R": REGULAR, "M": PHYSICS_ONLY, "S": STOPPED}
 
 
-def rollout(step: Callable, policy: Callable, x0, length: int, backprop: Backprop = REGULAR,
+def rollout(step: Callable, policy: Callable, x0, unroll: int, backprop: Backprop = REGULAR,
             observe: Callable | None = None, checkpoint: bool = False):
-    """Scan x_{k+1} = step(x_k', policy(x_k'', k)) for k = 0..length-1, with x_k' and x_k'' the state or its
-    stopped copy as ``backprop`` says. Returns (x_length, stacked observe(x_{k+1}, c_k)) where observe defaults
+    """Scan x_{k+1} = step(x_k', policy(x_k'', k)) for k = 0..unroll-1, with x_k' and x_k'' the state or its
+    stopped copy as ``backprop`` says. Returns (x_unroll, stacked observe(x_{k+1}, c_k)) where observe defaults
     to None (nothing stacked).
 
-    checkpoint=True rematerialises each step's internals in the backward pass (jax.checkpoint on the scan
-    body): memory then grows with the number of steps times the state only, not times the step's internals.
+    The scan keeps lax.scan's own `unroll=1` (no loop unrolling: under grad, XLA's compile time on CPU grows
+    steeply with it). checkpoint=True rematerialises each step's internals in the backward pass
+    (jax.checkpoint on the scan body): memory then grows with the number of steps times the state only.
     """
 
     def body(x, k):
@@ -53,10 +57,42 @@ def rollout(step: Callable, policy: Callable, x0, length: int, backprop: Backpro
 
     if checkpoint:
         body = jax.checkpoint(body)
-    return lax.scan(body, x0, jnp.arange(length))
+    return lax.scan(body, x0, jnp.arange(unroll))
 
 
-def combine_signs(g_physics, g_regular):
-    """C = g_M where sign(g_M) == sign(g_R), else 0, per parameter element (its magnitude is always g_M's)."""
-    return jax.tree_util.tree_map(lambda m, r: jnp.where(jnp.sign(m) == jnp.sign(r), m, jnp.zeros_like(m)),
-                                  g_physics, g_regular)
+def final_state(final, observed, sample):
+    """The default readout: y = x_unroll."""
+    return final
+
+
+@dataclass(frozen=True)
+class Dynamics:
+    """A temporal scene's rollout, from which every backprop mode's output is built:
+        x_0 = initial(sample),  c_k = policy(params, sample)(x_k, k),  x_{k+1} = step(x_k, c_k),
+        y = readout(x_unroll, observed, sample),  observed = [observe(x_{k+1}, c_k, sample) for each k] (or None).
+
+    policy(params, sample) returns the controller of one sample: a closed-loop one (closed_loop=True) uses the
+    state it is given; an open-loop one may compute every control up front (it is called once, outside the
+    loop) and only index them by k. Only a closed loop has a policy input for the modes M and S to stop.
+    checkpoint: rematerialise every step in the backward pass (memory for long unrolls).
+    """
+
+    step: Callable[[Any, Any], Any]
+    policy: Callable[[Any, Any], Callable[[Any, jax.Array], Any]]
+    initial: Callable[[Any], Any]
+    unroll: int
+    closed_loop: bool
+    readout: Callable[[Any, Any, Any], jax.Array] = final_state
+    observe: Callable[[Any, Any, Any], Any] | None = None
+    checkpoint: bool = False
+
+    def output(self, backprop: Backprop = REGULAR) -> Callable[[Any, Any], jax.Array]:
+        """y(params, sample) with the gradient stops of ``backprop``."""
+
+        def sample_output(params, sample):
+            observe = None if self.observe is None else (lambda x, c: self.observe(x, c, sample))
+            final, observed = rollout(self.step, self.policy(params, sample), self.initial(sample), self.unroll,
+                                      backprop, observe=observe, checkpoint=self.checkpoint)
+            return self.readout(final, observed, sample)
+
+        return sample_output

@@ -1,48 +1,64 @@
-"""Update rules, each an optax GradientTransformation, built from the `optim` config group."""
+"""Update rules, each an optax GradientTransformation, built from the `optim` config group.
+
+An optim config names a factory with ``_target_`` (any optax factory, e.g. optax.adam or optax.lion, or
+physgrad's spectral rule for Gauss-Newton and HIG) and gives its keyword arguments; ``name``, ``backprop``
+and ``clip`` are physgrad's own keys and are not passed to the factory.
+"""
 
 from __future__ import annotations
 
-from typing import NamedTuple
+from typing import Any, Callable, NamedTuple
 
+import jax
 import optax
+from omegaconf import OmegaConf
 
 from physgrad import UserError
-from physgrad.optim.spectral import spectral_rule
+from physgrad.gradients import route_for
+from physgrad.optim.spectral import JacobianRule
+from physgrad.validate import call_target, choice, number
 
-OPTIMS = ("adam", "gd", "gauss_newton", "hig", "bptt", "stable_bptt")
-CLIPPING = ("none", "value", "norm")
-# Only the time-axis variants need a backprop mode (the StableBPTT paper's modes, physgrad/unroll.py).
-BACKPROP_MODES = ("R", "M", "S", "C")
+RESERVED_KEYS = ("name", "backprop", "clip")
+CLIPPING = {"none": None, "value": lambda: optax.clip(1.0), "norm": lambda: optax.clip_by_global_norm(1.0)}
 
 
 class UpdateRule(NamedTuple):
-    """transform: the optax transformation; uses_jacobian: it needs the per-sample Jacobian J and
-    output_grad g = dL/dy as extra arguments (so the step builds J every step); backprop: mode for temporal
-    scenes, or None."""
+    """transform: the optax transformation; gradient: the gradient route, how the step gets the gradient and
+    the rule's extra arguments (physgrad.gradients)."""
 
     transform: optax.GradientTransformation
-    uses_jacobian: bool
-    backprop: str | None = None
+    gradient: Callable
 
-
-def clipping(kind: str) -> optax.GradientTransformation:
-    """Clip before Adam: element-wise to [-1, 1] (value), global norm to 1 (norm), or not at all."""
-    return {"none": optax.identity, "value": lambda: optax.clip(1.0), "norm": lambda: optax.clip_by_global_norm(1.0)}[
-        kind
-    ]()
+    @property
+    def uses_jacobian(self) -> bool:
+        return isinstance(self.transform, JacobianRule)
 
 
 def build_rule(optim_cfg) -> UpdateRule:
-    name = optim_cfg.name
-    lr = float(optim_cfg.lr)
-    if name == "adam":
-        return UpdateRule(optax.adam(lr, b1=optim_cfg.b1, b2=optim_cfg.b2, eps=optim_cfg.eps), False)
-    if name == "gd":
-        return UpdateRule(optax.sgd(lr), False)
-    if name in ("hig", "gauss_newton"):
-        return UpdateRule(spectral_rule(lr, float(optim_cfg.kappa), float(optim_cfg.tau), optim_cfg.route,
-                                        bool(optim_cfg.retry_float64)), True)
-    if name in ("bptt", "stable_bptt"):
-        adam = optax.adam(lr, b1=optim_cfg.b1, b2=optim_cfg.b2, eps=optim_cfg.eps)
-        return UpdateRule(optax.chain(clipping(optim_cfg.clip), adam), False, optim_cfg.backprop)
-    raise UserError(f"unknown optim '{name}': choose one of {', '.join(OPTIMS)}")
+    """The factory's transformation, behind the clipping of ``optim.clip`` (element-wise to [-1, 1], global
+    norm 1, or none), with the gradient route its kind and ``optim.backprop`` ask for."""
+    node = OmegaConf.to_container(optim_cfg, resolve=True) if OmegaConf.is_config(optim_cfg) else dict(optim_cfg)
+    if isinstance(node.get("learning_rate"), (int, float)):
+        number("optim.learning_rate", node["learning_rate"], 0, open_low=True)
+    clip = choice("optim.clip", node.get("clip", "none"), tuple(CLIPPING))
+    transform = call_target("optim", node, reserved=RESERVED_KEYS)
+    if not hasattr(transform, "init") or not hasattr(transform, "update"):
+        raise UserError(f"optim._target_={node['_target_']} returned {type(transform).__name__}, not an optax "
+                        "GradientTransformation")
+    gradient = route_for(node.get("backprop"), isinstance(transform, JacobianRule))
+    if clip != "none":
+        if isinstance(transform, JacobianRule):
+            raise UserError(f"optim.clip={clip} applies to gradient-based rules, and {node.get('name')} takes "
+                            "the Jacobian: remove optim.clip")
+        transform = optax.chain(CLIPPING[clip](), transform)
+    return UpdateRule(transform, gradient)
+
+
+def state_logs(opt_state: Any) -> dict:
+    """Scalars an update rule reports about itself: every node of its state with a logs() method (e.g. the
+    spectral rules' svd_failures), merged."""
+    logs = {}
+    for node in jax.tree_util.tree_leaves(opt_state, is_leaf=lambda x: hasattr(x, "logs")):
+        if hasattr(node, "logs"):
+            logs.update(node.logs())
+    return logs

@@ -17,6 +17,8 @@ import jax.numpy as jnp
 import optax
 from jax.flatten_util import ravel_pytree
 
+from physgrad.validate import choice, flag, number
+
 
 ROUTES = ("auto", "svd", "gram")
 # The Gram route resolves singular values down to about sqrt(m * eps_64) * max(s) (~1e-6 at m = 4096), so it is
@@ -68,33 +70,27 @@ def truncated_spectral_direction(jac: jax.Array, output_grad: jax.Array, kappa: 
     return (gram_direction if route == "gram" else svd_direction)(jac, output_grad, kappa, tau)
 
 
-def output_and_jacobian(sample_output, params, batch) -> tuple[jax.Array, jax.Array]:
-    """y (batch, k) and J = dy/dtheta (m x n, m = batch * k) from one per-sample reverse-mode pass, vmapped
-    over the batch: J's rows are sample major, its columns follow ravel_pytree(params). The forward pass that
-    builds each sample's pullback also gives y, so a step needs no separate forward or gradient pass
-    (dL/dtheta = J^T g)."""
-    flat, unravel = ravel_pytree(params)
-
-    def output_twice(flat_params, sample):
-        y = sample_output(unravel(flat_params), sample)
-        return y, y
-
-    jac, y = jax.vmap(jax.jacrev(output_twice, has_aux=True), in_axes=(None, 0))(flat, batch)
-    return y, jac.reshape(-1, flat.size)
-
-
 class SpectralState(NamedTuple):
     """failures: steps whose factorisation returned non-finite values from finite inputs (LAPACK did not
     converge), counted so that the runner can name the cause when the update turns non-finite."""
 
     failures: jax.Array
 
+    def logs(self) -> dict:
+        """Logged with every training step (physgrad.optim.state_logs), as the column svd_failures."""
+        return {"svd_failures": self.failures}
+
+
+class JacobianRule(optax.GradientTransformationExtraArgs):
+    """An update rule on the Jacobian route: its update takes the extra arguments ``jacobian`` (J, m x n) and
+    ``output_grad`` (g = dL/dy), so the training step builds J for it instead of a gradient pass."""
+
 
 def spectral_direction(kappa: float, tau: float, route: str = "auto",
                        retry_float64: bool = False) -> optax.GradientTransformationExtraArgs:
     """Replaces the gradient by V diag(s^-kappa) U^T g.
 
-    Needs the extra arguments jacobian J (m x n, from output_and_jacobian) and output_grad g = dL/dy
+    Needs the extra arguments jacobian J (m x n, from physgrad.gradients.output_and_jacobian) and output_grad g = dL/dy
     (shape (batch, k)); the incoming gradient gives only the pytree structure, since J^T g carries no more
     than J and g.
     A factorisation that fails (non-finite direction from a finite J and g) is counted in the state; with
@@ -126,16 +122,23 @@ def spectral_direction(kappa: float, tau: float, route: str = "auto",
 
 
 def spectral_rule(learning_rate: float, kappa: float, tau: float, route: str = "auto",
-                  retry_float64: bool = False) -> optax.GradientTransformationExtraArgs:
-    """theta <- theta - lr * V diag(s^-kappa) U^T g (lr in the mean-loss convention)."""
-    return optax.chain(spectral_direction(kappa, tau, route, retry_float64), optax.scale(-learning_rate))
+                  retry_float64: bool = False) -> JacobianRule:
+    """theta <- theta - lr * V diag(s^-kappa) U^T g (lr in the mean-loss convention): Gauss-Newton at kappa = 1,
+    HIG at kappa = 1/2, gradient descent at kappa = -1. Checks its own settings (optim.*)."""
+    number("optim.learning_rate", learning_rate, 0, open_low=True)
+    number("optim.kappa", kappa)
+    number("optim.tau", tau, 0, 1)
+    choice("optim.route", route, ROUTES)
+    flag("optim.retry_float64", retry_float64)
+    return JacobianRule(*optax.chain(spectral_direction(kappa, tau, route, retry_float64),
+                                     optax.scale(-learning_rate)))
 
 
-def hig(learning_rate: float, tau: float) -> optax.GradientTransformationExtraArgs:
+def hig(learning_rate: float, tau: float) -> JacobianRule:
     """Half-inverse gradients: theta <- theta - lr * V diag(s^-1/2) U^T g."""
     return spectral_rule(learning_rate, 0.5, tau)
 
 
-def gauss_newton(learning_rate: float, tau: float) -> optax.GradientTransformationExtraArgs:
+def gauss_newton(learning_rate: float, tau: float) -> JacobianRule:
     """Gauss-Newton: theta <- theta - lr * J^+ g with the truncated pseudo-inverse."""
     return spectral_rule(learning_rate, 1.0, tau)

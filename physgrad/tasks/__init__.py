@@ -1,15 +1,15 @@
 """Scenes: one module per physical setup behind the small `Scene` interface.
 
-A scene module provides
-- ``traits(task_cfg) -> Traits``: cheap, static facts the runner uses to refuse combinations that do not apply;
-- ``build(task_cfg, key, unroll=None) -> Scene``: data, network and differentiable physics, all seeded from
-  ``key``; ``unroll`` (temporal scenes only) replaces the scene's reference number of time steps.
+A task config names the function that builds its scene with ``_target_`` (built-in or a user's own, e.g.
+``_target_: mylab.pendulum.build``). physgrad calls it with the config's other keys as keyword arguments plus
+``key``, a PRNG key that seeds the scene's data (and nothing else). ``name`` and ``batch_size`` are read by
+physgrad itself; a temporal scene has an ``unroll`` key (its number of time steps), which the top-level
+``unroll=N`` replaces. docs/scenes.md describes the interface for authors of new scenes.
 """
 
 from __future__ import annotations
 
 import dataclasses
-import importlib
 from dataclasses import dataclass, field
 from typing import Any, Callable
 
@@ -18,57 +18,85 @@ import jax.numpy as jnp
 from jax.flatten_util import ravel_pytree
 
 from physgrad import UserError
+from physgrad.unroll import REGULAR, Backprop, Dynamics
 
-TASK_MODULES = {
-    "oscillator": "physgrad.tasks.oscillator",
-    "multicart": "physgrad.tasks.multicart",
-    "poisson": "physgrad.tasks.poisson",
-    "quantum": "physgrad.tasks.quantum",
-    "quantum_control": "physgrad.tasks.quantum",  # the StableBPTT preset of the same scene
-    "toy": "physgrad.tasks.toy",
-}
+# task keys that physgrad reads itself and does not pass to the scene's build function
+RESERVED_KEYS = ("name", "batch_size")
 
 
-@dataclass(frozen=True)
-class Traits:
-    """time_axis: the physics is rolled out in time (an unroll length applies).
-    controller: "open" (network -> whole control sequence), "closed" (network inside the loop) or None."""
+def draw_from(key, batch_size: int, train_set):
+    """draw_batch for a fixed training set: batch_size samples drawn without replacement, independently at
+    every iteration (from that iteration's key).
 
-    time_axis: bool
-    controller: str | None = None
+    The subset is the top batch_size of one uniform draw per sample (every subset equally likely): 0.17 ms for
+    512 of 4096 on the CI machine, where jax.random.choice(replace=False) shuffles all of them (1.9 ms, as much
+    as the oscillator's whole loss and gradient)."""
+    size = jax.tree_util.tree_leaves(train_set)[0].shape[0]
+    index = jax.lax.top_k(jax.random.uniform(key, (size,)), batch_size)[1]
+    return jax.tree_util.tree_map(lambda leaf: leaf[index], train_set)
+
+
+def no_metrics(params, sample, y) -> dict:
+    return {}
 
 
 @dataclass(frozen=True)
 class Scene:
     """A network-through-physics problem.
 
-    sample_output(params, sample) -> y: the physical output of one sample (a flat vector of k components);
+    init_params(key) -> params: the network's initial parameters (a pytree);
     sample_loss(y, sample) -> scalar: the per-sample loss L_i(y); the batch loss is their MEAN;
-    sample_metrics(params, sample, y) -> {name: scalar}: extra held-out metrics (y = sample_output), averaged
-    over the test set;
-    draw_batch(key, batch_size, train_set) -> batch: a training minibatch (pytree with a leading batch axis),
-    from the fixed train_set or drawn fresh (train_set None); sample_train(key, batch_size) draws from the
-    scene's own train_set. The set is an argument so that runs over several seeds can stack it;
-    backprop_output(Backprop) -> sample_output with the gradient stops of that BPTT mode (temporal scenes);
-    steps: the number of time steps of a temporal scene (None without a time axis);
-    train_set: the fixed training set (None when every batch is drawn fresh).
+    test_set: the held-out samples (a pytree with a leading sample axis);
+    sample_output(params, sample) -> y: the physical output of one sample (a flat vector of k components), for
+    a scene without time; a temporal scene gives ``dynamics`` instead and sample_output follows from it;
+    dynamics: the rollout of a temporal scene (physgrad.unroll.Dynamics);
+    train_set: a fixed training set (None when every batch is drawn fresh by draw_batch);
+    draw_batch(key, batch_size, train_set) -> batch: a training minibatch; by default drawn from train_set;
+    sample_metrics(params, sample, y) -> {name: scalar}: extra held-out metrics, averaged over the test set.
     """
 
-    name: str
-    traits: Traits
     init_params: Callable[[Any], Any]
-    draw_batch: Callable[[Any, int, Any], Any]
-    test_set: Any
-    sample_output: Callable[[Any, Any], jax.Array]
     sample_loss: Callable[[jax.Array, Any], jax.Array]
-    sample_metrics: Callable[[Any, Any, jax.Array], dict] = field(default=lambda params, sample, y: {})
-    backprop_output: Callable[[Any], Callable] | None = None
-    steps: int | None = None
+    test_set: Any
+    sample_output: Callable[[Any, Any], jax.Array] | None = None
+    dynamics: Dynamics | None = None
     train_set: Any = None
+    draw_batch: Callable[[Any, int, Any], Any] = draw_from
+    sample_metrics: Callable[[Any, Any, jax.Array], dict] = field(default=no_metrics)
+
+    def __post_init__(self):
+        if (self.sample_output is None) == (self.dynamics is None):
+            raise UserError("a Scene takes sample_output (a scene without time) or dynamics (a temporal scene), "
+                            "exactly one of them")
+        if self.train_set is None and self.draw_batch is draw_from:
+            raise UserError("a Scene without a train_set needs draw_batch (a fresh batch every iteration)")
+        if self.dynamics is not None:
+            object.__setattr__(self, "sample_output", self.dynamics.output(REGULAR))
+
+    @property
+    def time_axis(self) -> bool:
+        return self.dynamics is not None
+
+    @property
+    def closed_loop(self) -> bool:
+        """The network acts inside the rollout on the state it sees (the BPTT modes M, S and C apply)."""
+        return self.dynamics is not None and self.dynamics.closed_loop
+
+    @property
+    def unroll(self) -> int | None:
+        return None if self.dynamics is None else self.dynamics.unroll
 
     @property
     def train_size(self) -> int | None:
         return None if self.train_set is None else jax.tree_util.tree_leaves(self.train_set)[0].shape[0]
+
+    def backprop_output(self, backprop: Backprop) -> Callable[[Any, Any], jax.Array]:
+        """sample_output with the gradient stops of a backprop-through-time mode (temporal scenes)."""
+        if self.dynamics is None:
+            if backprop != REGULAR:
+                raise ValueError("a scene without time has no backprop-through-time modes")
+            return self.sample_output
+        return self.dynamics.output(backprop)
 
     def over_flat_params(self, unravel) -> "Scene":
         """This scene with the network's parameters as one flat vector (unravel: vector -> parameter pytree,
@@ -78,10 +106,14 @@ class Scene:
         def flat(fn):
             return lambda flat_params, *args: fn(unravel(flat_params), *args)
 
-        return dataclasses.replace(
-            self, init_params=lambda key: ravel_pytree(self.init_params(key))[0],
-            sample_output=flat(self.sample_output), sample_metrics=flat(self.sample_metrics),
-            backprop_output=None if self.backprop_output is None else lambda mode: flat(self.backprop_output(mode)))
+        changes = {"init_params": lambda key: ravel_pytree(self.init_params(key))[0],
+                   "sample_metrics": flat(self.sample_metrics)}
+        if self.dynamics is None:
+            changes["sample_output"] = flat(self.sample_output)
+        else:
+            changes["sample_output"] = None  # follows from the new dynamics
+            changes["dynamics"] = dataclasses.replace(self.dynamics, policy=flat(self.dynamics.policy))
+        return dataclasses.replace(self, **changes)
 
     def sample_train(self, key, batch_size: int):
         return self.draw_batch(key, batch_size, self.train_set)
@@ -101,27 +133,19 @@ class Scene:
         return {"loss": self.batch_loss(y, batch), **{k: jnp.mean(v) for k, v in metrics.items()}}
 
 
-def draw_from(key, batch_size: int, train_set):
-    """draw_batch for a fixed training set: batch_size samples drawn without replacement, independently at
-    every iteration (from that iteration's key).
-
-    The subset is the top batch_size of one uniform draw per sample (every subset equally likely): 0.17 ms for
-    512 of 4096 on the CI machine, where jax.random.choice(replace=False) shuffles all of them (1.9 ms, as much
-    as the oscillator's whole loss and gradient)."""
-    size = jax.tree_util.tree_leaves(train_set)[0].shape[0]
-    index = jax.lax.top_k(jax.random.uniform(key, (size,)), batch_size)[1]
-    return jax.tree_util.tree_map(lambda leaf: leaf[index], train_set)
-
-
-def task_module(name: str):
-    if name not in TASK_MODULES:
-        raise UserError(f"unknown task '{name}': choose one of {', '.join(sorted(TASK_MODULES))}")
-    return importlib.import_module(TASK_MODULES[name])
-
-
-def traits(task_cfg) -> Traits:
-    return task_module(task_cfg.name).traits(task_cfg)
-
-
 def build_scene(task_cfg, key, unroll: int | None = None) -> Scene:
-    return task_module(task_cfg.name).build(task_cfg, key, unroll)
+    """The scene a task config names (``_target_``), seeded by ``key``; ``unroll`` replaces a temporal scene's
+    number of time steps (task.unroll). UserError (one line) for a setting the build function does not take or
+    refuses, and if the function does not return a Scene."""
+    from omegaconf import OmegaConf
+
+    from physgrad.validate import call_target
+
+    node = OmegaConf.to_container(task_cfg, resolve=True) if OmegaConf.is_config(task_cfg) else dict(task_cfg)
+    if unroll is not None:
+        node["unroll"] = unroll
+    scene = call_target("task", node, reserved=RESERVED_KEYS, key=key)
+    if not isinstance(scene, Scene):
+        raise UserError(f"task._target_={node.get('_target_')} returned {type(scene).__name__}, not a "
+                        "physgrad.tasks.Scene")
+    return scene

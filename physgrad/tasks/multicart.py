@@ -14,15 +14,11 @@ import jax
 import jax.numpy as jnp
 
 from physgrad.nets import apply_mlp, init_mlp
-from physgrad.tasks import Scene, Traits, draw_from
-from physgrad.unroll import REGULAR, Backprop, rollout
+from physgrad.tasks import Scene
+from physgrad.unroll import Dynamics
 from physgrad.validate import flag, layer_widths, number
 
 GRAVITY, POLE_MASS, TOTAL_MASS = 9.8, 0.1, 1.1
-
-
-def traits(task_cfg) -> Traits:
-    return Traits(time_axis=True, controller="closed")
 
 
 def accelerations(theta, theta_dot, force, half_length):
@@ -43,16 +39,16 @@ def euler_step(state, force, dt, half_length):
     return jnp.concatenate([positions + dt * velocities, velocities])
 
 
-def build(task_cfg, key, unroll: int | None = None) -> Scene:
-    poles = number(task_cfg, "poles", 1, integer=True, prefix="task")
-    steps = unroll if unroll is not None else number(task_cfg, "steps", 1, integer=True, prefix="task")
-    dt = number(task_cfg, "dt", 0, open_low=True, prefix="task")
-    half_length = number(task_cfg, "half_length", 0, open_low=True, prefix="task")
-    train_size = number(task_cfg, "train_size", 1, integer=True, prefix="task")
-    test_size = number(task_cfg, "test_size", 1, integer=True, prefix="task")
+def build(key, *, poles, dt, unroll, half_length, hidden, checkpoint, train_size, test_size) -> Scene:
+    """The scene: a closed-loop controller state -> hidden tanh layers -> force, last layer zero-initialised."""
+    poles = number("task.poles", poles, 1, integer=True)
+    dt = number("task.dt", dt, 0, open_low=True)
+    half_length = number("task.half_length", half_length, 0, open_low=True)
+    train_size = number("task.train_size", train_size, 1, integer=True)
+    test_size = number("task.test_size", test_size, 1, integer=True)
     dtype = jnp.zeros(()).dtype
-    sizes = [2 * (1 + poles), *layer_widths(task_cfg, "hidden", prefix="task"), 1]
-    checkpoint = flag(task_cfg, "checkpoint", prefix="task")
+    sizes = [2 * (1 + poles), *layer_widths("task.hidden", hidden), 1]
+    checkpoint = flag("task.checkpoint", checkpoint)
 
     def make_states(k, count):
         """Hanging: theta_i = pi + U[-1, 1] pi/6; x, xdot and thetadot_i ~ U[-1, 1]."""
@@ -64,28 +60,20 @@ def build(task_cfg, key, unroll: int | None = None) -> Scene:
     def step(state, force):
         return euler_step(state, force, dt, half_length)
 
-    def output_for(backprop: Backprop):
-        def sample_output(params, sample):
-            def policy(state, k):
-                return apply_mlp(params, state, hidden="tanh")[0]
+    def policy(params, sample):
+        return lambda state, k: apply_mlp(params, state, hidden="tanh")[0]
 
-            final, _ = rollout(step, policy, sample["state"], steps, backprop, checkpoint=checkpoint)
-            return jnp.cos(final[1:1 + poles])  # y: cos(theta_i) of every pole at the end
-
-        return sample_output
+    def cos_poles(final, observed, sample):
+        return jnp.cos(final[1:1 + poles])  # y: cos(theta_i) of every pole at the end
 
     train_key, test_key = jax.random.split(key)
 
     return Scene(
-        name="multicart",
-        traits=traits(task_cfg),
         init_params=lambda k: init_mlp(k, sizes, dtype, zero_last=True),  # the initial force is exactly 0
-        draw_batch=draw_from,
         train_set=make_states(train_key, train_size),
         test_set=make_states(test_key, test_size),
-        sample_output=output_for(REGULAR),
+        dynamics=Dynamics(step=step, policy=policy, initial=lambda sample: sample["state"], unroll=unroll,
+                          closed_loop=True, readout=cos_poles, checkpoint=checkpoint),
         sample_loss=lambda y, sample: 1.0 - jnp.mean(y),
         sample_metrics=lambda params, sample, y: {"upright": jnp.mean(y > 0.9)},
-        backprop_output=output_for,
-        steps=steps,
     )

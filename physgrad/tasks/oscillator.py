@@ -13,19 +13,10 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 
-from physgrad import UserError
 from physgrad.nets import apply_mlp, init_mlp
-from physgrad.tasks import Scene, Traits, draw_from
-from physgrad.unroll import REGULAR, Backprop, rollout
+from physgrad.tasks import Scene
+from physgrad.unroll import Dynamics
 from physgrad.validate import flag, layer_widths, number
-
-CONTROLLERS = {"open": "open", "feedback": "closed"}
-
-
-def traits(task_cfg) -> Traits:
-    if task_cfg.controller not in CONTROLLERS:
-        raise UserError(f"task.controller={task_cfg.controller!r} is not allowed: choose one of open, feedback")
-    return Traits(time_axis=True, controller=CONTROLLERS[task_cfg.controller])
 
 
 def vector_field(x, u, alpha, gain):
@@ -53,52 +44,40 @@ def rk4_step(x, u, dt, alpha, gain):
     return x + dt / 6.0 * (k1 + 2.0 * k2 + 2.0 * k3 + k4)
 
 
-def build(task_cfg, key, unroll: int | None = None) -> Scene:
-    n = number(task_cfg, "oscillators", 1, integer=True, prefix="task")
-    steps = unroll if unroll is not None else number(task_cfg, "steps", 1, integer=True, prefix="task")
-    dt = number(task_cfg, "dt", 0, open_low=True, prefix="task")
-    alpha, gain = number(task_cfg, "alpha", prefix="task"), number(task_cfg, "gain", prefix="task")
-    train_size = number(task_cfg, "train_size", 1, integer=True, prefix="task")
-    test_size = number(task_cfg, "test_size", 1, integer=True, prefix="task")
-    feedback = traits(task_cfg).controller == "closed"
+def build(key, *, oscillators, alpha, gain, dt, unroll, closed_loop, hidden, checkpoint, train_size,
+          test_size) -> Scene:
+    """The scene; closed_loop: the network sees (state, target) and gives this step's control, else (open loop,
+    the paper's) it maps the target to every control at once."""
+    n = number("task.oscillators", oscillators, 1, integer=True)
+    dt = number("task.dt", dt, 0, open_low=True)
+    alpha, gain = number("task.alpha", alpha), number("task.gain", gain)
+    train_size = number("task.train_size", train_size, 1, integer=True)
+    test_size = number("task.test_size", test_size, 1, integer=True)
+    closed_loop = flag("task.closed_loop", closed_loop)
+    hidden = layer_widths("task.hidden", hidden)
+    checkpoint = flag("task.checkpoint", checkpoint)
     dtype = jnp.zeros(()).dtype
-    hidden = layer_widths(task_cfg, "hidden", prefix="task")
-    checkpoint = flag(task_cfg, "checkpoint", prefix="task")
-    # open loop: target -> every control at once; feedback: (state, target) -> the control of this step
-    sizes = [4 * n, *hidden, 1] if feedback else [2 * n, *hidden, steps]
+    sizes = [4 * n, *hidden, 1] if closed_loop else [2 * n, *hidden, unroll]
 
     def step(x, u):
         return rk4_step(x, u, dt, alpha, gain)
 
-    def output_for(backprop: Backprop):
-        def sample_output(params, sample):
-            target = sample["x0"]
-            if feedback:
-                def policy(x, k):
-                    return apply_mlp(params, jnp.concatenate([x, target]), hidden="relu")[0]
-            else:
-                controls = apply_mlp(params, target, hidden="relu")
-
-                def policy(x, k):
-                    return controls[k]
-            final, _ = rollout(step, policy, sample["x0"], steps, backprop, checkpoint=checkpoint)
-            return final
-
-        return sample_output
+    def policy(params, sample):
+        target = sample["x0"]
+        if closed_loop:
+            return lambda x, k: apply_mlp(params, jnp.concatenate([x, target]), hidden="relu")[0]
+        controls = apply_mlp(params, target, hidden="relu")
+        return lambda x, k: controls[k]
 
     train_key, test_key = jax.random.split(key)
     train_x0 = jax.random.uniform(train_key, (train_size, 2 * n), dtype)
     test_x0 = jax.random.uniform(test_key, (test_size, 2 * n), dtype)
 
     return Scene(
-        name="oscillator",
-        traits=traits(task_cfg),
         init_params=lambda k: init_mlp(k, sizes, dtype),
-        draw_batch=draw_from,
         train_set={"x0": train_x0},
         test_set={"x0": test_x0},
-        sample_output=output_for(REGULAR),
+        dynamics=Dynamics(step=step, policy=policy, initial=lambda sample: sample["x0"], unroll=unroll,
+                          closed_loop=closed_loop, checkpoint=checkpoint),
         sample_loss=lambda y, sample: jnp.sum((y - sample["x0"]) ** 2),
-        backprop_output=output_for,
-        steps=steps,
     )

@@ -12,12 +12,8 @@ import jax
 import jax.numpy as jnp
 
 from physgrad.nets import apply_mlp, init_mlp
-from physgrad.tasks import Scene, Traits
+from physgrad.tasks import Scene
 from physgrad.validate import number
-
-
-def traits(task_cfg) -> Traits:
-    return Traits(time_axis=False)
 
 
 def laplace(x: jax.Array) -> jax.Array:
@@ -59,10 +55,10 @@ def smooth_fields(key, count: int, n: int, smoothness: float, dtype) -> jax.Arra
     return field / field.std(axis=(-2, -1), keepdims=True)
 
 
-def build(task_cfg, key, unroll: int | None = None) -> Scene:
-    n = number(task_cfg, "grid", 2, integer=True, prefix="task")
-    smoothness = number(task_cfg, "smoothness", 0, prefix="task")
-    test_size = number(task_cfg, "test_size", 1, integer=True, prefix="task")
+def build(key, *, grid, smoothness, test_size) -> Scene:
+    n = number("task.grid", grid, 2, integer=True)
+    smoothness = number("task.smoothness", smoothness, 0)
+    test_size = number("task.test_size", test_size, 1, integer=True)
     dtype = jnp.zeros(()).dtype  # float64 under precision=64
     cells = n * n
     sizes = [cells, cells, 2 * cells, cells, cells]  # 64 -> 64 -> 128 -> 64 -> 64 at N = 8: 24,896 params
@@ -84,8 +80,6 @@ def build(task_cfg, key, unroll: int | None = None) -> Scene:
         return {"field_error": jnp.mean(jnp.abs(predict(params, sample) - sample["field"]))}
 
     return Scene(
-        name="poisson",
-        traits=traits(task_cfg),
         init_params=lambda k: init_mlp(k, sizes, dtype),
         draw_batch=lambda k, count, train_set: make_batch(k, count),  # fresh every iteration, as the reference
         test_set=make_batch(key, test_size),

@@ -20,16 +20,9 @@ from jax.lax.linalg import tridiagonal_solve
 
 from physgrad import UserError
 from physgrad.nets import apply_control_cnn, apply_mlp, init_control_cnn, init_mlp
-from physgrad.tasks import Scene, Traits, draw_from
-from physgrad.unroll import REGULAR, Backprop, rollout
+from physgrad.tasks import Scene
+from physgrad.unroll import Dynamics
 from physgrad.validate import choice, flag, layer_widths, number
-
-CONTROLLERS = {"open": "open", "feedback": "closed"}
-
-
-def traits(task_cfg) -> Traits:
-    controller = choice(task_cfg, "controller", tuple(CONTROLLERS), prefix="task")
-    return Traits(time_axis=True, controller=CONTROLLERS[controller])
 
 
 def grid(points: int, dtype=jnp.float32) -> jax.Array:
@@ -75,23 +68,24 @@ def realify(psi):
     return jnp.concatenate([psi.real, psi.imag])
 
 
-def build(task_cfg, key, unroll: int | None = None) -> Scene:
-    points = number(task_cfg, "points", 3, integer=True, prefix="task")
-    steps = unroll if unroll is not None else number(task_cfg, "steps", 1, integer=True, prefix="task")
-    dt = number(task_cfg, "dt", 0, open_low=True, prefix="task")
-    start = choice(task_cfg, "start", ("ground", "mix12"), prefix="task")
-    target_kind = choice(task_cfg, "target", ("mix23", "level"), prefix="task")
-    level = number(task_cfg, "target_level", 1, integer=True, prefix="task")
+def build(key, *, points, dt, unroll, start, target, target_level, loss, closed_loop, network, hidden,
+          checkpoint, train_size, test_size) -> Scene:
+    """The scene, either preset: every difference between them is one of these settings (docs/decisions.md)."""
+    points = number("task.points", points, 3, integer=True)
+    dt = number("task.dt", dt, 0, open_low=True)
+    start = choice("task.start", start, ("ground", "mix12"))
+    target_kind = choice("task.target", target, ("mix23", "level"))
+    level = number("task.target_level", target_level, 1, integer=True)
     if target_kind == "level" and level > points:
         raise UserError(f"task.target_level={level} is not allowed: the grid has {points} levels (task.points)")
-    every_step = choice(task_cfg, "loss", ("final", "every_step"), prefix="task") == "every_step"
-    network = choice(task_cfg, "network", ("dense", "cnn"), prefix="task")
-    feedback = traits(task_cfg).controller == "closed"
-    if network == "cnn" and not feedback:
-        raise UserError("task.network=cnn is the closed-loop controller: use task.controller=feedback or "
+    every_step = choice("task.loss", loss, ("final", "every_step")) == "every_step"
+    network = choice("task.network", network, ("dense", "cnn"))
+    closed_loop = flag("task.closed_loop", closed_loop)
+    if network == "cnn" and not closed_loop:
+        raise UserError("task.network=cnn is the closed-loop controller: use task.closed_loop=true or "
                         "task.network=dense")
-    train_size = number(task_cfg, "train_size", 1, integer=True, prefix="task")
-    test_size = number(task_cfg, "test_size", 1, integer=True, prefix="task")
+    train_size = number("task.train_size", train_size, 1, integer=True)
+    test_size = number("task.test_size", test_size, 1, integer=True)
 
     real = jnp.zeros(()).dtype
     cplx = jnp.result_type(real, jnp.complex64)
@@ -114,42 +108,34 @@ def build(task_cfg, key, unroll: int | None = None) -> Scene:
             target = jnp.broadcast_to(phi[level - 1], (count, points))
         return {"psi0": psi0.astype(cplx), "target": target.astype(cplx)}
 
-    hidden = layer_widths(task_cfg, "hidden", prefix="task")
-    checkpoint = flag(task_cfg, "checkpoint", prefix="task")
-    if feedback and network == "cnn":
+    hidden = layer_widths("task.hidden", hidden)
+    checkpoint = flag("task.checkpoint", checkpoint)
+    if closed_loop and network == "cnn":
         init = lambda k: init_control_cnn(k, points, real)  # noqa: E731
 
         def control(params, psi, target):
             return apply_control_cnn(params, jnp.stack([psi.real, psi.imag], axis=1))
-    elif feedback:
+    elif closed_loop:
         init = lambda k: init_mlp(k, [4 * points, *hidden, 1], real)  # noqa: E731
 
         def control(params, psi, target):
             return apply_mlp(params, jnp.concatenate([realify(psi), realify(target)]), hidden="tanh")[0]
     else:
-        init = lambda k: init_mlp(k, [2 * points, *hidden, steps], real)  # noqa: E731
+        init = lambda k: init_mlp(k, [2 * points, *hidden, unroll], real)  # noqa: E731
 
     def step(psi, u):
         return crank_nicolson_step(psi, u, x, dt)
 
-    def output_for(backprop: Backprop):
-        def sample_output(params, sample):
-            target = sample["target"]
-            if feedback:
-                def policy(psi, k):
-                    return control(params, psi, target)
-            else:
-                controls = apply_mlp(params, realify(target), hidden="tanh")
+    def policy(params, sample):
+        target = sample["target"]
+        if closed_loop:
+            return lambda psi, k: control(params, psi, target)
+        controls = apply_mlp(params, realify(target), hidden="tanh")
+        return lambda psi, k: controls[k]
 
-                def policy(psi, k):
-                    return controls[k]
-            observe = (lambda psi, u: fidelity(target, psi)) if every_step else None
-            final, fidelities = rollout(step, policy, sample["psi0"], steps, backprop, observe=observe,
-                                        checkpoint=checkpoint)
-            # y: the fidelity of every step (loss over all steps), or the final state as real numbers
-            return fidelities if every_step else realify(final)
-
-        return sample_output
+    def readout(final, fidelities, sample):
+        # y: the fidelity of every step (loss over all steps), or the final state as real numbers
+        return fidelities if every_step else realify(final)
 
     def final_fidelity(y, sample):
         if every_step:
@@ -162,15 +148,12 @@ def build(task_cfg, key, unroll: int | None = None) -> Scene:
     train_key, test_key = jax.random.split(key)
 
     return Scene(
-        name=str(task_cfg.name),
-        traits=traits(task_cfg),
         init_params=init,
-        draw_batch=draw_from,
         train_set=make_samples(train_key, train_size),
         test_set=make_samples(test_key, test_size),
-        sample_output=output_for(REGULAR),
+        dynamics=Dynamics(step=step, policy=policy, initial=lambda sample: sample["psi0"], unroll=unroll,
+                          closed_loop=closed_loop, readout=readout, checkpoint=checkpoint,
+                          observe=(lambda psi, u, sample: fidelity(sample["target"], psi)) if every_step else None),
         sample_loss=sample_loss,
         sample_metrics=lambda params, sample, y: {"fidelity": final_fidelity(y, sample)},
-        backprop_output=output_for,
-        steps=steps,
     )

@@ -13,22 +13,18 @@ import jax
 import jax.numpy as jnp
 
 from physgrad.nets import apply_mlp, init_mlp
-from physgrad.tasks import Scene, Traits
+from physgrad.tasks import Scene
 from physgrad.validate import layer_widths, number
-
-
-def traits(task_cfg) -> Traits:
-    return Traits(time_axis=False)
 
 
 def targets(x: jax.Array) -> jax.Array:
     return jnp.stack([jnp.sin(6.0 * x), jnp.cos(9.0 * x)], axis=-1)
 
 
-def build(task_cfg, key, unroll: int | None = None) -> Scene:
-    scale = number(task_cfg, "scale", 0, open_low=True, prefix="task")
-    hidden = layer_widths(task_cfg, "hidden", prefix="task")
-    test_size = number(task_cfg, "test_size", 1, integer=True, prefix="task")
+def build(key, *, scale, hidden, test_size) -> Scene:
+    scale = number("task.scale", scale, 0, open_low=True)
+    hidden = layer_widths("task.hidden", hidden)
+    test_size = number("task.test_size", test_size, 1, integer=True)
     dtype = jnp.zeros(()).dtype
     physics = jnp.array([1.0, scale], dtype)
 
@@ -48,8 +44,6 @@ def build(task_cfg, key, unroll: int | None = None) -> Scene:
         return {"error_first": error[0], "error_second": error[1]}
 
     return Scene(
-        name="toy",
-        traits=traits(task_cfg),
         init_params=lambda k: init_mlp(k, [1, *hidden, 2], dtype),
         draw_batch=lambda k, count, train_set: make_batch(k, count),
         test_set=make_batch(key, test_size),

@@ -1,0 +1,150 @@
+"""Where physgrad's configs live, and how a command line becomes a config.
+
+The built-in configs are the package physgrad.conf (the repository's conf/, mapped into the package when it is
+built), so an installed physgrad finds them from any folder. A user's own folders join the search path with
+Hydra's ``-cd DIR`` (``--config-dir``) or ``hydra.searchpath=[...]``: their task/, optim/ and tuning/ YAML files
+are options like the built-in ones (a built-in file of the same name wins, as in Hydra).
+"""
+
+from __future__ import annotations
+
+import difflib
+import importlib.resources
+import itertools
+import os
+from contextlib import contextmanager
+from pathlib import Path
+
+from physgrad import UserError
+
+CONF_DIR = Path(str(importlib.resources.files("physgrad.conf")))
+_ABSENT = object()
+# keys that had other names in earlier physgrad versions, suggested when the old name is given
+RENAMED = {"lr": "learning_rate", "steps": "unroll", "controller": "closed_loop"}
+
+
+@contextmanager
+def initialized(config_dirs=()):
+    """Hydra's global state set up as `physgrad run -cd DIR` would: the built-in configs, then every folder of
+    config_dirs (searched after them, as Hydra searches -cd). Restores the previous state on exit."""
+    from hydra._internal.hydra import Hydra
+    from hydra._internal.utils import create_config_search_path
+    from hydra.core.config_search_path import SearchPathQuery
+    from hydra.core.global_hydra import GlobalHydra
+    from hydra.initialize import get_gh_backup, restore_gh_from_backup
+    from hydra.version import setbase
+
+    backup = get_gh_backup()
+    setbase("1.3")
+    search_path = create_config_search_path(str(CONF_DIR))
+    for folder in config_dirs:
+        path = folder if "://" in str(folder) else f"file://{os.path.abspath(folder)}"
+        if path.startswith("file://") and not os.path.isdir(path[len("file://"):]):
+            raise UserError(f"config folder {folder} not found: give -cd an existing folder")
+        search_path.prepend(provider="command-line", path=path, anchor=SearchPathQuery(provider="schema"))
+    try:
+        GlobalHydra.instance().clear()
+        Hydra.create_main_hydra2(task_name="physgrad", config_search_path=search_path)
+        yield GlobalHydra.instance().config_loader()
+    finally:
+        restore_gh_from_backup(backup)
+
+
+def compose(overrides=(), config_dirs=(), return_hydra_config: bool = False):
+    """The config of one run (the compose API: no output folder, no launcher); UserError (one line) for an
+    unknown option or key."""
+    from hydra import compose as hydra_compose
+    from hydra.errors import HydraException
+
+    with initialized(config_dirs):
+        try:
+            return hydra_compose("config", overrides=list(overrides), return_hydra_config=return_hydra_config)
+        except HydraException as error:
+            raise UserError(str(error).strip().splitlines()[0]) from None
+
+
+def searchpath_entries(overrides) -> list[str]:
+    """The folders a `hydra.searchpath=[...]` override adds."""
+    from hydra.core.override_parser.overrides_parser import OverridesParser
+
+    for override in OverridesParser.create().parse_overrides(list(overrides)):
+        if override.get_key_element() == "hydra.searchpath":
+            value = override.value()
+            return [str(v) for v in value] if isinstance(value, list) else []
+    return []
+
+
+def unknown_option(group: str, value: str, options: list[str]) -> UserError:
+    close = difflib.get_close_matches(value, options, n=1)
+    hint = f": did you mean {close[0]}?" if close else ""
+    return UserError(f"unknown {group} '{value}'{hint} (choose one of {', '.join(options)})")
+
+
+def check_overrides(overrides: list[str], multirun: bool, config_dirs=()) -> None:
+    """Raise UserError (one line) for an unknown option of a config group (the built-in ones and those in the
+    user's folders), a key no config has, or a sweep without -m."""
+    from hydra import compose as hydra_compose
+    from hydra.core.override_parser.overrides_parser import OverridesParser
+    from hydra.core.override_parser.types import Glob
+    from hydra.errors import HydraException, MissingConfigException
+
+    try:
+        parsed = OverridesParser.create().parse_overrides(overrides)
+    except HydraException as error:
+        raise UserError(f"cannot read the overrides: {str(error).splitlines()[0]}") from None
+
+    with initialized([*config_dirs, *searchpath_entries(overrides)]) as loader:
+        groups = set(loader.list_groups(""))
+        group_values: dict[str, list[str]] = {}
+        keys = []
+        for override in parsed:
+            key, value = override.key_or_group, override.value()
+            if override.is_sweep_override() and not multirun:
+                raise UserError(f"'{override.input_line}' sweeps several values: add -m (--multirun) to run them all")
+            if key.startswith("hydra") or override.is_delete():
+                continue
+            if key in groups and override.package is None:
+                options = sorted(loader.get_group_options(key))
+                if isinstance(value, Glob):
+                    values = value.filter(options)
+                elif override.is_sweep_override():
+                    values = list(override.sweep_string_iterator())
+                else:
+                    values = [override.get_value_element_as_str()]
+                for choice in values:
+                    if choice not in options:
+                        raise unknown_option(key, choice, options)
+                group_values[("+" if override.is_add() else "") + key] = values
+            elif not override.is_add() and not override.is_force_add():
+                keys.append(key)
+
+        for combo in itertools.product(*group_values.values()):
+            combo = dict(zip(group_values, combo))
+            try:
+                cfg = hydra_compose("config", overrides=[f"{g}={v}" for g, v in combo.items()])
+            except MissingConfigException as error:
+                group, _, choice = (error.missing_cfg_file or "").rpartition("/")
+                if group and error.options is not None:
+                    raise unknown_option(group, choice, sorted(error.options)) from None
+                raise UserError(str(error).strip().splitlines()[0]) from None
+            except HydraException as error:
+                raise UserError(str(error).strip().splitlines()[0]) from None
+            for key in keys:
+                _check_key(cfg, key, combo)
+
+
+def _check_key(cfg, key: str, combo: dict) -> None:
+    from omegaconf import DictConfig, OmegaConf
+
+    if OmegaConf.select(cfg, key, default=_ABSENT) is not _ABSENT:
+        return
+    parent_key, _, leaf = key.rpartition(".")
+    parent = OmegaConf.select(cfg, parent_key, default=_ABSENT) if parent_key else cfg
+    if not isinstance(parent, DictConfig):
+        raise UserError(f"unknown key '{key}': '{parent_key}' is not a section of the config")
+    siblings = [k for k in parent.keys() if k != "_target_"]
+    close = [RENAMED[leaf]] if RENAMED.get(leaf) in siblings else difflib.get_close_matches(leaf, siblings, n=1)
+    where = f"{parent_key} has" if parent_key else "the top level has"
+    scope = "".join(f" with {g}={v}" for g, v in combo.items() if key.startswith(g + "."))
+    hint = f": did you mean {'.'.join(filter(None, [parent_key, close[0]]))}?" if close else ""
+    raise UserError(f"unknown key '{key}'{scope}{hint} ({where}: {', '.join(map(str, siblings))})")

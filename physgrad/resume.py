@@ -1,0 +1,58 @@
+"""Runs that build on earlier ones: a re-run sweep skips what completed with the same config (resume), and a
+run can start from another run's final network (init_from)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import jax.numpy as jnp
+from jax.flatten_util import ravel_pytree
+from omegaconf import DictConfig, OmegaConf
+
+from physgrad import UserError
+from physgrad.results import Run, read_final, read_params
+from physgrad.runner import Outcome
+
+
+def comparable_config(cfg: DictConfig) -> str:
+    """The resolved config as stored in results.h5, without the keys that do not change what a run computes."""
+    plain = OmegaConf.to_container(cfg, resolve=True)
+    plain.pop("overwrite", None)
+    return OmegaConf.to_yaml(plain)
+
+
+def finished_before(path: Path, cfg: DictConfig) -> Outcome | None:
+    """The outcome recorded at path if that run completed with this same config (a sweep being re-run)."""
+    if not path.exists():
+        return None
+    try:
+        attrs, last_eval = read_final(path)
+    except ValueError:
+        return None
+    stored = OmegaConf.create(attrs.get("config", "{}"))
+    if attrs.get("status") != "completed" or comparable_config(stored) != comparable_config(cfg):
+        return None
+    final = {k: float(v) for k, v in last_eval.items() if k not in ("iteration", "wall_time")}
+    return Outcome("completed", "already completed: skipped (overwrite=true runs it again)",
+                   int(attrs.get("iterations", 0)), float(attrs.get("train_seconds", 0)), final)
+
+
+def start_from(path: str, params, task_name: str) -> tuple[Any, dict]:
+    """The final network of the run at path, in the structure and dtype of params, and attributes that record
+    where it came from; UserError (one line) if it is missing or does not fit this scene's network."""
+    if not Path(path).is_file():
+        raise UserError(f"init_from={path}: no such file: give the results.h5 of an earlier run")
+    try:
+        flat = read_params(path)
+        source = Run(Path(path), read_final(path)[0], {}, {})  # attributes only, not the curves
+    except ValueError as error:
+        raise UserError(f"init_from={error}") from None
+    own, unravel = ravel_pytree(params)
+    if flat.shape != own.shape or source.attrs.get("task") != task_name:
+        raise UserError(f"init_from={path}: that run trained a {source.attrs.get('task')} network with {flat.size} "
+                        f"parameters, this one is {task_name} with {own.size}: use a run of the same scene")
+    attrs = {"init_from": str(path), "init_variant": source.variant,
+             "init_iterations": int(source.attrs.get("iterations", 0)),
+             "init_train_seconds": float(source.attrs.get("train_seconds", 0.0))}
+    return unravel(jnp.asarray(flat, own.dtype)), attrs
