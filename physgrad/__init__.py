@@ -8,7 +8,7 @@ From Python (a notebook, a script):
     same = physgrad.read_run(run.path)                # any results.h5, read back the same way
 """
 
-__version__ = "0.1.0"
+__version__ = "0.2.0"
 
 
 class UserError(Exception):

@@ -65,19 +65,16 @@ def run_cases(small: bool) -> list[RunCase]:
     for task, optim in too_large:
         extra = tuple(oscillator[1:]) if task == "oscillator" else ("task.test_size=64",)
         cases.append(RunCase(f"{task}: learning rate 1e6 (far too large)",
-                             (f"task={task}", f"optim={optim}", "optim.lr=1e6", *extra, its(50))))
+                             (f"task={task}", f"optim={optim}", "optim.learning_rate=1e6", *extra, its(50))))
     return cases
 
 
 def run_row(case: RunCase, out_dir: Path) -> dict:
-    from hydra import compose, initialize_config_dir
-
-    from physgrad.app import CONF_DIR
+    from physgrad.configs import compose
     from physgrad.experiment import run_experiment, variant_label
     from physgrad.results import read_run
 
-    with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
-        cfg = compose("config", overrides=[*case.overrides, "overwrite=true"])
+    cfg = compose([*case.overrides, "overwrite=true"])
     try:
         outcome, path = run_experiment(cfg, out_dir / case.slug)
     except Exception as error:  # noqa: BLE001 - a failure is a row of the table, not the end of the suite
@@ -109,14 +106,14 @@ def quantum_norm_drift(small: bool) -> list[dict]:
     from physgrad.experiment import set_precision
     from physgrad.tasks.quantum import crank_nicolson_step, eigenstate, grid
 
-    steps = 1024 if small else 4096
+    unroll = 1024 if small else 4096
     rows = []
     for bits in (32, 64):
         set_precision(bits)
         real = jnp.float64 if bits == 64 else jnp.float32
         x = grid(14, real)
         for amplitude in (10.0, 1000.0):
-            fields = amplitude * jax.random.uniform(jax.random.PRNGKey(0), (steps,), real, -1.0, 1.0)
+            fields = amplitude * jax.random.uniform(jax.random.PRNGKey(0), (unroll,), real, -1.0, 1.0)
 
             def body(psi, u):
                 psi = crank_nicolson_step(psi, u, x, 0.05)
@@ -125,7 +122,7 @@ def quantum_norm_drift(small: bool) -> list[dict]:
             psi0 = eigenstate(1, 14, real).astype(jnp.complex128 if bits == 64 else jnp.complex64)
             final, drift = jax.jit(lambda p: jax.lax.scan(body, p, fields))(psi0)
             worst = float(jnp.max(drift))
-            rows.append({"case": f"quantum norm, random fields up to {amplitude:g}, {steps} steps", "variant": "-",
+            rows.append({"case": f"quantum norm, random fields up to {amplitude:g}, {unroll} steps", "variant": "-",
                          "precision": str(bits), "outcome": "finite" if np.isfinite(worst) else "non-finite",
                          "final loss": math.nan, "detail": f"largest deviation of the norm from 1: {worst:.2e}"})
     set_precision(32)
@@ -139,9 +136,8 @@ def bptt_gradient_growth(small: bool) -> list[dict]:
     and no gradient reaches the network's input, so R and M would coincide)."""
     import jax
     import optax
-    from hydra import compose, initialize_config_dir
 
-    from physgrad.app import CONF_DIR
+    from physgrad.configs import compose
     from physgrad.experiment import set_precision
     from physgrad.tasks import build_scene
     from physgrad.unroll import MODES
@@ -149,13 +145,12 @@ def bptt_gradient_growth(small: bool) -> list[dict]:
     set_precision(64)
     horizons = (25, 50, 100) if small else (25, 50, 100, 200, 400)
     rows = []
-    with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
-        cfg = compose("config", overrides=["task=multicart", "task.poles=4", "precision=64"])
+    cfg = compose(["task=multicart", "task.poles=4", "precision=64"])
     data_key, init_key, batch_key = jax.random.split(jax.random.PRNGKey(0), 3)
     for mode in ("R", "M"):
         norms = []
-        for steps in horizons:
-            scene = build_scene(cfg.task, data_key, steps)
+        for unroll in horizons:
+            scene = build_scene(cfg.task, data_key, unroll)
             params = scene.init_params(init_key)
             last = params[-1]["w"]
             params[-1] = {**params[-1], "w": 0.1 * jax.random.normal(jax.random.fold_in(init_key, 1), last.shape,

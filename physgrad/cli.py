@@ -93,6 +93,11 @@ def shell_completion(args: list[str]) -> int:
             return 0
         if words[1] != "run":
             return 0
+        # a config folder on the line (-cd DIR) joins the search path, so its options complete too
+        folder = re.search(r"\s(?:-cd|--config-dir)[\s=]+(\S+)\s", line)
+        if folder:
+            args = ["-cd", folder[1], *args]
+            line = line[:folder.start()] + line[folder.end() - 1:]
         os.environ["COMP_LINE"] = re.sub(r"^(\s*\S+)\s+run\b", r"\1", line)
     sys.argv = ["physgrad", *args]
     job()

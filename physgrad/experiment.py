@@ -13,7 +13,7 @@ from omegaconf import DictConfig, OmegaConf
 import physgrad
 from physgrad import UserError
 from physgrad.nets import count_params
-from physgrad.optim import build_rule
+from physgrad.optim import UpdateRule, build_rule
 from physgrad.resume import finished_before, start_from
 from physgrad.results import ResultsWriter
 from physgrad.runner import Outcome, Seeds, TrainerSettings, stack, train
@@ -139,6 +139,17 @@ def build_seeds(cfg: DictConfig, seeds: list[int], batch_size: int) -> tuple[Sce
                         test_sets=stack([s.test_set for s in scenes]))
 
 
+def prepare(cfg: DictConfig, seed_list: list[int], settings: TrainerSettings) -> tuple[Scene, UpdateRule, Seeds]:
+    """Precision set, the update rule and the seeds' scenes built, and what does not apply refused (UserError):
+    everything a run (and `make bench`) does before compiling."""
+    set_precision(cfg.precision)
+    logging.getLogger("jax").setLevel(logging.WARNING)
+    rule = build_rule(cfg.optim)
+    scene, seeds = build_seeds(cfg, seed_list, settings.batch_size)
+    check_applies(scene, cfg)
+    return scene, rule, seeds
+
+
 def run_experiment(cfg: DictConfig, out_dir: str | Path) -> tuple[Outcome, Path]:
     """Run one job into out_dir/results.h5 (seeds > 1: one file per seed under out_dir/seed=<s>/, trained
     together in one vectorised step); a refused job leaves a file with status refused and the reason.
@@ -157,11 +168,7 @@ def run_experiment(cfg: DictConfig, out_dir: str | Path) -> tuple[Outcome, Path]
             # its lax.cond traced under x64 does not batch under vmap (jax 0.10): a known limitation
             raise UserError(f"seeds={len(paths)} cannot retry failed factorisations in float64: add "
                             "optim.retry_float64=false, or use seeds=1")
-        set_precision(cfg.precision)
-        logging.getLogger("jax").setLevel(logging.WARNING)
-        rule = build_rule(cfg.optim)
-        scene, seeds = build_seeds(cfg, [seed for seed, _ in paths], settings.batch_size)
-        check_applies(scene, cfg)
+        scene, rule, seeds = prepare(cfg, [seed for seed, _ in paths], settings)
         origin = {}
         if cfg.get("init_from"):
             first, origin = start_from(cfg.init_from, seeds.network(), cfg.task.name)

@@ -32,7 +32,7 @@ def number(name: str, value, low=None, high=None, integer=False, optional=False,
             bounds.append(f"{'>' if open_low else '>='} {low}")
         if high is not None:
             bounds.append(f"< {high}")
-        kind = "a whole number" if integer else "a finite number"
+        kind = "a whole number" if integer else "a number"
         extra = " or null" if optional else ""
         raise UserError(f"{name}={value!r} is not allowed: use {kind} {' and '.join(bounds)}".rstrip() + extra)
     return value
@@ -108,7 +108,7 @@ def _check_keywords(section: str, target: str, function, given: set, runtime: se
         settable = ", ".join(a for a in accepted if a not in runtime)
         raise UserError(f"{section}.{key} is not a setting of {target}{hint} (it takes: {settable})")
     for key in sorted(runtime - set(accepted)):
-        raise UserError(f"{target} must take the keyword argument {key!r}: physgrad passes it (see docs/scenes.md)")
+        raise UserError(f"{target} must take the keyword argument {key!r}: physgrad passes it (see docs/extending.md)")
     missing = [name for name, p in parameters.items() if p.default is inspect.Parameter.empty
                and p.kind in (inspect.Parameter.POSITIONAL_OR_KEYWORD, inspect.Parameter.KEYWORD_ONLY)
                and name not in given and name not in runtime]

@@ -34,7 +34,7 @@ def test_far_too_large_learning_rates_end_as_outcomes(small_check):
     for row in rows:
         assert row["outcome"] in ("diverged", "stalled", "grew"), row
         if row["outcome"] == "diverged":
-            assert re.fullmatch(r"(state|loss|gradient|update) became \S+ at iteration \d+ \(\w+\)", row["detail"])
+            assert re.fullmatch(r"(output|loss|gradient|update) became \S+ at iteration \d+ \(\w+\)", row["detail"])
 
 
 def test_rank_deficient_jacobians_give_finite_directions(small_check):
@@ -74,7 +74,7 @@ def test_bptt_gradient_growth_is_measured(small_check):
     ("seed=-1", "seed=-1 is not allowed: use a whole number >= 0"),
     ("optim=hig optim.tau=2", "optim.tau=2 is not allowed: use a number >= 0 and < 1"),
     ("optim=hig optim.route=qr", "optim.route='qr' is not allowed: choose one of auto, svd, gram"),
-    ("optim=adam optim.lr=0", "optim.lr=0 is not allowed: use a number > 0"),
+    ("optim=adam optim.learning_rate=0", "optim.learning_rate=0 is not allowed: use a number > 0"),
     ("overwrite=sometimes", "overwrite='sometimes' is not allowed: choose one of False, True"),
     ("unroll=0", "unroll=0 is not allowed: use a whole number >= 1"),
     ("seeds=0", "seeds=0 is not allowed: use a whole number >= 1"),

@@ -63,15 +63,16 @@ def test_sweep_then_report(tmp_path):
 
 def test_hydra_flags_keep_working(tmp_path):
     cfg = physgrad("run", "--cfg", "job", "optim=hig").stdout
-    assert "name: hig" in cfg and "lr: 0.64" in cfg and "iterations: 2000" in cfg
+    assert "name: hig" in cfg and "learning_rate: 0.64" in cfg and "iterations: 2000" in cfg
     assert "Configuration groups" in physgrad("run", "--help").stdout
     assert "physgrad run" in physgrad("--help").stdout
 
 
 @pytest.mark.parametrize("args, fragment", [
-    (["task=nope"], "unknown task 'nope': choose one of multicart, oscillator, poisson, quantum, quantum_control"),
-    (["optim=hgi"], "unknown optim 'hgi': choose one of adam, bptt, gauss_newton, gd, hig, stable_bptt"),
+    (["task=nope"], "unknown task 'nope' (choose one of multicart, oscillator, poisson, quantum, quantum_control"),
+    (["optim=hgi"], "unknown optim 'hgi': did you mean hig? (choose one of adam, bptt, gauss_newton, gd, hig, "),
     (["trainer.iteratons=5"], "did you mean trainer.iterations?"),
+    (["optim.lr=0.1"], "did you mean optim.learning_rate?"),
     (["unroll=8"], "task=poisson has no time axis: remove unroll=8"),
     (["optim=stable_bptt"], "optim=stable_bptt needs a closed-loop controller"),
     (["seed=0,1"], "add -m"),

@@ -9,7 +9,8 @@ import pytest
 from physgrad.nets import apply_mlp
 from physgrad.tasks import build_scene
 from physgrad.tasks.oscillator import energy, rk4_step
-from physgrad.unroll import MODES, PHYSICS_ONLY, STOPPED, combine_signs, rollout
+from physgrad.gradients import combine_signs
+from physgrad.unroll import MODES, PHYSICS_ONLY, STOPPED, rollout
 from tests.reference import check_gradient, forward_states, loop_states
 from tests.test_configs import load
 
@@ -72,18 +73,18 @@ def test_unroll_sets_the_horizon_and_the_open_loop_output_size():
     cfg = load("task=oscillator", "task.train_size=8", "task.test_size=8")
     scene = build_scene(cfg.task, jax.random.PRNGKey(0), 10)
     params = scene.init_params(jax.random.PRNGKey(1))
-    assert scene.steps == 10 and params[-1]["w"].shape == (20, 10)
-    feedback = build_scene(load("task=oscillator", "task.controller=feedback").task, jax.random.PRNGKey(0), 10)
-    assert feedback.init_params(jax.random.PRNGKey(1))[-1]["w"].shape == (20, 1)
+    assert scene.unroll == 10 and params[-1]["w"].shape == (20, 10) and not scene.closed_loop
+    closed = build_scene(load("task=oscillator", "task.closed_loop=true").task, jax.random.PRNGKey(0), 10)
+    assert closed.init_params(jax.random.PRNGKey(1))[-1]["w"].shape == (20, 1) and closed.closed_loop
 
 
 # ---- the unroll combinator against a plain Python loop and finite differences (float64) ----
 
 @pytest.mark.parametrize("mode", ["R", "M", "S"])
-@pytest.mark.parametrize("controller", ["open", "feedback"])
-def test_scan_matches_loop_and_finite_differences(x64, controller, mode):
+@pytest.mark.parametrize("closed_loop", [False, True], ids=["open", "closed"])
+def test_scan_matches_loop_and_finite_differences(x64, closed_loop, mode):
     steps = 12
-    cfg = load("task=oscillator", f"task.controller={controller}", "task.train_size=4", "task.test_size=4")
+    cfg = load("task=oscillator", f"task.closed_loop={closed_loop}", "task.train_size=4", "task.test_size=4")
     scene = build_scene(cfg.task, jax.random.PRNGKey(3), steps)
     params = scene.init_params(jax.random.PRNGKey(4))
     sample = {"x0": jax.random.uniform(jax.random.PRNGKey(5), (4,))}
@@ -93,7 +94,7 @@ def test_scan_matches_loop_and_finite_differences(x64, controller, mode):
         return rk4_step(x, u, 0.125, 1.0, 3.0)
 
     def policy_of(p):
-        if controller == "feedback":
+        if closed_loop:
             return lambda x, k: apply_mlp(p, jnp.concatenate([x, x0]), hidden="relu")[0]
         controls = apply_mlp(p, x0, hidden="relu")
         return lambda x, k: controls[k]
@@ -140,7 +141,7 @@ def test_combined_gradient_takes_physics_gradient_where_signs_agree():
 
 
 def test_checkpointed_rollout_gives_the_same_loss_and_gradient(x64):
-    small = ["task=oscillator", "task.train_size=8", "task.test_size=8", "task.controller=feedback"]
+    small = ["task=oscillator", "task.train_size=8", "task.test_size=8", "task.closed_loop=true"]
     plain = build_scene(load(*small).task, jax.random.PRNGKey(0), 32)
     remat = build_scene(load(*small, "task.checkpoint=true").task, jax.random.PRNGKey(0), 32)
     params = plain.init_params(jax.random.PRNGKey(1))

@@ -2,7 +2,6 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from omegaconf import OmegaConf
 
 from physgrad.nets import count_params
 from physgrad.tasks.poisson import build, laplace, laplace_eigenvalues, smooth_fields, solve_poisson
@@ -47,8 +46,7 @@ def test_smooth_fields_are_normalised_and_smoother_with_smoothness():
 
 
 def test_reference_network_and_data():
-    cfg = OmegaConf.create({"name": "poisson", "grid": 8, "smoothness": 1.0, "test_size": 16, "batch_size": 64})
-    scene = build(cfg, jax.random.PRNGKey(0))
+    scene = build(jax.random.PRNGKey(0), grid=8, smoothness=1.0, test_size=16)
     params = scene.init_params(jax.random.PRNGKey(1))
     assert count_params(params) == 24_896
     batch = scene.sample_train(jax.random.PRNGKey(2), 64)

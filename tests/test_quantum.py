@@ -75,7 +75,7 @@ def test_parity_forbids_a_direct_step_from_phi1_to_phi3(x64):
 def test_hig_preset_network_sizes_and_zero_control():
     scene = build_scene(load("task=quantum", "task.test_size=32").task, jax.random.PRNGKey(0))
     params = scene.init_params(jax.random.PRNGKey(1))
-    assert count_params(params) == 9484 and scene.steps == 384
+    assert count_params(params) == 9484 and scene.unroll == 384
     zero = jax.tree_util.tree_map(jnp.zeros_like, params)
     metrics = scene.evaluate(zero, scene.test_set)  # u = 0: psi stays phi_1, orthogonal to every target
     np.testing.assert_allclose(metrics["loss"], 1.0, atol=1e-5)
@@ -85,7 +85,7 @@ def test_hig_preset_network_sizes_and_zero_control():
 def test_control_preset_network_and_loss_over_every_step():
     scene = build_scene(load("task=quantum_control", "task.test_size=16").task, jax.random.PRNGKey(0))
     params = scene.init_params(jax.random.PRNGKey(1))
-    assert count_params(params) == 11701 and scene.traits.controller == "closed"
+    assert count_params(params) == 11701 and scene.closed_loop
     y = scene.batch_output(params, scene.test_set)
     assert y.shape == (16, 128)  # the fidelity of every step
     loss = scene.batch_loss(y, scene.test_set)

@@ -16,10 +16,10 @@ SMALL = ["task.grid=4", "task.test_size=8", "trainer.batch_size=4"]
 
 
 def test_divergence_is_an_outcome_with_the_curve_kept(tmp_path):
-    outcome, path = run_experiment(load("optim=gd", "optim.lr=1e30", "trainer.iterations=50", *SMALL), tmp_path)
+    outcome, path = run_experiment(load("optim=gd", "optim.learning_rate=1e30", "trainer.iterations=50", *SMALL), tmp_path)
     run = read_run(path)
     assert outcome.status == "diverged" == run.attrs["status"]
-    match = re.fullmatch(r"(state|loss|gradient|update) became (\S+) at iteration (\d+) \((\w+)\)",
+    match = re.fullmatch(r"(output|loss|gradient|update) became (\S+) at iteration (\d+) \((\w+)\)",
                          run.attrs["reason"])
     assert match and not np.isfinite(float(match[2])), run.attrs["reason"]
     bad_iteration = int(match[3])
@@ -88,7 +88,7 @@ def test_jacobian_step_logs_the_plain_gradient_and_forward_pass(x64):
         rule = build_rule(load(f"optim={optim}").optim)
         step = jax.jit(make_step(scene, rule, 4))
         _, _, logs[optim] = step(params, rule.transform.init(params), 0, jax.random.PRNGKey(2), scene.train_set)
-    for name in ("loss", "grad_norm", "state_max_abs"):
+    for name in ("loss", "grad_norm", "output_max_abs"):
         np.testing.assert_allclose(logs["hig"][name], logs["gd"][name], rtol=1e-10)
 
 
@@ -180,7 +180,7 @@ def test_no_recompilation_after_the_first_iteration(tmp_path):
         if name.endswith("backend_compile_duration"):
             compiles.append(name)
 
-    overrides = ["task=oscillator", "task.controller=feedback", "optim=stable_bptt", "task.train_size=64",
+    overrides = ["task=oscillator", "task.closed_loop=true", "optim=stable_bptt", "task.train_size=64",
                  "task.test_size=8", "trainer.batch_size=8", "unroll=16", "trainer.eval_every=4"]
     jax.monitoring.register_event_duration_secs_listener(listener)
     try:

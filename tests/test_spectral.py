@@ -6,8 +6,8 @@ import numpy as np
 import optax
 import pytest
 
-from physgrad.optim.spectral import (gauss_newton, hig, output_and_jacobian, resolve_route, spectral_rule,
-                                     truncated_spectral_direction)
+from physgrad.gradients import output_and_jacobian
+from physgrad.optim.spectral import gauss_newton, hig, resolve_route, spectral_rule, truncated_spectral_direction
 
 ROUTES = pytest.mark.parametrize("route", ["svd", "gram"])
 
