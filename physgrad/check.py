@@ -2,7 +2,7 @@
 
 Two kinds of case: training runs through `run_experiment` (results in outputs/check/<case>/, so every curve
 can be inspected) and probes that measure one numerical property directly (norm drift of the Schroedinger
-solver, growth of the BPTT gradient with the horizon, the spectral kernel on rank-deficient Jacobians). Each
+solver, growth of the BPTT gradient with the unroll length, the spectral kernel on rank-deficient Jacobians). Each
 gives a row: case, variant, precision, outcome, final loss, detail. Outcomes of runs:
   converged  completed with the final test loss below half the initial one;
   stalled    completed without halving it;
@@ -47,9 +47,9 @@ def run_cases(small: bool) -> list[RunCase]:
     cases += [RunCase("oscillator large step dt=0.5", (*oscillator, f"optim={o}", "task.dt=0.5", its(300)))
               for o in (("hig",) if small else jacobian)]
     if not small:
-        cases += [RunCase("oscillator long horizon 1024 steps", (*oscillator, f"optim={o}", "unroll=1024", its(100)))
+        cases += [RunCase("oscillator long unroll, 1024 steps", (*oscillator, f"optim={o}", "unroll=1024", its(100)))
                   for o in ("adam", "hig")]
-        cases += [RunCase("quantum long horizon 4096 steps",
+        cases += [RunCase("quantum long unroll, 4096 steps",
                           ("task=quantum", f"optim={o}", "unroll=4096", "task.test_size=128", "trainer.eval_every=5",
                            its(10))) for o in ("adam", "hig")]
         cases += [RunCase("multicart 4 poles, 400 steps",
@@ -130,8 +130,8 @@ def quantum_norm_drift(small: bool) -> list[dict]:
 
 
 def bptt_gradient_growth(small: bool) -> list[dict]:
-    """The gradient norm on the 4-pole cart against the horizon, regular (R) and physics-only (M)
-    backpropagation, float64; the growth per doubling of the horizon is the detail. The network is the
+    """The gradient norm on the 4-pole cart against the unroll length, regular (R) and physics-only (M)
+    backpropagation, float64; the growth per doubling of the unroll length is the detail. The network is the
     initial one with a random output layer instead of the zero one (with a zero output layer the force is 0
     and no gradient reaches the network's input, so R and M would coincide)."""
     import jax
@@ -143,13 +143,13 @@ def bptt_gradient_growth(small: bool) -> list[dict]:
     from physgrad.unroll import MODES
 
     set_precision(64)
-    horizons = (25, 50, 100) if small else (25, 50, 100, 200, 400)
+    unrolls = (25, 50, 100) if small else (25, 50, 100, 200, 400)
     rows = []
     cfg = compose(["task=multicart", "task.poles=4", "precision=64"])
     data_key, init_key, batch_key = jax.random.split(jax.random.PRNGKey(0), 3)
     for mode in ("R", "M"):
         norms = []
-        for unroll in horizons:
+        for unroll in unrolls:
             scene = build_scene(cfg.task, data_key, unroll)
             params = scene.init_params(init_key)
             last = params[-1]["w"]
@@ -162,11 +162,11 @@ def bptt_gradient_growth(small: bool) -> list[dict]:
                 return scene.batch_loss(jax.vmap(output, in_axes=(None, 0))(p, batch), batch)
 
             norms.append(float(optax.tree.norm(jax.jit(jax.grad(loss))(params))))
-        growth = (norms[-1] / norms[0]) ** (1.0 / math.log2(horizons[-1] / horizons[0])) if norms[0] > 0 else math.nan
-        rows.append({"case": "multicart 4 poles: gradient norm against horizon", "variant": f"bptt[{mode}]",
+        growth = (norms[-1] / norms[0]) ** (1.0 / math.log2(unrolls[-1] / unrolls[0])) if norms[0] > 0 else math.nan
+        rows.append({"case": "multicart 4 poles: gradient norm against unroll", "variant": f"bptt[{mode}]",
                      "precision": "64", "outcome": "finite" if all(map(math.isfinite, norms)) else "non-finite",
                      "final loss": math.nan,
-                     "detail": ", ".join(f"{h}: {n:.2e}" for h, n in zip(horizons, norms))
+                     "detail": ", ".join(f"{h}: {n:.2e}" for h, n in zip(unrolls, norms))
                                + f"; x{growth:.3g} per doubling"})
     set_precision(32)
     return rows

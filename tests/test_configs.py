@@ -12,7 +12,7 @@ OPTIMS = sorted(p.stem for p in (CONF_DIR / "optim").glob("*.yaml"))
 # smaller than the reference sizes, so that 2 iterations of every pair stay cheap
 SMALL = {
     "poisson": ["task.grid=4", "task.test_size=8", "trainer.batch_size=4"],
-    # the reference horizon: on very short ones (unroll=24) Gauss-Newton's first step blows the physics up
+    # the reference unroll length: on very short ones (unroll=24) Gauss-Newton's first step blows the physics up
     # the tuned batch sizes (GD at lr 1e-3 with the closed-loop controller is unstable on batches of 16 or 64)
     "oscillator": ["task.train_size=512", "task.test_size=8"],
     "multicart": ["task.poles=2", "task.train_size=16", "task.test_size=8", "unroll=20"],

@@ -69,7 +69,7 @@ def test_zero_control_loss_is_about_0_80():
     assert abs(loss - 0.80) < 0.03, loss
 
 
-def test_unroll_sets_the_horizon_and_the_open_loop_output_size():
+def test_unroll_sets_the_time_steps_and_the_open_loop_output_size():
     cfg = load("task=oscillator", "task.train_size=8", "task.test_size=8")
     scene = build_scene(cfg.task, jax.random.PRNGKey(0), 10)
     params = scene.init_params(jax.random.PRNGKey(1))

@@ -1,0 +1,139 @@
+"""Guidance by repulsion (StableBPTT paper): drivers, steered by the network, herd evaders to the origin.
+
+Agents move in the plane; the state holds every agent's position and velocity, drivers first:
+shape (drivers + evaders, 2, 2) = (agent, [position, velocity], [x, y]); all velocities start at 0. With the
+softened distance d(r) = softening + |r|, v_k = x_driver,k - sum_j x_evader,j (a sum over the evaders, not their
+centroid) and orth(v) = (-v_y, v_x), the network's gains c_k = (c_k0, c_k1) give the accelerations
+    driver k:  c_k0 v_k + c_k1 orth(v_k) - driver_friction v_driver,k + spreading sum_{i != k} (x_k - x_i) / d_ki^2
+    evader j:  repulsion sum_k (x_j - x_driver,k) / d_kj^2 - evader_friction v_evader,j
+               + flocking sum_{i != j} p(d_ij) (x_i - x_j),   p(d) = (flock_distance / d - 1) / d
+(the sums over i run over agents of the same kind). As written, p > 0 pulls evaders together closer than
+flock_distance and pushes them apart beyond it. Explicit Euler: x' = x + dt v, v' = v + dt a(x, v).
+Per-sample loss: the mean over steps 1..unroll, evaders and coordinates of x_evader^2, plus control_cost times
+the mean of c^2 over steps, drivers and both gains.
+"""
+
+from __future__ import annotations
+
+import math
+
+import jax
+import jax.numpy as jnp
+
+from physgrad.nets import apply_mlp, init_mlp
+from physgrad.tasks import Scene
+from physgrad.unroll import Dynamics
+from physgrad.validate import layer_widths, number
+
+
+def safe_norm(r: jax.Array) -> jax.Array:
+    """|r| over the last axis, with a zero gradient (not NaN) where r = 0: an agent's distance to itself."""
+    squared = jnp.sum(r ** 2, axis=-1)
+    positive = squared > 0
+    return jnp.where(positive, jnp.sqrt(jnp.where(positive, squared, 1.0)), 0.0)
+
+
+def pairwise(x_to: jax.Array, x_from: jax.Array, softening: float, weight) -> jax.Array:
+    """sum_i weight(d_ai) (x_to,a - x_from,i) for every a: (A, 2) and (B, 2) -> (A, 2), d = softening + |r|.
+    A pair at distance 0 (an agent and itself) contributes exactly 0."""
+    r = x_to[:, None, :] - x_from[None, :, :]
+    return jnp.sum(weight(softening + safe_norm(r))[..., None] * r, axis=1)
+
+
+def accelerations(state, gains, drivers: int, physics: dict):
+    """d(velocity)/dt of every agent, shape (agents, 2); gains: (drivers, 2)."""
+    positions, velocities = state[:, 0], state[:, 1]
+    x_drivers, x_evaders = positions[:drivers], positions[drivers:]
+    eps = physics["softening"]
+    towards = x_drivers - jnp.sum(x_evaders, axis=0)
+    orthogonal = jnp.stack([-towards[:, 1], towards[:, 0]], axis=-1)
+    control = gains[:, :1] * towards + gains[:, 1:] * orthogonal
+    spread = pairwise(x_drivers, x_drivers, eps, lambda d: d ** -2)
+    driver = control - physics["driver_friction"] * velocities[:drivers] + physics["spreading"] * spread
+    repel = pairwise(x_evaders, x_drivers, eps, lambda d: d ** -2)
+    distance = physics["flock_distance"]
+    flock = -pairwise(x_evaders, x_evaders, eps, lambda d: (distance / d - 1.0) / d)  # (x_i - x_j) p(d_ij)
+    evader = (physics["repulsion"] * repel - physics["evader_friction"] * velocities[drivers:]
+              + physics["flocking"] * flock)
+    return jnp.concatenate([driver, evader])
+
+
+def euler_step(state, gains, dt: float, drivers: int, physics: dict):
+    """Explicit Euler on positions and velocities, both from the current state."""
+    positions, velocities = state[:, 0], state[:, 1]
+    acceleration = accelerations(state, gains, drivers, physics)
+    return jnp.stack([positions + dt * velocities, velocities + dt * acceleration], axis=1)
+
+
+def initial_states(key, count: int, drivers: int, evaders: int, dtype) -> jax.Array:
+    """Drivers on the annulus 3 <= r <= 4 (uniform radius and angle, each driver on its own); evaders around one
+    shared centre on the annulus 1 <= r <= 2, each offset by U[-0.5, 0.5]^2; every velocity 0."""
+    k_driver, k_centre, k_offset = jax.random.split(key, 3)
+
+    def annulus(k, shape, low, high):
+        k_angle, k_radius = jax.random.split(k)
+        angle = jax.random.uniform(k_angle, shape, dtype, 0.0, 2.0 * math.pi)
+        radius = jax.random.uniform(k_radius, shape, dtype, low, high)
+        return jnp.stack([radius * jnp.cos(angle), radius * jnp.sin(angle)], axis=-1)
+
+    x_drivers = annulus(k_driver, (count, drivers), 3.0, 4.0)
+    centre = annulus(k_centre, (count, 1), 1.0, 2.0)
+    x_evaders = centre + jax.random.uniform(k_offset, (count, evaders, 2), dtype, -0.5, 0.5)
+    positions = jnp.concatenate([x_drivers, x_evaders], axis=1)
+    return jnp.stack([positions, jnp.zeros_like(positions)], axis=2)
+
+
+def build(key, *, drivers, evaders, dt, unroll, control_cost, softening, repulsion, evader_friction, flocking,
+          flock_distance, driver_friction, spreading, hidden, train_size, test_size) -> Scene:
+    """The scene; the network sees the whole state (agents x [position, velocity] x [x, y], flattened) and
+    gives two gains per driver; its output layer is zero-initialised (the gains start at exactly 0)."""
+    drivers = number("task.drivers", drivers, 1, integer=True)
+    evaders = number("task.evaders", evaders, 1, integer=True)
+    dt = number("task.dt", dt, 0, open_low=True)
+    control_cost = number("task.control_cost", control_cost, 0)
+    physics = {"softening": number("task.softening", softening, 0, open_low=True),
+               "repulsion": number("task.repulsion", repulsion),
+               "evader_friction": number("task.evader_friction", evader_friction),
+               "flocking": number("task.flocking", flocking),
+               "flock_distance": number("task.flock_distance", flock_distance),
+               "driver_friction": number("task.driver_friction", driver_friction),
+               "spreading": number("task.spreading", spreading)}
+    hidden = layer_widths("task.hidden", hidden)
+    train_size = number("task.train_size", train_size, 1, integer=True)
+    test_size = number("task.test_size", test_size, 1, integer=True)
+    dtype = jnp.zeros(()).dtype
+    agents = drivers + evaders
+
+    def step(state, gains):
+        return euler_step(state, gains, dt, drivers, physics)
+
+    def policy(params, sample):
+        return lambda state, k: apply_mlp(params, state.reshape(-1), hidden="tanh").reshape(drivers, 2)
+
+    def observe(state, gains, sample):
+        """Per step: the mean of x_evader^2 (over evaders and coordinates) and of c^2 (over drivers, gains)."""
+        return jnp.stack([jnp.mean(state[drivers:, 0] ** 2), jnp.mean(gains ** 2)])
+
+    def readout(final, observed, sample):
+        # y = both per-step terms of the loss: (evader term at steps 1..unroll, control term at each step)
+        return observed.T.reshape(-1)
+
+    def physics_loss(y):
+        return jnp.mean(y[:unroll])
+
+    def sample_loss(y, sample):
+        return physics_loss(y) + control_cost * jnp.mean(y[unroll:])
+
+    def sample_metrics(params, sample, y):
+        return {"physics_loss": physics_loss(y)}
+
+    train_key, test_key = jax.random.split(key)
+    return Scene(
+        init_params=lambda k: init_mlp(k, [4 * agents, *hidden, 2 * drivers], dtype, zero_last=True),
+        train_set={"state": initial_states(train_key, train_size, drivers, evaders, dtype)},
+        test_set={"state": initial_states(test_key, test_size, drivers, evaders, dtype)},
+        dynamics=Dynamics(step=step, policy=policy, initial=lambda sample: sample["state"], unroll=unroll,
+                          closed_loop=True, readout=readout, observe=observe),
+        sample_loss=sample_loss,
+        sample_metrics=sample_metrics,
+    )
