@@ -11,6 +11,7 @@ Each figure is `physgrad report` of its runs: the same table and figures that co
 from __future__ import annotations
 
 import argparse
+import shutil
 import subprocess
 import sys
 import time
@@ -27,6 +28,7 @@ class Figure:
     experiments: tuple[str, ...]
     shows: tuple[str, ...]  # which of the report's figures this one is
     quick: dict[str, list[str]] = field(default_factory=dict)  # experiment -> overrides of the quick profile
+    runs_shown: tuple[str, ...] = ()  # globs of job folders whose per-run scene figure (scene.png) is shown too
 
 
 QUICK_POISSON = ["seed=0", "trainer.time_budget=45"]
@@ -53,6 +55,11 @@ FIGURES = (
            {"fig6_unroll_bptt": ["seed=0", "unroll=16,32,64,128,256", "trainer.iterations=1000",
                                  "trainer.eval_every=250"],
             "fig6_unroll_hig": ["seed=0", "unroll=16,32,64,128,256", "trainer.time_budget=15"]}),
+    Figure("fig8_guidance", "Guidance by repulsion: modes R, M, S, C for control costs 1 to 0.001",
+           ("fig8_guidance",), ("loss_vs_iteration.png",),
+           {"fig8_guidance": ["seed=0", "optim.clip=none", "trainer.iterations=1000", "trainer.eval_every=100"]},
+           runs_shown=("*optim.backprop=R,*seed=0,task.control_cost=0.001*",
+                       "*optim.backprop=C,*seed=0,task.control_cost=0.001*")),
 )
 TRADEOFF = "fig7_tradeoff"
 
@@ -97,7 +104,12 @@ def main(argv: list[str] | None = None) -> int:
             sections.append(f"## {figure.name}: {figure.title}\n\nno results (the sweep did not start)\n")
             continue
         write_report([str(f) for f in folders], out_dir=out / figure.name, note=f"{figure.title}\n{note}")
-        images = "\n".join(f"![{figure.name}]({figure.name}/{image})" for image in figure.shows)
+        shown = list(figure.shows)
+        for pattern in figure.runs_shown:  # e.g. the agents' paths of one run per variant
+            for job in sorted(p for f in folders for p in f.glob(pattern) if (p / "scene.png").exists())[:1]:
+                shutil.copy(job / "scene.png", out / figure.name / f"scene_{job.name}.png")
+                shown.append(f"scene_{job.name}.png")
+        images = "\n".join(f"![{figure.name}]({figure.name}/{image})" for image in shown)
         table = (out / figure.name / "report.md").read_text()
         sections.append(f"## {figure.name}: {figure.title}\n\n{images}\n\n{table}")
     if all_folders:

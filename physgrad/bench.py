@@ -28,7 +28,7 @@ from pathlib import Path
 
 from physgrad.configs import compose
 
-SCENES = ("oscillator", "quantum", "poisson", "multicart", "quantum_control")
+SCENES = ("oscillator", "quantum", "poisson", "multicart", "quantum_control", "guidance")
 OPTIMS = ("adam", "gd", "gauss_newton", "hig", "bptt", "stable_bptt")
 # variants measured in another precision as well
 EXTRA = {"poisson": [("hig", ["precision=64"])]}

@@ -8,6 +8,7 @@ from pathlib import Path
 
 import jax
 import jax.numpy as jnp
+from jax.flatten_util import ravel_pytree
 from omegaconf import DictConfig, OmegaConf
 
 import physgrad
@@ -193,8 +194,12 @@ def run_experiment(cfg: DictConfig, out_dir: str | Path) -> tuple[Outcome, Path]
     label = f"{cfg.task.name}/{cfg.optim.name} seed {cfg.seed}" + (f" (+{len(paths) - 1})" if len(paths) > 1 else "")
     outcomes = train(scene, rule, seeds, writers, settings, label=label)
     from physgrad.plots import plot_run  # matplotlib only once training is over
-    from physgrad.results import read_run
+    from physgrad.results import read_params, read_run
 
-    for _, path in paths:
+    unravel = ravel_pytree(seeds.network())[1]
+    for index, (_, path) in enumerate(paths):
         plot_run(read_run(path), path.with_name("loss.png"))
+        if scene.figure is not None and outcomes[index].status != "diverged":  # a network was saved
+            test_set = jax.tree_util.tree_map(lambda leaf: leaf[index], seeds.test_sets)
+            scene.figure(unravel(jnp.asarray(read_params(path))), test_set, path.with_name("scene.png"))
     return job_outcome(outcomes), where

@@ -19,11 +19,12 @@ SMALL = {
     "quantum": ["task.train_size=32", "task.test_size=8", "trainer.batch_size=4", "unroll=32"],
     "quantum_control": ["task.train_size=16", "task.test_size=8", "trainer.batch_size=4", "unroll=32"],
     "toy": ["task.test_size=8", "trainer.batch_size=4"],
+    "guidance": ["task.train_size=16", "task.test_size=8", "unroll=12", "trainer.batch_size=4"],
 }
 # every scene as configured by default, plus the settings that change which variants apply
 SCENES = [(task, []) for task in TASKS] + [("oscillator", ["task.closed_loop=true"]),
                                           ("quantum", ["task.closed_loop=true"])]
-CLOSED_LOOP = {"multicart", "quantum_control", "oscillator task.closed_loop=true", "quantum task.closed_loop=true"}
+CLOSED_LOOP = {"multicart", "quantum_control", "guidance", "oscillator task.closed_loop=true", "quantum task.closed_loop=true"}
 
 
 def load(*overrides):

@@ -52,7 +52,9 @@ class Scene:
     dynamics: the rollout of a temporal scene (physgrad.unroll.Dynamics);
     train_set: a fixed training set (None when every batch is drawn fresh by draw_batch);
     draw_batch(key, batch_size, train_set) -> batch: a training minibatch; by default drawn from train_set;
-    sample_metrics(params, sample, y) -> {name: scalar}: extra held-out metrics, averaged over the test set.
+    sample_metrics(params, sample, y) -> {name: scalar}: extra held-out metrics, averaged over the test set;
+    figure(params, test_set, path): a per-run figure of the trained network (e.g. trajectories of a few test
+    samples), drawn after training into path (scene.png beside loss.png); optional.
     """
 
     init_params: Callable[[Any], Any]
@@ -63,6 +65,7 @@ class Scene:
     train_set: Any = None
     draw_batch: Callable[[Any, int, Any], Any] = draw_from
     sample_metrics: Callable[[Any, Any, jax.Array], dict] = field(default=no_metrics)
+    figure: Callable[[Any, Any, Any], None] | None = None
 
     def __post_init__(self):
         if (self.sample_output is None) == (self.dynamics is None):

@@ -19,10 +19,11 @@ import math
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 from physgrad.nets import apply_mlp, init_mlp
 from physgrad.tasks import Scene
-from physgrad.unroll import Dynamics
+from physgrad.unroll import Dynamics, rollout
 from physgrad.validate import layer_widths, number
 
 
@@ -127,6 +128,46 @@ def build(key, *, drivers, evaders, dt, unroll, control_cost, softening, repulsi
     def sample_metrics(params, sample, y):
         return {"physics_loss": physics_loss(y)}
 
+    def draw_paths(params, test_set, path, count: int = 4):
+        """Agent paths of the trained network for the first test states: drivers red, evaders blue."""
+        import matplotlib
+
+        matplotlib.use("Agg")
+        import matplotlib.pyplot as plt
+
+        def positions(state):
+            _, visited = rollout(step, policy(params, {"state": state}), state, unroll, observe=lambda x, c: x[:, 0])
+            return jnp.concatenate([state[None, :, 0], visited])  # (unroll + 1, agents, 2)
+
+        count = min(count, test_set["state"].shape[0])
+        paths = np.asarray(jax.jit(jax.vmap(positions))(test_set["state"][:count]))
+        fig, axes = plt.subplots(1, count, figsize=(3.6 * count, 3.9), squeeze=False)
+        for index, (ax, trajectory) in enumerate(zip(axes[0], paths)):
+            for agent in range(agents):
+                colour = "tab:red" if agent < drivers else "tab:blue"
+                ax.plot(trajectory[:, agent, 0], trajectory[:, agent, 1], color=colour, lw=1.2)
+                ax.plot(*trajectory[0, agent], "o", color=colour, ms=4, mfc="white")
+                ax.plot(*trajectory[-1, agent], "o", color=colour, ms=4)
+            ax.plot(0, 0, "k+", ms=10)
+            # the view holds the start and the evaders' paths; a driver that leaves it is drawn to its edge
+            extent = 1.15 * max(np.abs(trajectory[0]).max(), np.abs(trajectory[:, drivers:]).max())
+            ax.set_xlim(-extent, extent)
+            ax.set_ylim(-extent, extent)
+            ax.set_aspect("equal")
+            spread = float(np.mean(trajectory[-1, drivers:] ** 2))
+            ax.set_title(f"test state {index}: final mean x_e^2 {spread:.3g}", fontsize=9)
+            ax.grid(True, alpha=0.3)
+        handles = [plt.Line2D([], [], color="tab:red", label="drivers"),
+                   plt.Line2D([], [], color="tab:blue", label="evaders"),
+                   plt.Line2D([], [], ls="", marker="o", mfc="white", color="gray", label="start"),
+                   plt.Line2D([], [], ls="", marker="o", color="gray", label=f"end (t = {unroll * dt:.3g})"),
+                   plt.Line2D([], [], ls="", marker="+", color="k", label="target (origin)")]
+        fig.legend(handles=handles, loc="lower center", ncol=5, fontsize=8, frameon=False)
+        fig.suptitle("guidance: agent paths under the trained controller", fontsize=10)
+        fig.tight_layout(rect=(0, 0.08, 1, 0.94))
+        fig.savefig(path, dpi=110)
+        plt.close(fig)
+
     train_key, test_key = jax.random.split(key)
     return Scene(
         init_params=lambda k: init_mlp(k, [4 * agents, *hidden, 2 * drivers], dtype, zero_last=True),
@@ -136,4 +177,5 @@ def build(key, *, drivers, evaders, dt, unroll, control_cost, softening, repulsi
                           closed_loop=True, readout=readout, observe=observe),
         sample_loss=sample_loss,
         sample_metrics=sample_metrics,
+        figure=draw_paths,
     )
