@@ -89,6 +89,14 @@ def test_python_api_runs_one_configuration_and_reads_its_curves(in_example, tmp_
         physgrad.run("seed=0,1", out_dir=tmp_path / "sweep")
 
 
+def test_python_api_writes_where_physgrad_run_would(tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    run = physgrad.run("task=toy", "optim=hig", "trainer.iterations=3", "task.test_size=8", "trainer.batch_size=4")
+    relative = run.path.relative_to(tmp_path)
+    assert relative.parts[:2] == ("outputs", "runs") and relative.parent.name.endswith("_toy_hig_s0"), relative
+    assert run.attrs["status"] == "completed" and (run.path.parent / "loss.png").exists()
+
+
 @pytest.mark.parametrize("node, fragment", [
     ({"_target_": "pendulum.build"}, "pendulum.build needs task.gravity, task.length, task.damping, task.dt, task.unroll"),
     ({"_target_": "pendulum.build", "gravity": 9.8, "length": 1, "damping": 0, "dt": 0.1, "unroll": 4,

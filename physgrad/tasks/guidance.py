@@ -164,7 +164,7 @@ def build(key, *, drivers, evaders, dt, unroll, control_cost, softening, repulsi
                    plt.Line2D([], [], ls="", marker="+", color="k", label="target (origin)")]
         fig.legend(handles=handles, loc="lower center", ncol=5, fontsize=8, frameon=False)
         fig.suptitle("guidance: agent paths under the trained controller", fontsize=10)
-        fig.tight_layout(rect=(0, 0.08, 1, 0.94))
+        fig.tight_layout(rect=(0, 0.1, 1, 0.94))
         fig.savefig(path, dpi=110)
         plt.close(fig)
 
