@@ -20,7 +20,7 @@ def run_one(overrides: list[str], out_dir=None, config_dir=None):
     config_dirs = [config_dir] if config_dir else []
     check_overrides(overrides, multirun=False, config_dirs=config_dirs)
     cfg = compose(overrides, config_dirs=config_dirs, return_hydra_config=True)
-    folder = Path(out_dir) if out_dir else Path(OmegaConf.select(cfg, "hydra.run.dir"))
+    folder = (Path(out_dir) if out_dir else Path(OmegaConf.select(cfg, "hydra.run.dir"))).resolve()
     with open_dict(cfg):
         del cfg["hydra"]
     if os.getcwd() not in sys.path:  # a scene or optimiser named by _target_, as for `physgrad run`

@@ -69,7 +69,7 @@ def test_hydra_flags_keep_working(tmp_path):
 
 
 @pytest.mark.parametrize("args, fragment", [
-    (["task=nope"], "unknown task 'nope' (choose one of multicart, oscillator, poisson, quantum, quantum_control"),
+    (["task=nope"], "unknown task 'nope' (choose one of guidance, multicart, oscillator, poisson, quantum, "),
     (["optim=hgi"], "unknown optim 'hgi': did you mean hig? (choose one of adam, bptt, gauss_newton, gd, hig, "),
     (["trainer.iteratons=5"], "did you mean trainer.iterations?"),
     (["optim.lr=0.1"], "did you mean optim.learning_rate?"),

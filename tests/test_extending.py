@@ -92,7 +92,7 @@ def test_python_api_runs_one_configuration_and_reads_its_curves(in_example, tmp_
 def test_python_api_writes_where_physgrad_run_would(tmp_path, monkeypatch):
     monkeypatch.chdir(tmp_path)
     run = physgrad.run("task=toy", "optim=hig", "trainer.iterations=3", "task.test_size=8", "trainer.batch_size=4")
-    relative = run.path.relative_to(tmp_path)
+    relative = run.path.relative_to(tmp_path.resolve())
     assert relative.parts[:2] == ("outputs", "runs") and relative.parent.name.endswith("_toy_hig_s0"), relative
     assert run.attrs["status"] == "completed" and (run.path.parent / "loss.png").exists()
 

@@ -7,8 +7,13 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from physgrad.configs import CONF_DIR, check_overrides, compose
-from physgrad.experiment import check_config, prepare, run_experiment
+from hydra import compose as hydra_compose
+from omegaconf import OmegaConf
+
+from physgrad.configs import CONF_DIR, check_overrides, initialized
+
+from physgrad.experiment import check_applies, check_config, effective_unroll, prepare, run_experiment
+from physgrad.optim import build_rule
 from physgrad.results import read_run
 from tests.test_configs import load
 
@@ -19,19 +24,32 @@ import reproduce  # noqa: E402
 
 
 def sweep_jobs(experiment: str, extra=()):
-    """Every job's config of a named sweep: the product of its sweeper params, as Hydra's basic sweeper makes it."""
+    """Every job's config of a named sweep: the product of its sweeper params, as Hydra's basic sweeper makes it
+    (a key given on the command line replaces the sweeper's values for it)."""
     swept = {o.partition("=")[0]: o.partition("=")[2].split(",") for o in extra if "," in o}
     fixed = [o for o in extra if "," not in o]
-    base = compose([f"+experiment={experiment}", *fixed], return_hydra_config=True)
-    params = {key: str(value).split(",") for key, value in base.hydra.sweeper.params.items()} | swept
-    for values in itertools.product(*params.values()):
-        overrides = [f"{key}={value}" for key, value in zip(params, values)]
-        yield compose([f"+experiment={experiment}", *fixed, *overrides])
+    with initialized():  # one Hydra set-up for every job (composing is cheap, setting Hydra up is not)
+        base = hydra_compose("config", [f"+experiment={experiment}", *fixed], return_hydra_config=True)
+        given = {o.partition("=")[0] for o in fixed}
+        params = {key: str(value).split(",") for key, value in base.hydra.sweeper.params.items() if key not in given}
+        params |= swept
+        jobs = [hydra_compose("config", [f"+experiment={experiment}", *fixed,
+                                         *(f"{key}={value}" for key, value in zip(params, values))])
+                for values in itertools.product(*params.values())]
+    return jobs
+
+
+SCENES = {}  # (task config, unroll, precision, seed) -> the scene: the jobs of a sweep share a few of them
 
 
 def valid(cfg):
     """Raises on anything a run of cfg would refuse: its settings, its rule, its scene and their combination."""
-    prepare(cfg, [cfg.seed], check_config(cfg))
+    settings = check_config(cfg)
+    build_rule(cfg.optim)
+    key = (OmegaConf.to_yaml(cfg.task), effective_unroll(cfg), cfg.precision, cfg.seed)
+    if key not in SCENES:
+        SCENES[key] = prepare(cfg, [cfg.seed], settings)[0]
+    check_applies(SCENES[key], cfg)
 
 
 def test_every_figure_has_its_experiments():
