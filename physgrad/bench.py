@@ -3,8 +3,10 @@ the floors it is measured against, as one markdown table.
 
 Every measurement runs in its own subprocess (a fresh peak-memory counter and no cache shared between variants);
 the table gives ratios against baselines measured in the same run, never absolute targets:
-- Jacobian variants (hig, gauss_newton): step / (bare per-sample Jacobian + the faster bare SVD of a random
-  matrix of J's shape, numpy LAPACK or jax);
+- Jacobian variants (hig, gauss_newton): the step with the form of J physgrad chooses (layer-factorised where
+  the network allows it) against the same step with the per-sample Jacobian, and against its floor: the
+  fastest float64 eigendecomposition of an m x m symmetric matrix (numpy, scipy or jax) plus one bare forward
+  and backward pass (draw, loss, gradient);
 - adam: step / a bare jitted loss-and-gradient of the same function (minibatch draw, loss, gradient);
 - runner overhead: the share of a `physgrad run` training loop's wall time (compilation excluded) spent
   neither in training steps nor in evaluations: row buffering, HDF5 flushes, NaN checks, progress bar, at the
@@ -93,13 +95,18 @@ def _compiled(cfg, seeds: list[int]):
 
 
 def measure_variant(overrides: list[str], repeats: int, min_seconds: float) -> dict:
-    """Compile and time the training step of one configuration (the runner's own compiled step); for adam also
-    the bare loss-and-gradient and the runner's overhead; for the Jacobian variants also the bare Jacobian."""
+    """Compile and time the training step of one configuration (the runner's own compiled step) in turn with
+    its baselines: the bare loss-and-gradient (adam and the Jacobian variants), the runner's overhead (adam),
+    and for a factorised Jacobian variant the same step with the per-sample Jacobian."""
+    import dataclasses
+
     import jax
+    import numpy as np
 
     from physgrad import UserError
-    from physgrad.gradients import output_and_jacobian
+    from physgrad.nets import count_params
     from physgrad.optim.spectral import resolve_route
+    from physgrad.runner import compile_training
 
     cfg = compose(overrides)
     try:
@@ -115,14 +122,26 @@ def measure_variant(overrides: list[str], repeats: int, min_seconds: float) -> d
     timed = {"step_s": one_step}
     params = seeds.network()
     train_key = seeds.train_keys[0]
-    batch = scene.sample_train(jax.random.fold_in(train_key, 0), settings.batch_size)
     if rule.uses_jacobian:
-        jacobian = jax.jit(lambda p, b: output_and_jacobian(scene.sample_output, p, b))
-        shape = jacobian.eval_shape(params, batch)[1].shape
-        timed["jacobian_s"] = lambda: jax.block_until_ready(jacobian(params, batch))
-        result["jac_shape"] = list(shape)
-        result["route"] = resolve_route(cfg.optim.route, float(cfg.optim.tau), shape)
-    if cfg.optim.name == "adam":
+        batch = scene.sample_train(jax.random.fold_in(train_key, 0), settings.batch_size)
+        shape = (jax.eval_shape(scene.batch_output, params, batch).size, count_params(params))
+        result.update(jac_shape=list(shape), jacobian=rule.gradient.name,
+                      route=resolve_route(cfg.optim.route, float(cfg.optim.tau), shape))
+        if rule.gradient.plan is not None:
+            per_sample = compile_training(scene, rule._replace(gradient=dataclasses.replace(rule.gradient, plan=None)),
+                                          seeds, settings.batch_size)
+            state = [per_sample.params, per_sample.opt_state]
+
+            def per_sample_step():
+                state[0], state[1], _ = per_sample.step(state[0], state[1], np.int32(0), seeds.train_keys,
+                                                        seeds.train_sets)
+                jax.block_until_ready(state[0])
+
+            per_sample_step()
+            result["per_sample_peak_rss_gb"] = _peak_rss_gb()  # the larger of the two
+            timed["per_sample_step_s"] = per_sample_step
+        timed["eigh_s"] = _eigh_timer(shape[0])
+    if cfg.optim.name == "adam" or rule.uses_jacobian:
         # the same function as the step's: draw the minibatch (as every step does), loss, gradient
         def loss_and_grad(p, key):
             batch = scene.sample_train(key, settings.batch_size)
@@ -138,6 +157,24 @@ def measure_variant(overrides: list[str], repeats: int, min_seconds: float) -> d
                                  3, 0)
         result.update(runner_overhead(settings, scene, rule, seeds, result["step_s"], eval_s))
     return result
+
+
+def _random_gram(size: int):
+    import numpy as np
+
+    factor = np.random.default_rng(0).standard_normal((size, size))
+    return factor @ factor.T
+
+
+def _eigh_timer(size: int):
+    """eigh() -> the step's own eigendecomposition (jax, float64) of a random m x m Gram matrix, blocking."""
+    import jax
+    import jax.numpy as jnp
+
+    with jax.enable_x64(True):
+        matrix = jnp.asarray(_random_gram(size))
+        eigh = jax.jit(jnp.linalg.eigh).lower(matrix).compile()
+    return lambda: jax.block_until_ready(eigh(matrix))
 
 
 def runner_overhead(settings, scene, rule, seeds, step_s: float, eval_s: float) -> dict:
@@ -178,25 +215,20 @@ def measure_seeds(overrides: list[str], count: int, repeats: int, min_seconds: f
     return {"seeds": count, "single_step_s": single_s, "step_s": many_s, "peak_rss_gb": _peak_rss_gb()}
 
 
-def measure_floors(shape: tuple[int, int], precision: int, repeats: int) -> dict:
-    """The bare thin SVD of a random matrix of J's shape, in numpy (LAPACK gesdd) and in jax."""
-    import jax
-    import jax.numpy as jnp
+def measure_floors(size: int, repeats: int) -> dict:
+    """The float64 eigendecomposition (eigenvalues and vectors) of a random symmetric positive semi-definite
+    size x size matrix, with each library that offers one: numpy (LAPACK syevd), scipy (syevr and syevd) and
+    jax (compiled ahead)."""
     import numpy as np
+    import scipy.linalg
 
-    from physgrad.experiment import set_precision
-
-    set_precision(precision)
-    dtype = np.float64 if precision == 64 else np.float32
-    matrix = np.random.default_rng(0).standard_normal(shape).astype(dtype)
-    # no warm-up needed (numpy; jax compiled ahead): at the Poisson size one SVD takes a minute or more
-    numpy_s, _ = _median_time(lambda: np.linalg.svd(matrix, full_matrices=False), repeats, 0, warmup=False,
-                              max_seconds=60)
-    device_matrix = jnp.asarray(matrix)
-    svd = jax.jit(lambda a: jnp.linalg.svd(a, full_matrices=False)).lower(device_matrix).compile()
-    jax_s, _ = _median_time(lambda: jax.block_until_ready(svd(device_matrix)), repeats, 0, warmup=False,
-                            max_seconds=60)
-    return {"svd_numpy_s": numpy_s, "svd_jax_s": jax_s}
+    matrix = _random_gram(size)
+    timed = {"eigh_numpy_s": lambda: np.linalg.eigh(matrix),
+             "eigh_scipy_evr_s": lambda: scipy.linalg.eigh(matrix, driver="evr"),
+             "eigh_scipy_evd_s": lambda: scipy.linalg.eigh(matrix, driver="evd"),
+             "eigh_jax_s": _eigh_timer(size)}
+    medians = _median_times(list(timed.values()), repeats, 0, max_seconds=60)
+    return {name: seconds for name, (seconds, _) in zip(timed, medians)}
 
 
 # where vectorising over seeds is measured: cheap steps, where one seed leaves the cores idle
@@ -263,44 +295,66 @@ def run_bench(scenes, repeats: int, min_seconds: float, timeout: float) -> list[
                 continue
             precision = 64 if "precision=64" in overrides else 32
             if "jac_shape" in result:
-                key = (tuple(result["jac_shape"]), precision)
-                floors = next((r["floors"] for r in rows if r.get("floor_key") == key), None)
+                size = result["jac_shape"][0]
+                floors = next((r["floors"] for r in rows if r.get("floor_size") == size), None)
                 if floors is None:
-                    floors = _subprocess("floors", {"shape": key[0], "precision": precision,
-                                                    "repeats": repeats}, timeout)
-                result.update(floor_key=key, floors=floors)
+                    floors = _subprocess("floors", {"size": size, "repeats": repeats}, timeout)
+                result.update(floor_size=size, floors=floors)
             rows.append({"task": task, "variant": optim + ("" if precision == 32 else " f64"),
                          "precision": precision, **result})
     return rows
 
 
 def table(rows: list[dict]) -> str:
-    lines = ["| scene | variant | s/iter | compile | peak RSS | J shape (route) | Jacobian | SVD floor numpy / jax "
-             "| step / (Jacobian + SVD floor) | step / bare draw+loss+grad | runner overhead |",
-             "|---|---|---|---|---|---|---|---|---|---|---|"]
+    lines = ["| scene | variant | s/iter | compile | peak RSS | step / bare draw+loss+grad | runner overhead |",
+             "|---|---|---|---|---|---|---|"]
     for row in rows:
         if "error" in row:
-            lines.append(f"| {row['task']} | {row['variant']} | {row['error']} |  |  |  |  |  |  |  |  |")
+            lines.append(f"| {row['task']} | {row['variant']} | {row['error']} |  |  |  |  |")
             continue
-        jac = svd = ratio_floor = shape = ""
-        if "jac_shape" in row:
-            floors = row["floors"]
-            shape = f"{row['jac_shape'][0]} x {row['jac_shape'][1]} ({row['route']})"
-            jac = _fmt(row["jacobian_s"])
-            if "error" in floors:
-                svd = floors["error"]
-            else:
-                svd = f"{_fmt(floors['svd_numpy_s'])} / {_fmt(floors['svd_jax_s'])}"
-                floor = row["jacobian_s"] + min(floors["svd_numpy_s"], floors["svd_jax_s"])
-                ratio_floor = f"{row['step_s'] / floor:.2f}"
         ratio_bare = f"{row['step_s'] / row['loss_grad_s']:.2f}" if "loss_grad_s" in row else ""
         overhead = ""
         if "runner_overhead" in row:
             overhead = (f"{100 * row['runner_overhead']:.1f}% ({row['overhead_iterations']} it; evaluations "
                         f"{100 * row['eval_share']:.0f}%)")
         lines.append(f"| {row['task']} | {row['variant']} | {_fmt(row['step_s'])} | {_fmt(row['compile_s'])} | "
-                     f"{row['peak_rss_gb']:.2f} GB | {shape} | {jac} | {svd} | {ratio_floor} | {ratio_bare} | "
-                     f"{overhead} |")
+                     f"{row['peak_rss_gb']:.2f} GB | {ratio_bare} | {overhead} |")
+    return "\n".join(lines) + "\n"
+
+
+def floor_seconds(row: dict) -> float:
+    """The floor of a Jacobian step: the fastest library's float64 eigendecomposition of an m x m matrix plus one
+    bare forward and backward pass. The jax eigendecomposition is timed in turn with the step; the libraries
+    are compared in a separate measurement, whose fastest-to-jax ratio scales it."""
+    floors = row["floors"]
+    fastest = min(value for name, value in floors.items() if name.startswith("eigh_"))
+    return row["eigh_s"] * fastest / floors["eigh_jax_s"] + row["loss_grad_s"]
+
+
+def jacobian_table(rows: list[dict]) -> str:
+    """The Jacobian variants: the step with the chosen form of J against the per-sample form and the floor."""
+    lines = ["| scene | variant | J (m x n), route | form of J | step | step, per-sample J | speed-up | "
+             "eigh, in turn with the step | eigh numpy / scipy evr / scipy evd / jax | bare fwd+bwd | "
+             "step / (fastest eigh + fwd+bwd) | "
+             "peak RSS (per-sample J) |", "|---|---|---|---|---|---|---|---|---|---|---|---|"]
+    for row in rows:
+        if "jac_shape" not in row:
+            continue
+        floors = row["floors"]
+        per_sample = row.get("per_sample_step_s")
+        speed_up = f"{per_sample / row['step_s']:.2f}x" if per_sample else ""
+        if "error" in floors:
+            eigh, ratio = floors["error"], ""
+        else:
+            eigh = " / ".join(_fmt(floors[name]) for name in ("eigh_numpy_s", "eigh_scipy_evr_s", "eigh_scipy_evd_s",
+                                                               "eigh_jax_s"))
+            ratio = f"{row['step_s'] / floor_seconds(row):.2f}"
+        peak = f"{row['peak_rss_gb']:.2f} GB" + (f" ({row['per_sample_peak_rss_gb']:.2f} GB)" if per_sample else "")
+        form = row["jacobian"].replace("per-sample: ", "per-sample (") + (")" if ":" in row["jacobian"] else "")
+        lines.append(f"| {row['task']} | {row['variant']} | {row['jac_shape'][0]} x {row['jac_shape'][1]}, "
+                     f"{row['route']} | {form} | {_fmt(row['step_s'])} | {_fmt(per_sample)} | {speed_up} | "
+                     f"{_fmt(row['eigh_s'])} | {eigh} | "
+                     f"{_fmt(row['loss_grad_s'])} | {ratio} | {peak} |")
     return "\n".join(lines) + "\n"
 
 
@@ -336,7 +390,7 @@ def main(argv: list[str] | None = None) -> int:
         return 0
     if options.floors:
         payload = json.loads(options.floors)
-        print(json.dumps(measure_floors(tuple(payload["shape"]), payload["precision"], payload["repeats"])))
+        print(json.dumps(measure_floors(payload["size"], payload["repeats"])))
         return 0
     scenes = [s for s in options.scenes.split(",") if s]
     unknown = sorted(set(scenes) - set(SCENES))
@@ -349,13 +403,15 @@ def main(argv: list[str] | None = None) -> int:
     seed_rows = run_seeds(scenes, options.vectorised_seeds, options.repeats, options.min_seconds, options.timeout)
     header = (f"# physgrad benchmark\n\nMachine: {machine()}. Reference sizes, float32 unless marked f64, "
               f"median of >= {options.repeats} steps and >= {options.min_seconds:g} s after compilation, each step "
-              "timed in turn with its baselines (bare Jacobian, bare loss and gradient); compile: the step and the "
-              "evaluation, ahead of time; peak RSS: after the step's first call; "
+              "timed in turn with its baselines (bare loss and gradient, the per-sample Jacobian, the eigh floor); "
+              "compile: the step and the evaluation, ahead of time; peak RSS: after the step's first call; "
               f"{time.perf_counter() - start:.0f} s in all.\n\n")
     out = Path(options.out)
     out.parent.mkdir(parents=True, exist_ok=True)
-    text = header + table(rows) + (f"\nSeeds in one process (`seeds={options.vectorised_seeds}`, one vmapped step):\n\n"
-                                    + seeds_table(seed_rows) if seed_rows else "")
+    seeds_text = (f"\nSeeds in one process (`seeds={options.vectorised_seeds}`, one vmapped step):\n\n"
+                  + seeds_table(seed_rows)) if seed_rows else ""
+    text = (header + table(rows) + "\nJacobian variants (the step above against the per-sample Jacobian and the "
+            "floor):\n\n" + jacobian_table(rows) + seeds_text)
     out.write_text(text)
     out.with_suffix(".json").write_text(json.dumps({"variants": rows, "seeds": seed_rows}, indent=1, default=str))
     print(text, end="")

@@ -13,6 +13,7 @@ from omegaconf import DictConfig, OmegaConf
 
 import physgrad
 from physgrad import UserError
+from physgrad.gradients import JacobianPass
 from physgrad.nets import count_params
 from physgrad.optim import UpdateRule, build_rule
 from physgrad.resume import finished_before, start_from
@@ -148,6 +149,9 @@ def prepare(cfg: DictConfig, seed_list: list[int], settings: TrainerSettings) ->
     rule = build_rule(cfg.optim)
     scene, seeds = build_seeds(cfg, seed_list, settings.batch_size)
     check_applies(scene, cfg)
+    if rule.uses_jacobian:
+        sample = jax.tree_util.tree_map(lambda leaf: leaf[0], scene.test_set)
+        rule = rule._replace(gradient=JacobianPass.for_network(scene.sample_output, seeds.network(), sample))
     return scene, rule, seeds
 
 
@@ -181,6 +185,8 @@ def run_experiment(cfg: DictConfig, out_dir: str | Path) -> tuple[Outcome, Path]
         return Outcome("refused", str(error), 0, 0.0, {}), where
 
     attrs = run_attributes(cfg, scene.unroll)
+    if rule.uses_jacobian:
+        attrs["jacobian"] = rule.gradient.name
     if origin:
         attrs["variant"] += f" (from {origin['init_variant']})"
     if len(paths) > 1:

@@ -4,8 +4,9 @@ update rule, the rule's extra arguments and logged scalars. A route is a value c
 - Regular(mode): one forward and one backward pass through the scene's output with the gradient stops of a
   backprop-through-time mode (R, M or S; R for a scene without time);
 - Combined(): the stabilised gradient C of the StableBPTT paper from two passes (M and R);
-- JacobianPass(): y and J = dy/dtheta from one per-sample reverse pass, for rules that need J (Gauss-Newton,
-  HIG); the gradient is J^T g, and J and g = dL/dy go to the rule as extra arguments.
+- JacobianPass(plan): y and J = dy/dtheta, for rules that need J (Gauss-Newton, HIG), in layer factors where
+  the network allows it (physgrad.jacobians); the gradient is J^T g, and J and g = dL/dy go to the rule as
+  extra arguments.
 
 Every route logs ``output_max_abs``, the largest |y| of the batch's physical output (where a blow-up of the
 physics shows first).
@@ -21,6 +22,7 @@ import optax
 from jax.flatten_util import ravel_pytree
 
 from physgrad import UserError
+from physgrad.jacobians import LayerPlan, dense_jacobian, layer_jacobian, plan_layers
 from physgrad.unroll import MODES, PHYSICS_ONLY, REGULAR, Backprop
 
 BACKPROP_MODES = ("R", "M", "S", "C")
@@ -59,13 +61,32 @@ class Combined:
 
 @dataclass(frozen=True)
 class JacobianPass:
-    """y and J from one per-sample reverse pass (output_and_jacobian); gradient J^T g; extra arguments
-    jacobian=J and output_grad=g for the rule."""
+    """y and J, in factors when the network allows it (plan: physgrad.jacobians.plan_layers) and else from one
+    per-sample reverse pass; gradient J^T g; extra arguments jacobian=J and output_grad=g for the rule."""
+
+    plan: LayerPlan | None = None
+    why_per_sample: str = ""
+
+    @classmethod
+    def for_network(cls, sample_output, params, sample) -> "JacobianPass":
+        """The layer-factorised pass where plan_layers allows it, else the per-sample pass with the reason."""
+        plan = plan_layers(sample_output, params, sample)
+        return cls(plan) if isinstance(plan, LayerPlan) else cls(None, plan)
+
+    @property
+    def name(self) -> str:
+        """The form of J, as the results file names it (attribute ``jacobian``)."""
+        if self.plan is not None:
+            return "layer-factorised"
+        return "per-sample" + (f": {self.why_per_sample}" if self.why_per_sample else "")
 
     def __call__(self, scene, params, batch):
-        y, jac = output_and_jacobian(scene.sample_output, params, batch)
+        if self.plan is None:
+            y, jac = dense_jacobian(scene.sample_output, params, batch)
+        else:
+            y, jac = layer_jacobian(scene.sample_output, params, batch, self.plan)
         loss, output_grad = jax.value_and_grad(scene.batch_loss)(y, batch)
-        grads = ravel_pytree(params)[1](jac.T @ output_grad.reshape(-1).astype(jac.dtype))
+        grads = ravel_pytree(params)[1](jac.transpose_apply(output_grad.reshape(-1).astype(jac.dtype)))
         return loss, grads, {"jacobian": jac, "output_grad": output_grad}, {"output_max_abs": jnp.max(jnp.abs(y))}
 
 
@@ -102,18 +123,3 @@ def sign_disagreement(a, b) -> jax.Array:
     leaves = zip(jax.tree_util.tree_leaves(a), jax.tree_util.tree_leaves(b))
     differ = sum(jnp.sum(jnp.sign(x) != jnp.sign(y)) for x, y in leaves)
     return differ / sum(x.size for x in jax.tree_util.tree_leaves(a))
-
-
-def output_and_jacobian(sample_output, params, batch) -> tuple[jax.Array, jax.Array]:
-    """y (batch, k) and J = dy/dtheta (m x n, m = batch * k) from one per-sample reverse-mode pass, vmapped
-    over the batch: J's rows are sample major, its columns follow ravel_pytree(params). The forward pass that
-    builds each sample's pullback also gives y, so a step needs no separate forward or gradient pass
-    (dL/dtheta = J^T g)."""
-    flat, unravel = ravel_pytree(params)
-
-    def output_twice(flat_params, sample):
-        y = sample_output(unravel(flat_params), sample)
-        return y, y
-
-    jac, y = jax.vmap(jax.jacrev(output_twice, has_aux=True), in_axes=(None, 0))(flat, batch)
-    return y, jac.reshape(-1, flat.size)

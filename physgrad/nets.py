@@ -1,11 +1,26 @@
 """Dense networks as plain pytrees: a list of {"w": (in, out), "b": (out,)} layers."""
 
 from collections.abc import Sequence
+from contextlib import contextmanager
 
 import jax
 import jax.numpy as jnp
 
 ACTIVATIONS = {"tanh": jnp.tanh, "relu": jax.nn.relu, "linear": lambda z: z}
+
+# Active layer taps, innermost last: while tracing under one, apply_mlp computes each layer's pre-activation as
+# tap(layer, x) instead of x W + b (physgrad.jacobians records inputs and cotangents this way).
+_TAPS: list = []
+
+
+@contextmanager
+def layer_tap(tap):
+    """Route every apply_mlp layer traced inside the block through tap(layer, x) -> pre-activation."""
+    _TAPS.append(tap)
+    try:
+        yield tap
+    finally:
+        _TAPS.pop()
 
 
 def init_mlp(key, sizes: Sequence[int], dtype, zero_last: bool = False):
@@ -26,11 +41,15 @@ def init_mlp(key, sizes: Sequence[int], dtype, zero_last: bool = False):
 
 
 def apply_mlp(layers, x, hidden: str, output: str = "linear"):
-    """z_{l+1} = act(z_l W_l + b_l) with act = hidden on every layer but the last, output on the last."""
-    for layer in layers[:-1]:
-        x = ACTIVATIONS[hidden](x @ layer["w"] + layer["b"])
-    last = layers[-1]
-    return ACTIVATIONS[output](x @ last["w"] + last["b"])
+    """z_{l+1} = act(z_l W_l + b_l) with act = hidden on every layer but the last, output on the last.
+
+    Networks built with it get the layer-factorised Jacobian of the Gauss-Newton and HIG steps
+    (physgrad.jacobians) when applied once per sample."""
+    tap = _TAPS[-1] if _TAPS else None
+    for index, layer in enumerate(layers):
+        pre_activation = x @ layer["w"] + layer["b"] if tap is None else tap(layer, x)
+        x = ACTIVATIONS[output if index == len(layers) - 1 else hidden](pre_activation)
+    return x
 
 
 def count_params(tree) -> int:

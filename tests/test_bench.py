@@ -2,7 +2,8 @@
 
 import math
 
-from physgrad.bench import _median_times, measure_floors, measure_seeds, measure_variant, seeds_table, table
+from physgrad.bench import (_median_times, floor_seconds, jacobian_table, measure_floors, measure_seeds,
+                            measure_variant, seeds_table, table)
 
 
 def test_bench_measures_steps_floors_and_overhead():
@@ -10,15 +11,22 @@ def test_bench_measures_steps_floors_and_overhead():
     hig = measure_variant([*small, "optim=hig"], repeats=2, min_seconds=0)
     adam = measure_variant([*small, "optim=adam"], repeats=2, min_seconds=0)
     assert hig["jac_shape"] == [4 * 16, 1 * 16 * 16 + 16 + 16 * 32 + 32 + 32 * 16 + 16 + 16 * 16 + 16]
-    assert hig["route"] == "gram" and hig["step_s"] > 0 and hig["jacobian_s"] > 0 and hig["peak_rss_gb"] > 0
+    assert hig["route"] == "gram" and hig["jacobian"] == "layer-factorised"
+    assert hig["step_s"] > 0 and hig["per_sample_step_s"] > 0 and hig["loss_grad_s"] > 0 and hig["eigh_s"] > 0
+    assert hig["per_sample_peak_rss_gb"] >= hig["peak_rss_gb"] > 0
     assert adam["loss_grad_s"] > 0 and 0 <= adam["runner_overhead"] < 1 and 0 < adam["eval_share"] < 1
-    floors = measure_floors(tuple(hig["jac_shape"]), 32, repeats=2)
-    assert floors["svd_numpy_s"] > 0 and floors["svd_jax_s"] > 0
+    floors = measure_floors(hig["jac_shape"][0], repeats=2)
+    assert {"eigh_numpy_s", "eigh_scipy_evr_s", "eigh_scipy_evd_s", "eigh_jax_s"} == set(floors)
+    assert all(seconds > 0 for seconds in floors.values())
     rows = [{"task": "poisson", "variant": "hig", "precision": 32, **hig, "floors": floors},
             {"task": "poisson", "variant": "adam", "precision": 32, **adam}]
-    text = table(rows)
-    ratio = hig["step_s"] / (hig["jacobian_s"] + min(floors.values()))
-    assert f"| {ratio:.2f} |" in text and f"| {adam['step_s'] / adam['loss_grad_s']:.2f} |" in text
+    assert f"| {adam['step_s'] / adam['loss_grad_s']:.2f} |" in table(rows)
+    text = jacobian_table(rows)
+    fastest = min(floors.values())
+    ratio = hig["step_s"] / (hig["eigh_s"] * fastest / floors["eigh_jax_s"] + hig["loss_grad_s"])
+    speed_up = hig["per_sample_step_s"] / hig["step_s"]
+    assert floor_seconds(rows[0]) > hig["loss_grad_s"] and f"| {ratio:.2f} |" in text
+    assert f"| {speed_up:.2f}x |" in text and "| adam |" not in text
     assert math.isfinite(ratio)
 
 

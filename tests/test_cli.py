@@ -35,7 +35,9 @@ def test_short_run_writes_the_results_schema(tmp_path):
         assert "unroll" not in attrs and "reason" not in attrs
         assert (attrs["task"], attrs["optim"], attrs["seed"], attrs["status"]) == ("poisson", "hig", 0, "completed")
         assert "name: hig" in attrs["config"] and "iterations: 20" in attrs["config"]
-        assert set(f["train"]) >= {"iteration", "wall_time", "loss", "grad_norm"}
+        assert attrs["jacobian"] == "layer-factorised"  # the form of J the step used (physgrad.jacobians)
+        assert set(f["train"]) >= {"iteration", "wall_time", "loss", "grad_norm", "kept_singular_values"}
+        assert 0 < f["train/kept_singular_values"][-1] <= 4 * 16  # at most m = batch x outputs
         assert set(f["eval"]) >= {"iteration", "wall_time", "loss", "field_error"}
         wall = f["train/wall_time"][()]
         assert wall.shape == (20,) and np.all(np.diff(wall) > 0) and wall[0] > 0

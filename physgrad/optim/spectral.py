@@ -17,6 +17,7 @@ import jax.numpy as jnp
 import optax
 from jax.flatten_util import ravel_pytree
 
+from physgrad.jacobians import as_jacobian
 from physgrad.validate import choice, flag, number
 
 
@@ -33,25 +34,31 @@ def _kept_scale(s: jax.Array, kappa: float, tau: float, power: float = 1.0) -> j
     return jnp.where(keep, safe_s ** (-kappa * power), 0.0)
 
 
-def svd_direction(jac: jax.Array, output_grad: jax.Array, kappa: float, tau: float) -> jax.Array:
-    """V diag(s^-kappa) U^T g from the thin SVD J = U diag(s) V^T, in J's precision."""
-    u, s, vt = jnp.linalg.svd(jac, full_matrices=False)
-    return vt.T @ (_kept_scale(s, kappa, tau) * (u.T @ output_grad))
+def svd_direction(jac, output_grad: jax.Array, kappa: float, tau: float) -> tuple[jax.Array, jax.Array]:
+    """V diag(s^-kappa) U^T g from the thin SVD J = U diag(s) V^T, in J's precision; and the number of singular
+    values kept."""
+    u, s, vt = jnp.linalg.svd(jac.dense(), full_matrices=False)
+    return vt.T @ (_kept_scale(s, kappa, tau) * (u.T @ output_grad)), _kept_count(s, tau)
 
 
-def gram_direction(jac: jax.Array, output_grad: jax.Array, kappa: float, tau: float) -> jax.Array:
-    """J^T U diag(lambda^-(kappa+1)/2) U^T g from J J^T = U diag(lambda) U^T, formed and decomposed in float64.
+def gram_direction(jac, output_grad: jax.Array, kappa: float, tau: float) -> tuple[jax.Array, jax.Array]:
+    """J^T U diag(lambda^-(kappa+1)/2) U^T g from J J^T = U diag(lambda) U^T, formed and decomposed in float64;
+    and the number of singular values kept.
 
     Equal to V diag(s^-kappa) U^T g because lambda = s^2 and V = J^T U diag(1/s); the m x m Gram matrix costs
-    O(m^2 n) like the SVD but runs as one matrix product, and float64 keeps the squared condition number
-    (1/tau^2) resolvable. Truncation: lambda > tau^2 max(lambda), i.e. s > tau max(s)."""
+    O(m^2 n) from a dense J (O(m^2 * layer widths) from the layer factors, physgrad.jacobians), and float64
+    keeps the squared condition number (1/tau^2) resolvable. Truncation: lambda > tau^2 max(lambda), i.e.
+    s > tau max(s)."""
     with jax.enable_x64(True):
-        jac64 = jac.astype(jnp.float64)
-        lam, u = jnp.linalg.eigh(jac64 @ jac64.T)
+        lam, u = jnp.linalg.eigh(jac.gram64())
         # eigh may return tiny negative eigenvalues; s = sqrt(max(lambda, 0)) and the rule drops them
         s = jnp.sqrt(jnp.maximum(lam, 0.0))
         weights = u @ (_kept_scale(s, kappa + 1.0, tau) * (u.T @ output_grad.astype(jnp.float64)))
-        return (jac64.T @ weights).astype(jac.dtype)
+        return jac.transpose_apply(weights).astype(jac.dtype), _kept_count(s, tau)
+
+
+def _kept_count(s: jax.Array, tau: float) -> jax.Array:
+    return jnp.sum(s > tau * jnp.max(s)).astype(jnp.int32)
 
 
 def resolve_route(route: str, tau: float, shape: tuple[int, int]) -> str:
@@ -61,24 +68,32 @@ def resolve_route(route: str, tau: float, shape: tuple[int, int]) -> str:
     return "gram" if shape[0] <= shape[1] and tau >= GRAM_MIN_TAU else "svd"
 
 
-def truncated_spectral_direction(jac: jax.Array, output_grad: jax.Array, kappa: float, tau: float,
-                                 route: str = "svd") -> jax.Array:
-    """V diag(s^-kappa) U^T g over the singular values with s > tau * max(s); the rest contribute 0.
-
-    An all-zero J has max(s) = 0, keeps nothing and gives a zero direction (never NaN)."""
+def _direction(jac, output_grad, kappa: float, tau: float, route: str) -> tuple[jax.Array, jax.Array]:
+    jac = as_jacobian(jac)
     route = resolve_route(route, tau, jac.shape)
     return (gram_direction if route == "gram" else svd_direction)(jac, output_grad, kappa, tau)
 
 
+def truncated_spectral_direction(jac, output_grad: jax.Array, kappa: float, tau: float,
+                                 route: str = "svd") -> jax.Array:
+    """V diag(s^-kappa) U^T g over the singular values with s > tau * max(s); the rest contribute 0.
+
+    jac: an m x n matrix, or one of the forms of physgrad.jacobians. An all-zero J has max(s) = 0, keeps
+    nothing and gives a zero direction (never NaN)."""
+    return _direction(jac, output_grad, kappa, tau, route)[0]
+
+
 class SpectralState(NamedTuple):
     """failures: steps whose factorisation returned non-finite values from finite inputs (LAPACK did not
-    converge), counted so that the runner can name the cause when the update turns non-finite."""
+    converge), counted so that the runner can name the cause when the update turns non-finite; kept: the
+    number of singular values the last step kept (s > tau * max(s))."""
 
     failures: jax.Array
+    kept: jax.Array
 
     def logs(self) -> dict:
-        """Logged with every training step (physgrad.optim.state_logs), as the column svd_failures."""
-        return {"svd_failures": self.failures}
+        """Logged with every training step (physgrad.optim.state_logs), as svd_failures and kept_singular_values."""
+        return {"svd_failures": self.failures, "kept_singular_values": self.kept}
 
 
 class JacobianRule(optax.GradientTransformationExtraArgs):
@@ -90,32 +105,31 @@ def spectral_direction(kappa: float, tau: float, route: str = "auto",
                        retry_float64: bool = False) -> optax.GradientTransformationExtraArgs:
     """Replaces the gradient by V diag(s^-kappa) U^T g.
 
-    Needs the extra arguments jacobian J (m x n, from physgrad.gradients.output_and_jacobian) and output_grad g = dL/dy
-    (shape (batch, k)); the incoming gradient gives only the pytree structure, since J^T g carries no more
-    than J and g.
+    Needs the extra arguments jacobian J (m x n: a matrix or a form from physgrad.jacobians) and output_grad
+    g = dL/dy (shape (batch, k)); the incoming gradient gives only the pytree structure, since J^T g carries no
+    more than J and g.
     A factorisation that fails (non-finite direction from a finite J and g) is counted in the state; with
     retry_float64 it is repeated in float64 first (the failed step only), and counted if that fails too.
     """
 
     def init(params):
-        return SpectralState(failures=jnp.zeros((), jnp.int32))
+        return SpectralState(failures=jnp.zeros((), jnp.int32), kept=jnp.zeros((), jnp.int32))
 
     def update(updates, state, params=None, *, jacobian, output_grad):
-        jac = jacobian
+        jac = as_jacobian(jacobian)
         g = output_grad.reshape(-1).astype(jac.dtype)
-        direction = truncated_spectral_direction(jac, g, kappa, tau, route)
-        inputs_finite = jnp.isfinite(jac).all() & jnp.isfinite(g).all()
+        direction, kept = _direction(jac, g, kappa, tau, route)
+        inputs_finite = jac.finite() & jnp.isfinite(g).all()
         failed = inputs_finite & ~jnp.isfinite(direction).all()
         if retry_float64:
             def in_float64():
                 with jax.enable_x64(True):
-                    wide = truncated_spectral_direction(jac.astype(jnp.float64), g.astype(jnp.float64), kappa,
-                                                        tau, route)
-                return wide.astype(jac.dtype)
+                    wide, wide_kept = _direction(jac.astype(jnp.float64), g.astype(jnp.float64), kappa, tau, route)
+                return wide.astype(jac.dtype), wide_kept
 
-            direction = jax.lax.cond(failed, in_float64, lambda: direction)
+            direction, kept = jax.lax.cond(failed, in_float64, lambda: (direction, kept))
             failed = inputs_finite & ~jnp.isfinite(direction).all()
-        state = SpectralState(failures=state.failures + failed.astype(jnp.int32))
+        state = SpectralState(failures=state.failures + failed.astype(jnp.int32), kept=kept)
         return ravel_pytree(updates)[1](direction), state
 
     return optax.GradientTransformationExtraArgs(init, update)
