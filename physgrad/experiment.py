@@ -23,6 +23,9 @@ from physgrad.tasks import Scene, build_scene
 from physgrad.validate import choice, finite_numbers, flag, number
 
 
+SEED_LIMIT = 2**32
+
+
 def check_config(cfg: DictConfig) -> TrainerSettings:
     """The run's own keys (top level and trainer) validated, NaN and infinity refused everywhere, and an unroll
     length refused for a scene without time (its task config has no `unroll`). The task and optim settings are
@@ -32,8 +35,12 @@ def check_config(cfg: DictConfig) -> TrainerSettings:
     flag("overwrite", cfg.get("overwrite"))
     if cfg.get("init_from") is not None and not isinstance(cfg.init_from, str):
         raise UserError(f"init_from={cfg.init_from!r} is not allowed: use the path of a results.h5, or null")
-    number("seed", cfg.get("seed"), 0, integer=True)
+    # PRNGKey(seed) keeps the low 32 bits of the seed: seeds 2^32 apart would be the same run
+    number("seed", cfg.get("seed"), 0, SEED_LIMIT, integer=True)
     number("seeds", cfg.get("seeds"), 1, integer=True)
+    if cfg.seed + cfg.seeds > SEED_LIMIT:
+        raise UserError(f"seed={cfg.seed} with seeds={cfg.seeds} reaches seed {cfg.seed + cfg.seeds - 1}: seeds must "
+                        f"stay below {SEED_LIMIT} (2^32), so use seed <= {SEED_LIMIT - cfg.seeds}")
     for section in ("task", "optim"):
         if not isinstance(cfg[section].get("name"), str) or not cfg[section].name:
             raise UserError(f"the {section} config has no name: add one (e.g. name: mine), it labels results")
@@ -161,6 +168,10 @@ def run_experiment(cfg: DictConfig, out_dir: str | Path) -> tuple[Outcome, Path]
     A job that completed before with the same config is not run again unless overwrite=true."""
     paths = seed_paths(cfg, out_dir)
     where = paths[0][1] if len(paths) == 1 else Path(out_dir)
+    own = cfg.get("init_from") and any(Path(str(cfg.init_from)).resolve() == path.resolve() for _, path in paths)
+    if own:  # refused without a results file: writing one would destroy the network it names
+        return Outcome("refused", f"init_from={cfg.init_from} is this job's own results file, which the run "
+                       "would overwrite: start from another run's results.h5", 0, 0.0, {}), where
     if not cfg.get("overwrite", False):
         previous = [finished_before(path, cfg) for _, path in paths]
         if all(previous):

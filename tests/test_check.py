@@ -72,6 +72,8 @@ def test_bptt_gradient_growth_is_measured(small_check):
     ("trainer.time_budget=-5", "trainer.time_budget=-5 is not allowed: use a number > 0 or null"),
     ("precision=16", "precision=16 is not allowed: choose one of 32, 64"),
     ("seed=-1", "seed=-1 is not allowed: use a whole number >= 0"),
+    ("seed=4294967296", "seed=4294967296 is not allowed: use a whole number >= 0 and < 4294967296"),
+    ("seed=4294967295 seeds=2", "seeds must stay below 4294967296 (2^32), so use seed <= 4294967294"),
     ("optim=hig optim.tau=2", "optim.tau=2 is not allowed: use a number >= 0 and < 1"),
     ("optim=hig optim.route=qr", "optim.route='qr' is not allowed: choose one of auto, svd, gram"),
     ("optim=adam optim.learning_rate=0", "optim.learning_rate=0 is not allowed: use a number > 0"),

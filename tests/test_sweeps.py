@@ -132,6 +132,16 @@ def test_init_from_a_wrong_run_is_refused(tmp_path, source, fragment):
     assert outcome.status == "refused" and fragment in outcome.reason and "\n" not in outcome.reason
 
 
+@pytest.mark.parametrize("overwrite", [False, True])
+def test_init_from_the_job_s_own_results_file_is_refused_and_leaves_it_intact(tmp_path, overwrite):
+    _, source = run_experiment(load(*TINY, "trainer.iterations=3"), tmp_path / "run")
+    before = source.read_bytes()
+    outcome, _ = run_experiment(load(*TINY, "optim=gd", "trainer.iterations=2", f"init_from={source}",
+                                     f"overwrite={overwrite}"), tmp_path / "run")
+    assert outcome.status == "refused" and "is this job's own results file" in outcome.reason
+    assert source.read_bytes() == before and read_run(source).attrs["status"] == "completed"
+
+
 def test_a_failed_job_does_not_stop_the_sweep(tmp_path, monkeypatch):
     import physgrad.experiment
     from physgrad.cli import main
