@@ -53,6 +53,8 @@ def test_pair_runs_two_iterations_or_is_refused(task, settings, optim, tmp_path)
         assert list(run.train["iteration"]) == [0, 1]
         assert list(run.eval["iteration"]) == [0, 1, 2]
         assert (tmp_path / "loss.png").stat().st_size > 0
+        # a scene with a per-run figure (Scene.figure) draws it beside loss.png; the others draw none
+        assert (tmp_path / "scene.png").exists() == (task == "guidance")
         assert ("unroll" in run.attrs) == (task not in ("poisson", "toy"))
         if optim == "stable_bptt":  # the combined gradient's diagnostics are logged per iteration
             assert 0 <= run.train["zeroed_fraction"].min() <= run.train["zeroed_fraction"].max() <= 1

@@ -11,7 +11,6 @@ from hydra import compose as hydra_compose
 from omegaconf import OmegaConf
 
 from physgrad.configs import CONF_DIR, check_overrides, initialized
-
 from physgrad.experiment import check_applies, check_config, effective_unroll, prepare, run_experiment
 from physgrad.optim import build_rule
 from physgrad.results import read_run
