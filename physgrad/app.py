@@ -4,10 +4,13 @@ from __future__ import annotations
 
 import logging
 import sys
+import time
+from collections import Counter
 from pathlib import Path
 
 import hydra
 from hydra.core.hydra_config import HydraConfig
+from hydra.experimental.callback import Callback
 from hydra.types import RunMode
 from omegaconf import DictConfig
 
@@ -33,8 +36,48 @@ def record_failure(cfg: DictConfig, out_dir: Path, error: Exception) -> None:
             "failed", f"{type(error).__name__}: {error}".splitlines()[0])
 
 
+FAILED_JOBS: list[int] = []  # set by SweepSummary at the end of a sweep: `physgrad run -m` exits 1 if non-zero
+
+
+class SweepSummary(Callback):
+    """At the end of a sweep (in the process that launched it, whatever the launcher): the runs it wrote under
+    the sweep folder counted by status, the folder, and the report command to run next. A failed run makes
+    `physgrad run -m` exit with status 1; refused and diverged runs are outcomes, not failures."""
+
+    def on_multirun_start(self, config: DictConfig, **kwargs) -> None:
+        self.start = time.time()
+        FAILED_JOBS.clear()
+
+    def on_multirun_end(self, config: DictConfig, **kwargs) -> None:
+        from physgrad.results import find_results, read_final
+
+        folder = Path(str(config.hydra.sweep.dir))
+        written, earlier = Counter(), 0
+        for path in find_results([folder]) if folder.is_dir() else []:
+            try:
+                status = read_final(path)[0].get("status", "?")
+            except ValueError:
+                status = "unreadable"
+            if path.stat().st_mtime >= getattr(self, "start", 0.0):
+                written[status] += 1
+            else:
+                earlier += 1  # completed before with the same config: skipped
+        FAILED_JOBS[:] = [written["failed"] + written["unreadable"]]
+        counts = ", ".join(f"{n} {status}" for status, n in sorted(written.items())) or "no runs written"
+        skipped = f"; {earlier} from before (completed: skipped)" if earlier else ""
+        log.info("sweep finished: %s%s in %s; next: physgrad report %s", counts, skipped, folder, folder)
+
+
+def objective(outcome) -> float:
+    """What the job returns to the sweeper, for those that optimise (hydra/sweeper=optuna): the final test loss
+    of a completed run (a budgeted run's last evaluation is at its budget); infinity for anything else, so a
+    diverged, refused or failed trial ranks last instead of stopping the study."""
+    loss = outcome.final_eval.get("loss") if outcome.status == "completed" else None
+    return float(loss) if loss is not None else float("inf")
+
+
 @hydra.main(version_base="1.3", config_path=str(CONF_DIR), config_name="config")
-def job(cfg: DictConfig) -> str:
+def job(cfg: DictConfig) -> float:
     hydra_cfg = HydraConfig.get()
     # a scene or optimiser named by _target_ may live in the folder the command was started from, also when a
     # launcher runs this job in another process
@@ -49,17 +92,18 @@ def job(cfg: DictConfig) -> str:
             raise
         record_failure(cfg, Path(hydra_cfg.runtime.output_dir), error)
         log.error("%s failed: %s: %s", name, type(error).__name__, error)
-        return "failed"
+        return float("inf")
     if outcome.status == "refused":
         if not multirun:
             print(f"physgrad: error: {outcome.reason}", file=sys.stderr)
             sys.exit(2)
         log.warning("%s skipped: %s", name, outcome.reason)
-        return outcome.status
+        return objective(outcome)
     test = outcome.final_eval.get("loss") if outcome.status == "completed" else None
-    log.info("%s %s after %d iterations, %.1f s of training%s%s -> %s", name, outcome.status, outcome.iterations,
-             outcome.train_seconds, f", test loss {test:.4g}" if test is not None else "",
+    stopped = f" (stopped by {outcome.stopped_by.replace('_', ' ')})" if outcome.stopped_by else ""
+    log.info("%s %s after %d iterations%s, %.1f s of training%s%s -> %s", name, outcome.status, outcome.iterations,
+             stopped, outcome.train_seconds, f", test loss {test:.4g}" if test is not None else "",
              f" ({outcome.reason})" if outcome.reason else "", path)
     if outcome.status == "interrupted":
         sys.exit(130)
-    return outcome.status
+    return objective(outcome)

@@ -16,8 +16,8 @@ from physgrad import UserError
 USAGE = """usage: physgrad {run,report,check} ...
 
   physgrad run [HYDRA FLAGS] [key=value ...]   train one configuration, or sweep with -m
-  physgrad report PATH... [--out DIR] [--threshold LOSS] [--note TEXT]
-                                              table and figures from the results.h5 files under PATH
+  physgrad report [LABEL=]PATH... [--out DIR] [--threshold LOSS] [--note TEXT] [--logx auto|on|off]
+                                              tables, CSV and figures from the results.h5 files under PATH
   physgrad check [--small]                    stiff and extreme cases: what each variant does with them
 
 Examples:
@@ -70,9 +70,11 @@ def run_command(args: list[str]) -> int:
         check_writable(parsed.overrides, multirun=parsed.multirun)
     from physgrad.app import job
 
+    from physgrad.app import FAILED_JOBS
+
     sys.argv = ["physgrad run", *args]
     job()
-    return 0
+    return 1 if parsed.multirun and any(FAILED_JOBS) else 0
 
 
 def shell_completion(args: list[str]) -> int:
@@ -125,22 +127,26 @@ def check_writable(overrides: list[str], multirun: bool) -> None:
 
 
 def report_command(args: list[str]) -> int:
-    parser = argparse.ArgumentParser(prog="physgrad report",
-                                     description="Table and figures from results.h5 files (never re-runs training).")
-    parser.add_argument("paths", nargs="+", help="results.h5 files or folders searched for them")
-    parser.add_argument("--out", help="folder for report.md and the figures (default: the first PATH folder)")
+    parser = argparse.ArgumentParser(
+        prog="physgrad report", description="Tables, CSV files and figures from results.h5 files (never re-runs "
+        "training). Runs that differ in anything but the seed are kept apart and labelled by what differs.")
+    parser.add_argument("paths", nargs="+", metavar="[LABEL=]PATH",
+                        help="results.h5 files or folders searched for them; LABEL=PATH names a set of runs (e.g. "
+                             "old=outputs/multirun/2026-11-15 new=outputs/multirun/2026-11-22), kept apart and "
+                             "labelled in tables and legends")
+    parser.add_argument("--out", help="folder for report.md, runs.csv, curves.csv and the figures (default: the "
+                                      "first PATH folder)")
     parser.add_argument("--threshold", type=float, default=None,
-                        help="test loss for the time-to-reach column (default: per task, the worst final test "
-                             "loss among the runs, so every run that finished has a time)")
+                        help="test loss for the time-to-reach column (default: per scene, the worst final test "
+                             "loss among its completed runs, so every run that finished has a time)")
     parser.add_argument("--note", default="", help="a line printed on every figure (e.g. the budget profile)")
+    parser.add_argument("--logx", choices=("auto", "on", "off"), default="auto",
+                        help="log time/iteration axis: auto where the curves' ends span a decade or more")
     options = parser.parse_args(args)
     from physgrad.report import write_report
 
-    try:
-        print(write_report(options.paths, out_dir=options.out, threshold=options.threshold, note=options.note),
-              end="")
-    except FileNotFoundError as error:
-        raise UserError(str(error)) from None
+    print(write_report(options.paths, out_dir=options.out, threshold=options.threshold, note=options.note,
+                       logx=options.logx), end="")
     return 0
 
 

@@ -93,6 +93,13 @@ def check_overrides(overrides: list[str], multirun: bool, config_dirs=()) -> Non
     except HydraException as error:
         raise UserError(f"cannot read the overrides: {str(error).splitlines()[0]}") from None
 
+    sweeper = next((str(o.value()) for o in parsed if o.key_or_group == "hydra/sweeper"), "basic")
+    if sweeper == "optuna":
+        try:
+            import hydra_plugins.hydra_optuna_sweeper  # noqa: F401
+        except ImportError:
+            raise UserError("hydra/sweeper=optuna needs Hydra's Optuna sweeper: pip install 'physgrad[tune]' "
+                            "(hydra-optuna-sweeper)") from None
     with initialized([*config_dirs, *searchpath_entries(overrides)]) as loader:
         groups = set(loader.list_groups(""))
         group_values: dict[str, list[str]] = {}
@@ -101,6 +108,10 @@ def check_overrides(overrides: list[str], multirun: bool, config_dirs=()) -> Non
             key, value = override.key_or_group, override.value()
             if override.is_sweep_override() and not multirun:
                 raise UserError(f"'{override.input_line}' sweeps several values: add -m (--multirun) to run them all")
+            if override.is_interval_sweep() and sweeper == "basic":
+                raise UserError(f"'{override.input_line}' is a search interval, which Hydra's basic sweeper cannot "
+                                "sample: add hydra/sweeper=optuna hydra.sweeper.n_trials=<N> (pip install "
+                                "'physgrad[tune]'), or list values: choice(a,b,c) or a,b,c")
             if key.startswith("hydra") or override.is_delete():
                 continue
             if key in groups and override.package is None:

@@ -1,33 +1,97 @@
-"""`physgrad report`: the error-against-run-time table and comparison figure from results files alone."""
+"""`physgrad report`: tables, figures and CSV files that compare runs, from results files alone.
+
+Runs are compared like with like. A *scene* is a task with the problem settings that differ between its runs
+(task keys, unroll, precision): one panel and one block of rows each. Within a scene, a *group* is every run
+with the same resolved configuration except the seed (and keys that do not change what is computed: output
+paths, logging, evaluation cadence, init_from's file name): its label is the variant plus the settings that
+differ between the scene's runs of that variant, e.g. ``adam learning_rate=0.01``. The same configuration and
+seed found twice counts once (the report names what it dropped). Sets of runs given as LABEL=PATH keep their
+label in front of the group's, so sweeps from different days can be compared.
+"""
 
 from __future__ import annotations
 
+import csv
 import math
-from collections import defaultdict
+import os
+from collections import Counter, defaultdict
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 import yaml
 
-from physgrad.results import Run, find_results, read_run
+from physgrad import UserError
+from physgrad.results import Run, find_results, natural_key, read_run
 
-COLUMNS = ("task", "setting", "variant", "seed", "status", "iters", "train loss", "test loss", "s/iter", "train s",
-           "t(thr) s", "note")
+# keys that never tell two runs apart: the seed (what a group pools over), how many seeds were trained together,
+# files and cadences that do not change the computation (init_from is identified by the variant's "from ...")
+NOT_COMPUTATION = ("seed", "seeds", "overwrite", "init_from", "trainer.flush_seconds", "trainer.log_seconds",
+                   "trainer.eval_every", "trainer.eval_seconds")
+# problem settings besides task.*: each value is its own scene
+SCENE_KEYS = ("unroll", "precision")
+# what the variant label already says
+VARIANT_KEYS = ("task.name", "optim.name", "optim.backprop", "optim.clip")
+METADATA = ("iteration", "wall_time")
 
 
-def collect(paths) -> tuple[list[Run], list[tuple[Path, str]]]:
-    """Every readable run under paths, and (path, reason) for each file that is not a readable results file."""
-    runs, unreadable = [], []
-    for path in find_results(paths):
+def parse_sources(arguments) -> list[tuple[str, Path]]:
+    """(set label, path) per argument: a path as given (label ""), or LABEL=PATH where the whole argument is not
+    itself an existing path (Hydra's job folders have '=' in their names)."""
+    sources = []
+    for argument in map(str, arguments):
+        label, sep, rest = argument.partition("=")
+        if sep and not Path(argument).exists() and label and "/" not in label:
+            sources.append((label, Path(rest)))
+        else:
+            sources.append(("", Path(argument)))
+    return sources
+
+
+@dataclass
+class Dropped:
+    path: Path
+    kept: Path
+    why: str
+
+
+def collect(arguments) -> tuple[list[Run], list[tuple[Path, str]], list[Dropped]]:
+    """Every readable run under the given paths (or LABEL=PATH sets), without duplicates; (path, reason) for
+    each file that is not a readable results file; and what was dropped as a duplicate. UserError (one line) if
+    a path does not exist or holds no results file."""
+    runs, unreadable, seen, repeated = [], [], {}, []
+    for label, path in parse_sources(arguments):
         try:
-            runs.append(read_run(path))
-        except ValueError as error:
-            unreadable.append((path, str(error)))
-    return runs, unreadable
+            found = find_results([path])
+        except FileNotFoundError as error:
+            raise UserError(f"{error}: give results.h5 files or folders that hold them") from None
+        if not found:
+            raise UserError(f"{path}: no results.h5 under it: give the folder of a run or a sweep")
+        for file in found:
+            key = (label, file.resolve())
+            if key in seen:  # a folder and its parent both given: the same file once
+                if seen[key] is not None:
+                    repeated.append(Dropped(file, seen[key], "the same file, found twice"))
+                    seen[key] = None  # said once
+                continue
+            seen[key] = file
+            try:
+                run = read_run(file)
+            except ValueError as error:
+                unreadable.append((file, str(error)))
+                continue
+            run.collection = label
+            runs.append(run)
+    runs, dropped = drop_duplicates(runs)
+    return runs, unreadable, repeated + dropped
 
 
-# Settings that change the problem (not the method), shown and grouped by when they differ between runs.
-SETTING_KEYS = {"unroll": "unroll", "precision": "precision"}
+def run_config(run: Run) -> dict:
+    """The run's resolved configuration, flattened to dotted keys (empty if it holds none)."""
+    try:
+        return _flat(yaml.safe_load(run.attrs.get("config", "")) or {})
+    except yaml.YAMLError:
+        return {}
 
 
 def _flat(tree: dict, prefix: str = "") -> dict:
@@ -40,32 +104,70 @@ def _flat(tree: dict, prefix: str = "") -> dict:
     return flat
 
 
-def label_settings(runs: list[Run]) -> None:
-    """Set run.setting to the problem settings that differ between runs of the same task (task.* keys other
-    than the batch size, unroll, precision), e.g. "poles=3": a difficulty sweep then gets one row group and one
-    panel per setting, never a median over different problems."""
-    configs = {}
+def _identity(run: Run) -> tuple:
+    """What makes two files the same run: the set, every setting but the job's base seed and the seed count,
+    and the seed the file trained."""
+    config = {k: v for k, v in run_config(run).items() if k not in ("seed", "seeds", "overwrite")}
+    return run.collection, repr(sorted(config.items())), run.attrs.get("task"), run.variant, str(run.attrs.get("seed"))
+
+
+def drop_duplicates(runs: list[Run]) -> tuple[list[Run], list[Dropped]]:
+    """One run per configuration and seed: a completed run before any other, then the newest."""
+    by_identity = defaultdict(list)
     for run in runs:
-        try:
-            config = _flat(yaml.safe_load(run.attrs.get("config", "")) or {})
-        except yaml.YAMLError:
-            config = {}
-        configs[run.path] = {k.removeprefix("task."): v for k, v in config.items()
-                             if (k.startswith("task.") and k not in ("task.name", "task.batch_size"))
-                             or k in SETTING_KEYS}
+        by_identity[_identity(run)].append(run)
+    kept, dropped = [], []
+    for same in by_identity.values():
+        same.sort(key=lambda r: (r.attrs.get("status") == "completed", str(r.attrs.get("finished", ""))),
+                  reverse=True)
+        kept.append(same[0])
+        dropped += [Dropped(r.path, same[0].path, "same configuration and seed") for r in same[1:]]
+    order = {id(run): i for i, run in enumerate(runs)}
+    return sorted(kept, key=lambda r: order[id(r)]), dropped
+
+
+def _value(value) -> str:
+    return _fmt(value) if isinstance(value, float) else str(value)
+
+
+def label_runs(runs: list[Run]) -> None:
+    """Set each run's scene settings (run.setting, e.g. "poles=3") and group label (run.label, e.g.
+    "old: adam learning_rate=0.01"): scene settings are the task keys, unroll and precision that differ between
+    runs of the same task; group settings every other key that differs between runs of the same variant in the
+    same scene (seed and NOT_COMPUTATION keys aside)."""
+    configs = {id(run): {k: v for k, v in run_config(run).items() if k not in NOT_COMPUTATION} for run in runs}
+    for run in runs:  # the unroll length the run used (unroll=null means the scene's own, task.unroll)
+        if "unroll" in run.attrs:
+            configs[id(run)]["unroll"] = run.attrs["unroll"]
+
+    def varying(members, keys_of):
+        keys = sorted({k for run in members for k in keys_of(configs[id(run)])})
+        return [k for k in keys if len({repr(configs[id(run)].get(k)) for run in members}) > 1]
+
+    scene_key = (lambda k: k.startswith("task.") and k not in ("task.name", "task.batch_size"))
     by_task = defaultdict(list)
     for run in runs:
         by_task[run.attrs.get("task")].append(run)
-    for task_runs in by_task.values():
-        keys = sorted({k for run in task_runs for k in configs[run.path]})
-        varying = [k for k in keys if len({repr(configs[run.path].get(k)) for run in task_runs}) > 1]
-        for run in task_runs:
-            run.setting = " ".join(f"{k}={configs[run.path].get(k)}" for k in varying)
+    for members in by_task.values():
+        keys = varying(members, lambda config: [k for k in config if scene_key(k) or k in SCENE_KEYS])
+        for run in members:
+            run.setting = " ".join(f"{k.removeprefix('task.')}={_value(configs[id(run)].get(k))}" for k in keys)
+    by_variant = defaultdict(list)
+    for run in runs:
+        by_variant[(run.scene, run.variant)].append(run)
+    for members in by_variant.values():
+        keys = varying(members, lambda config: [k for k in config if not (scene_key(k) or k in SCENE_KEYS
+                                                                          or k in VARIANT_KEYS)])
+        for run in members:
+            settings = " ".join(f"{k.split('.', 1)[-1]}={_value(configs[id(run)].get(k))}" for k in keys)
+            run.label = " ".join(part for part in (run.variant, settings) if part)
+            if run.collection:
+                run.label = f"{run.collection}: {run.label}"
 
 
 def thresholds(runs: list[Run]) -> dict[str, float]:
-    """Per scene (task and setting), the worst final test loss among the completed runs: every one of them
-    reaches it (a diverged or interrupted run's last evaluation says nothing about where training gets)."""
+    """Per scene, the worst final test loss among the completed runs: every one of them reaches it (a diverged
+    or interrupted run's last evaluation says nothing about where training gets)."""
     worst = defaultdict(lambda: -math.inf)
     for run in runs:
         final = run.final("eval")
@@ -74,70 +176,223 @@ def thresholds(runs: list[Run]) -> dict[str, float]:
     return dict(worst)
 
 
-def _fmt(value, digits=4) -> str:
+def common_times(runs: list[Run]) -> dict[str, float]:
+    """Per scene, the time every completed run covers: the shortest end of training among them (a time budget
+    ends a run at its budget), on the shared time axis (a run started from another's network starts where that
+    one ended). Losses at this time compare variants at equal training time."""
+    shortest = defaultdict(lambda: math.inf)
+    for run in runs:
+        end = run.final("train", "wall_time") + run.offset("wall_time")
+        if run.attrs.get("status") == "completed" and math.isfinite(end):
+            shortest[run.scene] = min(shortest[run.scene], end)
+    return dict(shortest)
+
+
+def loss_at(run: Run, seconds: float) -> float:
+    """The test loss of the last evaluation at or before `seconds` of training (on the shared time axis); NaN
+    if there is none, or if the run diverged before that time (its last loss says nothing about it)."""
+    times = run.eval.get("wall_time", np.empty(0)) + run.offset("wall_time")
+    loss = run.eval.get("loss", np.empty(0))
+    before = np.flatnonzero(times <= seconds * (1 + 1e-9))
+    if not before.size or (run.attrs.get("status") == "diverged" and times[-1] < seconds):
+        return math.nan
+    return float(loss[before[-1]])
+
+
+def metric_names(runs: list[Run]) -> list[str]:
+    """The scene metrics the runs evaluate besides the loss (e.g. fidelity, upright)."""
+    return sorted({k for run in runs for k in run.eval if k not in (*METADATA, "loss")})
+
+
+def _fmt(value) -> str:
+    """Three significant figures; '-' for a missing number."""
+    if value is None or (isinstance(value, float) and math.isnan(value)):
+        return "-"
     if isinstance(value, float):
-        return "-" if math.isnan(value) else f"{value:.{digits}g}"
+        return f"{value:.3g}"
     return str(value)
 
 
-def table_rows(runs: list[Run], threshold: float | None = None) -> list[dict]:
-    per_scene = thresholds(runs)
+def run_rows(runs: list[Run], threshold: float | None = None) -> list[dict]:
+    """One row per run (the per-seed table and runs.csv)."""
+    limits, common = thresholds(runs), common_times(runs)
+    names = metric_names(runs)
     rows = []
-    for run in sorted(runs, key=lambda r: (r.scene, r.variant, str(r.attrs.get("seed")))):
-        limit = threshold if threshold is not None else per_scene.get(run.scene, math.nan)
+    order = lambda r: (natural_key(r.scene), natural_key(r.label), natural_key(str(r.attrs.get("seed"))))  # noqa: E731
+    for run in sorted(runs, key=order):
+        limit = threshold if threshold is not None else limits.get(run.scene, math.nan)
+        at = common.get(run.scene, math.nan)
         train_loss = run.train.get("loss", np.empty(0))
         rows.append({
-            "task": run.attrs.get("task"), "setting": run.setting, "variant": run.variant, "seed": run.attrs.get("seed"), "status": run.attrs.get("status"),
-            "iters": int(train_loss.size),
-            "train loss": float(np.median(train_loss[-10:])) if train_loss.size else math.nan,
-            "test loss": run.final("eval"),
-            "s/iter": run.seconds_per_iteration,
-            "train s": run.final("train", "wall_time"),
-            "t(thr) s": run.time_to_reach(limit) if math.isfinite(limit) else math.nan,
-            "note": run.attrs.get("reason", "") or "",
+            "path": str(run.path), "set": run.collection, "task": run.attrs.get("task"), "scene": run.scene,
+            "setting": run.setting, "variant": run.variant, "label": run.label, "seed": run.attrs.get("seed"),
+            "status": run.attrs.get("status"), "stopped_by": run.attrs.get("stopped_by", ""),
+            "iterations": int(train_loss.size),
+            "train_loss": float(np.median(train_loss[-10:])) if train_loss.size else math.nan,
+            "test_loss": run.final("eval"),
+            "common_time": at,
+            "loss_at_common_time": loss_at(run, at) if math.isfinite(at) else math.nan,
+            "threshold": limit,
+            "time_to_threshold": run.time_to_reach(limit) if math.isfinite(limit) else math.nan,
+            "s_per_iter": run.seconds_per_iteration,
+            "train_seconds": run.final("train", "wall_time"),
+            "compile_seconds": float(run.attrs.get("compile_seconds", math.nan)),
+            "first_step_overhead_seconds": float(run.attrs.get("first_step_overhead_seconds", math.nan)),
+            **{name: run.final("eval", name) for name in names},
+            "reason": run.attrs.get("reason", "") or "",
         })
     return rows
 
 
-def markdown_table(rows: list[dict]) -> str:
-    lines = ["| " + " | ".join(COLUMNS) + " |", "|" + "---|" * len(COLUMNS)]
+def _spread(values) -> str:
+    """median [min, max] of the finite values (the median alone for one)."""
+    finite = [v for v in values if isinstance(v, (int, float)) and math.isfinite(v)]
+    if not finite:
+        return "-"
+    if len(finite) == 1:
+        return _fmt(float(finite[0]))
+    return f"{_fmt(float(np.median(finite)))} [{_fmt(float(min(finite)))}, {_fmt(float(max(finite)))}]"
+
+
+def _counts(values, plain_if_one: bool = False) -> str:
+    """'2 completed, 1 diverged'; the value alone if all agree and plain_if_one."""
+    counts = Counter(v for v in values if v)
+    if plain_if_one and len(counts) == 1:
+        return next(iter(counts))
+    return ", ".join(f"{n} {v}" for v, n in sorted(counts.items())) or "-"
+
+
+def group_rows(rows: list[dict], names: list[str]) -> list[dict]:
+    """One row per (scene, group): seeds, status counts, spread of the final test loss (completed runs) and of
+    the loss at the common time (every run that got there), time to the threshold (median over the seeds that reached it, and how many did), iterations,
+    s/iter, what stopped the runs, and the scene's metrics."""
+    groups = defaultdict(list)
     for row in rows:
-        lines.append("| " + " | ".join(_fmt(row[c]) for c in COLUMNS) + " |")
+        groups[(row["scene"], row["label"])].append(row)
+    table = []
+    for (scene, label), members in groups.items():
+        completed = [r for r in members if r["status"] == "completed"]  # a diverged run's last loss says nothing
+        reached = [r["time_to_threshold"] for r in members if math.isfinite(r["time_to_threshold"])]
+        time_to = "-" if not reached else _fmt(float(np.median(reached))) + (
+            "" if len(reached) == len(members) else f" ({len(reached)}/{len(members)})")
+        table.append({
+            "scene": scene, "group": label, "seeds": len(members), "status": _counts(r["status"] for r in members),
+            "final test loss": _spread(r["test_loss"] for r in completed),
+            "loss at common time": _spread(r["loss_at_common_time"] for r in members),
+            "time to threshold s": time_to,
+            "iterations": str(round(float(np.median([r["iterations"] for r in members])))),
+            "s/iter": _spread(r["s_per_iter"] for r in members),
+            "stopped by": _counts((r["stopped_by"] for r in members), plain_if_one=True),
+            **{name: _spread(r[name] for r in completed) for name in names},
+        })
+    return table
+
+
+PER_SEED = ("scene", "label", "seed", "status", "stopped_by", "iterations", "test_loss", "loss_at_common_time",
+            "time_to_threshold", "s_per_iter", "train_seconds", "compile_seconds")
+
+
+def markdown_table(rows: list[dict], columns) -> str:
+    lines = ["| " + " | ".join(columns) + " |", "|" + "---|" * len(columns)]
+    for row in rows:
+        lines.append("| " + " | ".join(_fmt(row[c]).replace("|", "/") for c in columns) + " |")
     return "\n".join(lines) + "\n"
 
 
-def write_report(paths, out_dir=None, threshold: float | None = None, note: str = "") -> str:
-    """Print-ready text; also writes into out_dir (default: the first path's folder) report.md and the figures:
-    loss_vs_time.png, loss_vs_iteration.png, tradeoff.png (final test loss against seconds per iteration and
-    total time) and, where runs differ in unroll length, unroll.png. ``note`` is printed on every figure."""
-    runs, unreadable = collect(paths)
-    label_settings(runs)
-    first = Path(paths[0])
+def write_csv(rows: list[dict], runs: list[Run], out: Path) -> None:
+    """runs.csv (one row per run) and curves.csv (long format: run, split, iteration, wall_time, metric,
+    value; run is the results file's path as in runs.csv)."""
+    if rows:
+        with open(out / "runs.csv", "w", newline="") as f:
+            writer = csv.DictWriter(f, fieldnames=list(rows[0]))
+            writer.writeheader()
+            writer.writerows(rows)
+    with open(out / "curves.csv", "w", newline="") as f:
+        writer = csv.writer(f)
+        writer.writerow(("run", "split", "iteration", "wall_time", "metric", "value"))
+        for run in runs:
+            for split in ("train", "eval"):
+                columns = getattr(run, split)
+                if "iteration" not in columns:
+                    continue
+                iterations, times = columns["iteration"].tolist(), columns["wall_time"].tolist()
+                for metric in sorted(k for k in columns if k not in METADATA):
+                    values = columns[metric].tolist()
+                    writer.writerows((run.path, split, i, t, metric, v) for i, t, v in zip(iterations, times, values))
+
+
+def output_folder(arguments, out_dir) -> Path:
+    """--out, else the first path's folder; UserError (one line) if it cannot be created or written."""
+    first = parse_sources(arguments)[0][1]
     out = Path(out_dir) if out_dir else (first if first.is_dir() else first.parent)
-    out.mkdir(parents=True, exist_ok=True)
-    rows = table_rows(runs, threshold)
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+        if not os.access(out, os.W_OK | os.X_OK):
+            raise PermissionError(13, "Permission denied", str(out))
+    except OSError as error:
+        raise UserError(f"cannot write the report to {out}: {error.strerror or error}: give --out <a writable "
+                        "folder>") from None
+    return out
+
+
+def write_report(paths, out_dir=None, threshold: float | None = None, note: str = "", logx: str = "auto") -> str:
+    """Print-ready text; also writes into out_dir (default: the first path's folder) report.md, runs.csv,
+    curves.csv and the figures (PNG and PDF): loss_vs_time, loss_vs_iteration, tradeoff (final test loss
+    against seconds per iteration and total time) and, where runs differ in unroll length, unroll. ``note`` is
+    printed on every figure; ``logx`` is auto (log where the curves' ends span a decade or more), on or off."""
+    runs, unreadable, dropped = collect(paths)
+    out = output_folder(paths, out_dir)
+    label_runs(runs)
+    rows = run_rows(runs, threshold)
+    names = metric_names(runs)
+    group_columns = ("scene", "group", "seeds", "status", "final test loss", "loss at common time",
+                     "time to threshold s", "iterations", "s/iter", "stopped by", *names)
+    limits, common = thresholds(runs), common_times(runs)
+    scenes = sorted({run.scene for run in runs}, key=natural_key)
     if threshold is not None:
-        legend = f"t(thr): training seconds until the test loss first reached {threshold:.4g}."
+        threshold_text = f"the test loss {_fmt(threshold)} (--threshold)"
     else:
-        legend = "t(thr): training seconds until the test loss first reached the scene's threshold (" + ", ".join(
-            f"{scene}: {value:.4g}" for scene, value in sorted(thresholds(runs).items())
-        ) + "; the worst final test loss of the scene's completed runs, so each of them reaches it; --threshold sets it)."
-    text = [f"{len(runs)} runs under {', '.join(map(str, paths))}", "", markdown_table(rows), legend,
-            "train loss: median of the last 10 minibatch losses; s/iter: median seconds per training step; "
-            "train s: training seconds (a run started from another's network counts from its own start)."]
+        threshold_text = ("each scene's worst final test loss among its completed runs, so each of them reaches it "
+                          "(--threshold sets one)")
+    per_scene = "; ".join(f"{scene}: common time {_fmt(common.get(scene, math.nan))} s, threshold "
+                          f"{_fmt(threshold if threshold is not None else limits.get(scene, math.nan))}"
+                          for scene in scenes)
+    text = [f"{len(runs)} runs under {', '.join(map(str, paths))}", "",
+            markdown_table(group_rows(rows, names), group_columns),
+            "Per group, as median [min, max] over seeds: the final test loss and the metrics over the completed "
+            "seeds, the loss at the common time over the seeds that got there, s/iter over all; loss at common "
+            "time: the last evaluation at or before the shortest training time of the scene's completed runs, so "
+            "every variant is compared at equal training time; time to threshold: "
+            f"median training seconds until the test loss first reached {threshold_text}, over the seeds that "
+            f"did (n/N when not all). {per_scene}.", "",
+            "Per seed:", "", markdown_table(rows, PER_SEED + tuple(names)),
+            "Times are training seconds (steps only: compilation and the first step's one-off cost are apart, in "
+            "compile_seconds and runs.csv); a run started from another's network counts from where that run ended "
+            "on the common time axis, and from its own start in train_seconds."]
     for path, reason in unreadable:
         text.append(f"unreadable: {reason}")
+    for item in dropped:
+        text.append(f"counted once: {item.path}: {item.why}" if item.path.resolve() == item.kept.resolve()
+                    else f"dropped {item.path}: {item.why} as {item.kept}")
+    for _, path in parse_sources(paths):  # a study of Hydra's Optuna sweeper (hydra/sweeper=optuna)
+        study = path / "optimization_results.yaml" if path.is_dir() else None
+        if study is not None and study.is_file():
+            best = yaml.safe_load(study.read_text()) or {}
+            settings = " ".join(f"{k}={_value(v)}" for k, v in (best.get("best_params") or {}).items())
+            text.append(f"tuned by Optuna in {path}: best {settings} (objective {_fmt(best.get('best_value'))}: the "
+                        "final test loss)")
     body = "\n".join(text) + "\n"
     (out / "report.md").write_text(body)
+    write_csv(rows, runs, out)
     from physgrad.plots import plot_comparison, plot_tradeoff, plot_unroll
 
-    plot_comparison(runs, out / "loss_vs_time.png", "wall_time", note)
-    plot_comparison(runs, out / "loss_vs_iteration.png", "iteration", note)
-    plot_tradeoff(runs, out / "tradeoff.png", note)
-    figures = [FIGURES[0], FIGURES[1], FIGURES[2]]
-    if plot_unroll(runs, out / "unroll.png", note):
-        figures.append(FIGURES[3])
-    return body + f"wrote {out / 'report.md'} and {', '.join(figures)}\n"
+    plot_comparison(runs, out / "loss_vs_time", "wall_time", note, logx)
+    plot_comparison(runs, out / "loss_vs_iteration", "iteration", note, logx)
+    plot_tradeoff(runs, out / "tradeoff", note)
+    figures = [f"{name}.png" for name in FIGURES[:3]]
+    if plot_unroll(runs, out / "unroll", note):
+        figures.append("unroll.png")
+    return body + f"wrote {out / 'report.md'}, runs.csv, curves.csv and {', '.join(figures)} (and .pdf)\n"
 
 
-FIGURES = ("loss_vs_time.png", "loss_vs_iteration.png", "tradeoff.png", "unroll.png")
+FIGURES = ("loss_vs_time", "loss_vs_iteration", "tradeoff", "unroll")

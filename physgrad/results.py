@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import math
 import os
+import re
 import signal
 import time
 from contextlib import contextmanager
@@ -71,6 +72,14 @@ class ResultsWriter:
         """The hot path of the training loop: values in the order given to set_columns()."""
         self._rows[group].append(values)
 
+    def shift_buffered_time(self, seconds: float) -> None:
+        """Add seconds to the wall_time of every row not yet flushed (the runner moves the first step's one-off
+        cost out of the training time this way)."""
+        for group, rows in self._rows.items():
+            if rows and "wall_time" in self._columns[group]:
+                at = self._columns[group].index("wall_time")
+                rows[:] = [(*row[:at], row[at] + seconds, *row[at + 1:]) for row in rows]
+
     def flush(self) -> None:
         """Append every buffered row to the file."""
         if not any(self._rows.values()):
@@ -125,7 +134,9 @@ class Run:
     attrs: dict
     train: dict
     eval: dict
-    setting: str = ""  # the settings that tell this run apart from others of its task in a report
+    setting: str = ""  # the problem settings that tell this run's scene apart from others of its task
+    label: str = ""  # in a report: its group (variant and the method settings that differ), see physgrad.report
+    collection: str = ""  # in a report: the label of the set of runs it was found in (LABEL=PATH)
 
     @property
     def scene(self) -> str:
@@ -207,6 +218,12 @@ def _plain(value):
     if isinstance(value, np.generic):
         return value.item()
     return value
+
+
+def natural_key(text: str) -> list:
+    """Sort key that orders the numbers inside text by value: 'unroll=16' before 'unroll=128'."""
+    return [(0, float(part), "") if re.fullmatch(r"\d+(\.\d+)?", part) else (1, 0.0, part)
+            for part in re.split(r"(\d+(?:\.\d+)?)", text) if part]
 
 
 def find_results(paths) -> list[Path]:

@@ -1,12 +1,15 @@
 """The training loop: one compiled step, training-only timing, NaN/Inf guard, buffered HDF5 rows.
 
 Timing contract: ``wall_time`` is the cumulative time of finished training steps (each step is timed from
-dispatch until its outputs are ready). Compilation happens before the loop (``compile_seconds``);
-evaluations, HDF5 flushes and the progress bar fall outside the timed intervals.
+dispatch until its outputs are ready). Compilation happens before the loop (``compile_seconds``), and so does
+the one-off cost of the compiled step's first call (``first_step_overhead_seconds``: how much longer the first
+step took than the second, 10 to 50 ms on CPU whatever the step costs, which would otherwise be 10 to 200
+times a fast step); evaluations, HDF5 flushes, logging and the progress bar fall outside the timed intervals.
 """
 
 from __future__ import annotations
 
+import logging
 import math
 import signal
 import time
@@ -26,26 +29,42 @@ from physgrad.results import ResultsWriter
 from physgrad.tasks import Scene
 from physgrad.validate import number
 
+log = logging.getLogger("physgrad")
+clock = time.perf_counter  # every interval of the loop is read from this clock (tests replace it)
+DEFAULT_ITERATIONS = 2000  # trainer.iterations=null without a time budget
+EVALUATIONS_PER_BUDGET = 20  # trainer.eval_seconds=null with a time budget: an evaluation every budget / 20
+
 
 @dataclass(frozen=True)
 class TrainerSettings:
-    """The `trainer` config section: when to stop, evaluate and write."""
+    """The `trainer` config section: when to stop, evaluate, write and log. iterations is None for no limit
+    (a time budget alone ends the run); eval_seconds None for evaluations by iteration only."""
 
-    iterations: int
+    iterations: int | None
     time_budget: float | None
     eval_every: int
+    eval_seconds: float | None
     batch_size: int
     flush_seconds: float
+    log_seconds: float
 
     @classmethod
     def from_config(cls, trainer_cfg) -> "TrainerSettings":
+        """trainer.iterations=null means 2000 without a time budget and no limit with one; trainer.eval_seconds=
+        null means time_budget / 20 with a budget (so that a slow variant still gets a curve) and none without."""
+        budget = number("trainer.time_budget", trainer_cfg.get("time_budget"), 0, optional=True, open_low=True)
+        iterations = number("trainer.iterations", trainer_cfg.get("iterations"), 1, integer=True, optional=True)
+        eval_seconds = number("trainer.eval_seconds", trainer_cfg.get("eval_seconds"), 0, optional=True,
+                              open_low=True)
         return cls(
-            iterations=number("trainer.iterations", trainer_cfg.get("iterations"), 1, integer=True),
-            time_budget=number("trainer.time_budget", trainer_cfg.get("time_budget"), 0, optional=True,
-                               open_low=True),
+            iterations=iterations if iterations is not None or budget is not None else DEFAULT_ITERATIONS,
+            time_budget=budget,
             eval_every=number("trainer.eval_every", trainer_cfg.get("eval_every"), 1, integer=True),
+            eval_seconds=eval_seconds if eval_seconds is not None or budget is None
+            else budget / EVALUATIONS_PER_BUDGET,
             batch_size=number("trainer.batch_size", trainer_cfg.get("batch_size"), 1, integer=True),
             flush_seconds=number("trainer.flush_seconds", trainer_cfg.get("flush_seconds"), 0, open_low=True),
+            log_seconds=number("trainer.log_seconds", trainer_cfg.get("log_seconds", 30.0), 0, open_low=True),
         )
 
 
@@ -56,6 +75,7 @@ class Outcome:
     iterations: int
     train_seconds: float
     final_eval: dict
+    stopped_by: str | None = None  # iterations | time_budget (completed runs)
 
 
 def make_step(scene: Scene, rule: UpdateRule, batch_size: int):
@@ -221,19 +241,59 @@ class SeedRun:
         return self.status == "completed"
 
 
+class Progress:
+    """What the user sees while a run trains. On a terminal, a bar over the iterations, or over the training
+    seconds when a time budget is set (its ETA is then the budget's), that says when it is compiling; without
+    one (a batch job, nohup), a log line every trainer.log_seconds of wall-clock with iteration, loss and
+    elapsed training time."""
+
+    def __init__(self, settings: TrainerSettings, label: str):
+        self.settings, self.label = settings, label
+        self.by_time = settings.time_budget is not None
+        total = settings.time_budget if self.by_time else settings.iterations
+        self.bar = tqdm(total=total, desc=f"{label} compiling", mininterval=0.5, disable=None, leave=False,
+                        unit="s" if self.by_time else "it",
+                        bar_format="{l_bar}{bar}| {n:.0f}/{total:.0f} s [{elapsed}<{remaining}{postfix}]"
+                        if self.by_time else None)
+        self.logging = self.bar.disable
+        self.last_log = clock()
+
+    def compiled(self, seconds: float) -> None:
+        self.bar.set_description(self.label)
+        if self.logging:
+            log.info("%s compiled in %.1f s", self.label, seconds)
+
+    def update(self, iteration: int, train_seconds: float, loss: float) -> None:
+        """Called at every flush (at most every trainer.flush_seconds), not at every step."""
+        if not self.bar.disable:
+            self.bar.set_postfix_str(f"it {iteration}, loss {loss:.3e}", refresh=False)
+            self.bar.update((min(train_seconds, self.bar.total) if self.by_time else iteration) - self.bar.n)
+        elif clock() - self.last_log >= self.settings.log_seconds:
+            self.last_log = clock()
+            log.info("%s iteration %d, loss %.4g, %.1f s of training", self.label, iteration, loss, train_seconds)
+
+    def close(self) -> None:
+        self.bar.close()
+
+
 def train(scene: Scene, rule: UpdateRule, seeds: Seeds, writers: list[ResultsWriter], settings: TrainerSettings,
           label: str = "") -> list[Outcome]:
     """Compile, then iterate until trainer.iterations or trainer.time_budget (training seconds), whichever
-    comes first, every seed in one vectorised step (writers: one per seed). A seed whose output, loss, gradient
-    or update turns non-finite ends with status diverged (its rows stop there) while the others go on; the
-    wall time is the shared one. Returns one Outcome per seed."""
+    comes first, every seed in one vectorised step (writers: one per seed). The budget is checked after each
+    step, so a run passes it by less than one step. Evaluations at the start, every trainer.eval_every
+    iterations, whenever trainer.eval_seconds of training passed since the last one, and at the end. A seed
+    whose output, loss, gradient or update turns non-finite ends with status diverged (its rows stop there)
+    while the others go on; the wall time is the shared one. Returns one Outcome per seed."""
     runs = [SeedRun(writer) for writer in writers]
-    train_seconds, done = 0.0, 0
+    train_seconds, done, stopped_by = 0.0, 0, None
     params = None
+    last_eval_seconds = 0.0
 
     def record_eval(iteration):
+        nonlocal last_eval_seconds
         # written with the next periodic flush: a flush per evaluation cost 2% of a fast scene's wall time
         metrics = {k: np.asarray(v).tolist() for k, v in jax.device_get(evaluate(params, seeds.test_sets)).items()}
+        last_eval_seconds = train_seconds
         for index, run in enumerate(runs):
             if run.running:
                 values = {k: v[index] for k, v in metrics.items()}
@@ -244,32 +304,47 @@ def train(scene: Scene, rule: UpdateRule, seeds: Seeds, writers: list[ResultsWri
         for run in runs:
             getattr(run.writer, method)(*args, **kwargs)
 
-    bar = tqdm(total=settings.iterations, desc=label, mininterval=0.5, disable=None, leave=False)
+    progress = Progress(settings, label)
     try:
         with stop_on_signals() as stop:
             # compiling can take minutes: inside the guard, so a failure or an interrupt here is recorded too
-            start = time.perf_counter()
+            start = clock()
             compiled = compile_training(scene, rule, seeds, settings.batch_size)
             step, evaluate, log_names = compiled.step, compiled.evaluate, compiled.log_names
             params, opt_state = compiled.params, compiled.opt_state
-            for_every_writer("set_attrs", compile_seconds=time.perf_counter() - start)
+            compile_seconds = clock() - start
+            for_every_writer("set_attrs", compile_seconds=compile_seconds)
+            progress.compiled(compile_seconds)
             for_every_writer("set_columns", "train", ("iteration", "wall_time", *log_names))
             guarded = [log_names.index(name) for name in GUARDED]
             svd_at = log_names.index("svd_failures") if "svd_failures" in log_names else None
             running = list(enumerate(runs))
             record_eval(0)
             for_every_writer("flush")
-            last_flush = time.perf_counter()
-            for iteration in range(settings.iterations):
+            last_flush = clock()
+            first_step_seconds = 0.0
+            iteration = 0
+            while settings.iterations is None or iteration < settings.iterations:
                 if stop.signal_name is not None:
                     raise KeyboardInterrupt(stop.signal_name)
-                tick = time.perf_counter()
+                tick = clock()
                 new_params, opt_state, logs = step(params, opt_state, np.int32(iteration), seeds.train_keys,
                                                    seeds.train_sets)
                 logs = np.asarray(logs).tolist()  # one transfer for every logged scalar of every seed
                 jax.block_until_ready(new_params)
-                train_seconds += time.perf_counter() - tick
+                seconds = clock() - tick
+                train_seconds += seconds
                 params, done = new_params, iteration + 1
+                if iteration == 0:
+                    first_step_seconds = seconds
+                elif iteration == 1:
+                    # the first call's one-off cost (how much longer it took than the second) is start-up, not
+                    # training: taken off every time stamp since, which are all still in the buffers
+                    overhead = max(0.0, first_step_seconds - seconds)
+                    train_seconds -= overhead
+                    last_eval_seconds = min(last_eval_seconds, train_seconds)
+                    for_every_writer("shift_buffered_time", -overhead)
+                    for_every_writer("set_attrs", first_step_overhead_seconds=overhead)
                 diverged = False
                 for index, run in running:
                     row = logs[index]
@@ -284,19 +359,23 @@ def train(scene: Scene, rule: UpdateRule, seeds: Seeds, writers: list[ResultsWri
                     running = [(index, run) for index, run in running if run.running]
                     if not running:
                         break
-                if done % settings.eval_every == 0 and done < settings.iterations:
-                    record_eval(done)
+                iteration = done
                 if settings.time_budget is not None and train_seconds >= settings.time_budget:
-                    for_every_writer("set_attrs", stopped_by="time_budget")
+                    stopped_by = "time_budget"
                     break
-                now = time.perf_counter()
-                if now - last_flush >= settings.flush_seconds:
+                if done == settings.iterations:
+                    stopped_by = "iterations"
+                    break
+                if done % settings.eval_every == 0 or (
+                        settings.eval_seconds is not None and train_seconds - last_eval_seconds >= settings.eval_seconds):
+                    record_eval(done)
+                now = clock()
+                if now - last_flush >= settings.flush_seconds and done > 1:  # after the first-step correction
                     for_every_writer("flush")
                     last_flush = now
-                    bar.set_postfix(loss=f"{logs[running[0][0]][guarded[1]]:.3e}", refresh=False)
-                    bar.update(done - bar.n)
-            else:
-                for_every_writer("set_attrs", stopped_by="iterations")
+                    progress.update(done, train_seconds, logs[running[0][0]][guarded[1]])
+            if stopped_by is not None:
+                for_every_writer("set_attrs", stopped_by=stopped_by)
             if any(run.running and run.latest_eval["iteration"] != done for run in runs):
                 record_eval(done)
     except KeyboardInterrupt as interrupt:
@@ -310,7 +389,7 @@ def train(scene: Scene, rule: UpdateRule, seeds: Seeds, writers: list[ResultsWri
             run.writer.finish("failed", message, iterations=run.iterations or done, train_seconds=train_seconds)
         raise
     finally:
-        bar.close()
+        progress.close()
     outcomes = []
     for index, run in enumerate(runs):
         flat = None if params is None else np.asarray(params[index])
@@ -318,5 +397,6 @@ def train(scene: Scene, rule: UpdateRule, seeds: Seeds, writers: list[ResultsWri
             run.writer.save_params(flat)
         iterations = run.iterations or done
         run.writer.finish(run.status, run.reason, iterations=iterations, train_seconds=train_seconds)
-        outcomes.append(Outcome(run.status, run.reason, iterations, train_seconds, run.latest_eval))
+        outcomes.append(Outcome(run.status, run.reason, iterations, train_seconds, run.latest_eval,
+                                stopped_by if run.status == "completed" else None))
     return outcomes

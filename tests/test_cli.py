@@ -54,18 +54,21 @@ def test_sweep_then_report(tmp_path):
     assert len(files) == 6
     statuses = sorted(read_run(f).attrs["status"] for f in files)
     assert statuses == ["completed"] * 4 + ["refused"] * 2
+    assert f"sweep finished: 4 completed, 2 refused in {sweep}; next: physgrad report {sweep}" in result.stdout
     out = physgrad("report", str(sweep)).stdout
-    table = [line for line in out.splitlines() if line.startswith("| poisson")]
-    assert len(table) == 6
-    assert sum("| adam | " in line for line in table) == 2 and sum("| hig | " in line for line in table) == 2
-    assert sum("refused" in line for line in table) == 2
-    assert (sweep / "report.md").read_text().count("| poisson") == 6
+    by_group, by_seed = out.split("Per seed:")
+    groups = [line for line in by_group.splitlines() if line.startswith("| poisson | ")]
+    assert [line.split(" | ")[1:4] for line in groups] == [["adam", "2", "2 completed"], ["bptt", "2", "2 refused"],
+                                                           ["hig", "2", "2 completed"]]
+    per_seed = [line for line in by_seed.splitlines() if line.startswith("| poisson | ")]
+    assert len(per_seed) == 6 and sum("refused" in line for line in per_seed) == 2
+    assert (sweep / "report.md").read_text().count("| poisson | ") == 9
     assert (sweep / "loss_vs_time.png").stat().st_size > 1000
 
 
 def test_hydra_flags_keep_working(tmp_path):
     cfg = physgrad("run", "--cfg", "job", "optim=hig").stdout
-    assert "name: hig" in cfg and "learning_rate: 0.64" in cfg and "iterations: 2000" in cfg
+    assert "name: hig" in cfg and "learning_rate: 0.64" in cfg and "iterations: null" in cfg
     assert "Configuration groups" in physgrad("run", "--help").stdout
     assert "physgrad run" in physgrad("--help").stdout
 
@@ -78,6 +81,7 @@ def test_hydra_flags_keep_working(tmp_path):
     (["unroll=8"], "task=poisson has no time axis: remove unroll=8"),
     (["optim=stable_bptt"], "optim=stable_bptt needs a closed-loop controller"),
     (["seed=0,1"], "add -m"),
+    (["-m", "optim.learning_rate=interval(0.001,0.1)"], "basic sweeper cannot sample: add hydra/sweeper=optuna"),
 ])
 def test_user_mistakes_are_one_line_errors(args, fragment, tmp_path):
     result = physgrad("run", *args, f"hydra.run.dir={tmp_path}", check=False)
@@ -120,3 +124,13 @@ def test_killed_or_interrupted_run_leaves_a_readable_file(sig, status, tmp_path)
     if sig != signal.SIGKILL:
         assert process.returncode == 130
         assert f"after {rows.size} iterations" in run.attrs["reason"]
+
+
+def test_without_a_terminal_progress_is_logged_and_the_run_ends_with_one_line(tmp_path):
+    result = physgrad("run", "task=toy", "trainer.time_budget=3", "trainer.log_seconds=0.5",
+                      f"hydra.run.dir={tmp_path}")
+    lines = result.stdout.splitlines()
+    assert any(" compiled in " in line for line in lines)
+    progress = [line for line in lines if "toy/adam seed 0 iteration " in line]
+    assert len(progress) >= 2 and all(", loss " in line and " s of training" in line for line in progress)
+    assert "completed after" in lines[-1] and "(stopped by time budget), 3.0 s of training" in lines[-1]

@@ -1,24 +1,42 @@
-"""physgrad report on hand-made results files: grouping by setting, thresholds, time to reach, the band."""
+"""physgrad report on hand-made results files: scenes and groups, duplicates, labelled sets, thresholds, the
+loss at a common time, CSV export, figures, bad input."""
 
+import csv
 import math
 
+import matplotlib.pyplot as plt
 import numpy as np
+import pytest
 import yaml
 
-from physgrad.plots import median_band
-from physgrad.report import collect, label_settings, table_rows, write_report
+from physgrad import UserError
+from physgrad.plots import log_axis, median_band, use_log_x
+from physgrad.report import collect, label_runs, loss_at, run_rows, write_report
 from physgrad.results import ResultsWriter
 
 
-def fake_run(folder, variant, seed, poles, eval_loss, eval_time, status="completed"):
-    config = yaml.safe_dump({"seed": seed, "precision": 32, "unroll": None,
-                             "task": {"name": "multicart", "poles": poles, "batch_size": 8}})
+def fake_run(folder, variant, seed, poles, eval_loss, eval_time, status="completed", optim=None, trainer=None,
+             metrics=None, attrs=None):
+    config = yaml.safe_dump({"seed": seed, "seeds": 1, "precision": 32, "unroll": None, "init_from": None,
+                             "task": {"name": "multicart", "poles": poles, "batch_size": 8},
+                             "optim": {"name": variant, **(optim or {})},
+                             "trainer": {"iterations": 100, "flush_seconds": 1.0, **(trainer or {})}})
     writer = ResultsWriter(folder / "results.h5", {"task": "multicart", "optim": variant, "variant": variant,
-                                                   "seed": seed, "config": config})
+                                                   "seed": seed, "config": config, **(attrs or {})})
     for i, t in enumerate(eval_time):
         writer.append("train", {"iteration": i, "wall_time": t + 0.5, "loss": eval_loss[i], "grad_norm": 1.0})
-        writer.append("eval", {"iteration": i, "wall_time": t, "loss": eval_loss[i]})
-    writer.finish(status, None if status == "completed" else "loss became nan at iteration 2")
+        writer.append("eval", {"iteration": i, "wall_time": t, "loss": eval_loss[i],
+                               **{k: v[i] for k, v in (metrics or {}).items()}})
+    writer.finish(status, None if status == "completed" else "loss became nan at iteration 2 (loss)")
+
+
+def label_settings(runs):
+    label_runs(runs)
+
+
+def table_rows(runs, threshold=None):
+    return [{**row, "t(thr) s": row["time_to_threshold"], "s/iter": row["s_per_iter"]}
+            for row in run_rows(runs, threshold)]
 
 
 def test_report_groups_by_setting_and_times_the_threshold(tmp_path):
@@ -26,11 +44,12 @@ def test_report_groups_by_setting_and_times_the_threshold(tmp_path):
     fake_run(tmp_path / "b", "stable_bptt", 0, 1, [1.0, 0.5, 0.05], [0.0, 2.0, 4.0])
     fake_run(tmp_path / "c", "bptt", 0, 2, [1.0, 0.9, 0.8], [0.0, 1.0, 2.0])
     fake_run(tmp_path / "d", "bptt", 1, 2, [1.0, 0.7, 0.6], [0.0, 1.0, 2.0], status="diverged")
-    runs, unreadable = collect([tmp_path])
+    runs, unreadable, _ = collect([tmp_path])
     assert len(runs) == 4 and not unreadable
     label_settings(runs)
     assert sorted({run.scene for run in runs}) == ["multicart poles=1", "multicart poles=2"]
     rows = {(r["setting"], r["variant"], r["seed"]): r for r in table_rows(runs)}
+    assert len(rows) == 4
     # threshold per scene: the worst final test loss (0.05 for poles=1, 0.8 for poles=2)
     assert rows[("poles=1", "bptt", 0)]["t(thr) s"] == 2.0
     assert rows[("poles=1", "stable_bptt", 0)]["t(thr) s"] == 4.0
@@ -40,8 +59,10 @@ def test_report_groups_by_setting_and_times_the_threshold(tmp_path):
     fixed = {(r["setting"], r["variant"], r["seed"]): r for r in table_rows(runs, threshold=0.1)}
     assert fixed[("poles=1", "bptt", 0)]["t(thr) s"] == 1.0 and math.isnan(fixed[("poles=2", "bptt", 0)]["t(thr) s"])
     text = write_report([tmp_path])
-    assert "| multicart | poles=1 | bptt | 0 | completed |" in text
-    assert (tmp_path / "loss_vs_time.png").stat().st_size > 1000
+    assert "| multicart poles=1 | bptt | 0 | completed | iterations |" not in text  # fake runs record no stop
+    assert "| multicart poles=1 | bptt | 0 | completed |  | 3 | 0.01 |" in text
+    assert "| multicart poles=2 | bptt | 2 | 1 completed, 1 diverged | 0.8 |" in text  # the completed seed only
+    assert (tmp_path / "loss_vs_time.png").stat().st_size > 1000 and (tmp_path / "loss_vs_time.pdf").exists()
 
 
 def test_unreadable_files_are_listed_not_fatal(tmp_path):
@@ -54,8 +75,9 @@ def test_unreadable_files_are_listed_not_fatal(tmp_path):
 
 def test_median_band_interpolates_in_log_loss():
     curves = [(np.array([0.0, 2.0]), np.array([1.0, 1e-2])), (np.array([0.0, 4.0]), np.array([1.0, 1e-8]))]
-    grid, median, low, high = median_band(curves, points=3)
-    np.testing.assert_allclose(grid, [0.0, 1.0, 2.0])  # up to the shortest curve's end
+    curves[1] = (np.array([0.0, 1.0, 4.0]), np.array([1.0, 1e-2, 1e-8]))  # log-linear between 1 and 4
+    grid, median, low, high = median_band(curves)
+    np.testing.assert_allclose(grid, [0.0, 1.0, 2.0])  # every evaluation up to the shortest curve's end
     np.testing.assert_allclose(low, [1.0, 1e-2, 1e-4])
     np.testing.assert_allclose(high, [1.0, 1e-1, 1e-2])
     np.testing.assert_allclose(median, np.sqrt(low * high))
@@ -75,10 +97,11 @@ def test_report_draws_the_tradeoff_and_unroll_figures(tmp_path):
                 writer.append("eval", {"iteration": i, "wall_time": i * unroll * 1e-3, "loss": scale / (i + 1)})
             writer.finish("completed")
     text = write_report([tmp_path])
-    for name in ("loss_vs_time.png", "loss_vs_iteration.png", "tradeoff.png", "unroll.png"):
-        assert (tmp_path / name).stat().st_size > 1000 and name in text
+    for name in ("loss_vs_time", "loss_vs_iteration", "tradeoff", "unroll"):
+        assert (tmp_path / f"{name}.png").stat().st_size > 1000 and f"{name}.png" in text
+        assert (tmp_path / f"{name}.pdf").read_bytes().startswith(b"%PDF")
     # six problems (one per unroll length) in the table, one unroll figure across them
-    runs, _ = collect([tmp_path])
+    runs, _, _ = collect([tmp_path])
     label_settings(runs)
     assert sorted({run.scene for run in runs}) == [f"multicart unroll={u}" for u in (16, 32, 64)]
 
@@ -93,8 +116,111 @@ def test_report_without_an_unroll_axis_draws_no_unroll_figure(tmp_path):
 def test_threshold_comes_from_completed_runs_only(tmp_path):
     fake_run(tmp_path / "ok", "hig", 0, 1, [1.0, 0.1], [0.0, 1.0])
     fake_run(tmp_path / "bad", "gauss_newton", 0, 1, [0.9], [0.0], status="diverged")
-    runs, _ = collect([tmp_path])
+    runs, _, _ = collect([tmp_path])
     label_settings(runs)
     from physgrad.report import thresholds
 
     assert thresholds(runs) == {"multicart": 0.1}
+
+
+def test_a_learning_rate_sweep_is_two_groups_named_by_what_differs(tmp_path):
+    for lr, losses in ((1e-3, ([1.0, 0.5], [1.0, 0.4])), (1e-2, ([1.0, 0.1], [1.0, 0.2]))):
+        for seed, loss in enumerate(losses):
+            fake_run(tmp_path / f"lr{lr}_s{seed}", "adam", seed, 1, loss, [0.0, 1.0], optim={"learning_rate": lr},
+                     trainer={"flush_seconds": 1.0 + seed})  # a setting that does not change the computation
+    fake_run(tmp_path / "hig", "hig", 0, 1, [1.0, 0.3], [0.0, 2.0], optim={"learning_rate": 1.0})
+    runs, _, dropped = collect([tmp_path])
+    label_runs(runs)
+    assert not dropped
+    assert sorted({run.label for run in runs}) == ["adam learning_rate=0.001", "adam learning_rate=0.01", "hig"]
+    assert {run.scene for run in runs} == {"multicart"}
+    text = write_report([tmp_path])
+    assert "| multicart | adam learning_rate=0.001 | 2 | 2 completed | 0.45 [0.4, 0.5] |" in text
+    assert "| multicart | adam learning_rate=0.01 | 2 | 2 completed | 0.15 [0.1, 0.2] |" in text
+    assert "| multicart | hig | 1 | 1 completed | 0.3 |" in text
+
+
+def test_the_same_run_found_twice_or_rerun_counts_once(tmp_path):
+    fake_run(tmp_path / "a", "adam", 0, 1, [1.0, 0.5], [0.0, 1.0])
+    fake_run(tmp_path / "b", "adam", 1, 1, [1.0, 0.4], [0.0, 1.0])
+    fake_run(tmp_path / "again", "adam", 0, 1, [1.0, 0.3], [0.0, 1.0], status="interrupted")
+    runs, _, dropped = collect([tmp_path, tmp_path / "a", tmp_path / "a" / "results.h5"])
+    assert sorted(run.path.parent.name for run in runs) == ["a", "b"]  # the completed one of the two seed-0 runs
+    assert [(d.path.parent.name, d.kept.parent.name) for d in dropped] == [("a", "a"), ("again", "a")]
+    assert dropped[0].why == "the same file, found twice"
+    text = write_report([tmp_path, tmp_path / "b"])
+    assert f"counted once: {tmp_path / 'b' / 'results.h5'}: the same file, found twice" in text
+    assert f"dropped {tmp_path / 'again' / 'results.h5'}: same configuration and seed as {tmp_path / 'a'}" in text
+    assert "| multicart | adam | 2 | 2 completed |" in text
+
+
+def test_labelled_sets_are_kept_apart(tmp_path):
+    fake_run(tmp_path / "monday" / "x", "adam", 0, 1, [1.0, 0.5], [0.0, 1.0])
+    fake_run(tmp_path / "friday" / "x", "adam", 0, 1, [1.0, 0.2], [0.0, 1.0])
+    text = write_report([f"old={tmp_path / 'monday'}", f"new={tmp_path / 'friday'}"], out_dir=tmp_path / "out")
+    assert "| multicart | old: adam | 1 | 1 completed | 0.5 |" in text
+    assert "| multicart | new: adam | 1 | 1 completed | 0.2 |" in text
+    rows = list(csv.DictReader(open(tmp_path / "out" / "runs.csv")))
+    assert sorted((r["set"], r["label"]) for r in rows) == [("new", "new: adam"), ("old", "old: adam")]
+
+
+def test_loss_at_common_time_uses_only_evaluations_before_it(tmp_path):
+    fake_run(tmp_path / "fast", "adam", 0, 1, [1.0, 0.5, 0.1], [0.0, 1.0, 2.0], trainer={"time_budget": 2.0})
+    fake_run(tmp_path / "slow", "hig", 0, 1, [1.0, 0.6, 0.01], [0.0, 1.5, 6.0], trainer={"time_budget": 6.0})
+    fake_run(tmp_path / "bad", "gd", 0, 1, [1.0, 0.9], [0.0, 0.5], status="diverged")
+    runs, _, _ = collect([tmp_path])
+    label_runs(runs)
+    rows = {r["variant"]: r for r in run_rows(runs)}
+    # the common time is the shortest end of training of the completed runs: fast's 2.5 s (its last train row)
+    assert rows["adam"]["common_time"] == rows["hig"]["common_time"] == 2.5
+    assert rows["adam"]["loss_at_common_time"] == 0.1 and rows["hig"]["loss_at_common_time"] == 0.6
+    assert math.isnan(rows["gd"]["loss_at_common_time"])  # diverged before that time: no loss at it
+    run = next(r for r in runs if r.variant == "hig")
+    assert loss_at(run, 1.4999) == 1.0 and loss_at(run, 1.5) == 0.6 and math.isnan(loss_at(run, -1.0))
+
+
+def test_scene_metrics_and_csv_export(tmp_path):
+    fake_run(tmp_path / "a", "bptt", 0, 2, [1.0, 0.5, 0.25], [0.0, 1.0, 2.0], metrics={"upright": [0.0, 0.5, 1.0]})
+    fake_run(tmp_path / "b", "bptt", 1, 2, [1.0, 0.6], [0.0, 1.0], metrics={"upright": [0.0, 0.25]})
+    text = write_report([tmp_path])
+    assert "| upright |" in text.splitlines()[2] and "| 0.625 [0.25, 1] |" in text  # median of 1 and 0.25
+    rows = list(csv.DictReader(open(tmp_path / "runs.csv")))
+    assert len(rows) == 2 and {"path", "label", "setting", "seed", "status", "stopped_by", "iterations",
+                               "train_seconds", "test_loss", "loss_at_common_time", "time_to_threshold",
+                               "upright"} <= set(rows[0])
+    assert sorted(float(r["upright"]) for r in rows) == [0.25, 1.0]
+    curves = list(csv.DictReader(open(tmp_path / "curves.csv")))
+    assert set(curves[0]) == {"run", "split", "iteration", "wall_time", "metric", "value"}
+    # per run: train loss and grad_norm, eval loss and upright, one row per iteration each
+    assert len(curves) == 3 * 4 + 2 * 4
+    eval_a = [c for c in curves if c["run"].endswith("a/results.h5") and c["split"] == "eval"
+              and c["metric"] == "upright"]
+    assert [(int(c["iteration"]), float(c["wall_time"]), float(c["value"])) for c in eval_a] == [
+        (0, 0.0, 0.0), (1, 1.0, 0.5), (2, 2.0, 1.0)]
+
+
+@pytest.mark.parametrize("make", ["missing", "empty", "unwritable_out"])
+def test_bad_report_input_is_one_line(tmp_path, make, capsys):
+    from physgrad.cli import main
+
+    fake_run(tmp_path / "ok", "adam", 0, 1, [1.0, 0.5], [0.0, 1.0])
+    (tmp_path / "empty").mkdir()
+    blocker = tmp_path / "file"
+    blocker.write_text("")
+    args = {"missing": [str(tmp_path / "nope")], "empty": [str(tmp_path / "empty")],
+            "unwritable_out": [str(tmp_path / "ok"), "--out", str(blocker / "out")]}[make]
+    assert main(["report", *args]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("physgrad: error: ") and err.count("\n") == 1, err
+
+
+def test_figure_axes_read_well():
+    assert use_log_x([1.0, 60.0], "auto") and not use_log_x([30.0, 60.0], "auto")
+    assert use_log_x([30.0, 60.0], "on") and not use_log_x([1.0, 60.0], "off")
+    fig, ax = plt.subplots()
+    ax.plot([0, 1], [0.99992, 0.99999])
+    log_axis(ax)
+    fig.canvas.draw()
+    labels = [t.get_text() for t in ax.get_yticklabels() if t.get_text()]
+    assert labels and all(len(label) <= 5 and "10^" not in label for label in labels), labels
+    plt.close(fig)

@@ -1,5 +1,6 @@
 """The training loop: stopping rules, divergence, comparability across variants, precision, results files."""
 
+import dataclasses
 import re
 
 import jax
@@ -7,6 +8,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
+from physgrad import UserError
 from physgrad.experiment import run_experiment, set_precision
 from physgrad.results import ResultsWriter, read_run
 from physgrad.tasks import build_scene
@@ -49,6 +51,81 @@ def test_time_budget_stops_training(tmp_path):
     assert 0.5 <= run.train["wall_time"][-1] == outcome.train_seconds
     assert outcome.iterations < 100000000
     assert run.eval["iteration"][-1] == outcome.iterations  # a final evaluation at the stopping point
+
+
+class SimulatedClock:
+    """The runner's clock, advanced by the step alone: each step takes `step` seconds (the first `first_extra`
+    more), every other reading 1 microsecond, so budgets, evaluation times and the first-step correction are
+    exact and independent of the machine."""
+
+    def __init__(self, monkeypatch, step=0.01, first_extra=0.0):
+        import physgrad.runner
+
+        self.now, self.step, self.extra, self.calls = 0.0, step, first_extra, 0
+        monkeypatch.setattr(physgrad.runner, "clock", self)
+        real = physgrad.runner.compile_training
+
+        def compile_with_simulated_steps(*args, **kwargs):
+            compiled = real(*args, **kwargs)
+
+            def step(*step_args):
+                self.now += self.step + (self.extra if self.calls == 0 else 0.0)
+                self.calls += 1
+                return compiled.step(*step_args)
+
+            return dataclasses.replace(compiled, step=step)
+
+        monkeypatch.setattr(physgrad.runner, "compile_training", compile_with_simulated_steps)
+
+    def __call__(self):
+        self.now += 1e-6
+        return self.now
+
+
+def test_a_time_budget_alone_runs_until_the_budget_and_passes_it_by_less_than_a_step(tmp_path, monkeypatch):
+    clock = SimulatedClock(monkeypatch, step=0.01)
+    outcome, path = run_experiment(load("task=toy", "trainer.time_budget=25", "trainer.eval_every=1000000",
+                                        "trainer.flush_seconds=1"), tmp_path)
+    run = read_run(path)
+    assert run.attrs["stopped_by"] == "time_budget" == outcome.stopped_by
+    assert outcome.iterations > 2000  # no hidden iteration cap (2000 is the default without a budget)
+    assert 25 <= outcome.train_seconds < 25 + clock.step and outcome.iterations == clock.calls
+    # evaluations every budget / 20 of training time (trainer.eval_seconds=null), besides start and end
+    np.testing.assert_allclose(np.diff(run.eval["wall_time"])[:-1], 25 / 20, atol=clock.step + 1e-4)
+    assert run.eval["iteration"][-1] == outcome.iterations
+
+
+def test_the_first_step_s_one_off_cost_is_start_up_not_training(tmp_path, monkeypatch):
+    SimulatedClock(monkeypatch, step=0.01, first_extra=5.0)
+    outcome, path = run_experiment(load("task=toy", "trainer.iterations=50", "trainer.eval_every=1",
+                                        "trainer.flush_seconds=0.001"), tmp_path)
+    run = read_run(path)
+    assert run.attrs["first_step_overhead_seconds"] == pytest.approx(5.0, abs=1e-4)
+    np.testing.assert_allclose(run.train["wall_time"], 0.01 * np.arange(1, 51), atol=1e-4)
+    np.testing.assert_allclose(run.eval["wall_time"], 0.01 * np.arange(0, 51), atol=1e-4)
+    assert outcome.train_seconds == pytest.approx(0.5, abs=1e-4)
+
+
+def test_evaluations_by_training_time_give_a_slow_variant_a_curve(tmp_path, monkeypatch):
+    SimulatedClock(monkeypatch, step=2.0)  # a step as slow as HIG's on a large scene
+    outcome, path = run_experiment(load("task=toy", "trainer.time_budget=20", "trainer.eval_every=100",
+                                        "trainer.eval_seconds=3"), tmp_path)
+    run = read_run(path)
+    assert outcome.iterations == 10
+    assert list(run.eval["iteration"]) == [0, 2, 4, 6, 8, 10]  # every 3 s of training: after 4, 8, ... s
+
+
+def test_trainer_settings_resolve_iterations_and_evaluation_times():
+    from physgrad.runner import DEFAULT_ITERATIONS, TrainerSettings
+
+    def settings(**trainer):
+        return TrainerSettings.from_config({"eval_every": 10, "batch_size": 1, "flush_seconds": 1.0, **trainer})
+
+    assert settings().iterations == DEFAULT_ITERATIONS and settings().eval_seconds is None
+    assert settings(time_budget=40.0).iterations is None and settings(time_budget=40.0).eval_seconds == 2.0
+    assert settings(time_budget=40.0, iterations=5, eval_seconds=7.0).iterations == 5
+    with pytest.raises(UserError, match="trainer.log_seconds=0 is not allowed"):
+        settings(log_seconds=0)
 
 
 def test_iterations_stop_training_and_wall_time_is_monotone(tmp_path):

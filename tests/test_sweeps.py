@@ -7,6 +7,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import yaml
 from hydra import compose as hydra_compose
 from omegaconf import OmegaConf
 
@@ -153,7 +154,8 @@ def test_a_failed_job_does_not_stop_the_sweep(tmp_path, monkeypatch):
         return real(optim_cfg)
 
     monkeypatch.setattr(physgrad.experiment, "build_rule", broken_for_gd)
-    assert main(["run", "-m", "optim=gd,adam", "trainer.iterations=2", *TINY[1:], f"hydra.sweep.dir={tmp_path}"]) == 0
+    # the sweep goes on, and exits 1 because a job failed
+    assert main(["run", "-m", "optim=gd,adam", "trainer.iterations=2", *TINY[1:], f"hydra.sweep.dir={tmp_path}"]) == 1
     statuses = {read_run(p).attrs["optim"]: read_run(p) for p in tmp_path.rglob("results.h5")}
     assert statuses["gd"].attrs["status"] == "failed"
     assert statuses["gd"].attrs["reason"] == "RuntimeError: simulated crash"
@@ -171,7 +173,7 @@ def test_a_failed_job_of_several_seeds_records_the_failure_in_every_seed_file(tm
         raise RuntimeError("simulated crash")
 
     monkeypatch.setattr(physgrad.experiment, "build_rule", broken)
-    assert main(["run", "-m", "seeds=2", "trainer.iterations=2", *TINY[1:], f"hydra.sweep.dir={tmp_path}"]) == 0
+    assert main(["run", "-m", "seeds=2", "trainer.iterations=2", *TINY[1:], f"hydra.sweep.dir={tmp_path}"]) == 1
     files = sorted(tmp_path.rglob("results.h5"))
     assert [p.parent.name for p in files] == ["seed=0", "seed=1"]  # no stray file beside them
     for seed, path in enumerate(files):
@@ -237,3 +239,42 @@ def test_a_diverging_seed_leaves_the_others_running(tmp_path):
     assert outcome.status == "diverged" and "seed #0: output became nan at iteration 1" in outcome.reason
     assert runs[0].train["iteration"].tolist() == [0, 1] and runs[1].train["iteration"].tolist() == [0, 1, 2, 3]
     assert runs[1].eval["iteration"].tolist() == [0, 4]
+
+
+def test_diverged_and_refused_jobs_are_outcomes_not_failures(tmp_path):
+    from physgrad.cli import main
+
+    assert main(["run", "-m", "optim=gd,bptt", "optim.learning_rate=1e30", "trainer.iterations=30", *TINY[1:],
+                 f"hydra.sweep.dir={tmp_path}"]) == 0
+    assert sorted(read_run(p).attrs["status"] for p in tmp_path.rglob("results.h5")) == ["diverged", "refused"]
+
+
+def test_the_job_returns_its_objective_to_the_sweeper():
+    from physgrad.app import objective
+    from physgrad.runner import Outcome
+
+    assert objective(Outcome("completed", None, 10, 1.0, {"loss": 0.25})) == 0.25
+    for status in ("diverged", "refused", "failed"):
+        assert objective(Outcome(status, "why", 10, 1.0, {"loss": 0.25})) == float("inf")
+
+
+@pytest.mark.slow
+def test_optuna_tunes_a_learning_rate_in_a_fixed_number_of_trials(tmp_path):
+    """The documented tuning command (README), small: Hydra's Optuna sweeper samples the learning rate on a log
+    interval, every trial is a job folder, the study's best value is the lowest final test loss, and the report
+    shows the trials and the best one."""
+    from tests.test_cli import physgrad
+
+    result = physgrad("run", "-m", "hydra/sweeper=optuna", "hydra.sweeper.n_trials=3", "hydra.sweeper.sampler.seed=0",
+                      "task=toy", "optim=adam", "optim.learning_rate=tag(log, interval(1e-4, 1e-1))",
+                      "trainer.iterations=40", f"hydra.sweep.dir={tmp_path}")
+    runs = [read_run(p) for p in tmp_path.rglob("results.h5")]
+    rates = {yaml.safe_load(run.attrs["config"])["optim"]["learning_rate"] for run in runs}
+    assert len(runs) == 3 == len(rates) and all(1e-4 <= rate <= 1e-1 for rate in rates)
+    best = yaml.safe_load((tmp_path / "optimization_results.yaml").read_text())
+    assert best["best_value"] == pytest.approx(min(run.final("eval") for run in runs))
+    assert "sweep finished: 3 completed" in result.stdout
+    report = physgrad("report", str(tmp_path)).stdout
+    groups = [line for line in report.splitlines() if line.startswith("| toy | adam learning_rate=")
+              and "| 1 | 1 completed |" in line]
+    assert len(groups) == 3 and "tuned by Optuna in" in report  # one group per trial
