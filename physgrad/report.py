@@ -127,7 +127,9 @@ def drop_duplicates(runs: list[Run]) -> tuple[list[Run], list[Dropped]]:
 
 
 def _value(value) -> str:
-    return _fmt(value) if isinstance(value, float) else str(value)
+    """A setting's value in a label: six significant figures, so that close values (an Optuna study's learning
+    rates) keep apart, while round ones stay short (0.01)."""
+    return f"{value:.6g}" if isinstance(value, float) else str(value)
 
 
 def label_runs(runs: list[Run]) -> None:

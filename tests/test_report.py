@@ -129,10 +129,13 @@ def test_a_learning_rate_sweep_is_two_groups_named_by_what_differs(tmp_path):
             fake_run(tmp_path / f"lr{lr}_s{seed}", "adam", seed, 1, loss, [0.0, 1.0], optim={"learning_rate": lr},
                      trainer={"flush_seconds": 1.0 + seed})  # a setting that does not change the computation
     fake_run(tmp_path / "hig", "hig", 0, 1, [1.0, 0.3], [0.0, 2.0], optim={"learning_rate": 1.0})
+    for index, lr in enumerate((0.0044303752, 0.0044312345)):  # close values (an Optuna study's) stay apart
+        fake_run(tmp_path / f"gd{index}", "gd", 0, 1, [1.0, 0.9], [0.0, 1.0], optim={"learning_rate": lr})
     runs, _, dropped = collect([tmp_path])
     label_runs(runs)
     assert not dropped
-    assert sorted({run.label for run in runs}) == ["adam learning_rate=0.001", "adam learning_rate=0.01", "hig"]
+    assert sorted({run.label for run in runs}) == ["adam learning_rate=0.001", "adam learning_rate=0.01",
+                                                   "gd learning_rate=0.00443038", "gd learning_rate=0.00443123", "hig"]
     assert {run.scene for run in runs} == {"multicart"}
     text = write_report([tmp_path])
     assert "| multicart | adam learning_rate=0.001 | 2 | 2 completed | 0.45 [0.4, 0.5] |" in text
