@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import logging
 import sys
-import time
 from collections import Counter
 from pathlib import Path
 
@@ -36,6 +35,7 @@ def record_failure(cfg: DictConfig, out_dir: Path, error: Exception) -> None:
             "failed", f"{type(error).__name__}: {error}".splitlines()[0])
 
 
+OUTCOMES = ("completed", "diverged", "refused")  # what an experiment can find; anything else is a failure
 FAILED_JOBS: list[int] = []  # set by SweepSummary at the end of a sweep: `physgrad run -m` exits 1 if non-zero
 
 
@@ -45,7 +45,11 @@ class SweepSummary(Callback):
     `physgrad run -m` exit with status 1; refused and diverged runs are outcomes, not failures."""
 
     def on_multirun_start(self, config: DictConfig, **kwargs) -> None:
-        self.start = time.time()
+        from physgrad.results import find_results
+
+        folder = Path(str(config.hydra.sweep.dir))
+        # what was there before: a file counts as this sweep's if it is new or was written since
+        self.before = {path: path.stat().st_mtime_ns for path in find_results([folder])} if folder.is_dir() else {}
         FAILED_JOBS.clear()
 
     def on_multirun_end(self, config: DictConfig, **kwargs) -> None:
@@ -58,13 +62,14 @@ class SweepSummary(Callback):
                 status = read_final(path)[0].get("status", "?")
             except ValueError:
                 status = "unreadable"
-            if path.stat().st_mtime >= getattr(self, "start", 0.0):
+            if getattr(self, "before", {}).get(path) != path.stat().st_mtime_ns:
                 written[status] += 1
             else:
-                earlier += 1  # completed before with the same config: skipped
-        FAILED_JOBS[:] = [written["failed"] + written["unreadable"]]
+                earlier += 1  # untouched by this sweep: completed before with the same config, or another job's
+        # a run left running (its worker was killed), interrupted, failed or unreadable is a failure
+        FAILED_JOBS[:] = [sum(n for status, n in written.items() if status not in OUTCOMES)]
         counts = ", ".join(f"{n} {status}" for status, n in sorted(written.items())) or "no runs written"
-        skipped = f"; {earlier} from before (completed: skipped)" if earlier else ""
+        skipped = f"; {earlier} untouched (completed before: skipped)" if earlier else ""
         log.info("sweep finished: %s%s in %s; next: physgrad report %s", counts, skipped, folder, folder)
 
 

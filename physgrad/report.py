@@ -24,9 +24,9 @@ import yaml
 from physgrad import UserError
 from physgrad.results import Run, find_results, natural_key, read_run
 
-# keys that never tell two runs apart: the seed (what a group pools over), how many seeds were trained together,
-# files and cadences that do not change the computation (init_from is identified by the variant's "from ...")
-NOT_COMPUTATION = ("seed", "seeds", "overwrite", "init_from", "trainer.flush_seconds", "trainer.log_seconds",
+# keys that never tell two runs apart: the seed (what a group pools over), files and cadences that do not change
+# the computation (`seeds` does count: seeds trained together share one step time) (init_from is identified by the variant's "from ...")
+NOT_COMPUTATION = ("seed", "overwrite", "init_from", "trainer.flush_seconds", "trainer.log_seconds",
                    "trainer.eval_every", "trainer.eval_seconds")
 # problem settings besides task.*: each value is its own scene
 SCENE_KEYS = ("unroll", "precision")
@@ -105,9 +105,11 @@ def _flat(tree: dict, prefix: str = "") -> dict:
 
 
 def _identity(run: Run) -> tuple:
-    """What makes two files the same run: the set, every setting but the job's base seed and the seed count,
-    and the seed the file trained."""
-    config = {k: v for k, v in run_config(run).items() if k not in ("seed", "seeds", "overwrite")}
+    """What makes two files the same run: the set, every setting that changes the computation (as for
+    grouping), and the seed the file trained; a file without a stored configuration is only itself."""
+    config = {k: v for k, v in run_config(run).items() if k not in NOT_COMPUTATION}
+    if not config:
+        return (str(run.path.resolve()),)
     return run.collection, repr(sorted(config.items())), run.attrs.get("task"), run.variant, str(run.attrs.get("seed"))
 
 
@@ -191,12 +193,17 @@ def common_times(runs: list[Run]) -> dict[str, float]:
 
 
 def loss_at(run: Run, seconds: float) -> float:
-    """The test loss of the last evaluation at or before `seconds` of training (on the shared time axis); NaN
-    if there is none, or if the run diverged before that time (its last loss says nothing about it)."""
-    times = run.eval.get("wall_time", np.empty(0)) + run.offset("wall_time")
+    """The test loss of the last evaluation up to `seconds` of training (on the shared time axis) plus one of
+    the run's steps: a time budget is checked after each step, so every budgeted run's final evaluation, which
+    comes at most one step after its budget, counts at the budget. NaN if there is none, or if the run's
+    training ended before that time (diverged, interrupted or killed: its last loss says nothing about it)."""
+    offset = run.offset("wall_time")
+    times = run.eval.get("wall_time", np.empty(0)) + offset
     loss = run.eval.get("loss", np.empty(0))
-    before = np.flatnonzero(times <= seconds * (1 + 1e-9))
-    if not before.size or (run.attrs.get("status") == "diverged" and times[-1] < seconds):
+    step = run.seconds_per_iteration if math.isfinite(run.seconds_per_iteration) else 0.0
+    before = np.flatnonzero(times <= seconds * (1 + 1e-9) + step)
+    ended = run.final("train", "wall_time") + offset
+    if not before.size or (math.isfinite(ended) and ended < seconds * (1 - 1e-9)):
         return math.nan
     return float(loss[before[-1]])
 
@@ -343,6 +350,9 @@ def write_report(paths, out_dir=None, threshold: float | None = None, note: str 
     against seconds per iteration and total time) and, where runs differ in unroll length, unroll. ``note`` is
     printed on every figure; ``logx`` is auto (log where the curves' ends span a decade or more), on or off."""
     runs, unreadable, dropped = collect(paths)
+    if not runs:
+        raise UserError(f"no readable results file under {', '.join(map(str, paths))}: "
+                        f"{unreadable[0][1] if unreadable else 'nothing found'}")
     out = output_folder(paths, out_dir)
     label_runs(runs)
     rows = run_rows(runs, threshold)
@@ -363,8 +373,9 @@ def write_report(paths, out_dir=None, threshold: float | None = None, note: str 
             markdown_table(group_rows(rows, names), group_columns),
             "Per group, as median [min, max] over seeds: the final test loss and the metrics over the completed "
             "seeds, the loss at the common time over the seeds that got there, s/iter over all; loss at common "
-            "time: the last evaluation at or before the shortest training time of the scene's completed runs, so "
-            "every variant is compared at equal training time; time to threshold: "
+            "time: the last evaluation up to the shortest training time of the scene's completed runs plus one of "
+            "the run's steps (a budget is checked after each step), so every variant is compared at equal "
+            "training time; time to threshold: "
             f"median training seconds until the test loss first reached {threshold_text}, over the seeds that "
             f"did (n/N when not all). {per_scene}.", "",
             "Per seed:", "", markdown_table(rows, PER_SEED + tuple(names)),

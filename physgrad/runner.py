@@ -342,7 +342,7 @@ def train(scene: Scene, rule: UpdateRule, seeds: Seeds, writers: list[ResultsWri
                     # training: taken off every time stamp since, which are all still in the buffers
                     overhead = max(0.0, first_step_seconds - seconds)
                     train_seconds -= overhead
-                    last_eval_seconds = min(last_eval_seconds, train_seconds)
+                    last_eval_seconds = max(0.0, last_eval_seconds - overhead) if last_eval_seconds else 0.0
                     for_every_writer("shift_buffered_time", -overhead)
                     for_every_writer("set_attrs", first_step_overhead_seconds=overhead)
                 diverged = False
@@ -374,8 +374,10 @@ def train(scene: Scene, rule: UpdateRule, seeds: Seeds, writers: list[ResultsWri
                     for_every_writer("flush")
                     last_flush = now
                     progress.update(done, train_seconds, logs[running[0][0]][guarded[1]])
-            if stopped_by is not None:
-                for_every_writer("set_attrs", stopped_by=stopped_by)
+            if stopped_by is not None:  # not in the files of seeds that diverged before
+                for run in runs:
+                    if run.running:
+                        run.writer.set_attrs(stopped_by=stopped_by)
             if any(run.running and run.latest_eval["iteration"] != done for run in runs):
                 record_eval(done)
     except KeyboardInterrupt as interrupt:

@@ -59,7 +59,6 @@ def test_report_groups_by_setting_and_times_the_threshold(tmp_path):
     fixed = {(r["setting"], r["variant"], r["seed"]): r for r in table_rows(runs, threshold=0.1)}
     assert fixed[("poles=1", "bptt", 0)]["t(thr) s"] == 1.0 and math.isnan(fixed[("poles=2", "bptt", 0)]["t(thr) s"])
     text = write_report([tmp_path])
-    assert "| multicart poles=1 | bptt | 0 | completed | iterations |" not in text  # fake runs record no stop
     assert "| multicart poles=1 | bptt | 0 | completed |  | 3 | 0.01 |" in text
     assert "| multicart poles=2 | bptt | 2 | 1 completed, 1 diverged | 0.8 |" in text  # the completed seed only
     assert (tmp_path / "loss_vs_time.png").stat().st_size > 1000 and (tmp_path / "loss_vs_time.pdf").exists()
@@ -146,7 +145,8 @@ def test_a_learning_rate_sweep_is_two_groups_named_by_what_differs(tmp_path):
 def test_the_same_run_found_twice_or_rerun_counts_once(tmp_path):
     fake_run(tmp_path / "a", "adam", 0, 1, [1.0, 0.5], [0.0, 1.0])
     fake_run(tmp_path / "b", "adam", 1, 1, [1.0, 0.4], [0.0, 1.0])
-    fake_run(tmp_path / "again", "adam", 0, 1, [1.0, 0.3], [0.0, 1.0], status="interrupted")
+    fake_run(tmp_path / "again", "adam", 0, 1, [1.0, 0.3], [0.0, 1.0], status="interrupted",
+             trainer={"eval_every": 7})  # a cadence does not make it another run
     runs, _, dropped = collect([tmp_path, tmp_path / "a", tmp_path / "a" / "results.h5"])
     assert sorted(run.path.parent.name for run in runs) == ["a", "b"]  # the completed one of the two seed-0 runs
     assert [(d.path.parent.name, d.kept.parent.name) for d in dropped] == [("a", "a"), ("again", "a")]
@@ -178,8 +178,12 @@ def test_loss_at_common_time_uses_only_evaluations_before_it(tmp_path):
     assert rows["adam"]["common_time"] == rows["hig"]["common_time"] == 2.5
     assert rows["adam"]["loss_at_common_time"] == 0.1 and rows["hig"]["loss_at_common_time"] == 0.6
     assert math.isnan(rows["gd"]["loss_at_common_time"])  # diverged before that time: no loss at it
+    # an evaluation counts up to one of the run's steps (hig: median step 1.5 s) after the time, as a budget is
+    # checked after each step; none after the run's training ended (6.5 s)
     run = next(r for r in runs if r.variant == "hig")
-    assert loss_at(run, 1.4999) == 1.0 and loss_at(run, 1.5) == 0.6 and math.isnan(loss_at(run, -1.0))
+    assert run.seconds_per_iteration == 1.5
+    assert loss_at(run, 0.0) == 0.6 and loss_at(run, 4.49) == 0.6 and loss_at(run, 4.5) == 0.01
+    assert math.isnan(loss_at(run, 6.6)) and math.isnan(loss_at(run, -2.0))
 
 
 def test_scene_metrics_and_csv_export(tmp_path):
@@ -202,7 +206,7 @@ def test_scene_metrics_and_csv_export(tmp_path):
         (0, 0.0, 0.0), (1, 1.0, 0.5), (2, 2.0, 1.0)]
 
 
-@pytest.mark.parametrize("make", ["missing", "empty", "unwritable_out"])
+@pytest.mark.parametrize("make", ["missing", "empty", "unreadable", "unwritable_out"])
 def test_bad_report_input_is_one_line(tmp_path, make, capsys):
     from physgrad.cli import main
 
@@ -210,7 +214,10 @@ def test_bad_report_input_is_one_line(tmp_path, make, capsys):
     (tmp_path / "empty").mkdir()
     blocker = tmp_path / "file"
     blocker.write_text("")
+    (tmp_path / "corrupt").mkdir()
+    (tmp_path / "corrupt" / "results.h5").write_bytes(b"garbage")
     args = {"missing": [str(tmp_path / "nope")], "empty": [str(tmp_path / "empty")],
+            "unreadable": [str(tmp_path / "corrupt")],
             "unwritable_out": [str(tmp_path / "ok"), "--out", str(blocker / "out")]}[make]
     assert main(["report", *args]) == 2
     err = capsys.readouterr().err

@@ -239,6 +239,8 @@ def test_a_diverging_seed_leaves_the_others_running(tmp_path):
     assert outcome.status == "diverged" and "seed #0: output became nan at iteration 1" in outcome.reason
     assert runs[0].train["iteration"].tolist() == [0, 1] and runs[1].train["iteration"].tolist() == [0, 1, 2, 3]
     assert runs[1].eval["iteration"].tolist() == [0, 4]
+    # what stopped the run is recorded for the seeds that ran to the end only
+    assert "stopped_by" not in runs[0].attrs and runs[1].attrs["stopped_by"] == runs[2].attrs["stopped_by"] == "iterations"
 
 
 def test_diverged_and_refused_jobs_are_outcomes_not_failures(tmp_path):
