@@ -4,7 +4,7 @@ VENV ?= .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 
-.PHONY: setup run test test-fast bench check-stability reproduce-figures clean
+.PHONY: setup run test test-fast test-faults bench check-stability reproduce-figures clean
 
 setup: $(STAMP)
 
@@ -19,6 +19,11 @@ run: setup
 
 test: setup
 	$(BIN)/python -m pytest -q tests
+
+# the fault-injection suite repeated many times (every randomised fault x REPEATS; about 10 minutes at 20)
+REPEATS ?= 20
+test-faults: setup
+	PHYSGRAD_FAULT_REPEATS=$(REPEATS) $(BIN)/python -m pytest -q tests/test_faults.py
 
 test-fast: setup
 	$(BIN)/python -m pytest -q -m "not slow" tests

@@ -2,58 +2,90 @@
 
 from __future__ import annotations
 
+import hashlib
 import logging
 import sys
 from collections import Counter
+from contextlib import ExitStack
 from pathlib import Path
 
 import hydra
 from hydra.core.hydra_config import HydraConfig
 from hydra.experimental.callback import Callback
 from hydra.types import RunMode
-from omegaconf import DictConfig
+from omegaconf import DictConfig, OmegaConf
 
 from physgrad.configs import CONF_DIR
 from physgrad.experiment import run_experiment
+from physgrad.sweeps import stop_count
 
 log = logging.getLogger("physgrad")
 
 
-def record_failure(cfg: DictConfig, out_dir: Path, error: Exception) -> None:
-    """Make sure a failed job leaves a results file per seed that says so (training records its own failures;
-    this covers errors before it starts)."""
-    from physgrad.experiment import run_attributes, seed_paths
-    from physgrad.results import ResultsWriter, read_final
-
-    for seed, path in seed_paths(cfg, out_dir):
-        try:
-            if read_final(path)[0].get("status") == "failed":
-                continue
-        except (ValueError, OSError):
-            pass
-        ResultsWriter(path, {**run_attributes(cfg), "seed": seed}).finish(
-            "failed", f"{type(error).__name__}: {error}".splitlines()[0])
-
-
 OUTCOMES = ("completed", "diverged", "refused")  # what an experiment can find; anything else is a failure
 FAILED_JOBS: list[int] = []  # set by SweepSummary at the end of a sweep: `physgrad run -m` exits 1 if non-zero
+STOPPED_BY: list[str] = []  # ... and 130 if a signal stopped it
+
+
+def job_folder_name(override_dirname: str, task_overrides) -> str:
+    """The job folder of a sweep (hydra.sweep.subdir): the job's overrides (hydra.job.override_dirname), plus
+    init_from when the command line sets it, as a short hash of the path (a path's slashes would make folders,
+    and without it two jobs that differ only in init_from would share one folder); names too long for a file
+    system end in a hash of the full name instead."""
+    parts = [override_dirname] if override_dirname else []
+    for override in task_overrides or ():
+        key, _, value = str(override).lstrip("+~").partition("=")
+        if key == "init_from" and value not in ("", "null"):
+            parts.append(f"init_from={hashlib.sha1(value.encode()).hexdigest()[:8]}")
+    name = ",".join(parts)
+    if len(name.encode()) > NAME_LIMIT:
+        digest = hashlib.sha1(name.encode()).hexdigest()[:12]
+        name = name.encode()[:NAME_LIMIT - 16].decode(errors="ignore") + f"...{digest}"
+    return name
+
+
+NAME_LIMIT = 200  # bytes: file systems allow 255 per folder name
+OmegaConf.register_new_resolver("physgrad_job_folder", job_folder_name, replace=True)
 
 
 class SweepSummary(Callback):
-    """At the end of a sweep (in the process that launched it, whatever the launcher): the runs it wrote under
-    the sweep folder counted by status, the folder, and the report command to run next. A failed run makes
-    `physgrad run -m` exit with status 1; refused and diverged runs are outcomes, not failures."""
+    """Around a sweep, in the process that launched it (whatever the launcher): holds the sweep folder (a second
+    sweep into it is refused while this one runs), writes the manifest of expected jobs, turns SIGINT and SIGTERM
+    into a stop of every job (physgrad.sweeps); at the end, the runs it wrote counted by status, the jobs that
+    never started or left no file, and the report command to run next. A failed, interrupted or missing run
+    makes `physgrad run -m` exit with status 1; refused and diverged runs are outcomes, not failures."""
+
+    def __getstate__(self) -> dict:
+        return {}  # a launcher sends the callbacks to its workers with each job: the sweep's state stays here
 
     def on_multirun_start(self, config: DictConfig, **kwargs) -> None:
-        from physgrad.results import find_results
+        from physgrad.results import FolderOwned, find_results, own_folder
+        from physgrad.sweeps import STOP_MARK, expected_jobs, launcher_signals, write_manifest
 
         folder = Path(str(config.hydra.sweep.dir))
+        self.held = ExitStack()
+        try:
+            self.held.enter_context(own_folder(folder, "sweep"))
+        except FolderOwned as error:
+            print(f"physgrad: error: {error}", file=sys.stderr)
+            sys.exit(2)
+        except OSError as error:
+            print(f"physgrad: error: cannot write the sweep folder {folder}: {error.strerror or error}",
+                  file=sys.stderr)
+            sys.exit(2)
+        (folder / STOP_MARK).unlink(missing_ok=True)
+        jobs = expected_jobs(config)
+        if jobs is not None:
+            write_manifest(folder, jobs)
+        self.held.enter_context(launcher_signals(folder))
         # what was there before: a file counts as this sweep's if it is new or was written since
-        self.before = {path: path.stat().st_mtime_ns for path in find_results([folder])} if folder.is_dir() else {}
+        self.before = {path: path.stat().st_mtime_ns for path in find_results([folder])}
         FAILED_JOBS.clear()
+        STOPPED_BY.clear()
 
     def on_multirun_end(self, config: DictConfig, **kwargs) -> None:
         from physgrad.results import find_results, read_final
+        from physgrad.sweeps import unfinished_jobs
 
         folder = Path(str(config.hydra.sweep.dir))
         written, earlier = Counter(), 0
@@ -66,11 +98,31 @@ class SweepSummary(Callback):
                 written[status] += 1
             else:
                 earlier += 1  # untouched by this sweep: completed before with the same config, or another job's
-        # a run left running (its worker was killed), interrupted, failed or unreadable is a failure
+        for _, why in unfinished_jobs(folder):
+            written[why] += 1
+        stopped = stop_count(folder)
+        STOPPED_BY[:] = [stopped[0]] if stopped else []
+        # a run left running or crashed (its worker was killed), interrupted, failed, unreadable or missing
         FAILED_JOBS[:] = [sum(n for status, n in written.items() if status not in OUTCOMES)]
         counts = ", ".join(f"{n} {status}" for status, n in sorted(written.items())) or "no runs written"
         skipped = f"; {earlier} untouched (completed before: skipped)" if earlier else ""
-        log.info("sweep finished: %s%s in %s; next: physgrad report %s", counts, skipped, folder, folder)
+        how = f"stopped by {stopped[0]}" if stopped else "finished"
+        log.info("sweep %s: %s%s in %s; next: physgrad report %s", how, counts, skipped, folder, folder)
+        held = getattr(self, "held", None)
+        if held is not None:
+            held.close()
+
+
+def save_traceback(folder: Path) -> Path | None:
+    """The current exception's traceback in folder/error.txt (None if it cannot be written either)."""
+    import traceback
+
+    try:
+        folder.mkdir(parents=True, exist_ok=True)
+        (folder / "error.txt").write_text(traceback.format_exc())
+        return folder / "error.txt"
+    except OSError:
+        return None
 
 
 def objective(outcome) -> float:
@@ -90,13 +142,24 @@ def job(cfg: DictConfig) -> float:
         sys.path.append(hydra_cfg.runtime.cwd)
     multirun = hydra_cfg.mode == RunMode.MULTIRUN
     name = f"{cfg.task.get('name')}/{cfg.optim.get('name')} seed {cfg.seed}"
+    out_dir = Path(hydra_cfg.runtime.output_dir)
+    sweep = Path(hydra_cfg.sweep.dir) if multirun else None
+    if sweep is not None and stop_count(sweep) is not None:
+        log.warning("%s not started: the sweep was stopped (%s)", name, stop_count(sweep)[0])
+        return float("inf")
     try:
-        outcome, path = run_experiment(cfg, hydra_cfg.runtime.output_dir)
-    except Exception as error:  # noqa: BLE001 - one failed job must not end a sweep
+        outcome, path = run_experiment(cfg, out_dir, sweep)
+    except Exception as error:  # noqa: BLE001 - one line, the traceback in the job folder; a sweep goes on
+        where = save_traceback(out_dir)
+        if isinstance(error, OSError):  # the results file could not be written (disk full, permissions)
+            message = str(error).splitlines()[0]
+        else:
+            message = f"{type(error).__name__}: {str(error).splitlines()[0] if str(error) else ''}"
+        message += f" (traceback: {where})" if where else ""
         if not multirun:
-            raise
-        record_failure(cfg, Path(hydra_cfg.runtime.output_dir), error)
-        log.error("%s failed: %s: %s", name, type(error).__name__, error)
+            print(f"physgrad: error: {name} failed: {message}", file=sys.stderr)
+            sys.exit(1)
+        log.error("%s failed: %s", name, message)
         return float("inf")
     if outcome.status == "refused":
         if not multirun:
@@ -109,6 +172,6 @@ def job(cfg: DictConfig) -> float:
     log.info("%s %s after %d iterations%s, %.1f s of training%s%s -> %s", name, outcome.status, outcome.iterations,
              stopped, outcome.train_seconds, f", test loss {test:.4g}" if test is not None else "",
              f" ({outcome.reason})" if outcome.reason else "", path)
-    if outcome.status == "interrupted":
+    if outcome.status == "interrupted" and not multirun:  # in a sweep, the others are told (physgrad.sweeps)
         sys.exit(130)
     return objective(outcome)

@@ -33,7 +33,30 @@ INFO_FLAGS = {"-h", "--help", "-hh", "--hydra-help", "-i", "--info"}
 
 
 def main(argv: list[str] | None = None) -> int:
-    argv = sys.argv[1:] if argv is None else argv
+    try:
+        code = dispatch(sys.argv[1:] if argv is None else argv)
+    except SystemExit as leaving:
+        code = leaving.code if isinstance(leaving.code, int) else (0 if leaving.code is None else 1)
+        if argv is not None or not abandoned_steps():
+            raise
+    if argv is None and abandoned_steps():  # the results are written: leave the step that was cut short
+        import logging
+        import os
+
+        logging.shutdown()
+        sys.stdout.flush()
+        sys.stderr.flush()
+        os._exit(code)
+    return code
+
+
+def abandoned_steps() -> bool:
+    """A training step left computing by a second signal is still running (physgrad.runner.ABANDONED)."""
+    runner = sys.modules.get("physgrad.runner")
+    return runner is not None and any(thread.is_alive() for thread in runner.ABANDONED)
+
+
+def dispatch(argv: list[str]) -> int:
     if not argv or argv[0] in ("-h", "--help"):
         print(USAGE, end="")
         return 0
@@ -70,10 +93,12 @@ def run_command(args: list[str]) -> int:
         check_writable(parsed.overrides, multirun=parsed.multirun)
     from physgrad.app import job
 
-    from physgrad.app import FAILED_JOBS
+    from physgrad.app import FAILED_JOBS, STOPPED_BY
 
     sys.argv = ["physgrad run", *args]
     job()
+    if parsed.multirun and STOPPED_BY:
+        return 130
     return 1 if parsed.multirun and any(FAILED_JOBS) else 0
 
 

@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import dataclasses
 import logging
+import os
+import time
 from pathlib import Path
 
 import jax
@@ -17,12 +19,14 @@ from physgrad.gradients import JacobianPass
 from physgrad.nets import count_params
 from physgrad.optim import UpdateRule, build_rule
 from physgrad.resume import finished_before, start_from
-from physgrad.results import ResultsWriter
-from physgrad.runner import Outcome, Seeds, TrainerSettings, stack, train
+from physgrad.results import FolderOwned, ResultsWriteError, ResultsWriter, own_folder, read_final
+from physgrad.runner import Outcome, Seeds, TrainerSettings, stack, stop_on_signals, train
+from physgrad.sweeps import mark_stopped, watching
 from physgrad.tasks import Scene, build_scene
 from physgrad.validate import choice, finite_numbers, flag, number
 
 
+log = logging.getLogger("physgrad")
 SEED_LIMIT = 2**32
 
 
@@ -162,20 +166,51 @@ def prepare(cfg: DictConfig, seed_list: list[int], settings: TrainerSettings) ->
     return scene, rule, seeds
 
 
-def run_experiment(cfg: DictConfig, out_dir: str | Path) -> tuple[Outcome, Path]:
+def set_aside_unreadable(path: Path) -> Path | None:
+    """A results.h5 that cannot be read (damaged, or not a physgrad file) is renamed, never deleted, so the job
+    can run again; returns the new name."""
+    if not path.exists():
+        return None
+    try:
+        read_final(path)
+        return None
+    except ValueError:
+        aside = path.with_name(f"{path.name}.unreadable-{time.strftime('%Y%m%dT%H%M%S')}")
+        os.replace(path, aside)
+        log.warning("%s could not be read: set aside as %s, the job runs again", path, aside.name)
+        return aside
+
+
+def run_experiment(cfg: DictConfig, out_dir: str | Path, sweep: Path | None = None) -> tuple[Outcome, Path]:
     """Run one job into out_dir/results.h5 (seeds > 1: one file per seed under out_dir/seed=<s>/, trained
     together in one vectorised step); a refused job leaves a file with status refused and the reason.
-    A job that completed before with the same config is not run again unless overwrite=true."""
+    A job that completed before with the same config is not run again unless overwrite=true. The job holds
+    out_dir for its whole duration (another live process writing there: refused, nothing touched) and handles
+    SIGINT and SIGTERM from start-up until its files are final; in a sweep (sweep: its folder) a signal to the
+    job stops the sweep, and the sweep's stop reaches the job (physgrad.sweeps). A failure before training
+    leaves files with status failed; ResultsWriteError if they cannot be written."""
     paths = seed_paths(cfg, out_dir)
     where = paths[0][1] if len(paths) == 1 else Path(out_dir)
     own = cfg.get("init_from") and any(Path(str(cfg.init_from)).resolve() == path.resolve() for _, path in paths)
     if own:  # refused without a results file: writing one would destroy the network it names
         return Outcome("refused", f"init_from={cfg.init_from} is this job's own results file, which the run "
                        "would overwrite: start from another run's results.h5", 0, 0.0, {}), where
+    try:
+        on_first = None if sweep is None else (lambda name: mark_stopped(sweep, name))
+        with own_folder(out_dir), stop_on_signals(on_first) as stop, watching(sweep, stop):
+            return run_owned(cfg, paths, stop), where
+    except FolderOwned as error:
+        return Outcome("refused", str(error), 0, 0.0, {}), where
+
+
+def run_owned(cfg: DictConfig, paths: list[tuple[int, Path]], stop) -> Outcome:
+    """run_experiment, once the job folder is held and signals are handled."""
+    for _, path in paths:
+        set_aside_unreadable(path)
     if not cfg.get("overwrite", False):
         previous = [finished_before(path, cfg) for _, path in paths]
         if all(previous):
-            return job_outcome(previous), where
+            return job_outcome(previous)
     try:
         settings = check_config(cfg)
         if len(paths) > 1 and cfg.get("init_from"):
@@ -191,9 +226,13 @@ def run_experiment(cfg: DictConfig, out_dir: str | Path) -> tuple[Outcome, Path]
             seeds = dataclasses.replace(seeds, params=stack([first]))
     except UserError as error:
         for seed, path in paths:
-            attrs = run_attributes(cfg, effective_unroll(cfg))
-            ResultsWriter(path, {**attrs, "seed": seed}).finish("refused", str(error))
-        return Outcome("refused", str(error), 0, 0.0, {}), where
+            ResultsWriter(path, {**run_attributes(cfg, effective_unroll(cfg)), "seed": seed}).finish("refused", str(error))
+        return Outcome("refused", str(error), 0, 0.0, {})
+    except Exception as error:  # before training: the files say failed, with the reason
+        reason = f"{type(error).__name__}: {error}".splitlines()[0]
+        for seed, path in paths:
+            ResultsWriter(path, {**run_attributes(cfg, effective_unroll(cfg)), "seed": seed}).finish("failed", reason)
+        raise
 
     attrs = run_attributes(cfg, scene.unroll)
     if rule.uses_jacobian:
@@ -209,14 +248,30 @@ def run_experiment(cfg: DictConfig, out_dir: str | Path) -> tuple[Outcome, Path]
         "device": str(jax.devices()[0].device_kind),
     }) for seed, path in paths]
     label = f"{cfg.task.name}/{cfg.optim.name} seed {cfg.seed}" + (f" (+{len(paths) - 1})" if len(paths) > 1 else "")
-    outcomes = train(scene, rule, seeds, writers, settings, label=label)
+    outcomes = train(scene, rule, seeds, writers, settings, label=label, stop=stop)
+    try:
+        draw_run_figures(scene, seeds, writers, outcomes)
+    except (OSError, ValueError, RuntimeError) as error:  # the results are final: a figure is not worth a failure
+        log.warning("figures of %s not drawn: %s", paths[0][1].parent, str(error).splitlines()[0])
+    return job_outcome(outcomes)
+
+
+def draw_run_figures(scene: Scene, seeds: Seeds, writers: list[ResultsWriter], outcomes: list[Outcome]) -> None:
+    """loss.png per seed, and the scene's own figure of the trained network where it has one; none for a run
+    written aside of a completed results.h5 it did not replace (the figures beside it are that run's)."""
     from physgrad.plots import plot_run  # matplotlib only once training is over
     from physgrad.results import read_params, read_run
 
     unravel = ravel_pytree(seeds.network())[1]
-    for index, (_, path) in enumerate(paths):
+    for index, writer in enumerate(writers):
+        path = writer.path
+        if writer.live != path:
+            log.warning("%s kept (completed); this run ended %s and is in %s", path, outcomes[index].status,
+                        writer.live.name)
+            continue
         plot_run(read_run(path), path.with_name("loss.png"))
-        if scene.figure is not None and outcomes[index].status != "diverged":  # a network was saved
+        # a network was saved; not after an interrupt, whose user wants the process to end now (an abandoned
+        # step may still hold the cores)
+        if scene.figure is not None and outcomes[index].status not in ("diverged", "interrupted"):
             test_set = jax.tree_util.tree_map(lambda leaf: leaf[index], seeds.test_sets)
             scene.figure(unravel(jnp.asarray(read_params(path))), test_set, path.with_name("scene.png"))
-    return job_outcome(outcomes), where

@@ -51,7 +51,8 @@ def plot_run(run: Run, path: str | Path) -> None:
         ax.set_ylabel("loss")
         log_axis(ax)
         ax.grid(True, which="both", alpha=0.3)
-        ax.legend(fontsize=8)
+        if ax.get_lines():  # a run stopped before its first evaluation has nothing to show
+            ax.legend(fontsize=8)
     ax = axes[1, 0]
     if run.train.get("grad_norm") is not None and run.train["grad_norm"].size:
         ax.plot(run.train["iteration"], run.train["grad_norm"], lw=0.7)

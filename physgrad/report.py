@@ -23,6 +23,7 @@ import yaml
 
 from physgrad import UserError
 from physgrad.results import Run, find_results, natural_key, read_run
+from physgrad.sweeps import unfinished_jobs
 
 # keys that never tell two runs apart: the seed (what a group pools over), files and cadences that do not change
 # the computation (`seeds` does count: seeds trained together share one step time) (init_from is identified by the variant's "from ...")
@@ -106,11 +107,12 @@ def _flat(tree: dict, prefix: str = "") -> dict:
 
 def _identity(run: Run) -> tuple:
     """What makes two files the same run: the set, every setting that changes the computation (as for
-    grouping), and the seed the file trained; a file without a stored configuration is only itself."""
+    grouping), the seed the file trained and the network it started from; a file without a stored configuration is only itself."""
     config = {k: v for k, v in run_config(run).items() if k not in NOT_COMPUTATION}
     if not config:
         return (str(run.path.resolve()),)
-    return run.collection, repr(sorted(config.items())), run.attrs.get("task"), run.variant, str(run.attrs.get("seed"))
+    return (run.collection, repr(sorted(config.items())), run.attrs.get("task"), run.variant,
+            str(run.attrs.get("seed")), str(run.attrs.get("init_from", "")))  # another start is another run
 
 
 def drop_duplicates(runs: list[Run]) -> tuple[list[Run], list[Dropped]]:
@@ -387,6 +389,9 @@ def write_report(paths, out_dir=None, threshold: float | None = None, note: str 
     for item in dropped:
         text.append(f"counted once: {item.path}: {item.why}" if item.path.resolve() == item.kept.resolve()
                     else f"dropped {item.path}: {item.why} as {item.kept}")
+    for _, path in parse_sources(paths):
+        if path.is_dir():  # jobs a sweep expected (its jobs.yaml) that left no results file
+            text += [f"not run: {job}: {why}" for job, why in unfinished_jobs(path)]
     for _, path in parse_sources(paths):  # a study of Hydra's Optuna sweeper (hydra/sweeper=optuna)
         study = path / "optimization_results.yaml" if path.is_dir() else None
         if study is not None and study.is_file():

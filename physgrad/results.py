@@ -6,16 +6,17 @@ Layout (see docs/results.md):
   /train/{iteration, wall_time, loss, grad_norm, ...}: one row per iteration;
   /eval/{iteration, wall_time, loss, <scene metrics>}: held-out evaluations;
   /params: the final network as one flat vector (every run that did not diverge or fail).
-The file is opened, appended to and closed at every flush, so a run killed at any moment leaves a file that
-opens, holding every row flushed so far; readers never find it locked for long.
+At every flush the whole file is written beside results.h5 and renamed onto it, so a run killed at any moment
+leaves a complete file holding every row flushed so far, and readers never share a file with the writer.
 """
 
 from __future__ import annotations
 
+import fcntl
 import math
 import os
 import re
-import signal
+import socket
 import time
 from contextlib import contextmanager
 from dataclasses import dataclass
@@ -28,33 +29,75 @@ STATUSES = ("running", "completed", "diverged", "interrupted", "failed", "refuse
 GROUPS = ("train", "eval")
 
 
+ASIDE_SUFFIX = ".overwriting.h5"  # a re-run's file while a completed results.h5 it would replace stays valid
+
+
+class ResultsWriteError(OSError):
+    """results.h5 could not be written (disk full, quota, permissions): one line that names the file."""
+
+
+class FolderOwned(RuntimeError):
+    """Another live process owns the job (or sweep) folder."""
+
+
+def owner_tag() -> str:
+    return f"pid {os.getpid()} on {socket.gethostname()}"
+
+
 @contextmanager
-def signals_deferred():
-    """Hold SIGINT and SIGTERM back while the file is being written, so that an interrupt (a second Ctrl-C
-    raises KeyboardInterrupt at once) never lands between a resize and its write; they arrive right after."""
-    held = {signal.SIGINT, signal.SIGTERM}
-    previous = signal.pthread_sigmask(signal.SIG_BLOCK, held)
+def own_folder(folder: str | os.PathLike, what: str = "job"):
+    """Hold the folder for this process while the block runs: an exclusive flock on folder/.physgrad-<what>,
+    which the operating system releases when the process ends however it ends, so a dead owner never blocks a
+    new one. FolderOwned (one line naming the owner's pid, host and start time) if a live process holds it."""
+    folder = Path(folder)
+    folder.mkdir(parents=True, exist_ok=True)
+    lock_path = folder / f".physgrad-{what}"
+    fd = os.open(lock_path, os.O_RDWR | os.O_CREAT, 0o644)
     try:
+        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except OSError:
+        owner = os.pread(fd, 512, 0).decode(errors="replace").strip() or "another process"
+        os.close(fd)
+        raise FolderOwned(f"{folder} is being written by {owner} (another {what}): wait for it to end, stop it, "
+                          "or write somewhere else") from None
+    try:
+        os.ftruncate(fd, 0)
+        os.pwrite(fd, f"{owner_tag()} since {_now()}\n".encode(), 0)
         yield
     finally:
-        signal.pthread_sigmask(signal.SIG_SETMASK, previous)
+        os.close(fd)  # releases the lock; the file stays (removing it would race with a new owner)
+
+
+def holds_completed(path: Path) -> bool:
+    try:
+        return read_final(path)[0].get("status") == "completed"
+    except (ValueError, OSError):
+        return False
 
 
 class ResultsWriter:
-    """Buffers rows per group (one tuple per row, so an interrupt can never leave a row half appended) and
-    appends them to resizable datasets on flush()."""
+    """Keeps every row of a run in memory (one tuple per row, so an interrupt can never leave a row half
+    appended) and writes the whole file at each flush() into a temporary file beside it, which then replaces
+    results.h5 by an atomic rename. So the file on disk is always a complete, consistent earlier state: a kill
+    at any instant loses at most the rows since the last flush, a write cut short by a signal or a full disk
+    leaves the previous version, and a reader (any reader, with or without HDF5 file locking) keeps the version
+    it opened and never blocks the writer. A completed results.h5 is not replaced before its successor has
+    completed: until then the run writes results.overwriting.h5 beside it."""
 
     def __init__(self, path: str | os.PathLike, attrs: dict):
         self.path = Path(path)
         self.path.parent.mkdir(parents=True, exist_ok=True)
+        self.live = self.path.with_name(self.path.stem + ASIDE_SUFFIX) if holds_completed(self.path) else self.path
+        self.attrs = {key: value for key, value in {**attrs, "status": "running", "created": _now(),
+                                                      "owner": owner_tag()}.items() if value is not None}
         self._columns: dict[str, tuple[str, ...] | None] = {group: None for group in GROUPS}
-        self._rows: dict[str, list[tuple]] = {group: [] for group in GROUPS}
-        with signals_deferred(), h5py.File(self.path, "w") as f:
-            for group in GROUPS:
-                f.create_group(group)
-            for key, value in {**attrs, "status": "running", "created": _now()}.items():
-                if value is not None:
-                    f.attrs[key] = value
+        self._rows: dict[str, list[tuple]] = {group: [] for group in GROUPS}  # not yet flushed
+        self._data: dict[str, dict[str, list[np.ndarray]]] = {group: {} for group in GROUPS}  # flushed chunks
+        self._params: np.ndarray | None = None
+        self.write_seconds = 0.0  # what the last write took: the runner flushes at most every 20 times that
+        for stale in self.live.parent.glob(f".{self.live.name}.*.tmp"):  # left by a writer killed mid-write
+            stale.unlink(missing_ok=True)
+        self._write()
 
     def set_columns(self, group: str, names) -> None:
         """Fix the columns of a group; append_row() then takes values in this order."""
@@ -80,46 +123,83 @@ class ResultsWriter:
                 at = self._columns[group].index("wall_time")
                 rows[:] = [(*row[:at], row[at] + seconds, *row[at + 1:]) for row in rows]
 
-    def flush(self) -> None:
-        """Append every buffered row to the file."""
-        if not any(self._rows.values()):
-            return
-        with signals_deferred(), h5py.File(self.path, "a") as f:
-            for group, rows in self._rows.items():
-                if not rows:
-                    continue
+    def flush(self, sync: bool = False) -> None:
+        """Write the file with every row so far and the attributes set since (sync: to the disk itself, not
+        only to the operating system, which a killed process cannot lose anyway)."""
+        for group, rows in self._rows.items():
+            if rows:
+                columns = self._data[group]
                 for key, column in zip(self._columns[group], zip(*rows)):
-                    column = np.asarray(column)
-                    if key not in f[group]:
-                        f[group].create_dataset(key, data=column, maxshape=(None,), chunks=(1024,))
-                    else:
-                        dataset = f[group][key]
-                        start = dataset.shape[0]
-                        dataset.resize((start + len(rows),))
-                        dataset[start:] = column
+                    columns.setdefault(key, []).append(np.asarray(column))
                 rows.clear()
+        self._write(sync)
 
     def set_attrs(self, **attrs) -> None:
-        with signals_deferred(), h5py.File(self.path, "a") as f:
-            for key, value in attrs.items():
-                if value is None:
-                    f.attrs.pop(key, None)
-                else:
-                    f.attrs[key] = value
+        """Set (None: remove) root attributes; they reach the file with the next flush()."""
+        for key, value in attrs.items():
+            if value is None:
+                self.attrs.pop(key, None)
+            else:
+                self.attrs[key] = value
 
     def save_params(self, flat: np.ndarray) -> None:
-        """The network's final parameters as one flat vector (ravel_pytree order) in /params, replacing any."""
-        with signals_deferred(), h5py.File(self.path, "a") as f:
-            if "params" in f:
-                del f["params"]
-            f.create_dataset("params", data=flat)
+        """The network's final parameters as one flat vector (ravel_pytree order) in /params, with the next
+        flush()."""
+        self._params = np.asarray(flat)
 
     def finish(self, status: str, reason: str | None = None, **attrs) -> None:
-        """Flush every buffered row, then record the final status (and the reason for anything but completed)."""
+        """Record the final status (and the reason for anything but completed) and write the file, synced to
+        disk. A completed run written aside replaces the completed results.h5 only now."""
         if status not in STATUSES:
             raise ValueError(f"unknown status {status!r}")
-        self.flush()
         self.set_attrs(status=status, reason=reason, finished=_now(), **attrs)
+        self.flush(sync=True)
+        if self.live != self.path and status == "completed":
+            os.replace(self.live, self.path)
+            self.live = self.path
+
+    def mark_failed_in_place(self, reason: str) -> bool:
+        """Last resort when a full write fails (disk full): set status failed and the reason on the file as it
+        is, a few bytes of attributes. True if that worked."""
+        try:
+            with h5py.File(self.live, "a", locking=False) as f:
+                f.attrs["status"], f.attrs["reason"], f.attrs["finished"] = "failed", reason, _now()
+            return True
+        except (OSError, ValueError):
+            return False
+
+    def _write(self, sync: bool = False) -> None:
+        """The file is built in memory (HDF5's core driver) and its bytes written by Python: a failing write()
+        (disk full, quota, size limit) is then an OSError here, where HDF5 writing to disk itself crashed the
+        process when a write failed as it closed the file."""
+        start = time.perf_counter()
+        self.attrs["heartbeat"] = _now()
+        temporary = self.live.with_name(f".{self.live.name}.{os.getpid()}.tmp")
+        try:
+            with h5py.File(f"physgrad-{id(self)}.h5", "w", driver="core", backing_store=False) as f:
+                for key, value in self.attrs.items():
+                    f.attrs[key] = value
+                for group in GROUPS:
+                    g = f.create_group(group)
+                    for key, chunks in self._data[group].items():
+                        g.create_dataset(key, data=np.concatenate(chunks), maxshape=(None,))
+                if self._params is not None:
+                    f.create_dataset("params", data=self._params)
+                f.flush()
+                image = f.id.get_file_image()
+            with open(temporary, "wb") as out:
+                out.write(image)
+                if sync:
+                    out.flush()
+                    os.fsync(out.fileno())
+            os.replace(temporary, self.live)
+        except OSError as error:
+            temporary.unlink(missing_ok=True)
+            raise ResultsWriteError(f"cannot write {self.live}: {error.strerror or error}") from error
+        except BaseException:
+            temporary.unlink(missing_ok=True)
+            raise
+        self.write_seconds = time.perf_counter() - start
 
 
 def _now() -> str:
@@ -169,18 +249,52 @@ class Run:
         return float(wall[hits[0]]) if hits.size else math.nan
 
 
+def owner_alive(owner: str) -> bool | None:
+    """Whether the process named by an `owner` attribute (pid N on HOST) still runs: None when that cannot be
+    told from here (another host, or a file without an owner)."""
+    match = re.fullmatch(r"pid (\d+) on (.+)", owner or "")
+    if match is None or match[2] != socket.gethostname():
+        return None
+    try:
+        os.kill(int(match[1]), 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:  # alive, another user's
+        return True
+    return True
+
+
+def with_live_status(attrs: dict) -> dict:
+    """A file that says `running` whose writer is gone reads as `crashed` (killed, or its machine lost), with a
+    reason; the file itself is left as it is."""
+    if attrs.get("status") == "running" and owner_alive(attrs.get("owner", "")) is False:
+        attrs["status"] = "crashed"
+        attrs["reason"] = (f"its writer ({attrs['owner']}) ended without finishing; rows up to its last write "
+                           f"({attrs.get('heartbeat', '?')}) are kept")
+    return attrs
+
+
+def _check_columns(path: Path, group: str, columns: dict) -> None:
+    lengths = {key: len(values) for key, values in columns.items()}
+    if len(set(lengths.values())) > 1:
+        raise ValueError(f"{path}: /{group} columns have unequal lengths {lengths}: the file is damaged")
+
+
 def read_run(path: str | os.PathLike) -> Run:
-    """Read one results file; raises ValueError with a one-line reason if it is not a physgrad results file."""
+    """Read one results file; raises ValueError with a one-line reason if it is not a physgrad results file,
+    cannot be read or is inconsistent."""
     path = Path(path)
     try:
         with h5py.File(path, "r", locking=False) as f:
             if "status" not in f.attrs or "train" not in f or "eval" not in f:
                 raise ValueError(f"{path}: not a physgrad results file (no status attribute or /train, /eval)")
-            attrs = {key: _plain(value) for key, value in f.attrs.items()}
+            attrs = with_live_status({key: _plain(value) for key, value in f.attrs.items()})
             train = {key: f["train"][key][()] for key in f["train"]}
             evaluation = {key: f["eval"][key][()] for key in f["eval"]}
-    except OSError as error:
+    except (OSError, KeyError, RuntimeError) as error:
         raise ValueError(f"{path}: cannot be read as HDF5 ({str(error).splitlines()[0]})") from None
+    _check_columns(path, "train", train)
+    _check_columns(path, "eval", evaluation)
     return Run(path, attrs, train, evaluation)
 
 
@@ -192,9 +306,12 @@ def read_final(path: str | os.PathLike) -> tuple[dict, dict]:
         with h5py.File(path, "r", locking=False) as f:
             if "status" not in f.attrs or "eval" not in f:
                 raise ValueError(f"{path}: not a physgrad results file (no status attribute or /eval)")
-            attrs = {key: _plain(value) for key, value in f.attrs.items()}
+            attrs = with_live_status({key: _plain(value) for key, value in f.attrs.items()})
+            lengths = {f["eval"][key].shape[0] for key in f["eval"]}
+            if len(lengths) > 1:
+                raise ValueError(f"{path}: /eval columns have unequal lengths: the file is damaged")
             last = {key: _plain(f["eval"][key][-1]) for key in f["eval"] if f["eval"][key].shape[0]}
-    except OSError as error:
+    except (OSError, KeyError, RuntimeError) as error:
         raise ValueError(f"{path}: cannot be read as HDF5 ({str(error).splitlines()[0]})") from None
     return attrs, last
 
@@ -208,7 +325,7 @@ def read_params(path: str | os.PathLike) -> np.ndarray:
                 status = _plain(f.attrs.get("status", "?"))
                 raise ValueError(f"{path} holds no final network (status {status}): use a run that finished")
             return f["params"][()]
-    except OSError as error:
+    except (OSError, KeyError, RuntimeError) as error:
         raise ValueError(f"{path}: cannot be read as HDF5 ({str(error).splitlines()[0]})") from None
 
 

@@ -12,6 +12,7 @@ from __future__ import annotations
 import logging
 import math
 import signal
+import threading
 import time
 from contextlib import contextmanager
 from dataclasses import dataclass, field
@@ -25,7 +26,7 @@ from jax.flatten_util import ravel_pytree
 from tqdm import tqdm
 
 from physgrad.optim import UpdateRule, state_logs
-from physgrad.results import ResultsWriter
+from physgrad.results import ResultsWriteError, ResultsWriter
 from physgrad.tasks import Scene
 from physgrad.validate import number
 
@@ -33,6 +34,12 @@ log = logging.getLogger("physgrad")
 clock = time.perf_counter  # every interval of the loop is read from this clock (tests replace it)
 DEFAULT_ITERATIONS = 2000  # trainer.iterations=null without a time budget
 EVALUATIONS_PER_BUDGET = 20  # trainer.eval_seconds=null with a time budget: an evaluation every budget / 20
+SLOW_STEP_SECONDS = 0.2  # a step at least this long runs in a helper thread, so that a second signal ends it
+WAKE_SECONDS = 0.05  # how often the waiting thread looks at signals
+# steps left computing after a second signal: the command line ends with os._exit while one is alive, since a
+# daemon thread that returns from XLA into a finalising interpreter aborts the process
+ABANDONED: list[threading.Thread] = []
+FLUSH_COST_FACTOR = 20  # the file is rewritten at most every 20 times what one write takes (<= 5 % of the time)
 
 
 @dataclass(frozen=True)
@@ -127,23 +134,71 @@ def packed_logs(step, names: list[str]):
 
 
 class StopRequest:
-    """Signal handler for SIGINT and SIGTERM: the first signal asks the loop to stop after the current step
-    (checked between steps, so no write is ever cut in half and no library frame swallows the interrupt);
-    a second one stops at once."""
+    """Signal handler for SIGINT and SIGTERM, installed for the whole job (start-up, training and writing the
+    final file). The first signal asks the loop to stop after the current step; a second one ends the wait for
+    a step still computing (a 20 s step stops within 0.1 s; the step's result is dropped). The handler
+    never raises: the loop acts on it between steps and in that wait, so no exception can land inside a write,
+    and signals that arrive while the final file is written are only counted. `on_first` is called with the
+    signal's name at the first one (a sweep records there that it is being stopped)."""
 
-    def __init__(self):
+    def __init__(self, on_first=None):
         self.signal_name: str | None = None
+        self.at_once = False
+        self.received = 0
+        self.on_first = on_first
+        self._waiting: threading.Event | None = None
 
     def __call__(self, signum, frame):
-        name = signal.Signals(signum).name
-        if self.signal_name is not None:
-            raise KeyboardInterrupt(name)
-        self.signal_name = name
+        self.received += 1
+        self.request(signal.Signals(signum).name, at_once=self.signal_name is not None)
+
+    def request(self, name: str, at_once: bool = False) -> None:
+        """Ask the run to stop after the current step (at_once: without waiting for it); also called by a
+        sweep's watcher thread."""
+        if self.signal_name is None:
+            self.signal_name = name
+            if self.on_first is not None:
+                self.on_first(name)
+        if at_once:
+            self.at_once = True
+            waiting = self._waiting
+            if waiting is not None:
+                waiting.set()
+
+    def call(self, fn, *args):
+        """fn(*args) with its results ready, computed in a helper thread (XLA's CPU client runs a computation in
+        the thread that calls it), while this thread waits in slices so that the signal handler runs; raises
+        KeyboardInterrupt if a second signal came first (the computation is left to finish unseen)."""
+        ready, result = threading.Event(), []
+
+        def compute():
+            try:
+                result.append(jax.block_until_ready(fn(*args)))
+            except BaseException as error:  # noqa: BLE001 - handed to the waiting thread
+                result.append(error)
+            ready.set()
+
+        self._waiting = ready
+        thread = threading.Thread(target=compute, daemon=True, name="physgrad-step")
+        thread.start()
+        try:
+            # a signal delivered to another thread (XLA's) wakes nobody: its handler runs when this thread is
+            # back in Python, which the slices ensure
+            while not self.at_once and not ready.wait(WAKE_SECONDS):
+                pass
+        finally:
+            self._waiting = None
+        if not result:  # woken by the second signal
+            ABANDONED.append(thread)
+            raise KeyboardInterrupt(self.signal_name)
+        if isinstance(result[0], BaseException):
+            raise result[0]
+        return result[0]
 
 
 @contextmanager
-def stop_on_signals():
-    request = StopRequest()
+def stop_on_signals(on_first=None):
+    request = StopRequest(on_first)
     try:
         previous = {sig: signal.signal(sig, request) for sig in (signal.SIGINT, signal.SIGTERM)}
     except ValueError:  # not the main thread: leave signals alone
@@ -276,14 +331,32 @@ class Progress:
         self.bar.close()
 
 
+
+
+def finish_or_mark(writer: ResultsWriter, status: str, reason: str | None, **attrs) -> str | None:
+    """writer.finish(), and if the file cannot be written (disk full) status failed set on the file as it is;
+    returns the write error as one line, or None."""
+    try:
+        writer.finish(status, reason, **attrs)
+        return None
+    except ResultsWriteError as error:
+        writer.mark_failed_in_place(f"{error}; the run ended {status}" + (f" ({reason})" if reason else ""))
+        return str(error)
+
+
 def train(scene: Scene, rule: UpdateRule, seeds: Seeds, writers: list[ResultsWriter], settings: TrainerSettings,
-          label: str = "") -> list[Outcome]:
+          label: str = "", stop: StopRequest | None = None) -> list[Outcome]:
     """Compile, then iterate until trainer.iterations or trainer.time_budget (training seconds), whichever
     comes first, every seed in one vectorised step (writers: one per seed). The budget is checked after each
     step, so a run passes it by less than one step. Evaluations at the start, every trainer.eval_every
     iterations, whenever trainer.eval_seconds of training passed since the last one, and at the end. A seed
     whose output, loss, gradient or update turns non-finite ends with status diverged (its rows stop there)
-    while the others go on; the wall time is the shared one. Returns one Outcome per seed."""
+    while the others go on; the wall time is the shared one. stop: the job's signal handler (installed here
+    if None). A file that cannot be written ends the run failed (ResultsWriteError). Returns one Outcome per
+    seed."""
+    if stop is None:
+        with stop_on_signals() as own:
+            return train(scene, rule, seeds, writers, settings, label, own)
     runs = [SeedRun(writer) for writer in writers]
     train_seconds, done, stopped_by = 0.0, 0, None
     params = None
@@ -304,82 +377,92 @@ def train(scene: Scene, rule: UpdateRule, seeds: Seeds, writers: list[ResultsWri
         for run in runs:
             getattr(run.writer, method)(*args, **kwargs)
 
+    def stop_requested():
+        if stop.signal_name is not None:
+            raise KeyboardInterrupt(stop.signal_name)
+
     progress = Progress(settings, label)
     try:
-        with stop_on_signals() as stop:
-            # compiling can take minutes: inside the guard, so a failure or an interrupt here is recorded too
-            start = clock()
-            compiled = compile_training(scene, rule, seeds, settings.batch_size)
-            step, evaluate, log_names = compiled.step, compiled.evaluate, compiled.log_names
-            params, opt_state = compiled.params, compiled.opt_state
-            compile_seconds = clock() - start
-            for_every_writer("set_attrs", compile_seconds=compile_seconds)
-            progress.compiled(compile_seconds)
-            for_every_writer("set_columns", "train", ("iteration", "wall_time", *log_names))
-            guarded = [log_names.index(name) for name in GUARDED]
-            svd_at = log_names.index("svd_failures") if "svd_failures" in log_names else None
-            running = list(enumerate(runs))
-            record_eval(0)
-            for_every_writer("flush")
-            last_flush = clock()
-            first_step_seconds = 0.0
-            iteration = 0
-            while settings.iterations is None or iteration < settings.iterations:
-                if stop.signal_name is not None:
-                    raise KeyboardInterrupt(stop.signal_name)
-                tick = clock()
-                new_params, opt_state, logs = step(params, opt_state, np.int32(iteration), seeds.train_keys,
-                                                   seeds.train_sets)
-                logs = np.asarray(logs).tolist()  # one transfer for every logged scalar of every seed
-                jax.block_until_ready(new_params)
-                seconds = clock() - tick
-                train_seconds += seconds
-                params, done = new_params, iteration + 1
-                if iteration == 0:
-                    first_step_seconds = seconds
-                elif iteration == 1:
-                    # the first call's one-off cost (how much longer it took than the second) is start-up, not
-                    # training: taken off every time stamp since, which are all still in the buffers
-                    overhead = max(0.0, first_step_seconds - seconds)
-                    train_seconds -= overhead
-                    last_eval_seconds = max(0.0, last_eval_seconds - overhead) if last_eval_seconds else 0.0
-                    for_every_writer("shift_buffered_time", -overhead)
-                    for_every_writer("set_attrs", first_step_overhead_seconds=overhead)
-                diverged = False
-                for index, run in running:
-                    row = logs[index]
-                    run.writer.append_row("train", (iteration, train_seconds, *row))
-                    bad = next((log_names[i] for i in guarded if not math.isfinite(row[i])), None)
-                    if bad is not None:
-                        run.status, run.iterations, diverged = "diverged", done, True
-                        run.reason = divergence_reason(bad, dict(zip(log_names, row)), iteration, run.svd_failures)
-                    elif svd_at is not None:
-                        run.svd_failures = row[svd_at]
-                if diverged:  # the running list changes only here, not at every step
-                    running = [(index, run) for index, run in running if run.running]
-                    if not running:
-                        break
-                iteration = done
-                if settings.time_budget is not None and train_seconds >= settings.time_budget:
-                    stopped_by = "time_budget"
+        stop_requested()  # a signal during start-up
+        # compiling can take minutes: inside the guard, so a failure or an interrupt here is recorded too
+        start = clock()
+        compiled = compile_training(scene, rule, seeds, settings.batch_size)
+        step, evaluate, log_names = compiled.step, compiled.evaluate, compiled.log_names
+        params, opt_state = compiled.params, compiled.opt_state
+        compile_seconds = clock() - start
+        for_every_writer("set_attrs", compile_seconds=compile_seconds)
+        progress.compiled(compile_seconds)
+        for_every_writer("set_columns", "train", ("iteration", "wall_time", *log_names))
+        guarded = [log_names.index(name) for name in GUARDED]
+        svd_at = log_names.index("svd_failures") if "svd_failures" in log_names else None
+        running = list(enumerate(runs))
+        stop_requested()
+        record_eval(0)
+        for_every_writer("flush")
+        last_flush = clock()
+        flush_interval = settings.flush_seconds
+        first_step_seconds, seconds = 0.0, 0.0
+        iteration = 0
+        while settings.iterations is None or iteration < settings.iterations:
+            stop_requested()
+            tick = clock()
+            arguments = (params, opt_state, np.int32(iteration), seeds.train_keys, seeds.train_sets)
+            if iteration == 0 or seconds >= SLOW_STEP_SECONDS:  # a second signal ends it without its result
+                new_params, opt_state, logs = stop.call(step, *arguments)
+            else:
+                new_params, opt_state, logs = step(*arguments)
+            logs = np.asarray(logs).tolist()  # one transfer for every logged scalar of every seed
+            jax.block_until_ready(new_params)
+            seconds = clock() - tick
+            train_seconds += seconds
+            params, done = new_params, iteration + 1
+            if iteration == 0:
+                first_step_seconds = seconds
+            elif iteration == 1:
+                # the first call's one-off cost (how much longer it took than the second) is start-up, not
+                # training: taken off every time stamp since, which are all still in the buffers
+                overhead = max(0.0, first_step_seconds - seconds)
+                train_seconds -= overhead
+                last_eval_seconds = max(0.0, last_eval_seconds - overhead) if last_eval_seconds else 0.0
+                for_every_writer("shift_buffered_time", -overhead)
+                for_every_writer("set_attrs", first_step_overhead_seconds=overhead)
+            diverged = False
+            for index, run in running:
+                row = logs[index]
+                run.writer.append_row("train", (iteration, train_seconds, *row))
+                bad = next((log_names[i] for i in guarded if not math.isfinite(row[i])), None)
+                if bad is not None:
+                    run.status, run.iterations, diverged = "diverged", done, True
+                    run.reason = divergence_reason(bad, dict(zip(log_names, row)), iteration, run.svd_failures)
+                elif svd_at is not None:
+                    run.svd_failures = row[svd_at]
+            if diverged:  # the running list changes only here, not at every step
+                running = [(index, run) for index, run in running if run.running]
+                if not running:
                     break
-                if done == settings.iterations:
-                    stopped_by = "iterations"
-                    break
-                if done % settings.eval_every == 0 or (
-                        settings.eval_seconds is not None and train_seconds - last_eval_seconds >= settings.eval_seconds):
-                    record_eval(done)
-                now = clock()
-                if now - last_flush >= settings.flush_seconds and done > 1:  # after the first-step correction
-                    for_every_writer("flush")
-                    last_flush = now
-                    progress.update(done, train_seconds, logs[running[0][0]][guarded[1]])
-            if stopped_by is not None:  # not in the files of seeds that diverged before
-                for run in runs:
-                    if run.running:
-                        run.writer.set_attrs(stopped_by=stopped_by)
-            if any(run.running and run.latest_eval["iteration"] != done for run in runs):
+            iteration = done
+            if settings.time_budget is not None and train_seconds >= settings.time_budget:
+                stopped_by = "time_budget"
+                break
+            if done == settings.iterations:
+                stopped_by = "iterations"
+                break
+            if done % settings.eval_every == 0 or (
+                    settings.eval_seconds is not None and train_seconds - last_eval_seconds >= settings.eval_seconds):
                 record_eval(done)
+            now = clock()
+            if now - last_flush >= flush_interval and done > 1:  # after the first-step correction
+                for_every_writer("flush")
+                last_flush = clock()
+                # the whole file is rewritten at each flush: as it grows, flush less often
+                flush_interval = max(settings.flush_seconds, FLUSH_COST_FACTOR * (last_flush - now) / len(runs))
+                progress.update(done, train_seconds, logs[running[0][0]][guarded[1]])
+        if stopped_by is not None:  # not in the files of seeds that diverged before
+            for run in runs:
+                if run.running:
+                    run.writer.set_attrs(stopped_by=stopped_by)
+        if any(run.running and run.latest_eval["iteration"] != done for run in runs):
+            record_eval(done)
     except KeyboardInterrupt as interrupt:
         why = f"{interrupt.args[0] if interrupt.args else 'SIGINT'} after {done} iterations"
         for run in runs:
@@ -387,18 +470,25 @@ def train(scene: Scene, rule: UpdateRule, seeds: Seeds, writers: list[ResultsWri
                 run.status, run.reason = "interrupted", why
     except BaseException as error:
         message = f"{type(error).__name__}: {str(error).splitlines()[0] if str(error) else ''}"
+        if isinstance(error, ResultsWriteError):
+            message = str(error)
         for run in runs:
-            run.writer.finish("failed", message, iterations=run.iterations or done, train_seconds=train_seconds)
+            finish_or_mark(run.writer, "failed", message, iterations=run.iterations or done,
+                           train_seconds=train_seconds)
         raise
     finally:
         progress.close()
-    outcomes = []
+    outcomes, write_errors = [], []
     for index, run in enumerate(runs):
         flat = None if params is None else np.asarray(params[index])
         if flat is not None and run.status != "diverged" and np.isfinite(flat).all():  # a later run can start from it (init_from)
             run.writer.save_params(flat)
         iterations = run.iterations or done
-        run.writer.finish(run.status, run.reason, iterations=iterations, train_seconds=train_seconds)
+        error = finish_or_mark(run.writer, run.status, run.reason, iterations=iterations, train_seconds=train_seconds)
+        if error:
+            write_errors.append(error)
         outcomes.append(Outcome(run.status, run.reason, iterations, train_seconds, run.latest_eval,
                                 stopped_by if run.status == "completed" else None))
+    if write_errors:
+        raise ResultsWriteError(write_errors[0])
     return outcomes

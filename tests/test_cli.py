@@ -104,7 +104,7 @@ def wait_for_rows(path: Path, rows: int, process, deadline=120.0):
     raise AssertionError(f"no {rows} rows in {path} after {deadline} s")
 
 
-@pytest.mark.parametrize("sig, status", [(signal.SIGKILL, "running"), (signal.SIGINT, "interrupted"),
+@pytest.mark.parametrize("sig, status", [(signal.SIGKILL, "crashed"), (signal.SIGINT, "interrupted"),
                                          (signal.SIGTERM, "interrupted")])
 def test_killed_or_interrupted_run_leaves_a_readable_file(sig, status, tmp_path):
     process = subprocess.Popen([PHYSGRAD, "run", "trainer.iterations=100000000", "trainer.flush_seconds=0.1",

@@ -292,13 +292,21 @@ def test_same_seed_same_precision_gives_bitwise_identical_curves(tmp_path):
             np.testing.assert_array_equal(first, second)
 
 
-def test_first_signal_asks_to_stop_second_stops_at_once():
+def test_first_signal_asks_to_stop_second_ends_a_step_still_computing():
     import signal
+    import threading
+    import time
 
     from physgrad.runner import StopRequest
 
     request = StopRequest()
+    assert request.call(lambda x: x + 1, np.float32(1)) == 2  # no signal: the step's result
     request(signal.SIGINT, None)
-    assert request.signal_name == "SIGINT"
-    with pytest.raises(KeyboardInterrupt, match="SIGTERM"):
-        request(signal.SIGTERM, None)
+    assert request.signal_name == "SIGINT" and not request.at_once
+    release = threading.Event()
+    threading.Timer(0.2, request, (signal.SIGTERM, None)).start()  # the handler never raises
+    start = time.perf_counter()
+    with pytest.raises(KeyboardInterrupt, match="SIGINT"):
+        request.call(lambda: release.wait(30))  # a step that would take 30 s
+    assert time.perf_counter() - start < 5
+    release.set()

@@ -1,0 +1,169 @@
+"""What a sweep knows about its jobs and how it stops.
+
+A sweep folder holds `jobs.yaml`, the manifest of the jobs the basic sweeper will launch (each a list of
+overrides, as in the job folder's `.hydra/overrides.yaml`), so that the end-of-sweep summary and `physgrad
+report` can name jobs that never started or left no results file. Stopping: the process that launched the
+sweep handles SIGINT and SIGTERM by writing `.physgrad-stop` into the sweep folder (how many signals it got);
+every job watches that file and its launcher (a job in a worker process stops when the launcher is gone), so a
+signal to the launcher alone stops every launcher's workers after their current step, a second one at once,
+and no job starts after it.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import signal
+import threading
+from contextlib import contextmanager
+from pathlib import Path
+
+import yaml
+
+log = logging.getLogger("physgrad")
+MANIFEST = "jobs.yaml"
+STOP_MARK = ".physgrad-stop"
+LAUNCHER_ENV = "PHYSGRAD_SWEEP_LAUNCHER"  # pid of the process that launched the sweep, inherited by its workers
+WATCH_SECONDS = 0.25
+
+
+def expected_jobs(config) -> list[list[str]] | None:
+    """The jobs Hydra's basic sweeper will launch for this config (hydra.sweeper.params, then the command
+    line), each a list of overrides; None for another sweeper (Optuna decides its trials as it goes)."""
+    from hydra._internal.core_plugins.basic_sweeper import BasicSweeper
+    from hydra.core.override_parser.overrides_parser import OverridesParser
+
+    if not str(config.hydra.sweeper.get("_target_", "")).endswith(".BasicSweeper"):
+        return None
+    params = config.hydra.sweeper.get("params") or {}
+    arguments = [f"{key}={value}" for key, value in params.items()] + list(config.hydra.overrides.task)
+    try:
+        overrides = OverridesParser.create().parse_overrides(arguments)
+        return [job for batch in BasicSweeper.split_arguments(overrides, None) for job in batch]
+    except Exception as error:  # noqa: BLE001 - Hydra reports these itself when it sweeps
+        log.debug("no manifest: %s", error)
+        return None
+
+
+def write_manifest(folder: Path, jobs: list[list[str]]) -> None:
+    folder.mkdir(parents=True, exist_ok=True)
+    temporary = folder / f".{MANIFEST}.{os.getpid()}.tmp"
+    temporary.write_text(yaml.safe_dump({"jobs": jobs}, default_flow_style=None, width=1000))
+    os.replace(temporary, folder / MANIFEST)
+
+
+def read_manifest(folder: Path) -> list[list[str]] | None:
+    try:
+        jobs = yaml.safe_load((folder / MANIFEST).read_text())["jobs"]
+    except (OSError, yaml.YAMLError, KeyError, TypeError):
+        return None
+    return [list(map(str, job)) for job in jobs] if isinstance(jobs, list) else None
+
+
+def job_folders(folder: Path) -> dict[frozenset, Path]:
+    """Job folder by its set of overrides, from the `.hydra/overrides.yaml` Hydra writes when a job starts."""
+    found = {}
+    for overrides in folder.rglob(".hydra/overrides.yaml"):
+        try:
+            found[frozenset(map(str, yaml.safe_load(overrides.read_text()) or []))] = overrides.parent.parent
+        except (OSError, yaml.YAMLError, TypeError):
+            continue
+    return found
+
+
+def unfinished_jobs(folder: Path) -> list[tuple[str, str]]:
+    """The manifest's jobs that have no results file: (their overrides joined by commas, `never started` or
+    `no results file`); empty without a manifest."""
+    jobs = read_manifest(folder)
+    if not jobs:
+        return []
+    folders, missing = job_folders(folder), []
+    for job in jobs:
+        where = folders.get(frozenset(job))
+        if where is None:
+            missing.append((",".join(job), "never started"))
+        elif not any(where.rglob("results.h5")):
+            missing.append((",".join(job), "no results file"))
+    return missing
+
+
+def stop_count(sweep: Path) -> tuple[str, int] | None:
+    """(signal name, how many) if the sweep was asked to stop."""
+    try:
+        name, count = (sweep / STOP_MARK).read_text().split()
+        return name, int(count)
+    except (OSError, ValueError):
+        return None
+
+
+def mark_stopped(sweep: Path, name: str, count: int = 1) -> None:
+    """Tell every job of the sweep to stop (count >= 2: at once); written by rename, so never read half."""
+    previous = stop_count(sweep)
+    count = max(count, previous[1] if previous else 0)
+    temporary = sweep / f".{STOP_MARK}.{os.getpid()}.tmp"
+    try:
+        temporary.write_text(f"{name} {count}\n")
+        os.replace(temporary, sweep / STOP_MARK)
+    except OSError as error:
+        log.warning("could not tell the sweep's jobs to stop (%s): stop the workers themselves", error)
+
+
+class LauncherSignals:
+    """The launching process's handler for SIGINT and SIGTERM during a sweep: mark the sweep stopped (its jobs,
+    in this process or in workers, see it); a third signal ends the launcher at once (KeyboardInterrupt)."""
+
+    def __init__(self, sweep: Path):
+        self.sweep, self.received = sweep, 0
+
+    def __call__(self, signum, frame):
+        self.received += 1
+        name = signal.Signals(signum).name
+        mark_stopped(self.sweep, name, self.received)
+        if self.received == 1:
+            log.warning("%s: stopping the sweep: running jobs end after their current step and are recorded as "
+                        "interrupted, no job starts (send it again to end running steps at once)", name)
+        elif self.received >= 3:
+            raise KeyboardInterrupt(name)
+
+
+@contextmanager
+def launcher_signals(sweep: Path):
+    try:
+        previous = {sig: signal.signal(sig, LauncherSignals(sweep)) for sig in (signal.SIGINT, signal.SIGTERM)}
+    except ValueError:  # not the main thread
+        yield
+        return
+    os.environ[LAUNCHER_ENV] = str(os.getpid())
+    try:
+        yield
+    finally:
+        os.environ.pop(LAUNCHER_ENV, None)
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)
+
+
+@contextmanager
+def watching(sweep: Path | None, stop):
+    """While a job of a sweep runs: a thread that passes the sweep's stop mark on to the job's StopRequest, and,
+    in a launcher's worker process, the launcher's end (its parent changes) as a SIGTERM."""
+    if sweep is None:
+        yield
+        return
+    launcher = os.environ.get(LAUNCHER_ENV)
+    watch_parent = launcher is not None and int(launcher) != os.getpid() and int(launcher) == os.getppid()
+    parent, finished = os.getppid(), threading.Event()
+
+    def watch():
+        while not finished.wait(WATCH_SECONDS):
+            mark = stop_count(sweep)
+            if mark is not None:
+                stop.request(mark[0], at_once=mark[1] >= 2)
+            if watch_parent and os.getppid() != parent:
+                stop.request("SIGTERM (the sweep's launcher ended)")
+
+    thread = threading.Thread(target=watch, daemon=True, name="physgrad-sweep-watch")
+    thread.start()
+    try:
+        yield
+    finally:
+        finished.set()

@@ -1,0 +1,285 @@
+"""Faults injected many times and at many instants: writers killed mid-write, a second writer, live readers with
+HDF5's default file locking, full disks, signals in bursts, damaged files, stopped sweeps.
+
+The short form runs in `make test`; `make test-faults` repeats every randomised fault many more times
+(PHYSGRAD_FAULT_REPEATS, see docs/results.md)."""
+
+import dataclasses
+import errno
+import os
+import random
+import signal
+import subprocess
+import sys
+import textwrap
+import threading
+import time
+from pathlib import Path
+
+import h5py
+import numpy as np
+import pytest
+
+from physgrad.results import FolderOwned, ResultsWriteError, ResultsWriter, own_folder, read_run
+from tests.test_configs import load
+
+REPEATS = int(os.environ.get("PHYSGRAD_FAULT_REPEATS", "1"))  # the long form multiplies every count
+PHYSGRAD = str(Path(sys.executable).with_name("physgrad"))
+WRITER = textwrap.dedent("""
+    import sys, time
+    from physgrad.results import ResultsWriter
+    writer = ResultsWriter(sys.argv[1], {"task": "toy", "optim": "adam", "seed": 0})
+    writer.set_columns("train", ("iteration", "wall_time", "loss", "grad_norm"))
+    print("ready", flush=True)
+    for i in range(10**9):
+        writer.append_row("train", (i, 0.001 * (i + 1), 1.0 / (i + 1), float(i)))
+        if i % 7 == 0:
+            writer.append("eval", {"iteration": i, "wall_time": 0.001 * (i + 1), "loss": 2.0 / (i + 1)})
+        if i % 50 == 49:
+            writer.flush()
+""")
+
+
+def start_writer(path: Path) -> subprocess.Popen:
+    process = subprocess.Popen([sys.executable, "-c", WRITER, str(path)], stdout=subprocess.PIPE, text=True)
+    assert process.stdout.readline().strip() == "ready"
+    return process
+
+
+def assert_consistent(path: Path) -> None:
+    """What every results file must be after any fault: readable, equal columns, rows in order."""
+    run = read_run(path)  # raises on unequal columns or an unreadable file
+    iterations = run.train.get("iteration", np.empty(0))
+    assert iterations.tolist() == list(range(iterations.size))
+    assert np.array_equal(run.train.get("loss", np.empty(0)), 1.0 / (iterations + 1))
+    assert np.all(np.diff(run.eval.get("iteration", np.empty(0))) > 0)
+
+
+def test_a_writer_killed_at_random_instants_leaves_a_consistent_file(tmp_path):
+    rng = random.Random(0)
+    kills = 60 * REPEATS
+    path = tmp_path / "results.h5"
+    rows_seen = []
+    process = start_writer(path)
+    for kill in range(kills):
+        time.sleep(rng.uniform(0.0, 0.03))  # every instant of the writer's cycle, flushes included
+        if kill % 10 == 9:  # a fresh writer now and then: the file is rewritten from its first rows again
+            process.kill()
+            process.wait()
+            assert_consistent(path)
+            assert read_run(path).attrs["status"] == "crashed"  # its writer is gone
+            process = start_writer(path)
+            continue
+        os.kill(process.pid, signal.SIGSTOP)  # freeze it anywhere: what a kill at this instant leaves
+        assert_consistent(path)
+        rows_seen.append(read_run(path).train.get("iteration", np.empty(0)).size)
+        os.kill(process.pid, signal.SIGCONT)
+    process.kill()
+    process.wait()
+    assert_consistent(path)
+    assert len(set(rows_seen)) > kills // 4  # the instants really were spread over many writes
+
+
+def test_sigkill_at_random_instants_leaves_readable_files(tmp_path):
+    rng = random.Random(1)
+    for trial in range(8 * REPEATS):
+        path = tmp_path / f"{trial}" / "results.h5"
+        process = start_writer(path)
+        time.sleep(rng.uniform(0.0, 0.3))
+        process.kill()
+        process.wait()
+        assert_consistent(path)
+        assert [p.name for p in path.parent.glob("*.h5")] == ["results.h5"]
+
+
+def test_readers_with_default_locking_never_disturb_a_writer(tmp_path):
+    path = tmp_path / "results.h5"
+    process = start_writer(path)
+    deadline = time.time() + 3 * REPEATS
+    reads = 0
+    while time.time() < deadline:
+        with h5py.File(path) as f:  # plain h5py: default file locking, held while the writer goes on
+            lengths = {f["train"][key].shape[0] for key in f["train"]}
+            assert len(lengths) <= 1
+            time.sleep(0.01)
+        reads += 1
+    assert process.poll() is None, "the writer died while files were being read"
+    process.kill()
+    process.wait()
+    assert reads > 20
+    assert_consistent(path)
+
+
+def test_a_second_owner_is_refused_and_a_dead_one_replaced(tmp_path):
+    holder = subprocess.Popen([sys.executable, "-c", textwrap.dedent(f"""
+        import time
+        from physgrad.results import own_folder
+        with own_folder({str(tmp_path)!r}):
+            print("held", flush=True)
+            time.sleep(60)
+    """)], stdout=subprocess.PIPE, text=True)
+    try:
+        assert holder.stdout.readline().strip() == "held"
+        with pytest.raises(FolderOwned, match=rf"being written by pid {holder.pid} on .* since 20\d\d-"):
+            with own_folder(tmp_path):
+                pass
+        # a job into that folder is refused without touching what is there
+        (tmp_path / "results.h5").write_bytes(b"someone else's")
+        outcome, _ = run_experiment_in(tmp_path)
+        assert outcome.status == "refused" and f"pid {holder.pid}" in outcome.reason
+        assert (tmp_path / "results.h5").read_bytes() == b"someone else's"
+    finally:
+        holder.kill()
+        holder.wait()
+    with own_folder(tmp_path):  # the owner died: its lock went with it
+        pass
+
+
+def run_experiment_in(folder, *overrides):
+    from physgrad.experiment import run_experiment
+
+    return run_experiment(load("task=toy", "trainer.iterations=3", *overrides), folder)
+
+
+def test_a_full_disk_at_any_write_is_one_line_and_leaves_the_last_good_file(tmp_path, monkeypatch):
+    import physgrad.results as results
+
+    real = h5py.File
+    for failing_write in range(1, 4 + 3 * REPEATS):
+        path = tmp_path / f"{failing_write}" / "results.h5"
+        writes = []
+
+        def file(name, mode="r", **kwargs):
+            if mode == "w":
+                writes.append(name)
+                if len(writes) == failing_write:
+                    raise OSError(errno.ENOSPC, "No space left on device")
+            return real(name, mode, **kwargs)
+
+        monkeypatch.setattr(results.h5py, "File", file)
+        try:
+            writer = ResultsWriter(path, {"task": "toy"})
+            for i in range(5):
+                writer.append("train", {"iteration": i, "loss": 1.0})
+                writer.flush()
+            writer.finish("completed")
+            raise AssertionError("the full disk went unnoticed")
+        except ResultsWriteError as error:
+            assert str(error) == f"cannot write {path}: No space left on device"
+        finally:
+            monkeypatch.setattr(results.h5py, "File", real)
+        if failing_write > 1:  # the file of the last good write is intact: write k holds rows 0 .. k - 2
+            run = read_run(path)
+            assert run.train.get("iteration", np.empty(0)).tolist() == list(range(failing_write - 2))
+            assert run.attrs["status"] == "running"
+        assert not list(path.parent.glob(".*.tmp"))
+
+
+def test_a_file_size_limit_is_a_write_error_not_a_crash(tmp_path):
+    """A real failing write() (RLIMIT_FSIZE, without privileges), not a mocked one."""
+    script = textwrap.dedent(f"""
+        import resource, signal
+        signal.signal(signal.SIGXFSZ, signal.SIG_IGN)
+        resource.setrlimit(resource.RLIMIT_FSIZE, (200_000, 200_000))
+        from physgrad.results import ResultsWriteError, ResultsWriter
+        writer = ResultsWriter({str(tmp_path / 'results.h5')!r}, {{"task": "toy"}})
+        try:
+            for i in range(10**6):
+                writer.append("train", {{"iteration": i, "loss": 1.0, "a": 2.0, "b": 3.0}})
+                if i % 1000 == 999:
+                    writer.flush()
+        except ResultsWriteError as error:
+            print("refused:", error)
+            print("marked:", writer.mark_failed_in_place(str(error)))
+    """)
+    result = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=120)
+    assert result.returncode == 0, result.stderr
+    assert "refused: cannot write" in result.stdout and "File too large" in result.stdout, result.stdout
+    run = read_run(tmp_path / "results.h5")
+    assert run.attrs["status"] == "failed" and "File too large" in run.attrs["reason"]
+    assert run.train["iteration"].tolist() == list(range(run.train["iteration"].size)) and run.train["iteration"].size
+
+
+def test_signals_in_bursts_at_random_instants_always_end_interrupted(tmp_path):
+    """Two to four signals a few milliseconds apart, at random instants of a run (compile, steps, flushes);
+    the process stays alive, the file is final and consistent."""
+    from physgrad.experiment import prepare
+    from physgrad.runner import TrainerSettings, stop_on_signals, train
+
+    rng = random.Random(2)
+    cfg = load("task=toy", "trainer.flush_seconds=0.001")
+    settings = TrainerSettings.from_config(cfg.trainer)
+    settings = dataclasses.replace(settings, iterations=None, time_budget=30.0)
+    for trial in range(4 * REPEATS):
+        scene, rule, seeds = prepare(cfg, [0], settings)
+        writer = ResultsWriter(tmp_path / f"{trial}" / "results.h5", {"task": "toy"})
+        times = sorted(rng.uniform(0.0, 2.0) + k * rng.uniform(0.0, 0.01) for k in range(rng.randint(2, 4)))
+        with stop_on_signals() as stop:  # stays installed until the last signal arrived
+            start = time.monotonic()
+            timers = [threading.Timer(t, os.kill, (os.getpid(), rng.choice([signal.SIGINT, signal.SIGTERM])))
+                      for t in times]
+            for timer in timers:
+                timer.start()
+            outcome, = train(scene, rule, seeds, [writer], settings, stop=stop)
+            for timer in timers:
+                timer.join()
+        assert time.monotonic() - start < 25
+        run = read_run(writer.path)
+        assert outcome.status == run.attrs["status"] == "interrupted", run.attrs
+        assert run.train.get("iteration", np.empty(0)).tolist() == list(range(outcome.iterations))
+
+
+def test_a_completed_file_is_replaced_only_by_a_completed_one(tmp_path):
+    first, path = run_experiment_in(tmp_path)
+    kept = read_run(path).attrs["created"]
+    writer = ResultsWriter(path, {"task": "toy"})  # a re-run (overwrite=true) that ends interrupted
+    writer.append("train", {"iteration": 0, "loss": 1.0})
+    writer.finish("interrupted", "SIGINT after 1 iterations")
+    assert read_run(path).attrs["created"] == kept and read_run(path).attrs["status"] == "completed"
+    assert read_run(path.with_name("results.overwriting.h5")).attrs["status"] == "interrupted"
+    again, _ = run_experiment_in(tmp_path, "overwrite=true", "trainer.iterations=4")
+    assert again.status == "completed" and read_run(path).train["iteration"].size == 4
+    assert not path.with_name("results.overwriting.h5").exists()  # renamed onto results.h5
+
+
+@pytest.mark.parametrize("content", [b"", b"not hdf5 at all", "foreign"])
+def test_a_damaged_or_foreign_file_is_set_aside_and_the_job_reruns(tmp_path, content):
+    path = tmp_path / "results.h5"
+    if content == "foreign":
+        with h5py.File(path, "w") as f:
+            f["data"] = np.arange(3)
+    else:
+        path.write_bytes(content)
+    outcome, _ = run_experiment_in(tmp_path)
+    assert outcome.status == "completed" and read_run(path).attrs["status"] == "completed"
+    aside, = tmp_path.glob("results.h5.unreadable-*")
+    if content != "foreign":
+        assert aside.read_bytes() == content
+
+
+def test_a_stopped_sweep_records_its_running_job_and_names_the_ones_that_never_ran(tmp_path):
+    sweep = tmp_path / "sweep"
+    process = subprocess.Popen([PHYSGRAD, "run", "-m", "task=toy", "trainer.iterations=100000000", "seed=0,1,2",
+                                f"hydra.sweep.dir={sweep}"], stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
+                               text=True)
+    try:
+        deadline = time.time() + 120
+        while not list(sweep.glob("*/results.h5")) and time.time() < deadline:
+            time.sleep(0.2)
+        time.sleep(1.0)
+        process.send_signal(signal.SIGTERM)  # to the launcher only, as `kill` or a scheduler would
+        output, _ = process.communicate(timeout=120)
+    finally:
+        process.kill()
+    assert process.returncode == 130, output
+    assert "sweep stopped by SIGTERM: 1 interrupted, 2 no results file" in output
+    from physgrad.report import write_report
+
+    text = write_report([sweep])
+    assert text.count("not run: ") == 2 and "seed=2: no results file" in text
+    # a second sweep into a folder whose sweep still runs is refused in one line
+    with own_folder(sweep, "sweep"):
+        second = subprocess.run([PHYSGRAD, "run", "-m", "task=toy", "seed=0,1", f"hydra.sweep.dir={sweep}"],
+                                capture_output=True, text=True, timeout=120)
+    assert second.returncode == 2 and second.stderr.count("\n") == 1
+    assert "is being written by pid" in second.stderr and "(another sweep)" in second.stderr
