@@ -59,7 +59,7 @@ def test_a_writer_killed_at_random_instants_leaves_a_consistent_file(tmp_path):
     rng = random.Random(0)
     kills = 60 * REPEATS
     path = tmp_path / "results.h5"
-    rows_seen = []
+    rows_seen = set()  # (which writer, rows in the file)
     process = start_writer(path)
     for kill in range(kills):
         time.sleep(rng.uniform(0.0, 0.03))  # every instant of the writer's cycle, flushes included
@@ -72,12 +72,12 @@ def test_a_writer_killed_at_random_instants_leaves_a_consistent_file(tmp_path):
             continue
         os.kill(process.pid, signal.SIGSTOP)  # freeze it anywhere: what a kill at this instant leaves
         assert_consistent(path)
-        rows_seen.append(read_run(path).train.get("iteration", np.empty(0)).size)
+        rows_seen.add((kill // 10, read_run(path).train.get("iteration", np.empty(0)).size))
         os.kill(process.pid, signal.SIGCONT)
     process.kill()
     process.wait()
     assert_consistent(path)
-    assert len(set(rows_seen)) > kills // 4  # the instants really were spread over many writes
+    assert len(rows_seen) > kills // 3  # the instants really were spread over many writes of each writer
 
 
 def test_sigkill_at_random_instants_leaves_readable_files(tmp_path):
@@ -145,7 +145,8 @@ def test_a_full_disk_at_any_write_is_one_line_and_leaves_the_last_good_file(tmp_
     import physgrad.results as results
 
     real = h5py.File
-    for failing_write in range(1, 4 + 3 * REPEATS):
+    flushes = 5 * REPEATS
+    for failing_write in range(1, flushes + 3):  # the first write, each flush, and the final one
         path = tmp_path / f"{failing_write}" / "results.h5"
         writes = []
 
@@ -159,7 +160,7 @@ def test_a_full_disk_at_any_write_is_one_line_and_leaves_the_last_good_file(tmp_
         monkeypatch.setattr(results.h5py, "File", file)
         try:
             writer = ResultsWriter(path, {"task": "toy"})
-            for i in range(5):
+            for i in range(flushes):
                 writer.append("train", {"iteration": i, "loss": 1.0})
                 writer.flush()
             writer.finish("completed")
