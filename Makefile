@@ -20,7 +20,7 @@ run: setup
 test: setup
 	$(BIN)/python -m pytest -q tests
 
-# the fault-injection suite repeated many times (every randomised fault x REPEATS; about 10 minutes at 20)
+# the fault-injection suite repeated many times (every randomised fault x REPEATS; about 7 minutes at 20)
 REPEATS ?= 20
 test-faults: setup
 	PHYSGRAD_FAULT_REPEATS=$(REPEATS) $(BIN)/python -m pytest -q tests/test_faults.py
