@@ -144,8 +144,9 @@ def job(cfg: DictConfig) -> float:
     name = f"{cfg.task.get('name')}/{cfg.optim.get('name')} seed {cfg.seed}"
     out_dir = Path(hydra_cfg.runtime.output_dir)
     sweep = Path(hydra_cfg.sweep.dir) if multirun else None
-    if sweep is not None and stop_count(sweep) is not None:
-        log.warning("%s not started: the sweep was stopped (%s)", name, stop_count(sweep)[0])
+    stopped = stop_count(sweep) if sweep is not None else None
+    if stopped is not None:
+        log.warning("%s not started: the sweep was stopped (%s)", name, stopped[0])
         return float("inf")
     try:
         outcome, path = run_experiment(cfg, out_dir, sweep)

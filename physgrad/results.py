@@ -94,7 +94,6 @@ class ResultsWriter:
         self._rows: dict[str, list[tuple]] = {group: [] for group in GROUPS}  # not yet flushed
         self._data: dict[str, dict[str, list[np.ndarray]]] = {group: {} for group in GROUPS}  # flushed chunks
         self._params: np.ndarray | None = None
-        self.write_seconds = 0.0  # what the last write took: the runner flushes at most every 20 times that
         for stale in self.live.parent.glob(f".{self.live.name}.*.tmp"):  # left by a writer killed mid-write
             stale.unlink(missing_ok=True)
         self._write()
@@ -172,9 +171,7 @@ class ResultsWriter:
         """The file is built in memory (HDF5's core driver) and its bytes written by Python: a failing write()
         (disk full, quota, size limit) is then an OSError here, where HDF5 writing to disk itself crashed the
         process when a write failed as it closed the file."""
-        start = time.perf_counter()
         self.attrs["heartbeat"] = _now()
-        temporary = self.live.with_name(f".{self.live.name}.{os.getpid()}.tmp")
         try:
             with h5py.File(f"physgrad-{id(self)}.h5", "w", driver="core", backing_store=False) as f:
                 for key, value in self.attrs.items():
@@ -187,19 +184,26 @@ class ResultsWriter:
                     f.create_dataset("params", data=self._params)
                 f.flush()
                 image = f.id.get_file_image()
-            with open(temporary, "wb") as out:
-                out.write(image)
-                if sync:
-                    out.flush()
-                    os.fsync(out.fileno())
-            os.replace(temporary, self.live)
+            replace_file(self.live, image, sync)
         except OSError as error:
-            temporary.unlink(missing_ok=True)
             raise ResultsWriteError(f"cannot write {self.live}: {error.strerror or error}") from error
-        except BaseException:
-            temporary.unlink(missing_ok=True)
-            raise
-        self.write_seconds = time.perf_counter() - start
+
+
+def replace_file(path: Path, content: bytes, sync: bool = False) -> None:
+    """Write content beside path (.NAME.<pid>.tmp) and rename it onto path: a reader, or a process killed at
+    any instant, sees the old file or the new one, never a part (sync: onto the disk itself before the rename,
+    which a power cut could otherwise undo). The temporary file is removed on any error."""
+    temporary = path.with_name(f".{path.name}.{os.getpid()}.tmp")
+    try:
+        with open(temporary, "wb") as out:
+            out.write(content)
+            if sync:
+                out.flush()
+                os.fsync(out.fileno())
+        os.replace(temporary, path)
+    except BaseException:
+        temporary.unlink(missing_ok=True)
+        raise
 
 
 def _now() -> str:

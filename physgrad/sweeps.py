@@ -20,6 +20,8 @@ from pathlib import Path
 
 import yaml
 
+from physgrad.results import replace_file
+
 log = logging.getLogger("physgrad")
 MANIFEST = "jobs.yaml"
 STOP_MARK = ".physgrad-stop"
@@ -47,9 +49,7 @@ def expected_jobs(config) -> list[list[str]] | None:
 
 def write_manifest(folder: Path, jobs: list[list[str]]) -> None:
     folder.mkdir(parents=True, exist_ok=True)
-    temporary = folder / f".{MANIFEST}.{os.getpid()}.tmp"
-    temporary.write_text(yaml.safe_dump({"jobs": jobs}, default_flow_style=None, width=1000))
-    os.replace(temporary, folder / MANIFEST)
+    replace_file(folder / MANIFEST, yaml.safe_dump({"jobs": jobs}, default_flow_style=None, width=1000).encode())
 
 
 def read_manifest(folder: Path) -> list[list[str]] | None:
@@ -100,10 +100,8 @@ def mark_stopped(sweep: Path, name: str, count: int = 1) -> None:
     """Tell every job of the sweep to stop (count >= 2: at once); written by rename, so never read half."""
     previous = stop_count(sweep)
     count = max(count, previous[1] if previous else 0)
-    temporary = sweep / f".{STOP_MARK}.{os.getpid()}.tmp"
     try:
-        temporary.write_text(f"{name} {count}\n")
-        os.replace(temporary, sweep / STOP_MARK)
+        replace_file(sweep / STOP_MARK, f"{name} {count}\n".encode())
     except OSError as error:
         log.warning("could not tell the sweep's jobs to stop (%s): stop the workers themselves", error)
 
