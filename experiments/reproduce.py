@@ -2,7 +2,7 @@
 figures and one markdown summary into outputs/figures/.
 
 The experiment configs hold the papers' budgets (PROFILE=paper). The quick profile (the default) runs the same
-sweeps with the budgets below, so that everything finishes within 45 minutes on a 2-core machine; every figure
+sweeps with the budgets below, so that everything finishes in about 45 minutes on a 2-core machine; every figure
 and the summary say so. Runs land in outputs/experiments/<profile>/<experiment>/<overrides>/results.h5; a second
 call skips every job that completed (so an interrupted reproduction resumes), unless OVERWRITE=1.
 Each figure is `physgrad report` of its runs: the same table and figures that command writes for any runs.
@@ -17,6 +17,7 @@ import sys
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Callable
 
 from physgrad.report import write_report
 
@@ -29,6 +30,19 @@ class Figure:
     shows: tuple[str, ...]  # which of the report's figures this one is
     quick: dict[str, list[str]] = field(default_factory=dict)  # experiment -> overrides of the quick profile
     runs_shown: tuple[str, ...] = ()  # globs of job folders whose per-run scene figure (scene.png) is shown too
+    # (folders, out folder, note) -> (figure file names, markdown): a study's own figure and table, beside the report
+    study: Callable[[list[Path], Path, str], tuple[list[str], str]] | None = None
+
+
+def ks_study(folders: list[Path], out: Path, note: str) -> tuple[list[str], str]:
+    from ks_study import write  # experiments/ is this script's folder
+
+    images, text = [], ""
+    for folder in folders:
+        drawn, table = write(folder, out, note)
+        images += drawn
+        text += table
+    return images, text
 
 
 QUICK_POISSON = ["seed=0", "trainer.time_budget=45"]
@@ -60,6 +74,10 @@ FIGURES = (
            {"fig8_guidance": ["seed=0", "optim.clip=none", "trainer.iterations=1000", "trainer.eval_every=100"]},
            runs_shown=("*optim.backprop=R,*seed=0,task.control_cost=0.001*",
                        "*optim.backprop=C,*seed=0,task.control_cost=0.001*")),
+    Figure("fig9_ks", "Kuramoto-Sivashinsky neural simulator: ONE, NOG, WIG x predict, correct x unroll length",
+           ("fig9_ks",), ("unroll.png",),
+           {"fig9_ks": ["unroll=1,2,4", "trainer.iterations=200", "trainer.eval_every=200"]},
+           runs_shown=("*task.stepper=correct,task.training=WIG,*unroll=4/seed=0",), study=ks_study),
 )
 TRADEOFF = "fig7_tradeoff"
 
@@ -106,11 +124,17 @@ def main(argv: list[str] | None = None) -> int:
         write_report([str(f) for f in folders], out_dir=out / figure.name, note=f"{figure.title}\n{note}")
         shown = list(figure.shows)
         for pattern in figure.runs_shown:  # e.g. the agents' paths of one run per variant
-            for job in sorted(p for f in folders for p in f.glob(pattern) if (p / "scene.png").exists())[:1]:
-                shutil.copy(job / "scene.png", out / figure.name / f"scene_{job.name}.png")
-                shown.append(f"scene_{job.name}.png")
-        images = "\n".join(f"![{figure.name}]({figure.name}/{image})" for image in shown)
+            found = sorted((p, f) for f in folders for p in f.glob(pattern) if (p / "scene.png").exists())
+            for job, folder in found[:1]:
+                name = f"scene_{'_'.join(job.relative_to(folder).parts)}.png"
+                shutil.copy(job / "scene.png", out / figure.name / name)
+                shown.append(name)
         table = (out / figure.name / "report.md").read_text()
+        if figure.study is not None:
+            drawn, study_table = figure.study(folders, out / figure.name, f"{figure.title}\n{note}")
+            shown = drawn + shown
+            table = f"{study_table}\n{table}"
+        images = "\n".join(f"![{figure.name}]({figure.name}/{image})" for image in shown)
         sections.append(f"## {figure.name}: {figure.title}\n\n{images}\n\n{table}")
     if all_folders:
         title = "Error against run time: final test loss against seconds per iteration and total training time"

@@ -30,10 +30,13 @@ from pathlib import Path
 
 from physgrad.configs import compose
 
-SCENES = ("oscillator", "quantum", "poisson", "multicart", "quantum_control", "guidance")
+SCENES = ("oscillator", "quantum", "poisson", "multicart", "quantum_control", "guidance", "ks")
 OPTIMS = ("adam", "gd", "gauss_newton", "hig", "bptt", "stable_bptt")
 # variants measured in another precision as well
-EXTRA = {"poisson": [("hig", ["precision=64"])]}
+EXTRA = {"poisson": [("hig", ["precision=64"])],
+         # the unrolling study's other training modalities and stepper, and its longest unroll
+         "ks": [("adam", ["task.training=ONE"]), ("adam", ["task.training=NOG"]), ("adam", ["task.stepper=predict"]),
+                ("adam", ["unroll=16"])]}
 # temporal scenes whose Jacobian route would differentiate 128 x 64 outputs per sample: not a reference setup
 SKIP = {("quantum_control", "hig"), ("quantum_control", "gauss_newton"), ("quantum_control", "gd")}
 
@@ -300,8 +303,9 @@ def run_bench(scenes, repeats: int, min_seconds: float, timeout: float) -> list[
                 if floors is None:
                     floors = _subprocess("floors", {"size": size, "repeats": repeats}, timeout)
                 result.update(floor_size=size, floors=floors)
-            rows.append({"task": task, "variant": optim + ("" if precision == 32 else " f64"),
-                         "precision": precision, **result})
+            settings = [o.removeprefix("task.") for o in overrides[2:] if o != "precision=64"]
+            variant = optim + ("" if precision == 32 else " f64") + (f" ({', '.join(settings)})" if settings else "")
+            rows.append({"task": task, "variant": variant, "precision": precision, **result})
     return rows
 
 

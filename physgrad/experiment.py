@@ -161,7 +161,8 @@ def prepare(cfg: DictConfig, seed_list: list[int], settings: TrainerSettings) ->
     scene, seeds = build_seeds(cfg, seed_list, settings.batch_size)
     check_applies(scene, cfg)
     if rule.uses_jacobian:
-        sample = jax.tree_util.tree_map(lambda leaf: leaf[0], scene.test_set)
+        # a training sample: what J is taken of (a scene's test samples may hold other fields)
+        sample = jax.tree_util.tree_map(lambda leaf: leaf[0], scene.sample_train(jax.random.PRNGKey(0), 1))
         rule = rule._replace(gradient=JacobianPass.for_network(scene.sample_output, seeds.network(), sample))
     return scene, rule, seeds
 

@@ -14,6 +14,12 @@ if "JAX_COMPILATION_CACHE_DIR" not in os.environ:
     os.environ.update(JAX_COMPILATION_CACHE_DIR=_cache, JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS="0",
                       JAX_PERSISTENT_CACHE_MIN_ENTRY_SIZE_BYTES="0")
 
+# Generated datasets (the Kuramoto-Sivashinsky trajectories) go to a cache of the test session, never the user's
+if "PHYSGRAD_CACHE" not in os.environ:
+    _data = tempfile.mkdtemp(prefix="physgrad-test-data-")
+    atexit.register(shutil.rmtree, _data, ignore_errors=True)
+    os.environ["PHYSGRAD_CACHE"] = _data
+
 import jax  # noqa: E402
 import pytest  # noqa: E402
 

@@ -74,7 +74,7 @@ def test_hydra_flags_keep_working(tmp_path):
 
 
 @pytest.mark.parametrize("args, fragment", [
-    (["task=nope"], "unknown task 'nope' (choose one of guidance, multicart, oscillator, poisson, quantum, "),
+    (["task=nope"], "unknown task 'nope' (choose one of guidance, ks, multicart, oscillator, poisson, quantum, "),
     (["optim=hgi"], "unknown optim 'hgi': did you mean hig? (choose one of adam, bptt, gauss_newton, gd, hig, "),
     (["trainer.iteratons=5"], "did you mean trainer.iterations?"),
     (["optim.lr=0.1"], "did you mean optim.learning_rate?"),

@@ -20,11 +20,15 @@ SMALL = {
     "quantum_control": ["task.train_size=16", "task.test_size=8", "trainer.batch_size=4", "unroll=32"],
     "toy": ["task.test_size=8", "trainer.batch_size=4"],
     "guidance": ["task.train_size=16", "task.test_size=8", "unroll=12", "trainer.batch_size=4"],
+    "ks": ["task.channels=3", "task.blocks=1", "task.train_steps=30", "task.warmup=20", "task.test_count=2",
+           "task.test_steps=24", "task.horizon=4", "task.long_horizon=12", "trainer.batch_size=4"],
 }
 # every scene as configured by default, plus the settings that change which variants apply
 SCENES = [(task, []) for task in TASKS] + [("oscillator", ["task.closed_loop=true"]),
-                                          ("quantum", ["task.closed_loop=true"])]
-CLOSED_LOOP = {"multicart", "quantum_control", "guidance", "oscillator task.closed_loop=true", "quantum task.closed_loop=true"}
+                                          ("quantum", ["task.closed_loop=true"]),
+                                          ("ks", ["task.training=ONE", "task.stepper=predict"])]
+CLOSED_LOOP = {"multicart", "quantum_control", "guidance", "ks", "ks task.training=ONE task.stepper=predict",
+               "oscillator task.closed_loop=true", "quantum task.closed_loop=true"}
 
 
 def load(*overrides):
@@ -54,7 +58,7 @@ def test_pair_runs_two_iterations_or_is_refused(task, settings, optim, tmp_path)
         assert list(run.eval["iteration"]) == [0, 1, 2]
         assert (tmp_path / "loss.png").stat().st_size > 0
         # a scene with a per-run figure (Scene.figure) draws it beside loss.png; the others draw none
-        assert (tmp_path / "scene.png").exists() == (task == "guidance")
+        assert (tmp_path / "scene.png").exists() == (task in ("guidance", "ks"))
         assert ("unroll" in run.attrs) == (task not in ("poisson", "toy"))
         if optim == "stable_bptt":  # the combined gradient's diagnostics are logged per iteration
             assert 0 <= run.train["zeroed_fraction"].min() <= run.train["zeroed_fraction"].max() <= 1

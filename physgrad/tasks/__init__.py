@@ -54,7 +54,9 @@ class Scene:
     draw_batch(key, batch_size, train_set) -> batch: a training minibatch; by default drawn from train_set;
     sample_metrics(params, sample, y) -> {name: scalar}: extra held-out metrics, averaged over the test set;
     figure(params, test_set, path): a per-run figure of the trained network (e.g. trajectories of a few test
-    samples), drawn after training into path (scene.png beside loss.png); optional.
+    samples), drawn after training into path (scene.png beside loss.png); optional;
+    test_output(params, sample) -> y: the output the held-out loss is computed on, where it differs from the
+    training output (e.g. a fixed rollout horizon whatever the training unroll); default: sample_output.
     """
 
     init_params: Callable[[Any], Any]
@@ -66,6 +68,7 @@ class Scene:
     draw_batch: Callable[[Any, int, Any], Any] = draw_from
     sample_metrics: Callable[[Any, Any, jax.Array], dict] = field(default=no_metrics)
     figure: Callable[[Any, Any, Any], None] | None = None
+    test_output: Callable[[Any, Any], jax.Array] | None = None
 
     def __post_init__(self):
         if (self.sample_output is None) == (self.dynamics is None):
@@ -111,6 +114,8 @@ class Scene:
 
         changes = {"init_params": lambda key: ravel_pytree(self.init_params(key))[0],
                    "sample_metrics": flat(self.sample_metrics)}
+        if self.test_output is not None:
+            changes["test_output"] = flat(self.test_output)
         if self.dynamics is None:
             changes["sample_output"] = flat(self.sample_output)
         else:
@@ -130,8 +135,9 @@ class Scene:
         return jnp.mean(jax.vmap(self.sample_loss)(y, batch))
 
     def evaluate(self, params, batch) -> dict:
-        """Held-out loss and scene metrics, each a mean over the samples of ``batch``."""
-        y = self.batch_output(params, batch)
+        """Held-out loss and scene metrics, each a mean over the samples of ``batch`` (on test_output)."""
+        output = self.sample_output if self.test_output is None else self.test_output
+        y = jax.vmap(output, in_axes=(None, 0))(params, batch)
         metrics = jax.vmap(self.sample_metrics, in_axes=(None, 0, 0))(params, batch, y)
         return {"loss": self.batch_loss(y, batch), **{k: jnp.mean(v) for k, v in metrics.items()}}
 

@@ -1,0 +1,444 @@
+"""Kuramoto-Sivashinsky neural simulator (the unrolling study, List, Chen, Bali, Thuerey, CMAME 2025): a network
+learns a time stepper from trajectories and is trained over m unrolled steps.
+
+    u_t + u u_x + u_xx + u_xxxx = 0,  periodic, `points` grid points, length L = 2 pi * base_domain * size.
+
+In Fourier space u_t = lin u + N(u) with lin(kappa) = kappa^2 - kappa^4, N(u) = -(i kappa / 2) FFT(u^2) and
+kappa = 2 pi n / L. Exponential time differencing with step h, x = lin h, phi1 = (e^x - 1)/x,
+phi2 = (e^x - 1 - x)/x^2 (phi1(0) = 1, phi2(0) = 1/2):
+    ETD1:    u' = e^x u + h phi1 N(u)
+    ETD2RK:  a = ETD1(u),  u' = a + h phi2 (N(a) - N(u))       (Cox and Matthews' second-order scheme)
+One model step is `substeps` solver steps (2 x 0.5 in the study). Ground truth: ETD2RK, generated in float64;
+the coarse solver P of the correction stepper: ETD1 with the same h.
+
+Steppers (task.stepper): predict s' = f(s) (the network alone); correct s' = P(s) + dt f(s) (dt = h, as the
+study scales the correction). The network sees the state and a constant channel holding the size factor.
+
+Training modalities (task.training): WIG unrolls m steps with gradients through time; NOG unrolls m steps with
+the state detached before every step (no gradient through time); ONE trains on one-step pairs: each sample is m
+independent ground-truth pairs, so a batch of B holds B*m pairs and costs what B unrolled windows cost, with
+the same number of updates (the study's compute matching: batch and epochs times m). Loss: the mean squared
+error over the m predicted states and the grid. Held-out loss: the study's relative error over `horizon` steps
+of an autoregressive rollout from each test state, mean_k mean_x (u_k - u*_k)^2 / max_{k,x} u*_k^2.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import math
+import os
+from pathlib import Path
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from physgrad import UserError
+from physgrad.tasks import Scene
+from physgrad.unroll import Dynamics
+from physgrad.validate import choice, flag, number
+
+STEPPERS = ("predict", "correct")
+TRAININGS = ("WIG", "NOG", "ONE")
+# bump when the generated data would change for the same settings
+DATA_VERSION = 1
+# rollouts that leave [-DIVERGED_FACTOR, DIVERGED_FACTOR] x the ground truth's largest |u| count as unstable
+DIVERGED_FACTOR = 3.0
+# the study's clamp of a relative error per step (a rollout that blows up counts this much per step)
+ERROR_CAP = 30.0
+# the long rollout's accuracy horizon: steps until the correlation with the ground truth first drops below this
+DECORRELATION = 0.5
+
+
+# ---------------------------------------------------------------------------------------------------------- solver
+
+def _series_or_exact(x, exact, coefficients):
+    """exact(x) where |x| >= 0.1, else the Taylor series sum_k coefficients[k] x^k (exact would cancel)."""
+    small = jnp.abs(x) < 0.1
+    safe = jnp.where(small, 1.0, x)
+    series = sum(c * x ** k for k, c in enumerate(coefficients))
+    return jnp.where(small, series, exact(safe))
+
+
+def phi1(x):
+    """(e^x - 1) / x, to round-off also near x = 0."""
+    return _series_or_exact(x, lambda z: jnp.expm1(z) / z, [1 / math.factorial(k + 1) for k in range(9)])
+
+
+def phi2(x):
+    """(e^x - 1 - x) / x^2, to round-off also near x = 0."""
+    return _series_or_exact(x, lambda z: (jnp.expm1(z) - z) / z ** 2, [1 / math.factorial(k + 2) for k in range(9)])
+
+
+def wavenumbers(points: int, length):
+    """kappa_n = 2 pi n / L for the rfft modes n = 0 .. points/2."""
+    return 2 * jnp.pi * jnp.arange(points // 2 + 1) / length
+
+
+def nonlinear(u, kappa):
+    """N(u) = -(i kappa / 2) FFT(u^2), the transform of -u u_x."""
+    return -0.5j * kappa * jnp.fft.rfft(u * u)
+
+
+def etd_step(u, length, h: float, order: int):
+    """One ETD1 (order 1) or ETD2RK (order 2) step of size h; u real on the grid, length L (may be traced)."""
+    points = u.shape[-1]
+    kappa = wavenumbers(points, length)
+    x = (kappa ** 2 - kappa ** 4) * h
+    u_hat, n_u = jnp.fft.rfft(u), nonlinear(u, kappa)
+    a_hat = jnp.exp(x) * u_hat + h * phi1(x) * n_u
+    if order == 1:
+        return jnp.fft.irfft(a_hat, points)
+    a = jnp.fft.irfft(a_hat, points)
+    return jnp.fft.irfft(a_hat + h * phi2(x) * (nonlinear(a, kappa) - n_u), points)
+
+
+def solver_step(u, length, h: float, substeps: int, order: int):
+    """One model step: `substeps` ETD steps of size h."""
+    for _ in range(substeps):
+        u = etd_step(u, length, h, order)
+    return u
+
+
+def domain_length(base_domain: float, size):
+    return 2 * jnp.pi * base_domain * size
+
+
+# ------------------------------------------------------------------------------------------------------------ data
+
+def train_initial_states(points: int, base_domain: float, size: float) -> np.ndarray:
+    """The study's six training initial states on x_j = D j / points with D = base_domain * size:
+    cos(2 pi x) + a cos(2 pi x / D) (1 + b sin(2 pi x / D)) for (a, b) in (0.1, +-0.1), (-0.2, +-0.3),
+    (0.3, +-0.5)."""
+    d = base_domain * size
+    x = d * np.arange(points) / points
+    return np.stack([np.cos(2 * np.pi * x) + a * np.cos(2 * np.pi * x / d) * (1 + b * np.sin(2 * np.pi * x / d))
+                     for a in (0.1, -0.2, 0.3) for b in ({0.1: (0.1, -0.1), -0.2: (0.3, -0.3), 0.3: (0.5, -0.5)}[a])])
+
+
+def test_initial_states(points: int, base_domain: float, size: float, count: int, seed: int) -> np.ndarray:
+    """The study's test family: cos(pi x) + c cos(2 pi x / D) (1 - s sin(2 pi x / D)), c ~ U(-0.1, 0.1),
+    s ~ U(-2, 2), drawn from a fixed seed per test size."""
+    d = base_domain * size
+    x = d * np.arange(points) / points
+    rng = np.random.default_rng(seed)
+    c, s = rng.uniform(-0.1, 0.1, count), rng.uniform(-2.0, 2.0, count)
+    return np.cos(np.pi * x) + c[:, None] * np.cos(2 * np.pi * x / d) * (1 - s[:, None] * np.sin(2 * np.pi * x / d))
+
+
+def trajectories(initial: np.ndarray, lengths: np.ndarray, steps: int, h: float, substeps: int) -> np.ndarray:
+    """Ground truth in float64 (whatever the run's precision): initial (n, points), one domain length per row ->
+    (n, steps + 1, points), ETD2RK model steps."""
+    with jax.enable_x64(True):
+        def advance(u, _):
+            u = jax.vmap(lambda v, length: solver_step(v, length, h, substeps, 2))(u, lengths)
+            return u, u
+
+        _, states = jax.jit(lambda u0: jax.lax.scan(advance, u0, None, length=steps))(jnp.asarray(initial))
+        return np.concatenate([initial[:, None], np.asarray(states).transpose(1, 0, 2)], axis=1)
+
+
+def cache_dir() -> Path:
+    """$PHYSGRAD_CACHE, else $XDG_CACHE_HOME/physgrad, else ~/.cache/physgrad."""
+    if os.environ.get("PHYSGRAD_CACHE"):
+        return Path(os.environ["PHYSGRAD_CACHE"])
+    return Path(os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache") / "physgrad"
+
+
+def dataset(settings: dict) -> dict:
+    """The training and test trajectories for ``settings``, generated on first use and cached in
+    cache_dir()/ks-<hash of the settings>.npz (a change of any setting names another file).
+
+    train: (sizes, 6, train_steps + 1, points) after `warmup` steps; test: (test sizes, test_count,
+    test_steps + 1, points) after 2 * warmup steps (the study starts its test rollouts 200 steps into
+    trajectories cropped after 200)."""
+    key = json.dumps({**settings, "version": DATA_VERSION}, sort_keys=True)
+    path = cache_dir() / f"ks-{hashlib.sha256(key.encode()).hexdigest()[:16]}.npz"
+    if path.exists():
+        try:
+            with np.load(path) as stored:
+                if str(stored["settings"]) == key:
+                    return {"train": stored["train"], "test": stored["test"]}
+        except (OSError, ValueError, KeyError, EOFError):
+            pass  # damaged or foreign: generate again
+    s = settings
+    length = lambda size: float(domain_length(s["base_domain"], size))  # noqa: E731
+    step = {"h": s["dt"], "substeps": s["substeps"]}
+
+    def generate(initial_by_size, sizes, warmup, steps):
+        initial = np.concatenate(initial_by_size)
+        lengths = np.repeat([length(size) for size in sizes], [len(i) for i in initial_by_size])
+        warm = trajectories(initial, lengths, warmup, **step)[:, -1]
+        states = trajectories(warm, lengths, steps, **step)
+        return states.reshape(len(sizes), -1, *states.shape[1:])
+
+    train = generate([train_initial_states(s["points"], s["base_domain"], size) for size in s["train_sizes"]],
+                     s["train_sizes"], s["warmup"], s["train_steps"])
+    test = generate([test_initial_states(s["points"], s["base_domain"], size, s["test_count"], 1000 + index)
+                     for index, size in enumerate(s["test_sizes"])], s["test_sizes"], 2 * s["warmup"],
+                    s["test_steps"])
+    path.parent.mkdir(parents=True, exist_ok=True)
+    partial = path.with_name(f".{path.name}.{os.getpid()}.tmp")
+    with open(partial, "wb") as stream:  # written beside and renamed: a concurrent job reads a whole file or none
+        np.savez(stream, train=train, test=test, settings=np.array(key))
+    os.replace(partial, path)
+    return {"train": train, "test": test}
+
+
+# --------------------------------------------------------------------------------------------------------- network
+
+def init_resnet(key, channels: int, blocks: int, dtype, zero_output: bool = False):
+    """The study's 1-D convolutional ResNet: conv(2 -> C), `blocks` residual blocks of two convolutions
+    (x <- leaky(conv(leaky(conv(x))) + x)), conv(C -> 1); kernel 3, circular padding, biases everywhere.
+    PyTorch's default initialisation: weights and biases ~ U(-1/sqrt(3 C_in), 1/sqrt(3 C_in)); zero_output
+    sets the last convolution to 0 (the network starts with an output of exactly 0).
+    15,841 parameters at C = 16, 10 blocks. Layout: {"input", "blocks": {"first", "second"} (each leaf
+    stacked over the blocks), "output"}, kernels (3, C_in, C_out)."""
+    layers = {"input": ((), 2, channels), "first": ((blocks,), channels, channels),
+              "second": ((blocks,), channels, channels), "output": ((), channels, 1)}
+    shapes = [shape for leading, c_in, c_out in layers.values()
+              for shape in ((*leading, 3, c_in, c_out), (*leading, c_out))]
+    # one random draw for the whole network, cut up on the host: a draw per layer compiles once per shape (5 s)
+    draws = np.asarray(jax.random.uniform(key, (sum(math.prod(shape) for shape in shapes),), dtype, -1.0, 1.0))
+    offsets = np.cumsum([0] + [math.prod(shape) for shape in shapes])
+    pieces = iter(draws[a:b].reshape(shape) for a, b, shape in zip(offsets, offsets[1:], shapes))
+    built = {}
+    for name, (leading, c_in, c_out) in layers.items():
+        bound = 0.0 if (zero_output and name == "output") else 1.0 / math.sqrt(3 * c_in)
+        built[name] = {"w": jnp.asarray(next(pieces) * bound, dtype), "b": jnp.asarray(next(pieces) * bound, dtype)}
+    return {"input": built["input"], "blocks": {"first": built["first"], "second": built["second"]},
+            "output": built["output"]}
+
+
+def circular_conv(x, layer):
+    """out[i] = sum_k x[i + k - 1] w[k] + b on a periodic grid; x: (points, C_in) -> (points, C_out)."""
+    taps = jnp.concatenate([jnp.roll(x, 1, axis=0), x, jnp.roll(x, -1, axis=0)], axis=1)
+    return taps @ layer["w"].reshape(-1, layer["w"].shape[-1]) + layer["b"]
+
+
+def leaky(z):
+    return jax.nn.leaky_relu(z, 0.01)
+
+
+def apply_resnet(params, u, size):
+    """f(u, size): (points,) -> (points,), the size factor as a constant second input channel."""
+    x = circular_conv(jnp.stack([u, jnp.full_like(u, size)], axis=1), params["input"])
+
+    first, second = params["blocks"]["first"], params["blocks"]["second"]
+    for index in range(first["b"].shape[0]):  # unrolled: 30% faster steps than a scan over the blocks
+        layer = jax.tree_util.tree_map(lambda leaf: leaf[index], (first, second))
+        x = leaky(circular_conv(leaky(circular_conv(x, layer[0])), layer[1]) + x)
+    return circular_conv(x, params["output"])[:, 0]
+
+
+# ----------------------------------------------------------------------------------------------------------- scene
+
+def sizes(name: str, value) -> list[float]:
+    """A non-empty list of positive size factors."""
+    listed = list(value) if isinstance(value, (list, tuple)) else None
+    if not listed:
+        raise UserError(f"{name}={value!r} is not allowed: use a list of positive size factors, e.g. [0.9, 1.0]")
+    return [number(f"{name}[{i}]", v, 0, open_low=True) for i, v in enumerate(listed)]
+
+
+def pearson(a, b):
+    """The correlation of two fields over the grid (0 where either is constant)."""
+    a, b = a - jnp.mean(a), b - jnp.mean(b)
+    norms = jnp.sqrt(jnp.sum(a * a) * jnp.sum(b * b))
+    return jnp.where(norms > 0, jnp.sum(a * b) / jnp.where(norms > 0, norms, 1.0), 0.0)
+
+
+def build(key, *, stepper, training, unroll, points, base_domain, train_sizes, test_sizes, dt, substeps, warmup,
+          train_steps, test_count, test_steps, horizon, long_horizon, channels, blocks, zero_output) -> Scene:
+    """The scene; see the module docstring for the equations, steppers and training modalities. The data do
+    not depend on ``key`` (the study's fixed initial states): seeds differ in network and minibatches."""
+    stepper = choice("task.stepper", stepper, STEPPERS)
+    training = choice("task.training", training, TRAININGS)
+    unroll = number("task.unroll", unroll, 1, integer=True)
+    points = number("task.points", points, 4, integer=True)
+    if points % 2:
+        raise UserError(f"task.points={points} is not allowed: use an even number of grid points")
+    settings = {
+        "points": points,
+        "base_domain": number("task.base_domain", base_domain, 0, open_low=True),
+        "train_sizes": sizes("task.train_sizes", train_sizes),
+        "test_sizes": sizes("task.test_sizes", test_sizes),
+        "dt": number("task.dt", dt, 0, open_low=True),
+        "substeps": number("task.substeps", substeps, 1, integer=True),
+        "warmup": number("task.warmup", warmup, 0, integer=True),
+        "train_steps": number("task.train_steps", train_steps, unroll + 1, integer=True),
+        "test_count": number("task.test_count", test_count, 1, integer=True),
+        "test_steps": number("task.test_steps", test_steps, 1, integer=True),
+    }
+    horizon = number("task.horizon", horizon, 1, settings["test_steps"] + 1, integer=True)
+    long_horizon = number("task.long_horizon", long_horizon, horizon, settings["test_steps"] + 1, integer=True)
+    channels = number("task.channels", channels, 1, integer=True)
+    blocks = number("task.blocks", blocks, 0, integer=True)
+    zero_output = flag("task.zero_output", zero_output)
+    h, substeps, base = settings["dt"], settings["substeps"], settings["base_domain"]
+    dtype = jnp.zeros(()).dtype
+    data = dataset(settings)
+
+    def coarse(u, size):
+        """P: the first-order solver over one model step."""
+        return solver_step(u, domain_length(base, size), h, substeps, 1)
+
+    def stepped(u, size, correction):
+        """The next state from the network's output: s' = f(s) (predict) or P(s) + dt f(s) (correct)."""
+        return correction if stepper == "predict" else coarse(u, size) + h * correction
+
+    def advance(params, u, size):
+        """The learned stepper."""
+        return stepped(u, size, apply_resnet(params, u, size))
+
+    def autoregressive(params, u, size, steps):
+        """The learned stepper's states 1..steps from u: (steps, points)."""
+        return jax.lax.scan(lambda v, _: (advance(params, v, size),) * 2, u, None, length=steps)[1]
+
+    # The rollout state is (u, size); the network is the policy and the solver the physics, so that the modes
+    # M and S of physgrad.unroll stop what they stop in the control scenes.
+    if training == "ONE":
+        def step(state, next_u):
+            return next_u, state[1]
+
+        def policy(params, sample):  # every step starts from the sample's k-th ground-truth state
+            return lambda state, k: advance(params, sample["inputs"][k], sample["sizes"][k])
+    else:
+        # NOG: the state detached before every step, wherever it goes
+        detach = jax.lax.stop_gradient if training == "NOG" else (lambda state: state)
+
+        def step(state, correction):
+            u, size = detach(state)
+            return stepped(u, size, correction), size
+
+        def policy(params, sample):
+            return lambda state, k: apply_resnet(params, *detach(state))
+
+    def sample_loss(y, sample):
+        """Training samples: the MSE over the predicted steps and the grid. Test samples: the study's relative
+        error, mean_k min(mean_x (u_k - u*_k)^2 / scale, ERROR_CAP) with scale = max u*^2 over the horizon (a
+        non-finite step counts ERROR_CAP, so that a model blowing up has a finite, comparable error)."""
+        target = sample["target"]
+        predicted = y.reshape(-1, target.shape[-1])
+        squared = (predicted - target[:predicted.shape[0]]) ** 2
+        if "scale" not in sample:
+            return jnp.mean(squared)
+        per_step = jnp.mean(squared, axis=1) / sample["scale"]
+        return jnp.mean(jnp.where(jnp.isfinite(per_step), jnp.minimum(per_step, ERROR_CAP), ERROR_CAP))
+
+    def test_output(params, sample):
+        return autoregressive(params, sample["state"], sample["size"], horizon).reshape(-1)
+
+    def sample_metrics(params, sample, y):
+        """unstable_fraction: the long rollout leaves DIVERGED_FACTOR x the ground truth's largest |u| or is not
+        finite; decorrelation_steps: steps until its correlation with the ground truth first drops below
+        DECORRELATION (long_horizon if never)."""
+        states = autoregressive(params, sample["state"], sample["size"], long_horizon)
+        truth = sample["target"][:long_horizon]
+        finite = jnp.isfinite(states)
+        states = jnp.where(finite, states, 0.0)
+        unstable = ~jnp.all(finite) | (jnp.max(jnp.abs(states)) > DIVERGED_FACTOR * jnp.max(jnp.abs(truth)))
+        below = jax.vmap(pearson)(states, truth) < DECORRELATION
+        steps = jnp.where(jnp.any(below), jnp.argmax(below), long_horizon)
+        return {"unstable_fraction": unstable.astype(dtype), "decorrelation_steps": steps.astype(dtype)}
+
+    train = jnp.asarray(data["train"], dtype)  # (sizes, initial states, frames, points)
+    trajectories_count, frames_count = train.shape[0] * train.shape[1], train.shape[2]
+    train_set = {"frames": train.reshape(-1, points),
+                 "size": jnp.repeat(jnp.asarray(settings["train_sizes"], dtype), train.shape[1] * frames_count)}
+
+    def draw_batch(key, batch_size, frames_set):
+        """B windows of m + 1 consecutive frames (trajectory and start uniform); for ONE, B x m independent
+        one-step pairs, m per sample."""
+        pairs = batch_size * unroll if training == "ONE" else batch_size
+        span = 1 if training == "ONE" else unroll
+        k_trajectory, k_start = jax.random.split(key)
+        trajectory = jax.random.randint(k_trajectory, (pairs,), 0, trajectories_count)
+        first = trajectory * frames_count + jax.random.randint(k_start, (pairs,), 0, frames_count - span)
+        frames = frames_set["frames"][first[:, None] + jnp.arange(span + 1)]  # (pairs, span + 1, points)
+        size = frames_set["size"][first]
+        if training == "ONE":
+            frames = frames.reshape(batch_size, unroll, 2, points)
+            size = size.reshape(batch_size, unroll)
+            return {"inputs": frames[:, :, 0], "target": frames[:, :, 1], "sizes": size,
+                    "state": frames[:, 0, 0], "size": size[:, 0]}
+        return {"state": frames[:, 0], "target": frames[:, 1:], "size": size}
+
+    test = jnp.asarray(data["test"], dtype)  # (test sizes, count, frames, points)
+    targets = test[:, :, 1:].reshape(-1, test.shape[2] - 1, points)
+    test_set = {"state": test[:, :, 0].reshape(-1, points), "target": targets,
+                "size": jnp.repeat(jnp.asarray(settings["test_sizes"], dtype), test.shape[1]),
+                "scale": jnp.max(targets[:, :horizon] ** 2, axis=(1, 2))}
+
+    def figure(params, test_set, path):
+        draw_rollouts(params, test_set, path, autoregressive, coarse, f"{stepper}, {training}, m = {unroll}", horizon,
+                      long_horizon)
+
+    return Scene(
+        init_params=lambda k: init_resnet(k, channels, blocks, dtype, zero_output),
+        train_set=train_set,
+        draw_batch=draw_batch,
+        test_set=test_set,
+        test_output=test_output,
+        dynamics=Dynamics(step=step, policy=policy, initial=lambda sample: (sample["state"], sample["size"]),
+                          unroll=unroll, closed_loop=True, readout=lambda final, observed, sample: observed.reshape(-1),
+                          observe=lambda state, control, sample: state[0]),
+        sample_loss=sample_loss,
+        sample_metrics=sample_metrics,
+        figure=figure,
+    )
+
+
+def draw_rollouts(params, test_set, path, autoregressive, coarse, variant: str, horizon: int, long_horizon: int):
+    """scene.png: a test rollout against the ground truth as space-time images (truth, model, difference),
+    and the relative error per rollout step (median over the test states, with the coarse solver alone for
+    reference)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    steps = long_horizon
+    model = np.asarray(jax.jit(jax.vmap(lambda u, s: autoregressive(params, u, s, steps)))(test_set["state"],
+                                                                                           test_set["size"]))
+    truth = np.asarray(test_set["target"][:, :steps])
+
+    def solver_alone(u, size):
+        return jax.lax.scan(lambda v, _: (coarse(v, size),) * 2, u, None, length=steps)[1]
+
+    baseline = np.asarray(jax.jit(jax.vmap(solver_alone))(test_set["state"], test_set["size"]))
+    scale = np.max(truth[:, :horizon] ** 2, axis=(1, 2))[:, None]
+    with np.errstate(all="ignore"):  # capped as the held-out loss caps it
+        errors = {label: np.where(np.isfinite(e), np.minimum(e, ERROR_CAP), ERROR_CAP)
+                  for label, e in (("network", np.mean((model - truth) ** 2, axis=2) / scale),
+                                   ("coarse solver P alone", np.mean((baseline - truth) ** 2, axis=2) / scale))}
+    sizes = np.asarray(test_set["size"])
+    index = int(np.argmin(np.abs(sizes - np.median(sizes))))  # an interpolating size
+    shown = min(steps, 200)
+    fig = plt.figure(figsize=(13, 6.2))
+    grid = fig.add_gridspec(2, 3, height_ratios=[1.0, 0.9])
+    limit = float(np.max(np.abs(truth[index, :shown])))
+    panels = (("ground truth (ETD2RK)", truth[index]), ("network rollout", model[index]),
+              ("network - truth", model[index] - truth[index]))
+    for column, (title, field) in enumerate(panels):
+        ax = fig.add_subplot(grid[0, column])
+        image = ax.imshow(np.clip(field[:shown].T, -2 * limit, 2 * limit), aspect="auto", origin="lower",
+                          cmap="RdBu_r", vmin=-limit, vmax=limit, extent=(1, shown, 0, field.shape[1]))
+        ax.set_title(f"{title}, size {sizes[index]:.3g}", fontsize=9)
+        ax.set_xlabel("rollout step")
+        ax.set_ylabel("grid point")
+    fig.colorbar(image, ax=fig.axes, shrink=0.6, pad=0.01, label="u")
+    ax = fig.add_subplot(grid[1, :])
+    for label, error in errors.items():
+        ax.semilogy(np.arange(1, steps + 1), np.median(error, axis=0), label=f"{label}: median over "
+                    f"{len(error)} test states")
+    ax.axhline(ERROR_CAP, color="k", lw=0.8, ls="--", label=f"cap ({ERROR_CAP:g}: blown up)")
+    ax.axvline(horizon, color="gray", ls=":", lw=1, label=f"the study's horizon ({horizon} steps)")
+    ax.set_xlabel("rollout step")
+    ax.set_ylabel("mean_x (u - u*)^2 / max u*^2")
+    ax.grid(True, which="both", alpha=0.3)
+    ax.legend(fontsize=8)
+    fig.suptitle(f"Kuramoto-Sivashinsky: learned stepper ({variant}) on held-out test states", fontsize=10)
+    fig.savefig(path, dpi=100, bbox_inches="tight")
+    plt.close(fig)
