@@ -38,12 +38,17 @@ def collect(folder: Path) -> dict:
 
 
 def median(values) -> float:
+    """The median, NaN (0/0, inf/inf) ignored; NaN if nothing is left."""
+    values = np.asarray(values, float)
+    values = values[~np.isnan(values)]
     return float(np.median(values)) if len(values) else float("nan")
 
 
 def paired(table, better, worse) -> tuple[int, int, float]:
     """Seeds where `better` has the lower error, seeds compared, median ratio worse / better over seeds."""
-    seeds = sorted(set(table.get(better, {})) & set(table.get(worse, {})))
+    # seeds where both diverged say nothing about which is better: left out
+    seeds = sorted(s for s in set(table.get(better, {})) & set(table.get(worse, {}))
+                   if np.isfinite(table[better][s][0]) or np.isfinite(table[worse][s][0]))
     wins = sum(table[better][s][0] < table[worse][s][0] for s in seeds)
     with np.errstate(all="ignore"):
         ratios = [table[worse][s][0] / table[better][s][0] for s in seeds]
@@ -62,7 +67,7 @@ def claims(table) -> str:
              if ("correct", t, m) in table and ("predict", t, m) in table]
     wins = sum(paired(table, a, b)[0] for a, b in pairs)
     compared = sum(paired(table, a, b)[1] for a, b in pairs)
-    ratios = [paired(table, a, b)[2] for a, b in pairs]
+    ratios = [r for r in (paired(table, a, b)[2] for a, b in pairs) if not np.isnan(r)]
     lines.append(f"| correction beats prediction (about 4.5x lower error) | median over settings of "
                  f"predict/correct error ratio: {median(ratios):.3g} (range {min(ratios, default=np.nan):.3g} to "
                  f"{max(ratios, default=np.nan):.3g}) | correct lower in {wins} / {compared} |")

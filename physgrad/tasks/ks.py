@@ -28,6 +28,7 @@ import hashlib
 import json
 import math
 import os
+import zipfile
 from pathlib import Path
 
 import jax
@@ -47,7 +48,7 @@ DATA_VERSION = 1
 DIVERGED_FACTOR = 3.0
 # the study's clamp of a relative error per step (a rollout that blows up counts this much per step)
 ERROR_CAP = 30.0
-# the long rollout's accuracy horizon: steps until the correlation with the ground truth first drops below this
+# the long rollout's accuracy horizon: steps before the correlation with the ground truth first drops below this
 DECORRELATION = 0.5
 
 
@@ -160,7 +161,7 @@ def dataset(settings: dict) -> dict:
             with np.load(path) as stored:
                 if str(stored["settings"]) == key:
                     return {"train": stored["train"], "test": stored["test"]}
-        except (OSError, ValueError, KeyError, EOFError):
+        except (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile):
             pass  # damaged or foreign: generate again
     s = settings
     length = lambda size: float(domain_length(s["base_domain"], size))  # noqa: E731
@@ -332,7 +333,7 @@ def build(key, *, stepper, training, unroll, points, base_domain, train_sizes, t
 
     def sample_metrics(params, sample, y):
         """unstable_fraction: the long rollout leaves DIVERGED_FACTOR x the ground truth's largest |u| or is not
-        finite; decorrelation_steps: steps until its correlation with the ground truth first drops below
+        finite; decorrelation_steps: steps before its correlation with the ground truth first drops below
         DECORRELATION (long_horizon if never)."""
         states = autoregressive(params, sample["state"], sample["size"], long_horizon)
         truth = sample["target"][:long_horizon]
