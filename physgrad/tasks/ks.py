@@ -25,6 +25,7 @@ of an autoregressive rollout from each test state, mean_k mean_x (u_k - u*_k)^2 
 from __future__ import annotations
 
 import hashlib
+import io
 import json
 import math
 import os
@@ -36,6 +37,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from physgrad import UserError
+from physgrad.results import replace_file
 from physgrad.tasks import Scene
 from physgrad.unroll import Dynamics
 from physgrad.validate import choice, flag, number
@@ -180,10 +182,9 @@ def dataset(settings: dict) -> dict:
                      for index, size in enumerate(s["test_sizes"])], s["test_sizes"], 2 * s["warmup"],
                     s["test_steps"])
     path.parent.mkdir(parents=True, exist_ok=True)
-    partial = path.with_name(f".{path.name}.{os.getpid()}.tmp")
-    with open(partial, "wb") as stream:  # written beside and renamed: a concurrent job reads a whole file or none
-        np.savez(stream, train=train, test=test, settings=np.array(key))
-    os.replace(partial, path)
+    content = io.BytesIO()
+    np.savez(content, train=train, test=test, settings=np.array(key))
+    replace_file(path, content.getvalue())  # a concurrent job of a sweep reads a whole file or none
     return {"train": train, "test": test}
 
 
