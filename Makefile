@@ -36,7 +36,8 @@ bench: setup
 check-stability: setup
 	$(BIN)/physgrad check $(ARGS)
 
-# every figure sweep of conf/experiment/, then outputs/figures/summary.md; PROFILE=paper for the papers' budgets
+# every figure sweep of conf/experiment/, then outputs/figures/summary.md; PROFILE=paper for the papers' budgets,
+# PROFILE=claims for every claim decided with 3 seeds (outputs/figures/claims.md); ARGS=--plan lists the jobs
 PROFILE ?= quick
 reproduce-figures: setup
 	$(BIN)/python experiments/reproduce.py --profile $(PROFILE) $(if $(OVERWRITE),--overwrite,) $(ARGS)

@@ -20,11 +20,11 @@ MODALITIES = ("ONE", "NOG", "WIG")
 STEPPERS = ("predict", "correct")
 
 
-def collect(folder: Path) -> dict:
+def collect(folders: list[Path]) -> dict:
     """{(stepper, training, unroll): {seed: (final held-out loss, final unstable share)}} of completed runs;
     a diverged run counts as an infinite error (it is a result)."""
     table = defaultdict(dict)
-    for path in find_results([folder]):
+    for path in find_results(folders):
         run = read_run(path)
         config = run_config(run)
         if run.attrs.get("task") != "ks" or run.attrs.get("status") not in ("completed", "diverged"):
@@ -134,9 +134,10 @@ def plot(table, path: Path, note: str = "") -> None:
     plt.close(fig)
 
 
-def write(folder: Path, out: Path, note: str = "") -> tuple[list[str], str]:
-    """Draw ks_unroll.png and write ks_claims.md into out; returns (figure names, the claims table)."""
-    table = collect(folder)
+def write(folders: list[Path], out: Path, note: str = "") -> tuple[list[str], str]:
+    """Draw ks_unroll.png and write ks_claims.md into out from the runs under the folders; returns (figure
+    names, the claims table)."""
+    table = collect(folders)
     out.mkdir(parents=True, exist_ok=True)
     if not table:
         return [], "no completed Kuramoto-Sivashinsky runs\n"
@@ -152,5 +153,5 @@ if __name__ == "__main__":
         print(__doc__.split("\n\n")[-1], file=sys.stderr)
         sys.exit(2)
     folder = Path(sys.argv[1])
-    images, text = write(folder, Path(sys.argv[2]) if len(sys.argv) == 3 else folder)
+    images, text = write([folder], Path(sys.argv[2]) if len(sys.argv) == 3 else folder)
     print(text)

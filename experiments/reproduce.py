@@ -1,16 +1,21 @@
-"""`make reproduce-figures [PROFILE=quick|paper]`: run the figure sweeps of conf/experiment/ and write the
+"""`make reproduce-figures [PROFILE=quick|paper|claims]`: run the figure sweeps of conf/experiment/ and write the
 figures and one markdown summary into outputs/figures/.
 
 The experiment configs hold the papers' budgets (PROFILE=paper). The quick profile (the default) runs the same
 sweeps with the budgets below, so that everything finishes in about 45 minutes on a 2-core machine; every figure
-and the summary say so. Runs land in outputs/experiments/<profile>/<experiment>/<overrides>/results.h5; a second
-call skips every job that completed (so an interrupted reproduction resumes), unless OVERWRITE=1.
+and the summary say so. The claims profile runs, for every claim of experiments/claims.py, the sweeps below with
+at least three seeds and budgets chosen by measurement (92 minutes measured on a 2-core machine), then writes
+outputs/figures/claims.md: each claim with its paired seed-by-seed comparison and verdict. `--plan` prints a
+profile's jobs and the expected time without running anything. Runs land in
+outputs/experiments/<profile>/<experiment>/<overrides>/results.h5; a second call skips every job that completed
+or diverged (so an interrupted reproduction resumes), unless OVERWRITE=1.
 Each figure is `physgrad report` of its runs: the same table and figures that command writes for any runs.
 """
 
 from __future__ import annotations
 
 import argparse
+import math
 import shutil
 import subprocess
 import sys
@@ -19,7 +24,22 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable
 
+import yaml
+
 from physgrad.report import write_report
+from physgrad.sweeps import sweep_jobs
+
+CONF = Path(__file__).resolve().parent.parent / "conf"
+
+
+@dataclass(frozen=True)
+class Sweep:
+    """One sweep of the claims profile: a named experiment with overrides, into its own folder."""
+    experiment: str
+    overrides: tuple[str, ...]
+    job_seconds: float  # one job's wall time measured on the 2-core machine (start-up and compilation included;
+    # a wall-clock job: its budget plus about 8 s)
+    folder: str = ""  # under outputs/experiments/claims/ (default: the experiment's name)
 
 
 @dataclass(frozen=True)
@@ -28,7 +48,8 @@ class Figure:
     title: str
     experiments: tuple[str, ...]
     shows: tuple[str, ...]  # which of the report's figures this one is
-    quick: dict[str, list[str]] = field(default_factory=dict)  # experiment -> overrides of the quick profile
+    quick: dict[str, list[str]] | None = field(default_factory=dict)  # experiment -> quick overrides; None: not in it
+    claims: tuple[Sweep, ...] = ()  # the claims profile's sweeps (none: not in that profile)
     runs_shown: tuple[str, ...] = ()  # globs of job folders whose per-run scene figure (scene.png) is shown too
     # (folders, out folder, note) -> (figure file names, markdown): a study's own figure and table, beside the report
     study: Callable[[list[Path], Path, str], tuple[list[str], str]] | None = None
@@ -37,33 +58,41 @@ class Figure:
 def ks_study(folders: list[Path], out: Path, note: str) -> tuple[list[str], str]:
     from ks_study import write  # experiments/ is this script's folder
 
-    images, text = [], ""
-    for folder in folders:
-        drawn, table = write(folder, out, note)
-        images += drawn
-        text += table
-    return images, text
+    return write(folders, out, note)
 
 
 QUICK_POISSON = ["seed=0", "trainer.time_budget=45"]
+# The claims profile: wall-clock comparisons run one job per seed, one job at a time (Hydra's basic launcher);
+# per-iteration comparisons train their three seeds together in one vectorised step (seeds=3).
+SEEDS_TOGETHER = ("seed=0", "seeds=3")
+CLAIMS_POISSON_START = "optim=adam,seed=${seed},trainer.time_budget=60"
 FIGURES = (
     Figure("fig1_oscillator", "Oscillators: Adam, Gauss-Newton and HIG, test loss against training wall-clock",
            ("fig1_oscillator",), ("loss_vs_time.png",),
-           {"fig1_oscillator": ["seed=0,1", "trainer.time_budget=60"]}),
+           {"fig1_oscillator": ["seed=0,1", "trainer.time_budget=60"]},
+           claims=(Sweep("fig1_oscillator", ("trainer.time_budget=90",), 98),)),
     Figure("fig2_quantum", "Quantum dipole (HIG preset): Adam and HIG against training wall-clock",
            ("fig2_quantum",), ("loss_vs_time.png",),
-           {"fig2_quantum": ["seed=0,1", "trainer.time_budget=75"]}),
+           {"fig2_quantum": ["seed=0,1", "trainer.time_budget=75"]},
+           claims=(Sweep("fig2_quantum", ("trainer.time_budget=90",), 98),)),
     Figure("fig3_poisson", "Poisson: Adam and HIG, then both continuing from the Adam-trained network",
            ("fig3_poisson", "fig3_poisson_continue"), ("loss_vs_time.png",),
            {"fig3_poisson": QUICK_POISSON,
             "fig3_poisson_continue": [*QUICK_POISSON, "init_from='outputs/experiments/quick/fig3_poisson/"
-                                                      "optim=adam,seed=${seed},trainer.time_budget=45/results.h5'"]}),
+                                                      "optim=adam,seed=${seed},trainer.time_budget=45/results.h5'"]},
+           claims=(Sweep("fig3_poisson", ("optim=adam", "trainer.time_budget=60"), 66),
+                   Sweep("fig3_poisson_continue", ("trainer.time_budget=120", "init_from='outputs/experiments/claims/"
+                                                   f"fig3_poisson/{CLAIMS_POISSON_START}/results.h5'"), 128))),
     Figure("fig4_multicart", "Multicart: backprop modes R, M, S, C for 1 to 4 poles, test loss against iteration",
            ("fig4_multicart",), ("loss_vs_iteration.png",),
-           {"fig4_multicart": ["seed=0", "trainer.iterations=1500", "trainer.eval_every=100"]}),
+           {"fig4_multicart": ["seed=0", "trainer.iterations=1500", "trainer.eval_every=100"]},
+           claims=(Sweep("fig4_multicart", (*SEEDS_TOGETHER, "optim.backprop=R,C", "trainer.iterations=10000",
+                                            "trainer.eval_every=500"), 85),)),
     Figure("fig5_quantum_control", "Quantum control (StableBPTT preset): modes R, M, S, C for target levels 3, 4, 5",
            ("fig5_quantum_control",), ("loss_vs_iteration.png",),
-           {"fig5_quantum_control": ["seed=0", "trainer.iterations=250", "trainer.eval_every=50"]}),
+           {"fig5_quantum_control": ["seed=0", "trainer.iterations=250", "trainer.eval_every=50"]},
+           claims=(Sweep("fig5_quantum_control", (*SEEDS_TOGETHER, "optim.backprop=R,C", "task.target_level=4,5",
+                                                  "trainer.iterations=600", "trainer.eval_every=100"), 150),)),
     Figure("fig6_unroll", "Unroll length: final test loss and seconds per iteration",
            ("fig6_unroll_bptt", "fig6_unroll_hig"), ("unroll.png",),
            {"fig6_unroll_bptt": ["seed=0", "unroll=16,32,64,128,256", "trainer.iterations=1000",
@@ -73,48 +102,109 @@ FIGURES = (
            ("fig8_guidance",), ("loss_vs_iteration.png",),
            {"fig8_guidance": ["seed=0", "optim.clip=none", "trainer.iterations=1000", "trainer.eval_every=100"]},
            runs_shown=("*optim.backprop=R,*seed=0,task.control_cost=0.001*",
-                       "*optim.backprop=C,*seed=0,task.control_cost=0.001*")),
+                       "*optim.backprop=C,*seed=0,task.control_cost=0.001*"),
+           claims=(Sweep("fig8_guidance", (*SEEDS_TOGETHER, "optim.backprop=R,C", "optim.clip=none",
+                                           "trainer.iterations=4000", "trainer.eval_every=250"), 37),)),
     Figure("fig9_ks", "Kuramoto-Sivashinsky neural simulator: ONE, NOG, WIG x predict, correct x unroll length",
            ("fig9_ks",), ("unroll.png",),
            {"fig9_ks": ["unroll=1,2,4", "trainer.iterations=200", "trainer.eval_every=200"]},
-           runs_shown=("*task.stepper=correct,task.training=WIG,*unroll=4/seed=0",), study=ks_study),
+           runs_shown=("*task.stepper=correct,task.training=WIG,*unroll=4/seed=0",), study=ks_study,
+           claims=(Sweep("fig9_ks", ("task.stepper=correct", "task.training=ONE,NOG,WIG", "unroll=3",
+                                     "trainer.iterations=1000", "trainer.eval_every=250"), 53),
+                   Sweep("fig9_ks", ("task.stepper=predict", "task.training=WIG", "unroll=3",
+                                     "trainer.iterations=1000", "trainer.eval_every=250"), 52, "fig9_ks_predict"),
+                   Sweep("fig9_ks", ("task.stepper=correct", "task.training=WIG", "unroll=1,2,4,8",
+                                     "trainer.iterations=1000", "trainer.eval_every=250"), 50, "fig9_ks_unroll"))),
+    Figure("toy_scaling", "Badly scaled toy (lambda = 0.01): Adam, Gauss-Newton and HIG against training wall-clock",
+           ("toy_scaling",), ("loss_vs_time.png",), None,
+           claims=(Sweep("toy_scaling", ("trainer.time_budget=20",), 23),)),
+    Figure("hig_payoff", "Where HIG pays off: Adam and HIG on longer oscillator chains against training wall-clock",
+           ("hig_payoff",), ("loss_vs_time.png",), None,
+           claims=(Sweep("hig_payoff", ("trainer.time_budget=90",), 97),)),
 )
 TRADEOFF = "fig7_tradeoff"
 
 
-def run_sweep(experiment: str, profile: str, overrides: list[str], overwrite: bool) -> tuple[Path, int]:
+def profile_sweeps(figure: Figure, profile: str) -> list[Sweep]:
+    """The sweeps a figure runs in a profile (none: the figure is not part of it)."""
+    if profile == "claims":
+        return list(figure.claims)
+    if profile == "quick" and figure.quick is None:
+        return []
+    return [Sweep(e, tuple(figure.quick.get(e, []) if profile == "quick" else []), math.nan) for e in figure.experiments]
+
+
+def planned_jobs(sweep: Sweep) -> list[list[str]]:
+    """The sweep's jobs as Hydra's basic sweeper will launch them: the experiment's sweep parameters, then the
+    profile's overrides."""
+    config = yaml.safe_load((CONF / "experiment" / f"{sweep.experiment}.yaml").read_text())
+    params = ((config.get("hydra") or {}).get("sweeper") or {}).get("params") or {}
+    return sweep_jobs([f"{key}={value}" for key, value in params.items()] + list(sweep.overrides))
+
+
+def print_plan(figures: list[Figure], profile: str) -> None:
+    """Every job of the profile with its expected wall time (measured per sweep on the 2-core machine)."""
+    total, count = 0.0, 0
+    for figure in figures:
+        for sweep in profile_sweeps(figure, profile):
+            jobs = planned_jobs(sweep)
+            seconds = sweep.job_seconds * len(jobs)
+            total, count = total + seconds, count + len(jobs)
+            estimate = f"about {seconds / 60:.0f} min" if math.isfinite(seconds) else "not estimated"
+            print(f"{figure.name}: +experiment={sweep.experiment} -> outputs/experiments/{profile}/"
+                  f"{sweep.folder or sweep.experiment} ({len(jobs)} jobs, {estimate})")
+            for job in jobs:
+                print("    " + " ".join(job))
+    finite = f"about {total / 3600:.1f} h" if math.isfinite(total) else "not estimated for this profile"
+    print(f"{count} jobs, one at a time; expected total: {finite} on a 2-core machine (jobs that completed "
+          "or diverged before are skipped)")
+
+
+def run_sweep(sweep: Sweep, profile: str, overwrite: bool) -> tuple[Path, int]:
     """One named sweep through `physgrad run -m`; returns its folder and the exit code."""
-    folder = Path("outputs/experiments") / profile / experiment
-    command = [sys.executable, "-m", "physgrad.cli", "run", "-m", f"+experiment={experiment}",
-               f"hydra.sweep.dir={folder}", *overrides, *(["overwrite=true"] if overwrite else [])]
+    folder = Path("outputs/experiments") / profile / (sweep.folder or sweep.experiment)
+    command = [sys.executable, "-m", "physgrad.cli", "run", "-m", f"+experiment={sweep.experiment}",
+               f"hydra.sweep.dir={folder}", *sweep.overrides, *(["overwrite=true"] if overwrite else [])]
     print("reproduce:", " ".join(command[2:]), flush=True)
     return folder, subprocess.run(command).returncode
 
 
+NOTES = {
+    "quick": "QUICK PROFILE: budgets scaled down from the papers' (see experiments/reproduce.py)",
+    "paper": "paper profile: the papers' budgets",
+    "claims": "CLAIMS PROFILE: 3 seeds, budgets sized for a 2-core machine (experiments/reproduce.py, claims.md)",
+}
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="make reproduce-figures", description=__doc__.split("\n\n")[0])
-    parser.add_argument("--profile", choices=("quick", "paper"), default="quick")
+    parser.add_argument("--profile", choices=tuple(NOTES), default="quick")
     parser.add_argument("--only", default="", help="comma-separated figure names (default: all)")
-    parser.add_argument("--overwrite", action="store_true", help="rerun jobs that completed before")
+    parser.add_argument("--overwrite", action="store_true", help="rerun jobs that completed or diverged before")
+    parser.add_argument("--plan", action="store_true", help="print every job and the expected time; run nothing")
     parser.add_argument("--out", default="outputs/figures")
     options = parser.parse_args(argv)
-    wanted = [f for f in FIGURES if not options.only or f.name in options.only.split(",")]
+    wanted = [f for f in FIGURES if (not options.only or f.name in options.only.split(","))
+              and profile_sweeps(f, options.profile)]
     if options.only and len(wanted) != len(options.only.split(",")):
-        print(f"reproduce: error: --only takes names from {', '.join(f.name for f in FIGURES)}", file=sys.stderr)
+        names = ", ".join(f.name for f in FIGURES if profile_sweeps(f, options.profile))
+        print(f"reproduce: error: --only takes names from {names} (the {options.profile} profile's figures)",
+              file=sys.stderr)
         return 2
-    note = ("QUICK PROFILE: budgets scaled down from the papers' (see experiments/reproduce.py)"
-            if options.profile == "quick" else "paper profile: the papers' budgets")
+    if options.plan:
+        print_plan(wanted, options.profile)
+        return 0
+    note = NOTES[options.profile]
     out = Path(options.out)
     out.mkdir(parents=True, exist_ok=True)
     start = time.perf_counter()
     sections, all_folders, failed = [], [], []
     for figure in wanted:
         folders = []
-        for experiment in figure.experiments:
-            overrides = figure.quick.get(experiment, []) if options.profile == "quick" else []
-            folder, code = run_sweep(experiment, options.profile, overrides, options.overwrite)
+        for sweep in profile_sweeps(figure, options.profile):
+            folder, code = run_sweep(sweep, options.profile, options.overwrite)
             if code != 0:
-                failed.append(f"{experiment} (exit {code})")
+                failed.append(f"{sweep.folder or sweep.experiment} (exit {code})")
             if folder.exists():
                 folders.append(folder)
         all_folders += folders
@@ -141,9 +231,15 @@ def main(argv: list[str] | None = None) -> int:
         write_report([str(f) for f in all_folders], out_dir=out / TRADEOFF, note=f"{title}\n{note}")
         sections.append(f"## {TRADEOFF}: {title}\n\n![{TRADEOFF}]({TRADEOFF}/tradeoff.png)\n\n"
                         f"(its table is the union of the tables above: {TRADEOFF}/report.md)\n")
+    if options.profile == "claims":
+        from claims import write as write_claims  # experiments/ is this script's folder
+
+        write_claims(Path("outputs/experiments/claims"), out, note)
+        sections.insert(0, "## The claims\n\nEach claim's verdict, seed by seed: [claims.md](claims.md)\n")
     minutes = (time.perf_counter() - start) / 60
     header = [f"# physgrad figures ({options.profile} profile)", "", note + ".",
-              f"Wall time of this reproduction: {minutes:.1f} min (jobs completed before were skipped, not rerun).",
+              f"Wall time of this reproduction: {minutes:.1f} min (jobs that completed or diverged before were "
+              "skipped, not rerun).",
               *(["", "Sweeps that did not finish cleanly: " + ", ".join(failed)] if failed else []), ""]
     (out / "summary.md").write_text("\n".join(header) + "\n" + "\n".join(sections))
     print(f"reproduce: wrote {out / 'summary.md'} in {minutes:.1f} min")

@@ -97,7 +97,7 @@ class SweepSummary(Callback):
             if getattr(self, "before", {}).get(path) != path.stat().st_mtime_ns:
                 written[status] += 1
             else:
-                earlier += 1  # untouched by this sweep: completed before with the same config, or another job's
+                earlier += 1  # untouched by this sweep: completed or diverged before with the same config, or another job's
         for _, why in unfinished_jobs(folder):
             written[why] += 1
         stopped = stop_count(folder)
@@ -105,7 +105,7 @@ class SweepSummary(Callback):
         # a run left running or crashed (its worker was killed), interrupted, failed, unreadable or missing
         FAILED_JOBS[:] = [sum(n for status, n in written.items() if status not in OUTCOMES)]
         counts = ", ".join(f"{n} {status}" for status, n in sorted(written.items())) or "no runs written"
-        skipped = f"; {earlier} untouched (completed before: skipped)" if earlier else ""
+        skipped = f"; {earlier} untouched (completed or diverged before: skipped)" if earlier else ""
         how = f"stopped by {stopped[0]}" if stopped else "finished"
         log.info("sweep %s: %s%s in %s; next: physgrad report %s", how, counts, skipped, folder, folder)
         held = getattr(self, "held", None)

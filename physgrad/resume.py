@@ -1,5 +1,5 @@
-"""Runs that build on earlier ones: a re-run sweep skips what completed with the same config (resume), and a
-run can start from another run's final network (init_from)."""
+"""Runs that build on earlier ones: a re-run sweep skips what completed or diverged with the same config
+(resume), and a run can start from another run's final network (init_from)."""
 
 from __future__ import annotations
 
@@ -23,7 +23,8 @@ def comparable_config(cfg: DictConfig) -> str:
 
 
 def finished_before(path: Path, cfg: DictConfig) -> Outcome | None:
-    """The outcome recorded at path if that run completed with this same config (a sweep being re-run)."""
+    """The outcome recorded at path if that run completed or diverged with this same config (a sweep being
+    re-run): both are results the same config gives again; interrupted, failed and refused runs run again."""
     if not path.exists():
         return None
     try:
@@ -31,10 +32,12 @@ def finished_before(path: Path, cfg: DictConfig) -> Outcome | None:
     except ValueError:
         return None
     stored = OmegaConf.create(attrs.get("config", "{}"))
-    if attrs.get("status") != "completed" or comparable_config(stored) != comparable_config(cfg):
+    status = attrs.get("status")
+    if status not in ("completed", "diverged") or comparable_config(stored) != comparable_config(cfg):
         return None
     final = {k: float(v) for k, v in last_eval.items() if k not in ("iteration", "wall_time")}
-    return Outcome("completed", "already completed: skipped (overwrite=true runs it again)",
+    why = f" ({attrs['reason']})" if status == "diverged" and attrs.get("reason") else ""
+    return Outcome(status, f"already {status}{why}: skipped (overwrite=true runs it again)",
                    int(attrs.get("iterations", 0)), float(attrs.get("train_seconds", 0)), final)
 
 

@@ -19,6 +19,7 @@ from contextlib import contextmanager
 from pathlib import Path
 
 import yaml
+from omegaconf import OmegaConf
 
 from physgrad.results import replace_file
 
@@ -32,19 +33,27 @@ WATCH_SECONDS = 0.25
 def expected_jobs(config) -> list[list[str]] | None:
     """The jobs Hydra's basic sweeper will launch for this config (hydra.sweeper.params, then the command
     line), each a list of overrides; None for another sweeper (Optuna decides its trials as it goes)."""
-    from hydra._internal.core_plugins.basic_sweeper import BasicSweeper
-    from hydra.core.override_parser.overrides_parser import OverridesParser
-
     if not str(config.hydra.sweeper.get("_target_", "")).endswith(".BasicSweeper"):
         return None
-    params = config.hydra.sweeper.get("params") or {}
-    arguments = [f"{key}={value}" for key, value in params.items()] + list(config.hydra.overrides.task)
+    # unresolved: Hydra keeps an override's `${seed}` as written, so must the manifest to match the job folders
+    params = config.hydra.sweeper.get("params")
+    params = OmegaConf.to_container(params, resolve=False) if params else {}
+    overrides = OmegaConf.to_container(config.hydra.overrides.task, resolve=False)
     try:
-        overrides = OverridesParser.create().parse_overrides(arguments)
-        return [job for batch in BasicSweeper.split_arguments(overrides, None) for job in batch]
+        return sweep_jobs([f"{key}={value}" for key, value in params.items()] + overrides)
     except Exception as error:  # noqa: BLE001 - Hydra reports these itself when it sweeps
         log.debug("no manifest: %s", error)
         return None
+
+
+def sweep_jobs(arguments: list[str]) -> list[list[str]]:
+    """Expand sweep overrides (`optim=adam,hig seed=0,1`; a later key replaces an earlier one) into the basic
+    sweeper's jobs, each a list of overrides, in its order."""
+    from hydra._internal.core_plugins.basic_sweeper import BasicSweeper
+    from hydra.core.override_parser.overrides_parser import OverridesParser
+
+    overrides = OverridesParser.create().parse_overrides(arguments)
+    return [job for batch in BasicSweeper.split_arguments(overrides, None) for job in batch]
 
 
 def write_manifest(folder: Path, jobs: list[list[str]]) -> None:

@@ -15,6 +15,7 @@ from physgrad.configs import CONF_DIR, check_overrides, initialized
 from physgrad.experiment import check_applies, check_config, effective_unroll, prepare, run_experiment
 from physgrad.optim import build_rule
 from physgrad.results import read_run
+from physgrad.sweeps import sweep_jobs as expand_sweep
 from tests.test_configs import load
 
 EXPERIMENTS = sorted(p.stem for p in (CONF_DIR / "experiment").glob("*.yaml"))
@@ -24,19 +25,13 @@ import reproduce  # noqa: E402
 
 
 def sweep_jobs(experiment: str, extra=()):
-    """Every job's config of a named sweep: the product of its sweeper params, as Hydra's basic sweeper makes it
-    (a key given on the command line replaces the sweeper's values for it)."""
-    swept = {o.partition("=")[0]: o.partition("=")[2].split(",") for o in extra if "," in o}
-    fixed = [o for o in extra if "," not in o]
+    """Every job's config of a named sweep with extra overrides, as Hydra's basic sweeper makes them (a key given
+    in extra replaces the sweeper's values for it)."""
     with initialized():  # one Hydra set-up for every job (composing is cheap, setting Hydra up is not)
-        base = hydra_compose("config", [f"+experiment={experiment}", *fixed], return_hydra_config=True)
-        given = {o.partition("=")[0] for o in fixed}
-        params = {key: str(value).split(",") for key, value in base.hydra.sweeper.params.items() if key not in given}
-        params |= swept
-        jobs = [hydra_compose("config", [f"+experiment={experiment}", *fixed,
-                                         *(f"{key}={value}" for key, value in zip(params, values))])
-                for values in itertools.product(*params.values())]
-    return jobs
+        base = hydra_compose("config", [f"+experiment={experiment}"], return_hydra_config=True)
+        params = [f"{key}={value}" for key, value in base.hydra.sweeper.params.items()]
+        return [hydra_compose("config", [f"+experiment={experiment}", *job])
+                for job in expand_sweep([*params, *extra])]
 
 
 SCENES = {}  # (task config, unroll, precision, seed) -> the scene: the jobs of a sweep share a few of them
@@ -55,7 +50,8 @@ def valid(cfg):
 def test_every_figure_has_its_experiments():
     named = {e for figure in reproduce.FIGURES for e in figure.experiments}
     assert named == set(EXPERIMENTS)
-    assert len(reproduce.FIGURES) == 8  # figure 7 is drawn from all of their runs
+    assert len(reproduce.FIGURES) == 10  # figure 7 is drawn from all of their runs
+    assert {s.experiment for f in reproduce.FIGURES for s in f.claims} <= named
 
 
 @pytest.mark.parametrize("experiment", EXPERIMENTS)
@@ -71,7 +67,7 @@ def test_every_job_of_a_named_sweep_is_valid(experiment):
     assert len({frozenset(s) for s in seeds.values()}) == 1
 
 
-@pytest.mark.parametrize("figure", reproduce.FIGURES, ids=lambda f: f.name)
+@pytest.mark.parametrize("figure", [f for f in reproduce.FIGURES if f.quick is not None], ids=lambda f: f.name)
 def test_quick_profile_overrides_are_valid(figure):
     for experiment in figure.experiments:
         overrides = figure.quick[experiment]
@@ -80,9 +76,80 @@ def test_quick_profile_overrides_are_valid(figure):
             valid(cfg)
 
 
+def claims_jobs(sweep) -> list:
+    return sweep_jobs(sweep.experiment, [o for o in sweep.overrides if not o.startswith("init_from")])
+
+
+@pytest.mark.parametrize("figure", [f for f in reproduce.FIGURES if f.claims], ids=lambda f: f.name)
+def test_claims_profile_jobs_are_valid_with_three_seeds(figure):
+    for sweep in figure.claims:
+        check_overrides([f"+experiment={sweep.experiment}", *sweep.overrides], multirun=True)
+        jobs = claims_jobs(sweep)
+        assert len(jobs) == len(reproduce.planned_jobs(sweep))
+        for cfg in jobs:
+            valid(cfg)
+            assert cfg.seeds >= 3 or len({j.seed for j in jobs}) >= 3
+            # wall-clock comparisons need one seed per job (jobs run one at a time); per-iteration ones train
+            # their seeds together
+            assert (cfg.trainer.time_budget is None) == (cfg.seeds == 3)
+
+
+def test_the_claims_profile_runs_what_the_claims_read():
+    """Every side of every claim's comparisons (and the pay-off map) matches jobs the profile launches into the
+    folders the claim reads."""
+    import claims
+    from physgrad.report import _flat
+
+    by_folder = {}
+    for figure in reproduce.FIGURES:
+        for sweep in figure.claims:
+            for cfg in claims_jobs(sweep):
+                known = {k: str(v) for k, v in _flat(OmegaConf.to_container(cfg, resolve=True)).items()}
+                known["unroll"] = str(effective_unroll(cfg))
+                by_folder.setdefault(sweep.folder or sweep.experiment, []).append(known)
+    for claim in claims.CLAIMS:
+        configs = [c for folder in claim.folders for c in by_folder[folder]]
+        for comparison in claim.comparisons:
+            for side in (comparison.better, comparison.worse):
+                wanted = {**claim.common, **side}
+                assert any(all(c.get(k) == v for k, v in wanted.items()) for c in configs), (claim.name, wanted)
+    sizes = {c["task.oscillators"] for folder in claims.PAYOFF_FOLDERS for c in by_folder[folder]}
+    assert len(sizes) >= 3
+
+
+def test_the_plan_lists_every_job_within_four_hours(capsys, monkeypatch):
+    monkeypatch.setattr(reproduce, "run_sweep", lambda *a: pytest.fail("--plan ran a sweep"))
+    assert reproduce.main(["--profile", "claims", "--plan"]) == 0
+    text = capsys.readouterr().out
+    jobs = [line for line in text.splitlines() if line.startswith("    ")]
+    expected = sum(len(reproduce.planned_jobs(s)) for f in reproduce.FIGURES for s in f.claims)
+    assert len(jobs) == expected and f"{expected} jobs, one at a time" in text
+    hours = float(text.rsplit("expected total: about ", 1)[1].split(" h")[0])
+    assert 1 <= hours <= 4
+
+
 def test_missing_experiment_is_a_one_line_error():
     with pytest.raises(Exception, match=r"unknown experiment 'nosuch' \(choose one of fig1_oscillator"):
         check_overrides(["+experiment=nosuch"], multirun=True)
+
+
+def test_the_manifest_keeps_an_interpolated_override_as_the_job_folder_does(tmp_path):
+    """Hydra writes `init_from=.../${seed}/...` into the job's overrides.yaml unresolved; the manifest must
+    match it, or every job of a continuation sweep is reported as never started."""
+    from physgrad.sweeps import expected_jobs, unfinished_jobs, write_manifest
+
+    overrides = ["task=toy", "seed=1", "init_from='runs/seed=${seed}/results.h5'"]
+    with initialized():
+        cfg = hydra_compose("config", overrides, return_hydra_config=True)
+    jobs = expected_jobs(cfg)
+    assert jobs == [overrides]
+    write_manifest(tmp_path, jobs)
+    job = tmp_path / "job"
+    (job / ".hydra").mkdir(parents=True)
+    (job / ".hydra" / "overrides.yaml").write_text(yaml.safe_dump(overrides))
+    assert unfinished_jobs(tmp_path) == [(",".join(overrides), "no results file")]
+    (job / "results.h5").touch()
+    assert unfinished_jobs(tmp_path) == []
 
 
 def test_a_completed_job_is_skipped_unless_overwrite(tmp_path):
@@ -192,6 +259,12 @@ def test_params_are_saved_unless_the_run_diverged(tmp_path):
     assert read_run(diverged).attrs["status"] == "diverged"
     with pytest.raises(ValueError, match="holds no final network"):
         read_params(diverged)
+    # a diverged run is a result: a second call skips it, as it skips a completed one
+    written = read_run(diverged).attrs["finished"]
+    again, _ = run_experiment(load(*TINY, "optim=gd", "optim.learning_rate=1e30", "trainer.iterations=50"),
+                              tmp_path / "bad")
+    assert again.status == "diverged" and again.reason.startswith("already diverged (update became inf")
+    assert read_run(diverged).attrs["finished"] == written
 
 
 @pytest.mark.slow

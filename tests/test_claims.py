@@ -1,0 +1,191 @@
+"""experiments/claims.py: the verdict rule on synthetic curves (holds, does not hold, not settled, with the
+suggested budget), the reading of runs into paired curves, claims.md and the pay-off map."""
+
+import math
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+import yaml
+
+sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "experiments"))
+import claims  # noqa: E402
+from claims import FAILS, HOLDS, OPEN, Curve, combine, decide  # noqa: E402
+from physgrad.results import Run  # noqa: E402
+
+X = np.arange(0, 1001, 100, dtype=float)
+
+
+def power_law(scale: float, rate: float = 1.0) -> Curve:
+    """A loss falling as scale / (1 + x)^rate, evaluated every 100 iterations up to 1000."""
+    return Curve(X, scale / (1 + X) ** rate, X[-1])
+
+
+def seeds(*curves: Curve) -> dict[int, Curve]:
+    return dict(enumerate(curves))
+
+
+def test_lower_in_every_seed_by_the_margin_holds():
+    d = decide(seeds(*(power_law(0.5 * s) for s in (1, 2, 3))), seeds(*(power_law(s) for s in (1, 2, 3))))
+    assert (d.verdict, d.pairs, d.wins, d.budget) == (HOLDS, 3, 3, 1000)
+    assert d.ratio == pytest.approx(0.5) and d.half_ratio == pytest.approx(0.5)
+
+
+def test_the_other_lower_in_every_seed_does_not_hold():
+    d = decide(seeds(*(power_law(2.0 * s) for s in (1, 2, 3))), seeds(*(power_law(s) for s in (1, 2, 3))))
+    assert d.verdict == FAILS and d.wins == 0 and d.ratio == pytest.approx(2.0)
+    assert "the other lower in every seed" in d.why
+
+
+def test_level_in_every_seed_does_not_hold():
+    d = decide(seeds(power_law(1.02), power_law(0.97), power_law(1.0)), seeds(*(power_law(1) for _ in range(3))))
+    assert d.verdict == FAILS and "level" in d.why
+
+
+def test_lower_in_every_seed_within_the_margin_is_level():
+    d = decide(seeds(*(power_law(0.95) for _ in range(3))), seeds(*(power_law(1) for _ in range(3))))
+    assert d.verdict == FAILS and d.wins == 3 and "level" in d.why  # 5% is inside the 10% margin
+
+
+def test_mixed_seeds_are_not_settled():
+    d = decide(seeds(power_law(0.5), power_law(2.0), power_law(1.05)), seeds(*(power_law(1) for _ in range(3))))
+    assert d.verdict == OPEN and d.wins == 1 and "mixed" in d.why and math.isnan(d.suggested)
+
+
+def test_a_majority_far_below_needs_more_seeds():
+    d = decide(seeds(power_law(0.5), power_law(1.5), power_law(0.6)), seeds(*(power_law(1) for _ in range(3))))
+    assert d.verdict == OPEN and d.ratio == pytest.approx(0.6) and "more seeds" in d.why
+
+
+def test_a_ratio_falling_slower_than_the_factor_is_level_not_a_trend():
+    """ratio 2 (1 + x)^-0.1: 1.074 at half the budget, 1.002 at its end: falling by less than 1.1."""
+    better = seeds(*(Curve(X, 2.0 * (1 + X) ** -1.1, X[-1]) for _ in range(3)))
+    worse = seeds(*(Curve(X, (1 + X) ** -1.0, X[-1]) for _ in range(3)))
+    d = decide(better, worse)
+    assert d.ratio == pytest.approx(2.0 * 1001 ** -0.1) and d.half_ratio == pytest.approx(2.0 * 501 ** -0.1)
+    assert d.verdict == FAILS and math.isnan(d.suggested)
+
+
+def test_a_ratio_falling_by_the_factor_suggests_a_budget():
+    # ratio 2 * (1+x)^-0.2: 1.0 at x = 31 ... at 1000: 0.502 -> holds; take a scale so it ends at 1.05
+    scale = 1.05 * 1001 ** 0.2
+    better = seeds(*(Curve(X, scale * (1 + X) ** -1.2, X[-1]) for _ in range(3)))
+    worse = seeds(*(Curve(X, (1 + X) ** -1.0, X[-1]) for _ in range(3)))
+    d = decide(better, worse)
+    r_half = scale * 501 ** -0.2
+    assert d.ratio == pytest.approx(1.05) and r_half / d.ratio >= 1.1
+    assert d.verdict == OPEN and "falling" in d.why
+    per_doubling = math.log(1.05 / r_half)
+    assert d.suggested == pytest.approx(1000 * 2 ** (math.log(1 / 1.1 / 1.05) / per_doubling))
+    assert d.suggested > 1000
+
+
+def test_a_flipped_sign_with_a_falling_ratio_is_not_settled_rather_than_failed():
+    """B lower in every seed at the end, but the ratio falls by more than 1.1 per doubling: not settled."""
+    scale = 1.5 * 1001 ** 0.3
+    better = seeds(*(Curve(X, scale * (1 + X) ** -1.3, X[-1]) for _ in range(3)))
+    worse = seeds(*(Curve(X, (1 + X) ** -1.0, X[-1]) for _ in range(3)))
+    d = decide(better, worse)
+    assert d.wins == 0 and d.ratio == pytest.approx(1.5) and d.verdict == OPEN and d.suggested > 1000
+
+
+def test_fewer_than_three_pairs_are_not_settled():
+    d = decide(seeds(power_law(0.1), power_law(0.1)), seeds(power_law(1), power_law(1)))
+    assert d.verdict == OPEN and d.pairs == 2 and "3 needed" in d.why
+
+
+def test_divergence_counts_as_infinite_and_both_diverged_pairs_are_left_out():
+    diverged = Curve(X[:3], np.array([1.0, 0.9, 0.8]), 250.0, diverged=True)
+    d = decide(seeds(power_law(1), power_law(1), power_law(1), diverged), seeds(diverged, diverged, diverged, power_law(1)))
+    # pairs 0..2: only B diverged (ratio 0, A wins); pair 3: A diverged (ratio inf): 3 of 4, median 0
+    assert (d.pairs, d.wins, d.budget) == (4, 3, 1000) and d.ratio == 0.0 and d.verdict == OPEN
+    both = decide(seeds(diverged, power_law(0.5), power_law(0.5), power_law(0.5)),
+                  seeds(diverged, power_law(1), power_law(1), power_law(1)))
+    assert both.pairs == 3 and both.verdict == HOLDS
+
+
+def test_the_budget_is_the_shortest_completed_run_and_time_slack_counts():
+    short = Curve(X[:6], 0.5 / (1 + X[:6]), 500.0)
+    d = decide(seeds(short, power_law(0.5), power_law(0.5)), seeds(*(power_law(1) for _ in range(3))))
+    assert d.budget == 500 and d.ratio == pytest.approx(0.5)
+    # on the time axis, an evaluation one step after the budget counts at the budget
+    late = Curve(np.array([0.0, 60.4, 120.3]), np.array([1.0, 0.5, 0.25]), 120.3, slack=0.5)
+    assert late.at(120.0) == 0.25 and late.at(60.0) == 0.5
+    stopped = Curve(X[:3], np.ones(3), 200.0)  # interrupted before the budget: says nothing there
+    assert math.isnan(stopped.at(500.0))
+
+
+def test_combine():
+    assert combine([HOLDS, HOLDS]) == HOLDS
+    assert combine([HOLDS, FAILS, OPEN]) == FAILS
+    assert combine([HOLDS, OPEN]) == OPEN
+    assert combine([]) == OPEN
+
+
+def fake_run(tmp: str, seed: int, config: dict, scale: float, status: str = "completed") -> Run:
+    """A results file's content as read back, for a run whose test loss is scale / (1 + iteration)."""
+    attrs = {"task": config["task"]["name"], "seed": seed, "status": status, "variant": config["optim"]["name"],
+             "unroll": config.get("unroll") or 10, "config": yaml.safe_dump(config)}
+    loss = scale * (1 + seed) / (1 + X)
+    # as the runner writes them: a train row's iteration is the step's index, an evaluation's the steps done
+    return Run(Path(tmp) / f"{seed}.h5", attrs, {"iteration": X[1:] - 1, "wall_time": X[1:] / 100, "loss": loss[1:]},
+               {"iteration": X, "wall_time": X / 100, "loss": loss})
+
+
+def test_a_claim_pairs_runs_by_seed_through_their_configuration(tmp_path):
+    runs = [fake_run(tmp_path, s, {"task": {"name": "multicart", "poles": poles}, "optim": {"name": "bptt", "backprop": mode}},
+                     scale)
+            for s in range(3) for poles, mode, scale in [(3, "C", 0.5), (3, "R", 1.0), (4, "C", 1.0), (4, "R", 0.5)]]
+    claim = next(c for c in claims.CLAIMS if c.figure == "fig4_multicart")
+    verdict, rows = claims.measure(claim, runs)
+    assert [row["decision"].verdict for row in rows] == [HOLDS, FAILS] and verdict == FAILS
+    assert rows[0]["better"] == pytest.approx([0.5 * (1 + s) / 1001 for s in range(3)])
+
+
+@pytest.mark.parametrize("axis", ["iteration", "wall_time"])
+def test_a_real_run_s_curve_ends_at_its_last_evaluation(tmp_path, axis):
+    from physgrad.experiment import run_experiment
+    from physgrad.results import read_run
+    from tests.test_configs import load as compose
+
+    _, path = run_experiment(compose("task=toy", "trainer.iterations=6", "trainer.eval_every=3"), tmp_path)
+    run = read_run(path)
+    c = claims.curve(run, axis)
+    assert c.end == pytest.approx(run.eval[axis][-1]) and run.eval["iteration"][-1] == 6
+    assert c.at(c.end) == run.eval["loss"][-1] != run.eval["loss"][-2]
+
+
+def test_claims_md_and_payoff_map_from_runs_on_disk(tmp_path):
+    """Tiny real runs of the toy (the oscillator's map needs its folders; the claim rows read them)."""
+    from physgrad.results import ResultsWriter
+
+    root = tmp_path / "runs"
+    for n, variant, scale in [(2, "hig", 0.5), (2, "adam", 1.0), (4, "hig", 2.0), (4, "adam", 1.0)]:
+        for seed in range(3):
+            config = {"task": {"name": "oscillator", "oscillators": n}, "optim": {"name": variant}}
+            run = fake_run(tmp_path, seed, config, scale)
+            folder = root / ("fig1_oscillator" if n == 2 else "hig_payoff") / f"n={n},{variant},seed={seed}"
+            writer = ResultsWriter(folder / "results.h5", {k: v for k, v in run.attrs.items() if k != "status"})
+            for group in ("train", "eval"):
+                for i in range(getattr(run, group)["iteration"].size):
+                    writer.append(group, {k: float(v[i]) for k, v in getattr(run, group).items()})
+            writer.finish("completed")
+    text = claims.write(root, tmp_path / "out")
+    assert (tmp_path / "out" / "claims.md").read_text() == text
+    assert "**oscillators: HIG below Adam and Gauss-Newton: not settled**" in text  # no Gauss-Newton runs
+    assert "| hig: 0.000999 (0.0005-0.0015) | adam: 0.002 (0.000999-0.003) | 3 of 3, 0.5; 0.5 | holds" in text
+    assert "**KS: correction beats prediction: not settled**" in text and "0 paired seeds" in text
+    assert (tmp_path / "out" / "payoff.png").stat().st_size > 10_000
+    table = claims.payoff(root)
+    assert {n for n, _ in table} == {2, 4} and len(table) == 8
+    assert all(d.verdict == HOLDS for (n, _), d in table.items() if n == 2)
+    assert all(d.verdict == FAILS and d.ratio == pytest.approx(2.0) for (n, _), d in table.items() if n == 4)
+
+
+def test_spread_over_seeds_says_how_many_diverged():
+    assert claims._spread([1.0, math.inf, 3.0]) == "2 (1-3); 1 of 3 diverged"
+    assert claims._spread([math.inf, 4.5e-6, math.inf]) == "4.5e-06; 2 of 3 diverged"
+    assert claims._spread([math.inf] * 3) == "3 of 3 diverged" and claims._spread([]) == "no runs"
+    assert claims._ratio(0.0, "hig", "adam") == "0 (adam diverged)" and claims._ratio(0.25, "hig", "adam") == "0.25"
+    assert claims._ratio(math.inf, "hig", "adam") == "inf (hig diverged)"
