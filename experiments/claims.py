@@ -6,10 +6,11 @@ Usage: python experiments/claims.py RUNS_FOLDER [OUT_FOLDER]
 
 The verdict rule, the same for every comparison "A reaches a lower held-out loss than B":
 - Seeds are paired (same data, initial network and batches for A and B). The budget X is the shortest end of
-  training among the comparison's completed runs (iterations, or training seconds at equal wall-clock); each
-  run's loss at X is its last evaluation at or before X (one step of slack on the time axis, where a budget
-  stops a run after the step that crosses it). A run that diverged before X counts as an infinite loss; a pair
-  where both diverged is left out.
+  training among the comparison's completed runs (iterations, or training seconds at equal wall-clock; a run
+  stopped by its time budget ends at that budget, since the budget is checked after each step); each run's
+  loss at X is its last evaluation at or before X (one median step of slack on the time axis, where an
+  evaluation comes after the step that crosses its time). A run that diverged by X counts as an infinite loss;
+  a pair where both diverged is left out.
 - r = loss(A) / loss(B) per seed. **holds**: at least 3 pairs, A lower in every pair and the median r at most
   1/1.1 (A at least 10% lower). **does not hold**: at least 3 pairs, B lower in every pair with median r at
   least 1.1, or every r within [1/1.1, 1.1] (level), and the median r not falling by a factor 1.1 or more
@@ -49,7 +50,7 @@ class Curve:
     def at(self, x: float) -> float:
         """Loss of the last evaluation at or before x; inf if the run diverged before x; NaN if there is none
         or the run ended (interrupted, not diverged) before x."""
-        if self.diverged and self.end < x:
+        if self.diverged and self.end <= x:
             return math.inf
         if self.end < x * (1 - 1e-9):
             return math.nan
@@ -76,7 +77,8 @@ def _median_ratio(better: dict[int, Curve], worse: dict[int, Curve], seeds, x: f
         a, b = better[seed].at(x), worse[seed].at(x)
         if math.isnan(a) or math.isnan(b) or (math.isinf(a) and math.isinf(b)):
             continue
-        ratios.append(math.inf if math.isinf(a) else 0.0 if math.isinf(b) else a / b)
+        ratios.append(math.inf if math.isinf(a) else 0.0 if math.isinf(b) else a / b if b > 0 else
+                      1.0 if a == 0 else math.inf)
     return (float(np.median(ratios)) if ratios else math.nan), ratios
 
 
@@ -128,12 +130,19 @@ def facts(run: Run) -> dict[str, str]:
 
 
 def curve(run: Run, axis: str) -> Curve:
+    """The run's held-out loss on the shared axis (a run started from another's network continues its axis).
+    On the time axis a run stopped by its time budget ends at the budget: the budget is checked after each
+    step, so its final evaluation, up to one (possibly long) step later, is the loss at the budget."""
     offset = run.offset(axis)
     x = np.asarray(run.eval.get(axis, np.empty(0)), float) + offset
     # a train row's iteration is the step's index, an evaluation's the steps done: the run ends one after
     end = run.final("train", axis) + (1 if axis == "iteration" else 0) + offset
     if not math.isfinite(end):
         end = offset
+    budget = run_config(run).get("trainer.time_budget")
+    if axis == "wall_time" and run.attrs.get("stopped_by") == "time_budget" and budget is not None:
+        end = min(end, float(budget) + offset)
+        x = np.minimum(x, end)
     slack = run.seconds_per_iteration if axis == "wall_time" and math.isfinite(run.seconds_per_iteration) else 0.0
     return Curve(x, np.asarray(run.eval.get("loss", np.empty(0)), float), end,
                  run.attrs.get("status") == "diverged", slack)
@@ -201,12 +210,13 @@ CLAIMS = (
           "gives a lower error than predicting the whole step with the network",
           "fig9_ks", "ks_unroll.png", ("fig9_ks", "fig9_ks_predict"), "iteration",
           (_vs("WIG, m = 3", "task.stepper", "correct", "predict", **{"task.training": "WIG", "unroll": "3"}),)),
-    Claim("KS: WIG best, NOG close",
+    Claim("KS: WIG best, NOG close, ONE worse",
           "Unrolling study, Kuramoto-Sivashinsky: training with gradients through the unroll (WIG) gives the "
-          "lowest error, without them (NOG) comes close, one-step training (ONE) is worse",
+          "lowest error, without them (NOG) comes close, one-step training (ONE) is worse (read here as the order "
+          "WIG < NOG < ONE)",
           "fig9_ks", "ks_unroll.png", ("fig9_ks",), "iteration",
-          tuple(_vs("correct, m = 3", "task.training", "WIG", other, **{"task.stepper": "correct", "unroll": "3"})
-                for other in ("NOG", "ONE"))),
+          tuple(_vs("correct, m = 3", "task.training", better, worse, **{"task.stepper": "correct", "unroll": "3"})
+                for better, worse in (("WIG", "NOG"), ("WIG", "ONE"), ("NOG", "ONE")))),
     Claim("KS: a best unroll length",
           "Unrolling study, Kuramoto-Sivashinsky: the error has a minimum at an intermediate unroll length (the "
           "study trains at m = 3): longer is not always better",
@@ -221,19 +231,34 @@ CLAIMS = (
 )
 
 
+class AmbiguousRuns(ValueError):
+    """Two runs of one seed match one side of a comparison (e.g. runs of an earlier budget left in the folder)."""
+
+
 def select(runs: list[Run], selector: dict[str, str]) -> dict[int, Run]:
-    """Completed or diverged runs matching every key of the selector, by seed."""
+    """Completed or diverged runs matching every key of the selector, by seed; AmbiguousRuns if a seed has two."""
     chosen = {}
     for run in runs:
         known = facts(run)
         if run.attrs.get("status") in ("completed", "diverged") and all(known.get(k) == v for k, v in selector.items()):
-            chosen[int(run.attrs["seed"])] = run
+            seed = int(run.attrs["seed"])
+            if seed in chosen:
+                raise AmbiguousRuns(f"seed {seed} matches {chosen[seed].path.parent} and {run.path.parent}: "
+                                    "move the one that does not belong to this profile out of the folder")
+            chosen[seed] = run
     return chosen
 
 
 def load(root: Path, folders) -> list[Run]:
+    """Every readable run under the folders (an unreadable file is named on stderr and left out)."""
     existing = [root / name for name in folders if (root / name).exists()]
-    return [read_run(path) for path in find_results(existing)] if existing else []
+    runs = []
+    for path in find_results(existing) if existing else []:
+        try:
+            runs.append(read_run(path))
+        except ValueError as error:
+            print(f"claims: left out {path}: {error}", file=sys.stderr)
+    return runs
 
 
 # --- writing ----------------------------------------------------------------------------------------------
@@ -273,8 +298,13 @@ def measure(claim: Claim, runs: list[Run]) -> tuple[str, list[dict]]:
     """The claim's verdict and one row per comparison."""
     rows = []
     for comparison in claim.comparisons:
-        better = {s: curve(r, claim.axis) for s, r in select(runs, {**claim.common, **comparison.better}).items()}
-        worse = {s: curve(r, claim.axis) for s, r in select(runs, {**claim.common, **comparison.worse}).items()}
+        try:
+            better, worse = ({s: curve(r, claim.axis) for s, r in select(runs, {**claim.common, **side}).items()}
+                             for side in (comparison.better, comparison.worse))
+        except AmbiguousRuns as error:
+            rows.append({"comparison": comparison, "better": [], "worse": [],
+                         "decision": Decision(OPEN, 0, 0, math.nan, math.nan, math.nan, math.nan, why=str(error))})
+            continue
         decision = decide(better, worse)
         rows.append({"comparison": comparison, "decision": decision,
                      "better": [c.at(decision.budget) for c in better.values()],
@@ -282,36 +312,44 @@ def measure(claim: Claim, runs: list[Run]) -> tuple[str, list[dict]]:
     return combine([row["decision"].verdict for row in rows]), rows
 
 
+def claim_rows(claim: Claim, runs: list[Run]) -> list[str]:
+    """The claim's rows of the claims table, one per comparison."""
+    lines = []
+    verdict, rows = measure(claim, runs)
+    metric = ("held-out loss at equal training wall-clock (one seed per job, one job at a time)"
+              if claim.axis == "wall_time" else "held-out loss at equal iterations")
+    for i, row in enumerate(rows):
+        c, d = row["comparison"], row["decision"]
+        step = d.verdict
+        if d.verdict == OPEN and math.isfinite(d.suggested):
+            step += f": the trend suggests about {_budget(claim.axis, d.suggested)}"
+        elif d.why:
+            step += f": {d.why}"
+        first = i == 0
+        lines.append(
+            f"| {f'**{claim.name}: {verdict}**. {claim.paper}' if first else ''} "
+            f"| {metric + ' at ' + _budget(claim.axis, d.budget) if first else _budget(claim.axis, d.budget)} "
+            f"| {c.setting} | {c.label[0]}: {_spread(row['better'])} | {c.label[1]}: {_spread(row['worse'])} "
+            f"| {d.wins} of {d.pairs}, {_ratio(d.ratio, *c.label)}; {_ratio(d.half_ratio, *c.label)} | {step} "
+            f"| {f'[{claim.figure}]({claim.figure}/{claim.image})' if first else ''} |")
+    return lines
+
+
 def claims_table(root: Path) -> str:
     lines = ["| claim (paper, where) | metric | setting | A: median (min-max) | B: median (min-max) | "
              "paired: A lower in k of n, median A/B; the same at half the budget | verdict | figure |",
              "|---|---|---|---|---|---|---|---|"]
     for claim in CLAIMS:
-        runs = load(root, claim.folders)
-        verdict, rows = measure(claim, runs)
-        metric = ("held-out loss at equal training wall-clock (one seed per job, one job at a time)"
-                  if claim.axis == "wall_time" else "held-out loss at equal iterations")
-        for i, row in enumerate(rows):
-            c, d = row["comparison"], row["decision"]
-            step = d.verdict
-            if d.verdict == OPEN and math.isfinite(d.suggested):
-                step += f": the trend suggests about {_budget(claim.axis, d.suggested)}"
-            elif d.why:
-                step += f": {d.why}"
-            first = i == 0
-            lines.append(
-                f"| {f'**{claim.name}: {verdict}**. {claim.paper}' if first else ''} "
-                f"| {metric + ' at ' + _budget(claim.axis, d.budget) if first else _budget(claim.axis, d.budget)} "
-                f"| {c.setting} | {c.label[0]}: {_spread(row['better'])} | {c.label[1]}: {_spread(row['worse'])} "
-                f"| {d.wins} of {d.pairs}, {_ratio(d.ratio, *c.label)}; {_ratio(d.half_ratio, *c.label)} | {step} "
-                f"| {f'[{claim.figure}]({claim.figure}/{claim.image})' if first else ''} |")
+        lines += claim_rows(claim, load(root, claim.folders))
     return "\n".join(lines) + "\n"
 
 
 # --- where HIG pays off -----------------------------------------------------------------------------------
 
 PAYOFF_FOLDERS = ("fig1_oscillator", "hig_payoff")
-PAYOFF_FRACTIONS = (1 / 8, 1 / 4, 1 / 2, 1)
+# on the evaluation grid of a time-budget run (one every budget / 20: physgrad.runner.EVALUATIONS_PER_BUDGET), so
+# that a slow variant's reading is not an evaluation made long before the cut
+PAYOFF_FRACTIONS = (1 / 10, 1 / 4, 1 / 2, 1)
 
 
 def step_costs(root: Path) -> dict[int, dict[str, float]]:

@@ -123,10 +123,10 @@ def test_combine():
     assert combine([]) == OPEN
 
 
-def fake_run(tmp: str, seed: int, config: dict, scale: float, status: str = "completed") -> Run:
+def fake_run(tmp: str, seed: int, config: dict, scale: float, status: str = "completed", **attrs) -> Run:
     """A results file's content as read back, for a run whose test loss is scale / (1 + iteration)."""
     attrs = {"task": config["task"]["name"], "seed": seed, "status": status, "variant": config["optim"]["name"],
-             "unroll": config.get("unroll") or 10, "config": yaml.safe_dump(config)}
+             "unroll": config.get("unroll") or 10, "config": yaml.safe_dump(config), **attrs}
     loss = scale * (1 + seed) / (1 + X)
     # as the runner writes them: a train row's iteration is the step's index, an evaluation's the steps done
     return Run(Path(tmp) / f"{seed}.h5", attrs, {"iteration": X[1:] - 1, "wall_time": X[1:] / 100, "loss": loss[1:]},
@@ -157,7 +157,8 @@ def test_a_real_run_s_curve_ends_at_its_last_evaluation(tmp_path, axis):
 
 
 def test_claims_md_and_payoff_map_from_runs_on_disk(tmp_path):
-    """Tiny real runs of the toy (the oscillator's map needs its folders; the claim rows read them)."""
+    """Results files written by the real writer (the oscillator's map needs its folders; the claim rows read
+    them)."""
     from physgrad.results import ResultsWriter
 
     root = tmp_path / "runs"
@@ -189,3 +190,55 @@ def test_spread_over_seeds_says_how_many_diverged():
     assert claims._spread([math.inf] * 3) == "3 of 3 diverged" and claims._spread([]) == "no runs"
     assert claims._ratio(0.0, "hig", "adam") == "0 (adam diverged)" and claims._ratio(0.25, "hig", "adam") == "0.25"
     assert claims._ratio(math.inf, "hig", "adam") == "inf (hig diverged)"
+
+
+def test_a_time_budget_run_ends_at_its_budget_whatever_its_last_step():
+    """A budget is checked after each step: a slow variant's final evaluation, a long step after the budget,
+    is its loss at the budget; the budget, not the fastest run's overshoot, is X."""
+    config = {"task": {"name": "oscillator"}, "optim": {"name": "hig"}, "trainer": {"time_budget": 9.0}}
+    run = fake_run("/nowhere", 0, config, 1.0, stopped_by="time_budget")  # a step and an evaluation every second
+    run.train["wall_time"][-1] = run.eval["wall_time"][-1] = 12.0  # a last step of 3 s: ends 3 s after the budget
+    c = claims.curve(run, "wall_time")
+    assert c.end == 9.0 and c.x[-1] == 9.0 and c.x[-2] == 9.0  # the evaluation at 9 s and the final one
+    assert c.at(9.0) == run.eval["loss"][-1] != run.eval["loss"][-2]
+    assert c.at(4.5) == run.eval["loss"][5]  # earlier: up to one median step (1 s) after the time
+    untouched = claims.curve(fake_run("/nowhere", 0, config, 1.0), "wall_time")  # not stopped by its budget
+    assert untouched.end == 10.0
+
+
+def test_a_diverged_run_and_an_init_from_offset_through_curve():
+    config = {"task": {"name": "toy"}, "optim": {"name": "adam"}}
+    diverged = fake_run("/nowhere", 0, config, 1.0, status="diverged")
+    c = claims.curve(diverged, "iteration")
+    assert c.diverged and c.end == 1000 and c.at(500.0) == diverged.eval["loss"][5] and c.at(1000.0) == math.inf
+    continued = fake_run("/nowhere", 0, config, 1.0, init_iterations=300, init_train_seconds=3.0)
+    assert claims.curve(continued, "iteration").end == 1300 and claims.curve(continued, "iteration").x[0] == 300
+    assert claims.curve(continued, "wall_time").x[-1] == pytest.approx(13.0)
+
+
+def test_zero_losses_give_a_defined_ratio():
+    zero = Curve(X, np.zeros(X.size), X[-1])
+    assert decide(seeds(zero, zero, zero), seeds(zero, zero, zero)).ratio == 1.0
+    assert decide(seeds(power_law(1), power_law(1), power_law(1)), seeds(zero, zero, zero)).ratio == math.inf
+
+
+def test_two_runs_of_one_seed_on_one_side_are_named_not_silently_chosen(tmp_path):
+    claim = next(c for c in claims.CLAIMS if c.figure == "fig4_multicart")
+    runs = [fake_run(tmp_path / name, s, {"task": {"name": "multicart", "poles": 3},
+                                          "optim": {"name": "bptt", "backprop": mode}}, 1.0)
+            for s in range(3) for mode in ("C", "R") for name in ("a", "b")[:1 + (s == 1 and mode == "C")]]
+    verdict, rows = claims.measure(claim, runs)
+    assert verdict == OPEN and rows[0]["decision"].verdict == OPEN and "seed 1 matches" in rows[0]["decision"].why
+    assert "move the one that does not belong" in claims.claim_rows(claim, runs)[0]
+
+
+def test_an_unreadable_results_file_is_left_out_and_named(tmp_path, capsys):
+    (tmp_path / "fig2_quantum" / "job").mkdir(parents=True)
+    (tmp_path / "fig2_quantum" / "job" / "results.h5").write_bytes(b"not an HDF5 file")
+    assert claims.load(tmp_path, ("fig2_quantum",)) == []
+    assert "left out" in capsys.readouterr().err
+
+
+def test_ks_claim_orders_wig_nog_one():
+    claim = next(c for c in claims.CLAIMS if c.name.startswith("KS: WIG best"))
+    assert [c.label for c in claim.comparisons] == [("WIG", "NOG"), ("WIG", "ONE"), ("NOG", "ONE")]
