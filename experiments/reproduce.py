@@ -4,7 +4,7 @@ figures and one markdown summary into outputs/figures/.
 The experiment configs hold the papers' budgets (PROFILE=paper). The quick profile (the default) runs the same
 sweeps with the budgets below, so that everything finishes in about 45 minutes on a 2-core machine; every figure
 and the summary say so. The claims profile runs, for every claim of experiments/claims.py, the sweeps below with
-at least three seeds and budgets chosen by measurement (92 minutes measured on a 2-core machine), then writes
+at least three seeds and budgets chosen by measurement (109 minutes measured on a 2-core machine), then writes
 outputs/figures/claims.md: each claim with its paired seed-by-seed comparison and verdict. `--plan` prints a
 profile's jobs and the expected time without running anything. Runs land in
 outputs/experiments/<profile>/<experiment>/<overrides>/results.h5; a second call skips every job that completed
@@ -74,7 +74,7 @@ FIGURES = (
     Figure("fig2_quantum", "Quantum dipole (HIG preset): Adam and HIG against training wall-clock",
            ("fig2_quantum",), ("loss_vs_time.png",),
            {"fig2_quantum": ["seed=0,1", "trainer.time_budget=75"]},
-           claims=(Sweep("fig2_quantum", ("trainer.time_budget=90",), 98),)),
+           claims=(Sweep("fig2_quantum", ("trainer.time_budget=90",), 100),)),
     Figure("fig3_poisson", "Poisson: Adam and HIG, then both continuing from the Adam-trained network",
            ("fig3_poisson", "fig3_poisson_continue"), ("loss_vs_time.png",),
            {"fig3_poisson": QUICK_POISSON,
@@ -82,17 +82,17 @@ FIGURES = (
                                                       "optim=adam,seed=${seed},trainer.time_budget=45/results.h5'"]},
            claims=(Sweep("fig3_poisson", ("optim=adam", "trainer.time_budget=60"), 66),
                    Sweep("fig3_poisson_continue", ("trainer.time_budget=120", "init_from='outputs/experiments/claims/"
-                                                   f"fig3_poisson/{CLAIMS_POISSON_START}/results.h5'"), 128))),
+                                                   f"fig3_poisson/{CLAIMS_POISSON_START}/results.h5'"), 132))),
     Figure("fig4_multicart", "Multicart: backprop modes R, M, S, C for 1 to 4 poles, test loss against iteration",
            ("fig4_multicart",), ("loss_vs_iteration.png",),
            {"fig4_multicart": ["seed=0", "trainer.iterations=1500", "trainer.eval_every=100"]},
            claims=(Sweep("fig4_multicart", (*SEEDS_TOGETHER, "optim.backprop=R,C", "trainer.iterations=10000",
-                                            "trainer.eval_every=500"), 85),)),
+                                            "trainer.eval_every=500"), 136),)),
     Figure("fig5_quantum_control", "Quantum control (StableBPTT preset): modes R, M, S, C for target levels 3, 4, 5",
            ("fig5_quantum_control",), ("loss_vs_iteration.png",),
            {"fig5_quantum_control": ["seed=0", "trainer.iterations=250", "trainer.eval_every=50"]},
            claims=(Sweep("fig5_quantum_control", (*SEEDS_TOGETHER, "optim.backprop=R,C", "task.target_level=4,5",
-                                                  "trainer.iterations=600", "trainer.eval_every=100"), 150),)),
+                                                  "trainer.iterations=600", "trainer.eval_every=100"), 200),)),
     Figure("fig6_unroll", "Unroll length: final test loss and seconds per iteration",
            ("fig6_unroll_bptt", "fig6_unroll_hig"), ("unroll.png",),
            {"fig6_unroll_bptt": ["seed=0", "unroll=16,32,64,128,256", "trainer.iterations=1000",
@@ -104,20 +104,20 @@ FIGURES = (
            runs_shown=("*optim.backprop=R,*seed=0,task.control_cost=0.001*",
                        "*optim.backprop=C,*seed=0,task.control_cost=0.001*"),
            claims=(Sweep("fig8_guidance", (*SEEDS_TOGETHER, "optim.backprop=R,C", "optim.clip=none",
-                                           "trainer.iterations=4000", "trainer.eval_every=250"), 37),)),
+                                           "trainer.iterations=4000", "trainer.eval_every=250"), 59),)),
     Figure("fig9_ks", "Kuramoto-Sivashinsky neural simulator: ONE, NOG, WIG x predict, correct x unroll length",
            ("fig9_ks",), ("unroll.png",),
            {"fig9_ks": ["unroll=1,2,4", "trainer.iterations=200", "trainer.eval_every=200"]},
            runs_shown=("*task.stepper=correct,task.training=WIG,*unroll=4/seed=0",), study=ks_study,
            claims=(Sweep("fig9_ks", ("task.stepper=correct", "task.training=ONE,NOG,WIG", "unroll=3",
-                                     "trainer.iterations=1000", "trainer.eval_every=250"), 53),
+                                     "trainer.iterations=1000", "trainer.eval_every=250"), 68),
                    Sweep("fig9_ks", ("task.stepper=predict", "task.training=WIG", "unroll=3",
-                                     "trainer.iterations=1000", "trainer.eval_every=250"), 52, "fig9_ks_predict"),
+                                     "trainer.iterations=1000", "trainer.eval_every=250"), 72, "fig9_ks_predict"),
                    Sweep("fig9_ks", ("task.stepper=correct", "task.training=WIG", "unroll=1,2,4,8",
                                      "trainer.iterations=1000", "trainer.eval_every=250"), 50, "fig9_ks_unroll"))),
     Figure("toy_scaling", "Badly scaled toy (lambda = 0.01): Adam, Gauss-Newton and HIG against training wall-clock",
            ("toy_scaling",), ("loss_vs_time.png",), None,
-           claims=(Sweep("toy_scaling", ("trainer.time_budget=20",), 23),)),
+           claims=(Sweep("toy_scaling", ("trainer.time_budget=20",), 25),)),
     Figure("hig_payoff", "Where HIG pays off: Adam and HIG on longer oscillator chains against training wall-clock",
            ("hig_payoff",), ("loss_vs_time.png",), None,
            claims=(Sweep("hig_payoff", ("trainer.time_budget=90",), 97),)),

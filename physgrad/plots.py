@@ -144,7 +144,7 @@ def plot_comparison(runs: list[Run], path: str | Path, x_key: str = "wall_time",
     fig, axes = _panels(len(scenes))
     for ax, scene in zip(axes, scenes):
         groups = by_scene.get(scene, {})
-        ends, smallest, banded = [], [], False
+        ends, smallest, banded, notes = [], [], False, 0
         for label, kinds in sorted(groups.items(), key=lambda item: natural_key(item[0])):
             curves, diverged = kinds["ok"], kinds["diverged"]
             text = f"{label} (n={len(curves)}" + (f", {len(diverged)} diverged)" if diverged else ")")
@@ -163,8 +163,10 @@ def plot_comparison(runs: list[Run], path: str | Path, x_key: str = "wall_time",
                 line, = ax.plot(x, y, "--", lw=0.8, color=color, label=text if color is None and not index else None)
                 color = line.get_color()
                 ax.plot(x[-1:], y[-1:], "x", ms=8, color=color)
-                ax.annotate(_short_reason(reason), (x[-1], y[-1]), xytext=(4, 4), textcoords="offset points",
-                            fontsize=7, color=color)
+                # runs that diverge early end at nearly the same point: stack their notes instead of overprinting
+                ax.annotate(_short_reason(reason), (x[-1], y[-1]), xytext=(4, 4 - 9 * notes),
+                            textcoords="offset points", fontsize=7, color=color)
+                notes += 1
                 smallest += [x[x > 0].min()] if (x > 0).any() else []
         ax.set_title(scene, fontsize=10)
         ax.set_xlabel("training time [s]" if x_key == "wall_time" else "iteration")
