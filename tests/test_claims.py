@@ -232,6 +232,15 @@ def test_two_runs_of_one_seed_on_one_side_are_named_not_silently_chosen(tmp_path
     assert "move the one that does not belong" in claims.claim_rows(claim, runs)[0]
 
 
+def test_the_payoff_map_leaves_out_a_chain_length_with_two_runs_of_one_seed(tmp_path, monkeypatch, capsys):
+    runs = [fake_run(tmp_path / name, s, {"task": {"name": "oscillator", "oscillators": n}, "optim": {"name": v}}, 1.0)
+            for n in (2, 4) for v in ("hig", "adam") for s in range(3)
+            for name in ("a", "b")[:1 + (n == 4 and v == "hig" and s == 0)]]
+    monkeypatch.setattr(claims, "load", lambda root, folders: runs)
+    assert {n for n, _ in claims.payoff(tmp_path)} == {2}
+    assert "without n = 4: seed 0 matches" in capsys.readouterr().err
+
+
 def test_an_unreadable_results_file_is_left_out_and_named(tmp_path, capsys):
     (tmp_path / "fig2_quantum" / "job").mkdir(parents=True)
     (tmp_path / "fig2_quantum" / "job" / "results.h5").write_bytes(b"not an HDF5 file")
