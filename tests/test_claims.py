@@ -251,3 +251,9 @@ def test_an_unreadable_results_file_is_left_out_and_named(tmp_path, capsys):
 def test_ks_claim_orders_wig_nog_one():
     claim = next(c for c in claims.CLAIMS if c.name.startswith("KS: WIG best"))
     assert [c.label for c in claim.comparisons] == [("WIG", "NOG"), ("WIG", "ONE"), ("NOG", "ONE")]
+
+
+def test_payoff_cuts_lie_on_the_evaluation_grid_of_a_time_budget_run():
+    from physgrad.runner import EVALUATIONS_PER_BUDGET
+
+    assert all(float(f * EVALUATIONS_PER_BUDGET).is_integer() for f in claims.PAYOFF_FRACTIONS)

@@ -234,3 +234,19 @@ def test_figure_axes_read_well():
     labels = [t.get_text() for t in ax.get_yticklabels() if t.get_text()]
     assert labels and all(len(label) <= 5 and "10^" not in label for label in labels), labels
     plt.close(fig)
+
+
+def test_notes_of_runs_that_diverged_at_the_same_point_do_not_overprint(tmp_path, monkeypatch):
+    from matplotlib.axes import Axes
+
+    from physgrad.plots import plot_comparison
+
+    for seed in (0, 1, 2):
+        fake_run(tmp_path / f"gn{seed}", "gauss_newton", seed, 1, [1.0, 2.0], [0.0, 0.1], status="diverged")
+    runs, _, _ = collect([tmp_path])
+    label_runs(runs)
+    offsets, annotate = [], Axes.annotate
+    monkeypatch.setattr(Axes, "annotate", lambda self, text, xy, **kw: offsets.append(kw["xytext"]) or
+                        annotate(self, text, xy, **kw))
+    plot_comparison(runs, tmp_path / "loss.png")
+    assert len(offsets) == 3 and len(set(offsets)) == 3
