@@ -28,6 +28,17 @@ def run(*overrides: str, out_dir=None, config_dir=None):
     return run_one(list(overrides), out_dir=out_dir, config_dir=config_dir)
 
 
+def compare(*overrides: str, config_dir=None):
+    """Which variant trains this scene best, as `physgrad compare` decides it (tuned with equal budgets, paired
+    seeds, verdicts with intervals; docs/protocol.md), e.g.
+    ``physgrad.compare("task=toy", "optim=adam,hig", "trainer.iterations=300", "compare.trials=8")``.
+    Returns physgrad.compare.Study: .comparisons, .runs and .trials (pandas DataFrames), .verdicts, .text (the
+    compare.md table) and .folder. An interrupted study resumes when called again with the same overrides."""
+    from physgrad.compare import run_study
+
+    return run_study(list(overrides), config_dir=config_dir, say=lambda line: None)
+
+
 def read_run(path):
     """One results.h5 read back: attributes (run.attrs) and the /train and /eval columns (run.train["loss"],
     run.eval["wall_time"], ...) as numpy arrays."""

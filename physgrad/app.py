@@ -126,10 +126,11 @@ def save_traceback(folder: Path) -> Path | None:
 
 
 def objective(outcome) -> float:
-    """What the job returns to the sweeper, for those that optimise (hydra/sweeper=optuna): the final test loss
-    of a completed run (a budgeted run's last evaluation is at its budget); infinity for anything else, so a
-    diverged, refused or failed trial ranks last instead of stopping the study."""
-    loss = outcome.final_eval.get("loss") if outcome.status == "completed" else None
+    """What the job returns to a sweeper that optimises: the final VALIDATION loss of a completed run
+    (trainer.validation=true; a budgeted run's last evaluation is at its budget), never the test loss, which
+    verdicts read; infinity for anything else (no validation data, diverged, refused, failed), so such a trial
+    ranks last instead of stopping the study."""
+    loss = outcome.final_eval.get("validation_loss") if outcome.status == "completed" else None
     return float(loss) if loss is not None else float("inf")
 
 

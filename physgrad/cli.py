@@ -13,14 +13,18 @@ from pathlib import Path
 
 from physgrad import UserError
 
-USAGE = """usage: physgrad {run,report,check} ...
+USAGE = """usage: physgrad {run,compare,report,check} ...
 
   physgrad run [HYDRA FLAGS] [key=value ...]   train one configuration, or sweep with -m
+  physgrad compare [-cd DIR] task=T optim=A,B,C [key=value ...] [compare.KEY=VALUE ...]
+                                              which variant is better on this scene: tuned with equal budgets,
+                                              paired seeds, a verdict with intervals (compare.md)
   physgrad report [LABEL=]PATH... [--out DIR] [--threshold LOSS] [--note TEXT] [--logx auto|on|off]
                                               tables, CSV and figures from the results.h5 files under PATH
   physgrad check [--small]                    stiff and extreme cases: what each variant does with them
 
 Examples:
+  physgrad compare task=toy optim=adam,gauss_newton,hig trainer.iterations=300
   physgrad run task=poisson optim=hig
   physgrad run -m task=poisson optim=adam,hig seed=0,1
   physgrad report outputs/multirun/<date>/<time>
@@ -68,12 +72,16 @@ def dispatch(argv: list[str]) -> int:
             return run_command(rest)
         if command == "report":
             return report_command(rest)
+        if command == "compare":
+            from physgrad.compare import main as compare_main
+
+            return compare_main(rest)
         if command == "check":
             from physgrad.check import main as check_main
 
             return check_main(rest)
-        raise UserError(f"unknown command '{command}': use 'physgrad run ...', 'physgrad report PATH...' or "
-                        "'physgrad check'")
+        raise UserError(f"unknown command '{command}': use 'physgrad run ...', 'physgrad compare ...', "
+                        "'physgrad report PATH...' or 'physgrad check'")
     except UserError as error:
         print(f"physgrad: error: {error}", file=sys.stderr)
         return 2

@@ -98,8 +98,8 @@ def check_overrides(overrides: list[str], multirun: bool, config_dirs=()) -> Non
         try:
             import hydra_plugins.hydra_optuna_sweeper  # noqa: F401
         except ImportError:
-            raise UserError("hydra/sweeper=optuna needs Hydra's Optuna sweeper: pip install 'physgrad[tune]' "
-                            "(hydra-optuna-sweeper)") from None
+            raise UserError("hydra/sweeper=optuna is not installed (its plugin needs optuna < 3, which cannot sit "
+                            "beside physgrad's optuna): tune with 'physgrad compare' (docs/protocol.md)") from None
     with initialized([*config_dirs, *searchpath_entries(overrides)]) as loader:
         groups = set(loader.list_groups(""))
         group_values: dict[str, list[str]] = {}
@@ -110,8 +110,8 @@ def check_overrides(overrides: list[str], multirun: bool, config_dirs=()) -> Non
                 raise UserError(f"'{override.input_line}' sweeps several values: add -m (--multirun) to run them all")
             if override.is_interval_sweep() and sweeper == "basic":
                 raise UserError(f"'{override.input_line}' is a search interval, which Hydra's basic sweeper cannot "
-                                "sample: add hydra/sweeper=optuna hydra.sweeper.n_trials=<N> (pip install "
-                                "'physgrad[tune]'), or list values: choice(a,b,c) or a,b,c")
+                                "sample: tune with 'physgrad compare' (it searches each variant's learning rate, "
+                                "docs/protocol.md), or list values: choice(a,b,c) or a,b,c")
             if key.startswith("hydra") or override.is_delete():
                 continue
             if key in groups and override.package is None:

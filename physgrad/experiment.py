@@ -37,6 +37,7 @@ def check_config(cfg: DictConfig) -> TrainerSettings:
     finite_numbers(OmegaConf.to_container(cfg, resolve=True))
     choice("precision", cfg.get("precision"), (32, 64))
     flag("overwrite", cfg.get("overwrite"))
+    flag("trainer.validation", cfg.trainer.get("validation", False))
     if cfg.get("init_from") is not None and not isinstance(cfg.init_from, str):
         raise UserError(f"init_from={cfg.init_from!r} is not allowed: use the path of a results.h5, or null")
     # PRNGKey(seed) keeps the low 32 bits of the seed: seeds 2^32 apart would be the same run
@@ -147,9 +148,32 @@ def build_seeds(cfg: DictConfig, seeds: list[int], batch_size: int) -> tuple[Sce
     if scene.train_size is not None and batch_size > scene.train_size:
         raise UserError(f"trainer.batch_size={batch_size} is larger than the training set: use at most "
                         f"{scene.train_size} (task.train_size)")
+    validation = None
+    if cfg.trainer.get("validation", False):
+        validation = stack([validation_set(cfg, s, key[0]) for s, key in zip(scenes, keys)])
     return scene, Seeds(params=stack([scene.init_params(key[1]) for key in keys]),
                         train_keys=jnp.stack([key[2] for key in keys]), train_sets=stack([s.train_set for s in scenes]),
-                        test_sets=stack([s.test_set for s in scenes]))
+                        test_sets=stack([s.test_set for s in scenes]), validation_sets=validation)
+
+
+VALIDATION_KEY = 1  # fold_in(data key, 1): the data key of the default validation set
+
+
+def validation_set(cfg: DictConfig, scene: Scene, data_key):
+    """The scene's validation_set if it has one; else the test set of the same scene built from another data
+    key (fold_in(data key, VALIDATION_KEY)): held-out samples of the same distribution, disjoint from the test
+    set by construction. UserError if that set equals the test set (a scene whose data ignore the key)."""
+    if scene.validation_set is not None:
+        return scene.validation_set
+    other = build_scene(cfg.task, jax.random.fold_in(data_key, VALIDATION_KEY), effective_unroll(cfg)).test_set
+    same = jax.tree_util.tree_structure(other) == jax.tree_util.tree_structure(scene.test_set) and all(
+        a.shape == b.shape and bool(jnp.array_equal(a, b))
+        for a, b in zip(jax.tree_util.tree_leaves(other), jax.tree_util.tree_leaves(scene.test_set)))
+    if same:
+        raise UserError(f"task={cfg.task.get('name')} builds the same test set from every data key, so it has no "
+                        "validation data: give its Scene a validation_set, or draw its data from `key` "
+                        "(docs/extending.md)")
+    return other
 
 
 def prepare(cfg: DictConfig, seed_list: list[int], settings: TrainerSettings) -> tuple[Scene, UpdateRule, Seeds]:

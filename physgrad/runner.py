@@ -29,6 +29,7 @@ from physgrad.optim import UpdateRule, state_logs
 from physgrad.results import ResultsWriteError, ResultsWriter
 from physgrad.tasks import Scene
 from physgrad.validate import number
+from physgrad.verdict import DIVERGENCE_FACTOR
 
 log = logging.getLogger("physgrad")
 clock = time.perf_counter  # every interval of the loop is read from this clock (tests replace it)
@@ -54,6 +55,7 @@ class TrainerSettings:
     batch_size: int
     flush_seconds: float
     log_seconds: float
+    divergence_factor: float | None = DIVERGENCE_FACTOR
 
     @classmethod
     def from_config(cls, trainer_cfg) -> "TrainerSettings":
@@ -72,6 +74,8 @@ class TrainerSettings:
             batch_size=number("trainer.batch_size", trainer_cfg.get("batch_size"), 1, integer=True),
             flush_seconds=number("trainer.flush_seconds", trainer_cfg.get("flush_seconds"), 0, open_low=True),
             log_seconds=number("trainer.log_seconds", trainer_cfg.get("log_seconds", 30.0), 0, open_low=True),
+            divergence_factor=number("trainer.divergence_factor", trainer_cfg.get("divergence_factor",
+                                     DIVERGENCE_FACTOR), 1, optional=True, open_low=True),
         )
 
 
@@ -118,6 +122,12 @@ def divergence_reason(quantity: str, logs: dict, iteration: int, svd_failures_be
         reason += ("; the SVD/eigh of the Jacobian did not converge (optim.retry_float64=true retries it in "
                    "float64, precision=64 runs everything in float64)")
     return reason
+
+
+def blew_up(loss: float, first_loss: float | None, factor: float | None) -> bool:
+    """A finite training loss past factor times the first step's (a blow-up that has not reached NaN yet); never
+    when the first loss is 0 or the bound is off (factor None)."""
+    return factor is not None and first_loss is not None and first_loss > 0 and loss > factor * first_loss
 
 
 def packed_logs(step, names: list[str]):
@@ -214,12 +224,14 @@ def stop_on_signals(on_first=None):
 @dataclass(frozen=True)
 class Seeds:
     """What differs between the seeds trained together in one process, stacked on a leading axis: initial
-    networks, minibatch keys, fixed training sets (None if drawn fresh) and test sets."""
+    networks, minibatch keys, fixed training sets (None if drawn fresh), test sets and validation sets (None
+    when the run does not evaluate on validation data: trainer.validation=false)."""
 
     params: Any
     train_keys: jax.Array
     train_sets: Any
     test_sets: Any
+    validation_sets: Any = None
 
     @property
     def count(self) -> int:
@@ -260,6 +272,7 @@ class CompiledTraining:
     params: jax.Array
     opt_state: Any
     log_names: list
+    validate: Any = None  # the evaluation compiled for the validation sets, where their shapes differ
 
 
 def compile_training(scene: Scene, rule: UpdateRule, seeds: Seeds, batch_size: int) -> CompiledTraining:
@@ -275,8 +288,15 @@ def compile_training(scene: Scene, rule: UpdateRule, seeds: Seeds, batch_size: i
     one_step = packed_logs(make_step(flat_scene, rule, batch_size), log_names)
     step = jax.jit(over_seeds(one_step, count, (0, 0, None, 0, 0))).lower(
         params, opt_state, np.int32(0), seeds.train_keys, seeds.train_sets).compile()
-    evaluate = jax.jit(over_seeds(flat_scene.evaluate, count, (0, 0))).lower(params, seeds.test_sets).compile()
-    return CompiledTraining(step, evaluate, params, opt_state, log_names)
+    evaluating = jax.jit(over_seeds(flat_scene.evaluate, count, (0, 0)))
+    evaluate = evaluating.lower(params, seeds.test_sets).compile()
+    validate = None
+    if seeds.validation_sets is not None:
+        same = jax.tree_util.tree_structure(seeds.validation_sets) == jax.tree_util.tree_structure(seeds.test_sets) \
+            and all(a.shape == b.shape and a.dtype == b.dtype for a, b in zip(
+                jax.tree_util.tree_leaves(seeds.validation_sets), jax.tree_util.tree_leaves(seeds.test_sets)))
+        validate = evaluate if same else evaluating.lower(params, seeds.validation_sets).compile()
+    return CompiledTraining(step, evaluate, params, opt_state, log_names, validate)
 
 
 @dataclass
@@ -290,6 +310,7 @@ class SeedRun:
     iterations: int | None = None  # set when the seed stops before the others (diverged)
     latest_eval: dict = field(default_factory=dict)
     svd_failures: float = 0.0
+    first_loss: float | None = None  # the training loss of the first step: the scale of the blow-up bound
 
     @property
     def running(self) -> bool:
@@ -360,12 +381,15 @@ def train(scene: Scene, rule: UpdateRule, seeds: Seeds, writers: list[ResultsWri
     runs = [SeedRun(writer) for writer in writers]
     train_seconds, done, stopped_by = 0.0, 0, None
     params = None
+    validate = None
     last_eval_seconds = 0.0
 
     def record_eval(iteration):
         nonlocal last_eval_seconds
         # written with the next periodic flush: a flush per evaluation cost 2% of a fast scene's wall time
         metrics = {k: np.asarray(v).tolist() for k, v in jax.device_get(evaluate(params, seeds.test_sets)).items()}
+        if validate is not None:
+            metrics["validation_loss"] = np.asarray(jax.device_get(validate(params, seeds.validation_sets)["loss"])).tolist()
         last_eval_seconds = train_seconds
         for index, run in enumerate(runs):
             if run.running:
@@ -388,12 +412,14 @@ def train(scene: Scene, rule: UpdateRule, seeds: Seeds, writers: list[ResultsWri
         start = clock()
         compiled = compile_training(scene, rule, seeds, settings.batch_size)
         step, evaluate, log_names = compiled.step, compiled.evaluate, compiled.log_names
+        validate = compiled.validate
         params, opt_state = compiled.params, compiled.opt_state
         compile_seconds = clock() - start
         for_every_writer("set_attrs", compile_seconds=compile_seconds)
         progress.compiled(compile_seconds)
         for_every_writer("set_columns", "train", ("iteration", "wall_time", *log_names))
         guarded = [log_names.index(name) for name in GUARDED]
+        loss_at = log_names.index("loss")
         svd_at = log_names.index("svd_failures") if "svd_failures" in log_names else None
         running = list(enumerate(runs))
         stop_requested()
@@ -431,9 +457,16 @@ def train(scene: Scene, rule: UpdateRule, seeds: Seeds, writers: list[ResultsWri
                 row = logs[index]
                 run.writer.append_row("train", (iteration, train_seconds, *row))
                 bad = next((log_names[i] for i in guarded if not math.isfinite(row[i])), None)
+                if run.first_loss is None:
+                    run.first_loss = row[loss_at]
                 if bad is not None:
                     run.status, run.iterations, diverged = "diverged", done, True
                     run.reason = divergence_reason(bad, dict(zip(log_names, row)), iteration, run.svd_failures)
+                elif blew_up(row[loss_at], run.first_loss, settings.divergence_factor):
+                    run.status, run.iterations, diverged = "diverged", done, True
+                    run.reason = (f"loss grew to {row[loss_at]:.4g} at iteration {iteration}, more than "
+                                  f"trainer.divergence_factor={settings.divergence_factor:g} times its first value "
+                                  f"{run.first_loss:.4g} (a blow-up without NaN)")
                 elif svd_at is not None:
                     run.svd_failures = row[svd_at]
             if diverged:  # the running list changes only here, not at every step

@@ -81,7 +81,7 @@ def test_hydra_flags_keep_working(tmp_path):
     (["unroll=8"], "task=poisson has no time axis: remove unroll=8"),
     (["optim=stable_bptt"], "optim=stable_bptt needs a closed-loop controller"),
     (["seed=0,1"], "add -m"),
-    (["-m", "optim.learning_rate=interval(0.001,0.1)"], "basic sweeper cannot sample: add hydra/sweeper=optuna"),
+    (["-m", "optim.learning_rate=interval(0.001,0.1)"], "basic sweeper cannot sample: tune with 'physgrad compare'"),
 ])
 def test_user_mistakes_are_one_line_errors(args, fragment, tmp_path):
     result = physgrad("run", *args, f"hydra.run.dir={tmp_path}", check=False)

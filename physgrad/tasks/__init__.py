@@ -56,7 +56,9 @@ class Scene:
     figure(params, test_set, path): a per-run figure of the trained network (e.g. trajectories of a few test
     samples), drawn after training into path (scene.png beside loss.png); optional;
     test_output(params, sample) -> y: the output the held-out loss is computed on, where it differs from the
-    training output (e.g. a fixed rollout horizon whatever the training unroll); default: sample_output.
+    training output (e.g. a fixed rollout horizon whatever the training unroll); default: sample_output;
+    validation_set: held-out samples for tuning and early decisions (same structure as test_set); default
+    (None): the test set of the same scene built from another data key (physgrad.experiment.validation_set).
     """
 
     init_params: Callable[[Any], Any]
@@ -69,6 +71,7 @@ class Scene:
     sample_metrics: Callable[[Any, Any, jax.Array], dict] = field(default=no_metrics)
     figure: Callable[[Any, Any, Any], None] | None = None
     test_output: Callable[[Any, Any], jax.Array] | None = None
+    validation_set: Any = None
 
     def __post_init__(self):
         if (self.sample_output is None) == (self.dynamics is None):

@@ -1,0 +1,677 @@
+"""`physgrad compare`: which variant trains this scene best, tuned with equal budgets, decided on paired seeds.
+
+    physgrad compare [-cd DIR] task=<scene> optim=adam,gauss_newton,hig [trainer.time_budget=60] [compare.KEY=V]
+
+Every comma list on the command line is an axis of variants (their product, as in a Hydra multirun); every
+other override is common to all jobs. A study runs in three phases, each a Hydra multirun of `physgrad run`
+(so `hydra/launcher=...` applies) into the study folder, and resumes where it stopped when the same command
+runs again:
+1. tuning: compare.trials trials per variant, on the tuning seed, at the study's budget, over its search space
+   (log-uniform; scrambled Halton points, as AlgoPerf; an Optuna study per variant in tuning.journal); each trial
+   is scored by its VALIDATION loss at the budget;
+2. evaluation: each variant at its best trial's settings on compare.seeds paired seeds (trained together in one
+   vectorised step when the budget is in iterations; one job per seed, variants interleaved, for time budgets);
+3. the verdicts (physgrad.verdict) from the TEST loss: compare.md, trials.csv, runs.csv, comparisons.csv,
+   sensitivity.png and the sweep's report (figures of the curves) under report/.
+docs/protocol.md gives the protocol and its reasons.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import itertools
+import json
+import math
+import os
+import subprocess
+import sys
+import warnings
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from physgrad import UserError
+from physgrad.verdict import (ALPHA, FRACTIONS, MARGIN, Curve, compare_variants, divergence_test, seeds_needed,
+                              target_loss)
+
+SPECTRAL = "physgrad.optim.spectral.spectral_rule"
+# log-uniform learning-rate ranges per rule family (docs/protocol.md): each spans the papers' presets by two
+# decades or more on either side
+SEARCH_RANGES = {
+    "spectral": (1e-3, 1e1),  # Gauss-Newton and HIG (mean-over-samples loss; presets 0.5 to 1)
+    "optax.sgd": (1e-4, 1e1),  # plain gradient descent
+    "adaptive": (1e-5, 1e-1),  # Adam and the other optax rules (presets 1e-4 to 1e-3)
+}
+SETTINGS = {  # compare.<key>: default, meaning
+    "trials": (16, "tuning trials per variant"),
+    "seeds": (10, "paired evaluation seeds"),
+    "seed": (0, "the first evaluation seed (seed .. seed + seeds - 1)"),
+    "tune_seed": (1_000_000, "the seed of every tuning trial (data, network, batches), disjoint from the evaluation seeds"),
+    "margin": (MARGIN, "better means a loss ratio beyond this factor; equivalent means within it"),
+    "alpha": (ALPHA, "the level of the tests after Holm's correction"),
+    "dir": (None, "the study folder (default: outputs/compare/<task>-<hash of the command>)"),
+    "search": ({}, "search spaces: compare.search.<optim key>=[low,high] (log-uniform), for every variant with that key"),
+    "tune": (True, "false: evaluate the variants at their configured settings without tuning"),
+}
+PHASES = ("tune", "eval")
+
+
+@dataclass
+class Variant:
+    name: str
+    overrides: list[str]  # the variant's own overrides (key=value)
+    config: object = None  # the composed config (common + variant overrides)
+    space: dict = field(default_factory=dict)  # optim key -> (low, high), log-uniform
+
+    @property
+    def preset(self) -> dict:
+        return {key: self.config.optim.get(key) for key in self.space}
+
+
+@dataclass
+class Study:
+    """What `physgrad compare` decided, as tables (pandas DataFrames), with the study folder."""
+
+    folder: Path
+    trials: object
+    runs: object
+    comparisons: object
+    verdicts: list
+    text: str
+
+
+# --- parsing the command line -----------------------------------------------------------------------------
+
+
+def parse_arguments(args: list[str]) -> tuple[list[str], str | None]:
+    """Hydra's -cd/--config-dir DIR pulled out of the argument list; the rest are overrides."""
+    overrides, config_dir, rest = [], None, list(args)
+    while rest:
+        arg = rest.pop(0)
+        if arg in ("-cd", "--config-dir"):
+            if not rest:
+                raise UserError(f"{arg} needs a folder")
+            config_dir = rest.pop(0)
+        elif arg.startswith("--config-dir="):
+            config_dir = arg.split("=", 1)[1]
+        elif arg.startswith("-"):
+            raise UserError(f"physgrad compare does not take {arg}: give overrides (key=value) and -cd DIR")
+        else:
+            overrides.append(arg)
+    return overrides, config_dir
+
+
+def split_overrides(overrides: list[str]) -> tuple[dict, list, list, list]:
+    """(compare settings, variant axes [(key, [values as override strings])], common overrides, hydra overrides)."""
+    from hydra.core.override_parser.overrides_parser import OverridesParser
+    from hydra.errors import HydraException
+
+    try:
+        parsed = OverridesParser.create().parse_overrides(overrides)
+    except HydraException as error:
+        raise UserError(f"cannot read the overrides: {str(error).splitlines()[0]}") from None
+    settings, axes, common, hydra_args = {}, [], [], []
+    for override in parsed:
+        key = override.key_or_group
+        if key.startswith("compare."):
+            name = key[len("compare."):]
+            top = name.split(".")[0]
+            if top not in SETTINGS:
+                raise UserError(f"unknown setting compare.{name} (choose from {', '.join(SETTINGS)})")
+            if top == "search":
+                value = override.value()
+                if name == "search" or not (isinstance(value, list) and len(value) == 2
+                                             and all(isinstance(v, (int, float)) and v > 0 for v in value)
+                                             and value[0] < value[1]):
+                    raise UserError(f"{override.input_line}: give compare.search.<optim key>=[low,high] with "
+                                    "0 < low < high (a log-uniform range)")
+                settings.setdefault("search", {})[name[len("search."):]] = (float(value[0]), float(value[1]))
+            else:
+                settings[top] = override.value()
+        elif key.startswith("hydra"):
+            hydra_args.append(override.input_line)
+        elif override.is_sweep_override():
+            if override.is_interval_sweep() or override.is_range_sweep():
+                raise UserError(f"'{override.input_line}': list the variants (a,b,c); compare searches each "
+                                "variant's learning rate itself (compare.search)")
+            prefix = "+" if override.is_add() else ""
+            values = list(override.sweep_string_iterator())
+            axes.append((key, [f"{prefix}{key}={value}" for value in values]))
+        elif override.is_delete():
+            raise UserError(f"'{override.input_line}': physgrad compare cannot delete keys")
+        else:
+            common.append(override.input_line)
+    return settings, axes, common, hydra_args
+
+
+def study_settings(given: dict) -> dict:
+    from physgrad.validate import number
+
+    s = {key: default for key, (default, _) in SETTINGS.items()}
+    s.update(given)
+    number("compare.trials", s["trials"], 1, 10_000, integer=True)
+    number("compare.seeds", s["seeds"], 1, 10_000, integer=True)
+    number("compare.seed", s["seed"], 0, 2**32, integer=True)
+    number("compare.tune_seed", s["tune_seed"], 0, 2**32, integer=True)
+    number("compare.margin", s["margin"], 1, open_low=True)
+    number("compare.alpha", s["alpha"], 0, 1, open_low=True)
+    if not isinstance(s["tune"], bool):
+        raise UserError(f"compare.tune={s['tune']!r}: use true or false")
+    if s["seed"] <= s["tune_seed"] < s["seed"] + s["seeds"]:
+        raise UserError(f"compare.tune_seed={s['tune_seed']} is one of the evaluation seeds {s['seed']}.."
+                        f"{s['seed'] + s['seeds'] - 1}: tuning and evaluation seeds must differ")
+    return s
+
+
+def variant_name(overrides: list[str]) -> str:
+    """adam; hig; bptt clip=norm: a group's choice by its value, a key by its last part and value."""
+    parts = []
+    for override in overrides:
+        key, _, value = override.lstrip("+").partition("=")
+        parts.append(value if "." not in key else f"{key.rsplit('.', 1)[-1]}={value}")
+    return " ".join(parts)
+
+
+def family_range(optim_cfg) -> tuple[float, float]:
+    target = str(optim_cfg.get("_target_", ""))
+    if target == SPECTRAL:
+        return SEARCH_RANGES["spectral"]
+    if target == "optax.sgd":
+        return SEARCH_RANGES["optax.sgd"]
+    return SEARCH_RANGES["adaptive"]
+
+
+def build_variants(axes, common, settings, config_dirs) -> list[Variant]:
+    from physgrad.configs import check_overrides, compose
+
+    if not axes:
+        raise UserError("nothing to compare: list two or more variants, e.g. optim=adam,gauss_newton,hig")
+    variants = []
+    for combo in itertools.product(*(values for _, values in axes)):
+        overrides = list(combo)
+        check_overrides([*common, *overrides], multirun=False, config_dirs=config_dirs)
+        cfg = compose([*common, *overrides], config_dirs=config_dirs, return_hydra_config=True)
+        space = {}
+        if settings["tune"]:
+            space["learning_rate"] = family_range(cfg.optim)
+            for key, bounds in settings["search"].items():
+                if key in cfg.optim:
+                    space[key] = bounds
+            if "learning_rate" not in cfg.optim:
+                raise UserError(f"optim={cfg.optim.get('name')} has no learning_rate to tune: add one to its YAML, "
+                                "or compare it untuned (compare.tune=false)")
+        variants.append(Variant(variant_name(overrides), overrides, cfg, space))
+    if len(variants) < 2:
+        raise UserError("nothing to compare: list two or more variants, e.g. optim=adam,gauss_newton,hig")
+    names = [v.name for v in variants]
+    if len(set(names)) < len(names):
+        raise UserError(f"two variants have the same name ({', '.join(names)}): give distinct values")
+    return variants
+
+
+# --- jobs as config files ---------------------------------------------------------------------------------
+
+
+def _nested(values: dict) -> dict:
+    tree: dict = {}
+    for dotted, value in values.items():
+        node = tree
+        *parents, leaf = dotted.split(".")
+        for part in parents:
+            node = node.setdefault(part, {})
+        node[leaf] = value
+    return tree
+
+
+def job_yaml(overrides: list[str], groups: set, values: dict) -> str:
+    """One job as a config file appended to the run config (+compare_job=NAME): the group choices among the
+    overrides as `override /group: option`, every other override and `values` as keys (packaged _global_)."""
+    from hydra.core.override_parser.overrides_parser import OverridesParser
+    from omegaconf import OmegaConf
+
+    defaults, keys = [], {}
+    for override in OverridesParser.create().parse_overrides(overrides):
+        key = override.key_or_group
+        if key in groups and override.package is None:
+            defaults.append(f"override /{key}: {override.get_value_element_as_str()}")
+        else:
+            keys[key] = override.value()
+    keys.update(values)
+    text = "# @package _global_\n# written by physgrad compare\n"
+    if defaults:
+        text += "defaults:\n" + "".join(f"  - {line}\n" for line in defaults)
+    return text + OmegaConf.to_yaml(OmegaConf.create(_nested(keys)))
+
+
+def halton_points(space: dict, count: int, seed: int) -> list[dict]:
+    """count scrambled Halton points mapped log-uniformly onto the space (one dimension per key, sorted)."""
+    from scipy.stats import qmc
+
+    keys = sorted(space)
+    unit = qmc.Halton(d=len(keys), scramble=True, seed=seed).random(count)
+    return [{key: float(math.exp(math.log(space[key][0]) + u * (math.log(space[key][1]) - math.log(space[key][0]))))
+             for key, u in zip(keys, row)} for row in unit]
+
+
+# --- running ----------------------------------------------------------------------------------------------
+
+
+def default_folder(overrides: list[str], config_dir: str | None, task: str) -> Path:
+    text = json.dumps([sorted(o for o in overrides if not o.startswith(("compare.dir", "hydra"))),
+                       os.path.abspath(config_dir) if config_dir else None])
+    return Path("outputs") / "compare" / f"{task}-{hashlib.sha1(text.encode()).hexdigest()[:8]}"
+
+
+def launch(folder: Path, phase: str, jobs: dict[str, str], config_dir, hydra_args, say) -> int:
+    """Write the jobs' config files and run them as one multirun into folder/phase (a job that completed or
+    diverged before with the same config is skipped); its output goes to folder/<phase>.log. Returns the
+    multirun's exit status."""
+    configs = folder / "configs" / "compare_job"
+    configs.mkdir(parents=True, exist_ok=True)
+    for name, text in jobs.items():
+        path = configs / f"{name}.yaml"
+        if not path.exists() or path.read_text() != text:
+            path.write_text(text)
+    search = [f"file://{(folder / 'configs').resolve()}"]
+    extra = []
+    for arg in hydra_args:
+        if arg.startswith("hydra.searchpath="):
+            from physgrad.configs import searchpath_entries
+
+            search = searchpath_entries([arg]) + search
+        else:
+            extra.append(arg)
+    command = [sys.executable, "-m", "physgrad", "run", "-m", *(["-cd", config_dir] if config_dir else []),
+               f"hydra.searchpath=[{','.join(search)}]", f"hydra.sweep.dir={folder / phase}", *extra,
+               "+compare_job=" + ",".join(jobs)]
+    say(f"{phase}: {len(jobs)} jobs -> {folder / phase} (log: {folder / (phase + '.log')})")
+    with open(folder / f"{phase}.log", "a") as log:
+        log.write(f"\n$ {' '.join(command)}\n")
+        log.flush()
+        process = subprocess.Popen(command, stdout=log, stderr=subprocess.STDOUT)
+        try:
+            return process.wait()
+        except KeyboardInterrupt:  # the job got the signal too (same process group) and stops its sweep
+            process.wait()
+            raise
+
+
+def job_runs(sweep: Path, name: str) -> list:
+    from physgrad.results import read_run
+
+    folder = sweep / f"+compare_job={name}"
+    runs = []
+    for path in sorted(folder.glob("results.h5")) + sorted(folder.glob("seed=*/results.h5")):
+        try:
+            runs.append(read_run(path))
+        except ValueError:
+            continue
+    return runs
+
+
+def run_curve(run, axis: str, column: str = "loss") -> Curve:
+    """The run's held-out `column` on the axis (iteration or wall_time), ending where its training ended."""
+    x = np.asarray(run.eval.get(axis, np.empty(0)), float)
+    end = run.final("train", axis) + (1 if axis == "iteration" else 0)
+    status = run.attrs.get("status")
+    if status == "completed" and run.attrs.get("stopped_by") in ("iterations", "time_budget"):
+        end = math.inf  # ran to its budget: its last evaluation at or before any x counts
+    return Curve(x, np.asarray(run.eval.get(column, np.full(x.shape, np.nan)), float),
+                 end if math.isfinite(end) or status == "completed" else 0.0, status == "diverged")
+
+
+def tuning(folder: Path, variants: list[Variant], s: dict, common, groups, axis, budget, config_dir, hydra_args,
+           say) -> dict[str, dict]:
+    """Phase 1: trials per variant (equal numbers), scored by validation loss at the budget; returns the best
+    settings per variant (its configured ones where every trial diverged or tuning is off)."""
+    import optuna
+
+    best = {v.name: {} for v in variants}
+    if not s["tune"]:
+        return best
+    optuna.logging.set_verbosity(optuna.logging.WARNING)
+    storage = optuna.storages.JournalStorage(
+        optuna.storages.journal.JournalFileBackend(str(folder / "tuning.journal")))
+    studies, pending = {}, {}
+    for index, variant in enumerate(variants):
+        study = optuna.create_study(study_name=variant.name, storage=storage, direction="minimize",
+                                    load_if_exists=True)
+        studies[variant.name] = study
+        points = halton_points(variant.space, s["trials"], s["tune_seed"] + index)
+        for point in points[len(study.trials):]:
+            study.enqueue_trial(point)
+        from optuna.trial import TrialState
+
+        while any(t.state == TrialState.WAITING for t in study.get_trials(deepcopy=False)):
+            trial = study.ask()
+            for key, (low, high) in sorted(variant.space.items()):
+                trial.suggest_float(key, low, high, log=True)
+        for trial in study.get_trials(deepcopy=False, states=(TrialState.RUNNING,)):
+            pending[(index, trial.number)] = trial
+    jobs = {}
+    for k in range(s["trials"]):  # interleaved: trial k of every variant, then k + 1
+        for index, variant in enumerate(variants):
+            trial = pending.get((index, k))
+            if trial is not None:
+                values = {f"optim.{key}": value for key, value in trial.params.items()}
+                values.update({"seed": s["tune_seed"], "seeds": 1, "trainer.validation": True})
+                values.update(cadence(variant.config, axis, budget))
+                jobs[f"tune_v{index}_t{k:03d}"] = job_yaml([*common, *variant.overrides], groups, values)
+    if jobs:
+        code = launch(folder, "tune", jobs, config_dir, hydra_args, say)
+        if code == 130:
+            raise KeyboardInterrupt
+        for (index, k), trial in pending.items():
+            runs = job_runs(folder / "tune", f"tune_v{index}_t{k:03d}")
+            if not runs or runs[0].attrs.get("status") in ("running", "interrupted", "crashed"):
+                continue  # not run to its end: run again next time
+            run = runs[0]
+            if run.attrs.get("status") == "refused":
+                raise UserError(f"variant {variants[index].name} is refused: {run.attrs.get('reason')}")
+            value = run_curve(run, axis, "validation_loss").at(budget)
+            studies[variants[index].name].tell(k, value if not math.isnan(value) else math.inf)
+    for variant in variants:
+        done = [t for t in studies[variant.name].trials if t.value is not None and math.isfinite(t.value)]
+        if len(studies[variant.name].trials) and any(t.value is None for t in studies[variant.name].trials):
+            raise UserError(f"tuning of {variant.name} did not finish (see {folder / 'tune.log'}): run the same "
+                            "command again to resume")
+        if done:
+            best[variant.name] = dict(min(done, key=lambda t: t.value).params)
+    return best
+
+
+def cadence(cfg, axis: str, budget: float) -> dict:
+    """Evaluations fine enough to read the budget's quarters (time budgets: the runner's budget / 20)."""
+    if axis == "iteration" and cfg.trainer.get("eval_every", 100) * 20 > budget:
+        return {"trainer.eval_every": max(1, int(budget) // 20)}
+    return {}
+
+
+def budget_of(cfg) -> tuple[str, float]:
+    from physgrad.runner import DEFAULT_ITERATIONS
+
+    if cfg.trainer.get("time_budget") is not None:
+        return "wall_time", float(cfg.trainer.time_budget)
+    iterations = cfg.trainer.get("iterations")
+    return "iteration", float(iterations if iterations is not None else DEFAULT_ITERATIONS)
+
+
+def evaluation_jobs(variants, best, s, common, groups, axis, budget) -> dict[str, str]:
+    """The evaluation's jobs in launch order: per variant one job of all seeds trained together when the budget
+    is in iterations (one per seed where the rule's float64 retry does not batch); for time budgets one job per
+    seed, variants interleaved (A, B, C for the first seed, then the next), so that a drift in the machine's
+    load does not line up with a variant."""
+    seeds = list(range(s["seed"], s["seed"] + s["seeds"]))
+    jobs = {}
+
+    def spec(variant, seed, count):
+        values = {f"optim.{k}": v for k, v in best[variant.name].items()}
+        values.update({"seed": seed, "seeds": count, **cadence(variant.config, axis, budget)})
+        return job_yaml([*common, *variant.overrides], groups, values)
+
+    if axis == "iteration":
+        for index, variant in enumerate(variants):
+            if variant.config.optim.get("retry_float64") and len(seeds) > 1:  # does not batch under vmap
+                jobs.update({f"eval_v{index}_s{seed}": spec(variant, seed, 1) for seed in seeds})
+            else:
+                jobs[f"eval_v{index}"] = spec(variant, seeds[0], len(seeds))
+    else:
+        for seed in seeds:
+            for index, variant in enumerate(variants):
+                jobs[f"eval_v{index}_s{seed}"] = spec(variant, seed, 1)
+    return jobs
+
+
+def evaluation(folder, variants, best, s, common, groups, axis, budget, config_dir, hydra_args, say):
+    """Phase 2: every variant at its tuned settings on the paired evaluation seeds; (curves, runs) per variant
+    and seed."""
+    jobs = evaluation_jobs(variants, best, s, common, groups, axis, budget)
+    code = launch(folder, "eval", jobs, config_dir, hydra_args, say)
+    if code == 130:
+        raise KeyboardInterrupt
+    curves, statuses = {}, {}
+    for index, variant in enumerate(variants):
+        curves[variant.name], statuses[variant.name] = {}, {}
+        for name in jobs:
+            if name == f"eval_v{index}" or name.startswith(f"eval_v{index}_s"):
+                for run in job_runs(folder / "eval", name):
+                    if run.attrs.get("status") == "refused":
+                        raise UserError(f"variant {variant.name} is refused: {run.attrs.get('reason')}")
+                    seed = run.attrs.get("seed")
+                    if isinstance(seed, int):
+                        curves[variant.name][seed] = run_curve(run, axis)
+                        statuses[variant.name][seed] = run
+    return curves, statuses
+
+
+# --- the analysis and what it writes ----------------------------------------------------------------------
+
+
+def _g(value) -> str:
+    if value is None or (isinstance(value, float) and math.isnan(value)):
+        return "-"
+    if isinstance(value, float) and math.isinf(value):
+        return "inf" if value > 0 else "-inf"
+    return f"{value:.3g}" if isinstance(value, float) else str(value)
+
+
+def _exp(log_value: float) -> float:
+    """A ratio from a log ratio, with LOG_CAP (one side diverged) as 0 or infinity."""
+    if math.isnan(log_value):
+        return math.nan
+    return math.exp(log_value) if abs(log_value) < 700 else (0.0 if log_value < 0 else math.inf)
+
+
+def _ratio_text(p) -> str:
+    return f"{_g(p.ratio)} [{_g(_exp(p.low))}, {_g(_exp(p.high))}]"
+
+
+def analyse(folder: Path, variants, best, curves, statuses, s, axis, budget, trials_rows):
+    import pandas as pd
+
+    unit = "s" if axis == "wall_time" else "iterations"
+    verdicts = compare_variants(curves, budget, margin=s["margin"], alpha=s["alpha"])
+    target_variant, target = target_loss(curves, budget)
+    run_rows = []
+    for variant in variants:
+        for seed, c in sorted(curves[variant.name].items()):
+            run = statuses[variant.name][seed]
+            row = {"variant": variant.name, "seed": seed, "status": run.attrs.get("status"),
+                   "stopped_by": run.attrs.get("stopped_by"), "iterations": run.final("train", "iteration") + 1,
+                   "train_seconds": run.final("train", "wall_time"), "path": str(run.path)}
+            for fraction in FRACTIONS:
+                row[f"test_loss_at_{fraction:g}"] = c.at(budget * fraction)
+            row["diverged_by_budget"] = math.isinf(row["test_loss_at_1"])
+            row[f"to_target_{unit}"] = c.reaches(target, budget) if math.isfinite(target) else math.nan
+            run_rows.append(row)
+    runs = pd.DataFrame(run_rows)
+    comparison_rows = []
+    for v in verdicts:
+        for fraction in FRACTIONS:
+            p = v.at[fraction]
+            comparison_rows.append({
+                "a": v.a, "b": v.b, "fraction": fraction, "budget": budget * fraction, "pairs": p.pairs,
+                "a_lower_in": p.wins_a, "missing": p.missing, "median_ratio": p.ratio,
+                "ci_low": _exp(p.low), "ci_high": _exp(p.high),
+                "p_difference_holm": v.p_difference[fraction], "p_equivalent_holm": v.p_equivalent[fraction],
+                "diverged_a": p.diverged_a, "diverged_b": p.diverged_b,
+                "p_divergence_fisher": divergence_test(p.diverged_a, p.pairs + p.missing, p.diverged_b,
+                                                       p.pairs + p.missing),
+                "verdict": v.verdicts[fraction][0], "why": v.verdicts[fraction][1]})
+    comparisons = pd.DataFrame(comparison_rows)
+    trials = pd.DataFrame(trials_rows)
+    trials.to_csv(folder / "trials.csv", index=False)
+    runs.to_csv(folder / "runs.csv", index=False)
+    comparisons.to_csv(folder / "comparisons.csv", index=False)
+
+    budget_text = f"{budget:g} s of training" if axis == "wall_time" else f"{budget:g} iterations"
+    lines = [f"# Which gradient: {variants[0].config.task.get('name')}, {', '.join(v.name for v in variants)}", "",
+             f"Budget: {budget_text} per run. Tuning: {s['trials'] if s['tune'] else 0} trials per variant on seed "
+             f"{s['tune_seed']}, scored by the validation loss at the budget. Evaluation: seeds {s['seed']}.."
+             f"{s['seed'] + s['seeds'] - 1}, paired (same data and initial network), verdicts on the test loss. "
+             f"Rule: docs/protocol.md (margin {s['margin']:g}, alpha {s['alpha']:g}, Holm over "
+             f"{len(verdicts)} comparisons).", "",
+             "## Verdicts", "",
+             "| A vs B | verdict at the budget | median A/B [95% interval] | A lower in | verdict at 1/4, 1/2 | "
+             "stable | trend 1/2 -> 1 | diverged A, B |", "|---|---|---|---|---|---|---|---|"]
+    for v in verdicts:
+        p = v.at[1.0]
+        lines.append(f"| {v.a} vs {v.b} | **{v.verdict}** ({v.verdicts[1.0][1]}) | {_ratio_text(p)} | "
+                     f"{p.wins_a} of {p.pairs}{f' ({p.missing} missing)' if p.missing else ''} | "
+                     f"{v.verdicts[0.25][0]}, {v.verdicts[0.5][0]} | {'yes' if v.stable else 'no'} | {v.trend} | "
+                     f"{p.diverged_a}, {p.diverged_b} |")
+    lines += ["", "## Variants", "",
+              f"| variant | tuned | preset | test loss at the budget: median [min, max] | diverged | "
+              f"to target ({unit}): median, reached |", "|---|---|---|---|---|---|"]
+    for variant in variants:
+        sub = runs[runs.variant == variant.name] if len(runs) else runs
+        losses = sub["test_loss_at_1"].to_numpy(float) if len(sub) else np.empty(0)
+        present = losses[~np.isnan(losses)]
+        reach = sub[f"to_target_{unit}"].to_numpy(float) if len(sub) else np.empty(0)
+        tuned = ", ".join(f"{k}={_g(val)}" for k, val in best[variant.name].items()) or "as configured"
+        preset = ", ".join(f"{k}={_g(float(val)) if isinstance(val, (int, float)) else val}"
+                           for k, val in variant.preset.items()) or "-"
+        spread = (f"{_g(float(np.median(present)))} [{_g(float(present.min()))}, {_g(float(present.max()))}]"
+                  if present.size else "-")
+        lines.append(f"| {variant.name} | {tuned} | {preset} | {spread} | {int(np.isinf(present).sum())} of "
+                     f"{present.size} | {_g(float(np.median(reach))) if reach.size else '-'}, "
+                     f"{int(np.isfinite(reach).sum())} of {reach.size} |")
+    lines += ["", f"Target: {_g(target)}, the median test loss of {target_variant or '-'} (the lowest) at the "
+              "budget; a run that never reaches it counts as infinite. Losses at 1/4 and 1/2 of the budget and "
+              "per seed: runs.csv; every comparison at every fraction with its p-values: comparisons.csv; "
+              "trials: trials.csv and sensitivity.png; curves: report/."]
+    text = "\n".join(lines) + "\n"
+    (folder / "compare.md").write_text(text)
+    return runs, comparisons, trials, verdicts, text
+
+
+def plot_sensitivity(path: Path, variants, trials_rows, best) -> None:
+    """Validation loss at the budget against the learning rate, one panel per variant: every trial, the chosen
+    one starred, the preset as a dashed line, diverged trials as crosses at the top."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(1, len(variants), figsize=(3.6 * len(variants), 3.2), squeeze=False)
+    for ax, variant in zip(axes[0], variants):
+        rows = [r for r in trials_rows if r["variant"] == variant.name]
+        lr = np.array([r.get("learning_rate", np.nan) for r in rows], float)
+        loss = np.array([r["validation_loss"] for r in rows], float)
+        ok = np.isfinite(loss)
+        ax.scatter(lr[ok], loss[ok], s=18, color="C0", label="trial")
+        if (~ok).any():
+            top = loss[ok].max() * 2 if ok.any() else 1.0
+            ax.scatter(lr[~ok], np.full((~ok).sum(), top), marker="x", color="C3", label="diverged")
+        if "learning_rate" in best[variant.name]:
+            chosen = [r for r in rows if r.get("learning_rate") == best[variant.name]["learning_rate"]]
+            ax.scatter([best[variant.name]["learning_rate"]], [chosen[0]["validation_loss"]], marker="*", s=140,
+                       color="C1", label="chosen", zorder=3)
+        preset = variant.preset.get("learning_rate")
+        if isinstance(preset, (int, float)):
+            ax.axvline(preset, ls="--", color="0.4", label="preset")
+        ax.set_xscale("log")
+        if ok.any() and loss[ok].min() > 0:
+            ax.set_yscale("log")
+        ax.set_title(variant.name)
+        ax.set_xlabel("learning rate")
+        ax.grid(alpha=0.3)
+    axes[0][0].set_ylabel("validation loss at the budget")
+    axes[0][-1].legend(fontsize=7, loc="best")
+    fig.tight_layout()
+    for suffix in (".png", ".pdf"):
+        fig.savefig(path.with_suffix(suffix), dpi=130)
+    plt.close(fig)
+
+
+def trial_rows(folder: Path, variants) -> list[dict]:
+    import optuna
+
+    path = folder / "tuning.journal"
+    if not path.exists():
+        return []
+    storage = optuna.storages.JournalStorage(optuna.storages.journal.JournalFileBackend(str(path)))
+    rows = []
+    for variant in variants:
+        study = optuna.load_study(study_name=variant.name, storage=storage)
+        for t in study.trials:
+            rows.append({"variant": variant.name, "trial": t.number, **t.params,
+                         "validation_loss": t.value if t.value is not None else math.nan, "state": t.state.name})
+    return rows
+
+
+def run_study(overrides: list[str], config_dir: str | None = None, say=print) -> Study:
+    """The whole study (module docstring); resumes from its folder."""
+    from physgrad.results import FolderOwned, own_folder
+
+    settings_given, axes, common, hydra_args = split_overrides(overrides)
+    s = study_settings(settings_given)
+    config_dirs = [config_dir] if config_dir else []
+    variants = build_variants(axes, common, s, config_dirs)
+    first = variants[0].config
+    comparisons = len(variants) * (len(variants) - 1) // 2
+    needed = seeds_needed(s["alpha"], comparisons)
+    if s["seeds"] < needed:
+        say(f"warning: {s['seeds']} seeds cannot decide {comparisons} comparisons at alpha {s['alpha']:g}: every "
+            f"verdict will be undecided (compare.seeds={needed} or more)")
+    groups = set(first.hydra.runtime.choices.keys())
+    axis, budget = budget_of(first)
+    folder = Path(s["dir"]) if s["dir"] else default_folder(overrides, config_dir, str(first.task.get("name")))
+    folder.mkdir(parents=True, exist_ok=True)
+    record = {"overrides": [o for o in overrides if not o.startswith(("compare.dir", "hydra"))],
+              "config_dir": os.path.abspath(config_dir) if config_dir else None}
+    stored = folder / "study.json"
+    if stored.exists():
+        try:
+            before = json.loads(stored.read_text())
+        except (OSError, ValueError):
+            before = None
+        if before != record:
+            raise UserError(f"{folder} holds another study ({' '.join((before or {}).get('overrides', ['?']))}): "
+                            "give another compare.dir")
+    else:
+        stored.write_text(json.dumps(record, indent=1) + "\n")
+    try:
+        with own_folder(folder, "study"):
+            say(f"study {folder}: {len(variants)} variants ({', '.join(v.name for v in variants)}), budget "
+                f"{budget:g} {'s' if axis == 'wall_time' else 'iterations'}; the same command resumes it")
+            best = tuning(folder, variants, s, common, groups, axis, budget, config_dir, hydra_args, say)
+            rows = trial_rows(folder, variants)
+            if rows:
+                plot_sensitivity(folder / "sensitivity", variants, rows, best)
+            curves, statuses = evaluation(folder, variants, best, s, common, groups, axis, budget, config_dir,
+                                          hydra_args, say)
+            runs, comparisons, trials, verdicts, text = analyse(folder, variants, best, curves, statuses, s, axis,
+                                                                budget, rows)
+            try:
+                from physgrad.report import write_report
+
+                with warnings.catch_warnings():
+                    warnings.simplefilter("ignore")
+                    write_report([folder / "eval"], out_dir=folder / "report")
+            except (UserError, OSError, ValueError) as error:
+                say(f"report of the curves not written: {error}")
+    except FolderOwned as error:
+        raise UserError(str(error)) from None
+    return Study(folder, trials, runs, comparisons, verdicts, text)
+
+
+def main(args: list[str]) -> int:
+    if any(a in ("-h", "--help") for a in args):
+        print(__doc__.strip())
+        print("\nSettings (compare.KEY=VALUE):")
+        for key, (default, meaning) in SETTINGS.items():
+            print(f"  compare.{key:<10} {meaning} (default {default})")
+        return 0
+    overrides, config_dir = parse_arguments(args)
+    if os.getcwd() not in sys.path:
+        sys.path.append(os.getcwd())
+    try:
+        study = run_study(overrides, config_dir)
+    except KeyboardInterrupt:
+        print("physgrad compare: interrupted; run the same command again to resume", file=sys.stderr)
+        return 130
+    print(study.text)
+    print(f"wrote {study.folder / 'compare.md'}, trials.csv, runs.csv, comparisons.csv, sensitivity.png, report/")
+    return 0

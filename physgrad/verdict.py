@@ -1,0 +1,293 @@
+"""The verdict rule: which of two variants reaches the lower held-out loss, how sure that is, and whether it holds
+as the budget grows. One implementation, used by `physgrad compare` and by the papers' claims
+(experiments/claims.py); docs/protocol.md gives the reasons and sources.
+
+For variants A and B trained on the same seeds (paired: same data and initial network), at a budget x:
+- each run's loss at x is its last evaluation at or before x (iterations, or training seconds): the step that
+  crosses a time budget counts against its variant, and an evaluation after it is not read at the budget;
+- a run has diverged by x when it was stopped as diverged before x, when its loss at x is not finite, or when
+  that loss exceeds DIVERGENCE_FACTOR times its first evaluation (a blow-up without NaN); it counts as an
+  infinite loss. A run that ended before x without diverging (interrupted) has no loss at x: its pair is left
+  out and counted;
+- per seed r = log(loss_A / loss_B); both diverged is a tie (r = 0), one diverged is +-LOG_CAP (beyond any
+  finite ratio: it only enters through ranks and the median);
+- the median of r with a percentile bootstrap 95% interval (scipy.stats.bootstrap, 10,000 resamples, fixed
+  seed); one-sided Wilcoxon signed-rank tests for "A lower" and "B lower" (zeros split), whose smaller p, doubled,
+  is the comparison's p of a difference; two one-sided Wilcoxon tests of |r| < log(MARGIN) for equivalence;
+  both p-values Holm-corrected over the comparisons of one study;
+- verdict: A better when the interval lies below -log(MARGIN) and the corrected p of a difference is below
+  ALPHA; B better when it lies above log(MARGIN) and p < ALPHA; equivalent (within 10%) when the corrected
+  equivalence p is below ALPHA; undecided otherwise (also with fewer than MIN_PAIRS pairs);
+- decided at x = X/4, X/2 and X (X the budget), and called stable where the verdicts at X/2 and X agree; the
+  median ratio's movement from X/2 to X is reported in both directions (the gap widens or narrows).
+"""
+
+from __future__ import annotations
+
+import math
+import warnings
+from dataclasses import dataclass, field
+
+import numpy as np
+
+MARGIN = 1.1  # "better" means at least 10% lower; "equivalent" means within 10%
+ALPHA = 0.05
+CONFIDENCE = 0.95
+RESAMPLES = 10_000
+MIN_PAIRS = 5  # below this no test can reach ALPHA after correction; the verdict stays undecided
+LOG_CAP = 1e3  # |log ratio| standing for "one side diverged" (a finite log ratio of float64 losses is < 1500)
+DIVERGENCE_FACTOR = 1e4  # a loss above this many times its first value counts as diverged (trainer.divergence_factor)
+FRACTIONS = (0.25, 0.5, 1.0)
+A_BETTER, B_BETTER, EQUIVALENT, UNDECIDED = "A better", "B better", "equivalent", "undecided"
+
+
+@dataclass(frozen=True)
+class Curve:
+    """One run's held-out loss against iterations or training seconds.
+
+    x, loss: its evaluations; end: where its training ended (iterations done, or training seconds; a run still
+    going at the budget ends at or after it); diverged: stopped as diverged (at `end`)."""
+
+    x: np.ndarray
+    loss: np.ndarray
+    end: float
+    diverged: bool = False
+    divergence_factor: float | None = DIVERGENCE_FACTOR
+
+    def at(self, x: float) -> float:
+        """The loss at budget x: the last evaluation at or before x; inf if the run diverged by x (stopped as
+        diverged, a non-finite loss, or a loss past divergence_factor times its first); NaN if it ended before
+        x without diverging, or has no evaluation by x."""
+        x_tol = x * (1 + 1e-9)
+        if self.diverged and self.end <= x_tol:
+            return math.inf
+        before = np.flatnonzero(np.asarray(self.x) <= x_tol)
+        if not before.size:
+            return math.nan
+        losses = np.asarray(self.loss, float)[: before[-1] + 1]
+        if not np.isfinite(losses).all():
+            return math.inf  # a NaN or inf held-out loss is a divergence, whatever the run's status said
+        if self.divergence_factor is not None and losses[0] > 0 and (losses > self.divergence_factor * losses[0]).any():
+            return math.inf
+        if self.end < x * (1 - 1e-9):
+            return math.nan  # ended early (interrupted, failed): no loss at x
+        return float(losses[-1])
+
+    def reaches(self, target: float, x: float) -> float:
+        """The first evaluation's x at which the loss is at or below target, by budget x; inf if never (or the
+        run diverged first)."""
+        xs, losses = np.asarray(self.x, float), np.asarray(self.loss, float)
+        for i in np.flatnonzero(xs <= x * (1 + 1e-9)):
+            if not math.isfinite(losses[i]):
+                return math.inf
+            if losses[i] <= target:
+                return float(xs[i])
+        return math.inf
+
+
+def log_ratio(a: float, b: float) -> float:
+    """log(a / b) for two losses at a budget (inf: diverged; NaN: missing): NaN if either is missing; 0 if both
+    diverged or both are 0; +-LOG_CAP if one side diverged or is 0."""
+    if math.isnan(a) or math.isnan(b):
+        return math.nan
+    if math.isinf(a) and math.isinf(b) or (a == 0 and b == 0):
+        return 0.0
+    if math.isinf(a) or b == 0:
+        return LOG_CAP
+    if math.isinf(b) or a == 0:
+        return -LOG_CAP
+    return float(np.clip(math.log(a / b), -LOG_CAP, LOG_CAP))
+
+
+def _wilcoxon(r: np.ndarray, alternative: str) -> float:
+    from scipy.stats import wilcoxon
+
+    if not r.size or not np.any(r):
+        return 1.0
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        return float(wilcoxon(r, zero_method="zsplit", alternative=alternative).pvalue)
+
+
+def median_interval(r: np.ndarray, confidence: float = CONFIDENCE, seed: int = 0) -> tuple[float, float]:
+    """Percentile bootstrap interval of the median of r (scipy.stats.bootstrap, RESAMPLES resamples)."""
+    from scipy.stats import bootstrap
+
+    if r.size < 2 or np.all(r == r[0]):
+        return float(np.median(r)) if r.size else math.nan, float(np.median(r)) if r.size else math.nan
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        result = bootstrap((r,), np.median, confidence_level=confidence, n_resamples=RESAMPLES,
+                           method="percentile", rng=np.random.default_rng(seed))
+    return float(result.confidence_interval.low), float(result.confidence_interval.high)
+
+
+@dataclass(frozen=True)
+class Paired:
+    """The paired comparison of A and B at one budget: per-seed log ratios (NaN: pair left out), their median
+    with its interval, and the raw one-sided p-values (before Holm's correction)."""
+
+    log_ratios: tuple[float, ...]
+    median: float
+    low: float
+    high: float
+    p_a: float  # one-sided: A lower
+    p_b: float  # one-sided: B lower
+    p_equivalent: float  # two one-sided tests: |log ratio| < log(margin)
+    diverged_a: int
+    diverged_b: int
+    missing: int  # pairs left out (a run without a loss at this budget)
+
+    @property
+    def pairs(self) -> int:
+        return sum(not math.isnan(r) for r in self.log_ratios)
+
+    @property
+    def wins_a(self) -> int:
+        return sum(r < 0 for r in self.log_ratios if not math.isnan(r))
+
+    @property
+    def p_difference(self) -> float:
+        return min(1.0, 2 * min(self.p_a, self.p_b))
+
+    @property
+    def ratio(self) -> float:
+        return math.exp(self.median) if abs(self.median) < LOG_CAP else (math.inf if self.median > 0 else 0.0)
+
+
+def paired(a: list[float], b: list[float], margin: float = MARGIN, seed: int = 0) -> Paired:
+    """Paired statistics of the losses a[i], b[i] of seed i at one budget (inf: diverged, NaN: missing)."""
+    a, b = np.asarray(a, float), np.asarray(b, float)
+    r_all = np.array([log_ratio(x, y) for x, y in zip(a, b)])
+    r = r_all[~np.isnan(r_all)]
+    delta = math.log(margin)
+    low, high = median_interval(r, seed=seed)
+    return Paired(
+        log_ratios=tuple(float(v) for v in r_all),
+        median=float(np.median(r)) if r.size else math.nan, low=low, high=high,
+        p_a=_wilcoxon(r, "less"), p_b=_wilcoxon(r, "greater"),
+        p_equivalent=max(_wilcoxon(r + delta, "greater"), _wilcoxon(r - delta, "less")) if r.size else 1.0,
+        diverged_a=int(np.sum(np.isinf(a))), diverged_b=int(np.sum(np.isinf(b))),
+        missing=int(np.sum(np.isnan(r_all))))
+
+
+def holm(pvalues: list[float]) -> list[float]:
+    """Holm's step-down adjustment: the i-th smallest p times (m - i), made monotone, capped at 1."""
+    order = np.argsort(pvalues, kind="stable")
+    m, adjusted, running = len(pvalues), [1.0] * len(pvalues), 0.0
+    for rank, index in enumerate(order):
+        running = max(running, min(1.0, (m - rank) * float(pvalues[index])))
+        adjusted[index] = running
+    return adjusted
+
+
+def seeds_needed(alpha: float = ALPHA, comparisons: int = 1) -> int:
+    """The fewest paired seeds with which a comparison can be decided at all: the smallest two-sided p of the
+    signed-rank test, 2 / 2^n (every seed on one side), must be below alpha / comparisons (Holm's strictest
+    step). 6 for one comparison at 0.05, 7 for three, 8 for six."""
+    n = 1
+    while 2.0 ** (1 - n) >= alpha / comparisons:
+        n += 1
+    return max(n, MIN_PAIRS)
+
+
+def decide(p: Paired, p_difference: float, p_equivalent: float, margin: float = MARGIN,
+           alpha: float = ALPHA, comparisons: int = 1) -> tuple[str, str]:
+    """The verdict and why, from the paired statistics and the Holm-corrected p-values."""
+    delta = math.log(margin)
+    needed = seeds_needed(alpha, comparisons)
+    if p.pairs < needed:
+        return UNDECIDED, (f"{p.pairs} paired seeds cannot reach p < {alpha:g} over {comparisons} comparisons "
+                           f"(at least {needed} needed)")
+    if p.high < -delta and p_difference < alpha:
+        return A_BETTER, f"interval below 1/{margin:g}, p = {p_difference:.2g}"
+    if p.low > delta and p_difference < alpha:
+        return B_BETTER, f"interval above {margin:g}, p = {p_difference:.2g}"
+    if p_equivalent < alpha:
+        return EQUIVALENT, f"within {100 * (margin - 1):.0f}%, p = {p_equivalent:.2g}"
+    if p_difference < alpha:
+        return UNDECIDED, f"different (p = {p_difference:.2g}), but not by {100 * (margin - 1):.0f}% with confidence"
+    return UNDECIDED, f"p = {p_difference:.2g} (difference), {p_equivalent:.2g} (equivalence)"
+
+
+@dataclass
+class PairVerdict:
+    """A against B at X/4, X/2 and X: statistics, corrected p-values and verdicts per budget fraction."""
+
+    a: str
+    b: str
+    budget: float
+    at: dict = field(default_factory=dict)  # fraction -> Paired
+    p_difference: dict = field(default_factory=dict)  # fraction -> Holm-corrected
+    p_equivalent: dict = field(default_factory=dict)
+    verdicts: dict = field(default_factory=dict)  # fraction -> (verdict, why)
+
+    @property
+    def verdict(self) -> str:
+        return self.verdicts[1.0][0]
+
+    @property
+    def stable(self) -> bool:
+        return self.verdicts[0.5][0] == self.verdicts[1.0][0]
+
+    @property
+    def trend(self) -> str:
+        """How the median ratio moved from X/2 to X, in either direction."""
+        half, full = self.at[0.5].median, self.at[1.0].median
+        if not (math.isfinite(half) and math.isfinite(full)):
+            return "-"
+        change = abs(full) - abs(half)
+        if abs(change) < math.log(MARGIN) / 2:
+            return "steady"
+        return "gap widening" if change > 0 else "gap narrowing"
+
+
+def losses_at(curves: dict[int, Curve], seeds: list[int], x: float) -> list[float]:
+    return [curves[s].at(x) if s in curves else math.nan for s in seeds]
+
+
+def compare_variants(curves: dict[str, dict[int, Curve]], budget: float, pairs: list[tuple[str, str]] | None = None,
+                     margin: float = MARGIN, alpha: float = ALPHA, fractions=FRACTIONS) -> list[PairVerdict]:
+    """Every pair (A, B) of variants (default: all pairs, in the given order) decided at each fraction of the
+    budget; Holm's correction runs over the pairs at each fraction. curves: variant -> seed -> Curve."""
+    names = list(curves)
+    pairs = pairs if pairs is not None else [(names[i], names[j]) for i in range(len(names))
+                                             for j in range(i + 1, len(names))]
+    results = [PairVerdict(a, b, budget) for a, b in pairs]
+    for fraction in fractions:
+        x = budget * fraction
+        for result in results:
+            seeds = sorted(set(curves[result.a]) | set(curves[result.b]))
+            result.at[fraction] = paired(losses_at(curves[result.a], seeds, x),
+                                         losses_at(curves[result.b], seeds, x), margin)
+        diff = holm([r.at[fraction].p_difference for r in results])
+        equiv = holm([r.at[fraction].p_equivalent for r in results])
+        for result, pd, pe in zip(results, diff, equiv):
+            result.p_difference[fraction], result.p_equivalent[fraction] = pd, pe
+            result.verdicts[fraction] = decide(result.at[fraction], pd, pe, margin, alpha, len(results))
+    return results
+
+
+def divergence_test(diverged_a: int, n_a: int, diverged_b: int, n_b: int) -> float:
+    """Two-sided Fisher exact test of the divergence counts k of n (scipy.stats.fisher_exact)."""
+    from scipy.stats import fisher_exact
+
+    if n_a == 0 or n_b == 0:
+        return math.nan
+    return float(fisher_exact([[diverged_a, n_a - diverged_a], [diverged_b, n_b - diverged_b]]).pvalue)
+
+
+def target_loss(curves: dict[str, dict[int, Curve]], budget: float) -> tuple[str, float]:
+    """The target of time-to-target: the median loss at the budget of the variant with the lowest median (a
+    diverged run counts as infinite, a missing one is left out); (variant, target)."""
+    medians = {}
+    for name, by_seed in curves.items():
+        values = [c.at(budget) for c in by_seed.values()]
+        values = [v for v in values if not math.isnan(v)]
+        if values:
+            medians[name] = float(np.median(values))
+    finite = {k: v for k, v in medians.items() if math.isfinite(v)}
+    if not finite:
+        return "", math.nan
+    best = min(finite, key=finite.get)
+    return best, finite[best]

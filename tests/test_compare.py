@@ -1,0 +1,163 @@
+"""`physgrad compare`: the command line split into variants, jobs as config files that compose to the intended
+run, equal tuning budgets on disjoint seeds, validation data, and a study on a user's own scene end to end."""
+
+import csv
+import math
+import shutil
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+import physgrad
+from physgrad import UserError
+from physgrad.compare import (SEARCH_RANGES, build_variants, evaluation_jobs, halton_points, job_yaml,
+                              split_overrides, study_settings)
+from physgrad.configs import compose
+from tests.test_cli import physgrad as console
+
+EXAMPLE = Path(__file__).resolve().parent.parent / "examples" / "custom_scene"
+
+
+def test_comma_lists_are_variants_and_everything_else_is_common():
+    settings, axes, common, hydra_args = split_overrides(
+        ["task=oscillator", "optim=adam,hig", "optim.clip=none,norm", "trainer.time_budget=30", "compare.trials=4",
+         "compare.search.tau=[1e-8,1e-4]", "hydra/launcher=joblib"])
+    assert settings == {"trials": 4, "search": {"tau": (1e-8, 1e-4)}}
+    assert axes == [("optim", ["optim=adam", "optim=hig"]), ("optim.clip", ["optim.clip=none", "optim.clip=norm"])]
+    assert common == ["task=oscillator", "trainer.time_budget=30"] and hydra_args == ["hydra/launcher=joblib"]
+    variants = build_variants(axes, common, study_settings(settings), [])
+    assert [v.name for v in variants] == ["adam clip=none", "adam clip=norm", "hig clip=none", "hig clip=norm"]
+    assert variants[0].space == {"learning_rate": SEARCH_RANGES["adaptive"]}
+    assert variants[2].space == {"learning_rate": SEARCH_RANGES["spectral"], "tau": (1e-8, 1e-4)}
+    assert variants[2].preset == {"learning_rate": 1.0, "tau": 1e-6}  # the oscillator's HIG preset
+
+
+@pytest.mark.parametrize("args, fragment", [
+    (["task=toy", "optim=adam"], "list two or more variants"),
+    (["task=toy", "optim=adam,hig", "compare.trails=3"], "unknown setting compare.trails"),
+    (["task=toy", "optim=adam,hig", "compare.tune_seed=3"], "must differ"),
+    (["task=toy", "optim.learning_rate=interval(0.1,1)"], "list the variants"),
+    (["task=toy", "optim=adam,hig", "compare.search.tau=[1,0.1]"], "0 < low < high"),
+    (["task=toy", "optim=adam,hgi"], "did you mean hig?"),
+    (["task=toy", "optim=adam,hig", "compare.seeds=0"], "compare.seeds"),
+])
+def test_bad_studies_are_one_line_errors(args, fragment):
+    with pytest.raises(UserError, match=fragment.replace("?", r"\?").replace("[", r"\[")):
+        settings, axes, common, _ = split_overrides(args)
+        build_variants(axes, common, study_settings(settings), [])
+
+
+def test_a_job_file_composes_to_the_variant_with_its_trial_settings(tmp_path):
+    """The trial's learning rate wins over the scene's preset (tuning/oscillator_hig.yaml: lr 1), which keeps its
+    batch size; common and variant overrides land as given."""
+    folder = tmp_path / "compare_job"
+    folder.mkdir()
+    groups = {"task", "optim", "tuning"}
+    text = job_yaml(["task=oscillator", "trainer.iterations=50", "optim=hig", "optim.clip=norm"], groups,
+                    {"optim.learning_rate": 0.3, "seed": 1_000_000, "trainer.validation": True})
+    (folder / "tune_v0_t000.yaml").write_text(text)
+    cfg = compose(["+compare_job=tune_v0_t000"], config_dirs=[str(tmp_path)])
+    assert (cfg.task.name, cfg.optim.name, cfg.optim.clip) == ("oscillator", "hig", "norm")
+    assert cfg.optim.learning_rate == 0.3 and cfg.task.batch_size == 128 and cfg.optim.tau == 1e-6
+    assert (cfg.seed, cfg.trainer.iterations, cfg.trainer.validation) == (1_000_000, 50, True)
+
+
+def test_halton_points_cover_the_log_range_and_repeat():
+    points = halton_points({"learning_rate": (1e-5, 1e-1), "tau": (1e-8, 1e-4)}, 16, 7)
+    assert points == halton_points({"learning_rate": (1e-5, 1e-1), "tau": (1e-8, 1e-4)}, 16, 7)
+    logs = np.log10([p["learning_rate"] for p in points])
+    assert logs.min() >= -5 and logs.max() <= -1 and len(set(np.floor(logs))) == 4  # every decade is tried
+    assert all(1e-8 <= p["tau"] <= 1e-4 for p in points)
+
+
+def test_equal_time_evaluations_interleave_the_variants_and_equal_iterations_train_seeds_together():
+    settings, axes, common, _ = split_overrides(["task=toy", "optim=adam,gd", "trainer.time_budget=5"])
+    s = study_settings({**settings, "seeds": 3})
+    variants = build_variants(axes, common, s, [])
+    best = {v.name: {"learning_rate": 0.01} for v in variants}
+    timed = evaluation_jobs(variants, best, s, common, {"task", "optim"}, "wall_time", 5.0)
+    assert list(timed) == ["eval_v0_s0", "eval_v1_s0", "eval_v0_s1", "eval_v1_s1", "eval_v0_s2", "eval_v1_s2"]
+    counted = evaluation_jobs(variants, best, s, common, {"task", "optim"}, "iteration", 300.0)
+    assert list(counted) == ["eval_v0", "eval_v1"] and "seeds: 3" in counted["eval_v0"]
+    assert "learning_rate: 0.01" in counted["eval_v1"] and "eval_every: 15" in counted["eval_v1"]
+
+
+def test_validation_data_are_held_out_and_evaluated_beside_the_test_set(tmp_path):
+    run = physgrad.run("task=toy", "optim=adam", "trainer.iterations=20", "trainer.eval_every=10",
+                       "trainer.validation=true", out_dir=tmp_path)
+    loss, validation = run.eval["loss"], run.eval["validation_loss"]
+    assert loss.shape == validation.shape == (3,) and not np.allclose(loss, validation)
+    assert np.allclose(loss, validation, rtol=0.3)  # the same distribution: close, not equal
+    plain = physgrad.run("task=toy", "optim=adam", "trainer.iterations=20", out_dir=tmp_path / "plain")
+    assert "validation_loss" not in plain.eval  # nobody pays for what they did not ask
+
+
+def test_a_scene_whose_data_ignore_the_key_has_no_default_validation_set():
+    import jax
+
+    from physgrad.experiment import validation_set
+    from physgrad.tasks import Scene
+
+    def build(**_):
+        return Scene(init_params=lambda k: {"w": jax.numpy.zeros(2)}, sample_loss=lambda y, s: (y ** 2).sum(),
+                     test_set={"x": jax.numpy.ones((4, 2))}, train_set={"x": jax.numpy.ones((4, 2))},
+                     sample_output=lambda p, s: p["w"] * s["x"])
+
+    cfg = compose(["task=toy"])
+    with pytest.MonkeyPatch.context() as patch:
+        patch.setattr("physgrad.experiment.build_scene", lambda *a, **k: build())
+        with pytest.raises(UserError, match="give its Scene a validation_set"):
+            validation_set(cfg, build(), jax.random.PRNGKey(0))
+
+
+def test_a_loss_that_blows_up_without_nan_ends_the_run_diverged(tmp_path):
+    """A training loss past trainer.divergence_factor times its first value ends the run diverged, with why."""
+    run = physgrad.run("task=toy", "optim=gd", "optim.learning_rate=3", "trainer.iterations=200",
+                       "trainer.divergence_factor=10", out_dir=tmp_path)
+    assert run.attrs["status"] == "diverged" and "blow-up without NaN" in run.attrs["reason"]
+    assert np.isfinite(run.train["loss"]).all() and run.train["loss"][-1] > 10 * run.train["loss"][0]
+
+
+@pytest.mark.slow
+def test_a_study_on_a_users_own_scene_end_to_end_and_resumed(tmp_path):
+    """examples/custom_scene (the pendulum) with Adam against HIG through the console script: tuning trials on the
+    tuning seed scored by validation loss, 7 paired seeds, verdict tables and CSVs; run again it trains nothing
+    new; with one evaluation file lost it runs that job alone."""
+    study = tmp_path / "study"
+    args = ["compare", "-cd", "conf", "task=pendulum", "optim=adam,hig", "trainer.iterations=24",
+            "task.train_size=64", "task.test_size=32", "compare.trials=3", "compare.seeds=7", f"compare.dir={study}"]
+    first = console(*args, cwd=EXAMPLE)
+    assert "| adam vs hig |" in first.stdout and (study / "compare.md").read_text() in first.stdout
+    trials = list(csv.DictReader(open(study / "trials.csv")))
+    assert [t["variant"] for t in trials] == ["adam"] * 3 + ["hig"] * 3
+    assert all(t["state"] == "COMPLETE" and float(t["validation_loss"]) > 0 for t in trials)
+    tuned = [physgrad.read_run(p) for p in sorted((study / "tune").rglob("results.h5"))]
+    assert len(tuned) == 6 and {r.attrs["seed"] for r in tuned} == {1_000_000}
+    assert all("validation_loss" in r.eval for r in tuned)
+    runs = list(csv.DictReader(open(study / "runs.csv")))
+    assert sorted((r["variant"], int(r["seed"])) for r in runs) == [(v, s) for v in ("adam", "hig") for s in range(7)]
+    rates = {r["variant"]: physgrad.read_run(r["path"]).attrs["config"] for r in runs}
+    best = {v: min((t for t in trials if t["variant"] == v), key=lambda t: float(t["validation_loss"]))
+            for v in ("adam", "hig")}
+    for variant in ("adam", "hig"):
+        assert f"learning_rate: {float(best[variant]['learning_rate'])!r}" in rates[variant]
+    comparisons = list(csv.DictReader(open(study / "comparisons.csv")))
+    assert [(c["a"], c["b"], float(c["fraction"])) for c in comparisons] == [("adam", "hig", f)
+                                                                             for f in (0.25, 0.5, 1.0)]
+    assert all(c["verdict"] in ("A better", "B better", "equivalent", "undecided") for c in comparisons)
+    assert int(comparisons[-1]["pairs"]) == 7 and math.isfinite(float(comparisons[-1]["median_ratio"]))
+    assert (study / "sensitivity.png").stat().st_size > 0 and (study / "report" / "loss_vs_iteration.png").exists()
+
+    stamps = {p: p.stat().st_mtime_ns for p in study.rglob("results.h5")}
+    again = console(*args, cwd=EXAMPLE)
+    assert {p: p.stat().st_mtime_ns for p in study.rglob("results.h5")} == stamps  # nothing trained again
+    assert again.stdout.split("## Verdicts")[1] == first.stdout.split("## Verdicts")[1]
+
+    lost = next(iter(sorted((study / "eval").glob("+compare_job=eval_v1_s*"))))
+    shutil.rmtree(lost)
+    console(*args, cwd=EXAMPLE)
+    changed = [p for p in study.rglob("results.h5") if stamps.get(p) != p.stat().st_mtime_ns]
+    assert [p.parent for p in changed] == [lost]
+    other = console(*args[:-1], f"compare.dir={study}", "compare.seeds=8", cwd=EXAMPLE, check=False)
+    assert other.returncode == 2 and "holds another study" in other.stderr
