@@ -4,19 +4,17 @@ by one verdict rule, into claims.md; and where HIG pays off against Adam (payoff
 Usage: python experiments/claims.py RUNS_FOLDER [OUT_FOLDER]
 (RUNS_FOLDER holds the profile's sweep folders, e.g. outputs/experiments/claims.)
 
-The verdict rule, the same for every comparison "A reaches a lower held-out loss than B":
-- Seeds are paired (same data, initial network and batches for A and B). The budget X is the shortest end of
-  training among the comparison's completed runs (iterations, or training seconds at equal wall-clock; a run
-  stopped by its time budget ends at that budget, since the budget is checked after each step); each run's
-  loss at X is its last evaluation at or before X (one median step of slack on the time axis, where an
-  evaluation comes after the step that crosses its time). A run that diverged by X counts as an infinite loss;
-  a pair where both diverged is left out.
-- r = loss(A) / loss(B) per seed. **holds**: at least 3 pairs, A lower in every pair and the median r at most
-  1/1.1 (A at least 10% lower). **does not hold**: at least 3 pairs, B lower in every pair with median r at
-  least 1.1, or every r within [1/1.1, 1.1] (level), and the median r not falling by a factor 1.1 or more
-  from X/2 to X (no trend towards the claim). **not settled** otherwise.
-- A not-settled comparison whose median r fell from X/2 to X is extrapolated, linearly in log r against
-  log X, to the budget where the median would reach 1/1.1: the budget the curves suggest.
+The verdict rule is physgrad's own (physgrad.verdict; docs/protocol.md), the same as `physgrad compare`'s:
+- Seeds are paired (same data and initial network for A and B). The budget X is the shortest end of training
+  among the comparison's runs that did not diverge (iterations, or training seconds at equal wall-clock: a run
+  stopped by its time budget ends at that budget). Each run's loss at X is its last evaluation at or before X:
+  the step that crosses a time budget counts against its variant. A run that diverged by X (or whose held-out
+  loss is NaN, or grew past 1e4 times its first value) counts as an infinite loss; both diverged is a tie.
+- Per seed log(loss A / loss B): its median with a bootstrap 95% interval and a Wilcoxon signed-rank test
+  (each comparison on its own: its runs and budget are its own). **holds**: A better (the interval below 1/1.1 and p < 0.05);
+  **does not hold**: B better (above 1.1) or equivalent (within 10%, two one-sided tests); **not settled**
+  otherwise, which includes every comparison with fewer than 6 paired seeds (the test cannot reach p < 0.05).
+  The verdict at half the budget and the ratio's movement are shown beside it, in both directions.
 - A claim made of several comparisons holds if every one holds, does not hold if any does not, and is not
   settled otherwise.
 """
@@ -32,30 +30,10 @@ import numpy as np
 
 from physgrad.report import run_config
 from physgrad.results import Run, find_results, read_run
+from physgrad.verdict import A_BETTER, B_BETTER, EQUIVALENT, Curve, compare_variants
 
-MARGIN = 1.1  # A is better when its loss is at least 10% below B's (ratio <= 1 / MARGIN)
-MIN_PAIRS = 3
 HOLDS, FAILS, OPEN = "holds", "does not hold", "not settled"
-
-
-@dataclass(frozen=True)
-class Curve:
-    """One seed's held-out loss against iterations or training seconds."""
-    x: np.ndarray
-    loss: np.ndarray
-    end: float  # where training ended (x of its last step)
-    diverged: bool = False
-    slack: float = 0.0  # a time budget stops a run one step after it: evaluations up to x + slack count at x
-
-    def at(self, x: float) -> float:
-        """Loss of the last evaluation at or before x; inf if the run diverged before x; NaN if there is none
-        or the run ended (interrupted, not diverged) before x."""
-        if self.diverged and self.end <= x:
-            return math.inf
-        if self.end < x * (1 - 1e-9):
-            return math.nan
-        before = np.flatnonzero(self.x <= x * (1 + 1e-9) + self.slack)
-        return float(self.loss[before[-1]]) if before.size else math.nan
+VERDICT = {A_BETTER: HOLDS, B_BETTER: FAILS, EQUIVALENT: FAILS}  # the package's verdict on "A lower" -> the claim's
 
 
 @dataclass(frozen=True)
@@ -66,49 +44,24 @@ class Decision:
     ratio: float  # median loss(A) / loss(B) over the pairs at the budget
     half_ratio: float  # the same at half the budget
     budget: float
-    suggested: float  # the budget where the trend would decide (NaN: none suggested)
     ratios: tuple[float, ...] = ()
     why: str = ""
 
 
-def _median_ratio(better: dict[int, Curve], worse: dict[int, Curve], seeds, x: float) -> tuple[float, list]:
-    ratios = []
-    for seed in seeds:
-        a, b = better[seed].at(x), worse[seed].at(x)
-        if math.isnan(a) or math.isnan(b) or (math.isinf(a) and math.isinf(b)):
-            continue
-        ratios.append(math.inf if math.isinf(a) else 0.0 if math.isinf(b) else a / b if b > 0 else
-                      1.0 if a == 0 else math.inf)
-    return (float(np.median(ratios)) if ratios else math.nan), ratios
-
-
 def decide(better: dict[int, Curve], worse: dict[int, Curve]) -> Decision:
-    """The verdict rule (module docstring) on the claim that `better` reaches the lower loss, seed by seed."""
-    seeds = sorted(set(better) & set(worse))
+    """The claim that `better` reaches the lower loss, decided by physgrad's verdict rule (module docstring)."""
     ends = [c.end for c in (*better.values(), *worse.values()) if not c.diverged]
     budget = min(ends) if ends else max((c.end for c in (*better.values(), *worse.values())), default=math.nan)
-    ratio, ratios = _median_ratio(better, worse, seeds, budget)
-    half_ratio, _ = _median_ratio(better, worse, seeds, budget / 2)
-    pairs, wins = len(ratios), sum(r < 1 for r in ratios)
-    falling = math.isfinite(half_ratio) and half_ratio > 0 and ratio <= half_ratio / MARGIN
-    decision = dict(pairs=pairs, wins=wins, ratio=ratio, half_ratio=half_ratio, budget=budget,
-                    suggested=math.nan, ratios=tuple(ratios))
-    if pairs < MIN_PAIRS:
-        return Decision(OPEN, why=f"{pairs} paired seeds (at least {MIN_PAIRS} needed)", **decision)
-    if wins == pairs and ratio <= 1 / MARGIN:
-        return Decision(HOLDS, why="lower in every seed, by the margin", **decision)
-    opposite = all(r > 1 for r in ratios) and ratio >= MARGIN
-    level = all(1 / MARGIN <= r <= MARGIN for r in ratios)
-    if (opposite or level) and not falling:
-        why = "the other lower in every seed" if opposite else "level within 10% in every seed"
-        return Decision(FAILS, why=why + ", no trend towards the claim", **decision)
-    if falling and ratio > 1 / MARGIN and 0 < ratio < math.inf:
-        per_doubling = math.log(ratio / half_ratio)
-        decision["suggested"] = budget * 2 ** (math.log(1 / MARGIN / ratio) / per_doubling)
-        return Decision(OPEN, why="the ratio is falling", **decision)
-    if ratio <= 1 / MARGIN:
-        return Decision(OPEN, why=f"lower in {wins} of {pairs} seeds: more seeds needed", **decision)
-    return Decision(OPEN, why="mixed seeds, no trend towards the claim", **decision)
+    if not (better and worse) or not math.isfinite(budget):
+        return Decision(OPEN, 0, 0, math.nan, math.nan, budget, why="0 paired seeds")
+    (result,) = compare_variants({"A": better, "B": worse}, budget)
+    p, half = result.at[1.0], result.at[0.5]
+    verdict, why = result.verdicts[1.0]
+    why = (f"{verdict}: {why}; at half the budget {result.verdicts[0.5][0]}"
+           f"{'' if result.stable else ' (not stable)'}, {result.trend}")
+    return Decision(VERDICT.get(verdict, OPEN), p.pairs, p.wins_a, p.ratio, half.ratio, budget,
+                    tuple(math.exp(r) if abs(r) < 700 else (0.0 if r < 0 else math.inf) for r in p.log_ratios
+                          if not math.isnan(r)), why)
 
 
 def combine(verdicts: list[str]) -> str:
@@ -141,11 +94,8 @@ def curve(run: Run, axis: str) -> Curve:
         end = offset
     budget = run_config(run).get("trainer.time_budget")
     if axis == "wall_time" and run.attrs.get("stopped_by") == "time_budget" and budget is not None:
-        end = min(end, float(budget) + offset)
-        x = np.minimum(x, end)
-    slack = run.seconds_per_iteration if axis == "wall_time" and math.isfinite(run.seconds_per_iteration) else 0.0
-    return Curve(x, np.asarray(run.eval.get("loss", np.empty(0)), float), end,
-                 run.attrs.get("status") == "diverged", slack)
+        end = min(end, float(budget) + offset)  # its evaluation after the crossing step is not read at the budget
+    return Curve(x, np.asarray(run.eval.get("loss", np.empty(0)), float), end, run.attrs.get("status") == "diverged")
 
 
 # --- the claims -------------------------------------------------------------------------------------------
@@ -303,7 +253,7 @@ def measure(claim: Claim, runs: list[Run]) -> tuple[str, list[dict]]:
                              for side in (comparison.better, comparison.worse))
         except AmbiguousRuns as error:
             rows.append({"comparison": comparison, "better": [], "worse": [],
-                         "decision": Decision(OPEN, 0, 0, math.nan, math.nan, math.nan, math.nan, why=str(error))})
+                         "decision": Decision(OPEN, 0, 0, math.nan, math.nan, math.nan, why=str(error))})
             continue
         decision = decide(better, worse)
         rows.append({"comparison": comparison, "decision": decision,
@@ -321,9 +271,7 @@ def claim_rows(claim: Claim, runs: list[Run]) -> list[str]:
     for i, row in enumerate(rows):
         c, d = row["comparison"], row["decision"]
         step = d.verdict
-        if d.verdict == OPEN and math.isfinite(d.suggested):
-            step += f": the trend suggests about {_budget(claim.axis, d.suggested)}"
-        elif d.why:
+        if d.why:
             step += f": {d.why}"
         first = i == 0
         lines.append(
@@ -385,8 +333,8 @@ def payoff(root: Path) -> dict[tuple[int, float], Decision]:
 
 def _cut(c: Curve, x: float) -> Curve:
     """The curve as if training had stopped at x."""
-    keep = c.x <= x * (1 + 1e-9) + c.slack
-    return Curve(c.x[keep], c.loss[keep], min(c.end, x), c.diverged and c.end <= x, c.slack)
+    keep = c.x <= x * (1 + 1e-9)
+    return Curve(c.x[keep], c.loss[keep], min(c.end, x), c.diverged and c.end <= x)
 
 
 def _seconds(value: float) -> str:
