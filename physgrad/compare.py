@@ -131,6 +131,9 @@ def split_overrides(overrides: list[str]) -> tuple[dict, list, list, list]:
                 settings[top] = override.value()
         elif key.startswith("hydra"):
             hydra_args.append(override.input_line)
+        elif key in ("seed", "seeds"):
+            raise UserError(f"'{override.input_line}': compare sets the seeds itself: use compare.seeds=N (evaluation "
+                            "seeds), compare.seed=S (the first one) or compare.tune_seed=S (tuning)")
         elif override.is_sweep_override():
             if override.is_interval_sweep() or override.is_range_sweep():
                 raise UserError(f"'{override.input_line}': list the variants (a,b,c); compare searches each "

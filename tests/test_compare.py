@@ -41,6 +41,7 @@ def test_comma_lists_are_variants_and_everything_else_is_common():
     (["task=toy", "optim=adam,hig", "compare.search.tau=[1,0.1]"], "0 < low < high"),
     (["task=toy", "optim=adam,hgi"], "did you mean hig?"),
     (["task=toy", "optim=adam,hig", "compare.seeds=0"], "compare.seeds"),
+    (["task=toy", "optim=adam,hig", "seed=3"], "compare sets the seeds itself"),
 ])
 def test_bad_studies_are_one_line_errors(args, fragment):
     with pytest.raises(UserError, match=fragment.replace("?", r"\?").replace("[", r"\[")):

@@ -43,8 +43,10 @@ def test_every_task_and_optim_has_a_config():
 @pytest.mark.parametrize("optim", OPTIMS)
 @pytest.mark.parametrize("task, settings", SCENES, ids=[" ".join([t, *o]) for t, o in SCENES])
 def test_pair_runs_two_iterations_or_is_refused(task, settings, optim, tmp_path):
+    # what runs is checked here, not stability: at these small sizes Gauss-Newton's second guidance step raises
+    # the loss 1e5-fold, which the blow-up bound (tested in test_compare) would rightly end as diverged
     cfg = load(f"task={task}", f"optim={optim}", "trainer.iterations=2", "trainer.eval_every=1", *SMALL[task],
-               *settings)
+               *settings, "trainer.divergence_factor=null")
     outcome, path = run_experiment(cfg, tmp_path)
     run = read_run(path)
     assert run.attrs["status"] == outcome.status
