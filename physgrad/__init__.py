@@ -32,9 +32,9 @@ def compare(*overrides: str, config_dir=None):
     """Which variant trains this scene best, as `physgrad compare` decides it (tuned with equal budgets, paired
     seeds, verdicts with intervals; docs/protocol.md), e.g.
     ``physgrad.compare("task=toy", "optim=adam,hig", "trainer.iterations=300", "compare.trials=8")``.
-    Returns physgrad.compare.Study: .comparisons, .runs and .trials (pandas DataFrames), .verdicts, .text (the
+    Returns physgrad.comparison.Study: .comparisons, .runs and .trials (pandas DataFrames), .verdicts, .text (the
     compare.md table) and .folder. An interrupted study resumes when called again with the same overrides."""
-    from physgrad.compare import run_study
+    from physgrad.comparison import run_study
 
     return run_study(list(overrides), config_dir=config_dir, say=lambda line: None)
 

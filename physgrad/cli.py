@@ -73,7 +73,7 @@ def dispatch(argv: list[str]) -> int:
         if command == "report":
             return report_command(rest)
         if command == "compare":
-            from physgrad.compare import main as compare_main
+            from physgrad.comparison import main as compare_main
 
             return compare_main(rest)
         if command == "check":

@@ -17,7 +17,7 @@ import physgrad
 from physgrad import UserError
 from physgrad.gradients import JacobianPass
 from physgrad.nets import count_params
-from physgrad.optim import UpdateRule, build_rule
+from physgrad.optim import UpdateRule, build_rule, needs_value_arguments
 from physgrad.resume import finished_before, start_from
 from physgrad.results import FolderOwned, ResultsWriteError, ResultsWriter, own_folder, read_final
 from physgrad.runner import Outcome, Seeds, TrainerSettings, stack, stop_on_signals, train
@@ -184,10 +184,13 @@ def prepare(cfg: DictConfig, seed_list: list[int], settings: TrainerSettings) ->
     rule = build_rule(cfg.optim)
     scene, seeds = build_seeds(cfg, seed_list, settings.batch_size)
     check_applies(scene, cfg)
+    if not rule.uses_jacobian and needs_value_arguments(rule.transform, seeds.network()):
+        rule = rule._replace(gradient=dataclasses.replace(rule.gradient, with_value=True))
     if rule.uses_jacobian:
         # a training sample: what J is taken of (a scene's test samples may hold other fields)
         sample = jax.tree_util.tree_map(lambda leaf: leaf[0], scene.sample_train(jax.random.PRNGKey(0), 1))
-        rule = rule._replace(gradient=JacobianPass.for_network(scene.sample_output, seeds.network(), sample))
+        rule = rule._replace(gradient=JacobianPass.for_network(scene.sample_output, seeds.network(), sample,
+                                                               with_value=rule.gradient.with_value))
     return scene, rule, seeds
 
 

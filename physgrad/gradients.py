@@ -28,6 +28,12 @@ from physgrad.unroll import MODES, PHYSICS_ONLY, REGULAR, Backprop
 BACKPROP_MODES = ("R", "M", "S", "C")
 
 
+def batch_loss_fn(scene, batch):
+    """theta -> L(y(theta)) on one batch, through the regular output: what a line search (optax.lbfgs) or a gain
+    ratio (Levenberg-Marquardt) evaluates at trial parameters (optax's extra argument value_fn)."""
+    return lambda p: scene.batch_loss(jax.vmap(scene.sample_output, in_axes=(None, 0))(p, batch), batch)
+
+
 def _loss_and_pullback(scene, sample_output, params, batch):
     """(loss, dL/dtheta, max |y|) from one forward and one backward pass of the batch output."""
     y, pullback = jax.vjp(lambda p: jax.vmap(sample_output, in_axes=(None, 0))(p, batch), params)
@@ -40,10 +46,12 @@ class Regular:
     """dL/dtheta through the output with the gradient stops of ``backprop`` (R: plain backpropagation)."""
 
     backprop: Backprop = REGULAR
+    with_value: bool = False  # give the rule optax's extra arguments value, grad and value_fn (e.g. optax.lbfgs)
 
     def __call__(self, scene, params, batch):
         loss, grads, output_max = _loss_and_pullback(scene, scene.backprop_output(self.backprop), params, batch)
-        return loss, grads, {}, {"output_max_abs": output_max}
+        extra = {"value": loss, "grad": grads, "value_fn": batch_loss_fn(scene, batch)} if self.with_value else {}
+        return loss, grads, extra, {"output_max_abs": output_max}
 
 
 @dataclass(frozen=True)
@@ -51,12 +59,16 @@ class Combined:
     """C = combine_signs(g_M, g_R) from the physics-only (M) and the regular (R) gradient, with its diagnostics:
     cos_physics_regular = cos(g_M, g_R) and zeroed_fraction, the share of components C sets to zero."""
 
+    with_value: bool = False  # as Regular's
+
     def __call__(self, scene, params, batch):
         loss, g_regular, output_max = _loss_and_pullback(scene, scene.sample_output, params, batch)
         _, g_physics, _ = _loss_and_pullback(scene, scene.backprop_output(PHYSICS_ONLY), params, batch)
         logs = {"output_max_abs": output_max, "cos_physics_regular": tree_cosine(g_physics, g_regular),
                 "zeroed_fraction": sign_disagreement(g_physics, g_regular)}
-        return loss, combine_signs(g_physics, g_regular), {}, logs
+        combined = combine_signs(g_physics, g_regular)
+        extra = {"value": loss, "grad": combined, "value_fn": batch_loss_fn(scene, batch)} if self.with_value else {}
+        return loss, combined, extra, logs
 
 
 @dataclass(frozen=True)
@@ -66,12 +78,13 @@ class JacobianPass:
 
     plan: LayerPlan | None = None
     why_per_sample: str = ""
+    with_value: bool = False  # also give value (the batch loss) and value_fn (Levenberg-Marquardt's gain ratio)
 
     @classmethod
-    def for_network(cls, sample_output, params, sample) -> "JacobianPass":
+    def for_network(cls, sample_output, params, sample, with_value: bool = False) -> "JacobianPass":
         """The layer-factorised pass where plan_layers allows it, else the per-sample pass with the reason."""
         plan = plan_layers(sample_output, params, sample)
-        return cls(plan) if isinstance(plan, LayerPlan) else cls(None, plan)
+        return cls(plan, "", with_value) if isinstance(plan, LayerPlan) else cls(None, plan, with_value)
 
     @property
     def name(self) -> str:
@@ -87,11 +100,15 @@ class JacobianPass:
             y, jac = layer_jacobian(scene.sample_output, params, batch, self.plan)
         loss, output_grad = jax.value_and_grad(scene.batch_loss)(y, batch)
         grads = ravel_pytree(params)[1](jac.transpose_apply(output_grad.reshape(-1).astype(jac.dtype)))
-        return loss, grads, {"jacobian": jac, "output_grad": output_grad}, {"output_max_abs": jnp.max(jnp.abs(y))}
+        extra = {"jacobian": jac, "output_grad": output_grad}
+        if self.with_value:
+            extra.update(value=loss, value_fn=batch_loss_fn(scene, batch))
+        return loss, grads, extra, {"output_max_abs": jnp.max(jnp.abs(y))}
 
 
-def route_for(backprop: str | None, uses_jacobian: bool):
-    """The route of a rule: the Jacobian pass for rules that take J, else the backprop mode's (None: R)."""
+def route_for(backprop: str | None, uses_jacobian: bool, with_value: bool = False):
+    """The route of a rule: the Jacobian pass for rules that take J, else the backprop mode's (None: R);
+    with_value: the rule also takes optax's extra arguments value (and grad) and value_fn."""
     if backprop is not None and backprop not in BACKPROP_MODES:
         raise UserError(f"optim.backprop={backprop!r} is not allowed: choose one of {', '.join(BACKPROP_MODES)} "
                         "or null")
@@ -99,10 +116,10 @@ def route_for(backprop: str | None, uses_jacobian: bool):
         if backprop is not None:
             raise UserError(f"optim.backprop={backprop} applies to gradient-based rules: the Jacobian rules "
                             "differentiate the regular rollout; remove optim.backprop")
-        return JacobianPass()
+        return JacobianPass(with_value=with_value)
     if backprop == "C":
-        return Combined()
-    return Regular(MODES[backprop or "R"])
+        return Combined(with_value)
+    return Regular(MODES[backprop or "R"], with_value)
 
 
 def combine_signs(g_physics, g_regular):

@@ -99,6 +99,12 @@ def log_ratio(a: float, b: float) -> float:
     return float(np.clip(math.log(a / b), -LOG_CAP, LOG_CAP))
 
 
+def snap(log_value: float) -> float:
+    """A median (or an interval end) that averages a diverged side's +-LOG_CAP with a finite log ratio lies at
+    the divergence boundary: it is reported as +-LOG_CAP, not as a ratio of e^500."""
+    return math.copysign(LOG_CAP, log_value) if abs(log_value) > LOG_CAP / 2 else log_value
+
+
 def _wilcoxon(r: np.ndarray, alternative: str) -> float:
     from scipy.stats import wilcoxon
 
@@ -161,10 +167,10 @@ def paired(a: list[float], b: list[float], margin: float = MARGIN, seed: int = 0
     r_all = np.array([log_ratio(x, y) for x, y in zip(a, b)])
     r = r_all[~np.isnan(r_all)]
     delta = math.log(margin)
-    low, high = median_interval(r, seed=seed)
+    low, high = (snap(v) for v in median_interval(r, seed=seed))
     return Paired(
         log_ratios=tuple(float(v) for v in r_all),
-        median=float(np.median(r)) if r.size else math.nan, low=low, high=high,
+        median=snap(float(np.median(r))) if r.size else math.nan, low=low, high=high,
         p_a=_wilcoxon(r, "less"), p_b=_wilcoxon(r, "greater"),
         p_equivalent=max(_wilcoxon(r + delta, "greater"), _wilcoxon(r - delta, "less")) if r.size else 1.0,
         diverged_a=int(np.sum(np.isinf(a))), diverged_b=int(np.sum(np.isinf(b))),

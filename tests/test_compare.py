@@ -11,7 +11,7 @@ import pytest
 
 import physgrad
 from physgrad import UserError
-from physgrad.compare import (SEARCH_RANGES, build_variants, evaluation_jobs, halton_points, job_yaml,
+from physgrad.comparison import (SEARCH_RANGES, build_variants, evaluation_jobs, halton_points, job_yaml,
                               split_overrides, study_settings)
 from physgrad.configs import compose
 from tests.test_cli import physgrad as console
@@ -47,6 +47,14 @@ def test_bad_studies_are_one_line_errors(args, fragment):
     with pytest.raises(UserError, match=fragment.replace("?", r"\?").replace("[", r"\[")):
         settings, axes, common, _ = split_overrides(args)
         build_variants(axes, common, study_settings(settings), [])
+
+
+def test_a_variant_the_scene_refuses_stops_the_study_before_anything_trains(tmp_path):
+    from physgrad.comparison import run_study
+
+    with pytest.raises(UserError, match="variant bptt: optim=bptt needs a closed-loop controller"):
+        run_study(["task=toy", "optim=adam,bptt", f"compare.dir={tmp_path}"], say=lambda line: None)
+    assert not (tmp_path / "tune").exists()
 
 
 def test_a_job_file_composes_to_the_variant_with_its_trial_settings(tmp_path):
@@ -162,3 +170,55 @@ def test_a_study_on_a_users_own_scene_end_to_end_and_resumed(tmp_path):
     assert [p.parent for p in changed] == [lost]
     other = console(*args[:-1], f"compare.dir={study}", "compare.seeds=8", cwd=EXAMPLE, check=False)
     assert other.returncode == 2 and "holds another study" in other.stderr
+
+
+def test_the_python_call_returns_the_tables(tmp_path):
+    import physgrad.comparison  # noqa: F401 - importing the module leaves the function physgrad.compare in place
+
+    study = physgrad.compare("task=toy", "optim=adam,gd", "trainer.iterations=30", "compare.trials=2",
+                             "compare.seeds=6", f"compare.dir={tmp_path / 'study'}")
+    assert list(study.trials.variant) == ["adam", "adam", "gd", "gd"]
+    assert sorted(set(study.runs.seed)) == list(range(6)) and len(study.runs) == 12
+    assert list(study.comparisons.fraction) == [0.25, 0.5, 1.0] and len(study.verdicts) == 1
+    assert study.verdicts[0].verdict == study.comparisons.verdict.iloc[-1]
+    assert (study.folder / "compare.md").read_text() == study.text
+
+
+@pytest.mark.slow
+def test_a_study_stopped_at_random_instants_resumes_to_the_same_trials(tmp_path):
+    """SIGTERM to `physgrad compare` while its tuning or evaluation multirun trains (its own session: the signal
+    is passed on once), at random instants, PHYSGRAD_FAULT_REPEATS times: it exits 130, leaves no process behind,
+    and the same command then finishes with exactly compare.trials trials per variant, none asked twice."""
+    import os
+    import random
+    import signal
+    import subprocess
+    import time
+
+    from tests.test_cli import PHYSGRAD
+
+    repeats = max(1, int(os.environ.get("PHYSGRAD_FAULT_REPEATS", "1")) // 4)  # a study per kill: 5 at make test-faults
+    rng = random.Random(0)
+    for attempt in range(repeats):
+        study = tmp_path / f"study{attempt}"
+        args = [PHYSGRAD, "compare", "task=toy", "optim=adam,gd", "trainer.iterations=400", "compare.trials=3",
+                "compare.seeds=6", f"compare.dir={study}"]
+        process = subprocess.Popen(args, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+        deadline = time.time() + 120
+        while not list(study.glob("*/+compare_job=*/results.h5")) and time.time() < deadline:
+            time.sleep(0.1)
+        time.sleep(rng.uniform(0.0, 3.0))
+        process.send_signal(signal.SIGTERM)
+        output, _ = process.communicate(timeout=120)
+        if process.returncode == 0:  # finished before the signal: nothing to resume
+            continue
+        assert process.returncode == 130 and "run the same command again to resume" in output, output
+        leftover = subprocess.run(["pgrep", "-f", f"compare.dir={study}|hydra.sweep.dir={study}"],
+                                  capture_output=True, text=True).stdout.split()
+        assert not leftover, leftover
+        finished = subprocess.run(args, capture_output=True, text=True, timeout=300)
+        assert finished.returncode == 0, finished.stdout[-2000:] + finished.stderr[-2000:]
+        trials = list(csv.DictReader(open(study / "trials.csv")))
+        assert [t["variant"] for t in trials] == ["adam"] * 3 + ["gd"] * 3
+        assert all(t["state"] == "COMPLETE" for t in trials)
+        assert len(list(csv.DictReader(open(study / "runs.csv")))) == 12

@@ -101,6 +101,16 @@ def test_a_run_that_ended_early_without_diverging_leaves_its_pair_out():
     assert result.at[1.0].pairs == 9 and result.at[1.0].missing == 1
 
 
+def test_a_median_or_interval_next_to_a_divergence_is_not_a_ratio_of_e500():
+    """10 seeds, B diverged in 5: the median averages a diverged pair with a finite one; it and the interval ends
+    that do so are reported as the divergence (ratio 0), the others as finite ratios."""
+    a = [0.5] * 10
+    b = [math.inf] * 5 + [1.0] * 5
+    p = paired(a, b)
+    assert p.median == -LOG_CAP and p.ratio == 0.0 and p.low == -LOG_CAP
+    assert p.high == pytest.approx(math.log(0.5)) or p.high == -LOG_CAP
+
+
 def test_log_ratios_of_diverged_and_zero_losses():
     assert log_ratio(math.inf, math.inf) == 0.0 and log_ratio(0.0, 0.0) == 0.0
     assert log_ratio(math.inf, 1.0) == LOG_CAP and log_ratio(1.0, math.inf) == -LOG_CAP

@@ -15,7 +15,7 @@ from omegaconf import OmegaConf
 
 from physgrad import UserError
 from physgrad.gradients import route_for
-from physgrad.optim.spectral import JacobianRule
+from physgrad.optim.spectral import JacobianRule, MarquardtRule
 from physgrad.validate import call_target, choice, number
 
 RESERVED_KEYS = ("name", "backprop", "clip")
@@ -45,13 +45,30 @@ def build_rule(optim_cfg) -> UpdateRule:
     if not hasattr(transform, "init") or not hasattr(transform, "update"):
         raise UserError(f"optim._target_={node['_target_']} returned {type(transform).__name__}, not an optax "
                         "GradientTransformation")
-    gradient = route_for(node.get("backprop"), isinstance(transform, JacobianRule))
+    jacobian = isinstance(transform, JacobianRule)
+    # Levenberg-Marquardt takes value and value_fn; an optax rule that needs optax's extra arguments (optax.lbfgs)
+    # is found by tracing once the parameters are known (needs_value_arguments)
+    gradient = route_for(node.get("backprop"), jacobian, isinstance(transform, MarquardtRule))
     if clip != "none":
         if isinstance(transform, JacobianRule):
             raise UserError(f"optim.clip={clip} applies to gradient-based rules, and {node.get('name')} takes "
                             "the Jacobian: remove optim.clip")
         transform = optax.chain(CLIPPING[clip](), transform)
     return UpdateRule(transform, gradient)
+
+
+def needs_value_arguments(transform, params) -> bool:
+    """Whether an optax rule's update needs optax's extra arguments value, grad and value_fn (optax.lbfgs's line
+    search does): its update is traced once without them (jax.eval_shape, nothing computed) and a TypeError
+    about missing keyword arguments says so. A chain passes the arguments on to the members that take them."""
+    if not isinstance(transform, optax.GradientTransformationExtraArgs):
+        return False
+    state = jax.eval_shape(transform.init, params)
+    try:
+        jax.eval_shape(lambda g, s, p: transform.update(g, s, p), params, state, params)
+    except TypeError as error:
+        return "keyword" in str(error) and any(name in str(error) for name in ("value", "grad"))
+    return False
 
 
 def state_logs(opt_state: Any) -> dict:

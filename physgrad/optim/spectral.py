@@ -10,6 +10,7 @@ eigh in float64 (about 5x faster at the reference sizes; docs/decisions.md has t
 
 from __future__ import annotations
 
+import contextlib
 from typing import NamedTuple
 
 import jax
@@ -156,3 +157,107 @@ def hig(learning_rate: float, tau: float) -> JacobianRule:
 def gauss_newton(learning_rate: float, tau: float) -> JacobianRule:
     """Gauss-Newton: theta <- theta - lr * J^+ g with the truncated pseudo-inverse."""
     return spectral_rule(learning_rate, 1.0, tau)
+
+
+# --- Levenberg-Marquardt ----------------------------------------------------------------------------------
+
+DAMPING_RANGE = (1e-12, 1e12)  # the relative damping mu stays within this (no under- or overflow of lambda)
+
+
+def _eigenbasis(jac, g: jax.Array, tau: float, route: str):
+    """(l, U, c, keep): the squared singular values l = s^2 of J, the left singular vectors U, the coefficients
+    c = U^T g and the kept ones (s > tau max(s)), from the thin SVD (J's precision) or, on the Gram route, from
+    eigh(J J^T) in float64 (call under jax.enable_x64 for that route)."""
+    route = resolve_route(route, tau, jac.shape)
+    if route == "gram":
+        lam, u = jnp.linalg.eigh(jac.gram64())
+        lam = jnp.maximum(lam, 0.0)
+    else:
+        u, s, _ = jnp.linalg.svd(jac.dense(), full_matrices=False)
+        lam = s ** 2
+    g = g.astype(u.dtype)
+    keep = lam > tau ** 2 * jnp.max(lam)
+    return lam, u, u.T @ g, keep
+
+
+class MarquardtRule(JacobianRule):
+    """A Jacobian rule that also takes the extra arguments value and value_fn (its gain ratio)."""
+
+
+class MarquardtState(NamedTuple):
+    """mu: the relative damping (lambda = mu * max s^2); nu: Nielsen's growth factor after a rejected step;
+    rejected: whether the last step was rejected (the loss did not fall); failures, kept: as SpectralState."""
+
+    mu: jax.Array
+    nu: jax.Array
+    rejected: jax.Array
+    failures: jax.Array
+    kept: jax.Array
+
+    def logs(self) -> dict:
+        return {"damping": self.mu, "rejected_step": self.rejected.astype(self.mu.dtype),
+                "svd_failures": self.failures, "kept_singular_values": self.kept}
+
+
+def marquardt_direction(jac, g: jax.Array, mu, tau: float, route: str):
+    """d = J^T (J J^T + lambda I)^-1 g over the kept singular values, lambda = mu * max(s^2) (relative, so mu is
+    free of the problem's scale); also (l w, c) for the model's predicted reduction, with w = 1 / (l + lambda)."""
+    jac = as_jacobian(jac)
+    route_taken = resolve_route(route, tau, jac.shape)
+    with jax.enable_x64(True) if route_taken == "gram" else contextlib.nullcontext():
+        lam, u, c, keep = _eigenbasis(jac, g, tau, route_taken)
+        damping = jnp.asarray(mu, lam.dtype) * jnp.max(lam)
+        w = jnp.where(keep, 1.0 / jnp.where(keep, lam + damping, 1.0), 0.0)
+        direction = jac.transpose_apply((u @ (w * c)).astype(lam.dtype)).astype(jac.dtype)
+        return direction, (lam * w).astype(jac.dtype), c.astype(jac.dtype), jnp.sum(keep).astype(jnp.int32)
+
+
+def marquardt_rule(learning_rate: float = 1.0, damping: float = 1e-3, tau: float = 1e-6, route: str = "auto",
+                   adapt: bool = True) -> JacobianRule:
+    """Levenberg-Marquardt: h = -lr J^T (J J^T + lambda I)^-1 g with lambda = damping * max(s^2) (relative
+    damping mu), on the Jacobian route of Gauss-Newton and HIG (layer factors included).
+
+    mu -> 0 gives the (truncated) Gauss-Newton step, a large mu the scaled gradient step -lr J^T g / lambda.
+    adapt (Nielsen, 1999): the gain ratio rho = (L(theta) - L(theta + h)) / (m(0) - m(h)) on the step's batch, with
+    the model m(h) = L + g^T J h + (|J h|^2 + lambda |h|^2) / (2 lr) that h minimises; rho > 0 accepts the step and
+    sets mu <- mu * max(1/3, 1 - (2 rho - 1)^3), nu <- 2; otherwise the step is rejected (a zero update) and
+    mu <- mu * nu, nu <- 2 nu. Needs the extra arguments jacobian, output_grad, value (the batch loss) and
+    value_fn (the batch loss as a function of the parameters), which the Jacobian route gives."""
+    number("optim.learning_rate", learning_rate, 0, open_low=True)
+    number("optim.damping", damping, DAMPING_RANGE[0], DAMPING_RANGE[1])
+    number("optim.tau", tau, 0, 1)
+    choice("optim.route", route, ROUTES)
+    flag("optim.adapt", adapt)
+
+    def init(params):
+        dtype = jnp.asarray(ravel_pytree(params)[0]).dtype
+        zero = jnp.zeros((), jnp.int32)
+        return MarquardtState(mu=jnp.asarray(damping, dtype), nu=jnp.asarray(2.0, dtype),
+                              rejected=jnp.zeros((), bool), failures=zero, kept=zero)
+
+    def update(updates, state, params=None, *, jacobian, output_grad, value=None, value_fn=None):
+        jac = as_jacobian(jacobian)
+        g = output_grad.reshape(-1).astype(jac.dtype)
+        direction, lw, c, kept = marquardt_direction(jac, g, state.mu, tau, route)
+        failed = jac.finite() & jnp.isfinite(g).all() & ~jnp.isfinite(direction).all()
+        step = -learning_rate * direction
+        unravel = ravel_pytree(updates)[1]
+        mu, nu, rejected = state.mu, state.nu, jnp.zeros((), bool)
+        if adapt:
+            if value_fn is None or value is None or params is None:
+                raise TypeError("Levenberg-Marquardt with adapt=true needs params, value and value_fn")
+            flat = ravel_pytree(params)[0]
+            predicted = learning_rate * jnp.sum(lw * c ** 2 * (1.0 - 0.5 * lw))
+            actual = value - value_fn(ravel_pytree(params)[1](flat + step))
+            rho = actual / jnp.where(predicted > 0, predicted, 1.0)
+            accept = jnp.isfinite(actual) & (actual > 0) & (predicted > 0)
+            shrink = jnp.maximum(1.0 / 3.0, 1.0 - (2.0 * rho - 1.0) ** 3)
+            mu = jnp.clip(jnp.where(accept, mu * shrink, mu * nu), *DAMPING_RANGE).astype(state.mu.dtype)
+            nu = jnp.where(accept, 2.0, 2.0 * nu).astype(state.nu.dtype)
+            rejected = ~accept
+            step = jnp.where(accept, step, jnp.zeros_like(step))
+        state = MarquardtState(mu=mu, nu=jnp.minimum(nu, 2.0 ** 30), rejected=rejected,
+                               failures=state.failures + failed.astype(jnp.int32), kept=kept)
+        return unravel(step.astype(ravel_pytree(updates)[0].dtype)), state
+
+    return MarquardtRule(init, update)

@@ -23,6 +23,7 @@ import itertools
 import json
 import math
 import os
+import signal
 import subprocess
 import sys
 import warnings
@@ -35,11 +36,12 @@ from physgrad import UserError
 from physgrad.verdict import (ALPHA, FRACTIONS, MARGIN, Curve, compare_variants, divergence_test, seeds_needed,
                               target_loss)
 
-SPECTRAL = "physgrad.optim.spectral.spectral_rule"
+JACOBIAN_RULES = ("physgrad.optim.spectral.spectral_rule", "physgrad.optim.spectral.marquardt_rule")
 # log-uniform learning-rate ranges per rule family (docs/protocol.md): each spans the papers' presets by two
 # decades or more on either side
 SEARCH_RANGES = {
-    "spectral": (1e-3, 1e1),  # Gauss-Newton and HIG (mean-over-samples loss; presets 0.5 to 1)
+    "spectral": (1e-3, 1e1),  # Gauss-Newton, HIG, Levenberg-Marquardt (mean-over-samples loss; presets 0.5 to 1)
+    "optax.lbfgs": (1e-2, 1e1),  # L-BFGS: scales the direction before its line search (preset 1)
     "optax.sgd": (1e-4, 1e1),  # plain gradient descent
     "adaptive": (1e-5, 1e-1),  # Adam and the other optax rules (presets 1e-4 to 1e-3)
 }
@@ -178,10 +180,10 @@ def variant_name(overrides: list[str]) -> str:
 
 def family_range(optim_cfg) -> tuple[float, float]:
     target = str(optim_cfg.get("_target_", ""))
-    if target == SPECTRAL:
+    if target in JACOBIAN_RULES:
         return SEARCH_RANGES["spectral"]
-    if target == "optax.sgd":
-        return SEARCH_RANGES["optax.sgd"]
+    if target in ("optax.sgd", "optax.lbfgs"):
+        return SEARCH_RANGES[target]
     return SEARCH_RANGES["adaptive"]
 
 
@@ -211,6 +213,24 @@ def build_variants(axes, common, settings, config_dirs) -> list[Variant]:
     if len(set(names)) < len(names):
         raise UserError(f"two variants have the same name ({', '.join(names)}): give distinct values")
     return variants
+
+
+def check_applies(variants: list[Variant], seed: int) -> None:
+    """Every variant's run config checked and its scene and rule built as its jobs will (on the tuning seed), so
+    that a variant the scene refuses (a backprop mode on a scene without time, a bad setting) stops the study in
+    one line before anything trains."""
+    from omegaconf import open_dict
+
+    from physgrad.experiment import check_config, prepare
+
+    for variant in variants:
+        cfg = variant.config.copy()
+        with open_dict(cfg):
+            del cfg["hydra"]
+        try:
+            prepare(cfg, [seed], check_config(cfg))
+        except UserError as error:
+            raise UserError(f"variant {variant.name}: {error}") from None
 
 
 # --- jobs as config files ---------------------------------------------------------------------------------
@@ -292,12 +312,27 @@ def launch(folder: Path, phase: str, jobs: dict[str, str], config_dir, hydra_arg
     with open(folder / f"{phase}.log", "a") as log:
         log.write(f"\n$ {' '.join(command)}\n")
         log.flush()
-        process = subprocess.Popen(command, stdout=log, stderr=subprocess.STDOUT)
+        # its own session: a terminal's Ctrl-C reaches this process only, which passes it (or a SIGTERM) on once,
+        # so the sweep stops as a whole and records what it stopped (physgrad.sweeps)
+        process = subprocess.Popen(command, stdout=log, stderr=subprocess.STDOUT, start_new_session=True)
+        received = []
+
+        def forward(signum, frame):
+            received.append(signum)
+            process.send_signal(signum)
+
         try:
-            return process.wait()
-        except KeyboardInterrupt:  # the job got the signal too (same process group) and stops its sweep
-            process.wait()
-            raise
+            previous = {sig: signal.signal(sig, forward) for sig in (signal.SIGINT, signal.SIGTERM)}
+        except ValueError:  # not the main thread: leave signals alone
+            previous = {}
+        try:
+            code = process.wait()
+        finally:
+            for sig, handler in previous.items():
+                signal.signal(sig, handler)
+        if received:
+            raise KeyboardInterrupt(signal.Signals(received[0]).name)
+        return code
 
 
 def job_runs(sweep: Path, name: str) -> list:
@@ -581,8 +616,12 @@ def plot_sensitivity(path: Path, variants, trials_rows, best) -> None:
         ax.set_xlabel("learning rate")
         ax.grid(alpha=0.3)
     axes[0][0].set_ylabel("validation loss at the budget")
-    axes[0][-1].legend(fontsize=7, loc="best")
-    fig.tight_layout()
+    legend = {}
+    for ax in axes[0]:  # one legend for all panels, below them, off the data
+        for handle, label in zip(*ax.get_legend_handles_labels()):
+            legend.setdefault(label, handle)
+    fig.legend(legend.values(), legend.keys(), loc="lower center", ncol=len(legend), fontsize=8, frameon=False)
+    fig.tight_layout(rect=(0, 0.07, 1, 1))
     for suffix in (".png", ".pdf"):
         fig.savefig(path.with_suffix(suffix), dpi=130)
     plt.close(fig)
@@ -611,7 +650,10 @@ def run_study(overrides: list[str], config_dir: str | None = None, say=print) ->
     settings_given, axes, common, hydra_args = split_overrides(overrides)
     s = study_settings(settings_given)
     config_dirs = [config_dir] if config_dir else []
+    if os.getcwd() not in sys.path:  # a scene or optimiser named by _target_, as for `physgrad run`
+        sys.path.append(os.getcwd())
     variants = build_variants(axes, common, s, config_dirs)
+    check_applies(variants, s["tune_seed"])
     first = variants[0].config
     comparisons = len(variants) * (len(variants) - 1) // 2
     needed = seeds_needed(s["alpha"], comparisons)
@@ -668,13 +710,18 @@ def main(args: list[str]) -> int:
             print(f"  compare.{key:<10} {meaning} (default {default})")
         return 0
     overrides, config_dir = parse_arguments(args)
-    if os.getcwd() not in sys.path:
-        sys.path.append(os.getcwd())
+
+    def interrupt(signum, frame):  # SIGTERM as Ctrl-C: the study's files are left as a resumable state
+        raise KeyboardInterrupt(signal.Signals(signum).name)
+
+    previous = signal.signal(signal.SIGTERM, interrupt)
     try:
         study = run_study(overrides, config_dir)
     except KeyboardInterrupt:
         print("physgrad compare: interrupted; run the same command again to resume", file=sys.stderr)
         return 130
+    finally:
+        signal.signal(signal.SIGTERM, previous)
     print(study.text)
     print(f"wrote {study.folder / 'compare.md'}, trials.csv, runs.csv, comparisons.csv, sensitivity.png, report/")
     return 0
