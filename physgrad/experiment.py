@@ -17,7 +17,7 @@ import physgrad
 from physgrad import UserError
 from physgrad.gradients import JacobianPass
 from physgrad.nets import count_params
-from physgrad.optim import UpdateRule, build_rule, needs_value_arguments
+from physgrad.optim import UpdateRule, build_rule, matrix_leaves, needs_value_arguments
 from physgrad.resume import finished_before, start_from
 from physgrad.results import FolderOwned, ResultsWriteError, ResultsWriter, own_folder, read_final
 from physgrad.runner import Outcome, Seeds, TrainerSettings, stack, stop_on_signals, train
@@ -184,6 +184,9 @@ def prepare(cfg: DictConfig, seed_list: list[int], settings: TrainerSettings) ->
     rule = build_rule(cfg.optim)
     scene, seeds = build_seeds(cfg, seed_list, settings.batch_size)
     check_applies(scene, cfg)
+    if rule.on_layers and not matrix_leaves(seeds.network()) and "muon" in str(cfg.optim.get("_target_", "")):
+        raise UserError(f"optim={cfg.optim.name} orthogonalises the network's matrices and task={cfg.task.name}'s "
+                        "network has none (no 2-D parameters): its Muon partition would be empty; use adam")
     if not rule.uses_jacobian and needs_value_arguments(rule.transform, seeds.network()):
         rule = rule._replace(gradient=dataclasses.replace(rule.gradient, with_value=True))
     if rule.uses_jacobian:

@@ -25,7 +25,7 @@ import optax
 from jax.flatten_util import ravel_pytree
 from tqdm import tqdm
 
-from physgrad.optim import UpdateRule, state_logs
+from physgrad.optim import UpdateRule, on_tree, state_logs
 from physgrad.results import ResultsWriteError, ResultsWriter
 from physgrad.tasks import Scene
 from physgrad.validate import number
@@ -282,6 +282,8 @@ def compile_training(scene: Scene, rule: UpdateRule, seeds: Seeds, batch_size: i
     unravel = ravel_pytree(seeds.network())[1]
     flat_scene = scene.over_flat_params(unravel)
     params = jax.vmap(lambda tree: ravel_pytree(tree)[0])(seeds.params)
+    if rule.on_layers:  # a rule that is not element-wise sees the network's layers (physgrad.optim.on_tree)
+        rule = rule._replace(transform=on_tree(rule.transform, unravel))
     count = seeds.count
     opt_state = over_seeds(rule.transform.init, count, (0,))(params)
     log_names: list[str] = []

@@ -37,7 +37,8 @@ def load(*overrides):
 
 def test_every_task_and_optim_has_a_config():
     assert set(TASKS) >= {"poisson", "oscillator", "quantum", "quantum_control", "multicart"} and set(SMALL) == set(TASKS)
-    assert set(OPTIMS) == {"adam", "gd", "gauss_newton", "hig", "bptt", "stable_bptt", "levenberg_marquardt", "lbfgs"}
+    assert set(OPTIMS) == {"adam", "gd", "gauss_newton", "hig", "bptt", "stable_bptt", "levenberg_marquardt", "lbfgs",
+                           "muon"}
 
 
 @pytest.mark.parametrize("optim", OPTIMS)
