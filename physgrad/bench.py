@@ -31,14 +31,15 @@ from pathlib import Path
 from physgrad.configs import compose
 
 SCENES = ("oscillator", "quantum", "poisson", "multicart", "quantum_control", "guidance", "ks")
-OPTIMS = ("adam", "gd", "gauss_newton", "hig", "bptt", "stable_bptt")
+OPTIMS = ("adam", "gd", "gauss_newton", "hig", "levenberg_marquardt", "lbfgs", "muon", "bptt", "stable_bptt")
 # variants measured in another precision as well
 EXTRA = {"poisson": [("hig", ["precision=64"])],
          # the unrolling study's other training modalities and stepper, and its longest unroll
          "ks": [("adam", ["task.training=ONE"]), ("adam", ["task.training=NOG"]), ("adam", ["task.stepper=predict"]),
                 ("adam", ["unroll=16"])]}
 # temporal scenes whose Jacobian route would differentiate 128 x 64 outputs per sample: not a reference setup
-SKIP = {("quantum_control", "hig"), ("quantum_control", "gauss_newton"), ("quantum_control", "gd")}
+SKIP = {("quantum_control", "hig"), ("quantum_control", "gauss_newton"), ("quantum_control", "gd"),
+        ("quantum_control", "levenberg_marquardt")}
 
 
 def _median_times(fns: list, repeats: int, min_seconds: float, warmup: bool = True,
