@@ -31,11 +31,13 @@ def in_example(monkeypatch):
 @pytest.mark.slow
 def test_the_example_scene_trains_with_every_variant_that_applies(tmp_path):
     """Through the console script with -cd, from the example's folder: adam, hig (and its tuning file from the
-    user's folder), bptt and stable_bptt (the scene is closed loop), and the user's lion."""
-    result = run_cli("run", "-m", "-cd", "conf", "task=pendulum", "optim=adam,hig,bptt,stable_bptt,lion", *SHORT,
+    user's folder), bptt and stable_bptt (the scene is closed loop), Levenberg-Marquardt, L-BFGS, Muon, and the
+    user's lion."""
+    variants = ["adam", "bptt", "hig", "lbfgs", "levenberg_marquardt", "lion", "muon", "stable_bptt"]
+    result = run_cli("run", "-m", "-cd", "conf", "task=pendulum", f"optim={','.join(variants)}", *SHORT,
                      f"hydra.sweep.dir={tmp_path}", cwd=EXAMPLE)
     runs = {read_run(p).variant: read_run(p) for p in tmp_path.rglob("results.h5")}
-    assert sorted(runs) == ["adam", "bptt", "hig", "lion", "stable_bptt"], result.stderr[-2000:]
+    assert sorted(runs) == variants, result.stderr[-2000:]
     for variant, run in runs.items():
         assert run.attrs["status"] == "completed" and run.attrs["task"] == "pendulum", (variant, run.attrs)
         assert run.attrs["unroll"] == 40 and run.eval["loss"][-1] < run.eval["loss"][0], variant
