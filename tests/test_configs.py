@@ -38,7 +38,7 @@ def load(*overrides):
 def test_every_task_and_optim_has_a_config():
     assert set(TASKS) >= {"poisson", "oscillator", "quantum", "quantum_control", "multicart"} and set(SMALL) == set(TASKS)
     assert set(OPTIMS) == {"adam", "gd", "gauss_newton", "hig", "bptt", "stable_bptt", "levenberg_marquardt", "lbfgs",
-                           "muon"}
+                           "muon", "kfac"}
 
 
 @pytest.mark.parametrize("optim", OPTIMS)
@@ -55,6 +55,11 @@ def test_pair_runs_two_iterations_or_is_refused(task, settings, optim, tmp_path)
         assert outcome.status == "refused"
         assert f"optim={optim}" in outcome.reason and f"task={task}" in outcome.reason
         assert run.attrs["reason"] == outcome.reason
+    elif optim == "kfac" and " ".join([task, *settings]) in CLOSED_LOOP:
+        # the closed-loop controller (and ks's convolutional network) is applied many times per sample: no layer
+        # factors for K-FAC's Kronecker products
+        assert outcome.status == "refused" and "layer factors" in outcome.reason, outcome.reason
+        assert f"task={task}" in outcome.reason and "\n" not in outcome.reason
     else:
         assert outcome.status == "completed", outcome.reason
         assert list(run.train["iteration"]) == [0, 1]
