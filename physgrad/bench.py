@@ -31,7 +31,8 @@ from pathlib import Path
 from physgrad.configs import compose
 
 SCENES = ("oscillator", "quantum", "poisson", "multicart", "quantum_control", "guidance", "ks")
-OPTIMS = ("adam", "gd", "gauss_newton", "hig", "levenberg_marquardt", "lbfgs", "muon", "bptt", "stable_bptt")
+OPTIMS = ("adam", "gd", "gauss_newton", "hig", "levenberg_marquardt", "kfac", "lbfgs", "muon", "bptt",
+          "stable_bptt")
 # variants measured in another precision as well
 EXTRA = {"poisson": [("hig", ["precision=64"])],
          # the unrolling study's other training modalities and stepper, and its longest unroll
@@ -44,11 +45,19 @@ SKIP = {("quantum_control", "hig"), ("quantum_control", "gauss_newton"), ("quant
 
 def _median_times(fns: list, repeats: int, min_seconds: float, warmup: bool = True,
                   max_seconds: float = 120.0) -> list[tuple[float, int]]:
-    """Median wall time of each fn() (which must block until its results are ready), called in turn, one call
+    """Median wall time of each fn() (which must block until its results are ready), timed in turn
+    (interleaved_times). Returns (median seconds, calls timed) per fn."""
+    return [(statistics.median(fn_times), len(fn_times))
+            for fn_times in interleaved_times(fns, repeats, min_seconds, warmup, max_seconds)]
+
+
+def interleaved_times(fns: list, repeats: int, min_seconds: float, warmup: bool = True,
+                      max_seconds: float = 120.0) -> list[list[float]]:
+    """The wall times of each fn() (which must block until its results are ready), called in turn, one call
     each per round, so that a step and its baseline see the same machine (on 2 shared cores the speed drifts by
     tens of percent between measurements taken a few seconds apart). At least `repeats` rounds and min_seconds,
     but stopping once max_seconds are spent (slow steps: fewer, long repeats), after one untimed warm-up call
-    each. Returns (median seconds, calls timed) per fn."""
+    each."""
     if warmup:
         for fn in fns:
             fn()
@@ -61,7 +70,7 @@ def _median_times(fns: list, repeats: int, min_seconds: float, warmup: bool = Tr
             fn()
             fn_times.append(time.perf_counter() - start)
             spent += fn_times[-1]
-    return [(statistics.median(fn_times), len(fn_times)) for fn_times in times]
+    return times
 
 
 def _median_time(fn, repeats: int, min_seconds: float, warmup: bool = True,

@@ -39,7 +39,7 @@ def run_cases(small: bool) -> list[RunCase]:
     its = (lambda n: f"trainer.iterations={max(5, n // 15)}") if small else (lambda n: f"trainer.iterations={n}")
     oscillator = ["task=oscillator", "trainer.eval_every=50"] + (
         ["task.train_size=512", "task.test_size=256"] if small else [])
-    jacobian = ("adam", "hig") if small else ("adam", "gauss_newton", "hig", "levenberg_marquardt")
+    jacobian = ("adam", "hig") if small else ("adam", "gauss_newton", "hig", "levenberg_marquardt", "kfac")
     cases = []
     for alpha in ((100,) if small else (10, 100)):
         cases += [RunCase(f"oscillator stiff coupling alpha={alpha}",
@@ -63,9 +63,9 @@ def run_cases(small: bool) -> list[RunCase]:
                                                                              ("bptt", "stable_bptt"))]
     toy = ("task=toy", "trainer.eval_every=100")
     cases += [RunCase("badly scaled toy (lambda 0.01)", (*toy, f"optim={o}", its(3000)))
-              for o in ("adam", "gauss_newton", "hig", "levenberg_marquardt", "lbfgs", "muon")]
+              for o in ("adam", "gauss_newton", "hig", "levenberg_marquardt", "kfac", "lbfgs", "muon")]
     too_large = [("oscillator", "gd"), ("oscillator", "hig"), ("multicart", "bptt")] if small else [
-        ("oscillator", o) for o in ("adam", "gd", "gauss_newton", "hig", "levenberg_marquardt", "lbfgs")] + [
+        ("oscillator", o) for o in ("adam", "gd", "gauss_newton", "hig", "levenberg_marquardt", "kfac", "lbfgs")] + [
         ("multicart", "bptt"), ("multicart", "stable_bptt"), ("poisson", "adam"), ("poisson", "gd"),
         ("quantum", "adam")]
     for task, optim in too_large:

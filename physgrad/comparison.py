@@ -36,11 +36,12 @@ from physgrad import UserError
 from physgrad.verdict import (ALPHA, FRACTIONS, MARGIN, Curve, compare_variants, divergence_test, seeds_needed,
                               target_loss)
 
-JACOBIAN_RULES = ("physgrad.optim.spectral.spectral_rule", "physgrad.optim.spectral.marquardt_rule")
+JACOBIAN_RULES = ("physgrad.optim.spectral.spectral_rule", "physgrad.optim.spectral.marquardt_rule",
+                  "physgrad.optim.kfac.kfac")
 # log-uniform learning-rate ranges per rule family (docs/protocol.md): each spans the papers' presets by two
 # decades or more on either side
 SEARCH_RANGES = {
-    "spectral": (1e-3, 1e1),  # Gauss-Newton, HIG, Levenberg-Marquardt (mean-over-samples loss; presets 0.5 to 1)
+    "spectral": (1e-3, 1e1),  # Gauss-Newton, HIG, Levenberg-Marquardt, K-FAC (mean-over-samples loss; presets 0.5 to 1)
     "optax.lbfgs": (1e-2, 1e1),  # L-BFGS: scales the direction before its line search (preset 1)
     "optax.sgd": (1e-4, 1e1),  # plain gradient descent
     "adaptive": (1e-5, 1e-1),  # Adam and the other optax rules (presets 1e-4 to 1e-3)
@@ -55,6 +56,9 @@ SETTINGS = {  # compare.<key>: default, meaning
     "dir": (None, "the study folder (default: outputs/compare/<task>-<hash of the command>)"),
     "search": ({}, "search spaces: compare.search.<optim key>=[low,high] (log-uniform), for every variant with that key"),
     "tune": (True, "false: evaluate the variants at their configured settings without tuning"),
+    "clock": ("calibrated", "time budgets: calibrated (iterations x each variant's step cost measured in one "
+                            "interleaved calibration, immune to the machine's load) or measured (training seconds)"),
+    "calibration": (None, "a calibration.json to use instead of calibrating (e.g. one measured on a quiet machine)"),
 }
 PHASES = ("tune", "eval")
 
@@ -65,6 +69,7 @@ class Variant:
     overrides: list[str]  # the variant's own overrides (key=value)
     config: object = None  # the composed config (common + variant overrides)
     space: dict = field(default_factory=dict)  # optim key -> (low, high), log-uniform
+    job_values: dict = field(default_factory=dict)  # settings every job of the variant gets (its step cost)
 
     @property
     def preset(self) -> dict:
@@ -161,6 +166,10 @@ def study_settings(given: dict) -> dict:
     number("compare.tune_seed", s["tune_seed"], 0, 2**32, integer=True)
     number("compare.margin", s["margin"], 1, open_low=True)
     number("compare.alpha", s["alpha"], 0, 1, open_low=True)
+    from physgrad.runner import CLOCKS
+    from physgrad.validate import choice
+
+    choice("compare.clock", s["clock"], CLOCKS)
     if not isinstance(s["tune"], bool):
         raise UserError(f"compare.tune={s['tune']!r}: use true or false")
     if s["seed"] <= s["tune_seed"] < s["seed"] + s["seeds"]:
@@ -393,7 +402,7 @@ def tuning(folder: Path, variants: list[Variant], s: dict, common, groups, axis,
             trial = pending.get((index, k))
             if trial is not None:
                 values = {f"optim.{key}": value for key, value in trial.params.items()}
-                values.update({"seed": s["tune_seed"], "seeds": 1, "trainer.validation": True})
+                values.update({"seed": s["tune_seed"], "seeds": 1, "trainer.validation": True, **variant.job_values})
                 values.update(cadence(variant.config, axis, budget))
                 jobs[f"tune_v{index}_t{k:03d}"] = job_yaml([*common, *variant.overrides], groups, values)
     if jobs:
@@ -426,6 +435,39 @@ def cadence(cfg, axis: str, budget: float) -> dict:
     return {}
 
 
+def calibrated_clock(folder: Path, variants: list[Variant], seed: int, given: str | None, say) -> dict:
+    """Each variant's step cost (physgrad.calibration), measured once per study and stored in its folder (a
+    resumed study reuses it), or taken from a given calibration.json (compare.calibration); every job of a
+    variant then runs on the calibrated clock with that cost."""
+    from omegaconf import open_dict
+
+    from physgrad.calibration import CALIBRATION_FILE, calibrate, read_calibration, write_calibration
+
+    path = folder / CALIBRATION_FILE
+    names = [v.name for v in variants]
+    if given is not None:
+        calibration = read_calibration(Path(given), names)
+        if calibration is None:
+            raise UserError(f"compare.calibration={given}: not a calibration.json with a step cost for every "
+                            f"variant ({', '.join(names)}); leave it out to calibrate")
+        write_calibration(path, calibration)
+    calibration = read_calibration(path, names)
+    if calibration is None:
+        say(f"calibrating the step costs of {len(variants)} variants, interleaved in one process")
+        configs = {}
+        for variant in variants:
+            cfg = variant.config.copy()
+            with open_dict(cfg):
+                del cfg["hydra"]
+            configs[variant.name] = cfg
+        calibration = calibrate(configs, seed)
+        write_calibration(path, calibration)
+    for variant in variants:
+        cost = float(calibration["costs"][variant.name]["step_seconds"])
+        variant.job_values = {"trainer.step_cost": cost, "trainer.clock": "calibrated"}
+    return calibration
+
+
 def budget_of(cfg) -> tuple[str, float]:
     from physgrad.runner import DEFAULT_ITERATIONS
 
@@ -445,7 +487,7 @@ def evaluation_jobs(variants, best, s, common, groups, axis, budget) -> dict[str
 
     def spec(variant, seed, count):
         values = {f"optim.{k}": v for k, v in best[variant.name].items()}
-        values.update({"seed": seed, "seeds": count, **cadence(variant.config, axis, budget)})
+        values.update({"seed": seed, "seeds": count, **cadence(variant.config, axis, budget), **variant.job_values})
         return job_yaml([*common, *variant.overrides], groups, values)
 
     if axis == "iteration":
@@ -505,10 +547,12 @@ def _ratio_text(p) -> str:
     return f"{_g(p.ratio)} [{_g(_exp(p.low))}, {_g(_exp(p.high))}]"
 
 
-def analyse(folder: Path, variants, best, curves, statuses, s, axis, budget, trials_rows):
+def analyse(folder: Path, variants, best, curves, statuses, s, axis, budget, trials_rows, calibration=None):
     import pandas as pd
 
-    unit = "s" if axis == "wall_time" else "iterations"
+    from physgrad.machine import machine_label
+
+    unit = "iterations" if axis == "iteration" else "s"
     verdicts = compare_variants(curves, budget, margin=s["margin"], alpha=s["alpha"])
     target_variant, target = target_loss(curves, budget)
     run_rows = []
@@ -517,7 +561,13 @@ def analyse(folder: Path, variants, best, curves, statuses, s, axis, budget, tri
             run = statuses[variant.name][seed]
             row = {"variant": variant.name, "seed": seed, "status": run.attrs.get("status"),
                    "stopped_by": run.attrs.get("stopped_by"), "iterations": run.final("train", "iteration") + 1,
-                   "train_seconds": run.final("train", "wall_time"), "path": str(run.path)}
+                   "train_seconds": run.final("train", "wall_time"),
+                   "calibrated_seconds": (run.final("train", "calibrated_time") if "calibrated_time" in run.train
+                                          else math.nan),
+                   "contended": bool(run.attrs.get("contended", 0)), "contention": run.attrs.get("contention", ""),
+                   "step_seconds_p50": run.attrs.get("step_seconds_p50", math.nan),
+                   "step_seconds_p90": run.attrs.get("step_seconds_p90", math.nan),
+                   "machine": machine_label(run.attrs), "path": str(run.path)}
             for fraction in FRACTIONS:
                 row[f"test_loss_at_{fraction:g}"] = c.at(budget * fraction)
             row["diverged_by_budget"] = math.isinf(row["test_loss_at_1"])
@@ -543,7 +593,12 @@ def analyse(folder: Path, variants, best, curves, statuses, s, axis, budget, tri
     runs.to_csv(folder / "runs.csv", index=False)
     comparisons.to_csv(folder / "comparisons.csv", index=False)
 
-    budget_text = f"{budget:g} s of training" if axis == "wall_time" else f"{budget:g} iterations"
+    budget_text = {"wall_time": f"{budget:g} s of training (measured clock)",
+                   "calibrated_time": f"{budget:g} s of training on the calibrated clock (iterations x the variant's "
+                                      "calibrated step cost; the measured seconds are in runs.csv)",
+                   }.get(axis, f"{budget:g} iterations")
+    contended = {v.name: int(runs[runs.variant == v.name]["contended"].sum()) if len(runs) else 0
+                 for v in variants}
     lines = [f"# Which gradient: {variants[0].config.task.get('name')}, {', '.join(v.name for v in variants)}", "",
              f"Budget: {budget_text} per run. Tuning: {s['trials'] if s['tune'] else 0} trials per variant on seed "
              f"{s['tune_seed']}, scored by the validation loss at the budget. Evaluation: seeds {s['seed']}.."
@@ -552,13 +607,14 @@ def analyse(folder: Path, variants, best, curves, statuses, s, axis, budget, tri
              f"{len(verdicts)} comparisons).", "",
              "## Verdicts", "",
              "| A vs B | verdict at the budget | median A/B [95% interval] | A lower in | verdict at 1/4, 1/2 | "
-             "stable | trend 1/2 -> 1 | diverged A, B |", "|---|---|---|---|---|---|---|---|"]
+             "stable | trend 1/2 -> 1 | diverged A, B | contended runs A, B |", "|---|---|---|---|---|---|---|---|---|"]
     for v in verdicts:
         p = v.at[1.0]
-        lines.append(f"| {v.a} vs {v.b} | **{v.verdict}** ({v.verdicts[1.0][1]}) | {_ratio_text(p)} | "
+        flag = " (timing contended)" if axis == "wall_time" and (contended[v.a] or contended[v.b]) else ""
+        lines.append(f"| {v.a} vs {v.b} | **{v.verdict}**{flag} ({v.verdicts[1.0][1]}) | {_ratio_text(p)} | "
                      f"{p.wins_a} of {p.pairs}{f' ({p.missing} missing)' if p.missing else ''} | "
                      f"{v.verdicts[0.25][0]}, {v.verdicts[0.5][0]} | {'yes' if v.stable else 'no'} | {v.trend} | "
-                     f"{p.diverged_a}, {p.diverged_b} |")
+                     f"{p.diverged_a}, {p.diverged_b} | {contended[v.a]}, {contended[v.b]} |")
     lines += ["", "## Variants", "",
               f"| variant | tuned | preset | test loss at the budget: median [min, max] | diverged | "
               f"to target ({unit}): median, reached |", "|---|---|---|---|---|---|"]
@@ -579,9 +635,49 @@ def analyse(folder: Path, variants, best, curves, statuses, s, axis, budget, tri
               "budget; a run that never reaches it counts as infinite. Losses at 1/4 and 1/2 of the budget and "
               "per seed: runs.csv; every comparison at every fraction with its p-values: comparisons.csv; "
               "trials: trials.csv and sensitivity.png; curves: report/."]
+    lines += timing_lines(variants, runs, axis, calibration)
     text = "\n".join(lines) + "\n"
     (folder / "compare.md").write_text(text)
     return runs, comparisons, trials, verdicts, text
+
+
+def timing_lines(variants, runs, axis, calibration) -> list[str]:
+    """compare.md's timing section: the clock, the calibration's step costs, contended runs, the machines."""
+    lines = ["", "## Timing", ""]
+    if axis == "calibrated_time" and calibration:
+        lines += [f"Clock: calibrated. Step costs measured with every variant's compiled step interleaved in one "
+                  f"process (the {calibration['quantile']:g} quantile over rounds; load average "
+                  f"{calibration['load_start']:.2f} -> {calibration['load_end']:.2f}); a run's time is its "
+                  "iterations times its variant's cost, so the machine's load cannot change how far a variant "
+                  "gets. The measured clock: compare.clock=measured.", "",
+                  "| variant | calibrated step cost | median in the calibration | rounds | measured p50 in the runs "
+                  "| contended runs |", "|---|---|---|---|---|---|"]
+        for variant in variants:
+            cost = calibration["costs"][variant.name]
+            sub = runs[runs.variant == variant.name] if len(runs) else runs
+            p50 = float(np.nanmedian(sub["step_seconds_p50"])) if len(sub) and sub["step_seconds_p50"].notna().any() \
+                else math.nan
+            lines.append(f"| {variant.name} | {_g(cost['step_seconds'])} s | {_g(cost['median_seconds'])} s | "
+                         f"{cost['rounds']} | {_g(p50)} s | {int(sub['contended'].sum()) if len(sub) else 0} of "
+                         f"{len(sub)} |")
+    elif axis == "wall_time":
+        lines += ["Clock: measured (training seconds as timed). A run flagged contended (step times spread or the "
+                  "machine oversubscribed, docs/decisions.md) was slowed by other work: a verdict that uses one is "
+                  "marked. The calibrated clock is the default (compare.clock=calibrated)."]
+    else:
+        lines += ["Budget in iterations: the clock does not enter the verdicts."]
+    machines = sorted(set(runs["machine"])) if len(runs) else []
+    if len(machines) > 1:
+        lines += ["", f"**Warning**: the runs come from {len(machines)} machines ({'; '.join(machines)}): "
+                      "their times are not comparable."]
+    elif machines:
+        lines += ["", f"Machine: {machines[0]}."]
+    flagged = runs[runs.contended] if len(runs) else runs
+    if len(flagged):
+        lines += ["", f"Contended runs: {len(flagged)} of {len(runs)} "
+                      f"(e.g. {flagged.iloc[0]['variant']} seed {flagged.iloc[0]['seed']}: "
+                      f"{flagged.iloc[0]['contention']})."]
+    return lines
 
 
 def plot_sensitivity(path: Path, variants, trials_rows, best) -> None:
@@ -680,7 +776,11 @@ def run_study(overrides: list[str], config_dir: str | None = None, say=print) ->
     try:
         with own_folder(folder, "study"):
             say(f"study {folder}: {len(variants)} variants ({', '.join(v.name for v in variants)}), budget "
-                f"{budget:g} {'s' if axis == 'wall_time' else 'iterations'}; the same command resumes it")
+                f"{budget:g} {'iterations' if axis == 'iteration' else 's'}; the same command resumes it")
+            calibration = None
+            if axis == "wall_time" and s["clock"] == "calibrated":
+                calibration = calibrated_clock(folder, variants, s["tune_seed"], s["calibration"], say)
+                axis = "calibrated_time"
             best = tuning(folder, variants, s, common, groups, axis, budget, config_dir, hydra_args, say)
             rows = trial_rows(folder, variants)
             if rows:
@@ -688,7 +788,7 @@ def run_study(overrides: list[str], config_dir: str | None = None, say=print) ->
             curves, statuses = evaluation(folder, variants, best, s, common, groups, axis, budget, config_dir,
                                           hydra_args, say)
             runs, comparisons, trials, verdicts, text = analyse(folder, variants, best, curves, statuses, s, axis,
-                                                                budget, rows)
+                                                                budget, rows, calibration)
             try:
                 from physgrad.report import write_report
 

@@ -16,8 +16,10 @@ from omegaconf import DictConfig, OmegaConf
 import physgrad
 from physgrad import UserError
 from physgrad.gradients import JacobianPass
+from physgrad.machine import machine_attributes
 from physgrad.nets import count_params
 from physgrad.optim import UpdateRule, build_rule, matrix_leaves, needs_value_arguments
+from physgrad.optim.kfac import KroneckerRule
 from physgrad.resume import finished_before, start_from
 from physgrad.results import FolderOwned, ResultsWriteError, ResultsWriter, own_folder, read_final
 from physgrad.runner import Outcome, Seeds, TrainerSettings, stack, stop_on_signals, train
@@ -194,6 +196,10 @@ def prepare(cfg: DictConfig, seed_list: list[int], settings: TrainerSettings) ->
         sample = jax.tree_util.tree_map(lambda leaf: leaf[0], scene.sample_train(jax.random.PRNGKey(0), 1))
         rule = rule._replace(gradient=JacobianPass.for_network(scene.sample_output, seeds.network(), sample,
                                                                with_value=rule.gradient.with_value))
+        if isinstance(rule.transform, KroneckerRule) and rule.gradient.plan is None:
+            raise UserError(f"optim={cfg.optim.name} needs the Jacobian in layer factors and task={cfg.task.name} "
+                            f"gives it per sample ({rule.gradient.why_per_sample}): use levenberg_marquardt or "
+                            "gauss_newton")
     return scene, rule, seeds
 
 
@@ -276,7 +282,7 @@ def run_owned(cfg: DictConfig, paths: list[tuple[int, Path]], stop) -> Outcome:
         **attrs, **origin, "seed": seed,
         "batch_size": settings.batch_size,
         "n_params": count_params(seeds.network()),
-        "device": str(jax.devices()[0].device_kind),
+        **machine_attributes(),
     }) for seed, path in paths]
     label = f"{cfg.task.name}/{cfg.optim.name} seed {cfg.seed}" + (f" (+{len(paths) - 1})" if len(paths) > 1 else "")
     outcomes = train(scene, rule, seeds, writers, settings, label=label, stop=stop)

@@ -169,7 +169,8 @@ def plot_comparison(runs: list[Run], path: str | Path, x_key: str = "wall_time",
                 notes += 1
                 smallest += [x[x > 0].min()] if (x > 0).any() else []
         ax.set_title(scene, fontsize=10)
-        ax.set_xlabel("training time [s]" if x_key == "wall_time" else "iteration")
+        ax.set_xlabel({"wall_time": "training time, measured clock [s]",
+                       "calibrated_time": "training time, calibrated clock [s]"}.get(x_key, "iteration"))
         ax.set_ylabel("test loss")
         log_axis(ax)
         if smallest and use_log_x(ends, logx):

@@ -22,6 +22,7 @@ import numpy as np
 import yaml
 
 from physgrad import UserError
+from physgrad.machine import machine_label
 from physgrad.results import Run, find_results, natural_key, read_run
 from physgrad.sweeps import unfinished_jobs
 
@@ -33,7 +34,7 @@ NOT_COMPUTATION = ("seed", "overwrite", "init_from", "trainer.flush_seconds", "t
 SCENE_KEYS = ("unroll", "precision")
 # what the variant label already says
 VARIANT_KEYS = ("task.name", "optim.name", "optim.backprop", "optim.clip")
-METADATA = ("iteration", "wall_time")
+METADATA = ("iteration", "wall_time", "calibrated_time")
 
 
 def parse_sources(arguments) -> list[tuple[str, Path]]:
@@ -249,10 +250,21 @@ def run_rows(runs: list[Run], threshold: float | None = None) -> list[dict]:
             "train_seconds": run.final("train", "wall_time"),
             "compile_seconds": float(run.attrs.get("compile_seconds", math.nan)),
             "first_step_overhead_seconds": float(run.attrs.get("first_step_overhead_seconds", math.nan)),
+            "calibrated_seconds": run.final("train", "calibrated_time"),
+            "step_seconds_p50": _float_attr(run, "step_seconds_p50"),
+            "step_seconds_p90": _float_attr(run, "step_seconds_p90"),
+            "contended": int(bool(run.attrs.get("contended", 0))),
+            "contention": str(run.attrs.get("contention", "") or ""),
+            "machine": machine_label(run.attrs),
             **{name: run.final("eval", name) for name in names},
             "reason": run.attrs.get("reason", "") or "",
         })
     return rows
+
+
+def _float_attr(run: Run, key: str) -> float:
+    value = run.attrs.get(key)
+    return float(value) if isinstance(value, (int, float)) and not isinstance(value, bool) else math.nan
 
 
 def _spread(values) -> str:
@@ -294,9 +306,31 @@ def group_rows(rows: list[dict], names: list[str]) -> list[dict]:
             "iterations": str(round(float(np.median([r["iterations"] for r in members])))),
             "s/iter": _spread(r["s_per_iter"] for r in members),
             "stopped by": _counts((r["stopped_by"] for r in members), plain_if_one=True),
+            "contended": f"{sum(r['contended'] for r in members)}/{len(members)}",
+            "machine": "; ".join(sorted({r["machine"] for r in members})),
             **{name: _spread(r[name] for r in completed) for name in names},
         })
     return table
+
+
+def timing_notes(rows: list[dict], scenes: list[str]) -> list[str]:
+    """The machine of each scene's runs (a warning where one scene's runs come from several: their times are not
+    comparable) and the runs whose timing was contended (physgrad.machine.contention)."""
+    notes = [""]
+    for scene in scenes:
+        machines = sorted({r["machine"] for r in rows if r["scene"] == scene})
+        if len(machines) > 1:
+            notes.append(f"warning: the runs of {scene} come from {len(machines)} machines ({'; '.join(machines)}): "
+                         "their times are not comparable")
+        else:
+            notes.append(f"{scene} measured on {machines[0]}.")
+    contended = [r for r in rows if r["contended"]]
+    if contended:
+        notes.append(f"warning: {len(contended)} of {len(rows)} runs were contended (their measured times were "
+                     "slowed by other work; calibrated times, where present, are not): "
+                     + "; ".join(f"{r['label']} seed {r['seed']}: {r['contention']}" for r in contended[:5])
+                     + (" ..." if len(contended) > 5 else ""))
+    return notes
 
 
 PER_SEED = ("scene", "label", "seed", "status", "stopped_by", "iterations", "test_loss", "loss_at_common_time",
@@ -360,7 +394,7 @@ def write_report(paths, out_dir=None, threshold: float | None = None, note: str 
     rows = run_rows(runs, threshold)
     names = metric_names(runs)
     group_columns = ("scene", "group", "seeds", "status", "final test loss", "loss at common time",
-                     "time to threshold s", "iterations", "s/iter", "stopped by", *names)
+                     "time to threshold s", "iterations", "s/iter", "stopped by", "contended", *names)
     limits, common = thresholds(runs), common_times(runs)
     scenes = sorted({run.scene for run in runs}, key=natural_key)
     if threshold is not None:
@@ -384,6 +418,7 @@ def write_report(paths, out_dir=None, threshold: float | None = None, note: str 
             "Times are training seconds (steps only: compilation and the first step's one-off cost are apart, in "
             "compile_seconds and runs.csv); a run started from another's network counts from where that run ended "
             "on the common time axis, and from its own start in train_seconds."]
+    text += timing_notes(rows, scenes)
     for path, reason in unreadable:
         text.append(f"unreadable: {reason}")
     for item in dropped:
@@ -406,8 +441,13 @@ def write_report(paths, out_dir=None, threshold: float | None = None, note: str 
 
     plot_comparison(runs, out / "loss_vs_time", "wall_time", note, logx)
     plot_comparison(runs, out / "loss_vs_iteration", "iteration", note, logx)
+    calibrated = [run for run in runs if "calibrated_time" in run.eval]
+    if calibrated:
+        plot_comparison(calibrated, out / "loss_vs_calibrated_time", "calibrated_time", note, logx)
     plot_tradeoff(runs, out / "tradeoff", note)
     figures = [f"{name}.png" for name in FIGURES[:3]]
+    if calibrated:
+        figures.append("loss_vs_calibrated_time.png")
     if plot_unroll(runs, out / "unroll", note):
         figures.append("unroll.png")
     return body + f"wrote {out / 'report.md'}, runs.csv, curves.csv and {', '.join(figures)} (and .pdf)\n"

@@ -239,8 +239,8 @@ class Run:
     def offset(self, x_key: str) -> float:
         """Where this run's x axis starts: a run started from another's network (init_from) continues that
         run's iterations and training seconds."""
-        key = {"wall_time": "init_train_seconds", "iteration": "init_iterations"}[x_key]
-        return float(self.attrs.get(key, 0.0))
+        key = {"wall_time": "init_train_seconds", "iteration": "init_iterations"}.get(x_key)
+        return float(self.attrs.get(key, 0.0)) if key else 0.0
 
     def final(self, group: str, column: str = "loss") -> float:
         values = getattr(self, group).get(column, np.empty(0))

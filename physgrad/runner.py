@@ -28,12 +28,15 @@ from tqdm import tqdm
 from physgrad.optim import UpdateRule, on_tree, state_logs
 from physgrad.results import ResultsWriteError, ResultsWriter
 from physgrad.tasks import Scene
-from physgrad.validate import number
+from physgrad import UserError
+from physgrad.machine import contention, cpu_count, load_average, step_statistics
+from physgrad.validate import choice, number
 from physgrad.verdict import DIVERGENCE_FACTOR
 
 log = logging.getLogger("physgrad")
 clock = time.perf_counter  # every interval of the loop is read from this clock (tests replace it)
 DEFAULT_ITERATIONS = 2000  # trainer.iterations=null without a time budget
+CLOCKS = ("measured", "calibrated")
 EVALUATIONS_PER_BUDGET = 20  # trainer.eval_seconds=null with a time budget: an evaluation every budget / 20
 SLOW_STEP_SECONDS = 0.2  # a step at least this long runs in a helper thread, so that a second signal ends it
 WAKE_SECONDS = 0.05  # how often the waiting thread looks at signals
@@ -56,6 +59,8 @@ class TrainerSettings:
     flush_seconds: float
     log_seconds: float
     divergence_factor: float | None = DIVERGENCE_FACTOR
+    step_cost: float | None = None  # seconds per step from a calibration (physgrad.calibration), or None
+    clock: str = "measured"  # which clock the time budget and eval_seconds read: measured | calibrated
 
     @classmethod
     def from_config(cls, trainer_cfg) -> "TrainerSettings":
@@ -65,6 +70,11 @@ class TrainerSettings:
         iterations = number("trainer.iterations", trainer_cfg.get("iterations"), 1, integer=True, optional=True)
         eval_seconds = number("trainer.eval_seconds", trainer_cfg.get("eval_seconds"), 0, optional=True,
                               open_low=True)
+        step_cost = number("trainer.step_cost", trainer_cfg.get("step_cost"), 0, optional=True, open_low=True)
+        clock = choice("trainer.clock", trainer_cfg.get("clock", "measured"), CLOCKS)
+        if clock == "calibrated" and step_cost is None:
+            raise UserError("trainer.clock=calibrated needs trainer.step_cost (seconds per step from a calibration: "
+                            "physgrad compare measures it) or trainer.clock=measured")
         return cls(
             iterations=iterations if iterations is not None or budget is not None else DEFAULT_ITERATIONS,
             time_budget=budget,
@@ -76,6 +86,8 @@ class TrainerSettings:
             log_seconds=number("trainer.log_seconds", trainer_cfg.get("log_seconds", 30.0), 0, open_low=True),
             divergence_factor=number("trainer.divergence_factor", trainer_cfg.get("divergence_factor",
                                      DIVERGENCE_FACTOR), 1, optional=True, open_low=True),
+            step_cost=step_cost,
+            clock=clock,
         )
 
 
@@ -301,6 +313,18 @@ def compile_training(scene: Scene, rule: UpdateRule, seeds: Seeds, batch_size: i
     return CompiledTraining(step, evaluate, params, opt_state, log_names, validate)
 
 
+def timing_attributes(step_seconds: list[float], load_start: float, load_end: float) -> dict:
+    """The step-time percentiles, the load average at the start and the end, and the contention flag with its
+    reason (physgrad.machine.contention)."""
+    statistics = step_statistics(step_seconds)
+    cores = cpu_count()
+    why = contention(statistics, len(step_seconds), load_start, load_end, cores)
+    attrs = {**statistics, "load_start": load_start, "load_end": load_end, "contended": int(bool(why))}
+    if why:
+        attrs["contention"] = why
+    return attrs
+
+
 @dataclass
 class SeedRun:
     """What the loop tracks for one seed: its results file, how it ended so far, its last evaluation, and the
@@ -386,17 +410,28 @@ def train(scene: Scene, rule: UpdateRule, seeds: Seeds, writers: list[ResultsWri
     validate = None
     last_eval_seconds = 0.0
 
+    def clock_times(iteration) -> dict:
+        """The measured training seconds and, with a calibration, the calibrated ones (iterations x step cost)."""
+        times = {"wall_time": train_seconds}
+        if settings.step_cost is not None:
+            times["calibrated_time"] = iteration * settings.step_cost
+        return times
+
+    def budget_seconds(iteration) -> float:
+        """The time the budget and eval_seconds read: the measured or the calibrated clock (trainer.clock)."""
+        return iteration * settings.step_cost if settings.clock == "calibrated" else train_seconds
+
     def record_eval(iteration):
         nonlocal last_eval_seconds
         # written with the next periodic flush: a flush per evaluation cost 2% of a fast scene's wall time
         metrics = {k: np.asarray(v).tolist() for k, v in jax.device_get(evaluate(params, seeds.test_sets)).items()}
         if validate is not None:
             metrics["validation_loss"] = np.asarray(jax.device_get(validate(params, seeds.validation_sets)["loss"])).tolist()
-        last_eval_seconds = train_seconds
+        last_eval_seconds = budget_seconds(iteration)
         for index, run in enumerate(runs):
             if run.running:
                 values = {k: v[index] for k, v in metrics.items()}
-                run.writer.append("eval", {"iteration": iteration, "wall_time": train_seconds, **values})
+                run.writer.append("eval", {"iteration": iteration, **clock_times(iteration), **values})
                 run.latest_eval = {**values, "iteration": iteration}
 
     def for_every_writer(method: str, *args, **kwargs):
@@ -408,6 +443,8 @@ def train(scene: Scene, rule: UpdateRule, seeds: Seeds, writers: list[ResultsWri
             raise KeyboardInterrupt(stop.signal_name)
 
     progress = Progress(settings, label)
+    step_seconds: list[float] = []  # every step's time but the first (compiling) call's: contention
+    load_start = load_average()
     try:
         stop_requested()  # a signal during start-up
         # compiling can take minutes: inside the guard, so a failure or an interrupt here is recorded too
@@ -419,7 +456,10 @@ def train(scene: Scene, rule: UpdateRule, seeds: Seeds, writers: list[ResultsWri
         compile_seconds = clock() - start
         for_every_writer("set_attrs", compile_seconds=compile_seconds)
         progress.compiled(compile_seconds)
-        for_every_writer("set_columns", "train", ("iteration", "wall_time", *log_names))
+        clock_columns = ("wall_time", "calibrated_time") if settings.step_cost is not None else ("wall_time",)
+        for_every_writer("set_columns", "train", ("iteration", *clock_columns, *log_names))
+        if settings.step_cost is not None:
+            for_every_writer("set_attrs", step_cost=settings.step_cost, clock=settings.clock)
         guarded = [log_names.index(name) for name in GUARDED]
         loss_at = log_names.index("loss")
         svd_at = log_names.index("svd_failures") if "svd_failures" in log_names else None
@@ -446,18 +486,21 @@ def train(scene: Scene, rule: UpdateRule, seeds: Seeds, writers: list[ResultsWri
             params, done = new_params, iteration + 1
             if iteration == 0:
                 first_step_seconds = seconds
-            elif iteration == 1:
+            else:
+                step_seconds.append(seconds)
+            if iteration == 1:
                 # the first call's one-off cost (how much longer it took than the second) is start-up, not
                 # training: taken off every time stamp since, which are all still in the buffers
                 overhead = max(0.0, first_step_seconds - seconds)
                 train_seconds -= overhead
-                last_eval_seconds = max(0.0, last_eval_seconds - overhead) if last_eval_seconds else 0.0
+                if settings.clock == "measured" and last_eval_seconds:
+                    last_eval_seconds = max(0.0, last_eval_seconds - overhead)
                 for_every_writer("shift_buffered_time", -overhead)
                 for_every_writer("set_attrs", first_step_overhead_seconds=overhead)
             diverged = False
             for index, run in running:
                 row = logs[index]
-                run.writer.append_row("train", (iteration, train_seconds, *row))
+                run.writer.append_row("train", (iteration, *clock_times(done).values(), *row))
                 bad = next((log_names[i] for i in guarded if not math.isfinite(row[i])), None)
                 if run.first_loss is None:
                     run.first_loss = row[loss_at]
@@ -476,14 +519,15 @@ def train(scene: Scene, rule: UpdateRule, seeds: Seeds, writers: list[ResultsWri
                 if not running:
                     break
             iteration = done
-            if settings.time_budget is not None and train_seconds >= settings.time_budget:
+            if settings.time_budget is not None and budget_seconds(done) >= settings.time_budget:
                 stopped_by = "time_budget"
                 break
             if done == settings.iterations:
                 stopped_by = "iterations"
                 break
             if done % settings.eval_every == 0 or (
-                    settings.eval_seconds is not None and train_seconds - last_eval_seconds >= settings.eval_seconds):
+                    settings.eval_seconds is not None
+                    and budget_seconds(done) - last_eval_seconds >= settings.eval_seconds):
                 record_eval(done)
             now = clock()
             if now - last_flush >= flush_interval and done > 1:  # after the first-step correction
@@ -513,6 +557,7 @@ def train(scene: Scene, rule: UpdateRule, seeds: Seeds, writers: list[ResultsWri
         raise
     finally:
         progress.close()
+        for_every_writer("set_attrs", **timing_attributes(step_seconds, load_start, load_average()))
     outcomes, write_errors = [], []
     for index, run in enumerate(runs):
         flat = None if params is None else np.asarray(params[index])

@@ -222,3 +222,28 @@ def test_a_study_stopped_at_random_instants_resumes_to_the_same_trials(tmp_path)
         assert [t["variant"] for t in trials] == ["adam"] * 3 + ["gd"] * 3
         assert all(t["state"] == "COMPLETE" for t in trials)
         assert len(list(csv.DictReader(open(study / "runs.csv")))) == 12
+
+
+def test_an_equal_time_study_runs_on_the_calibrated_clock_and_can_reuse_a_calibration(tmp_path):
+    """A time budget: the variants are calibrated once (calibration.json), every run stops where iterations x its
+    variant's cost reach the budget, verdicts read the calibrated clock, and a second study given the first's
+    calibration trains exactly as far."""
+    import json
+
+    common = ["task=toy", "optim=adam,gauss_newton", "trainer.time_budget=0.4", "compare.trials=1", "compare.seeds=6",
+              "trainer.batch_size=16"]
+    study = physgrad.compare(*common, f"compare.dir={tmp_path / 'first'}")
+    calibration = json.loads((study.folder / "calibration.json").read_text())
+    costs = {name: calibration["costs"][name]["step_seconds"] for name in ("adam", "gauss_newton")}
+    assert costs["gauss_newton"] > costs["adam"] > 0
+    for _, row in study.runs.iterrows():
+        cost = costs[row.variant]
+        assert row.iterations == math.ceil(0.4 / cost - 1e-9) or row.status != "completed", row
+        assert row.calibrated_seconds == pytest.approx(row.iterations * cost)
+    assert "Clock: calibrated" in study.text and "contended runs A, B" in study.text
+    again = physgrad.compare(*common, f"compare.calibration={study.folder / 'calibration.json'}",
+                             f"compare.dir={tmp_path / 'second'}")
+    assert list(again.runs.iterations) == list(study.runs.iterations)
+    with pytest.raises(UserError, match="compare.calibration"):
+        physgrad.compare("task=toy", "optim=adam,gd", "trainer.time_budget=0.4", "compare.trials=1",
+                         f"compare.calibration={study.folder / 'calibration.json'}", f"compare.dir={tmp_path / 'x'}")

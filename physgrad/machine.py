@@ -1,0 +1,131 @@
+"""What a result was measured on, and whether its timing can be trusted.
+
+machine_attributes(): the CPU (model, cores), the device, the thread settings of XLA and BLAS, the versions and
+the project's git commit, recorded in every results file (docs/results.md).
+step_statistics() and contention(): the step-time percentiles of a run and the contention rule
+(docs/decisions.md, "Timing"): a run is flagged ``contended`` when
+  - its step times spread: p90 / p50 > CONTENTION_SPREAD (a shape-static step costs the same every time; on a
+    quiet machine p90 / p50 is 1.0 to 1.2), with at least CONTENTION_MIN_STEPS steps, or
+  - the machine was oversubscribed: the 1-minute load average at the start or the end, less the run's own one
+    runnable process, reached the number of cores.
+"""
+
+from __future__ import annotations
+
+import functools
+import os
+import platform
+import subprocess
+from pathlib import Path
+
+import numpy as np
+
+CONTENTION_SPREAD = 1.5
+CONTENTION_MIN_STEPS = 20
+THREAD_VARIABLES = ("XLA_FLAGS", "OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS",
+                    "TF_NUM_INTEROP_THREADS", "TF_NUM_INTRAOP_THREADS")
+
+
+def cpu_model() -> str:
+    """The CPU's model name (/proc/cpuinfo on Linux, platform elsewhere)."""
+    try:
+        for line in Path("/proc/cpuinfo").read_text(errors="replace").splitlines():
+            if line.lower().startswith(("model name", "hardware", "cpu model")):
+                return line.split(":", 1)[1].strip()[:200]
+    except OSError:
+        pass
+    return (platform.processor() or platform.machine() or "unknown")[:200]
+
+
+def cpu_count() -> int:
+    """The cores this process may run on (the affinity mask where the OS has one)."""
+    try:
+        return len(os.sched_getaffinity(0))
+    except (AttributeError, OSError):
+        return os.cpu_count() or 1
+
+
+def load_average() -> float:
+    """The 1-minute load average (NaN where the OS has none)."""
+    try:
+        return float(os.getloadavg()[0])
+    except (AttributeError, OSError):
+        return float("nan")
+
+
+@functools.lru_cache(maxsize=1)
+def git_commit() -> str:
+    """The commit of the git checkout physgrad runs from, with '+dirty' for uncommitted changes; '' for an
+    installed copy outside a checkout."""
+    root = Path(__file__).resolve().parent.parent
+    if not (root / ".git").exists():
+        return ""
+    try:
+        commit = subprocess.run(["git", "-C", str(root), "rev-parse", "HEAD"], capture_output=True, text=True,
+                                timeout=5).stdout.strip()
+        dirty = subprocess.run(["git", "-C", str(root), "status", "--porcelain", "--untracked-files=no"],
+                               capture_output=True, text=True, timeout=5).stdout.strip()
+    except (OSError, subprocess.SubprocessError):
+        return ""
+    return commit + ("+dirty" if commit and dirty else "")
+
+
+def device_name() -> str:
+    """'cpu' or the accelerator's model, as jax sees its first device."""
+    import jax
+
+    device = jax.devices()[0]
+    return device.platform if device.platform == "cpu" else f"{device.platform}: {device.device_kind}"
+
+
+def machine_attributes() -> dict:
+    """The machine and software a run is measured on (root attributes of results.h5)."""
+    import jax
+    import jaxlib
+
+    import physgrad
+
+    threads = "; ".join(f"{name}={os.environ[name]}" for name in THREAD_VARIABLES if name in os.environ)
+    return {
+        "cpu_model": cpu_model(),
+        "cpu_count": cpu_count(),
+        "device": device_name(),
+        "thread_settings": threads or "default",
+        "jax_version": jax.__version__,
+        "jaxlib_version": jaxlib.__version__,
+        "physgrad_version": physgrad.__version__,
+        "git_commit": git_commit(),
+        "hostname": platform.node()[:200],
+    }
+
+
+def machine_label(attrs) -> str:
+    """One line naming where a run was measured: CPU model and cores, and the device when it is not the CPU."""
+    model = str(attrs.get("cpu_model", "") or "")
+    if not model:
+        return "unknown machine"
+    label = f"{model} ({attrs.get('cpu_count', '?')} cores)"
+    device = str(attrs.get("device", "") or "")
+    return label if not device or device == "cpu" else f"{label}, {device}"
+
+
+def step_statistics(step_seconds) -> dict:
+    """p10, p50, p90 and p99 of a run's step times (seconds; the first, compiling call left out by the caller)."""
+    times = np.asarray(step_seconds, float)
+    if times.size == 0:
+        return {}
+    p10, p50, p90, p99 = np.percentile(times, [10, 50, 90, 99])
+    return {"step_seconds_p10": float(p10), "step_seconds_p50": float(p50), "step_seconds_p90": float(p90),
+            "step_seconds_p99": float(p99)}
+
+
+def contention(statistics: dict, steps: int, load_start: float, load_end: float, cores: int) -> str:
+    """Why a run's timing is not to be trusted ('' when it is): the rule of this module's docstring."""
+    reasons = []
+    p50, p90 = statistics.get("step_seconds_p50"), statistics.get("step_seconds_p90")
+    if steps >= CONTENTION_MIN_STEPS and p50 and p90 is not None and p90 > CONTENTION_SPREAD * p50:
+        reasons.append(f"step times spread: p90/p50 = {p90 / p50:.2f} > {CONTENTION_SPREAD:g}")
+    loads = [x for x in (load_start, load_end) if np.isfinite(x)]
+    if loads and max(loads) - 1.0 >= cores:
+        reasons.append(f"load average {max(loads):.2f} with {cores} cores (other work beside the run)")
+    return "; ".join(reasons)
