@@ -313,12 +313,12 @@ def compile_training(scene: Scene, rule: UpdateRule, seeds: Seeds, batch_size: i
     return CompiledTraining(step, evaluate, params, opt_state, log_names, validate)
 
 
-def timing_attributes(step_seconds: list[float], load_start: float, load_end: float) -> dict:
+def timing_attributes(step_seconds: list[float], load_start: float, load_end: float, static_cost: bool = True) -> dict:
     """The step-time percentiles, the load average at the start and the end, and the contention flag with its
     reason (physgrad.machine.contention)."""
     statistics = step_statistics(step_seconds)
     cores = cpu_count()
-    why = contention(statistics, len(step_seconds), load_start, load_end, cores)
+    why = contention(statistics, len(step_seconds), load_start, load_end, cores, static_cost)
     attrs = {**statistics, "load_start": load_start, "load_end": load_end, "contended": int(bool(why))}
     if why:
         attrs["contention"] = why
@@ -557,7 +557,9 @@ def train(scene: Scene, rule: UpdateRule, seeds: Seeds, writers: list[ResultsWri
         raise
     finally:
         progress.close()
-        for_every_writer("set_attrs", **timing_attributes(step_seconds, load_start, load_average()))
+        # a line search (a rule given value_fn on the gradient route: optax.lbfgs) costs what the data ask for
+        static_cost = rule.uses_jacobian or not getattr(rule.gradient, "with_value", False)
+        for_every_writer("set_attrs", **timing_attributes(step_seconds, load_start, load_average(), static_cost))
     outcomes, write_errors = [], []
     for index, run in enumerate(runs):
         flat = None if params is None else np.asarray(params[index])
