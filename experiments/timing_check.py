@@ -78,7 +78,8 @@ def main(argv=None) -> int:
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     quiet = study(args.overrides, out / "quiet")
-    hogs = [multiprocessing.Process(target=burn, daemon=True) for _ in range(args.hogs)]
+    # spawned, not forked: the parent has JAX's threads running
+    hogs = [multiprocessing.get_context("spawn").Process(target=burn, daemon=True) for _ in range(args.hogs)]
     for hog in hogs:
         hog.start()
     try:

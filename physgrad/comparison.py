@@ -660,6 +660,14 @@ def timing_lines(variants, runs, axis, calibration) -> list[str]:
             lines.append(f"| {variant.name} | {_g(cost['step_seconds'])} s | {_g(cost['median_seconds'])} s | "
                          f"{cost['rounds']} | {_g(p50)} s | {int(sub['contended'].sum()) if len(sub) else 0} of "
                          f"{len(sub)} |")
+        from physgrad.machine import contention
+
+        busy = contention({}, 0, calibration["load_start"], calibration["load_end"],
+                          int(calibration["machine"].get("cpu_count", 1)))
+        if busy:
+            lines += ["", f"**Warning**: the calibration ran on a busy machine ({busy}): the step costs of the "
+                          "variants are not slowed alike by other work, so recalibrate on a quiet machine or give "
+                          "one with compare.calibration."]
     elif axis == "wall_time":
         lines += ["Clock: measured (training seconds as timed). A run flagged contended (step times spread or the "
                   "machine oversubscribed, docs/decisions.md) was slowed by other work: a verdict that uses one is "
