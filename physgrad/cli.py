@@ -83,7 +83,9 @@ def dispatch(argv: list[str]) -> int:
         raise UserError(f"unknown command '{command}': use 'physgrad run ...', 'physgrad compare ...', "
                         "'physgrad report PATH...' or 'physgrad check'")
     except UserError as error:
-        print(f"physgrad: error: {error}", file=sys.stderr)
+        from physgrad.results import clean_text
+
+        print(f"physgrad: error: {clean_text(str(error), None)}", file=sys.stderr)
         return 2
 
 
@@ -177,9 +179,11 @@ def report_command(args: list[str]) -> int:
                         help="log time/iteration axis: auto where the curves' ends span a decade or more")
     options = parser.parse_args(args)
     from physgrad.report import write_report
+    from physgrad.results import clean_text
 
-    print(write_report(options.paths, out_dir=options.out, threshold=options.threshold, note=options.note,
-                       logx=options.logx), end="")
+    body = write_report(options.paths, out_dir=options.out, threshold=options.threshold, note=options.note,
+                        logx=options.logx)
+    print(clean_text(body, None, lines=True), end="")  # paths of others' folders may hold terminal escapes
     return 0
 
 

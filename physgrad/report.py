@@ -23,7 +23,7 @@ import yaml
 
 from physgrad import UserError
 from physgrad.machine import machine_label
-from physgrad.results import Run, find_results, natural_key, read_run
+from physgrad.results import Run, clean_text, find_results, natural_key, read_run, read_small_yaml, replaced_text
 from physgrad.sweeps import unfinished_jobs
 
 # keys that never tell two runs apart: the seed (what a group pools over), files and cadences that do not change
@@ -90,10 +90,7 @@ def collect(arguments) -> tuple[list[Run], list[tuple[Path, str]], list[Dropped]
 
 def run_config(run: Run) -> dict:
     """The run's resolved configuration, flattened to dotted keys (empty if it holds none)."""
-    try:
-        return _flat(yaml.safe_load(run.attrs.get("config", "")) or {})
-    except yaml.YAMLError:
-        return {}
+    return _flat(run.config)
 
 
 def _flat(tree: dict, prefix: str = "") -> dict:
@@ -348,11 +345,11 @@ def write_csv(rows: list[dict], runs: list[Run], out: Path) -> None:
     """runs.csv (one row per run) and curves.csv (long format: run, split, iteration, wall_time, metric,
     value; run is the results file's path as in runs.csv)."""
     if rows:
-        with open(out / "runs.csv", "w", newline="") as f:
+        with replaced_text(out / "runs.csv") as f:
             writer = csv.DictWriter(f, fieldnames=list(rows[0]))
             writer.writeheader()
             writer.writerows(rows)
-    with open(out / "curves.csv", "w", newline="") as f:
+    with replaced_text(out / "curves.csv") as f:
         writer = csv.writer(f)
         writer.writerow(("run", "split", "iteration", "wall_time", "metric", "value"))
         for run in runs:
@@ -429,14 +426,20 @@ def write_report(paths, out_dir=None, threshold: float | None = None, note: str 
             text += [f"not run: {job}: {why}" for job, why in unfinished_jobs(path)]
     for _, path in parse_sources(paths):  # a study of Hydra's Optuna sweeper (hydra/sweeper=optuna)
         study = path / "optimization_results.yaml" if path.is_dir() else None
-        if study is not None and study.is_file():
-            best = yaml.safe_load(study.read_text()) or {}
+        if study is not None and study.exists():
+            try:
+                best = read_small_yaml(study) or {}
+                best = best if isinstance(best, dict) and isinstance(best.get("best_params") or {}, dict) else {}
+            except (OSError, ValueError) as error:
+                text.append(f"unreadable: {clean_text(str(error))}")
+                continue
             settings = " ".join(f"{k}={_value(v)}" for k, v in (best.get("best_params") or {}).items())
             text.append(f"tuned by Optuna in {path}: best {settings} (objective {_fmt(best.get('best_value'))}: the "
                         "final test loss)")
     body = "\n".join(text) + "\n"
-    (out / "report.md").write_text(body)
     write_csv(rows, runs, out)
+    with replaced_text(out / "report.md") as f:  # last: a report.md beside complete tables only
+        f.write(body)
     from physgrad.plots import plot_comparison, plot_tradeoff, plot_unroll
 
     plot_comparison(runs, out / "loss_vs_time", "wall_time", note, logx)

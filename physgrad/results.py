@@ -17,13 +17,15 @@ import math
 import os
 import re
 import socket
+import stat
 import time
 from contextlib import contextmanager
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import h5py
 import numpy as np
+import yaml
 
 STATUSES = ("running", "completed", "diverged", "interrupted", "failed", "refused")
 GROUPS = ("train", "eval")
@@ -221,6 +223,7 @@ class Run:
     setting: str = ""  # the problem settings that tell this run's scene apart from others of its task
     label: str = ""  # in a report: its group (variant and the method settings that differ), see physgrad.report
     collection: str = ""  # in a report: the label of the set of runs it was found in (LABEL=PATH)
+    config: dict = field(default_factory=dict)  # the stored config parsed as plain data (parse_config)
 
     @property
     def scene(self) -> str:
@@ -278,67 +281,286 @@ def with_live_status(attrs: dict) -> dict:
     return attrs
 
 
-def _check_columns(path: Path, group: str, columns: dict) -> None:
-    lengths = {key: len(values) for key, values in columns.items()}
+# Reading: a results file may come from anyone, so it is data. A reader opens regular files only, follows no
+# link, external storage or virtual dataset, checks every attribute's type and every column's shape, dtype and
+# size before using it, cuts long text, replaces control characters (terminal escapes) and parses the stored
+# config as plain YAML without aliases; it never resolves or instantiates anything. A file failing a check is
+# refused with one line (ValueError) naming the check.
+TEXT_LIMIT = 2000  # characters of one text attribute (config excepted): longer text is cut
+CONFIG_LIMIT = 1 << 20  # bytes of the stored config; a physgrad config is a few kB
+COLUMN_LIMIT = 1 << 26  # elements of one /train or /eval column (512 MiB of float64) ...
+FILE_COLUMNS_LIMIT = 1 << 28  # ... and of all of a file's columns together
+REQUIRED_TEXT = ("status", "task", "optim")
+INTEGER_ATTRS = frozenset({"seed", "unroll", "iterations", "batch_size", "n_params", "wall_time_shared_by",
+                           "init_iterations", "cpu_count", "contended"})
+NUMBER_ATTRS = frozenset({"compile_seconds", "train_seconds", "first_step_overhead_seconds", "init_train_seconds",
+                          "step_cost", "load_start", "load_end", "step_seconds_p10", "step_seconds_p50",
+                          "step_seconds_p90", "step_seconds_p99"})
+TEXT_ATTRS = frozenset({"task", "optim", "variant", "status", "reason", "stopped_by", "config", "precision",
+                        "physgrad_version", "jax_version", "jaxlib_version", "git_commit", "cpu_model", "device",
+                        "thread_settings", "hostname", "created", "finished", "owner", "heartbeat", "jacobian",
+                        "clock", "contention", "init_from", "init_variant"})
+_UNSAFE = re.compile("[\x00-\x08\x0b-\x1f\x7f-\x9f\u202a-\u202e\u2066-\u2069]")  # C0/C1 controls, bidi overrides
+
+
+def clean_text(text: str, limit: int | None = TEXT_LIMIT, lines: bool = False) -> str:
+    """text safe to print: control characters (an ANSI escape's ESC among them) and bidirectional overrides
+    replaced by U+FFFD, newlines and tabs too unless lines, cut to limit characters."""
+    text = _UNSAFE.sub("\ufffd", text if lines else text.replace("\n", " ").replace("\t", " "))
+    return text if limit is None or len(text) <= limit else text[:limit] + "... (cut)"
+
+
+class _NoAliases(yaml.SafeLoader):
+    """YAML without aliases: a few bytes of nested aliases expand to gigabytes (a 'billion laughs'), and
+    physgrad never writes one."""
+
+    def compose_node(self, parent, index):
+        if self.check_event(yaml.AliasEvent):
+            raise yaml.YAMLError("aliases (*name) are not allowed")
+        return super().compose_node(parent, index)
+
+
+def load_yaml(text: str):
+    """Plain YAML data (no aliases, no tags beyond YAML's own); ValueError (one line) if it is not that."""
+    try:
+        return yaml.load(text, Loader=_NoAliases)  # noqa: S506 - a SafeLoader
+    except (yaml.YAMLError, RecursionError, ValueError) as error:
+        raise ValueError(f"not plain YAML ({clean_text(str(error).splitlines()[0], 200)})") from None
+
+
+def read_small_yaml(path: Path, limit: int = CONFIG_LIMIT):
+    """load_yaml of a regular file of at most limit bytes (a sweep's jobs.yaml, overrides.yaml, Optuna's
+    optimization_results.yaml: other people's folders too); ValueError (one line) otherwise."""
+    fd = os.open(path, os.O_RDONLY | os.O_NONBLOCK | getattr(os, "O_NOCTTY", 0))  # OSError if absent
+    try:
+        mode = os.fstat(fd).st_mode
+        if not stat.S_ISREG(mode):
+            raise ValueError(f"{path}: {_file_kind(mode)}, not a file: refused")
+        content = os.read(fd, limit + 1)
+    finally:
+        os.close(fd)
+    if len(content) > limit:
+        raise ValueError(f"{path}: longer than {limit} bytes")
+    try:
+        return load_yaml(content.decode(errors="replace"))
+    except ValueError as error:
+        raise ValueError(f"{path}: {error}") from None
+
+
+@contextmanager
+def replaced_text(path: Path):
+    """A text file written beside path and renamed onto it when the block ends without error (else removed):
+    an interrupted writer leaves the previous file or none, never a truncated one."""
+    temporary = path.with_name(f".{path.name}.{os.getpid()}.tmp")
+    try:
+        with open(temporary, "w", newline="") as out:
+            yield out
+        os.replace(temporary, path)
+    except BaseException:
+        temporary.unlink(missing_ok=True)
+        raise
+
+
+def parse_config(text: str) -> dict:
+    """The stored config as plain data (nested dicts, lists, scalars), text cleaned as clean_text; ValueError
+    (one line) if it is too long, not YAML, holds an alias or is not a mapping. Interpolations such as ${...}
+    stay the text they are."""
+    if len(text.encode(errors="replace")) > CONFIG_LIMIT:
+        raise ValueError(f"the config attribute is longer than {CONFIG_LIMIT} bytes")
+    try:
+        tree = load_yaml(text) if text.strip() else {}
+    except ValueError as error:
+        raise ValueError(f"the config attribute is {error}") from None
+    if not isinstance(tree, dict):
+        raise ValueError(f"the config attribute is a {type(tree).__name__}, not a mapping")
+    return _clean_tree(tree)
+
+
+def _clean_tree(tree):
+    if isinstance(tree, dict):
+        return {clean_text(str(key)): _clean_tree(value) for key, value in tree.items()}
+    if isinstance(tree, list):
+        return [_clean_tree(value) for value in tree]
+    return clean_text(tree) if isinstance(tree, str) else tree
+
+
+@contextmanager
+def _open_results(path: Path):
+    """The HDF5 file at path, opened from a descriptor of a regular file (a FIFO, device or socket named
+    results.h5 is refused without blocking on it); ValueError (one line) if it cannot be opened."""
+    try:
+        fd = os.open(path, os.O_RDONLY | os.O_NONBLOCK | getattr(os, "O_NOCTTY", 0))
+    except OSError as error:
+        raise ValueError(f"{path}: cannot be opened ({error.strerror or error})") from None
+    try:
+        mode = os.fstat(fd).st_mode
+        if not stat.S_ISREG(mode):
+            raise ValueError(f"{path}: not a regular file ({_file_kind(mode)}): refused")
+        with os.fdopen(fd, "rb", closefd=False) as stream:
+            try:
+                f = h5py.File(stream, "r")
+            except (OSError, RuntimeError, ValueError) as error:
+                raise ValueError(f"{path}: cannot be read as HDF5 ({clean_text(str(error).splitlines()[0], 200)})"
+                                 ) from None
+            with f:
+                yield f
+    finally:
+        os.close(fd)
+
+
+def _file_kind(mode: int) -> str:
+    for test, kind in ((stat.S_ISFIFO, "a FIFO"), (stat.S_ISCHR, "a character device"), (stat.S_ISBLK, "a block "
+                       "device"), (stat.S_ISSOCK, "a socket"), (stat.S_ISDIR, "a folder")):
+        if test(mode):
+            return kind
+    return "not a plain file"
+
+
+def _checked_attrs(path: Path, f: h5py.File) -> dict:
+    """The root attributes, each checked: text (cleaned, cut), integers and numbers where physgrad computes with
+    them, other scalars kept, arrays of unknown attributes dropped. ValueError naming the first that fails."""
+    attrs = {}
+    for key in f.attrs:
+        name = clean_text(key, 200)
+        try:
+            value = f.attrs[key]
+        except (OSError, RuntimeError, TypeError, ValueError) as error:
+            raise ValueError(f"{path}: attribute {name!r} cannot be read ({clean_text(str(error), 200)})") from None
+        if isinstance(value, np.ndarray) and value.shape == ():
+            value = value[()]
+        if isinstance(value, (bytes, np.bytes_)):
+            value = bytes(value).decode(errors="replace")
+        elif isinstance(value, np.generic):
+            value = value.item()
+        expected = ("an integer" if key in INTEGER_ATTRS else "a number" if key in NUMBER_ATTRS
+                    else "text" if key in TEXT_ATTRS else None)
+        if isinstance(value, str):
+            if key == "config":
+                if len(value) > CONFIG_LIMIT:
+                    raise ValueError(f"{path}: attribute 'config' is longer than {CONFIG_LIMIT} characters")
+                value = clean_text(value, None, lines=True)
+            else:
+                value = clean_text(value)
+        ok = (isinstance(value, str) if expected == "text" else
+              isinstance(value, int) and not isinstance(value, bool) if expected == "an integer" else
+              isinstance(value, (int, float)) and not isinstance(value, bool) if expected == "a number" else
+              isinstance(value, (str, int, float, bool)))
+        if key == "seed" and isinstance(value, str):
+            ok = True  # allowed for a refused job only (the invalid value it was refused for): checked below
+        if not ok:
+            if expected is None:
+                continue  # an unknown attribute physgrad does not read: dropped
+            raise ValueError(f"{path}: attribute {name!r} is {_describe(value)}, expected {expected}")
+        attrs[name] = value
+    missing = [key for key in (*REQUIRED_TEXT, "seed") if key not in attrs]
+    if missing:
+        raise ValueError(f"{path}: not a physgrad results file (no {', '.join(missing)} attribute)")
+    if attrs["status"] not in STATUSES:
+        raise ValueError(f"{path}: status {attrs['status']!r} is none of {', '.join(STATUSES)}")
+    if isinstance(attrs["seed"], str) and attrs["status"] != "refused":
+        raise ValueError(f"{path}: attribute 'seed' is {_describe(attrs['seed'])}, expected an integer")
+    return with_live_status(attrs)
+
+
+def _describe(value) -> str:
+    if isinstance(value, np.ndarray):
+        return f"an array of shape {value.shape}"
+    return f"{'text' if isinstance(value, str) else type(value).__name__} {clean_text(repr(value), 40)}"
+
+
+def _checked_group(path: Path, f: h5py.File, group: str) -> h5py.Group:
+    link = f.get(group, getlink=True)
+    if link is None:
+        raise ValueError(f"{path}: not a physgrad results file (no /{group})")
+    if not isinstance(link, h5py.HardLink) or not isinstance(f[group], h5py.Group):
+        raise ValueError(f"{path}: /{group} is a {type(link).__name__}, not a group: links are not followed")
+    return f[group]
+
+
+def _checked_columns(path: Path, f: h5py.File, group: str) -> dict[str, h5py.Dataset]:
+    """The datasets of /group after the checks (not read yet): hard links to 1-D numeric datasets stored in
+    this file, of equal length, holding iteration, wall_time and loss when there are any."""
+    g, columns = _checked_group(path, f, group), {}
+    for key in g:
+        name = clean_text(key, 200)
+        link = g.get(key, getlink=True)
+        if not isinstance(link, h5py.HardLink) or not isinstance(g[key], h5py.Dataset):
+            raise ValueError(f"{path}: /{group}/{name} is a {type(link).__name__}, not a dataset: links are not "
+                             "followed")
+        column = g[key]
+        if column.external or column.is_virtual:
+            raise ValueError(f"{path}: /{group}/{name} keeps its data in other files (external or virtual "
+                             "storage): refused")
+        if column.ndim != 1 or column.dtype.kind not in "fiub":
+            raise ValueError(f"{path}: /{group}/{name} is {column.ndim}-D of {column.dtype}, expected a 1-D "
+                             "numeric column")
+        if column.size > COLUMN_LIMIT:
+            raise ValueError(f"{path}: /{group}/{name} has {column.size} rows, more than {COLUMN_LIMIT}")
+        columns[name] = column
+    lengths = {key: column.shape[0] for key, column in columns.items()}
     if len(set(lengths.values())) > 1:
         raise ValueError(f"{path}: /{group} columns have unequal lengths {lengths}: the file is damaged")
+    if columns and {"iteration", "wall_time", "loss"} - set(columns):
+        raise ValueError(f"{path}: /{group} lacks {', '.join(sorted({'iteration', 'wall_time', 'loss'} - set(columns)))}")
+    return columns
+
+
+def _config_of(path: Path, attrs: dict) -> dict:
+    try:
+        return parse_config(attrs.get("config", ""))
+    except ValueError as error:
+        raise ValueError(f"{path}: {error}") from None
 
 
 def read_run(path: str | os.PathLike) -> Run:
-    """Read one results file; raises ValueError with a one-line reason if it is not a physgrad results file,
-    cannot be read or is inconsistent."""
+    """Read one results file with every check above; ValueError with a one-line reason if it is not a physgrad
+    results file, cannot be read, fails a check or is inconsistent."""
     path = Path(path)
-    try:
-        with h5py.File(path, "r", locking=False) as f:
-            if "status" not in f.attrs or "train" not in f or "eval" not in f:
-                raise ValueError(f"{path}: not a physgrad results file (no status attribute or /train, /eval)")
-            attrs = with_live_status({key: _plain(value) for key, value in f.attrs.items()})
-            train = {key: f["train"][key][()] for key in f["train"]}
-            evaluation = {key: f["eval"][key][()] for key in f["eval"]}
-    except (OSError, KeyError, RuntimeError) as error:
-        raise ValueError(f"{path}: cannot be read as HDF5 ({str(error).splitlines()[0]})") from None
-    _check_columns(path, "train", train)
-    _check_columns(path, "eval", evaluation)
-    return Run(path, attrs, train, evaluation)
+    with _open_results(path) as f:
+        attrs = _checked_attrs(path, f)
+        columns = {group: _checked_columns(path, f, group) for group in GROUPS}
+        if sum(c.size for group in columns.values() for c in group.values()) > FILE_COLUMNS_LIMIT:
+            raise ValueError(f"{path}: more than {FILE_COLUMNS_LIMIT} values in /train and /eval together")
+        config = _config_of(path, attrs)
+        try:
+            data = {group: {key: column[()] for key, column in cols.items()} for group, cols in columns.items()}
+        except (OSError, RuntimeError, ValueError) as error:
+            raise ValueError(f"{path}: a column cannot be read ({clean_text(str(error).splitlines()[0], 200)})"
+                             ) from None
+    return Run(path, attrs, data["train"], data["eval"], config=config)
 
 
 def read_final(path: str | os.PathLike) -> tuple[dict, dict]:
     """The attributes and the last /eval row of a results file, without reading the curves (a resumed sweep
-    checks every job this way); ValueError (one line) as read_run."""
+    checks every job this way), with the checks of read_run; ValueError (one line) as read_run."""
     path = Path(path)
-    try:
-        with h5py.File(path, "r", locking=False) as f:
-            if "status" not in f.attrs or "eval" not in f:
-                raise ValueError(f"{path}: not a physgrad results file (no status attribute or /eval)")
-            attrs = with_live_status({key: _plain(value) for key, value in f.attrs.items()})
-            lengths = {f["eval"][key].shape[0] for key in f["eval"]}
-            if len(lengths) > 1:
-                raise ValueError(f"{path}: /eval columns have unequal lengths: the file is damaged")
-            last = {key: _plain(f["eval"][key][-1]) for key in f["eval"] if f["eval"][key].shape[0]}
-    except (OSError, KeyError, RuntimeError) as error:
-        raise ValueError(f"{path}: cannot be read as HDF5 ({str(error).splitlines()[0]})") from None
+    with _open_results(path) as f:
+        attrs = _checked_attrs(path, f)
+        _checked_columns(path, f, "train")
+        columns = _checked_columns(path, f, "eval")
+        _config_of(path, attrs)
+        try:
+            last = {key: column[-1].item() for key, column in columns.items() if column.shape[0]}
+        except (OSError, RuntimeError, ValueError) as error:
+            raise ValueError(f"{path}: a column cannot be read ({clean_text(str(error).splitlines()[0], 200)})"
+                             ) from None
     return attrs, last
 
 
 def read_params(path: str | os.PathLike) -> np.ndarray:
-    """The flat final parameters a run saved; ValueError (one line) if the file has none or is not readable."""
+    """The flat final parameters a run saved, checked as read_run's columns; ValueError (one line) if the file
+    has none or is not readable."""
     path = Path(path)
-    try:
-        with h5py.File(path, "r", locking=False) as f:
-            if "params" not in f:
-                status = _plain(f.attrs.get("status", "?"))
-                raise ValueError(f"{path} holds no final network (status {status}): use a run that finished")
-            return f["params"][()]
-    except (OSError, KeyError, RuntimeError) as error:
-        raise ValueError(f"{path}: cannot be read as HDF5 ({str(error).splitlines()[0]})") from None
-
-
-def _plain(value):
-    if isinstance(value, bytes):
-        return value.decode()
-    if isinstance(value, np.generic):
-        return value.item()
-    return value
+    with _open_results(path) as f:
+        attrs = _checked_attrs(path, f)
+        if "params" not in f:
+            raise ValueError(f"{path} holds no final network (status {attrs['status']}): use a run that finished")
+        link = f.get("params", getlink=True)
+        params = f["params"] if isinstance(link, h5py.HardLink) else None
+        if (not isinstance(params, h5py.Dataset) or params.external or params.is_virtual or params.ndim != 1
+                or params.dtype.kind != "f" or params.size > COLUMN_LIMIT):
+            raise ValueError(f"{path}: /params is not a 1-D float vector stored in the file: refused")
+        return params[()]
 
 
 def natural_key(text: str) -> list:

@@ -11,29 +11,32 @@ from jax.flatten_util import ravel_pytree
 from omegaconf import DictConfig, OmegaConf
 
 from physgrad import UserError
-from physgrad.results import Run, read_final, read_params
+from physgrad.results import Run, parse_config, read_final, read_params
 from physgrad.runner import Outcome
 
 
-def comparable_config(cfg: DictConfig) -> str:
-    """The resolved config as stored in results.h5, without the keys that do not change what a run computes."""
+def comparable_config(cfg: DictConfig) -> dict:
+    """The resolved config as plain data, as results.h5 stores it, without the keys that do not change what a
+    run computes."""
     plain = OmegaConf.to_container(cfg, resolve=True)
     plain.pop("overwrite", None)
-    return OmegaConf.to_yaml(plain)
+    return parse_config(OmegaConf.to_yaml(plain))  # the stored text's round trip: YAML's types, cleaned text
 
 
 def finished_before(path: Path, cfg: DictConfig) -> Outcome | None:
     """The outcome recorded at path if that run completed or diverged with this same config (a sweep being
-    re-run): both are results the same config gives again; interrupted, failed and refused runs run again."""
+    re-run): both are results the same config gives again; interrupted, failed and refused runs run again. The
+    stored config is compared as data: nothing in it is resolved (a file from elsewhere may hold anything)."""
     if not path.exists():
         return None
     try:
         attrs, last_eval = read_final(path)
+        stored = parse_config(attrs.get("config", ""))
     except ValueError:
         return None
-    stored = OmegaConf.create(attrs.get("config", "{}"))
+    stored.pop("overwrite", None)
     status = attrs.get("status")
-    if status not in ("completed", "diverged") or comparable_config(stored) != comparable_config(cfg):
+    if status not in ("completed", "diverged") or stored != comparable_config(cfg):
         return None
     final = {k: float(v) for k, v in last_eval.items() if k not in ("iteration", "wall_time")}
     why = f" ({attrs['reason']})" if status == "diverged" and attrs.get("reason") else ""

@@ -21,7 +21,7 @@ from pathlib import Path
 import yaml
 from omegaconf import OmegaConf
 
-from physgrad.results import replace_file
+from physgrad.results import read_small_yaml, replace_file
 
 log = logging.getLogger("physgrad")
 MANIFEST = "jobs.yaml"
@@ -63,10 +63,12 @@ def write_manifest(folder: Path, jobs: list[list[str]]) -> None:
 
 def read_manifest(folder: Path) -> list[list[str]] | None:
     try:
-        jobs = yaml.safe_load((folder / MANIFEST).read_text())["jobs"]
-    except (OSError, yaml.YAMLError, KeyError, TypeError):
+        jobs = read_small_yaml(folder / MANIFEST)["jobs"]
+    except (OSError, ValueError, KeyError, TypeError):
         return None
-    return [list(map(str, job)) for job in jobs] if isinstance(jobs, list) else None
+    plain = isinstance(jobs, list) and all(isinstance(job, list) and all(isinstance(item, (str, int, float, bool))
+                                                                         for item in job) for job in jobs)
+    return [list(map(str, job)) for job in jobs] if plain else None
 
 
 def job_folders(folder: Path) -> dict[frozenset, Path]:
@@ -74,9 +76,11 @@ def job_folders(folder: Path) -> dict[frozenset, Path]:
     found = {}
     for overrides in folder.rglob(".hydra/overrides.yaml"):
         try:
-            found[frozenset(map(str, yaml.safe_load(overrides.read_text()) or []))] = overrides.parent.parent
-        except (OSError, yaml.YAMLError, TypeError):
+            listed = read_small_yaml(overrides, 1 << 16) or []
+        except (OSError, ValueError):
             continue
+        if isinstance(listed, list) and all(isinstance(item, (str, int, float, bool)) for item in listed):
+            found[frozenset(map(str, listed))] = overrides.parent.parent
     return found
 
 

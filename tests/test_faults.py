@@ -159,7 +159,7 @@ def test_a_full_disk_at_any_write_is_one_line_and_leaves_the_last_good_file(tmp_
 
         monkeypatch.setattr(results.h5py, "File", file)
         try:
-            writer = ResultsWriter(path, {"task": "toy"})
+            writer = ResultsWriter(path, {"task": "toy", "optim": "adam", "seed": 0})
             for i in range(flushes):
                 writer.append("train", {"iteration": i, "loss": 1.0})
                 writer.flush()
@@ -183,7 +183,7 @@ def test_a_file_size_limit_is_a_write_error_not_a_crash(tmp_path):
         signal.signal(signal.SIGXFSZ, signal.SIG_IGN)
         resource.setrlimit(resource.RLIMIT_FSIZE, (200_000, 200_000))
         from physgrad.results import ResultsWriteError, ResultsWriter
-        writer = ResultsWriter({str(tmp_path / 'results.h5')!r}, {{"task": "toy"}})
+        writer = ResultsWriter({str(tmp_path / 'results.h5')!r}, {{"task": "toy", "optim": "adam", "seed": 0}})
         try:
             for i in range(10**6):
                 writer.append("train", {{"iteration": i, "loss": 1.0, "a": 2.0, "b": 3.0}})
@@ -213,7 +213,7 @@ def test_signals_in_bursts_at_random_instants_always_end_interrupted(tmp_path):
     settings = dataclasses.replace(settings, iterations=None, time_budget=30.0)
     for trial in range(4 * REPEATS):
         scene, rule, seeds = prepare(cfg, [0], settings)
-        writer = ResultsWriter(tmp_path / f"{trial}" / "results.h5", {"task": "toy"})
+        writer = ResultsWriter(tmp_path / f"{trial}" / "results.h5", {"task": "toy", "optim": "adam", "seed": 0})
         times = sorted(rng.uniform(0.0, 2.0) + k * rng.uniform(0.0, 0.01) for k in range(rng.randint(2, 4)))
         with stop_on_signals() as stop:  # stays installed until the last signal arrived
             start = time.monotonic()
@@ -233,7 +233,7 @@ def test_signals_in_bursts_at_random_instants_always_end_interrupted(tmp_path):
 def test_a_completed_file_is_replaced_only_by_a_completed_one(tmp_path):
     first, path = run_experiment_in(tmp_path)
     kept = read_run(path).attrs["created"]
-    writer = ResultsWriter(path, {"task": "toy"})  # a re-run (overwrite=true) that ends interrupted
+    writer = ResultsWriter(path, {"task": "toy", "optim": "adam", "seed": 0})  # a re-run (overwrite=true) that ends interrupted
     writer.append("train", {"iteration": 0, "loss": 1.0})
     writer.finish("interrupted", "SIGINT after 1 iterations")
     assert read_run(path).attrs["created"] == kept and read_run(path).attrs["status"] == "completed"

@@ -227,7 +227,7 @@ def test_writer_appends_in_flushes_and_checks_columns(tmp_path):
 
 
 def test_rows_are_whole_and_columns_fixed(tmp_path):
-    writer = ResultsWriter(tmp_path / "results.h5", {"task": "poisson"})
+    writer = ResultsWriter(tmp_path / "results.h5", {"task": "poisson", "optim": "adam", "seed": 0})
     writer.set_columns("train", ("iteration", "loss"))
     writer.append_row("train", (0, 1.0))
     writer.append("train", {"loss": 0.5, "iteration": 1})  # by name, in any order

@@ -171,7 +171,7 @@ def test_an_interrupted_job_is_run_again(tmp_path):
 
     config = read_run(tmp_path / "results.h5").attrs["config"]
     (tmp_path / "results.h5").unlink()  # (a completed file is never replaced by an interrupted one)
-    ResultsWriter(tmp_path / "results.h5", {"config": config}).finish("interrupted", "SIGINT after 1 iterations")
+    ResultsWriter(tmp_path / "results.h5", {"task": "toy", "optim": "adam", "seed": 0, "config": config}).finish("interrupted", "SIGINT after 1 iterations")
     outcome, path = run_experiment(load(*TINY, "trainer.iterations=3"), tmp_path)
     assert outcome.reason is None and read_run(path).attrs["status"] == "completed"
 
