@@ -17,7 +17,7 @@ from omegaconf import DictConfig, OmegaConf
 
 from physgrad.configs import CONF_DIR
 from physgrad.experiment import run_experiment
-from physgrad.sweeps import stop_count
+from physgrad.sweeps import record_job, stop_count
 
 log = logging.getLogger("physgrad")
 
@@ -46,6 +46,25 @@ def job_folder_name(override_dirname: str, task_overrides) -> str:
 
 NAME_LIMIT = 200  # bytes: file systems allow 255 per folder name
 OmegaConf.register_new_resolver("physgrad_job_folder", job_folder_name, replace=True)
+
+
+class JobLogFile(logging.FileHandler):
+    """The job's log file (hydra.job_logging's file handler), opened at its first record: a folder that cannot
+    be written (read-only, full) costs one warning line, not the job or the sweep."""
+
+    def __init__(self, filename, mode="a", encoding=None, delay=True, errors=None):
+        super().__init__(filename, mode, encoding, delay=True, errors=errors)
+        self.unwritable = False
+
+    def emit(self, record):
+        if self.unwritable:
+            return
+        try:
+            super().emit(record)
+        except OSError as error:
+            self.unwritable = True
+            print(f"physgrad: warning: the job log {self.baseFilename} cannot be written "
+                  f"({error.strerror or error}): logging to the terminal only", file=sys.stderr)
 
 
 class SweepSummary(Callback):
@@ -98,8 +117,9 @@ class SweepSummary(Callback):
                 written[status] += 1
             else:
                 earlier += 1  # untouched by this sweep: completed or diverged before with the same config, or another job's
-        for _, why in unfinished_jobs(folder):
-            written[why] += 1
+        for job_name, why in unfinished_jobs(folder):
+            written[why.split(":")[0]] += 1
+            log.warning("job %s: %s", job_name, why)
         stopped = stop_count(folder)
         STOPPED_BY[:] = [stopped[0]] if stopped else []
         # a run left running or crashed (its worker was killed), interrupted, failed, unreadable or missing
@@ -123,6 +143,20 @@ def save_traceback(folder: Path) -> Path | None:
         return folder / "error.txt"
     except OSError:
         return None
+
+
+def write_provenance(out_dir: Path, cfg: DictConfig, hydra_cfg) -> None:
+    """What Hydra writes into .hydra/ when hydra.output_subdir is set (config.yaml, hydra.yaml, overrides.yaml),
+    written here instead, once the job holds its folder: a second process refused for that folder must not
+    replace a live job's record of how it was started."""
+    from physgrad.results import replace_file
+
+    folder = out_dir / ".hydra"
+    folder.mkdir(parents=True, exist_ok=True)
+    hydra_node = OmegaConf.create({"hydra": OmegaConf.to_container(hydra_cfg, resolve=False)})
+    for name, node in (("config.yaml", cfg), ("hydra.yaml", hydra_node),
+                       ("overrides.yaml", OmegaConf.create(list(hydra_cfg.overrides.task)))):
+        replace_file(folder / name, OmegaConf.to_yaml(node).encode())
 
 
 def objective(outcome) -> float:
@@ -149,20 +183,35 @@ def job(cfg: DictConfig) -> float:
     if stopped is not None:
         log.warning("%s not started: the sweep was stopped (%s)", name, stopped[0])
         return float("inf")
+    overrides = [str(o) for o in hydra_cfg.overrides.task]
+    owned = []
+
+    def on_owned():  # the job folder is held: only now is anything written into it
+        owned.append(True)
+        write_provenance(out_dir, cfg, hydra_cfg)
+        if sweep is not None:
+            record_job(sweep, out_dir, overrides, "started")
+
     try:
-        outcome, path = run_experiment(cfg, out_dir, sweep)
+        outcome, path = run_experiment(cfg, out_dir, sweep, on_owned)
     except Exception as error:  # noqa: BLE001 - one line, the traceback in the job folder; a sweep goes on
-        where = save_traceback(out_dir)
+        where = save_traceback(out_dir) if owned else None
         if isinstance(error, OSError):  # the results file could not be written (disk full, permissions)
             message = str(error).splitlines()[0]
+            if not owned:
+                message = f"cannot write the job folder {out_dir}: {error.strerror or message}"
         else:
             message = f"{type(error).__name__}: {str(error).splitlines()[0] if str(error) else ''}"
         message += f" (traceback: {where})" if where else ""
+        if sweep is not None:
+            record_job(sweep, out_dir, overrides, "failed", message)
         if not multirun:
             print(f"physgrad: error: {name} failed: {message}", file=sys.stderr)
             sys.exit(1)
         log.error("%s failed: %s", name, message)
         return float("inf")
+    if sweep is not None and owned:  # a job refused because another process holds its folder records nothing
+        record_job(sweep, out_dir, overrides, outcome.status, outcome.reason)
     if outcome.status == "refused":
         if not multirun:
             print(f"physgrad: error: {outcome.reason}", file=sys.stderr)

@@ -8,6 +8,7 @@ every Hydra feature (-m, --cfg, --help, launchers) keeps working.
 from __future__ import annotations
 
 import argparse
+import signal
 import sys
 from pathlib import Path
 
@@ -37,8 +38,18 @@ INFO_FLAGS = {"-h", "--help", "-hh", "--hydra-help", "-i", "--info"}
 
 
 def main(argv: list[str] | None = None) -> int:
+    if argv is None:  # the console script: SIGTERM before a job handles it ends the start-up as SIGINT does
+        signal.signal(signal.SIGTERM, _interrupt)
     try:
+        if argv is None:
+            import_holding_signals(HEAVY_IMPORTS.get(sys.argv[1] if len(sys.argv) > 1 else "", ()))
         code = dispatch(sys.argv[1:] if argv is None else argv)
+    except KeyboardInterrupt as interrupt:  # start-up, composing, a sweep's launcher: no traceback
+        name = interrupt.args[0] if interrupt.args and isinstance(interrupt.args[0], str) else "SIGINT"
+        print(f"physgrad: stopped by {name}", file=sys.stderr)
+        code = 130
+        if argv is not None:
+            return code
     except SystemExit as leaving:
         code = leaving.code if isinstance(leaving.code, int) else (0 if leaving.code is None else 1)
         if argv is not None or not abandoned_steps():
@@ -52,6 +63,28 @@ def main(argv: list[str] | None = None) -> int:
         sys.stderr.flush()
         os._exit(code)
     return code
+
+
+HEAVY_IMPORTS = {"run": ("jax", "physgrad.app"), "compare": ("jax", "physgrad.comparison"),
+                 "check": ("jax", "physgrad.check"), "report": ("physgrad.report",)}
+
+
+def import_holding_signals(modules) -> None:
+    """Import modules with SIGINT and SIGTERM held back until they are loaded: an exception landing inside a C
+    extension's initialisation (jaxlib's, numpy's) turns into an ImportError traceback or a crash. A signal
+    that came meanwhile is handled right after (about a second later at most)."""
+    import importlib
+
+    held = signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT, signal.SIGTERM})
+    try:
+        for name in modules:
+            importlib.import_module(name)
+    finally:
+        signal.pthread_sigmask(signal.SIG_SETMASK, held)
+
+
+def _interrupt(signum, frame):
+    raise KeyboardInterrupt(signal.Signals(signum).name)
 
 
 def abandoned_steps() -> bool:

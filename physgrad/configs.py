@@ -91,7 +91,11 @@ def check_overrides(overrides: list[str], multirun: bool, config_dirs=()) -> Non
     try:
         parsed = OverridesParser.create().parse_overrides(overrides)
     except HydraException as error:
-        raise UserError(f"cannot read the overrides: {str(error).splitlines()[0]}") from None
+        hint = ""
+        if "mismatched input '='" in str(error):  # e.g. init_from=<sweep>/optim=adam,seed=0/results.h5
+            hint = (": a value that holds '=' or ',' (a sweep's job folder in a path) must be quoted, "
+                    "e.g. init_from='outputs/multirun/.../optim=adam,seed=0/results.h5'")
+        raise UserError(f"cannot read the overrides: {str(error).splitlines()[0]}{hint}") from None
 
     sweeper = next((str(o.value()) for o in parsed if o.key_or_group == "hydra/sweeper"), "basic")
     if sweeper == "optuna":
@@ -127,6 +131,9 @@ def check_overrides(overrides: list[str], multirun: bool, config_dirs=()) -> Non
                         raise unknown_option(key, choice, options)
                 group_values[("+" if override.is_add() else "") + key] = values
             elif not override.is_add() and not override.is_force_add():
+                keys.append(key)
+            elif not key.startswith(("task.", "optim.")):
+                # `+key` adds a keyword to a scene's or a rule's factory; anywhere else nothing would read it
                 keys.append(key)
 
         for combo in itertools.product(*group_values.values()):

@@ -2,10 +2,12 @@
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import logging
 import os
 import time
+from collections.abc import Callable
 from pathlib import Path
 
 import jax
@@ -21,7 +23,8 @@ from physgrad.nets import count_params
 from physgrad.optim import UpdateRule, build_rule, matrix_leaves, needs_value_arguments
 from physgrad.optim.kfac import KroneckerRule
 from physgrad.resume import finished_before, start_from
-from physgrad.results import FolderOwned, ResultsWriteError, ResultsWriter, own_folder, read_final
+from physgrad.results import (FolderOwned, ResultsWriteError, ResultsWriter, own_folder, read_final,
+                              record_outcome)
 from physgrad.runner import Outcome, Seeds, TrainerSettings, stack, stop_on_signals, train
 from physgrad.sweeps import mark_stopped, watching
 from physgrad.tasks import Scene, build_scene
@@ -30,6 +33,9 @@ from physgrad.validate import choice, finite_numbers, flag, number
 
 log = logging.getLogger("physgrad")
 SEED_LIMIT = 2**32
+# seeds trained together in one vectorised step: each has its own data, network and results file, so memory
+# and the files grow with it; more seeds than this are a sweep (seed=0,1,... -m), which also runs in parallel
+SEEDS_LIMIT = 1024
 
 
 def check_config(cfg: DictConfig) -> TrainerSettings:
@@ -40,11 +46,12 @@ def check_config(cfg: DictConfig) -> TrainerSettings:
     choice("precision", cfg.get("precision"), (32, 64))
     flag("overwrite", cfg.get("overwrite"))
     flag("trainer.validation", cfg.trainer.get("validation", False))
-    if cfg.get("init_from") is not None and not isinstance(cfg.init_from, str):
-        raise UserError(f"init_from={cfg.init_from!r} is not allowed: use the path of a results.h5, or null")
+    if cfg.get("init_from") is not None and (not isinstance(cfg.init_from, str) or not cfg.init_from.strip()):
+        raise UserError(f"init_from={cfg.init_from!r} is not allowed: use the path of a results.h5, or leave "
+                        "init_from out (null) to start from a fresh network")
     # PRNGKey(seed) keeps the low 32 bits of the seed: seeds 2^32 apart would be the same run
     number("seed", cfg.get("seed"), 0, SEED_LIMIT, integer=True)
-    number("seeds", cfg.get("seeds"), 1, integer=True)
+    number("seeds", cfg.get("seeds"), 1, SEEDS_LIMIT + 1, integer=True)
     if cfg.seed + cfg.seeds > SEED_LIMIT:
         raise UserError(f"seed={cfg.seed} with seeds={cfg.seeds} reaches seed {cfg.seed + cfg.seeds - 1}: seeds must "
                         f"stay below {SEED_LIMIT} (2^32), so use seed <= {SEED_LIMIT - cfg.seeds}")
@@ -218,30 +225,61 @@ def set_aside_unreadable(path: Path) -> Path | None:
         return aside
 
 
-def run_experiment(cfg: DictConfig, out_dir: str | Path, sweep: Path | None = None) -> tuple[Outcome, Path]:
+def run_experiment(cfg: DictConfig, out_dir: str | Path, sweep: Path | None = None,
+                   on_owned: Callable[[], None] | None = None) -> tuple[Outcome, Path]:
     """Run one job into out_dir/results.h5 (seeds > 1: one file per seed under out_dir/seed=<s>/, trained
     together in one vectorised step); a refused job leaves a file with status refused and the reason.
     A job that completed before with the same config is not run again unless overwrite=true. The job holds
     out_dir for its whole duration (another live process writing there: refused, nothing touched) and handles
     SIGINT and SIGTERM from start-up until its files are final; in a sweep (sweep: its folder) a signal to the
-    job stops the sweep, and the sweep's stop reaches the job (physgrad.sweeps). A failure before training
-    leaves files with status failed; ResultsWriteError if they cannot be written."""
-    paths = seed_paths(cfg, out_dir)
-    where = paths[0][1] if len(paths) == 1 else Path(out_dir)
-    own = cfg.get("init_from") and any(Path(str(cfg.init_from)).resolve() == path.resolve() for _, path in paths)
-    if own:  # refused without a results file: writing one would destroy the network it names
-        return Outcome("refused", f"init_from={cfg.init_from} is this job's own results file, which the run "
-                       "would overwrite: start from another run's results.h5", 0, 0.0, {}), where
+    job stops the sweep, and the sweep's stop reaches the job (physgrad.sweeps). on_owned runs once the folder
+    is held, before anything else is written into it (the command line's provenance, .hydra/). A failure
+    before training leaves files with status failed; ResultsWriteError if they cannot be written."""
     try:
         on_first = None if sweep is None else (lambda name: mark_stopped(sweep, name))
         with own_folder(out_dir), stop_on_signals(on_first) as stop, watching(sweep, stop):
+            if on_owned is not None:
+                on_owned()
+            seeds = cfg.get("seeds", 1)
+            if isinstance(seeds, int) and seeds > SEEDS_LIMIT:  # refused before one file per seed is named
+                return Outcome("refused", f"seeds={seeds} is more than {SEEDS_LIMIT} seeds in one process: sweep "
+                               f"them instead (physgrad run -m seed=0,1,2,...), or use seeds <= {SEEDS_LIMIT}", 0,
+                               0.0, {}), Path(out_dir)
+            paths = seed_paths(cfg, out_dir)
+            where = paths[0][1] if len(paths) == 1 else Path(out_dir)
+            if cfg.get("init_from") and any(Path(str(cfg.init_from)).resolve() == path.resolve() for _, path in paths):
+                # refused without a results file: writing one would destroy the network it names
+                return Outcome("refused", f"init_from={cfg.init_from} is this job's own results file, which the "
+                               "run would overwrite: start from another run's results.h5", 0, 0.0, {}), where
             return run_owned(cfg, paths, stop), where
     except FolderOwned as error:
-        return Outcome("refused", str(error), 0, 0.0, {}), where
+        return Outcome("refused", str(error), 0, 0.0, {}), Path(out_dir) / ("results.h5" if cfg.get("seeds", 1) == 1
+                                                                           else "")
 
 
 def run_owned(cfg: DictConfig, paths: list[tuple[int, Path]], stop) -> Outcome:
-    """run_experiment, once the job folder is held and signals are handled."""
+    """run_experiment, once the job folder is held and signals are handled. Until training starts a signal
+    ends the job at once (resume checks, building many seeds' data: nothing is half done there), its files
+    saying interrupted; from then on the training loop acts on it between steps."""
+    stop.raising = True
+    try:
+        stop.raise_if_stopped()  # a signal that came before
+        return set_up_and_train(cfg, paths, stop)
+    except KeyboardInterrupt as interrupt:
+        stop.raising = False
+        why = f"{interrupt.args[0] if interrupt.args else 'SIGINT'} before training"
+        for seed, path in paths:
+            if stop.at_once:  # a second signal: stop writing files too
+                break
+            with contextlib.suppress(OSError):
+                record_outcome(path, {**run_attributes(cfg, effective_unroll(cfg)), "seed": seed}, "interrupted",
+                               why)
+        return Outcome("interrupted", why, 0, 0.0, {})
+    finally:
+        stop.raising = False
+
+
+def set_up_and_train(cfg: DictConfig, paths: list[tuple[int, Path]], stop) -> Outcome:
     for _, path in paths:
         set_aside_unreadable(path)
     if not cfg.get("overwrite", False):
@@ -262,13 +300,15 @@ def run_owned(cfg: DictConfig, paths: list[tuple[int, Path]], stop) -> Outcome:
             first, origin = start_from(cfg.init_from, seeds.network(), cfg.task.name)
             seeds = dataclasses.replace(seeds, params=stack([first]))
     except UserError as error:
+        stop.raising = False
         for seed, path in paths:
-            ResultsWriter(path, {**run_attributes(cfg, effective_unroll(cfg)), "seed": seed}).finish("refused", str(error))
+            record_outcome(path, {**run_attributes(cfg, effective_unroll(cfg)), "seed": seed}, "refused", str(error))
         return Outcome("refused", str(error), 0, 0.0, {})
     except Exception as error:  # before training: the files say failed, with the reason
+        stop.raising = False
         reason = f"{type(error).__name__}: {error}".splitlines()[0]
         for seed, path in paths:
-            ResultsWriter(path, {**run_attributes(cfg, effective_unroll(cfg)), "seed": seed}).finish("failed", reason)
+            record_outcome(path, {**run_attributes(cfg, effective_unroll(cfg)), "seed": seed}, "failed", reason)
         raise
 
     attrs = run_attributes(cfg, scene.unroll)
@@ -285,22 +325,35 @@ def run_owned(cfg: DictConfig, paths: list[tuple[int, Path]], stop) -> Outcome:
         **machine_attributes(),
     }) for seed, path in paths]
     label = f"{cfg.task.name}/{cfg.optim.name} seed {cfg.seed}" + (f" (+{len(paths) - 1})" if len(paths) > 1 else "")
+    stop.raising = False  # the training loop acts on signals between steps
     outcomes = train(scene, rule, seeds, writers, settings, label=label, stop=stop)
     try:
-        draw_run_figures(scene, seeds, writers, outcomes)
-    except (OSError, ValueError, RuntimeError) as error:  # the results are final: a figure is not worth a failure
-        log.warning("figures of %s not drawn: %s", paths[0][1].parent, str(error).splitlines()[0])
+        draw_run_figures(scene, seeds, writers, outcomes, stop)
+    except Exception as error:  # noqa: BLE001 - the results are final: a figure (a scene's own, too) is no failure
+        log.warning("figures of %s not drawn: %s: %s", paths[0][1].parent, type(error).__name__,
+                    str(error).splitlines()[0] if str(error) else "")
     return job_outcome(outcomes)
 
 
-def draw_run_figures(scene: Scene, seeds: Seeds, writers: list[ResultsWriter], outcomes: list[Outcome]) -> None:
-    """loss.png per seed, and the scene's own figure of the trained network where it has one; none for a run
-    written aside of a completed results.h5 it did not replace (the figures beside it are that run's)."""
+FIGURE_SEEDS = 8  # per-seed figures drawn for a job of many seeds (about half a second each)
+
+
+def draw_run_figures(scene: Scene, seeds: Seeds, writers: list[ResultsWriter], outcomes: list[Outcome],
+                     stop=None) -> None:
+    """loss.png per seed (the first FIGURE_SEEDS of a job of more: physgrad report draws them all together),
+    and the scene's own figure of the trained network where it has one; none for a run written aside of a
+    completed results.h5 it did not replace (the figures beside it are that run's). A signal (stop) ends the
+    drawing: the results are final already."""
     from physgrad.plots import plot_run  # matplotlib only once training is over
     from physgrad.results import read_params, read_run
 
     unravel = ravel_pytree(seeds.network())[1]
-    for index, writer in enumerate(writers):
+    if len(writers) > FIGURE_SEEDS:
+        log.info("loss.png drawn for the first %d of %d seeds: physgrad report %s draws them all",
+                 FIGURE_SEEDS, len(writers), writers[0].path.parent.parent)
+    for index, writer in enumerate(writers[:FIGURE_SEEDS]):
+        if stop is not None and stop.signal_name is not None:
+            return
         path = writer.path
         if writer.live != path:
             log.warning("%s kept (completed); this run ended %s and is in %s", path, outcomes[index].status,

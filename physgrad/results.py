@@ -12,6 +12,7 @@ leaves a complete file holding every row flushed so far, and readers never share
 
 from __future__ import annotations
 
+import errno
 import fcntl
 import math
 import os
@@ -21,6 +22,7 @@ import stat
 import time
 from contextlib import contextmanager
 from dataclasses import dataclass, field
+from datetime import datetime
 from pathlib import Path
 
 import h5py
@@ -46,22 +48,65 @@ def owner_tag() -> str:
     return f"pid {os.getpid()} on {socket.gethostname()}"
 
 
+class LockingUnsupported(OSError):
+    """The file system of a folder supports neither flock nor POSIX locks (a Lustre mount without flock, an NFS
+    mount without a lock daemon): one line with the real reason and what to do."""
+
+
+NO_LOCKS = {errno.ENOLCK, errno.ENOSYS, errno.EOPNOTSUPP, errno.EINVAL}  # what "locks unsupported" looks like
+HELD = {errno.EWOULDBLOCK, errno.EAGAIN, errno.EACCES}  # what "another process holds it" looks like
+
+
+def _lock(fd: int, lock_path: Path) -> bool:
+    """An exclusive, non-blocking lock on fd: flock, else (where the file system has no flock) a POSIX lock.
+    True if taken, False if another process holds it; LockingUnsupported where neither kind works."""
+    reasons = []
+    for take in (lambda: fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB),
+                 lambda: fcntl.lockf(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)):
+        try:
+            take()
+            return True
+        except OSError as error:
+            if error.errno in HELD:
+                return False
+            if error.errno not in NO_LOCKS:
+                raise
+            reasons.append(error.strerror or str(error))
+    raise LockingUnsupported(f"cannot lock {lock_path}: the file system supports no file locks (flock: {reasons[0]}; "
+                             f"POSIX locks: {reasons[1]}): write to a local disk (e.g. hydra.sweep.dir=/tmp/...) or "
+                             "mount it with locking (Lustre: -o flock)")
+
+
 @contextmanager
 def own_folder(folder: str | os.PathLike, what: str = "job"):
-    """Hold the folder for this process while the block runs: an exclusive flock on folder/.physgrad-<what>,
-    which the operating system releases when the process ends however it ends, so a dead owner never blocks a
-    new one. FolderOwned (one line naming the owner's pid, host and start time) if a live process holds it."""
+    """Hold the folder for this process while the block runs: an exclusive lock on folder/.physgrad-<what>
+    (flock, or a POSIX lock where the file system has no flock), which the operating system releases when the
+    process ends however it ends, so a dead owner never blocks a new one. FolderOwned (one line naming the
+    owner's pid, host and start time) if a live process holds it; LockingUnsupported (one line) where the file
+    system has no locks; OSError if the folder cannot be written. The lock file must stay: a second process
+    that finds it deleted creates its own (see docs/results.md)."""
     folder = Path(folder)
     folder.mkdir(parents=True, exist_ok=True)
     lock_path = folder / f".physgrad-{what}"
-    fd = os.open(lock_path, os.O_RDWR | os.O_CREAT, 0o644)
-    try:
-        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
-    except OSError:
-        owner = os.pread(fd, 512, 0).decode(errors="replace").strip() or "another process"
-        os.close(fd)
-        raise FolderOwned(f"{folder} is being written by {owner} (another {what}): wait for it to end, stop it, "
-                          "or write somewhere else") from None
+    while True:
+        fd = os.open(lock_path, os.O_RDWR | os.O_CREAT, 0o644)
+        try:
+            taken = _lock(fd, lock_path)
+        except BaseException:
+            os.close(fd)
+            raise
+        if not taken:
+            owner = clean_text(os.pread(fd, 512, 0).decode(errors="replace").strip(), 300) or "another process"
+            os.close(fd)
+            raise FolderOwned(f"{folder} is being written by {owner} (another {what}): wait for it to end, stop "
+                              "it, or write somewhere else")
+        try:
+            same = os.stat(lock_path).st_ino == os.fstat(fd).st_ino
+        except FileNotFoundError:
+            same = False
+        if same:
+            break
+        os.close(fd)  # the file was replaced between open and lock: lock the one that is there now
     try:
         os.ftruncate(fd, 0)
         os.pwrite(fd, f"{owner_tag()} since {_now()}\n".encode(), 0)
@@ -86,7 +131,7 @@ class ResultsWriter:
     it opened and never blocks the writer. A completed results.h5 is not replaced before its successor has
     completed: until then the run writes results.overwriting.h5 beside it."""
 
-    def __init__(self, path: str | os.PathLike, attrs: dict):
+    def __init__(self, path: str | os.PathLike, attrs: dict, write: bool = True):
         self.path = Path(path)
         self.path.parent.mkdir(parents=True, exist_ok=True)
         self.live = self.path.with_name(self.path.stem + ASIDE_SUFFIX) if holds_completed(self.path) else self.path
@@ -98,7 +143,8 @@ class ResultsWriter:
         self._params: np.ndarray | None = None
         for stale in self.live.parent.glob(f".{self.live.name}.*.tmp"):  # left by a writer killed mid-write
             stale.unlink(missing_ok=True)
-        self._write()
+        if write:  # (not for a file that is finished at once: see record_outcome)
+            self._write()
 
     def set_columns(self, group: str, names) -> None:
         """Fix the columns of a group; append_row() then takes values in this order."""
@@ -148,13 +194,13 @@ class ResultsWriter:
         flush()."""
         self._params = np.asarray(flat)
 
-    def finish(self, status: str, reason: str | None = None, **attrs) -> None:
+    def finish(self, status: str, reason: str | None = None, sync: bool = True, **attrs) -> None:
         """Record the final status (and the reason for anything but completed) and write the file, synced to
-        disk. A completed run written aside replaces the completed results.h5 only now."""
+        disk (sync). A completed run written aside replaces the completed results.h5 only now."""
         if status not in STATUSES:
             raise ValueError(f"unknown status {status!r}")
         self.set_attrs(status=status, reason=reason, finished=_now(), **attrs)
-        self.flush(sync=True)
+        self.flush(sync=sync)
         if self.live != self.path and status == "completed":
             os.replace(self.live, self.path)
             self.live = self.path
@@ -189,6 +235,13 @@ class ResultsWriter:
             replace_file(self.live, image, sync)
         except OSError as error:
             raise ResultsWriteError(f"cannot write {self.live}: {error.strerror or error}") from error
+
+
+def record_outcome(path: str | os.PathLike, attrs: dict, status: str, reason: str) -> None:
+    """A results file of attributes only, for a job refused, failed or interrupted before training: one write,
+    not synced (a job of a thousand seeds writes a thousand of them, and a signal must not wait for that); a
+    completed file at path is kept, as ResultsWriter keeps it."""
+    ResultsWriter(path, attrs, write=False).finish(status, reason, sync=False)
 
 
 def replace_file(path: Path, content: bytes, sync: bool = False) -> None:
@@ -271,14 +324,35 @@ def owner_alive(owner: str) -> bool | None:
     return True
 
 
-def with_live_status(attrs: dict) -> dict:
+STALE_SECONDS = 3600  # a writer on another host that wrote nothing for this long is taken for dead
+
+
+def with_live_status(attrs: dict, now: float | None = None) -> dict:
     """A file that says `running` whose writer is gone reads as `crashed` (killed, or its machine lost), with a
-    reason; the file itself is left as it is."""
-    if attrs.get("status") == "running" and owner_alive(attrs.get("owner", "")) is False:
+    reason; the file itself is left as it is. A writer on another host cannot be asked: it counts as gone when
+    its heartbeat (the time of its latest write) is more than STALE_SECONDS old."""
+    if attrs.get("status") != "running":
+        return attrs
+    alive = owner_alive(attrs.get("owner", ""))
+    if alive is None:
+        age = heartbeat_age(attrs.get("heartbeat", ""), now)
+        alive = None if age is None else age <= STALE_SECONDS
+        why = f"its writer ({attrs.get('owner', '?')}, on another host) has not written for {age or 0:.0f} s"
+    else:
+        why = f"its writer ({attrs['owner']}) ended without finishing"
+    if alive is False:
         attrs["status"] = "crashed"
-        attrs["reason"] = (f"its writer ({attrs['owner']}) ended without finishing; rows up to its last write "
-                           f"({attrs.get('heartbeat', '?')}) are kept")
+        attrs["reason"] = f"{why}; rows up to its last write ({attrs.get('heartbeat', '?')}) are kept"
     return attrs
+
+
+def heartbeat_age(heartbeat: str, now: float | None = None) -> float | None:
+    """Seconds since an ISO heartbeat with its UTC offset (None if it is not one)."""
+    try:
+        stamp = datetime.strptime(heartbeat, "%Y-%m-%dT%H:%M:%S%z").timestamp()
+    except (ValueError, TypeError, OverflowError):
+        return None
+    return (time.time() if now is None else now) - stamp
 
 
 # Reading: a results file may come from anyone, so it is data. A reader opens regular files only, follows no

@@ -168,11 +168,19 @@ class StopRequest:
         self.at_once = False
         self.received = 0
         self.on_first = on_first
+        self.raising = False  # set-up (no step running, no file half written): a signal raises at once
         self._waiting: threading.Event | None = None
 
     def __call__(self, signum, frame):
         self.received += 1
         self.request(signal.Signals(signum).name, at_once=self.signal_name is not None)
+        if self.raising:
+            self.raising = False  # one exception; what handles it writes the files
+            raise KeyboardInterrupt(self.signal_name)
+
+    def raise_if_stopped(self) -> None:
+        if self.signal_name is not None:
+            raise KeyboardInterrupt(self.signal_name)
 
     def request(self, name: str, at_once: bool = False) -> None:
         """Ask the run to stop after the current step (at_once: without waiting for it); also called by a

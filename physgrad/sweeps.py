@@ -11,17 +11,19 @@ and no job starts after it.
 
 from __future__ import annotations
 
+import hashlib
 import logging
 import os
 import signal
 import threading
+import time
 from contextlib import contextmanager
 from pathlib import Path
 
 import yaml
 from omegaconf import OmegaConf
 
-from physgrad.results import read_small_yaml, replace_file
+from physgrad.results import clean_text, owner_alive, owner_tag, read_small_yaml, replace_file
 
 log = logging.getLogger("physgrad")
 MANIFEST = "jobs.yaml"
@@ -84,19 +86,57 @@ def job_folders(folder: Path) -> dict[frozenset, Path]:
     return found
 
 
+JOB_STATES = ".physgrad-jobs"  # in the sweep folder: one small YAML file per job that started
+
+
+def record_job(sweep: Path, job_folder: Path, overrides: list[str], state: str, reason: str | None = None) -> None:
+    """The job's state (started, or its outcome) and reason in the sweep folder, where it can be written even when
+    the job's own folder cannot; written by rename. A failure to write it is logged, not raised."""
+    name = hashlib.sha1(str(job_folder.resolve()).encode()).hexdigest()[:16]
+    record = {"folder": str(job_folder), "overrides": [str(o) for o in overrides], "state": state,
+              "reason": reason, "owner": owner_tag(), "time": time.strftime("%Y-%m-%dT%H:%M:%S%z")}
+    try:
+        (sweep / JOB_STATES).mkdir(parents=True, exist_ok=True)
+        replace_file(sweep / JOB_STATES / f"{name}.yaml", yaml.safe_dump(record, width=1000).encode())
+    except OSError as error:
+        log.warning("the state of %s was not recorded: %s", job_folder, error.strerror or error)
+
+
+def job_states(sweep: Path) -> dict[frozenset, dict]:
+    """The recorded state of every job of the sweep that started, by its set of overrides (checked as data)."""
+    found = {}
+    for path in sorted((sweep / JOB_STATES).glob("*.yaml")):
+        try:
+            record = read_small_yaml(path, 1 << 16)
+        except (OSError, ValueError):
+            continue
+        if (isinstance(record, dict) and isinstance(record.get("overrides"), list)
+                and all(isinstance(o, str) for o in record["overrides"]) and isinstance(record.get("state"), str)):
+            found[frozenset(record["overrides"])] = {
+                "state": clean_text(record["state"], 40), "reason": clean_text(str(record.get("reason") or ""), 300),
+                "folder": clean_text(str(record.get("folder", "")), 500), "owner": str(record.get("owner", ""))}
+    return found
+
+
 def unfinished_jobs(folder: Path) -> list[tuple[str, str]]:
-    """The manifest's jobs that have no results file: (their overrides joined by commas, `never started` or
-    `no results file`); empty without a manifest."""
-    jobs = read_manifest(folder)
-    if not jobs:
-        return []
-    folders, missing = job_folders(folder), []
-    for job in jobs:
-        where = folders.get(frozenset(job))
-        if where is None:
-            missing.append((",".join(job), "never started"))
-        elif not any(where.rglob("results.h5")):
-            missing.append((",".join(job), "no results file"))
+    """The jobs that left no results file, from the manifest and the recorded job states: (their overrides
+    joined by commas, why: `never started`, `failed: <reason>` as recorded, `crashed` for a job recorded as
+    started whose process is gone, `no results file`)."""
+    jobs, states, missing = read_manifest(folder) or [], job_states(folder), []
+    folders = job_folders(folder)
+    for job in [*jobs, *[sorted(key) for key in states if sorted(key) not in map(sorted, jobs)]]:
+        state, where = states.get(frozenset(job)), folders.get(frozenset(job))
+        if state is not None:
+            where = Path(state["folder"]) if state["folder"] else where
+        if where is not None and where.is_dir() and any(where.rglob("results.h5")):
+            continue
+        if state is None:
+            missing.append((",".join(job), "never started" if where is None else "no results file"))
+        elif state["state"] == "started":
+            gone = owner_alive(state["owner"]) is False
+            missing.append((",".join(job), "crashed before writing results" if gone else "started, no results yet"))
+        else:
+            missing.append((",".join(job), f"{state['state']}: {state['reason']}" if state["reason"] else state["state"]))
     return missing
 
 

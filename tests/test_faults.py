@@ -273,14 +273,188 @@ def test_a_stopped_sweep_records_its_running_job_and_names_the_ones_that_never_r
     finally:
         process.kill()
     assert process.returncode == 130, output
-    assert "sweep stopped by SIGTERM: 1 interrupted, 2 no results file" in output
+    assert "sweep stopped by SIGTERM: 1 interrupted, 2 never started" in output
     from physgrad.report import write_report
 
     text = write_report([sweep])
-    assert text.count("not run: ") == 2 and "seed=2: no results file" in text
+    assert text.count("not run: ") == 2 and "seed=2: never started" in text
     # a second sweep into a folder whose sweep still runs is refused in one line
     with own_folder(sweep, "sweep"):
         second = subprocess.run([PHYSGRAD, "run", "-m", "task=toy", "seed=0,1", f"hydra.sweep.dir={sweep}"],
                                 capture_output=True, text=True, timeout=120)
     assert second.returncode == 2 and second.stderr.count("\n") == 1
     assert "is being written by pid" in second.stderr and "(another sweep)" in second.stderr
+
+
+def finished(process: subprocess.Popen, seconds: float) -> tuple[str, str]:
+    try:
+        return process.communicate(timeout=seconds)
+    except subprocess.TimeoutExpired:
+        process.kill()
+        raise AssertionError(f"still running {seconds} s after the signal") from None
+
+
+@pytest.mark.parametrize("seeds", [1, 300])
+def test_a_signal_at_any_instant_of_a_run_ends_it_in_one_line(tmp_path, seeds):
+    """SIGINT or SIGTERM at random instants from the console script's first line to its last: imports (jaxlib's
+    extension), composing, resume checks, building 300 seeds' data, compiling, training, final writes. The
+    process ends soon after, with 130 (or 0 if it had finished), no traceback and no crash, and every file it
+    left is readable and truthful."""
+    rng = random.Random(seeds)
+    for trial in range((3 if seeds == 1 else 2) * REPEATS):
+        folder = tmp_path / f"{trial}"
+        process = subprocess.Popen([PHYSGRAD, "run", "task=toy", f"seeds={seeds}", "trainer.iterations=40",
+                                    f"hydra.run.dir={folder}"], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                                   text=True)
+        time.sleep(rng.uniform(0.0, 6.0 if seeds == 1 else 12.0))
+        process.send_signal(rng.choice([signal.SIGINT, signal.SIGTERM]))
+        # compiling cannot be cut short (seconds here); 300 seeds write 300 small files when interrupted
+        _, err = finished(process, 60)
+        assert process.returncode in (0, 130) and "Traceback" not in err, err[-3000:]
+        for path in folder.rglob("results.h5"):
+            status = read_run(path).attrs["status"]
+            assert status in ("interrupted", "completed") and (status == "completed") <= (
+                process.returncode == 0 or "completed" in status), (process.returncode, status)
+
+
+def test_an_intruder_is_refused_without_touching_a_live_job(tmp_path):
+    """A second process into the folder of a job a sweep is running: refused (exit 2) before anything is
+    written, so the live job's provenance (.hydra/) and recorded state stay as they were."""
+    sweep = tmp_path / "sweep"
+    process = subprocess.Popen([PHYSGRAD, "run", "-m", "task=toy", "trainer.iterations=100000000", "seed=0",
+                                f"hydra.sweep.dir={sweep}"], stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
+                               text=True)
+    try:
+        deadline = time.time() + 120
+        while not list(sweep.glob("*/results.h5")) and time.time() < deadline:
+            time.sleep(0.2)
+        job, = [path.parent for path in sweep.glob("*/results.h5")]
+        before = {path: path.read_bytes() for path in [*job.glob(".hydra/*"), *sweep.glob(".physgrad-jobs/*")]}
+        assert len(before) == 4  # config, hydra and overrides; the job's record
+        intruder = subprocess.run([PHYSGRAD, "run", "task=toy", "seed=5", "trainer.iterations=2",
+                                   f"hydra.run.dir='{job}'"], capture_output=True, text=True, timeout=120)
+        assert intruder.returncode == 2 and "is being written by pid" in intruder.stderr, intruder.stderr
+        assert {path: path.read_bytes() for path in before} == before
+        assert read_run(job / "results.h5").attrs["seed"] == 0
+        process.send_signal(signal.SIGINT)
+        output, _ = finished(process, 120)
+    finally:
+        process.kill()
+    assert process.returncode == 130 and "1 interrupted" in output, output
+    from physgrad.sweeps import job_states
+
+    state, = job_states(sweep).values()
+    assert state["state"] == "interrupted" and Path(state["folder"]) == job
+
+
+def test_a_job_folder_that_cannot_be_written_fails_alone_with_its_reason(tmp_path, monkeypatch):
+    """A read-only job folder (injected: the tests may run as root, whom chmod does not stop) fails that job
+    with one line; the sweep goes on, its summary and exit code say so, and the reason is recorded."""
+    import physgrad.experiment as experiment
+    from physgrad.cli import main
+    from physgrad.sweeps import unfinished_jobs
+
+    real = experiment.own_folder
+
+    def read_only(folder, what="job"):
+        if "optim=gd" in str(folder):
+            raise PermissionError(errno.EACCES, "Permission denied", str(folder))
+        return real(folder, what)
+
+    monkeypatch.setattr(experiment, "own_folder", read_only)
+    code = main(["run", "-m", "task=toy", "optim=gd,adam", "trainer.iterations=2", f"hydra.sweep.dir={tmp_path}"])
+    assert code == 1
+    assert read_run(next(tmp_path.glob("optim=adam*/results.h5"))).attrs["status"] == "completed"
+    (job, why), = unfinished_jobs(tmp_path)
+    assert "optim=gd" in job and why.startswith("failed: cannot write the job folder") and "Permission denied" in why
+    assert not list(tmp_path.glob("optim=gd*/.hydra"))
+
+
+def test_where_flock_is_unsupported_posix_locks_hold_the_folder(tmp_path, monkeypatch):
+    """ENOLCK (NFS without flock) and ENOSYS (Lustre mounted without flock) fall back to POSIX locks, which still
+    refuse a second process; where neither works, one line with the real reason."""
+    import physgrad.results as results
+
+    holder = subprocess.Popen([sys.executable, "-c", textwrap.dedent(f"""
+        import fcntl, os, time
+        fd = os.open({str(tmp_path / '.physgrad-job')!r}, os.O_RDWR | os.O_CREAT)
+        fcntl.lockf(fd, fcntl.LOCK_EX)
+        os.pwrite(fd, b"pid 1 on elsewhere since then", 0)
+        print("held", flush=True)
+        time.sleep(60)
+    """)], stdout=subprocess.PIPE, text=True)
+    try:
+        assert holder.stdout.readline().strip() == "held"
+        for number in (errno.ENOLCK, errno.ENOSYS):
+            def no_flock(fd, operation, number=number):
+                raise OSError(number, os.strerror(number))
+            monkeypatch.setattr(results.fcntl, "flock", no_flock)
+            with pytest.raises(FolderOwned, match="pid 1 on elsewhere"):
+                with own_folder(tmp_path):
+                    pass
+    finally:
+        holder.kill()
+        holder.wait()
+    with own_folder(tmp_path):  # the holder is gone: the POSIX lock is free
+        pass
+    outcome, _ = run_experiment_in(tmp_path / "run")
+    assert outcome.status == "completed"
+    monkeypatch.setattr(results.fcntl, "lockf", lambda fd, op: (_ for _ in ()).throw(OSError(errno.ENOLCK, "No locks available")))
+    with pytest.raises(results.LockingUnsupported, match="supports no file locks .*No locks available.*mount"):
+        with own_folder(tmp_path / "other"):
+            pass
+
+
+def test_a_writer_on_another_host_is_judged_by_its_heartbeat():
+    from physgrad.results import STALE_SECONDS, _now, with_live_status
+
+    now = time.time()
+    old = time.strftime("%Y-%m-%dT%H:%M:%S%z", time.localtime(now - STALE_SECONDS - 60))
+    for heartbeat, status in ((_now(), "running"), (old, "crashed"), ("not a time", "running")):
+        attrs = with_live_status({"status": "running", "owner": "pid 7 on a-host-that-is-not-this-one",
+                                  "heartbeat": heartbeat}, now)
+        assert attrs["status"] == status
+    assert "has not written for" in with_live_status({"status": "running", "owner": "pid 7 on elsewhere",
+                                                      "heartbeat": old}, now)["reason"]
+
+
+def test_a_scene_figure_that_raises_costs_a_warning_not_the_run(tmp_path, monkeypatch):
+    import physgrad.experiment as experiment
+
+    def broken(*args):
+        raise TypeError("figure() takes 2 positional arguments but 3 were given")
+
+    monkeypatch.setattr(experiment, "draw_run_figures", broken)
+    outcome, path = run_experiment_in(tmp_path)
+    assert outcome.status == "completed" and read_run(path).attrs["status"] == "completed"
+
+
+def test_an_interrupted_report_leaves_the_previous_tables(tmp_path, monkeypatch):
+    import physgrad.report as report
+
+    run_experiment_in(tmp_path / "run")
+    report.write_report([tmp_path / "run"], out_dir=tmp_path / "report")
+    before = {name: (tmp_path / "report" / name).read_bytes() for name in ("report.md", "runs.csv", "curves.csv")}
+    rng = random.Random(4)
+    for trial in range(5 * REPEATS):
+        calls, stop_at = [0], rng.randint(1, 200)
+
+        class Interrupting:
+            def __init__(self, f, *args, **kwargs):
+                self.f = f
+
+            def writerow(self, row):
+                calls[0] += 1
+                if calls[0] >= stop_at:
+                    raise KeyboardInterrupt("SIGINT")
+                self.f.write(",".join(map(str, row)) + "\n")
+
+            def writerows(self, rows):
+                for row in rows:
+                    self.writerow(row)
+
+        monkeypatch.setattr(report.csv, "writer", Interrupting)
+        with pytest.raises(KeyboardInterrupt):
+            report.write_report([tmp_path / "run"], out_dir=tmp_path / "report")
+        after = {name: (tmp_path / "report" / name).read_bytes() for name in before}
+        assert after == before and not list((tmp_path / "report").glob(".*.tmp"))
