@@ -26,7 +26,7 @@ test: setup
 # the fault-injection suite repeated many times (every randomised fault x REPEATS; about 7 minutes at 20)
 REPEATS ?= 20
 test-faults: setup
-	PHYSGRAD_FAULT_REPEATS=$(REPEATS) $(BIN)/python -m pytest -q tests/test_faults.py \
+	PHYSGRAD_FAULT_REPEATS=$(REPEATS) $(BIN)/python -m pytest -q tests/test_faults.py tests/test_foreign.py \
 		tests/test_compare.py::test_a_study_stopped_at_random_instants_resumes_to_the_same_trials
 
 test-fast: setup

@@ -185,6 +185,28 @@ def validation_set(cfg: DictConfig, scene: Scene, data_key):
     return other
 
 
+def check_scene_values(scene: Scene, seeds: Seeds, name: str) -> None:
+    """What a scene gives is what the runner needs (UserError, one line, else): a per-sample loss that is one
+    real floating-point number (an integer loss has no gradient, a vector would be averaged silently), and
+    held-out data without NaN or infinity (a test loss over them would be NaN from the start)."""
+    params = seeds.network()
+    sample = jax.tree_util.tree_map(lambda leaf: leaf[0, 0], seeds.test_sets)
+    output = scene.sample_output if scene.test_output is None else scene.test_output
+    loss = jax.eval_shape(lambda p, s: scene.sample_loss(output(p, s), s), params, sample)
+    if not hasattr(loss, "shape") or loss.shape != ():
+        raise UserError(f"task={name}: sample_loss returns {getattr(loss, 'shape', type(loss).__name__)} per "
+                        "sample; it must return one number (reduce it, e.g. jnp.sum or jnp.mean)")
+    if not jnp.issubdtype(loss.dtype, jnp.floating):
+        raise UserError(f"task={name}: sample_loss returns {loss.dtype}; it must be a real float (compute it in "
+                        "floating point; for a complex output take abs() or .real)")
+    for which, data in (("test_set", seeds.test_sets), ("validation_set", seeds.validation_sets)):
+        bad = sum(int(jnp.size(leaf) - jnp.isfinite(leaf).sum()) for leaf in jax.tree_util.tree_leaves(data)
+                  if jnp.issubdtype(leaf.dtype, jnp.inexact))
+        if bad:
+            raise UserError(f"task={name}: its {which} holds {bad} values that are NaN or infinite: a held-out "
+                            "loss over it is not a number; fix the data the scene's build function draws")
+
+
 def prepare(cfg: DictConfig, seed_list: list[int], settings: TrainerSettings) -> tuple[Scene, UpdateRule, Seeds]:
     """Precision set, the update rule and the seeds' scenes built, and what does not apply refused (UserError):
     everything a run (and `make bench`) does before compiling."""
@@ -192,6 +214,7 @@ def prepare(cfg: DictConfig, seed_list: list[int], settings: TrainerSettings) ->
     logging.getLogger("jax").setLevel(logging.WARNING)
     rule = build_rule(cfg.optim)
     scene, seeds = build_seeds(cfg, seed_list, settings.batch_size)
+    check_scene_values(scene, seeds, cfg.task.name)
     check_applies(scene, cfg)
     if rule.on_layers and not matrix_leaves(seeds.network()) and "muon" in str(cfg.optim.get("_target_", "")):
         raise UserError(f"optim={cfg.optim.name} orthogonalises the network's matrices and task={cfg.task.name}'s "

@@ -134,3 +134,32 @@ def test_without_a_terminal_progress_is_logged_and_the_run_ends_with_one_line(tm
     progress = [line for line in lines if "toy/adam seed 0 iteration " in line]
     assert len(progress) >= 2 and all(", loss " in line and " s of training" in line for line in progress)
     assert "completed after" in lines[-1] and "(stopped by time budget), 3.0 s of training" in lines[-1]
+
+
+@pytest.mark.parametrize("override, fragment", [
+    ("+trainer.iteratons=5", "unknown key 'trainer.iteratons': did you mean trainer.iterations?"),
+    ("++trainer.iteratons=5", "did you mean trainer.iterations?"),
+    ("+foo=1", "unknown key 'foo' (the top level has: "),
+    ("init_from=a/optim=adam,seed=0/results.h5", "must be quoted, e.g. init_from='"),
+])
+def test_added_keys_nothing_reads_and_unquoted_paths_are_one_line_errors(override, fragment):
+    from physgrad import UserError
+    from physgrad.configs import check_overrides
+
+    with pytest.raises(UserError) as caught:
+        check_overrides(["task=toy", override], multirun=False)
+    assert fragment in str(caught.value) and "\n" not in str(caught.value)
+    check_overrides(["task=toy", "+optim.weight_decay=0.1"], multirun=False)  # a keyword for the factory
+
+
+@pytest.mark.parametrize("override, fragment", [
+    ("seeds=5000", "seeds=5000 is more than 1024 seeds in one process: sweep them instead"),
+    ("init_from=", "init_from='' is not allowed: use the path of a results.h5, or leave init_from out"),
+])
+def test_sizes_and_empty_paths_are_refused_before_anything_is_built(tmp_path, override, fragment):
+    from physgrad.experiment import run_experiment
+    from tests.test_configs import load
+
+    outcome, _ = run_experiment(load("task=toy", "trainer.iterations=2", override), tmp_path)
+    assert outcome.status == "refused" and fragment in outcome.reason
+    assert len(list(tmp_path.rglob("results.h5"))) <= 1

@@ -170,3 +170,35 @@ def test_the_wheel_installs_and_runs_from_an_unrelated_folder(tmp_path):
     run = read_run(elsewhere / "out" / "results.h5")
     assert run.attrs["status"] == "completed" and run.train["iteration"].size == 5
     shutil.rmtree(venv)
+
+
+def broken_toy(kind):
+    """The toy scene with one thing a scene author might get wrong."""
+    import dataclasses
+
+    import jax.numpy as jnp
+
+    from physgrad.tasks.toy import build
+
+    def scene(key, **kwargs):
+        good = build(key, **kwargs)
+        if kind == "integer loss":
+            return dataclasses.replace(good, sample_loss=lambda y, s: jnp.sum(y > 0).astype(jnp.int32))
+        if kind == "vector loss":
+            return dataclasses.replace(good, sample_loss=lambda y, s: (y - s["target"]) ** 2)
+        test_set = dict(good.test_set, target=good.test_set["target"].at[3, 0].set(jnp.nan))
+        return dataclasses.replace(good, test_set=test_set)
+    return scene
+
+
+@pytest.mark.parametrize("kind, fragment", [("integer loss", "returns int32; it must be a real float"),
+                                            ("vector loss", "returns (2,) per sample; it must return one number"),
+                                            ("NaN test set", "its test_set holds 1 values that are NaN")])
+def test_a_scene_with_a_wrong_loss_or_test_set_is_refused_in_one_line(tmp_path, monkeypatch, kind, fragment):
+    import physgrad.tasks.toy as toy
+    from physgrad.experiment import run_experiment
+    from tests.test_configs import load
+
+    monkeypatch.setattr(toy, "build", broken_toy(kind))
+    outcome, path = run_experiment(load("task=toy", "trainer.iterations=2"), tmp_path)
+    assert outcome.status == "refused" and fragment in outcome.reason, outcome.reason
