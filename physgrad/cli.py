@@ -205,8 +205,8 @@ def report_command(args: list[str]) -> int:
     parser.add_argument("--out", help="folder for report.md, runs.csv, curves.csv and the figures (default: the "
                                       "first PATH folder)")
     parser.add_argument("--threshold", type=float, default=None,
-                        help="test loss for the time-to-reach column (default: per scene, the worst final test "
-                             "loss among its completed runs, so every run that finished has a time)")
+                        help="test loss for the time-to-reach column (default: per scene, the median final test "
+                             "loss of its best group, the target physgrad compare uses)")
     parser.add_argument("--note", default="", help="a line printed on every figure (e.g. the budget profile)")
     parser.add_argument("--logx", choices=("auto", "on", "off"), default="auto",
                         help="log time/iteration axis: auto where the curves' ends span a decade or more")

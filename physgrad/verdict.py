@@ -286,9 +286,15 @@ def divergence_test(diverged_a: int, n_a: int, diverged_b: int, n_b: int) -> flo
 def target_loss(curves: dict[str, dict[int, Curve]], budget: float) -> tuple[str, float]:
     """The target of time-to-target: the median loss at the budget of the variant with the lowest median (a
     diverged run counts as infinite, a missing one is left out); (variant, target)."""
+    return lowest_median({name: [c.at(budget) for c in by_seed.values()] for name, by_seed in curves.items()})
+
+
+def lowest_median(losses: dict[str, list[float]]) -> tuple[str, float]:
+    """(group, its median) of the group whose median loss is lowest; NaN losses are left out, infinite ones
+    (diverged) count; ("", NaN) if no group has a finite median. The target every group works towards: the
+    best group's typical result, which the other groups may or may not reach."""
     medians = {}
-    for name, by_seed in curves.items():
-        values = [c.at(budget) for c in by_seed.values()]
+    for name, values in losses.items():
         values = [v for v in values if not math.isnan(v)]
         if values:
             medians[name] = float(np.median(values))
