@@ -458,3 +458,26 @@ def test_an_interrupted_report_leaves_the_previous_tables(tmp_path, monkeypatch)
             report.write_report([tmp_path / "run"], out_dir=tmp_path / "report")
         after = {name: (tmp_path / "report" / name).read_bytes() for name in before}
         assert after == before and not list((tmp_path / "report").glob(".*.tmp"))
+
+
+@pytest.mark.parametrize("name", ["config.yaml", "hydra.yaml", "overrides.yaml"])
+def test_a_full_disk_while_writing_hydra_fails_that_job_alone_in_one_line(tmp_path, monkeypatch, name):
+    """ENOSPC while physgrad writes a job's .hydra/ (each of its files): that job fails with one line and its
+    reason recorded, no half-written file is left, and the sweep's other job runs."""
+    import physgrad.results as results
+    from physgrad.cli import main
+    from physgrad.sweeps import job_states
+
+    real = results.replace_file
+
+    def full(path, content, sync=False):
+        if path.name == name and path.parent.name == ".hydra" and "optim=gd" in str(path):
+            raise OSError(errno.ENOSPC, "No space left on device", str(path))
+        return real(path, content, sync)
+
+    monkeypatch.setattr(results, "replace_file", full)
+    assert main(["run", "-m", "task=toy", "optim=gd,adam", "trainer.iterations=2", f"hydra.sweep.dir={tmp_path}"]) == 1
+    states = {Path(s["folder"]).name.split(",")[0]: s for s in job_states(tmp_path).values()}
+    assert states["optim=adam"]["state"] == "completed"
+    assert states["optim=gd"]["state"] == "failed" and "No space left on device" in states["optim=gd"]["reason"]
+    assert not list(tmp_path.rglob("*.tmp")) and not list(tmp_path.glob("optim=gd*/results.h5"))
