@@ -4,7 +4,7 @@ VENV ?= .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 
-.PHONY: setup run test test-fast test-faults bench check-stability reproduce-figures clean
+.PHONY: setup run test test-long test-fast test-faults bench check-stability reproduce-figures clean
 
 setup: $(STAMP)
 
@@ -21,7 +21,12 @@ run: setup
 	$(BIN)/physgrad compare $(if $(ARGS),$(ARGS),$(RUN_STUDY))
 
 test: setup
-	$(BIN)/python -m pytest -q tests
+	$(BIN)/python -m pytest -q -m "not long" tests
+
+# the long checks (numerics through whole solvers, end-to-end studies, the full scene x optim matrix, the small
+# stability suite); CI runs them after make test
+test-long: setup
+	$(BIN)/python -m pytest -q -m long tests
 
 # the fault-injection suite repeated many times (every randomised fault x REPEATS; about 7 minutes at 20)
 REPEATS ?= 20
@@ -30,7 +35,7 @@ test-faults: setup
 		tests/test_compare.py::test_a_study_stopped_at_random_instants_resumes_to_the_same_trials
 
 test-fast: setup
-	$(BIN)/python -m pytest -q -m "not slow" tests
+	$(BIN)/python -m pytest -q -m "not slow and not long" tests
 
 # step time, compile time and peak memory per scene x variant, with floors; writes outputs/bench/benchmarks.md
 bench: setup

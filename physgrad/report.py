@@ -11,15 +11,15 @@ label in front of the group's, so sweeps from different days can be compared.
 
 from __future__ import annotations
 
-import csv
 import math
 import os
 from collections import Counter, defaultdict
 from dataclasses import dataclass
 from pathlib import Path
+from typing import NamedTuple
 
 import numpy as np
-import yaml
+import pandas as pd
 
 from physgrad import UserError
 from physgrad.machine import machine_label
@@ -346,26 +346,94 @@ def markdown_table(rows: list[dict], columns) -> str:
     return "\n".join(lines) + "\n"
 
 
-def write_csv(rows: list[dict], runs: list[Run], out: Path) -> None:
-    """runs.csv (one row per run) and curves.csv (long format: run, split, iteration, wall_time, metric,
-    value; run is the results file's path as in runs.csv)."""
-    if rows:
-        with replaced_text(out / "runs.csv") as f:
-            writer = csv.DictWriter(f, fieldnames=list(rows[0]))
-            writer.writeheader()
-            writer.writerows(rows)
+ID_COLUMNS = ("set", "task", "scene", "setting", "variant", "label", "seed", "status")  # repeated in curves
+CSV_TRAIN_ROWS = 1000  # curves.csv keeps every evaluation and at most this many training rows per run
+
+
+class Tables(NamedTuple):
+    """runs: one row per run, every setting in a column of its own (the config's dotted keys: task.*, optim.*,
+    trainer.*, precision, ...; the effective unroll; the machine) beside the report's per-run numbers; curves:
+    one row per run, split (train | eval) and iteration, every logged column as a column of its own, with the
+    run's id (`run`, joining runs.run) and its identifying columns (set, task, scene, setting, variant, label,
+    seed, status), so that a plot needs no merge."""
+
+    runs: pd.DataFrame
+    curves: pd.DataFrame
+
+
+def tables(runs: list[Run], threshold: float | None = None) -> Tables:
+    """The runs (labelled: label_runs) as tidy pandas tables; see Tables."""
+    rows = run_rows(runs, threshold)
+    by_path = {str(run.path): run for run in runs}
+    records, curves = [], []
+    for number, row in enumerate(rows):
+        run = by_path[row["path"]]
+        settings = {k: v for k, v in run_config(run).items() if k not in ("seed", "unroll")}
+        records.append({"run": number, **row, "unroll": run.attrs.get("unroll"), **settings})
+        for split in ("train", "eval"):
+            columns = getattr(run, split)
+            if "iteration" in columns:
+                frame = pd.DataFrame(columns)
+                frame.insert(0, "split", split)
+                frame.insert(0, "run", number)
+                curves.append(frame)
+    runs_frame = _plain_columns(pd.DataFrame.from_records(records))
+    curve_frame = pd.concat(curves, ignore_index=True) if curves else pd.DataFrame(columns=["run", "split"])
+    if len(runs_frame):
+        identity = runs_frame[["run", *ID_COLUMNS]]
+        curve_frame = identity.merge(curve_frame, on="run", how="right")
+    return Tables(runs_frame, curve_frame)
+
+
+def _plain_columns(frame: pd.DataFrame) -> pd.DataFrame:
+    """Columns of one type each (a setting that is a number in one run and text in another becomes text;
+    lists become their text), so that CSV and Parquet hold them as they are."""
+    for column in frame.columns:
+        values = frame[column].dropna()
+        kinds = {type(v) for v in values}
+        if kinds - {int, float, bool, np.integer, np.floating} and (len(kinds) > 1 or kinds & {tuple, list, dict}):
+            frame[column] = frame[column].map(lambda v: v if v is None or (isinstance(v, float) and math.isnan(v))
+                                              else str(v))
+    return frame
+
+
+def read_runs(paths, threshold: float | None = None) -> Tables:
+    """Every readable run under the paths (files, folders, LABEL=PATH sets, as `physgrad report` takes them) as
+    tidy tables (Tables: .runs and .curves, pandas DataFrames), grouped and labelled as a report does.
+    UserError (one line) if a path does not exist or holds no results file; unreadable files are left out."""
+    runs, _, _ = collect([str(path) for path in paths])
+    label_runs(runs)
+    return tables(runs, threshold)
+
+
+def write_tables(frames: Tables, out: Path) -> None:
+    """runs.csv and runs.parquet; curves.parquet (every row) and curves.csv (every evaluation, and the training
+    rows thinned to CSV_TRAIN_ROWS per run, evenly in iteration with the first and the last: a long run's CSV
+    would be tens of MB). Each written beside and renamed into place."""
+    with replaced_text(out / "runs.csv") as f:
+        frames.runs.to_csv(f, index=False)
     with replaced_text(out / "curves.csv") as f:
-        writer = csv.writer(f)
-        writer.writerow(("run", "split", "iteration", "wall_time", "metric", "value"))
-        for run in runs:
-            for split in ("train", "eval"):
-                columns = getattr(run, split)
-                if "iteration" not in columns:
-                    continue
-                iterations, times = columns["iteration"].tolist(), columns["wall_time"].tolist()
-                for metric in sorted(k for k in columns if k not in METADATA):
-                    values = columns[metric].tolist()
-                    writer.writerows((run.path, split, i, t, metric, v) for i, t, v in zip(iterations, times, values))
+        _thinned(frames.curves).to_csv(f, index=False)
+    for name, frame in (("runs", frames.runs), ("curves", frames.curves)):
+        temporary = out / f".{name}.parquet.{os.getpid()}.tmp"
+        try:
+            frame.to_parquet(temporary, index=False)
+            os.replace(temporary, out / f"{name}.parquet")
+        except BaseException:
+            temporary.unlink(missing_ok=True)
+            raise
+
+
+def _thinned(curves: pd.DataFrame) -> pd.DataFrame:
+    if not len(curves):
+        return curves
+    train = curves["split"] == "train"
+    position = curves[train].groupby("run").cumcount()
+    size = curves[train].groupby("run")["run"].transform("size")
+    step = np.maximum(1, np.ceil(size / CSV_TRAIN_ROWS)).astype(int)
+    keep = pd.Series(True, index=curves.index)
+    keep[train] = (position % step == 0) | (position == size - 1)
+    return curves[keep]
 
 
 def output_folder(arguments, out_dir) -> Path:
@@ -442,7 +510,7 @@ def write_report(paths, out_dir=None, threshold: float | None = None, note: str 
             text.append(f"tuned by Optuna in {path}: best {settings} (objective {_fmt(best.get('best_value'))}: the "
                         "final test loss)")
     body = "\n".join(text) + "\n"
-    write_csv(rows, runs, out)
+    write_tables(tables(runs, threshold), out)
     with replaced_text(out / "report.md") as f:  # last: a report.md beside complete tables only
         f.write(body)
     from physgrad.plots import plot_comparison, plot_tradeoff, plot_unroll
@@ -458,7 +526,8 @@ def write_report(paths, out_dir=None, threshold: float | None = None, note: str 
         figures.append("loss_vs_calibrated_time.png")
     if plot_unroll(runs, out / "unroll", note):
         figures.append("unroll.png")
-    return body + f"wrote {out / 'report.md'}, runs.csv, curves.csv and {', '.join(figures)} (and .pdf)\n"
+    return body + (f"wrote {out / 'report.md'}, runs.csv, curves.csv (and .parquet) and {', '.join(figures)} "
+                   "(and .pdf)\n")
 
 
 FIGURES = ("loss_vs_time", "loss_vs_iteration", "tradeoff", "unroll")

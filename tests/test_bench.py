@@ -2,10 +2,13 @@
 
 import math
 
+import pytest
+
 from physgrad.bench import (_median_times, floor_seconds, jacobian_table, measure_floors, measure_seeds,
                             measure_variant, seeds_table, table)
 
 
+@pytest.mark.long
 def test_bench_measures_steps_floors_and_overhead():
     small = ["task=poisson", "task.grid=4", "task.test_size=8", "trainer.batch_size=4"]
     hig = measure_variant([*small, "optim=hig"], repeats=2, min_seconds=0)

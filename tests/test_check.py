@@ -23,11 +23,13 @@ def rows_of(rows, case_start):
     return found
 
 
+@pytest.mark.long
 def test_small_check_has_no_failures_and_every_outcome_is_named(small_check):
     for row in small_check:
         assert row["outcome"] in ("converged", "stalled", "grew", "diverged", "refused", "finite"), row
 
 
+@pytest.mark.long
 def test_far_too_large_learning_rates_end_as_outcomes(small_check):
     rows = [row for row in small_check if "learning rate 1e6" in row["case"]]
     assert len(rows) == 3
@@ -37,6 +39,7 @@ def test_far_too_large_learning_rates_end_as_outcomes(small_check):
             assert re.fullmatch(r"(output|loss|gradient|update) became \S+ at iteration \d+ \(\w+\)", row["detail"])
 
 
+@pytest.mark.long
 def test_rank_deficient_jacobians_give_finite_directions(small_check):
     rows = rows_of(small_check, "rank-deficient J")
     assert len(rows) == 12 and all(row["outcome"] == "finite" for row in rows)
@@ -49,12 +52,14 @@ def test_rank_deficient_jacobians_give_finite_directions(small_check):
             assert all(float(errors[t]) < 1e-6 for t in ("1e-06", "1e-04", "1e-02")), row
 
 
+@pytest.mark.long
 def test_schroedinger_norm_drift_is_round_off(small_check):
     for row in rows_of(small_check, "quantum norm"):
         drift = float(row["detail"].rsplit(": ", 1)[1])
         assert drift < (1e-12 if row["precision"] == "64" else 1e-3), row
 
 
+@pytest.mark.long
 def test_bptt_gradient_growth_is_measured(small_check):
     rows = {row["variant"]: row for row in rows_of(small_check, "multicart 4 poles: gradient norm")}
     assert set(rows) == {"bptt[R]", "bptt[M]"} and all(row["outcome"] == "finite" for row in rows.values())

@@ -129,6 +129,7 @@ def test_a_loss_that_blows_up_without_nan_ends_the_run_diverged(tmp_path):
 
 
 @pytest.mark.slow
+@pytest.mark.long
 def test_a_study_on_a_users_own_scene_end_to_end_and_resumed(tmp_path):
     """examples/custom_scene (the pendulum) with Adam against HIG through the console script: tuning trials on the
     tuning seed scored by validation loss, 7 paired seeds, verdict tables and CSVs; run again it trains nothing
@@ -185,6 +186,7 @@ def test_the_python_call_returns_the_tables(tmp_path):
 
 
 @pytest.mark.slow
+@pytest.mark.long
 def test_a_study_stopped_at_random_instants_resumes_to_the_same_trials(tmp_path):
     """SIGTERM to `physgrad compare` while its tuning or evaluation multirun trains (its own session: the signal
     is passed on once), at random instants, PHYSGRAD_FAULT_REPEATS times: it exits 130, leaves no process behind,
@@ -224,6 +226,7 @@ def test_a_study_stopped_at_random_instants_resumes_to_the_same_trials(tmp_path)
         assert len(list(csv.DictReader(open(study / "runs.csv")))) == 12
 
 
+@pytest.mark.long
 def test_an_equal_time_study_runs_on_the_calibrated_clock_and_can_reuse_a_calibration(tmp_path):
     """A time budget: the variants are calibrated once (calibration.json), every run stops where iterations x its
     variant's cost reach the budget, verdicts read the calibrated clock, and a second study given the first's

@@ -141,6 +141,7 @@ def test_tab_completion_through_hydra(tmp_path):
 
 
 @pytest.mark.slow
+@pytest.mark.long
 def test_the_wheel_installs_and_runs_from_an_unrelated_folder(tmp_path):
     """`pip wheel .`, then the wheel into a fresh virtual environment, and `physgrad run` from a folder that has
     nothing of the repository: the configs come from the installed package. To keep the test short the fresh

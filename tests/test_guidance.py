@@ -119,6 +119,7 @@ def test_reference_network_data_and_zero_control_loss(x64):
 
 
 @pytest.mark.parametrize("mode", ["R", "M", "S"])
+@pytest.mark.long
 def test_scan_matches_loop_and_finite_differences(x64, mode):
     """Loss over every step plus the control cost, with a random (non-zero) output layer so that the modes
     differ; the stopped inputs are the forward states of the regular rollout."""

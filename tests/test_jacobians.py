@@ -157,6 +157,7 @@ def test_built_in_scenes_get_the_form_their_network_allows():
         assert (rule.gradient.plan is not None) == factorised, (task, rule.gradient.name)
 
 
+@pytest.mark.long
 def test_training_steps_are_the_same_on_both_forms(x64):
     """HIG on a small Poisson problem in float64: a few compiled training steps through the runner with the
     factorised and with the per-sample Jacobian give the same parameters and logs."""

@@ -153,6 +153,7 @@ def test_network_against_numpy_and_its_size(x64):
     assert float(jnp.max(jnp.abs(apply_resnet(zero, jnp.ones(48), 1.0)))) == 0.0
 
 
+@pytest.mark.long
 def test_unrolled_gradients_against_loops_and_finite_differences(x64):
     """WIG (R), M and S against plain loops with the same stops, and against finite differences of them, for
     both steppers; NOG is S: the same gradient, whatever optim.backprop adds."""
@@ -234,6 +235,7 @@ def test_nog_has_no_path_through_earlier_steps(x64):
         np.testing.assert_allclose(a, b, rtol=1e-11, atol=1e-15)
 
 
+@pytest.mark.long
 def test_one_is_compute_matched_one_step_training(x64):
     """ONE: a batch of B holds B x m independent ground-truth pairs, each predicted from its ground-truth
     input: as many network and solver evaluations per update as B unrolled windows of m steps (the same

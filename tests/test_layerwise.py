@@ -45,6 +45,7 @@ def reference_step(scene, transform, seeds, settings, on_layers: bool):
     return np.asarray(flat + updates)
 
 
+@pytest.mark.long
 def test_muon_orthogonalises_each_layer_not_one_flat_vector(x64):
     scene, rule, seeds, settings = toy("muon", "precision=64")  # float64: the comparison is of rules, not of round-off
     assert rule.on_layers

@@ -96,6 +96,7 @@ def test_control_preset_network_and_loss_over_every_step():
 
 @pytest.mark.parametrize("mode", ["R", "M", "S"])
 @pytest.mark.parametrize("preset", ["quantum", "quantum_control"])
+@pytest.mark.long
 def test_gradients_through_the_solver(x64, preset, mode):
     steps = 10
     scene = build_scene(load(f"task={preset}", "task.train_size=4", "task.test_size=4").task,

@@ -6,6 +6,7 @@ import math
 
 import matplotlib.pyplot as plt
 import numpy as np
+import pandas as pd
 import pytest
 import yaml
 
@@ -216,13 +217,51 @@ def test_scene_metrics_and_csv_export(tmp_path):
                                "upright"} <= set(rows[0])
     assert sorted(float(r["upright"]) for r in rows) == [0.25, 1.0]
     curves = list(csv.DictReader(open(tmp_path / "curves.csv")))
-    assert set(curves[0]) == {"run", "split", "iteration", "wall_time", "metric", "value"}
-    # per run: train loss and grad_norm, eval loss and upright, one row per iteration each
-    assert len(curves) == 3 * 4 + 2 * 4
-    eval_a = [c for c in curves if c["run"].endswith("a/results.h5") and c["split"] == "eval"
-              and c["metric"] == "upright"]
-    assert [(int(c["iteration"]), float(c["wall_time"]), float(c["value"])) for c in eval_a] == [
+    assert {"run", "split", "iteration", "wall_time", "loss", "grad_norm", "upright", "label", "variant", "seed",
+            "scene"} <= set(curves[0])
+    # one row per run, split and iteration: 3 + 2 training rows, 3 + 2 evaluations
+    assert len(curves) == 10
+    a = next(r["run"] for r in rows if r["path"].endswith("a/results.h5"))
+    eval_a = [c for c in curves if c["run"] == a and c["split"] == "eval"]
+    assert [(int(c["iteration"]), float(c["wall_time"]), float(c["upright"])) for c in eval_a] == [
         (0, 0.0, 0.0), (1, 1.0, 0.5), (2, 2.0, 1.0)]
+    assert pd.read_parquet(tmp_path / "curves.parquet").shape[0] == 10
+
+
+def test_read_runs_gives_every_setting_a_column_and_curves_that_plot_without_a_merge(tmp_path):
+    """An Optuna-like set of learning rates: each run's rate is a number in optim.learning_rate (not only in its
+    label), the curves carry label, variant and seed, and the CSV and Parquet files hold the same columns."""
+    import physgrad
+
+    rates = (0.00725701, 0.0311, 0.1)
+    for i, lr in enumerate(rates):
+        fake_run(tmp_path / f"t{i}", "adam", 0, 2, [1.0, 0.5 - 0.1 * i], [0.0, 1.0], optim={"learning_rate": lr})
+    fake_run(tmp_path / "hig", "hig", 0, 2, [1.0, 0.05], [0.0, 2.0], optim={"learning_rate": 1.0, "backprop": "C"})
+    runs, curves = physgrad.read_runs([tmp_path])
+    assert sorted(runs.loc[runs["variant"] == "adam", "optim.learning_rate"]) == list(rates)
+    assert {"task.poles", "trainer.iterations", "optim.backprop", "seed", "status", "stopped_by", "unroll",
+            "machine", "run"} <= set(runs.columns)
+    assert runs["task.poles"].tolist() == [2] * 4 and runs["run"].tolist() == list(range(4))
+    evaluations = curves[curves["split"] == "eval"]
+    assert set(evaluations.groupby("label").size()) == {2} and evaluations["label"].nunique() == 4
+    merged = evaluations.merge(runs[["run", "optim.learning_rate"]], on="run")
+    assert merged.groupby("run")["optim.learning_rate"].nunique().eq(1).all()
+    write_report([tmp_path])
+    on_disk = pd.read_csv(tmp_path / "runs.csv")
+    assert list(on_disk.columns) == list(runs.columns) == list(pd.read_parquet(tmp_path / "runs.parquet").columns)
+    assert sorted(on_disk["optim.learning_rate"].dropna()) == sorted([*rates, 1.0])
+
+
+def test_long_runs_are_thinned_in_csv_and_whole_in_parquet(tmp_path):
+    from physgrad.report import CSV_TRAIN_ROWS
+
+    count = 3 * CSV_TRAIN_ROWS + 7
+    fake_run(tmp_path / "long", "adam", 0, 1, np.linspace(1, 0.1, count).tolist(), np.arange(count).tolist())
+    write_report([tmp_path])
+    train = pd.read_csv(tmp_path / "curves.csv").query("split == 'train'")
+    assert CSV_TRAIN_ROWS // 2 <= len(train) <= CSV_TRAIN_ROWS + 1
+    assert train["iteration"].iloc[0] == 0 and train["iteration"].iloc[-1] == count - 1
+    assert len(pd.read_parquet(tmp_path / "curves.parquet").query("split == 'train'")) == count
 
 
 @pytest.mark.parametrize("make", ["missing", "empty", "unreadable", "unwritable_out"])

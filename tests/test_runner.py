@@ -31,6 +31,7 @@ def test_divergence_is_an_outcome_with_the_curve_kept(tmp_path):
     assert np.isfinite(run.train["loss"][0])
 
 
+@pytest.mark.long
 def test_a_failed_factorisation_is_named_in_the_divergence_reason(tmp_path, monkeypatch):
     from tests.test_spectral import float32_factorisation_fails
 

@@ -55,6 +55,7 @@ def test_every_figure_has_its_experiments():
 
 
 @pytest.mark.parametrize("experiment", EXPERIMENTS)
+@pytest.mark.long
 def test_every_job_of_a_named_sweep_is_valid(experiment):
     jobs = list(sweep_jobs(experiment))
     assert len(jobs) >= 6
@@ -94,6 +95,7 @@ def test_claims_profile_jobs_are_valid_with_three_seeds(figure):
             assert (cfg.trainer.time_budget is None) == (cfg.seeds == 3)
 
 
+@pytest.mark.long
 def test_the_claims_profile_runs_what_the_claims_read():
     """Every side of every claim's comparisons (and the pay-off map) matches jobs the profile launches into the
     folders the claim reads."""
@@ -192,6 +194,7 @@ def test_init_from_continues_from_the_saved_network(tmp_path):
     ("missing.h5", "no such file"),
     ("other", "that run trained a poisson network with"),
 ])
+@pytest.mark.long
 def test_init_from_a_wrong_run_is_refused(tmp_path, source, fragment):
     if source == "other":
         _, path = run_experiment(load(*TINY, "task.grid=3", "trainer.iterations=1"), tmp_path / "other")
@@ -286,6 +289,7 @@ def test_submitit_local_sweep_and_resume(tmp_path):
 @pytest.mark.parametrize("task", [["task=poisson", "task.grid=4", "task.test_size=8", "trainer.batch_size=4"],
                                   ["task=multicart", "task.train_size=16", "task.test_size=8", "unroll=20",
                                    "optim=stable_bptt"]], ids=["fresh batches", "fixed training set"])
+@pytest.mark.long
 def test_seeds_in_one_process_match_separate_runs(tmp_path, task):
     """seeds=3 trains seeds 0, 1, 2 in one vmapped step; every seed's file has the curves of its own run."""
     common = [*task, "precision=64", "trainer.iterations=6", "trainer.eval_every=3"]
