@@ -10,12 +10,13 @@ from contextlib import ExitStack
 from pathlib import Path
 
 import hydra
+import numpy as np
 from hydra.core.hydra_config import HydraConfig
 from hydra.experimental.callback import Callback
 from hydra.types import RunMode
 from omegaconf import DictConfig, OmegaConf
 
-from physgrad.configs import CONF_DIR
+from physgrad.configs import CONF_DIR, name_options
 from physgrad.experiment import run_experiment
 from physgrad.sweeps import record_job, stop_count
 
@@ -159,6 +160,31 @@ def write_provenance(out_dir: Path, cfg: DictConfig, hydra_cfg) -> None:
         replace_file(folder / name, OmegaConf.to_yaml(node).encode())
 
 
+SEED_LINES = 8
+
+
+def seed_lines(folder: Path) -> list[str]:
+    """For a job of several seeds (folder/seed=<s>/results.h5): each seed's status and test loss, the first
+    SEED_LINES of them, then the median [min, max] over all that completed."""
+    from physgrad.results import read_final
+
+    rows = []
+    for path in sorted(folder.glob("seed=*/results.h5"), key=lambda p: int(p.parent.name[5:])):
+        try:
+            attrs, last = read_final(path)
+        except ValueError as error:
+            rows.append((path.parent.name, "unreadable", None, str(error)))
+            continue
+        rows.append((path.parent.name.replace("=", " "), attrs["status"], last.get("loss"), attrs.get("reason")))
+    lines = [f"  {seed}: {status}" + (f", test loss {loss:.4g}" if loss is not None and status == "completed" else "")
+             + (f" ({why})" if why and status != "completed" else "") for seed, status, loss, why in rows[:SEED_LINES]]
+    losses = [loss for _, status, loss, _ in rows if status == "completed" and loss is not None]
+    if len(rows) > SEED_LINES and losses:
+        lines.append(f"  test loss over the {len(losses)} of {len(rows)} seeds that completed: median "
+                     f"{float(np.median(losses)):.4g} [{min(losses):.4g}, {max(losses):.4g}]")
+    return lines
+
+
 def objective(outcome) -> float:
     """What the job returns to a sweeper that optimises: the final VALIDATION loss of a completed run
     (trainer.validation=true; a budgeted run's last evaluation is at its budget), never the test loss, which
@@ -176,7 +202,11 @@ def job(cfg: DictConfig) -> float:
     if hydra_cfg.runtime.cwd not in sys.path:
         sys.path.append(hydra_cfg.runtime.cwd)
     multirun = hydra_cfg.mode == RunMode.MULTIRUN
-    name = f"{cfg.task.get('name')}/{cfg.optim.get('name')} seed {cfg.seed}"
+    name_options(cfg, hydra_cfg.runtime.choices)
+    count = cfg.get("seeds", 1)
+    seeds = f"seeds {cfg.seed}-{cfg.seed + count - 1}" if isinstance(count, int) and isinstance(cfg.seed, int) and \
+        count > 1 else f"seed {cfg.seed}"
+    name = f"{cfg.task.get('name')}/{cfg.optim.get('name')} {seeds}"
     out_dir = Path(hydra_cfg.runtime.output_dir)
     sweep = Path(hydra_cfg.sweep.dir) if multirun else None
     stopped = stop_count(sweep) if sweep is not None else None
@@ -223,6 +253,8 @@ def job(cfg: DictConfig) -> float:
     log.info("%s %s after %d iterations%s, %.1f s of training%s%s -> %s", name, outcome.status, outcome.iterations,
              stopped, outcome.train_seconds, f", test loss {test:.4g}" if test is not None else "",
              f" ({outcome.reason})" if outcome.reason else "", path)
+    for line in seed_lines(path) if path.is_dir() else ():
+        log.info("%s", line)
     if outcome.status == "interrupted" and not multirun:  # in a sweep, the others are told (physgrad.sweeps)
         sys.exit(130)
     return objective(outcome)

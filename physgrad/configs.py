@@ -56,11 +56,29 @@ def compose(overrides=(), config_dirs=(), return_hydra_config: bool = False):
     from hydra import compose as hydra_compose
     from hydra.errors import HydraException
 
+    from omegaconf import open_dict
+
     with initialized(config_dirs):
         try:
-            return hydra_compose("config", overrides=list(overrides), return_hydra_config=return_hydra_config)
+            cfg = hydra_compose("config", overrides=list(overrides), return_hydra_config=True)
         except HydraException as error:
             raise UserError(str(error).strip().splitlines()[0]) from None
+    name_options(cfg, cfg.hydra.runtime.choices)
+    if not return_hydra_config:
+        with open_dict(cfg):
+            del cfg["hydra"]
+    return cfg
+
+
+def name_options(cfg, choices) -> None:
+    """A task or optim YAML without `name:` is named after its option (task=heat: heat), as it was chosen."""
+    from omegaconf import open_dict
+
+    for section in ("task", "optim"):
+        node, chosen = cfg.get(section), choices.get(section)
+        if node is not None and node.get("name") is None and chosen:
+            with open_dict(node):
+                node.name = str(chosen).rpartition("/")[2]
 
 
 def searchpath_entries(overrides) -> list[str]:

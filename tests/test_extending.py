@@ -203,3 +203,16 @@ def test_a_scene_with_a_wrong_loss_or_test_set_is_refused_in_one_line(tmp_path, 
     monkeypatch.setattr(toy, "build", broken_toy(kind))
     outcome, path = run_experiment(load("task=toy", "trainer.iterations=2"), tmp_path)
     assert outcome.status == "refused" and fragment in outcome.reason, outcome.reason
+
+
+def test_an_option_without_a_name_is_named_after_its_file(tmp_path):
+    from physgrad.configs import compose
+    from physgrad.experiment import run_experiment
+
+    (tmp_path / "task").mkdir()
+    (tmp_path / "task" / "heat.yaml").write_text("_target_: physgrad.tasks.toy.build\nbatch_size: 4\nscale: 0.01\n"
+                                                "hidden: [8]\ntest_size: 8\n")
+    cfg = compose(["task=heat", "trainer.iterations=2"], config_dirs=[tmp_path])
+    assert cfg.task.name == "heat" and cfg.optim.name == "adam"
+    outcome, path = run_experiment(cfg, tmp_path / "run")
+    assert outcome.status == "completed" and read_run(path).attrs["task"] == "heat"

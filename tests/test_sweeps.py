@@ -337,3 +337,12 @@ def test_the_job_returns_its_validation_loss_to_the_sweeper_never_the_test_loss(
     assert objective(Outcome("completed", None, 10, 1.0, {"loss": 0.25})) == float("inf")  # no validation data
     for status in ("diverged", "refused", "failed"):
         assert objective(Outcome(status, "why", 10, 1.0, {"loss": 0.25, "validation_loss": 0.5})) == float("inf")
+
+
+def test_every_seed_of_a_job_is_logged(tmp_path):
+    from physgrad.app import seed_lines
+
+    run_experiment(load(*TINY, "trainer.iterations=2", "seeds=3"), tmp_path)
+    lines = seed_lines(tmp_path)
+    assert [line.split(":")[0].strip() for line in lines] == ["seed 0", "seed 1", "seed 2"]
+    assert all("completed, test loss " in line for line in lines)

@@ -4,7 +4,7 @@ A task config names the function that builds its scene with ``_target_`` (built-
 ``_target_: mylab.pendulum.build``). physgrad calls it with the config's other keys as keyword arguments plus
 ``key``, a PRNG key that seeds the scene's data (and nothing else). ``name`` and ``batch_size`` are read by
 physgrad itself; a temporal scene has an ``unroll`` key (its number of time steps), which the top-level
-``unroll=N`` replaces. docs/scenes.md describes the interface for authors of new scenes.
+``unroll=N`` replaces. docs/extending.md describes the interface for authors of new scenes.
 """
 
 from __future__ import annotations
