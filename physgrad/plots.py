@@ -10,15 +10,53 @@ from pathlib import Path
 import matplotlib
 
 matplotlib.use("Agg")
-# labels come from results files (anyone's): a `$` in one is text, not the start of mathtext to parse
-matplotlib.rcParams["text.parse_math"] = False
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
-from matplotlib.ticker import FuncFormatter, MaxNLocator, NullFormatter, NullLocator  # noqa: E402
+from matplotlib.ticker import FixedLocator, FuncFormatter, MaxNLocator, NullFormatter, NullLocator  # noqa: E402
 
 from physgrad.results import Run, natural_key  # noqa: E402
 
 MAX_MARKERS = 40  # markers per curve at most (evaluations beyond that are thinned out evenly)
+
+
+COLORS = plt.get_cmap("tab10").colors
+LINESTYLES = ("-", "--", ":", "-.")
+MARKERS = ("o", "s", "^", "D", "v", "P")
+
+
+def literal(text) -> str:
+    """Text from a results file (anyone's) as matplotlib should draw it: a `$` is a dollar sign, not the start
+    of mathtext to parse (which fails on unbalanced or invalid expressions)."""
+    return str(text).replace("$", r"\$")
+
+
+def group_styles(labels) -> dict[str, dict]:
+    """One style per group label, the same in every figure and panel of a report: tab10's ten colours, and past
+    ten groups another line style and marker with each round of colours, so no two groups look alike."""
+    styles = {}
+    for index, label in enumerate(sorted(set(labels), key=natural_key)):
+        round_ = index // len(COLORS)
+        styles[label] = {"color": COLORS[index % len(COLORS)], "linestyle": LINESTYLES[round_ % len(LINESTYLES)],
+                         "marker": MARKERS[round_ % len(MARKERS)]}
+    return styles
+
+
+def _styles_for(runs: list[Run], styles: dict | None) -> dict:
+    return styles if styles is not None else group_styles(run.label or run.variant for run in runs)
+
+
+def _legend_outside(ax, **kwargs) -> None:
+    """The legend beside the panel, right of its data (the figure is saved with bbox_inches="tight")."""
+    ax.legend(loc="upper left", bbox_to_anchor=(1.02, 1.0), borderaxespad=0.0, fontsize=7, title_fontsize=7,
+              **kwargs)
+
+
+def _limit_to(ax, values, pad: float = 3.0) -> None:
+    """y limits (a log axis) that hold the given values: diverged runs, drawn after, leave at the top edge."""
+    values = np.asarray([v for v in values if np.isfinite(v) and v > 0], float)
+    if values.size:
+        low, high = values.min(), values.max()
+        ax.set_ylim(low / pad, high * pad)
 
 
 def _three_figures(value, _position=None) -> str:
@@ -39,11 +77,19 @@ def log_axis(ax, which: str = "y") -> None:
         axis.set_minor_formatter(NullFormatter())
 
 
+PLAIN_COLUMNS = ("iteration", "wall_time", "calibrated_time", "loss", "grad_norm")
+
+
 def plot_run(run: Run, path: str | Path) -> None:
-    """One run: train and test loss against iteration and training time, the gradient norm, and the scene's
-    metrics (fidelity, poles upright, ...) at the evaluations."""
-    metrics = sorted(k for k in run.eval if k not in ("iteration", "wall_time", "loss"))
-    fig, axes = plt.subplots(2, 2, figsize=(11, 7.5))
+    """One run: train and test loss against iteration and training time; the gradient norm, the update norm
+    and the largest |y|; the update rule's diagnostics where it logs any (HIG and Gauss-Newton: kept singular
+    values, SVD failures; the combined gradient C: zeroed fraction, cos(g_M, g_R); a rule's own scalars); the
+    scene's metrics at the evaluations. A quantity that spans more than two decades is on a log axis."""
+    metrics = sorted(k for k in run.eval if k not in ("iteration", "wall_time", "calibrated_time", "loss",
+                                                      "validation_loss"))
+    diagnostics = sorted(k for k in run.train if k not in (*PLAIN_COLUMNS, "update_norm", "output_max_abs",
+                                                           "state_max_abs"))
+    fig, axes = plt.subplots(3, 2, figsize=(11, 10.5))
     for ax, x_key, x_label in zip(axes[0], ("iteration", "wall_time"), ("iteration", "training time [s]")):
         if run.train.get("loss") is not None and run.train["loss"].size:
             ax.plot(run.train[x_key], run.train["loss"], lw=0.7, alpha=0.5, label="train (minibatch)")
@@ -56,39 +102,66 @@ def plot_run(run: Run, path: str | Path) -> None:
         if ax.get_lines():  # a run stopped before its first evaluation has nothing to show
             ax.legend(fontsize=8)
     ax = axes[1, 0]
-    if run.train.get("grad_norm") is not None and run.train["grad_norm"].size:
-        ax.plot(run.train["iteration"], run.train["grad_norm"], lw=0.7)
-        log_axis(ax)
+    for name, label in (("grad_norm", "gradient (before the update rule)"), ("update_norm", "update"),
+                        ("output_max_abs", "largest |y|")):
+        if name in run.train and run.train[name].size:
+            ax.plot(run.train["iteration"], run.train[name], lw=0.7, label=label)
+    _fit_axis(ax)
     ax.set_xlabel("iteration")
-    ax.set_ylabel("gradient norm (before the update rule)")
+    ax.set_ylabel("norm")
+    if ax.get_lines():
+        ax.legend(fontsize=8)
     ax.grid(True, which="both", alpha=0.3)
     ax = axes[1, 1]
-    if metrics:
-        for name in metrics:
-            ax.plot(run.eval["iteration"], run.eval[name], "o-", ms=3, label=name)
-        ax.set_ylabel("test metric")
-        ax.legend(fontsize=8)
-    else:
-        ax.text(0.5, 0.5, "this scene has no metric besides the loss", ha="center", va="center",
-                transform=ax.transAxes, color="dimgray")
-    ax.set_xlabel("iteration")
-    ax.grid(True, alpha=0.3)
+    for name in metrics:
+        ax.plot(run.eval["iteration"], run.eval[name], "o-", ms=3, label=literal(name))
+    _fit_axis(ax)
+    _empty_or_legend(ax, "test metric", "this scene has no metric besides the loss")
+    ax = axes[2, 0]
+    for name in diagnostics:
+        ax.plot(run.train["iteration"], run.train[name], lw=0.8, label=literal(name))
+    _fit_axis(ax)
+    _empty_or_legend(ax, "update rule diagnostic", "this update rule logs no diagnostics")
+    axes[2, 1].set_visible(False)
     status = run.attrs.get("status", "?")
     reason = f" ({run.attrs['reason']})" if run.attrs.get("reason") else ""
-    fig.suptitle(f"{run.attrs.get('task')} / {run.variant}, seed {run.attrs.get('seed')}: {status}{reason}",
+    fig.suptitle(literal(f"{run.attrs.get('task')} / {run.variant}, seed {run.attrs.get('seed')}: {status}{reason}"),
                  fontsize=10)
     fig.tight_layout()
     fig.savefig(path, dpi=110)
     plt.close(fig)
 
 
+def _fit_axis(ax) -> None:
+    """A log y axis where the drawn values are positive and span more than two decades."""
+    values = np.concatenate([np.asarray(line.get_ydata(), float) for line in ax.get_lines()] or [np.empty(0)])
+    values = values[np.isfinite(values)]
+    if values.size and values.min() > 0 and values.max() / values.min() > 100:
+        log_axis(ax)
+
+
+def _empty_or_legend(ax, ylabel: str, empty: str) -> None:
+    ax.set_xlabel("iteration")
+    ax.grid(True, which="both", alpha=0.3)
+    if ax.get_lines():
+        ax.set_ylabel(ylabel)
+        ax.legend(fontsize=8)
+    else:
+        ax.text(0.5, 0.5, empty, ha="center", va="center", transform=ax.transAxes, color="dimgray")
+
+
 def median_band(curves: list[tuple[np.ndarray, np.ndarray]]):
     """Median and min-max of several (x, loss) curves at every x where one of them was evaluated, up to the
-    shortest curve's end, interpolated in log(loss)."""
+    shortest curve's end (between a curve's evaluations interpolated in log(loss)). The median is that of the
+    losses themselves, as the tables report it (for an even count the mean of the middle two, not their
+    geometric mean)."""
     end = min(x[-1] for x, _ in curves)
     grid = np.unique(np.concatenate([x[x <= end] for x, _ in curves]))
-    logs = np.array([np.interp(grid, x, np.log10(np.maximum(y, 1e-300))) for x, y in curves])
-    return grid, 10 ** np.median(logs, axis=0), 10 ** logs.min(axis=0), 10 ** logs.max(axis=0)
+    values = 10 ** np.array([np.interp(grid, x, np.log10(np.maximum(y, 1e-300))) for x, y in curves])
+    at_evaluations = [np.isin(grid, x) for x, _ in curves]
+    for row, (x, y), exact in zip(values, curves, at_evaluations):  # no round trip through log10 where measured
+        row[exact] = y[np.searchsorted(x, grid[exact])]
+    return grid, np.median(values, axis=0), values.min(axis=0), values.max(axis=0)
 
 
 def _panels(count: int, width: float = 5.5, height: float = 4.0, max_columns: int = 4):
@@ -105,11 +178,11 @@ def _save(fig, path, note: str) -> None:
     """path without suffix: written as path.png and path.pdf."""
     top = 1.0
     if note:
-        fig.suptitle(note, fontsize=9, color="dimgray")
+        fig.suptitle(literal(note), fontsize=9, color="dimgray")
         top -= (0.2 + 0.17 * (note.count("\n") + 1)) / fig.get_figheight()  # the note's lines, in inches
     fig.tight_layout(rect=(0, 0, 1, top))
     for suffix in (".png", ".pdf"):
-        fig.savefig(Path(path).with_suffix(suffix), dpi=110)
+        fig.savefig(Path(path).with_suffix(suffix), dpi=110, bbox_inches="tight")  # legends sit outside
     plt.close(fig)
 
 
@@ -128,12 +201,15 @@ def use_log_x(ends: list[float], logx: str) -> bool:
 
 
 def plot_comparison(runs: list[Run], path: str | Path, x_key: str = "wall_time", note: str = "",
-                    logx: str = "auto") -> None:
-    """Held-out loss against training time (or iteration), one panel per scene, one line per group: the
-    median over its seeds with a marker at each evaluation and the min-max band; diverged runs each on their
-    own, ending in a cross labelled with the reason. A run started from another's network begins where that
-    run ended. The x axis is symmetric-log (linear around 0, so the initial evaluation stays visible) where
-    use_log_x says so."""
+                    logx: str = "auto", styles: dict | None = None) -> None:
+    """Held-out loss against training time (or iteration), one panel per scene, one line per group in its
+    style (group_styles: the same in every figure): the median over its seeds (the tables' statistic) with a
+    marker at each evaluation and the min-max band; diverged runs each on their own, dashed, ending in a cross
+    labelled with the reason, or in a triangle at the top edge where they left the range of the other curves
+    (the y axis is fitted to the runs that did not diverge). A run started from another's network begins
+    where that run ended. The x axis is symmetric-log (linear around 0, so the initial evaluation stays
+    visible) where use_log_x says so. Legends sit right of the panels."""
+    styles = _styles_for(runs, styles)
     by_scene = defaultdict(lambda: defaultdict(lambda: {"ok": [], "diverged": []}))
     for run in runs:
         loss = run.eval.get("loss")
@@ -146,31 +222,41 @@ def plot_comparison(runs: list[Run], path: str | Path, x_key: str = "wall_time",
     fig, axes = _panels(len(scenes))
     for ax, scene in zip(axes, scenes):
         groups = by_scene.get(scene, {})
-        ends, smallest, banded, notes = [], [], False, 0
+        ends, smallest, banded, shown = [], [], False, []
         for label, kinds in sorted(groups.items(), key=lambda item: natural_key(item[0])):
-            curves, diverged = kinds["ok"], kinds["diverged"]
-            text = f"{label} (n={len(curves)}" + (f", {len(diverged)} diverged)" if diverged else ")")
-            color = None
+            curves = kinds["ok"]
+            style = styles.get(label, {})
+            text = f"{label} (n={len(curves)}" + (f", {len(kinds['diverged'])} diverged)" if kinds["diverged"] else ")")
             if curves:
                 grid, median, low, high = median_band([(x, y) for x, y, _ in curves])
                 every = max(1, len(grid) // MAX_MARKERS)
-                line, = ax.plot(grid, median, "-o", ms=3, markevery=every, label=text)
-                color = line.get_color()
+                ax.plot(grid, median, ms=3, markevery=every, label=literal(text), **style)
                 if len(curves) > 1:
-                    ax.fill_between(grid, low, high, color=color, alpha=0.2, lw=0)
+                    ax.fill_between(grid, low, high, color=style.get("color"), alpha=0.2, lw=0)
                     banded = True
+                shown += [*low, *high]
                 ends.append(float(np.median([x[-1] for x, _, _ in curves])))
                 smallest += [x[x > 0].min() for x, _, _ in curves if (x > 0).any()]
-            for index, (x, y, reason) in enumerate(diverged):
-                line, = ax.plot(x, y, "--", lw=0.8, color=color, label=text if color is None and not index else None)
-                color = line.get_color()
-                ax.plot(x[-1:], y[-1:], "x", ms=8, color=color)
-                # runs that diverge early end at nearly the same point: stack their notes instead of overprinting
-                ax.annotate(_short_reason(reason), (x[-1], y[-1]), xytext=(4, 4 - 9 * notes),
-                            textcoords="offset points", fontsize=7, color=color)
-                notes += 1
+            elif kinds["diverged"]:
+                ax.plot([], [], lw=0.8, label=literal(text), **{**style, "linestyle": "--"})
+            for x, y, _ in kinds["diverged"]:
                 smallest += [x[x > 0].min()] if (x > 0).any() else []
-        ax.set_title(scene, fontsize=10)
+        if not shown:  # every run diverged: fit the axis to where they were finite
+            shown = [v for kinds in groups.values() for _, y, _ in kinds["diverged"] for v in y]
+        _limit_to(ax, shown)
+        top, notes = ax.get_ylim()[1], 0
+        for label, kinds in sorted(groups.items(), key=lambda item: natural_key(item[0])):
+            color = styles.get(label, {}).get("color")
+            for x, y, reason in kinds["diverged"]:
+                ax.plot(x, y, "--", lw=0.8, color=color)
+                above = y[-1] > top
+                ax.plot(x[-1:], [min(y[-1], top)], "^" if above else "x", ms=7, color=color, clip_on=False)
+                # runs that diverge early end at nearly the same point: stack their notes instead of overprinting
+                ax.annotate(literal(_short_reason(reason) + (f" (loss {y[-1]:.3g})" if above else "")),
+                            (x[-1], min(y[-1], top)), xytext=(4, -10 - 9 * notes), textcoords="offset points",
+                            fontsize=7, color=color, annotation_clip=False)
+                notes += 1
+        ax.set_title(literal(scene), fontsize=10)
         ax.set_xlabel({"wall_time": "training time, measured clock [s]",
                        "calibrated_time": "training time, calibrated clock [s]"}.get(x_key, "iteration"))
         ax.set_ylabel("test loss")
@@ -180,46 +266,74 @@ def plot_comparison(runs: list[Run], path: str | Path, x_key: str = "wall_time",
             ax.set_xlim(left=0)
         ax.grid(True, which="both", alpha=0.3)
         if groups:
-            ax.legend(fontsize=7, title="line: median over n seeds" + (", band: min-max" if banded else ""),
-                      title_fontsize=7)
+            _legend_outside(ax, title="line: median over n seeds" + (", band: min-max" if banded else ""))
     _save(fig, path, note)
 
 
-def plot_tradeoff(runs: list[Run], path: str | Path, note: str = "") -> None:
-    """Error against run time: per scene, every completed run's final test loss against its seconds per
-    iteration (top) and its total training time (bottom); one marker colour per group, one point per seed."""
-    by_scene = defaultdict(lambda: defaultdict(list))
+def plot_tradeoff(runs: list[Run], path: str | Path, note: str = "", styles: dict | None = None,
+                  thresholds: dict | None = None) -> None:
+    """Error against run time, per scene, one point per seed in its group's style: the final test loss against
+    the seconds per iteration (top) and against the training seconds until the test loss first reached the
+    scene's threshold (bottom; report.thresholds: the best group's median, so a budget does not set the x
+    value); a diverged seed as a triangle at the top edge of the top panel at its seconds per iteration."""
+    from physgrad.report import thresholds as report_thresholds
+
+    styles = _styles_for(runs, styles)
+    limits = report_thresholds(runs) if thresholds is None else thresholds
+    by_scene = defaultdict(lambda: defaultdict(lambda: {"ok": [], "diverged": []}))
     for run in runs:
-        final = run.final("eval")
-        if run.attrs.get("status") == "completed" and np.isfinite(final) and np.isfinite(run.seconds_per_iteration):
-            total = run.final("train", "wall_time") + run.offset("wall_time")
-            by_scene[run.scene][run.label or run.variant].append((run.seconds_per_iteration, total, final))
+        final, per_iter = run.final("eval"), run.seconds_per_iteration
+        if not np.isfinite(per_iter):
+            continue
+        if run.attrs.get("status") == "completed" and np.isfinite(final):
+            limit = limits.get(run.scene, np.nan)
+            reach = run.time_to_reach(limit) + run.offset("wall_time") if np.isfinite(limit) else np.nan
+            by_scene[run.scene][run.label or run.variant]["ok"].append((per_iter, reach, final))
+        elif run.attrs.get("status") == "diverged":
+            by_scene[run.scene][run.label or run.variant]["diverged"].append(per_iter)
     scenes = sorted(by_scene, key=natural_key) or ["(no finished runs)"]
     columns = min(len(scenes), 4)  # scenes per row; each scene is a pair of panels stacked vertically
     rows = -(-len(scenes) // columns)
-    fig, axes = plt.subplots(2 * rows, columns, figsize=(max(8.0, 4.5 * columns), 7.0 * rows), squeeze=False)
+    fig, axes = plt.subplots(2 * rows, columns, figsize=(max(8.0, 5.0 * columns), 7.0 * rows), squeeze=False)
     for ax in axes[:, :].flat:
         ax.set_visible(False)
     for index, scene in enumerate(scenes):
         top, bottom = axes[2 * (index // columns), index % columns], axes[2 * (index // columns) + 1, index % columns]
-        for label, points in sorted(by_scene.get(scene, {}).items()):
-            per_iter, total, final = np.array(points).T
-            line, = top.plot(per_iter, final, "o", label=f"{label} (n={len(points)})")
-            bottom.plot(total, final, "o", color=line.get_color())
-        for ax, label in ((top, "seconds per iteration"), (bottom, "total training time [s]")):
+        groups = sorted(by_scene.get(scene, {}).items(), key=lambda item: natural_key(item[0]))
+        for label, kinds in groups:
+            style = {k: v for k, v in styles.get(label, {}).items() if k != "linestyle"}
+            points = np.array(kinds["ok"], float).reshape(-1, 3)
+            diverged = f", {len(kinds['diverged'])} diverged" if kinds["diverged"] else ""
+            top.plot(points[:, 0], points[:, 2], linestyle="none", label=literal(f"{label} (n={len(points)}{diverged})"),
+                     **style)
+            reached = np.isfinite(points[:, 1])
+            bottom.plot(points[reached, 1], points[reached, 2], linestyle="none", **style)
+        _limit_to(top, [p[2] for _, kinds in groups for p in kinds["ok"]])
+        _limit_to(bottom, [p[2] for _, kinds in groups for p in kinds["ok"]])
+        edge = top.get_ylim()[1]
+        for label, kinds in groups:
+            for per_iter in kinds["diverged"]:
+                top.plot([per_iter], [edge], "^", ms=7, color=styles.get(label, {}).get("color"), clip_on=False)
+        limit = limits.get(scene, np.nan)
+        for ax, label in ((top, "seconds per iteration"),
+                          (bottom, f"training seconds to test loss {limit:.3g}" if np.isfinite(limit)
+                           else "training seconds to the threshold (none)")):
             ax.set_visible(True)
-            log_axis(ax, "x")
-            log_axis(ax, "y")
+            xs = np.concatenate([np.asarray(line.get_xdata(), float) for line in ax.get_lines()] or [np.empty(0)])
+            if xs.size and xs.min() > 0:  # (a threshold reached at the start has time 0: a linear axis then)
+                log_axis(ax, "x")
+            if xs.size:
+                log_axis(ax, "y")
             ax.set_xlabel(label)
             ax.set_ylabel("final test loss")
             ax.grid(True, which="both", alpha=0.3)
-        top.set_title(scene, fontsize=10)
-        if by_scene.get(scene):
-            top.legend(fontsize=7, title="one point per seed", title_fontsize=7)
+        top.set_title(literal(scene), fontsize=10)
+        if groups:
+            _legend_outside(top, title="one point per seed; \u25b2 diverged")
     _save(fig, path, note)
 
 
-def plot_unroll(runs: list[Run], path: str | Path, note: str = "") -> bool:
+def plot_unroll(runs: list[Run], path: str | Path, note: str = "", styles: dict | None = None) -> bool:
     """Final test loss and seconds per iteration against the unroll length, per task and group (median over
     seeds, with min-max bars); False (and no file) when no task has runs at several unroll lengths."""
     by_scene = defaultdict(lambda: defaultdict(lambda: defaultdict(list)))
@@ -233,26 +347,31 @@ def plot_unroll(runs: list[Run], path: str | Path, note: str = "") -> bool:
                     if len({u for lengths in groups.values() for u in lengths}) > 1)
     if not scenes:
         return False
+    styles = _styles_for(runs, styles)
     fig, axes = plt.subplots(2, len(scenes), figsize=(max(8.0, 5 * len(scenes)), 7.5), squeeze=False)
     for column, scene in enumerate(scenes):
-        for label, lengths in sorted(by_scene[scene].items()):
+        every_unroll = sorted({u for lengths in by_scene[scene].values() for u in lengths})
+        for label, lengths in sorted(by_scene[scene].items(), key=lambda item: natural_key(item[0])):
             unrolls = sorted(lengths)
             for row in (0, 1):
                 values = [np.array([v[row] for v in lengths[u]], float) for u in unrolls]
                 median = np.array([np.nanmedian(v) if np.isfinite(v).any() else np.nan for v in values])
                 low = median - np.array([np.nanmin(v) if np.isfinite(v).any() else np.nan for v in values])
                 high = np.array([np.nanmax(v) if np.isfinite(v).any() else np.nan for v in values]) - median
-                axes[row, column].errorbar(unrolls, median, yerr=[low, high], fmt="o-", capsize=3,
-                                           label=label if row == 0 else None)
+                axes[row, column].errorbar(unrolls, median, yerr=[low, high], capsize=3,
+                                           label=literal(label) if row == 0 else None, **styles.get(label, {}))
         for row, label in enumerate(("final test loss", "seconds per iteration")):
             ax = axes[row, column]
             ax.set_xscale("log", base=2)
+            # a tick at every unroll length run (a log axis alone labels only the powers of ten in range)
+            ax.xaxis.set_major_locator(FixedLocator(every_unroll))
             ax.xaxis.set_major_formatter(FuncFormatter(lambda v, _: f"{v:.0f}"))
+            ax.xaxis.set_minor_locator(NullLocator())
             log_axis(ax)
             ax.set_xlabel("unroll length (time steps)")
             ax.set_ylabel(label)
             ax.grid(True, which="both", alpha=0.3)
-        axes[0, column].set_title(scene, fontsize=10)
-        axes[0, column].legend(fontsize=7, title="median over seeds, bars: min-max", title_fontsize=7)
+        axes[0, column].set_title(literal(scene), fontsize=10)
+        _legend_outside(axes[0, column], title="median over seeds, bars: min-max")
     _save(fig, path, note)
     return True

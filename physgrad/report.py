@@ -515,16 +515,20 @@ def write_report(paths, out_dir=None, threshold: float | None = None, note: str 
         f.write(body)
     from physgrad.plots import plot_comparison, plot_tradeoff, plot_unroll
 
-    plot_comparison(runs, out / "loss_vs_time", "wall_time", note, logx)
-    plot_comparison(runs, out / "loss_vs_iteration", "iteration", note, logx)
+    from physgrad.plots import group_styles
+
+    styles = group_styles(run.label or run.variant for run in runs)  # one style per group in every figure
+    plot_comparison(runs, out / "loss_vs_time", "wall_time", note, logx, styles)
+    plot_comparison(runs, out / "loss_vs_iteration", "iteration", note, logx, styles)
     calibrated = [run for run in runs if "calibrated_time" in run.eval]
     if calibrated:
-        plot_comparison(calibrated, out / "loss_vs_calibrated_time", "calibrated_time", note, logx)
-    plot_tradeoff(runs, out / "tradeoff", note)
+        plot_comparison(calibrated, out / "loss_vs_calibrated_time", "calibrated_time", note, logx, styles)
+    chosen = {scene: threshold for scene in limits} if threshold is not None else limits
+    plot_tradeoff(runs, out / "tradeoff", note, styles, chosen)
     figures = [f"{name}.png" for name in FIGURES[:3]]
     if calibrated:
         figures.append("loss_vs_calibrated_time.png")
-    if plot_unroll(runs, out / "unroll", note):
+    if plot_unroll(runs, out / "unroll", note, styles):
         figures.append("unroll.png")
     return body + (f"wrote {out / 'report.md'}, runs.csv, curves.csv (and .parquet) and {', '.join(figures)} "
                    "(and .pdf)\n")

@@ -3,7 +3,9 @@ loss at a common time, CSV export, figures, bad input."""
 
 import csv
 import math
+from pathlib import Path
 
+import matplotlib.colors
 import matplotlib.pyplot as plt
 import numpy as np
 import pandas as pd
@@ -13,7 +15,7 @@ import yaml
 from physgrad import UserError
 from physgrad.plots import log_axis, median_band, use_log_x
 from physgrad.report import collect, label_runs, loss_at, run_rows, write_report
-from physgrad.results import ResultsWriter
+from physgrad.results import ResultsWriter, read_run
 
 
 def fake_run(folder, variant, seed, poles, eval_loss, eval_time, status="completed", optim=None, trainer=None,
@@ -81,7 +83,7 @@ def test_median_band_interpolates_in_log_loss():
     np.testing.assert_allclose(grid, [0.0, 1.0, 2.0])  # every evaluation up to the shortest curve's end
     np.testing.assert_allclose(low, [1.0, 1e-2, 1e-4])
     np.testing.assert_allclose(high, [1.0, 1e-1, 1e-2])
-    np.testing.assert_allclose(median, np.sqrt(low * high))
+    np.testing.assert_allclose(median, (low + high) / 2)  # the median of two losses, as the tables take it
 
 
 def test_report_draws_the_tradeoff_and_unroll_figures(tmp_path):
@@ -308,3 +310,107 @@ def test_notes_of_runs_that_diverged_at_the_same_point_do_not_overprint(tmp_path
                         annotate(self, text, xy, **kw))
     plot_comparison(runs, tmp_path / "loss.png")
     assert len(offsets) == 3 and len(set(offsets)) == 3
+
+
+@pytest.fixture
+def figures(monkeypatch):
+    """Every figure a report saves, kept open: {file stem: Figure}."""
+    import matplotlib.figure
+
+    saved = {}
+    real = matplotlib.figure.Figure.savefig
+
+    def keep(fig, path, *args, **kwargs):
+        saved[Path(path).stem] = fig
+        return real(fig, path, *args, **kwargs)
+
+    monkeypatch.setattr(matplotlib.figure.Figure, "savefig", keep)
+    monkeypatch.setattr(plt, "close", lambda fig=None: None)
+    yield saved
+    plt.close("all")
+
+
+def line_colors(fig) -> dict:
+    """legend label (without the counts) -> colour of its line or markers, over every panel of a figure."""
+    found = {}
+    for ax in fig.axes:
+        for line in ax.get_lines():
+            label = line.get_label()
+            if not label.startswith("_"):
+                found[label.split(" (")[0]] = matplotlib.colors.to_hex(line.get_color())
+    return found
+
+
+def test_every_group_keeps_its_style_in_every_figure_and_twelve_groups_stay_apart(tmp_path, figures):
+    from physgrad.plots import group_styles
+
+    labels = [f"v{i:02d}" for i in range(12)]
+    for i, label in enumerate(labels):
+        for seed in range(2):
+            fake_run(tmp_path / f"{label}_{seed}", label, seed, 1, [1.0, 0.5 / (i + 1), 0.1 / (i + 1)],
+                     [0.0, 1.0 + i, 2.0 + i])
+    write_report([tmp_path], out_dir=tmp_path / "out")
+    colors = {name: line_colors(figures[name]) for name in ("loss_vs_time", "loss_vs_iteration", "tradeoff")}
+    assert colors["loss_vs_time"] == colors["loss_vs_iteration"] == colors["tradeoff"]
+    assert set(colors["loss_vs_time"]) == set(labels)
+    styles = group_styles(labels)
+    assert len({(s["color"], s["linestyle"], s["marker"]) for s in styles.values()}) == 12
+    assert styles == group_styles(reversed(labels))  # the order runs are found in does not matter
+    fig = figures["loss_vs_time"]
+    ax = fig.axes[0]
+    fig.canvas.draw()
+    legend = ax.get_legend().get_window_extent()
+    assert legend.x0 >= ax.get_window_extent().x1  # beside the data, not on it
+
+
+def test_a_diverged_run_does_not_stretch_the_axis(tmp_path, figures):
+    fake_run(tmp_path / "ok", "adam", 0, 1, [1.0, 0.1, 0.01], [0.0, 1.0, 2.0])
+    fake_run(tmp_path / "bad", "gauss_newton", 0, 1, [1.0, 1e5, 1e33], [0.0, 1.0, 2.0], status="diverged")
+    write_report([tmp_path], out_dir=tmp_path / "out")
+    for name in ("loss_vs_time", "loss_vs_iteration"):
+        low, high = figures[name].axes[0].get_ylim()
+        assert 1.0 <= high <= 10.0 and low <= 0.01
+        texts = [t.get_text() for t in figures[name].axes[0].texts]
+        assert any("loss 1e+33" in text for text in texts)  # said where it went instead
+
+
+def test_the_drawn_median_is_the_one_the_table_reports(tmp_path, figures):
+    fake_run(tmp_path / "a", "adam", 0, 1, [1.0, 0.5, 0.02], [0.0, 1.0, 2.0])
+    fake_run(tmp_path / "b", "adam", 1, 1, [1.0, 0.5, 3.3], [0.0, 1.0, 2.0])
+    text = write_report([tmp_path], out_dir=tmp_path / "out")
+    assert "| 1.66 [0.02, 3.3] |" in text
+    line, = [l for l in figures["loss_vs_iteration"].axes[0].get_lines() if l.get_label().startswith("adam")]
+    assert line.get_ydata()[-1] == pytest.approx(1.66)
+
+
+def test_the_unroll_axis_has_a_tick_at_every_length(tmp_path, figures):
+    from physgrad.plots import plot_unroll
+
+    for unroll in (4, 16, 64, 256):
+        fake_run(tmp_path / f"u{unroll}", "bptt", 0, 1, [1.0, 1.0 / unroll], [0.0, 1.0], attrs={"unroll": unroll},
+                 trainer={"iterations": unroll})
+    runs, _, _ = collect([tmp_path])
+    label_runs(runs)
+    assert plot_unroll(runs, tmp_path / "unroll")
+    for ax in figures["unroll"].axes:
+        if ax.get_visible():
+            assert list(ax.get_xticks()) == [4, 16, 64, 256]
+            ax.figure.canvas.draw()
+            assert [t.get_text() for t in ax.get_xticklabels()] == ["4", "16", "64", "256"]
+
+
+def test_the_run_figure_draws_the_rule_s_diagnostics_and_wide_metrics_on_a_log_axis(tmp_path, figures):
+    from physgrad.plots import plot_run
+
+    writer = ResultsWriter(tmp_path / "results.h5", {"task": "toy", "optim": "hig", "seed": 0})
+    for i in range(5):
+        writer.append("train", {"iteration": i, "wall_time": 0.1 * i, "loss": 1.0 / (i + 1), "grad_norm": 1.0,
+                                "update_norm": 0.5, "kept_singular_values": 10 + i, "svd_failures": 0})
+        writer.append("eval", {"iteration": i, "wall_time": 0.1 * i, "loss": 1.0 / (i + 1),
+                               "energy": 10.0 ** (-3 * i)})
+    writer.finish("completed")
+    plot_run(read_run(tmp_path / "results.h5"), tmp_path / "loss.png")
+    axes = {ax.get_ylabel(): ax for ax in figures["loss"].axes}
+    assert {l.get_label() for l in axes["update rule diagnostic"].get_lines()} == {"kept_singular_values",
+                                                                                  "svd_failures"}
+    assert axes["test metric"].get_yscale() == "log"
