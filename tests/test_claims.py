@@ -229,3 +229,14 @@ def test_payoff_cuts_lie_on_the_evaluation_grid_of_a_time_budget_run():
     from physgrad.runner import EVALUATIONS_PER_BUDGET
 
     assert all(float(f * EVALUATIONS_PER_BUDGET).is_integer() for f in claims.PAYOFF_FRACTIONS)
+
+
+def test_the_ks_study_table_says_when_a_claim_has_nothing_to_compare():
+    import importlib.util
+    from pathlib import Path
+
+    spec = importlib.util.spec_from_file_location("ks_study", Path(__file__).parents[1] / "experiments" / "ks_study.py")
+    ks_study = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(ks_study)
+    text = ks_study.claims({("correct", "WIG", 2): {0: (0.1, 0.0)}})  # no prediction runs
+    assert "nothing to compare" in text and "nan" not in text
