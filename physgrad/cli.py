@@ -23,6 +23,7 @@ USAGE = """usage: physgrad {run,compare,report,check} ...
   physgrad report [LABEL=]PATH... [--out DIR] [--threshold LOSS] [--note TEXT] [--logx auto|on|off]
                                               tables, CSV and figures from the results.h5 files under PATH
   physgrad check [--small]                    stiff and extreme cases: what each variant does with them
+  physgrad check [-cd DIR] task=NAME [k=v ...] a scene's gradients, rollout and Jacobian against references
 
 Examples:
   physgrad compare task=toy optim=adam,gauss_newton,hig trainer.iterations=300

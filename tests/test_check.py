@@ -2,6 +2,7 @@
 
 import re
 import subprocess
+from pathlib import Path
 
 import pytest
 
@@ -124,3 +125,69 @@ def test_check_command_is_wired():
 
     result = subprocess.run([PHYSGRAD, "check", "--help"], capture_output=True, text=True)
     assert result.returncode == 0 and "--small" in result.stdout
+
+
+BROKEN_SCENE = '''
+import jax
+import jax.numpy as jnp
+
+from physgrad.nets import apply_mlp, init_mlp
+from physgrad.tasks import Scene
+
+
+@jax.custom_jvp
+def squash(z):
+    return jnp.tanh(z)
+
+
+@squash.defjvp
+def squash_jvp(primals, tangents):  # the author's derivative is off by a factor of 2
+    (z,), (dz,) = primals, tangents
+    return jnp.tanh(z), 2.0 * (1.0 - jnp.tanh(z) ** 2) * dz
+
+
+def build(key, *, test_size, wrong):
+    dtype = jnp.zeros(()).dtype
+    physics = squash if wrong else jnp.tanh
+
+    def draw(k, count, train_set=None):
+        x = jax.random.uniform(k, (count, 1), dtype, -1.0, 1.0)
+        return {"x": x, "target": jnp.sin(3 * x)}
+
+    return Scene(init_params=lambda k: init_mlp(k, [1, 8, 1], dtype), draw_batch=draw,
+                 test_set=draw(key, test_size),
+                 sample_output=lambda params, sample: physics(apply_mlp(params, sample["x"], hidden="tanh")),
+                 sample_loss=lambda y, sample: 0.5 * jnp.sum((y - sample["target"]) ** 2))
+'''
+
+
+@pytest.mark.parametrize("wrong", [False, True])
+def test_check_finds_a_scene_s_wrong_gradient(tmp_path, monkeypatch, capsys, wrong):
+    from physgrad.check import main
+
+    (tmp_path / "conf" / "task").mkdir(parents=True)
+    (tmp_path / "heat.py").write_text(BROKEN_SCENE)
+    (tmp_path / "conf" / "task" / "heat.yaml").write_text(
+        f"_target_: heat.build\nbatch_size: 4\ntest_size: 8\nwrong: {str(wrong).lower()}\n")
+    monkeypatch.chdir(tmp_path)
+    monkeypatch.syspath_prepend(str(tmp_path))
+    code = main(["-cd", "conf", "task=heat"])
+    lines = capsys.readouterr().out.splitlines()
+    by_name = {line.split(":")[0].split()[-1] if line.startswith(("ok", "FAIL")) else "": line for line in lines}
+    assert code == (1 if wrong else 0), lines
+    assert by_name["R"].startswith("FAIL" if wrong else "ok") and "finite differences" in by_name["R"]
+    assert by_name["jacobian"].startswith("ok")  # jvp and vjp share the wrong rule: only differences see it
+    assert lines[-1].startswith("task=heat: ") and ("failed: gradient R" in lines[-1]) == wrong
+
+
+def test_check_of_the_example_scene_passes_and_mistakes_are_one_line(monkeypatch, capsys):
+    from physgrad.check import main
+
+    example = Path(__file__).resolve().parent.parent / "examples" / "custom_scene"
+    monkeypatch.chdir(example)
+    monkeypatch.syspath_prepend(str(example))
+    assert main(["-cd", "conf", "task=pendulum", "task.train_size=8", "task.test_size=4", "task.unroll=12"]) == 0
+    out = capsys.readouterr().out
+    assert all(line.startswith("ok") for line in out.splitlines()[:-1]) and "gradient S" in out and "rollout" in out
+    assert main(["-cd", "conf", "task.unroll=12"]) == 2
+    assert "name the scene to check" in capsys.readouterr().err

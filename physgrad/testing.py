@@ -1,0 +1,211 @@
+"""Checks of a scene, for its author: `physgrad check [-cd DIR] task=NAME [key=value ...]` runs them on any scene
+(built-in or a user's own), and a scene's own tests can call them (they ship in the package).
+
+Every check runs in float64 on the scene as configured (a few samples of its training data and its initial
+network):
+  builds          the scene builds and its loss and data pass the runner's checks;
+  finite          the physical output, the loss and the held-out evaluation are finite at initialisation;
+  deterministic   the same seed gives the same data, network, batch and loss;
+  rollout         (temporal scenes) the lax.scan rollout equals a plain Python loop of the same step and policy;
+  gradient <mode> the gradient of each backprop mode that applies (R; M and S for a closed loop) equals the
+                  plain loop's (the mode's stopped inputs there are the forward states as constants) and central
+                  finite differences of that loop along random directions;
+  jacobian        (where Gauss-Newton / HIG apply) J v and J^T u of the Jacobian route against jax.jvp and
+                  jax.vjp of the batch output, and its gradient J^T g against jax.grad.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jax.flatten_util import ravel_pytree
+
+from physgrad.unroll import MODES, REGULAR, Backprop, Dynamics
+
+BATCH = 3  # training samples the checks use
+DIRECTIONS = 3  # random directions of the finite differences
+FD_RTOL = 1e-5  # the fourth-order stencil in float64 agrees to about 1e-8 on smooth losses
+EXACT_RTOL = 1e-9  # two exact computations of the same value (scan against loop, J v against jvp)
+
+
+@dataclass(frozen=True)
+class Check:
+    name: str
+    passed: bool
+    detail: str
+
+    def line(self) -> str:
+        return f"{'ok  ' if self.passed else 'FAIL'}  {self.name}: {self.detail}"
+
+
+def relative_error(a, b) -> float:
+    """max |a - b| / max(max |b|, tiny) over every leaf of two pytrees."""
+    a, b = ravel_pytree(a)[0], ravel_pytree(b)[0]
+    scale = max(float(jnp.max(jnp.abs(b))) if b.size else 0.0, 1e-300)
+    return float(jnp.max(jnp.abs(a - b))) / scale if a.size else 0.0
+
+
+def forward_states(dynamics: Dynamics, params, sample) -> list:
+    """x_0 .. x_unroll of the forward pass, by a plain loop, as constants: the values every mode shares."""
+    controller, x = dynamics.policy(params, sample), dynamics.initial(sample)
+    states = [x]
+    for k in range(dynamics.unroll):
+        x = dynamics.step(x, controller(x, k))
+        states.append(x)
+    return [jax.lax.stop_gradient(state) for state in states]
+
+
+def loop_output(dynamics: Dynamics, params, sample, backprop: Backprop = REGULAR, frozen: list | None = None):
+    """A temporal scene's output by a plain Python loop (no lax.scan): the inputs a mode stops are the forward
+    states `frozen` (forward_states at the parameters the gradient is taken at), so differentiating this gives
+    the mode's gradient and finite differences of it in params check the same thing."""
+    frozen = forward_states(dynamics, params, sample) if frozen is None else frozen
+    controller, x, observed = dynamics.policy(params, sample), dynamics.initial(sample), []
+    for k in range(dynamics.unroll):
+        control = controller(frozen[k] if backprop.stop_policy_input else x, k)
+        x = dynamics.step(frozen[k] if backprop.stop_physics_input else x, control)
+        if dynamics.observe is not None:
+            observed.append(dynamics.observe(x, control, sample))
+    stacked = jax.tree_util.tree_map(lambda *leaves: jnp.stack(leaves), *observed) if observed else None
+    return dynamics.readout(x, stacked, sample)
+
+
+def finite_difference_check(loss, params, gradient, directions: int = DIRECTIONS, rtol: float = FD_RTOL):
+    """(worst relative mismatch, tolerance) of gradient . d against finite differences of loss along random unit
+    directions d: the fourth-order central stencil (8 (L(h) - L(-h)) - (L(2h) - L(-2h))) / 12h with h = 1e-3
+    times the parameters' typical size, whose truncation (h^4) and round-off (eps |L| / h) errors both stay
+    near 1e-12 in float64 where a plain central difference loses digits on small gradients. The mismatch is
+    relative to max(|gradient . d|, 0.01 |gradient|): a wrong gradient is off by O(|gradient|) in a random
+    direction."""
+    flat, unravel = ravel_pytree(params)
+    flat_gradient = ravel_pytree(gradient)[0]
+    h = 1e-3 * max(1.0, float(jnp.linalg.norm(flat)) / max(flat.size, 1) ** 0.5)
+    worst = 0.0
+    for i in range(directions):
+        direction = jax.random.normal(jax.random.PRNGKey(100 + i), flat.shape, flat.dtype)
+        direction = direction / jnp.linalg.norm(direction)
+        at = {k: loss(unravel(flat + k * h * direction)) for k in (-2, -1, 1, 2)}
+        estimate = (8 * (at[1] - at[-1]) - (at[2] - at[-2])) / (12 * h)
+        exact = flat_gradient @ direction
+        scale = max(float(jnp.abs(exact)), 0.01 * float(jnp.linalg.norm(flat_gradient)), 1e-300)
+        worst = max(worst, float(jnp.abs(estimate - exact)) / scale)
+    return worst, rtol
+
+
+def check_scene(cfg) -> list[Check]:
+    """Every check above on the scene of a composed config (precision is set to 64 here); an exception in the
+    scene's code is a failed check with its one-line message."""
+    try:
+        return _check_scene(cfg)
+    except Exception as error:  # noqa: BLE001
+        return [Check("runs", False, f"{type(error).__name__}: {str(error).splitlines()[0] if str(error) else ''}")]
+
+
+def _check_scene(cfg) -> list[Check]:
+    from physgrad import UserError
+    from physgrad.experiment import build_seeds, check_scene_values, set_precision
+
+    set_precision(64)
+    checks: list[Check] = []
+    name = str(cfg.task.get("name", "?"))
+    try:
+        scene, seeds = build_seeds(cfg, [int(cfg.seed)], 1)
+        check_scene_values(scene, seeds, name)
+    except UserError as error:
+        return [Check("builds", False, str(error))]
+    checks.append(Check("builds", True, f"task={name} in float64"))
+    params = seeds.network()
+    test_set = jax.tree_util.tree_map(lambda leaf: leaf[0], seeds.test_sets)
+    batch = scene.sample_train(jax.random.PRNGKey(1), min(BATCH, scene.train_size or BATCH))
+
+    def batch_loss(output):
+        return lambda p: scene.batch_loss(jax.vmap(output, in_axes=(None, 0))(p, batch), batch)
+
+    y = scene.batch_output(params, batch)
+    loss = batch_loss(scene.sample_output)(params)
+    evaluation = scene.evaluate(params, test_set)
+    bad = [what for what, value in (("output", y), ("loss", loss), *evaluation.items())
+           if not bool(jnp.all(jnp.isfinite(value)))]
+    checks.append(Check("finite", not bad, f"not finite at initialisation: {', '.join(bad)}" if bad else
+                        f"output {tuple(y.shape)}, loss {float(loss):.6g}, held-out loss {float(evaluation['loss']):.6g}"))
+
+    again, seeds_again = build_seeds(cfg, [int(cfg.seed)], 1)
+    batch_again = again.sample_train(jax.random.PRNGKey(1), min(BATCH, again.train_size or BATCH))
+    differences = {what: relative_error(a, b) for what, a, b in (
+        ("test set", seeds_again.test_sets, seeds.test_sets), ("network", seeds_again.params, seeds.params),
+        ("batch", batch_again, batch), ("loss", batch_loss(again.sample_output)(params), loss))}
+    differing = [what for what, error in differences.items() if error != 0.0]
+    checks.append(Check("deterministic", not differing, "the same seed gives another " + ", ".join(differing)
+                        if differing else "data, network, batch and loss identical from the same seed"))
+
+    if scene.dynamics is not None:
+        looped = jnp.stack([loop_output(scene.dynamics, params, _index(batch, i)) for i in range(_size(batch))])
+        error = relative_error(y, looped)
+        checks.append(Check("rollout", error <= EXACT_RTOL, f"scan against a Python loop over {scene.unroll} steps: "
+                            f"relative difference {error:.1e} (at most {EXACT_RTOL:.0e})"))
+
+    modes = ["R", "M", "S"] if scene.closed_loop else ["R"]
+    for mode in modes:
+        backprop = MODES[mode]
+        scan_loss = batch_loss(scene.backprop_output(backprop))
+        gradient = jax.grad(scan_loss)(params)
+        if scene.dynamics is not None:
+            frozen = [forward_states(scene.dynamics, params, _index(batch, i)) for i in range(_size(batch))]
+
+            def loop_loss(p, backprop=backprop, frozen=frozen):
+                outputs = jnp.stack([loop_output(scene.dynamics, p, _index(batch, i), backprop, frozen[i])
+                                     for i in range(_size(batch))])
+                return scene.batch_loss(outputs, batch)
+            against_loop = relative_error(gradient, jax.grad(loop_loss)(params))
+            reference = loop_loss
+        else:
+            against_loop, reference = 0.0, scan_loss
+        worst, tolerance = finite_difference_check(reference, params, gradient)
+        passed = against_loop <= 1e-7 and worst <= tolerance
+        loop_text = f"against the loop {against_loop:.1e}, " if scene.dynamics is not None else ""
+        checks.append(Check(f"gradient {mode}", passed, f"{loop_text}against finite differences {worst:.1e} "
+                            f"(at most {tolerance:.0e}) along {DIRECTIONS} random directions"))
+
+    if not scene.closed_loop:
+        try:
+            checks.append(_jacobian_check(scene, params, batch))
+        except Exception as error:  # noqa: BLE001 - a scene's code failing under jvp/vjp is a finding
+            checks.append(Check("jacobian", False, f"{type(error).__name__}: {str(error).splitlines()[0]}"))
+    return checks
+
+
+def _jacobian_check(scene, params, batch) -> Check:
+    from physgrad.gradients import JacobianPass
+
+    first = _index(batch, 0)
+    route = JacobianPass.for_network(scene.sample_output, params, first)
+    loss, gradient, extra, _ = route(scene, params, batch)
+    jac = extra["jacobian"]
+    flat, unravel = ravel_pytree(params)
+
+    def outputs(flat_params):
+        return scene.batch_output(unravel(flat_params), batch).reshape(-1)
+
+    v = jax.random.normal(jax.random.PRNGKey(7), flat.shape, flat.dtype)
+    u = jax.random.normal(jax.random.PRNGKey(8), outputs(flat).shape, flat.dtype)
+    jv = jax.jvp(outputs, (flat,), (v,))[1]
+    jtu = jax.vjp(outputs, flat)[1](u)[0]
+    dense = jac.dense()
+    errors = {"J v": relative_error(dense @ v.astype(dense.dtype), jv),
+              "J^T u": relative_error(jac.transpose_apply(u.astype(jac.dtype)), jtu),
+              "J^T g": relative_error(gradient, jax.grad(lambda p: scene.batch_loss(
+                  scene.batch_output(p, batch), batch))(params))}
+    worst = max(errors.values())
+    return Check("jacobian", worst <= 1e-7, f"{route.name}: " + ", ".join(f"{k} {e:.1e}" for k, e in errors.items())
+                 + " (at most 1e-07)")
+
+
+def _size(batch) -> int:
+    return jax.tree_util.tree_leaves(batch)[0].shape[0]
+
+
+def _index(batch, i):
+    return jax.tree_util.tree_map(lambda leaf: leaf[i], batch)
