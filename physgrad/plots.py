@@ -91,7 +91,7 @@ def plot_run(run: Run, path: str | Path) -> None:
                                                            "state_max_abs"))
     fig, axes = plt.subplots(3, 2, figsize=(11, 10.5))
     for ax, x_key, x_label in zip(axes[0], ("iteration", "wall_time"), ("iteration", "training time [s]")):
-        if run.train.get("loss") is not None and run.train["loss"].size:
+        if run.train.get("loss") is not None and run.train["loss"].size and x_key in run.train:
             ax.plot(run.train[x_key], run.train["loss"], lw=0.7, alpha=0.5, label="train (minibatch)")
         if run.eval.get("loss") is not None and run.eval["loss"].size:
             ax.plot(run.eval[x_key], run.eval["loss"], "o-", ms=3, label="test")

@@ -23,7 +23,8 @@ import pandas as pd
 
 from physgrad import UserError
 from physgrad.machine import machine_label
-from physgrad.results import Run, clean_text, find_results, natural_key, read_run, read_small_yaml, replaced_text
+from physgrad.results import (Run, clean_text, find_results, natural_key, parse_config, read_run, read_small_yaml,
+                              replaced_text)
 from physgrad.sweeps import unfinished_jobs
 from physgrad.verdict import lowest_median
 
@@ -90,8 +91,15 @@ def collect(arguments) -> tuple[list[Run], list[tuple[Path, str]], list[Dropped]
 
 
 def run_config(run: Run) -> dict:
-    """The run's resolved configuration, flattened to dotted keys (empty if it holds none)."""
-    return _flat(run.config)
+    """The run's resolved configuration, flattened to dotted keys (empty if it holds none): read_run's parsed
+    copy, or for a Run built in memory its config attribute parsed the same way (parse_config)."""
+    tree = run.config
+    if not tree and isinstance(run.attrs.get("config"), str):
+        try:
+            tree = parse_config(run.attrs["config"])
+        except ValueError:
+            tree = {}
+    return _flat(tree)
 
 
 def _flat(tree: dict, prefix: str = "") -> dict:

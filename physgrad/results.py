@@ -553,7 +553,7 @@ def _checked_group(path: Path, f: h5py.File, group: str) -> h5py.Group:
 
 def _checked_columns(path: Path, f: h5py.File, group: str) -> dict[str, h5py.Dataset]:
     """The datasets of /group after the checks (not read yet): hard links to 1-D numeric datasets stored in
-    this file, of equal length, holding iteration, wall_time and loss when there are any."""
+    this file, of equal length, holding iteration and loss (and in /eval wall_time) when there are any."""
     g, columns = _checked_group(path, f, group), {}
     for key in g:
         name = clean_text(key, 200)
@@ -574,8 +574,9 @@ def _checked_columns(path: Path, f: h5py.File, group: str) -> dict[str, h5py.Dat
     lengths = {key: column.shape[0] for key, column in columns.items()}
     if len(set(lengths.values())) > 1:
         raise ValueError(f"{path}: /{group} columns have unequal lengths {lengths}: the file is damaged")
-    if columns and {"iteration", "wall_time", "loss"} - set(columns):
-        raise ValueError(f"{path}: /{group} lacks {', '.join(sorted({'iteration', 'wall_time', 'loss'} - set(columns)))}")
+    needed = {"iteration", "loss"} | ({"wall_time"} if group == "eval" else set())  # what readers index
+    if columns and needed - set(columns):
+        raise ValueError(f"{path}: /{group} lacks {', '.join(sorted(needed - set(columns)))}")
     return columns
 
 

@@ -96,7 +96,8 @@ def test_combine():
 
 def fake_run(tmp: str, seed: int, config: dict, scale: float, status: str = "completed", **attrs) -> Run:
     """A results file's content as read back, for a run whose test loss is scale / (1 + iteration)."""
-    attrs = {"task": config["task"]["name"], "seed": seed, "status": status, "variant": config["optim"]["name"],
+    attrs = {"task": config["task"]["name"], "optim": config["optim"]["name"], "seed": seed, "status": status,
+             "variant": config["optim"]["name"],
              "unroll": config.get("unroll") or 10, "config": yaml.safe_dump(config), **attrs}
     loss = scale * (1 + seed) / (1 + X)
     # as the runner writes them: a train row's iteration is the step's index, an evaluation's the steps done

@@ -3,7 +3,6 @@ refused with a one-line reason (or their text cleaned) and the rest of the repor
 followed, resolved or expanded. Bombs run under a time and memory cap in a child process."""
 
 import os
-import resource
 import subprocess
 import sys
 import textwrap
@@ -215,8 +214,8 @@ BOMB_LEVELS = 9  # each level refers to the one below ten times: 10^9 leaves onc
 
 
 def alias_bomb() -> str:
-    lines = ['a0: ["lol", "lol", "lol", "lol", "lol", "lol", "lol", "lol", "lol", "lol"]']
-    lines += [f"a{i}: [{', '.join([f'*a{i - 1}'] * 10)}]" for i in range(1, BOMB_LEVELS + 1)]
+    lines = ['a0: &a0 ["lol", "lol", "lol", "lol", "lol", "lol", "lol", "lol", "lol", "lol"]']
+    lines += [f"a{i}: &a{i} [{', '.join([f'*a{i - 1}'] * 10)}]" for i in range(1, BOMB_LEVELS + 1)]
     return "\n".join(lines) + "\n"
 
 
@@ -228,11 +227,12 @@ def interpolation_bomb() -> str:
 
 
 def run_capped(code: str, seconds: int = 60, memory: int = 2 << 30) -> subprocess.CompletedProcess:
-    """code in a child process with at most `memory` bytes of address space beyond start-up and `seconds`."""
-    def limit():
-        resource.setrlimit(resource.RLIMIT_AS, (memory + (3 << 30), memory + (3 << 30)))
-    return subprocess.run([sys.executable, "-c", textwrap.dedent(code)], capture_output=True, text=True,
-                          timeout=seconds, preexec_fn=limit)
+    """code in a child process that caps its own address space (start-up's 3 GiB plus `memory`) first, within
+    `seconds`."""
+    cap = memory + (3 << 30)
+    preamble = f"import resource\nresource.setrlimit(resource.RLIMIT_AS, ({cap}, {cap}))\n"
+    return subprocess.run([sys.executable, "-c", preamble + textwrap.dedent(code)], capture_output=True, text=True,
+                          timeout=seconds)
 
 
 @pytest.mark.parametrize("bomb", ["alias", "interpolation"])
