@@ -18,7 +18,9 @@ from omegaconf import DictConfig, OmegaConf
 
 from physgrad.configs import CONF_DIR, name_options
 from physgrad.experiment import run_experiment
+from physgrad import UserError
 from physgrad.sweeps import record_job, stop_count
+from physgrad.trackers import build_trackers, track
 
 log = logging.getLogger("physgrad")
 
@@ -215,6 +217,14 @@ def job(cfg: DictConfig) -> float:
         return float("inf")
     overrides = [str(o) for o in hydra_cfg.overrides.task]
     owned = []
+    try:
+        trackers = build_trackers(cfg.get("logger"))
+    except UserError as error:
+        if not multirun:
+            print(f"physgrad: error: {error}", file=sys.stderr)
+            sys.exit(2)
+        log.warning("%s skipped: %s", name, error)
+        return float("inf")
 
     def on_owned():  # the job folder is held: only now is anything written into it
         owned.append(True)
@@ -242,6 +252,9 @@ def job(cfg: DictConfig) -> float:
         return float("inf")
     if sweep is not None and owned:  # a job refused because another process holds its folder records nothing
         record_job(sweep, out_dir, overrides, outcome.status, outcome.reason)
+    if trackers and owned:
+        track(trackers, [p for p in [out_dir / "results.h5", *sorted(out_dir.glob("seed=*/results.h5"))]
+                         if p.is_file()], out_dir)
     if outcome.status == "refused":
         if not multirun:
             print(f"physgrad: error: {outcome.reason}", file=sys.stderr)

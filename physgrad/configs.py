@@ -150,8 +150,8 @@ def check_overrides(overrides: list[str], multirun: bool, config_dirs=()) -> Non
                 group_values[("+" if override.is_add() else "") + key] = values
             elif not override.is_add() and not override.is_force_add():
                 keys.append(key)
-            elif not key.startswith(("task.", "optim.")):
-                # `+key` adds a keyword to a scene's or a rule's factory; anywhere else nothing would read it
+            elif not key.startswith(("task.", "optim.", "logger.")):
+                # `+key` adds a keyword to the factory of a scene, a rule or a tracker; elsewhere nothing reads it
                 keys.append(key)
 
         for combo in itertools.product(*group_values.values()):

@@ -44,6 +44,7 @@ def test_timings_are_taken_in_turn_with_their_baseline():
     assert [count for _, count in medians] == [3, 3]
 
 
+@pytest.mark.long
 def test_seeds_are_timed_against_one_seed_in_the_same_process():
     small = ["task=poisson", "task.grid=4", "task.test_size=8", "trainer.batch_size=4", "optim=adam"]
     result = measure_seeds(small, 2, repeats=2, min_seconds=0)

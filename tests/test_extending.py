@@ -29,6 +29,7 @@ def in_example(monkeypatch):
 
 
 @pytest.mark.slow
+@pytest.mark.long
 def test_the_example_scene_trains_with_every_variant_that_applies(tmp_path):
     """Through the console script with -cd, from the example's folder: adam, hig (and its tuning file from the
     user's folder), bptt and stable_bptt (the scene is closed loop), Levenberg-Marquardt, L-BFGS, Muon, and the
