@@ -48,29 +48,48 @@ def relative_error(a, b) -> float:
     return float(jnp.max(jnp.abs(a - b))) / scale if a.size else 0.0
 
 
-def forward_states(dynamics: Dynamics, params, sample) -> list:
-    """x_0 .. x_unroll of the forward pass, by a plain loop, as constants: the values every mode shares."""
-    controller, x = dynamics.policy(params, sample), dynamics.initial(sample)
-    states = [x]
-    for k in range(dynamics.unroll):
-        x = dynamics.step(x, controller(x, k))
+def loop_states(step, policy, x0, unroll: int, backprop: Backprop = REGULAR, frozen: list | None = None):
+    """(x_1 .. x_unroll, c_0 .. c_unroll-1) of c_k = policy(x_k, k), x_{k+1} = step(x_k, c_k) by a plain Python
+    loop (no lax.scan, no stop_gradient): the inputs a mode stops are the constant forward states `frozen`
+    (x_0 .. x_unroll at the parameters the gradient is taken at; None: computed here, as constants), so
+    differentiating this gives that mode's gradient and finite differences of it check the same thing."""
+    if frozen is None:
+        frozen = forward_states(step, policy, x0, unroll)
+    x, states, controls = x0, [], []
+    for k in range(unroll):
+        control = policy(frozen[k] if backprop.stop_policy_input else x, k)
+        x = step(frozen[k] if backprop.stop_physics_input else x, control)
         states.append(x)
+        controls.append(control)
+    return states, controls
+
+
+def forward_states(step, policy, x0, unroll: int) -> list:
+    """x_0 .. x_unroll of the forward pass by a plain loop, as constants (stop_gradient): the values every mode
+    shares."""
+    states = [x0]
+    for k in range(unroll):
+        states.append(step(states[-1], policy(states[-1], k)))
     return [jax.lax.stop_gradient(state) for state in states]
 
 
+def dynamics_forward_states(dynamics: Dynamics, params, sample) -> list:
+    """forward_states of a scene's Dynamics for one sample."""
+    return forward_states(dynamics.step, dynamics.policy(params, sample), dynamics.initial(sample), dynamics.unroll)
+
+
 def loop_output(dynamics: Dynamics, params, sample, backprop: Backprop = REGULAR, frozen: list | None = None):
-    """A temporal scene's output by a plain Python loop (no lax.scan): the inputs a mode stops are the forward
-    states `frozen` (forward_states at the parameters the gradient is taken at), so differentiating this gives
-    the mode's gradient and finite differences of it in params check the same thing."""
-    frozen = forward_states(dynamics, params, sample) if frozen is None else frozen
-    controller, x, observed = dynamics.policy(params, sample), dynamics.initial(sample), []
-    for k in range(dynamics.unroll):
-        control = controller(frozen[k] if backprop.stop_policy_input else x, k)
-        x = dynamics.step(frozen[k] if backprop.stop_physics_input else x, control)
-        if dynamics.observe is not None:
-            observed.append(dynamics.observe(x, control, sample))
-    stacked = jax.tree_util.tree_map(lambda *leaves: jnp.stack(leaves), *observed) if observed else None
-    return dynamics.readout(x, stacked, sample)
+    """A temporal scene's output y for one sample by loop_states (frozen: dynamics_forward_states at the
+    parameters the gradient is taken at)."""
+    if frozen is None:
+        frozen = dynamics_forward_states(dynamics, params, sample)
+    states, controls = loop_states(dynamics.step, dynamics.policy(params, sample), dynamics.initial(sample),
+                                   dynamics.unroll, backprop, frozen)
+    observed = None
+    if dynamics.observe is not None and states:
+        observed = jax.tree_util.tree_map(lambda *leaves: jnp.stack(leaves),
+                                          *[dynamics.observe(x, c, sample) for x, c in zip(states, controls)])
+    return dynamics.readout(states[-1] if states else dynamics.initial(sample), observed, sample)
 
 
 def finite_difference_check(loss, params, gradient, directions: int = DIRECTIONS, rtol: float = FD_RTOL):
@@ -153,7 +172,7 @@ def _check_scene(cfg) -> list[Check]:
         scan_loss = batch_loss(scene.backprop_output(backprop))
         gradient = jax.grad(scan_loss)(params)
         if scene.dynamics is not None:
-            frozen = [forward_states(scene.dynamics, params, _index(batch, i)) for i in range(_size(batch))]
+            frozen = [dynamics_forward_states(scene.dynamics, params, _index(batch, i)) for i in range(_size(batch))]
 
             def loop_loss(p, backprop=backprop, frozen=frozen):
                 outputs = jnp.stack([loop_output(scene.dynamics, p, _index(batch, i), backprop, frozen[i])

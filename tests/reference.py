@@ -1,26 +1,19 @@
-"""Plain Python loops as references for the scan-based rollouts (no lax.scan, no stop_gradient)."""
+"""Plain Python loops as references for the scan-based rollouts (no lax.scan, no stop_gradient); the loops
+themselves ship in physgrad.testing for scene authors."""
 
 import jax
 
+from physgrad import testing
+
 
 def forward_states(step, policy, x0, steps):
-    """x_0..x_steps of the forward pass, as constants: the values every mode shares."""
-    states = [x0]
-    for k in range(steps):
-        states.append(step(states[-1], policy(states[-1], k)))
-    return [jax.lax.stop_gradient(s) for s in states]
+    """x_0..x_steps of the forward pass, as constants: the values every mode shares (physgrad.testing)."""
+    return testing.forward_states(step, policy, x0, steps)
 
 
 def loop_states(step, policy, x0, steps, backprop, frozen):
-    """x_1..x_steps, where a mode's stopped inputs are the constant forward states `frozen`: differentiating
-    this function gives that mode's gradient, and finite differences of it check the same thing."""
-    x, states = x0, []
-    for k in range(steps):
-        policy_input = frozen[k] if backprop.stop_policy_input else x
-        physics_input = frozen[k] if backprop.stop_physics_input else x
-        x = step(physics_input, policy(policy_input, k))
-        states.append(x)
-    return states
+    """x_1..x_steps, where a mode's stopped inputs are the constant forward states `frozen` (physgrad.testing)."""
+    return testing.loop_states(step, policy, x0, steps, backprop, frozen)[0]
 
 
 def check_gradient(loss, scan_loss, params, rtol=1e-9, fd_rtol=1e-5, directions=3):
