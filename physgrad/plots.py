@@ -315,6 +315,10 @@ def plot_tradeoff(runs: list[Run], path: str | Path, note: str = "", styles: dic
             for per_iter in kinds["diverged"]:
                 top.plot([per_iter], [edge], "^", ms=7, color=styles.get(label, {}).get("color"), clip_on=False)
         limit = limits.get(scene, np.nan)
+        finished = [p for _, kinds in groups for p in kinds["ok"]]
+        reached = sum(np.isfinite(p[1]) for p in finished)
+        bottom.text(0.98, 0.96, f"reached by {reached} of {len(finished)} completed runs", transform=bottom.transAxes,
+                    ha="right", va="top", fontsize=7, color="dimgray")
         for ax, label in ((top, "seconds per iteration"),
                           (bottom, f"training seconds to test loss {limit:.3g}" if np.isfinite(limit)
                            else "training seconds to the threshold (none)")):
