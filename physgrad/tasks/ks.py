@@ -319,7 +319,7 @@ def build(key, *, stepper, training, unroll, points, base_domain, train_sizes, t
 
     def sample_loss(y, sample):
         """Training samples: the MSE over the predicted steps and the grid. Test samples: the study's relative
-        error, mean_k min(mean_x (u_k - u*_k)^2 / scale, ERROR_CAP) with scale = max u*^2 over the horizon (a
+        error, mean_k min(mean_x (u_k - u*_k)^2 / scale, ERROR_CAP) with scale = max u*^2 over frames 0..horizon (a
         non-finite step counts ERROR_CAP, so that a model blowing up has a finite, comparable error)."""
         target = sample["target"]
         predicted = y.reshape(-1, target.shape[-1])
@@ -371,7 +371,9 @@ def build(key, *, stepper, training, unroll, points, base_domain, train_sizes, t
     targets = test[:, :, 1:].reshape(-1, test.shape[2] - 1, points)
     test_set = {"state": test[:, :, 0].reshape(-1, points), "target": targets,
                 "size": jnp.repeat(jnp.asarray(settings["test_sizes"], dtype), test.shape[1]),
-                "scale": jnp.max(targets[:, :horizon] ** 2, axis=(1, 2))}
+                # the study's normaliser: the largest u*^2 over frames 0..horizon, the test state itself included
+                "scale": jnp.maximum(jnp.max(test[:, :, 0].reshape(-1, points) ** 2, axis=1),
+                                     jnp.max(targets[:, :horizon] ** 2, axis=(1, 2)))}
 
     def figure(params, test_set, path):
         draw_rollouts(params, test_set, path, autoregressive, coarse, f"{stepper}, {training}, m = {unroll}", horizon,
