@@ -308,10 +308,15 @@ def test_a_signal_at_any_instant_of_a_run_ends_it_in_one_line(tmp_path, seeds):
                                     f"hydra.run.dir={folder}"], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
                                    text=True)
         time.sleep(rng.uniform(0.0, 6.0 if seeds == 1 else 12.0))
-        process.send_signal(rng.choice([signal.SIGINT, signal.SIGTERM]))
+        sent = rng.choice([signal.SIGINT, signal.SIGTERM])
+        process.send_signal(sent)
         # compiling cannot be cut short (seconds here); 300 seeds write 300 small files when interrupted
         _, err = finished(process, 60)
-        assert process.returncode in (0, 130) and "Traceback" not in err, err[-3000:]
+        # in the interpreter's first milliseconds, before Python handles signals, the signal's default action ends
+        # the process (a shell reports 128 + its number); never another signal (SIGSEGV, SIGABRT: a crash)
+        assert process.returncode in (0, 130, -sent) and "Traceback" not in err, (process.returncode, err[-3000:])
+        if process.returncode == -sent:
+            assert not list(folder.rglob("results.h5"))
         for path in folder.rglob("results.h5"):
             status = read_run(path).attrs["status"]
             assert status in ("interrupted", "completed") and (status == "completed") <= (
