@@ -28,7 +28,8 @@ test: setup
 test-long: setup
 	$(BIN)/python -m pytest -q -m long tests
 
-# the fault-injection suite repeated many times (every randomised fault x REPEATS; about 7 minutes at 20)
+# the fault-injection suite repeated many times (every randomised fault x REPEATS; 4 minutes at REPEATS=2 on 2
+# cores, the randomised cases growing linearly with it) and the crafted foreign files
 REPEATS ?= 20
 test-faults: setup
 	PHYSGRAD_FAULT_REPEATS=$(REPEATS) $(BIN)/python -m pytest -q tests/test_faults.py tests/test_foreign.py \
