@@ -312,11 +312,10 @@ def test_a_signal_at_any_instant_of_a_run_ends_it_in_one_line(tmp_path, seeds):
         process.send_signal(sent)
         # compiling cannot be cut short (seconds here); 300 seeds write 300 small files when interrupted
         _, err = finished(process, 60)
-        # in the interpreter's first milliseconds, before Python handles signals, the signal's default action ends
-        # the process (a shell reports 128 + its number); never another signal (SIGSEGV, SIGABRT: a crash)
+        # in the interpreter's first milliseconds or its last (after the files are final), where Python does not
+        # handle signals, the signal's default action ends the process (a shell reports 128 + its number); never
+        # another signal (SIGSEGV, SIGABRT: a crash)
         assert process.returncode in (0, 130, -sent) and "Traceback" not in err, (process.returncode, err[-3000:])
-        if process.returncode == -sent:
-            assert not list(folder.rglob("results.h5"))
         for path in folder.rglob("results.h5"):
             status = read_run(path).attrs["status"]
             assert status in ("interrupted", "completed") and (status == "completed") <= (
