@@ -42,6 +42,15 @@ def main(argv: list[str] | None = None) -> int:
     if argv is None:  # the console script: SIGTERM before a job handles it ends the start-up as SIGINT does
         signal.signal(signal.SIGTERM, _interrupt)
     try:
+        return _main(argv)
+    finally:
+        if argv is None:  # the files are final: a signal now would only interrupt the interpreter's shutdown
+            signal.signal(signal.SIGINT, signal.SIG_IGN)
+            signal.signal(signal.SIGTERM, signal.SIG_IGN)
+
+
+def _main(argv: list[str] | None) -> int:
+    try:
         if argv is None:
             import_holding_signals(HEAVY_IMPORTS.get(sys.argv[1] if len(sys.argv) > 1 else "", ()))
         code = dispatch(sys.argv[1:] if argv is None else argv)

@@ -147,12 +147,17 @@ def job_outcome(outcomes: list[Outcome]) -> Outcome:
     return Outcome(worst.status, reasons or None, worst.iterations, worst.train_seconds, outcomes[0].final_eval)
 
 
-def build_seeds(cfg: DictConfig, seeds: list[int], batch_size: int) -> tuple[Scene, Seeds]:
+def build_seeds(cfg: DictConfig, seeds: list[int], batch_size: int,
+                checkpoint: Callable[[], None] | None = None) -> tuple[Scene, Seeds]:
     """The scene and, stacked over the given seeds, what differs between them: data (test set, fixed training
     set), initial network and minibatch key, each from its own split of PRNGKey(seed). UserError if the batch
     does not fit the training set."""
     keys = [jax.random.split(jax.random.PRNGKey(seed), 3) for seed in seeds]  # data, init, minibatches
-    scenes = [build_scene(cfg.task, key[0], effective_unroll(cfg)) for key in keys]
+    scenes = []
+    for key in keys:  # checkpoint (a pending stop) between seeds: a thousand of them take a while
+        if checkpoint is not None:
+            checkpoint()
+        scenes.append(build_scene(cfg.task, key[0], effective_unroll(cfg)))
     scene = scenes[0]  # the physics and the network; only the data differ between seeds
     if scene.train_size is not None and batch_size > scene.train_size:
         raise UserError(f"trainer.batch_size={batch_size} is larger than the training set: use at most "
@@ -207,13 +212,14 @@ def check_scene_values(scene: Scene, seeds: Seeds, name: str) -> None:
                             "loss over it is not a number; fix the data the scene's build function draws")
 
 
-def prepare(cfg: DictConfig, seed_list: list[int], settings: TrainerSettings) -> tuple[Scene, UpdateRule, Seeds]:
+def prepare(cfg: DictConfig, seed_list: list[int], settings: TrainerSettings,
+            checkpoint: Callable[[], None] | None = None) -> tuple[Scene, UpdateRule, Seeds]:
     """Precision set, the update rule and the seeds' scenes built, and what does not apply refused (UserError):
     everything a run (and `make bench`) does before compiling."""
     set_precision(cfg.precision)
     logging.getLogger("jax").setLevel(logging.WARNING)
     rule = build_rule(cfg.optim)
-    scene, seeds = build_seeds(cfg, seed_list, settings.batch_size)
+    scene, seeds = build_seeds(cfg, seed_list, settings.batch_size, checkpoint)
     check_scene_values(scene, seeds, cfg.task.name)
     check_applies(scene, cfg)
     if rule.on_layers and not matrix_leaves(seeds.network()) and "muon" in str(cfg.optim.get("_target_", "")):
@@ -304,9 +310,13 @@ def run_owned(cfg: DictConfig, paths: list[tuple[int, Path]], stop) -> Outcome:
 
 def set_up_and_train(cfg: DictConfig, paths: list[tuple[int, Path]], stop) -> Outcome:
     for _, path in paths:
+        stop.raise_if_stopped()
         set_aside_unreadable(path)
     if not cfg.get("overwrite", False):
-        previous = [finished_before(path, cfg) for _, path in paths]
+        previous = []
+        for _, path in paths:
+            stop.raise_if_stopped()
+            previous.append(finished_before(path, cfg))
         if all(previous):
             return job_outcome(previous)
     try:
@@ -317,7 +327,7 @@ def set_up_and_train(cfg: DictConfig, paths: list[tuple[int, Path]], stop) -> Ou
             # its lax.cond traced under x64 does not batch under vmap (jax 0.10): a known limitation
             raise UserError(f"seeds={len(paths)} cannot retry failed factorisations in float64: add "
                             "optim.retry_float64=false, or use seeds=1")
-        scene, rule, seeds = prepare(cfg, [seed for seed, _ in paths], settings)
+        scene, rule, seeds = prepare(cfg, [seed for seed, _ in paths], settings, stop.raise_if_stopped)
         origin = {}
         if cfg.get("init_from"):
             first, origin = start_from(cfg.init_from, seeds.network(), cfg.task.name)

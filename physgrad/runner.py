@@ -12,6 +12,7 @@ from __future__ import annotations
 import logging
 import math
 import signal
+import sys
 import threading
 import time
 from contextlib import contextmanager
@@ -176,7 +177,7 @@ class StopRequest:
         self.request(signal.Signals(signum).name, at_once=self.signal_name is not None)
         if self.raising:
             self.raising = False  # one exception; what handles it writes the files
-            raise KeyboardInterrupt(self.signal_name)
+            raise StopInterrupt(self.signal_name)
 
     def raise_if_stopped(self) -> None:
         if self.signal_name is not None:
@@ -226,6 +227,13 @@ class StopRequest:
         return result[0]
 
 
+class StopInterrupt(KeyboardInterrupt):
+    """What StopRequest raises during set-up. Raised inside code the interpreter runs on its own (a garbage
+    collector callback, a finaliser) it cannot propagate: it is then dropped without a traceback (the
+    unraisable hook below), the stop stays requested and the job's next check (raise_if_stopped, the training
+    loop's first) acts on it."""
+
+
 @contextmanager
 def stop_on_signals(on_first=None):
     request = StopRequest(on_first)
@@ -234,9 +242,17 @@ def stop_on_signals(on_first=None):
     except ValueError:  # not the main thread: leave signals alone
         yield request
         return
+    previous_hook = sys.unraisablehook
+
+    def unraisable(info):
+        if not isinstance(info.exc_value, StopInterrupt):
+            previous_hook(info)
+
+    sys.unraisablehook = unraisable
     try:
         yield request
     finally:
+        sys.unraisablehook = previous_hook
         for sig, handler in previous.items():
             signal.signal(sig, handler)
 
