@@ -136,6 +136,9 @@ class WandB:
             tracked.summary["status"] = str(run.attrs.get("status"))
         finally:
             tracked.finish(exit_code=0 if run.attrs.get("status") == "completed" else 1)
+            # W&B's service process writes the run on its own schedule (measured: the history reached the offline
+            # log only when the process ended): ending the service makes the run whole on disk now
+            wandb.teardown()
         if self.mode == "offline":
             log.info("W&B offline run of %s in %s: upload it with `wandb sync`", name, tracked.dir)
 

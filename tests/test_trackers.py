@@ -94,7 +94,7 @@ def test_wandb_offline_run_holds_the_history_and_the_config(job, tmp_path):
     import json
 
     folder, paths = job
-    track([WandB(dir=str(tmp_path))], paths[:1], folder)
+    track([WandB(dir=str(tmp_path))], paths[:1], folder)  # whole on disk when it returns
     log, = tmp_path.glob("wandb/offline-run-*/run-*.wandb")
     records = wandb_records(log)
     history = [{item.key or "/".join(item.nested_key): json.loads(item.value_json) for item in r.history.item}
