@@ -1,15 +1,18 @@
-"""`make reproduce-figures [PROFILE=quick|paper|claims]`: run the figure sweeps of conf/experiment/ and write the
-figures and one markdown summary into outputs/figures/.
+"""`make reproduce-figures [PROFILE=quick|paper|claims|claims-long]`: run the figure sweeps of conf/experiment/
+and write the figures and one markdown summary into outputs/figures/; or, for the claims profiles, the papers'
+claims as `physgrad compare` studies and outputs/figures/claims.md.
 
 The experiment configs hold the papers' budgets (PROFILE=paper). The quick profile (the default) runs the same
 sweeps with the budgets below, so that everything finishes in about 45 minutes on a 2-core machine; every figure
-and the summary say so. The claims profile runs, for every claim of experiments/claims.py, the sweeps below with
-at least three seeds and budgets chosen by measurement (109 minutes measured on a 2-core machine), then writes
-outputs/figures/claims.md: each claim with its paired seed-by-seed comparison and verdict. `--plan` prints a
-profile's jobs and the expected time without running anything. Runs land in
-outputs/experiments/<profile>/<experiment>/<overrides>/results.h5; a second call skips every job that completed
-or diverged (so an interrupted reproduction resumes), unless OVERWRITE=1.
+and the summary say so. Runs land in outputs/experiments/<profile>/<experiment>/<overrides>/results.h5; a second
+call skips every job that completed or diverged (so an interrupted reproduction resumes), unless OVERWRITE=1.
 Each figure is `physgrad report` of its runs: the same table and figures that command writes for any runs.
+
+The claims profile runs the studies of experiments/claims.py (STUDIES and the regime map MAP), each a `physgrad
+compare` (tuned, paired seeds, calibrated clock) and its untuned twin, into outputs/experiments/claims/<study>;
+claims-long runs the claims whose budget is a small fraction of the paper's further. Both resume study by study
+and job by job; `--plan` prints the studies, their expected time and the parts of at most about 80 minutes that
+`--part K` runs one at a time; claims.md is written from whatever studies have finished.
 """
 
 from __future__ import annotations
@@ -34,12 +37,9 @@ CONF = Path(__file__).resolve().parent.parent / "conf"
 
 @dataclass(frozen=True)
 class Sweep:
-    """One sweep of the claims profile: a named experiment with overrides, into its own folder."""
+    """One sweep of a figure: a named experiment with the profile's overrides."""
     experiment: str
     overrides: tuple[str, ...]
-    job_seconds: float  # one job's wall time measured on the 2-core machine (start-up and compilation included;
-    # a wall-clock job: its budget plus about 8 s)
-    folder: str = ""  # under outputs/experiments/claims/ (default: the experiment's name)
 
 
 @dataclass(frozen=True)
@@ -49,7 +49,6 @@ class Figure:
     experiments: tuple[str, ...]
     shows: tuple[str, ...]  # which of the report's figures this one is
     quick: dict[str, list[str]] | None = field(default_factory=dict)  # experiment -> quick overrides; None: not in it
-    claims: tuple[Sweep, ...] = ()  # the claims profile's sweeps (none: not in that profile)
     runs_shown: tuple[str, ...] = ()  # globs of job folders whose per-run scene figure (scene.png) is shown too
     # (folders, out folder, note) -> (figure file names, markdown): a study's own figure and table, beside the report
     study: Callable[[list[Path], Path, str], tuple[list[str], str]] | None = None
@@ -62,37 +61,24 @@ def ks_study(folders: list[Path], out: Path, note: str) -> tuple[list[str], str]
 
 
 QUICK_POISSON = ["seed=0", "trainer.time_budget=45"]
-# The claims profile: wall-clock comparisons run one job per seed, one job at a time (Hydra's basic launcher);
-# per-iteration comparisons train their three seeds together in one vectorised step (seeds=3).
-SEEDS_TOGETHER = ("seed=0", "seeds=3")
-CLAIMS_POISSON_START = "optim=adam,seed=${seed},trainer.time_budget=60"
 FIGURES = (
     Figure("fig1_oscillator", "Oscillators: Adam, Gauss-Newton and HIG, test loss against training wall-clock",
            ("fig1_oscillator",), ("loss_vs_time.png",),
-           {"fig1_oscillator": ["seed=0,1", "trainer.time_budget=60"]},
-           claims=(Sweep("fig1_oscillator", ("trainer.time_budget=90",), 98),)),
+           {"fig1_oscillator": ["seed=0,1", "trainer.time_budget=60"]}),
     Figure("fig2_quantum", "Quantum dipole (HIG preset): Adam and HIG against training wall-clock",
            ("fig2_quantum",), ("loss_vs_time.png",),
-           {"fig2_quantum": ["seed=0,1", "trainer.time_budget=75"]},
-           claims=(Sweep("fig2_quantum", ("trainer.time_budget=90",), 100),)),
+           {"fig2_quantum": ["seed=0,1", "trainer.time_budget=75"]}),
     Figure("fig3_poisson", "Poisson: Adam and HIG, then both continuing from the Adam-trained network",
            ("fig3_poisson", "fig3_poisson_continue"), ("loss_vs_time.png",),
            {"fig3_poisson": QUICK_POISSON,
             "fig3_poisson_continue": [*QUICK_POISSON, "init_from='outputs/experiments/quick/fig3_poisson/"
-                                                      "optim=adam,seed=${seed},trainer.time_budget=45/results.h5'"]},
-           claims=(Sweep("fig3_poisson", ("optim=adam", "trainer.time_budget=60"), 66),
-                   Sweep("fig3_poisson_continue", ("trainer.time_budget=120", "init_from='outputs/experiments/claims/"
-                                                   f"fig3_poisson/{CLAIMS_POISSON_START}/results.h5'"), 132))),
+                                                      "optim=adam,seed=${seed},trainer.time_budget=45/results.h5'"]}),
     Figure("fig4_multicart", "Multicart: backprop modes R, M, S, C for 1 to 4 poles, test loss against iteration",
            ("fig4_multicart",), ("loss_vs_iteration.png",),
-           {"fig4_multicart": ["seed=0", "trainer.iterations=1500", "trainer.eval_every=100"]},
-           claims=(Sweep("fig4_multicart", (*SEEDS_TOGETHER, "optim.backprop=R,C", "trainer.iterations=10000",
-                                            "trainer.eval_every=500"), 136),)),
+           {"fig4_multicart": ["seed=0", "trainer.iterations=1500", "trainer.eval_every=100"]}),
     Figure("fig5_quantum_control", "Quantum control (StableBPTT preset): modes R, M, S, C for target levels 3, 4, 5",
            ("fig5_quantum_control",), ("loss_vs_iteration.png",),
-           {"fig5_quantum_control": ["seed=0", "trainer.iterations=250", "trainer.eval_every=50"]},
-           claims=(Sweep("fig5_quantum_control", (*SEEDS_TOGETHER, "optim.backprop=R,C", "task.target_level=4,5",
-                                                  "trainer.iterations=600", "trainer.eval_every=100"), 200),)),
+           {"fig5_quantum_control": ["seed=0", "trainer.iterations=250", "trainer.eval_every=50"]}),
     Figure("fig6_unroll", "Unroll length: final test loss and seconds per iteration",
            ("fig6_unroll_bptt", "fig6_unroll_hig"), ("unroll.png",),
            {"fig6_unroll_bptt": ["seed=0", "unroll=16,32,64,128,256", "trainer.iterations=1000",
@@ -102,36 +88,24 @@ FIGURES = (
            ("fig8_guidance",), ("loss_vs_iteration.png",),
            {"fig8_guidance": ["seed=0", "optim.clip=none", "trainer.iterations=1000", "trainer.eval_every=100"]},
            runs_shown=("*optim.backprop=R,*seed=0,task.control_cost=0.001*",
-                       "*optim.backprop=C,*seed=0,task.control_cost=0.001*"),
-           claims=(Sweep("fig8_guidance", (*SEEDS_TOGETHER, "optim.backprop=R,C", "optim.clip=none",
-                                           "trainer.iterations=4000", "trainer.eval_every=250"), 59),)),
+                       "*optim.backprop=C,*seed=0,task.control_cost=0.001*")),
     Figure("fig9_ks", "Kuramoto-Sivashinsky neural simulator: ONE, NOG, WIG x predict, correct x unroll length",
            ("fig9_ks",), ("unroll.png",),
            {"fig9_ks": ["unroll=1,2,4", "trainer.iterations=200", "trainer.eval_every=200"]},
-           runs_shown=("*task.stepper=correct,task.training=WIG,*unroll=4/seed=0",), study=ks_study,
-           claims=(Sweep("fig9_ks", ("task.stepper=correct", "task.training=ONE,NOG,WIG", "unroll=3",
-                                     "trainer.iterations=1000", "trainer.eval_every=250"), 68),
-                   Sweep("fig9_ks", ("task.stepper=predict", "task.training=WIG", "unroll=3",
-                                     "trainer.iterations=1000", "trainer.eval_every=250"), 72, "fig9_ks_predict"),
-                   Sweep("fig9_ks", ("task.stepper=correct", "task.training=WIG", "unroll=1,2,4,8",
-                                     "trainer.iterations=1000", "trainer.eval_every=250"), 50, "fig9_ks_unroll"))),
+           runs_shown=("*task.stepper=correct,task.training=WIG,*unroll=4/seed=0",), study=ks_study),
     Figure("toy_scaling", "Badly scaled toy (lambda = 0.01): Adam, Gauss-Newton and HIG against training wall-clock",
-           ("toy_scaling",), ("loss_vs_time.png",), None,
-           claims=(Sweep("toy_scaling", ("trainer.time_budget=20",), 25),)),
+           ("toy_scaling",), ("loss_vs_time.png",), None),
     Figure("hig_payoff", "Where HIG pays off: Adam and HIG on longer oscillator chains against training wall-clock",
-           ("hig_payoff",), ("loss_vs_time.png",), None,
-           claims=(Sweep("hig_payoff", ("trainer.time_budget=90",), 97),)),
+           ("hig_payoff",), ("loss_vs_time.png",), None),
 )
 TRADEOFF = "fig7_tradeoff"
 
 
 def profile_sweeps(figure: Figure, profile: str) -> list[Sweep]:
     """The sweeps a figure runs in a profile (none: the figure is not part of it)."""
-    if profile == "claims":
-        return list(figure.claims)
     if profile == "quick" and figure.quick is None:
         return []
-    return [Sweep(e, tuple(figure.quick.get(e, []) if profile == "quick" else []), math.nan) for e in figure.experiments]
+    return [Sweep(e, tuple(figure.quick.get(e, []) if profile == "quick" else [])) for e in figure.experiments]
 
 
 def planned_jobs(sweep: Sweep) -> list[list[str]]:
@@ -143,26 +117,22 @@ def planned_jobs(sweep: Sweep) -> list[list[str]]:
 
 
 def print_plan(figures: list[Figure], profile: str) -> None:
-    """Every job of the profile with its expected wall time (measured per sweep on the 2-core machine)."""
-    total, count = 0.0, 0
+    """Every job of a figure profile."""
+    count = 0
     for figure in figures:
         for sweep in profile_sweeps(figure, profile):
             jobs = planned_jobs(sweep)
-            seconds = sweep.job_seconds * len(jobs)
-            total, count = total + seconds, count + len(jobs)
-            estimate = f"about {seconds / 60:.0f} min" if math.isfinite(seconds) else "not estimated"
-            print(f"{figure.name}: +experiment={sweep.experiment} -> outputs/experiments/{profile}/"
-                  f"{sweep.folder or sweep.experiment} ({len(jobs)} jobs, {estimate})")
+            count += len(jobs)
+            print(f"{figure.name}: +experiment={sweep.experiment} -> outputs/experiments/{profile}/{sweep.experiment} "
+                  f"({len(jobs)} jobs)")
             for job in jobs:
                 print("    " + " ".join(job))
-    finite = f"about {total / 3600:.1f} h" if math.isfinite(total) else "not estimated for this profile"
-    print(f"{count} jobs, one at a time; expected total: {finite} on a 2-core machine (jobs that completed "
-          "or diverged before are skipped)")
+    print(f"{count} jobs, one at a time (jobs that completed or diverged before are skipped)")
 
 
 def run_sweep(sweep: Sweep, profile: str, overwrite: bool) -> tuple[Path, int]:
     """One named sweep through `physgrad run -m`; returns its folder and the exit code."""
-    folder = Path("outputs/experiments") / profile / (sweep.folder or sweep.experiment)
+    folder = Path("outputs/experiments") / profile / sweep.experiment
     command = [sys.executable, "-m", "physgrad.cli", "run", "-m", f"+experiment={sweep.experiment}",
                f"hydra.sweep.dir={folder}", *sweep.overrides, *(["overwrite=true"] if overwrite else [])]
     print("reproduce:", " ".join(command[2:]), flush=True)
@@ -172,8 +142,79 @@ def run_sweep(sweep: Sweep, profile: str, overwrite: bool) -> tuple[Path, int]:
 NOTES = {
     "quick": "QUICK PROFILE: budgets scaled down from the papers' (see experiments/reproduce.py)",
     "paper": "paper profile: the papers' budgets",
-    "claims": "CLAIMS PROFILE: 3 seeds, budgets sized for a 2-core machine (experiments/reproduce.py, claims.md)",
+    "claims": "CLAIMS PROFILE: physgrad compare studies (tuned, paired seeds, calibrated clock), budgets sized for "
+              "a 2-core machine (experiments/claims.py)",
+    "claims-long": "CLAIMS-LONG PROFILE: the claims with the smallest share of the paper's budget, run further "
+                   "(experiments/claims.py)",
 }
+
+
+# --- the claims profiles: physgrad compare studies ----------------------------------------------------------
+
+
+def claims_parts(profile: str) -> list:
+    from claims import PROFILES, chunks  # experiments/ is this script's folder
+
+    return chunks(PROFILES[profile])
+
+
+def print_claims_plan(profile: str, root: Path) -> None:
+    """The studies of a claims profile part by part, with their jobs and expected time on the 2-core machine."""
+    from claims import starts
+
+    total = 0.0
+    for index, part in enumerate(claims_parts(profile), 1):
+        seconds = sum(study.seconds() for study in part)
+        total += seconds
+        print(f"part {index} (--part {index}): about {seconds / 60:.0f} min")
+        for start in starts(part):
+            print(f"    start networks {start.name}: physgrad run -m {' '.join(start.overrides)} (one job per seed)")
+        for study in part:
+            tuning = study.trials * study.variants()
+            print(f"    {study.name}: {study.variants()} variants, {study.trials} trials each ({tuning} tuning jobs), "
+                  f"{study.seeds} seeds ({study.eval_jobs()} evaluation jobs"
+                  f"{f', {study.eval_jobs(preset=True)} untuned' if study.preset else ''}), about {study.seconds() / 60:.0f} min")
+            print(f"        physgrad compare {' '.join(study.command(root))}")
+    print(f"expected total: about {total / 3600:.1f} h on a 2-core machine, in parts run one after another "
+          "(each resumes where it stopped; finished jobs are skipped)")
+
+
+def run_start(start, seeds: int, root: Path) -> int:
+    """The networks a study continues from: one job per evaluation seed and the tuning seed, in <root>/<name>/seed=S."""
+    from claims import TUNE_SEED
+
+    seed_list = ",".join(str(s) for s in [*range(seeds), TUNE_SEED])
+    command = [sys.executable, "-m", "physgrad.cli", "run", "-m", *start.overrides, f"seed={seed_list}",
+               f"hydra.sweep.dir={root / start.name}", "hydra.sweep.subdir='seed=${seed}'"]
+    print("reproduce:", " ".join(command[2:]), flush=True)
+    return subprocess.run(command).returncode
+
+
+def run_claims(profile: str, parts: list[int], root: Path, out: Path) -> int:
+    """The studies of the chosen parts (all: every part), each tuned and untuned; then claims.md from every
+    study that has finished."""
+    from claims import starts, write
+
+    failed = []
+    all_parts = claims_parts(profile)
+    for index in parts or range(1, len(all_parts) + 1):
+        part = all_parts[index - 1]
+        for start in starts(part):
+            seeds = max(s.seeds for s in part if s.start == start)
+            if run_start(start, seeds, root) != 0:
+                failed.append(start.name)
+        for study in part:
+            for preset in (False, True) if study.preset else (False,):
+                command = [sys.executable, "-m", "physgrad.cli", "compare", *study.command(root, preset)]
+                print("reproduce:", " ".join(command[2:]), flush=True)
+                code = subprocess.run(command).returncode
+                if code == 130:
+                    return 130
+                if code != 0:
+                    failed.append(f"{study.name}{'-preset' if preset else ''} (exit {code})")
+    write(root, out, NOTES[profile])
+    print(f"reproduce: wrote {out / 'claims.md'}" + (f"; did not finish: {', '.join(failed)}" if failed else ""))
+    return 1 if failed else 0
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -182,8 +223,23 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--only", default="", help="comma-separated figure names (default: all)")
     parser.add_argument("--overwrite", action="store_true", help="rerun jobs that completed or diverged before")
     parser.add_argument("--plan", action="store_true", help="print every job and the expected time; run nothing")
+    parser.add_argument("--part", default="", help="claims profiles: comma-separated part numbers (--plan lists them)")
     parser.add_argument("--out", default="outputs/figures")
     options = parser.parse_args(argv)
+    if options.profile.startswith("claims"):
+        root = Path("outputs/experiments") / options.profile
+        count = len(claims_parts(options.profile))
+        try:
+            parts = [int(k) for k in options.part.split(",")] if options.part else []
+        except ValueError:
+            parts = [0]
+        if any(not 1 <= k <= count for k in parts):
+            print(f"reproduce: error: --part takes numbers from 1 to {count} (--plan lists the parts)", file=sys.stderr)
+            return 2
+        if options.plan:
+            print_claims_plan(options.profile, root)
+            return 0
+        return run_claims(options.profile, parts, root, Path(options.out))
     wanted = [f for f in FIGURES if (not options.only or f.name in options.only.split(","))
               and profile_sweeps(f, options.profile)]
     if options.only and len(wanted) != len(options.only.split(",")):
@@ -231,11 +287,6 @@ def main(argv: list[str] | None = None) -> int:
         write_report([str(f) for f in all_folders], out_dir=out / TRADEOFF, note=f"{title}\n{note}")
         sections.append(f"## {TRADEOFF}: {title}\n\n![{TRADEOFF}]({TRADEOFF}/tradeoff.png)\n\n"
                         f"(its table is the union of the tables above: {TRADEOFF}/report.md)\n")
-    if options.profile == "claims":
-        from claims import write as write_claims  # experiments/ is this script's folder
-
-        write_claims(Path("outputs/experiments/claims"), out, note)
-        sections.insert(0, "## The claims\n\nEach claim's verdict, seed by seed: [claims.md](claims.md)\n")
     minutes = (time.perf_counter() - start) / 60
     header = [f"# physgrad figures ({options.profile} profile)", "", note + ".",
               f"Wall time of this reproduction: {minutes:.1f} min (jobs that completed or diverged before were "

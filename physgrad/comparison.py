@@ -479,7 +479,8 @@ def budget_of(cfg) -> tuple[str, float]:
 
 def evaluation_jobs(variants, best, s, common, groups, axis, budget) -> dict[str, str]:
     """The evaluation's jobs in launch order: per variant one job of all seeds trained together when the budget
-    is in iterations (one per seed where the rule's float64 retry does not batch); for time budgets one job per
+    is in iterations (one per seed where the rule's float64 retry does not batch or init_from starts each seed
+    from its own network, e.g. init_from='start/seed=${seed}/results.h5'); for time budgets one job per
     seed, variants interleaved (A, B, C for the first seed, then the next), so that a drift in the machine's
     load does not line up with a variant."""
     seeds = list(range(s["seed"], s["seed"] + s["seeds"]))
@@ -492,7 +493,8 @@ def evaluation_jobs(variants, best, s, common, groups, axis, budget) -> dict[str
 
     if axis == "iteration":
         for index, variant in enumerate(variants):
-            if variant.config.optim.get("retry_float64") and len(seeds) > 1:  # does not batch under vmap
+            # a float64 retry does not batch under vmap, and init_from starts one network per job
+            if (variant.config.optim.get("retry_float64") or variant.config.get("init_from")) and len(seeds) > 1:
                 jobs.update({f"eval_v{index}_s{seed}": spec(variant, seed, 1) for seed in seeds})
             else:
                 jobs[f"eval_v{index}"] = spec(variant, seeds[0], len(seeds))
@@ -559,7 +561,7 @@ def analyse(folder: Path, variants, best, curves, statuses, s, axis, budget, tri
     for variant in variants:
         for seed, c in sorted(curves[variant.name].items()):
             run = statuses[variant.name][seed]
-            row = {"variant": variant.name, "seed": seed, "status": run.attrs.get("status"),
+            row = {"variant": variant.name, "seed": seed, "axis": axis, "budget": budget, "status": run.attrs.get("status"),
                    "stopped_by": run.attrs.get("stopped_by"), "iterations": run.final("train", "iteration") + 1,
                    "train_seconds": run.final("train", "wall_time"),
                    "calibrated_seconds": (run.final("train", "calibrated_time") if "calibrated_time" in run.train

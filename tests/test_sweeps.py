@@ -51,7 +51,6 @@ def test_every_figure_has_its_experiments():
     named = {e for figure in reproduce.FIGURES for e in figure.experiments}
     assert named == set(EXPERIMENTS)
     assert len(reproduce.FIGURES) == 10  # figure 7 is drawn from all of their runs
-    assert {s.experiment for f in reproduce.FIGURES for s in f.claims} <= named
 
 
 @pytest.mark.parametrize("experiment", EXPERIMENTS)
@@ -77,57 +76,20 @@ def test_quick_profile_overrides_are_valid(figure):
             valid(cfg)
 
 
-def claims_jobs(sweep) -> list:
-    return sweep_jobs(sweep.experiment, [o for o in sweep.overrides if not o.startswith("init_from")])
-
-
-@pytest.mark.parametrize("figure", [f for f in reproduce.FIGURES if f.claims], ids=lambda f: f.name)
-def test_claims_profile_jobs_are_valid_with_three_seeds(figure):
-    for sweep in figure.claims:
-        check_overrides([f"+experiment={sweep.experiment}", *sweep.overrides], multirun=True)
-        jobs = claims_jobs(sweep)
-        assert len(jobs) == len(reproduce.planned_jobs(sweep))
-        for cfg in jobs:
-            valid(cfg)
-            assert cfg.seeds >= 3 or len({j.seed for j in jobs}) >= 3
-            # wall-clock comparisons need one seed per job (jobs run one at a time); per-iteration ones train
-            # their seeds together
-            assert (cfg.trainer.time_budget is None) == (cfg.seeds == 3)
-
-
-@pytest.mark.long
-def test_the_claims_profile_runs_what_the_claims_read():
-    """Every side of every claim's comparisons (and the pay-off map) matches jobs the profile launches into the
-    folders the claim reads."""
+def test_the_claims_plan_lists_every_study_in_parts_within_about_four_hours(capsys, monkeypatch):
     import claims
-    from physgrad.report import _flat
 
-    by_folder = {}
-    for figure in reproduce.FIGURES:
-        for sweep in figure.claims:
-            for cfg in claims_jobs(sweep):
-                known = {k: str(v) for k, v in _flat(OmegaConf.to_container(cfg, resolve=True)).items()}
-                known["unroll"] = str(effective_unroll(cfg))
-                by_folder.setdefault(sweep.folder or sweep.experiment, []).append(known)
-    for claim in claims.CLAIMS:
-        configs = [c for folder in claim.folders for c in by_folder[folder]]
-        for comparison in claim.comparisons:
-            for side in (comparison.better, comparison.worse):
-                wanted = {**claim.common, **side}
-                assert any(all(c.get(k) == v for k, v in wanted.items()) for c in configs), (claim.name, wanted)
-    sizes = {c["task.oscillators"] for folder in claims.PAYOFF_FOLDERS for c in by_folder[folder]}
-    assert len(sizes) >= 3
-
-
-def test_the_plan_lists_every_job_within_four_hours(capsys, monkeypatch):
-    monkeypatch.setattr(reproduce, "run_sweep", lambda *a: pytest.fail("--plan ran a sweep"))
+    monkeypatch.setattr(reproduce, "run_claims", lambda *a: pytest.fail("--plan ran a study"))
     assert reproduce.main(["--profile", "claims", "--plan"]) == 0
     text = capsys.readouterr().out
-    jobs = [line for line in text.splitlines() if line.startswith("    ")]
-    expected = sum(len(reproduce.planned_jobs(s)) for f in reproduce.FIGURES for s in f.claims)
-    assert len(jobs) == expected and f"{expected} jobs, one at a time" in text
+    for study in claims.PROFILES["claims"]:
+        assert f"compare.dir=outputs/experiments/claims/{study.name} " in text
     hours = float(text.rsplit("expected total: about ", 1)[1].split(" h")[0])
-    assert 1 <= hours <= 4
+    assert 2 <= hours <= 4.5
+    assert reproduce.main(["--profile", "claims-long", "--plan"]) == 0
+    assert "compare.dir=outputs/experiments/claims-long/quantum_control_5" in capsys.readouterr().out
+    assert reproduce.main(["--profile", "claims", "--part", "99"]) == 2
+    assert "--part takes numbers from 1 to" in capsys.readouterr().err
 
 
 def test_missing_experiment_is_a_one_line_error():

@@ -178,3 +178,59 @@ def test_divergence_counts_and_the_target():
     assert curves["B"][0].reaches(0.2, 100.0) == math.inf
     assert curves["A"][0].reaches(0.2, 100.0) == pytest.approx(100.0)
     assert curves["A"][0].reaches(0.5, 100.0) == pytest.approx(70.0)
+
+
+# --- trend claims: the advantage grows from the easy setting to the hard one -----------------------------------
+
+
+def test_an_advantage_that_grows_is_found_and_a_uniform_one_is_not():
+    """A/B is 0.9 at the easy end and 0.3 at the hard end (run noise 10%): grows, by about 3x; the same 0.5 at
+    both ends (a uniform advantage, which a test of the hard end alone would pass): does not grow."""
+    from physgrad.verdict import DOES_NOT_GROW, GROWS, interaction
+
+    rng = np.random.default_rng(11)
+    easy = np.log(0.9) + rng.normal(0, 0.1, 10)
+    hard = np.log(0.3) + rng.normal(0, 0.1, 10)
+    result = interaction(easy, hard)
+    assert result.verdict == GROWS and result.p < 0.01
+    assert result.factor == pytest.approx(1 / 3, rel=0.15) and result.high < -math.log(1.1)
+    uniform = interaction(np.log(0.5) + rng.normal(0, 0.1, 10), np.log(0.5) + rng.normal(0, 0.1, 10))
+    assert uniform.verdict == DOES_NOT_GROW and uniform.low > -math.log(1.1)
+    reversed_ = interaction(hard, easy)  # the advantage shrinks
+    assert reversed_.verdict == DOES_NOT_GROW and reversed_.difference > 0
+
+
+def test_a_trend_with_few_pairs_missing_pairs_or_wide_noise_is_undecided():
+    from physgrad.verdict import UNDECIDED, interaction
+
+    rng = np.random.default_rng(12)
+    few = interaction(np.zeros(4), np.full(4, -2.0))  # a large effect, but 4 pairs at the easy end
+    assert few.verdict == UNDECIDED and few.pairs_easy == 4 and few.difference == pytest.approx(-2.0)
+    with_nan = interaction([0.0, math.nan, *rng.normal(0, 0.05, 8)], [-1.0, math.nan, *(-1 + rng.normal(0, 0.05, 8))])
+    assert with_nan.pairs_easy == 9 and with_nan.pairs_hard == 9 and with_nan.factor == pytest.approx(math.exp(-1), rel=0.1)
+    noisy = interaction(rng.normal(0, 2.0, 8), -0.3 + rng.normal(0, 2.0, 8))
+    assert noisy.verdict == UNDECIDED and noisy.low < -math.log(1.1) < noisy.high
+
+
+def test_a_diverged_baseline_at_the_hard_end_counts_as_a_growing_advantage():
+    """B diverged in every seed at the hard end (log ratio -LOG_CAP): the advantage is as large as it gets."""
+    from physgrad.verdict import GROWS, interaction
+
+    rng = np.random.default_rng(13)
+    result = interaction(rng.normal(-0.1, 0.1, 10), np.full(10, -LOG_CAP))
+    assert result.verdict == GROWS and result.factor == 0.0
+
+
+def test_the_trend_rule_under_the_null_calls_growth_rarely_and_finds_a_known_one():
+    """200 simulated pairs of settings, 10 seeds each, seed noise 30% on the log ratio: no trend is called
+    "grows" in at most alpha of them; a halving of A/B at the hard end is found in most."""
+    from physgrad.verdict import GROWS, interaction
+
+    rng = np.random.default_rng(14)
+    false_calls = found = 0
+    for trial in range(200):
+        false_calls += interaction(rng.normal(-0.2, 0.3, 10), rng.normal(-0.2, 0.3, 10), seed=trial).verdict == GROWS
+        found += interaction(rng.normal(-0.2, 0.3, 10), rng.normal(-0.2 - math.log(2), 0.3, 10),
+                             seed=trial).verdict == GROWS
+    assert false_calls / 200 <= 0.05
+    assert found / 200 >= 0.7
