@@ -46,8 +46,9 @@ bench: setup
 check-stability: setup
 	$(BIN)/physgrad check $(ARGS)
 
-# every figure sweep of conf/experiment/, then outputs/figures/summary.md; PROFILE=paper for the papers' budgets,
-# PROFILE=claims for every claim decided with 3 seeds (outputs/figures/claims.md); ARGS=--plan lists the jobs
+# every figure sweep of conf/experiment/, then outputs/figures/summary.md; PROFILE=paper for the papers' budgets;
+# PROFILE=claims: the papers' claims as physgrad compare studies (outputs/figures/claims.md), in parts
+# (ARGS=--plan lists them and the expected time, ARGS="--part K" runs one); PROFILE=claims-long runs some further
 PROFILE ?= quick
 reproduce-figures: setup
 	$(BIN)/python experiments/reproduce.py --profile $(PROFILE) $(if $(OVERWRITE),--overwrite,) $(ARGS)

@@ -73,7 +73,25 @@ class Variant:
 
     @property
     def preset(self) -> dict:
-        return {key: self.config.optim.get(key) for key in self.space}
+        from omegaconf import OmegaConf
+
+        return {key: OmegaConf.select(self.config.optim, key) for key in self.space}
+
+    @property
+    def rate_key(self) -> str:
+        return next((key for key in self.space if key.startswith("learning_rate")), "learning_rate")
+
+
+def learning_rate_key(optim_cfg) -> str | None:
+    """The optim key compare tunes: learning_rate, or learning_rate.init_value where the rate is a schedule
+    (e.g. _target_: optax.exponential_decay with init_value: the schedule's shape is kept, its scale tuned);
+    None if there is neither."""
+    rate = optim_cfg.get("learning_rate")
+    if rate is None:
+        return None
+    if hasattr(rate, "keys"):
+        return "learning_rate.init_value" if "init_value" in rate else None
+    return "learning_rate"
 
 
 @dataclass
@@ -208,13 +226,14 @@ def build_variants(axes, common, settings, config_dirs) -> list[Variant]:
         cfg = compose([*common, *overrides], config_dirs=config_dirs, return_hydra_config=True)
         space = {}
         if settings["tune"]:
-            space["learning_rate"] = family_range(cfg.optim)
+            rate = learning_rate_key(cfg.optim)
+            if rate is None:
+                raise UserError(f"optim={cfg.optim.get('name')} has no learning_rate to tune (a number, or a schedule "
+                                "with init_value): add one to its YAML, or compare it untuned (compare.tune=false)")
+            space[rate] = family_range(cfg.optim)
             for key, bounds in settings["search"].items():
                 if key in cfg.optim:
-                    space[key] = bounds
-            if "learning_rate" not in cfg.optim:
-                raise UserError(f"optim={cfg.optim.get('name')} has no learning_rate to tune: add one to its YAML, "
-                                "or compare it untuned (compare.tune=false)")
+                    space[rate if key == "learning_rate" else key] = bounds
         variants.append(Variant(variant_name(overrides), overrides, cfg, space))
     if len(variants) < 2:
         raise UserError("nothing to compare: list two or more variants, e.g. optim=adam,gauss_newton,hig")
@@ -701,18 +720,19 @@ def plot_sensitivity(path: Path, variants, trials_rows, best) -> None:
     fig, axes = plt.subplots(1, len(variants), figsize=(3.6 * len(variants), 3.2), squeeze=False)
     for ax, variant in zip(axes[0], variants):
         rows = [r for r in trials_rows if r["variant"] == variant.name]
-        lr = np.array([r.get("learning_rate", np.nan) for r in rows], float)
+        rate = variant.rate_key
+        lr = np.array([r.get(rate, np.nan) for r in rows], float)
         loss = np.array([r["validation_loss"] for r in rows], float)
         ok = np.isfinite(loss)
         ax.scatter(lr[ok], loss[ok], s=18, color="C0", label="trial")
         if (~ok).any():
             top = loss[ok].max() * 2 if ok.any() else 1.0
             ax.scatter(lr[~ok], np.full((~ok).sum(), top), marker="x", color="C3", label="diverged")
-        if "learning_rate" in best[variant.name]:
-            chosen = [r for r in rows if r.get("learning_rate") == best[variant.name]["learning_rate"]]
-            ax.scatter([best[variant.name]["learning_rate"]], [chosen[0]["validation_loss"]], marker="*", s=140,
+        if rate in best[variant.name]:
+            chosen = [r for r in rows if r.get(rate) == best[variant.name][rate]]
+            ax.scatter([best[variant.name][rate]], [chosen[0]["validation_loss"]], marker="*", s=140,
                        color="C1", label="chosen", zorder=3)
-        preset = variant.preset.get("learning_rate")
+        preset = variant.preset.get(rate)
         if isinstance(preset, (int, float)):
             ax.axvline(preset, ls="--", color="0.4", label="preset")
         ax.set_xscale("log")

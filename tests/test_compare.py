@@ -250,3 +250,36 @@ def test_an_equal_time_study_runs_on_the_calibrated_clock_and_can_reuse_a_calibr
     with pytest.raises(UserError, match="compare.calibration"):
         physgrad.compare("task=toy", "optim=adam,gd", "trainer.time_budget=0.4", "compare.trials=1",
                          f"compare.calibration={study.folder / 'calibration.json'}", f"compare.dir={tmp_path / 'x'}")
+
+
+def test_a_learning_rate_schedule_is_tuned_by_its_init_value_and_keeps_its_shape():
+    """ks with Adam has the study's staircase decay (conf/tuning/ks_adam.yaml): compare tunes its init_value; a
+    tuned job's config keeps the decay, whose Adam step after 2,000 updates is 0.9 times the first."""
+    import jax
+    import jax.numpy as jnp
+    from omegaconf import OmegaConf
+
+    from physgrad.comparison import split_overrides, study_settings
+    from physgrad.optim import build_rule
+
+    given, axes, common, _ = split_overrides(["task=ks", "optim=adam,gd", "trainer.iterations=10"])
+    adam, gd = build_variants(axes, common, study_settings(given), [])
+    assert list(adam.space) == ["learning_rate.init_value"] and list(gd.space) == ["learning_rate"]
+    assert adam.preset == {"learning_rate.init_value": pytest.approx(1e-4)}
+    text = job_yaml([*common, *adam.overrides], {"task", "optim"}, {"optim.learning_rate.init_value": 3e-4})
+    node = OmegaConf.create(text.split("\n", 2)[2])  # the job file without its package line
+    merged = OmegaConf.merge(adam.config, {k: v for k, v in node.items() if k != "defaults"})
+    assert merged.optim.learning_rate.init_value == pytest.approx(3e-4)
+    assert merged.optim.learning_rate.transition_steps == 2000 and merged.optim.learning_rate.decay_rate == 0.9
+    rule = build_rule(merged.optim)
+    params = {"w": jnp.zeros(3)}
+    state = rule.transform.init(params)
+    update = jax.jit(rule.transform.update)
+    grads = {"w": jnp.ones(3)}
+    first, state = update(grads, state, params)
+    for _ in range(1999):
+        later, state = update(grads, state, params)
+    step_2000, _ = update(grads, state, params)  # the 2001st update: count 2000, one decay
+    assert float(first["w"][0]) == pytest.approx(-3e-4, rel=1e-3)
+    assert float(later["w"][0]) == pytest.approx(-3e-4, rel=1e-3)
+    assert float(step_2000["w"][0]) == pytest.approx(-3e-4 * 0.9, rel=1e-3)
