@@ -430,6 +430,9 @@ def decide_stall(runs: StudyRuns, part: Stalls) -> Decision:
     full = [curves[s].at(runs.budget) for s in seeds]
     half = [curves[s].at(runs.budget / 2) for s in seeds]
     first = [float(curves[s].loss[0]) if len(curves[s].loss) else math.nan for s in seeds]
+    # a run that diverged by half the budget has no level there: it counts as rising from its start (a tie of
+    # two infinities would read as "stalled")
+    half = [h if not math.isinf(h) else f for h, f in zip(half, first)]
     p = paired(full, half)
     from physgrad.verdict import decide
 
@@ -439,8 +442,10 @@ def decide_stall(runs: StudyRuns, part: Stalls) -> Decision:
         claim, why = FAILS, f"rising, not stalled ({why})"
     elif verdict == A_BETTER:
         why = f"still falling ({why})"
+    diverged = sum(math.isinf(v) for v in full)
     measured = (f"{part.column} at the budget / at half of it = {_r(p.ratio)} [{_r(_exp(p.low))}, {_r(_exp(p.high))}]"
-                f"; at the budget / at the start: {_r(float(np.nanmedian(np.divide(full, first))))}")
+                f"; at the budget / at the start: {_r(float(np.nanmedian(np.divide(full, first))))}"
+                + (f"; diverged in {diverged} of {len(full)}" if diverged else ""))
     return Decision(claim, measured, f"{verdict}: {why}")
 
 

@@ -108,7 +108,8 @@ def test_stall_tells_a_stalled_variant_from_a_slow_and_an_unstable_one(tmp_path,
     noise = lambda: math.exp(rng.normal(0, 0.01))  # noqa: E731
     error = {"stalled": {s: falling(0.50 * base(s) * noise(), base(s), 0.5 * base(s)) for s in TEN},
              "slow": {s: falling(0.1 * base(s) * noise(), base(s), 0.3 * base(s)) for s in TEN},
-             "unstable": {s: falling(3.0 * base(s) * noise(), base(s), 0.9 * base(s)) for s in TEN}}
+             "unstable": {s: falling(3.0 * base(s) * noise(), base(s), 0.9 * base(s)) for s in TEN},
+             "diverged": {s: Curve(X, np.where(X < 300, 1.0, np.inf), 300.0, True) for s in TEN}}
     studies["toy"] = FakeStudy("toy", error, columns={"error_second": error})
     verdict, ((_, d),) = claims.decide_claim(claim_of(claims.Stalls("toy", "stalled", "error_second")), tmp_path)
     assert verdict == HOLDS and "equivalent" in d.why
@@ -116,6 +117,8 @@ def test_stall_tells_a_stalled_variant_from_a_slow_and_an_unstable_one(tmp_path,
     assert verdict == FAILS and "still falling" in d.why and "= 0.33" in d.measured
     verdict, ((_, d),) = claims.decide_claim(claim_of(claims.Stalls("toy", "unstable", "error_second")), tmp_path)
     assert verdict == FAILS and "rising" in d.why and "start: 2.99" in d.measured
+    verdict, ((_, d),) = claims.decide_claim(claim_of(claims.Stalls("toy", "diverged", "error_second")), tmp_path)
+    assert verdict == FAILS and "rising" in d.why and "diverged in 10 of 10" in d.measured  # not a tie of infinities
 
 
 def test_a_claim_without_its_study_is_open_and_says_why(tmp_path, studies):
