@@ -283,3 +283,31 @@ def test_a_learning_rate_schedule_is_tuned_by_its_init_value_and_keeps_its_shape
     assert float(first["w"][0]) == pytest.approx(-3e-4, rel=1e-3)
     assert float(later["w"][0]) == pytest.approx(-3e-4, rel=1e-3)
     assert float(step_2000["w"][0]) == pytest.approx(-3e-4 * 0.9, rel=1e-3)
+
+
+@pytest.mark.long
+def test_a_study_that_continues_networks_pairs_each_seed_with_its_own_start(tmp_path):
+    """init_from='<start>/seed=${seed}/results.h5': every tuning and evaluation job (one per seed) starts from the
+    network of its own seed; the runs say which."""
+    from physgrad.results import read_run
+
+    start = tmp_path / "start"
+    console("run", "-m", "task=toy", "trainer.iterations=20", "seed=0,1,1000000", f"hydra.sweep.dir={start}",
+            "hydra.sweep.subdir='seed=${seed}'")
+    study = physgrad.compare("task=toy", "optim=adam,gd", "trainer.iterations=20", "compare.trials=1",
+                             "compare.seeds=2", f"init_from='{start}/seed=${{seed}}/results.h5'",
+                             f"compare.dir={tmp_path / 'study'}")
+    assert len(study.runs) == 4
+    for path in [*study.runs.path, *(tmp_path / "study" / "tune").glob("*/results.h5")]:
+        run = read_run(Path(path))
+        assert run.attrs["init_from"] == str(start / f"seed={run.attrs['seed']}" / "results.h5")
+
+
+def test_continuing_networks_evaluates_one_job_per_seed():
+    settings, axes, common, _ = split_overrides(["task=toy", "optim=adam,gd", "trainer.iterations=30",
+                                                 "init_from='start/seed=${seed}/results.h5'"])
+    s = study_settings({**settings, "seeds": 3})
+    variants = build_variants(axes, common, s, [])
+    jobs = evaluation_jobs(variants, {v.name: {} for v in variants}, s, common, {"task", "optim"}, "iteration", 30.0)
+    assert list(jobs) == [f"eval_v{v}_s{seed}" for v in (0, 1) for seed in range(3)]
+    assert "seed=${seed}" in jobs["eval_v0_s2"] and "seeds: 1" in jobs["eval_v0_s2"]
