@@ -47,7 +47,7 @@ SEARCH_RANGES = {
     "adaptive": (1e-5, 1e-1),  # Adam and the other optax rules (presets 1e-4 to 1e-3)
 }
 SETTINGS = {  # compare.<key>: default, meaning
-    "trials": (16, "tuning trials per variant"),
+    "trials": (16, "tuning trials per variant (more on a finished study tunes on from where it stopped)"),
     "seeds": (10, "paired evaluation seeds"),
     "seed": (0, "the first evaluation seed (seed .. seed + seeds - 1)"),
     "tune_seed": (1_000_000, "the seed of every tuning trial (data, network, batches), disjoint from the evaluation seeds"),
@@ -308,8 +308,22 @@ def halton_points(space: dict, count: int, seed: int) -> list[dict]:
 # --- running ----------------------------------------------------------------------------------------------
 
 
+# what does not make a study another: its folder, Hydra's settings, and the number of trials (a finished study
+# given more trials tunes on from where it stopped: the Halton points of n trials begin with those of fewer)
+NOT_THE_STUDY = ("compare.dir", "compare.trials", "hydra")
+
+
+def same_study(record: dict | None):
+    """The parts of a study.json record that identify the study."""
+    if not isinstance(record, dict):
+        return None
+    overrides = record.get("overrides")
+    return ([o for o in overrides if not str(o).startswith(NOT_THE_STUDY)] if isinstance(overrides, list) else None,
+            record.get("config_dir"))
+
+
 def default_folder(overrides: list[str], config_dir: str | None, task: str) -> Path:
-    text = json.dumps([sorted(o for o in overrides if not o.startswith(("compare.dir", "hydra"))),
+    text = json.dumps([sorted(o for o in overrides if not o.startswith(NOT_THE_STUDY)),
                        os.path.abspath(config_dir) if config_dir else None])
     return Path("outputs") / "compare" / f"{task}-{hashlib.sha1(text.encode()).hexdigest()[:8]}"
 
@@ -798,10 +812,10 @@ def run_study(overrides: list[str], config_dir: str | None = None, say=print) ->
             before = json.loads(stored.read_text())
         except (OSError, ValueError):
             before = None
-        if before != record:
+        if same_study(before) != same_study(record):
             raise UserError(f"{folder} holds another study ({' '.join((before or {}).get('overrides', ['?']))}): "
                             "give another compare.dir")
-    else:
+    if not stored.exists() or before != record:  # new, or the same study given more trials
         stored.write_text(json.dumps(record, indent=1) + "\n")
     try:
         with own_folder(folder, "study"):

@@ -311,3 +311,21 @@ def test_continuing_networks_evaluates_one_job_per_seed():
     jobs = evaluation_jobs(variants, {v.name: {} for v in variants}, s, common, {"task", "optim"}, "iteration", 30.0)
     assert list(jobs) == [f"eval_v{v}_s{seed}" for v in (0, 1) for seed in range(3)]
     assert "seed=${seed}" in jobs["eval_v0_s2"] and "seeds: 1" in jobs["eval_v0_s2"]
+
+
+@pytest.mark.long
+def test_a_finished_study_given_more_trials_tunes_on_from_where_it_stopped(tmp_path):
+    """trials 1 then 3: the first trial is not run again (its results file is untouched), the two new ones are
+    the next Halton points, and the folder is the same study; another budget is still another study."""
+    args = ["task=toy", "optim=adam,gd", "trainer.iterations=20", "compare.seeds=2", f"compare.dir={tmp_path / 's'}"]
+    physgrad.compare(*args, "compare.trials=1")
+    first = tmp_path / "s" / "tune" / "+compare_job=tune_v0_t000" / "results.h5"
+    stamp = first.stat().st_mtime_ns
+    study = physgrad.compare(*args, "compare.trials=3")
+    assert first.stat().st_mtime_ns == stamp
+    assert list(study.trials.variant) == ["adam"] * 3 + ["gd"] * 3
+    expected = halton_points({"learning_rate": SEARCH_RANGES["adaptive"]}, 3, 1_000_000)
+    assert list(study.trials[study.trials.variant == "adam"].learning_rate) == pytest.approx(
+        [p["learning_rate"] for p in expected])
+    with pytest.raises(UserError, match="holds another study"):
+        physgrad.compare(*args[:2], "trainer.iterations=30", *args[3:], "compare.trials=3")
