@@ -2,7 +2,8 @@
 from them, claims.md with tuned and preset verdicts side by side, and the regime map (payoff.png).
 
 Usage: python experiments/claims.py STUDIES_FOLDER [OUT_FOLDER]
-(STUDIES_FOLDER holds the profile's study folders, e.g. outputs/experiments/claims.)
+(STUDIES_FOLDER holds the profile's study folders: outputs/experiments/claims, or .../claims-long for that
+profile's claims-long.md.)
 
 Every study is a `physgrad compare` (docs/protocol.md): each variant tuned with the same number of trials on a
 tuning seed and scored by its validation loss, then evaluated on paired seeds, the verdicts from the test loss;
@@ -498,10 +499,18 @@ def _part_study(part) -> str:
     return getattr(part, "study", None) or f"{part.easy} -> {part.hard}"
 
 
-def claims_table(root: Path) -> str:
+def studies_of(claim: Claim) -> set[str]:
+    return {name for part in claim.parts for name in ([part.easy, part.hard] if isinstance(part, Grows) else [part.study])}
+
+
+def claims_table(root: Path, studies=None) -> str:
+    """One row per part of every claim whose studies are all among `studies` (default: every claim)."""
+    names = {s.name for s in studies} if studies is not None else None
     lines = ["| claim (paper, where) | part | study, budget | tuned: measured | tuned: verdict | presets: measured | "
              "presets: verdict |", "|---|---|---|---|---|---|---|"]
     for claim in CLAIMS:
+        if names is not None and not studies_of(claim) <= names:
+            continue
         verdict, rows = decide_claim(claim, root)
         preset_verdict, preset_rows = decide_claim(claim, root, "-preset")
         for i, ((part, d), (_, p)) in enumerate(zip(rows, preset_rows)):
@@ -627,14 +636,17 @@ def regime_map(root: Path, out: Path, note: str = "") -> str:
     return "\n".join(lines) + "\n"
 
 
-def write(root: Path, out: Path, note: str = "") -> str:
-    """claims.md (and payoff.png) into out from the studies under root; returns the markdown."""
+def write(root: Path, out: Path, note: str = "", profile: str = "claims") -> str:
+    """<profile>.md (claims.md, claims-long.md) into out from the studies under root, with the regime map
+    (payoff.png) where the profile has it; returns the markdown."""
     out.mkdir(parents=True, exist_ok=True)
     rule = __doc__.split("\n\n")[2]
+    studies = PROFILES[profile]
     text = (f"# The papers' claims, measured\n\n{note + chr(10) + chr(10) if note else ''}" + rule + "\n\n"
-            "Each study's own table (variants, tuned settings, every pair, timing): `<study>/compare.md`.\n\n"
-            + claims_table(root) + regime_map(root, out, note))
-    (out / "claims.md").write_text(text)
+            f"Studies under {root}; each study's own table (variants, tuned settings, every pair, timing): "
+            "`<study>/compare.md`.\n\n" + claims_table(root, studies)
+            + (regime_map(root, out, note) if set(MAP) <= set(studies) else ""))
+    (out / f"{profile}.md").write_text(text)
     return text
 
 
@@ -643,4 +655,5 @@ if __name__ == "__main__":
         print(__doc__.split("\n\n")[1], file=sys.stderr)
         sys.exit(2)
     source = Path(sys.argv[1])
-    print(write(source, Path(sys.argv[2]) if len(sys.argv) == 3 else source))
+    profile = source.name if source.name in PROFILES else "claims"  # outputs/experiments/claims-long: that profile's
+    print(write(source, Path(sys.argv[2]) if len(sys.argv) == 3 else source, profile=profile))

@@ -212,8 +212,8 @@ def run_claims(profile: str, parts: list[int], root: Path, out: Path) -> int:
                     return 130
                 if code != 0:
                     failed.append(f"{study.name}{'-preset' if preset else ''} (exit {code})")
-    write(root, out, NOTES[profile])
-    print(f"reproduce: wrote {out / 'claims.md'}" + (f"; did not finish: {', '.join(failed)}" if failed else ""))
+    write(root, out, NOTES[profile], profile)
+    print(f"reproduce: wrote {out / (profile + '.md')}" + (f"; did not finish: {', '.join(failed)}" if failed else ""))
     return 1 if failed else 0
 
 
