@@ -177,5 +177,9 @@ def test_the_calibration_ranks_steps_by_their_cost_and_ignores_delays(monkeypatc
         assert result["costs"]["gauss_newton"]["rounds"] == result["costs"]["adam"]["rounds"] >= 40
         # bursts of about 50 ms: many steps of the fast variant per turn
         assert result["costs"]["adam"]["burst_steps"] > result["costs"]["gauss_newton"]["burst_steps"] >= 1
-    assert delayed["costs"]["gauss_newton"]["step_seconds"] < 1.5 * plain["costs"]["gauss_newton"]["step_seconds"]
+    # as a ratio to Adam's, timed in the same rounds: other work on the machine between the two calibrations
+    # slows both variants alike (absolute costs moved 3x with a sweep running beside the test)
+    ratio = {name: r["costs"]["gauss_newton"]["step_seconds"] / r["costs"]["adam"]["step_seconds"]
+             for name, r in (("plain", plain), ("delayed", delayed))}
+    assert ratio["delayed"] < 1.5 * ratio["plain"]
     assert delayed["machine"]["cpu_count"] >= 1
