@@ -34,6 +34,7 @@ from physgrad.verdict import (A_BETTER, B_BETTER, EQUIVALENT, GROWS, MARGIN, UND
                               interaction, lowest_median, paired)
 
 HOLDS, FAILS, OPEN = "holds", "does not hold", "not settled"
+NOT_RUN = "not run"  # a part whose variants the study does not have (the presets' twin of a clipping sweep)
 TUNE_SEED = 1_000_000  # compare's default tuning seed: a study that continues networks needs one for it too
 
 
@@ -321,12 +322,15 @@ class StudyRuns:
         from physgrad.comparison import run_curve
         from physgrad.results import read_run
 
-        found = {}
+        found, unreadable = {}, []
         for seed, path in self.paths.get(variant, {}).items():
             try:
                 found[seed] = run_curve(read_run(Path(path)), self.axis, column)
             except ValueError as error:
-                print(f"claims: left out {path}: {error}", file=sys.stderr)
+                unreadable.append(str(error))
+        if unreadable:
+            print(f"claims: {variant} in {self.folder}: left out {len(unreadable)} runs, e.g. {unreadable[0]}",
+                  file=sys.stderr)
         return found
 
 
@@ -342,7 +346,11 @@ def read_study(folder: Path) -> StudyRuns | None:
         return None
     paths = {}
     for row in runs.itertuples():
-        paths.setdefault(str(row.variant), {})[int(row.seed)] = str(row.path)
+        path = Path(str(row.path))
+        if not path.is_absolute() and "eval" in path.parts:  # relative to where compare ran: find it in the folder
+            parts = path.parts
+            path = folder / Path(*parts[len(parts) - 1 - parts[::-1].index("eval"):])
+        paths.setdefault(str(row.variant), {})[int(row.seed)] = str(path)
     machines = sorted(set(runs["machine"].astype(str))) if "machine" in runs else []
     return StudyRuns(folder, str(runs["axis"].iloc[0]), float(runs["budget"].iloc[0]), paths, "; ".join(machines))
 
@@ -375,15 +383,16 @@ def _budget_text(runs: StudyRuns) -> str:
 
 def decide_pairs(runs: StudyRuns, parts: list) -> list[Decision]:
     """The Lower and Close parts of one study, with Holm's correction over them."""
-    names = {v for p in parts for v in (p.a, p.b)}
-    missing = sorted(n for n in names if n not in runs.paths)
-    if missing:
-        return [Decision(OPEN, "-", f"no runs of {', '.join(missing)} in {runs.folder}")] * len(parts)
     decisions = []
+    present = [p for p in parts if p.a in runs.paths and p.b in runs.paths]
     for part in parts:
+        if part not in present:
+            missing = [n for n in (part.a, part.b) if n not in runs.paths]
+            decisions.append(Decision(NOT_RUN, "-", f"no runs of {' and '.join(missing)} in {runs.folder}"))
+            continue
         column = getattr(part, "column", "loss")
         margin = getattr(part, "margin", MARGIN)
-        others = [p for p in parts if getattr(p, "column", "loss") == column and getattr(p, "margin", MARGIN) == margin]
+        others = [p for p in present if getattr(p, "column", "loss") == column and getattr(p, "margin", MARGIN) == margin]
         curves = {n: runs.curves(n, column) for n in {v for p in others for v in (p.a, p.b)}}
         results = compare_variants(curves, runs.budget, pairs=[(p.a, p.b) for p in others], margin=margin)
         result = results[others.index(part)]
@@ -412,7 +421,7 @@ def log_ratios_at_budget(runs: StudyRuns, a: str, b: str) -> list[float]:
 def decide_grows(easy: StudyRuns, hard: StudyRuns, part: Grows) -> Decision:
     for runs in (easy, hard):
         if not {part.a, part.b} <= set(runs.paths):
-            return Decision(OPEN, "-", f"no runs of {part.a} and {part.b} in {runs.folder}")
+            return Decision(NOT_RUN, "-", f"no runs of {part.a} and {part.b} in {runs.folder}")
     r_easy, r_hard = log_ratios_at_budget(easy, part.a, part.b), log_ratios_at_budget(hard, part.a, part.b)
     result = interaction(r_easy, r_hard)
     finite = lambda r: [v for v in r if not math.isnan(v)]  # noqa: E731
@@ -425,7 +434,7 @@ def decide_grows(easy: StudyRuns, hard: StudyRuns, part: Grows) -> Decision:
 
 def decide_stall(runs: StudyRuns, part: Stalls) -> Decision:
     if part.variant not in runs.paths:
-        return Decision(OPEN, "-", f"no runs of {part.variant} in {runs.folder}")
+        return Decision(NOT_RUN, "-", f"no runs of {part.variant} in {runs.folder}")
     curves = runs.curves(part.variant, part.column)
     seeds = sorted(curves)
     full = [curves[s].at(runs.budget) for s in seeds]
@@ -490,7 +499,9 @@ def decide_claim(claim: Claim, root: Path, suffix: str = "") -> tuple[str, list[
         else:
             runs = study(part.study)
             rows.append((part, decide_stall(runs, part) if runs else Decision(OPEN, "-", "the study has not finished")))
-    verdicts = [d.verdict for _, d in rows]
+    # a part whose variants a study does not run (the presets' study fixes the clipping) is left out of the
+    # claim's verdict, which then speaks for the parts that were run
+    verdicts = [d.verdict for _, d in rows if d.verdict != NOT_RUN]
     verdict = HOLDS if verdicts and all(v == HOLDS for v in verdicts) else FAILS if FAILS in verdicts else OPEN
     return verdict, rows
 

@@ -124,9 +124,12 @@ def test_stall_tells_a_stalled_variant_from_a_slow_and_an_unstable_one(tmp_path,
 def test_a_claim_without_its_study_is_open_and_says_why(tmp_path, studies):
     verdict, ((_, d),) = claims.decide_claim(claim_of(claims.Lower("nowhere", "a", "b")), tmp_path)
     assert verdict == OPEN and "no finished study" in d.why
-    studies["s"] = FakeStudy("s", {"a": {s: falling(1.0) for s in TEN}})
+    studies["s"] = FakeStudy("s", {"a": {s: falling(0.5 * base(s)) for s in TEN}, "c": {s: falling(base(s)) for s in TEN}})
     verdict, ((_, d),) = claims.decide_claim(claim_of(claims.Lower("s", "a", "b")), tmp_path)
-    assert verdict == OPEN and "no runs of b" in d.why
+    assert verdict == OPEN and d.verdict == claims.NOT_RUN and "no runs of b" in d.why
+    # a part the study does not run (a presets' twin without the clipping variants) leaves the verdict to the rest
+    verdict, rows = claims.decide_claim(claim_of(claims.Lower("s", "a", "b"), claims.Lower("s", "a", "c")), tmp_path)
+    assert verdict == HOLDS and [d.verdict for _, d in rows] == [claims.NOT_RUN, HOLDS]
 
 
 def test_the_regime_map_cell_is_the_time_to_target_ratio(tmp_path, studies, monkeypatch):
