@@ -731,7 +731,12 @@ def plot_sensitivity(path: Path, variants, trials_rows, best) -> None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    fig, axes = plt.subplots(1, len(variants), figsize=(3.6 * len(variants), 3.2), squeeze=False)
+    columns = min(len(variants), 3)  # at most three panels a row: six variants are two rows, not one strip
+    panel_rows = -(-len(variants) // columns)
+    fig, grid = plt.subplots(panel_rows, columns, figsize=(3.6 * columns, 3.2 * panel_rows), squeeze=False)
+    axes = [list(grid.ravel()[:len(variants)])]
+    for ax in grid.ravel()[len(variants):]:
+        ax.remove()
     for ax, variant in zip(axes[0], variants):
         rows = [r for r in trials_rows if r["variant"] == variant.name]
         rate = variant.rate_key
@@ -755,13 +760,14 @@ def plot_sensitivity(path: Path, variants, trials_rows, best) -> None:
         ax.set_title(variant.name)
         ax.set_xlabel("learning rate")
         ax.grid(alpha=0.3)
-    axes[0][0].set_ylabel("validation loss at the budget")
+    for ax in grid[:, 0]:
+        ax.set_ylabel("validation loss at the budget")
     legend = {}
     for ax in axes[0]:  # one legend for all panels, below them, off the data
         for handle, label in zip(*ax.get_legend_handles_labels()):
             legend.setdefault(label, handle)
     fig.legend(legend.values(), legend.keys(), loc="lower center", ncol=len(legend), fontsize=8, frameon=False)
-    fig.tight_layout(rect=(0, 0.07, 1, 1))
+    fig.tight_layout(rect=(0, 0.07 / panel_rows, 1, 1))
     for suffix in (".png", ".pdf"):
         fig.savefig(path.with_suffix(suffix), dpi=130)
     plt.close(fig)
