@@ -484,13 +484,21 @@ def decide_claim(claim: Claim, root: Path, suffix: str = "") -> tuple[str, list[
         if isinstance(part, (Lower, Close)):
             by_study.setdefault(part.study, []).append(part)
     decided = {}
+
+    def untwinned(names) -> bool:  # a study the profile runs without a presets' twin
+        return bool(suffix) and any(specs.get(n) is not None and specs[n].preset is False for n in names)
+
     for name, parts in by_study.items():
         runs = study(name)
         found = (decide_pairs(runs, parts) if runs is not None
+                 else [Decision(NOT_RUN, "-", f"{name} has no presets' twin (cut for time)")] * len(parts)
+                 if untwinned([name])
                  else [Decision(OPEN, "-", f"{root / (name + suffix)} has no finished study")] * len(parts))
         decided.update(zip(parts, found))
     for part in claim.parts:
-        if part in decided:
+        if part not in decided and untwinned(studies_of(claim_of_part(part))):
+            rows.append((part, Decision(NOT_RUN, "-", "no presets' twin (cut for time)")))
+        elif part in decided:
             rows.append((part, decided[part]))
         elif isinstance(part, Grows):
             easy, hard = study(part.easy), study(part.hard)
@@ -503,11 +511,17 @@ def decide_claim(claim: Claim, root: Path, suffix: str = "") -> tuple[str, list[
     # claim's verdict, which then speaks for the parts that were run
     verdicts = [d.verdict for _, d in rows if d.verdict != NOT_RUN]
     verdict = HOLDS if verdicts and all(v == HOLDS for v in verdicts) else FAILS if FAILS in verdicts else OPEN
+    if rows and not verdicts and suffix:
+        verdict = NOT_RUN  # the presets' twin of none of the claim's parts was run
     return verdict, rows
 
 
 def _part_study(part) -> str:
     return getattr(part, "study", None) or f"{part.easy} -> {part.hard}"
+
+
+def claim_of_part(part) -> Claim:
+    return Claim("", "", (part,))
 
 
 def studies_of(claim: Claim) -> set[str]:

@@ -237,3 +237,13 @@ def test_the_ks_study_table_says_when_a_claim_has_nothing_to_compare():
     spec.loader.exec_module(ks_study)
     text = ks_study.claims({("correct", "WIG", 2): {0: (0.1, 0.0)}})  # no prediction runs
     assert "nothing to compare" in text and "nan" not in text
+
+
+def test_a_study_without_a_presets_twin_says_so_for_the_presets(tmp_path, studies):
+    studies["quantum"] = FakeStudy("quantum", {"hig": {s: falling(0.5 * base(s)) for s in TEN},
+                                               "adam": {s: falling(base(s)) for s in TEN}})
+    claim = claim_of(claims.Lower("quantum", "hig", "adam"))
+    assert not next(s for s in claims.STUDIES if s.name == "quantum").preset
+    assert claims.decide_claim(claim, tmp_path)[0] == HOLDS
+    verdict, ((_, d),) = claims.decide_claim(claim, tmp_path, "-preset")
+    assert verdict == claims.NOT_RUN and "no presets' twin" in d.why
