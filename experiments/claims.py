@@ -156,6 +156,9 @@ LONG = (
            2, 10, 220, 600, preset=False),
     _study("oscillator", "task=oscillator optim=adam,gauss_newton,hig trainer.time_budget=120", 2, 7, 130, 130,
            preset=False),
+    Study("poisson_continue", ("task=poisson", "optim=adam,hig", "trainer.time_budget=120",
+                               "init_from='{root}/poisson_start/seed=${seed}/results.h5'"), 2, 6, 135, 135,
+          start=POISSON_START, preset=False),
 )
 
 PROFILES = {"claims": STUDIES + MAP, "claims-long": LONG}
