@@ -344,3 +344,31 @@ def test_adam_on_ks_uses_pytorchs_epsilon_as_the_study_does():
 
     assert compose(["task=ks", "optim=adam"]).optim.eps == 1e-8  # PyTorch's default (the study's framework)
     assert compose(["task=oscillator", "optim=adam"]).optim.eps == 1e-7  # Keras's, as the HIG references
+
+
+def test_the_validation_states_are_the_test_family_from_other_seeds(tmp_path, monkeypatch):
+    """Tuning sees held-out states of the test set's distribution, never the test states: both are the test
+    family's members from fixed seeds (test 1000 + the size's index, validation 2000 + it), warmed up 2 x warmup
+    model steps by the ground-truth solver."""
+    from physgrad.experiment import validation_set
+    from physgrad.tasks.ks import domain_length, test_initial_states, trajectories
+
+    monkeypatch.setenv("PHYSGRAD_CACHE", str(tmp_path))
+    settings = {"points": 16, "base_domain": 2.0, "train_sizes": [1.0], "test_sizes": [1.2, 1.4], "dt": 0.5,
+                "substeps": 2, "warmup": 5, "train_steps": 7, "test_count": 3, "test_steps": 4}
+    data = dataset(settings)
+    assert data["validation"].shape == data["test"].shape == (2, 3, 5, 16)
+    for index, size in enumerate(settings["test_sizes"]):
+        lengths = np.full(3, float(domain_length(2.0, size)))
+        for part, seed in (("test", 1000), ("validation", 2000)):
+            initial = test_initial_states(16, 2.0, size, 3, seed + index)
+            warm = trajectories(initial, lengths, 10, 0.5, 2)[:, -1]
+            np.testing.assert_allclose(data[part][index, :, 0], warm, rtol=1e-12, atol=1e-12)
+    assert not np.allclose(data["validation"], data["test"])
+    np.testing.assert_array_equal(dataset(settings)["validation"], data["validation"])  # read back from the cache
+
+    scene = scene_of()
+    held_out = validation_set(load("task=ks", *SMALL), scene, jax.random.PRNGKey(0))
+    assert held_out is scene.validation_set
+    assert held_out["state"].shape == scene.test_set["state"].shape
+    assert not np.allclose(held_out["state"], scene.test_set["state"])

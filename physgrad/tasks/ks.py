@@ -45,7 +45,8 @@ from physgrad.validate import choice, flag, number
 STEPPERS = ("predict", "correct")
 TRAININGS = ("WIG", "NOG", "ONE")
 # bump when the generated data would change for the same settings
-DATA_VERSION = 1
+DATA_VERSION = 2  # 2: a validation set beside the test set
+TEST_SEED, VALIDATION_SEED = 1000, 2000  # numpy seeds of the held-out states: TEST_SEED + the test size's index
 # rollouts that leave [-DIVERGED_FACTOR, DIVERGED_FACTOR] x the ground truth's largest |u| count as unstable
 DIVERGED_FACTOR = 3.0
 # the study's clamp of a relative error per step (a rollout that blows up counts this much per step)
@@ -155,14 +156,14 @@ def dataset(settings: dict) -> dict:
 
     train: (sizes, 6, train_steps + 1, points) after `warmup` steps; test: (test sizes, test_count,
     test_steps + 1, points) after 2 * warmup steps (the study starts its test rollouts 200 steps into
-    trajectories cropped after 200)."""
+    trajectories cropped after 200); validation: as test, from other seeds of the same family."""
     key = json.dumps({**settings, "version": DATA_VERSION}, sort_keys=True)
     path = cache_dir() / f"ks-{hashlib.sha256(key.encode()).hexdigest()[:16]}.npz"
     if path.exists():
         try:
             with np.load(path) as stored:
                 if str(stored["settings"]) == key:
-                    return {"train": stored["train"], "test": stored["test"]}
+                    return {part: stored[part] for part in ("train", "test", "validation")}
         except (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile):
             pass  # damaged or foreign: generate again
     s = settings
@@ -178,14 +179,21 @@ def dataset(settings: dict) -> dict:
 
     train = generate([train_initial_states(s["points"], s["base_domain"], size) for size in s["train_sizes"]],
                      s["train_sizes"], s["warmup"], s["train_steps"])
-    test = generate([test_initial_states(s["points"], s["base_domain"], size, s["test_count"], 1000 + index)
-                     for index, size in enumerate(s["test_sizes"])], s["test_sizes"], 2 * s["warmup"],
-                    s["test_steps"])
+
+    def held_out(first_seed):
+        """States of the test family, one fixed seed per test size (first_seed + its index)."""
+        return generate([test_initial_states(s["points"], s["base_domain"], size, s["test_count"], first_seed + index)
+                         for index, size in enumerate(s["test_sizes"])], s["test_sizes"], 2 * s["warmup"],
+                        s["test_steps"])
+
+    # validation: the same family from other seeds, for tuning (physgrad compare), so that no choice is made on
+    # the test states
+    data = {"train": train, "test": held_out(TEST_SEED), "validation": held_out(VALIDATION_SEED)}
     path.parent.mkdir(parents=True, exist_ok=True)
     content = io.BytesIO()
-    np.savez(content, train=train, test=test, settings=np.array(key))
+    np.savez(content, **data, settings=np.array(key))
     replace_file(path, content.getvalue())  # a concurrent job of a sweep reads a whole file or none
-    return {"train": train, "test": test}
+    return data
 
 
 # --------------------------------------------------------------------------------------------------------- network
@@ -367,13 +375,17 @@ def build(key, *, stepper, training, unroll, points, base_domain, train_sizes, t
                     "state": frames[:, 0, 0], "size": size[:, 0]}
         return {"state": frames[:, 0], "target": frames[:, 1:], "size": size}
 
-    test = jnp.asarray(data["test"], dtype)  # (test sizes, count, frames, points)
-    targets = test[:, :, 1:].reshape(-1, test.shape[2] - 1, points)
-    test_set = {"state": test[:, :, 0].reshape(-1, points), "target": targets,
-                "size": jnp.repeat(jnp.asarray(settings["test_sizes"], dtype), test.shape[1]),
-                # the study's normaliser: the largest u*^2 over frames 0..horizon, the test state itself included
-                "scale": jnp.maximum(jnp.max(test[:, :, 0].reshape(-1, points) ** 2, axis=1),
-                                     jnp.max(targets[:, :horizon] ** 2, axis=(1, 2)))}
+    def held_out_set(frames):
+        """Rollout samples from held-out trajectories (test sizes, count, frames, points)."""
+        frames = jnp.asarray(frames, dtype)
+        states = frames[:, :, 0].reshape(-1, points)
+        targets = frames[:, :, 1:].reshape(-1, frames.shape[2] - 1, points)
+        return {"state": states, "target": targets,
+                "size": jnp.repeat(jnp.asarray(settings["test_sizes"], dtype), frames.shape[1]),
+                # the study's normaliser: the largest u*^2 over frames 0..horizon, the state itself included
+                "scale": jnp.maximum(jnp.max(states ** 2, axis=1), jnp.max(targets[:, :horizon] ** 2, axis=(1, 2)))}
+
+    test_set = held_out_set(data["test"])
 
     def figure(params, test_set, path):
         draw_rollouts(params, test_set, path, autoregressive, coarse, f"{stepper}, {training}, m = {unroll}", horizon,
@@ -384,6 +396,7 @@ def build(key, *, stepper, training, unroll, points, base_domain, train_sizes, t
         train_set=train_set,
         draw_batch=draw_batch,
         test_set=test_set,
+        validation_set=held_out_set(data["validation"]),
         test_output=test_output,
         dynamics=Dynamics(step=step, policy=policy, initial=lambda sample: (sample["state"], sample["size"]),
                           unroll=unroll, closed_loop=True, readout=lambda final, observed, sample: observed.reshape(-1),
