@@ -113,7 +113,7 @@ GUIDANCE = "task=guidance optim=bptt optim.backprop=R,C optim.clip=none,value,no
 QUANTUM_CONTROL = "task=quantum_control optim=bptt optim.backprop=R,C trainer.iterations=150"
 KS = "task=ks task.zero_output=true trainer.iterations=1000"
 KS_START = Start("ks_start", ("task=ks", "task.zero_output=true", "task.training=ONE", "unroll=1",
-                              "trainer.iterations=1000"), 45)
+                              "trainer.iterations=1000"), 50)
 POISSON_START = Start("poisson_start", ("task=poisson", "optim=adam", "trainer.time_budget=20"), 30)
 
 STUDIES = (
@@ -129,10 +129,10 @@ STUDIES = (
     _study("quantum_control_5", f"{QUANTUM_CONTROL} task.target_level=5", 2, 6, 43, 220),
     _study("guidance_1", f"{GUIDANCE} task.control_cost=1", 2, 10, 20, 115, preset="optim.clip=none"),
     _study("guidance_0.001", f"{GUIDANCE} task.control_cost=0.001", 2, 10, 20, 115, preset="optim.clip=none"),
-    _study("ks_training", f"{KS} task.stepper=correct task.training=WIG,NOG,ONE unroll=3", 3, 10, 45, 120),
-    _study("ks_stepper", f"{KS} task.training=WIG task.stepper=correct,predict unroll=3", 3, 10, 45, 120),
+    _study("ks_training", f"{KS} task.stepper=correct task.training=WIG,NOG,ONE unroll=3", 3, 10, 50, 330),
+    _study("ks_stepper", f"{KS} task.training=WIG task.stepper=correct,predict unroll=3", 3, 10, 50, 330),
     Study("ks_unroll", (*KS.split(), "task.stepper=correct", "task.training=WIG", "unroll=1,3,8",
-                        "init_from='{root}/ks_start/seed=${seed}/results.h5'"), 2, 8, 45, 40, start=KS_START,
+                        "init_from='{root}/ks_start/seed=${seed}/results.h5'"), 2, 8, 50, 60, start=KS_START,
           preset=False),
 )
 
