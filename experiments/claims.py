@@ -31,7 +31,7 @@ from pathlib import Path
 import numpy as np
 
 from physgrad.verdict import (A_BETTER, B_BETTER, EQUIVALENT, GROWS, MARGIN, UNDECIDED, compare_variants,
-                              interaction, lowest_median, paired)
+                              highest_median, interaction, paired)
 
 HOLDS, FAILS, OPEN = "holds", "does not hold", "not settled"
 NOT_RUN = "not run"  # a part whose variants the study does not have (the presets' twin of a clipping sweep)
@@ -567,14 +567,17 @@ class Cell:
 
 
 def map_cell(root: Path, study: Study) -> Cell | None:
-    """One cell: the time each variant's seeds take to reach the cell's target (the lowest median test loss at
-    the budget, compare's target), as per-seed ratios HIG / Adam with the verdict rule's median and interval (a
-    seed that never reaches it counts as infinite, as a divergence does)."""
+    """One cell: the time each variant's seeds take to reach the cell's target, as per-seed ratios HIG / Adam
+    with the verdict rule's median and interval (a seed that never reaches it counts as infinite, as a divergence
+    does; a pair where neither does is a tie). The target is the higher of the two variants' median test loss at
+    the budget (verdict.highest_median): what the slower variant typically gets to, which the faster one reaches
+    in most seeds. compare's target (the lower median) is reached by only about half the better variant's seeds,
+    so with 6 seeds most pairs are ties of two misses and no cell can be decided."""
     runs = read_study(root / study.name)
     if runs is None or not {"hig", "adam"} <= set(runs.paths):
         return None
     curves = {v: runs.curves(v) for v in ("hig", "adam")}
-    _, target = lowest_median({v: [c.at(runs.budget) for c in by.values()] for v, by in curves.items()})
+    _, target = highest_median({v: [c.at(runs.budget) for c in by.values()] for v, by in curves.items()})
     seeds = sorted(set(curves["hig"]) & set(curves["adam"]))
     times = {v: [curves[v][s].reaches(target, runs.budget) if math.isfinite(target) else math.inf for s in seeds]
              for v in curves}
@@ -590,9 +593,10 @@ def map_cell(root: Path, study: Study) -> Cell | None:
         except (OSError, ValueError, KeyError, TypeError, ZeroDivisionError):
             pass
     conditioning = float(re.search(r"task\.(?:scale|alpha)=([0-9.e-]+)", " ".join(study.overrides)).group(1))
-    return Cell(study.name, conditioning, cost, p.ratio, _exp(p.low), _exp(p.high),
-                (sum(math.isfinite(t) for t in times["hig"]), sum(math.isfinite(t) for t in times["adam"]), len(seeds)),
-                result.verdict)
+    reached = (sum(math.isfinite(t) for t in times["hig"]), sum(math.isfinite(t) for t in times["adam"]), len(seeds))
+    if not math.isfinite(target):  # both diverged in most seeds: nothing to reach, not "equivalent"
+        return Cell(study.name, conditioning, cost, math.nan, math.nan, math.nan, reached, NO_TARGET)
+    return Cell(study.name, conditioning, cost, p.ratio, _exp(p.low), _exp(p.high), reached, result.verdict)
 
 
 def _constant(value: float):
@@ -600,6 +604,10 @@ def _constant(value: float):
     from physgrad.verdict import Curve
 
     return Curve(np.array([0.0]), np.array([value]), 1.0, False, None)
+
+
+NO_TARGET = "no target (both diverged in most seeds)"
+MAP_VERDICTS = {A_BETTER: "HIG first", B_BETTER: "Adam first", EQUIVALENT: "within 10%"}
 
 
 def plot_map(cells: dict[str, list[Cell]], path: Path, machine: str, note: str = "") -> None:
@@ -610,7 +618,7 @@ def plot_map(cells: dict[str, list[Cell]], path: Path, machine: str, note: str =
     from matplotlib.colors import TwoSlopeNorm
 
     panels = [(name, found) for name, found in cells.items() if found]
-    fig, axes = plt.subplots(1, len(panels), figsize=(6.2 * len(panels), 4.6), squeeze=False)
+    fig, axes = plt.subplots(1, len(panels), figsize=(6.6 * len(panels), 5.0), squeeze=False, layout="constrained")
     norm = TwoSlopeNorm(vcenter=0.0, vmin=-2.0, vmax=2.0)
     for ax, (name, found) in zip(axes[0], panels):
         xs = sorted({c.conditioning for c in found}, reverse=name == "toy")
@@ -619,21 +627,22 @@ def plot_map(cells: dict[str, list[Cell]], path: Path, machine: str, note: str =
         for c in found:
             i = rows.index(c.study.rsplit("_b", 1)[-1] if name == "toy" else "")
             j = xs.index(c.conditioning)
-            value = c.ratio if c.ratio > 0 else 1e-2
-            grid[i, j] = math.log10(min(max(value, 1e-2), 1e2))
+            if not math.isnan(c.ratio):  # no target: left blank
+                grid[i, j] = math.log10(min(max(c.ratio, 1e-2), 1e2))
             dark = abs(grid[i, j]) > 1.2
-            ax.text(j, i, f"{_r(c.ratio)}\n[{_r(c.low)}, {_r(c.high)}]\nreached {c.reached[0]}, {c.reached[1]} "
-                          f"of {c.reached[2]}", ha="center", va="center", fontsize=7.5,
+            ax.text(j, i, f"{MAP_VERDICTS.get(c.verdict, c.verdict)}\n{_r(c.ratio)} [{_r(c.low)}, {_r(c.high)}]\n"
+                          f"reached: HIG {c.reached[0]}, Adam {c.reached[1]} of {c.reached[2]}", ha="center",
+                    va="center", fontsize=7.5,
                     color="white" if dark else "black")
         image = ax.imshow(grid, cmap="RdBu_r", norm=norm, aspect="auto", origin="lower")
         costs = {r: np.nanmedian([c.cost_ratio for c in found
                                   if (c.study.rsplit("_b", 1)[-1] if name == "toy" else "") == r] or [np.nan])
                  for r in rows}
-        labels = [(f"batch {r[:]}: " if r else "") + f"HIG step = {_r(costs[r])} x Adam's" for r in rows]
+        labels = [(f"batch {r}\n" if r else "") + f"HIG step\n= {_r(costs[r])} x Adam's" for r in rows]
         ax.set_yticks(range(len(rows)), labels, fontsize=8)
         ax.set_xticks(range(len(xs)), [f"{x:g}" for x in xs])
-        ax.set_xlabel("lambda (the second component's scale): badly conditioned to the right" if name == "toy"
-                      else "coupling alpha (the cubic spring): stiffer to the right")
+        ax.set_xlabel("lambda (the second component's scale)\nbadly conditioned to the right" if name == "toy"
+                      else "coupling alpha (the cubic spring)\nstiffer to the right", fontsize=9)
         ax.set_title(f"{name}: time to target, HIG / Adam (median [95% interval])", fontsize=9)
     fig.colorbar(image, ax=list(axes[0]), label="log10 HIG / Adam time to target (blue: HIG first)")
     fig.suptitle(f"Where HIG pays off: both tuned per cell, equal calibrated training time. {machine}"
@@ -652,15 +661,18 @@ def regime_map(root: Path, out: Path, note: str = "") -> str:
     plot_map(cells, out / "payoff.png", machine, note)
     lines = ["\n## Where HIG pays off: a regime map\n", "![payoff](payoff.png)\n",
              "Each cell is a `physgrad compare` of Adam and HIG, both tuned in that cell, at equal calibrated "
-             "training time: the time each seed takes to reach the cell's target (the lower of the two variants' "
-             "median test loss at the budget), as the ratio HIG / Adam with its 95% interval (below 1: HIG gets "
-             f"there first; a seed that never reaches the target counts as infinite). Machine: {machine or '-'}.\n",
+             "training time: the time each seed takes to reach the cell's target (the higher of the two variants' "
+             "median test loss at the budget: what the slower one typically gets to), as the ratio HIG / Adam with "
+             "its 95% interval (below 1: HIG gets there first; a seed that never reaches the target counts as "
+             "infinite, a pair where neither does as a tie; 0 or inf: in the middle pair one variant got there and "
+             f"the other did not). Machine: {machine or '-'}.\n",
              "| study | conditioning | HIG step / Adam step | time to target HIG / Adam [95%] | reached HIG, Adam of n | "
              "verdict |", "|---|---|---|---|---|---|"]
     for name, found in cells.items():
         for c in found:
             lines.append(f"| {c.study} | {c.conditioning:g} | {_r(c.cost_ratio)} | {_r(c.ratio)} [{_r(c.low)}, "
-                         f"{_r(c.high)}] | {c.reached[0]}, {c.reached[1]} of {c.reached[2]} | {c.verdict} |")
+                         f"{_r(c.high)}] | {c.reached[0]}, {c.reached[1]} of {c.reached[2]} | "
+                         f"{MAP_VERDICTS.get(c.verdict, c.verdict)} |")
     return "\n".join(lines) + "\n"
 
 

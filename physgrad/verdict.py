@@ -102,7 +102,7 @@ def log_ratio(a: float, b: float) -> float:
 def snap(log_value: float) -> float:
     """A median (or an interval end) that averages a diverged side's +-LOG_CAP with a finite log ratio lies at
     the divergence boundary: it is reported as +-LOG_CAP, not as a ratio of e^500."""
-    return math.copysign(LOG_CAP, log_value) if abs(log_value) > LOG_CAP / 2 else log_value
+    return math.copysign(LOG_CAP, log_value) if abs(log_value) >= LOG_CAP / 2 else log_value
 
 
 def _wilcoxon(r: np.ndarray, alternative: str) -> float:
@@ -289,20 +289,34 @@ def target_loss(curves: dict[str, dict[int, Curve]], budget: float) -> tuple[str
     return lowest_median({name: [c.at(budget) for c in by_seed.values()] for name, by_seed in curves.items()})
 
 
+def _finite_medians(losses: dict[str, list[float]]) -> dict[str, float]:
+    """Each group's median loss, NaN losses left out and infinite ones (diverged) counted; groups whose median is
+    not finite are left out."""
+    medians = {name: float(np.median(kept)) for name, values in losses.items()
+               if (kept := [v for v in values if not math.isnan(v)])}
+    return {name: m for name, m in medians.items() if math.isfinite(m)}
+
+
 def lowest_median(losses: dict[str, list[float]]) -> tuple[str, float]:
     """(group, its median) of the group whose median loss is lowest; NaN losses are left out, infinite ones
     (diverged) count; ("", NaN) if no group has a finite median. The target every group works towards: the
     best group's typical result, which the other groups may or may not reach."""
-    medians = {}
-    for name, values in losses.items():
-        values = [v for v in values if not math.isnan(v)]
-        if values:
-            medians[name] = float(np.median(values))
-    finite = {k: v for k, v in medians.items() if math.isfinite(v)}
+    finite = _finite_medians(losses)
     if not finite:
         return "", math.nan
     best = min(finite, key=finite.get)
     return best, finite[best]
+
+
+def highest_median(losses: dict[str, list[float]]) -> tuple[str, float]:
+    """(group, its median) of the group whose finite median loss is highest; ("", NaN) if none is finite. A
+    target every group with a finite median reaches in at least about half its runs (the worse group's typical
+    result), so that time to target compares times, not mostly pairs where neither run got there."""
+    finite = _finite_medians(losses)
+    if not finite:
+        return "", math.nan
+    worst = max(finite, key=finite.get)
+    return worst, finite[worst]
 
 
 @dataclass(frozen=True)

@@ -158,6 +158,35 @@ def test_the_regime_map_cell_is_the_time_to_target_ratio(tmp_path, studies, monk
     assert (tmp_path / "payoff.png").stat().st_size > 10_000
 
 
+def test_the_regime_map_target_is_what_the_slower_variant_typically_reaches(tmp_path, studies):
+    """HIG falls from 1 to 0.05, Adam to 0.2 (x 1 + 0.05 seed; geometric in iterations): the target is Adam's median
+    at the budget (0.245), which HIG passes at 500 iterations in every seed and Adam only at 1000 in the 5 seeds
+    that end below it. The lower median (HIG's, compare's target) would leave 5 pairs ties of two misses; here
+    every pair is a HIG win: ratio 0.5 in 5 seeds and 0 (Adam never there) in 5, median 0, HIG first."""
+    study = claims.Study("map_oscillator_1", ("task=oscillator", "optim=adam,hig", "task.alpha=1"), 2, 10, 1, 1,
+                         preset=False)
+    studies[study.name] = FakeStudy(study.name, {"hig": {s: falling(0.05 * (1 + 0.05 * s)) for s in TEN},
+                                                 "adam": {s: falling(0.2 * (1 + 0.05 * s)) for s in TEN}})
+    cell = claims.map_cell(tmp_path, study)
+    assert cell.reached == (10, 5, 10) and cell.ratio == 0.0 and cell.high == pytest.approx(0.5)
+    assert cell.verdict == "A better" and claims.MAP_VERDICTS[cell.verdict] == "HIG first"
+    assert math.isnan(cell.cost_ratio) and cell.conditioning == 1.0  # no calibration file: no cost, no crash
+    # Adam diverged in most seeds: its median is not finite, the target is HIG's own median, reached by HIG in
+    # half its seeds and by Adam never: HIG first where it got there, ties elsewhere
+    studies[study.name] = FakeStudy(study.name, {
+        "hig": {s: falling(0.05 * (1 + 0.05 * s)) for s in TEN},
+        "adam": {s: Curve(X, np.where(X < 300, 1.0, np.inf), X[-1], True, None) for s in TEN}})
+    cell = claims.map_cell(tmp_path, study)
+    assert cell.reached[:2] == (5, 0) and cell.verdict == "undecided"
+    # both diverged everywhere: no target, nobody reaches it, all ties
+    studies[study.name] = FakeStudy(study.name, {v: {s: Curve(X, np.where(X < 300, 1.0, np.inf), X[-1], True, None)
+                                                     for s in TEN} for v in ("hig", "adam")})
+    cell = claims.map_cell(tmp_path, study)
+    assert cell.reached == (0, 0, 10) and cell.verdict == claims.NO_TARGET and math.isnan(cell.ratio)
+    claims.plot_map({"oscillators": [cell]}, tmp_path / "payoff.png", "a machine")  # a blank cell, drawn
+    assert (tmp_path / "payoff.png").stat().st_size > 10_000
+
+
 # --- the profile ------------------------------------------------------------------------------------------
 
 

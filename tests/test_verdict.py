@@ -111,6 +111,29 @@ def test_a_median_or_interval_next_to_a_divergence_is_not_a_ratio_of_e500():
     assert p.high == pytest.approx(math.log(0.5)) or p.high == -LOG_CAP
 
 
+def test_a_median_halfway_between_a_divergence_and_a_tie_is_the_divergence():
+    """6 seeds: B diverged in 3 where A did not, both diverged in 3: the median averages -LOG_CAP with 0 to exactly
+    -LOG_CAP / 2, which is the divergence boundary, not a ratio of e^-500."""
+    p = paired([0.5] * 3 + [math.inf] * 3, [math.inf] * 6)
+    assert p.median == -LOG_CAP and p.ratio == 0.0
+    p = paired([math.inf] * 3 + [0.5] * 3, [0.5] * 3 + [math.inf] * 3)
+    assert p.median == 0.0 and p.ratio == 1.0  # ties of +-LOG_CAP: the median is an even split, not a boundary
+
+
+def test_the_lowest_and_highest_median_targets():
+    """The lowest median is the best group's typical loss, the highest the worst finite one; a group diverged in
+    most runs has no finite median and sets neither; NaN (missing) losses are left out; none finite: NaN."""
+    from physgrad.verdict import highest_median, lowest_median
+
+    losses = {"A": [0.1, 0.2, 0.3, math.nan], "B": [0.4, 0.5, 0.6], "C": [math.inf, math.inf, 0.01]}
+    assert lowest_median(losses) == ("A", pytest.approx(0.2))
+    assert highest_median(losses) == ("B", pytest.approx(0.5))
+    assert highest_median({"A": [1.0, 2.0], "B": [2.0, 1.0]}) == ("A", 1.5)  # a tie: the first group
+    for rule in (lowest_median, highest_median):
+        name, value = rule({"C": [math.inf, 1.0, math.inf], "D": [math.nan]})
+        assert name == "" and math.isnan(value)
+
+
 def test_log_ratios_of_diverged_and_zero_losses():
     assert log_ratio(math.inf, math.inf) == 0.0 and log_ratio(0.0, 0.0) == 0.0
     assert log_ratio(math.inf, 1.0) == LOG_CAP and log_ratio(1.0, math.inf) == -LOG_CAP
