@@ -140,10 +140,10 @@ def test_the_calibrated_clock_needs_a_step_cost(tmp_path):
 
 def test_the_calibration_ranks_steps_by_their_cost_and_ignores_delays(monkeypatch):
     """Two configurations interleaved in one process: a Jacobian rule's step costs more than Adam's on the same
-    scene; 50 ms of other work injected into one of its steps at most every 0.4 s (a round of 50 ms bursts
-    takes about 0.1 s: about one burst in four, fewer on a busy machine, whatever burst length the calibration
-    chooses; at most once a second left a quiet machine's 40 rounds with a single delay) leaves its calibrated
-    cost where a calibration without them puts it."""
+    scene; 50 ms of other work injected into the first step of one of its bursts in ten (counted by bursts, not
+    by steps or seconds, so that neither a busy machine's shorter bursts nor a quiet machine's shorter
+    calibration changes how many there are) leaves its calibrated cost where a calibration without them puts
+    it."""
     import time
 
     import physgrad.bench
@@ -152,8 +152,7 @@ def test_the_calibration_ranks_steps_by_their_cost_and_ignores_delays(monkeypatc
     configs = {name: load("task=toy", f"optim={name}", "trainer.batch_size=64") for name in ("adam", "gauss_newton")}
     plain = calibrate(configs, seed=0, rounds=40, min_seconds=0.5, max_seconds=20)
     real = physgrad.bench._compiled
-    calls = {"last": None, "delays": 0}
-    DELAY_EVERY = 0.4  # seconds of wall time between injected delays
+    calls = {"last_step": None, "bursts": 0, "delays": 0}
 
     def with_delays(cfg, seeds):
         *rest, one_step = real(cfg, seeds)
@@ -161,14 +160,14 @@ def test_the_calibration_ranks_steps_by_their_cost_and_ignores_delays(monkeypatc
             return (*rest, one_step)
 
         def slowed():
-            now = time.perf_counter()
-            if calls["last"] is None:
-                calls["last"] = now
-            elif now - calls["last"] >= DELAY_EVERY:
-                calls["last"] = now
-                calls["delays"] += 1
-                time.sleep(0.05)
+            # a gap of over 20 ms since its last step: Adam's burst ran in between, a new burst starts here
+            if calls["last_step"] is None or time.perf_counter() - calls["last_step"] > 0.02:
+                calls["bursts"] += 1
+                if calls["bursts"] % 10 == 5:
+                    calls["delays"] += 1
+                    time.sleep(0.05)
             one_step()
+            calls["last_step"] = time.perf_counter()
 
         return (*rest, slowed)
 
