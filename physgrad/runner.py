@@ -308,7 +308,7 @@ class CompiledTraining:
     params: jax.Array
     opt_state: Any
     log_names: list
-    validate: Any = None  # the evaluation compiled for the validation sets, where their shapes differ
+    validate: Any = None  # the held-out loss compiled for the validation sets (the loss only, no metrics)
 
 
 def compile_training(scene: Scene, rule: UpdateRule, seeds: Seeds, batch_size: int) -> CompiledTraining:
@@ -326,14 +326,18 @@ def compile_training(scene: Scene, rule: UpdateRule, seeds: Seeds, batch_size: i
     one_step = packed_logs(make_step(flat_scene, rule, batch_size), log_names)
     step = jax.jit(over_seeds(one_step, count, (0, 0, None, 0, 0))).lower(
         params, opt_state, np.int32(0), seeds.train_keys, seeds.train_sets).compile()
-    evaluating = jax.jit(over_seeds(flat_scene.evaluate, count, (0, 0)))
-    evaluate = evaluating.lower(params, seeds.test_sets).compile()
+    evaluating = jax.jit(over_seeds(flat_scene.evaluate, count, (0, 0))).lower(params, seeds.test_sets)
+    evaluate = evaluating.compile()
     validate = None
     if seeds.validation_sets is not None:
         same = jax.tree_util.tree_structure(seeds.validation_sets) == jax.tree_util.tree_structure(seeds.test_sets) \
             and all(a.shape == b.shape and a.dtype == b.dtype for a, b in zip(
                 jax.tree_util.tree_leaves(seeds.validation_sets), jax.tree_util.tree_leaves(seeds.test_sets)))
-        validate = evaluate if same else evaluating.lower(params, seeds.validation_sets).compile()
+        if same and set(evaluating.out_info) == {"loss"}:  # no metrics: the test evaluation is the loss
+            validate = evaluate
+        else:  # validation reads the loss only: its metrics (a KS stability rollout: 200 steps) are not paid
+            validate = jax.jit(over_seeds(flat_scene.held_out_loss, count, (0, 0))).lower(
+                params, seeds.validation_sets).compile()
     return CompiledTraining(step, evaluate, params, opt_state, log_names, validate)
 
 

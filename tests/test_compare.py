@@ -102,6 +102,29 @@ def test_validation_data_are_held_out_and_evaluated_beside_the_test_set(tmp_path
     assert "validation_loss" not in plain.eval  # nobody pays for what they did not ask
 
 
+def test_validation_reads_the_held_out_loss_without_paying_for_the_scene_metrics(tmp_path, monkeypatch):
+    """The validation sets get the loss only (a KS stability rollout would cost 200 steps per state), and it is
+    the loss the full evaluation gives on the same sets."""
+    import physgrad.runner
+
+    real, captured = physgrad.runner.compile_training, {}
+
+    def capture(scene, rule, seeds, batch_size):
+        captured.update(compiled=real(scene, rule, seeds, batch_size), seeds=seeds)
+        return captured["compiled"]
+
+    monkeypatch.setattr(physgrad.runner, "compile_training", capture)
+    run = physgrad.run("task=toy", "optim=adam", "trainer.iterations=5", "trainer.validation=true", out_dir=tmp_path)
+    compiled, seeds = captured["compiled"], captured["seeds"]
+    assert {"error_first", "error_second"} <= set(run.eval)  # the toy has metrics: the test sets still get them
+    validated = compiled.validate(compiled.params, seeds.validation_sets)
+    assert set(validated) == {"loss"}
+    full = compiled.evaluate(compiled.params, seeds.validation_sets)  # toy: the same shapes as the test sets
+    np.testing.assert_allclose(np.asarray(validated["loss"]), np.asarray(full["loss"]), rtol=1e-6)
+    assert not np.allclose(np.asarray(validated["loss"]), np.asarray(compiled.evaluate(compiled.params,
+                                                                                      seeds.test_sets)["loss"]))
+
+
 def test_a_scene_whose_data_ignore_the_key_has_no_default_validation_set():
     import jax
 

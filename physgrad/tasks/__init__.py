@@ -139,10 +139,19 @@ class Scene:
 
     def evaluate(self, params, batch) -> dict:
         """Held-out loss and scene metrics, each a mean over the samples of ``batch`` (on test_output)."""
-        output = self.sample_output if self.test_output is None else self.test_output
-        y = jax.vmap(output, in_axes=(None, 0))(params, batch)
+        y = self.held_out_output(params, batch)
         metrics = jax.vmap(self.sample_metrics, in_axes=(None, 0, 0))(params, batch, y)
         return {"loss": self.batch_loss(y, batch), **{k: jnp.mean(v) for k, v in metrics.items()}}
+
+    def held_out_loss(self, params, batch) -> dict:
+        """{"loss": the held-out loss of ``batch``} without the scene metrics: what validation reads (tuning
+        and early choices need the loss only; a metric such as a long stability rollout can cost many times it)."""
+        return {"loss": self.batch_loss(self.held_out_output(params, batch), batch)}
+
+    def held_out_output(self, params, batch) -> jax.Array:
+        """y for held-out samples: test_output where the scene has one, sample_output otherwise."""
+        output = self.sample_output if self.test_output is None else self.test_output
+        return jax.vmap(output, in_axes=(None, 0))(params, batch)
 
 
 def build_scene(task_cfg, key, unroll: int | None = None) -> Scene:
