@@ -129,10 +129,10 @@ STUDIES = (
     _study("quantum_control_5", f"{QUANTUM_CONTROL} task.target_level=5", 2, 6, 43, 220),
     _study("guidance_1", f"{GUIDANCE} task.control_cost=1", 2, 10, 20, 115, preset="optim.clip=none"),
     _study("guidance_0.001", f"{GUIDANCE} task.control_cost=0.001", 2, 10, 20, 115, preset="optim.clip=none"),
-    _study("ks_training", f"{KS} task.stepper=correct task.training=WIG,NOG,ONE unroll=3", 3, 10, 50, 330),
-    _study("ks_stepper", f"{KS} task.training=WIG task.stepper=correct,predict unroll=3", 3, 10, 50, 330),
+    _study("ks_training", f"{KS} task.stepper=correct task.training=WIG,NOG,ONE unroll=3", 3, 10, 50, 270),
+    _study("ks_stepper", f"{KS} task.training=WIG task.stepper=correct,predict unroll=3", 3, 10, 50, 270),
     Study("ks_unroll", (*KS.split(), "task.stepper=correct", "task.training=WIG", "unroll=1,3,8",
-                        "init_from='{root}/ks_start/seed=${seed}/results.h5'"), 2, 8, 50, 60, start=KS_START,
+                        "init_from='{root}/ks_start/seed=${seed}/results.h5'"), 2, 8, 50, 50, start=KS_START,
           preset=False),
 )
 
@@ -153,7 +153,7 @@ LONG = (
     _study("quantum_control_5", f"{QUANTUM_CONTROL.replace('=150', '=1000')} task.target_level=5", 2, 6, 230, 1200,
            preset=False),
     _study("ks_training", f"{KS.replace('=1000', '=5000')} task.stepper=correct task.training=WIG,NOG,ONE unroll=3",
-           2, 10, 110, 950, preset=False),
+           2, 10, 110, 890, preset=False),
     _study("oscillator", "task=oscillator optim=adam,gauss_newton,hig trainer.time_budget=120", 2, 7, 130, 130,
            preset=False),
     Study("poisson_continue", ("task=poisson", "optim=adam,hig", "trainer.time_budget=120",
