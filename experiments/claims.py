@@ -153,7 +153,7 @@ LONG = (
     _study("quantum_control_5", f"{QUANTUM_CONTROL.replace('=150', '=1000')} task.target_level=5", 2, 6, 230, 1200,
            preset=False),
     _study("ks_training", f"{KS.replace('=1000', '=5000')} task.stepper=correct task.training=WIG,NOG,ONE unroll=3",
-           2, 10, 110, 890, preset=False),
+           2, 10, 150, 1200, preset=False),
     _study("oscillator", "task=oscillator optim=adam,gauss_newton,hig trainer.time_budget=120", 2, 7, 130, 130,
            preset=False),
     Study("poisson_continue", ("task=poisson", "optim=adam,hig", "trainer.time_budget=120",
