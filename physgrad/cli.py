@@ -13,6 +13,7 @@ import sys
 from pathlib import Path
 
 from physgrad import UserError
+from physgrad.interrupts import SignalInterrupt, keeping_lost_interrupts, raise_interrupt, take_lost
 
 USAGE = """usage: physgrad {run,compare,report,check} ...
 
@@ -39,14 +40,21 @@ INFO_FLAGS = {"-h", "--help", "-hh", "--hydra-help", "-i", "--info"}
 
 
 def main(argv: list[str] | None = None) -> int:
-    if argv is None:  # the console script: SIGTERM before a job handles it ends the start-up as SIGINT does
-        signal.signal(signal.SIGTERM, _interrupt)
+    if argv is None:  # the console script: SIGINT and SIGTERM before a job handles them end the start-up alike
+        return _console_main()
+    return _main(argv)
+
+
+def _console_main() -> int:
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(sig, raise_interrupt)
     try:
-        return _main(argv)
+        with keeping_lost_interrupts():
+            return _main(None)
     finally:
-        if argv is None:  # the files are final: a signal now would only interrupt the interpreter's shutdown
-            signal.signal(signal.SIGINT, signal.SIG_IGN)
-            signal.signal(signal.SIGTERM, signal.SIG_IGN)
+        # the files are final: a signal now would only interrupt the interpreter's shutdown
+        signal.signal(signal.SIGINT, signal.SIG_IGN)
+        signal.signal(signal.SIGTERM, signal.SIG_IGN)
 
 
 def _main(argv: list[str] | None) -> int:
@@ -54,6 +62,9 @@ def _main(argv: list[str] | None) -> int:
         if argv is None:
             import_holding_signals(HEAVY_IMPORTS.get(sys.argv[1] if len(sys.argv) > 1 else "", ()))
         code = dispatch(sys.argv[1:] if argv is None else argv)
+        lost = take_lost()
+        if lost is not None:  # dropped inside a garbage-collector callback or finaliser: act on it now
+            raise SignalInterrupt(lost)
     except KeyboardInterrupt as interrupt:  # start-up, composing, a sweep's launcher: no traceback
         name = interrupt.args[0] if interrupt.args and isinstance(interrupt.args[0], str) else "SIGINT"
         print(f"physgrad: stopped by {name}", file=sys.stderr)
@@ -91,10 +102,6 @@ def import_holding_signals(modules) -> None:
             importlib.import_module(name)
     finally:
         signal.pthread_sigmask(signal.SIG_SETMASK, held)
-
-
-def _interrupt(signum, frame):
-    raise KeyboardInterrupt(signal.Signals(signum).name)
 
 
 def abandoned_steps() -> bool:

@@ -33,6 +33,7 @@ from pathlib import Path
 import numpy as np
 
 from physgrad import UserError
+from physgrad.interrupts import SignalInterrupt, raise_interrupt, take_lost
 from physgrad.verdict import (ALPHA, FRACTIONS, MARGIN, Curve, compare_variants, divergence_test, seeds_needed,
                               target_loss)
 
@@ -354,6 +355,9 @@ def launch(folder: Path, phase: str, jobs: dict[str, str], config_dir, hydra_arg
     with open(folder / f"{phase}.log", "a") as log:
         log.write(f"\n$ {' '.join(command)}\n")
         log.flush()
+        lost = take_lost()  # a signal the interpreter dropped since the last phase (physgrad.interrupts)
+        if lost is not None:
+            raise SignalInterrupt(lost)
         # its own session: a terminal's Ctrl-C reaches this process only, which passes it (or a SIGTERM) on once,
         # so the sweep stops as a whole and records what it stopped (physgrad.sweeps)
         process = subprocess.Popen(command, stdout=log, stderr=subprocess.STDOUT, start_new_session=True)
@@ -861,10 +865,8 @@ def main(args: list[str]) -> int:
         return 0
     overrides, config_dir = parse_arguments(args)
 
-    def interrupt(signum, frame):  # SIGTERM as Ctrl-C: the study's files are left as a resumable state
-        raise KeyboardInterrupt(signal.Signals(signum).name)
-
-    previous = signal.signal(signal.SIGTERM, interrupt)
+    # SIGTERM as Ctrl-C: the study's files are left as a resumable state
+    previous = signal.signal(signal.SIGTERM, raise_interrupt)
     try:
         study = run_study(overrides, config_dir)
     except KeyboardInterrupt:

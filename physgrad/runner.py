@@ -26,6 +26,7 @@ import optax
 from jax.flatten_util import ravel_pytree
 from tqdm import tqdm
 
+from physgrad.interrupts import take_lost
 from physgrad.optim import UpdateRule, on_tree, state_logs
 from physgrad.results import ResultsWriteError, ResultsWriter
 from physgrad.tasks import Scene
@@ -242,6 +243,9 @@ def stop_on_signals(on_first=None):
     except ValueError:  # not the main thread: leave signals alone
         yield request
         return
+    lost = take_lost()  # a signal before the job whose interrupt the interpreter dropped (physgrad.interrupts)
+    if lost is not None:
+        request.request(lost)
     previous_hook = sys.unraisablehook
 
     def unraisable(info):
