@@ -152,8 +152,10 @@ LONG = (
            preset=False),
     _study("quantum_control_5", f"{QUANTUM_CONTROL.replace('=150', '=1000')} task.target_level=5", 2, 6, 230, 1200,
            preset=False),
+    # 4 trials, a decade apart: with 2 (two decades apart) NOG's were 0.052 (diverged) and 5.2e-4, and NOG at
+    # WIG's tuned 1.6e-3 halved WIG's validation error on the tuning seed (docs/claims.md)
     _study("ks_training", f"{KS.replace('=1000', '=5000')} task.stepper=correct task.training=WIG,NOG,ONE unroll=3",
-           2, 10, 150, 1200, preset=False),
+           4, 10, 150, 1200, preset=False),
     _study("oscillator", "task=oscillator optim=adam,gauss_newton,hig trainer.time_budget=120", 2, 7, 130, 130,
            preset=False),
     Study("poisson_continue", ("task=poisson", "optim=adam,hig", "trainer.time_budget=120",
