@@ -105,13 +105,30 @@ def snap(log_value: float) -> float:
     return math.copysign(LOG_CAP, log_value) if abs(log_value) >= LOG_CAP / 2 else log_value
 
 
+EXACT_PAIRS = 13  # up to here the signed-rank test enumerates all 2^n sign flips (scipy's own limit)
+
+
+def _signed_rank_sum(d: np.ndarray, axis: int = -1) -> np.ndarray:
+    """W+ = sum of the ranks of |d| over d > 0, a zero counting half its rank (zero_method 'zsplit')."""
+    from scipy.stats import rankdata
+
+    ranks = rankdata(np.abs(d), axis=axis)
+    return np.sum(ranks * ((d > 0) + 0.5 * (d == 0)), axis=axis)
+
+
 def _wilcoxon(r: np.ndarray, alternative: str) -> float:
-    from scipy.stats import wilcoxon
+    """One-sided p-value of the Wilcoxon signed-rank test of r (scipy.stats.wilcoxon, zero_method 'zsplit'). Up to
+    EXACT_PAIRS pairs with ties or zeros scipy enumerates the sign flips one call at a time (0.6 s a test); the
+    same exact enumeration is done here in one vectorised scipy.stats.permutation_test."""
+    from scipy.stats import permutation_test, wilcoxon
 
     if not r.size or not np.any(r):
         return 1.0
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
+        if 2 <= r.size <= EXACT_PAIRS:
+            return float(permutation_test((r,), _signed_rank_sum, permutation_type="samples", vectorized=True,
+                                          n_resamples=np.inf, alternative=alternative).pvalue)
         return float(wilcoxon(r, zero_method="zsplit", alternative=alternative).pvalue)
 
 
