@@ -18,7 +18,6 @@ and job by job; `--plan` prints the studies, their expected time and the parts o
 from __future__ import annotations
 
 import argparse
-import math
 import shutil
 import subprocess
 import sys

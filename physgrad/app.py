@@ -18,7 +18,7 @@ from omegaconf import DictConfig, OmegaConf
 
 from physgrad.configs import CONF_DIR, name_options
 from physgrad.experiment import run_experiment
-from physgrad import UserError
+from physgrad.errors import UserError
 from physgrad.sweeps import record_job, stop_count
 from physgrad.trackers import build_trackers, track
 
@@ -81,7 +81,9 @@ class SweepSummary(Callback):
         return {}  # a launcher sends the callbacks to its workers with each job: the sweep's state stays here
 
     def on_multirun_start(self, config: DictConfig, **kwargs) -> None:
-        from physgrad.results import FolderOwned, find_results, own_folder
+        from physgrad.errors import FolderOwned
+        from physgrad.files import own_folder
+        from physgrad.results import find_results
         from physgrad.sweeps import STOP_MARK, expected_jobs, launcher_signals, write_manifest
 
         folder = Path(str(config.hydra.sweep.dir))
@@ -152,7 +154,7 @@ def write_provenance(out_dir: Path, cfg: DictConfig, hydra_cfg) -> None:
     """What Hydra writes into .hydra/ when hydra.output_subdir is set (config.yaml, hydra.yaml, overrides.yaml),
     written here instead, once the job holds its folder: a second process refused for that folder must not
     replace a live job's record of how it was started."""
-    from physgrad.results import replace_file
+    from physgrad.files import replace_file
 
     folder = out_dir / ".hydra"
     folder.mkdir(parents=True, exist_ok=True)

@@ -116,7 +116,7 @@ def measure_variant(overrides: list[str], repeats: int, min_seconds: float) -> d
     import jax
     import numpy as np
 
-    from physgrad import UserError
+    from physgrad.errors import UserError
     from physgrad.nets import count_params
     from physgrad.optim.spectral import resolve_route
     from physgrad.runner import compile_training

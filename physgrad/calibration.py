@@ -81,6 +81,6 @@ def read_calibration(path: Path, names: list[str]) -> dict | None:
 
 
 def write_calibration(path: Path, calibration: dict) -> None:
-    from physgrad.results import replace_file
+    from physgrad.files import replace_file
 
     replace_file(Path(path), json.dumps(calibration, indent=1).encode())

@@ -253,7 +253,7 @@ def check_one_scene(overrides: list[str], config_dirs: list[str]) -> int:
     each; 1 if one fails, 2 for a configuration mistake."""
     import os
 
-    from physgrad import UserError
+    from physgrad.errors import UserError
     from physgrad.configs import check_overrides, compose
     from physgrad.testing import check_scene
 

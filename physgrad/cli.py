@@ -12,7 +12,7 @@ import signal
 import sys
 from pathlib import Path
 
-from physgrad import UserError
+from physgrad.errors import UserError
 from physgrad.interrupts import SignalInterrupt, keeping_lost_interrupts, raise_interrupt, take_lost
 
 USAGE = """usage: physgrad {run,compare,report,check} ...
@@ -133,7 +133,7 @@ def dispatch(argv: list[str]) -> int:
         raise UserError(f"unknown command '{command}': use 'physgrad run ...', 'physgrad compare ...', "
                         "'physgrad report PATH...' or 'physgrad check'")
     except UserError as error:
-        from physgrad.results import clean_text
+        from physgrad.files import clean_text
 
         print(f"physgrad: error: {clean_text(str(error), None)}", file=sys.stderr)
         return 2
@@ -229,7 +229,7 @@ def report_command(args: list[str]) -> int:
                         help="log time/iteration axis: auto where the curves' ends span a decade or more")
     options = parser.parse_args(args)
     from physgrad.report import write_report
-    from physgrad.results import clean_text
+    from physgrad.files import clean_text
 
     body = write_report(options.paths, out_dir=options.out, threshold=options.threshold, note=options.note,
                         logx=options.logx)

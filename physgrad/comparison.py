@@ -32,7 +32,7 @@ from pathlib import Path
 
 import numpy as np
 
-from physgrad import UserError
+from physgrad.errors import UserError
 from physgrad.interrupts import SignalInterrupt, raise_interrupt, take_lost
 from physgrad.verdict import (ALPHA, FRACTIONS, MARGIN, Curve, compare_variants, divergence_test, seeds_needed,
                               target_loss)
@@ -795,7 +795,8 @@ def trial_rows(folder: Path, variants) -> list[dict]:
 
 def run_study(overrides: list[str], config_dir: str | None = None, say=print) -> Study:
     """The whole study (module docstring); resumes from its folder."""
-    from physgrad.results import FolderOwned, own_folder
+    from physgrad.errors import FolderOwned
+    from physgrad.files import own_folder
 
     settings_given, axes, common, hydra_args = split_overrides(overrides)
     s = study_settings(settings_given)

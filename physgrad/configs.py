@@ -15,7 +15,7 @@ import os
 from contextlib import contextmanager
 from pathlib import Path
 
-from physgrad import UserError
+from physgrad.errors import UserError
 
 CONF_DIR = Path(str(importlib.resources.files("physgrad.conf")))
 _ABSENT = object()

@@ -15,16 +15,17 @@ import jax.numpy as jnp
 from jax.flatten_util import ravel_pytree
 from omegaconf import DictConfig, OmegaConf
 
-import physgrad
-from physgrad import UserError
+from physgrad.version import __version__
+from physgrad.errors import UserError
 from physgrad.gradients import JacobianPass
 from physgrad.machine import machine_attributes
 from physgrad.nets import count_params
 from physgrad.optim import UpdateRule, build_rule, matrix_leaves, needs_value_arguments
 from physgrad.optim.kfac import KroneckerRule
 from physgrad.resume import finished_before, start_from
-from physgrad.results import (FolderOwned, ResultsWriteError, ResultsWriter, own_folder, read_final,
-                              record_outcome)
+from physgrad.errors import FolderOwned
+from physgrad.files import own_folder
+from physgrad.results import ResultsWriter, read_final, record_outcome
 from physgrad.runner import Outcome, Seeds, TrainerSettings, stack, stop_on_signals, train
 from physgrad.sweeps import mark_stopped, watching
 from physgrad.tasks import Scene, build_scene
@@ -120,7 +121,7 @@ def run_attributes(cfg: DictConfig, unroll: int | None = None) -> dict:
         "seed": cfg.seed if isinstance(cfg.seed, int) else str(cfg.seed),
         "precision": str(cfg.precision),
         "config": OmegaConf.to_yaml(cfg, resolve=True),
-        "physgrad_version": physgrad.__version__,
+        "physgrad_version": __version__,
         "jax_version": jax.__version__,
     }
     if unroll is not None:

@@ -21,7 +21,7 @@ import jax.numpy as jnp
 import optax
 from jax.flatten_util import ravel_pytree
 
-from physgrad import UserError
+from physgrad.errors import UserError
 from physgrad.jacobians import LayerPlan, dense_jacobian, layer_jacobian, plan_layers
 from physgrad.unroll import MODES, PHYSICS_ONLY, REGULAR, Backprop
 

@@ -87,7 +87,7 @@ def machine_attributes() -> dict:
     import jax
     import jaxlib
 
-    import physgrad
+    from physgrad.version import __version__
 
     threads = "; ".join(f"{name}={os.environ[name]}" for name in THREAD_VARIABLES if name in os.environ)
     return {
@@ -97,7 +97,7 @@ def machine_attributes() -> dict:
         "thread_settings": threads or "default",
         "jax_version": jax.__version__,
         "jaxlib_version": jaxlib.__version__,
-        "physgrad_version": physgrad.__version__,
+        "physgrad_version": __version__,
         "git_commit": git_commit(),
         "hostname": platform.node()[:200],
     }

@@ -21,10 +21,10 @@ from typing import NamedTuple
 import numpy as np
 import pandas as pd
 
-from physgrad import UserError
+from physgrad.errors import UserError
 from physgrad.machine import machine_label
-from physgrad.results import (Run, clean_text, find_results, natural_key, parse_config, read_run, read_small_yaml,
-                              replaced_text)
+from physgrad.files import clean_text, read_small_yaml, replaced_text
+from physgrad.results import Run, find_results, natural_key, parse_config, read_run
 from physgrad.sweeps import unfinished_jobs
 from physgrad.verdict import lowest_median
 

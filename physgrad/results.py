@@ -12,8 +12,6 @@ leaves a complete file holding every row flushed so far, and readers never share
 
 from __future__ import annotations
 
-import errno
-import fcntl
 import math
 import os
 import re
@@ -27,7 +25,10 @@ from pathlib import Path
 
 import h5py
 import numpy as np
-import yaml
+
+from physgrad.errors import ResultsWriteError
+from physgrad.files import (CONFIG_LIMIT, clean_text, file_kind, load_yaml, owner_tag, replace_file,
+                            timestamp)
 
 STATUSES = ("running", "completed", "diverged", "interrupted", "failed", "refused")
 GROUPS = ("train", "eval")
@@ -36,83 +37,17 @@ GROUPS = ("train", "eval")
 ASIDE_SUFFIX = ".overwriting.h5"  # a re-run's file while a completed results.h5 it would replace stays valid
 
 
-class ResultsWriteError(OSError):
-    """results.h5 could not be written (disk full, quota, permissions): one line that names the file."""
 
 
-class FolderOwned(RuntimeError):
-    """Another live process owns the job (or sweep) folder."""
 
 
-def owner_tag() -> str:
-    return f"pid {os.getpid()} on {socket.gethostname()}"
 
 
-class LockingUnsupported(OSError):
-    """The file system of a folder supports neither flock nor POSIX locks (a Lustre mount without flock, an NFS
-    mount without a lock daemon): one line with the real reason and what to do."""
 
 
-NO_LOCKS = {errno.ENOLCK, errno.ENOSYS, errno.EOPNOTSUPP, errno.EINVAL}  # what "locks unsupported" looks like
-HELD = {errno.EWOULDBLOCK, errno.EAGAIN, errno.EACCES}  # what "another process holds it" looks like
 
 
-def _lock(fd: int, lock_path: Path) -> bool:
-    """An exclusive, non-blocking lock on fd: flock, else (where the file system has no flock) a POSIX lock.
-    True if taken, False if another process holds it; LockingUnsupported where neither kind works."""
-    reasons = []
-    for take in (lambda: fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB),
-                 lambda: fcntl.lockf(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)):
-        try:
-            take()
-            return True
-        except OSError as error:
-            if error.errno in HELD:
-                return False
-            if error.errno not in NO_LOCKS:
-                raise
-            reasons.append(error.strerror or str(error))
-    raise LockingUnsupported(f"cannot lock {lock_path}: the file system supports no file locks (flock: {reasons[0]}; "
-                             f"POSIX locks: {reasons[1]}): write to a local disk (e.g. hydra.sweep.dir=/tmp/...) or "
-                             "mount it with locking (Lustre: -o flock)")
 
-
-@contextmanager
-def own_folder(folder: str | os.PathLike, what: str = "job"):
-    """Hold the folder for this process while the block runs: an exclusive lock on folder/.physgrad-<what>
-    (flock, or a POSIX lock where the file system has no flock), which the operating system releases when the
-    process ends however it ends, so a dead owner never blocks a new one. FolderOwned (one line naming the
-    owner's pid, host and start time) if a live process holds it; LockingUnsupported (one line) where the file
-    system has no locks; OSError if the folder cannot be written. The lock file must stay: a second process
-    that finds it deleted creates its own (see docs/results.md)."""
-    folder = Path(folder)
-    folder.mkdir(parents=True, exist_ok=True)
-    lock_path = folder / f".physgrad-{what}"
-    while True:
-        fd = os.open(lock_path, os.O_RDWR | os.O_CREAT, 0o644)
-        try:
-            taken = _lock(fd, lock_path)
-        except BaseException:
-            os.close(fd)
-            raise
-        if not taken:
-            owner = clean_text(os.pread(fd, 512, 0).decode(errors="replace").strip(), 300) or "another process"
-            os.close(fd)
-            raise FolderOwned(f"{folder} is being written by {owner} (another {what}): wait for it to end, stop "
-                              "it, or write somewhere else")
-        try:
-            same = os.stat(lock_path).st_ino == os.fstat(fd).st_ino
-        except FileNotFoundError:
-            same = False
-        if same:
-            break
-        os.close(fd)  # the file was replaced between open and lock: lock the one that is there now
-    try:
-        os.ftruncate(fd, 0)
-        os.pwrite(fd, f"{owner_tag()} since {_now()}\n".encode(), 0)
-        yield
-    finally:
-        os.close(fd)  # releases the lock; the file stays (removing it would race with a new owner)
 
 
 def holds_completed(path: Path) -> bool:
@@ -135,7 +70,7 @@ class ResultsWriter:
         self.path = Path(path)
         self.path.parent.mkdir(parents=True, exist_ok=True)
         self.live = self.path.with_name(self.path.stem + ASIDE_SUFFIX) if holds_completed(self.path) else self.path
-        self.attrs = {key: value for key, value in {**attrs, "status": "running", "created": _now(),
+        self.attrs = {key: value for key, value in {**attrs, "status": "running", "created": timestamp(),
                                                       "owner": owner_tag()}.items() if value is not None}
         self._columns: dict[str, tuple[str, ...] | None] = {group: None for group in GROUPS}
         self._rows: dict[str, list[tuple]] = {group: [] for group in GROUPS}  # not yet flushed
@@ -199,7 +134,7 @@ class ResultsWriter:
         disk (sync). A completed run written aside replaces the completed results.h5 only now."""
         if status not in STATUSES:
             raise ValueError(f"unknown status {status!r}")
-        self.set_attrs(status=status, reason=reason, finished=_now(), **attrs)
+        self.set_attrs(status=status, reason=reason, finished=timestamp(), **attrs)
         self.flush(sync=sync)
         if self.live != self.path and status == "completed":
             os.replace(self.live, self.path)
@@ -210,7 +145,7 @@ class ResultsWriter:
         is, a few bytes of attributes. True if that worked."""
         try:
             with h5py.File(self.live, "a", locking=False) as f:
-                f.attrs["status"], f.attrs["reason"], f.attrs["finished"] = "failed", reason, _now()
+                f.attrs["status"], f.attrs["reason"], f.attrs["finished"] = "failed", reason, timestamp()
             return True
         except (OSError, ValueError):
             return False
@@ -219,7 +154,7 @@ class ResultsWriter:
         """The file is built in memory (HDF5's core driver) and its bytes written by Python: a failing write()
         (disk full, quota, size limit) is then an OSError here, where HDF5 writing to disk itself crashed the
         process when a write failed as it closed the file."""
-        self.attrs["heartbeat"] = _now()
+        self.attrs["heartbeat"] = timestamp()
         try:
             with h5py.File(f"physgrad-{id(self)}.h5", "w", driver="core", backing_store=False) as f:
                 for key, value in self.attrs.items():
@@ -244,25 +179,8 @@ def record_outcome(path: str | os.PathLike, attrs: dict, status: str, reason: st
     ResultsWriter(path, attrs, write=False).finish(status, reason, sync=False)
 
 
-def replace_file(path: Path, content: bytes, sync: bool = False) -> None:
-    """Write content beside path (.NAME.<pid>.tmp) and rename it onto path: a reader, or a process killed at
-    any instant, sees the old file or the new one, never a part (sync: onto the disk itself before the rename,
-    which a power cut could otherwise undo). The temporary file is removed on any error."""
-    temporary = path.with_name(f".{path.name}.{os.getpid()}.tmp")
-    try:
-        with open(temporary, "wb") as out:
-            out.write(content)
-            if sync:
-                out.flush()
-                os.fsync(out.fileno())
-        os.replace(temporary, path)
-    except BaseException:
-        temporary.unlink(missing_ok=True)
-        raise
 
 
-def _now() -> str:
-    return time.strftime("%Y-%m-%dT%H:%M:%S%z")
 
 
 @dataclass
@@ -360,8 +278,6 @@ def heartbeat_age(heartbeat: str, now: float | None = None) -> float | None:
 # size before using it, cuts long text, replaces control characters (terminal escapes) and parses the stored
 # config as plain YAML without aliases; it never resolves or instantiates anything. A file failing a check is
 # refused with one line (ValueError) naming the check.
-TEXT_LIMIT = 2000  # characters of one text attribute (config excepted): longer text is cut
-CONFIG_LIMIT = 1 << 20  # bytes of the stored config; a physgrad config is a few kB
 COLUMN_LIMIT = 1 << 26  # elements of one /train or /eval column (512 MiB of float64) ...
 FILE_COLUMNS_LIMIT = 1 << 28  # ... and of all of a file's columns together
 REQUIRED_TEXT = ("status", "task", "optim")
@@ -374,65 +290,12 @@ TEXT_ATTRS = frozenset({"task", "optim", "variant", "status", "reason", "stopped
                         "physgrad_version", "jax_version", "jaxlib_version", "git_commit", "cpu_model", "device",
                         "thread_settings", "hostname", "created", "finished", "owner", "heartbeat", "jacobian",
                         "clock", "contention", "init_from", "init_variant"})
-_UNSAFE = re.compile("[\x00-\x08\x0b-\x1f\x7f-\x9f\u202a-\u202e\u2066-\u2069]")  # C0/C1 controls, bidi overrides
 
 
-def clean_text(text: str, limit: int | None = TEXT_LIMIT, lines: bool = False) -> str:
-    """text safe to print: control characters (an ANSI escape's ESC among them) and bidirectional overrides
-    replaced by U+FFFD, newlines and tabs too unless lines, cut to limit characters."""
-    text = _UNSAFE.sub("\ufffd", text if lines else text.replace("\n", " ").replace("\t", " "))
-    return text if limit is None or len(text) <= limit else text[:limit] + "... (cut)"
 
 
-class _NoAliases(yaml.SafeLoader):
-    """YAML without aliases: a few bytes of nested aliases expand to gigabytes (a 'billion laughs'), and
-    physgrad never writes one."""
-
-    def compose_node(self, parent, index):
-        if self.check_event(yaml.AliasEvent):
-            raise yaml.YAMLError("aliases (*name) are not allowed")
-        return super().compose_node(parent, index)
 
 
-def load_yaml(text: str):
-    """Plain YAML data (no aliases, no tags beyond YAML's own); ValueError (one line) if it is not that."""
-    try:
-        return yaml.load(text, Loader=_NoAliases)  # noqa: S506 - a SafeLoader
-    except (yaml.YAMLError, RecursionError, ValueError) as error:
-        raise ValueError(f"not plain YAML ({clean_text(str(error).splitlines()[0], 200)})") from None
-
-
-def read_small_yaml(path: Path, limit: int = CONFIG_LIMIT):
-    """load_yaml of a regular file of at most limit bytes (a sweep's jobs.yaml, overrides.yaml, Optuna's
-    optimization_results.yaml: other people's folders too); ValueError (one line) otherwise."""
-    fd = os.open(path, os.O_RDONLY | os.O_NONBLOCK | getattr(os, "O_NOCTTY", 0))  # OSError if absent
-    try:
-        mode = os.fstat(fd).st_mode
-        if not stat.S_ISREG(mode):
-            raise ValueError(f"{path}: {_file_kind(mode)}, not a file: refused")
-        content = os.read(fd, limit + 1)
-    finally:
-        os.close(fd)
-    if len(content) > limit:
-        raise ValueError(f"{path}: longer than {limit} bytes")
-    try:
-        return load_yaml(content.decode(errors="replace"))
-    except ValueError as error:
-        raise ValueError(f"{path}: {error}") from None
-
-
-@contextmanager
-def replaced_text(path: Path):
-    """A text file written beside path and renamed onto it when the block ends without error (else removed):
-    an interrupted writer leaves the previous file or none, never a truncated one."""
-    temporary = path.with_name(f".{path.name}.{os.getpid()}.tmp")
-    try:
-        with open(temporary, "w", newline="") as out:
-            yield out
-        os.replace(temporary, path)
-    except BaseException:
-        temporary.unlink(missing_ok=True)
-        raise
 
 
 def parse_config(text: str) -> dict:
@@ -469,7 +332,7 @@ def _open_results(path: Path):
     try:
         mode = os.fstat(fd).st_mode
         if not stat.S_ISREG(mode):
-            raise ValueError(f"{path}: not a regular file ({_file_kind(mode)}): refused")
+            raise ValueError(f"{path}: not a regular file ({file_kind(mode)}): refused")
         with os.fdopen(fd, "rb", closefd=False) as stream:
             try:
                 f = h5py.File(stream, "r")
@@ -482,12 +345,6 @@ def _open_results(path: Path):
         os.close(fd)
 
 
-def _file_kind(mode: int) -> str:
-    for test, kind in ((stat.S_ISFIFO, "a FIFO"), (stat.S_ISCHR, "a character device"), (stat.S_ISBLK, "a block "
-                       "device"), (stat.S_ISSOCK, "a socket"), (stat.S_ISDIR, "a folder")):
-        if test(mode):
-            return kind
-    return "not a plain file"
 
 
 def _checked_attrs(path: Path, f: h5py.File) -> dict:

@@ -10,7 +10,7 @@ import jax.numpy as jnp
 from jax.flatten_util import ravel_pytree
 from omegaconf import DictConfig, OmegaConf
 
-from physgrad import UserError
+from physgrad.errors import UserError
 from physgrad.results import Run, parse_config, read_final, read_params
 from physgrad.runner import Outcome
 

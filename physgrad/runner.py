@@ -28,9 +28,10 @@ from tqdm import tqdm
 
 from physgrad.interrupts import take_lost
 from physgrad.optim import UpdateRule, on_tree, state_logs
-from physgrad.results import ResultsWriteError, ResultsWriter
+from physgrad.errors import ResultsWriteError
+from physgrad.results import ResultsWriter
 from physgrad.tasks import Scene
-from physgrad import UserError
+from physgrad.errors import UserError
 from physgrad.machine import contention, cpu_count, load_average, step_statistics
 from physgrad.validate import choice, number
 from physgrad.verdict import DIVERGENCE_FACTOR

@@ -23,7 +23,8 @@ from pathlib import Path
 import yaml
 from omegaconf import OmegaConf
 
-from physgrad.results import clean_text, owner_alive, owner_tag, read_small_yaml, replace_file
+from physgrad.files import clean_text, owner_tag, read_small_yaml, replace_file
+from physgrad.results import owner_alive
 
 log = logging.getLogger("physgrad")
 MANIFEST = "jobs.yaml"

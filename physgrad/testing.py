@@ -20,7 +20,6 @@ from dataclasses import dataclass
 
 import jax
 import jax.numpy as jnp
-import numpy as np
 from jax.flatten_util import ravel_pytree
 
 from physgrad.unroll import MODES, REGULAR, Backprop, Dynamics
@@ -124,7 +123,7 @@ def check_scene(cfg) -> list[Check]:
 
 
 def _check_scene(cfg) -> list[Check]:
-    from physgrad import UserError
+    from physgrad.errors import UserError
     from physgrad.experiment import build_seeds, check_scene_values, set_precision
 
     set_precision(64)

@@ -13,7 +13,7 @@ import math
 import numbers
 from typing import Any
 
-from physgrad import UserError
+from physgrad.errors import UserError
 
 
 def number(name: str, value, low=None, high=None, integer=False, optional=False, open_low=False):

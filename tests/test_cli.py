@@ -143,7 +143,7 @@ def test_without_a_terminal_progress_is_logged_and_the_run_ends_with_one_line(tm
     ("init_from=a/optim=adam,seed=0/results.h5", "must be quoted, e.g. init_from='"),
 ])
 def test_added_keys_nothing_reads_and_unquoted_paths_are_one_line_errors(override, fragment):
-    from physgrad import UserError
+    from physgrad.errors import UserError
     from physgrad.configs import check_overrides
 
     with pytest.raises(UserError) as caught:

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 import physgrad
-from physgrad import UserError
+from physgrad.errors import UserError
 from physgrad.comparison import (SEARCH_RANGES, build_variants, evaluation_jobs, halton_points, job_yaml,
                               split_overrides, study_settings)
 from physgrad.configs import compose

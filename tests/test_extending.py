@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 import physgrad
-from physgrad import UserError
+from physgrad.errors import UserError
 from physgrad.configs import check_overrides
 from physgrad.results import read_run
 from physgrad.tasks import Scene, build_scene

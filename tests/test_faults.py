@@ -20,7 +20,9 @@ import h5py
 import numpy as np
 import pytest
 
-from physgrad.results import FolderOwned, ResultsWriteError, ResultsWriter, own_folder, read_run
+from physgrad.errors import FolderOwned, ResultsWriteError
+from physgrad.files import own_folder
+from physgrad.results import ResultsWriter, read_run
 from tests.test_configs import load
 
 REPEATS = int(os.environ.get("PHYSGRAD_FAULT_REPEATS", "1"))  # the long form multiplies every count
@@ -113,7 +115,7 @@ def test_readers_with_default_locking_never_disturb_a_writer(tmp_path):
 def test_a_second_owner_is_refused_and_a_dead_one_replaced(tmp_path):
     holder = subprocess.Popen([sys.executable, "-c", textwrap.dedent(f"""
         import time
-        from physgrad.results import own_folder
+        from physgrad.files import own_folder
         with own_folder({str(tmp_path)!r}):
             print("held", flush=True)
             time.sleep(60)
@@ -182,7 +184,8 @@ def test_a_file_size_limit_is_a_write_error_not_a_crash(tmp_path):
         import resource, signal
         signal.signal(signal.SIGXFSZ, signal.SIG_IGN)
         resource.setrlimit(resource.RLIMIT_FSIZE, (200_000, 200_000))
-        from physgrad.results import ResultsWriteError, ResultsWriter
+        from physgrad.errors import ResultsWriteError
+        from physgrad.results import ResultsWriter
         writer = ResultsWriter({str(tmp_path / 'results.h5')!r}, {{"task": "toy", "optim": "adam", "seed": 0}})
         try:
             for i in range(10**6):
@@ -430,7 +433,8 @@ def test_a_job_folder_that_cannot_be_written_fails_alone_with_its_reason(tmp_pat
 def test_where_flock_is_unsupported_posix_locks_hold_the_folder(tmp_path, monkeypatch):
     """ENOLCK (NFS without flock) and ENOSYS (Lustre mounted without flock) fall back to POSIX locks, which still
     refuse a second process; where neither works, one line with the real reason."""
-    import physgrad.results as results
+    import physgrad.errors as errors
+    import physgrad.files as files
 
     holder = subprocess.Popen([sys.executable, "-c", textwrap.dedent(f"""
         import fcntl, os, time
@@ -445,7 +449,7 @@ def test_where_flock_is_unsupported_posix_locks_hold_the_folder(tmp_path, monkey
         for number in (errno.ENOLCK, errno.ENOSYS):
             def no_flock(fd, operation, number=number):
                 raise OSError(number, os.strerror(number))
-            monkeypatch.setattr(results.fcntl, "flock", no_flock)
+            monkeypatch.setattr(files.fcntl, "flock", no_flock)
             with pytest.raises(FolderOwned, match="pid 1 on elsewhere"):
                 with own_folder(tmp_path):
                     pass
@@ -456,18 +460,19 @@ def test_where_flock_is_unsupported_posix_locks_hold_the_folder(tmp_path, monkey
         pass
     outcome, _ = run_experiment_in(tmp_path / "run")
     assert outcome.status == "completed"
-    monkeypatch.setattr(results.fcntl, "lockf", lambda fd, op: (_ for _ in ()).throw(OSError(errno.ENOLCK, "No locks available")))
-    with pytest.raises(results.LockingUnsupported, match="supports no file locks .*No locks available.*mount"):
+    monkeypatch.setattr(files.fcntl, "lockf", lambda fd, op: (_ for _ in ()).throw(OSError(errno.ENOLCK, "No locks available")))
+    with pytest.raises(errors.LockingUnsupported, match="supports no file locks .*No locks available.*mount"):
         with own_folder(tmp_path / "other"):
             pass
 
 
 def test_a_writer_on_another_host_is_judged_by_its_heartbeat():
-    from physgrad.results import STALE_SECONDS, _now, with_live_status
+    from physgrad.files import timestamp
+    from physgrad.results import STALE_SECONDS, with_live_status
 
     now = time.time()
     old = time.strftime("%Y-%m-%dT%H:%M:%S%z", time.localtime(now - STALE_SECONDS - 60))
-    for heartbeat, status in ((_now(), "running"), (old, "crashed"), ("not a time", "running")):
+    for heartbeat, status in ((timestamp(), "running"), (old, "crashed"), ("not a time", "running")):
         attrs = with_live_status({"status": "running", "owner": "pid 7 on a-host-that-is-not-this-one",
                                   "heartbeat": heartbeat}, now)
         assert attrs["status"] == status
@@ -516,18 +521,18 @@ def test_an_interrupted_report_leaves_the_previous_tables(tmp_path, monkeypatch)
 def test_a_full_disk_while_writing_hydra_fails_that_job_alone_in_one_line(tmp_path, monkeypatch, name):
     """ENOSPC while physgrad writes a job's .hydra/ (each of its files): that job fails with one line and its
     reason recorded, no half-written file is left, and the sweep's other job runs."""
-    import physgrad.results as results
+    import physgrad.files as files
     from physgrad.cli import main
     from physgrad.sweeps import job_states
 
-    real = results.replace_file
+    real = files.replace_file
 
     def full(path, content, sync=False):
         if path.name == name and path.parent.name == ".hydra" and "optim=gd" in str(path):
             raise OSError(errno.ENOSPC, "No space left on device", str(path))
         return real(path, content, sync)
 
-    monkeypatch.setattr(results, "replace_file", full)
+    monkeypatch.setattr(files, "replace_file", full)
     assert main(["run", "-m", "task=toy", "optim=gd,adam", "trainer.iterations=2", f"hydra.sweep.dir={tmp_path}"]) == 1
     states = {Path(s["folder"]).name.split(",")[0]: s for s in job_states(tmp_path).values()}
     assert states["optim=adam"]["state"] == "completed"

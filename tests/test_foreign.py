@@ -14,8 +14,8 @@ import pytest
 from omegaconf import OmegaConf
 
 from physgrad.report import collect, write_report
-from physgrad.results import (ResultsWriter, clean_text, parse_config, read_final, read_params, read_run,
-                              read_small_yaml)
+from physgrad.files import clean_text, read_small_yaml
+from physgrad.results import ResultsWriter, parse_config, read_final, read_params, read_run
 from physgrad.resume import finished_before
 from physgrad.sweeps import job_folders, read_manifest
 

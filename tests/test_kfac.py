@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 import physgrad
-from physgrad import UserError
+from physgrad.errors import UserError
 from physgrad.jacobians import LayerJacobian, layer_jacobian, plan_layers
 from physgrad.nets import apply_mlp, init_mlp
 from physgrad.optim.kfac import kfac

@@ -3,7 +3,6 @@ convergence, the data cache, the training modalities' gradients against plain lo
 (float64), NOG's and ONE's structure, and the held-out metric against a numpy evaluation."""
 
 import math
-import os
 
 import jax
 import jax.numpy as jnp
@@ -310,7 +309,7 @@ def test_held_out_error_is_the_studys_relative_error(x64):
 
 
 def test_bad_settings_are_one_line(tmp_path):
-    from physgrad import UserError
+    from physgrad.errors import UserError
     for override, fragment in (("task.stepper=both", "task.stepper"), ("task.training=TBPTT", "task.training"),
                                ("task.points=47", "even"), ("task.train_sizes=[]", "task.train_sizes"),
                                ("task.horizon=100", "task.horizon")):

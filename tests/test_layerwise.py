@@ -9,7 +9,7 @@ import pytest
 from jax.flatten_util import ravel_pytree
 
 import physgrad
-from physgrad import UserError
+from physgrad.errors import UserError
 from physgrad.configs import compose
 from physgrad.experiment import prepare
 from physgrad.optim import build_rule, on_tree

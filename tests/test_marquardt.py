@@ -1,7 +1,6 @@
 """Levenberg-Marquardt (physgrad.optim.spectral.marquardt_rule) against closed forms in float64, its damping
 adaptation, and the rules that take optax's extra arguments (L-BFGS) through a real run."""
 
-import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest

@@ -12,7 +12,6 @@ import pandas as pd
 import pytest
 import yaml
 
-from physgrad import UserError
 from physgrad.plots import log_axis, median_band, use_log_x
 from physgrad.report import collect, label_runs, loss_at, run_rows, write_report
 from physgrad.results import ResultsWriter, read_run

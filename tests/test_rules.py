@@ -6,7 +6,7 @@ import numpy as np
 import optax
 import pytest
 
-from physgrad import UserError
+from physgrad.errors import UserError
 from physgrad.gradients import Combined, JacobianPass, Regular
 from physgrad.optim import CLIPPING, build_rule
 from physgrad.unroll import PHYSICS_ONLY, REGULAR

@@ -8,7 +8,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from physgrad import UserError
+from physgrad.errors import UserError
 from physgrad.experiment import run_experiment, set_precision
 from physgrad.results import ResultsWriter, read_run
 from physgrad.tasks import build_scene

@@ -1,7 +1,6 @@
 """Named sweeps (conf/experiment/), resuming, continuing from another run's network, and sweeps that go on when
 a job fails."""
 
-import itertools
 import sys
 from pathlib import Path
 

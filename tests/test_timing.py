@@ -5,7 +5,6 @@ import numpy as np
 import pytest
 
 import physgrad.runner
-from physgrad import UserError
 from physgrad.experiment import run_experiment
 from physgrad.machine import contention, machine_label, step_statistics
 from physgrad.results import read_run

@@ -15,7 +15,7 @@ import optax
 from jax.flatten_util import ravel_pytree
 from omegaconf import OmegaConf
 
-from physgrad import UserError
+from physgrad.errors import UserError
 from physgrad.gradients import route_for
 from physgrad.optim.spectral import JacobianRule, MarquardtRule
 from physgrad.validate import call_target, choice, number

@@ -28,7 +28,7 @@ import jax
 import jax.numpy as jnp
 from jax.flatten_util import ravel_pytree
 
-from physgrad import UserError
+from physgrad.errors import UserError
 from physgrad.jacobians import LayerJacobian, as_jacobian
 from physgrad.optim.spectral import JacobianRule
 from physgrad.validate import number

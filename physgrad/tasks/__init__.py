@@ -17,7 +17,7 @@ import jax
 import jax.numpy as jnp
 from jax.flatten_util import ravel_pytree
 
-from physgrad import UserError
+from physgrad.errors import UserError
 from physgrad.unroll import REGULAR, Backprop, Dynamics
 
 # task keys that physgrad reads itself and does not pass to the scene's build function

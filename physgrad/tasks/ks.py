@@ -36,8 +36,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from physgrad import UserError
-from physgrad.results import replace_file
+from physgrad.errors import UserError
+from physgrad.files import replace_file
 from physgrad.tasks import Scene
 from physgrad.unroll import Dynamics
 from physgrad.validate import choice, flag, number

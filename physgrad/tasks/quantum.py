@@ -18,7 +18,7 @@ import jax
 import jax.numpy as jnp
 from jax.lax.linalg import tridiagonal_solve
 
-from physgrad import UserError
+from physgrad.errors import UserError
 from physgrad.nets import apply_control_cnn, apply_mlp, init_control_cnn, init_mlp
 from physgrad.tasks import Scene
 from physgrad.unroll import Dynamics

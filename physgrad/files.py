@@ -1,0 +1,181 @@
+"""Files written safely and text read safely: folder locks, writes renamed into place, plain YAML, printable text.
+
+Every writer of physgrad writes beside its target and renames onto it, so a reader or a process killed at any
+instant sees the old file or the new one, never a part. Every text from a file physgrad did not write is data:
+it is cleaned of control characters before it is printed and parsed as plain YAML without aliases or tags.
+"""
+
+from __future__ import annotations
+
+import errno
+import fcntl
+import os
+import re
+import socket
+import stat
+import time
+from contextlib import contextmanager
+from pathlib import Path
+
+import yaml
+
+from physgrad.errors import FolderOwned, LockingUnsupported
+
+def owner_tag() -> str:
+    return f"pid {os.getpid()} on {socket.gethostname()}"
+
+
+NO_LOCKS = {errno.ENOLCK, errno.ENOSYS, errno.EOPNOTSUPP, errno.EINVAL}  # what "locks unsupported" looks like
+HELD = {errno.EWOULDBLOCK, errno.EAGAIN, errno.EACCES}  # what "another process holds it" looks like
+
+
+def _lock(fd: int, lock_path: Path) -> bool:
+    """An exclusive, non-blocking lock on fd: flock, else (where the file system has no flock) a POSIX lock.
+    True if taken, False if another process holds it; LockingUnsupported where neither kind works."""
+    reasons = []
+    for take in (lambda: fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB),
+                 lambda: fcntl.lockf(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)):
+        try:
+            take()
+            return True
+        except OSError as error:
+            if error.errno in HELD:
+                return False
+            if error.errno not in NO_LOCKS:
+                raise
+            reasons.append(error.strerror or str(error))
+    raise LockingUnsupported(f"cannot lock {lock_path}: the file system supports no file locks (flock: {reasons[0]}; "
+                             f"POSIX locks: {reasons[1]}): write to a local disk (e.g. hydra.sweep.dir=/tmp/...) or "
+                             "mount it with locking (Lustre: -o flock)")
+
+
+@contextmanager
+def own_folder(folder: str | os.PathLike, what: str = "job"):
+    """Hold the folder for this process while the block runs: an exclusive lock on folder/.physgrad-<what>
+    (flock, or a POSIX lock where the file system has no flock), which the operating system releases when the
+    process ends however it ends, so a dead owner never blocks a new one. FolderOwned (one line naming the
+    owner's pid, host and start time) if a live process holds it; LockingUnsupported (one line) where the file
+    system has no locks; OSError if the folder cannot be written. The lock file must stay: a second process
+    that finds it deleted creates its own (see docs/results.md)."""
+    folder = Path(folder)
+    folder.mkdir(parents=True, exist_ok=True)
+    lock_path = folder / f".physgrad-{what}"
+    while True:
+        fd = os.open(lock_path, os.O_RDWR | os.O_CREAT, 0o644)
+        try:
+            taken = _lock(fd, lock_path)
+        except BaseException:
+            os.close(fd)
+            raise
+        if not taken:
+            owner = clean_text(os.pread(fd, 512, 0).decode(errors="replace").strip(), 300) or "another process"
+            os.close(fd)
+            raise FolderOwned(f"{folder} is being written by {owner} (another {what}): wait for it to end, stop "
+                              "it, or write somewhere else")
+        try:
+            same = os.stat(lock_path).st_ino == os.fstat(fd).st_ino
+        except FileNotFoundError:
+            same = False
+        if same:
+            break
+        os.close(fd)  # the file was replaced between open and lock: lock the one that is there now
+    try:
+        os.ftruncate(fd, 0)
+        os.pwrite(fd, f"{owner_tag()} since {timestamp()}\n".encode(), 0)
+        yield
+    finally:
+        os.close(fd)  # releases the lock; the file stays (removing it would race with a new owner)
+
+
+def replace_file(path: Path, content: bytes, sync: bool = False) -> None:
+    """Write content beside path (.NAME.<pid>.tmp) and rename it onto path: a reader, or a process killed at
+    any instant, sees the old file or the new one, never a part (sync: onto the disk itself before the rename,
+    which a power cut could otherwise undo). The temporary file is removed on any error."""
+    temporary = path.with_name(f".{path.name}.{os.getpid()}.tmp")
+    try:
+        with open(temporary, "wb") as out:
+            out.write(content)
+            if sync:
+                out.flush()
+                os.fsync(out.fileno())
+        os.replace(temporary, path)
+    except BaseException:
+        temporary.unlink(missing_ok=True)
+        raise
+
+
+def timestamp() -> str:
+    return time.strftime("%Y-%m-%dT%H:%M:%S%z")
+
+
+TEXT_LIMIT = 2000  # characters of one text attribute (config excepted): longer text is cut
+CONFIG_LIMIT = 1 << 20  # bytes of the stored config; a physgrad config is a few kB
+
+
+_UNSAFE = re.compile("[\x00-\x08\x0b-\x1f\x7f-\x9f\u202a-\u202e\u2066-\u2069]")  # C0/C1 controls, bidi overrides
+
+
+def clean_text(text: str, limit: int | None = TEXT_LIMIT, lines: bool = False) -> str:
+    """text safe to print: control characters (an ANSI escape's ESC among them) and bidirectional overrides
+    replaced by U+FFFD, newlines and tabs too unless lines, cut to limit characters."""
+    text = _UNSAFE.sub("\ufffd", text if lines else text.replace("\n", " ").replace("\t", " "))
+    return text if limit is None or len(text) <= limit else text[:limit] + "... (cut)"
+
+
+class _NoAliases(yaml.SafeLoader):
+    """YAML without aliases: a few bytes of nested aliases expand to gigabytes (a 'billion laughs'), and
+    physgrad never writes one."""
+
+    def compose_node(self, parent, index):
+        if self.check_event(yaml.AliasEvent):
+            raise yaml.YAMLError("aliases (*name) are not allowed")
+        return super().compose_node(parent, index)
+
+
+def load_yaml(text: str):
+    """Plain YAML data (no aliases, no tags beyond YAML's own); ValueError (one line) if it is not that."""
+    try:
+        return yaml.load(text, Loader=_NoAliases)  # noqa: S506 - a SafeLoader
+    except (yaml.YAMLError, RecursionError, ValueError) as error:
+        raise ValueError(f"not plain YAML ({clean_text(str(error).splitlines()[0], 200)})") from None
+
+
+def read_small_yaml(path: Path, limit: int = CONFIG_LIMIT):
+    """load_yaml of a regular file of at most limit bytes (a sweep's jobs.yaml, overrides.yaml, Optuna's
+    optimization_results.yaml: other people's folders too); ValueError (one line) otherwise."""
+    fd = os.open(path, os.O_RDONLY | os.O_NONBLOCK | getattr(os, "O_NOCTTY", 0))  # OSError if absent
+    try:
+        mode = os.fstat(fd).st_mode
+        if not stat.S_ISREG(mode):
+            raise ValueError(f"{path}: {file_kind(mode)}, not a file: refused")
+        content = os.read(fd, limit + 1)
+    finally:
+        os.close(fd)
+    if len(content) > limit:
+        raise ValueError(f"{path}: longer than {limit} bytes")
+    try:
+        return load_yaml(content.decode(errors="replace"))
+    except ValueError as error:
+        raise ValueError(f"{path}: {error}") from None
+
+
+@contextmanager
+def replaced_text(path: Path):
+    """A text file written beside path and renamed onto it when the block ends without error (else removed):
+    an interrupted writer leaves the previous file or none, never a truncated one."""
+    temporary = path.with_name(f".{path.name}.{os.getpid()}.tmp")
+    try:
+        with open(temporary, "w", newline="") as out:
+            yield out
+        os.replace(temporary, path)
+    except BaseException:
+        temporary.unlink(missing_ok=True)
+        raise
+
+
+def file_kind(mode: int) -> str:
+    for test, kind in ((stat.S_ISFIFO, "a FIFO"), (stat.S_ISCHR, "a character device"), (stat.S_ISBLK, "a block "
+                       "device"), (stat.S_ISSOCK, "a socket"), (stat.S_ISDIR, "a folder")):
+        if test(mode):
+            return kind
+    return "not a plain file"
