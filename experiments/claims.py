@@ -30,8 +30,9 @@ from pathlib import Path
 
 import numpy as np
 
-from physgrad.verdict import (A_BETTER, B_BETTER, EQUIVALENT, GROWS, MARGIN, UNDECIDED, compare_variants,
-                              highest_median, interaction, paired)
+from physgrad.readout import highest_median
+from physgrad.verdict import (A_BETTER, B_BETTER, EQUIVALENT, GROWS, MARGIN, UNDECIDED, compare_variants, interaction,
+                              paired)
 
 HOLDS, FAILS, OPEN = "holds", "does not hold", "not settled"
 NOT_RUN = "not run"  # a part whose variants the study does not have (the presets' twin of a clipping sweep)
@@ -324,7 +325,7 @@ class StudyRuns:
     machine: str = ""
 
     def curves(self, variant: str, column: str = "loss") -> dict:
-        from physgrad.comparison import run_curve
+        from physgrad.readout import run_curve
         from physgrad.results import read_run
 
         found, unreadable = {}, []
@@ -572,7 +573,7 @@ def map_cell(root: Path, study: Study) -> Cell | None:
     """One cell: the time each variant's seeds take to reach the cell's target, as per-seed ratios HIG / Adam
     with the verdict rule's median and interval (a seed that never reaches it counts as infinite, as a divergence
     does; a pair where neither does is a tie). The target is the higher of the two variants' median test loss at
-    the budget (verdict.highest_median): what the slower variant typically gets to, which the faster one reaches
+    the budget (readout.highest_median): what the slower variant typically gets to, which the faster one reaches
     in most seeds. compare's target (the lower median) is reached by only about half the better variant's seeds,
     so with 6 seeds most pairs are ties of two misses and no cell can be decided."""
     runs = read_study(root / study.name)
@@ -603,7 +604,7 @@ def map_cell(root: Path, study: Study) -> Cell | None:
 
 def _constant(value: float):
     """A time to target as a curve whose 'loss' is that time, read at x = 1 (inf: never reached)."""
-    from physgrad.verdict import Curve
+    from physgrad.readout import Curve
 
     return Curve(np.array([0.0]), np.array([value]), 1.0, False, None)
 

@@ -13,7 +13,7 @@ from pathlib import Path
 
 import numpy as np
 
-from physgrad.report import run_config
+from physgrad.readout import config_row
 from physgrad.results import find_results, read_run
 
 MODALITIES = ("ONE", "NOG", "WIG")
@@ -26,7 +26,7 @@ def collect(folders: list[Path]) -> dict:
     table = defaultdict(dict)
     for path in find_results(folders):
         run = read_run(path)
-        config = run_config(run)
+        config = config_row(run)
         if run.attrs.get("task") != "ks" or run.attrs.get("status") not in ("completed", "diverged"):
             continue
         key = (config["task.stepper"], config["task.training"], int(run.attrs["unroll"]))

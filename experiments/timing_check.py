@@ -41,11 +41,11 @@ def study(overrides: list[str], folder: Path):
 
 
 def calibrate_under_load(overrides: list[str]) -> dict:
-    """The study's variants calibrated again, now (physgrad.calibration)."""
+    """The study's variants calibrated again, now (physgrad.comparison.calibration)."""
     from omegaconf import open_dict
 
-    from physgrad.calibration import calibrate
     from physgrad.comparison import build_variants, split_overrides, study_settings
+    from physgrad.comparison.calibration import calibrate
 
     given, axes, common, _ = split_overrides(overrides)
     settings = study_settings(given)
@@ -55,7 +55,7 @@ def calibrate_under_load(overrides: list[str]) -> dict:
         with open_dict(cfg):
             del cfg["hydra"]
         configs[variant.name] = cfg
-    return calibrate(configs, settings["tune_seed"])
+    return calibrate(configs, settings.tune_seed)
 
 
 def summary(result) -> dict:

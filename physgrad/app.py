@@ -27,7 +27,7 @@ log = logging.getLogger("physgrad")
 
 OUTCOMES = ("completed", "diverged", "refused")  # what an experiment can find; anything else is a failure
 FAILED_JOBS: list[int] = []  # set by SweepSummary at the end of a sweep: `physgrad run -m` exits 1 if non-zero
-STOPPED_BY: list[str] = []  # ... and 130 if a signal stopped it
+INTERRUPTED_BY_SIGNAL: list[str] = []  # ... and 130 if a signal stopped it (the signal's name)
 
 
 def job_folder_name(override_dirname: str, task_overrides) -> str:
@@ -105,7 +105,7 @@ class SweepSummary(Callback):
         # what was there before: a file counts as this sweep's if it is new or was written since
         self.before = {path: path.stat().st_mtime_ns for path in find_results([folder])}
         FAILED_JOBS.clear()
-        STOPPED_BY.clear()
+        INTERRUPTED_BY_SIGNAL.clear()
 
     def on_multirun_end(self, config: DictConfig, **kwargs) -> None:
         from physgrad.results import find_results, read_final
@@ -126,7 +126,7 @@ class SweepSummary(Callback):
             written[why.split(":")[0]] += 1
             log.warning("job %s: %s", job_name, why)
         stopped = stop_count(folder)
-        STOPPED_BY[:] = [stopped[0]] if stopped else []
+        INTERRUPTED_BY_SIGNAL[:] = [stopped[0]] if stopped else []
         # a run left running or crashed (its worker was killed), interrupted, failed, unreadable or missing
         FAILED_JOBS[:] = [sum(n for status, n in written.items() if status not in OUTCOMES)]
         counts = ", ".join(f"{n} {status}" for status, n in sorted(written.items())) or "no runs written"

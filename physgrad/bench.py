@@ -29,6 +29,7 @@ import time
 from pathlib import Path
 
 from physgrad.configs import compose
+from physgrad.timing import compiled_step, interleaved_times
 
 SCENES = ("oscillator", "quantum", "poisson", "multicart", "quantum_control", "guidance", "ks")
 OPTIMS = ("adam", "gd", "gauss_newton", "hig", "levenberg_marquardt", "kfac", "lbfgs", "muon", "bptt",
@@ -51,28 +52,6 @@ def _median_times(fns: list, repeats: int, min_seconds: float, warmup: bool = Tr
             for fn_times in interleaved_times(fns, repeats, min_seconds, warmup, max_seconds)]
 
 
-def interleaved_times(fns: list, repeats: int, min_seconds: float, warmup: bool = True,
-                      max_seconds: float = 120.0) -> list[list[float]]:
-    """The wall times of each fn() (which must block until its results are ready), called in turn, one call
-    each per round, so that a step and its baseline see the same machine (on 2 shared cores the speed drifts by
-    tens of percent between measurements taken a few seconds apart). At least `repeats` rounds and min_seconds,
-    but stopping once max_seconds are spent (slow steps: fewer, long repeats), after one untimed warm-up call
-    each."""
-    if warmup:
-        for fn in fns:
-            fn()
-    times: list[list[float]] = [[] for _ in fns]
-    spent = 0.0
-    while not times[0] or ((len(times[0]) < repeats or spent < min_seconds) and spent < max_seconds
-                           and len(times[0]) < 100_000):
-        for fn, fn_times in zip(fns, times):
-            start = time.perf_counter()
-            fn()
-            fn_times.append(time.perf_counter() - start)
-            spent += fn_times[-1]
-    return times
-
-
 def _median_time(fn, repeats: int, min_seconds: float, warmup: bool = True,
                  max_seconds: float = 120.0) -> tuple[float, int]:
     return _median_times([fn], repeats, min_seconds, warmup, max_seconds)[0]
@@ -80,31 +59,6 @@ def _median_time(fn, repeats: int, min_seconds: float, warmup: bool = True,
 
 def _peak_rss_gb() -> float:
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2**20  # kB on Linux
-
-
-def _compiled(cfg, seeds: list[int]):
-    """The scene, rule, seeds and compiled training exactly as `physgrad run` builds them, the compile time and
-    one_step() (one training step, blocking)."""
-    import jax
-    import numpy as np
-
-    from physgrad.experiment import check_config, prepare
-    from physgrad.runner import compile_training
-
-    settings = check_config(cfg)
-    scene, rule, stacked = prepare(cfg, seeds, settings)
-    start = time.perf_counter()
-    compiled = compile_training(scene, rule, stacked, settings.batch_size)
-    compile_s = time.perf_counter() - start
-
-    state = [compiled.params, compiled.opt_state]
-
-    def one_step():
-        state[0], state[1], _ = compiled.step(state[0], state[1], np.int32(0), stacked.train_keys,
-                                              stacked.train_sets)
-        jax.block_until_ready(state[0])
-
-    return settings, scene, rule, stacked, compiled, compile_s, one_step
 
 
 def measure_variant(overrides: list[str], repeats: int, min_seconds: float) -> dict:
@@ -123,7 +77,7 @@ def measure_variant(overrides: list[str], repeats: int, min_seconds: float) -> d
 
     cfg = compose(overrides)
     try:
-        settings, scene, rule, seeds, compiled, compile_s, one_step = _compiled(cfg, [cfg.seed])
+        settings, scene, rule, seeds, compiled, compile_s, one_step = compiled_step(cfg, [cfg.seed])
     except UserError as error:
         return {"refused": str(error)}
     result = {"compile_s": compile_s}
@@ -222,8 +176,8 @@ def measure_seeds(overrides: list[str], count: int, repeats: int, min_seconds: f
     """Seconds per iteration of one seed and of `count` seeds in one vectorised step (what seeds=<count> runs),
     timed in turn in one process."""
     cfg = compose(overrides)
-    *_, single = _compiled(cfg, [cfg.seed])
-    *_, many = _compiled(cfg, [cfg.seed + i for i in range(count)])
+    *_, single = compiled_step(cfg, [cfg.seed])
+    *_, many = compiled_step(cfg, [cfg.seed + i for i in range(count)])
     (single_s, _), (many_s, _) = _median_times([single, many], repeats, min_seconds)
     return {"seeds": count, "single_step_s": single_s, "step_s": many_s, "peak_rss_gb": _peak_rss_gb()}
 

@@ -13,7 +13,8 @@ import sys
 from pathlib import Path
 
 from physgrad.errors import UserError
-from physgrad.interrupts import SignalInterrupt, keeping_lost_interrupts, raise_interrupt, take_lost
+from physgrad.interrupts import (ABANDONED, SignalInterrupt, install, keeping_lost_interrupts, raise_interrupt,
+                                 signals_held, take_lost)
 
 USAGE = """usage: physgrad {run,compare,report,check} ...
 
@@ -46,15 +47,13 @@ def main(argv: list[str] | None = None) -> int:
 
 
 def _console_main() -> int:
-    for sig in (signal.SIGINT, signal.SIGTERM):
-        signal.signal(sig, raise_interrupt)
+    install(raise_interrupt)
     try:
         with keeping_lost_interrupts():
             return _main(None)
     finally:
         # the files are final: a signal now would only interrupt the interpreter's shutdown
-        signal.signal(signal.SIGINT, signal.SIG_IGN)
-        signal.signal(signal.SIGTERM, signal.SIG_IGN)
+        install(signal.SIG_IGN)
 
 
 def _main(argv: list[str] | None) -> int:
@@ -96,18 +95,14 @@ def import_holding_signals(modules) -> None:
     that came meanwhile is handled right after (about a second later at most)."""
     import importlib
 
-    held = signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT, signal.SIGTERM})
-    try:
+    with signals_held():
         for name in modules:
             importlib.import_module(name)
-    finally:
-        signal.pthread_sigmask(signal.SIG_SETMASK, held)
 
 
 def abandoned_steps() -> bool:
-    """A training step left computing by a second signal is still running (physgrad.runner.ABANDONED)."""
-    runner = sys.modules.get("physgrad.runner")
-    return runner is not None and any(thread.is_alive() for thread in runner.ABANDONED)
+    """A training step left computing by a second signal is still running (physgrad.interrupts.ABANDONED)."""
+    return any(thread.is_alive() for thread in ABANDONED)
 
 
 def dispatch(argv: list[str]) -> int:
@@ -153,11 +148,11 @@ def run_command(args: list[str]) -> int:
         check_writable(parsed.overrides, multirun=parsed.multirun)
     from physgrad.app import job
 
-    from physgrad.app import FAILED_JOBS, STOPPED_BY
+    from physgrad.app import FAILED_JOBS, INTERRUPTED_BY_SIGNAL
 
     sys.argv = ["physgrad run", *args]
     job()
-    if parsed.multirun and STOPPED_BY:
+    if parsed.multirun and INTERRUPTED_BY_SIGNAL:
         return 130
     return 1 if parsed.multirun and any(FAILED_JOBS) else 0
 

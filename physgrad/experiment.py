@@ -21,14 +21,16 @@ from physgrad.gradients import JacobianPass
 from physgrad.machine import machine_attributes
 from physgrad.nets import count_params
 from physgrad.optim import UpdateRule, build_rule, matrix_leaves, needs_value_arguments
-from physgrad.optim.kfac import KroneckerRule
+from physgrad.optim.capabilities import batches_over_seeds, capabilities
 from physgrad.resume import finished_before, start_from
 from physgrad.errors import FolderOwned
 from physgrad.files import own_folder
+from physgrad.interrupts import stop_on_signals
 from physgrad.results import ResultsWriter, read_final, record_outcome
-from physgrad.runner import Outcome, Seeds, TrainerSettings, stack, stop_on_signals, train
+from physgrad.runner import Outcome, TrainerSettings, train
 from physgrad.sweeps import mark_stopped, watching
 from physgrad.tasks import Scene, build_scene
+from physgrad.training import Seeds, stack
 from physgrad.validate import choice, finite_numbers, flag, number
 
 
@@ -223,7 +225,8 @@ def prepare(cfg: DictConfig, seed_list: list[int], settings: TrainerSettings,
     scene, seeds = build_seeds(cfg, seed_list, settings.batch_size, checkpoint)
     check_scene_values(scene, seeds, cfg.task.name)
     check_applies(scene, cfg)
-    if rule.on_layers and not matrix_leaves(seeds.network()) and "muon" in str(cfg.optim.get("_target_", "")):
+    kind = capabilities(cfg.optim)
+    if kind.needs_matrices and not matrix_leaves(seeds.network()):
         raise UserError(f"optim={cfg.optim.name} orthogonalises the network's matrices and task={cfg.task.name}'s "
                         "network has none (no 2-D parameters): its Muon partition would be empty; use adam")
     if not rule.uses_jacobian and needs_value_arguments(rule.transform, seeds.network()):
@@ -233,7 +236,7 @@ def prepare(cfg: DictConfig, seed_list: list[int], settings: TrainerSettings,
         sample = jax.tree_util.tree_map(lambda leaf: leaf[0], scene.sample_train(jax.random.PRNGKey(0), 1))
         rule = rule._replace(gradient=JacobianPass.for_network(scene.sample_output, seeds.network(), sample,
                                                                with_value=rule.gradient.with_value))
-        if isinstance(rule.transform, KroneckerRule) and rule.gradient.plan is None:
+        if kind.needs_layer_factors and rule.gradient.plan is None:
             raise UserError(f"optim={cfg.optim.name} needs the Jacobian in layer factors and task={cfg.task.name} "
                             f"gives it per sample ({rule.gradient.why_per_sample}): use levenberg_marquardt or "
                             "gauss_newton")
@@ -324,7 +327,7 @@ def set_up_and_train(cfg: DictConfig, paths: list[tuple[int, Path]], stop) -> Ou
         settings = check_config(cfg)
         if len(paths) > 1 and cfg.get("init_from"):
             raise UserError(f"init_from starts one network: use seeds=1 (not seeds={len(paths)}) with it")
-        if len(paths) > 1 and cfg.optim.get("retry_float64"):
+        if len(paths) > 1 and not batches_over_seeds(cfg.optim):
             # its lax.cond traced under x64 does not batch under vmap (jax 0.10): a known limitation
             raise UserError(f"seeds={len(paths)} cannot retry failed factorisations in float64: add "
                             "optim.retry_float64=false, or use seeds=1")

@@ -14,6 +14,7 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 from matplotlib.ticker import FixedLocator, FuncFormatter, MaxNLocator, NullFormatter, NullLocator  # noqa: E402
 
+from physgrad.readout import loss_at, targets, time_to_target  # noqa: E402
 from physgrad.results import Run, natural_key  # noqa: E402
 
 MAX_MARKERS = 40  # markers per curve at most (evaluations beyond that are thinned out evenly)
@@ -274,20 +275,18 @@ def plot_tradeoff(runs: list[Run], path: str | Path, note: str = "", styles: dic
                   thresholds: dict | None = None) -> None:
     """Error against run time, per scene, one point per seed in its group's style: the final test loss against
     the seconds per iteration (top) and against the training seconds until the test loss first reached the
-    scene's threshold (bottom; report.thresholds: the best group's median, so a budget does not set the x
+    scene's threshold (bottom; readout.targets: the best group's median, so a budget does not set the x
     value); a diverged seed as a triangle at the top edge of the top panel at its seconds per iteration."""
-    from physgrad.report import thresholds as report_thresholds
-
     styles = _styles_for(runs, styles)
-    limits = report_thresholds(runs) if thresholds is None else thresholds
+    limits = targets(runs) if thresholds is None else thresholds
     by_scene = defaultdict(lambda: defaultdict(lambda: {"ok": [], "diverged": []}))
     for run in runs:
-        final, per_iter = run.final("eval"), run.seconds_per_iteration
+        final, per_iter = loss_at(run), run.seconds_per_iteration
         if not np.isfinite(per_iter):
             continue
         if run.attrs.get("status") == "completed" and np.isfinite(final):
             limit = limits.get(run.scene, np.nan)
-            reach = run.time_to_reach(limit) + run.offset("wall_time") if np.isfinite(limit) else np.nan
+            reach = time_to_target(run, limit)
             by_scene[run.scene][run.label or run.variant]["ok"].append((per_iter, reach, final))
         elif run.attrs.get("status") == "diverged":
             by_scene[run.scene][run.label or run.variant]["diverged"].append(per_iter)
@@ -345,7 +344,7 @@ def plot_unroll(runs: list[Run], path: str | Path, note: str = "", styles: dict 
         unroll = run.attrs.get("unroll")
         if unroll is not None:
             scene = " ".join(word for word in run.scene.split() if not word.startswith("unroll="))
-            final = run.final("eval") if run.attrs.get("status") == "completed" else np.nan  # diverged: no loss
+            final = loss_at(run) if run.attrs.get("status") == "completed" else np.nan  # diverged: no loss
             by_scene[scene][run.label or run.variant][int(unroll)].append((final, run.seconds_per_iteration))
     scenes = sorted(scene for scene, groups in by_scene.items()
                     if len({u for lengths in groups.values() for u in lengths}) > 1)

@@ -23,10 +23,10 @@ import pandas as pd
 
 from physgrad.errors import UserError
 from physgrad.machine import machine_label
+from physgrad.readout import config_row, fmt, loss_at, targets, time_to_target
 from physgrad.files import clean_text, read_small_yaml, replaced_text
-from physgrad.results import Run, find_results, natural_key, parse_config, read_run
+from physgrad.results import Run, find_results, natural_key, read_run
 from physgrad.sweeps import unfinished_jobs
-from physgrad.verdict import lowest_median
 
 # keys that never tell two runs apart: the seed (what a group pools over), files and cadences that do not change
 # the computation (`seeds` does count: seeds trained together share one step time) (init_from is identified by the variant's "from ...")
@@ -90,32 +90,10 @@ def collect(arguments) -> tuple[list[Run], list[tuple[Path, str]], list[Dropped]
     return runs, unreadable, repeated + dropped
 
 
-def run_config(run: Run) -> dict:
-    """The run's resolved configuration, flattened to dotted keys (empty if it holds none): read_run's parsed
-    copy, or for a Run built in memory its config attribute parsed the same way (parse_config)."""
-    tree = run.config
-    if not tree and isinstance(run.attrs.get("config"), str):
-        try:
-            tree = parse_config(run.attrs["config"])
-        except ValueError:
-            tree = {}
-    return _flat(tree)
-
-
-def _flat(tree: dict, prefix: str = "") -> dict:
-    flat = {}
-    for key, value in tree.items():
-        if isinstance(value, dict):
-            flat.update(_flat(value, f"{prefix}{key}."))
-        else:
-            flat[f"{prefix}{key}"] = value if not isinstance(value, list) else tuple(value)
-    return flat
-
-
 def _identity(run: Run) -> tuple:
     """What makes two files the same run: the set, every setting that changes the computation (as for
     grouping), the seed the file trained and the network it started from; a file without a stored configuration is only itself."""
-    config = {k: v for k, v in run_config(run).items() if k not in NOT_COMPUTATION}
+    config = {k: v for k, v in config_row(run).items() if k not in NOT_COMPUTATION}
     if not config:
         return (str(run.path.resolve()),)
     return (run.collection, repr(sorted(config.items())), run.attrs.get("task"), run.variant,
@@ -148,7 +126,7 @@ def label_runs(runs: list[Run]) -> None:
     "old: adam learning_rate=0.01"): scene settings are the task keys, unroll and precision that differ between
     runs of the same task; group settings every other key that differs between runs of the same variant in the
     same scene (seed and NOT_COMPUTATION keys aside)."""
-    configs = {id(run): {k: v for k, v in run_config(run).items() if k not in NOT_COMPUTATION} for run in runs}
+    configs = {id(run): {k: v for k, v in config_row(run).items() if k not in NOT_COMPUTATION} for run in runs}
     for run in runs:  # the unroll length the run used (unroll=null means the scene's own, task.unroll)
         if "unroll" in run.attrs:
             configs[id(run)]["unroll"] = run.attrs["unroll"]
@@ -178,21 +156,6 @@ def label_runs(runs: list[Run]) -> None:
                 run.label = f"{run.collection}: {run.label}"
 
 
-def thresholds(runs: list[Run]) -> dict[str, float]:
-    """Per scene, the target of time-to-threshold, as physgrad compare chooses it (verdict.lowest_median): the
-    median final test loss of the group (run.label, else the variant) whose median is lowest, a diverged run
-    counting as infinite and an interrupted or crashed one left out. Every run has to train to get there, and
-    a group that never does says so (n/N). (The worst final loss would be reached at the first evaluation
-    whenever one run ends above where all began.)"""
-    finals = defaultdict(lambda: defaultdict(list))
-    for run in runs:
-        status = run.attrs.get("status")
-        if status in ("completed", "diverged"):
-            final = run.final("eval") if status == "completed" else math.inf
-            finals[run.scene][run.label or run.variant].append(final if not math.isnan(final) else math.inf)
-    return {scene: lowest_median(groups)[1] for scene, groups in finals.items()}
-
-
 def common_times(runs: list[Run]) -> dict[str, float]:
     """Per scene, the time every completed run covers: the shortest end of training among them (a time budget
     ends a run at its budget), on the shared time axis (a run started from another's network starts where that
@@ -205,39 +168,14 @@ def common_times(runs: list[Run]) -> dict[str, float]:
     return dict(shortest)
 
 
-def loss_at(run: Run, seconds: float) -> float:
-    """The test loss of the last evaluation up to `seconds` of training (on the shared time axis) plus one of
-    the run's steps: a time budget is checked after each step, so every budgeted run's final evaluation, which
-    comes at most one step after its budget, counts at the budget. NaN if there is none, or if the run's
-    training ended before that time (diverged, interrupted or killed: its last loss says nothing about it)."""
-    offset = run.offset("wall_time")
-    times = run.eval.get("wall_time", np.empty(0)) + offset
-    loss = run.eval.get("loss", np.empty(0))
-    step = run.seconds_per_iteration if math.isfinite(run.seconds_per_iteration) else 0.0
-    before = np.flatnonzero(times <= seconds * (1 + 1e-9) + step)
-    ended = run.final("train", "wall_time") + offset
-    if not before.size or (math.isfinite(ended) and ended < seconds * (1 - 1e-9)):
-        return math.nan
-    return float(loss[before[-1]])
-
-
 def metric_names(runs: list[Run]) -> list[str]:
     """The scene metrics the runs evaluate besides the loss (e.g. fidelity, upright)."""
     return sorted({k for run in runs for k in run.eval if k not in (*METADATA, "loss")})
 
 
-def _fmt(value) -> str:
-    """Three significant figures; '-' for a missing number."""
-    if value is None or (isinstance(value, float) and math.isnan(value)):
-        return "-"
-    if isinstance(value, float):
-        return f"{value:.3g}"
-    return str(value)
-
-
 def run_rows(runs: list[Run], threshold: float | None = None) -> list[dict]:
     """One row per run (the per-seed table and runs.csv)."""
-    limits, common = thresholds(runs), common_times(runs)
+    limits, common = targets(runs), common_times(runs)
     names = metric_names(runs)
     rows = []
     order = lambda r: (natural_key(r.scene), natural_key(r.label), natural_key(str(r.attrs.get("seed"))))  # noqa: E731
@@ -251,11 +189,11 @@ def run_rows(runs: list[Run], threshold: float | None = None) -> list[dict]:
             "status": run.attrs.get("status"), "stopped_by": run.attrs.get("stopped_by", ""),
             "iterations": int(train_loss.size),
             "train_loss": float(np.median(train_loss[-10:])) if train_loss.size else math.nan,
-            "test_loss": run.final("eval"),
+            "test_loss": loss_at(run),
             "common_time": at,
-            "loss_at_common_time": loss_at(run, at) if math.isfinite(at) else math.nan,
+            "loss_at_common_time": loss_at(run, at, "wall_time") if math.isfinite(at) else math.nan,
             "threshold": limit,
-            "time_to_threshold": run.time_to_reach(limit) if math.isfinite(limit) else math.nan,
+            "time_to_threshold": time_to_target(run, limit),
             "s_per_iter": run.seconds_per_iteration,
             "train_seconds": run.final("train", "wall_time"),
             "compile_seconds": float(run.attrs.get("compile_seconds", math.nan)),
@@ -283,8 +221,8 @@ def _spread(values) -> str:
     if not finite:
         return "-"
     if len(finite) == 1:
-        return _fmt(float(finite[0]))
-    return f"{_fmt(float(np.median(finite)))} [{_fmt(float(min(finite)))}, {_fmt(float(max(finite)))}]"
+        return fmt(float(finite[0]))
+    return f"{fmt(float(np.median(finite)))} [{fmt(float(min(finite)))}, {fmt(float(max(finite)))}]"
 
 
 def _counts(values, plain_if_one: bool = False) -> str:
@@ -306,7 +244,7 @@ def group_rows(rows: list[dict], names: list[str]) -> list[dict]:
     for (scene, label), members in groups.items():
         completed = [r for r in members if r["status"] == "completed"]  # a diverged run's last loss says nothing
         reached = [r["time_to_threshold"] for r in members if math.isfinite(r["time_to_threshold"])]
-        time_to = "-" if not reached else _fmt(float(np.median(reached))) + (
+        time_to = "-" if not reached else fmt(float(np.median(reached))) + (
             "" if len(reached) == len(members) else f" ({len(reached)}/{len(members)})")
         table.append({
             "scene": scene, "group": label, "seeds": len(members), "status": _counts(r["status"] for r in members),
@@ -350,7 +288,7 @@ PER_SEED = ("scene", "label", "seed", "status", "stopped_by", "iterations", "tes
 def markdown_table(rows: list[dict], columns) -> str:
     lines = ["| " + " | ".join(columns) + " |", "|" + "---|" * len(columns)]
     for row in rows:
-        lines.append("| " + " | ".join(_fmt(row[c]).replace("|", "/") for c in columns) + " |")
+        lines.append("| " + " | ".join(fmt(row[c]).replace("|", "/") for c in columns) + " |")
     return "\n".join(lines) + "\n"
 
 
@@ -376,7 +314,7 @@ def tables(runs: list[Run], threshold: float | None = None) -> Tables:
     records, curves = [], []
     for number, row in enumerate(rows):
         run = by_path[row["path"]]
-        settings = {k: v for k, v in run_config(run).items() if k not in ("seed", "unroll")}
+        settings = {k: v for k, v in config_row(run).items() if k not in ("seed", "unroll")}
         records.append({"run": number, **row, "unroll": run.attrs.get("unroll"), **settings})
         for split in ("train", "eval"):
             columns = getattr(run, split)
@@ -473,15 +411,15 @@ def write_report(paths, out_dir=None, threshold: float | None = None, note: str 
     names = metric_names(runs)
     group_columns = ("scene", "group", "seeds", "status", "final test loss", "loss at common time",
                      "time to threshold s", "iterations", "s/iter", "stopped by", "contended", *names)
-    limits, common = thresholds(runs), common_times(runs)
+    limits, common = targets(runs), common_times(runs)
     scenes = sorted({run.scene for run in runs}, key=natural_key)
     if threshold is not None:
-        threshold_text = f"the test loss {_fmt(threshold)} (--threshold)"
+        threshold_text = f"the test loss {fmt(threshold)} (--threshold)"
     else:
         threshold_text = ("each scene's target: the median final test loss of its best group, as physgrad compare "
                           "sets it (--threshold sets one)")
-    per_scene = "; ".join(f"{scene}: common time {_fmt(common.get(scene, math.nan))} s, threshold "
-                          f"{_fmt(threshold if threshold is not None else limits.get(scene, math.nan))}"
+    per_scene = "; ".join(f"{scene}: common time {fmt(common.get(scene, math.nan))} s, threshold "
+                          f"{fmt(threshold if threshold is not None else limits.get(scene, math.nan))}"
                           for scene in scenes)
     text = [f"{len(runs)} runs under {', '.join(map(str, paths))}", "",
             markdown_table(group_rows(rows, names), group_columns),
@@ -515,7 +453,7 @@ def write_report(paths, out_dir=None, threshold: float | None = None, note: str 
                 text.append(f"unreadable: {clean_text(str(error))}")
                 continue
             settings = " ".join(f"{k}={_value(v)}" for k, v in (best.get("best_params") or {}).items())
-            text.append(f"tuned by Optuna in {path}: best {settings} (objective {_fmt(best.get('best_value'))}: the "
+            text.append(f"tuned by Optuna in {path}: best {settings} (objective {fmt(best.get('best_value'))}: the "
                         "final test loss)")
     body = "\n".join(text) + "\n"
     write_tables(tables(runs, threshold), out)

@@ -220,12 +220,6 @@ class Run:
         values = getattr(self, group).get(column, np.empty(0))
         return float(values[-1]) if values.size else math.nan
 
-    def time_to_reach(self, threshold: float) -> float:
-        """Training seconds at the first held-out evaluation with loss <= threshold (NaN if never)."""
-        loss, wall = self.eval.get("loss", np.empty(0)), self.eval.get("wall_time", np.empty(0))
-        hits = np.flatnonzero(loss <= threshold)
-        return float(wall[hits[0]]) if hits.size else math.nan
-
 
 def owner_alive(owner: str) -> bool | None:
     """Whether the process named by an `owner` attribute (pid N on HOST) still runs: None when that cannot be

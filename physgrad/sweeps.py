@@ -24,6 +24,7 @@ import yaml
 from omegaconf import OmegaConf
 
 from physgrad.files import clean_text, owner_tag, read_small_yaml, replace_file
+from physgrad.interrupts import handling_signals
 from physgrad.results import owner_alive
 
 log = logging.getLogger("physgrad")
@@ -180,24 +181,24 @@ class LauncherSignals:
 
 @contextmanager
 def launcher_signals(sweep: Path):
-    try:
-        previous = {sig: signal.signal(sig, LauncherSignals(sweep)) for sig in (signal.SIGINT, signal.SIGTERM)}
-    except ValueError:  # not the main thread
-        yield
-        return
-    os.environ[LAUNCHER_ENV] = str(os.getpid())
-    try:
-        yield
-    finally:
-        os.environ.pop(LAUNCHER_ENV, None)
-        for sig, handler in previous.items():
-            signal.signal(sig, handler)
+    """LauncherSignals handling SIGINT and SIGTERM in the process that launches the sweep (its main thread), whose
+    pid its workers inherit (LAUNCHER_ENV)."""
+    with handling_signals(LauncherSignals(sweep)) as installed:
+        if not installed:  # not the main thread
+            yield
+            return
+        os.environ[LAUNCHER_ENV] = str(os.getpid())
+        try:
+            yield
+        finally:
+            os.environ.pop(LAUNCHER_ENV, None)
 
 
 @contextmanager
 def watching(sweep: Path | None, stop):
-    """While a job of a sweep runs: a thread that passes the sweep's stop mark on to the job's StopRequest, and,
-    in a launcher's worker process, the launcher's end (its parent changes) as a SIGTERM."""
+    """While a job of a sweep runs: a thread that passes the sweep's stop mark on to the job's StopRequest
+    (physgrad.interrupts), and, in a launcher's worker process, the launcher's end (its parent changes) as a
+    SIGTERM."""
     if sweep is None:
         yield
         return

@@ -42,10 +42,10 @@ def run_metrics(run: Run):
 
 def run_params(run: Run) -> dict:
     """The stored configuration flattened to dotted keys (lists as text), as a report's columns."""
-    from physgrad.report import run_config
+    from physgrad.readout import config_row
 
     return {key: value if isinstance(value, (int, float, str, bool)) or value is None else str(value)
-            for key, value in run_config(run).items()}
+            for key, value in config_row(run).items()}
 
 
 def run_tags(run: Run) -> dict[str, str]:

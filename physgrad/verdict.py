@@ -3,12 +3,9 @@ as the budget grows. One implementation, used by `physgrad compare` and by the p
 (experiments/claims.py); docs/protocol.md gives the reasons and sources.
 
 For variants A and B trained on the same seeds (paired: same data and initial network), at a budget x:
-- each run's loss at x is its last evaluation at or before x (iterations, or training seconds): the step that
-  crosses a time budget counts against its variant, and an evaluation after it is not read at the budget;
-- a run has diverged by x when it was stopped as diverged before x, when its loss at x is not finite, or when
-  that loss exceeds DIVERGENCE_FACTOR times its first evaluation (a blow-up without NaN); it counts as an
-  infinite loss. A run that ended before x without diverging (interrupted) has no loss at x: its pair is left
-  out and counted;
+- each run's loss at x is read by physgrad.readout (Curve.at): its last evaluation at or before x, infinite
+  if it diverged by x, missing (NaN) if it ended before x without diverging: such a pair is left out and
+  counted;
 - per seed r = log(loss_A / loss_B); both diverged is a tie (r = 0), one diverged is +-LOG_CAP (beyond any
   finite ratio: it only enters through ranks and the median);
 - the median of r with a percentile bootstrap 95% interval (scipy.stats.bootstrap, 10,000 resamples, fixed
@@ -30,59 +27,16 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from physgrad.readout import Curve
+
 MARGIN = 1.1  # "better" means at least 10% lower; "equivalent" means within 10%
 ALPHA = 0.05
 CONFIDENCE = 0.95
 RESAMPLES = 10_000
 MIN_PAIRS = 5  # below this no test can reach ALPHA after correction; the verdict stays undecided
 LOG_CAP = 1e3  # |log ratio| standing for "one side diverged" (a finite log ratio of float64 losses is < 1500)
-DIVERGENCE_FACTOR = 1e4  # a loss above this many times its first value counts as diverged (trainer.divergence_factor)
 FRACTIONS = (0.25, 0.5, 1.0)
 A_BETTER, B_BETTER, EQUIVALENT, UNDECIDED = "A better", "B better", "equivalent", "undecided"
-
-
-@dataclass(frozen=True)
-class Curve:
-    """One run's held-out loss against iterations or training seconds.
-
-    x, loss: its evaluations; end: where its training ended (iterations done, or training seconds; a run still
-    going at the budget ends at or after it); diverged: stopped as diverged (at `end`)."""
-
-    x: np.ndarray
-    loss: np.ndarray
-    end: float
-    diverged: bool = False
-    divergence_factor: float | None = DIVERGENCE_FACTOR
-
-    def at(self, x: float) -> float:
-        """The loss at budget x: the last evaluation at or before x; inf if the run diverged by x (stopped as
-        diverged, a non-finite loss, or a loss past divergence_factor times its first); NaN if it ended before
-        x without diverging, or has no evaluation by x."""
-        x_tol = x * (1 + 1e-9)
-        if self.diverged and self.end <= x_tol:
-            return math.inf
-        before = np.flatnonzero(np.asarray(self.x) <= x_tol)
-        if not before.size:
-            return math.nan
-        losses = np.asarray(self.loss, float)[: before[-1] + 1]
-        if not np.isfinite(losses).all():
-            return math.inf  # a NaN or inf held-out loss is a divergence, whatever the run's status said
-        if self.divergence_factor is not None and losses[0] > 0 and (losses > self.divergence_factor * losses[0]).any():
-            return math.inf
-        if self.end < x * (1 - 1e-9):
-            return math.nan  # ended early (interrupted, failed): no loss at x
-        return float(losses[-1])
-
-    def reaches(self, target: float, x: float) -> float:
-        """The first evaluation's x at which the loss is at or below target, by budget x; inf if never (or the
-        run diverged first)."""
-        xs, losses = np.asarray(self.x, float), np.asarray(self.loss, float)
-        for i in np.flatnonzero(xs <= x * (1 + 1e-9)):
-            if not math.isfinite(losses[i]):
-                return math.inf
-            if losses[i] <= target:
-                return float(xs[i])
-        return math.inf
 
 
 def log_ratio(a: float, b: float) -> float:
@@ -298,42 +252,6 @@ def divergence_test(diverged_a: int, n_a: int, diverged_b: int, n_b: int) -> flo
     if n_a == 0 or n_b == 0:
         return math.nan
     return float(fisher_exact([[diverged_a, n_a - diverged_a], [diverged_b, n_b - diverged_b]]).pvalue)
-
-
-def target_loss(curves: dict[str, dict[int, Curve]], budget: float) -> tuple[str, float]:
-    """The target of time-to-target: the median loss at the budget of the variant with the lowest median (a
-    diverged run counts as infinite, a missing one is left out); (variant, target)."""
-    return lowest_median({name: [c.at(budget) for c in by_seed.values()] for name, by_seed in curves.items()})
-
-
-def _finite_medians(losses: dict[str, list[float]]) -> dict[str, float]:
-    """Each group's median loss, NaN losses left out and infinite ones (diverged) counted; groups whose median is
-    not finite are left out."""
-    medians = {name: float(np.median(kept)) for name, values in losses.items()
-               if (kept := [v for v in values if not math.isnan(v)])}
-    return {name: m for name, m in medians.items() if math.isfinite(m)}
-
-
-def lowest_median(losses: dict[str, list[float]]) -> tuple[str, float]:
-    """(group, its median) of the group whose median loss is lowest; NaN losses are left out, infinite ones
-    (diverged) count; ("", NaN) if no group has a finite median. The target every group works towards: the
-    best group's typical result, which the other groups may or may not reach."""
-    finite = _finite_medians(losses)
-    if not finite:
-        return "", math.nan
-    best = min(finite, key=finite.get)
-    return best, finite[best]
-
-
-def highest_median(losses: dict[str, list[float]]) -> tuple[str, float]:
-    """(group, its median) of the group whose finite median loss is highest; ("", NaN) if none is finite. A
-    target every group with a finite median reaches in at least about half its runs (the worse group's typical
-    result), so that time to target compares times, not mostly pairs where neither run got there."""
-    finite = _finite_medians(losses)
-    if not finite:
-        return "", math.nan
-    worst = max(finite, key=finite.get)
-    return worst, finite[worst]
 
 
 @dataclass(frozen=True)

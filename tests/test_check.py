@@ -8,7 +8,7 @@ import pytest
 
 from physgrad.check import markdown, run_check
 from physgrad.experiment import run_experiment
-from tests.test_configs import load
+from tests.helpers import load
 
 
 @pytest.fixture(scope="module")

@@ -12,7 +12,7 @@ import pytest
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "experiments"))
 import claims  # noqa: E402
 from claims import FAILS, HOLDS, OPEN  # noqa: E402
-from physgrad.verdict import Curve  # noqa: E402
+from physgrad.readout import Curve  # noqa: E402
 
 X = np.arange(0, 1001, 100, dtype=float)
 TEN = range(10)

@@ -158,7 +158,7 @@ def test_added_keys_nothing_reads_and_unquoted_paths_are_one_line_errors(overrid
 ])
 def test_sizes_and_empty_paths_are_refused_before_anything_is_built(tmp_path, override, fragment):
     from physgrad.experiment import run_experiment
-    from tests.test_configs import load
+    from tests.helpers import load
 
     outcome, _ = run_experiment(load("task=toy", "trainer.iterations=2", override), tmp_path)
     assert outcome.status == "refused" and fragment in outcome.reason

@@ -11,7 +11,8 @@ import pytest
 
 import physgrad
 from physgrad.errors import UserError
-from physgrad.comparison import (SEARCH_RANGES, build_variants, evaluation_jobs, halton_points, job_yaml,
+from physgrad.optim.capabilities import ADAPTIVE, JACOBIAN
+from physgrad.comparison import (build_variants, evaluation_jobs, halton_points, job_yaml,
                               split_overrides, study_settings)
 from physgrad.configs import compose
 from tests.test_cli import physgrad as console
@@ -28,8 +29,8 @@ def test_comma_lists_are_variants_and_everything_else_is_common():
     assert common == ["task=oscillator", "trainer.time_budget=30"] and hydra_args == ["hydra/launcher=joblib"]
     variants = build_variants(axes, common, study_settings(settings), [])
     assert [v.name for v in variants] == ["adam clip=none", "adam clip=norm", "hig clip=none", "hig clip=norm"]
-    assert variants[0].space == {"learning_rate": SEARCH_RANGES["adaptive"]}
-    assert variants[2].space == {"learning_rate": SEARCH_RANGES["spectral"], "tau": (1e-8, 1e-4)}
+    assert variants[0].space == {"learning_rate": ADAPTIVE.search_range}
+    assert variants[2].space == {"learning_rate": JACOBIAN.search_range, "tau": (1e-8, 1e-4)}
     assert variants[2].preset == {"learning_rate": 1.0, "tau": 1e-6}  # the oscillator's HIG preset
 
 
@@ -347,7 +348,7 @@ def test_a_finished_study_given_more_trials_tunes_on_from_where_it_stopped(tmp_p
     study = physgrad.compare(*args, "compare.trials=3")
     assert first.stat().st_mtime_ns == stamp
     assert list(study.trials.variant) == ["adam"] * 3 + ["gd"] * 3
-    expected = halton_points({"learning_rate": SEARCH_RANGES["adaptive"]}, 3, 1_000_000)
+    expected = halton_points({"learning_rate": ADAPTIVE.search_range}, 3, 1_000_000)
     assert list(study.trials[study.trials.variant == "adam"].learning_rate) == pytest.approx(
         [p["learning_rate"] for p in expected])
     with pytest.raises(UserError, match="holds another study"):

@@ -3,9 +3,10 @@
 import numpy as np
 import pytest
 
-from physgrad.configs import CONF_DIR, compose
+from physgrad.configs import CONF_DIR
 from physgrad.experiment import run_experiment
 from physgrad.results import read_run
+from tests.helpers import load
 
 TASKS = sorted(p.stem for p in (CONF_DIR / "task").glob("*.yaml"))
 OPTIMS = sorted(p.stem for p in (CONF_DIR / "optim").glob("*.yaml"))
@@ -30,9 +31,6 @@ SCENES = [(task, []) for task in TASKS] + [("oscillator", ["task.closed_loop=tru
 CLOSED_LOOP = {"multicart", "quantum_control", "guidance", "ks", "ks task.training=ONE task.stepper=predict",
                "oscillator task.closed_loop=true", "quantum task.closed_loop=true"}
 
-
-def load(*overrides):
-    return compose(overrides)
 
 
 def test_every_task_and_optim_has_a_config():

@@ -199,7 +199,7 @@ def broken_toy(kind):
 def test_a_scene_with_a_wrong_loss_or_test_set_is_refused_in_one_line(tmp_path, monkeypatch, kind, fragment):
     import physgrad.tasks.toy as toy
     from physgrad.experiment import run_experiment
-    from tests.test_configs import load
+    from tests.helpers import load
 
     monkeypatch.setattr(toy, "build", broken_toy(kind))
     outcome, path = run_experiment(load("task=toy", "trainer.iterations=2"), tmp_path)

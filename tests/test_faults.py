@@ -23,7 +23,7 @@ import pytest
 from physgrad.errors import FolderOwned, ResultsWriteError
 from physgrad.files import own_folder
 from physgrad.results import ResultsWriter, read_run
-from tests.test_configs import load
+from tests.helpers import load
 
 REPEATS = int(os.environ.get("PHYSGRAD_FAULT_REPEATS", "1"))  # the long form multiplies every count
 PHYSGRAD = str(Path(sys.executable).with_name("physgrad"))
@@ -208,7 +208,8 @@ def test_signals_in_bursts_at_random_instants_always_end_interrupted(tmp_path):
     """Two to four signals a few milliseconds apart, at random instants of a run (compile, steps, flushes);
     the process stays alive, the file is final and consistent."""
     from physgrad.experiment import prepare
-    from physgrad.runner import TrainerSettings, stop_on_signals, train
+    from physgrad.interrupts import stop_on_signals
+    from physgrad.runner import TrainerSettings, train
 
     rng = random.Random(2)
     cfg = load("task=toy", "trainer.flush_seconds=0.001")
@@ -546,7 +547,7 @@ def test_a_signal_inside_a_garbage_collector_callback_is_kept_not_printed(capfd)
     stop stays requested for the job's next check."""
     import gc
 
-    from physgrad.runner import stop_on_signals
+    from physgrad.interrupts import stop_on_signals
 
     def callback(phase, info):
         if phase == "start":

@@ -14,7 +14,7 @@ from physgrad.tasks import build_scene
 from physgrad.tasks.guidance import euler_step
 from physgrad.unroll import MODES
 from tests.reference import check_gradient, forward_states
-from tests.test_configs import load
+from tests.helpers import load
 
 PHYSICS = {"softening": 0.1, "repulsion": 15.0, "evader_friction": 4.0, "flocking": 0.2, "flock_distance": 0.5,
            "driver_friction": 1.0, "spreading": 0.2}

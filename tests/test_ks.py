@@ -14,7 +14,7 @@ from physgrad.tasks.ks import (apply_resnet, cache_dir, dataset, etd_step, init_
                                solver_step, wavenumbers)
 from physgrad.unroll import MODES
 from tests.reference import check_gradient, forward_states, loop_states
-from tests.test_configs import load
+from tests.helpers import load
 
 # a small network and short trajectories: every check below is about structure, not about the data's size
 SMALL = ["task.channels=3", "task.blocks=1", "task.train_steps=30", "task.warmup=20", "task.test_count=2",

@@ -11,7 +11,7 @@ from physgrad.tasks import build_scene
 from physgrad.tasks.multicart import euler_step
 from physgrad.unroll import MODES, rollout
 from tests.reference import check_gradient, forward_states, loop_states
-from tests.test_configs import load
+from tests.helpers import load
 
 
 def numpy_step(state, force, dt=0.01, g=9.8, m=0.1, big_m=1.1, half_length=0.5):

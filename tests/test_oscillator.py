@@ -12,7 +12,7 @@ from physgrad.tasks.oscillator import energy, rk4_step
 from physgrad.gradients import combine_signs
 from physgrad.unroll import MODES, PHYSICS_ONLY, STOPPED, rollout
 from tests.reference import check_gradient, forward_states, loop_states
-from tests.test_configs import load
+from tests.helpers import load
 
 
 def integrate(x0, dt, steps, alpha, controls=None):

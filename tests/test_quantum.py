@@ -12,7 +12,7 @@ from physgrad.tasks.quantum import (apply_hamiltonian, crank_nicolson_step, eige
                                     grid, realify)
 from physgrad.unroll import MODES, rollout
 from tests.reference import check_gradient, forward_states, loop_states
-from tests.test_configs import load
+from tests.helpers import load
 
 
 @pytest.mark.parametrize("points", [14, 32])

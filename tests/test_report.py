@@ -13,7 +13,8 @@ import pytest
 import yaml
 
 from physgrad.plots import log_axis, median_band, use_log_x
-from physgrad.report import collect, label_runs, loss_at, run_rows, write_report
+from physgrad.readout import loss_at, targets
+from physgrad.report import collect, label_runs, run_rows, write_report
 from physgrad.results import ResultsWriter, read_run
 
 
@@ -55,12 +56,12 @@ def test_report_groups_by_setting_and_times_the_threshold(tmp_path):
     # threshold per scene: the best group's median final test loss (poles=1: bptt's 0.01, which stable_bptt never
     # reaches; poles=2: bptt's seeds end at 0.8 and diverged, a median of infinity: no target)
     assert rows[("poles=1", "bptt", 0)]["t(thr) s"] == 2.0
-    assert math.isnan(rows[("poles=1", "stable_bptt", 0)]["t(thr) s"])
+    assert math.isinf(rows[("poles=1", "stable_bptt", 0)]["t(thr) s"])  # never reached: infinite time (readout)
     assert math.isnan(rows[("poles=2", "bptt", 1)]["t(thr) s"]) and math.isnan(rows[("poles=2", "bptt", 0)]["t(thr) s"])
     assert rows[("poles=2", "bptt", 1)]["status"] == "diverged"
     assert rows[("poles=1", "bptt", 0)]["s/iter"] == 1.0  # median of the step times 0.5, 1, 1
     fixed = {(r["setting"], r["variant"], r["seed"]): r for r in table_rows(runs, threshold=0.1)}
-    assert fixed[("poles=1", "bptt", 0)]["t(thr) s"] == 1.0 and math.isnan(fixed[("poles=2", "bptt", 0)]["t(thr) s"])
+    assert fixed[("poles=1", "bptt", 0)]["t(thr) s"] == 1.0 and math.isinf(fixed[("poles=2", "bptt", 0)]["t(thr) s"])
     text = write_report([tmp_path])
     assert "| multicart poles=1 | bptt | 0 | completed |  | 3 | 0.01 |" in text
     assert "| multicart poles=2 | bptt | 2 | 1 completed, 1 diverged | 0.8 |" in text  # the completed seed only
@@ -120,9 +121,7 @@ def test_threshold_comes_from_completed_runs_only(tmp_path):
     fake_run(tmp_path / "bad", "gauss_newton", 0, 1, [0.9], [0.0], status="diverged")
     runs, _, _ = collect([tmp_path])
     label_settings(runs)
-    from physgrad.report import thresholds
-
-    assert thresholds(runs) == {"multicart": 0.1}
+    assert targets(runs) == {"multicart": 0.1}
 
 
 def test_the_threshold_is_one_every_run_must_train_to_reach(tmp_path):
@@ -134,13 +133,11 @@ def test_the_threshold_is_one_every_run_must_train_to_reach(tmp_path):
     fake_run(tmp_path / "gn", "gauss_newton", 0, 1, [1.0, 5.0, 40.0], [0.0, 0.5, 1.0])  # ends above its start
     runs, _, _ = collect([tmp_path])
     label_settings(runs)
-    from physgrad.report import thresholds
-
-    assert thresholds(runs) == {"multicart": pytest.approx(0.06)}  # hig's median
+    assert targets(runs) == {"multicart": pytest.approx(0.06)}  # hig's median
     rows = {(r["variant"], r["seed"]): r for r in table_rows(runs)}
-    assert rows[("hig", 0)]["t(thr) s"] == rows[("hig", 1)]["t(thr) s"] == 2.0 and math.isnan(rows[("hig", 2)]["t(thr) s"])
-    assert all(math.isnan(rows[("adam", s)]["t(thr) s"]) for s in range(3))
-    assert math.isnan(rows[("gauss_newton", 0)]["t(thr) s"])
+    assert rows[("hig", 0)]["t(thr) s"] == rows[("hig", 1)]["t(thr) s"] == 2.0 and math.isinf(rows[("hig", 2)]["t(thr) s"])
+    assert all(math.isinf(rows[("adam", s)]["t(thr) s"]) for s in range(3))
+    assert math.isinf(rows[("gauss_newton", 0)]["t(thr) s"])
 
 
 def test_a_learning_rate_sweep_is_two_groups_named_by_what_differs(tmp_path):
@@ -198,13 +195,14 @@ def test_loss_at_common_time_uses_only_evaluations_before_it(tmp_path):
     # the common time is the shortest end of training of the completed runs: fast's 2.5 s (its last train row)
     assert rows["adam"]["common_time"] == rows["hig"]["common_time"] == 2.5
     assert rows["adam"]["loss_at_common_time"] == 0.1 and rows["hig"]["loss_at_common_time"] == 0.6
-    assert math.isnan(rows["gd"]["loss_at_common_time"])  # diverged before that time: no loss at it
-    # an evaluation counts up to one of the run's steps (hig: median step 1.5 s) after the time, as a budget is
-    # checked after each step; none after the run's training ended (6.5 s)
+    assert rows["gd"]["loss_at_common_time"] == math.inf  # diverged before that time: an infinite loss, as in a verdict
+    # the last evaluation at or before the time (the verdict's rule, physgrad.readout): hig's evaluation at 6 s is
+    # not read at 5.99 s; a completed run ran to its budget, so its last evaluation is read at any later time
     run = next(r for r in runs if r.variant == "hig")
-    assert run.seconds_per_iteration == 1.5
-    assert loss_at(run, 0.0) == 0.6 and loss_at(run, 4.49) == 0.6 and loss_at(run, 4.5) == 0.01
-    assert math.isnan(loss_at(run, 6.6)) and math.isnan(loss_at(run, -2.0))
+    assert loss_at(run, 0.0, "wall_time") == 1.0 and loss_at(run, 1.5, "wall_time") == 0.6
+    assert loss_at(run, 5.99, "wall_time") == 0.6 and loss_at(run, 6.0, "wall_time") == 0.01
+    assert loss_at(run, 60.0, "wall_time") == 0.01 and math.isnan(loss_at(run, -2.0, "wall_time"))
+    assert loss_at(run) == 0.01  # at its own budget, trainer.time_budget=6
 
 
 def test_scene_metrics_and_csv_export(tmp_path):

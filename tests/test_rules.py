@@ -10,7 +10,7 @@ from physgrad.errors import UserError
 from physgrad.gradients import Combined, JacobianPass, Regular
 from physgrad.optim import CLIPPING, build_rule
 from physgrad.unroll import PHYSICS_ONLY, REGULAR
-from tests.test_configs import load
+from tests.helpers import load
 
 
 def test_value_clipping_is_element_wise_and_norm_clipping_global():

@@ -12,7 +12,7 @@ from physgrad.errors import UserError
 from physgrad.experiment import run_experiment, set_precision
 from physgrad.results import ResultsWriter, read_run
 from physgrad.tasks import build_scene
-from tests.test_configs import load
+from tests.helpers import load
 
 SMALL = ["task.grid=4", "task.test_size=8", "trainer.batch_size=4"]
 
@@ -156,7 +156,7 @@ def test_jacobian_step_logs_the_plain_gradient_and_forward_pass(x64):
     """HIG takes y and dL/dtheta = J^T g from its Jacobian pass, not from a separate backward pass: its logged
     loss, gradient norm and state must equal plain gradient descent's on the same batch (float64)."""
     from physgrad.optim import build_rule
-    from physgrad.runner import make_step
+    from physgrad.training import make_step
 
     cfg = load("task=oscillator", "task.train_size=16", "task.test_size=4", "trainer.batch_size=4")
     scene = build_scene(cfg.task, jax.random.PRNGKey(0))
@@ -298,7 +298,7 @@ def test_first_signal_asks_to_stop_second_ends_a_step_still_computing():
     import threading
     import time
 
-    from physgrad.runner import StopRequest
+    from physgrad.interrupts import StopRequest
 
     request = StopRequest()
     assert request.call(lambda x: x + 1, np.float32(1)) == 2  # no signal: the step's result

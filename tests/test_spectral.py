@@ -209,7 +209,7 @@ def test_the_configured_route_is_the_one_that_runs(monkeypatch, route):
     """optim.route from the config reaches the kernel: a stand-in for each route records which one ran."""
     import physgrad.optim.spectral as spectral
     from physgrad.optim import build_rule
-    from tests.test_configs import load
+    from tests.helpers import load
 
     ran = []
     monkeypatch.setattr(spectral, "svd_direction",
@@ -228,7 +228,7 @@ def test_the_configured_route_is_the_one_that_runs(monkeypatch, route):
 def test_the_toy_physics_scales_the_second_component_by_task_scale():
     from physgrad.nets import apply_mlp
     from physgrad.tasks import build_scene
-    from tests.test_configs import load
+    from tests.helpers import load
 
     scene = build_scene(load("task=toy", "task.scale=0.25", "task.test_size=4").task, jax.random.PRNGKey(0))
     params = scene.init_params(jax.random.PRNGKey(1))

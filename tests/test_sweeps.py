@@ -15,7 +15,7 @@ from physgrad.experiment import check_applies, check_config, effective_unroll, p
 from physgrad.optim import build_rule
 from physgrad.results import read_run
 from physgrad.sweeps import sweep_jobs as expand_sweep
-from tests.test_configs import load
+from tests.helpers import load
 
 EXPERIMENTS = sorted(p.stem for p in (CONF_DIR / "experiment").glob("*.yaml"))
 TINY = ["task=poisson", "task.grid=4", "task.test_size=8", "trainer.batch_size=4", "trainer.eval_every=5"]

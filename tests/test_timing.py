@@ -8,7 +8,7 @@ import physgrad.runner
 from physgrad.experiment import run_experiment
 from physgrad.machine import contention, machine_label, step_statistics
 from physgrad.results import read_run
-from tests.test_configs import load
+from tests.helpers import load
 from tests.test_runner import SimulatedClock
 
 COST = 0.01
@@ -140,7 +140,7 @@ def test_the_calibrated_clock_needs_a_step_cost(tmp_path):
 def test_the_calibration_ranks_real_steps_by_their_cost():
     """Two configurations interleaved in one process: a Jacobian rule's step costs more than Adam's on the same
     scene (about 9 to 26 times on the 2-core machine, quiet or beside a 2-core job), both timed in every round."""
-    from physgrad.calibration import calibrate
+    from physgrad.comparison.calibration import calibrate
 
     configs = {name: load("task=toy", f"optim={name}", "trainer.batch_size=64") for name in ("adam", "gauss_newton")}
     result = calibrate(configs, seed=0, rounds=40, min_seconds=0.5, max_seconds=60)
@@ -158,8 +158,8 @@ def test_delays_in_a_few_rounds_leave_the_calibrated_cost_where_it_is(monkeypatc
     the rule, so the first case is not a blind clock). The same number of delays whatever the machine's load."""
     import types
 
-    import physgrad.bench
-    from physgrad.calibration import BURST_SECONDS, calibrate
+    import physgrad.timing
+    from physgrad.comparison.calibration import BURST_SECONDS, calibrate
 
     def calibrated(delayed_of_ten):
         clock = {"now": 0.0, "fast_ran": True, "bursts": 0, "delays": 0}
@@ -177,8 +177,8 @@ def test_delays_in_a_few_rounds_leave_the_calibrated_cost_where_it_is(monkeypatc
                 clock["now"] += costs[name]
             return (None,) * 6 + (step,)
 
-        monkeypatch.setattr(physgrad.bench, "_compiled", fake_compiled)
-        monkeypatch.setattr(physgrad.bench, "time", types.SimpleNamespace(perf_counter=lambda: clock["now"]))
+        monkeypatch.setattr(physgrad.timing, "compiled_step", fake_compiled)
+        monkeypatch.setattr(physgrad.timing, "time", types.SimpleNamespace(perf_counter=lambda: clock["now"]))
         result = calibrate({"fast": "fast", "slow": "slow"}, seed=0, rounds=40, min_seconds=0.5, max_seconds=60)
         return result["costs"], clock["delays"]
 

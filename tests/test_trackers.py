@@ -10,7 +10,7 @@ import pytest
 
 from physgrad.results import read_run
 from physgrad.trackers import MLflow, TensorBoard, WandB, track
-from tests.test_configs import load
+from tests.helpers import load
 
 TINY = ("task=toy", "task.test_size=8", "trainer.batch_size=4", "trainer.iterations=4", "trainer.eval_every=2")
 

@@ -7,8 +7,9 @@ import math
 import numpy as np
 import pytest
 
-from physgrad.verdict import (A_BETTER, B_BETTER, EQUIVALENT, LOG_CAP, UNDECIDED, Curve, compare_variants, decide,
-                              divergence_test, holm, log_ratio, paired, seeds_needed, target_loss)
+from physgrad.readout import Curve, target_loss
+from physgrad.verdict import (A_BETTER, B_BETTER, EQUIVALENT, LOG_CAP, UNDECIDED, compare_variants, decide,
+                              divergence_test, holm, log_ratio, paired, seeds_needed)
 
 SEEDS = range(10)
 
@@ -123,7 +124,7 @@ def test_a_median_halfway_between_a_divergence_and_a_tie_is_the_divergence():
 def test_the_lowest_and_highest_median_targets():
     """The lowest median is the best group's typical loss, the highest the worst finite one; a group diverged in
     most runs has no finite median and sets neither; NaN (missing) losses are left out; none finite: NaN."""
-    from physgrad.verdict import highest_median, lowest_median
+    from physgrad.readout import highest_median, lowest_median
 
     losses = {"A": [0.1, 0.2, 0.3, math.nan], "B": [0.4, 0.5, 0.6], "C": [math.inf, math.inf, 0.01]}
     assert lowest_median(losses) == ("A", pytest.approx(0.2))

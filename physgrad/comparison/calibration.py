@@ -25,6 +25,9 @@ from pathlib import Path
 
 import numpy as np
 
+from physgrad.comparison.spec import Variant
+from physgrad.errors import UserError
+
 CALIBRATION_QUANTILE = 0.2
 CALIBRATION_FILE = "calibration.json"
 BURST_SECONDS = 0.05  # the length of one variant's turn in a round
@@ -39,12 +42,12 @@ def calibrate(configs: dict, seed: int, rounds: int = ROUNDS, min_seconds: float
     from their compiled training steps (as `physgrad run` builds them, one seed) timed in turn, one step each per
     round, after one untimed step each; plus the machine and the samples' spread. Each step advances its own
     state, so a rule whose state changes its cost (damping, line searches) is timed along its trajectory."""
-    from physgrad.bench import _compiled, interleaved_times
     from physgrad.machine import load_average, machine_attributes
+    from physgrad.timing import compiled_step, interleaved_times
 
     steps = {}
     for name, cfg in configs.items():
-        steps[name] = _compiled(cfg, [seed])[-1]
+        steps[name] = compiled_step(cfg, [seed])[-1]
     load_start = load_average()
     probe = interleaved_times(list(steps.values()), 3, 0.0, warmup=True, max_seconds=max_seconds / 4)
     lengths = [max(1, math.ceil(BURST_SECONDS / max(float(np.median(t)), 1e-9))) for t in probe]
@@ -84,3 +87,34 @@ def write_calibration(path: Path, calibration: dict) -> None:
     from physgrad.files import replace_file
 
     replace_file(Path(path), json.dumps(calibration, indent=1).encode())
+
+
+def calibrated_clock(folder: Path, variants: list[Variant], seed: int, given: str | None, say) -> dict:
+    """Each variant's step cost (calibrate), measured once per study and stored in its folder (a resumed study
+    reuses it), or taken from a given calibration.json (compare.calibration); every job of a variant then runs
+    on the calibrated clock with that cost."""
+    from omegaconf import open_dict
+
+    path = folder / CALIBRATION_FILE
+    names = [v.name for v in variants]
+    if given is not None:
+        calibration = read_calibration(Path(given), names)
+        if calibration is None:
+            raise UserError(f"compare.calibration={given}: not a calibration.json with a step cost for every "
+                            f"variant ({', '.join(names)}); leave it out to calibrate")
+        write_calibration(path, calibration)
+    calibration = read_calibration(path, names)
+    if calibration is None:
+        say(f"calibrating the step costs of {len(variants)} variants, interleaved in one process")
+        configs = {}
+        for variant in variants:
+            cfg = variant.config.copy()
+            with open_dict(cfg):
+                del cfg["hydra"]
+            configs[variant.name] = cfg
+        calibration = calibrate(configs, seed)
+        write_calibration(path, calibration)
+    for variant in variants:
+        cost = float(calibration["costs"][variant.name]["step_seconds"])
+        variant.job_values = {"trainer.step_cost": cost, "trainer.clock": "calibrated"}
+    return calibration

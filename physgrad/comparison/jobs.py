@@ -1,0 +1,171 @@
+"""A study's jobs as config files, run as Hydra multiruns of `physgrad run` into the study folder, and read back;
+and the study folder itself (which study it holds)."""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+import signal
+import subprocess
+import sys
+from pathlib import Path
+
+
+from physgrad.errors import UserError
+from physgrad.interrupts import SignalInterrupt, take_lost
+
+# what does not make a study another: its folder, Hydra's settings, and the number of trials (a finished study
+# given more trials tunes on from where it stopped: the Halton points of n trials begin with those of fewer)
+NOT_THE_STUDY = ("compare.dir", "compare.trials", "hydra")
+
+
+# --- the study folder --------------------------------------------------------------------------------------
+
+
+def same_study(record: dict | None):
+    """The parts of a study.json record that identify the study."""
+    if not isinstance(record, dict):
+        return None
+    overrides = record.get("overrides")
+    return ([o for o in overrides if not str(o).startswith(NOT_THE_STUDY)] if isinstance(overrides, list) else None,
+            record.get("config_dir"))
+
+
+def default_folder(overrides: list[str], config_dir: str | None, task: str) -> Path:
+    text = json.dumps([sorted(o for o in overrides if not o.startswith(NOT_THE_STUDY)),
+                       os.path.abspath(config_dir) if config_dir else None])
+    return Path("outputs") / "compare" / f"{task}-{hashlib.sha1(text.encode()).hexdigest()[:8]}"
+
+
+def record_study(folder: Path, overrides: list[str], config_dir: str | None) -> None:
+    """The study's command in folder/study.json; a folder that holds another study is a UserError (the same
+    study given more trials is the same study: its record is updated)."""
+    record = {"overrides": [o for o in overrides if not o.startswith(("compare.dir", "hydra"))],
+              "config_dir": os.path.abspath(config_dir) if config_dir else None}
+    stored = folder / "study.json"
+    if stored.exists():
+        try:
+            before = json.loads(stored.read_text())
+        except (OSError, ValueError):
+            before = None
+        if same_study(before) != same_study(record):
+            raise UserError(f"{folder} holds another study ({' '.join((before or {}).get('overrides', ['?']))}): "
+                            "give another compare.dir")
+    if not stored.exists() or before != record:  # new, or the same study given more trials
+        stored.write_text(json.dumps(record, indent=1) + "\n")
+
+
+# --- jobs as config files ---------------------------------------------------------------------------------
+
+
+def _nested(values: dict) -> dict:
+    tree: dict = {}
+    for dotted, value in values.items():
+        node = tree
+        *parents, leaf = dotted.split(".")
+        for part in parents:
+            node = node.setdefault(part, {})
+        node[leaf] = value
+    return tree
+
+
+def job_yaml(overrides: list[str], groups: set, values: dict) -> str:
+    """One job as a config file appended to the run config (+compare_job=NAME): the group choices among the
+    overrides as `override /group: option`, every other override and `values` as keys (packaged _global_)."""
+    from hydra.core.override_parser.overrides_parser import OverridesParser
+    from omegaconf import OmegaConf
+
+    defaults, keys = [], {}
+    for override in OverridesParser.create().parse_overrides(overrides):
+        key = override.key_or_group
+        if key in groups and override.package is None:
+            defaults.append(f"override /{key}: {override.get_value_element_as_str()}")
+        else:
+            keys[key] = override.value()
+    keys.update(values)
+    text = "# @package _global_\n# written by physgrad compare\n"
+    if defaults:
+        text += "defaults:\n" + "".join(f"  - {line}\n" for line in defaults)
+    return text + OmegaConf.to_yaml(OmegaConf.create(_nested(keys)))
+
+
+def cadence(cfg, axis: str, budget: float) -> dict:
+    """Evaluations fine enough to read the budget's quarters (time budgets: the runner's budget / 20)."""
+    if axis == "iteration" and cfg.trainer.get("eval_every", 100) * 20 > budget:
+        return {"trainer.eval_every": max(1, int(budget) // 20)}
+    return {}
+
+
+# --- running ----------------------------------------------------------------------------------------------
+
+
+def launch(folder: Path, phase: str, jobs: dict[str, str], config_dir, hydra_args, say) -> int:
+    """Write the jobs' config files and run them as one multirun into folder/phase (a job that completed or
+    diverged before with the same config is skipped); its output goes to folder/<phase>.log. Returns the
+    multirun's exit status."""
+    configs = folder / "configs" / "compare_job"
+    configs.mkdir(parents=True, exist_ok=True)
+    for name, text in jobs.items():
+        path = configs / f"{name}.yaml"
+        if not path.exists() or path.read_text() != text:
+            path.write_text(text)
+    command = multirun_command(folder, phase, jobs, config_dir, hydra_args)
+    say(f"{phase}: {len(jobs)} jobs -> {folder / phase} (log: {folder / (phase + '.log')})")
+    with open(folder / f"{phase}.log", "a") as log:
+        log.write(f"\n$ {' '.join(command)}\n")
+        log.flush()
+        lost = take_lost()  # a signal the interpreter dropped since the last phase (physgrad.interrupts)
+        if lost is not None:
+            raise SignalInterrupt(lost)
+        # its own session: a terminal's Ctrl-C reaches this process only, which passes it (or a SIGTERM) on once,
+        # so the sweep stops as a whole and records what it stopped (physgrad.sweeps)
+        process = subprocess.Popen(command, stdout=log, stderr=subprocess.STDOUT, start_new_session=True)
+        received = []
+
+        def forward(signum, frame):
+            received.append(signum)
+            process.send_signal(signum)
+
+        try:
+            previous = {sig: signal.signal(sig, forward) for sig in (signal.SIGINT, signal.SIGTERM)}
+        except ValueError:  # not the main thread: leave signals alone
+            previous = {}
+        try:
+            code = process.wait()
+        finally:
+            for sig, handler in previous.items():
+                signal.signal(sig, handler)
+        if received:
+            raise KeyboardInterrupt(signal.Signals(received[0]).name)
+        return code
+
+
+def multirun_command(folder: Path, phase: str, jobs: dict[str, str], config_dir, hydra_args) -> list[str]:
+    """`physgrad run -m` over the jobs' config files (+compare_job=a,b,...) into folder/phase, with the study's
+    config folder and Hydra overrides (a hydra.searchpath given is searched before the jobs' folder)."""
+    search = [f"file://{(folder / 'configs').resolve()}"]
+    extra = []
+    for arg in hydra_args:
+        if arg.startswith("hydra.searchpath="):
+            from physgrad.configs import searchpath_entries
+
+            search = searchpath_entries([arg]) + search
+        else:
+            extra.append(arg)
+    return [sys.executable, "-m", "physgrad", "run", "-m", *(["-cd", config_dir] if config_dir else []),
+            f"hydra.searchpath=[{','.join(search)}]", f"hydra.sweep.dir={folder / phase}", *extra,
+            "+compare_job=" + ",".join(jobs)]
+
+
+def job_runs(sweep: Path, name: str) -> list:
+    from physgrad.results import read_run
+
+    folder = sweep / f"+compare_job={name}"
+    runs = []
+    for path in sorted(folder.glob("results.h5")) + sorted(folder.glob("seed=*/results.h5")):
+        try:
+            runs.append(read_run(path))
+        except ValueError:
+            continue
+    return runs
