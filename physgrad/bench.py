@@ -39,7 +39,7 @@ EXTRA = {"poisson": [("hig", ["precision=64"])],
          # the unrolling study's other training modalities and stepper, and its longest unroll
          "ks": [("adam", ["task.training=ONE"]), ("adam", ["task.training=NOG"]), ("adam", ["task.stepper=predict"]),
                 ("adam", ["unroll=16"])]}
-# temporal scenes whose Jacobian route would differentiate 128 x 64 outputs per sample: not a reference setup
+# temporal scenes whose Jacobian pass would differentiate 128 x 64 outputs per sample: not a reference setup
 SKIP = {("quantum_control", "hig"), ("quantum_control", "gauss_newton"), ("quantum_control", "gd"),
         ("quantum_control", "levenberg_marquardt")}
 

@@ -248,34 +248,6 @@ def run_check(small: bool, out_dir: Path) -> list[dict]:
     return rows
 
 
-def check_one_scene(overrides: list[str], config_dirs: list[str]) -> int:
-    """`physgrad check [-cd DIR] task=NAME [key=value ...]`: physgrad.testing's checks of that scene, one line
-    each; 1 if one fails, 2 for a configuration mistake."""
-    import os
-
-    from physgrad.errors import UserError
-    from physgrad.configs import check_overrides, compose
-    from physgrad.testing import check_scene
-
-    if os.getcwd() not in sys.path:  # a scene named by _target_ may live in the folder the command runs from
-        sys.path.append(os.getcwd())
-    try:
-        if not any(o.split("=", 1)[0].lstrip("+") == "task" for o in overrides):
-            raise UserError("name the scene to check: physgrad check [-cd DIR] task=NAME [key=value ...]")
-        check_overrides(overrides, multirun=False, config_dirs=config_dirs)
-        cfg = compose(overrides, config_dirs)
-    except UserError as error:
-        print(f"physgrad: error: {error}", file=sys.stderr)
-        return 2
-    checks = check_scene(cfg)
-    for check in checks:
-        print(check.line())
-    failed = [check.name for check in checks if not check.passed]
-    print(f"task={cfg.task.get('name')}: {len(checks) - len(failed)} of {len(checks)} checks passed"
-          + (f"; failed: {', '.join(failed)}" if failed else ""))
-    return 1 if failed else 0
-
-
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="physgrad check", description=__doc__.split("\n\n")[0])
     parser.add_argument("--small", action="store_true", help="the short form that CI runs (about 2 minutes)")
@@ -283,12 +255,14 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("-cd", "--config-dir", action="append", default=[],
                         help="a folder of your own configs (task/NAME.yaml), as for physgrad run")
     parser.add_argument("overrides", nargs="*", help="task=NAME [key=value ...]: check that scene (gradients against "
-                        "finite differences, the rollout against a loop, J against jvp/vjp; physgrad.testing)")
+                        "finite differences, the rollout against a loop, J against jvp/vjp; physgrad.scene_check)")
     options = parser.parse_args(argv)
     import logging
 
     logging.getLogger("jax").setLevel(logging.WARNING)
     if options.overrides or options.config_dir:
+        from physgrad.scene_check import check_one_scene
+
         return check_one_scene(options.overrides, options.config_dir)
     out = Path(options.out)
     start = time.perf_counter()

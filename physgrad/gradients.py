@@ -1,5 +1,5 @@
-"""Gradient routes: how a training step turns (scene, params, batch) into the loss, the gradient handed to the
-update rule, the rule's extra arguments and logged scalars. A route is a value chosen once per run:
+"""Gradient passes: how a training step turns (scene, params, batch) into the loss, the gradient handed to the
+update rule, the rule's extra arguments and logged scalars. A pass is a value chosen once per run:
 
 - Regular(mode): one forward and one backward pass through the scene's output with the gradient stops of a
   backprop-through-time mode (R, M or S; R for a scene without time);
@@ -8,7 +8,7 @@ update rule, the rule's extra arguments and logged scalars. A route is a value c
   the network allows it (physgrad.jacobians); the gradient is J^T g, and J and g = dL/dy go to the rule as
   extra arguments.
 
-Every route logs ``output_max_abs``, the largest |y| of the batch's physical output (where a blow-up of the
+Every pass logs ``output_max_abs``, the largest |y| of the batch's physical output (where a blow-up of the
 physics shows first).
 """
 
@@ -106,8 +106,8 @@ class JacobianPass:
         return loss, grads, extra, {"output_max_abs": jnp.max(jnp.abs(y))}
 
 
-def route_for(backprop: str | None, uses_jacobian: bool, with_value: bool = False):
-    """The route of a rule: the Jacobian pass for rules that take J, else the backprop mode's (None: R);
+def gradient_pass(backprop: str | None, uses_jacobian: bool, with_value: bool = False):
+    """The gradient pass of a rule: the Jacobian pass for rules that take J, else the backprop mode's (None: R);
     with_value: the rule also takes optax's extra arguments value (and grad) and value_fn."""
     if backprop is not None and backprop not in BACKPROP_MODES:
         raise UserError(f"optim.backprop={backprop!r} is not allowed: choose one of {', '.join(BACKPROP_MODES)} "

@@ -198,7 +198,7 @@ def _depends_on(closed_jaxpr, inputs: int, outputs: int) -> bool:
 
 
 def plan_layers(sample_output, params, sample) -> LayerPlan | str:
-    """The layer plan of a scene's network, or why the per-sample route is kept (a phrase).
+    """The layer plan of a scene's network, or why the per-sample pass is kept (a phrase).
 
     The factorised form is exact when every parameter leaf is the kernel or bias of one apply_mlp layer, each
     layer is applied exactly once per sample to one input vector (not inside a loop, a scan or a vmap), and the
@@ -215,7 +215,7 @@ def plan_layers(sample_output, params, sample) -> LayerPlan | str:
 
     try:
         jax.eval_shape(record, *leaves)
-    except Exception as error:  # a scene that cannot be traced this way keeps the per-sample route
+    except Exception as error:  # a scene that cannot be traced this way keeps the per-sample pass
         return f"the output could not be traced layer by layer ({type(error).__name__})"
     layers = recorders[0].layers
     if not layers:

@@ -452,7 +452,7 @@ def train(scene: Scene, rule: UpdateRule, seeds: Seeds, writers: list[ResultsWri
         raise
     finally:
         progress.close()
-        # a line search (a rule given value_fn on the gradient route: optax.lbfgs) costs what the data ask for
+        # a line search (a rule given value_fn on the gradient pass: optax.lbfgs) costs what the data ask for
         static_cost = rule.uses_jacobian or not getattr(rule.gradient, "with_value", False)
         loop.writers.set_attrs(**timing_attributes(loop.step_seconds, load_start, load_average(), static_cost))
     return loop.finish()

@@ -23,16 +23,16 @@ from physgrad.tasks import Scene
 def make_step(scene: Scene, rule: UpdateRule, batch_size: int):
     """(params, opt_state, iteration, train_key, train_set) -> (params, opt_state, logs); the minibatch is drawn
     inside from fold_in(train_key, iteration) (out of train_set, if the scene has a fixed one), so every variant
-    with the same seed and batch size sees the same batches. The rule's gradient route gives the loss, the
-    gradient, the rule's extra arguments and the route's logs (physgrad.gradients); the rule's state may add
+    with the same seed and batch size sees the same batches. The rule's gradient pass gives the loss, the
+    gradient, the rule's extra arguments and the pass's logs (physgrad.gradients); the rule's state may add
     logs of its own (physgrad.optim.state_logs)."""
 
     def step(params, opt_state, iteration, train_key, train_set):
         batch = scene.draw_batch(jax.random.fold_in(train_key, iteration), batch_size, train_set)
-        loss, grads, extra, route_logs = rule.gradient(scene, params, batch)
+        loss, grads, extra, pass_logs = rule.gradient(scene, params, batch)
         updates, opt_state = rule.transform.update(grads, opt_state, params, **extra)
         logs = {"loss": loss, "grad_norm": optax.tree.norm(grads), "update_norm": optax.tree.norm(updates),
-                **route_logs, **state_logs(opt_state)}
+                **pass_logs, **state_logs(opt_state)}
         return optax.apply_updates(params, updates), opt_state, logs
 
     return step

@@ -247,7 +247,7 @@ def test_parts_stay_under_the_limit_and_keep_the_order():
 def test_every_study_composes_and_its_variants_apply():
     """Each study's variants as physgrad compare builds them (composed, checked, the scene and rule built on the
     tuning seed); a study that continues networks is checked without its start file."""
-    from physgrad.comparison import build_variants, check_applies, split_overrides, study_settings
+    from physgrad.comparison import build_variants, check_variants_build, split_overrides, study_settings
 
     for study in claims.STUDIES + claims.MAP + claims.LONG:
         overrides = [o for o in study.command(Path("/nowhere")) if not o.startswith("init_from")]
@@ -255,7 +255,7 @@ def test_every_study_composes_and_its_variants_apply():
         s = study_settings(given)
         variants = build_variants(axes, common, s, [])
         assert len(variants) == study.variants()
-        check_applies(variants, s["tune_seed"])
+        check_variants_build(variants, s["tune_seed"])
 
 
 def test_the_ks_study_table_says_when_a_claim_has_nothing_to_compare():

@@ -42,7 +42,7 @@ def least_squares(key, **unused) -> Scene:
 
 def train(tmp_path, rule: str, iterations: int):
     """(the run, the traces of sample_output while it was built and trained)."""
-    # a rule with a backprop mode (bptt, stable_bptt) is Adam on a gradient route through time: its update rule
+    # a rule with a backprop mode (bptt, stable_bptt) is Adam on a gradient pass through time: its update rule
     # is held to the contract on this scene without time, the route dropped
     optim = load("task=toy", f"optim={rule}").optim
     route = ["optim.backprop=null"] if optim.get("backprop") else []

@@ -227,7 +227,7 @@ def search_space(optim_cfg, settings: StudySettings) -> dict:
     return space
 
 
-def check_applies(variants: list[Variant], seed: int) -> None:
+def check_variants_build(variants: list[Variant], seed: int) -> None:
     """Every variant's run config checked and its scene and rule built as its jobs will (on the tuning seed), so
     that a variant the scene refuses (a backprop mode on a scene without time, a bad setting) stops the study in
     one line before anything trains."""

@@ -29,7 +29,7 @@ from physgrad.comparison.calibration import calibrated_clock
 from physgrad.comparison.evaluation import evaluation
 from physgrad.comparison.figure import plot_sensitivity
 from physgrad.comparison.jobs import default_folder, record_study
-from physgrad.comparison.spec import (SETTINGS, budget_of, build_variants, check_applies, parse_arguments,
+from physgrad.comparison.spec import (SETTINGS, budget_of, build_variants, check_variants_build, parse_arguments,
                                       split_overrides, study_settings)
 from physgrad.comparison.summary import analyse, trial_rows
 from physgrad.comparison.tuning import tuning
@@ -61,7 +61,7 @@ def run_study(overrides: list[str], config_dir: str | None = None, say=print) ->
     if os.getcwd() not in sys.path:  # a scene or optimiser named by _target_, as for `physgrad run`
         sys.path.append(os.getcwd())
     variants = build_variants(axes, common, settings, config_dirs)
-    check_applies(variants, settings.tune_seed)
+    check_variants_build(variants, settings.tune_seed)
     first = variants[0].config
     comparisons = len(variants) * (len(variants) - 1) // 2
     needed = seeds_needed(settings.alpha, comparisons)

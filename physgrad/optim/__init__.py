@@ -16,7 +16,7 @@ from jax.flatten_util import ravel_pytree
 from omegaconf import OmegaConf
 
 from physgrad.errors import UserError
-from physgrad.gradients import route_for
+from physgrad.gradients import gradient_pass
 from physgrad.optim.capabilities import capabilities
 from physgrad.optim.spectral import JacobianRule, MarquardtRule
 from physgrad.validate import call_target, choice, number
@@ -26,7 +26,7 @@ CLIPPING = {"none": None, "value": lambda: optax.clip(1.0), "norm": lambda: opta
 
 
 class UpdateRule(NamedTuple):
-    """transform: the optax transformation; gradient: the gradient route, how the step gets the gradient and
+    """transform: the optax transformation; gradient: the gradient pass, how the step gets the gradient and
     the rule's extra arguments (physgrad.gradients); on_layers: the rule is given the network's parameter tree
     (its layers), not one flat vector (rules that are not element-wise: Muon, Adafactor, LAMB, LARS, ...)."""
 
@@ -41,7 +41,7 @@ class UpdateRule(NamedTuple):
 
 def build_rule(optim_cfg) -> UpdateRule:
     """The factory's transformation, behind the clipping of ``optim.clip`` (element-wise to [-1, 1], global
-    norm 1, or none), with the gradient route its kind and ``optim.backprop`` ask for."""
+    norm 1, or none), with the gradient pass its kind and ``optim.backprop`` ask for."""
     node = OmegaConf.to_container(optim_cfg, resolve=True) if OmegaConf.is_config(optim_cfg) else dict(optim_cfg)
     if isinstance(node.get("learning_rate"), (int, float)):
         number("optim.learning_rate", node["learning_rate"], 0, open_low=True)
@@ -53,7 +53,7 @@ def build_rule(optim_cfg) -> UpdateRule:
     jacobian = isinstance(transform, JacobianRule)
     # Levenberg-Marquardt takes value and value_fn; an optax rule that needs optax's extra arguments (optax.lbfgs)
     # is found by tracing once the parameters are known (needs_value_arguments)
-    gradient = route_for(node.get("backprop"), jacobian, isinstance(transform, MarquardtRule))
+    gradient = gradient_pass(node.get("backprop"), jacobian, isinstance(transform, MarquardtRule))
     on_layers = not jacobian and not capabilities(node).elementwise
     if clip != "none":
         if isinstance(transform, JacobianRule):

@@ -4,7 +4,7 @@
 A rule is known by its factory (`_target_`), not by the name of its config file: a renamed copy of adam.yaml is
 Adam. Capabilities:
 - needs_jacobian: the step takes the network-through-physics Jacobian (Gauss-Newton, HIG, Levenberg-Marquardt,
-  K-FAC), through the Jacobian route of physgrad.gradients;
+  K-FAC), through the Jacobian pass of physgrad.gradients;
 - elementwise: the rule acts on every parameter element on its own (or on global inner products), so on one flat
   vector it computes exactly what it computes on the network's tree, in one fused kernel instead of one per
   layer; every other rule is given the network's layers (Muon, Adafactor, LAMB, LARS, ...);

@@ -1,4 +1,4 @@
-"""The Jacobian route: Gauss-Newton and half-inverse gradients from one truncated-SVD kernel.
+"""The Jacobian pass: Gauss-Newton and half-inverse gradients from one truncated-SVD kernel.
 
 With J = dy/dtheta (m x n, m = batch * output components) and g = dL/dy, the family of directions is
     d = V diag(s^-kappa) U^T g,    J = U diag(s) V^T (thin SVD),
@@ -98,7 +98,7 @@ class SpectralState(NamedTuple):
 
 
 class JacobianRule(optax.GradientTransformationExtraArgs):
-    """An update rule on the Jacobian route: its update takes the extra arguments ``jacobian`` (J, m x n) and
+    """An update rule on the Jacobian pass: its update takes the extra arguments ``jacobian`` (J, m x n) and
     ``output_grad`` (g = dL/dy), so the training step builds J for it instead of a gradient pass."""
 
 
@@ -215,14 +215,14 @@ def marquardt_direction(jac, g: jax.Array, mu, tau: float, route: str):
 def marquardt_rule(learning_rate: float = 1.0, damping: float = 1e-3, tau: float = 1e-6, route: str = "auto",
                    adapt: bool = True) -> JacobianRule:
     """Levenberg-Marquardt: h = -lr J^T (J J^T + lambda I)^-1 g with lambda = damping * max(s^2) (relative
-    damping mu), on the Jacobian route of Gauss-Newton and HIG (layer factors included).
+    damping mu), on the Jacobian pass of Gauss-Newton and HIG (layer factors included).
 
     mu -> 0 gives the (truncated) Gauss-Newton step, a large mu the scaled gradient step -lr J^T g / lambda.
     adapt (Nielsen, 1999): the gain ratio rho = (L(theta) - L(theta + h)) / (m(0) - m(h)) on the step's batch, with
     the model m(h) = L + g^T J h + (|J h|^2 + lambda |h|^2) / (2 lr) that h minimises; rho > 0 accepts the step and
     sets mu <- mu * max(1/3, 1 - (2 rho - 1)^3), nu <- 2; otherwise the step is rejected (a zero update) and
     mu <- mu * nu, nu <- 2 nu. Needs the extra arguments jacobian, output_grad, value (the batch loss) and
-    value_fn (the batch loss as a function of the parameters), which the Jacobian route gives."""
+    value_fn (the batch loss as a function of the parameters), which the Jacobian pass gives."""
     number("optim.learning_rate", learning_rate, 0, open_low=True)
     number("optim.damping", damping, DAMPING_RANGE[0], DAMPING_RANGE[1])
     number("optim.tau", tau, 0, 1)

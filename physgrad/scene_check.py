@@ -10,7 +10,7 @@ network):
   gradient <mode> the gradient of each backprop mode that applies (R; M and S for a closed loop) equals the
                   plain loop's (the mode's stopped inputs there are the forward states as constants) and central
                   finite differences of that loop along random directions;
-  jacobian        (where Gauss-Newton / HIG apply) J v and J^T u of the Jacobian route against jax.jvp and
+  jacobian        (where Gauss-Newton / HIG apply) J v and J^T u of the Jacobian pass against jax.jvp and
                   jax.vjp of the batch output, and its gradient J^T g against jax.grad.
 """
 
@@ -227,3 +227,31 @@ def _size(batch) -> int:
 
 def _index(batch, i):
     return jax.tree_util.tree_map(lambda leaf: leaf[i], batch)
+
+
+def check_one_scene(overrides: list[str], config_dirs: list[str]) -> int:
+    """`physgrad check [-cd DIR] task=NAME [key=value ...]`: check_scene's checks of that scene, one line
+    each; 1 if one fails, 2 for a configuration mistake."""
+    import os
+    import sys
+
+    from physgrad.errors import UserError
+    from physgrad.configs import check_overrides, compose
+
+    if os.getcwd() not in sys.path:  # a scene named by _target_ may live in the folder the command runs from
+        sys.path.append(os.getcwd())
+    try:
+        if not any(o.split("=", 1)[0].lstrip("+") == "task" for o in overrides):
+            raise UserError("name the scene to check: physgrad check [-cd DIR] task=NAME [key=value ...]")
+        check_overrides(overrides, multirun=False, config_dirs=config_dirs)
+        cfg = compose(overrides, config_dirs)
+    except UserError as error:
+        print(f"physgrad: error: {error}", file=sys.stderr)
+        return 2
+    checks = check_scene(cfg)
+    for check in checks:
+        print(check.line())
+    failed = [check.name for check in checks if not check.passed]
+    print(f"task={cfg.task.get('name')}: {len(checks) - len(failed)} of {len(checks)} checks passed"
+          + (f"; failed: {', '.join(failed)}" if failed else ""))
+    return 1 if failed else 0
