@@ -15,6 +15,7 @@ import socket
 import stat
 import time
 from contextlib import contextmanager
+from datetime import datetime
 from pathlib import Path
 
 import yaml
@@ -179,3 +180,50 @@ def file_kind(mode: int) -> str:
         if test(mode):
             return kind
     return "not a plain file"
+
+
+# A writer's liveness: the `owner` (pid N on HOST) and `heartbeat` (its latest write) it records.
+def owner_alive(owner: str) -> bool | None:
+    """Whether the process named by an `owner` attribute (pid N on HOST) still runs: None when that cannot be
+    told from here (another host, or a file without an owner)."""
+    match = re.fullmatch(r"pid (\d+) on (.+)", owner or "")
+    if match is None or match[2] != socket.gethostname():
+        return None
+    try:
+        os.kill(int(match[1]), 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:  # alive, another user's
+        return True
+    return True
+
+
+STALE_SECONDS = 3600  # a writer on another host that wrote nothing for this long is taken for dead
+
+
+def with_live_status(attrs: dict, now: float | None = None) -> dict:
+    """A file that says `running` whose writer is gone reads as `crashed` (killed, or its machine lost), with a
+    reason; the file itself is left as it is. A writer on another host cannot be asked: it counts as gone when
+    its heartbeat (the time of its latest write) is more than STALE_SECONDS old."""
+    if attrs.get("status") != "running":
+        return attrs
+    alive = owner_alive(attrs.get("owner", ""))
+    if alive is None:
+        age = heartbeat_age(attrs.get("heartbeat", ""), now)
+        alive = None if age is None else age <= STALE_SECONDS
+        why = f"its writer ({attrs.get('owner', '?')}, on another host) has not written for {age or 0:.0f} s"
+    else:
+        why = f"its writer ({attrs['owner']}) ended without finishing"
+    if alive is False:
+        attrs["status"] = "crashed"
+        attrs["reason"] = f"{why}; rows up to its last write ({attrs.get('heartbeat', '?')}) are kept"
+    return attrs
+
+
+def heartbeat_age(heartbeat: str, now: float | None = None) -> float | None:
+    """Seconds since an ISO heartbeat with its UTC offset (None if it is not one)."""
+    try:
+        stamp = datetime.strptime(heartbeat, "%Y-%m-%dT%H:%M:%S%z").timestamp()
+    except (ValueError, TypeError, OverflowError):
+        return None
+    return (time.time() if now is None else now) - stamp

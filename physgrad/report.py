@@ -16,10 +16,8 @@ import os
 from collections import Counter, defaultdict
 from dataclasses import dataclass
 from pathlib import Path
-from typing import NamedTuple
 
 import numpy as np
-import pandas as pd
 
 from physgrad.errors import UserError
 from physgrad.machine import machine_label
@@ -27,6 +25,7 @@ from physgrad.readout import config_row, fmt, loss_at, targets, time_to_target
 from physgrad.files import clean_text, read_small_yaml, replaced_text
 from physgrad.results import Run, find_results, natural_key, read_run
 from physgrad.sweeps import unfinished_jobs
+from physgrad.tables import Tables, tables, write_tables
 
 # keys that never tell two runs apart: the seed (what a group pools over), files and cadences that do not change
 # the computation (`seeds` does count: seeds trained together share one step time) (init_from is identified by the variant's "from ...")
@@ -292,94 +291,13 @@ def markdown_table(rows: list[dict], columns) -> str:
     return "\n".join(lines) + "\n"
 
 
-ID_COLUMNS = ("set", "task", "scene", "setting", "variant", "label", "seed", "status")  # repeated in curves
-CSV_TRAIN_ROWS = 1000  # curves.csv keeps every evaluation and at most this many training rows per run
-
-
-class Tables(NamedTuple):
-    """runs: one row per run, every setting in a column of its own (the config's dotted keys: task.*, optim.*,
-    trainer.*, precision, ...; the effective unroll; the machine) beside the report's per-run numbers; curves:
-    one row per run, split (train | eval) and iteration, every logged column as a column of its own, with the
-    run's id (`run`, joining runs.run) and its identifying columns (set, task, scene, setting, variant, label,
-    seed, status), so that a plot needs no merge."""
-
-    runs: pd.DataFrame
-    curves: pd.DataFrame
-
-
-def tables(runs: list[Run], threshold: float | None = None) -> Tables:
-    """The runs (labelled: label_runs) as tidy pandas tables; see Tables."""
-    rows = run_rows(runs, threshold)
-    by_path = {str(run.path): run for run in runs}
-    records, curves = [], []
-    for number, row in enumerate(rows):
-        run = by_path[row["path"]]
-        settings = {k: v for k, v in config_row(run).items() if k not in ("seed", "unroll")}
-        records.append({"run": number, **row, "unroll": run.attrs.get("unroll"), **settings})
-        for split in ("train", "eval"):
-            columns = getattr(run, split)
-            if "iteration" in columns:
-                frame = pd.DataFrame(columns)
-                frame.insert(0, "split", split)
-                frame.insert(0, "run", number)
-                curves.append(frame)
-    runs_frame = _plain_columns(pd.DataFrame.from_records(records))
-    curve_frame = pd.concat(curves, ignore_index=True) if curves else pd.DataFrame(columns=["run", "split"])
-    if len(runs_frame):
-        identity = runs_frame[["run", *ID_COLUMNS]]
-        curve_frame = identity.merge(curve_frame, on="run", how="right")
-    return Tables(runs_frame, curve_frame)
-
-
-def _plain_columns(frame: pd.DataFrame) -> pd.DataFrame:
-    """Columns of one type each (a setting that is a number in one run and text in another becomes text;
-    lists become their text), so that CSV and Parquet hold them as they are."""
-    for column in frame.columns:
-        values = frame[column].dropna()
-        kinds = {type(v) for v in values}
-        if kinds - {int, float, bool, np.integer, np.floating} and (len(kinds) > 1 or kinds & {tuple, list, dict}):
-            frame[column] = frame[column].map(lambda v: v if v is None or (isinstance(v, float) and math.isnan(v))
-                                              else str(v))
-    return frame
-
-
 def read_runs(paths, threshold: float | None = None) -> Tables:
     """Every readable run under the paths (files, folders, LABEL=PATH sets, as `physgrad report` takes them) as
     tidy tables (Tables: .runs and .curves, pandas DataFrames), grouped and labelled as a report does.
     UserError (one line) if a path does not exist or holds no results file; unreadable files are left out."""
     runs, _, _ = collect([str(path) for path in paths])
     label_runs(runs)
-    return tables(runs, threshold)
-
-
-def write_tables(frames: Tables, out: Path) -> None:
-    """runs.csv and runs.parquet; curves.parquet (every row) and curves.csv (every evaluation, and the training
-    rows thinned to CSV_TRAIN_ROWS per run, evenly in iteration with the first and the last: a long run's CSV
-    would be tens of MB). Each written beside and renamed into place."""
-    with replaced_text(out / "runs.csv") as f:
-        frames.runs.to_csv(f, index=False)
-    with replaced_text(out / "curves.csv") as f:
-        _thinned(frames.curves).to_csv(f, index=False)
-    for name, frame in (("runs", frames.runs), ("curves", frames.curves)):
-        temporary = out / f".{name}.parquet.{os.getpid()}.tmp"
-        try:
-            frame.to_parquet(temporary, index=False)
-            os.replace(temporary, out / f"{name}.parquet")
-        except BaseException:
-            temporary.unlink(missing_ok=True)
-            raise
-
-
-def _thinned(curves: pd.DataFrame) -> pd.DataFrame:
-    if not len(curves):
-        return curves
-    train = curves["split"] == "train"
-    position = curves[train].groupby("run").cumcount()
-    size = curves[train].groupby("run")["run"].transform("size")
-    step = np.maximum(1, np.ceil(size / CSV_TRAIN_ROWS)).astype(int)
-    keep = pd.Series(True, index=curves.index)
-    keep[train] = (position % step == 0) | (position == size - 1)
-    return curves[keep]
+    return tables(runs, run_rows(runs, threshold))
 
 
 def output_folder(arguments, out_dir) -> Path:
@@ -408,10 +326,27 @@ def write_report(paths, out_dir=None, threshold: float | None = None, note: str 
     out = output_folder(paths, out_dir)
     label_runs(runs)
     rows = run_rows(runs, threshold)
+    limits = targets(runs)
+    text = summary_lines(paths, runs, rows, threshold, limits)
+    text += timing_notes(rows, sorted({run.scene for run in runs}, key=natural_key))
+    text += file_notes(paths, unreadable, dropped)
+    body = "\n".join(text) + "\n"
+    write_tables(tables(runs, rows), out)
+    with replaced_text(out / "report.md") as f:  # last: a report.md beside complete tables only
+        f.write(body)
+    chosen = {scene: threshold for scene in limits} if threshold is not None else limits
+    figures = write_figures(runs, out, note, logx, chosen)
+    return body + (f"wrote {out / 'report.md'}, runs.csv, curves.csv (and .parquet) and {', '.join(figures)} "
+                   "(and .pdf)\n")
+
+
+def summary_lines(paths, runs: list[Run], rows: list[dict], threshold: float | None,
+                  limits: dict[str, float]) -> list[str]:
+    """report.md's tables (per group, per seed) with what their columns mean."""
     names = metric_names(runs)
     group_columns = ("scene", "group", "seeds", "status", "final test loss", "loss at common time",
                      "time to threshold s", "iterations", "s/iter", "stopped by", "contended", *names)
-    limits, common = targets(runs), common_times(runs)
+    common = common_times(runs)
     scenes = sorted({run.scene for run in runs}, key=natural_key)
     if threshold is not None:
         threshold_text = f"the test loss {fmt(threshold)} (--threshold)"
@@ -421,22 +356,25 @@ def write_report(paths, out_dir=None, threshold: float | None = None, note: str 
     per_scene = "; ".join(f"{scene}: common time {fmt(common.get(scene, math.nan))} s, threshold "
                           f"{fmt(threshold if threshold is not None else limits.get(scene, math.nan))}"
                           for scene in scenes)
-    text = [f"{len(runs)} runs under {', '.join(map(str, paths))}", "",
+    return [f"{len(runs)} runs under {', '.join(map(str, paths))}", "",
             markdown_table(group_rows(rows, names), group_columns),
-            "Per group, as median [min, max] over seeds: the final test loss and the metrics over the completed "
-            "seeds, the loss at the common time over the seeds that got there, s/iter over all; loss at common "
-            "time: the last evaluation up to the shortest training time of the scene's completed runs plus one of "
-            "the run's steps (a budget is checked after each step), so every variant is compared at equal "
-            "training time; time to threshold: "
+            "Per group, as median [min, max] over seeds: the final test loss (at each run's budget) and the metrics "
+            "over the completed seeds, the loss at the common time over the seeds that got there, s/iter over all; "
+            "loss at common time: the last evaluation at or before the shortest training time of the scene's "
+            "completed runs (as physgrad compare reads a budget: physgrad.readout), so every variant is compared "
+            "at equal training time; time to threshold: "
             f"median training seconds until the test loss first reached {threshold_text}, over the seeds that "
             f"did (n/N when not all). {per_scene}.", "",
             "Per seed:", "", markdown_table(rows, PER_SEED + tuple(names)),
             "Times are training seconds (steps only: compilation and the first step's one-off cost are apart, in "
             "compile_seconds and runs.csv); a run started from another's network counts from where that run ended "
             "on the common time axis, and from its own start in train_seconds."]
-    text += timing_notes(rows, scenes)
-    for path, reason in unreadable:
-        text.append(f"unreadable: {reason}")
+
+
+def file_notes(paths, unreadable: list[tuple[Path, str]], dropped: list[Dropped]) -> list[str]:
+    """What the report did not count, and why: unreadable files, duplicates, jobs a sweep expected that left no
+    results file; and the best trial of a study of Hydra's Optuna sweeper."""
+    text = [f"unreadable: {reason}" for _, reason in unreadable]
     for item in dropped:
         text.append(f"counted once: {item.path}: {item.why}" if item.path.resolve() == item.kept.resolve()
                     else f"dropped {item.path}: {item.why} as {item.kept}")
@@ -455,29 +393,27 @@ def write_report(paths, out_dir=None, threshold: float | None = None, note: str 
             settings = " ".join(f"{k}={_value(v)}" for k, v in (best.get("best_params") or {}).items())
             text.append(f"tuned by Optuna in {path}: best {settings} (objective {fmt(best.get('best_value'))}: the "
                         "final test loss)")
-    body = "\n".join(text) + "\n"
-    write_tables(tables(runs, threshold), out)
-    with replaced_text(out / "report.md") as f:  # last: a report.md beside complete tables only
-        f.write(body)
-    from physgrad.plots import plot_comparison, plot_tradeoff, plot_unroll
+    return text
 
-    from physgrad.plots import group_styles
 
-    styles = group_styles(run.label or run.variant for run in runs)  # one style per group in every figure
+def write_figures(runs: list[Run], out: Path, note: str, logx: str, thresholds: dict[str, float]) -> list[str]:
+    """The report's figures (PNG and PDF) in one style per group across all of them; the PNG names written."""
+    from physgrad.plots import group_styles, plot_comparison, plot_tradeoff, plot_unroll
+
+    styles = group_styles(run.label or run.variant for run in runs)
     plot_comparison(runs, out / "loss_vs_time", "wall_time", note, logx, styles)
     plot_comparison(runs, out / "loss_vs_iteration", "iteration", note, logx, styles)
+    figures = [f"{name}.png" for name in FIGURES[:2]]
     calibrated = [run for run in runs if "calibrated_time" in run.eval]
     if calibrated:
         plot_comparison(calibrated, out / "loss_vs_calibrated_time", "calibrated_time", note, logx, styles)
-    chosen = {scene: threshold for scene in limits} if threshold is not None else limits
-    plot_tradeoff(runs, out / "tradeoff", note, styles, chosen)
-    figures = [f"{name}.png" for name in FIGURES[:3]]
+    plot_tradeoff(runs, out / "tradeoff", note, styles, thresholds)
+    figures.append("tradeoff.png")
     if calibrated:
         figures.append("loss_vs_calibrated_time.png")
     if plot_unroll(runs, out / "unroll", note, styles):
         figures.append("unroll.png")
-    return body + (f"wrote {out / 'report.md'}, runs.csv, curves.csv (and .parquet) and {', '.join(figures)} "
-                   "(and .pdf)\n")
+    return figures
 
 
 FIGURES = ("loss_vs_time", "loss_vs_iteration", "tradeoff", "unroll")

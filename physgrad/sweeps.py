@@ -25,7 +25,7 @@ from omegaconf import OmegaConf
 
 from physgrad.files import clean_text, owner_tag, read_small_yaml, replace_file
 from physgrad.interrupts import handling_signals
-from physgrad.results import owner_alive
+from physgrad.files import owner_alive
 
 log = logging.getLogger("physgrad")
 MANIFEST = "jobs.yaml"

@@ -468,8 +468,7 @@ def test_where_flock_is_unsupported_posix_locks_hold_the_folder(tmp_path, monkey
 
 
 def test_a_writer_on_another_host_is_judged_by_its_heartbeat():
-    from physgrad.files import timestamp
-    from physgrad.results import STALE_SECONDS, with_live_status
+    from physgrad.files import STALE_SECONDS, timestamp, with_live_status
 
     now = time.time()
     old = time.strftime("%Y-%m-%dT%H:%M:%S%z", time.localtime(now - STALE_SECONDS - 60))
@@ -494,12 +493,13 @@ def test_a_scene_figure_that_raises_costs_a_warning_not_the_run(tmp_path, monkey
 
 def test_an_interrupted_report_leaves_the_previous_tables(tmp_path, monkeypatch):
     import physgrad.report as report
+    import physgrad.tables as tables
 
     run_experiment_in(tmp_path / "run")
     report.write_report([tmp_path / "run"], out_dir=tmp_path / "report")
     before = {name: (tmp_path / "report" / name).read_bytes() for name in ("report.md", "runs.csv", "curves.csv")}
     rng = random.Random(4)
-    real = report.pd.DataFrame.to_csv
+    real = tables.pd.DataFrame.to_csv
     for trial in range(5 * REPEATS):
         calls, stop_at, cut = [0], rng.randint(1, 2), rng.random()
 
@@ -511,7 +511,7 @@ def test_an_interrupted_report_leaves_the_previous_tables(tmp_path, monkeypatch)
                 raise KeyboardInterrupt("SIGINT")
             f.write(text)
 
-        monkeypatch.setattr(report.pd.DataFrame, "to_csv", interrupted)
+        monkeypatch.setattr(tables.pd.DataFrame, "to_csv", interrupted)
         with pytest.raises(KeyboardInterrupt):
             report.write_report([tmp_path / "run"], out_dir=tmp_path / "report")
         after = {name: (tmp_path / "report" / name).read_bytes() for name in before}

@@ -252,7 +252,7 @@ def test_read_runs_gives_every_setting_a_column_and_curves_that_plot_without_a_m
 
 
 def test_long_runs_are_thinned_in_csv_and_whole_in_parquet(tmp_path):
-    from physgrad.report import CSV_TRAIN_ROWS
+    from physgrad.tables import CSV_TRAIN_ROWS
 
     count = 3 * CSV_TRAIN_ROWS + 7
     fake_run(tmp_path / "long", "adam", 0, 1, np.linspace(1, 0.1, count).tolist(), np.arange(count).tolist())
