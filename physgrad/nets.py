@@ -1,10 +1,13 @@
-"""Dense networks as plain pytrees: a list of {"w": (in, out), "b": (out,)} layers."""
+"""Networks as plain pytrees: dense networks (a list of {"w": (in, out), "b": (out,)} layers), the quantum
+controller's CNN and the Kuramoto-Sivashinsky scene's 1-D residual convolutional network."""
 
+import math
 from collections.abc import Sequence
 from contextlib import contextmanager
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 ACTIVATIONS = {"tanh": jnp.tanh, "relu": jax.nn.relu, "linear": lambda z: z}
 
@@ -83,3 +86,48 @@ def apply_control_cnn(params, image):
                                      dimension_numbers=("NWC", "WIO", "NWC"))
     x = jnp.tanh(x[0] + params["conv2"]["b"])  # (L2, filters)
     return (x.reshape(-1) @ params["dense"]["w"] + params["dense"]["b"])[0]
+
+
+def init_resnet(key, channels: int, blocks: int, dtype, zero_output: bool = False):
+    """The unrolling study's 1-D convolutional ResNet: conv(2 -> C), `blocks` residual blocks of two convolutions
+    (x <- leaky(conv(leaky(conv(x))) + x)), conv(C -> 1); kernel 3, circular padding, biases everywhere.
+    PyTorch's default initialisation: weights and biases ~ U(-1/sqrt(3 C_in), 1/sqrt(3 C_in)); zero_output
+    sets the last convolution to 0 (the network starts with an output of exactly 0).
+    15,841 parameters at C = 16, 10 blocks. Layout: {"input", "blocks": {"first", "second"} (each leaf
+    stacked over the blocks), "output"}, kernels (3, C_in, C_out)."""
+    layers = {"input": ((), 2, channels), "first": ((blocks,), channels, channels),
+              "second": ((blocks,), channels, channels), "output": ((), channels, 1)}
+    shapes = [shape for leading, c_in, c_out in layers.values()
+              for shape in ((*leading, 3, c_in, c_out), (*leading, c_out))]
+    # one random draw for the whole network, cut up on the host: a draw per layer would compile once per shape
+    draws = np.asarray(jax.random.uniform(key, (sum(math.prod(shape) for shape in shapes),), dtype, -1.0, 1.0))
+    offsets = np.cumsum([0] + [math.prod(shape) for shape in shapes])
+    pieces = iter(draws[a:b].reshape(shape) for a, b, shape in zip(offsets, offsets[1:], shapes))
+    built = {}
+    for name, (leading, c_in, c_out) in layers.items():
+        bound = 0.0 if (zero_output and name == "output") else 1.0 / math.sqrt(3 * c_in)
+        built[name] = {"w": jnp.asarray(next(pieces) * bound, dtype), "b": jnp.asarray(next(pieces) * bound, dtype)}
+    return {"input": built["input"], "blocks": {"first": built["first"], "second": built["second"]},
+            "output": built["output"]}
+
+
+def circular_conv(x, layer):
+    """out[i] = sum_k x[i + k - 1] w[k] + b on a periodic grid; x: (points, C_in) -> (points, C_out)."""
+    taps = jnp.concatenate([jnp.roll(x, 1, axis=0), x, jnp.roll(x, -1, axis=0)], axis=1)
+    return taps @ layer["w"].reshape(-1, layer["w"].shape[-1]) + layer["b"]
+
+
+def leaky(z):
+    """leaky_relu with slope 0.01 below 0 (PyTorch's default)."""
+    return jax.nn.leaky_relu(z, 0.01)
+
+
+def apply_resnet(params, u, size):
+    """f(u, size): (points,) -> (points,), the size factor as a constant second input channel."""
+    x = circular_conv(jnp.stack([u, jnp.full_like(u, size)], axis=1), params["input"])
+
+    first, second = params["blocks"]["first"], params["blocks"]["second"]
+    for index in range(first["b"].shape[0]):  # unrolled in Python rather than a scan over the blocks
+        layer = jax.tree_util.tree_map(lambda leaf, index=index: leaf[index], (first, second))
+        x = leaky(circular_conv(leaky(circular_conv(x, layer[0])), layer[1]) + x)
+    return circular_conv(x, params["output"])[:, 0]

@@ -9,9 +9,9 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
+from physgrad.nets import apply_resnet, init_resnet
 from physgrad.tasks import build_scene
-from physgrad.tasks.ks import (apply_resnet, cache_dir, dataset, etd_step, init_resnet, nonlinear, phi1, phi2,
-                               solver_step, wavenumbers)
+from physgrad.tasks.ks import cache_dir, dataset, etd_step, nonlinear, phi1, phi2, solver_step, wavenumbers
 from physgrad.unroll import MODES
 from tests.reference import check_gradient, forward_states, loop_states
 from tests.helpers import load

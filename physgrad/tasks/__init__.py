@@ -28,9 +28,8 @@ def draw_from(key, batch_size: int, train_set):
     """draw_batch for a fixed training set: batch_size samples drawn without replacement, independently at
     every iteration (from that iteration's key).
 
-    The subset is the top batch_size of one uniform draw per sample (every subset equally likely): 0.17 ms for
-    512 of 4096 on the CI machine, where jax.random.choice(replace=False) shuffles all of them (1.9 ms, as much
-    as the oscillator's whole loss and gradient)."""
+    The subset is the top batch_size of one uniform draw per sample (every subset equally likely), which
+    costs far less than the full shuffle of jax.random.choice(replace=False) (docs/decisions.md)."""
     size = jax.tree_util.tree_leaves(train_set)[0].shape[0]
     index = jax.lax.top_k(jax.random.uniform(key, (size,)), batch_size)[1]
     return jax.tree_util.tree_map(lambda leaf: leaf[index], train_set)
@@ -110,7 +109,7 @@ class Scene:
     def over_flat_params(self, unravel) -> "Scene":
         """This scene with the network's parameters as one flat vector (unravel: vector -> parameter pytree,
         from ravel_pytree): an optimiser then updates one array in one fused kernel instead of one per layer
-        (Adam on the Poisson network: 0.11 ms against 0.21 ms per update on the CI machine)."""
+        (docs/decisions.md)."""
 
         def flat(fn):
             return lambda flat_params, *args: fn(unravel(flat_params), *args)

@@ -16,6 +16,8 @@ the mean of c^2 over steps, drivers and both gains.
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
+from functools import partial
 
 import jax
 import jax.numpy as jnp
@@ -84,10 +86,110 @@ def initial_states(key, count: int, drivers: int, evaders: int, dtype) -> jax.Ar
     return jnp.stack([positions, jnp.zeros_like(positions)], axis=2)
 
 
+def initial_state(sample) -> jax.Array:
+    """x_0 = the sample's state."""
+    return sample["state"]
+
+
+def init_network(key, *, agents: int, drivers: int, hidden, dtype):
+    """An MLP from the flattened state (4 numbers per agent) to two gains per driver, its output layer zero (the
+    gains start at exactly 0)."""
+    return init_mlp(key, [4 * agents, *hidden, 2 * drivers], dtype, zero_last=True)
+
+
+def gains(params, state, k, *, drivers: int) -> jax.Array:
+    """c = MLP(state flattened) with tanh hidden layers, shape (drivers, 2); the same at every step k."""
+    return apply_mlp(params, state.reshape(-1), hidden="tanh").reshape(drivers, 2)
+
+
+def controller(params, sample, *, drivers: int):
+    """The closed-loop controller of one sample: (state, k) -> gains."""
+    return partial(gains, params, drivers=drivers)
+
+
+def observe(state, gains, sample, *, drivers: int) -> jax.Array:
+    """Per step: the mean of x_evader^2 (over evaders and coordinates) and of c^2 (over drivers, gains)."""
+    return jnp.stack([jnp.mean(state[drivers:, 0] ** 2), jnp.mean(gains ** 2)])
+
+
+def readout(final, observed, sample) -> jax.Array:
+    """y = both per-step terms of the loss: (evader term at steps 1..unroll, control term at each step)."""
+    return observed.T.reshape(-1)
+
+
+@dataclass(frozen=True)
+class Loss:
+    """L = mean(evader term over steps) + control_cost mean(control term over steps), y as given by readout."""
+
+    unroll: int
+    control_cost: float
+
+    def physics_loss(self, y) -> jax.Array:
+        return jnp.mean(y[:self.unroll])
+
+    def sample_loss(self, y, sample) -> jax.Array:
+        return self.physics_loss(y) + self.control_cost * jnp.mean(y[self.unroll:])
+
+    def sample_metrics(self, params, sample, y) -> dict:
+        return {"physics_loss": self.physics_loss(y)}
+
+
+def agent_paths(params, states, *, step, policy, unroll: int) -> np.ndarray:
+    """Positions of every agent at steps 0..unroll under the network, shape (samples, unroll + 1, agents, 2)."""
+
+    def positions(state):
+        _, visited = rollout(step, policy(params, {"state": state}), state, unroll, observe=lambda x, c: x[:, 0])
+        return jnp.concatenate([state[None, :, 0], visited])  # (unroll + 1, agents, 2)
+
+    return np.asarray(jax.jit(jax.vmap(positions))(states))
+
+
+def plot_paths(ax, trajectory: np.ndarray, index: int, drivers: int) -> None:
+    """One test state's paths: drivers red, evaders blue, start hollow, end filled, the origin a cross. The view
+    holds the start and the evaders' paths; a driver that leaves it is drawn to its edge."""
+    for agent in range(trajectory.shape[1]):
+        colour = "tab:red" if agent < drivers else "tab:blue"
+        ax.plot(trajectory[:, agent, 0], trajectory[:, agent, 1], color=colour, lw=1.2)
+        ax.plot(*trajectory[0, agent], "o", color=colour, ms=4, mfc="white")
+        ax.plot(*trajectory[-1, agent], "o", color=colour, ms=4)
+    ax.plot(0, 0, "k+", ms=10)
+    extent = 1.15 * max(np.abs(trajectory[0]).max(), np.abs(trajectory[:, drivers:]).max())
+    ax.set_xlim(-extent, extent)
+    ax.set_ylim(-extent, extent)
+    ax.set_aspect("equal")
+    spread = float(np.mean(trajectory[-1, drivers:] ** 2))
+    ax.set_title(f"test state {index}: final mean x_e^2 {spread:.3g}", fontsize=9)
+    ax.grid(True, alpha=0.3)
+
+
+def draw_paths(params, test_set, path, count: int = 4, *, step, policy, unroll: int, dt: float, drivers: int):
+    """Agent paths of the trained network for the first ``count`` test states, side by side, saved to path."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    count = min(count, test_set["state"].shape[0])
+    paths = agent_paths(params, test_set["state"][:count], step=step, policy=policy, unroll=unroll)
+    fig, axes = plt.subplots(1, count, figsize=(3.6 * count, 3.9), squeeze=False)
+    for index, (ax, trajectory) in enumerate(zip(axes[0], paths)):
+        plot_paths(ax, trajectory, index, drivers)
+    handles = [plt.Line2D([], [], color="tab:red", label="drivers"),
+               plt.Line2D([], [], color="tab:blue", label="evaders"),
+               plt.Line2D([], [], ls="", marker="o", mfc="white", color="gray", label="start"),
+               plt.Line2D([], [], ls="", marker="o", color="gray", label=f"end (t = {unroll * dt:.3g})"),
+               plt.Line2D([], [], ls="", marker="+", color="k", label="target (origin)")]
+    fig.legend(handles=handles, loc="lower center", ncol=5, fontsize=8, frameon=False)
+    fig.suptitle("guidance: agent paths under the trained controller", fontsize=10)
+    fig.tight_layout(rect=(0, 0.1, 1, 0.94))
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
 def build(key, *, drivers, evaders, dt, unroll, control_cost, softening, repulsion, evader_friction, flocking,
           flock_distance, driver_friction, spreading, hidden, train_size, test_size) -> Scene:
-    """The scene; the network sees the whole state (agents x [position, velocity] x [x, y], flattened) and
-    gives two gains per driver; its output layer is zero-initialised (the gains start at exactly 0)."""
+    """The scene: the network sees the whole state (agents x [position, velocity] x [x, y], flattened) and gives
+    two gains per driver; y holds the per-step terms of the loss (see ``readout``)."""
     drivers = number("task.drivers", drivers, 1, integer=True)
     evaders = number("task.evaders", evaders, 1, integer=True)
     dt = number("task.dt", dt, 0, open_low=True)
@@ -103,79 +205,18 @@ def build(key, *, drivers, evaders, dt, unroll, control_cost, softening, repulsi
     train_size = number("task.train_size", train_size, 1, integer=True)
     test_size = number("task.test_size", test_size, 1, integer=True)
     dtype = jnp.zeros(()).dtype
-    agents = drivers + evaders
 
-    def step(state, gains):
-        return euler_step(state, gains, dt, drivers, physics)
-
-    def policy(params, sample):
-        return lambda state, k: apply_mlp(params, state.reshape(-1), hidden="tanh").reshape(drivers, 2)
-
-    def observe(state, gains, sample):
-        """Per step: the mean of x_evader^2 (over evaders and coordinates) and of c^2 (over drivers, gains)."""
-        return jnp.stack([jnp.mean(state[drivers:, 0] ** 2), jnp.mean(gains ** 2)])
-
-    def readout(final, observed, sample):
-        # y = both per-step terms of the loss: (evader term at steps 1..unroll, control term at each step)
-        return observed.T.reshape(-1)
-
-    def physics_loss(y):
-        return jnp.mean(y[:unroll])
-
-    def sample_loss(y, sample):
-        return physics_loss(y) + control_cost * jnp.mean(y[unroll:])
-
-    def sample_metrics(params, sample, y):
-        return {"physics_loss": physics_loss(y)}
-
-    def draw_paths(params, test_set, path, count: int = 4):
-        """Agent paths of the trained network for the first test states: drivers red, evaders blue."""
-        import matplotlib
-
-        matplotlib.use("Agg")
-        import matplotlib.pyplot as plt
-
-        def positions(state):
-            _, visited = rollout(step, policy(params, {"state": state}), state, unroll, observe=lambda x, c: x[:, 0])
-            return jnp.concatenate([state[None, :, 0], visited])  # (unroll + 1, agents, 2)
-
-        count = min(count, test_set["state"].shape[0])
-        paths = np.asarray(jax.jit(jax.vmap(positions))(test_set["state"][:count]))
-        fig, axes = plt.subplots(1, count, figsize=(3.6 * count, 3.9), squeeze=False)
-        for index, (ax, trajectory) in enumerate(zip(axes[0], paths)):
-            for agent in range(agents):
-                colour = "tab:red" if agent < drivers else "tab:blue"
-                ax.plot(trajectory[:, agent, 0], trajectory[:, agent, 1], color=colour, lw=1.2)
-                ax.plot(*trajectory[0, agent], "o", color=colour, ms=4, mfc="white")
-                ax.plot(*trajectory[-1, agent], "o", color=colour, ms=4)
-            ax.plot(0, 0, "k+", ms=10)
-            # the view holds the start and the evaders' paths; a driver that leaves it is drawn to its edge
-            extent = 1.15 * max(np.abs(trajectory[0]).max(), np.abs(trajectory[:, drivers:]).max())
-            ax.set_xlim(-extent, extent)
-            ax.set_ylim(-extent, extent)
-            ax.set_aspect("equal")
-            spread = float(np.mean(trajectory[-1, drivers:] ** 2))
-            ax.set_title(f"test state {index}: final mean x_e^2 {spread:.3g}", fontsize=9)
-            ax.grid(True, alpha=0.3)
-        handles = [plt.Line2D([], [], color="tab:red", label="drivers"),
-                   plt.Line2D([], [], color="tab:blue", label="evaders"),
-                   plt.Line2D([], [], ls="", marker="o", mfc="white", color="gray", label="start"),
-                   plt.Line2D([], [], ls="", marker="o", color="gray", label=f"end (t = {unroll * dt:.3g})"),
-                   plt.Line2D([], [], ls="", marker="+", color="k", label="target (origin)")]
-        fig.legend(handles=handles, loc="lower center", ncol=5, fontsize=8, frameon=False)
-        fig.suptitle("guidance: agent paths under the trained controller", fontsize=10)
-        fig.tight_layout(rect=(0, 0.1, 1, 0.94))
-        fig.savefig(path, dpi=110)
-        plt.close(fig)
-
+    step = partial(euler_step, dt=dt, drivers=drivers, physics=physics)
+    policy = partial(controller, drivers=drivers)
+    loss = Loss(unroll, control_cost)
     train_key, test_key = jax.random.split(key)
     return Scene(
-        init_params=lambda k: init_mlp(k, [4 * agents, *hidden, 2 * drivers], dtype, zero_last=True),
+        init_params=partial(init_network, agents=drivers + evaders, drivers=drivers, hidden=hidden, dtype=dtype),
         train_set={"state": initial_states(train_key, train_size, drivers, evaders, dtype)},
         test_set={"state": initial_states(test_key, test_size, drivers, evaders, dtype)},
-        dynamics=Dynamics(step=step, policy=policy, initial=lambda sample: sample["state"], unroll=unroll,
-                          closed_loop=True, readout=readout, observe=observe),
-        sample_loss=sample_loss,
-        sample_metrics=sample_metrics,
-        figure=draw_paths,
+        dynamics=Dynamics(step=step, policy=policy, initial=initial_state, unroll=unroll, closed_loop=True,
+                          readout=readout, observe=partial(observe, drivers=drivers)),
+        sample_loss=loss.sample_loss,
+        sample_metrics=loss.sample_metrics,
+        figure=partial(draw_paths, step=step, policy=policy, unroll=unroll, dt=dt, drivers=drivers),
     )

@@ -30,6 +30,8 @@ import json
 import math
 import os
 import zipfile
+from dataclasses import dataclass
+from functools import partial
 from pathlib import Path
 
 import jax
@@ -38,6 +40,7 @@ import numpy as np
 
 from physgrad.errors import UserError
 from physgrad.files import replace_file
+from physgrad.nets import apply_resnet, init_resnet
 from physgrad.tasks import Scene
 from physgrad.unroll import Dynamics
 from physgrad.validate import choice, flag, number
@@ -150,6 +153,17 @@ def cache_dir() -> Path:
     return Path(os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache") / "physgrad"
 
 
+def generate(settings: dict, initial_by_size: list, sizes: list, warmup: int, steps: int) -> np.ndarray:
+    """Ground truth from each size's initial states: `warmup` model steps dropped, then `steps` kept ->
+    (len(sizes), initial states per size, steps + 1, points)."""
+    initial = np.concatenate(initial_by_size)
+    lengths = np.repeat([float(domain_length(settings["base_domain"], size)) for size in sizes],
+                        [len(i) for i in initial_by_size])
+    warm = trajectories(initial, lengths, warmup, settings["dt"], settings["substeps"])[:, -1]
+    states = trajectories(warm, lengths, steps, settings["dt"], settings["substeps"])
+    return states.reshape(len(sizes), -1, *states.shape[1:])
+
+
 def dataset(settings: dict) -> dict:
     """The training and test trajectories for ``settings``, generated on first use and cached in
     cache_dir()/ks-<hash of the settings>.npz (a change of any setting names another file).
@@ -167,28 +181,14 @@ def dataset(settings: dict) -> dict:
         except (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile):
             pass  # damaged or foreign: generate again
     s = settings
-    length = lambda size: float(domain_length(s["base_domain"], size))  # noqa: E731
-    step = {"h": s["dt"], "substeps": s["substeps"]}
-
-    def generate(initial_by_size, sizes, warmup, steps):
-        initial = np.concatenate(initial_by_size)
-        lengths = np.repeat([length(size) for size in sizes], [len(i) for i in initial_by_size])
-        warm = trajectories(initial, lengths, warmup, **step)[:, -1]
-        states = trajectories(warm, lengths, steps, **step)
-        return states.reshape(len(sizes), -1, *states.shape[1:])
-
-    train = generate([train_initial_states(s["points"], s["base_domain"], size) for size in s["train_sizes"]],
-                     s["train_sizes"], s["warmup"], s["train_steps"])
-
-    def held_out(first_seed):
-        """States of the test family, one fixed seed per test size (first_seed + its index)."""
-        return generate([test_initial_states(s["points"], s["base_domain"], size, s["test_count"], first_seed + index)
-                         for index, size in enumerate(s["test_sizes"])], s["test_sizes"], 2 * s["warmup"],
-                        s["test_steps"])
-
-    # validation: the same family from other seeds, for tuning (physgrad compare), so that no choice is made on
-    # the test states
-    data = {"train": train, "test": held_out(TEST_SEED), "validation": held_out(VALIDATION_SEED)}
+    initial = [train_initial_states(s["points"], s["base_domain"], size) for size in s["train_sizes"]]
+    data = {"train": generate(s, initial, s["train_sizes"], s["warmup"], s["train_steps"])}
+    # test and validation: the test family from a fixed seed per test size (first seed + its index); validation
+    # from other seeds, for tuning (physgrad compare), so that no choice is made on the test states
+    for part, first_seed in (("test", TEST_SEED), ("validation", VALIDATION_SEED)):
+        initial = [test_initial_states(s["points"], s["base_domain"], size, s["test_count"], first_seed + index)
+                   for index, size in enumerate(s["test_sizes"])]
+        data[part] = generate(s, initial, s["test_sizes"], 2 * s["warmup"], s["test_steps"])
     path.parent.mkdir(parents=True, exist_ok=True)
     content = io.BytesIO()
     np.savez(content, **data, settings=np.array(key))
@@ -196,50 +196,131 @@ def dataset(settings: dict) -> dict:
     return data
 
 
-# --------------------------------------------------------------------------------------------------------- network
-
-def init_resnet(key, channels: int, blocks: int, dtype, zero_output: bool = False):
-    """The study's 1-D convolutional ResNet: conv(2 -> C), `blocks` residual blocks of two convolutions
-    (x <- leaky(conv(leaky(conv(x))) + x)), conv(C -> 1); kernel 3, circular padding, biases everywhere.
-    PyTorch's default initialisation: weights and biases ~ U(-1/sqrt(3 C_in), 1/sqrt(3 C_in)); zero_output
-    sets the last convolution to 0 (the network starts with an output of exactly 0).
-    15,841 parameters at C = 16, 10 blocks. Layout: {"input", "blocks": {"first", "second"} (each leaf
-    stacked over the blocks), "output"}, kernels (3, C_in, C_out)."""
-    layers = {"input": ((), 2, channels), "first": ((blocks,), channels, channels),
-              "second": ((blocks,), channels, channels), "output": ((), channels, 1)}
-    shapes = [shape for leading, c_in, c_out in layers.values()
-              for shape in ((*leading, 3, c_in, c_out), (*leading, c_out))]
-    # one random draw for the whole network, cut up on the host: a draw per layer compiles once per shape (5 s)
-    draws = np.asarray(jax.random.uniform(key, (sum(math.prod(shape) for shape in shapes),), dtype, -1.0, 1.0))
-    offsets = np.cumsum([0] + [math.prod(shape) for shape in shapes])
-    pieces = iter(draws[a:b].reshape(shape) for a, b, shape in zip(offsets, offsets[1:], shapes))
-    built = {}
-    for name, (leading, c_in, c_out) in layers.items():
-        bound = 0.0 if (zero_output and name == "output") else 1.0 / math.sqrt(3 * c_in)
-        built[name] = {"w": jnp.asarray(next(pieces) * bound, dtype), "b": jnp.asarray(next(pieces) * bound, dtype)}
-    return {"input": built["input"], "blocks": {"first": built["first"], "second": built["second"]},
-            "output": built["output"]}
+def training_set(train, sizes: list[float], dtype) -> dict:
+    """train (sizes, initial states, frames, points) as flat frames, each with its size factor."""
+    train = jnp.asarray(train, dtype)
+    return {"frames": train.reshape(-1, train.shape[-1]),
+            "size": jnp.repeat(jnp.asarray(sizes, dtype), train.shape[1] * train.shape[2])}
 
 
-def circular_conv(x, layer):
-    """out[i] = sum_k x[i + k - 1] w[k] + b on a periodic grid; x: (points, C_in) -> (points, C_out)."""
-    taps = jnp.concatenate([jnp.roll(x, 1, axis=0), x, jnp.roll(x, -1, axis=0)], axis=1)
-    return taps @ layer["w"].reshape(-1, layer["w"].shape[-1]) + layer["b"]
+def draw_windows(training: str, unroll: int, trajectories_count: int, frames_count: int, key, batch_size: int,
+                 frames_set: dict) -> dict:
+    """B windows of m + 1 consecutive frames (trajectory and start uniform) from the flat frames of
+    `trajectories_count` trajectories of `frames_count` frames; for ONE, B x m independent one-step pairs, m per
+    sample."""
+    pairs = batch_size * unroll if training == "ONE" else batch_size
+    span = 1 if training == "ONE" else unroll
+    k_trajectory, k_start = jax.random.split(key)
+    trajectory = jax.random.randint(k_trajectory, (pairs,), 0, trajectories_count)
+    first = trajectory * frames_count + jax.random.randint(k_start, (pairs,), 0, frames_count - span)
+    frames = frames_set["frames"][first[:, None] + jnp.arange(span + 1)]  # (pairs, span + 1, points)
+    size = frames_set["size"][first]
+    if training == "ONE":
+        frames = frames.reshape(batch_size, unroll, 2, frames.shape[-1])
+        size = size.reshape(batch_size, unroll)
+        return {"inputs": frames[:, :, 0], "target": frames[:, :, 1], "sizes": size,
+                "state": frames[:, 0, 0], "size": size[:, 0]}
+    return {"state": frames[:, 0], "target": frames[:, 1:], "size": size}
 
 
-def leaky(z):
-    return jax.nn.leaky_relu(z, 0.01)
+def held_out_set(frames, sizes: list[float], horizon: int, dtype) -> dict:
+    """Rollout samples from held-out trajectories (test sizes, count, frames, points)."""
+    frames = jnp.asarray(frames, dtype)
+    states = frames[:, :, 0].reshape(-1, frames.shape[-1])
+    targets = frames[:, :, 1:].reshape(-1, frames.shape[2] - 1, frames.shape[-1])
+    return {"state": states, "target": targets, "size": jnp.repeat(jnp.asarray(sizes, dtype), frames.shape[1]),
+            # the study's normaliser: the largest u*^2 over frames 0..horizon, the state itself included
+            "scale": jnp.maximum(jnp.max(states ** 2, axis=1), jnp.max(targets[:, :horizon] ** 2, axis=(1, 2)))}
 
 
-def apply_resnet(params, u, size):
-    """f(u, size): (points,) -> (points,), the size factor as a constant second input channel."""
-    x = circular_conv(jnp.stack([u, jnp.full_like(u, size)], axis=1), params["input"])
+# ----------------------------------------------------------------------------------------------------------- model
 
-    first, second = params["blocks"]["first"], params["blocks"]["second"]
-    for index in range(first["b"].shape[0]):  # unrolled: 30% faster steps than a scan over the blocks
-        layer = jax.tree_util.tree_map(lambda leaf: leaf[index], (first, second))
-        x = leaky(circular_conv(leaky(circular_conv(x, layer[0])), layer[1]) + x)
-    return circular_conv(x, params["output"])[:, 0]
+@dataclass(frozen=True)
+class Stepper:
+    """The learned stepper: s' = f(s) (kind "predict") or P(s) + h f(s) (kind "correct"), f the ResNet of
+    physgrad.nets and P `substeps` ETD1 steps of size h on the domain 2 pi * base_domain * size."""
+
+    kind: str
+    base_domain: float
+    h: float
+    substeps: int
+
+    def coarse(self, u, size):
+        """P: the first-order solver over one model step."""
+        return solver_step(u, domain_length(self.base_domain, size), self.h, self.substeps, 1)
+
+    def stepped(self, u, size, correction):
+        """The next state from the network's output f(s)."""
+        return correction if self.kind == "predict" else self.coarse(u, size) + self.h * correction
+
+    def advance(self, params, u, size):
+        return self.stepped(u, size, apply_resnet(params, u, size))
+
+    def autoregressive(self, params, u, size, steps: int):
+        """The learned stepper's states 1..steps from u: (steps, points)."""
+        return jax.lax.scan(lambda v, _: (self.advance(params, v, size),) * 2, u, None, length=steps)[1]
+
+
+def detach(state, training: str):
+    """NOG: the state detached before every step, wherever it goes; WIG: the state itself."""
+    return jax.lax.stop_gradient(state) if training == "NOG" else state
+
+
+def rollout_step(stepper: Stepper, training: str, state, output):
+    """x_{k+1}: for ONE the policy's output itself; else the stepper's step from the (for NOG detached) state."""
+    if training == "ONE":
+        return output, state[1]
+    u, size = detach(state, training)
+    return stepper.stepped(u, size, output), size
+
+
+def rollout_policy(stepper: Stepper, training: str, params, sample):
+    """ONE: the learned stepper from the sample's k-th ground-truth state; else the network on the state."""
+    if training == "ONE":
+        return lambda state, k: stepper.advance(params, sample["inputs"][k], sample["sizes"][k])
+    return lambda state, k: apply_resnet(params, *detach(state, training))
+
+
+def dynamics(stepper: Stepper, training: str, unroll: int) -> Dynamics:
+    """The rollout of m steps of the training modality; y = the m predicted states. The rollout state is
+    (u, size); the network is the policy and the solver the physics, so that the modes M and S of physgrad.unroll
+    stop what they stop in the control scenes."""
+    return Dynamics(step=partial(rollout_step, stepper, training), policy=partial(rollout_policy, stepper, training),
+                    initial=lambda sample: (sample["state"], sample["size"]), unroll=unroll, closed_loop=True,
+                    readout=lambda final, observed, sample: observed.reshape(-1),
+                    observe=lambda state, control, sample: state[0])
+
+
+def sample_loss(y, sample):
+    """Training samples: the MSE over the predicted steps and the grid. Test samples: the study's relative
+    error, mean_k min(mean_x (u_k - u*_k)^2 / scale, ERROR_CAP) with scale = max u*^2 over frames 0..horizon (a
+    non-finite step counts ERROR_CAP, so that a model blowing up has a finite, comparable error)."""
+    target = sample["target"]
+    predicted = y.reshape(-1, target.shape[-1])
+    squared = (predicted - target[:predicted.shape[0]]) ** 2
+    if "scale" not in sample:
+        return jnp.mean(squared)
+    per_step = jnp.mean(squared, axis=1) / sample["scale"]
+    return jnp.mean(jnp.where(jnp.isfinite(per_step), jnp.minimum(per_step, ERROR_CAP), ERROR_CAP))
+
+
+def held_out_output(stepper: Stepper, horizon: int, params, sample):
+    """The held-out loss's output: `horizon` steps of the learned stepper, whatever the training unroll."""
+    return stepper.autoregressive(params, sample["state"], sample["size"], horizon).reshape(-1)
+
+
+def stability_metrics(stepper: Stepper, long_horizon: int, dtype, params, sample, y) -> dict:
+    """unstable_fraction: the long rollout leaves DIVERGED_FACTOR x the ground truth's largest |u| or is not
+    finite; decorrelation_steps: steps before its correlation with the ground truth first drops below
+    DECORRELATION (long_horizon if never)."""
+    states = stepper.autoregressive(params, sample["state"], sample["size"], long_horizon)
+    truth = sample["target"][:long_horizon]
+    finite = jnp.isfinite(states)
+    states = jnp.where(finite, states, 0.0)
+    unstable = ~jnp.all(finite) | (jnp.max(jnp.abs(states)) > DIVERGED_FACTOR * jnp.max(jnp.abs(truth)))
+    below = jax.vmap(pearson)(states, truth) < DECORRELATION
+    steps = jnp.where(jnp.any(below), jnp.argmax(below), long_horizon)
+    return {"unstable_fraction": unstable.astype(dtype), "decorrelation_steps": steps.astype(dtype)}
 
 
 # ----------------------------------------------------------------------------------------------------------- scene
@@ -259,17 +340,13 @@ def pearson(a, b):
     return jnp.where(norms > 0, jnp.sum(a * b) / jnp.where(norms > 0, norms, 1.0), 0.0)
 
 
-def build(key, *, stepper, training, unroll, points, base_domain, train_sizes, test_sizes, dt, substeps, warmup,
-          train_steps, test_count, test_steps, horizon, long_horizon, channels, blocks, zero_output) -> Scene:
-    """The scene; see the module docstring for the equations, steppers and training modalities. The data do
-    not depend on ``key`` (the study's fixed initial states): seeds differ in network and minibatches."""
-    stepper = choice("task.stepper", stepper, STEPPERS)
-    training = choice("task.training", training, TRAININGS)
-    unroll = number("task.unroll", unroll, 1, integer=True)
+def data_settings(unroll: int, points, base_domain, train_sizes, test_sizes, dt, substeps, warmup, train_steps,
+                  test_count, test_steps) -> dict:
+    """The checked settings the data depend on (the key of dataset's cache)."""
     points = number("task.points", points, 4, integer=True)
     if points % 2:
         raise UserError(f"task.points={points} is not allowed: use an even number of grid points")
-    settings = {
+    return {
         "points": points,
         "base_domain": number("task.base_domain", base_domain, 0, open_low=True),
         "train_sizes": sizes("task.train_sizes", train_sizes),
@@ -281,133 +358,42 @@ def build(key, *, stepper, training, unroll, points, base_domain, train_sizes, t
         "test_count": number("task.test_count", test_count, 1, integer=True),
         "test_steps": number("task.test_steps", test_steps, 1, integer=True),
     }
+
+
+def build(key, *, stepper, training, unroll, points, base_domain, train_sizes, test_sizes, dt, substeps, warmup,
+          train_steps, test_count, test_steps, horizon, long_horizon, channels, blocks, zero_output) -> Scene:
+    """The scene; see the module docstring for the equations, steppers and training modalities. The data do
+    not depend on ``key`` (the study's fixed initial states): seeds differ in network and minibatches."""
+    stepper = choice("task.stepper", stepper, STEPPERS)
+    training = choice("task.training", training, TRAININGS)
+    unroll = number("task.unroll", unroll, 1, integer=True)
+    settings = data_settings(unroll, points, base_domain, train_sizes, test_sizes, dt, substeps, warmup, train_steps,
+                             test_count, test_steps)
     horizon = number("task.horizon", horizon, 1, settings["test_steps"] + 1, integer=True)
     long_horizon = number("task.long_horizon", long_horizon, horizon, settings["test_steps"] + 1, integer=True)
     channels = number("task.channels", channels, 1, integer=True)
     blocks = number("task.blocks", blocks, 0, integer=True)
     zero_output = flag("task.zero_output", zero_output)
-    h, substeps, base = settings["dt"], settings["substeps"], settings["base_domain"]
     dtype = jnp.zeros(()).dtype
     data = dataset(settings)
-
-    def coarse(u, size):
-        """P: the first-order solver over one model step."""
-        return solver_step(u, domain_length(base, size), h, substeps, 1)
-
-    def stepped(u, size, correction):
-        """The next state from the network's output: s' = f(s) (predict) or P(s) + dt f(s) (correct)."""
-        return correction if stepper == "predict" else coarse(u, size) + h * correction
-
-    def advance(params, u, size):
-        """The learned stepper."""
-        return stepped(u, size, apply_resnet(params, u, size))
-
-    def autoregressive(params, u, size, steps):
-        """The learned stepper's states 1..steps from u: (steps, points)."""
-        return jax.lax.scan(lambda v, _: (advance(params, v, size),) * 2, u, None, length=steps)[1]
-
-    # The rollout state is (u, size); the network is the policy and the solver the physics, so that the modes
-    # M and S of physgrad.unroll stop what they stop in the control scenes.
-    if training == "ONE":
-        def step(state, next_u):
-            return next_u, state[1]
-
-        def policy(params, sample):  # every step starts from the sample's k-th ground-truth state
-            return lambda state, k: advance(params, sample["inputs"][k], sample["sizes"][k])
-    else:
-        # NOG: the state detached before every step, wherever it goes
-        detach = jax.lax.stop_gradient if training == "NOG" else (lambda state: state)
-
-        def step(state, correction):
-            u, size = detach(state)
-            return stepped(u, size, correction), size
-
-        def policy(params, sample):
-            return lambda state, k: apply_resnet(params, *detach(state))
-
-    def sample_loss(y, sample):
-        """Training samples: the MSE over the predicted steps and the grid. Test samples: the study's relative
-        error, mean_k min(mean_x (u_k - u*_k)^2 / scale, ERROR_CAP) with scale = max u*^2 over frames 0..horizon (a
-        non-finite step counts ERROR_CAP, so that a model blowing up has a finite, comparable error)."""
-        target = sample["target"]
-        predicted = y.reshape(-1, target.shape[-1])
-        squared = (predicted - target[:predicted.shape[0]]) ** 2
-        if "scale" not in sample:
-            return jnp.mean(squared)
-        per_step = jnp.mean(squared, axis=1) / sample["scale"]
-        return jnp.mean(jnp.where(jnp.isfinite(per_step), jnp.minimum(per_step, ERROR_CAP), ERROR_CAP))
-
-    def test_output(params, sample):
-        return autoregressive(params, sample["state"], sample["size"], horizon).reshape(-1)
-
-    def sample_metrics(params, sample, y):
-        """unstable_fraction: the long rollout leaves DIVERGED_FACTOR x the ground truth's largest |u| or is not
-        finite; decorrelation_steps: steps before its correlation with the ground truth first drops below
-        DECORRELATION (long_horizon if never)."""
-        states = autoregressive(params, sample["state"], sample["size"], long_horizon)
-        truth = sample["target"][:long_horizon]
-        finite = jnp.isfinite(states)
-        states = jnp.where(finite, states, 0.0)
-        unstable = ~jnp.all(finite) | (jnp.max(jnp.abs(states)) > DIVERGED_FACTOR * jnp.max(jnp.abs(truth)))
-        below = jax.vmap(pearson)(states, truth) < DECORRELATION
-        steps = jnp.where(jnp.any(below), jnp.argmax(below), long_horizon)
-        return {"unstable_fraction": unstable.astype(dtype), "decorrelation_steps": steps.astype(dtype)}
-
-    train = jnp.asarray(data["train"], dtype)  # (sizes, initial states, frames, points)
-    trajectories_count, frames_count = train.shape[0] * train.shape[1], train.shape[2]
-    train_set = {"frames": train.reshape(-1, points),
-                 "size": jnp.repeat(jnp.asarray(settings["train_sizes"], dtype), train.shape[1] * frames_count)}
-
-    def draw_batch(key, batch_size, frames_set):
-        """B windows of m + 1 consecutive frames (trajectory and start uniform); for ONE, B x m independent
-        one-step pairs, m per sample."""
-        pairs = batch_size * unroll if training == "ONE" else batch_size
-        span = 1 if training == "ONE" else unroll
-        k_trajectory, k_start = jax.random.split(key)
-        trajectory = jax.random.randint(k_trajectory, (pairs,), 0, trajectories_count)
-        first = trajectory * frames_count + jax.random.randint(k_start, (pairs,), 0, frames_count - span)
-        frames = frames_set["frames"][first[:, None] + jnp.arange(span + 1)]  # (pairs, span + 1, points)
-        size = frames_set["size"][first]
-        if training == "ONE":
-            frames = frames.reshape(batch_size, unroll, 2, points)
-            size = size.reshape(batch_size, unroll)
-            return {"inputs": frames[:, :, 0], "target": frames[:, :, 1], "sizes": size,
-                    "state": frames[:, 0, 0], "size": size[:, 0]}
-        return {"state": frames[:, 0], "target": frames[:, 1:], "size": size}
-
-    def held_out_set(frames):
-        """Rollout samples from held-out trajectories (test sizes, count, frames, points)."""
-        frames = jnp.asarray(frames, dtype)
-        states = frames[:, :, 0].reshape(-1, points)
-        targets = frames[:, :, 1:].reshape(-1, frames.shape[2] - 1, points)
-        return {"state": states, "target": targets,
-                "size": jnp.repeat(jnp.asarray(settings["test_sizes"], dtype), frames.shape[1]),
-                # the study's normaliser: the largest u*^2 over frames 0..horizon, the state itself included
-                "scale": jnp.maximum(jnp.max(states ** 2, axis=1), jnp.max(targets[:, :horizon] ** 2, axis=(1, 2)))}
-
-    test_set = held_out_set(data["test"])
-
-    def figure(params, test_set, path):
-        draw_rollouts(params, test_set, path, autoregressive, coarse, f"{stepper}, {training}, m = {unroll}", horizon,
-                      long_horizon)
-
+    model = Stepper(stepper, settings["base_domain"], settings["dt"], settings["substeps"])
+    train_shape = data["train"].shape  # (sizes, initial states, frames, points)
     return Scene(
-        init_params=lambda k: init_resnet(k, channels, blocks, dtype, zero_output),
-        train_set=train_set,
-        draw_batch=draw_batch,
-        test_set=test_set,
-        validation_set=held_out_set(data["validation"]),
-        test_output=test_output,
-        dynamics=Dynamics(step=step, policy=policy, initial=lambda sample: (sample["state"], sample["size"]),
-                          unroll=unroll, closed_loop=True, readout=lambda final, observed, sample: observed.reshape(-1),
-                          observe=lambda state, control, sample: state[0]),
+        init_params=partial(init_resnet, channels=channels, blocks=blocks, dtype=dtype, zero_output=zero_output),
+        train_set=training_set(data["train"], settings["train_sizes"], dtype),
+        draw_batch=partial(draw_windows, training, unroll, train_shape[0] * train_shape[1], train_shape[2]),
+        test_set=held_out_set(data["test"], settings["test_sizes"], horizon, dtype),
+        validation_set=held_out_set(data["validation"], settings["test_sizes"], horizon, dtype),
+        test_output=partial(held_out_output, model, horizon),
+        dynamics=dynamics(model, training, unroll),
         sample_loss=sample_loss,
-        sample_metrics=sample_metrics,
-        figure=figure,
+        sample_metrics=partial(stability_metrics, model, long_horizon, dtype),
+        figure=partial(draw_rollouts, stepper=model, variant=f"{stepper}, {training}, m = {unroll}",
+                       horizon=horizon, long_horizon=long_horizon),
     )
 
 
-def draw_rollouts(params, test_set, path, autoregressive, coarse, variant: str, horizon: int, long_horizon: int):
+def draw_rollouts(params, test_set, path, stepper: Stepper, variant: str, horizon: int, long_horizon: int):
     """scene.png: a test rollout against the ground truth as space-time images (truth, model, difference),
     and the relative error per rollout step (median over the test states, with the coarse solver alone for
     reference)."""
@@ -417,12 +403,12 @@ def draw_rollouts(params, test_set, path, autoregressive, coarse, variant: str, 
     import matplotlib.pyplot as plt
 
     steps = long_horizon
-    model = np.asarray(jax.jit(jax.vmap(lambda u, s: autoregressive(params, u, s, steps)))(test_set["state"],
-                                                                                           test_set["size"]))
+    model = np.asarray(jax.jit(jax.vmap(lambda u, s: stepper.autoregressive(params, u, s, steps)))(
+        test_set["state"], test_set["size"]))
     truth = np.asarray(test_set["target"][:, :steps])
 
     def solver_alone(u, size):
-        return jax.lax.scan(lambda v, _: (coarse(v, size),) * 2, u, None, length=steps)[1]
+        return jax.lax.scan(lambda v, _: (stepper.coarse(v, size),) * 2, u, None, length=steps)[1]
 
     baseline = np.asarray(jax.jit(jax.vmap(solver_alone))(test_set["state"], test_set["size"]))
     scale = np.max(truth[:, :horizon] ** 2, axis=(1, 2))[:, None]

@@ -14,6 +14,9 @@ Two presets share this module (conf/task/quantum.yaml, conf/task/quantum_control
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+from functools import partial
+
 import jax
 import jax.numpy as jnp
 from jax.lax.linalg import tridiagonal_solve
@@ -68,15 +71,123 @@ def realify(psi):
     return jnp.concatenate([psi.real, psi.imag])
 
 
+def eigenstates(points: int, levels: int, dtype) -> list[jax.Array]:
+    """phi_1..phi_levels as complex vectors (complex of the precision of ``dtype``)."""
+    cplx = jnp.result_type(dtype, jnp.complex64)
+    return [eigenstate(n, points, dtype).astype(cplx) for n in range(1, levels + 1)]
+
+
+def start_states(k_start, k_phase, count: int, start: str, phi, dtype) -> jax.Array:
+    """psi_0: phi_1 ("ground"), or ("mix12") (m_1 phi_1 + m_2 phi_2) / |m| with m_i = c_i exp(i a_i),
+    c_i ~ N(0, 1), a_i ~ U[0, 2 pi)."""
+    if start == "ground":
+        return jnp.broadcast_to(phi[0], (count, phi[0].shape[0]))
+    c = jax.random.normal(k_start, (count, 2), dtype)
+    a = jax.random.uniform(k_phase, (count, 2), dtype, 0.0, 2.0 * jnp.pi)
+    mix = c * jnp.exp(1j * a)
+    return (mix[:, :1] * phi[0] + mix[:, 1:] * phi[1]) / jnp.linalg.norm(mix, axis=1, keepdims=True)
+
+
+def target_states(k_target, count: int, target: str, level: int, phi, dtype) -> jax.Array:
+    """The target: ("mix23") (c_2 phi_2 + c_3 phi_3) / |c| with c_i ~ N(0, 1), real; or ("level") phi_level."""
+    if target == "mix23":
+        c = jax.random.normal(k_target, (count, 2), dtype)
+        return (c[:, :1] * phi[1] + c[:, 1:] * phi[2]) / jnp.linalg.norm(c, axis=1, keepdims=True)
+    return jnp.broadcast_to(phi[level - 1], (count, phi[0].shape[0]))
+
+
+def make_samples(key, count: int, *, points: int, start: str, target: str, level: int, dtype) -> dict:
+    """``count`` samples {"psi0": start state, "target": target state}, both complex."""
+    cplx = jnp.result_type(dtype, jnp.complex64)
+    phi = eigenstates(points, max(3, level), dtype)
+    k_start, k_target, k_phase = jax.random.split(key, 3)
+    psi0 = start_states(k_start, k_phase, count, start, phi, dtype)
+    targets = target_states(k_target, count, target, level, phi, dtype)
+    return {"psi0": psi0.astype(cplx), "target": targets.astype(cplx)}
+
+
+def initial_state(sample) -> jax.Array:
+    """x_0 = psi_0."""
+    return sample["psi0"]
+
+
+def init_network(key, *, points: int, network: str, closed_loop: bool, hidden, unroll: int, dtype):
+    """closed loop: the control CNN on psi ("cnn") or an MLP from (psi, target) as real numbers to u ("dense");
+    open loop: an MLP from the target as real numbers to the controls of all unroll steps."""
+    if closed_loop and network == "cnn":
+        return init_control_cnn(key, points, dtype)
+    if closed_loop:
+        return init_mlp(key, [4 * points, *hidden, 1], dtype)
+    return init_mlp(key, [2 * points, *hidden, unroll], dtype)
+
+
+def cnn_control(params, psi, target) -> jax.Array:
+    """u = CNN(psi as an (N, 2) image of (Re, Im)); the target is not an input."""
+    return apply_control_cnn(params, jnp.stack([psi.real, psi.imag], axis=1))
+
+
+def dense_control(params, psi, target) -> jax.Array:
+    """u = MLP([Re psi, Im psi, Re target, Im target]) with tanh hidden layers."""
+    return apply_mlp(params, jnp.concatenate([realify(psi), realify(target)]), hidden="tanh")[0]
+
+
+def feedback(control, params, target, psi, k) -> jax.Array:
+    """u_k = control(params, psi_k, target)."""
+    return control(params, psi, target)
+
+
+def scheduled(controls, psi, k) -> jax.Array:
+    """u_k = controls[k], whatever the state."""
+    return controls[k]
+
+
+def closed_loop_policy(params, sample, *, control):
+    """The controller of one sample: (psi, k) -> control(params, psi, target)."""
+    return partial(feedback, control, params, sample["target"])
+
+
+def open_loop_policy(params, sample):
+    """The controller of one sample: all unroll controls u = MLP([Re target, Im target]) at once, indexed by k."""
+    return partial(scheduled, apply_mlp(params, realify(sample["target"]), hidden="tanh"))
+
+
+def step_fidelity(psi, u, sample) -> jax.Array:
+    """Observed per step: |<target|psi_{k+1}>|^2."""
+    return fidelity(sample["target"], psi)
+
+
+@dataclass(frozen=True)
+class Objective:
+    """every_step: y = the fidelity F_t of every step, L = sum_t (1 - F_t); otherwise y = psi(T) as real numbers
+    [Re, Im] and L = 1 - |<target|psi(T)>|^2. The metric is the final fidelity either way."""
+
+    every_step: bool
+    points: int
+
+    def readout(self, final, fidelities, sample) -> jax.Array:
+        return fidelities if self.every_step else realify(final)
+
+    def final_fidelity(self, y, sample) -> jax.Array:
+        if self.every_step:
+            return y[-1]
+        return fidelity(sample["target"], y[:self.points] + 1j * y[self.points:])
+
+    def sample_loss(self, y, sample) -> jax.Array:
+        return jnp.sum(1.0 - y) if self.every_step else 1.0 - self.final_fidelity(y, sample)
+
+    def sample_metrics(self, params, sample, y) -> dict:
+        return {"fidelity": self.final_fidelity(y, sample)}
+
+
 def build(key, *, points, dt, unroll, start, target, target_level, loss, closed_loop, network, hidden,
           checkpoint, train_size, test_size) -> Scene:
     """The scene, either preset: every difference between them is one of these settings (docs/decisions.md)."""
     points = number("task.points", points, 3, integer=True)
     dt = number("task.dt", dt, 0, open_low=True)
     start = choice("task.start", start, ("ground", "mix12"))
-    target_kind = choice("task.target", target, ("mix23", "level"))
+    target = choice("task.target", target, ("mix23", "level"))
     level = number("task.target_level", target_level, 1, integer=True)
-    if target_kind == "level" and level > points:
+    if target == "level" and level > points:
         raise UserError(f"task.target_level={level} is not allowed: the grid has {points} levels (task.points)")
     every_step = choice("task.loss", loss, ("final", "every_step")) == "every_step"
     network = choice("task.network", network, ("dense", "cnn"))
@@ -86,74 +197,25 @@ def build(key, *, points, dt, unroll, start, target, target_level, loss, closed_
                         "task.network=dense")
     train_size = number("task.train_size", train_size, 1, integer=True)
     test_size = number("task.test_size", test_size, 1, integer=True)
-
-    real = jnp.zeros(()).dtype
-    cplx = jnp.result_type(real, jnp.complex64)
-    x = grid(points, real)
-    phi = [eigenstate(n, points, real).astype(cplx) for n in range(1, max(3, level) + 1)]
-
-    def make_samples(k, count):
-        k_start, k_target, k_phase = jax.random.split(k, 3)
-        if start == "ground":
-            psi0 = jnp.broadcast_to(phi[0], (count, points))
-        else:
-            c = jax.random.normal(k_start, (count, 2), real)
-            a = jax.random.uniform(k_phase, (count, 2), real, 0.0, 2.0 * jnp.pi)
-            mix = c * jnp.exp(1j * a)
-            psi0 = (mix[:, :1] * phi[0] + mix[:, 1:] * phi[1]) / jnp.linalg.norm(mix, axis=1, keepdims=True)
-        if target_kind == "mix23":
-            c = jax.random.normal(k_target, (count, 2), real)
-            target = (c[:, :1] * phi[1] + c[:, 1:] * phi[2]) / jnp.linalg.norm(c, axis=1, keepdims=True)
-        else:
-            target = jnp.broadcast_to(phi[level - 1], (count, points))
-        return {"psi0": psi0.astype(cplx), "target": target.astype(cplx)}
-
     hidden = layer_widths("task.hidden", hidden)
     checkpoint = flag("task.checkpoint", checkpoint)
-    if closed_loop and network == "cnn":
-        init = lambda k: init_control_cnn(k, points, real)  # noqa: E731
 
-        def control(params, psi, target):
-            return apply_control_cnn(params, jnp.stack([psi.real, psi.imag], axis=1))
-    elif closed_loop:
-        init = lambda k: init_mlp(k, [4 * points, *hidden, 1], real)  # noqa: E731
-
-        def control(params, psi, target):
-            return apply_mlp(params, jnp.concatenate([realify(psi), realify(target)]), hidden="tanh")[0]
+    real = jnp.zeros(()).dtype
+    samples = partial(make_samples, points=points, start=start, target=target, level=level, dtype=real)
+    if closed_loop:
+        policy = partial(closed_loop_policy, control=cnn_control if network == "cnn" else dense_control)
     else:
-        init = lambda k: init_mlp(k, [2 * points, *hidden, unroll], real)  # noqa: E731
-
-    def step(psi, u):
-        return crank_nicolson_step(psi, u, x, dt)
-
-    def policy(params, sample):
-        target = sample["target"]
-        if closed_loop:
-            return lambda psi, k: control(params, psi, target)
-        controls = apply_mlp(params, realify(target), hidden="tanh")
-        return lambda psi, k: controls[k]
-
-    def readout(final, fidelities, sample):
-        # y: the fidelity of every step (loss over all steps), or the final state as real numbers
-        return fidelities if every_step else realify(final)
-
-    def final_fidelity(y, sample):
-        if every_step:
-            return y[-1]
-        return fidelity(sample["target"], y[:points] + 1j * y[points:])
-
-    def sample_loss(y, sample):
-        return jnp.sum(1.0 - y) if every_step else 1.0 - final_fidelity(y, sample)
-
+        policy = open_loop_policy
+    objective = Objective(every_step, points)
     train_key, test_key = jax.random.split(key)
-
     return Scene(
-        init_params=init,
-        train_set=make_samples(train_key, train_size),
-        test_set=make_samples(test_key, test_size),
-        dynamics=Dynamics(step=step, policy=policy, initial=lambda sample: sample["psi0"], unroll=unroll,
-                          closed_loop=closed_loop, readout=readout, checkpoint=checkpoint,
-                          observe=(lambda psi, u, sample: fidelity(sample["target"], psi)) if every_step else None),
-        sample_loss=sample_loss,
-        sample_metrics=lambda params, sample, y: {"fidelity": final_fidelity(y, sample)},
+        init_params=partial(init_network, points=points, network=network, closed_loop=closed_loop, hidden=hidden,
+                            unroll=unroll, dtype=real),
+        train_set=samples(train_key, train_size),
+        test_set=samples(test_key, test_size),
+        dynamics=Dynamics(step=partial(crank_nicolson_step, x=grid(points, real), dt=dt), policy=policy,
+                          initial=initial_state, unroll=unroll, closed_loop=closed_loop, readout=objective.readout,
+                          checkpoint=checkpoint, observe=step_fidelity if every_step else None),
+        sample_loss=objective.sample_loss,
+        sample_metrics=objective.sample_metrics,
     )
