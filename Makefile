@@ -4,7 +4,7 @@ VENV ?= .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 
-.PHONY: setup run test test-long test-fast test-faults bench check-stability reproduce-figures clean
+.PHONY: setup run lint test test-long test-fast test-faults bench check-stability reproduce-figures clean
 
 setup: $(STAMP)
 
@@ -24,7 +24,13 @@ run: setup
 # process (the suite is mostly single-threaded tracing and compiling); PYTEST_WORKERS=0 runs it in one process
 PYTEST_WORKERS ?= auto
 XDIST := $(if $(filter 0,$(PYTEST_WORKERS)),-p no:xdist,-n $(PYTEST_WORKERS) --maxprocesses=4)
-test: setup
+# ruff first (100 columns; pyproject.toml): a lint or layout finding fails the tests in seconds
+LINTED := physgrad tests experiments examples
+lint: setup
+	$(BIN)/ruff check $(LINTED)
+	$(BIN)/ruff format --check $(LINTED)
+
+test: lint
 	$(BIN)/python -m pytest -q $(XDIST) -m "not long" tests
 
 # the long checks (numerics through whole solvers, end-to-end studies, the full scene x optim matrix, the small

@@ -1,21 +1,26 @@
-"""The papers' claims as `physgrad compare` studies: which studies the claims profile runs, how each claim is read
-from them, claims.md with tuned and preset verdicts side by side, and the regime map (payoff.png).
+"""The papers' claims as `physgrad compare` studies: which studies the claims profile runs, how each
+claim is read from them, claims.md with tuned and preset verdicts side by side, and the regime map
+(payoff.png).
 
 Usage: python experiments/claims.py STUDIES_FOLDER [OUT_FOLDER]
-(STUDIES_FOLDER holds the profile's study folders: outputs/experiments/claims, or .../claims-long for that
-profile's claims-long.md.)
+(STUDIES_FOLDER holds the profile's study folders: outputs/experiments/claims, or .../claims-long
+for that profile's claims-long.md.)
 
-Every study is a `physgrad compare` (docs/protocol.md): each variant tuned with the same number of trials on a
-tuning seed and scored by its validation loss, then evaluated on paired seeds, the verdicts from the test loss;
-its untuned twin (`<study>-preset`, compare.tune=false) evaluates the presets on the same seeds and clock. Time
-budgets run on the calibrated clock (iterations x each variant's calibrated step cost). A claim is read from the
-studies' evaluation runs with physgrad's own rules (physgrad.verdict), over the comparisons the paper makes:
-- "A lower than B": the paired verdict at the budget (Holm over the claim's comparisons in that study);
-- "A close to B": holds when A is better or equivalent within the stated margin, fails when B is better;
-- "A's advantage over B grows from the easy setting to the hard one": physgrad.verdict.interaction on the two
-  studies' per-seed log ratios (the ratio at the hard end below the one at the easy end, with an interval);
-- "A stalls": the variant's own loss at the budget against its loss at half the budget, paired by seed:
-  stalled when the two are equivalent within the margin (neither still falling nor rising).
+Every study is a `physgrad compare` (docs/protocol.md): each variant tuned with the same number of
+trials on a tuning seed and scored by its validation loss, then evaluated on paired seeds, the
+verdicts from the test loss; its untuned twin (`<study>-preset`, compare.tune=false) evaluates the
+presets on the same seeds and clock. Time budgets run on the calibrated clock (iterations x each
+variant's calibrated step cost). A claim is read from the studies' evaluation runs with physgrad's
+own rules (physgrad.verdict), over the comparisons the paper makes:
+- "A lower than B": the paired verdict at the budget (Holm over the claim's comparisons in that
+  study);
+- "A close to B": holds when A is better or equivalent within the stated margin, fails when B is
+  better;
+- "A's advantage over B grows from the easy setting to the hard one": physgrad.verdict.interaction
+  on the two studies' per-seed log ratios (the ratio at the hard end below the one at the easy end,
+  with an interval);
+- "A stalls": the variant's own loss at the budget against its loss at half the budget, paired by
+  seed: stalled when the two are equivalent within the margin (neither still falling nor rising).
 A claim holds if every part holds, does not hold if one does not, and is not settled otherwise.
 """
 
@@ -31,20 +36,35 @@ from pathlib import Path
 import numpy as np
 
 from physgrad.readout import highest_median
-from physgrad.verdict import (A_BETTER, B_BETTER, EQUIVALENT, GROWS, MARGIN, UNDECIDED, compare_variants, interaction,
-                              paired)
+from physgrad.verdict import (
+    A_BETTER,
+    B_BETTER,
+    EQUIVALENT,
+    GROWS,
+    MARGIN,
+    UNDECIDED,
+    compare_variants,
+    interaction,
+    paired,
+)
 
 HOLDS, FAILS, OPEN = "holds", "does not hold", "not settled"
-NOT_RUN = "not run"  # a part whose variants the study does not have (the presets' twin of a clipping sweep)
-TUNE_SEED = 1_000_000  # compare's default tuning seed: a study that continues networks needs one for it too
+# a part whose variants the study does not have (the presets' twin of a clipping sweep)
+NOT_RUN = "not run"
+TUNE_SEED = (
+    1_000_000  # compare's default tuning seed: a study that continues networks needs one for it too
+)
 
 
-# --- the studies ------------------------------------------------------------------------------------------
+# --- the studies
+# ------------------------------------------------------------------------------------------
 
 
 @dataclass(frozen=True)
 class Start:
-    """Networks a study continues from (init_from): one `physgrad run` job per seed, evaluation and tuning seeds."""
+    """Networks a study continues from (init_from): one `physgrad run` job per seed, evaluation and
+    tuning seeds."""
+
     name: str
     overrides: tuple[str, ...]
     job_seconds: float  # one job on the 2-core machine, start-up and compilation included
@@ -52,18 +72,26 @@ class Start:
 
 @dataclass(frozen=True)
 class Study:
-    """One `physgrad compare` of the profile, into <profile folder>/<name> (and <name>-preset, untuned)."""
+    """One `physgrad compare` of the profile, into <profile folder>/<name> (and <name>-preset,
+    untuned)."""
+
     name: str
-    overrides: tuple[str, ...]  # compare's overrides: variant axes (comma lists) and common settings
+    overrides: tuple[
+        str, ...
+    ]  # compare's overrides: variant axes (comma lists) and common settings
     trials: int
     seeds: int
     tune_seconds: float  # one tuning job on the 2-core machine (start-up and compilation included)
     eval_seconds: float  # one evaluation job (all seeds of a variant when they train together)
     start: Start | None = None
-    preset: bool | str = True  # also evaluate the presets untuned (a key=value: with that override replaced)
+    preset: bool | str = (
+        True  # also evaluate the presets untuned (a key=value: with that override replaced)
+    )
 
     def variants(self, preset: bool = False) -> int:
-        return math.prod(len(_values(o)) for o in self.preset_overrides(preset) if len(_values(o)) > 1)
+        return math.prod(
+            len(_values(o)) for o in self.preset_overrides(preset) if len(_values(o)) > 1
+        )
 
     def preset_overrides(self, preset: bool = True) -> list[str]:
         if not preset or not isinstance(self.preset, str):
@@ -81,8 +109,11 @@ class Study:
 
     def command(self, root: Path, preset: bool = False) -> list[str]:
         overrides = [o.replace("{root}", str(root)) for o in self.preset_overrides(preset)]
-        settings = [f"compare.dir={root / (self.name + ('-preset' if preset else ''))}",
-                    f"compare.seeds={self.seeds}", f"compare.trials={self.trials}"]
+        settings = [
+            f"compare.dir={root / (self.name + ('-preset' if preset else ''))}",
+            f"compare.seeds={self.seeds}",
+            f"compare.trials={self.trials}",
+        ]
         if preset:
             settings.append("compare.tune=false")
             if self.timed:  # the presets run on the tuned study's clock
@@ -90,15 +121,19 @@ class Study:
         return [*overrides, *settings]
 
     def seconds(self) -> float:
-        """The expected wall time: tuning, evaluation, the presets' evaluation, the start networks, calibration."""
-        total = self.trials * self.variants() * self.tune_seconds + self.eval_jobs() * self.eval_seconds
+        """The expected wall time: tuning, evaluation, the presets' evaluation, the start networks,
+        calibration."""
+        total = (
+            self.trials * self.variants() * self.tune_seconds + self.eval_jobs() * self.eval_seconds
+        )
         total += self.eval_jobs(preset=True) * self.eval_seconds if self.preset else 0.0
         total += (self.seeds + 1) * self.start.job_seconds if self.start else 0.0
         return total + (30.0 * self.variants() if self.timed else 0.0)
 
 
 def _values(override: str) -> list[str]:
-    """The values of a comma-list override (a variant axis); one value otherwise. Quoted values are one value."""
+    """The values of a comma-list override (a variant axis); one value otherwise. Quoted values are
+    one value."""
     value = override.partition("=")[2]
     if value.startswith(("'", '"', "[")):
         return [value]
@@ -109,59 +144,192 @@ def _study(name, overrides, trials, seeds, tune_seconds, eval_seconds, **more) -
     return Study(name, tuple(overrides.split()), trials, seeds, tune_seconds, eval_seconds, **more)
 
 
-CART = "task=multicart optim=bptt optim.backprop=R,C optim.clip=none,value,norm trainer.iterations=1500"
-GUIDANCE = "task=guidance optim=bptt optim.backprop=R,C optim.clip=none,value,norm trainer.iterations=1500"
+CART = (
+    "task=multicart optim=bptt optim.backprop=R,C optim.clip=none,value,norm "
+    "trainer.iterations=1500"
+)
+GUIDANCE = (
+    "task=guidance optim=bptt optim.backprop=R,C optim.clip=none,value,norm trainer.iterations=1500"
+)
 QUANTUM_CONTROL = "task=quantum_control optim=bptt optim.backprop=R,C trainer.iterations=150"
 KS = "task=ks task.zero_output=true trainer.iterations=1000"
-KS_START = Start("ks_start", ("task=ks", "task.zero_output=true", "task.training=ONE", "unroll=1",
-                              "trainer.iterations=1000"), 50)
+KS_START = Start(
+    "ks_start",
+    (
+        "task=ks",
+        "task.zero_output=true",
+        "task.training=ONE",
+        "unroll=1",
+        "trainer.iterations=1000",
+    ),
+    50,
+)
 POISSON_START = Start("poisson_start", ("task=poisson", "optim=adam", "trainer.time_budget=20"), 30)
 
 STUDIES = (
-    _study("oscillator", "task=oscillator optim=adam,gauss_newton,hig trainer.time_budget=15", 3, 7, 25, 25),
-    _study("quantum", "task=quantum optim=adam,hig trainer.time_budget=20", 2, 6, 32, 32, preset=False),
-    Study("poisson_continue", ("task=poisson", "optim=adam,hig", "trainer.time_budget=30",
-                               "init_from='{root}/poisson_start/seed=${seed}/results.h5'"), 2, 6, 43, 43,
-          start=POISSON_START, preset=False),
+    _study(
+        "oscillator",
+        "task=oscillator optim=adam,gauss_newton,hig trainer.time_budget=15",
+        3,
+        7,
+        25,
+        25,
+    ),
+    _study(
+        "quantum", "task=quantum optim=adam,hig trainer.time_budget=20", 2, 6, 32, 32, preset=False
+    ),
+    Study(
+        "poisson_continue",
+        (
+            "task=poisson",
+            "optim=adam,hig",
+            "trainer.time_budget=30",
+            "init_from='{root}/poisson_start/seed=${seed}/results.h5'",
+        ),
+        2,
+        6,
+        43,
+        43,
+        start=POISSON_START,
+        preset=False,
+    ),
     _study("toy", "task=toy optim=adam,gauss_newton,hig trainer.time_budget=8", 3, 7, 18, 18),
     _study("cart_2", f"{CART} task.poles=2", 2, 10, 17, 100, preset="optim.clip=none"),
     _study("cart_4", f"{CART} task.poles=4", 2, 10, 17, 120, preset="optim.clip=none"),
     _study("quantum_control_3", f"{QUANTUM_CONTROL} task.target_level=3", 2, 6, 43, 220),
     _study("quantum_control_5", f"{QUANTUM_CONTROL} task.target_level=5", 2, 6, 43, 220),
-    _study("guidance_1", f"{GUIDANCE} task.control_cost=1", 2, 10, 20, 115, preset="optim.clip=none"),
-    _study("guidance_0.001", f"{GUIDANCE} task.control_cost=0.001", 2, 10, 20, 115, preset="optim.clip=none"),
-    _study("ks_training", f"{KS} task.stepper=correct task.training=WIG,NOG,ONE unroll=3", 3, 10, 50, 270),
-    _study("ks_stepper", f"{KS} task.training=WIG task.stepper=correct,predict unroll=3", 3, 10, 50, 270),
-    Study("ks_unroll", (*KS.split(), "task.stepper=correct", "task.training=WIG", "unroll=1,3,8",
-                        "init_from='{root}/ks_start/seed=${seed}/results.h5'"), 2, 8, 50, 50, start=KS_START,
-          preset=False),
+    _study(
+        "guidance_1", f"{GUIDANCE} task.control_cost=1", 2, 10, 20, 115, preset="optim.clip=none"
+    ),
+    _study(
+        "guidance_0.001",
+        f"{GUIDANCE} task.control_cost=0.001",
+        2,
+        10,
+        20,
+        115,
+        preset="optim.clip=none",
+    ),
+    _study(
+        "ks_training",
+        f"{KS} task.stepper=correct task.training=WIG,NOG,ONE unroll=3",
+        3,
+        10,
+        50,
+        270,
+    ),
+    _study(
+        "ks_stepper",
+        f"{KS} task.training=WIG task.stepper=correct,predict unroll=3",
+        3,
+        10,
+        50,
+        270,
+    ),
+    Study(
+        "ks_unroll",
+        (
+            *KS.split(),
+            "task.stepper=correct",
+            "task.training=WIG",
+            "unroll=1,3,8",
+            "init_from='{root}/ks_start/seed=${seed}/results.h5'",
+        ),
+        2,
+        8,
+        50,
+        50,
+        start=KS_START,
+        preset=False,
+    ),
 )
 
-# The regime map: HIG against Adam per cell, both tuned in the cell; the conditioning of the physics across,
-# HIG's step cost relative to Adam's (the Jacobian's rows: the batch) down.
-MAP_TOY = tuple(_study(f"map_toy_{scale}_b{batch}", f"task=toy optim=adam,hig task.scale={scale} "
-                       f"task.batch_size={batch} trainer.time_budget=5", 2, 6, 15, 15, preset=False)
-                for batch in (16, 256) for scale in ("1", "0.01", "0.0001"))
-MAP_OSCILLATOR = tuple(_study(f"map_oscillator_{alpha}", f"task=oscillator optim=adam,hig task.alpha={alpha} "
-                              "trainer.time_budget=10", 2, 6, 20, 20, preset=False)
-                       for alpha in ("0.25", "1", "4"))
+# The regime map: HIG against Adam per cell, both tuned in the cell; the conditioning of the physics
+# across, HIG's step cost relative to Adam's (the Jacobian's rows: the batch) down.
+MAP_TOY = tuple(
+    _study(
+        f"map_toy_{scale}_b{batch}",
+        f"task=toy optim=adam,hig task.scale={scale} task.batch_size={batch} trainer.time_budget=5",
+        2,
+        6,
+        15,
+        15,
+        preset=False,
+    )
+    for batch in (16, 256)
+    for scale in ("1", "0.01", "0.0001")
+)
+MAP_OSCILLATOR = tuple(
+    _study(
+        f"map_oscillator_{alpha}",
+        f"task=oscillator optim=adam,hig task.alpha={alpha} trainer.time_budget=10",
+        2,
+        6,
+        20,
+        20,
+        preset=False,
+    )
+    for alpha in ("0.25", "1", "4")
+)
 MAP = MAP_TOY + MAP_OSCILLATOR
 
-# claims-long: the claims whose budget is a small fraction of the paper's, run further (their own folders)
+# claims-long: the claims whose budget is a small fraction of the paper's, run further (their own
+# folders)
 LONG = (
-    _study("quantum_control_3", f"{QUANTUM_CONTROL.replace('=150', '=1000')} task.target_level=3", 2, 6, 230, 1200,
-           preset=False),
-    _study("quantum_control_5", f"{QUANTUM_CONTROL.replace('=150', '=1000')} task.target_level=5", 2, 6, 230, 1200,
-           preset=False),
-    # 4 trials, a decade apart: with 2 (two decades apart) NOG's were 0.052 (diverged) and 5.2e-4, and NOG at
-    # WIG's tuned 1.6e-3 halved WIG's validation error on the tuning seed (docs/claims.md)
-    _study("ks_training", f"{KS.replace('=1000', '=5000')} task.stepper=correct task.training=WIG,NOG,ONE unroll=3",
-           4, 10, 150, 1200, preset=False),
-    _study("oscillator", "task=oscillator optim=adam,gauss_newton,hig trainer.time_budget=120", 2, 7, 130, 130,
-           preset=False),
-    Study("poisson_continue", ("task=poisson", "optim=adam,hig", "trainer.time_budget=120",
-                               "init_from='{root}/poisson_start/seed=${seed}/results.h5'"), 2, 6, 135, 135,
-          start=POISSON_START, preset=False),
+    _study(
+        "quantum_control_3",
+        f"{QUANTUM_CONTROL.replace('=150', '=1000')} task.target_level=3",
+        2,
+        6,
+        230,
+        1200,
+        preset=False,
+    ),
+    _study(
+        "quantum_control_5",
+        f"{QUANTUM_CONTROL.replace('=150', '=1000')} task.target_level=5",
+        2,
+        6,
+        230,
+        1200,
+        preset=False,
+    ),
+    # 4 trials, a decade apart: with 2 (two decades apart) NOG's were 0.052 (diverged) and 5.2e-4,
+    # and NOG at WIG's tuned 1.6e-3 halved WIG's validation error on the tuning seed
+    # (docs/claims.md)
+    _study(
+        "ks_training",
+        f"{KS.replace('=1000', '=5000')} task.stepper=correct task.training=WIG,NOG,ONE unroll=3",
+        4,
+        10,
+        150,
+        1200,
+        preset=False,
+    ),
+    _study(
+        "oscillator",
+        "task=oscillator optim=adam,gauss_newton,hig trainer.time_budget=120",
+        2,
+        7,
+        130,
+        130,
+        preset=False,
+    ),
+    Study(
+        "poisson_continue",
+        (
+            "task=poisson",
+            "optim=adam,hig",
+            "trainer.time_budget=120",
+            "init_from='{root}/poisson_start/seed=${seed}/results.h5'",
+        ),
+        2,
+        6,
+        135,
+        135,
+        start=POISSON_START,
+        preset=False,
+    ),
 )
 
 PROFILES = {"claims": STUDIES + MAP, "claims-long": LONG}
@@ -176,8 +344,8 @@ def starts(studies) -> list[Start]:
 
 
 def chunks(studies, limit_seconds: float = 80 * 60) -> list[list[Study]]:
-    """The studies in order, grouped into parts of at most limit_seconds expected (a study longer than that is a
-    part of its own; it resumes job by job)."""
+    """The studies in order, grouped into parts of at most limit_seconds expected (a study longer
+    than that is a part of its own; it resumes job by job)."""
     parts, current, used = [], [], 0.0
     for study in studies:
         if current and used + study.seconds() > limit_seconds:
@@ -188,12 +356,15 @@ def chunks(studies, limit_seconds: float = 80 * 60) -> list[list[Study]]:
     return parts + ([current] if current else [])
 
 
-# --- the claims -------------------------------------------------------------------------------------------
+# --- the claims
+# -------------------------------------------------------------------------------------------
 
 
 @dataclass(frozen=True)
 class Lower:
-    """A reaches a lower held-out `column` than B at the budget of `study` (variant names as compare gives them)."""
+    """A reaches a lower held-out `column` than B at the budget of `study` (variant names as compare
+    gives them)."""
+
     study: str
     a: str
     b: str
@@ -206,6 +377,7 @@ class Lower:
 @dataclass(frozen=True)
 class Close:
     """A is better than B or within `margin` of it (equivalence at that margin)."""
+
     study: str
     a: str
     b: str
@@ -218,6 +390,7 @@ class Close:
 @dataclass(frozen=True)
 class Grows:
     """A's advantage over B (loss A / B) is larger in study `hard` than in study `easy`."""
+
     easy: str
     hard: str
     a: str
@@ -230,6 +403,7 @@ class Grows:
 @dataclass(frozen=True)
 class Stalls:
     """The variant's `column` at the budget is within the margin of its value at half the budget."""
+
     study: str
     variant: str
     column: str = "loss"
@@ -260,64 +434,110 @@ def _stable_bptt(name: str, paper: str, easy: str, hard: str, note: str) -> Clai
 
 
 CLAIMS = (
-    Claim("oscillators: HIG below Adam and Gauss-Newton",
-          "HIG paper (Schnell, Holl and Thuerey, ICLR 2022), Figure 1: on the coupled oscillators HIG reaches a "
-          "lower test loss than Adam and Gauss-Newton in the same wall-clock time",
-          (Lower("oscillator", "hig", "adam"), Lower("oscillator", "hig", "gauss_newton"))),
-    Claim("quantum dipole: HIG below Adam",
-          "HIG paper, Figure 2: on quantum dipole control HIG beats Adam in wall-clock time",
-          (Lower("quantum", "hig", "adam"),)),
-    Claim("Poisson: HIG after Adam improves further than Adam",
-          "HIG paper, Figure 3: continuing an Adam-trained network with HIG lowers the loss further than "
-          "continuing with Adam", (Lower("poisson_continue", "hig", "adam"),),
-          "each seed continues its own Adam network (20 s of Adam, measured clock)"),
-    _stable_bptt("cart: C keeps solving as poles are added, R degrades",
-                 "StableBPTT paper (Schnell and Thuerey, ICLR 2024), Figure 4: on the multi-pole cart the combined "
-                 "gradient C keeps its performance as poles are added while regular BPTT (R) degrades",
-                 "cart_2", "cart_4",
-                 "C against R under each clipping of the reference's sweep (none, value, norm), at 4 poles and as "
-                 "a trend from 2 to 4 poles"),
-    Claim("quantum control: C below R at higher target levels",
-          "StableBPTT paper, Figure 5: on quantum control C is better than R for the higher target levels",
-          (Lower("quantum_control_5", "backprop=C", "backprop=R"),
-           Grows("quantum_control_3", "quantum_control_5", "backprop=C", "backprop=R")),
-          "without clipping only (the clipping variants triple a scene whose step costs 0.2 s)"),
-    _stable_bptt("guidance: C below R at small control cost",
-                 "StableBPTT paper, Figure 8: on guidance by repulsion C is better than R for small regularisation "
-                 "coefficients rc", "guidance_1", "guidance_0.001",
-                 "C against R under each clipping, at rc = 0.001 and as a trend from rc = 1"),
-    Claim("KS: correction beats prediction",
-          "Unrolling study (List et al. 2025), Kuramoto-Sivashinsky: correcting a coarse solver gives a lower "
-          "error than predicting the whole step with the network (about 4.5x, both trained with WIG)",
-          (Lower("ks_stepper", "stepper=correct", "stepper=predict"),),
-          "WIG against WIG, m = 3; the factor is the median ratio predict / correct"),
-    Claim("KS: WIG best, NOG close, ONE worse",
-          "Unrolling study, Kuramoto-Sivashinsky: training with gradients through the unroll (WIG) gives the "
-          "lowest error, without them (NOG) comes close, one-step training (ONE) is worse",
-          (Lower("ks_training", "training=WIG", "training=ONE"), Lower("ks_training", "training=NOG", "training=ONE"),
-           Close("ks_training", "training=NOG", "training=WIG", 1.25)),
-          "correction stepper, m = 3; close: NOG within 25% of WIG"),
-    Claim("KS: a best unroll length",
-          "Unrolling study, Kuramoto-Sivashinsky: the error has a minimum at an intermediate unroll length (the "
-          "study trains at m = 3): longer is not always better",
-          (Lower("ks_unroll", "3", "1"), Lower("ks_unroll", "3", "8")),
-          "every m continues the same one-step (ONE) network of its seed, as the study starts longer unrolls"),
-    Claim("toy: HIG converges where Adam and Gauss-Newton stall",
-          "HIG paper, toy example (also the PBDL book's HIG chapter): on the badly scaled toy with lambda = 0.01 "
-          "HIG converges while Adam and Gauss-Newton stall",
-          (Lower("toy", "hig", "adam", "error_second"), Lower("toy", "hig", "gauss_newton", "error_second"),
-           Stalls("toy", "adam", "error_second"), Stalls("toy", "gauss_newton", "error_second")),
-          "on the second component's error (the one lambda scales down): HIG lower, and Adam's and "
-          "Gauss-Newton's no longer falling from half the budget to the budget"),
+    Claim(
+        "oscillators: HIG below Adam and Gauss-Newton",
+        "HIG paper (Schnell, Holl and Thuerey, ICLR 2022), Figure 1: on the coupled oscillators "
+        "HIG reaches a "
+        "lower test loss than Adam and Gauss-Newton in the same wall-clock time",
+        (Lower("oscillator", "hig", "adam"), Lower("oscillator", "hig", "gauss_newton")),
+    ),
+    Claim(
+        "quantum dipole: HIG below Adam",
+        "HIG paper, Figure 2: on quantum dipole control HIG beats Adam in wall-clock time",
+        (Lower("quantum", "hig", "adam"),),
+    ),
+    Claim(
+        "Poisson: HIG after Adam improves further than Adam",
+        "HIG paper, Figure 3: continuing an Adam-trained network with HIG lowers the loss further "
+        "than "
+        "continuing with Adam",
+        (Lower("poisson_continue", "hig", "adam"),),
+        "each seed continues its own Adam network (20 s of Adam, measured clock)",
+    ),
+    _stable_bptt(
+        "cart: C keeps solving as poles are added, R degrades",
+        "StableBPTT paper (Schnell and Thuerey, ICLR 2024), Figure 4: on the multi-pole cart the "
+        "combined "
+        "gradient C keeps its performance as poles are added while regular BPTT (R) degrades",
+        "cart_2",
+        "cart_4",
+        "C against R under each clipping of the reference's sweep (none, value, norm), at 4 poles "
+        "and as "
+        "a trend from 2 to 4 poles",
+    ),
+    Claim(
+        "quantum control: C below R at higher target levels",
+        "StableBPTT paper, Figure 5: on quantum control C is better than R for the higher target "
+        "levels",
+        (
+            Lower("quantum_control_5", "backprop=C", "backprop=R"),
+            Grows("quantum_control_3", "quantum_control_5", "backprop=C", "backprop=R"),
+        ),
+        "without clipping only (the clipping variants triple a scene whose step costs 0.2 s)",
+    ),
+    _stable_bptt(
+        "guidance: C below R at small control cost",
+        "StableBPTT paper, Figure 8: on guidance by repulsion C is better than R for small "
+        "regularisation "
+        "coefficients rc",
+        "guidance_1",
+        "guidance_0.001",
+        "C against R under each clipping, at rc = 0.001 and as a trend from rc = 1",
+    ),
+    Claim(
+        "KS: correction beats prediction",
+        "Unrolling study (List et al. 2025), Kuramoto-Sivashinsky: correcting a coarse solver "
+        "gives a lower "
+        "error than predicting the whole step with the network (about 4.5x, both trained with WIG)",
+        (Lower("ks_stepper", "stepper=correct", "stepper=predict"),),
+        "WIG against WIG, m = 3; the factor is the median ratio predict / correct",
+    ),
+    Claim(
+        "KS: WIG best, NOG close, ONE worse",
+        "Unrolling study, Kuramoto-Sivashinsky: training with gradients through the unroll (WIG) "
+        "gives the "
+        "lowest error, without them (NOG) comes close, one-step training (ONE) is worse",
+        (
+            Lower("ks_training", "training=WIG", "training=ONE"),
+            Lower("ks_training", "training=NOG", "training=ONE"),
+            Close("ks_training", "training=NOG", "training=WIG", 1.25),
+        ),
+        "correction stepper, m = 3; close: NOG within 25% of WIG",
+    ),
+    Claim(
+        "KS: a best unroll length",
+        "Unrolling study, Kuramoto-Sivashinsky: the error has a minimum at an intermediate unroll "
+        "length (the "
+        "study trains at m = 3): longer is not always better",
+        (Lower("ks_unroll", "3", "1"), Lower("ks_unroll", "3", "8")),
+        "every m continues the same one-step (ONE) network of its seed, as the study starts "
+        "longer unrolls",
+    ),
+    Claim(
+        "toy: HIG converges where Adam and Gauss-Newton stall",
+        "HIG paper, toy example (also the PBDL book's HIG chapter): on the badly scaled toy with "
+        "lambda = 0.01 "
+        "HIG converges while Adam and Gauss-Newton stall",
+        (
+            Lower("toy", "hig", "adam", "error_second"),
+            Lower("toy", "hig", "gauss_newton", "error_second"),
+            Stalls("toy", "adam", "error_second"),
+            Stalls("toy", "gauss_newton", "error_second"),
+        ),
+        "on the second component's error (the one lambda scales down): HIG lower, and Adam's and "
+        "Gauss-Newton's no longer falling from half the budget to the budget",
+    ),
 )
 
 
-# --- reading a study --------------------------------------------------------------------------------------
+# --- reading a study
+# --------------------------------------------------------------------------------------
 
 
 @dataclass
 class StudyRuns:
     """A study's evaluation runs: variant -> seed -> results file, with the budget and its axis."""
+
     folder: Path
     axis: str
     budget: float
@@ -335,13 +555,17 @@ class StudyRuns:
             except ValueError as error:
                 unreadable.append(str(error))
         if unreadable:
-            print(f"claims: {variant} in {self.folder}: left out {len(unreadable)} runs, e.g. {unreadable[0]}",
-                  file=sys.stderr)
+            print(
+                f"claims: {variant} in {self.folder}: left out {len(unreadable)} runs, e.g. "
+                f"{unreadable[0]}",
+                file=sys.stderr,
+            )
         return found
 
 
 def read_study(folder: Path) -> StudyRuns | None:
-    """The study's runs.csv (written by physgrad compare) as StudyRuns; None if the study has not finished."""
+    """The study's runs.csv (written by physgrad compare) as StudyRuns; None if the study has not
+    finished."""
     import pandas as pd
 
     table = folder / "runs.csv"
@@ -353,12 +577,16 @@ def read_study(folder: Path) -> StudyRuns | None:
     paths = {}
     for row in runs.itertuples():
         path = Path(str(row.path))
-        if not path.is_absolute() and "eval" in path.parts:  # relative to where compare ran: find it in the folder
+        if (
+            not path.is_absolute() and "eval" in path.parts
+        ):  # relative to where compare ran: find it in the folder
             parts = path.parts
-            path = folder / Path(*parts[len(parts) - 1 - parts[::-1].index("eval"):])
+            path = folder / Path(*parts[len(parts) - 1 - parts[::-1].index("eval") :])
         paths.setdefault(str(row.variant), {})[int(row.seed)] = str(path)
     machines = sorted(set(runs["machine"].astype(str))) if "machine" in runs else []
-    return StudyRuns(folder, str(runs["axis"].iloc[0]), float(runs["budget"].iloc[0]), paths, "; ".join(machines))
+    return StudyRuns(
+        folder, str(runs["axis"].iloc[0]), float(runs["budget"].iloc[0]), paths, "; ".join(machines)
+    )
 
 
 @dataclass(frozen=True)
@@ -383,8 +611,11 @@ def _exp(log_value: float) -> float:
 
 
 def _budget_text(runs: StudyRuns) -> str:
-    return {"iteration": f"{runs.budget:g} iterations", "wall_time": f"{runs.budget:g} s (measured clock)",
-            "calibrated_time": f"{runs.budget:g} s (calibrated clock)"}.get(runs.axis, f"{runs.budget:g}")
+    return {
+        "iteration": f"{runs.budget:g} iterations",
+        "wall_time": f"{runs.budget:g} s (measured clock)",
+        "calibrated_time": f"{runs.budget:g} s (calibrated clock)",
+    }.get(runs.axis, f"{runs.budget:g}")
 
 
 def decide_pairs(runs: StudyRuns, parts: list) -> list[Decision]:
@@ -394,24 +625,50 @@ def decide_pairs(runs: StudyRuns, parts: list) -> list[Decision]:
     for part in parts:
         if part not in present:
             missing = [n for n in (part.a, part.b) if n not in runs.paths]
-            decisions.append(Decision(NOT_RUN, "-", f"no runs of {' and '.join(missing)} in {runs.folder}"))
+            decisions.append(
+                Decision(NOT_RUN, "-", f"no runs of {' and '.join(missing)} in {runs.folder}")
+            )
             continue
         column = getattr(part, "column", "loss")
         margin = getattr(part, "margin", MARGIN)
-        others = [p for p in present if getattr(p, "column", "loss") == column and getattr(p, "margin", MARGIN) == margin]
+        others = [
+            p
+            for p in present
+            if getattr(p, "column", "loss") == column and getattr(p, "margin", MARGIN) == margin
+        ]
         curves = {n: runs.curves(n, column) for n in {v for p in others for v in (p.a, p.b)}}
-        results = compare_variants(curves, runs.budget, pairs=[(p.a, p.b) for p in others], margin=margin)
+        results = compare_variants(
+            curves, runs.budget, pairs=[(p.a, p.b) for p in others], margin=margin
+        )
         result = results[others.index(part)]
         p = result.at[1.0]
         verdict, why = result.verdicts[1.0]
         if isinstance(part, Close):
-            claim = HOLDS if verdict in (A_BETTER, EQUIVALENT) else FAILS if verdict == B_BETTER else OPEN
+            claim = (
+                HOLDS
+                if verdict in (A_BETTER, EQUIVALENT)
+                else FAILS
+                if verdict == B_BETTER
+                else OPEN
+            )
         else:
-            claim = HOLDS if verdict == A_BETTER else FAILS if verdict in (B_BETTER, EQUIVALENT) else OPEN
-        diverged = "".join(f"; {name} diverged in {k} of {p.pairs + p.missing}"
-                           for name, k in ((part.a, p.diverged_a), (part.b, p.diverged_b)) if k)
-        measured = (f"{part.a} / {part.b} = {_r(p.ratio)} [{_r(_exp(p.low))}, {_r(_exp(p.high))}], {part.a} lower in "
-                    f"{p.wins_a} of {p.pairs}; at half the budget {_r(result.at[0.5].ratio)}{diverged}")
+            claim = (
+                HOLDS
+                if verdict == A_BETTER
+                else FAILS
+                if verdict in (B_BETTER, EQUIVALENT)
+                else OPEN
+            )
+        diverged = "".join(
+            f"; {name} diverged in {k} of {p.pairs + p.missing}"
+            for name, k in ((part.a, p.diverged_a), (part.b, p.diverged_b))
+            if k
+        )
+        measured = (
+            f"{part.a} / {part.b} = {_r(p.ratio)} [{_r(_exp(p.low))}, {_r(_exp(p.high))}], "
+            f"{part.a} lower in "
+            f"{p.wins_a} of {p.pairs}; at half the budget {_r(result.at[0.5].ratio)}{diverged}"
+        )
         decisions.append(Decision(claim, measured, f"{verdict}: {why}"))
     return decisions
 
@@ -419,8 +676,10 @@ def decide_pairs(runs: StudyRuns, parts: list) -> list[Decision]:
 def log_ratios_at_budget(runs: StudyRuns, a: str, b: str) -> list[float]:
     ca, cb = runs.curves(a), runs.curves(b)
     seeds = sorted(set(ca) | set(cb))
-    p = paired([ca[s].at(runs.budget) if s in ca else math.nan for s in seeds],
-               [cb[s].at(runs.budget) if s in cb else math.nan for s in seeds])
+    p = paired(
+        [ca[s].at(runs.budget) if s in ca else math.nan for s in seeds],
+        [cb[s].at(runs.budget) if s in cb else math.nan for s in seeds],
+    )
     return list(p.log_ratios)
 
 
@@ -428,12 +687,18 @@ def decide_grows(easy: StudyRuns, hard: StudyRuns, part: Grows) -> Decision:
     for runs in (easy, hard):
         if not {part.a, part.b} <= set(runs.paths):
             return Decision(NOT_RUN, "-", f"no runs of {part.a} and {part.b} in {runs.folder}")
-    r_easy, r_hard = log_ratios_at_budget(easy, part.a, part.b), log_ratios_at_budget(hard, part.a, part.b)
+    r_easy, r_hard = (
+        log_ratios_at_budget(easy, part.a, part.b),
+        log_ratios_at_budget(hard, part.a, part.b),
+    )
     result = interaction(r_easy, r_hard)
     finite = lambda r: [v for v in r if not math.isnan(v)]  # noqa: E731
-    measured = (f"{part.a} / {part.b}: {_r(_exp(float(np.median(finite(r_easy)))))} at {part.easy}, "
-                f"{_r(_exp(float(np.median(finite(r_hard)))))} at {part.hard}; hard / easy = {_r(result.factor)} "
-                f"[{_r(_exp(result.low))}, {_r(_exp(result.high))}]")
+    measured = (
+        f"{part.a} / {part.b}: {_r(_exp(float(np.median(finite(r_easy)))))} at {part.easy}, "
+        f"{_r(_exp(float(np.median(finite(r_hard)))))} at {part.hard}; hard / easy = "
+        f"{_r(result.factor)} "
+        f"[{_r(_exp(result.low))}, {_r(_exp(result.high))}]"
+    )
     verdict = HOLDS if result.verdict == GROWS else OPEN if result.verdict == UNDECIDED else FAILS
     return Decision(verdict, measured, f"{result.verdict}: {result.why}")
 
@@ -446,8 +711,8 @@ def decide_stall(runs: StudyRuns, part: Stalls) -> Decision:
     full = [curves[s].at(runs.budget) for s in seeds]
     half = [curves[s].at(runs.budget / 2) for s in seeds]
     first = [float(curves[s].loss[0]) if len(curves[s].loss) else math.nan for s in seeds]
-    # a run that diverged by half the budget has no level there: it counts as rising from its start (a tie of
-    # two infinities would read as "stalled")
+    # a run that diverged by half the budget has no level there: it counts as rising from its start
+    # (a tie of two infinities would read as "stalled")
     half = [h if not math.isinf(h) else f for h, f in zip(half, first)]
     p = paired(full, half)
     from physgrad.verdict import decide
@@ -459,14 +724,20 @@ def decide_stall(runs: StudyRuns, part: Stalls) -> Decision:
     elif verdict == A_BETTER:
         why = f"still falling ({why})"
     diverged = sum(math.isinf(v) for v in full)
-    measured = (f"{part.column} at the budget / at half of it = {_r(p.ratio)} [{_r(_exp(p.low))}, {_r(_exp(p.high))}]"
-                f"; at the budget / at the start: {_r(float(np.nanmedian(np.divide(full, first))))}"
-                + (f"; diverged in {diverged} of {len(full)}" if diverged else ""))
+    measured = (
+        f"{part.column} at the budget / at half of it = {_r(p.ratio)} [{_r(_exp(p.low))}, "
+        f"{_r(_exp(p.high))}]"
+        f"; at the budget / at the start: {_r(float(np.nanmedian(np.divide(full, first))))}"
+        + (f"; diverged in {diverged} of {len(full)}" if diverged else "")
+    )
     return Decision(claim, measured, f"{verdict}: {why}")
 
 
-def decide_claim(claim: Claim, root: Path, suffix: str = "") -> tuple[str, list[tuple[object, Decision]]]:
-    """The claim's verdict from the studies under root (suffix "-preset": the untuned twins) and its parts'."""
+def decide_claim(
+    claim: Claim, root: Path, suffix: str = ""
+) -> tuple[str, list[tuple[object, Decision]]]:
+    """The claim's verdict from the studies under root (suffix "-preset": the untuned twins) and its
+    parts'."""
     cache = {}
 
     specs = {s.name: s for s in STUDIES + MAP + LONG}
@@ -475,9 +746,15 @@ def decide_claim(claim: Claim, root: Path, suffix: str = "") -> tuple[str, list[
         if name not in cache:
             cache[name] = read_study(root / (name + suffix))
             spec = specs.get(name)
-            if cache[name] is not None and suffix and spec is not None and isinstance(spec.preset, str):
-                # the presets' study fixes one value of an axis (optim.clip=none): its variants are also known by
-                # the tuned study's names, which carry that value ("backprop=C" is "backprop=C clip=none")
+            if (
+                cache[name] is not None
+                and suffix
+                and spec is not None
+                and isinstance(spec.preset, str)
+            ):
+                # the presets' study fixes one value of an axis (optim.clip=none): its variants are
+                # also known by the tuned study's names, which carry that value ("backprop=C" is
+                # "backprop=C clip=none")
                 key, _, value = spec.preset.partition("=")
                 token = f"{key.rsplit('.', 1)[-1]}={value}"
                 paths = cache[name].paths
@@ -492,14 +769,21 @@ def decide_claim(claim: Claim, root: Path, suffix: str = "") -> tuple[str, list[
     decided = {}
 
     def untwinned(names) -> bool:  # a study the profile runs without a presets' twin
-        return bool(suffix) and any(specs.get(n) is not None and specs[n].preset is False for n in names)
+        return bool(suffix) and any(
+            specs.get(n) is not None and specs[n].preset is False for n in names
+        )
 
     for name, parts in by_study.items():
         runs = study(name)
-        found = (decide_pairs(runs, parts) if runs is not None
-                 else [Decision(NOT_RUN, "-", f"{name} has no presets' twin (cut for time)")] * len(parts)
-                 if untwinned([name])
-                 else [Decision(OPEN, "-", f"{root / (name + suffix)} has no finished study")] * len(parts))
+        found = (
+            decide_pairs(runs, parts)
+            if runs is not None
+            else [Decision(NOT_RUN, "-", f"{name} has no presets' twin (cut for time)")]
+            * len(parts)
+            if untwinned([name])
+            else [Decision(OPEN, "-", f"{root / (name + suffix)} has no finished study")]
+            * len(parts)
+        )
         decided.update(zip(parts, found))
     for part in claim.parts:
         if part not in decided and untwinned(studies_of(claim_of_part(part))):
@@ -508,15 +792,34 @@ def decide_claim(claim: Claim, root: Path, suffix: str = "") -> tuple[str, list[
             rows.append((part, decided[part]))
         elif isinstance(part, Grows):
             easy, hard = study(part.easy), study(part.hard)
-            rows.append((part, decide_grows(easy, hard, part) if easy and hard else
-                         Decision(OPEN, "-", "a study of the trend has not finished")))
+            rows.append(
+                (
+                    part,
+                    decide_grows(easy, hard, part)
+                    if easy and hard
+                    else Decision(OPEN, "-", "a study of the trend has not finished"),
+                )
+            )
         else:
             runs = study(part.study)
-            rows.append((part, decide_stall(runs, part) if runs else Decision(OPEN, "-", "the study has not finished")))
-    # a part whose variants a study does not run (the presets' study fixes the clipping) is left out of the
-    # claim's verdict, which then speaks for the parts that were run
+            rows.append(
+                (
+                    part,
+                    decide_stall(runs, part)
+                    if runs
+                    else Decision(OPEN, "-", "the study has not finished"),
+                )
+            )
+    # a part whose variants a study does not run (the presets' study fixes the clipping) is left out
+    # of the claim's verdict, which then speaks for the parts that were run
     verdicts = [d.verdict for _, d in rows if d.verdict != NOT_RUN]
-    verdict = HOLDS if verdicts and all(v == HOLDS for v in verdicts) else FAILS if FAILS in verdicts else OPEN
+    verdict = (
+        HOLDS
+        if verdicts and all(v == HOLDS for v in verdicts)
+        else FAILS
+        if FAILS in verdicts
+        else OPEN
+    )
     if rows and not verdicts and suffix:
         verdict = NOT_RUN  # the presets' twin of none of the claim's parts was run
     return verdict, rows
@@ -531,14 +834,23 @@ def claim_of_part(part) -> Claim:
 
 
 def studies_of(claim: Claim) -> set[str]:
-    return {name for part in claim.parts for name in ([part.easy, part.hard] if isinstance(part, Grows) else [part.study])}
+    return {
+        name
+        for part in claim.parts
+        for name in ([part.easy, part.hard] if isinstance(part, Grows) else [part.study])
+    }
 
 
 def claims_table(root: Path, studies=None) -> str:
-    """One row per part of every claim whose studies are all among `studies` (default: every claim)."""
+    """One row per part of every claim whose studies are all among `studies` (default: every
+    claim)."""
     names = {s.name for s in studies} if studies is not None else None
-    lines = ["| claim (paper, where) | part | study, budget | tuned: measured | tuned: verdict | presets: measured | "
-             "presets: verdict |", "|---|---|---|---|---|---|---|"]
+    lines = [
+        "| claim (paper, where) | part | study, budget | tuned: measured | tuned: verdict | "
+        "presets: measured | "
+        "presets: verdict |",
+        "|---|---|---|---|---|---|---|",
+    ]
     for claim in CLAIMS:
         if names is not None and not studies_of(claim) <= names:
             continue
@@ -547,14 +859,24 @@ def claims_table(root: Path, studies=None) -> str:
         for i, ((part, d), (_, p)) in enumerate(zip(rows, preset_rows)):
             runs = read_study(root / getattr(part, "study", getattr(part, "hard", "")))
             budget = _budget_text(runs) if runs else "-"
-            head = (f"**{claim.name}**: tuned **{verdict}**, presets **{preset_verdict}**. {claim.paper}"
-                    + (f" ({claim.note})" if claim.note else "")) if i == 0 else ""
-            lines.append(f"| {head} | {part.text()} | {_part_study(part)}, {budget} | {d.measured} | {d.verdict} "
-                         f"({d.why}) | {p.measured} | {p.verdict} ({p.why}) |")
+            head = (
+                (
+                    f"**{claim.name}**: tuned **{verdict}**, presets **{preset_verdict}**. "
+                    f"{claim.paper}" + (f" ({claim.note})" if claim.note else "")
+                )
+                if i == 0
+                else ""
+            )
+            lines.append(
+                f"| {head} | {part.text()} | {_part_study(part)}, {budget} | {d.measured} | "
+                f"{d.verdict} "
+                f"({d.why}) | {p.measured} | {p.verdict} ({p.why}) |"
+            )
     return "\n".join(lines) + "\n"
 
 
-# --- the regime map ---------------------------------------------------------------------------------------
+# --- the regime map
+# ---------------------------------------------------------------------------------------
 
 
 @dataclass(frozen=True)
@@ -570,22 +892,33 @@ class Cell:
 
 
 def map_cell(root: Path, study: Study) -> Cell | None:
-    """One cell: the time each variant's seeds take to reach the cell's target, as per-seed ratios HIG / Adam
-    with the verdict rule's median and interval (a seed that never reaches it counts as infinite, as a divergence
-    does; a pair where neither does is a tie). The target is the higher of the two variants' median test loss at
-    the budget (readout.highest_median): what the slower variant typically gets to, which the faster one reaches
-    in most seeds. compare's target (the lower median) is reached by only about half the better variant's seeds,
-    so with 6 seeds most pairs are ties of two misses and no cell can be decided."""
+    """One cell: the time each variant's seeds take to reach the cell's target, as per-seed ratios
+    HIG / Adam with the verdict rule's median and interval (a seed that never reaches it counts as
+    infinite, as a divergence does; a pair where neither does is a tie). The target is the higher of
+    the two variants' median test loss at the budget (readout.highest_median): what the slower
+    variant typically gets to, which the faster one reaches in most seeds. compare's target (the
+    lower median) is reached by only about half the better variant's seeds, so with 6 seeds most
+    pairs are ties of two misses and no cell can be decided."""
     runs = read_study(root / study.name)
     if runs is None or not {"hig", "adam"} <= set(runs.paths):
         return None
     curves = {v: runs.curves(v) for v in ("hig", "adam")}
-    _, target = highest_median({v: [c.at(runs.budget) for c in by.values()] for v, by in curves.items()})
+    _, target = highest_median(
+        {v: [c.at(runs.budget) for c in by.values()] for v, by in curves.items()}
+    )
     seeds = sorted(set(curves["hig"]) & set(curves["adam"]))
-    times = {v: [curves[v][s].reaches(target, runs.budget) if math.isfinite(target) else math.inf for s in seeds]
-             for v in curves}
-    (result,) = compare_variants({v: {s: _constant(t) for s, t in zip(seeds, times[v])} for v in times}, 1.0,
-                                 fractions=(0.25, 0.5, 1.0))
+    times = {
+        v: [
+            curves[v][s].reaches(target, runs.budget) if math.isfinite(target) else math.inf
+            for s in seeds
+        ]
+        for v in curves
+    }
+    (result,) = compare_variants(
+        {v: {s: _constant(t) for s, t in zip(seeds, times[v])} for v in times},
+        1.0,
+        fractions=(0.25, 0.5, 1.0),
+    )
     p = result.at[1.0]
     cost = math.nan
     calibration = root / study.name / "calibration.json"
@@ -595,11 +928,21 @@ def map_cell(root: Path, study: Study) -> Cell | None:
             cost = float(costs["hig"]["step_seconds"]) / float(costs["adam"]["step_seconds"])
         except (OSError, ValueError, KeyError, TypeError, ZeroDivisionError):
             pass
-    conditioning = float(re.search(r"task\.(?:scale|alpha)=([0-9.e-]+)", " ".join(study.overrides)).group(1))
-    reached = (sum(math.isfinite(t) for t in times["hig"]), sum(math.isfinite(t) for t in times["adam"]), len(seeds))
+    conditioning = float(
+        re.search(r"task\.(?:scale|alpha)=([0-9.e-]+)", " ".join(study.overrides)).group(1)
+    )
+    reached = (
+        sum(math.isfinite(t) for t in times["hig"]),
+        sum(math.isfinite(t) for t in times["adam"]),
+        len(seeds),
+    )
     if not math.isfinite(target):  # both diverged in most seeds: nothing to reach, not "equivalent"
-        return Cell(study.name, conditioning, cost, math.nan, math.nan, math.nan, reached, NO_TARGET)
-    return Cell(study.name, conditioning, cost, p.ratio, _exp(p.low), _exp(p.high), reached, result.verdict)
+        return Cell(
+            study.name, conditioning, cost, math.nan, math.nan, math.nan, reached, NO_TARGET
+        )
+    return Cell(
+        study.name, conditioning, cost, p.ratio, _exp(p.low), _exp(p.high), reached, result.verdict
+    )
 
 
 def _constant(value: float):
@@ -621,7 +964,9 @@ def plot_map(cells: dict[str, list[Cell]], path: Path, machine: str, note: str =
     from matplotlib.colors import TwoSlopeNorm
 
     panels = [(name, found) for name, found in cells.items() if found]
-    fig, axes = plt.subplots(1, len(panels), figsize=(6.6 * len(panels), 5.0), squeeze=False, layout="constrained")
+    fig, axes = plt.subplots(
+        1, len(panels), figsize=(6.6 * len(panels), 5.0), squeeze=False, layout="constrained"
+    )
     norm = TwoSlopeNorm(vcenter=0.0, vmin=-2.0, vmax=2.0)
     for ax, (name, found) in zip(axes[0], panels):
         xs = sorted({c.conditioning for c in found}, reverse=name == "toy")
@@ -633,62 +978,107 @@ def plot_map(cells: dict[str, list[Cell]], path: Path, machine: str, note: str =
             if not math.isnan(c.ratio):  # no target: left blank
                 grid[i, j] = math.log10(min(max(c.ratio, 1e-2), 1e2))
             dark = abs(grid[i, j]) > 1.2
-            ax.text(j, i, f"{MAP_VERDICTS.get(c.verdict, c.verdict)}\n{_r(c.ratio)} [{_r(c.low)}, {_r(c.high)}]\n"
-                          f"reached: HIG {c.reached[0]}, Adam {c.reached[1]} of {c.reached[2]}", ha="center",
-                    va="center", fontsize=7.5,
-                    color="white" if dark else "black")
+            ax.text(
+                j,
+                i,
+                f"{MAP_VERDICTS.get(c.verdict, c.verdict)}\n{_r(c.ratio)} [{_r(c.low)}, "
+                f"{_r(c.high)}]\n"
+                f"reached: HIG {c.reached[0]}, Adam {c.reached[1]} of {c.reached[2]}",
+                ha="center",
+                va="center",
+                fontsize=7.5,
+                color="white" if dark else "black",
+            )
         image = ax.imshow(grid, cmap="RdBu_r", norm=norm, aspect="auto", origin="lower")
-        costs = {r: np.nanmedian([c.cost_ratio for c in found
-                                  if (c.study.rsplit("_b", 1)[-1] if name == "toy" else "") == r] or [np.nan])
-                 for r in rows}
-        labels = [(f"batch {r}\n" if r else "") + f"HIG step\n= {_r(costs[r])} x Adam's" for r in rows]
+        costs = {
+            r: np.nanmedian(
+                [
+                    c.cost_ratio
+                    for c in found
+                    if (c.study.rsplit("_b", 1)[-1] if name == "toy" else "") == r
+                ]
+                or [np.nan]
+            )
+            for r in rows
+        }
+        labels = [
+            (f"batch {r}\n" if r else "") + f"HIG step\n= {_r(costs[r])} x Adam's" for r in rows
+        ]
         ax.set_yticks(range(len(rows)), labels, fontsize=8)
         ax.set_xticks(range(len(xs)), [f"{x:g}" for x in xs])
-        ax.set_xlabel("lambda (the second component's scale)\nbadly conditioned to the right" if name == "toy"
-                      else "coupling alpha (the cubic spring)\nstiffer to the right", fontsize=9)
+        ax.set_xlabel(
+            "lambda (the second component's scale)\nbadly conditioned to the right"
+            if name == "toy"
+            else "coupling alpha (the cubic spring)\nstiffer to the right",
+            fontsize=9,
+        )
         ax.set_title(f"{name}: time to target, HIG / Adam (median [95% interval])", fontsize=9)
     fig.colorbar(image, ax=list(axes[0]), label="log10 HIG / Adam time to target (blue: HIG first)")
-    fig.suptitle(f"Where HIG pays off: both tuned per cell, equal calibrated training time. {machine}"
-                 + (f"\n{note}" if note else ""), fontsize=8)
+    fig.suptitle(
+        f"Where HIG pays off: both tuned per cell, equal calibrated training time. {machine}"
+        + (f"\n{note}" if note else ""),
+        fontsize=8,
+    )
     fig.savefig(path, dpi=110, bbox_inches="tight")
     plt.close(fig)
 
 
 def regime_map(root: Path, out: Path, note: str = "") -> str:
-    cells = {"toy": [c for s in MAP_TOY if (c := map_cell(root, s))],
-             "oscillators": [c for s in MAP_OSCILLATOR if (c := map_cell(root, s))]}
+    cells = {
+        "toy": [c for s in MAP_TOY if (c := map_cell(root, s))],
+        "oscillators": [c for s in MAP_OSCILLATOR if (c := map_cell(root, s))],
+    }
     if not any(cells.values()):
         return ""
     machines = {read_study(root / s.name).machine for s in MAP if read_study(root / s.name)}
     machine = "; ".join(sorted(m for m in machines if m))
     plot_map(cells, out / "payoff.png", machine, note)
-    lines = ["\n## Where HIG pays off: a regime map\n", "![payoff](payoff.png)\n",
-             "Each cell is a `physgrad compare` of Adam and HIG, both tuned in that cell, at equal calibrated "
-             "training time: the time each seed takes to reach the cell's target (the higher of the two variants' "
-             "median test loss at the budget: what the slower one typically gets to), as the ratio HIG / Adam with "
-             "its 95% interval (below 1: HIG gets there first; a seed that never reaches the target counts as "
-             "infinite, a pair where neither does as a tie; 0 or inf: in the middle pair one variant got there and "
-             f"the other did not). Machine: {machine or '-'}.\n",
-             "| study | conditioning | HIG step / Adam step | time to target HIG / Adam [95%] | reached HIG, Adam of n | "
-             "verdict |", "|---|---|---|---|---|---|"]
-    for name, found in cells.items():
+    lines = [
+        "\n## Where HIG pays off: a regime map\n",
+        "![payoff](payoff.png)\n",
+        "Each cell is a `physgrad compare` of Adam and HIG, both tuned in that cell, at equal "
+        "calibrated "
+        "training time: the time each seed takes to reach the cell's target (the higher of the "
+        "two variants' "
+        "median test loss at the budget: what the slower one typically gets to), as the ratio HIG "
+        "/ Adam with "
+        "its 95% interval (below 1: HIG gets there first; a seed that never reaches the target "
+        "counts as "
+        "infinite, a pair where neither does as a tie; 0 or inf: in the middle pair one variant "
+        "got there and "
+        f"the other did not). Machine: {machine or '-'}.\n",
+        "| study | conditioning | HIG step / Adam step | time to target HIG / Adam [95%] | "
+        "reached HIG, Adam of n | "
+        "verdict |",
+        "|---|---|---|---|---|---|",
+    ]
+    for found in cells.values():
         for c in found:
-            lines.append(f"| {c.study} | {c.conditioning:g} | {_r(c.cost_ratio)} | {_r(c.ratio)} [{_r(c.low)}, "
-                         f"{_r(c.high)}] | {c.reached[0]}, {c.reached[1]} of {c.reached[2]} | "
-                         f"{MAP_VERDICTS.get(c.verdict, c.verdict)} |")
+            lines.append(
+                f"| {c.study} | {c.conditioning:g} | {_r(c.cost_ratio)} | {_r(c.ratio)} "
+                f"[{_r(c.low)}, "
+                f"{_r(c.high)}] | {c.reached[0]}, {c.reached[1]} of {c.reached[2]} | "
+                f"{MAP_VERDICTS.get(c.verdict, c.verdict)} |"
+            )
     return "\n".join(lines) + "\n"
 
 
 def write(root: Path, out: Path, note: str = "", profile: str = "claims") -> str:
-    """<profile>.md (claims.md, claims-long.md) into out from the studies under root, with the regime map
-    (payoff.png) where the profile has it; returns the markdown."""
+    """<profile>.md (claims.md, claims-long.md) into out from the studies under root, with the
+    regime map (payoff.png) where the profile has it; returns the markdown."""
     out.mkdir(parents=True, exist_ok=True)
     rule = __doc__.split("\n\n")[2]
     studies = PROFILES[profile]
-    text = (f"# The papers' claims, measured\n\n{note + chr(10) + chr(10) if note else ''}" + rule + "\n\n"
-            f"Studies under {root}; each study's own table (variants, tuned settings, every pair, timing): "
-            "`<study>/compare.md`.\n\n" + claims_table(root, studies)
-            + (regime_map(root, out, note) if set(MAP) <= set(studies) else ""))
+    text = (
+        f"# The papers' claims, measured\n\n{note + chr(10) + chr(10) if note else ''}"
+        + rule
+        + "\n\n"
+        f"Studies under {root}; each study's own table (variants, tuned settings, every pair, "
+        "timing): "
+        "`<study>/compare.md`.\n\n"
+        + claims_table(root, studies)
+        + (regime_map(root, out, note) if set(MAP) <= set(studies) else "")
+    )
     (out / f"{profile}.md").write_text(text)
     return text
 
@@ -698,5 +1088,7 @@ if __name__ == "__main__":
         print(__doc__.split("\n\n")[1], file=sys.stderr)
         sys.exit(2)
     source = Path(sys.argv[1])
-    profile = source.name if source.name in PROFILES else "claims"  # outputs/experiments/claims-long: that profile's
+    profile = (
+        source.name if source.name in PROFILES else "claims"
+    )  # outputs/experiments/claims-long: that profile's
     print(write(source, Path(sys.argv[2]) if len(sys.argv) == 3 else source, profile=profile))

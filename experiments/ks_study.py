@@ -1,6 +1,7 @@
-"""The unrolling study's comparison on Kuramoto-Sivashinsky, from the runs of conf/experiment/fig9_ks.yaml:
-ks_unroll.png (held-out relative error and unstable share of long rollouts against the unroll length, one line
-per training modality, one column per stepper) and ks_claims.md (the study's claims, as measured here).
+"""The unrolling study's comparison on Kuramoto-Sivashinsky, from the runs of
+conf/experiment/fig9_ks.yaml: ks_unroll.png (held-out relative error and unstable share of long
+rollouts against the unroll length, one line per training modality, one column per stepper) and
+ks_claims.md (the study's claims, as measured here).
 
 Usage: python experiments/ks_study.py RUNS_FOLDER [OUT_FOLDER]
 """
@@ -21,19 +22,25 @@ STEPPERS = ("predict", "correct")
 
 
 def collect(folders: list[Path]) -> dict:
-    """{(stepper, training, unroll): {seed: (final held-out loss, final unstable share)}} of completed runs;
-    a diverged run counts as an infinite error (it is a result)."""
+    """{(stepper, training, unroll): {seed: (final held-out loss, final unstable share)}} of
+    completed runs; a diverged run counts as an infinite error (it is a result)."""
     table = defaultdict(dict)
     for path in find_results(folders):
         run = read_run(path)
         config = config_row(run)
-        if run.attrs.get("task") != "ks" or run.attrs.get("status") not in ("completed", "diverged"):
+        if run.attrs.get("task") != "ks" or run.attrs.get("status") not in (
+            "completed",
+            "diverged",
+        ):
             continue
         key = (config["task.stepper"], config["task.training"], int(run.attrs["unroll"]))
         if run.attrs["status"] == "diverged":
             table[key][int(run.attrs["seed"])] = (np.inf, 1.0)
         else:
-            table[key][int(run.attrs["seed"])] = (run.final("eval"), float(run.eval["unstable_fraction"][-1]))
+            table[key][int(run.attrs["seed"])] = (
+                run.final("eval"),
+                float(run.eval["unstable_fraction"][-1]),
+            )
     return table
 
 
@@ -45,10 +52,14 @@ def median(values) -> float:
 
 
 def paired(table, better, worse) -> tuple[int, int, float]:
-    """Seeds where `better` has the lower error, seeds compared, median ratio worse / better over seeds."""
+    """Seeds where `better` has the lower error, seeds compared, median ratio worse / better over
+    seeds."""
     # seeds where both diverged say nothing about which is better: left out
-    seeds = sorted(s for s in set(table.get(better, {})) & set(table.get(worse, {}))
-                   if np.isfinite(table[better][s][0]) or np.isfinite(table[worse][s][0]))
+    seeds = sorted(
+        s
+        for s in set(table.get(better, {})) & set(table.get(worse, {}))
+        if np.isfinite(table[better][s][0]) or np.isfinite(table[worse][s][0])
+    )
     wins = sum(table[better][s][0] < table[worse][s][0] for s in seeds)
     with np.errstate(all="ignore"):
         ratios = [table[worse][s][0] / table[better][s][0] for s in seeds]
@@ -61,43 +72,67 @@ def _fmt(value: float) -> str:
 
 def claims(table) -> str:
     unrolls = sorted({key[2] for key in table})
-    lines = ["| claim (the study) | measured here | seeds: wins / compared, median ratio |", "|---|---|---|"]
+    lines = [
+        "| claim (the study) | measured here | seeds: wins / compared, median ratio |",
+        "|---|---|---|",
+    ]
     # 1: correction beats prediction (the study: about 4.5x)
-    pairs = [(("correct", t, m), ("predict", t, m)) for t in MODALITIES for m in unrolls
-             if ("correct", t, m) in table and ("predict", t, m) in table]
+    pairs = [
+        (("correct", t, m), ("predict", t, m))
+        for t in MODALITIES
+        for m in unrolls
+        if ("correct", t, m) in table and ("predict", t, m) in table
+    ]
     wins = sum(paired(table, a, b)[0] for a, b in pairs)
     compared = sum(paired(table, a, b)[1] for a, b in pairs)
     ratios = [r for r in (paired(table, a, b)[2] for a, b in pairs) if not np.isnan(r)]
-    measured = (f"median over settings of predict/correct error ratio: {median(ratios):.3g} (range "
-                f"{min(ratios):.3g} to {max(ratios):.3g})" if ratios else
-                "no setting has finished runs of both steppers: nothing to compare")
-    lines.append(f"| correction beats prediction (about 4.5x lower error) | {measured} | correct lower in {wins} / "
-                 f"{compared} |")
+    measured = (
+        f"median over settings of predict/correct error ratio: {median(ratios):.3g} (range "
+        f"{min(ratios):.3g} to {max(ratios):.3g})"
+        if ratios
+        else "no setting has finished runs of both steppers: nothing to compare"
+    )
+    lines.append(
+        f"| correction beats prediction (about 4.5x lower error) | {measured} | correct lower in "
+        f"{wins} / "
+        f"{compared} |"
+    )
     # 2: WIG best, NOG close; WIG far below ONE
     for stepper in STEPPERS:
         for m in unrolls:
             if m == 1:
                 continue  # at m = 1 the three modalities are the same computation
-            medians = {t: median([v[0] for v in table.get((stepper, t, m), {}).values()]) for t in MODALITIES}
+            medians = {
+                t: median([v[0] for v in table.get((stepper, t, m), {}).values()])
+                for t in MODALITIES
+            }
             if any(np.isnan(v) for v in medians.values()):
                 continue
             order = " < ".join(sorted(MODALITIES, key=lambda t: medians[t]))
             w_nog, n_nog, r_nog = paired(table, (stepper, "WIG", m), (stepper, "NOG", m))
             w_one, n_one, r_one = paired(table, (stepper, "WIG", m), (stepper, "ONE", m))
-            lines.append(f"| WIG best, NOG close, WIG below ONE ({stepper}, m={m}) | median error "
-                         + ", ".join(f"{t} {_fmt(medians[t])}" for t in MODALITIES) + f"; order {order} | "
-                         f"WIG < NOG {w_nog}/{n_nog} (NOG/WIG {r_nog:.3g}), WIG < ONE {w_one}/{n_one} "
-                         f"(ONE/WIG {r_one:.3g}) |")
+            lines.append(
+                f"| WIG best, NOG close, WIG below ONE ({stepper}, m={m}) | median error "
+                + ", ".join(f"{t} {_fmt(medians[t])}" for t in MODALITIES)
+                + f"; order {order} | "
+                f"WIG < NOG {w_nog}/{n_nog} (NOG/WIG {r_nog:.3g}), WIG < ONE {w_one}/{n_one} "
+                f"(ONE/WIG {r_one:.3g}) |"
+            )
     # 3: an unroll length with the lowest error
     for stepper in STEPPERS:
         for t in ("NOG", "WIG"):
-            by_m = {m: median([v[0] for v in table[(stepper, t, m)].values()]) for m in unrolls
-                    if (stepper, t, m) in table}
+            by_m = {
+                m: median([v[0] for v in table[(stepper, t, m)].values()])
+                for m in unrolls
+                if (stepper, t, m) in table
+            }
             if by_m:
                 best = min(by_m, key=lambda m: by_m[m])
                 curve = ", ".join(f"m={m}: {_fmt(v)}" for m, v in by_m.items())
-                lines.append(f"| an unroll length with the lowest error ({stepper}, {t}) | best m = {best}; "
-                             f"median error {curve} | |")
+                lines.append(
+                    f"| an unroll length with the lowest error ({stepper}, {t}) | best m = {best}; "
+                    f"median error {curve} | |"
+                )
     return "\n".join(lines) + "\n"
 
 
@@ -113,12 +148,16 @@ def plot(table, path: Path, note: str = "") -> None:
         for t in MODALITIES:
             points = sorted(m for (s, tt, m) in table if s == stepper and tt == t)
             for row in (0, 1):
-                values = [np.array([v[row] for v in table[(stepper, t, m)].values()]) for m in points]
+                values = [
+                    np.array([v[row] for v in table[(stepper, t, m)].values()]) for m in points
+                ]
                 finite = [v[np.isfinite(v)] for v in values]
                 mid = np.array([np.median(v) if len(v) else np.nan for v in finite])
                 low = mid - np.array([v.min() if len(v) else np.nan for v in finite])
                 high = np.array([v.max() if len(v) else np.nan for v in finite]) - mid
-                axes[row, column].errorbar(points, mid, yerr=[low, high], fmt="o-", capsize=3, label=t)
+                axes[row, column].errorbar(
+                    points, mid, yerr=[low, high], fmt="o-", capsize=3, label=t
+                )
         axes[0, column].set_title(f"stepper: {stepper}", fontsize=10)
         axes[0, column].set_yscale("log")
         axes[0, column].set_ylabel("relative error over 12 steps (test sizes)")
@@ -128,25 +167,33 @@ def plot(table, path: Path, note: str = "") -> None:
             axes[row, column].set_xscale("log", base=2)
             axes[row, column].xaxis.set_major_formatter(FuncFormatter(lambda v, _: f"{v:.0f}"))
             axes[row, column].grid(True, which="both", alpha=0.3)
-            axes[row, column].legend(fontsize=8, title="median over seeds, bars: min-max", title_fontsize=7)
+            axes[row, column].legend(
+                fontsize=8, title="median over seeds, bars: min-max", title_fontsize=7
+            )
         axes[1, column].set_xlabel("unroll length m (ONE: m one-step pairs per sample)")
-    fig.suptitle(note or "Kuramoto-Sivashinsky: training modality and stepper against unroll length", fontsize=10)
+    fig.suptitle(
+        note or "Kuramoto-Sivashinsky: training modality and stepper against unroll length",
+        fontsize=10,
+    )
     fig.tight_layout()
     fig.savefig(path, dpi=100)
     plt.close(fig)
 
 
 def write(folders: list[Path], out: Path, note: str = "") -> tuple[list[str], str]:
-    """Draw ks_unroll.png and write ks_claims.md into out from the runs under the folders; returns (figure
-    names, the claims table)."""
+    """Draw ks_unroll.png and write ks_claims.md into out from the runs under the folders; returns
+    (figure names, the claims table)."""
     table = collect(folders)
     out.mkdir(parents=True, exist_ok=True)
     if not table:
         return [], "no completed Kuramoto-Sivashinsky runs\n"
     plot(table, out / "ks_unroll.png", note)
     text = claims(table)
-    (out / "ks_claims.md").write_text("# Kuramoto-Sivashinsky: the unrolling study's claims, as measured\n\n"
-                                      + (f"{note}\n\n" if note else "") + text)
+    (out / "ks_claims.md").write_text(
+        "# Kuramoto-Sivashinsky: the unrolling study's claims, as measured\n\n"
+        + (f"{note}\n\n" if note else "")
+        + text
+    )
     return ["ks_unroll.png"], text
 
 

@@ -1,18 +1,20 @@
-"""`make reproduce-figures [PROFILE=quick|paper|claims|claims-long]`: run the figure sweeps of conf/experiment/
-and write the figures and one markdown summary into outputs/figures/; or, for the claims profiles, the papers'
-claims as `physgrad compare` studies and outputs/figures/claims.md.
+"""`make reproduce-figures [PROFILE=quick|paper|claims|claims-long]`: run the figure sweeps of
+conf/experiment/ and write the figures and one markdown summary into outputs/figures/; or, for the
+claims profiles, the papers' claims as `physgrad compare` studies and outputs/figures/claims.md.
 
-The experiment configs hold the papers' budgets (PROFILE=paper). The quick profile (the default) runs the same
-sweeps with the budgets below, so that everything finishes in about 45 minutes on a 2-core machine; every figure
-and the summary say so. Runs land in outputs/experiments/<profile>/<experiment>/<overrides>/results.h5; a second
-call skips every job that completed or diverged (so an interrupted reproduction resumes), unless OVERWRITE=1.
-Each figure is `physgrad report` of its runs: the same table and figures that command writes for any runs.
+The experiment configs hold the papers' budgets (PROFILE=paper). The quick profile (the default)
+runs the same sweeps with the budgets below, so that everything finishes in about 45 minutes on a
+2-core machine; every figure and the summary say so. Runs land in
+outputs/experiments/<profile>/<experiment>/<overrides>/results.h5; a second call skips every job
+that completed or diverged (so an interrupted reproduction resumes), unless OVERWRITE=1. Each figure
+is `physgrad report` of its runs: the same table and figures that command writes for any runs.
 
-The claims profile runs the studies of experiments/claims.py (STUDIES and the regime map MAP), each a `physgrad
-compare` (tuned, paired seeds, calibrated clock) and its untuned twin, into outputs/experiments/claims/<study>;
-claims-long runs the claims whose budget is a small fraction of the paper's further. Both resume study by study
-and job by job; `--plan` prints the studies, their expected time and the parts of at most about 80 minutes that
-`--part K` runs one at a time; claims.md is written from whatever studies have finished.
+The claims profile runs the studies of experiments/claims.py (STUDIES and the regime map MAP), each
+a `physgrad compare` (tuned, paired seeds, calibrated clock) and its untuned twin, into
+outputs/experiments/claims/<study>; claims-long runs the claims whose budget is a small fraction of
+the paper's further. Both resume study by study and job by job; `--plan` prints the studies, their
+expected time and the parts of at most about 80 minutes that `--part K` runs one at a time;
+claims.md is written from whatever studies have finished.
 """
 
 from __future__ import annotations
@@ -37,6 +39,7 @@ CONF = Path(__file__).resolve().parent.parent / "conf"
 @dataclass(frozen=True)
 class Sweep:
     """One sweep of a figure: a named experiment with the profile's overrides."""
+
     experiment: str
     overrides: tuple[str, ...]
 
@@ -47,9 +50,14 @@ class Figure:
     title: str
     experiments: tuple[str, ...]
     shows: tuple[str, ...]  # which of the report's figures this one is
-    quick: dict[str, list[str]] | None = field(default_factory=dict)  # experiment -> quick overrides; None: not in it
-    runs_shown: tuple[str, ...] = ()  # globs of job folders whose per-run scene figure (scene.png) is shown too
-    # (folders, out folder, note) -> (figure file names, markdown): a study's own figure and table, beside the report
+    quick: dict[str, list[str]] | None = field(
+        default_factory=dict
+    )  # experiment -> quick overrides; None: not in it
+    runs_shown: tuple[
+        str, ...
+    ] = ()  # globs of job folders whose per-run scene figure (scene.png) is shown too
+    # (folders, out folder, note) -> (figure file names, markdown): a study's own figure and table,
+    # beside the report
     study: Callable[[list[Path], Path, str], tuple[list[str], str]] | None = None
 
 
@@ -61,41 +69,104 @@ def ks_study(folders: list[Path], out: Path, note: str) -> tuple[list[str], str]
 
 QUICK_POISSON = ["seed=0", "trainer.time_budget=45"]
 FIGURES = (
-    Figure("fig1_oscillator", "Oscillators: Adam, Gauss-Newton and HIG, test loss against training wall-clock",
-           ("fig1_oscillator",), ("loss_vs_time.png",),
-           {"fig1_oscillator": ["seed=0,1", "trainer.time_budget=60"]}),
-    Figure("fig2_quantum", "Quantum dipole (HIG preset): Adam and HIG against training wall-clock",
-           ("fig2_quantum",), ("loss_vs_time.png",),
-           {"fig2_quantum": ["seed=0,1", "trainer.time_budget=75"]}),
-    Figure("fig3_poisson", "Poisson: Adam and HIG, then both continuing from the Adam-trained network",
-           ("fig3_poisson", "fig3_poisson_continue"), ("loss_vs_time.png",),
-           {"fig3_poisson": QUICK_POISSON,
-            "fig3_poisson_continue": [*QUICK_POISSON, "init_from='outputs/experiments/quick/fig3_poisson/"
-                                                      "optim=adam,seed=${seed},trainer.time_budget=45/results.h5'"]}),
-    Figure("fig4_multicart", "Multicart: backprop modes R, M, S, C for 1 to 4 poles, test loss against iteration",
-           ("fig4_multicart",), ("loss_vs_iteration.png",),
-           {"fig4_multicart": ["seed=0", "trainer.iterations=1500", "trainer.eval_every=100"]}),
-    Figure("fig5_quantum_control", "Quantum control (StableBPTT preset): modes R, M, S, C for target levels 3, 4, 5",
-           ("fig5_quantum_control",), ("loss_vs_iteration.png",),
-           {"fig5_quantum_control": ["seed=0", "trainer.iterations=250", "trainer.eval_every=50"]}),
-    Figure("fig6_unroll", "Unroll length: final test loss and seconds per iteration",
-           ("fig6_unroll_bptt", "fig6_unroll_hig"), ("unroll.png",),
-           {"fig6_unroll_bptt": ["seed=0", "unroll=16,32,64,128,256", "trainer.iterations=1000",
-                                 "trainer.eval_every=250"],
-            "fig6_unroll_hig": ["seed=0", "unroll=16,32,64,128,256", "trainer.time_budget=15"]}),
-    Figure("fig8_guidance", "Guidance by repulsion: modes R, M, S, C for control costs 1 to 0.001",
-           ("fig8_guidance",), ("loss_vs_iteration.png",),
-           {"fig8_guidance": ["seed=0", "optim.clip=none", "trainer.iterations=1000", "trainer.eval_every=100"]},
-           runs_shown=("*optim.backprop=R,*seed=0,task.control_cost=0.001*",
-                       "*optim.backprop=C,*seed=0,task.control_cost=0.001*")),
-    Figure("fig9_ks", "Kuramoto-Sivashinsky neural simulator: ONE, NOG, WIG x predict, correct x unroll length",
-           ("fig9_ks",), ("unroll.png",),
-           {"fig9_ks": ["unroll=1,2,4", "trainer.iterations=200", "trainer.eval_every=200"]},
-           runs_shown=("*task.stepper=correct,task.training=WIG,*unroll=4/seed=0",), study=ks_study),
-    Figure("toy_scaling", "Badly scaled toy (lambda = 0.01): Adam, Gauss-Newton and HIG against training wall-clock",
-           ("toy_scaling",), ("loss_vs_time.png",), None),
-    Figure("hig_payoff", "Where HIG pays off: Adam and HIG on longer oscillator chains against training wall-clock",
-           ("hig_payoff",), ("loss_vs_time.png",), None),
+    Figure(
+        "fig1_oscillator",
+        "Oscillators: Adam, Gauss-Newton and HIG, test loss against training wall-clock",
+        ("fig1_oscillator",),
+        ("loss_vs_time.png",),
+        {"fig1_oscillator": ["seed=0,1", "trainer.time_budget=60"]},
+    ),
+    Figure(
+        "fig2_quantum",
+        "Quantum dipole (HIG preset): Adam and HIG against training wall-clock",
+        ("fig2_quantum",),
+        ("loss_vs_time.png",),
+        {"fig2_quantum": ["seed=0,1", "trainer.time_budget=75"]},
+    ),
+    Figure(
+        "fig3_poisson",
+        "Poisson: Adam and HIG, then both continuing from the Adam-trained network",
+        ("fig3_poisson", "fig3_poisson_continue"),
+        ("loss_vs_time.png",),
+        {
+            "fig3_poisson": QUICK_POISSON,
+            "fig3_poisson_continue": [
+                *QUICK_POISSON,
+                "init_from='outputs/experiments/quick/fig3_poisson/"
+                "optim=adam,seed=${seed},trainer.time_budget=45/results.h5'",
+            ],
+        },
+    ),
+    Figure(
+        "fig4_multicart",
+        "Multicart: backprop modes R, M, S, C for 1 to 4 poles, test loss against iteration",
+        ("fig4_multicart",),
+        ("loss_vs_iteration.png",),
+        {"fig4_multicart": ["seed=0", "trainer.iterations=1500", "trainer.eval_every=100"]},
+    ),
+    Figure(
+        "fig5_quantum_control",
+        "Quantum control (StableBPTT preset): modes R, M, S, C for target levels 3, 4, 5",
+        ("fig5_quantum_control",),
+        ("loss_vs_iteration.png",),
+        {"fig5_quantum_control": ["seed=0", "trainer.iterations=250", "trainer.eval_every=50"]},
+    ),
+    Figure(
+        "fig6_unroll",
+        "Unroll length: final test loss and seconds per iteration",
+        ("fig6_unroll_bptt", "fig6_unroll_hig"),
+        ("unroll.png",),
+        {
+            "fig6_unroll_bptt": [
+                "seed=0",
+                "unroll=16,32,64,128,256",
+                "trainer.iterations=1000",
+                "trainer.eval_every=250",
+            ],
+            "fig6_unroll_hig": ["seed=0", "unroll=16,32,64,128,256", "trainer.time_budget=15"],
+        },
+    ),
+    Figure(
+        "fig8_guidance",
+        "Guidance by repulsion: modes R, M, S, C for control costs 1 to 0.001",
+        ("fig8_guidance",),
+        ("loss_vs_iteration.png",),
+        {
+            "fig8_guidance": [
+                "seed=0",
+                "optim.clip=none",
+                "trainer.iterations=1000",
+                "trainer.eval_every=100",
+            ]
+        },
+        runs_shown=(
+            "*optim.backprop=R,*seed=0,task.control_cost=0.001*",
+            "*optim.backprop=C,*seed=0,task.control_cost=0.001*",
+        ),
+    ),
+    Figure(
+        "fig9_ks",
+        "Kuramoto-Sivashinsky neural simulator: ONE, NOG, WIG x predict, correct x unroll length",
+        ("fig9_ks",),
+        ("unroll.png",),
+        {"fig9_ks": ["unroll=1,2,4", "trainer.iterations=200", "trainer.eval_every=200"]},
+        runs_shown=("*task.stepper=correct,task.training=WIG,*unroll=4/seed=0",),
+        study=ks_study,
+    ),
+    Figure(
+        "toy_scaling",
+        "Badly scaled toy (lambda = 0.01): Adam, Gauss-Newton and HIG against training wall-clock",
+        ("toy_scaling",),
+        ("loss_vs_time.png",),
+        None,
+    ),
+    Figure(
+        "hig_payoff",
+        "Where HIG pays off: Adam and HIG on longer oscillator chains against training wall-clock",
+        ("hig_payoff",),
+        ("loss_vs_time.png",),
+        None,
+    ),
 )
 TRADEOFF = "fig7_tradeoff"
 
@@ -104,12 +175,15 @@ def profile_sweeps(figure: Figure, profile: str) -> list[Sweep]:
     """The sweeps a figure runs in a profile (none: the figure is not part of it)."""
     if profile == "quick" and figure.quick is None:
         return []
-    return [Sweep(e, tuple(figure.quick.get(e, []) if profile == "quick" else [])) for e in figure.experiments]
+    return [
+        Sweep(e, tuple(figure.quick.get(e, []) if profile == "quick" else []))
+        for e in figure.experiments
+    ]
 
 
 def planned_jobs(sweep: Sweep) -> list[list[str]]:
-    """The sweep's jobs as Hydra's basic sweeper will launch them: the experiment's sweep parameters, then the
-    profile's overrides."""
+    """The sweep's jobs as Hydra's basic sweeper will launch them: the experiment's sweep
+    parameters, then the profile's overrides."""
     config = yaml.safe_load((CONF / "experiment" / f"{sweep.experiment}.yaml").read_text())
     params = ((config.get("hydra") or {}).get("sweeper") or {}).get("params") or {}
     return sweep_jobs([f"{key}={value}" for key, value in params.items()] + list(sweep.overrides))
@@ -122,8 +196,11 @@ def print_plan(figures: list[Figure], profile: str) -> None:
         for sweep in profile_sweeps(figure, profile):
             jobs = planned_jobs(sweep)
             count += len(jobs)
-            print(f"{figure.name}: +experiment={sweep.experiment} -> outputs/experiments/{profile}/{sweep.experiment} "
-                  f"({len(jobs)} jobs)")
+            print(
+                f"{figure.name}: +experiment={sweep.experiment} -> "
+                f"outputs/experiments/{profile}/{sweep.experiment} "
+                f"({len(jobs)} jobs)"
+            )
             for job in jobs:
                 print("    " + " ".join(job))
     print(f"{count} jobs, one at a time (jobs that completed or diverged before are skipped)")
@@ -132,8 +209,17 @@ def print_plan(figures: list[Figure], profile: str) -> None:
 def run_sweep(sweep: Sweep, profile: str, overwrite: bool) -> tuple[Path, int]:
     """One named sweep through `physgrad run -m`; returns its folder and the exit code."""
     folder = Path("outputs/experiments") / profile / sweep.experiment
-    command = [sys.executable, "-m", "physgrad.cli", "run", "-m", f"+experiment={sweep.experiment}",
-               f"hydra.sweep.dir={folder}", *sweep.overrides, *(["overwrite=true"] if overwrite else [])]
+    command = [
+        sys.executable,
+        "-m",
+        "physgrad.cli",
+        "run",
+        "-m",
+        f"+experiment={sweep.experiment}",
+        f"hydra.sweep.dir={folder}",
+        *sweep.overrides,
+        *(["overwrite=true"] if overwrite else []),
+    ]
     print("reproduce:", " ".join(command[2:]), flush=True)
     return folder, subprocess.run(command).returncode
 
@@ -141,14 +227,17 @@ def run_sweep(sweep: Sweep, profile: str, overwrite: bool) -> tuple[Path, int]:
 NOTES = {
     "quick": "QUICK PROFILE: budgets scaled down from the papers' (see experiments/reproduce.py)",
     "paper": "paper profile: the papers' budgets",
-    "claims": "CLAIMS PROFILE: physgrad compare studies (tuned, paired seeds, calibrated clock), budgets sized for "
-              "a 2-core machine (experiments/claims.py)",
-    "claims-long": "CLAIMS-LONG PROFILE: the claims with the smallest share of the paper's budget, run further "
-                   "(experiments/claims.py)",
+    "claims": "CLAIMS PROFILE: physgrad compare studies (tuned, paired seeds, calibrated clock), "
+    "budgets sized for "
+    "a 2-core machine (experiments/claims.py)",
+    "claims-long": "CLAIMS-LONG PROFILE: the claims with the smallest share of the paper's "
+    "budget, run further "
+    "(experiments/claims.py)",
 }
 
 
-# --- the claims profiles: physgrad compare studies ----------------------------------------------------------
+# --- the claims profiles: physgrad compare studies
+# ----------------------------------------------------------
 
 
 def claims_parts(profile: str) -> list:
@@ -158,7 +247,8 @@ def claims_parts(profile: str) -> list:
 
 
 def print_claims_plan(profile: str, root: Path) -> None:
-    """The studies of a claims profile part by part, with their jobs and expected time on the 2-core machine."""
+    """The studies of a claims profile part by part, with their jobs and expected time on the 2-core
+    machine."""
     from claims import starts
 
     total = 0.0
@@ -167,31 +257,51 @@ def print_claims_plan(profile: str, root: Path) -> None:
         total += seconds
         print(f"part {index} (--part {index}): about {seconds / 60:.0f} min")
         for start in starts(part):
-            print(f"    start networks {start.name}: physgrad run -m {' '.join(start.overrides)} (one job per seed)")
+            print(
+                f"    start networks {start.name}: physgrad run -m {' '.join(start.overrides)} "
+                "(one job per seed)"
+            )
         for study in part:
             tuning = study.trials * study.variants()
-            print(f"    {study.name}: {study.variants()} variants, {study.trials} trials each ({tuning} tuning jobs), "
-                  f"{study.seeds} seeds ({study.eval_jobs()} evaluation jobs"
-                  f"{f', {study.eval_jobs(preset=True)} untuned' if study.preset else ''}), about {study.seconds() / 60:.0f} min")
+            print(
+                f"    {study.name}: {study.variants()} variants, {study.trials} trials each "
+                f"({tuning} tuning jobs), "
+                f"{study.seeds} seeds ({study.eval_jobs()} evaluation jobs"
+                f"{f', {study.eval_jobs(preset=True)} untuned' if study.preset else ''}), about "
+                f"{study.seconds() / 60:.0f} min"
+            )
             print(f"        physgrad compare {' '.join(study.command(root))}")
-    print(f"expected total: about {total / 3600:.1f} h on a 2-core machine, in parts run one after another "
-          "(each resumes where it stopped; finished jobs are skipped)")
+    print(
+        f"expected total: about {total / 3600:.1f} h on a 2-core machine, in parts run one after "
+        "another "
+        "(each resumes where it stopped; finished jobs are skipped)"
+    )
 
 
 def run_start(start, seeds: int, root: Path) -> int:
-    """The networks a study continues from: one job per evaluation seed and the tuning seed, in <root>/<name>/seed=S."""
+    """The networks a study continues from: one job per evaluation seed and the tuning seed, in
+    <root>/<name>/seed=S."""
     from claims import TUNE_SEED
 
     seed_list = ",".join(str(s) for s in [*range(seeds), TUNE_SEED])
-    command = [sys.executable, "-m", "physgrad.cli", "run", "-m", *start.overrides, f"seed={seed_list}",
-               f"hydra.sweep.dir={root / start.name}", "hydra.sweep.subdir='seed=${seed}'"]
+    command = [
+        sys.executable,
+        "-m",
+        "physgrad.cli",
+        "run",
+        "-m",
+        *start.overrides,
+        f"seed={seed_list}",
+        f"hydra.sweep.dir={root / start.name}",
+        "hydra.sweep.subdir='seed=${seed}'",
+    ]
     print("reproduce:", " ".join(command[2:]), flush=True)
     return subprocess.run(command).returncode
 
 
 def run_claims(profile: str, parts: list[int], root: Path, out: Path) -> int:
-    """The studies of the chosen parts (all: every part), each tuned and untuned; then claims.md from every
-    study that has finished."""
+    """The studies of the chosen parts (all: every part), each tuned and untuned; then claims.md
+    from every study that has finished."""
     from claims import starts, write
 
     failed = []
@@ -204,7 +314,13 @@ def run_claims(profile: str, parts: list[int], root: Path, out: Path) -> int:
                 failed.append(start.name)
         for study in part:
             for preset in (False, True) if study.preset else (False,):
-                command = [sys.executable, "-m", "physgrad.cli", "compare", *study.command(root, preset)]
+                command = [
+                    sys.executable,
+                    "-m",
+                    "physgrad.cli",
+                    "compare",
+                    *study.command(root, preset),
+                ]
                 print("reproduce:", " ".join(command[2:]), flush=True)
                 code = subprocess.run(command).returncode
                 if code == 130:
@@ -212,17 +328,30 @@ def run_claims(profile: str, parts: list[int], root: Path, out: Path) -> int:
                 if code != 0:
                     failed.append(f"{study.name}{'-preset' if preset else ''} (exit {code})")
     write(root, out, NOTES[profile], profile)
-    print(f"reproduce: wrote {out / (profile + '.md')}" + (f"; did not finish: {', '.join(failed)}" if failed else ""))
+    print(
+        f"reproduce: wrote {out / (profile + '.md')}"
+        + (f"; did not finish: {', '.join(failed)}" if failed else "")
+    )
     return 1 if failed else 0
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="make reproduce-figures", description=__doc__.split("\n\n")[0])
+    parser = argparse.ArgumentParser(
+        prog="make reproduce-figures", description=__doc__.split("\n\n")[0]
+    )
     parser.add_argument("--profile", choices=tuple(NOTES), default="quick")
     parser.add_argument("--only", default="", help="comma-separated figure names (default: all)")
-    parser.add_argument("--overwrite", action="store_true", help="rerun jobs that completed or diverged before")
-    parser.add_argument("--plan", action="store_true", help="print every job and the expected time; run nothing")
-    parser.add_argument("--part", default="", help="claims profiles: comma-separated part numbers (--plan lists them)")
+    parser.add_argument(
+        "--overwrite", action="store_true", help="rerun jobs that completed or diverged before"
+    )
+    parser.add_argument(
+        "--plan", action="store_true", help="print every job and the expected time; run nothing"
+    )
+    parser.add_argument(
+        "--part",
+        default="",
+        help="claims profiles: comma-separated part numbers (--plan lists them)",
+    )
     parser.add_argument("--out", default="outputs/figures")
     options = parser.parse_args(argv)
     if options.profile.startswith("claims"):
@@ -233,18 +362,29 @@ def main(argv: list[str] | None = None) -> int:
         except ValueError:
             parts = [0]
         if any(not 1 <= k <= count for k in parts):
-            print(f"reproduce: error: --part takes numbers from 1 to {count} (--plan lists the parts)", file=sys.stderr)
+            print(
+                f"reproduce: error: --part takes numbers from 1 to {count} "
+                "(--plan lists the parts)",
+                file=sys.stderr,
+            )
             return 2
         if options.plan:
             print_claims_plan(options.profile, root)
             return 0
         return run_claims(options.profile, parts, root, Path(options.out))
-    wanted = [f for f in FIGURES if (not options.only or f.name in options.only.split(","))
-              and profile_sweeps(f, options.profile)]
+    wanted = [
+        f
+        for f in FIGURES
+        if (not options.only or f.name in options.only.split(","))
+        and profile_sweeps(f, options.profile)
+    ]
     if options.only and len(wanted) != len(options.only.split(",")):
         names = ", ".join(f.name for f in FIGURES if profile_sweeps(f, options.profile))
-        print(f"reproduce: error: --only takes names from {names} (the {options.profile} profile's figures)",
-              file=sys.stderr)
+        print(
+            f"reproduce: error: --only takes names from {names} (the {options.profile} profile's "
+            "figures)",
+            file=sys.stderr,
+        )
         return 2
     if options.plan:
         print_plan(wanted, options.profile)
@@ -264,12 +404,18 @@ def main(argv: list[str] | None = None) -> int:
                 folders.append(folder)
         all_folders += folders
         if not folders:
-            sections.append(f"## {figure.name}: {figure.title}\n\nno results (the sweep did not start)\n")
+            sections.append(
+                f"## {figure.name}: {figure.title}\n\nno results (the sweep did not start)\n"
+            )
             continue
-        write_report([str(f) for f in folders], out_dir=out / figure.name, note=f"{figure.title}\n{note}")
+        write_report(
+            [str(f) for f in folders], out_dir=out / figure.name, note=f"{figure.title}\n{note}"
+        )
         shown = list(figure.shows)
         for pattern in figure.runs_shown:  # e.g. the agents' paths of one run per variant
-            found = sorted((p, f) for f in folders for p in f.glob(pattern) if (p / "scene.png").exists())
+            found = sorted(
+                (p, f) for f in folders for p in f.glob(pattern) if (p / "scene.png").exists()
+            )
             for job, folder in found[:1]:
                 name = f"scene_{'_'.join(job.relative_to(folder).parts)}.png"
                 shutil.copy(job / "scene.png", out / figure.name / name)
@@ -282,15 +428,26 @@ def main(argv: list[str] | None = None) -> int:
         images = "\n".join(f"![{figure.name}]({figure.name}/{image})" for image in shown)
         sections.append(f"## {figure.name}: {figure.title}\n\n{images}\n\n{table}")
     if all_folders:
-        title = "Error against run time: final test loss against seconds per iteration and total training time"
+        title = (
+            "Error against run time: final test loss against seconds per iteration and total "
+            "training time"
+        )
         write_report([str(f) for f in all_folders], out_dir=out / TRADEOFF, note=f"{title}\n{note}")
-        sections.append(f"## {TRADEOFF}: {title}\n\n![{TRADEOFF}]({TRADEOFF}/tradeoff.png)\n\n"
-                        f"(its table is the union of the tables above: {TRADEOFF}/report.md)\n")
+        sections.append(
+            f"## {TRADEOFF}: {title}\n\n![{TRADEOFF}]({TRADEOFF}/tradeoff.png)\n\n"
+            f"(its table is the union of the tables above: {TRADEOFF}/report.md)\n"
+        )
     minutes = (time.perf_counter() - start) / 60
-    header = [f"# physgrad figures ({options.profile} profile)", "", note + ".",
-              f"Wall time of this reproduction: {minutes:.1f} min (jobs that completed or diverged before were "
-              "skipped, not rerun).",
-              *(["", "Sweeps that did not finish cleanly: " + ", ".join(failed)] if failed else []), ""]
+    header = [
+        f"# physgrad figures ({options.profile} profile)",
+        "",
+        note + ".",
+        f"Wall time of this reproduction: {minutes:.1f} min (jobs that completed or diverged "
+        "before were "
+        "skipped, not rerun).",
+        *(["", "Sweeps that did not finish cleanly: " + ", ".join(failed)] if failed else []),
+        "",
+    ]
     (out / "summary.md").write_text("\n".join(header) + "\n" + "\n".join(sections))
     print(f"reproduce: wrote {out / 'summary.md'} in {minutes:.1f} min")
     return 1 if failed else 0

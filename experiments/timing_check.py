@@ -1,16 +1,17 @@
-"""Does a busy machine flip an equal-time comparison? One `physgrad compare` study run twice: on the machine as it
-is, then beside CPU-bound processes (one per core) that this script starts and stops itself, reusing the quiet
-study's calibration (compare.calibration), as a user re-running a comparison on a busy laptop would. While the
-processes run it also calibrates the variants again, to show what a calibration under load measures. Writes
-timing_check.md into OUT: both runs' verdicts side by side, each variant's calibrated-clock test loss at the
-budget (median and range over seeds), how many runs of each were flagged contended, and the step costs
-calibrated quiet and under load.
+"""Does a busy machine flip an equal-time comparison? One `physgrad compare` study run twice: on the
+machine as it is, then beside CPU-bound processes (one per core) that this script starts and stops
+itself, reusing the quiet study's calibration (compare.calibration), as a user re-running a
+comparison on a busy laptop would. While the processes run it also calibrates the variants again, to
+show what a calibration under load measures. Writes timing_check.md into OUT: both runs' verdicts
+side by side, each variant's calibrated-clock test loss at the budget (median and range over seeds),
+how many runs of each were flagged contended, and the step costs calibrated quiet and under load.
 
-    python experiments/timing_check.py [--out outputs/timing_check] [--hogs N] -- task=toy optim=adam,gauss_newton,hig trainer.time_budget=5
+    python experiments/timing_check.py [--out outputs/timing_check] [--hogs N] -- task=toy
+    optim=adam,gauss_newton,hig trainer.time_budget=5
 
-Both studies are resumable (their folders are OUT/quiet and OUT/loaded): run the same command again after an
-interruption. The verdicts must agree and the losses of the loaded run lie within the quiet run's seed range
-(docs/decisions.md, "Timing").
+Both studies are resumable (their folders are OUT/quiet and OUT/loaded): run the same command again
+after an interruption. The verdicts must agree and the losses of the loaded run lie within the quiet
+run's seed range (docs/decisions.md, "Timing").
 """
 
 from __future__ import annotations
@@ -63,65 +64,108 @@ def summary(result) -> dict:
     out = {}
     for variant, rows in runs.groupby("variant", sort=False):
         losses = rows["test_loss_at_1"].to_numpy(float)
-        out[variant] = {"median": float(np.nanmedian(losses)), "low": float(np.nanmin(losses)),
-                        "high": float(np.nanmax(losses)), "contended": int(rows["contended"].sum()),
-                        "runs": len(rows), "iterations": float(np.median(rows["iterations"]))}
+        out[variant] = {
+            "median": float(np.nanmedian(losses)),
+            "low": float(np.nanmin(losses)),
+            "high": float(np.nanmax(losses)),
+            "contended": int(rows["contended"].sum()),
+            "runs": len(rows),
+            "iterations": float(np.median(rows["iterations"])),
+        }
     return out
 
 
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--out", default="outputs/timing_check")
-    parser.add_argument("--hogs", type=int, default=os.cpu_count() or 2, help="CPU-bound processes (default: one per core)")
+    parser.add_argument(
+        "--hogs",
+        type=int,
+        default=os.cpu_count() or 2,
+        help="CPU-bound processes (default: one per core)",
+    )
     parser.add_argument("overrides", nargs="+")
     args = parser.parse_args(argv)
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     quiet = study(args.overrides, out / "quiet")
     # spawned, not forked: the parent has JAX's threads running
-    hogs = [multiprocessing.get_context("spawn").Process(target=burn, daemon=True) for _ in range(args.hogs)]
+    hogs = [
+        multiprocessing.get_context("spawn").Process(target=burn, daemon=True)
+        for _ in range(args.hogs)
+    ]
     for hog in hogs:
         hog.start()
     try:
         under_load = calibrate_under_load(args.overrides)
-        loaded = study([*args.overrides, f"compare.calibration={out / 'quiet' / 'calibration.json'}"],
-                       out / "loaded")
+        loaded = study(
+            [*args.overrides, f"compare.calibration={out / 'quiet' / 'calibration.json'}"],
+            out / "loaded",
+        )
     finally:
         for hog in hogs:
             hog.terminate()
             hog.join()
-    q, l = summary(quiet), summary(loaded)
-    lines = [f"# Timing check: {' '.join(args.overrides)}", "",
-             f"Quiet study: {out / 'quiet'}; loaded study (beside {args.hogs} CPU-bound processes): {out / 'loaded'}.",
-             "", "| A vs B | verdict, quiet | verdict, loaded | same |", "|---|---|---|---|"]
+    q, loaded_summary = summary(quiet), summary(loaded)
+    lines = [
+        f"# Timing check: {' '.join(args.overrides)}",
+        "",
+        f"Quiet study: {out / 'quiet'}; loaded study (beside {args.hogs} CPU-bound processes): "
+        f"{out / 'loaded'}.",
+        "",
+        "| A vs B | verdict, quiet | verdict, loaded | same |",
+        "|---|---|---|---|",
+    ]
     same = True
     for vq, vl in zip(quiet.verdicts, loaded.verdicts):
         agree = vq.verdict == vl.verdict
         same &= agree
-        lines.append(f"| {vq.a} vs {vq.b} | {vq.verdict} | {vl.verdict} | {'yes' if agree else '**no**'} |")
-    lines += ["", "| variant | test loss at the budget, quiet: median [min, max] | loaded: median [min, max] | "
-              "loaded median within the quiet range | iterations quiet, loaded (median) | contended quiet, loaded |",
-              "|---|---|---|---|---|---|"]
+        lines.append(
+            f"| {vq.a} vs {vq.b} | {vq.verdict} | {vl.verdict} | {'yes' if agree else '**no**'} |"
+        )
+    lines += [
+        "",
+        "| variant | test loss at the budget, quiet: median [min, max] | loaded: median [min, "
+        "max] | "
+        "loaded median within the quiet range | iterations quiet, loaded (median) | contended "
+        "quiet, loaded |",
+        "|---|---|---|---|---|---|",
+    ]
     within = True
     for variant in q:
-        a, b = q[variant], l.get(variant)
+        a, b = q[variant], loaded_summary.get(variant)
         if b is None:
             continue
         inside = a["low"] <= b["median"] <= a["high"]
         within &= inside
-        lines.append(f"| {variant} | {a['median']:.4g} [{a['low']:.4g}, {a['high']:.4g}] | {b['median']:.4g} "
-                     f"[{b['low']:.4g}, {b['high']:.4g}] | {'yes' if inside else '**no**'} | {a['iterations']:.0f}, "
-                     f"{b['iterations']:.0f} | {a['contended']} of {a['runs']}, {b['contended']} of {b['runs']} |")
+        lines.append(
+            f"| {variant} | {a['median']:.4g} [{a['low']:.4g}, {a['high']:.4g}] | "
+            f"{b['median']:.4g} "
+            f"[{b['low']:.4g}, {b['high']:.4g}] | {'yes' if inside else '**no**'} | "
+            f"{a['iterations']:.0f}, "
+            f"{b['iterations']:.0f} | {a['contended']} of {a['runs']}, {b['contended']} of "
+            f"{b['runs']} |"
+        )
     quiet_costs = json.loads((out / "quiet" / "calibration.json").read_text())
-    lines += ["", "| variant | step cost, quiet calibration | under load | ratio | load average quiet, loaded |",
-              "|---|---|---|---|---|"]
+    lines += [
+        "",
+        "| variant | step cost, quiet calibration | under load | ratio | load average quiet, "
+        "loaded |",
+        "|---|---|---|---|---|",
+    ]
     for variant, cost in quiet_costs["costs"].items():
         loaded_cost = under_load["costs"][variant]["step_seconds"]
-        lines.append(f"| {variant} | {cost['step_seconds']:.4g} s | {loaded_cost:.4g} s | "
-                     f"{loaded_cost / cost['step_seconds']:.2f} | {quiet_costs['load_start']:.2f}, "
-                     f"{under_load['load_start']:.2f} |")
-    lines += ["", f"Verdicts {'agree' if same else 'DIFFER'}; loaded medians {'within' if within else 'OUTSIDE'} "
-              "the quiet seed ranges."]
+        lines.append(
+            f"| {variant} | {cost['step_seconds']:.4g} s | {loaded_cost:.4g} s | "
+            f"{loaded_cost / cost['step_seconds']:.2f} | {quiet_costs['load_start']:.2f}, "
+            f"{under_load['load_start']:.2f} |"
+        )
+    lines += [
+        "",
+        f"Verdicts {'agree' if same else 'DIFFER'}; loaded medians "
+        f"{'within' if within else 'OUTSIDE'} "
+        "the quiet seed ranges.",
+    ]
     text = "\n".join(lines) + "\n"
     (out / "timing_check.md").write_text(text)
     print(text)

@@ -5,9 +5,9 @@
     run.eval["loss"], run.train["wall_time"]          # numpy arrays
     same = physgrad.read_run(run.path)                # any results.h5, read back the same way
 
-Each imports what it needs when called: `import physgrad` (and every `physgrad.<module>` import, which imports the
-package first) stays free of JAX, Hydra and pandas, so the console script installs its signal handlers before any
-of them loads.
+Each imports what it needs when called: `import physgrad` (and every `physgrad.<module>` import,
+which imports the package first) stays free of JAX, Hydra and pandas, so the console script installs
+its signal handlers before any of them loads.
 """
 
 from __future__ import annotations
@@ -17,16 +17,21 @@ import sys
 from pathlib import Path
 
 
-def run(*overrides: str, out_dir: str | os.PathLike | None = None, config_dir: str | os.PathLike | None = None):
-    """Train one configuration, given as the overrides `physgrad run` takes (e.g. "task=poisson", "optim=hig",
-    "trainer.iterations=100"), and return its results (physgrad.results.Run: attributes and the /train and
-    /eval columns as numpy arrays; a list of them, one per seed, with seeds=N > 1).
+def run(
+    *overrides: str,
+    out_dir: str | os.PathLike | None = None,
+    config_dir: str | os.PathLike | None = None,
+):
+    """Train one configuration, given as the overrides `physgrad run` takes (e.g. "task=poisson",
+    "optim=hig", "trainer.iterations=100"), and return its results (physgrad.results.Run: attributes
+    and the /train and /eval columns as numpy arrays; a list of them, one per seed, with seeds=N >
+    1).
 
-    out_dir: the run's folder (default: outputs/runs/<date>/<time>_<task>_<optim>_s<seed>, as `physgrad run`);
-    config_dir: a folder of your own configs (like `physgrad run -cd DIR`). A configuration that does not apply
-    raises UserError with the reason; a run that diverges or is interrupted returns with that status. It goes
-    through the same composition, checks and training as `physgrad run`, without Hydra's launcher, logging or
-    .hydra/ folder."""
+    out_dir: the run's folder (default: outputs/runs/<date>/<time>_<task>_<optim>_s<seed>, as
+    `physgrad run`); config_dir: a folder of your own configs (like `physgrad run -cd DIR`). A
+    configuration that does not apply raises UserError with the reason; a run that diverges or is
+    interrupted returns with that status. It goes through the same composition, checks and training
+    as `physgrad run`, without Hydra's launcher, logging or .hydra/ folder."""
     from omegaconf import OmegaConf, open_dict
 
     from physgrad.configs import check_overrides, compose
@@ -46,36 +51,41 @@ def run(*overrides: str, out_dir: str | os.PathLike | None = None, config_dir: s
     if outcome.status == "refused":
         raise UserError(outcome.reason)
     if path.is_dir():  # seeds=N: one file per seed
-        return [read_run(p) for p in sorted(path.glob("seed=*/results.h5"), key=lambda p: int(p.parent.name[5:]))]
+        return [
+            read_run(p)
+            for p in sorted(path.glob("seed=*/results.h5"), key=lambda p: int(p.parent.name[5:]))
+        ]
     return read_run(path)
 
 
 def compare(*overrides: str, config_dir: str | os.PathLike | None = None):
-    """Which variant trains this scene best, as `physgrad compare` decides it (tuned with equal budgets, paired
-    seeds, verdicts with intervals; docs/protocol.md), e.g.
-    ``physgrad.compare("task=toy", "optim=adam,hig", "trainer.iterations=300", "compare.trials=8")``.
-    Returns physgrad.comparison.Study: .comparisons, .runs and .trials (pandas DataFrames), .verdicts, .text (the
-    compare.md table) and .folder. An interrupted study resumes when called again with the same overrides."""
+    """Which variant trains this scene best, as `physgrad compare` decides it (tuned with equal
+    budgets, paired seeds, verdicts with intervals; docs/protocol.md), e.g.
+    ``physgrad.compare("task=toy", "optim=adam,hig", "trainer.iterations=300",
+    "compare.trials=8")``. Returns physgrad.comparison.Study: .comparisons, .runs and .trials
+    (pandas DataFrames), .verdicts, .text (the compare.md table) and .folder. An interrupted study
+    resumes when called again with the same overrides."""
     from physgrad.comparison import run_study
 
     return run_study(list(overrides), config_dir=config_dir, say=lambda line: None)
 
 
 def read_runs(paths, threshold: float | None = None):
-    """Every run under the given results files or folders (LABEL=PATH sets too) as two pandas DataFrames:
-    ``runs, curves = physgrad.read_runs(["outputs/multirun/..."])``. runs: one row per run, every setting in a
-    column of its own (optim.learning_rate, task.poles, trainer.iterations, ..., seed, status, the machine) and
-    the report's numbers (test_loss, time_to_threshold, ...); curves: one row per run, split and iteration with
-    the run's id and label, variant, seed, ..., so that e.g. ``seaborn.lineplot(curves.query("split == 'eval'"),
-    x="wall_time", y="loss", hue="label")`` needs no merge. See docs/results.md."""
+    """Every run under the given results files or folders (LABEL=PATH sets too) as two pandas
+    DataFrames: ``runs, curves = physgrad.read_runs(["outputs/multirun/..."])``. runs: one row per
+    run, every setting in a column of its own (optim.learning_rate, task.poles, trainer.iterations,
+    ..., seed, status, the machine) and the report's numbers (test_loss, time_to_threshold, ...);
+    curves: one row per run, split and iteration with the run's id and label, variant, seed, ..., so
+    that e.g. ``seaborn.lineplot(curves.query("split == 'eval'"), x="wall_time", y="loss",
+    hue="label")`` needs no merge. See docs/results.md."""
     from physgrad.report import read_runs as read
 
     return read(paths, threshold)
 
 
 def read_run(path: str | os.PathLike):
-    """One results.h5 read back: attributes (run.attrs) and the /train and /eval columns (run.train["loss"],
-    run.eval["wall_time"], ...) as numpy arrays."""
+    """One results.h5 read back: attributes (run.attrs) and the /train and /eval columns
+    (run.train["loss"], run.eval["wall_time"], ...) as numpy arrays."""
     from physgrad.results import read_run as read
 
     return read(path)

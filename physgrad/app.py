@@ -1,4 +1,5 @@
-"""The Hydra application behind `physgrad run`: one job = one (task, optim, seed, ...) configuration."""
+"""The Hydra application behind `physgrad run`: one job = one (task, optim, seed, ...)
+configuration."""
 
 from __future__ import annotations
 
@@ -17,24 +18,31 @@ from hydra.types import RunMode
 from omegaconf import DictConfig, OmegaConf
 
 from physgrad.configs import CONF_DIR, name_options
-from physgrad.experiment import run_experiment
 from physgrad.errors import UserError
+from physgrad.experiment import run_experiment
 from physgrad.sweeps import record_job, stop_count
 from physgrad.trackers import build_trackers, track
 
 log = logging.getLogger("physgrad")
 
 
-OUTCOMES = ("completed", "diverged", "refused")  # what an experiment can find; anything else is a failure
-FAILED_JOBS: list[int] = []  # set by SweepSummary at the end of a sweep: `physgrad run -m` exits 1 if non-zero
+OUTCOMES = (
+    "completed",
+    "diverged",
+    "refused",
+)  # what an experiment can find; anything else is a failure
+FAILED_JOBS: list[
+    int
+] = []  # set by SweepSummary at the end of a sweep: `physgrad run -m` exits 1 if non-zero
 INTERRUPTED_BY_SIGNAL: list[str] = []  # ... and 130 if a signal stopped it (the signal's name)
 
 
 def job_folder_name(override_dirname: str, task_overrides) -> str:
-    """The job folder of a sweep (hydra.sweep.subdir): the job's overrides (hydra.job.override_dirname), plus
-    init_from when the command line sets it, as a short hash of the path (a path's slashes would make folders,
-    and without it two jobs that differ only in init_from would share one folder); names too long for a file
-    system end in a hash of the full name instead."""
+    """The job folder of a sweep (hydra.sweep.subdir): the job's overrides
+    (hydra.job.override_dirname), plus init_from when the command line sets it, as a short hash of
+    the path (a path's slashes would make folders, and without it two jobs that differ only in
+    init_from would share one folder); names too long for a file system end in a hash of the full
+    name instead."""
     parts = [override_dirname] if override_dirname else []
     for override in task_overrides or ():
         key, _, value = str(override).lstrip("+~").partition("=")
@@ -43,7 +51,7 @@ def job_folder_name(override_dirname: str, task_overrides) -> str:
     name = ",".join(parts)
     if len(name.encode()) > NAME_LIMIT:
         digest = hashlib.sha1(name.encode()).hexdigest()[:12]
-        name = name.encode()[:NAME_LIMIT - 16].decode(errors="ignore") + f"...{digest}"
+        name = name.encode()[: NAME_LIMIT - 16].decode(errors="ignore") + f"...{digest}"
     return name
 
 
@@ -52,8 +60,8 @@ OmegaConf.register_new_resolver("physgrad_job_folder", job_folder_name, replace=
 
 
 class JobLogFile(logging.FileHandler):
-    """The job's log file (hydra.job_logging's file handler), opened at its first record: a folder that cannot
-    be written (read-only, full) costs one warning line, not the job or the sweep."""
+    """The job's log file (hydra.job_logging's file handler), opened at its first record: a folder
+    that cannot be written (read-only, full) costs one warning line, not the job or the sweep."""
 
     def __init__(self, filename, mode="a", encoding=None, delay=True, errors=None):
         super().__init__(filename, mode, encoding, delay=True, errors=errors)
@@ -66,19 +74,24 @@ class JobLogFile(logging.FileHandler):
             super().emit(record)
         except OSError as error:
             self.unwritable = True
-            print(f"physgrad: warning: the job log {self.baseFilename} cannot be written "
-                  f"({error.strerror or error}): logging to the terminal only", file=sys.stderr)
+            print(
+                f"physgrad: warning: the job log {self.baseFilename} cannot be written "
+                f"({error.strerror or error}): logging to the terminal only",
+                file=sys.stderr,
+            )
 
 
 class SweepSummary(Callback):
-    """Around a sweep, in the process that launched it (whatever the launcher): holds the sweep folder (a second
-    sweep into it is refused while this one runs), writes the manifest of expected jobs, turns SIGINT and SIGTERM
-    into a stop of every job (physgrad.sweeps); at the end, the runs it wrote counted by status, the jobs that
-    never started or left no file, and the report command to run next. A failed, interrupted or missing run
-    makes `physgrad run -m` exit with status 1; refused and diverged runs are outcomes, not failures."""
+    """Around a sweep, in the process that launched it (whatever the launcher): holds the sweep
+    folder (a second sweep into it is refused while this one runs), writes the manifest of expected
+    jobs, turns SIGINT and SIGTERM into a stop of every job (physgrad.sweeps); at the end, the runs
+    it wrote counted by status, the jobs that never started or left no file, and the report command
+    to run next. A failed, interrupted or missing run makes `physgrad run -m` exit with status 1;
+    refused and diverged runs are outcomes, not failures."""
 
     def __getstate__(self) -> dict:
-        return {}  # a launcher sends the callbacks to its workers with each job: the sweep's state stays here
+        # a launcher sends the callbacks to its workers with each job: the sweep's state stays here
+        return {}
 
     def on_multirun_start(self, config: DictConfig, **kwargs) -> None:
         from physgrad.errors import FolderOwned
@@ -94,8 +107,11 @@ class SweepSummary(Callback):
             print(f"physgrad: error: {error}", file=sys.stderr)
             sys.exit(2)
         except OSError as error:
-            print(f"physgrad: error: cannot write the sweep folder {folder}: {error.strerror or error}",
-                  file=sys.stderr)
+            print(
+                f"physgrad: error: cannot write the sweep folder {folder}: "
+                f"{error.strerror or error}",
+                file=sys.stderr,
+            )
             sys.exit(2)
         (folder / STOP_MARK).unlink(missing_ok=True)
         jobs = expected_jobs(config)
@@ -121,25 +137,35 @@ class SweepSummary(Callback):
             if getattr(self, "before", {}).get(path) != path.stat().st_mtime_ns:
                 written[status] += 1
             else:
-                earlier += 1  # untouched by this sweep: completed or diverged before with the same config, or another job's
+                # untouched by this sweep: completed or diverged before with the same config, or
+                # another job's
+                earlier += 1
         for job_name, why in unfinished_jobs(folder):
             written[why.split(":")[0]] += 1
             log.warning("job %s: %s", job_name, why)
         stopped = stop_count(folder)
         INTERRUPTED_BY_SIGNAL[:] = [stopped[0]] if stopped else []
-        # a run left running or crashed (its worker was killed), interrupted, failed, unreadable or missing
+        # a run left running or crashed (its worker was killed), interrupted, failed, unreadable or
+        # missing
         FAILED_JOBS[:] = [sum(n for status, n in written.items() if status not in OUTCOMES)]
-        counts = ", ".join(f"{n} {status}" for status, n in sorted(written.items())) or "no runs written"
-        skipped = f"; {earlier} untouched (completed or diverged before: skipped)" if earlier else ""
+        counts = (
+            ", ".join(f"{n} {status}" for status, n in sorted(written.items())) or "no runs written"
+        )
+        skipped = (
+            f"; {earlier} untouched (completed or diverged before: skipped)" if earlier else ""
+        )
         how = f"stopped by {stopped[0]}" if stopped else "finished"
-        log.info("sweep %s: %s%s in %s; next: physgrad report %s", how, counts, skipped, folder, folder)
+        log.info(
+            "sweep %s: %s%s in %s; next: physgrad report %s", how, counts, skipped, folder, folder
+        )
         held = getattr(self, "held", None)
         if held is not None:
             held.close()
 
 
 def save_traceback(folder: Path) -> Path | None:
-    """The current exception's traceback in folder/error.txt (None if it cannot be written either)."""
+    """The current exception's traceback in folder/error.txt (None if it cannot be written
+    either)."""
     import traceback
 
     try:
@@ -151,16 +177,19 @@ def save_traceback(folder: Path) -> Path | None:
 
 
 def write_provenance(out_dir: Path, cfg: DictConfig, hydra_cfg) -> None:
-    """What Hydra writes into .hydra/ when hydra.output_subdir is set (config.yaml, hydra.yaml, overrides.yaml),
-    written here instead, once the job holds its folder: a second process refused for that folder must not
-    replace a live job's record of how it was started."""
+    """What Hydra writes into .hydra/ when hydra.output_subdir is set (config.yaml, hydra.yaml,
+    overrides.yaml), written here instead, once the job holds its folder: a second process refused
+    for that folder must not replace a live job's record of how it was started."""
     from physgrad.files import replace_file
 
     folder = out_dir / ".hydra"
     folder.mkdir(parents=True, exist_ok=True)
     hydra_node = OmegaConf.create({"hydra": OmegaConf.to_container(hydra_cfg, resolve=False)})
-    for name, node in (("config.yaml", cfg), ("hydra.yaml", hydra_node),
-                       ("overrides.yaml", OmegaConf.create(list(hydra_cfg.overrides.task)))):
+    for name, node in (
+        ("config.yaml", cfg),
+        ("hydra.yaml", hydra_node),
+        ("overrides.yaml", OmegaConf.create(list(hydra_cfg.overrides.task))),
+    ):
         replace_file(folder / name, OmegaConf.to_yaml(node).encode())
 
 
@@ -168,8 +197,8 @@ SEED_LINES = 8
 
 
 def seed_lines(folder: Path) -> list[str]:
-    """For a job of several seeds (folder/seed=<s>/results.h5): each seed's status and test loss, the first
-    SEED_LINES of them, then the median [min, max] over all that completed."""
+    """For a job of several seeds (folder/seed=<s>/results.h5): each seed's status and test loss,
+    the first SEED_LINES of them, then the median [min, max] over all that completed."""
     from physgrad.results import read_final
 
     rows = []
@@ -179,21 +208,34 @@ def seed_lines(folder: Path) -> list[str]:
         except ValueError as error:
             rows.append((path.parent.name, "unreadable", None, str(error)))
             continue
-        rows.append((path.parent.name.replace("=", " "), attrs["status"], last.get("loss"), attrs.get("reason")))
-    lines = [f"  {seed}: {status}" + (f", test loss {loss:.4g}" if loss is not None and status == "completed" else "")
-             + (f" ({why})" if why and status != "completed" else "") for seed, status, loss, why in rows[:SEED_LINES]]
+        rows.append(
+            (
+                path.parent.name.replace("=", " "),
+                attrs["status"],
+                last.get("loss"),
+                attrs.get("reason"),
+            )
+        )
+    lines = [
+        f"  {seed}: {status}"
+        + (f", test loss {loss:.4g}" if loss is not None and status == "completed" else "")
+        + (f" ({why})" if why and status != "completed" else "")
+        for seed, status, loss, why in rows[:SEED_LINES]
+    ]
     losses = [loss for _, status, loss, _ in rows if status == "completed" and loss is not None]
     if len(rows) > SEED_LINES and losses:
-        lines.append(f"  test loss over the {len(losses)} of {len(rows)} seeds that completed: median "
-                     f"{float(np.median(losses)):.4g} [{min(losses):.4g}, {max(losses):.4g}]")
+        lines.append(
+            f"  test loss over the {len(losses)} of {len(rows)} seeds that completed: median "
+            f"{float(np.median(losses)):.4g} [{min(losses):.4g}, {max(losses):.4g}]"
+        )
     return lines
 
 
 def objective(outcome) -> float:
-    """What the job returns to a sweeper that optimises: the final VALIDATION loss of a completed run
-    (trainer.validation=true; a budgeted run's last evaluation is at its budget), never the test loss, which
-    verdicts read; infinity for anything else (no validation data, diverged, refused, failed), so such a trial
-    ranks last instead of stopping the study."""
+    """What the job returns to a sweeper that optimises: the final VALIDATION loss of a completed
+    run (trainer.validation=true; a budgeted run's last evaluation is at its budget), never the test
+    loss, which verdicts read; infinity for anything else (no validation data, diverged, refused,
+    failed), so such a trial ranks last instead of stopping the study."""
     loss = outcome.final_eval.get("validation_loss") if outcome.status == "completed" else None
     return float(loss) if loss is not None else float("inf")
 
@@ -201,15 +243,18 @@ def objective(outcome) -> float:
 @hydra.main(version_base="1.3", config_path=str(CONF_DIR), config_name="config")
 def job(cfg: DictConfig) -> float:
     hydra_cfg = HydraConfig.get()
-    # a scene or optimiser named by _target_ may live in the folder the command was started from, also when a
-    # launcher runs this job in another process
+    # a scene or optimiser named by _target_ may live in the folder the command was started from,
+    # also when a launcher runs this job in another process
     if hydra_cfg.runtime.cwd not in sys.path:
         sys.path.append(hydra_cfg.runtime.cwd)
     multirun = hydra_cfg.mode == RunMode.MULTIRUN
     name_options(cfg, hydra_cfg.runtime.choices)
     count = cfg.get("seeds", 1)
-    seeds = f"seeds {cfg.seed}-{cfg.seed + count - 1}" if isinstance(count, int) and isinstance(cfg.seed, int) and \
-        count > 1 else f"seed {cfg.seed}"
+    seeds = (
+        f"seeds {cfg.seed}-{cfg.seed + count - 1}"
+        if isinstance(count, int) and isinstance(cfg.seed, int) and count > 1
+        else f"seed {cfg.seed}"
+    )
     name = f"{cfg.task.get('name')}/{cfg.optim.get('name')} {seeds}"
     out_dir = Path(hydra_cfg.runtime.output_dir)
     sweep = Path(hydra_cfg.sweep.dir) if multirun else None
@@ -238,7 +283,9 @@ def job(cfg: DictConfig) -> float:
         outcome, path = run_experiment(cfg, out_dir, sweep, on_owned)
     except Exception as error:  # noqa: BLE001 - one line, the traceback in the job folder; a sweep goes on
         where = save_traceback(out_dir) if owned else None
-        if isinstance(error, OSError):  # the results file could not be written (disk full, permissions)
+        if isinstance(
+            error, OSError
+        ):  # the results file could not be written (disk full, permissions)
             message = str(error).splitlines()[0]
             if not owned:
                 message = f"cannot write the job folder {out_dir}: {error.strerror or message}"
@@ -252,11 +299,20 @@ def job(cfg: DictConfig) -> float:
             sys.exit(1)
         log.error("%s failed: %s", name, message)
         return float("inf")
-    if sweep is not None and owned:  # a job refused because another process holds its folder records nothing
+    if (
+        sweep is not None and owned
+    ):  # a job refused because another process holds its folder records nothing
         record_job(sweep, out_dir, overrides, outcome.status, outcome.reason)
     if trackers and owned:
-        track(trackers, [p for p in [out_dir / "results.h5", *sorted(out_dir.glob("seed=*/results.h5"))]
-                         if p.is_file()], out_dir)
+        track(
+            trackers,
+            [
+                p
+                for p in [out_dir / "results.h5", *sorted(out_dir.glob("seed=*/results.h5"))]
+                if p.is_file()
+            ],
+            out_dir,
+        )
     if outcome.status == "refused":
         if not multirun:
             print(f"physgrad: error: {outcome.reason}", file=sys.stderr)
@@ -265,11 +321,21 @@ def job(cfg: DictConfig) -> float:
         return objective(outcome)
     test = outcome.final_eval.get("loss") if outcome.status == "completed" else None
     stopped = f" (stopped by {outcome.stopped_by.replace('_', ' ')})" if outcome.stopped_by else ""
-    log.info("%s %s after %d iterations%s, %.1f s of training%s%s -> %s", name, outcome.status, outcome.iterations,
-             stopped, outcome.train_seconds, f", test loss {test:.4g}" if test is not None else "",
-             f" ({outcome.reason})" if outcome.reason else "", path)
+    log.info(
+        "%s %s after %d iterations%s, %.1f s of training%s%s -> %s",
+        name,
+        outcome.status,
+        outcome.iterations,
+        stopped,
+        outcome.train_seconds,
+        f", test loss {test:.4g}" if test is not None else "",
+        f" ({outcome.reason})" if outcome.reason else "",
+        path,
+    )
     for line in seed_lines(path) if path.is_dir() else ():
         log.info("%s", line)
-    if outcome.status == "interrupted" and not multirun:  # in a sweep, the others are told (physgrad.sweeps)
+    if (
+        outcome.status == "interrupted" and not multirun
+    ):  # in a sweep, the others are told (physgrad.sweeps)
         sys.exit(130)
     return objective(outcome)

@@ -1,8 +1,8 @@
 """`physgrad run [hydra overrides]` and `physgrad report PATH...`.
 
-`run` checks the overrides against the configs first (unknown task or optim, misspelt keys, sweeps without
--m) so that a user mistake is one line on stderr, then hands the untouched argument list to the Hydra app:
-every Hydra feature (-m, --cfg, --help, launchers) keeps working.
+`run` checks the overrides against the configs first (unknown task or optim, misspelt keys, sweeps
+without -m) so that a user mistake is one line on stderr, then hands the untouched argument list to
+the Hydra app: every Hydra feature (-m, --cfg, --help, launchers) keeps working.
 """
 
 from __future__ import annotations
@@ -13,19 +13,29 @@ import sys
 from pathlib import Path
 
 from physgrad.errors import UserError
-from physgrad.interrupts import (ABANDONED, SignalInterrupt, install, keeping_lost_interrupts, raise_interrupt,
-                                 signals_held, take_lost)
+from physgrad.interrupts import (
+    ABANDONED,
+    SignalInterrupt,
+    install,
+    keeping_lost_interrupts,
+    raise_interrupt,
+    signals_held,
+    take_lost,
+)
 
 USAGE = """usage: physgrad {run,compare,report,check} ...
 
-  physgrad run [HYDRA FLAGS] [key=value ...]   train one configuration, or sweep with -m
+  physgrad run [HYDRA FLAGS] [key=value ...]
+      train one configuration, or sweep with -m
   physgrad compare [-cd DIR] task=T optim=A,B,C [key=value ...] [compare.KEY=VALUE ...]
-                                              which variant is better on this scene: tuned with equal budgets,
-                                              paired seeds, a verdict with intervals (compare.md)
+      which variant is better on this scene: tuned with equal budgets, paired seeds, a verdict with
+      intervals (compare.md)
   physgrad report [LABEL=]PATH... [--out DIR] [--threshold LOSS] [--note TEXT] [--logx auto|on|off]
-                                              tables, CSV and figures from the results.h5 files under PATH
-  physgrad check [--small]                    stiff and extreme cases: what each variant does with them
-  physgrad check [-cd DIR] task=NAME [k=v ...] a scene's gradients, rollout and Jacobian against references
+      tables, CSV and figures from the results.h5 files under PATH
+  physgrad check [--small]
+      stiff and extreme cases: what each variant does with them
+  physgrad check [-cd DIR] task=NAME [k=v ...]
+      a scene's gradients, rollout and Jacobian against references
 
 Examples:
   physgrad compare task=toy optim=adam,gauss_newton,hig trainer.iterations=300
@@ -41,7 +51,9 @@ INFO_FLAGS = {"-h", "--help", "-hh", "--hydra-help", "-i", "--info"}
 
 
 def main(argv: list[str] | None = None) -> int:
-    if argv is None:  # the console script: SIGINT and SIGTERM before a job handles them end the start-up alike
+    if (
+        argv is None
+    ):  # the console script: SIGINT and SIGTERM before a job handles them end the start-up alike
         return _console_main()
     return _main(argv)
 
@@ -62,10 +74,14 @@ def _main(argv: list[str] | None) -> int:
             import_holding_signals(HEAVY_IMPORTS.get(sys.argv[1] if len(sys.argv) > 1 else "", ()))
         code = dispatch(sys.argv[1:] if argv is None else argv)
         lost = take_lost()
-        if lost is not None:  # dropped inside a garbage-collector callback or finaliser: act on it now
+        if (
+            lost is not None
+        ):  # dropped inside a garbage-collector callback or finaliser: act on it now
             raise SignalInterrupt(lost)
     except KeyboardInterrupt as interrupt:  # start-up, composing, a sweep's launcher: no traceback
-        name = interrupt.args[0] if interrupt.args and isinstance(interrupt.args[0], str) else "SIGINT"
+        name = (
+            interrupt.args[0] if interrupt.args and isinstance(interrupt.args[0], str) else "SIGINT"
+        )
         print(f"physgrad: stopped by {name}", file=sys.stderr)
         code = 130
         if argv is not None:
@@ -74,7 +90,9 @@ def _main(argv: list[str] | None) -> int:
         code = leaving.code if isinstance(leaving.code, int) else (0 if leaving.code is None else 1)
         if argv is not None or not abandoned_steps():
             raise
-    if argv is None and abandoned_steps():  # the results are written: leave the step that was cut short
+    if (
+        argv is None and abandoned_steps()
+    ):  # the results are written: leave the step that was cut short
         import logging
         import os
 
@@ -85,14 +103,18 @@ def _main(argv: list[str] | None) -> int:
     return code
 
 
-HEAVY_IMPORTS = {"run": ("jax", "physgrad.app"), "compare": ("jax", "physgrad.comparison"),
-                 "check": ("jax", "physgrad.check"), "report": ("physgrad.report",)}
+HEAVY_IMPORTS = {
+    "run": ("jax", "physgrad.app"),
+    "compare": ("jax", "physgrad.comparison"),
+    "check": ("jax", "physgrad.check"),
+    "report": ("physgrad.report",),
+}
 
 
 def import_holding_signals(modules) -> None:
-    """Import modules with SIGINT and SIGTERM held back until they are loaded: an exception landing inside a C
-    extension's initialisation (jaxlib's, numpy's) turns into an ImportError traceback or a crash. A signal
-    that came meanwhile is handled right after (about a second later at most)."""
+    """Import modules with SIGINT and SIGTERM held back until they are loaded: an exception landing
+    inside a C extension's initialisation (jaxlib's, numpy's) turns into an ImportError traceback or
+    a crash. A signal that came meanwhile is handled right after (about a second later at most)."""
     import importlib
 
     with signals_held():
@@ -101,7 +123,8 @@ def import_holding_signals(modules) -> None:
 
 
 def abandoned_steps() -> bool:
-    """A training step left computing by a second signal is still running (physgrad.interrupts.ABANDONED)."""
+    """A training step left computing by a second signal is still running
+    (physgrad.interrupts.ABANDONED)."""
     return any(thread.is_alive() for thread in ABANDONED)
 
 
@@ -125,8 +148,10 @@ def dispatch(argv: list[str]) -> int:
             from physgrad.check import main as check_main
 
             return check_main(rest)
-        raise UserError(f"unknown command '{command}': use 'physgrad run ...', 'physgrad compare ...', "
-                        "'physgrad report PATH...' or 'physgrad check'")
+        raise UserError(
+            f"unknown command '{command}': use 'physgrad run ...', 'physgrad compare ...', "
+            "'physgrad report PATH...' or 'physgrad check'"
+        )
     except UserError as error:
         from physgrad.files import clean_text
 
@@ -140,15 +165,20 @@ def run_command(args: list[str]) -> int:
     parsed = get_args_parser().parse_args(args)
     if parsed.shell_completion:
         return shell_completion(args)
-    if not INFO_FLAGS.intersection(args) and parsed.config_path is None and parsed.config_name is None:
+    if (
+        not INFO_FLAGS.intersection(args)
+        and parsed.config_path is None
+        and parsed.config_name is None
+    ):
         from physgrad.configs import check_overrides
 
-        check_overrides(parsed.overrides, multirun=parsed.multirun,
-                        config_dirs=[parsed.config_dir] if parsed.config_dir else [])
+        check_overrides(
+            parsed.overrides,
+            multirun=parsed.multirun,
+            config_dirs=[parsed.config_dir] if parsed.config_dir else [],
+        )
         check_writable(parsed.overrides, multirun=parsed.multirun)
-    from physgrad.app import job
-
-    from physgrad.app import FAILED_JOBS, INTERRUPTED_BY_SIGNAL
+    from physgrad.app import FAILED_JOBS, INTERRUPTED_BY_SIGNAL, job
 
     sys.argv = ["physgrad run", *args]
     job()
@@ -158,9 +188,9 @@ def run_command(args: list[str]) -> int:
 
 
 def shell_completion(args: list[str]) -> int:
-    """Hydra's tab completion for `physgrad run`: `eval "$(physgrad run -sc install=bash)"` installs it; the
-    shell then asks `physgrad -sc query=bash` with the whole line, from which the subcommand is removed here
-    (Hydra completes overrides of one application; `run` is that application)."""
+    """Hydra's tab completion for `physgrad run`: `eval "$(physgrad run -sc install=bash)"` installs
+    it; the shell then asks `physgrad -sc query=bash` with the whole line, from which the subcommand
+    is removed here (Hydra completes overrides of one application; `run` is that application)."""
     import os
     import re
 
@@ -169,7 +199,9 @@ def shell_completion(args: list[str]) -> int:
     line = os.environ.get("COMP_LINE")
     if line is not None:
         words = line.split()
-        if len(words) < 2 or (len(words) == 2 and not line.endswith(" ")):  # completing the subcommand itself
+        if len(words) < 2 or (
+            len(words) == 2 and not line.endswith(" ")
+        ):  # completing the subcommand itself
             prefix = words[1] if len(words) == 2 else ""
             print(" ".join(c for c in ("run", "report", "check") if c.startswith(prefix)))
             return 0
@@ -179,7 +211,7 @@ def shell_completion(args: list[str]) -> int:
         folder = re.search(r"\s(?:-cd|--config-dir)[\s=]+(\S+)\s", line)
         if folder:
             args = ["-cd", folder[1], *args]
-            line = line[:folder.start()] + line[folder.end() - 1:]
+            line = line[: folder.start()] + line[folder.end() - 1 :]
         os.environ["COMP_LINE"] = re.sub(r"^(\s*\S+)\s+run\b", r"\1", line)
     sys.argv = ["physgrad", *args]
     job()
@@ -187,9 +219,9 @@ def shell_completion(args: list[str]) -> int:
 
 
 def check_writable(overrides: list[str], multirun: bool) -> None:
-    """UserError (one line) if the output folder cannot be created and written to. Checked before Hydra
-    starts, which would otherwise fail with a traceback; creates the folder's fixed part (up to the first
-    interpolation), which Hydra would create anyway."""
+    """UserError (one line) if the output folder cannot be created and written to. Checked before
+    Hydra starts, which would otherwise fail with a traceback; creates the folder's fixed part (up
+    to the first interpolation), which Hydra would create anyway."""
     import os
     import tempfile
 
@@ -202,33 +234,62 @@ def check_writable(overrides: list[str], multirun: bool) -> None:
             pass
     except OSError as error:
         why = error.strerror or type(error).__name__
-        raise UserError(f"cannot write results to {target}: {why} ({os.fspath(error.filename or fixed)}): "
-                        f"set {key}=<a writable folder>") from None
+        raise UserError(
+            f"cannot write results to {target}: {why} ({os.fspath(error.filename or fixed)}): "
+            f"set {key}=<a writable folder>"
+        ) from None
 
 
 def report_command(args: list[str]) -> int:
     parser = argparse.ArgumentParser(
-        prog="physgrad report", description="Tables, CSV files and figures from results.h5 files (never re-runs "
-        "training). Runs that differ in anything but the seed are kept apart and labelled by what differs.")
-    parser.add_argument("paths", nargs="+", metavar="[LABEL=]PATH",
-                        help="results.h5 files or folders searched for them; LABEL=PATH names a set of runs (e.g. "
-                             "old=outputs/multirun/2026-11-15 new=outputs/multirun/2026-11-22), kept apart and "
-                             "labelled in tables and legends")
-    parser.add_argument("--out", help="folder for report.md, runs.csv, curves.csv and the figures (default: the "
-                                      "first PATH folder)")
-    parser.add_argument("--threshold", type=float, default=None,
-                        help="test loss for the time-to-reach column (default: per scene, the median final test "
-                             "loss of its best group, the target physgrad compare uses)")
-    parser.add_argument("--note", default="", help="a line printed on every figure (e.g. the budget profile)")
-    parser.add_argument("--logx", choices=("auto", "on", "off"), default="auto",
-                        help="log time/iteration axis: auto where the curves' ends span a decade or more")
+        prog="physgrad report",
+        description="Tables, CSV files and figures from results.h5 files (never re-runs "
+        "training). Runs that differ in anything but the seed are kept apart and labelled by what "
+        "differs.",
+    )
+    parser.add_argument(
+        "paths",
+        nargs="+",
+        metavar="[LABEL=]PATH",
+        help="results.h5 files or folders searched for them; LABEL=PATH names a set of runs (e.g. "
+        "old=outputs/multirun/2026-11-15 new=outputs/multirun/2026-11-22), kept apart and "
+        "labelled in tables and legends",
+    )
+    parser.add_argument(
+        "--out",
+        help="folder for report.md, runs.csv, curves.csv and the figures (default: the "
+        "first PATH folder)",
+    )
+    parser.add_argument(
+        "--threshold",
+        type=float,
+        default=None,
+        help="test loss for the time-to-reach column (default: per scene, the median final test "
+        "loss of its best group, the target physgrad compare uses)",
+    )
+    parser.add_argument(
+        "--note", default="", help="a line printed on every figure (e.g. the budget profile)"
+    )
+    parser.add_argument(
+        "--logx",
+        choices=("auto", "on", "off"),
+        default="auto",
+        help="log time/iteration axis: auto where the curves' ends span a decade or more",
+    )
     options = parser.parse_args(args)
-    from physgrad.report import write_report
     from physgrad.files import clean_text
+    from physgrad.report import write_report
 
-    body = write_report(options.paths, out_dir=options.out, threshold=options.threshold, note=options.note,
-                        logx=options.logx)
-    print(clean_text(body, None, lines=True), end="")  # paths of others' folders may hold terminal escapes
+    body = write_report(
+        options.paths,
+        out_dir=options.out,
+        threshold=options.threshold,
+        note=options.note,
+        logx=options.logx,
+    )
+    print(
+        clean_text(body, None, lines=True), end=""
+    )  # paths of others' folders may hold terminal escapes
     return 0
 
 

@@ -1,9 +1,10 @@
 """Where physgrad's configs live, and how a command line becomes a config.
 
-The built-in configs are the package physgrad.conf (the repository's conf/, mapped into the package when it is
-built), so an installed physgrad finds them from any folder. A user's own folders join the search path with
-Hydra's ``-cd DIR`` (``--config-dir``) or ``hydra.searchpath=[...]``: their task/, optim/ and tuning/ YAML files
-are options like the built-in ones (a built-in file of the same name wins, as in Hydra).
+The built-in configs are the package physgrad.conf (the repository's conf/, mapped into the package
+when it is built), so an installed physgrad finds them from any folder. A user's own folders join
+the search path with Hydra's ``-cd DIR`` (``--config-dir``) or ``hydra.searchpath=[...]``: their
+task/, optim/ and tuning/ YAML files are options like the built-in ones (a built-in file of the same
+name wins, as in Hydra).
 """
 
 from __future__ import annotations
@@ -25,8 +26,9 @@ RENAMED = {"lr": "learning_rate", "steps": "unroll", "controller": "closed_loop"
 
 @contextmanager
 def initialized(config_dirs=()):
-    """Hydra's global state set up as `physgrad run -cd DIR` would: the built-in configs, then every folder of
-    config_dirs (searched after them, as Hydra searches -cd). Restores the previous state on exit."""
+    """Hydra's global state set up as `physgrad run -cd DIR` would: the built-in configs, then every
+    folder of config_dirs (searched after them, as Hydra searches -cd). Restores the previous state
+    on exit."""
     from hydra._internal.hydra import Hydra
     from hydra._internal.utils import create_config_search_path
     from hydra.core.config_search_path import SearchPathQuery
@@ -39,9 +41,11 @@ def initialized(config_dirs=()):
     search_path = create_config_search_path(str(CONF_DIR))
     for folder in config_dirs:
         path = folder if "://" in str(folder) else f"file://{os.path.abspath(folder)}"
-        if path.startswith("file://") and not os.path.isdir(path[len("file://"):]):
+        if path.startswith("file://") and not os.path.isdir(path[len("file://") :]):
             raise UserError(f"config folder {folder} not found: give -cd an existing folder")
-        search_path.prepend(provider="command-line", path=path, anchor=SearchPathQuery(provider="schema"))
+        search_path.prepend(
+            provider="command-line", path=path, anchor=SearchPathQuery(provider="schema")
+        )
     try:
         GlobalHydra.instance().clear()
         Hydra.create_main_hydra2(task_name="physgrad", config_search_path=search_path)
@@ -51,11 +55,10 @@ def initialized(config_dirs=()):
 
 
 def compose(overrides=(), config_dirs=(), return_hydra_config: bool = False):
-    """The config of one run (the compose API: no output folder, no launcher); UserError (one line) for an
-    unknown option or key."""
+    """The config of one run (the compose API: no output folder, no launcher); UserError (one line)
+    for an unknown option or key."""
     from hydra import compose as hydra_compose
     from hydra.errors import HydraException
-
     from omegaconf import open_dict
 
     with initialized(config_dirs):
@@ -71,7 +74,8 @@ def compose(overrides=(), config_dirs=(), return_hydra_config: bool = False):
 
 
 def name_options(cfg, choices) -> None:
-    """A task or optim YAML without `name:` is named after its option (task=heat: heat), as it was chosen."""
+    """A task or optim YAML without `name:` is named after its option (task=heat: heat), as it was
+    chosen."""
     from omegaconf import open_dict
 
     for section in ("task", "optim"):
@@ -99,8 +103,8 @@ def unknown_option(group: str, value: str, options: list[str]) -> UserError:
 
 
 def check_overrides(overrides: list[str], multirun: bool, config_dirs=()) -> None:
-    """Raise UserError (one line) for an unknown option of a config group (the built-in ones and those in the
-    user's folders), a key no config has, or a sweep without -m."""
+    """Raise UserError (one line) for an unknown option of a config group (the built-in ones and
+    those in the user's folders), a key no config has, or a sweep without -m."""
     from hydra import compose as hydra_compose
     from hydra.core.override_parser.overrides_parser import OverridesParser
     from hydra.core.override_parser.types import Glob
@@ -110,9 +114,13 @@ def check_overrides(overrides: list[str], multirun: bool, config_dirs=()) -> Non
         parsed = OverridesParser.create().parse_overrides(overrides)
     except HydraException as error:
         hint = ""
-        if "mismatched input '='" in str(error):  # e.g. init_from=<sweep>/optim=adam,seed=0/results.h5
-            hint = (": a value that holds '=' or ',' (a sweep's job folder in a path) must be quoted, "
-                    "e.g. init_from='outputs/multirun/.../optim=adam,seed=0/results.h5'")
+        if "mismatched input '='" in str(
+            error
+        ):  # e.g. init_from=<sweep>/optim=adam,seed=0/results.h5
+            hint = (
+                ": a value that holds '=' or ',' (a sweep's job folder in a path) must be quoted, "
+                "e.g. init_from='outputs/multirun/.../optim=adam,seed=0/results.h5'"
+            )
         raise UserError(f"cannot read the overrides: {str(error).splitlines()[0]}{hint}") from None
 
     sweeper = next((str(o.value()) for o in parsed if o.key_or_group == "hydra/sweeper"), "basic")
@@ -120,8 +128,11 @@ def check_overrides(overrides: list[str], multirun: bool, config_dirs=()) -> Non
         try:
             import hydra_plugins.hydra_optuna_sweeper  # noqa: F401
         except ImportError:
-            raise UserError("hydra/sweeper=optuna is not installed (its plugin needs optuna < 3, which cannot sit "
-                            "beside physgrad's optuna): tune with 'physgrad compare' (docs/protocol.md)") from None
+            raise UserError(
+                "hydra/sweeper=optuna is not installed (its plugin needs optuna < 3, which cannot "
+                "sit "
+                "beside physgrad's optuna): tune with 'physgrad compare' (docs/protocol.md)"
+            ) from None
     with initialized([*config_dirs, *searchpath_entries(overrides)]) as loader:
         groups = set(loader.list_groups(""))
         group_values: dict[str, list[str]] = {}
@@ -129,11 +140,18 @@ def check_overrides(overrides: list[str], multirun: bool, config_dirs=()) -> Non
         for override in parsed:
             key, value = override.key_or_group, override.value()
             if override.is_sweep_override() and not multirun:
-                raise UserError(f"'{override.input_line}' sweeps several values: add -m (--multirun) to run them all")
+                raise UserError(
+                    f"'{override.input_line}' sweeps several values: add -m (--multirun) to run "
+                    "them all"
+                )
             if override.is_interval_sweep() and sweeper == "basic":
-                raise UserError(f"'{override.input_line}' is a search interval, which Hydra's basic sweeper cannot "
-                                "sample: tune with 'physgrad compare' (it searches each variant's learning rate, "
-                                "docs/protocol.md), or list values: choice(a,b,c) or a,b,c")
+                raise UserError(
+                    f"'{override.input_line}' is a search interval, which Hydra's basic sweeper "
+                    "cannot "
+                    "sample: tune with 'physgrad compare' (it searches each variant's learning "
+                    "rate, "
+                    "docs/protocol.md), or list values: choice(a,b,c) or a,b,c"
+                )
             if key.startswith("hydra") or override.is_delete():
                 continue
             if key in groups and override.package is None:
@@ -151,7 +169,8 @@ def check_overrides(overrides: list[str], multirun: bool, config_dirs=()) -> Non
             elif not override.is_add() and not override.is_force_add():
                 keys.append(key)
             elif not key.startswith(("task.", "optim.", "logger.")):
-                # `+key` adds a keyword to the factory of a scene, a rule or a tracker; elsewhere nothing reads it
+                # `+key` adds a keyword to the factory of a scene, a rule or a tracker; elsewhere
+                # nothing reads it
                 keys.append(key)
 
         for combo in itertools.product(*group_values.values()):
@@ -179,7 +198,11 @@ def _check_key(cfg, key: str, combo: dict) -> None:
     if not isinstance(parent, DictConfig):
         raise UserError(f"unknown key '{key}': '{parent_key}' is not a section of the config")
     siblings = [k for k in parent.keys() if k != "_target_"]
-    close = [RENAMED[leaf]] if RENAMED.get(leaf) in siblings else difflib.get_close_matches(leaf, siblings, n=1)
+    close = (
+        [RENAMED[leaf]]
+        if RENAMED.get(leaf) in siblings
+        else difflib.get_close_matches(leaf, siblings, n=1)
+    )
     where = f"{parent_key} has" if parent_key else "the top level has"
     scope = "".join(f" with {g}={v}" for g, v in combo.items() if key.startswith(g + "."))
     hint = f": did you mean {'.'.join(filter(None, [parent_key, close[0]]))}?" if close else ""

@@ -1,7 +1,9 @@
-"""physgrad's error types, at the bottom of the package: any module may raise them, none imports upward for them.
+"""physgrad's error types, at the bottom of the package: any module may raise them, none imports
+upward for them.
 
-A UserError is the user's mistake (reported as one line, never a traceback); the others are what the file system
-did (a results file that could not be written, a folder another process holds, a disk without locks).
+A UserError is the user's mistake (reported as one line, never a traceback); the others are what the
+file system did (a results file that could not be written, a folder another process holds, a disk
+without locks).
 """
 
 
@@ -10,7 +12,8 @@ class UserError(Exception):
 
 
 class ResultsWriteError(OSError):
-    """results.h5 could not be written (disk full, quota, permissions): one line that names the file."""
+    """results.h5 could not be written (disk full, quota, permissions): one line that names the
+    file."""
 
 
 class FolderOwned(RuntimeError):
@@ -18,5 +21,5 @@ class FolderOwned(RuntimeError):
 
 
 class LockingUnsupported(OSError):
-    """The file system of a folder supports neither flock nor POSIX locks (a Lustre mount without flock, an NFS
-    mount without a lock daemon): one line with the real reason and what to do."""
+    """The file system of a folder supports neither flock nor POSIX locks (a Lustre mount without
+    flock, an NFS mount without a lock daemon): one line with the real reason and what to do."""

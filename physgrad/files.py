@@ -1,8 +1,10 @@
-"""Files written safely and text read safely: folder locks, writes renamed into place, plain YAML, printable text.
+"""Files written safely and text read safely: folder locks, writes renamed into place, plain YAML,
+printable text.
 
-Every writer of physgrad writes beside its target and renames onto it, so a reader or a process killed at any
-instant sees the old file or the new one, never a part. Every text from a file physgrad did not write is data:
-it is cleaned of control characters before it is printed and parsed as plain YAML without aliases or tags.
+Every writer of physgrad writes beside its target and renames onto it, so a reader or a process
+killed at any instant sees the old file or the new one, never a part. Every text from a file
+physgrad did not write is data: it is cleaned of control characters before it is printed and parsed
+as plain YAML without aliases or tags.
 """
 
 from __future__ import annotations
@@ -22,20 +24,29 @@ import yaml
 
 from physgrad.errors import FolderOwned, LockingUnsupported
 
+
 def owner_tag() -> str:
     return f"pid {os.getpid()} on {socket.gethostname()}"
 
 
-NO_LOCKS = {errno.ENOLCK, errno.ENOSYS, errno.EOPNOTSUPP, errno.EINVAL}  # what "locks unsupported" looks like
+NO_LOCKS = {
+    errno.ENOLCK,
+    errno.ENOSYS,
+    errno.EOPNOTSUPP,
+    errno.EINVAL,
+}  # what "locks unsupported" looks like
 HELD = {errno.EWOULDBLOCK, errno.EAGAIN, errno.EACCES}  # what "another process holds it" looks like
 
 
 def _lock(fd: int, lock_path: Path) -> bool:
-    """An exclusive, non-blocking lock on fd: flock, else (where the file system has no flock) a POSIX lock.
-    True if taken, False if another process holds it; LockingUnsupported where neither kind works."""
+    """An exclusive, non-blocking lock on fd: flock, else (where the file system has no flock) a
+    POSIX lock. True if taken, False if another process holds it; LockingUnsupported where neither
+    kind works."""
     reasons = []
-    for take in (lambda: fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB),
-                 lambda: fcntl.lockf(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)):
+    for take in (
+        lambda: fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB),
+        lambda: fcntl.lockf(fd, fcntl.LOCK_EX | fcntl.LOCK_NB),
+    ):
         try:
             take()
             return True
@@ -45,19 +56,22 @@ def _lock(fd: int, lock_path: Path) -> bool:
             if error.errno not in NO_LOCKS:
                 raise
             reasons.append(error.strerror or str(error))
-    raise LockingUnsupported(f"cannot lock {lock_path}: the file system supports no file locks (flock: {reasons[0]}; "
-                             f"POSIX locks: {reasons[1]}): write to a local disk (e.g. hydra.sweep.dir=/tmp/...) or "
-                             "mount it with locking (Lustre: -o flock)")
+    raise LockingUnsupported(
+        f"cannot lock {lock_path}: the file system supports no file locks (flock: {reasons[0]}; "
+        f"POSIX locks: {reasons[1]}): write to a local disk (e.g. hydra.sweep.dir=/tmp/...) or "
+        "mount it with locking (Lustre: -o flock)"
+    )
 
 
 @contextmanager
 def own_folder(folder: str | os.PathLike, what: str = "job"):
-    """Hold the folder for this process while the block runs: an exclusive lock on folder/.physgrad-<what>
-    (flock, or a POSIX lock where the file system has no flock), which the operating system releases when the
-    process ends however it ends, so a dead owner never blocks a new one. FolderOwned (one line naming the
-    owner's pid, host and start time) if a live process holds it; LockingUnsupported (one line) where the file
-    system has no locks; OSError if the folder cannot be written. The lock file must stay: a second process
-    that finds it deleted creates its own (see docs/results.md)."""
+    """Hold the folder for this process while the block runs: an exclusive lock on
+    folder/.physgrad-<what> (flock, or a POSIX lock where the file system has no flock), which the
+    operating system releases when the process ends however it ends, so a dead owner never blocks a
+    new one. FolderOwned (one line naming the owner's pid, host and start time) if a live process
+    holds it; LockingUnsupported (one line) where the file system has no locks; OSError if the
+    folder cannot be written. The lock file must stay: a second process that finds it deleted
+    creates its own (see docs/results.md)."""
     folder = Path(folder)
     folder.mkdir(parents=True, exist_ok=True)
     lock_path = folder / f".physgrad-{what}"
@@ -69,10 +83,15 @@ def own_folder(folder: str | os.PathLike, what: str = "job"):
             os.close(fd)
             raise
         if not taken:
-            owner = clean_text(os.pread(fd, 512, 0).decode(errors="replace").strip(), 300) or "another process"
+            owner = (
+                clean_text(os.pread(fd, 512, 0).decode(errors="replace").strip(), 300)
+                or "another process"
+            )
             os.close(fd)
-            raise FolderOwned(f"{folder} is being written by {owner} (another {what}): wait for it to end, stop "
-                              "it, or write somewhere else")
+            raise FolderOwned(
+                f"{folder} is being written by {owner} (another {what}): wait for it to end, stop "
+                "it, or write somewhere else"
+            )
         try:
             same = os.stat(lock_path).st_ino == os.fstat(fd).st_ino
         except FileNotFoundError:
@@ -89,9 +108,10 @@ def own_folder(folder: str | os.PathLike, what: str = "job"):
 
 
 def replace_file(path: Path, content: bytes, sync: bool = False) -> None:
-    """Write content beside path (.NAME.<pid>.tmp) and rename it onto path: a reader, or a process killed at
-    any instant, sees the old file or the new one, never a part (sync: onto the disk itself before the rename,
-    which a power cut could otherwise undo). The temporary file is removed on any error."""
+    """Write content beside path (.NAME.<pid>.tmp) and rename it onto path: a reader, or a process
+    killed at any instant, sees the old file or the new one, never a part (sync: onto the disk
+    itself before the rename, which a power cut could otherwise undo). The temporary file is removed
+    on any error."""
     temporary = path.with_name(f".{path.name}.{os.getpid()}.tmp")
     try:
         with open(temporary, "wb") as out:
@@ -113,19 +133,21 @@ TEXT_LIMIT = 2000  # characters of one text attribute (config excepted): longer 
 CONFIG_LIMIT = 1 << 20  # bytes of the stored config; a physgrad config is a few kB
 
 
-_UNSAFE = re.compile("[\x00-\x08\x0b-\x1f\x7f-\x9f\u202a-\u202e\u2066-\u2069]")  # C0/C1 controls, bidi overrides
+_UNSAFE = re.compile(
+    "[\x00-\x08\x0b-\x1f\x7f-\x9f\u202a-\u202e\u2066-\u2069]"
+)  # C0/C1 controls, bidi overrides
 
 
 def clean_text(text: str, limit: int | None = TEXT_LIMIT, lines: bool = False) -> str:
-    """text safe to print: control characters (an ANSI escape's ESC among them) and bidirectional overrides
-    replaced by U+FFFD, newlines and tabs too unless lines, cut to limit characters."""
+    """text safe to print: control characters (an ANSI escape's ESC among them) and bidirectional
+    overrides replaced by U+FFFD, newlines and tabs too unless lines, cut to limit characters."""
     text = _UNSAFE.sub("\ufffd", text if lines else text.replace("\n", " ").replace("\t", " "))
     return text if limit is None or len(text) <= limit else text[:limit] + "... (cut)"
 
 
 class _NoAliases(yaml.SafeLoader):
-    """YAML without aliases: a few bytes of nested aliases expand to gigabytes (a 'billion laughs'), and
-    physgrad never writes one."""
+    """YAML without aliases: a few bytes of nested aliases expand to gigabytes (a 'billion laughs'),
+    and physgrad never writes one."""
 
     def compose_node(self, parent, index):
         if self.check_event(yaml.AliasEvent):
@@ -134,17 +156,23 @@ class _NoAliases(yaml.SafeLoader):
 
 
 def load_yaml(text: str):
-    """Plain YAML data (no aliases, no tags beyond YAML's own); ValueError (one line) if it is not that."""
+    """Plain YAML data (no aliases, no tags beyond YAML's own); ValueError (one line) if it is not
+    that."""
     try:
         return yaml.load(text, Loader=_NoAliases)  # noqa: S506 - a SafeLoader
     except (yaml.YAMLError, RecursionError, ValueError) as error:
-        raise ValueError(f"not plain YAML ({clean_text(str(error).splitlines()[0], 200)})") from None
+        raise ValueError(
+            f"not plain YAML ({clean_text(str(error).splitlines()[0], 200)})"
+        ) from None
 
 
 def read_small_yaml(path: Path, limit: int = CONFIG_LIMIT):
-    """load_yaml of a regular file of at most limit bytes (a sweep's jobs.yaml, overrides.yaml, Optuna's
-    optimization_results.yaml: other people's folders too); ValueError (one line) otherwise."""
-    fd = os.open(path, os.O_RDONLY | os.O_NONBLOCK | getattr(os, "O_NOCTTY", 0))  # OSError if absent
+    """load_yaml of a regular file of at most limit bytes (a sweep's jobs.yaml, overrides.yaml,
+    Optuna's optimization_results.yaml: other people's folders too); ValueError (one line)
+    otherwise."""
+    fd = os.open(
+        path, os.O_RDONLY | os.O_NONBLOCK | getattr(os, "O_NOCTTY", 0)
+    )  # OSError if absent
     try:
         mode = os.fstat(fd).st_mode
         if not stat.S_ISREG(mode):
@@ -162,8 +190,8 @@ def read_small_yaml(path: Path, limit: int = CONFIG_LIMIT):
 
 @contextmanager
 def replaced_text(path: Path):
-    """A text file written beside path and renamed onto it when the block ends without error (else removed):
-    an interrupted writer leaves the previous file or none, never a truncated one."""
+    """A text file written beside path and renamed onto it when the block ends without error (else
+    removed): an interrupted writer leaves the previous file or none, never a truncated one."""
     temporary = path.with_name(f".{path.name}.{os.getpid()}.tmp")
     try:
         with open(temporary, "w", newline="") as out:
@@ -175,8 +203,13 @@ def replaced_text(path: Path):
 
 
 def file_kind(mode: int) -> str:
-    for test, kind in ((stat.S_ISFIFO, "a FIFO"), (stat.S_ISCHR, "a character device"), (stat.S_ISBLK, "a block "
-                       "device"), (stat.S_ISSOCK, "a socket"), (stat.S_ISDIR, "a folder")):
+    for test, kind in (
+        (stat.S_ISFIFO, "a FIFO"),
+        (stat.S_ISCHR, "a character device"),
+        (stat.S_ISBLK, "a block device"),
+        (stat.S_ISSOCK, "a socket"),
+        (stat.S_ISDIR, "a folder"),
+    ):
         if test(mode):
             return kind
     return "not a plain file"
@@ -184,8 +217,8 @@ def file_kind(mode: int) -> str:
 
 # A writer's liveness: the `owner` (pid N on HOST) and `heartbeat` (its latest write) it records.
 def owner_alive(owner: str) -> bool | None:
-    """Whether the process named by an `owner` attribute (pid N on HOST) still runs: None when that cannot be
-    told from here (another host, or a file without an owner)."""
+    """Whether the process named by an `owner` attribute (pid N on HOST) still runs: None when that
+    cannot be told from here (another host, or a file without an owner)."""
     match = re.fullmatch(r"pid (\d+) on (.+)", owner or "")
     if match is None or match[2] != socket.gethostname():
         return None
@@ -202,21 +235,25 @@ STALE_SECONDS = 3600  # a writer on another host that wrote nothing for this lon
 
 
 def with_live_status(attrs: dict, now: float | None = None) -> dict:
-    """A file that says `running` whose writer is gone reads as `crashed` (killed, or its machine lost), with a
-    reason; the file itself is left as it is. A writer on another host cannot be asked: it counts as gone when
-    its heartbeat (the time of its latest write) is more than STALE_SECONDS old."""
+    """A file that says `running` whose writer is gone reads as `crashed` (killed, or its machine
+    lost), with a reason; the file itself is left as it is. A writer on another host cannot be
+    asked: it counts as gone when its heartbeat (the time of its latest write) is more than
+    STALE_SECONDS old."""
     if attrs.get("status") != "running":
         return attrs
     alive = owner_alive(attrs.get("owner", ""))
     if alive is None:
         age = heartbeat_age(attrs.get("heartbeat", ""), now)
         alive = None if age is None else age <= STALE_SECONDS
-        why = f"its writer ({attrs.get('owner', '?')}, on another host) has not written for {age or 0:.0f} s"
+        owner = attrs.get("owner", "?")
+        why = f"its writer ({owner}, on another host) has not written for {age or 0:.0f} s"
     else:
         why = f"its writer ({attrs['owner']}) ended without finishing"
     if alive is False:
         attrs["status"] = "crashed"
-        attrs["reason"] = f"{why}; rows up to its last write ({attrs.get('heartbeat', '?')}) are kept"
+        attrs["reason"] = (
+            f"{why}; rows up to its last write ({attrs.get('heartbeat', '?')}) are kept"
+        )
     return attrs
 
 

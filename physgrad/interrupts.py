@@ -1,20 +1,23 @@
-"""SIGINT and SIGTERM: how physgrad is stopped, in every phase of a command, without losing a signal.
+"""SIGINT and SIGTERM: how physgrad is stopped, in every phase of a command, without losing a
+signal.
 
-Two handlers, one per phase. Before a job (the console script's start-up, composing, a sweep's launcher) a
-signal raises at once: `raise_interrupt` turns it into a SignalInterrupt naming the signal. During a job
-(start-up, training and writing the final files) the job's `StopRequest` handles it: the first signal asks the
-training loop to stop after the current step, a second one ends the wait for a step still computing; it raises
-only while the job is setting up (StopInterrupt), where nothing is half done. `handling_signals` installs a
-handler for both signals, `stop_on_signals` the job's.
+Two handlers, one per phase. Before a job (the console script's start-up, composing, a sweep's
+launcher) a signal raises at once: `raise_interrupt` turns it into a SignalInterrupt naming the
+signal. During a job (start-up, training and writing the final files) the job's `StopRequest`
+handles it: the first signal asks the training loop to stop after the current step, a second one
+ends the wait for a step still computing; it raises only while the job is setting up
+(StopInterrupt), where nothing is half done. `handling_signals` installs a handler for both signals,
+`stop_on_signals` the job's.
 
-A signal handler's exception is raised in whatever Python code runs when the signal arrives. If that code is
-one the interpreter runs on its own (a garbage-collector callback such as jaxlib's, a finaliser, a weakref
-callback), the exception cannot propagate: Python prints "Exception ignored in ..." with a traceback and goes
-on as if no signal had come. Inside `keeping_lost_interrupts` (the one unraisable hook) such an interrupt is
-dropped without a traceback and kept: a SignalInterrupt's signal in `LOST`, where the next place that checks (a
-job's start, the end of a command) acts on it as if it had been raised there; a StopInterrupt's stop stays
-requested on its StopRequest, which the job's next check acts on.
-This module imports nothing heavy: the console script installs it before JAX is loaded.
+A signal handler's exception is raised in whatever Python code runs when the signal arrives. If that
+code is one the interpreter runs on its own (a garbage-collector callback such as jaxlib's, a
+finaliser, a weakref callback), the exception cannot propagate: Python prints "Exception ignored in
+..." with a traceback and goes on as if no signal had come. Inside `keeping_lost_interrupts` (the
+one unraisable hook) such an interrupt is dropped without a traceback and kept: a SignalInterrupt's
+signal in `LOST`, where the next place that checks (a job's start, the end of a command) acts on it
+as if it had been raised there; a StopInterrupt's stop stays requested on its StopRequest, which the
+job's next check acts on. This module imports nothing heavy: the console script installs it before
+JAX is loaded.
 """
 
 from __future__ import annotations
@@ -24,18 +27,25 @@ import sys
 import threading
 from contextlib import contextmanager
 
-INTERRUPTS = (signal.SIGINT, signal.SIGTERM)  # what stops physgrad: Ctrl-C, and kill's or a scheduler's TERM
+INTERRUPTS = (
+    signal.SIGINT,
+    signal.SIGTERM,
+)  # what stops physgrad: Ctrl-C, and kill's or a scheduler's TERM
 WAKE_SECONDS = 0.05  # how often a thread waiting for a step looks at signals
-# steps left computing after a second signal: the command line ends with os._exit while one is alive, since a
-# daemon thread that returns from XLA into a finalising interpreter aborts the process
+# steps left computing after a second signal: the command line ends with os._exit while one is
+# alive, since a daemon thread that returns from XLA into a finalising interpreter aborts the
+# process
 ABANDONED: list[threading.Thread] = []
 
 
 class SignalInterrupt(KeyboardInterrupt):
-    """KeyboardInterrupt raised by a handler here; args[0] is the signal's name ('SIGINT', 'SIGTERM')."""
+    """KeyboardInterrupt raised by a handler here; args[0] is the signal's name ('SIGINT',
+    'SIGTERM')."""
 
 
-LOST: list[str] = []  # names of signals whose SignalInterrupt was dropped by the interpreter, oldest first
+LOST: list[
+    str
+] = []  # names of signals whose SignalInterrupt was dropped by the interpreter, oldest first
 
 
 def raise_interrupt(signum, frame):
@@ -44,21 +54,24 @@ def raise_interrupt(signum, frame):
 
 
 def take_lost() -> str | None:
-    """The first lost signal's name, forgetting all of them (one stop acts on every signal before it)."""
+    """The first lost signal's name, forgetting all of them (one stop acts on every signal before
+    it)."""
     name = LOST[0] if LOST else None
     LOST.clear()
     return name
 
 
 def install(handler) -> dict:
-    """handler for SIGINT and SIGTERM; returns the handlers it replaced. ValueError outside the main thread."""
+    """handler for SIGINT and SIGTERM; returns the handlers it replaced. ValueError outside the main
+    thread."""
     return {sig: signal.signal(sig, handler) for sig in INTERRUPTS}
 
 
 @contextmanager
 def handling_signals(handler):
-    """While inside: SIGINT and SIGTERM go to handler, and the previous handlers are back after. Yields whether
-    it was installed: not in a thread other than the main one, where signals are left alone."""
+    """While inside: SIGINT and SIGTERM go to handler, and the previous handlers are back after.
+    Yields whether it was installed: not in a thread other than the main one, where signals are left
+    alone."""
     try:
         previous = install(handler)
     except ValueError:  # not the main thread
@@ -73,30 +86,34 @@ def handling_signals(handler):
             signal.signal(sig, old)
 
 
-
 @contextmanager
 def signals_held():
-    """SIGINT and SIGTERM held back (blocked) while inside; one that came meanwhile is handled on leaving."""
+    """SIGINT and SIGTERM held back (blocked) while inside; one that came meanwhile is handled on
+    leaving."""
     held = signal.pthread_sigmask(signal.SIG_BLOCK, set(INTERRUPTS))
     try:
         yield
     finally:
         signal.pthread_sigmask(signal.SIG_SETMASK, held)
 
+
 class StopRequest:
-    """Signal handler for SIGINT and SIGTERM, installed for the whole job (start-up, training and writing the
-    final file). The first signal asks the loop to stop after the current step; a second one ends the wait for
-    a step still computing (a 20 s step stops within 0.1 s; the step's result is dropped). The handler
-    never raises: the loop acts on it between steps and in that wait, so no exception can land inside a write,
-    and signals that arrive while the final file is written are only counted. `on_first` is called with the
-    signal's name at the first one (a sweep records there that it is being stopped)."""
+    """Signal handler for SIGINT and SIGTERM, installed for the whole job (start-up, training and
+    writing the final file). The first signal asks the loop to stop after the current step; a second
+    one ends the wait for a step still computing (a 20 s step stops within 0.1 s; the step's result
+    is dropped). The handler never raises: the loop acts on it between steps and in that wait, so no
+    exception can land inside a write, and signals that arrive while the final file is written are
+    only counted. `on_first` is called with the signal's name at the first one (a sweep records
+    there that it is being stopped)."""
 
     def __init__(self, on_first=None):
         self.signal_name: str | None = None
         self.at_once = False
         self.received = 0
         self.on_first = on_first
-        self.raising = False  # set-up (no step running, no file half written): a signal raises at once
+        self.raising = (
+            False  # set-up (no step running, no file half written): a signal raises at once
+        )
         self._waiting: threading.Event | None = None
 
     def __call__(self, signum, frame):
@@ -111,8 +128,8 @@ class StopRequest:
             raise KeyboardInterrupt(self.signal_name)
 
     def request(self, name: str, at_once: bool = False) -> None:
-        """Ask the run to stop after the current step (at_once: without waiting for it); also called by a
-        sweep's watcher thread."""
+        """Ask the run to stop after the current step (at_once: without waiting for it); also called
+        by a sweep's watcher thread."""
         if self.signal_name is None:
             self.signal_name = name
             if self.on_first is not None:
@@ -124,9 +141,10 @@ class StopRequest:
                 waiting.set()
 
     def call(self, fn, *args):
-        """fn(*args), computed in a helper thread (XLA's CPU client runs a computation in the thread that calls it;
-        fn returns once its results are ready), while this thread waits in slices so that the signal handler
-        runs; raises KeyboardInterrupt if a second signal came first (the computation is left to finish unseen)."""
+        """fn(*args), computed in a helper thread (XLA's CPU client runs a computation in the thread
+        that calls it; fn returns once its results are ready), while this thread waits in slices so
+        that the signal handler runs; raises KeyboardInterrupt if a second signal came first (the
+        computation is left to finish unseen)."""
         ready, result = threading.Event(), []
 
         def compute():
@@ -140,8 +158,8 @@ class StopRequest:
         thread = threading.Thread(target=compute, daemon=True, name="physgrad-step")
         thread.start()
         try:
-            # a signal delivered to another thread (XLA's) wakes nobody: its handler runs when this thread is
-            # back in Python, which the slices ensure
+            # a signal delivered to another thread (XLA's) wakes nobody: its handler runs when this
+            # thread is back in Python, which the slices ensure
             while not self.at_once and not ready.wait(WAKE_SECONDS):
                 pass
         finally:
@@ -155,18 +173,18 @@ class StopRequest:
 
 
 class StopInterrupt(KeyboardInterrupt):
-    """What StopRequest raises during set-up. Raised inside code the interpreter runs on its own (a garbage
-    collector callback, a finaliser) it cannot propagate: it is then dropped without a traceback (the
-    unraisable hook below), the stop stays requested and the job's next check (raise_if_stopped, the training
-    loop's first) acts on it."""
+    """What StopRequest raises during set-up. Raised inside code the interpreter runs on its own (a
+    garbage collector callback, a finaliser) it cannot propagate: it is then dropped without a
+    traceback (the unraisable hook below), the stop stays requested and the job's next check
+    (raise_if_stopped, the training loop's first) acts on it."""
 
 
 @contextmanager
 def keeping_lost_interrupts():
-    """While inside: an interrupt the interpreter cannot raise is kept, silently, for the next check (a
-    StopInterrupt's stop is already requested on its StopRequest; a SignalInterrupt's signal goes to LOST); any
-    other unraisable exception is reported as before. Inside another one (the console script's, around a job's)
-    it changes nothing: this is the only unraisable hook."""
+    """While inside: an interrupt the interpreter cannot raise is kept, silently, for the next check
+    (a StopInterrupt's stop is already requested on its StopRequest; a SignalInterrupt's signal goes
+    to LOST); any other unraisable exception is reported as before. Inside another one (the console
+    script's, around a job's) it changes nothing: this is the only unraisable hook."""
     previous = sys.unraisablehook
     if getattr(previous, "keeps_interrupts", False):
         yield
@@ -174,7 +192,9 @@ def keeping_lost_interrupts():
 
     def unraisable(info):
         if isinstance(info.exc_value, StopInterrupt):
-            return  # the stop stays requested: the job's next check (raise_if_stopped, the loop's) acts on it
+            # the stop stays requested: the job's next check (raise_if_stopped, the loop's) acts on
+            # it
+            return
         if isinstance(info.exc_value, SignalInterrupt):
             LOST.append(info.exc_value.args[0] if info.exc_value.args else "SIGINT")
         else:
@@ -190,9 +210,10 @@ def keeping_lost_interrupts():
 
 @contextmanager
 def stop_on_signals(on_first=None):
-    """The job's StopRequest handling SIGINT and SIGTERM while inside, with a signal the interpreter dropped
-    before the job (LOST) taken as its first, and interrupts that cannot be raised kept (keeping_lost_interrupts).
-    Outside the main thread signals are left alone (the StopRequest still takes a sweep's stop)."""
+    """The job's StopRequest handling SIGINT and SIGTERM while inside, with a signal the interpreter
+    dropped before the job (LOST) taken as its first, and interrupts that cannot be raised kept
+    (keeping_lost_interrupts). Outside the main thread signals are left alone (the StopRequest still
+    takes a sweep's stop)."""
     request = StopRequest(on_first)
     with handling_signals(request) as installed:
         if not installed:

@@ -1,16 +1,18 @@
-"""The network-through-physics Jacobian J = dy/dtheta (m x n, m = batch * k outputs) as the Jacobian rules use
-it: its Gram matrix J J^T in float64, products J^T w, and, for the SVD, J itself.
+"""The network-through-physics Jacobian J = dy/dtheta (m x n, m = batch * k outputs) as the Jacobian
+rules use it: its Gram matrix J J^T in float64, products J^T w, and, for the SVD, J itself.
 
 Two forms, chosen once per run (`plan_layers`):
 
 - DenseJacobian: J from one per-sample reverse pass, vmapped over the batch (any network);
-- LayerJacobian: the layer-factorised form of a network built with physgrad.nets.apply_mlp and applied once per
-  sample. For a dense layer z = a W + b, row r of J holds a_s(r) (outer) delta_r for W and delta_r for b, where
-  a_s(r) is the layer's input for the sample of row r and delta_r = dy_r/dz its cotangent at the pre-activation.
-  So the layer's block of J J^T is (delta_r . delta_r') (a_s(r) . a_s(r') + 1), and
+- LayerJacobian: the layer-factorised form of a network built with physgrad.nets.apply_mlp and
+  applied once per sample. For a dense layer z = a W + b, row r of J holds a_s(r) (outer) delta_r
+  for W and delta_r for b, where a_s(r) is the layer's input for the sample of row r and delta_r =
+  dy_r/dz its cotangent at the pre-activation. So the layer's block of J J^T is (delta_r . delta_r')
+  (a_s(r) . a_s(r') + 1), and
       J J^T = sum_l (Delta_l Delta_l^T) o ((A_l A_l^T + 1) (x) 1_{k x k})
-  costs m^2 * sum_l width_l instead of m^2 * n (Novak et al., ICML 2022, "structured derivatives"), and
-  J^T w = [A_l^T S_l, sum_s S_l] with S_l[s] = sum_{r of s} w_r delta_r, so J itself is never formed.
+  costs m^2 * sum_l width_l instead of m^2 * n (Novak et al., ICML 2022, "structured derivatives"),
+  and J^T w = [A_l^T S_l, sum_s S_l] with S_l[s] = sum_{r of s} w_r delta_r, so J itself is never
+  formed.
 """
 
 from __future__ import annotations
@@ -60,7 +62,8 @@ class DenseJacobian:
 
 @dataclass(frozen=True)
 class LayerPlan:
-    """Where each parameter leaf sits in the network, in ravel_pytree order: (layer index, "w" or "b")."""
+    """Where each parameter leaf sits in the network, in ravel_pytree order: (layer index, "w" or
+    "b")."""
 
     leaves: tuple[tuple[int, str], ...]
     widths: tuple[int, ...]  # each layer's number of outputs
@@ -68,7 +71,8 @@ class LayerPlan:
 
 @dataclass(frozen=True)
 class LayerJacobian:
-    """J in factors: per layer l, its inputs A_l (batch, in_l) and the cotangents Delta_l (batch, k, out_l)."""
+    """J in factors: per layer l, its inputs A_l (batch, in_l) and the cotangents Delta_l (batch, k,
+    out_l)."""
 
     plan: LayerPlan
     inputs: tuple
@@ -77,8 +81,12 @@ class LayerJacobian:
     @property
     def shape(self) -> tuple[int, int]:
         batch, k, _ = self.cotangents[0].shape
-        n = sum(self.inputs[i].shape[1] * self.cotangents[i].shape[2] if kind == "w" else self.cotangents[i].shape[2]
-                for i, kind in self.plan.leaves)
+        n = sum(
+            self.inputs[i].shape[1] * self.cotangents[i].shape[2]
+            if kind == "w"
+            else self.cotangents[i].shape[2]
+            for i, kind in self.plan.leaves
+        )
         return batch * k, n
 
     @property
@@ -86,7 +94,8 @@ class LayerJacobian:
         return self.cotangents[0].dtype
 
     def dense(self) -> jax.Array:
-        """J itself (for the SVD route): per leaf, a_s(r) (outer) delta_r for a kernel and delta_r for a bias."""
+        """J itself (for the SVD route): per leaf, a_s(r) (outer) delta_r for a kernel and delta_r
+        for a bias."""
         batch, k, _ = self.cotangents[0].shape
         blocks = []
         for layer, kind in self.plan.leaves:
@@ -96,25 +105,30 @@ class LayerJacobian:
         return jnp.concatenate(blocks, axis=1)
 
     def gram64(self) -> jax.Array:
-        """sum_l (Delta_l Delta_l^T) o (A_l A_l^T + 1) per sample pair, in float64 (call under enable_x64)."""
+        """sum_l (Delta_l Delta_l^T) o (A_l A_l^T + 1) per sample pair, in float64 (call under
+        enable_x64)."""
         batch, k, _ = self.cotangents[0].shape
         gram = jnp.zeros((batch, k, batch, k), jnp.float64)
         for a, delta in zip(self.inputs, self.cotangents):
             a64, delta64 = a.astype(jnp.float64), delta.astype(jnp.float64)
             inputs_gram = a64 @ a64.T + 1.0  # (batch, batch): the kernel's and the bias's share
             flat = delta64.reshape(batch * k, -1)
-            gram = gram + (flat @ flat.T).reshape(batch, k, batch, k) * inputs_gram[:, None, :, None]
+            gram = (
+                gram + (flat @ flat.T).reshape(batch, k, batch, k) * inputs_gram[:, None, :, None]
+            )
         return gram.reshape(batch * k, batch * k)
 
     def transpose_apply(self, weights: jax.Array) -> jax.Array:
-        """J^T w in the precision of w, in ravel_pytree order of the parameters: A_l^T S_l for a kernel and
-        sum_s S_l[s] for a bias, S_l[s] = sum_{r of s} w_r delta_r."""
+        """J^T w in the precision of w, in ravel_pytree order of the parameters: A_l^T S_l for a
+        kernel and sum_s S_l[s] for a bias, S_l[s] = sum_{r of s} w_r delta_r."""
         batch, k, _ = self.cotangents[0].shape
         w = weights.reshape(batch, k)
         parts = []
         for layer, kind in self.plan.leaves:
             summed = jnp.einsum("bk,bko->bo", w, self.cotangents[layer].astype(w.dtype))
-            part = summed.sum(axis=0) if kind == "b" else self.inputs[layer].astype(w.dtype).T @ summed
+            part = (
+                summed.sum(axis=0) if kind == "b" else self.inputs[layer].astype(w.dtype).T @ summed
+            )
             parts.append(part.reshape(-1))
         return jnp.concatenate(parts)
 
@@ -132,9 +146,10 @@ def as_jacobian(jac) -> "DenseJacobian | LayerJacobian":
 
 
 def dense_jacobian(sample_output, params, batch) -> tuple[jax.Array, DenseJacobian]:
-    """y (batch, k) and J (m x n, m = batch * k) from one per-sample reverse-mode pass, vmapped over the batch:
-    J's rows are sample major, its columns follow ravel_pytree(params). The forward pass that builds each
-    sample's pullback also gives y, so a step needs no separate forward or gradient pass (dL/dtheta = J^T g)."""
+    """y (batch, k) and J (m x n, m = batch * k) from one per-sample reverse-mode pass, vmapped over
+    the batch: J's rows are sample major, its columns follow ravel_pytree(params). The forward pass
+    that builds each sample's pullback also gives y, so a step needs no separate forward or gradient
+    pass (dL/dtheta = J^T g)."""
     flat, unravel = ravel_pytree(params)
 
     def output_twice(flat_params, sample):
@@ -146,8 +161,8 @@ def dense_jacobian(sample_output, params, batch) -> tuple[jax.Array, DenseJacobi
 
 
 class _Recorder:
-    """Layer tap for planning: which parameter leaves each apply_mlp layer uses (by identity), and the rank of
-    its input."""
+    """Layer tap for planning: which parameter leaves each apply_mlp layer uses (by identity), and
+    the rank of its input."""
 
     def __init__(self, leaf_index: dict):
         self.leaf_index = leaf_index
@@ -155,15 +170,17 @@ class _Recorder:
 
     def __call__(self, layer, x):
         w, b = layer["w"], layer["b"]
-        self.layers.append((self.leaf_index.get(id(w)), self.leaf_index.get(id(b)), x.ndim, w.shape[1]))
+        self.layers.append(
+            (self.leaf_index.get(id(w)), self.leaf_index.get(id(b)), x.ndim, w.shape[1])
+        )
         return x @ w + b
 
 
 class _Perturbed:
-    """Layer tap for the factors: z = x W + b + p_l with p_l = 0 (so that dy/dp_l is the cotangent at the
-    pre-activation) and the layer's input x recorded. For planning, kernels replace the network's own and
-    every pre-activation must belong to the trace of the planned function (one inside a scan or a vmap has its
-    own trace: the layer would run several times per sample)."""
+    """Layer tap for the factors: z = x W + b + p_l with p_l = 0 (so that dy/dp_l is the cotangent
+    at the pre-activation) and the layer's input x recorded. For planning, kernels replace the
+    network's own and every pre-activation must belong to the trace of the planned function (one
+    inside a scan or a vmap has its own trace: the layer would run several times per sample)."""
 
     def __init__(self, perturbations, kernels=None):
         self.perturbations = perturbations
@@ -178,7 +195,9 @@ class _Perturbed:
         w, b = (layer["w"], layer["b"]) if self.kernels is None else self.kernels[index]
         pre_activation = x @ w + b + self.perturbations[index]
         if self.kernels is not None and pre_activation._trace is not w._trace:
-            raise _NotPlannable("the network is applied inside a loop or a transformation of the rollout")
+            raise _NotPlannable(
+                "the network is applied inside a loop or a transformation of the rollout"
+            )
         return pre_activation
 
 
@@ -187,8 +206,8 @@ class _NotPlannable(Exception):
 
 
 def _depends_on(closed_jaxpr, inputs: int, outputs: int) -> bool:
-    """Whether any of the first ``outputs`` outputs may depend on any of the first ``inputs`` inputs (an
-    equation with a dependent operand makes all its results dependent: conservative)."""
+    """Whether any of the first ``outputs`` outputs may depend on any of the first ``inputs`` inputs
+    (an equation with a dependent operand makes all its results dependent: conservative)."""
     jaxpr = closed_jaxpr.jaxpr
     tainted = set(jaxpr.invars[:inputs])
     for eqn in jaxpr.eqns:
@@ -200,9 +219,10 @@ def _depends_on(closed_jaxpr, inputs: int, outputs: int) -> bool:
 def plan_layers(sample_output, params, sample) -> LayerPlan | str:
     """The layer plan of a scene's network, or why the per-sample pass is kept (a phrase).
 
-    The factorised form is exact when every parameter leaf is the kernel or bias of one apply_mlp layer, each
-    layer is applied exactly once per sample to one input vector (not inside a loop, a scan or a vmap), and the
-    output depends on the parameters only through those layers. Checked by tracing (no computation)."""
+    The factorised form is exact when every parameter leaf is the kernel or bias of one apply_mlp
+    layer, each layer is applied exactly once per sample to one input vector (not inside a loop, a
+    scan or a vmap), and the output depends on the parameters only through those layers. Checked by
+    tracing (no computation)."""
     leaves, treedef = jax.tree_util.tree_flatten(params)
     recorders = []
 
@@ -234,8 +254,13 @@ def plan_layers(sample_output, params, sample) -> LayerPlan | str:
         return "some parameters are not weights of the network's layers"
 
     widths = [width for *_, width in layers]
-    kernels = [tuple(jax.ShapeDtypeStruct(leaves[leaf].shape, leaves[leaf].dtype) for leaf in (w_leaf, b_leaf))
-               for w_leaf, b_leaf, *_ in layers]
+    kernels = [
+        tuple(
+            jax.ShapeDtypeStruct(leaves[leaf].shape, leaves[leaf].dtype)
+            for leaf in (w_leaf, b_leaf)
+        )
+        for w_leaf, b_leaf, *_ in layers
+    ]
 
     def detached(leaf_values, kernel_values):
         tap = _Perturbed([jnp.zeros((width,), leaves[0].dtype) for width in widths], kernel_values)
@@ -254,9 +279,12 @@ def plan_layers(sample_output, params, sample) -> LayerPlan | str:
     return LayerPlan(tuple(where[i] for i in range(len(leaves))), tuple(widths))
 
 
-def layer_jacobian(sample_output, params, batch, plan: LayerPlan) -> tuple[jax.Array, LayerJacobian]:
-    """y (batch, k) and J in factors: per sample, one forward pass with zero perturbations p_l added to every
-    pre-activation, then dy/dp_l by reverse mode (k passes that stop at the layers' pre-activations)."""
+def layer_jacobian(
+    sample_output, params, batch, plan: LayerPlan
+) -> tuple[jax.Array, LayerJacobian]:
+    """y (batch, k) and J in factors: per sample, one forward pass with zero perturbations p_l added
+    to every pre-activation, then dy/dp_l by reverse mode (k passes that stop at the layers'
+    pre-activations)."""
     dtype = jax.tree_util.tree_leaves(params)[0].dtype
 
     def per_sample(sample):

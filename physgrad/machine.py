@@ -1,16 +1,17 @@
 """What a result was measured on, and whether its timing can be trusted.
 
-machine_attributes(): the CPU (model, cores), the device, the thread settings of XLA and BLAS, the versions and
-the project's git commit, recorded in every results file (docs/results.md).
+machine_attributes(): the CPU (model, cores), the device, the thread settings of XLA and BLAS, the
+versions and the project's git commit, recorded in every results file (docs/results.md).
 step_statistics() and contention(): the step-time percentiles of a run and the contention rule
 (docs/decisions.md, "Timing"): a run is flagged ``contended`` when
-  - its step times spread: p90 / p50 > CONTENTION_SPREAD and p90 - p50 > CONTENTION_JITTER_SECONDS, over at least
-    CONTENTION_MIN_STEPS steps of a step whose cost does not depend on the data (not L-BFGS's line search): a
-    shape-static step costs the same every time, up to the operating system's sub-millisecond jitter, which
-    spreads sub-millisecond steps on a quiet machine (Adam on the toy: p90 / p50 up to 1.8 at 0.3 ms), while
-    another process holding a core delays a step by a scheduler time slice (milliseconds), or
-  - the machine was oversubscribed: the 1-minute load average at the start or the end, less the run's own one
-    runnable process, reached the number of cores.
+  - its step times spread: p90 / p50 > CONTENTION_SPREAD and p90 - p50 > CONTENTION_JITTER_SECONDS,
+    over at least CONTENTION_MIN_STEPS steps of a step whose cost does not depend on the data (not
+    L-BFGS's line search): a shape-static step costs the same every time, up to the operating
+    system's sub-millisecond jitter, which spreads sub-millisecond steps on a quiet machine (Adam on
+    the toy: p90 / p50 up to 1.8 at 0.3 ms), while another process holding a core delays a step by a
+    scheduler time slice (milliseconds), or
+  - the machine was oversubscribed: the 1-minute load average at the start or the end, less the
+    run's own one runnable process, reached the number of cores.
 """
 
 from __future__ import annotations
@@ -26,8 +27,14 @@ import numpy as np
 CONTENTION_SPREAD = 1.5
 CONTENTION_JITTER_SECONDS = 1e-3
 CONTENTION_MIN_STEPS = 20
-THREAD_VARIABLES = ("XLA_FLAGS", "OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS",
-                    "TF_NUM_INTEROP_THREADS", "TF_NUM_INTRAOP_THREADS")
+THREAD_VARIABLES = (
+    "XLA_FLAGS",
+    "OMP_NUM_THREADS",
+    "OPENBLAS_NUM_THREADS",
+    "MKL_NUM_THREADS",
+    "TF_NUM_INTEROP_THREADS",
+    "TF_NUM_INTRAOP_THREADS",
+)
 
 
 def cpu_model() -> str:
@@ -59,16 +66,21 @@ def load_average() -> float:
 
 @functools.lru_cache(maxsize=1)
 def git_commit() -> str:
-    """The commit of the git checkout physgrad runs from, with '+dirty' for uncommitted changes; '' for an
-    installed copy outside a checkout."""
+    """The commit of the git checkout physgrad runs from, with '+dirty' for uncommitted changes; ''
+    for an installed copy outside a checkout."""
     root = Path(__file__).resolve().parent.parent
     if not (root / ".git").exists():
         return ""
     try:
-        commit = subprocess.run(["git", "-C", str(root), "rev-parse", "HEAD"], capture_output=True, text=True,
-                                timeout=5).stdout.strip()
-        dirty = subprocess.run(["git", "-C", str(root), "status", "--porcelain", "--untracked-files=no"],
-                               capture_output=True, text=True, timeout=5).stdout.strip()
+        commit = subprocess.run(
+            ["git", "-C", str(root), "rev-parse", "HEAD"], capture_output=True, text=True, timeout=5
+        ).stdout.strip()
+        dirty = subprocess.run(
+            ["git", "-C", str(root), "status", "--porcelain", "--untracked-files=no"],
+            capture_output=True,
+            text=True,
+            timeout=5,
+        ).stdout.strip()
     except (OSError, subprocess.SubprocessError):
         return ""
     return commit + ("+dirty" if commit and dirty else "")
@@ -79,7 +91,9 @@ def device_name() -> str:
     import jax
 
     device = jax.devices()[0]
-    return device.platform if device.platform == "cpu" else f"{device.platform}: {device.device_kind}"
+    return (
+        device.platform if device.platform == "cpu" else f"{device.platform}: {device.device_kind}"
+    )
 
 
 def machine_attributes() -> dict:
@@ -89,7 +103,9 @@ def machine_attributes() -> dict:
 
     from physgrad.version import __version__
 
-    threads = "; ".join(f"{name}={os.environ[name]}" for name in THREAD_VARIABLES if name in os.environ)
+    threads = "; ".join(
+        f"{name}={os.environ[name]}" for name in THREAD_VARIABLES if name in os.environ
+    )
     return {
         "cpu_model": cpu_model(),
         "cpu_count": cpu_count(),
@@ -104,7 +120,8 @@ def machine_attributes() -> dict:
 
 
 def machine_label(attrs) -> str:
-    """One line naming where a run was measured: CPU model and cores, and the device when it is not the CPU."""
+    """One line naming where a run was measured: CPU model and cores, and the device when it is not
+    the CPU."""
     model = str(attrs.get("cpu_model", "") or "")
     if not model:
         return "unknown machine"
@@ -114,25 +131,45 @@ def machine_label(attrs) -> str:
 
 
 def step_statistics(step_seconds) -> dict:
-    """p10, p50, p90 and p99 of a run's step times (seconds; the first, compiling call left out by the caller)."""
+    """p10, p50, p90 and p99 of a run's step times (seconds; the first, compiling call left out by
+    the caller)."""
     times = np.asarray(step_seconds, float)
     if times.size == 0:
         return {}
     p10, p50, p90, p99 = np.percentile(times, [10, 50, 90, 99])
-    return {"step_seconds_p10": float(p10), "step_seconds_p50": float(p50), "step_seconds_p90": float(p90),
-            "step_seconds_p99": float(p99)}
+    return {
+        "step_seconds_p10": float(p10),
+        "step_seconds_p50": float(p50),
+        "step_seconds_p90": float(p90),
+        "step_seconds_p99": float(p99),
+    }
 
 
-def contention(statistics: dict, steps: int, load_start: float, load_end: float, cores: int,
-               static_cost: bool = True) -> str:
+def contention(
+    statistics: dict,
+    steps: int,
+    load_start: float,
+    load_end: float,
+    cores: int,
+    static_cost: bool = True,
+) -> str:
     """Why a run's timing is not to be trusted ('' when it is): the rule of this module's docstring.
-    static_cost: whether the step's cost is independent of the data (else only the load is judged)."""
+    static_cost: whether the step's cost is independent of the data (else only the load is
+    judged)."""
     reasons = []
     p50, p90 = statistics.get("step_seconds_p50"), statistics.get("step_seconds_p90")
-    if (static_cost and steps >= CONTENTION_MIN_STEPS and p50 and p90 is not None
-            and p90 > CONTENTION_SPREAD * p50 and p90 - p50 > CONTENTION_JITTER_SECONDS):
+    if (
+        static_cost
+        and steps >= CONTENTION_MIN_STEPS
+        and p50
+        and p90 is not None
+        and p90 > CONTENTION_SPREAD * p50
+        and p90 - p50 > CONTENTION_JITTER_SECONDS
+    ):
         reasons.append(f"step times spread: p90/p50 = {p90 / p50:.2f} > {CONTENTION_SPREAD:g}")
     loads = [x for x in (load_start, load_end) if np.isfinite(x)]
     if loads and max(loads) - 1.0 >= cores:
-        reasons.append(f"load average {max(loads):.2f} with {cores} cores (other work beside the run)")
+        reasons.append(
+            f"load average {max(loads):.2f} with {cores} cores (other work beside the run)"
+        )
     return "; ".join(reasons)

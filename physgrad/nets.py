@@ -1,5 +1,5 @@
-"""Networks as plain pytrees: dense networks (a list of {"w": (in, out), "b": (out,)} layers), the quantum
-controller's CNN and the Kuramoto-Sivashinsky scene's 1-D residual convolutional network."""
+"""Networks as plain pytrees: dense networks (a list of {"w": (in, out), "b": (out,)} layers), the
+quantum controller's CNN and the Kuramoto-Sivashinsky scene's 1-D residual convolutional network."""
 
 import math
 from collections.abc import Sequence
@@ -11,14 +11,16 @@ import numpy as np
 
 ACTIVATIONS = {"tanh": jnp.tanh, "relu": jax.nn.relu, "linear": lambda z: z}
 
-# Active layer taps, innermost last: while tracing under one, apply_mlp computes each layer's pre-activation as
-# tap(layer, x) instead of x W + b (physgrad.jacobians records inputs and cotangents this way).
+# Active layer taps, innermost last: while tracing under one, apply_mlp computes each layer's
+# pre-activation as tap(layer, x) instead of x W + b (physgrad.jacobians records inputs and
+# cotangents this way).
 _TAPS: list = []
 
 
 @contextmanager
 def layer_tap(tap):
-    """Route every apply_mlp layer traced inside the block through tap(layer, x) -> pre-activation."""
+    """Route every apply_mlp layer traced inside the block through tap(layer, x) ->
+    pre-activation."""
     _TAPS.append(tap)
     try:
         yield tap
@@ -29,8 +31,9 @@ def layer_tap(tap):
 def init_mlp(key, sizes: Sequence[int], dtype, zero_last: bool = False):
     """Glorot-uniform kernels and zero biases (the Keras defaults the reference code trains with).
 
-    A kernel of shape (fan_in, fan_out) is drawn from U(-a, a) with a = sqrt(6 / (fan_in + fan_out)).
-    zero_last zero-initialises the output layer, so the network starts with an output of exactly 0.
+    A kernel of shape (fan_in, fan_out) is drawn from U(-a, a) with a = sqrt(6 / (fan_in +
+    fan_out)). zero_last zero-initialises the output layer, so the network starts with an output of
+    exactly 0.
     """
     keys = jax.random.split(key, len(sizes) - 1)
     layers = []
@@ -44,7 +47,8 @@ def init_mlp(key, sizes: Sequence[int], dtype, zero_last: bool = False):
 
 
 def apply_mlp(layers, x, hidden: str, output: str = "linear"):
-    """z_{l+1} = act(z_l W_l + b_l) with act = hidden on every layer but the last, output on the last.
+    """z_{l+1} = act(z_l W_l + b_l) with act = hidden on every layer but the last, output on the
+    last.
 
     Networks built with it get the layer-factorised Jacobian of the Gauss-Newton and HIG steps
     (physgrad.jacobians) when applied once per sample."""
@@ -61,8 +65,9 @@ def count_params(tree) -> int:
 
 def init_control_cnn(key, points: int, dtype, filters: int = 60):
     """The StableBPTT paper's quantum controller: psi as an (N, 2) image of (Re, Im) ->
-    conv2d 60 filters k=(3, 2) stride 2 tanh -> conv1d 60 k=3 stride 2 tanh -> dense 1 (valid padding).
-    11,701 parameters at N = 32. Glorot-uniform kernels with Keras' fans (kernel size times channels)."""
+    conv2d 60 filters k=(3, 2) stride 2 tanh -> conv1d 60 k=3 stride 2 tanh -> dense 1 (valid
+    padding). 11,701 parameters at N = 32. Glorot-uniform kernels with Keras' fans (kernel size
+    times channels)."""
     k1, k2, k3 = jax.random.split(key, 3)
     length = ((points - 3) // 2 + 1 - 3) // 2 + 1
 
@@ -71,48 +76,80 @@ def init_control_cnn(key, points: int, dtype, filters: int = 60):
         return jax.random.uniform(k, shape, dtype, -limit, limit)
 
     return {
-        "conv1": {"w": glorot(k1, (3, 2, 1, filters), 6, 6 * filters), "b": jnp.zeros((filters,), dtype)},
-        "conv2": {"w": glorot(k2, (3, filters, filters), 3 * filters, 3 * filters), "b": jnp.zeros((filters,), dtype)},
-        "dense": {"w": glorot(k3, (length * filters, 1), length * filters, 1), "b": jnp.zeros((1,), dtype)},
+        "conv1": {
+            "w": glorot(k1, (3, 2, 1, filters), 6, 6 * filters),
+            "b": jnp.zeros((filters,), dtype),
+        },
+        "conv2": {
+            "w": glorot(k2, (3, filters, filters), 3 * filters, 3 * filters),
+            "b": jnp.zeros((filters,), dtype),
+        },
+        "dense": {
+            "w": glorot(k3, (length * filters, 1), length * filters, 1),
+            "b": jnp.zeros((1,), dtype),
+        },
     }
 
 
 def apply_control_cnn(params, image):
     """image: (N, 2) real array -> scalar control."""
-    x = jax.lax.conv_general_dilated(image[None, :, :, None], params["conv1"]["w"], (2, 1), "VALID",
-                                     dimension_numbers=("NHWC", "HWIO", "NHWC"))
+    x = jax.lax.conv_general_dilated(
+        image[None, :, :, None],
+        params["conv1"]["w"],
+        (2, 1),
+        "VALID",
+        dimension_numbers=("NHWC", "HWIO", "NHWC"),
+    )
     x = jnp.tanh(x[0, :, 0, :] + params["conv1"]["b"])  # (L1, filters)
-    x = jax.lax.conv_general_dilated(x[None], params["conv2"]["w"], (2,), "VALID",
-                                     dimension_numbers=("NWC", "WIO", "NWC"))
+    x = jax.lax.conv_general_dilated(
+        x[None], params["conv2"]["w"], (2,), "VALID", dimension_numbers=("NWC", "WIO", "NWC")
+    )
     x = jnp.tanh(x[0] + params["conv2"]["b"])  # (L2, filters)
     return (x.reshape(-1) @ params["dense"]["w"] + params["dense"]["b"])[0]
 
 
 def init_resnet(key, channels: int, blocks: int, dtype, zero_output: bool = False):
-    """The unrolling study's 1-D convolutional ResNet: conv(2 -> C), `blocks` residual blocks of two convolutions
-    (x <- leaky(conv(leaky(conv(x))) + x)), conv(C -> 1); kernel 3, circular padding, biases everywhere.
-    PyTorch's default initialisation: weights and biases ~ U(-1/sqrt(3 C_in), 1/sqrt(3 C_in)); zero_output
-    sets the last convolution to 0 (the network starts with an output of exactly 0).
-    15,841 parameters at C = 16, 10 blocks. Layout: {"input", "blocks": {"first", "second"} (each leaf
-    stacked over the blocks), "output"}, kernels (3, C_in, C_out)."""
-    layers = {"input": ((), 2, channels), "first": ((blocks,), channels, channels),
-              "second": ((blocks,), channels, channels), "output": ((), channels, 1)}
-    shapes = [shape for leading, c_in, c_out in layers.values()
-              for shape in ((*leading, 3, c_in, c_out), (*leading, c_out))]
-    # one random draw for the whole network, cut up on the host: a draw per layer would compile once per shape
-    draws = np.asarray(jax.random.uniform(key, (sum(math.prod(shape) for shape in shapes),), dtype, -1.0, 1.0))
+    """The unrolling study's 1-D convolutional ResNet: conv(2 -> C), `blocks` residual blocks of two
+    convolutions (x <- leaky(conv(leaky(conv(x))) + x)), conv(C -> 1); kernel 3, circular padding,
+    biases everywhere. PyTorch's default initialisation: weights and biases ~ U(-1/sqrt(3 C_in),
+    1/sqrt(3 C_in)); zero_output sets the last convolution to 0 (the network starts with an output
+    of exactly 0). 15,841 parameters at C = 16, 10 blocks. Layout: {"input", "blocks": {"first",
+    "second"} (each leaf stacked over the blocks), "output"}, kernels (3, C_in, C_out)."""
+    layers = {
+        "input": ((), 2, channels),
+        "first": ((blocks,), channels, channels),
+        "second": ((blocks,), channels, channels),
+        "output": ((), channels, 1),
+    }
+    shapes = [
+        shape
+        for leading, c_in, c_out in layers.values()
+        for shape in ((*leading, 3, c_in, c_out), (*leading, c_out))
+    ]
+    # one random draw for the whole network, cut up on the host: a draw per layer would compile once
+    # per shape
+    draws = np.asarray(
+        jax.random.uniform(key, (sum(math.prod(shape) for shape in shapes),), dtype, -1.0, 1.0)
+    )
     offsets = np.cumsum([0] + [math.prod(shape) for shape in shapes])
     pieces = iter(draws[a:b].reshape(shape) for a, b, shape in zip(offsets, offsets[1:], shapes))
     built = {}
-    for name, (leading, c_in, c_out) in layers.items():
+    for name, (_, c_in, _) in layers.items():
         bound = 0.0 if (zero_output and name == "output") else 1.0 / math.sqrt(3 * c_in)
-        built[name] = {"w": jnp.asarray(next(pieces) * bound, dtype), "b": jnp.asarray(next(pieces) * bound, dtype)}
-    return {"input": built["input"], "blocks": {"first": built["first"], "second": built["second"]},
-            "output": built["output"]}
+        built[name] = {
+            "w": jnp.asarray(next(pieces) * bound, dtype),
+            "b": jnp.asarray(next(pieces) * bound, dtype),
+        }
+    return {
+        "input": built["input"],
+        "blocks": {"first": built["first"], "second": built["second"]},
+        "output": built["output"],
+    }
 
 
 def circular_conv(x, layer):
-    """out[i] = sum_k x[i + k - 1] w[k] + b on a periodic grid; x: (points, C_in) -> (points, C_out)."""
+    """out[i] = sum_k x[i + k - 1] w[k] + b on a periodic grid; x: (points, C_in) -> (points,
+    C_out)."""
     taps = jnp.concatenate([jnp.roll(x, 1, axis=0), x, jnp.roll(x, -1, axis=0)], axis=1)
     return taps @ layer["w"].reshape(-1, layer["w"].shape[-1]) + layer["b"]
 
@@ -127,7 +164,9 @@ def apply_resnet(params, u, size):
     x = circular_conv(jnp.stack([u, jnp.full_like(u, size)], axis=1), params["input"])
 
     first, second = params["blocks"]["first"], params["blocks"]["second"]
-    for index in range(first["b"].shape[0]):  # unrolled in Python rather than a scan over the blocks
+    for index in range(
+        first["b"].shape[0]
+    ):  # unrolled in Python rather than a scan over the blocks
         layer = jax.tree_util.tree_map(lambda leaf, index=index: leaf[index], (first, second))
         x = leaky(circular_conv(leaky(circular_conv(x, layer[0])), layer[1]) + x)
     return circular_conv(x, params["output"])[:, 0]

@@ -1,21 +1,23 @@
-"""The read-out: what a run's results say at a budget. Every reader (compare.md, `physgrad report`, read_runs, the
-claims, the trackers) reads through these functions, so two tables of one study cannot disagree about one run.
+"""The read-out: what a run's results say at a budget. Every reader (compare.md, `physgrad report`,
+read_runs, the claims, the trackers) reads through these functions, so two tables of one study
+cannot disagree about one run.
 
-- A run's held-out curve on an axis (iteration, wall_time or calibrated_time) is its /eval column against that
-  axis, shifted to the shared axis of a run started from another's network (init_from), and ends where its
-  training ended; a completed run ran to its budget, so its curve goes on past its last evaluation.
-- The loss at budget x is the last evaluation at or before x: the step that crosses a time budget counts
-  against its variant, and an evaluation after it is not read at the budget. It is infinite when the run
-  diverged by x: stopped as diverged, a non-finite held-out loss, or a loss above DIVERGENCE_FACTOR times its
-  first (a blow-up without NaN). It is NaN (no loss) when the run ended before x without diverging
-  (interrupted, failed, crashed) or has no evaluation by x.
-- The time to a target is the x of the first evaluation at or below it by the budget; infinite if never, or if
-  the run diverged first.
-- The target is the median loss at the budget of the group with the lowest median (diverged runs counting as
-  infinite, missing ones left out): the best group's typical result (highest_median: the worst group's, which
-  the claims' timed comparisons use).
-- A run's budget is what its configuration asked for: trainer.time_budget seconds (on the calibrated clock
-  where trainer.clock is calibrated), else trainer.iterations.
+- A run's held-out curve on an axis (iteration, wall_time or calibrated_time) is its /eval column
+  against that axis, shifted to the shared axis of a run started from another's network (init_from),
+  and ends where its training ended; a completed run ran to its budget, so its curve goes on past
+  its last evaluation.
+- The loss at budget x is the last evaluation at or before x: the step that crosses a time budget
+  counts against its variant, and an evaluation after it is not read at the budget. It is infinite
+  when the run diverged by x: stopped as diverged, a non-finite held-out loss, or a loss above
+  DIVERGENCE_FACTOR times its first (a blow-up without NaN). It is NaN (no loss) when the run ended
+  before x without diverging (interrupted, failed, crashed) or has no evaluation by x.
+- The time to a target is the x of the first evaluation at or below it by the budget; infinite if
+  never, or if the run diverged first.
+- The target is the median loss at the budget of the group with the lowest median (diverged runs
+  counting as infinite, missing ones left out): the best group's typical result (highest_median: the
+  worst group's, which the claims' timed comparisons use).
+- A run's budget is what its configuration asked for: trainer.time_budget seconds (on the calibrated
+  clock where trainer.clock is calibrated), else trainer.iterations.
 - Numbers are printed with three significant figures, '-' for a missing one.
 """
 
@@ -30,7 +32,8 @@ import numpy as np
 
 from physgrad.results import parse_config
 
-DIVERGENCE_FACTOR = 1e4  # a loss above this many times its first value counts as diverged (trainer.divergence_factor)
+# a loss above this many times its first value counts as diverged (trainer.divergence_factor)
+DIVERGENCE_FACTOR = 1e4
 AXES = ("iteration", "wall_time", "calibrated_time")
 
 
@@ -38,8 +41,8 @@ AXES = ("iteration", "wall_time", "calibrated_time")
 class Curve:
     """One run's held-out loss against iterations or training seconds.
 
-    x, loss: its evaluations; end: where its training ended (iterations done, or training seconds; inf for a run
-    that ran to its budget); diverged: stopped as diverged (at `end`)."""
+    x, loss: its evaluations; end: where its training ended (iterations done, or training seconds;
+    inf for a run that ran to its budget); diverged: stopped as diverged (at `end`)."""
 
     x: np.ndarray
     loss: np.ndarray
@@ -48,9 +51,9 @@ class Curve:
     divergence_factor: float | None = DIVERGENCE_FACTOR
 
     def at(self, x: float) -> float:
-        """The loss at budget x: the last evaluation at or before x; inf if the run diverged by x (stopped as
-        diverged, a non-finite loss, or a loss past divergence_factor times its first); NaN if it ended before
-        x without diverging, or has no evaluation by x."""
+        """The loss at budget x: the last evaluation at or before x; inf if the run diverged by x
+        (stopped as diverged, a non-finite loss, or a loss past divergence_factor times its first);
+        NaN if it ended before x without diverging, or has no evaluation by x."""
         x_tol = x * (1 + 1e-9)
         if self.diverged and self.end <= x_tol:
             return math.inf
@@ -59,16 +62,22 @@ class Curve:
             return math.nan
         losses = np.asarray(self.loss, float)[: before[-1] + 1]
         if not np.isfinite(losses).all():
-            return math.inf  # a NaN or inf held-out loss is a divergence, whatever the run's status said
-        if self.divergence_factor is not None and losses[0] > 0 and (losses > self.divergence_factor * losses[0]).any():
+            return (
+                math.inf
+            )  # a NaN or inf held-out loss is a divergence, whatever the run's status said
+        if (
+            self.divergence_factor is not None
+            and losses[0] > 0
+            and (losses > self.divergence_factor * losses[0]).any()
+        ):
             return math.inf
         if self.end < x * (1 - 1e-9):
             return math.nan  # ended early (interrupted, failed): no loss at x
         return float(losses[-1])
 
     def reaches(self, target: float, x: float) -> float:
-        """The first evaluation's x at which the loss is at or below target, by budget x; inf if never (or the
-        run diverged first)."""
+        """The first evaluation's x at which the loss is at or below target, by budget x; inf if
+        never (or the run diverged first)."""
         xs, losses = np.asarray(self.x, float), np.asarray(self.loss, float)
         for i in np.flatnonzero(xs <= x * (1 + 1e-9)):
             if not math.isfinite(losses[i]):
@@ -79,8 +88,9 @@ class Curve:
 
 
 def run_curve(run, axis: str, column: str = "loss") -> Curve:
-    """The run's held-out `column` on the axis (iteration, wall_time or calibrated_time), on the shared axis of
-    a run started from another's network, ending where its training ended (inf: a completed run)."""
+    """The run's held-out `column` on the axis (iteration, wall_time or calibrated_time), on the
+    shared axis of a run started from another's network, ending where its training ended (inf: a
+    completed run)."""
     offset = run.offset(axis)
     x = np.asarray(run.eval.get(axis, np.empty(0)), float) + offset
     end = run.final("train", axis) + (1 if axis == "iteration" else 0) + offset
@@ -89,7 +99,12 @@ def run_curve(run, axis: str, column: str = "loss") -> Curve:
         end = math.inf  # ran to its budget: its last evaluation at or before any x counts
     elif not math.isfinite(end):
         end = 0.0
-    return Curve(x, np.asarray(run.eval.get(column, np.full(x.shape, np.nan)), float), end, status == "diverged")
+    return Curve(
+        x,
+        np.asarray(run.eval.get(column, np.full(x.shape, np.nan)), float),
+        end,
+        status == "diverged",
+    )
 
 
 def config_value(config: Mapping, dotted: str, default=None):
@@ -104,8 +119,8 @@ def config_value(config: Mapping, dotted: str, default=None):
 
 def budget_of(config: Mapping, default_iterations: int | None = None) -> tuple[str, float]:
     """(axis, budget) a configuration trains to: trainer.time_budget seconds (calibrated_time where
-    trainer.clock is calibrated, else wall_time), else trainer.iterations (default_iterations where it is
-    unset; NaN if that is None too)."""
+    trainer.clock is calibrated, else wall_time), else trainer.iterations (default_iterations where
+    it is unset; NaN if that is None too)."""
     seconds = config_value(config, "trainer.time_budget")
     if seconds is not None:
         calibrated = config_value(config, "trainer.clock") == "calibrated"
@@ -115,25 +130,31 @@ def budget_of(config: Mapping, default_iterations: int | None = None) -> tuple[s
 
 
 def run_budget(run) -> tuple[str, float]:
-    """(axis, budget) of a run read back: its stored configuration's budget, else the iterations it trained."""
+    """(axis, budget) of a run read back: its stored configuration's budget, else the iterations it
+    trained."""
     axis, budget = budget_of(run.config or {})
     if axis == "iteration" and not math.isfinite(budget):
         budget = run.final("train", "iteration") + 1
     return axis, budget
 
 
-def loss_at(run, budget: float | None = None, axis: str | None = None, column: str = "loss") -> float:
-    """The run's held-out loss at the budget on the axis (Curve.at); by default at the run's own budget."""
+def loss_at(
+    run, budget: float | None = None, axis: str | None = None, column: str = "loss"
+) -> float:
+    """The run's held-out loss at the budget on the axis (Curve.at); by default at the run's own
+    budget."""
     if budget is None or axis is None:
         own_axis, own_budget = run_budget(run)
         axis, budget = axis or own_axis, own_budget if budget is None else budget
     return run_curve(run, axis, column).at(budget)
 
 
-def time_to_target(run, target: float, budget: float | None = None, axis: str = "wall_time") -> float:
-    """The run's x (training seconds by default) at its first held-out evaluation at or below target by the
-    budget (Curve.reaches; by default the run's own budget where it is on this axis, else no limit); inf if
-    never or diverged first, NaN if there is no target."""
+def time_to_target(
+    run, target: float, budget: float | None = None, axis: str = "wall_time"
+) -> float:
+    """The run's x (training seconds by default) at its first held-out evaluation at or below target
+    by the budget (Curve.reaches; by default the run's own budget where it is on this axis, else no
+    limit); inf if never or diverged first, NaN if there is no target."""
     if not math.isfinite(target):
         return math.nan
     if budget is None:
@@ -143,17 +164,21 @@ def time_to_target(run, target: float, budget: float | None = None, axis: str = 
 
 
 def _finite_medians(losses: dict[str, list[float]]) -> dict[str, float]:
-    """Each group's median loss, NaN losses left out and infinite ones (diverged) counted; groups whose median is
-    not finite are left out."""
-    medians = {name: float(np.median(kept)) for name, values in losses.items()
-               if (kept := [v for v in values if not math.isnan(v)])}
+    """Each group's median loss, NaN losses left out and infinite ones (diverged) counted; groups
+    whose median is not finite are left out."""
+    medians = {
+        name: float(np.median(kept))
+        for name, values in losses.items()
+        if (kept := [v for v in values if not math.isnan(v)])
+    }
     return {name: m for name, m in medians.items() if math.isfinite(m)}
 
 
 def lowest_median(losses: dict[str, list[float]]) -> tuple[str, float]:
-    """(group, its median) of the group whose median loss is lowest; NaN losses are left out, infinite ones
-    (diverged) count; ("", NaN) if no group has a finite median. The target every group works towards: the
-    best group's typical result, which the other groups may or may not reach."""
+    """(group, its median) of the group whose median loss is lowest; NaN losses are left out,
+    infinite ones (diverged) count; ("", NaN) if no group has a finite median. The target every
+    group works towards: the best group's typical result, which the other groups may or may not
+    reach."""
     finite = _finite_medians(losses)
     if not finite:
         return "", math.nan
@@ -162,9 +187,10 @@ def lowest_median(losses: dict[str, list[float]]) -> tuple[str, float]:
 
 
 def highest_median(losses: dict[str, list[float]]) -> tuple[str, float]:
-    """(group, its median) of the group whose finite median loss is highest; ("", NaN) if none is finite. A
-    target every group with a finite median reaches in at least about half its runs (the worse group's typical
-    result), so that time to target compares times, not mostly pairs where neither run got there."""
+    """(group, its median) of the group whose finite median loss is highest; ("", NaN) if none is
+    finite. A target every group with a finite median reaches in at least about half its runs (the
+    worse group's typical result), so that time to target compares times, not mostly pairs where
+    neither run got there."""
     finite = _finite_medians(losses)
     if not finite:
         return "", math.nan
@@ -173,15 +199,18 @@ def highest_median(losses: dict[str, list[float]]) -> tuple[str, float]:
 
 
 def target_loss(curves: dict[str, dict[int, Curve]], budget: float) -> tuple[str, float]:
-    """The target of time-to-target: lowest_median of every group's losses at the budget; (group, target)."""
-    return lowest_median({name: [c.at(budget) for c in by_seed.values()] for name, by_seed in curves.items()})
+    """The target of time-to-target: lowest_median of every group's losses at the budget; (group,
+    target)."""
+    return lowest_median(
+        {name: [c.at(budget) for c in by_seed.values()] for name, by_seed in curves.items()}
+    )
 
 
 def targets(runs) -> dict[str, float]:
-    """Per scene of a report (run.scene), the target of time to target: lowest_median over its groups (run.label,
-    else the variant) of each run's loss at its own budget. Every run has to train to get there, and a group
-    that never does says so. (The worst final loss would be reached at the first evaluation whenever one run
-    ends above where all began.)"""
+    """Per scene of a report (run.scene), the target of time to target: lowest_median over its
+    groups (run.label, else the variant) of each run's loss at its own budget. Every run has to
+    train to get there, and a group that never does says so. (The worst final loss would be reached
+    at the first evaluation whenever one run ends above where all began.)"""
     losses = defaultdict(lambda: defaultdict(list))
     for run in runs:
         losses[run.scene][run.label or run.variant].append(loss_at(run))
@@ -200,8 +229,10 @@ def flat_config(tree: Mapping, prefix: str = "") -> dict:
 
 
 def config_row(run) -> dict:
-    """The run's resolved configuration as one row of dotted keys (empty if it holds none): read_run's parsed
-    copy, or for a Run built in memory its config attribute parsed the same way (results.parse_config)."""
+    """The run's resolved configuration as one row of dotted keys (empty if it holds none):
+    read_run's parsed
+    copy, or for a Run built in memory its config attribute parsed the same way
+    (results.parse_config)."""
     tree = run.config
     if not tree and isinstance(run.attrs.get("config"), str):
         try:
@@ -212,8 +243,8 @@ def config_row(run) -> dict:
 
 
 def fmt(value) -> str:
-    """A number as printed in every table: three significant figures, '-' for a missing one (None, NaN), inf and
-    -inf as such; any other value as its text."""
+    """A number as printed in every table: three significant figures, '-' for a missing one (None,
+    NaN), inf and -inf as such; any other value as its text."""
     if value is None or (isinstance(value, float) and math.isnan(value)):
         return "-"
     if isinstance(value, float) and math.isinf(value):

@@ -1,12 +1,13 @@
 """`physgrad report`: tables, figures and CSV files that compare runs, from results files alone.
 
-Runs are compared like with like. A *scene* is a task with the problem settings that differ between its runs
-(task keys, unroll, precision): one panel and one block of rows each. Within a scene, a *group* is every run
-with the same resolved configuration except the seed (and keys that do not change what is computed: output
-paths, logging, evaluation cadence, init_from's file name): its label is the variant plus the settings that
-differ between the scene's runs of that variant, e.g. ``adam learning_rate=0.01``. The same configuration and
-seed found twice counts once (the report names what it dropped). Sets of runs given as LABEL=PATH keep their
-label in front of the group's, so sweeps from different days can be compared.
+Runs are compared like with like. A *scene* is a task with the problem settings that differ between
+its runs (task keys, unroll, precision): one panel and one block of rows each. Within a scene, a
+*group* is every run with the same resolved configuration except the seed (and keys that do not
+change what is computed: output paths, logging, evaluation cadence, init_from's file name): its
+label is the variant plus the settings that differ between the scene's runs of that variant, e.g.
+``adam learning_rate=0.01``. The same configuration and seed found twice counts once (the report
+names what it dropped). Sets of runs given as LABEL=PATH keep their label in front of the group's,
+so sweeps from different days can be compared.
 """
 
 from __future__ import annotations
@@ -20,17 +21,25 @@ from pathlib import Path
 import numpy as np
 
 from physgrad.errors import UserError
+from physgrad.files import clean_text, read_small_yaml, replaced_text
 from physgrad.machine import machine_label
 from physgrad.readout import config_row, fmt, loss_at, targets, time_to_target
-from physgrad.files import clean_text, read_small_yaml, replaced_text
 from physgrad.results import Run, find_results, natural_key, read_run
 from physgrad.sweeps import unfinished_jobs
 from physgrad.tables import Tables, tables, write_tables
 
-# keys that never tell two runs apart: the seed (what a group pools over), files and cadences that do not change
-# the computation (`seeds` does count: seeds trained together share one step time) (init_from is identified by the variant's "from ...")
-NOT_COMPUTATION = ("seed", "overwrite", "init_from", "trainer.flush_seconds", "trainer.log_seconds",
-                   "trainer.eval_every", "trainer.eval_seconds")
+# keys that never tell two runs apart: the seed (what a group pools over), files and cadences that
+# do not change the computation (`seeds` does count: seeds trained together share one step time)
+# (init_from is identified by the variant's "from ...")
+NOT_COMPUTATION = (
+    "seed",
+    "overwrite",
+    "init_from",
+    "trainer.flush_seconds",
+    "trainer.log_seconds",
+    "trainer.eval_every",
+    "trainer.eval_seconds",
+)
 # problem settings besides task.*: each value is its own scene
 SCENE_KEYS = ("unroll", "precision")
 # what the variant label already says
@@ -39,8 +48,8 @@ METADATA = ("iteration", "wall_time", "calibrated_time")
 
 
 def parse_sources(arguments) -> list[tuple[str, Path]]:
-    """(set label, path) per argument: a path as given (label ""), or LABEL=PATH where the whole argument is not
-    itself an existing path (Hydra's job folders have '=' in their names)."""
+    """(set label, path) per argument: a path as given (label ""), or LABEL=PATH where the whole
+    argument is not itself an existing path (Hydra's job folders have '=' in their names)."""
     sources = []
     for argument in map(str, arguments):
         label, sep, rest = argument.partition("=")
@@ -59,9 +68,9 @@ class Dropped:
 
 
 def collect(arguments) -> tuple[list[Run], list[tuple[Path, str]], list[Dropped]]:
-    """Every readable run under the given paths (or LABEL=PATH sets), without duplicates; (path, reason) for
-    each file that is not a readable results file; and what was dropped as a duplicate. UserError (one line) if
-    a path does not exist or holds no results file."""
+    """Every readable run under the given paths (or LABEL=PATH sets), without duplicates; (path,
+    reason) for each file that is not a readable results file; and what was dropped as a duplicate.
+    UserError (one line) if a path does not exist or holds no results file."""
     runs, unreadable, seen, repeated = [], [], {}, []
     for label, path in parse_sources(arguments):
         try:
@@ -90,13 +99,20 @@ def collect(arguments) -> tuple[list[Run], list[tuple[Path, str]], list[Dropped]
 
 
 def _identity(run: Run) -> tuple:
-    """What makes two files the same run: the set, every setting that changes the computation (as for
-    grouping), the seed the file trained and the network it started from; a file without a stored configuration is only itself."""
+    """What makes two files the same run: the set, every setting that changes the computation (as
+    for grouping), the seed the file trained and the network it started from; a file without a
+    stored configuration is only itself."""
     config = {k: v for k, v in config_row(run).items() if k not in NOT_COMPUTATION}
     if not config:
         return (str(run.path.resolve()),)
-    return (run.collection, repr(sorted(config.items())), run.attrs.get("task"), run.variant,
-            str(run.attrs.get("seed")), str(run.attrs.get("init_from", "")))  # another start is another run
+    return (
+        run.collection,
+        repr(sorted(config.items())),
+        run.attrs.get("task"),
+        run.variant,
+        str(run.attrs.get("seed")),
+        str(run.attrs.get("init_from", "")),
+    )  # another start is another run
 
 
 def drop_duplicates(runs: list[Run]) -> tuple[list[Run], list[Dropped]]:
@@ -106,8 +122,10 @@ def drop_duplicates(runs: list[Run]) -> tuple[list[Run], list[Dropped]]:
         by_identity[_identity(run)].append(run)
     kept, dropped = [], []
     for same in by_identity.values():
-        same.sort(key=lambda r: (r.attrs.get("status") == "completed", str(r.attrs.get("finished", ""))),
-                  reverse=True)
+        same.sort(
+            key=lambda r: (r.attrs.get("status") == "completed", str(r.attrs.get("finished", ""))),
+            reverse=True,
+        )
         kept.append(same[0])
         dropped += [Dropped(r.path, same[0].path, "same configuration and seed") for r in same[1:]]
     order = {id(run): i for i, run in enumerate(runs)}
@@ -115,18 +133,23 @@ def drop_duplicates(runs: list[Run]) -> tuple[list[Run], list[Dropped]]:
 
 
 def _value(value) -> str:
-    """A setting's value in a label: six significant figures, so that close values (an Optuna study's learning
-    rates) keep apart, while round ones stay short (0.01)."""
+    """A setting's value in a label: six significant figures, so that close values (an Optuna
+    study's learning rates) keep apart, while round ones stay short (0.01)."""
     return f"{value:.6g}" if isinstance(value, float) else str(value)
 
 
 def label_runs(runs: list[Run]) -> None:
     """Set each run's scene settings (run.setting, e.g. "poles=3") and group label (run.label, e.g.
-    "old: adam learning_rate=0.01"): scene settings are the task keys, unroll and precision that differ between
-    runs of the same task; group settings every other key that differs between runs of the same variant in the
-    same scene (seed and NOT_COMPUTATION keys aside)."""
-    configs = {id(run): {k: v for k, v in config_row(run).items() if k not in NOT_COMPUTATION} for run in runs}
-    for run in runs:  # the unroll length the run used (unroll=null means the scene's own, task.unroll)
+    "old: adam learning_rate=0.01"): scene settings are the task keys, unroll and precision that
+    differ between runs of the same task; group settings every other key that differs between runs
+    of the same variant in the same scene (seed and NOT_COMPUTATION keys aside)."""
+    configs = {
+        id(run): {k: v for k, v in config_row(run).items() if k not in NOT_COMPUTATION}
+        for run in runs
+    }
+    for (
+        run
+    ) in runs:  # the unroll length the run used (unroll=null means the scene's own, task.unroll)
         if "unroll" in run.attrs:
             configs[id(run)]["unroll"] = run.attrs["unroll"]
 
@@ -134,31 +157,44 @@ def label_runs(runs: list[Run]) -> None:
         keys = sorted({k for run in members for k in keys_of(configs[id(run)])})
         return [k for k in keys if len({repr(configs[id(run)].get(k)) for run in members}) > 1]
 
-    scene_key = (lambda k: k.startswith("task.") and k not in ("task.name", "task.batch_size"))
+    def scene_key(k: str) -> bool:
+        return k.startswith("task.") and k not in ("task.name", "task.batch_size")
+
     by_task = defaultdict(list)
     for run in runs:
         by_task[run.attrs.get("task")].append(run)
     for members in by_task.values():
-        keys = varying(members, lambda config: [k for k in config if scene_key(k) or k in SCENE_KEYS])
+        keys = varying(
+            members, lambda config: [k for k in config if scene_key(k) or k in SCENE_KEYS]
+        )
         for run in members:
-            run.setting = " ".join(f"{k.removeprefix('task.')}={_value(configs[id(run)].get(k))}" for k in keys)
+            run.setting = " ".join(
+                f"{k.removeprefix('task.')}={_value(configs[id(run)].get(k))}" for k in keys
+            )
     by_variant = defaultdict(list)
     for run in runs:
         by_variant[(run.scene, run.variant)].append(run)
     for members in by_variant.values():
-        keys = varying(members, lambda config: [k for k in config if not (scene_key(k) or k in SCENE_KEYS
-                                                                          or k in VARIANT_KEYS)])
+        keys = varying(
+            members,
+            lambda config: [
+                k for k in config if not (scene_key(k) or k in SCENE_KEYS or k in VARIANT_KEYS)
+            ],
+        )
         for run in members:
-            settings = " ".join(f"{k.split('.', 1)[-1]}={_value(configs[id(run)].get(k))}" for k in keys)
+            settings = " ".join(
+                f"{k.split('.', 1)[-1]}={_value(configs[id(run)].get(k))}" for k in keys
+            )
             run.label = " ".join(part for part in (run.variant, settings) if part)
             if run.collection:
                 run.label = f"{run.collection}: {run.label}"
 
 
 def common_times(runs: list[Run]) -> dict[str, float]:
-    """Per scene, the time every completed run covers: the shortest end of training among them (a time budget
-    ends a run at its budget), on the shared time axis (a run started from another's network starts where that
-    one ended). Losses at this time compare variants at equal training time."""
+    """Per scene, the time every completed run covers: the shortest end of training among them (a
+    time budget ends a run at its budget), on the shared time axis (a run started from another's
+    network starts where that one ended). Losses at this time compare variants at equal training
+    time."""
     shortest = defaultdict(lambda: math.inf)
     for run in runs:
         end = run.final("train", "wall_time") + run.offset("wall_time")
@@ -177,41 +213,61 @@ def run_rows(runs: list[Run], threshold: float | None = None) -> list[dict]:
     limits, common = targets(runs), common_times(runs)
     names = metric_names(runs)
     rows = []
-    order = lambda r: (natural_key(r.scene), natural_key(r.label), natural_key(str(r.attrs.get("seed"))))  # noqa: E731
+
+    def order(r: Run) -> tuple:
+        return natural_key(r.scene), natural_key(r.label), natural_key(str(r.attrs.get("seed")))
+
     for run in sorted(runs, key=order):
         limit = threshold if threshold is not None else limits.get(run.scene, math.nan)
         at = common.get(run.scene, math.nan)
         train_loss = run.train.get("loss", np.empty(0))
-        rows.append({
-            "path": str(run.path), "set": run.collection, "task": run.attrs.get("task"), "scene": run.scene,
-            "setting": run.setting, "variant": run.variant, "label": run.label, "seed": run.attrs.get("seed"),
-            "status": run.attrs.get("status"), "stopped_by": run.attrs.get("stopped_by", ""),
-            "iterations": int(train_loss.size),
-            "train_loss": float(np.median(train_loss[-10:])) if train_loss.size else math.nan,
-            "test_loss": loss_at(run),
-            "common_time": at,
-            "loss_at_common_time": loss_at(run, at, "wall_time") if math.isfinite(at) else math.nan,
-            "threshold": limit,
-            "time_to_threshold": time_to_target(run, limit),
-            "s_per_iter": run.seconds_per_iteration,
-            "train_seconds": run.final("train", "wall_time"),
-            "compile_seconds": float(run.attrs.get("compile_seconds", math.nan)),
-            "first_step_overhead_seconds": float(run.attrs.get("first_step_overhead_seconds", math.nan)),
-            "calibrated_seconds": run.final("train", "calibrated_time"),
-            "step_seconds_p50": _float_attr(run, "step_seconds_p50"),
-            "step_seconds_p90": _float_attr(run, "step_seconds_p90"),
-            "contended": int(bool(run.attrs.get("contended", 0))),
-            "contention": str(run.attrs.get("contention", "") or ""),
-            "machine": machine_label(run.attrs),
-            **{name: run.final("eval", name) for name in names},
-            "reason": run.attrs.get("reason", "") or "",
-        })
+        rows.append(
+            {
+                "path": str(run.path),
+                "set": run.collection,
+                "task": run.attrs.get("task"),
+                "scene": run.scene,
+                "setting": run.setting,
+                "variant": run.variant,
+                "label": run.label,
+                "seed": run.attrs.get("seed"),
+                "status": run.attrs.get("status"),
+                "stopped_by": run.attrs.get("stopped_by", ""),
+                "iterations": int(train_loss.size),
+                "train_loss": float(np.median(train_loss[-10:])) if train_loss.size else math.nan,
+                "test_loss": loss_at(run),
+                "common_time": at,
+                "loss_at_common_time": loss_at(run, at, "wall_time")
+                if math.isfinite(at)
+                else math.nan,
+                "threshold": limit,
+                "time_to_threshold": time_to_target(run, limit),
+                "s_per_iter": run.seconds_per_iteration,
+                "train_seconds": run.final("train", "wall_time"),
+                "compile_seconds": float(run.attrs.get("compile_seconds", math.nan)),
+                "first_step_overhead_seconds": float(
+                    run.attrs.get("first_step_overhead_seconds", math.nan)
+                ),
+                "calibrated_seconds": run.final("train", "calibrated_time"),
+                "step_seconds_p50": _float_attr(run, "step_seconds_p50"),
+                "step_seconds_p90": _float_attr(run, "step_seconds_p90"),
+                "contended": int(bool(run.attrs.get("contended", 0))),
+                "contention": str(run.attrs.get("contention", "") or ""),
+                "machine": machine_label(run.attrs),
+                **{name: run.final("eval", name) for name in names},
+                "reason": run.attrs.get("reason", "") or "",
+            }
+        )
     return rows
 
 
 def _float_attr(run: Run, key: str) -> float:
     value = run.attrs.get(key)
-    return float(value) if isinstance(value, (int, float)) and not isinstance(value, bool) else math.nan
+    return (
+        float(value)
+        if isinstance(value, (int, float)) and not isinstance(value, bool)
+        else math.nan
+    )
 
 
 def _spread(values) -> str:
@@ -233,55 +289,86 @@ def _counts(values, plain_if_one: bool = False) -> str:
 
 
 def group_rows(rows: list[dict], names: list[str]) -> list[dict]:
-    """One row per (scene, group): seeds, status counts, spread of the final test loss (completed runs) and of
-    the loss at the common time (every run that got there), time to the threshold (median over the seeds that reached it, and how many did), iterations,
-    s/iter, what stopped the runs, and the scene's metrics."""
+    """One row per (scene, group): seeds, status counts, spread of the final test loss (completed
+    runs) and of the loss at the common time (every run that got there), time to the threshold
+    (median over the seeds that reached it, and how many did), iterations, s/iter, what stopped the
+    runs, and the scene's metrics."""
     groups = defaultdict(list)
     for row in rows:
         groups[(row["scene"], row["label"])].append(row)
     table = []
     for (scene, label), members in groups.items():
-        completed = [r for r in members if r["status"] == "completed"]  # a diverged run's last loss says nothing
+        completed = [
+            r for r in members if r["status"] == "completed"
+        ]  # a diverged run's last loss says nothing
         reached = [r["time_to_threshold"] for r in members if math.isfinite(r["time_to_threshold"])]
-        time_to = "-" if not reached else fmt(float(np.median(reached))) + (
-            "" if len(reached) == len(members) else f" ({len(reached)}/{len(members)})")
-        table.append({
-            "scene": scene, "group": label, "seeds": len(members), "status": _counts(r["status"] for r in members),
-            "final test loss": _spread(r["test_loss"] for r in completed),
-            "loss at common time": _spread(r["loss_at_common_time"] for r in members),
-            "time to threshold s": time_to,
-            "iterations": str(round(float(np.median([r["iterations"] for r in members])))),
-            "s/iter": _spread(r["s_per_iter"] for r in members),
-            "stopped by": _counts((r["stopped_by"] for r in members), plain_if_one=True),
-            "contended": f"{sum(r['contended'] for r in members)}/{len(members)}",
-            "machine": "; ".join(sorted({r["machine"] for r in members})),
-            **{name: _spread(r[name] for r in completed) for name in names},
-        })
+        time_to = (
+            "-"
+            if not reached
+            else fmt(float(np.median(reached)))
+            + ("" if len(reached) == len(members) else f" ({len(reached)}/{len(members)})")
+        )
+        table.append(
+            {
+                "scene": scene,
+                "group": label,
+                "seeds": len(members),
+                "status": _counts(r["status"] for r in members),
+                "final test loss": _spread(r["test_loss"] for r in completed),
+                "loss at common time": _spread(r["loss_at_common_time"] for r in members),
+                "time to threshold s": time_to,
+                "iterations": str(round(float(np.median([r["iterations"] for r in members])))),
+                "s/iter": _spread(r["s_per_iter"] for r in members),
+                "stopped by": _counts((r["stopped_by"] for r in members), plain_if_one=True),
+                "contended": f"{sum(r['contended'] for r in members)}/{len(members)}",
+                "machine": "; ".join(sorted({r["machine"] for r in members})),
+                **{name: _spread(r[name] for r in completed) for name in names},
+            }
+        )
     return table
 
 
 def timing_notes(rows: list[dict], scenes: list[str]) -> list[str]:
-    """The machine of each scene's runs (a warning where one scene's runs come from several: their times are not
-    comparable) and the runs whose timing was contended (physgrad.machine.contention)."""
+    """The machine of each scene's runs (a warning where one scene's runs come from several: their
+    times are not comparable) and the runs whose timing was contended
+    (physgrad.machine.contention)."""
     notes = [""]
     for scene in scenes:
         machines = sorted({r["machine"] for r in rows if r["scene"] == scene})
         if len(machines) > 1:
-            notes.append(f"warning: the runs of {scene} come from {len(machines)} machines ({'; '.join(machines)}): "
-                         "their times are not comparable")
+            notes.append(
+                f"warning: the runs of {scene} come from {len(machines)} machines "
+                f"({'; '.join(machines)}): "
+                "their times are not comparable"
+            )
         else:
             notes.append(f"{scene} measured on {machines[0]}.")
     contended = [r for r in rows if r["contended"]]
     if contended:
-        notes.append(f"warning: {len(contended)} of {len(rows)} runs were contended (their measured times were "
-                     "slowed by other work; calibrated times, where present, are not): "
-                     + "; ".join(f"{r['label']} seed {r['seed']}: {r['contention']}" for r in contended[:5])
-                     + (" ..." if len(contended) > 5 else ""))
+        notes.append(
+            f"warning: {len(contended)} of {len(rows)} runs were contended (their measured times "
+            "were "
+            "slowed by other work; calibrated times, where present, are not): "
+            + "; ".join(f"{r['label']} seed {r['seed']}: {r['contention']}" for r in contended[:5])
+            + (" ..." if len(contended) > 5 else "")
+        )
     return notes
 
 
-PER_SEED = ("scene", "label", "seed", "status", "stopped_by", "iterations", "test_loss", "loss_at_common_time",
-            "time_to_threshold", "s_per_iter", "train_seconds", "compile_seconds")
+PER_SEED = (
+    "scene",
+    "label",
+    "seed",
+    "status",
+    "stopped_by",
+    "iterations",
+    "test_loss",
+    "loss_at_common_time",
+    "time_to_threshold",
+    "s_per_iter",
+    "train_seconds",
+    "compile_seconds",
+)
 
 
 def markdown_table(rows: list[dict], columns) -> str:
@@ -292,16 +379,18 @@ def markdown_table(rows: list[dict], columns) -> str:
 
 
 def read_runs(paths, threshold: float | None = None) -> Tables:
-    """Every readable run under the paths (files, folders, LABEL=PATH sets, as `physgrad report` takes them) as
-    tidy tables (Tables: .runs and .curves, pandas DataFrames), grouped and labelled as a report does.
-    UserError (one line) if a path does not exist or holds no results file; unreadable files are left out."""
+    """Every readable run under the paths (files, folders, LABEL=PATH sets, as `physgrad report`
+    takes them) as tidy tables (Tables: .runs and .curves, pandas DataFrames), grouped and labelled
+    as a report does. UserError (one line) if a path does not exist or holds no results file;
+    unreadable files are left out."""
     runs, _, _ = collect([str(path) for path in paths])
     label_runs(runs)
     return tables(runs, run_rows(runs, threshold))
 
 
 def output_folder(arguments, out_dir) -> Path:
-    """--out, else the first path's folder; UserError (one line) if it cannot be created or written."""
+    """--out, else the first path's folder; UserError (one line) if it cannot be created or
+    written."""
     first = parse_sources(arguments)[0][1]
     out = Path(out_dir) if out_dir else (first if first.is_dir() else first.parent)
     try:
@@ -309,20 +398,27 @@ def output_folder(arguments, out_dir) -> Path:
         if not os.access(out, os.W_OK | os.X_OK):
             raise PermissionError(13, "Permission denied", str(out))
     except OSError as error:
-        raise UserError(f"cannot write the report to {out}: {error.strerror or error}: give --out <a writable "
-                        "folder>") from None
+        raise UserError(
+            f"cannot write the report to {out}: {error.strerror or error}: give --out <a writable "
+            "folder>"
+        ) from None
     return out
 
 
-def write_report(paths, out_dir=None, threshold: float | None = None, note: str = "", logx: str = "auto") -> str:
-    """Print-ready text; also writes into out_dir (default: the first path's folder) report.md, runs.csv,
-    curves.csv and the figures (PNG and PDF): loss_vs_time, loss_vs_iteration, tradeoff (final test loss
-    against seconds per iteration and total time) and, where runs differ in unroll length, unroll. ``note`` is
-    printed on every figure; ``logx`` is auto (log where the curves' ends span a decade or more), on or off."""
+def write_report(
+    paths, out_dir=None, threshold: float | None = None, note: str = "", logx: str = "auto"
+) -> str:
+    """Print-ready text; also writes into out_dir (default: the first path's folder) report.md,
+    runs.csv, curves.csv and the figures (PNG and PDF): loss_vs_time, loss_vs_iteration, tradeoff
+    (final test loss against seconds per iteration and total time) and, where runs differ in unroll
+    length, unroll. ``note`` is printed on every figure; ``logx`` is auto (log where the curves'
+    ends span a decade or more), on or off."""
     runs, unreadable, dropped = collect(paths)
     if not runs:
-        raise UserError(f"no readable results file under {', '.join(map(str, paths))}: "
-                        f"{unreadable[0][1] if unreadable else 'nothing found'}")
+        raise UserError(
+            f"no readable results file under {', '.join(map(str, paths))}: "
+            f"{unreadable[0][1] if unreadable else 'nothing found'}"
+        )
     out = output_folder(paths, out_dir)
     label_runs(runs)
     rows = run_rows(runs, threshold)
@@ -336,48 +432,84 @@ def write_report(paths, out_dir=None, threshold: float | None = None, note: str 
         f.write(body)
     chosen = {scene: threshold for scene in limits} if threshold is not None else limits
     figures = write_figures(runs, out, note, logx, chosen)
-    return body + (f"wrote {out / 'report.md'}, runs.csv, curves.csv (and .parquet) and {', '.join(figures)} "
-                   "(and .pdf)\n")
+    return body + (
+        f"wrote {out / 'report.md'}, runs.csv, curves.csv (and .parquet) and {', '.join(figures)} "
+        "(and .pdf)\n"
+    )
 
 
-def summary_lines(paths, runs: list[Run], rows: list[dict], threshold: float | None,
-                  limits: dict[str, float]) -> list[str]:
+def summary_lines(
+    paths, runs: list[Run], rows: list[dict], threshold: float | None, limits: dict[str, float]
+) -> list[str]:
     """report.md's tables (per group, per seed) with what their columns mean."""
     names = metric_names(runs)
-    group_columns = ("scene", "group", "seeds", "status", "final test loss", "loss at common time",
-                     "time to threshold s", "iterations", "s/iter", "stopped by", "contended", *names)
+    group_columns = (
+        "scene",
+        "group",
+        "seeds",
+        "status",
+        "final test loss",
+        "loss at common time",
+        "time to threshold s",
+        "iterations",
+        "s/iter",
+        "stopped by",
+        "contended",
+        *names,
+    )
     common = common_times(runs)
     scenes = sorted({run.scene for run in runs}, key=natural_key)
     if threshold is not None:
         threshold_text = f"the test loss {fmt(threshold)} (--threshold)"
     else:
-        threshold_text = ("each scene's target: the median final test loss of its best group, as physgrad compare "
-                          "sets it (--threshold sets one)")
-    per_scene = "; ".join(f"{scene}: common time {fmt(common.get(scene, math.nan))} s, threshold "
-                          f"{fmt(threshold if threshold is not None else limits.get(scene, math.nan))}"
-                          for scene in scenes)
-    return [f"{len(runs)} runs under {', '.join(map(str, paths))}", "",
-            markdown_table(group_rows(rows, names), group_columns),
-            "Per group, as median [min, max] over seeds: the final test loss (at each run's budget) and the metrics "
-            "over the completed seeds, the loss at the common time over the seeds that got there, s/iter over all; "
-            "loss at common time: the last evaluation at or before the shortest training time of the scene's "
-            "completed runs (as physgrad compare reads a budget: physgrad.readout), so every variant is compared "
-            "at equal training time; time to threshold: "
-            f"median training seconds until the test loss first reached {threshold_text}, over the seeds that "
-            f"did (n/N when not all). {per_scene}.", "",
-            "Per seed:", "", markdown_table(rows, PER_SEED + tuple(names)),
-            "Times are training seconds (steps only: compilation and the first step's one-off cost are apart, in "
-            "compile_seconds and runs.csv); a run started from another's network counts from where that run ended "
-            "on the common time axis, and from its own start in train_seconds."]
+        threshold_text = (
+            "each scene's target: the median final test loss of its best group, as physgrad "
+            "compare "
+            "sets it (--threshold sets one)"
+        )
+    per_scene = "; ".join(
+        f"{scene}: common time {fmt(common.get(scene, math.nan))} s, threshold "
+        f"{fmt(threshold if threshold is not None else limits.get(scene, math.nan))}"
+        for scene in scenes
+    )
+    return [
+        f"{len(runs)} runs under {', '.join(map(str, paths))}",
+        "",
+        markdown_table(group_rows(rows, names), group_columns),
+        "Per group, as median [min, max] over seeds: the final test loss (at each run's budget) "
+        "and the metrics "
+        "over the completed seeds, the loss at the common time over the seeds that got there, "
+        "s/iter over all; "
+        "loss at common time: the last evaluation at or before the shortest training time of the "
+        "scene's "
+        "completed runs (as physgrad compare reads a budget: physgrad.readout), so every variant "
+        "is compared "
+        "at equal training time; time to threshold: "
+        f"median training seconds until the test loss first reached {threshold_text}, over the "
+        "seeds that "
+        f"did (n/N when not all). {per_scene}.",
+        "",
+        "Per seed:",
+        "",
+        markdown_table(rows, PER_SEED + tuple(names)),
+        "Times are training seconds (steps only: compilation and the first step's one-off cost "
+        "are apart, in "
+        "compile_seconds and runs.csv); a run started from another's network counts from where "
+        "that run ended "
+        "on the common time axis, and from its own start in train_seconds.",
+    ]
 
 
 def file_notes(paths, unreadable: list[tuple[Path, str]], dropped: list[Dropped]) -> list[str]:
-    """What the report did not count, and why: unreadable files, duplicates, jobs a sweep expected that left no
-    results file; and the best trial of a study of Hydra's Optuna sweeper."""
+    """What the report did not count, and why: unreadable files, duplicates, jobs a sweep expected
+    that left no results file; and the best trial of a study of Hydra's Optuna sweeper."""
     text = [f"unreadable: {reason}" for _, reason in unreadable]
     for item in dropped:
-        text.append(f"counted once: {item.path}: {item.why}" if item.path.resolve() == item.kept.resolve()
-                    else f"dropped {item.path}: {item.why} as {item.kept}")
+        text.append(
+            f"counted once: {item.path}: {item.why}"
+            if item.path.resolve() == item.kept.resolve()
+            else f"dropped {item.path}: {item.why} as {item.kept}"
+        )
     for _, path in parse_sources(paths):
         if path.is_dir():  # jobs a sweep expected (its jobs.yaml) that left no results file
             text += [f"not run: {job}: {why}" for job, why in unfinished_jobs(path)]
@@ -386,18 +518,30 @@ def file_notes(paths, unreadable: list[tuple[Path, str]], dropped: list[Dropped]
         if study is not None and study.exists():
             try:
                 best = read_small_yaml(study) or {}
-                best = best if isinstance(best, dict) and isinstance(best.get("best_params") or {}, dict) else {}
+                best = (
+                    best
+                    if isinstance(best, dict) and isinstance(best.get("best_params") or {}, dict)
+                    else {}
+                )
             except (OSError, ValueError) as error:
                 text.append(f"unreadable: {clean_text(str(error))}")
                 continue
-            settings = " ".join(f"{k}={_value(v)}" for k, v in (best.get("best_params") or {}).items())
-            text.append(f"tuned by Optuna in {path}: best {settings} (objective {fmt(best.get('best_value'))}: the "
-                        "final test loss)")
+            settings = " ".join(
+                f"{k}={_value(v)}" for k, v in (best.get("best_params") or {}).items()
+            )
+            text.append(
+                f"tuned by Optuna in {path}: best {settings} (objective "
+                f"{fmt(best.get('best_value'))}: the "
+                "final test loss)"
+            )
     return text
 
 
-def write_figures(runs: list[Run], out: Path, note: str, logx: str, thresholds: dict[str, float]) -> list[str]:
-    """The report's figures (PNG and PDF) in one style per group across all of them; the PNG names written."""
+def write_figures(
+    runs: list[Run], out: Path, note: str, logx: str, thresholds: dict[str, float]
+) -> list[str]:
+    """The report's figures (PNG and PDF) in one style per group across all of them; the PNG names
+    written."""
     from physgrad.plots import group_styles, plot_comparison, plot_tradeoff, plot_unroll
 
     styles = group_styles(run.label or run.variant for run in runs)
@@ -406,7 +550,9 @@ def write_figures(runs: list[Run], out: Path, note: str, logx: str, thresholds: 
     figures = [f"{name}.png" for name in FIGURES[:2]]
     calibrated = [run for run in runs if "calibrated_time" in run.eval]
     if calibrated:
-        plot_comparison(calibrated, out / "loss_vs_calibrated_time", "calibrated_time", note, logx, styles)
+        plot_comparison(
+            calibrated, out / "loss_vs_calibrated_time", "calibrated_time", note, logx, styles
+        )
     plot_tradeoff(runs, out / "tradeoff", note, styles, thresholds)
     figures.append("tradeoff.png")
     if calibrated:

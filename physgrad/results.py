@@ -1,13 +1,16 @@
-"""Results files: one HDF5 file per run, written incrementally, and reading many of them into one table.
+"""Results files: one HDF5 file per run, written incrementally, and reading many of them into one
+table.
 
 Layout (see docs/results.md):
-  root attributes: task, optim, unroll (temporal scenes only), seed, status, reason, config, physgrad_version,
+  root attributes: task, optim, unroll (temporal scenes only), seed, status, reason, config,
+  physgrad_version,
                    jax_version, compile_seconds, created, and a few descriptive extras;
   /train/{iteration, wall_time, loss, grad_norm, ...}: one row per iteration;
   /eval/{iteration, wall_time, loss, <scene metrics>}: held-out evaluations;
   /params: the final network as one flat vector (every run that did not diverge or fail).
-At every flush the whole file is written beside results.h5 and renamed onto it, so a run killed at any moment
-leaves a complete file holding every row flushed so far, and readers never share a file with the writer.
+At every flush the whole file is written beside results.h5 and renamed onto it, so a run killed at
+any moment leaves a complete file holding every row flushed so far, and readers never share a file
+with the writer.
 """
 
 from __future__ import annotations
@@ -24,27 +27,24 @@ import h5py
 import numpy as np
 
 from physgrad.errors import ResultsWriteError
-from physgrad.files import (CONFIG_LIMIT, clean_text, file_kind, load_yaml, owner_tag, replace_file, with_live_status,
-                            timestamp)
+from physgrad.files import (
+    CONFIG_LIMIT,
+    clean_text,
+    file_kind,
+    load_yaml,
+    owner_tag,
+    replace_file,
+    timestamp,
+    with_live_status,
+)
 
 STATUSES = ("running", "completed", "diverged", "interrupted", "failed", "refused")
 GROUPS = ("train", "eval")
 
 
-ASIDE_SUFFIX = ".overwriting.h5"  # a re-run's file while a completed results.h5 it would replace stays valid
-
-
-
-
-
-
-
-
-
-
-
-
-
+ASIDE_SUFFIX = (
+    ".overwriting.h5"  # a re-run's file while a completed results.h5 it would replace stays valid
+)
 
 
 def holds_completed(path: Path) -> bool:
@@ -55,25 +55,42 @@ def holds_completed(path: Path) -> bool:
 
 
 class ResultsWriter:
-    """Keeps every row of a run in memory (one tuple per row, so an interrupt can never leave a row half
-    appended) and writes the whole file at each flush() into a temporary file beside it, which then replaces
-    results.h5 by an atomic rename. So the file on disk is always a complete, consistent earlier state: a kill
-    at any instant loses at most the rows since the last flush, a write cut short by a signal or a full disk
-    leaves the previous version, and a reader (any reader, with or without HDF5 file locking) keeps the version
-    it opened and never blocks the writer. A completed results.h5 is not replaced before its successor has
-    completed: until then the run writes results.overwriting.h5 beside it."""
+    """Keeps every row of a run in memory (one tuple per row, so an interrupt can never leave a row
+    half appended) and writes the whole file at each flush() into a temporary file beside it, which
+    then replaces results.h5 by an atomic rename. So the file on disk is always a complete,
+    consistent earlier state: a kill at any instant loses at most the rows since the last flush, a
+    write cut short by a signal or a full disk leaves the previous version, and a reader (any
+    reader, with or without HDF5 file locking) keeps the version it opened and never blocks the
+    writer. A completed results.h5 is not replaced before its successor has completed: until then
+    the run writes results.overwriting.h5 beside it."""
 
     def __init__(self, path: str | os.PathLike, attrs: dict, write: bool = True):
         self.path = Path(path)
         self.path.parent.mkdir(parents=True, exist_ok=True)
-        self.live = self.path.with_name(self.path.stem + ASIDE_SUFFIX) if holds_completed(self.path) else self.path
-        self.attrs = {key: value for key, value in {**attrs, "status": "running", "created": timestamp(),
-                                                      "owner": owner_tag()}.items() if value is not None}
+        self.live = (
+            self.path.with_name(self.path.stem + ASIDE_SUFFIX)
+            if holds_completed(self.path)
+            else self.path
+        )
+        self.attrs = {
+            key: value
+            for key, value in {
+                **attrs,
+                "status": "running",
+                "created": timestamp(),
+                "owner": owner_tag(),
+            }.items()
+            if value is not None
+        }
         self._columns: dict[str, tuple[str, ...] | None] = {group: None for group in GROUPS}
         self._rows: dict[str, list[tuple]] = {group: [] for group in GROUPS}  # not yet flushed
-        self._data: dict[str, dict[str, list[np.ndarray]]] = {group: {} for group in GROUPS}  # flushed chunks
+        self._data: dict[str, dict[str, list[np.ndarray]]] = {
+            group: {} for group in GROUPS
+        }  # flushed chunks
         self._params: np.ndarray | None = None
-        for stale in self.live.parent.glob(f".{self.live.name}.*.tmp"):  # left by a writer killed mid-write
+        for stale in self.live.parent.glob(
+            f".{self.live.name}.*.tmp"
+        ):  # left by a writer killed mid-write
             stale.unlink(missing_ok=True)
         if write:  # (not for a file that is finished at once: see record_outcome)
             self._write()
@@ -82,7 +99,9 @@ class ResultsWriter:
         """Fix the columns of a group; append_row() then takes values in this order."""
         names = tuple(names)
         if self._columns[group] is not None and set(self._columns[group]) != set(names):
-            raise ValueError(f"/{group} row has columns {sorted(names)}, expected {sorted(self._columns[group])}")
+            raise ValueError(
+                f"/{group} row has columns {sorted(names)}, expected {sorted(self._columns[group])}"
+            )
         if self._columns[group] is None:
             self._columns[group] = names
 
@@ -95,16 +114,16 @@ class ResultsWriter:
         self._rows[group].append(values)
 
     def shift_buffered_time(self, seconds: float) -> None:
-        """Add seconds to the wall_time of every row not yet flushed (the runner moves the first step's one-off
-        cost out of the training time this way)."""
+        """Add seconds to the wall_time of every row not yet flushed (the runner moves the first
+        step's one-off cost out of the training time this way)."""
         for group, rows in self._rows.items():
             if rows and "wall_time" in self._columns[group]:
                 at = self._columns[group].index("wall_time")
-                rows[:] = [(*row[:at], row[at] + seconds, *row[at + 1:]) for row in rows]
+                rows[:] = [(*row[:at], row[at] + seconds, *row[at + 1 :]) for row in rows]
 
     def flush(self, sync: bool = False) -> None:
-        """Write the file with every row so far and the attributes set since (sync: to the disk itself, not
-        only to the operating system, which a killed process cannot lose anyway)."""
+        """Write the file with every row so far and the attributes set since (sync: to the disk
+        itself, not only to the operating system, which a killed process cannot lose anyway)."""
         for group, rows in self._rows.items():
             if rows:
                 columns = self._data[group]
@@ -122,13 +141,14 @@ class ResultsWriter:
                 self.attrs[key] = value
 
     def save_params(self, flat: np.ndarray) -> None:
-        """The network's final parameters as one flat vector (ravel_pytree order) in /params, with the next
-        flush()."""
+        """The network's final parameters as one flat vector (ravel_pytree order) in /params, with
+        the next flush()."""
         self._params = np.asarray(flat)
 
     def finish(self, status: str, reason: str | None = None, sync: bool = True, **attrs) -> None:
-        """Record the final status (and the reason for anything but completed) and write the file, synced to
-        disk (sync). A completed run written aside replaces the completed results.h5 only now."""
+        """Record the final status (and the reason for anything but completed) and write the file,
+        synced to disk (sync). A completed run written aside replaces the completed results.h5 only
+        now."""
         if status not in STATUSES:
             raise ValueError(f"unknown status {status!r}")
         self.set_attrs(status=status, reason=reason, finished=timestamp(), **attrs)
@@ -138,19 +158,23 @@ class ResultsWriter:
             self.live = self.path
 
     def mark_failed_in_place(self, reason: str) -> bool:
-        """Last resort when a full write fails (disk full): set status failed and the reason on the file as it
-        is, a few bytes of attributes. True if that worked."""
+        """Last resort when a full write fails (disk full): set status failed and the reason on the
+        file as it is, a few bytes of attributes. True if that worked."""
         try:
             with h5py.File(self.live, "a", locking=False) as f:
-                f.attrs["status"], f.attrs["reason"], f.attrs["finished"] = "failed", reason, timestamp()
+                f.attrs["status"], f.attrs["reason"], f.attrs["finished"] = (
+                    "failed",
+                    reason,
+                    timestamp(),
+                )
             return True
         except (OSError, ValueError):
             return False
 
     def _write(self, sync: bool = False) -> None:
-        """The file is built in memory (HDF5's core driver) and its bytes written by Python: a failing write()
-        (disk full, quota, size limit) is then an OSError here, where HDF5 writing to disk itself crashed the
-        process when a write failed as it closed the file."""
+        """The file is built in memory (HDF5's core driver) and its bytes written by Python: a
+        failing write() (disk full, quota, size limit) is then an OSError here, where HDF5 writing
+        to disk itself crashed the process when a write failed as it closed the file."""
         self.attrs["heartbeat"] = timestamp()
         try:
             with h5py.File(f"physgrad-{id(self)}.h5", "w", driver="core", backing_store=False) as f:
@@ -166,18 +190,17 @@ class ResultsWriter:
                 image = f.id.get_file_image()
             replace_file(self.live, image, sync)
         except OSError as error:
-            raise ResultsWriteError(f"cannot write {self.live}: {error.strerror or error}") from error
+            raise ResultsWriteError(
+                f"cannot write {self.live}: {error.strerror or error}"
+            ) from error
 
 
 def record_outcome(path: str | os.PathLike, attrs: dict, status: str, reason: str) -> None:
-    """A results file of attributes only, for a job refused, failed or interrupted before training: one write,
-    not synced (a job of a thousand seeds writes a thousand of them, and a signal must not wait for that); a
-    completed file at path is kept, as ResultsWriter keeps it."""
+    """A results file of attributes only, for a job refused, failed or interrupted before training:
+    one write,
+    not synced (a job of a thousand seeds writes a thousand of them, and a signal must not wait for
+    that); a completed file at path is kept, as ResultsWriter keeps it."""
     ResultsWriter(path, attrs, write=False).finish(status, reason, sync=False)
-
-
-
-
 
 
 @dataclass
@@ -188,10 +211,15 @@ class Run:
     attrs: dict
     train: dict
     eval: dict
-    setting: str = ""  # the problem settings that tell this run's scene apart from others of its task
-    label: str = ""  # in a report: its group (variant and the method settings that differ), see physgrad.report
+    setting: str = (
+        ""  # the problem settings that tell this run's scene apart from others of its task
+    )
+    # in a report: its group (variant and the method settings that differ), see physgrad.report
+    label: str = ""
     collection: str = ""  # in a report: the label of the set of runs it was found in (LABEL=PATH)
-    config: dict = field(default_factory=dict)  # the stored config parsed as plain data (parse_config)
+    config: dict = field(
+        default_factory=dict
+    )  # the stored config parsed as plain data (parse_config)
 
     @property
     def scene(self) -> str:
@@ -208,8 +236,8 @@ class Run:
         return float(np.median(np.diff(np.concatenate([[0.0], wall])))) if wall.size else math.nan
 
     def offset(self, x_key: str) -> float:
-        """Where this run's x axis starts: a run started from another's network (init_from) continues that
-        run's iterations and training seconds."""
+        """Where this run's x axis starts: a run started from another's network (init_from)
+        continues that run's iterations and training seconds."""
         key = {"wall_time": "init_train_seconds", "iteration": "init_iterations"}.get(x_key)
         return float(self.attrs.get(key, 0.0)) if key else 0.0
 
@@ -218,35 +246,78 @@ class Run:
         return float(values[-1]) if values.size else math.nan
 
 
-# Reading: a results file may come from anyone, so it is data. A reader opens regular files only, follows no
-# link, external storage or virtual dataset, checks every attribute's type and every column's shape, dtype and
-# size before using it, cuts long text, replaces control characters (terminal escapes) and parses the stored
-# config as plain YAML without aliases; it never resolves or instantiates anything. A file failing a check is
-# refused with one line (ValueError) naming the check.
+# Reading: a results file may come from anyone, so it is data. A reader opens regular files only,
+# follows no link, external storage or virtual dataset, checks every attribute's type and every
+# column's shape, dtype and size before using it, cuts long text, replaces control characters
+# (terminal escapes) and parses the stored config as plain YAML without aliases; it never resolves
+# or instantiates anything. A file failing a check is refused with one line (ValueError) naming the
+# check.
 COLUMN_LIMIT = 1 << 26  # elements of one /train or /eval column (512 MiB of float64) ...
 FILE_COLUMNS_LIMIT = 1 << 28  # ... and of all of a file's columns together
 REQUIRED_TEXT = ("status", "task", "optim")
-INTEGER_ATTRS = frozenset({"seed", "unroll", "iterations", "batch_size", "n_params", "wall_time_shared_by",
-                           "init_iterations", "cpu_count", "contended"})
-NUMBER_ATTRS = frozenset({"compile_seconds", "train_seconds", "first_step_overhead_seconds", "init_train_seconds",
-                          "step_cost", "load_start", "load_end", "step_seconds_p10", "step_seconds_p50",
-                          "step_seconds_p90", "step_seconds_p99"})
-TEXT_ATTRS = frozenset({"task", "optim", "variant", "status", "reason", "stopped_by", "config", "precision",
-                        "physgrad_version", "jax_version", "jaxlib_version", "git_commit", "cpu_model", "device",
-                        "thread_settings", "hostname", "created", "finished", "owner", "heartbeat", "jacobian",
-                        "clock", "contention", "init_from", "init_variant"})
-
-
-
-
-
-
+INTEGER_ATTRS = frozenset(
+    {
+        "seed",
+        "unroll",
+        "iterations",
+        "batch_size",
+        "n_params",
+        "wall_time_shared_by",
+        "init_iterations",
+        "cpu_count",
+        "contended",
+    }
+)
+NUMBER_ATTRS = frozenset(
+    {
+        "compile_seconds",
+        "train_seconds",
+        "first_step_overhead_seconds",
+        "init_train_seconds",
+        "step_cost",
+        "load_start",
+        "load_end",
+        "step_seconds_p10",
+        "step_seconds_p50",
+        "step_seconds_p90",
+        "step_seconds_p99",
+    }
+)
+TEXT_ATTRS = frozenset(
+    {
+        "task",
+        "optim",
+        "variant",
+        "status",
+        "reason",
+        "stopped_by",
+        "config",
+        "precision",
+        "physgrad_version",
+        "jax_version",
+        "jaxlib_version",
+        "git_commit",
+        "cpu_model",
+        "device",
+        "thread_settings",
+        "hostname",
+        "created",
+        "finished",
+        "owner",
+        "heartbeat",
+        "jacobian",
+        "clock",
+        "contention",
+        "init_from",
+        "init_variant",
+    }
+)
 
 
 def parse_config(text: str) -> dict:
-    """The stored config as plain data (nested dicts, lists, scalars), text cleaned as clean_text; ValueError
-    (one line) if it is too long, not YAML, holds an alias or is not a mapping. Interpolations such as ${...}
-    stay the text they are."""
+    """The stored config as plain data (nested dicts, lists, scalars), text cleaned as clean_text;
+    ValueError (one line) if it is too long, not YAML, holds an alias or is not a mapping.
+    Interpolations such as ${...} stay the text they are."""
     if len(text.encode(errors="replace")) > CONFIG_LIMIT:
         raise ValueError(f"the config attribute is longer than {CONFIG_LIMIT} bytes")
     try:
@@ -268,8 +339,9 @@ def _clean_tree(tree):
 
 @contextmanager
 def _open_results(path: Path):
-    """The HDF5 file at path, opened from a descriptor of a regular file (a FIFO, device or socket named
-    results.h5 is refused without blocking on it); ValueError (one line) if it cannot be opened."""
+    """The HDF5 file at path, opened from a descriptor of a regular file (a FIFO, device or socket
+    named results.h5 is refused without blocking on it); ValueError (one line) if it cannot be
+    opened."""
     try:
         fd = os.open(path, os.O_RDONLY | os.O_NONBLOCK | getattr(os, "O_NOCTTY", 0))
     except OSError as error:
@@ -282,51 +354,71 @@ def _open_results(path: Path):
             try:
                 f = h5py.File(stream, "r")
             except (OSError, RuntimeError, ValueError) as error:
-                raise ValueError(f"{path}: cannot be read as HDF5 ({clean_text(str(error).splitlines()[0], 200)})"
-                                 ) from None
+                raise ValueError(
+                    f"{path}: cannot be read as HDF5 "
+                    f"({clean_text(str(error).splitlines()[0], 200)})"
+                ) from None
             with f:
                 yield f
     finally:
         os.close(fd)
 
 
-
-
 def _checked_attrs(path: Path, f: h5py.File) -> dict:
-    """The root attributes, each checked: text (cleaned, cut), integers and numbers where physgrad computes with
-    them, other scalars kept, arrays of unknown attributes dropped. ValueError naming the first that fails."""
+    """The root attributes, each checked: text (cleaned, cut), integers and numbers where physgrad
+    computes with them, other scalars kept, arrays of unknown attributes dropped. ValueError naming
+    the first that fails."""
     attrs = {}
     for key in f.attrs:
         name = clean_text(key, 200)
         try:
             value = f.attrs[key]
         except (OSError, RuntimeError, TypeError, ValueError) as error:
-            raise ValueError(f"{path}: attribute {name!r} cannot be read ({clean_text(str(error), 200)})") from None
+            raise ValueError(
+                f"{path}: attribute {name!r} cannot be read ({clean_text(str(error), 200)})"
+            ) from None
         if isinstance(value, np.ndarray) and value.shape == ():
             value = value[()]
         if isinstance(value, (bytes, np.bytes_)):
             value = bytes(value).decode(errors="replace")
         elif isinstance(value, np.generic):
             value = value.item()
-        expected = ("an integer" if key in INTEGER_ATTRS else "a number" if key in NUMBER_ATTRS
-                    else "text" if key in TEXT_ATTRS else None)
+        expected = (
+            "an integer"
+            if key in INTEGER_ATTRS
+            else "a number"
+            if key in NUMBER_ATTRS
+            else "text"
+            if key in TEXT_ATTRS
+            else None
+        )
         if isinstance(value, str):
             if key == "config":
                 if len(value) > CONFIG_LIMIT:
-                    raise ValueError(f"{path}: attribute 'config' is longer than {CONFIG_LIMIT} characters")
+                    raise ValueError(
+                        f"{path}: attribute 'config' is longer than {CONFIG_LIMIT} characters"
+                    )
                 value = clean_text(value, None, lines=True)
             else:
                 value = clean_text(value)
-        ok = (isinstance(value, str) if expected == "text" else
-              isinstance(value, int) and not isinstance(value, bool) if expected == "an integer" else
-              isinstance(value, (int, float)) and not isinstance(value, bool) if expected == "a number" else
-              isinstance(value, (str, int, float, bool)))
+        ok = (
+            isinstance(value, str)
+            if expected == "text"
+            else isinstance(value, int) and not isinstance(value, bool)
+            if expected == "an integer"
+            else isinstance(value, (int, float)) and not isinstance(value, bool)
+            if expected == "a number"
+            else isinstance(value, (str, int, float, bool))
+        )
         if key == "seed" and isinstance(value, str):
-            ok = True  # allowed for a refused job only (the invalid value it was refused for): checked below
+            # allowed for a refused job only (the invalid value it was refused for): checked below
+            ok = True
         if not ok:
             if expected is None:
                 continue  # an unknown attribute physgrad does not read: dropped
-            raise ValueError(f"{path}: attribute {name!r} is {_describe(value)}, expected {expected}")
+            raise ValueError(
+                f"{path}: attribute {name!r} is {_describe(value)}, expected {expected}"
+            )
         attrs[name] = value
     missing = [key for key in (*REQUIRED_TEXT, "seed") if key not in attrs]
     if missing:
@@ -334,14 +426,17 @@ def _checked_attrs(path: Path, f: h5py.File) -> dict:
     if attrs["status"] not in STATUSES:
         raise ValueError(f"{path}: status {attrs['status']!r} is none of {', '.join(STATUSES)}")
     if isinstance(attrs["seed"], str) and attrs["status"] != "refused":
-        raise ValueError(f"{path}: attribute 'seed' is {_describe(attrs['seed'])}, expected an integer")
+        raise ValueError(
+            f"{path}: attribute 'seed' is {_describe(attrs['seed'])}, expected an integer"
+        )
     return with_live_status(attrs)
 
 
 def _describe(value) -> str:
     if isinstance(value, np.ndarray):
         return f"an array of shape {value.shape}"
-    return f"{'text' if isinstance(value, str) else type(value).__name__} {clean_text(repr(value), 40)}"
+    kind = "text" if isinstance(value, str) else type(value).__name__
+    return f"{kind} {clean_text(repr(value), 40)}"
 
 
 def _checked_group(path: Path, f: h5py.File, group: str) -> h5py.Group:
@@ -349,34 +444,49 @@ def _checked_group(path: Path, f: h5py.File, group: str) -> h5py.Group:
     if link is None:
         raise ValueError(f"{path}: not a physgrad results file (no /{group})")
     if not isinstance(link, h5py.HardLink) or not isinstance(f[group], h5py.Group):
-        raise ValueError(f"{path}: /{group} is a {type(link).__name__}, not a group: links are not followed")
+        raise ValueError(
+            f"{path}: /{group} is a {type(link).__name__}, not a group: links are not followed"
+        )
     return f[group]
 
 
 def _checked_columns(path: Path, f: h5py.File, group: str) -> dict[str, h5py.Dataset]:
-    """The datasets of /group after the checks (not read yet): hard links to 1-D numeric datasets stored in
-    this file, of equal length, holding iteration and loss (and in /eval wall_time) when there are any."""
+    """The datasets of /group after the checks (not read yet): hard links to 1-D numeric datasets
+    stored in this file, of equal length, holding iteration and loss (and in /eval wall_time) when
+    there are any."""
     g, columns = _checked_group(path, f, group), {}
     for key in g:
         name = clean_text(key, 200)
         link = g.get(key, getlink=True)
         if not isinstance(link, h5py.HardLink) or not isinstance(g[key], h5py.Dataset):
-            raise ValueError(f"{path}: /{group}/{name} is a {type(link).__name__}, not a dataset: links are not "
-                             "followed")
+            raise ValueError(
+                f"{path}: /{group}/{name} is a {type(link).__name__}, not a dataset: links are not "
+                "followed"
+            )
         column = g[key]
         if column.external or column.is_virtual:
-            raise ValueError(f"{path}: /{group}/{name} keeps its data in other files (external or virtual "
-                             "storage): refused")
+            raise ValueError(
+                f"{path}: /{group}/{name} keeps its data in other files (external or virtual "
+                "storage): refused"
+            )
         if column.ndim != 1 or column.dtype.kind not in "fiub":
-            raise ValueError(f"{path}: /{group}/{name} is {column.ndim}-D of {column.dtype}, expected a 1-D "
-                             "numeric column")
+            raise ValueError(
+                f"{path}: /{group}/{name} is {column.ndim}-D of {column.dtype}, expected a 1-D "
+                "numeric column"
+            )
         if column.size > COLUMN_LIMIT:
-            raise ValueError(f"{path}: /{group}/{name} has {column.size} rows, more than {COLUMN_LIMIT}")
+            raise ValueError(
+                f"{path}: /{group}/{name} has {column.size} rows, more than {COLUMN_LIMIT}"
+            )
         columns[name] = column
     lengths = {key: column.shape[0] for key, column in columns.items()}
     if len(set(lengths.values())) > 1:
-        raise ValueError(f"{path}: /{group} columns have unequal lengths {lengths}: the file is damaged")
-    needed = {"iteration", "loss"} | ({"wall_time"} if group == "eval" else set())  # what readers index
+        raise ValueError(
+            f"{path}: /{group} columns have unequal lengths {lengths}: the file is damaged"
+        )
+    needed = {"iteration", "loss"} | (
+        {"wall_time"} if group == "eval" else set()
+    )  # what readers index
     if columns and needed - set(columns):
         raise ValueError(f"{path}: /{group} lacks {', '.join(sorted(needed - set(columns)))}")
     return columns
@@ -390,26 +500,33 @@ def _config_of(path: Path, attrs: dict) -> dict:
 
 
 def read_run(path: str | os.PathLike) -> Run:
-    """Read one results file with every check above; ValueError with a one-line reason if it is not a physgrad
-    results file, cannot be read, fails a check or is inconsistent."""
+    """Read one results file with every check above; ValueError with a one-line reason if it is not
+    a physgrad results file, cannot be read, fails a check or is inconsistent."""
     path = Path(path)
     with _open_results(path) as f:
         attrs = _checked_attrs(path, f)
         columns = {group: _checked_columns(path, f, group) for group in GROUPS}
         if sum(c.size for group in columns.values() for c in group.values()) > FILE_COLUMNS_LIMIT:
-            raise ValueError(f"{path}: more than {FILE_COLUMNS_LIMIT} values in /train and /eval together")
+            raise ValueError(
+                f"{path}: more than {FILE_COLUMNS_LIMIT} values in /train and /eval together"
+            )
         config = _config_of(path, attrs)
         try:
-            data = {group: {key: column[()] for key, column in cols.items()} for group, cols in columns.items()}
+            data = {
+                group: {key: column[()] for key, column in cols.items()}
+                for group, cols in columns.items()
+            }
         except (OSError, RuntimeError, ValueError) as error:
-            raise ValueError(f"{path}: a column cannot be read ({clean_text(str(error).splitlines()[0], 200)})"
-                             ) from None
+            raise ValueError(
+                f"{path}: a column cannot be read ({clean_text(str(error).splitlines()[0], 200)})"
+            ) from None
     return Run(path, attrs, data["train"], data["eval"], config=config)
 
 
 def read_final(path: str | os.PathLike) -> tuple[dict, dict]:
-    """The attributes and the last /eval row of a results file, without reading the curves (a resumed sweep
-    checks every job this way), with the checks of read_run; ValueError (one line) as read_run."""
+    """The attributes and the last /eval row of a results file, without reading the curves (a
+    resumed sweep checks every job this way), with the checks of read_run; ValueError (one line) as
+    read_run."""
     path = Path(path)
     with _open_results(path) as f:
         attrs = _checked_attrs(path, f)
@@ -419,31 +536,45 @@ def read_final(path: str | os.PathLike) -> tuple[dict, dict]:
         try:
             last = {key: column[-1].item() for key, column in columns.items() if column.shape[0]}
         except (OSError, RuntimeError, ValueError) as error:
-            raise ValueError(f"{path}: a column cannot be read ({clean_text(str(error).splitlines()[0], 200)})"
-                             ) from None
+            raise ValueError(
+                f"{path}: a column cannot be read ({clean_text(str(error).splitlines()[0], 200)})"
+            ) from None
     return attrs, last
 
 
 def read_params(path: str | os.PathLike) -> np.ndarray:
-    """The flat final parameters a run saved, checked as read_run's columns; ValueError (one line) if the file
-    has none or is not readable."""
+    """The flat final parameters a run saved, checked as read_run's columns; ValueError (one line)
+    if the file has none or is not readable."""
     path = Path(path)
     with _open_results(path) as f:
         attrs = _checked_attrs(path, f)
         if "params" not in f:
-            raise ValueError(f"{path} holds no final network (status {attrs['status']}): use a run that finished")
+            raise ValueError(
+                f"{path} holds no final network (status {attrs['status']}): use a run that finished"
+            )
         link = f.get("params", getlink=True)
         params = f["params"] if isinstance(link, h5py.HardLink) else None
-        if (not isinstance(params, h5py.Dataset) or params.external or params.is_virtual or params.ndim != 1
-                or params.dtype.kind != "f" or params.size > COLUMN_LIMIT):
-            raise ValueError(f"{path}: /params is not a 1-D float vector stored in the file: refused")
+        if (
+            not isinstance(params, h5py.Dataset)
+            or params.external
+            or params.is_virtual
+            or params.ndim != 1
+            or params.dtype.kind != "f"
+            or params.size > COLUMN_LIMIT
+        ):
+            raise ValueError(
+                f"{path}: /params is not a 1-D float vector stored in the file: refused"
+            )
         return params[()]
 
 
 def natural_key(text: str) -> list:
     """Sort key that orders the numbers inside text by value: 'unroll=16' before 'unroll=128'."""
-    return [(0, float(part), "") if re.fullmatch(r"\d+(\.\d+)?", part) else (1, 0.0, part)
-            for part in re.split(r"(\d+(?:\.\d+)?)", text) if part]
+    return [
+        (0, float(part), "") if re.fullmatch(r"\d+(\.\d+)?", part) else (1, 0.0, part)
+        for part in re.split(r"(\d+(?:\.\d+)?)", text)
+        if part
+    ]
 
 
 def find_results(paths) -> list[Path]:

@@ -1,5 +1,5 @@
-"""Runs that build on earlier ones: a re-run sweep skips what completed or diverged with the same config
-(resume), and a run can start from another run's final network (init_from)."""
+"""Runs that build on earlier ones: a re-run sweep skips what completed or diverged with the same
+config (resume), and a run can start from another run's final network (init_from)."""
 
 from __future__ import annotations
 
@@ -16,17 +16,20 @@ from physgrad.runner import Outcome
 
 
 def comparable_config(cfg: DictConfig) -> dict:
-    """The resolved config as plain data, as results.h5 stores it, without the keys that do not change what a
-    run computes."""
+    """The resolved config as plain data, as results.h5 stores it, without the keys that do not
+    change what a run computes."""
     plain = OmegaConf.to_container(cfg, resolve=True)
     plain.pop("overwrite", None)
-    return parse_config(OmegaConf.to_yaml(plain))  # the stored text's round trip: YAML's types, cleaned text
+    return parse_config(
+        OmegaConf.to_yaml(plain)
+    )  # the stored text's round trip: YAML's types, cleaned text
 
 
 def finished_before(path: Path, cfg: DictConfig) -> Outcome | None:
-    """The outcome recorded at path if that run completed or diverged with this same config (a sweep being
-    re-run): both are results the same config gives again; interrupted, failed and refused runs run again. The
-    stored config is compared as data: nothing in it is resolved (a file from elsewhere may hold anything)."""
+    """The outcome recorded at path if that run completed or diverged with this same config (a sweep
+    being re-run): both are results the same config gives again; interrupted, failed and refused
+    runs run again. The stored config is compared as data: nothing in it is resolved (a file from
+    elsewhere may hold anything)."""
     if not path.exists():
         return None
     try:
@@ -40,13 +43,19 @@ def finished_before(path: Path, cfg: DictConfig) -> Outcome | None:
         return None
     final = {k: float(v) for k, v in last_eval.items() if k not in ("iteration", "wall_time")}
     why = f" ({attrs['reason']})" if status == "diverged" and attrs.get("reason") else ""
-    return Outcome(status, f"already {status}{why}: skipped (overwrite=true runs it again)",
-                   int(attrs.get("iterations", 0)), float(attrs.get("train_seconds", 0)), final)
+    return Outcome(
+        status,
+        f"already {status}{why}: skipped (overwrite=true runs it again)",
+        int(attrs.get("iterations", 0)),
+        float(attrs.get("train_seconds", 0)),
+        final,
+    )
 
 
 def start_from(path: str, params, task_name: str) -> tuple[Any, dict]:
-    """The final network of the run at path, in the structure and dtype of params, and attributes that record
-    where it came from; UserError (one line) if it is missing or does not fit this scene's network."""
+    """The final network of the run at path, in the structure and dtype of params, and attributes
+    that record where it came from; UserError (one line) if it is missing or does not fit this
+    scene's network."""
     if not Path(path).is_file():
         raise UserError(f"init_from={path}: no such file: give the results.h5 of an earlier run")
     try:
@@ -56,9 +65,15 @@ def start_from(path: str, params, task_name: str) -> tuple[Any, dict]:
         raise UserError(f"init_from={error}") from None
     own, unravel = ravel_pytree(params)
     if flat.shape != own.shape or source.attrs.get("task") != task_name:
-        raise UserError(f"init_from={path}: that run trained a {source.attrs.get('task')} network with {flat.size} "
-                        f"parameters, this one is {task_name} with {own.size}: use a run of the same scene")
-    attrs = {"init_from": str(path), "init_variant": source.variant,
-             "init_iterations": int(source.attrs.get("iterations", 0)),
-             "init_train_seconds": float(source.attrs.get("train_seconds", 0.0))}
+        raise UserError(
+            f"init_from={path}: that run trained a {source.attrs.get('task')} network with "
+            f"{flat.size} "
+            f"parameters, this one is {task_name} with {own.size}: use a run of the same scene"
+        )
+    attrs = {
+        "init_from": str(path),
+        "init_variant": source.variant,
+        "init_iterations": int(source.attrs.get("iterations", 0)),
+        "init_train_seconds": float(source.attrs.get("train_seconds", 0.0)),
+    }
     return unravel(jnp.asarray(flat, own.dtype)), attrs

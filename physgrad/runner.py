@@ -1,14 +1,16 @@
 """The training loop: one compiled step, training-only timing, NaN/Inf guard, buffered HDF5 rows.
 
-Timing contract: ``wall_time`` is the cumulative time of finished training steps (each step is timed from
-dispatch until its outputs are ready). Compilation happens before the loop (``compile_seconds``), and so does
-the one-off cost of the compiled step's first call (``first_step_overhead_seconds``: how much longer the first
-step took than the second, 10 to 50 ms on CPU whatever the step costs, which would otherwise be 10 to 200
-times a fast step); evaluations, HDF5 flushes, logging and the progress bar fall outside the timed intervals.
+Timing contract: ``wall_time`` is the cumulative time of finished training steps (each step is timed
+from dispatch until its outputs are ready). Compilation happens before the loop
+(``compile_seconds``), and so does the one-off cost of the compiled step's first call
+(``first_step_overhead_seconds``: how much longer the first step took than the second, 10 to 50 ms
+on CPU whatever the step costs, which would otherwise be 10 to 200 times a fast step); evaluations,
+HDF5 flushes, logging and the progress bar fall outside the timed intervals.
 
-`train` runs a TrainingLoop in named steps: start (compile, first evaluation), iterate (step, count its time,
-guard the rows, stop at a budget, evaluate, flush), end, and finish (the final files). The compiled step itself
-and the seeds trained together are in physgrad.training; signals in physgrad.interrupts.
+`train` runs a TrainingLoop in named steps: start (compile, first evaluation), iterate (step, count
+its time, guard the rows, stop at a budget, evaluate, flush), end, and finish (the final files). The
+compiled step itself and the seeds trained together are in physgrad.training; signals in
+physgrad.interrupts.
 """
 
 from __future__ import annotations
@@ -26,25 +28,32 @@ from physgrad.interrupts import StopRequest, stop_on_signals
 from physgrad.machine import contention, cpu_count, load_average, step_statistics
 from physgrad.optim import UpdateRule
 from physgrad.progress import Progress
+from physgrad.readout import DIVERGENCE_FACTOR
 from physgrad.results import ResultsWriter
 from physgrad.tasks import Scene
 from physgrad.training import CompiledTraining, Seeds, compile_training
 from physgrad.validate import choice, number
-from physgrad.readout import DIVERGENCE_FACTOR
 
 log = logging.getLogger("physgrad")
 clock = time.perf_counter  # every interval of the loop is read from this clock (tests replace it)
 DEFAULT_ITERATIONS = 2000  # trainer.iterations=null without a time budget
 CLOCKS = ("measured", "calibrated")
-EVALUATIONS_PER_BUDGET = 20  # trainer.eval_seconds=null with a time budget: an evaluation every budget / 20
-SLOW_STEP_SECONDS = 0.2  # a step at least this long runs in a helper thread, so that a second signal ends it
-FLUSH_COST_FACTOR = 20  # the file is rewritten at most every 20 times what one write takes (<= 5 % of the time)
+EVALUATIONS_PER_BUDGET = (
+    20  # trainer.eval_seconds=null with a time budget: an evaluation every budget / 20
+)
+SLOW_STEP_SECONDS = (
+    0.2  # a step at least this long runs in a helper thread, so that a second signal ends it
+)
+FLUSH_COST_FACTOR = (
+    20  # the file is rewritten at most every 20 times what one write takes (<= 5 % of the time)
+)
 
 
 @dataclass(frozen=True)
 class TrainerSettings:
-    """The `trainer` config section: when to stop, evaluate, write and log. iterations is None for no limit
-    (a time budget alone ends the run); eval_seconds None for evaluations by iteration only."""
+    """The `trainer` config section: when to stop, evaluate, write and log. iterations is None for
+    no limit (a time budget alone ends the run); eval_seconds None for evaluations by iteration
+    only."""
 
     iterations: int | None
     time_budget: float | None
@@ -54,33 +63,60 @@ class TrainerSettings:
     flush_seconds: float
     log_seconds: float
     divergence_factor: float | None = DIVERGENCE_FACTOR
-    step_cost: float | None = None  # seconds per step from a calibration (physgrad.calibration), or None
-    clock: str = "measured"  # which clock the time budget and eval_seconds read: measured | calibrated
+    step_cost: float | None = (
+        None  # seconds per step from a calibration (physgrad.calibration), or None
+    )
+    clock: str = (
+        "measured"  # which clock the time budget and eval_seconds read: measured | calibrated
+    )
 
     @classmethod
     def from_config(cls, trainer_cfg) -> "TrainerSettings":
-        """trainer.iterations=null means 2000 without a time budget and no limit with one; trainer.eval_seconds=
-        null means time_budget / 20 with a budget (so that a slow variant still gets a curve) and none without."""
-        budget = number("trainer.time_budget", trainer_cfg.get("time_budget"), 0, optional=True, open_low=True)
-        iterations = number("trainer.iterations", trainer_cfg.get("iterations"), 1, integer=True, optional=True)
-        eval_seconds = number("trainer.eval_seconds", trainer_cfg.get("eval_seconds"), 0, optional=True,
-                              open_low=True)
-        step_cost = number("trainer.step_cost", trainer_cfg.get("step_cost"), 0, optional=True, open_low=True)
+        """trainer.iterations=null means 2000 without a time budget and no limit with one;
+        trainer.eval_seconds= null means time_budget / 20 with a budget (so that a slow variant
+        still gets a curve) and none without."""
+        budget = number(
+            "trainer.time_budget", trainer_cfg.get("time_budget"), 0, optional=True, open_low=True
+        )
+        iterations = number(
+            "trainer.iterations", trainer_cfg.get("iterations"), 1, integer=True, optional=True
+        )
+        eval_seconds = number(
+            "trainer.eval_seconds", trainer_cfg.get("eval_seconds"), 0, optional=True, open_low=True
+        )
+        step_cost = number(
+            "trainer.step_cost", trainer_cfg.get("step_cost"), 0, optional=True, open_low=True
+        )
         clock = choice("trainer.clock", trainer_cfg.get("clock", "measured"), CLOCKS)
         if clock == "calibrated" and step_cost is None:
-            raise UserError("trainer.clock=calibrated needs trainer.step_cost (seconds per step from a calibration: "
-                            "physgrad compare measures it) or trainer.clock=measured")
+            raise UserError(
+                "trainer.clock=calibrated needs trainer.step_cost (seconds per step from a "
+                "calibration: "
+                "physgrad compare measures it) or trainer.clock=measured"
+            )
         return cls(
-            iterations=iterations if iterations is not None or budget is not None else DEFAULT_ITERATIONS,
+            iterations=iterations
+            if iterations is not None or budget is not None
+            else DEFAULT_ITERATIONS,
             time_budget=budget,
             eval_every=number("trainer.eval_every", trainer_cfg.get("eval_every"), 1, integer=True),
-            eval_seconds=eval_seconds if eval_seconds is not None or budget is None
+            eval_seconds=eval_seconds
+            if eval_seconds is not None or budget is None
             else budget / EVALUATIONS_PER_BUDGET,
             batch_size=number("trainer.batch_size", trainer_cfg.get("batch_size"), 1, integer=True),
-            flush_seconds=number("trainer.flush_seconds", trainer_cfg.get("flush_seconds"), 0, open_low=True),
-            log_seconds=number("trainer.log_seconds", trainer_cfg.get("log_seconds", 30.0), 0, open_low=True),
-            divergence_factor=number("trainer.divergence_factor", trainer_cfg.get("divergence_factor",
-                                     DIVERGENCE_FACTOR), 1, optional=True, open_low=True),
+            flush_seconds=number(
+                "trainer.flush_seconds", trainer_cfg.get("flush_seconds"), 0, open_low=True
+            ),
+            log_seconds=number(
+                "trainer.log_seconds", trainer_cfg.get("log_seconds", 30.0), 0, open_low=True
+            ),
+            divergence_factor=number(
+                "trainer.divergence_factor",
+                trainer_cfg.get("divergence_factor", DIVERGENCE_FACTOR),
+                1,
+                optional=True,
+                open_low=True,
+            ),
             step_cost=step_cost,
             clock=clock,
         )
@@ -96,36 +132,56 @@ class Outcome:
     stopped_by: str | None = None  # iterations | time_budget (completed runs)
 
 
-# checked for NaN/Inf after every step, in causal order: the physical output (the simulated state or what is
-# read out of it: a blow-up of the physics shows here first), the loss, the gradient, the update; the first
-# non-finite one is the reason
+# checked for NaN/Inf after every step, in causal order: the physical output (the simulated state or
+# what is read out of it: a blow-up of the physics shows here first), the loss, the gradient, the
+# update; the first non-finite one is the reason
 GUARDED = ("output_max_abs", "loss", "grad_norm", "update_norm")
-QUANTITY = {"output_max_abs": "output", "loss": "loss", "grad_norm": "gradient", "update_norm": "update"}
+QUANTITY = {
+    "output_max_abs": "output",
+    "loss": "loss",
+    "grad_norm": "gradient",
+    "update_norm": "update",
+}
 
 
 def divergence_reason(quantity: str, logs: dict, iteration: int, svd_failures_before: float) -> str:
-    """One line: which quantity went non-finite first, its value, the iteration, and a failed factorisation if
-    that is what happened at this step."""
+    """One line: which quantity went non-finite first, its value, the iteration, and a failed
+    factorisation if that is what happened at this step."""
     reason = f"{QUANTITY[quantity]} became {logs[quantity]} at iteration {iteration} ({quantity})"
     if logs.get("svd_failures", 0.0) > svd_failures_before:
-        reason += ("; the SVD/eigh of the Jacobian did not converge (optim.retry_float64=true retries it in "
-                   "float64, precision=64 runs everything in float64)")
+        reason += (
+            "; the SVD/eigh of the Jacobian did not converge (optim.retry_float64=true retries it "
+            "in "
+            "float64, precision=64 runs everything in float64)"
+        )
     return reason
 
 
 def blew_up(loss: float, first_loss: float | None, factor: float | None) -> bool:
-    """A finite training loss past factor times the first step's (a blow-up that has not reached NaN yet); never
-    when the first loss is 0 or the bound is off (factor None)."""
-    return factor is not None and first_loss is not None and first_loss > 0 and loss > factor * first_loss
+    """A finite training loss past factor times the first step's (a blow-up that has not reached NaN
+    yet); never when the first loss is 0 or the bound is off (factor None)."""
+    return (
+        factor is not None
+        and first_loss is not None
+        and first_loss > 0
+        and loss > factor * first_loss
+    )
 
 
-def timing_attributes(step_seconds: list[float], load_start: float, load_end: float, static_cost: bool = True) -> dict:
-    """The step-time percentiles, the load average at the start and the end, and the contention flag with its
-    reason (physgrad.machine.contention)."""
+def timing_attributes(
+    step_seconds: list[float], load_start: float, load_end: float, static_cost: bool = True
+) -> dict:
+    """The step-time percentiles, the load average at the start and the end, and the contention flag
+    with its reason (physgrad.machine.contention)."""
     statistics = step_statistics(step_seconds)
     cores = cpu_count()
     why = contention(statistics, len(step_seconds), load_start, load_end, cores, static_cost)
-    attrs = {**statistics, "load_start": load_start, "load_end": load_end, "contended": int(bool(why))}
+    attrs = {
+        **statistics,
+        "load_start": load_start,
+        "load_end": load_end,
+        "contended": int(bool(why)),
+    }
     if why:
         attrs["contention"] = why
     return attrs
@@ -133,8 +189,9 @@ def timing_attributes(step_seconds: list[float], load_start: float, load_end: fl
 
 @dataclass
 class SeedRun:
-    """What the loop tracks for one seed: its results file, how it ended so far, its last evaluation, and the
-    factorisation failures counted before the current step (to name them in a divergence reason)."""
+    """What the loop tracks for one seed: its results file, how it ended so far, its last
+    evaluation, and the factorisation failures counted before the current step (to name them in a
+    divergence reason)."""
 
     writer: ResultsWriter
     status: str = "completed"
@@ -142,7 +199,9 @@ class SeedRun:
     iterations: int | None = None  # set when the seed stops before the others (diverged)
     latest_eval: dict = field(default_factory=dict)
     svd_failures: float = 0.0
-    first_loss: float | None = None  # the training loss of the first step: the scale of the blow-up bound
+    first_loss: float | None = (
+        None  # the training loss of the first step: the scale of the blow-up bound
+    )
 
     @property
     def running(self) -> bool:
@@ -150,18 +209,21 @@ class SeedRun:
 
 
 def finish_or_mark(writer: ResultsWriter, status: str, reason: str | None, **attrs) -> str | None:
-    """writer.finish(), and if the file cannot be written (disk full) status failed set on the file as it is;
-    returns the write error as one line, or None."""
+    """writer.finish(), and if the file cannot be written (disk full) status failed set on the file
+    as it is; returns the write error as one line, or None."""
     try:
         writer.finish(status, reason, **attrs)
         return None
     except ResultsWriteError as error:
-        writer.mark_failed_in_place(f"{error}; the run ended {status}" + (f" ({reason})" if reason else ""))
+        writer.mark_failed_in_place(
+            f"{error}; the run ended {status}" + (f" ({reason})" if reason else "")
+        )
         return str(error)
 
 
 class Writers:
-    """The results files of the seeds trained together (one ResultsWriter per seed), written alike."""
+    """The results files of the seeds trained together (one ResultsWriter per seed), written
+    alike."""
 
     def __init__(self, writers):
         self.writers = list(writers)
@@ -187,8 +249,8 @@ class Writers:
 
 
 class RowGuard:
-    """The check of one seed's logged scalars after a step: NaN/Inf in a GUARDED quantity, or a finite loss past
-    trainer.divergence_factor times the first step's (a blow-up without NaN)."""
+    """The check of one seed's logged scalars after a step: NaN/Inf in a GUARDED quantity, or a
+    finite loss past trainer.divergence_factor times the first step's (a blow-up without NaN)."""
 
     def __init__(self, log_names: list[str], divergence_factor: float | None):
         self.names, self.factor = log_names, divergence_factor
@@ -197,30 +259,47 @@ class RowGuard:
         self.svd_at = log_names.index("svd_failures") if "svd_failures" in log_names else None
 
     def check(self, run: SeedRun, row: list, iteration: int) -> str | None:
-        """Why the seed diverged at this step, or None; keeps the seed's first loss (the blow-up bound's scale)
-        and its count of failed factorisations (to name a new one in a later reason)."""
+        """Why the seed diverged at this step, or None; keeps the seed's first loss (the blow-up
+        bound's scale) and its count of failed factorisations (to name a new one in a later
+        reason)."""
         bad = next((self.names[i] for i in self.guarded if not math.isfinite(row[i])), None)
         if run.first_loss is None:
             run.first_loss = row[self.loss_at]
         if bad is not None:
             return divergence_reason(bad, dict(zip(self.names, row)), iteration, run.svd_failures)
         if blew_up(row[self.loss_at], run.first_loss, self.factor):
-            return (f"loss grew to {row[self.loss_at]:.4g} at iteration {iteration}, more than "
-                    f"trainer.divergence_factor={self.factor:g} times its first value {run.first_loss:.4g} "
-                    "(a blow-up without NaN)")
+            return (
+                f"loss grew to {row[self.loss_at]:.4g} at iteration {iteration}, more than "
+                f"trainer.divergence_factor={self.factor:g} times its first value "
+                f"{run.first_loss:.4g} "
+                "(a blow-up without NaN)"
+            )
         if self.svd_at is not None:
             run.svd_failures = row[self.svd_at]
         return None
 
 
 class TrainingLoop:
-    """One run of train(): the compiled step and evaluation, the seeds' parameters and state, the training clock,
-    and when the files are written. Its steps, in order: start, iterate, end, then finish (or interrupted or
-    failed first)."""
+    """One run of train(): the compiled step and evaluation, the seeds' parameters and state, the
+    training clock, and when the files are written. Its steps, in order: start, iterate, end, then
+    finish (or interrupted or failed first)."""
 
-    def __init__(self, rule: UpdateRule, seeds: Seeds, writers: list[ResultsWriter], settings: TrainerSettings,
-                 stop: StopRequest, progress: Progress):
-        self.rule, self.seeds, self.settings, self.stop, self.progress = rule, seeds, settings, stop, progress
+    def __init__(
+        self,
+        rule: UpdateRule,
+        seeds: Seeds,
+        writers: list[ResultsWriter],
+        settings: TrainerSettings,
+        stop: StopRequest,
+        progress: Progress,
+    ):
+        self.rule, self.seeds, self.settings, self.stop, self.progress = (
+            rule,
+            seeds,
+            settings,
+            stop,
+            progress,
+        )
         self.runs = [SeedRun(writer) for writer in writers]
         self.writers = Writers(writers)
         self.compiled: CompiledTraining | None = None
@@ -229,32 +308,45 @@ class TrainingLoop:
         self.done = 0  # iterations finished
         self.train_seconds = 0.0
         self.first_step_seconds = 0.0
-        self.step_seconds: list[float] = []  # every step's time but the first (compiling) call's: contention
+        self.step_seconds: list[
+            float
+        ] = []  # every step's time but the first (compiling) call's: contention
         self.last_eval_seconds = 0.0
         self.stopped_by: str | None = None
         self.last_flush, self.flush_interval = 0.0, settings.flush_seconds
 
     def clock_times(self, iteration: int) -> dict:
-        """The measured training seconds and, with a calibration, the calibrated ones (iterations x step cost)."""
+        """The measured training seconds and, with a calibration, the calibrated ones (iterations x
+        step cost)."""
         times = {"wall_time": self.train_seconds}
         if self.settings.step_cost is not None:
             times["calibrated_time"] = iteration * self.settings.step_cost
         return times
 
     def budget_seconds(self, iteration: int) -> float:
-        """The time the budget and eval_seconds read: the measured or the calibrated clock (trainer.clock)."""
-        return iteration * self.settings.step_cost if self.settings.clock == "calibrated" else self.train_seconds
+        """The time the budget and eval_seconds read: the measured or the calibrated clock
+        (trainer.clock)."""
+        return (
+            iteration * self.settings.step_cost
+            if self.settings.clock == "calibrated"
+            else self.train_seconds
+        )
 
     def start(self, scene: Scene) -> None:
-        """Compile (minutes, sometimes), set the files' columns, and evaluate the initial networks, written at once."""
+        """Compile (minutes, sometimes), set the files' columns, and evaluate the initial networks,
+        written at once."""
         self.stop.raise_if_stopped()  # a signal during start-up
         settings, start = self.settings, clock()
-        compiled = self.compiled = compile_training(scene, self.rule, self.seeds, settings.batch_size)
+        compiled = self.compiled = compile_training(
+            scene, self.rule, self.seeds, settings.batch_size
+        )
         self.params, self.opt_state = compiled.params, compiled.opt_state
         compile_seconds = clock() - start
         self.writers.set_attrs(compile_seconds=compile_seconds)
         self.progress.compiled(compile_seconds)
-        clock_columns = ("wall_time", "calibrated_time") if settings.step_cost is not None else ("wall_time",)
+        clock_columns = (
+            ("wall_time", "calibrated_time") if settings.step_cost is not None else ("wall_time",)
+        )
         self.writers.set_columns("train", ("iteration", *clock_columns, *compiled.log_names))
         if settings.step_cost is not None:
             self.writers.set_attrs(step_cost=settings.step_cost, clock=settings.clock)
@@ -265,7 +357,8 @@ class TrainingLoop:
         self.last_flush = clock()
 
     def iterate(self) -> None:
-        """Train until trainer.iterations or the time budget (stopped_by), or until every seed diverged."""
+        """Train until trainer.iterations or the time budget (stopped_by), or until every seed
+        diverged."""
         settings, running, seconds = self.settings, list(enumerate(self.runs)), 0.0
         while settings.iterations is None or self.done < settings.iterations:
             self.stop.raise_if_stopped()
@@ -283,12 +376,19 @@ class TrainingLoop:
             self.flush_if_due(logs[running[0][0]][self.guard.loss_at])
 
     def step(self, previous_seconds: float) -> tuple[list, float]:
-        """One step of every seed, timed from dispatch until its outputs are ready: the logged scalars (a row per
-        seed) and its seconds. The first step, and any after a step of SLOW_STEP_SECONDS or more, run where a
-        second signal ends the wait without their result (StopRequest.call)."""
+        """One step of every seed, timed from dispatch until its outputs are ready: the logged
+        scalars (a row per seed) and its seconds. The first step, and any after a step of
+        SLOW_STEP_SECONDS or more, run where a second signal ends the wait without their result
+        (StopRequest.call)."""
         iteration, compiled = self.done, self.compiled
         tick = clock()
-        arguments = (self.params, self.opt_state, np.int32(iteration), self.seeds.train_keys, self.seeds.train_sets)
+        arguments = (
+            self.params,
+            self.opt_state,
+            np.int32(iteration),
+            self.seeds.train_keys,
+            self.seeds.train_sets,
+        )
         if iteration == 0 or previous_seconds >= SLOW_STEP_SECONDS:
             params, self.opt_state, logs = self.stop.call(ready(compiled.step), *arguments)
         else:
@@ -301,8 +401,8 @@ class TrainingLoop:
         return logs, seconds
 
     def count_time(self, iteration: int, seconds: float) -> None:
-        """Keep the step's seconds for the contention check; at the second step, take the first's one-off cost off
-        the training clock."""
+        """Keep the step's seconds for the contention check; at the second step, take the first's
+        one-off cost off the training clock."""
         if iteration == 0:
             self.first_step_seconds = seconds
         else:
@@ -311,8 +411,9 @@ class TrainingLoop:
             self.correct_first_step(max(0.0, self.first_step_seconds - seconds))
 
     def correct_first_step(self, overhead: float) -> None:
-        """The first call's one-off cost (how much longer it took than the second) is start-up, not training:
-        taken off the training clock and every time stamp since, which are all still in the buffers."""
+        """The first call's one-off cost (how much longer it took than the second) is start-up, not
+        training: taken off the training clock and every time stamp since, which are all still in
+        the buffers."""
         self.train_seconds -= overhead
         if self.settings.clock == "measured" and self.last_eval_seconds:
             self.last_eval_seconds = max(0.0, self.last_eval_seconds - overhead)
@@ -320,8 +421,9 @@ class TrainingLoop:
         self.writers.set_attrs(first_step_overhead_seconds=overhead)
 
     def record_rows(self, running: list, logs: list, iteration: int) -> list:
-        """Each running seed's row into its file, then guarded: a seed that diverged stops there (its status and
-        reason set). Returns the (index, run) pairs still running: the same list unless one stopped."""
+        """Each running seed's row into its file, then guarded: a seed that diverged stops there
+        (its status and reason set). Returns the (index, run) pairs still running: the same list
+        unless one stopped."""
         diverged = False
         times = tuple(self.clock_times(self.done).values())
         for index, run in running:
@@ -329,54 +431,73 @@ class TrainingLoop:
             run.writer.append_row("train", (iteration, *times, *row))
             reason = self.guard.check(run, row, iteration)
             if reason is not None:
-                run.status, run.iterations, run.reason, diverged = "diverged", self.done, reason, True
+                run.status, run.iterations, run.reason, diverged = (
+                    "diverged",
+                    self.done,
+                    reason,
+                    True,
+                )
         return [(index, run) for index, run in running if run.running] if diverged else running
 
     def budget_spent(self) -> str | None:
-        """time_budget or iterations if the steps done reached it (the time budget first), else None."""
+        """time_budget or iterations if the steps done reached it (the time budget first), else
+        None."""
         settings = self.settings
-        if settings.time_budget is not None and self.budget_seconds(self.done) >= settings.time_budget:
+        if (
+            settings.time_budget is not None
+            and self.budget_seconds(self.done) >= settings.time_budget
+        ):
             return "time_budget"
         return "iterations" if self.done == settings.iterations else None
 
     def evaluation_due(self) -> bool:
-        """Every trainer.eval_every iterations, and whenever trainer.eval_seconds passed since the last one."""
+        """Every trainer.eval_every iterations, and whenever trainer.eval_seconds passed since the
+        last one."""
         settings = self.settings
         return self.done % settings.eval_every == 0 or (
             settings.eval_seconds is not None
-            and self.budget_seconds(self.done) - self.last_eval_seconds >= settings.eval_seconds)
+            and self.budget_seconds(self.done) - self.last_eval_seconds >= settings.eval_seconds
+        )
 
     def record_eval(self, iteration: int) -> None:
-        """Evaluate every seed (test sets, and validation sets if any); rows for the seeds still running, written
-        with the next periodic flush: a flush per evaluation cost 2% of a fast scene's wall time."""
+        """Evaluate every seed (test sets, and validation sets if any); rows for the seeds still
+        running, written with the next periodic flush: a flush per evaluation cost 2% of a fast
+        scene's wall time."""
         compiled, seeds = self.compiled, self.seeds
-        metrics = {k: np.asarray(v).tolist()
-                   for k, v in jax.device_get(compiled.evaluate(self.params, seeds.test_sets)).items()}
+        metrics = {
+            k: np.asarray(v).tolist()
+            for k, v in jax.device_get(compiled.evaluate(self.params, seeds.test_sets)).items()
+        }
         if compiled.validate is not None:
             metrics["validation_loss"] = np.asarray(
-                jax.device_get(compiled.validate(self.params, seeds.validation_sets)["loss"])).tolist()
+                jax.device_get(compiled.validate(self.params, seeds.validation_sets)["loss"])
+            ).tolist()
         self.last_eval_seconds = self.budget_seconds(iteration)
         for index, run in enumerate(self.runs):
             if run.running:
                 values = {k: v[index] for k, v in metrics.items()}
-                run.writer.append("eval", {"iteration": iteration, **self.clock_times(iteration), **values})
+                run.writer.append(
+                    "eval", {"iteration": iteration, **self.clock_times(iteration), **values}
+                )
                 run.latest_eval = {**values, "iteration": iteration}
 
     def flush_if_due(self, loss: float) -> None:
-        """Write the files if trainer.flush_seconds passed since the last write (and the first-step correction is
-        done); the whole file is rewritten each time, so as it grows at most every FLUSH_COST_FACTOR times what
-        the last write took. The progress shown moves here too."""
+        """Write the files if trainer.flush_seconds passed since the last write (and the first-step
+        correction is done); the whole file is rewritten each time, so as it grows at most every
+        FLUSH_COST_FACTOR times what the last write took. The progress shown moves here too."""
         now = clock()
         if now - self.last_flush >= self.flush_interval and self.done > 1:
             self.writers.flush()
             self.last_flush = clock()
-            self.flush_interval = max(self.settings.flush_seconds,
-                                      FLUSH_COST_FACTOR * (self.last_flush - now) / len(self.runs))
+            self.flush_interval = max(
+                self.settings.flush_seconds,
+                FLUSH_COST_FACTOR * (self.last_flush - now) / len(self.runs),
+            )
             self.progress.update(self.done, self.train_seconds, loss)
 
     def end(self) -> None:
-        """The budget that stopped training, on the files of the seeds that did not diverge before, and a final
-        evaluation where the last one is older than the last step."""
+        """The budget that stopped training, on the files of the seeds that did not diverge before,
+        and a final evaluation where the last one is older than the last step."""
         for run in self.runs:
             if self.stopped_by is not None and run.running:
                 run.writer.set_attrs(stopped_by=self.stopped_by)
@@ -384,56 +505,86 @@ class TrainingLoop:
             self.record_eval(self.done)
 
     def interrupted(self, interrupt: KeyboardInterrupt) -> None:
-        """The seeds still running end interrupted, with the signal and the iterations done as the reason."""
+        """The seeds still running end interrupted, with the signal and the iterations done as the
+        reason."""
         why = f"{interrupt.args[0] if interrupt.args else 'SIGINT'} after {self.done} iterations"
         for run in self.runs:
             if run.running:
                 run.status, run.reason = "interrupted", why
 
     def failed(self, error: BaseException) -> None:
-        """Every file ends failed with the error in one line (marked failed in place if it cannot be written)."""
+        """Every file ends failed with the error in one line (marked failed in place if it cannot be
+        written)."""
         message = f"{type(error).__name__}: {str(error).splitlines()[0] if str(error) else ''}"
         if isinstance(error, ResultsWriteError):
             message = str(error)
         for run in self.runs:
-            finish_or_mark(run.writer, "failed", message, iterations=run.iterations or self.done,
-                           train_seconds=self.train_seconds)
+            finish_or_mark(
+                run.writer,
+                "failed",
+                message,
+                iterations=run.iterations or self.done,
+                train_seconds=self.train_seconds,
+            )
 
     def finish(self) -> list[Outcome]:
-        """The final files (each seed's network, unless it diverged) and one Outcome per seed; ResultsWriteError if
-        a file could not be written."""
+        """The final files (each seed's network, unless it diverged) and one Outcome per seed;
+        ResultsWriteError if a file could not be written."""
         outcomes, write_errors = [], []
         for index, run in enumerate(self.runs):
             flat = None if self.params is None else np.asarray(self.params[index])
-            if flat is not None and run.status != "diverged" and np.isfinite(flat).all():  # init_from can use it
+            if (
+                flat is not None and run.status != "diverged" and np.isfinite(flat).all()
+            ):  # init_from can use it
                 run.writer.save_params(flat)
             iterations = run.iterations or self.done
-            error = finish_or_mark(run.writer, run.status, run.reason, iterations=iterations,
-                                   train_seconds=self.train_seconds)
+            error = finish_or_mark(
+                run.writer,
+                run.status,
+                run.reason,
+                iterations=iterations,
+                train_seconds=self.train_seconds,
+            )
             if error:
                 write_errors.append(error)
-            outcomes.append(Outcome(run.status, run.reason, iterations, self.train_seconds, run.latest_eval,
-                                    self.stopped_by if run.status == "completed" else None))
+            outcomes.append(
+                Outcome(
+                    run.status,
+                    run.reason,
+                    iterations,
+                    self.train_seconds,
+                    run.latest_eval,
+                    self.stopped_by if run.status == "completed" else None,
+                )
+            )
         if write_errors:
             raise ResultsWriteError(write_errors[0])
         return outcomes
 
 
 def ready(step):
-    """step, returning once its results are computed (what StopRequest.call runs in its helper thread)."""
+    """step, returning once its results are computed (what StopRequest.call runs in its helper
+    thread)."""
     return lambda *args: jax.block_until_ready(step(*args))
 
 
-def train(scene: Scene, rule: UpdateRule, seeds: Seeds, writers: list[ResultsWriter], settings: TrainerSettings,
-          label: str = "", stop: StopRequest | None = None) -> list[Outcome]:
-    """Compile, then iterate until trainer.iterations or trainer.time_budget (training seconds), whichever
-    comes first, every seed in one vectorised step (writers: one per seed). The budget is checked after each
-    step, so a run passes it by less than one step. Evaluations at the start, every trainer.eval_every
-    iterations, whenever trainer.eval_seconds of training passed since the last one, and at the end. A seed
-    whose output, loss, gradient or update turns non-finite ends with status diverged (its rows stop there)
-    while the others go on; the wall time is the shared one. stop: the job's signal handler (installed here
-    if None). A file that cannot be written ends the run failed (ResultsWriteError). Returns one Outcome per
-    seed."""
+def train(
+    scene: Scene,
+    rule: UpdateRule,
+    seeds: Seeds,
+    writers: list[ResultsWriter],
+    settings: TrainerSettings,
+    label: str = "",
+    stop: StopRequest | None = None,
+) -> list[Outcome]:
+    """Compile, then iterate until trainer.iterations or trainer.time_budget (training seconds),
+    whichever comes first, every seed in one vectorised step (writers: one per seed). The budget is
+    checked after each step, so a run passes it by less than one step. Evaluations at the start,
+    every trainer.eval_every iterations, whenever trainer.eval_seconds of training passed since the
+    last one, and at the end. A seed whose output, loss, gradient or update turns non-finite ends
+    with status diverged (its rows stop there) while the others go on; the wall time is the shared
+    one. stop: the job's signal handler (installed here if None). A file that cannot be written ends
+    the run failed (ResultsWriteError). Returns one Outcome per seed."""
     if stop is None:
         with stop_on_signals() as own:
             return train(scene, rule, seeds, writers, settings, label, own)
@@ -441,7 +592,8 @@ def train(scene: Scene, rule: UpdateRule, seeds: Seeds, writers: list[ResultsWri
     loop = TrainingLoop(rule, seeds, writers, settings, stop, progress)
     load_start = load_average()
     try:
-        # compiling can take minutes: inside the guard, so a failure or an interrupt there is recorded too
+        # compiling can take minutes: inside the guard, so a failure or an interrupt there is
+        # recorded too
         loop.start(scene)
         loop.iterate()
         loop.end()
@@ -452,7 +604,10 @@ def train(scene: Scene, rule: UpdateRule, seeds: Seeds, writers: list[ResultsWri
         raise
     finally:
         progress.close()
-        # a line search (a rule given value_fn on the gradient pass: optax.lbfgs) costs what the data ask for
+        # a line search (a rule given value_fn on the gradient pass: optax.lbfgs) costs what the
+        # data ask for
         static_cost = rule.uses_jacobian or not getattr(rule.gradient, "with_value", False)
-        loop.writers.set_attrs(**timing_attributes(loop.step_seconds, load_start, load_average(), static_cost))
+        loop.writers.set_attrs(
+            **timing_attributes(loop.step_seconds, load_start, load_average(), static_cost)
+        )
     return loop.finish()

@@ -1,16 +1,19 @@
-"""Checks of a scene, for its author: `physgrad check [-cd DIR] task=NAME [key=value ...]` runs them on any scene
-(built-in or a user's own), and a scene's own tests can call them (they ship in the package).
+"""Checks of a scene, for its author: `physgrad check [-cd DIR] task=NAME [key=value ...]` runs them
+on any scene (built-in or a user's own), and a scene's own tests can call them (they ship in the
+package).
 
-Every check runs in float64 on the scene as configured (a few samples of its training data and its initial
-network):
+Every check runs in float64 on the scene as configured (a few samples of its training data and its
+initial network):
   builds          the scene builds and its loss and data pass the runner's checks;
-  finite          the physical output, the loss and the held-out evaluation are finite at initialisation;
-  deterministic   the same seed gives the same data, network, batch and loss;
-  rollout         (temporal scenes) the lax.scan rollout equals a plain Python loop of the same step and policy;
-  gradient <mode> the gradient of each backprop mode that applies (R; M and S for a closed loop) equals the
-                  plain loop's (the mode's stopped inputs there are the forward states as constants) and central
-                  finite differences of that loop along random directions;
-  jacobian        (where Gauss-Newton / HIG apply) J v and J^T u of the Jacobian pass against jax.jvp and
+  finite          the physical output, the loss and the held-out evaluation are finite at
+  initialisation; deterministic   the same seed gives the same data, network, batch and loss;
+  rollout         (temporal scenes) the lax.scan rollout equals a plain Python loop of the same step
+  and policy; gradient <mode> the gradient of each backprop mode that applies (R; M and S for a
+  closed loop) equals the
+                  plain loop's (the mode's stopped inputs there are the forward states as constants)
+                  and central finite differences of that loop along random directions;
+  jacobian        (where Gauss-Newton / HIG apply) J v and J^T u of the Jacobian pass against
+  jax.jvp and
                   jax.vjp of the batch output, and its gradient J^T g against jax.grad.
 """
 
@@ -47,11 +50,15 @@ def relative_error(a, b) -> float:
     return float(jnp.max(jnp.abs(a - b))) / scale if a.size else 0.0
 
 
-def loop_states(step, policy, x0, unroll: int, backprop: Backprop = REGULAR, frozen: list | None = None):
-    """(x_1 .. x_unroll, c_0 .. c_unroll-1) of c_k = policy(x_k, k), x_{k+1} = step(x_k, c_k) by a plain Python
-    loop (no lax.scan, no stop_gradient): the inputs a mode stops are the constant forward states `frozen`
-    (x_0 .. x_unroll at the parameters the gradient is taken at; None: computed here, as constants), so
-    differentiating this gives that mode's gradient and finite differences of it check the same thing."""
+def loop_states(
+    step, policy, x0, unroll: int, backprop: Backprop = REGULAR, frozen: list | None = None
+):
+    """(x_1 .. x_unroll, c_0 .. c_unroll-1) of c_k = policy(x_k, k), x_{k+1} = step(x_k, c_k) by a
+    plain Python loop (no lax.scan, no stop_gradient): the inputs a mode stops are the constant
+    forward states `frozen` (x_0 .. x_unroll at the parameters the gradient is taken at; None:
+    computed here, as constants), so
+    differentiating this gives that mode's gradient and finite differences of it check the same
+    thing."""
     if frozen is None:
         frozen = forward_states(step, policy, x0, unroll)
     x, states, controls = x0, [], []
@@ -64,8 +71,8 @@ def loop_states(step, policy, x0, unroll: int, backprop: Backprop = REGULAR, fro
 
 
 def forward_states(step, policy, x0, unroll: int) -> list:
-    """x_0 .. x_unroll of the forward pass by a plain loop, as constants (stop_gradient): the values every mode
-    shares."""
+    """x_0 .. x_unroll of the forward pass by a plain loop, as constants (stop_gradient): the values
+    every mode shares."""
     states = [x0]
     for k in range(unroll):
         states.append(step(states[-1], policy(states[-1], k)))
@@ -74,30 +81,44 @@ def forward_states(step, policy, x0, unroll: int) -> list:
 
 def dynamics_forward_states(dynamics: Dynamics, params, sample) -> list:
     """forward_states of a scene's Dynamics for one sample."""
-    return forward_states(dynamics.step, dynamics.policy(params, sample), dynamics.initial(sample), dynamics.unroll)
+    return forward_states(
+        dynamics.step, dynamics.policy(params, sample), dynamics.initial(sample), dynamics.unroll
+    )
 
 
-def loop_output(dynamics: Dynamics, params, sample, backprop: Backprop = REGULAR, frozen: list | None = None):
-    """A temporal scene's output y for one sample by loop_states (frozen: dynamics_forward_states at the
-    parameters the gradient is taken at)."""
+def loop_output(
+    dynamics: Dynamics, params, sample, backprop: Backprop = REGULAR, frozen: list | None = None
+):
+    """A temporal scene's output y for one sample by loop_states (frozen: dynamics_forward_states at
+    the parameters the gradient is taken at)."""
     if frozen is None:
         frozen = dynamics_forward_states(dynamics, params, sample)
-    states, controls = loop_states(dynamics.step, dynamics.policy(params, sample), dynamics.initial(sample),
-                                   dynamics.unroll, backprop, frozen)
+    states, controls = loop_states(
+        dynamics.step,
+        dynamics.policy(params, sample),
+        dynamics.initial(sample),
+        dynamics.unroll,
+        backprop,
+        frozen,
+    )
     observed = None
     if dynamics.observe is not None and states:
-        observed = jax.tree_util.tree_map(lambda *leaves: jnp.stack(leaves),
-                                          *[dynamics.observe(x, c, sample) for x, c in zip(states, controls)])
+        observed = jax.tree_util.tree_map(
+            lambda *leaves: jnp.stack(leaves),
+            *[dynamics.observe(x, c, sample) for x, c in zip(states, controls)],
+        )
     return dynamics.readout(states[-1] if states else dynamics.initial(sample), observed, sample)
 
 
-def finite_difference_check(loss, params, gradient, directions: int = DIRECTIONS, rtol: float = FD_RTOL):
-    """(worst relative mismatch, tolerance) of gradient . d against finite differences of loss along random unit
-    directions d: the fourth-order central stencil (8 (L(h) - L(-h)) - (L(2h) - L(-2h))) / 12h with h = 1e-3
-    times the parameters' typical size, whose truncation (h^4) and round-off (eps |L| / h) errors both stay
-    near 1e-12 in float64 where a plain central difference loses digits on small gradients. The mismatch is
-    relative to max(|gradient . d|, 0.01 |gradient|): a wrong gradient is off by O(|gradient|) in a random
-    direction."""
+def finite_difference_check(
+    loss, params, gradient, directions: int = DIRECTIONS, rtol: float = FD_RTOL
+):
+    """(worst relative mismatch, tolerance) of gradient . d against finite differences of loss along
+    random unit directions d: the fourth-order central stencil (8 (L(h) - L(-h)) - (L(2h) - L(-2h)))
+    / 12h with h = 1e-3 times the parameters' typical size, whose truncation (h^4) and round-off
+    (eps |L| / h) errors both stay near 1e-12 in float64 where a plain central difference loses
+    digits on small gradients. The mismatch is relative to max(|gradient . d|, 0.01 |gradient|): a
+    wrong gradient is off by O(|gradient|) in a random direction."""
     flat, unravel = ravel_pytree(params)
     flat_gradient = ravel_pytree(gradient)[0]
     h = 1e-3 * max(1.0, float(jnp.linalg.norm(flat)) / max(flat.size, 1) ** 0.5)
@@ -114,12 +135,18 @@ def finite_difference_check(loss, params, gradient, directions: int = DIRECTIONS
 
 
 def check_scene(cfg) -> list[Check]:
-    """Every check above on the scene of a composed config (precision is set to 64 here); an exception in the
-    scene's code is a failed check with its one-line message."""
+    """Every check above on the scene of a composed config (precision is set to 64 here); an
+    exception in the scene's code is a failed check with its one-line message."""
     try:
         return _check_scene(cfg)
     except Exception as error:  # noqa: BLE001
-        return [Check("runs", False, f"{type(error).__name__}: {str(error).splitlines()[0] if str(error) else ''}")]
+        return [
+            Check(
+                "runs",
+                False,
+                f"{type(error).__name__}: {str(error).splitlines()[0] if str(error) else ''}",
+            )
+        ]
 
 
 def _check_scene(cfg) -> list[Check]:
@@ -145,25 +172,57 @@ def _check_scene(cfg) -> list[Check]:
     y = scene.batch_output(params, batch)
     loss = batch_loss(scene.sample_output)(params)
     evaluation = scene.evaluate(params, test_set)
-    bad = [what for what, value in (("output", y), ("loss", loss), *evaluation.items())
-           if not bool(jnp.all(jnp.isfinite(value)))]
-    checks.append(Check("finite", not bad, f"not finite at initialisation: {', '.join(bad)}" if bad else
-                        f"output {tuple(y.shape)}, loss {float(loss):.6g}, held-out loss {float(evaluation['loss']):.6g}"))
+    bad = [
+        what
+        for what, value in (("output", y), ("loss", loss), *evaluation.items())
+        if not bool(jnp.all(jnp.isfinite(value)))
+    ]
+    checks.append(
+        Check(
+            "finite",
+            not bad,
+            f"not finite at initialisation: {', '.join(bad)}"
+            if bad
+            else f"output {tuple(y.shape)}, loss {float(loss):.6g}, held-out loss "
+            f"{float(evaluation['loss']):.6g}",
+        )
+    )
 
     again, seeds_again = build_seeds(cfg, [int(cfg.seed)], 1)
     batch_again = again.sample_train(jax.random.PRNGKey(1), min(BATCH, again.train_size or BATCH))
-    differences = {what: relative_error(a, b) for what, a, b in (
-        ("test set", seeds_again.test_sets, seeds.test_sets), ("network", seeds_again.params, seeds.params),
-        ("batch", batch_again, batch), ("loss", batch_loss(again.sample_output)(params), loss))}
+    differences = {
+        what: relative_error(a, b)
+        for what, a, b in (
+            ("test set", seeds_again.test_sets, seeds.test_sets),
+            ("network", seeds_again.params, seeds.params),
+            ("batch", batch_again, batch),
+            ("loss", batch_loss(again.sample_output)(params), loss),
+        )
+    }
     differing = [what for what, error in differences.items() if error != 0.0]
-    checks.append(Check("deterministic", not differing, "the same seed gives another " + ", ".join(differing)
-                        if differing else "data, network, batch and loss identical from the same seed"))
+    checks.append(
+        Check(
+            "deterministic",
+            not differing,
+            "the same seed gives another " + ", ".join(differing)
+            if differing
+            else "data, network, batch and loss identical from the same seed",
+        )
+    )
 
     if scene.dynamics is not None:
-        looped = jnp.stack([loop_output(scene.dynamics, params, _index(batch, i)) for i in range(_size(batch))])
+        looped = jnp.stack(
+            [loop_output(scene.dynamics, params, _index(batch, i)) for i in range(_size(batch))]
+        )
         error = relative_error(y, looped)
-        checks.append(Check("rollout", error <= EXACT_RTOL, f"scan against a Python loop over {scene.unroll} steps: "
-                            f"relative difference {error:.1e} (at most {EXACT_RTOL:.0e})"))
+        checks.append(
+            Check(
+                "rollout",
+                error <= EXACT_RTOL,
+                f"scan against a Python loop over {scene.unroll} steps: "
+                f"relative difference {error:.1e} (at most {EXACT_RTOL:.0e})",
+            )
+        )
 
     modes = ["R", "M", "S"] if scene.closed_loop else ["R"]
     for mode in modes:
@@ -171,12 +230,20 @@ def _check_scene(cfg) -> list[Check]:
         scan_loss = batch_loss(scene.backprop_output(backprop))
         gradient = jax.grad(scan_loss)(params)
         if scene.dynamics is not None:
-            frozen = [dynamics_forward_states(scene.dynamics, params, _index(batch, i)) for i in range(_size(batch))]
+            frozen = [
+                dynamics_forward_states(scene.dynamics, params, _index(batch, i))
+                for i in range(_size(batch))
+            ]
 
             def loop_loss(p, backprop=backprop, frozen=frozen):
-                outputs = jnp.stack([loop_output(scene.dynamics, p, _index(batch, i), backprop, frozen[i])
-                                     for i in range(_size(batch))])
+                outputs = jnp.stack(
+                    [
+                        loop_output(scene.dynamics, p, _index(batch, i), backprop, frozen[i])
+                        for i in range(_size(batch))
+                    ]
+                )
                 return scene.batch_loss(outputs, batch)
+
             against_loop = relative_error(gradient, jax.grad(loop_loss)(params))
             reference = loop_loss
         else:
@@ -184,14 +251,22 @@ def _check_scene(cfg) -> list[Check]:
         worst, tolerance = finite_difference_check(reference, params, gradient)
         passed = against_loop <= 1e-7 and worst <= tolerance
         loop_text = f"against the loop {against_loop:.1e}, " if scene.dynamics is not None else ""
-        checks.append(Check(f"gradient {mode}", passed, f"{loop_text}against finite differences {worst:.1e} "
-                            f"(at most {tolerance:.0e}) along {DIRECTIONS} random directions"))
+        checks.append(
+            Check(
+                f"gradient {mode}",
+                passed,
+                f"{loop_text}against finite differences {worst:.1e} "
+                f"(at most {tolerance:.0e}) along {DIRECTIONS} random directions",
+            )
+        )
 
     if not scene.closed_loop:
         try:
             checks.append(_jacobian_check(scene, params, batch))
         except Exception as error:  # noqa: BLE001 - a scene's code failing under jvp/vjp is a finding
-            checks.append(Check("jacobian", False, f"{type(error).__name__}: {str(error).splitlines()[0]}"))
+            checks.append(
+                Check("jacobian", False, f"{type(error).__name__}: {str(error).splitlines()[0]}")
+            )
     return checks
 
 
@@ -212,13 +287,22 @@ def _jacobian_check(scene, params, batch) -> Check:
     jv = jax.jvp(outputs, (flat,), (v,))[1]
     jtu = jax.vjp(outputs, flat)[1](u)[0]
     dense = jac.dense()
-    errors = {"J v": relative_error(dense @ v.astype(dense.dtype), jv),
-              "J^T u": relative_error(jac.transpose_apply(u.astype(jac.dtype)), jtu),
-              "J^T g": relative_error(gradient, jax.grad(lambda p: scene.batch_loss(
-                  scene.batch_output(p, batch), batch))(params))}
+    errors = {
+        "J v": relative_error(dense @ v.astype(dense.dtype), jv),
+        "J^T u": relative_error(jac.transpose_apply(u.astype(jac.dtype)), jtu),
+        "J^T g": relative_error(
+            gradient,
+            jax.grad(lambda p: scene.batch_loss(scene.batch_output(p, batch), batch))(params),
+        ),
+    }
     worst = max(errors.values())
-    return Check("jacobian", worst <= 1e-7, f"{route.name}: " + ", ".join(f"{k} {e:.1e}" for k, e in errors.items())
-                 + " (at most 1e-07)")
+    return Check(
+        "jacobian",
+        worst <= 1e-7,
+        f"{route.name}: "
+        + ", ".join(f"{k} {e:.1e}" for k, e in errors.items())
+        + " (at most 1e-07)",
+    )
 
 
 def _size(batch) -> int:
@@ -230,19 +314,23 @@ def _index(batch, i):
 
 
 def check_one_scene(overrides: list[str], config_dirs: list[str]) -> int:
-    """`physgrad check [-cd DIR] task=NAME [key=value ...]`: check_scene's checks of that scene, one line
-    each; 1 if one fails, 2 for a configuration mistake."""
+    """`physgrad check [-cd DIR] task=NAME [key=value ...]`: check_scene's checks of that scene, one
+    line each; 1 if one fails, 2 for a configuration mistake."""
     import os
     import sys
 
-    from physgrad.errors import UserError
     from physgrad.configs import check_overrides, compose
+    from physgrad.errors import UserError
 
-    if os.getcwd() not in sys.path:  # a scene named by _target_ may live in the folder the command runs from
+    if (
+        os.getcwd() not in sys.path
+    ):  # a scene named by _target_ may live in the folder the command runs from
         sys.path.append(os.getcwd())
     try:
         if not any(o.split("=", 1)[0].lstrip("+") == "task" for o in overrides):
-            raise UserError("name the scene to check: physgrad check [-cd DIR] task=NAME [key=value ...]")
+            raise UserError(
+                "name the scene to check: physgrad check [-cd DIR] task=NAME [key=value ...]"
+            )
         check_overrides(overrides, multirun=False, config_dirs=config_dirs)
         cfg = compose(overrides, config_dirs)
     except UserError as error:
@@ -252,6 +340,8 @@ def check_one_scene(overrides: list[str], config_dirs: list[str]) -> int:
     for check in checks:
         print(check.line())
     failed = [check.name for check in checks if not check.passed]
-    print(f"task={cfg.task.get('name')}: {len(checks) - len(failed)} of {len(checks)} checks passed"
-          + (f"; failed: {', '.join(failed)}" if failed else ""))
+    print(
+        f"task={cfg.task.get('name')}: {len(checks) - len(failed)} of {len(checks)} checks passed"
+        + (f"; failed: {', '.join(failed)}" if failed else "")
+    )
     return 1 if failed else 0

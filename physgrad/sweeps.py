@@ -1,12 +1,12 @@
 """What a sweep knows about its jobs and how it stops.
 
-A sweep folder holds `jobs.yaml`, the manifest of the jobs the basic sweeper will launch (each a list of
-overrides, as in the job folder's `.hydra/overrides.yaml`), so that the end-of-sweep summary and `physgrad
-report` can name jobs that never started or left no results file. Stopping: the process that launched the
-sweep handles SIGINT and SIGTERM by writing `.physgrad-stop` into the sweep folder (how many signals it got);
-every job watches that file and its launcher (a job in a worker process stops when the launcher is gone), so a
-signal to the launcher alone stops every launcher's workers after their current step, a second one at once,
-and no job starts after it.
+A sweep folder holds `jobs.yaml`, the manifest of the jobs the basic sweeper will launch (each a
+list of overrides, as in the job folder's `.hydra/overrides.yaml`), so that the end-of-sweep summary
+and `physgrad report` can name jobs that never started or left no results file. Stopping: the
+process that launched the sweep handles SIGINT and SIGTERM by writing `.physgrad-stop` into the
+sweep folder (how many signals it got); every job watches that file and its launcher (a job in a
+worker process stops when the launcher is gone), so a signal to the launcher alone stops every
+launcher's workers after their current step, a second one at once, and no job starts after it.
 """
 
 from __future__ import annotations
@@ -23,23 +23,25 @@ from pathlib import Path
 import yaml
 from omegaconf import OmegaConf
 
-from physgrad.files import clean_text, owner_tag, read_small_yaml, replace_file
+from physgrad.files import clean_text, owner_alive, owner_tag, read_small_yaml, replace_file
 from physgrad.interrupts import handling_signals
-from physgrad.files import owner_alive
 
 log = logging.getLogger("physgrad")
 MANIFEST = "jobs.yaml"
 STOP_MARK = ".physgrad-stop"
-LAUNCHER_ENV = "PHYSGRAD_SWEEP_LAUNCHER"  # pid of the process that launched the sweep, inherited by its workers
+# pid of the process that launched the sweep, inherited by its workers
+LAUNCHER_ENV = "PHYSGRAD_SWEEP_LAUNCHER"
 WATCH_SECONDS = 0.25
 
 
 def expected_jobs(config) -> list[list[str]] | None:
-    """The jobs Hydra's basic sweeper will launch for this config (hydra.sweeper.params, then the command
-    line), each a list of overrides; None for another sweeper (Optuna decides its trials as it goes)."""
+    """The jobs Hydra's basic sweeper will launch for this config (hydra.sweeper.params, then the
+    command line), each a list of overrides; None for another sweeper (Optuna decides its trials as
+    it goes)."""
     if not str(config.hydra.sweeper.get("_target_", "")).endswith(".BasicSweeper"):
         return None
-    # unresolved: Hydra keeps an override's `${seed}` as written, so must the manifest to match the job folders
+    # unresolved: Hydra keeps an override's `${seed}` as written, so must the manifest to match the
+    # job folders
     params = config.hydra.sweeper.get("params")
     params = OmegaConf.to_container(params, resolve=False) if params else {}
     overrides = OmegaConf.to_container(config.hydra.overrides.task, resolve=False)
@@ -51,8 +53,8 @@ def expected_jobs(config) -> list[list[str]] | None:
 
 
 def sweep_jobs(arguments: list[str]) -> list[list[str]]:
-    """Expand sweep overrides (`optim=adam,hig seed=0,1`; a later key replaces an earlier one) into the basic
-    sweeper's jobs, each a list of overrides, in its order."""
+    """Expand sweep overrides (`optim=adam,hig seed=0,1`; a later key replaces an earlier one) into
+    the basic sweeper's jobs, each a list of overrides, in its order."""
     from hydra._internal.core_plugins.basic_sweeper import BasicSweeper
     from hydra.core.override_parser.overrides_parser import OverridesParser
 
@@ -62,7 +64,10 @@ def sweep_jobs(arguments: list[str]) -> list[list[str]]:
 
 def write_manifest(folder: Path, jobs: list[list[str]]) -> None:
     folder.mkdir(parents=True, exist_ok=True)
-    replace_file(folder / MANIFEST, yaml.safe_dump({"jobs": jobs}, default_flow_style=None, width=1000).encode())
+    replace_file(
+        folder / MANIFEST,
+        yaml.safe_dump({"jobs": jobs}, default_flow_style=None, width=1000).encode(),
+    )
 
 
 def read_manifest(folder: Path) -> list[list[str]] | None:
@@ -70,20 +75,25 @@ def read_manifest(folder: Path) -> list[list[str]] | None:
         jobs = read_small_yaml(folder / MANIFEST)["jobs"]
     except (OSError, ValueError, KeyError, TypeError):
         return None
-    plain = isinstance(jobs, list) and all(isinstance(job, list) and all(isinstance(item, (str, int, float, bool))
-                                                                         for item in job) for job in jobs)
+    plain = isinstance(jobs, list) and all(
+        isinstance(job, list) and all(isinstance(item, (str, int, float, bool)) for item in job)
+        for job in jobs
+    )
     return [list(map(str, job)) for job in jobs] if plain else None
 
 
 def job_folders(folder: Path) -> dict[frozenset, Path]:
-    """Job folder by its set of overrides, from the `.hydra/overrides.yaml` Hydra writes when a job starts."""
+    """Job folder by its set of overrides, from the `.hydra/overrides.yaml` Hydra writes when a job
+    starts."""
     found = {}
     for overrides in folder.rglob(".hydra/overrides.yaml"):
         try:
             listed = read_small_yaml(overrides, 1 << 16) or []
         except (OSError, ValueError):
             continue
-        if isinstance(listed, list) and all(isinstance(item, (str, int, float, bool)) for item in listed):
+        if isinstance(listed, list) and all(
+            isinstance(item, (str, int, float, bool)) for item in listed
+        ):
             found[frozenset(map(str, listed))] = overrides.parent.parent
     return found
 
@@ -91,39 +101,58 @@ def job_folders(folder: Path) -> dict[frozenset, Path]:
 JOB_STATES = ".physgrad-jobs"  # in the sweep folder: one small YAML file per job that started
 
 
-def record_job(sweep: Path, job_folder: Path, overrides: list[str], state: str, reason: str | None = None) -> None:
-    """The job's state (started, or its outcome) and reason in the sweep folder, where it can be written even when
-    the job's own folder cannot; written by rename. A failure to write it is logged, not raised."""
+def record_job(
+    sweep: Path, job_folder: Path, overrides: list[str], state: str, reason: str | None = None
+) -> None:
+    """The job's state (started, or its outcome) and reason in the sweep folder, where it can be
+    written even when the job's own folder cannot; written by rename. A failure to write it is
+    logged, not raised."""
     name = hashlib.sha1(str(job_folder.resolve()).encode()).hexdigest()[:16]
-    record = {"folder": str(job_folder), "overrides": [str(o) for o in overrides], "state": state,
-              "reason": reason, "owner": owner_tag(), "time": time.strftime("%Y-%m-%dT%H:%M:%S%z")}
+    record = {
+        "folder": str(job_folder),
+        "overrides": [str(o) for o in overrides],
+        "state": state,
+        "reason": reason,
+        "owner": owner_tag(),
+        "time": time.strftime("%Y-%m-%dT%H:%M:%S%z"),
+    }
     try:
         (sweep / JOB_STATES).mkdir(parents=True, exist_ok=True)
-        replace_file(sweep / JOB_STATES / f"{name}.yaml", yaml.safe_dump(record, width=1000).encode())
+        replace_file(
+            sweep / JOB_STATES / f"{name}.yaml", yaml.safe_dump(record, width=1000).encode()
+        )
     except OSError as error:
         log.warning("the state of %s was not recorded: %s", job_folder, error.strerror or error)
 
 
 def job_states(sweep: Path) -> dict[frozenset, dict]:
-    """The recorded state of every job of the sweep that started, by its set of overrides (checked as data)."""
+    """The recorded state of every job of the sweep that started, by its set of overrides (checked
+    as data)."""
     found = {}
     for path in sorted((sweep / JOB_STATES).glob("*.yaml")):
         try:
             record = read_small_yaml(path, 1 << 16)
         except (OSError, ValueError):
             continue
-        if (isinstance(record, dict) and isinstance(record.get("overrides"), list)
-                and all(isinstance(o, str) for o in record["overrides"]) and isinstance(record.get("state"), str)):
+        if (
+            isinstance(record, dict)
+            and isinstance(record.get("overrides"), list)
+            and all(isinstance(o, str) for o in record["overrides"])
+            and isinstance(record.get("state"), str)
+        ):
             found[frozenset(record["overrides"])] = {
-                "state": clean_text(record["state"], 40), "reason": clean_text(str(record.get("reason") or ""), 300),
-                "folder": clean_text(str(record.get("folder", "")), 500), "owner": str(record.get("owner", ""))}
+                "state": clean_text(record["state"], 40),
+                "reason": clean_text(str(record.get("reason") or ""), 300),
+                "folder": clean_text(str(record.get("folder", "")), 500),
+                "owner": str(record.get("owner", "")),
+            }
     return found
 
 
 def unfinished_jobs(folder: Path) -> list[tuple[str, str]]:
-    """The jobs that left no results file, from the manifest and the recorded job states: (their overrides
-    joined by commas, why: `never started`, `failed: <reason>` as recorded, `crashed` for a job recorded as
-    started whose process is gone, `no results file`)."""
+    """The jobs that left no results file, from the manifest and the recorded job states: (their
+    overrides joined by commas, why: `never started`, `failed: <reason>` as recorded, `crashed` for
+    a job recorded as started whose process is gone, `no results file`)."""
     jobs, states, missing = read_manifest(folder) or [], job_states(folder), []
     folders = job_folders(folder)
     for job in [*jobs, *[sorted(key) for key in states if sorted(key) not in map(sorted, jobs)]]:
@@ -136,9 +165,19 @@ def unfinished_jobs(folder: Path) -> list[tuple[str, str]]:
             missing.append((",".join(job), "never started" if where is None else "no results file"))
         elif state["state"] == "started":
             gone = owner_alive(state["owner"]) is False
-            missing.append((",".join(job), "crashed before writing results" if gone else "started, no results yet"))
+            missing.append(
+                (
+                    ",".join(job),
+                    "crashed before writing results" if gone else "started, no results yet",
+                )
+            )
         else:
-            missing.append((",".join(job), f"{state['state']}: {state['reason']}" if state["reason"] else state["state"]))
+            missing.append(
+                (
+                    ",".join(job),
+                    f"{state['state']}: {state['reason']}" if state["reason"] else state["state"],
+                )
+            )
     return missing
 
 
@@ -152,18 +191,22 @@ def stop_count(sweep: Path) -> tuple[str, int] | None:
 
 
 def mark_stopped(sweep: Path, name: str, count: int = 1) -> None:
-    """Tell every job of the sweep to stop (count >= 2: at once); written by rename, so never read half."""
+    """Tell every job of the sweep to stop (count >= 2: at once); written by rename, so never read
+    half."""
     previous = stop_count(sweep)
     count = max(count, previous[1] if previous else 0)
     try:
         replace_file(sweep / STOP_MARK, f"{name} {count}\n".encode())
     except OSError as error:
-        log.warning("could not tell the sweep's jobs to stop (%s): stop the workers themselves", error)
+        log.warning(
+            "could not tell the sweep's jobs to stop (%s): stop the workers themselves", error
+        )
 
 
 class LauncherSignals:
-    """The launching process's handler for SIGINT and SIGTERM during a sweep: mark the sweep stopped (its jobs,
-    in this process or in workers, see it); a third signal ends the launcher at once (KeyboardInterrupt)."""
+    """The launching process's handler for SIGINT and SIGTERM during a sweep: mark the sweep stopped
+    (its jobs, in this process or in workers, see it); a third signal ends the launcher at once
+    (KeyboardInterrupt)."""
 
     def __init__(self, sweep: Path):
         self.sweep, self.received = sweep, 0
@@ -173,16 +216,20 @@ class LauncherSignals:
         name = signal.Signals(signum).name
         mark_stopped(self.sweep, name, self.received)
         if self.received == 1:
-            log.warning("%s: stopping the sweep: running jobs end after their current step and are recorded as "
-                        "interrupted, no job starts (send it again to end running steps at once)", name)
+            log.warning(
+                "%s: stopping the sweep: running jobs end after their current step and are "
+                "recorded as "
+                "interrupted, no job starts (send it again to end running steps at once)",
+                name,
+            )
         elif self.received >= 3:
             raise KeyboardInterrupt(name)
 
 
 @contextmanager
 def launcher_signals(sweep: Path):
-    """LauncherSignals handling SIGINT and SIGTERM in the process that launches the sweep (its main thread), whose
-    pid its workers inherit (LAUNCHER_ENV)."""
+    """LauncherSignals handling SIGINT and SIGTERM in the process that launches the sweep (its main
+    thread), whose pid its workers inherit (LAUNCHER_ENV)."""
     with handling_signals(LauncherSignals(sweep)) as installed:
         if not installed:  # not the main thread
             yield
@@ -196,14 +243,16 @@ def launcher_signals(sweep: Path):
 
 @contextmanager
 def watching(sweep: Path | None, stop):
-    """While a job of a sweep runs: a thread that passes the sweep's stop mark on to the job's StopRequest
-    (physgrad.interrupts), and, in a launcher's worker process, the launcher's end (its parent changes) as a
-    SIGTERM."""
+    """While a job of a sweep runs: a thread that passes the sweep's stop mark on to the job's
+    StopRequest (physgrad.interrupts), and, in a launcher's worker process, the launcher's end (its
+    parent changes) as a SIGTERM."""
     if sweep is None:
         yield
         return
     launcher = os.environ.get(LAUNCHER_ENV)
-    watch_parent = launcher is not None and int(launcher) != os.getpid() and int(launcher) == os.getppid()
+    watch_parent = (
+        launcher is not None and int(launcher) != os.getpid() and int(launcher) == os.getppid()
+    )
     parent, finished = os.getppid(), threading.Event()
 
     def watch():

@@ -1,5 +1,6 @@
-"""Tidy tables of runs: one row per run (every setting in a column of its own) and one row per logged
-iteration (curves), as pandas DataFrames and as the CSV and Parquet files `physgrad report` writes."""
+"""Tidy tables of runs: one row per run (every setting in a column of its own) and one row per
+logged iteration (curves), as pandas DataFrames and as the CSV and Parquet files `physgrad report`
+writes."""
 
 from __future__ import annotations
 
@@ -15,24 +16,36 @@ from physgrad.files import replaced_text
 from physgrad.readout import config_row
 from physgrad.results import Run
 
-ID_COLUMNS = ("set", "task", "scene", "setting", "variant", "label", "seed", "status")  # repeated in curves
-CSV_TRAIN_ROWS = 1000  # curves.csv keeps every evaluation and at most this many training rows per run
+ID_COLUMNS = (
+    "set",
+    "task",
+    "scene",
+    "setting",
+    "variant",
+    "label",
+    "seed",
+    "status",
+)  # repeated in curves
+CSV_TRAIN_ROWS = (
+    1000  # curves.csv keeps every evaluation and at most this many training rows per run
+)
 
 
 class Tables(NamedTuple):
-    """runs: one row per run, every setting in a column of its own (the config's dotted keys: task.*, optim.*,
-    trainer.*, precision, ...; the effective unroll; the machine) beside the report's per-run numbers; curves:
-    one row per run, split (train | eval) and iteration, every logged column as a column of its own, with the
-    run's id (`run`, joining runs.run) and its identifying columns (set, task, scene, setting, variant, label,
-    seed, status), so that a plot needs no merge."""
+    """runs: one row per run, every setting in a column of its own (the config's dotted keys:
+    task.*, optim.*,
+    trainer.*, precision, ...; the effective unroll; the machine) beside the report's per-run
+    numbers; curves: one row per run, split (train | eval) and iteration, every logged column as a
+    column of its own, with the run's id (`run`, joining runs.run) and its identifying columns (set,
+    task, scene, setting, variant, label, seed, status), so that a plot needs no merge."""
 
     runs: pd.DataFrame
     curves: pd.DataFrame
 
 
 def tables(runs: list[Run], rows: list[dict]) -> Tables:
-    """The runs (labelled: report.label_runs) with their report rows (report.run_rows) as tidy pandas tables;
-    see Tables."""
+    """The runs (labelled: report.label_runs) with their report rows (report.run_rows) as tidy
+    pandas tables; see Tables."""
     by_path = {str(run.path): run for run in runs}
     records, curves = [], []
     for number, row in enumerate(rows):
@@ -47,7 +60,9 @@ def tables(runs: list[Run], rows: list[dict]) -> Tables:
                 frame.insert(0, "run", number)
                 curves.append(frame)
     runs_frame = _plain_columns(pd.DataFrame.from_records(records))
-    curve_frame = pd.concat(curves, ignore_index=True) if curves else pd.DataFrame(columns=["run", "split"])
+    curve_frame = (
+        pd.concat(curves, ignore_index=True) if curves else pd.DataFrame(columns=["run", "split"])
+    )
     if len(runs_frame):
         identity = runs_frame[["run", *ID_COLUMNS]]
         curve_frame = identity.merge(curve_frame, on="run", how="right")
@@ -55,21 +70,24 @@ def tables(runs: list[Run], rows: list[dict]) -> Tables:
 
 
 def _plain_columns(frame: pd.DataFrame) -> pd.DataFrame:
-    """Columns of one type each (a setting that is a number in one run and text in another becomes text;
-    lists become their text), so that CSV and Parquet hold them as they are."""
+    """Columns of one type each (a setting that is a number in one run and text in another becomes
+    text; lists become their text), so that CSV and Parquet hold them as they are."""
     for column in frame.columns:
         values = frame[column].dropna()
         kinds = {type(v) for v in values}
-        if kinds - {int, float, bool, np.integer, np.floating} and (len(kinds) > 1 or kinds & {tuple, list, dict}):
-            frame[column] = frame[column].map(lambda v: v if v is None or (isinstance(v, float) and math.isnan(v))
-                                              else str(v))
+        if kinds - {int, float, bool, np.integer, np.floating} and (
+            len(kinds) > 1 or kinds & {tuple, list, dict}
+        ):
+            frame[column] = frame[column].map(
+                lambda v: v if v is None or (isinstance(v, float) and math.isnan(v)) else str(v)
+            )
     return frame
 
 
 def write_tables(frames: Tables, out: Path) -> None:
-    """runs.csv and runs.parquet; curves.parquet (every row) and curves.csv (every evaluation, and the training
-    rows thinned to CSV_TRAIN_ROWS per run, evenly in iteration with the first and the last: a long run's CSV
-    would be tens of MB). Each written beside and renamed into place."""
+    """runs.csv and runs.parquet; curves.parquet (every row) and curves.csv (every evaluation, and
+    the training rows thinned to CSV_TRAIN_ROWS per run, evenly in iteration with the first and the
+    last: a long run's CSV would be tens of MB). Each written beside and renamed into place."""
     with replaced_text(out / "runs.csv") as f:
         frames.runs.to_csv(f, index=False)
     with replaced_text(out / "curves.csv") as f:

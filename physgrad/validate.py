@@ -1,8 +1,9 @@
 """Checks of single settings, each a one-line UserError that names the key and says what is allowed.
 
-The code that reads a setting checks it: a scene's build function its task keys, the runner the trainer keys,
-the spectral rules their truncation. ``call_target`` builds what a config names with ``_target_`` (a scene's
-build function, an optax factory) and turns a wrong keyword into the same kind of one-line error.
+The code that reads a setting checks it: a scene's build function its task keys, the runner the
+trainer keys, the spectral rules their truncation. ``call_target`` builds what a config names with
+``_target_`` (a scene's build function, an optax factory) and turns a wrong keyword into the same
+kind of one-line error.
 """
 
 from __future__ import annotations
@@ -17,11 +18,15 @@ from physgrad.errors import UserError
 
 
 def number(name: str, value, low=None, high=None, integer=False, optional=False, open_low=False):
-    """``value`` if it is a finite (whole) number within [low, high) (or (low, high) with open_low)."""
+    """``value`` if it is a finite (whole) number within [low, high) (or (low, high) with
+    open_low)."""
     if value is None and optional:
         return None
-    ok = (isinstance(value, numbers.Integral if integer else numbers.Real) and not isinstance(value, bool)
-          and math.isfinite(value))
+    ok = (
+        isinstance(value, numbers.Integral if integer else numbers.Real)
+        and not isinstance(value, bool)
+        and math.isfinite(value)
+    )
     if ok and low is not None:
         ok = value > low if open_low else value >= low
     if ok and high is not None:
@@ -34,13 +39,17 @@ def number(name: str, value, low=None, high=None, integer=False, optional=False,
             bounds.append(f"< {high}")
         kind = "a whole number" if integer else "a number"
         extra = " or null" if optional else ""
-        raise UserError(f"{name}={value!r} is not allowed: use {kind} {' and '.join(bounds)}".rstrip() + extra)
+        raise UserError(
+            f"{name}={value!r} is not allowed: use {kind} {' and '.join(bounds)}".rstrip() + extra
+        )
     return value
 
 
 def choice(name: str, value, choices):
     if value not in choices:
-        raise UserError(f"{name}={value!r} is not allowed: choose one of {', '.join(map(str, choices))}")
+        raise UserError(
+            f"{name}={value!r} is not allowed: choose one of {', '.join(map(str, choices))}"
+        )
     return value
 
 
@@ -51,40 +60,61 @@ def flag(name: str, value) -> bool:
 def layer_widths(name: str, value) -> list[int]:
     """A non-empty list of positive whole numbers (hidden layer widths)."""
     widths = list(value) if isinstance(value, (list, tuple)) else None
-    if not widths or not all(isinstance(w, int) and not isinstance(w, bool) and w > 0 for w in widths):
-        raise UserError(f"{name}={value!r} is not allowed: use a list of positive layer widths, e.g. [20, 20]")
+    if not widths or not all(
+        isinstance(w, int) and not isinstance(w, bool) and w > 0 for w in widths
+    ):
+        raise UserError(
+            f"{name}={value!r} is not allowed: use a list of positive layer widths, e.g. [20, 20]"
+        )
     return widths
 
 
 def finite_numbers(tree, prefix: str = "") -> None:
-    """Refuse NaN and infinity anywhere in a (plain, resolved) config: no setting of physgrad means "unbounded"
-    by inf (a missing limit is null)."""
-    items = tree.items() if isinstance(tree, dict) else enumerate(tree) if isinstance(tree, list) else ()
+    """Refuse NaN and infinity anywhere in a (plain, resolved) config: no setting of physgrad means
+    "unbounded" by inf (a missing limit is null)."""
+    items = (
+        tree.items()
+        if isinstance(tree, dict)
+        else enumerate(tree)
+        if isinstance(tree, list)
+        else ()
+    )
     for key, value in items:
-        name = f"{prefix}.{key}" if prefix and isinstance(key, str) else f"{prefix}[{key}]" if prefix else str(key)
+        name = (
+            f"{prefix}.{key}"
+            if prefix and isinstance(key, str)
+            else f"{prefix}[{key}]"
+            if prefix
+            else str(key)
+        )
         if isinstance(value, float) and not math.isfinite(value):
             raise UserError(f"{name}={value} is not allowed: use a finite number")
         finite_numbers(value, name)
 
 
 def call_target(section: str, node: dict, reserved=(), **runtime) -> Any:
-    """Call the function that ``node['_target_']`` names with the node's other keys (but ``reserved``, which
-    physgrad reads itself) as keyword arguments, plus ``runtime``. Nested ``_target_`` nodes are built first
-    (hydra.utils.instantiate), so a schedule can be an argument. ``section`` ("task", "optim") names the config
-    group in messages. UserError if the target cannot be imported or does not take the keys given."""
+    """Call the function that ``node['_target_']`` names with the node's other keys (but
+    ``reserved``, which physgrad reads itself) as keyword arguments, plus ``runtime``. Nested
+    ``_target_`` nodes are built first (hydra.utils.instantiate), so a schedule can be an argument.
+    ``section`` ("task", "optim") names the config group in messages. UserError if the target cannot
+    be imported or does not take the keys given."""
     from hydra.utils import get_object, instantiate
 
     target = node.get("_target_")
     if not isinstance(target, str) or not target:
-        raise UserError(f"the {section} config has no _target_: name the function that builds it "
-                        f"(e.g. _target_: mylab.pendulum.build)")
+        raise UserError(
+            f"the {section} config has no _target_: name the function that builds it "
+            f"(e.g. _target_: mylab.pendulum.build)"
+        )
     try:
         function = get_object(target)
     except Exception as error:  # noqa: BLE001 - Hydra wraps import errors of every kind
         cause = error.__cause__ or error
-        raise UserError(f"{section}._target_={target} cannot be imported ({type(cause).__name__}: "
-                        f"{str(cause).splitlines()[0]}): check the name, and run from the folder that holds "
-                        f"the module or install it") from None
+        raise UserError(
+            f"{section}._target_={target} cannot be imported ({type(cause).__name__}: "
+            f"{str(cause).splitlines()[0]}): check the name, and run from the folder that holds "
+            f"the module or install it"
+        ) from None
     if not callable(function):
         raise UserError(f"{section}._target_={target} is not a function")
     settings = {k: v for k, v in node.items() if k != "_target_" and k not in reserved}
@@ -100,18 +130,33 @@ def _check_keywords(section: str, target: str, function, given: set, runtime: se
         return
     if any(p.kind is inspect.Parameter.VAR_KEYWORD for p in parameters.values()):
         return
-    accepted = [name for name, p in parameters.items()
-                if p.kind in (inspect.Parameter.POSITIONAL_OR_KEYWORD, inspect.Parameter.KEYWORD_ONLY)]
+    accepted = [
+        name
+        for name, p in parameters.items()
+        if p.kind in (inspect.Parameter.POSITIONAL_OR_KEYWORD, inspect.Parameter.KEYWORD_ONLY)
+    ]
     for key in sorted(given - set(accepted)):
         close = difflib.get_close_matches(key, [a for a in accepted if a not in runtime], n=1)
         hint = f": did you mean {section}.{close[0]}?" if close else ""
         settable = ", ".join(a for a in accepted if a not in runtime)
-        raise UserError(f"{section}.{key} is not a setting of {target}{hint} (it takes: {settable})")
+        raise UserError(
+            f"{section}.{key} is not a setting of {target}{hint} (it takes: {settable})"
+        )
     for key in sorted(runtime - set(accepted)):
-        raise UserError(f"{target} must take the keyword argument {key!r}: physgrad passes it (see docs/extending.md)")
-    missing = [name for name, p in parameters.items() if p.default is inspect.Parameter.empty
-               and p.kind in (inspect.Parameter.POSITIONAL_OR_KEYWORD, inspect.Parameter.KEYWORD_ONLY)
-               and name not in given and name not in runtime]
+        raise UserError(
+            f"{target} must take the keyword argument {key!r}: physgrad passes it (see "
+            "docs/extending.md)"
+        )
+    missing = [
+        name
+        for name, p in parameters.items()
+        if p.default is inspect.Parameter.empty
+        and p.kind in (inspect.Parameter.POSITIONAL_OR_KEYWORD, inspect.Parameter.KEYWORD_ONLY)
+        and name not in given
+        and name not in runtime
+    ]
     if missing:
-        raise UserError(f"{target} needs {', '.join(section + '.' + m for m in missing)}: add "
-                        f"{'it' if len(missing) == 1 else 'them'} to the {section} config")
+        raise UserError(
+            f"{target} needs {', '.join(section + '.' + m for m in missing)}: add "
+            f"{'it' if len(missing) == 1 else 'them'} to the {section} config"
+        )

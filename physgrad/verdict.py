@@ -1,22 +1,25 @@
-"""The verdict rule: which of two variants reaches the lower held-out loss, how sure that is, and whether it holds
-as the budget grows. One implementation, used by `physgrad compare` and by the papers' claims
-(experiments/claims.py); docs/protocol.md gives the reasons and sources.
+"""The verdict rule: which of two variants reaches the lower held-out loss, how sure that is, and
+whether it holds as the budget grows. One implementation, used by `physgrad compare` and by the
+papers' claims (experiments/claims.py); docs/protocol.md gives the reasons and sources.
 
-For variants A and B trained on the same seeds (paired: same data and initial network), at a budget x:
-- each run's loss at x is read by physgrad.readout (Curve.at): its last evaluation at or before x, infinite
-  if it diverged by x, missing (NaN) if it ended before x without diverging: such a pair is left out and
-  counted;
-- per seed r = log(loss_A / loss_B); both diverged is a tie (r = 0), one diverged is +-LOG_CAP (beyond any
-  finite ratio: it only enters through ranks and the median);
-- the median of r with a percentile bootstrap 95% interval (scipy.stats.bootstrap, 10,000 resamples, fixed
-  seed); one-sided Wilcoxon signed-rank tests for "A lower" and "B lower" (zeros split), whose smaller p, doubled,
-  is the comparison's p of a difference; two one-sided Wilcoxon tests of |r| < log(MARGIN) for equivalence;
-  both p-values Holm-corrected over the comparisons of one study;
-- verdict: A better when the interval lies below -log(MARGIN) and the corrected p of a difference is below
-  ALPHA; B better when it lies above log(MARGIN) and p < ALPHA; equivalent (within 10%) when the corrected
-  equivalence p is below ALPHA; undecided otherwise (also with fewer than MIN_PAIRS pairs);
-- decided at x = X/4, X/2 and X (X the budget), and called stable where the verdicts at X/2 and X agree; the
-  median ratio's movement from X/2 to X is reported in both directions (the gap widens or narrows).
+For variants A and B trained on the same seeds (paired: same data and initial network), at a budget
+x:
+- each run's loss at x is read by physgrad.readout (Curve.at): its last evaluation at or before x,
+  infinite if it diverged by x, missing (NaN) if it ended before x without diverging: such a pair is
+  left out and counted;
+- per seed r = log(loss_A / loss_B); both diverged is a tie (r = 0), one diverged is +-LOG_CAP
+  (beyond any finite ratio: it only enters through ranks and the median);
+- the median of r with a percentile bootstrap 95% interval (scipy.stats.bootstrap, 10,000 resamples,
+  fixed seed); one-sided Wilcoxon signed-rank tests for "A lower" and "B lower" (zeros split), whose
+  smaller p, doubled, is the comparison's p of a difference; two one-sided Wilcoxon tests of |r| <
+  log(MARGIN) for equivalence; both p-values Holm-corrected over the comparisons of one study;
+- verdict: A better when the interval lies below -log(MARGIN) and the corrected p of a difference is
+  below ALPHA; B better when it lies above log(MARGIN) and p < ALPHA; equivalent (within 10%) when
+  the corrected equivalence p is below ALPHA; undecided otherwise (also with fewer than MIN_PAIRS
+  pairs);
+- decided at x = X/4, X/2 and X (X the budget), and called stable where the verdicts at X/2 and X
+  agree; the median ratio's movement from X/2 to X is reported in both directions (the gap widens or
+  narrows).
 """
 
 from __future__ import annotations
@@ -34,14 +37,15 @@ ALPHA = 0.05
 CONFIDENCE = 0.95
 RESAMPLES = 10_000
 MIN_PAIRS = 5  # below this no test can reach ALPHA after correction; the verdict stays undecided
-LOG_CAP = 1e3  # |log ratio| standing for "one side diverged" (a finite log ratio of float64 losses is < 1500)
+# |log ratio| standing for "one side diverged" (a finite log ratio of float64 losses is < 1500)
+LOG_CAP = 1e3
 FRACTIONS = (0.25, 0.5, 1.0)
 A_BETTER, B_BETTER, EQUIVALENT, UNDECIDED = "A better", "B better", "equivalent", "undecided"
 
 
 def log_ratio(a: float, b: float) -> float:
-    """log(a / b) for two losses at a budget (inf: diverged; NaN: missing): NaN if either is missing; 0 if both
-    diverged or both are 0; +-LOG_CAP if one side diverged or is 0."""
+    """log(a / b) for two losses at a budget (inf: diverged; NaN: missing): NaN if either is
+    missing; 0 if both diverged or both are 0; +-LOG_CAP if one side diverged or is 0."""
     if math.isnan(a) or math.isnan(b):
         return math.nan
     if math.isinf(a) and math.isinf(b) or (a == 0 and b == 0):
@@ -54,16 +58,19 @@ def log_ratio(a: float, b: float) -> float:
 
 
 def snap(log_value: float) -> float:
-    """A median (or an interval end) that averages a diverged side's +-LOG_CAP with a finite log ratio lies at
-    the divergence boundary: it is reported as +-LOG_CAP, not as a ratio of e^500."""
+    """A median (or an interval end) that averages a diverged side's +-LOG_CAP with a finite log
+    ratio lies at the divergence boundary: it is reported as +-LOG_CAP, not as a ratio of e^500."""
     return math.copysign(LOG_CAP, log_value) if abs(log_value) >= LOG_CAP / 2 else log_value
 
 
-EXACT_PAIRS = 13  # up to here the signed-rank test enumerates all 2^n sign flips (scipy's own limit)
+EXACT_PAIRS = (
+    13  # up to here the signed-rank test enumerates all 2^n sign flips (scipy's own limit)
+)
 
 
 def _signed_rank_sum(d: np.ndarray, axis: int = -1) -> np.ndarray:
-    """W+ = sum of the ranks of |d| over d > 0, a zero counting half its rank (zero_method 'zsplit')."""
+    """W+ = sum of the ranks of |d| over d > 0, a zero counting half its rank (zero_method
+    'zsplit')."""
     from scipy.stats import rankdata
 
     ranks = rankdata(np.abs(d), axis=axis)
@@ -71,9 +78,10 @@ def _signed_rank_sum(d: np.ndarray, axis: int = -1) -> np.ndarray:
 
 
 def _wilcoxon(r: np.ndarray, alternative: str) -> float:
-    """One-sided p-value of the Wilcoxon signed-rank test of r (scipy.stats.wilcoxon, zero_method 'zsplit'). Up to
-    EXACT_PAIRS pairs with ties or zeros scipy enumerates the sign flips one call at a time (0.6 s a test); the
-    same exact enumeration is done here in one vectorised scipy.stats.permutation_test."""
+    """One-sided p-value of the Wilcoxon signed-rank test of r (scipy.stats.wilcoxon, zero_method
+    'zsplit'). Up to EXACT_PAIRS pairs with ties or zeros scipy enumerates the sign flips one call
+    at a time (0.6 s a test); the same exact enumeration is done here in one vectorised
+    scipy.stats.permutation_test."""
     from scipy.stats import permutation_test, wilcoxon
 
     if not r.size or not np.any(r):
@@ -81,28 +89,47 @@ def _wilcoxon(r: np.ndarray, alternative: str) -> float:
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         if 2 <= r.size <= EXACT_PAIRS:
-            return float(permutation_test((r,), _signed_rank_sum, permutation_type="samples", vectorized=True,
-                                          n_resamples=np.inf, alternative=alternative).pvalue)
+            return float(
+                permutation_test(
+                    (r,),
+                    _signed_rank_sum,
+                    permutation_type="samples",
+                    vectorized=True,
+                    n_resamples=np.inf,
+                    alternative=alternative,
+                ).pvalue
+            )
         return float(wilcoxon(r, zero_method="zsplit", alternative=alternative).pvalue)
 
 
-def median_interval(r: np.ndarray, confidence: float = CONFIDENCE, seed: int = 0) -> tuple[float, float]:
-    """Percentile bootstrap interval of the median of r (scipy.stats.bootstrap, RESAMPLES resamples)."""
+def median_interval(
+    r: np.ndarray, confidence: float = CONFIDENCE, seed: int = 0
+) -> tuple[float, float]:
+    """Percentile bootstrap interval of the median of r (scipy.stats.bootstrap, RESAMPLES
+    resamples)."""
     from scipy.stats import bootstrap
 
     if r.size < 2 or np.all(r == r[0]):
-        return float(np.median(r)) if r.size else math.nan, float(np.median(r)) if r.size else math.nan
+        return float(np.median(r)) if r.size else math.nan, float(
+            np.median(r)
+        ) if r.size else math.nan
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
-        result = bootstrap((r,), np.median, confidence_level=confidence, n_resamples=RESAMPLES,
-                           method="percentile", rng=np.random.default_rng(seed))
+        result = bootstrap(
+            (r,),
+            np.median,
+            confidence_level=confidence,
+            n_resamples=RESAMPLES,
+            method="percentile",
+            rng=np.random.default_rng(seed),
+        )
     return float(result.confidence_interval.low), float(result.confidence_interval.high)
 
 
 @dataclass(frozen=True)
 class Paired:
-    """The paired comparison of A and B at one budget: per-seed log ratios (NaN: pair left out), their median
-    with its interval, and the raw one-sided p-values (before Holm's correction)."""
+    """The paired comparison of A and B at one budget: per-seed log ratios (NaN: pair left out),
+    their median with its interval, and the raw one-sided p-values (before Holm's correction)."""
 
     log_ratios: tuple[float, ...]
     median: float
@@ -129,11 +156,16 @@ class Paired:
 
     @property
     def ratio(self) -> float:
-        return math.exp(self.median) if abs(self.median) < LOG_CAP else (math.inf if self.median > 0 else 0.0)
+        return (
+            math.exp(self.median)
+            if abs(self.median) < LOG_CAP
+            else (math.inf if self.median > 0 else 0.0)
+        )
 
 
 def paired(a: list[float], b: list[float], margin: float = MARGIN, seed: int = 0) -> Paired:
-    """Paired statistics of the losses a[i], b[i] of seed i at one budget (inf: diverged, NaN: missing)."""
+    """Paired statistics of the losses a[i], b[i] of seed i at one budget (inf: diverged, NaN:
+    missing)."""
     a, b = np.asarray(a, float), np.asarray(b, float)
     r_all = np.array([log_ratio(x, y) for x, y in zip(a, b)])
     r = r_all[~np.isnan(r_all)]
@@ -141,15 +173,23 @@ def paired(a: list[float], b: list[float], margin: float = MARGIN, seed: int = 0
     low, high = (snap(v) for v in median_interval(r, seed=seed))
     return Paired(
         log_ratios=tuple(float(v) for v in r_all),
-        median=snap(float(np.median(r))) if r.size else math.nan, low=low, high=high,
-        p_a=_wilcoxon(r, "less"), p_b=_wilcoxon(r, "greater"),
-        p_equivalent=max(_wilcoxon(r + delta, "greater"), _wilcoxon(r - delta, "less")) if r.size else 1.0,
-        diverged_a=int(np.sum(np.isinf(a))), diverged_b=int(np.sum(np.isinf(b))),
-        missing=int(np.sum(np.isnan(r_all))))
+        median=snap(float(np.median(r))) if r.size else math.nan,
+        low=low,
+        high=high,
+        p_a=_wilcoxon(r, "less"),
+        p_b=_wilcoxon(r, "greater"),
+        p_equivalent=max(_wilcoxon(r + delta, "greater"), _wilcoxon(r - delta, "less"))
+        if r.size
+        else 1.0,
+        diverged_a=int(np.sum(np.isinf(a))),
+        diverged_b=int(np.sum(np.isinf(b))),
+        missing=int(np.sum(np.isnan(r_all))),
+    )
 
 
 def holm(pvalues: list[float]) -> list[float]:
-    """Holm's step-down adjustment: the i-th smallest p times (m - i), made monotone, capped at 1."""
+    """Holm's step-down adjustment: the i-th smallest p times (m - i), made monotone, capped at
+    1."""
     order = np.argsort(pvalues, kind="stable")
     m, adjusted, running = len(pvalues), [1.0] * len(pvalues), 0.0
     for rank, index in enumerate(order):
@@ -159,23 +199,31 @@ def holm(pvalues: list[float]) -> list[float]:
 
 
 def seeds_needed(alpha: float = ALPHA, comparisons: int = 1) -> int:
-    """The fewest paired seeds with which a comparison can be decided at all: the smallest two-sided p of the
-    signed-rank test, 2 / 2^n (every seed on one side), must be below alpha / comparisons (Holm's strictest
-    step). 6 for one comparison at 0.05, 7 for three, 8 for six."""
+    """The fewest paired seeds with which a comparison can be decided at all: the smallest two-sided
+    p of the signed-rank test, 2 / 2^n (every seed on one side), must be below alpha / comparisons
+    (Holm's strictest step). 6 for one comparison at 0.05, 7 for three, 8 for six."""
     n = 1
     while 2.0 ** (1 - n) >= alpha / comparisons:
         n += 1
     return max(n, MIN_PAIRS)
 
 
-def decide(p: Paired, p_difference: float, p_equivalent: float, margin: float = MARGIN,
-           alpha: float = ALPHA, comparisons: int = 1) -> tuple[str, str]:
+def decide(
+    p: Paired,
+    p_difference: float,
+    p_equivalent: float,
+    margin: float = MARGIN,
+    alpha: float = ALPHA,
+    comparisons: int = 1,
+) -> tuple[str, str]:
     """The verdict and why, from the paired statistics and the Holm-corrected p-values."""
     delta = math.log(margin)
     needed = seeds_needed(alpha, comparisons)
     if p.pairs < needed:
-        return UNDECIDED, (f"{p.pairs} paired seeds cannot reach p < {alpha:g} over {comparisons} comparisons "
-                           f"(at least {needed} needed)")
+        return UNDECIDED, (
+            f"{p.pairs} paired seeds cannot reach p < {alpha:g} over {comparisons} comparisons "
+            f"(at least {needed} needed)"
+        )
     if p.high < -delta and p_difference < alpha:
         return A_BETTER, f"interval below 1/{margin:g}, p = {p_difference:.2g}"
     if p.low > delta and p_difference < alpha:
@@ -183,13 +231,18 @@ def decide(p: Paired, p_difference: float, p_equivalent: float, margin: float = 
     if p_equivalent < alpha:
         return EQUIVALENT, f"within {100 * (margin - 1):.0f}%, p = {p_equivalent:.2g}"
     if p_difference < alpha:
-        return UNDECIDED, f"different (p = {p_difference:.2g}), but not by {100 * (margin - 1):.0f}% with confidence"
+        return (
+            UNDECIDED,
+            f"different (p = {p_difference:.2g}), but not by {100 * (margin - 1):.0f}% with "
+            "confidence",
+        )
     return UNDECIDED, f"p = {p_difference:.2g} (difference), {p_equivalent:.2g} (equivalence)"
 
 
 @dataclass
 class PairVerdict:
-    """A against B at X/4, X/2 and X: statistics, corrected p-values and verdicts per budget fraction."""
+    """A against B at X/4, X/2 and X: statistics, corrected p-values and verdicts per budget
+    fraction."""
 
     a: str
     b: str
@@ -223,25 +276,38 @@ def losses_at(curves: dict[int, Curve], seeds: list[int], x: float) -> list[floa
     return [curves[s].at(x) if s in curves else math.nan for s in seeds]
 
 
-def compare_variants(curves: dict[str, dict[int, Curve]], budget: float, pairs: list[tuple[str, str]] | None = None,
-                     margin: float = MARGIN, alpha: float = ALPHA, fractions=FRACTIONS) -> list[PairVerdict]:
-    """Every pair (A, B) of variants (default: all pairs, in the given order) decided at each fraction of the
-    budget; Holm's correction runs over the pairs at each fraction. curves: variant -> seed -> Curve."""
+def compare_variants(
+    curves: dict[str, dict[int, Curve]],
+    budget: float,
+    pairs: list[tuple[str, str]] | None = None,
+    margin: float = MARGIN,
+    alpha: float = ALPHA,
+    fractions=FRACTIONS,
+) -> list[PairVerdict]:
+    """Every pair (A, B) of variants (default: all pairs, in the given order) decided at each
+    fraction of the budget; Holm's correction runs over the pairs at each fraction. curves: variant
+    -> seed -> Curve."""
     names = list(curves)
-    pairs = pairs if pairs is not None else [(names[i], names[j]) for i in range(len(names))
-                                             for j in range(i + 1, len(names))]
+    pairs = (
+        pairs
+        if pairs is not None
+        else [(names[i], names[j]) for i in range(len(names)) for j in range(i + 1, len(names))]
+    )
     results = [PairVerdict(a, b, budget) for a, b in pairs]
     for fraction in fractions:
         x = budget * fraction
         for result in results:
             seeds = sorted(set(curves[result.a]) | set(curves[result.b]))
-            result.at[fraction] = paired(losses_at(curves[result.a], seeds, x),
-                                         losses_at(curves[result.b], seeds, x), margin)
+            result.at[fraction] = paired(
+                losses_at(curves[result.a], seeds, x), losses_at(curves[result.b], seeds, x), margin
+            )
         diff = holm([r.at[fraction].p_difference for r in results])
         equiv = holm([r.at[fraction].p_equivalent for r in results])
         for result, pd, pe in zip(results, diff, equiv):
             result.p_difference[fraction], result.p_equivalent[fraction] = pd, pe
-            result.verdicts[fraction] = decide(result.at[fraction], pd, pe, margin, alpha, len(results))
+            result.verdicts[fraction] = decide(
+                result.at[fraction], pd, pe, margin, alpha, len(results)
+            )
     return results
 
 
@@ -251,15 +317,20 @@ def divergence_test(diverged_a: int, n_a: int, diverged_b: int, n_b: int) -> flo
 
     if n_a == 0 or n_b == 0:
         return math.nan
-    return float(fisher_exact([[diverged_a, n_a - diverged_a], [diverged_b, n_b - diverged_b]]).pvalue)
+    return float(
+        fisher_exact([[diverged_a, n_a - diverged_a], [diverged_b, n_b - diverged_b]]).pvalue
+    )
 
 
 @dataclass(frozen=True)
 class Interaction:
-    """Whether A's advantage over B grows from an easy setting to a hard one: d = median r_hard - median r_easy
-    of the per-seed log ratios log(loss_A / loss_B) of the two settings (each setting's pairs on its own)."""
+    """Whether A's advantage over B grows from an easy setting to a hard one: d = median r_hard -
+    median r_easy of the per-seed log ratios log(loss_A / loss_B) of the two settings (each
+    setting's pairs on its own)."""
 
-    difference: float  # d; exp(d) is how many times lower A/B is at the hard end than at the easy end
+    difference: (
+        float  # d; exp(d) is how many times lower A/B is at the hard end than at the easy end
+    )
     low: float
     high: float
     p: float  # one-sided Mann-Whitney U: r_hard stochastically below r_easy
@@ -270,35 +341,56 @@ class Interaction:
 
     @property
     def factor(self) -> float:
-        return math.exp(self.difference) if abs(self.difference) < 700 else (0.0 if self.difference < 0 else math.inf)
+        return (
+            math.exp(self.difference)
+            if abs(self.difference) < 700
+            else (0.0 if self.difference < 0 else math.inf)
+        )
 
 
 GROWS, DOES_NOT_GROW = "grows", "does not grow"
 
 
-def interaction(r_easy, r_hard, margin: float = MARGIN, alpha: float = ALPHA, seed: int = 0) -> Interaction:
-    """The trend claim "A's advantage over B is larger at the hard end": d = median(r_hard) - median(r_easy), r the
-    per-seed log ratios A/B of each setting (NaN: pair left out), with a percentile bootstrap 95% interval
-    (the two settings resampled independently: their seeds train different problems) and a one-sided
-    Mann-Whitney U test of r_hard < r_easy. grows: the interval lies below -log(margin) and p < alpha; does not
-    grow: it lies above -log(margin) (the ratio at the hard end is not lower by the margin, with confidence);
-    undecided otherwise (also with fewer than MIN_PAIRS pairs in a setting)."""
+def interaction(
+    r_easy, r_hard, margin: float = MARGIN, alpha: float = ALPHA, seed: int = 0
+) -> Interaction:
+    """The trend claim "A's advantage over B is larger at the hard end": d = median(r_hard) -
+    median(r_easy), r the per-seed log ratios A/B of each setting (NaN: pair left out), with a
+    percentile bootstrap 95% interval (the two settings resampled independently: their seeds train
+    different problems) and a one-sided Mann-Whitney U test of r_hard < r_easy. grows: the interval
+    lies below -log(margin) and p < alpha; does not grow: it lies above -log(margin) (the ratio at
+    the hard end is not lower by the margin, with confidence); undecided otherwise (also with fewer
+    than MIN_PAIRS pairs in a setting)."""
     from scipy.stats import bootstrap, mannwhitneyu
 
     easy, hard = (np.asarray([v for v in r if not math.isnan(v)], float) for r in (r_easy, r_hard))
     if min(easy.size, hard.size) < MIN_PAIRS:
         d = float(np.median(hard) - np.median(easy)) if easy.size and hard.size else math.nan
-        return Interaction(d, math.nan, math.nan, math.nan, easy.size, hard.size, UNDECIDED,
-                           f"{easy.size} and {hard.size} pairs (at least {MIN_PAIRS} each needed)")
+        return Interaction(
+            d,
+            math.nan,
+            math.nan,
+            math.nan,
+            easy.size,
+            hard.size,
+            UNDECIDED,
+            f"{easy.size} and {hard.size} pairs (at least {MIN_PAIRS} each needed)",
+        )
     d = float(np.median(hard) - np.median(easy))
     if np.all(easy == easy[0]) and np.all(hard == hard[0]):
         low = high = d
     else:
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
-            result = bootstrap((hard, easy), lambda h, e, axis=-1: np.median(h, axis=axis) - np.median(e, axis=axis),
-                               confidence_level=CONFIDENCE, n_resamples=RESAMPLES, method="percentile",
-                               vectorized=True, rng=np.random.default_rng(seed))
+            result = bootstrap(
+                (hard, easy),
+                lambda h, e, axis=-1: np.median(h, axis=axis) - np.median(e, axis=axis),
+                confidence_level=CONFIDENCE,
+                n_resamples=RESAMPLES,
+                method="percentile",
+                vectorized=True,
+                rng=np.random.default_rng(seed),
+            )
         low, high = float(result.confidence_interval.low), float(result.confidence_interval.high)
     p = float(mannwhitneyu(hard, easy, alternative="less").pvalue)
     delta = math.log(margin)
@@ -307,5 +399,8 @@ def interaction(r_easy, r_hard, margin: float = MARGIN, alpha: float = ALPHA, se
     elif low > -delta:
         verdict, why = DOES_NOT_GROW, f"interval above 1/{margin:g} (p = {p:.2g})"
     else:
-        verdict, why = UNDECIDED, f"p = {p:.2g}, interval [{math.exp(low):.3g}, {math.exp(high):.3g}]"
+        verdict, why = (
+            UNDECIDED,
+            f"p = {p:.2g}, interval [{math.exp(low):.3g}, {math.exp(high):.3g}]",
+        )
     return Interaction(d, low, high, p, easy.size, hard.size, verdict, why)

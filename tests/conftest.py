@@ -4,17 +4,22 @@ import shutil
 import tempfile
 
 os.environ.setdefault("JAX_PLATFORMS", "cpu")
-# One persistent compilation cache for the whole test session, this process and every `physgrad` it starts:
-# the tests build the same steps, evaluations and data generators many times over (every variant of a scene
-# shares its evaluation; each subprocess would compile its eager operations again), and a cached executable is
-# the same code, so results are unchanged. About a third of the suite's time on 2 cores.
+# One persistent compilation cache for the whole test session, this process and every `physgrad` it
+# starts: the tests build the same steps, evaluations and data generators many times over (every
+# variant of a scene shares its evaluation; each subprocess would compile its eager operations
+# again), and a cached executable is the same code, so results are unchanged. About a third of the
+# suite's time on 2 cores.
 if "JAX_COMPILATION_CACHE_DIR" not in os.environ:
     _cache = tempfile.mkdtemp(prefix="physgrad-test-jax-cache-")
     atexit.register(shutil.rmtree, _cache, ignore_errors=True)
-    os.environ.update(JAX_COMPILATION_CACHE_DIR=_cache, JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS="0",
-                      JAX_PERSISTENT_CACHE_MIN_ENTRY_SIZE_BYTES="0")
+    os.environ.update(
+        JAX_COMPILATION_CACHE_DIR=_cache,
+        JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS="0",
+        JAX_PERSISTENT_CACHE_MIN_ENTRY_SIZE_BYTES="0",
+    )
 
-# Generated datasets (the Kuramoto-Sivashinsky trajectories) go to a cache of the test session, never the user's
+# Generated datasets (the Kuramoto-Sivashinsky trajectories) go to a cache of the test session,
+# never the user's
 if "PHYSGRAD_CACHE" not in os.environ:
     _data = tempfile.mkdtemp(prefix="physgrad-test-data-")
     atexit.register(shutil.rmtree, _data, ignore_errors=True)

@@ -1,11 +1,20 @@
-"""make bench on tiny problems: every number the table needs is measured, nothing is asserted about speed."""
+"""make bench on tiny problems: every number the table needs is measured, nothing is asserted about
+speed."""
 
 import math
 
 import pytest
 
-from physgrad.bench import (_median_times, floor_seconds, jacobian_table, measure_floors, measure_seeds,
-                            measure_variant, seeds_table, table)
+from physgrad.bench import (
+    _median_times,
+    floor_seconds,
+    jacobian_table,
+    measure_floors,
+    measure_seeds,
+    measure_variant,
+    seeds_table,
+    table,
+)
 
 
 @pytest.mark.long
@@ -13,16 +22,28 @@ def test_bench_measures_steps_floors_and_overhead():
     small = ["task=poisson", "task.grid=4", "task.test_size=8", "trainer.batch_size=4"]
     hig = measure_variant([*small, "optim=hig"], repeats=2, min_seconds=0)
     adam = measure_variant([*small, "optim=adam"], repeats=2, min_seconds=0)
-    assert hig["jac_shape"] == [4 * 16, 1 * 16 * 16 + 16 + 16 * 32 + 32 + 32 * 16 + 16 + 16 * 16 + 16]
+    assert hig["jac_shape"] == [
+        4 * 16,
+        1 * 16 * 16 + 16 + 16 * 32 + 32 + 32 * 16 + 16 + 16 * 16 + 16,
+    ]
     assert hig["route"] == "gram" and hig["jacobian"] == "layer-factorised"
-    assert hig["step_s"] > 0 and hig["per_sample_step_s"] > 0 and hig["loss_grad_s"] > 0 and hig["eigh_s"] > 0
+    assert (
+        hig["step_s"] > 0
+        and hig["per_sample_step_s"] > 0
+        and hig["loss_grad_s"] > 0
+        and hig["eigh_s"] > 0
+    )
     assert hig["per_sample_peak_rss_gb"] >= hig["peak_rss_gb"] > 0
-    assert adam["loss_grad_s"] > 0 and 0 <= adam["runner_overhead"] < 1 and 0 < adam["eval_share"] < 1
+    assert (
+        adam["loss_grad_s"] > 0 and 0 <= adam["runner_overhead"] < 1 and 0 < adam["eval_share"] < 1
+    )
     floors = measure_floors(hig["jac_shape"][0], repeats=2)
     assert {"eigh_numpy_s", "eigh_scipy_evr_s", "eigh_scipy_evd_s", "eigh_jax_s"} == set(floors)
     assert all(seconds > 0 for seconds in floors.values())
-    rows = [{"task": "poisson", "variant": "hig", "precision": 32, **hig, "floors": floors},
-            {"task": "poisson", "variant": "adam", "precision": 32, **adam}]
+    rows = [
+        {"task": "poisson", "variant": "hig", "precision": 32, **hig, "floors": floors},
+        {"task": "poisson", "variant": "adam", "precision": 32, **adam},
+    ]
     assert f"| {adam['step_s'] / adam['loss_grad_s']:.2f} |" in table(rows)
     text = jacobian_table(rows)
     fastest = min(floors.values())
@@ -39,14 +60,22 @@ def test_a_refused_variant_is_left_out():
 
 def test_timings_are_taken_in_turn_with_their_baseline():
     calls = []
-    medians = _median_times([lambda: calls.append("step"), lambda: calls.append("bare")], repeats=3, min_seconds=0)
+    medians = _median_times(
+        [lambda: calls.append("step"), lambda: calls.append("bare")], repeats=3, min_seconds=0
+    )
     assert calls == ["step", "bare"] * 4  # one warm-up call each, then rounds of one call each
     assert [count for _, count in medians] == [3, 3]
 
 
 @pytest.mark.long
 def test_seeds_are_timed_against_one_seed_in_the_same_process():
-    small = ["task=poisson", "task.grid=4", "task.test_size=8", "trainer.batch_size=4", "optim=adam"]
+    small = [
+        "task=poisson",
+        "task.grid=4",
+        "task.test_size=8",
+        "trainer.batch_size=4",
+        "optim=adam",
+    ]
     result = measure_seeds(small, 2, repeats=2, min_seconds=0)
     assert result["seeds"] == 2 and result["single_step_s"] > 0 and result["step_s"] > 0
     gain = 2 * result["single_step_s"] / result["step_s"]

@@ -27,7 +27,14 @@ def rows_of(rows, case_start):
 @pytest.mark.long
 def test_small_check_has_no_failures_and_every_outcome_is_named(small_check):
     for row in small_check:
-        assert row["outcome"] in ("converged", "stalled", "grew", "diverged", "refused", "finite"), row
+        assert row["outcome"] in (
+            "converged",
+            "stalled",
+            "grew",
+            "diverged",
+            "refused",
+            "finite",
+        ), row
 
 
 @pytest.mark.long
@@ -37,7 +44,9 @@ def test_far_too_large_learning_rates_end_as_outcomes(small_check):
     for row in rows:
         assert row["outcome"] in ("diverged", "stalled", "grew"), row
         if row["outcome"] == "diverged":
-            assert re.fullmatch(r"(output|loss|gradient|update) became \S+ at iteration \d+ \(\w+\)", row["detail"])
+            assert re.fullmatch(
+                r"(output|loss|gradient|update) became \S+ at iteration \d+ \(\w+\)", row["detail"]
+            )
 
 
 @pytest.mark.long
@@ -49,7 +58,8 @@ def test_rank_deficient_jacobians_give_finite_directions(small_check):
         if "all-zero" in row["case"]:
             assert all(float(e) == 0.0 for e in errors.values())  # exactly the zero update
         elif row["precision"] == "64":
-            # duplicated samples: rank m/2, the copies' singular values are exactly 0 and must be dropped
+            # duplicated samples: rank m/2, the copies' singular values are exactly 0 and must be
+            # dropped
             assert all(float(errors[t]) < 1e-6 for t in ("1e-06", "1e-04", "1e-02")), row
 
 
@@ -63,41 +73,78 @@ def test_schroedinger_norm_drift_is_round_off(small_check):
 @pytest.mark.long
 def test_bptt_gradient_growth_is_measured(small_check):
     rows = {row["variant"]: row for row in rows_of(small_check, "multicart 4 poles: gradient norm")}
-    assert set(rows) == {"bptt[R]", "bptt[M]"} and all(row["outcome"] == "finite" for row in rows.values())
+    assert set(rows) == {"bptt[R]", "bptt[M]"} and all(
+        row["outcome"] == "finite" for row in rows.values()
+    )
     # the modes differ (with the zero output layer of the initial network they would coincide)
     assert rows["bptt[R]"]["detail"] != rows["bptt[M]"]["detail"]
 
 
-@pytest.mark.parametrize("override, fragment", [
-    ("task.hidden=[0,20]", "task.hidden=[0, 20] is not allowed: use a list of positive layer widths"),
-    ("task.checkpoint=maybe", "task.checkpoint='maybe' is not allowed: choose one of False, True"),
-    ("task.alpha=strong", "task.alpha='strong' is not allowed: use a number"),
-    ("task.dt=-0.1", "task.dt=-0.1 is not allowed: use a number > 0"),
-    ("task.oscillators=1.5", "task.oscillators=1.5 is not allowed: use a whole number >= 1"),
-    ("trainer.eval_every=0", "trainer.eval_every=0 is not allowed: use a whole number >= 1"),
-    ("trainer.time_budget=-5", "trainer.time_budget=-5 is not allowed: use a number > 0 or null"),
-    ("precision=16", "precision=16 is not allowed: choose one of 32, 64"),
-    ("seed=-1", "seed=-1 is not allowed: use a whole number >= 0"),
-    ("seed=4294967296", "seed=4294967296 is not allowed: use a whole number >= 0 and < 4294967296"),
-    ("seed=4294967295 seeds=2", "seeds must stay below 4294967296 (2^32), so use seed <= 4294967294"),
-    ("optim=hig optim.tau=2", "optim.tau=2 is not allowed: use a number >= 0 and < 1"),
-    ("optim=hig optim.route=qr", "optim.route='qr' is not allowed: choose one of auto, svd, gram"),
-    ("optim=adam optim.learning_rate=0", "optim.learning_rate=0 is not allowed: use a number > 0"),
-    ("overwrite=sometimes", "overwrite='sometimes' is not allowed: choose one of False, True"),
-    ("unroll=0", "unroll=0 is not allowed: use a whole number >= 1"),
-    ("seeds=0", "seeds=0 is not allowed: use a whole number >= 1"),
-    ("optim=hig seeds=2", "seeds=2 cannot retry failed factorisations in float64: add optim.retry_float64=false"),
-    ("init_from=7", "init_from=7 is not allowed: use the path of a results.h5, or leave init_from out"),
-])
+@pytest.mark.parametrize(
+    "override, fragment",
+    [
+        (
+            "task.hidden=[0,20]",
+            "task.hidden=[0, 20] is not allowed: use a list of positive layer widths",
+        ),
+        (
+            "task.checkpoint=maybe",
+            "task.checkpoint='maybe' is not allowed: choose one of False, True",
+        ),
+        ("task.alpha=strong", "task.alpha='strong' is not allowed: use a number"),
+        ("task.dt=-0.1", "task.dt=-0.1 is not allowed: use a number > 0"),
+        ("task.oscillators=1.5", "task.oscillators=1.5 is not allowed: use a whole number >= 1"),
+        ("trainer.eval_every=0", "trainer.eval_every=0 is not allowed: use a whole number >= 1"),
+        (
+            "trainer.time_budget=-5",
+            "trainer.time_budget=-5 is not allowed: use a number > 0 or null",
+        ),
+        ("precision=16", "precision=16 is not allowed: choose one of 32, 64"),
+        ("seed=-1", "seed=-1 is not allowed: use a whole number >= 0"),
+        (
+            "seed=4294967296",
+            "seed=4294967296 is not allowed: use a whole number >= 0 and < 4294967296",
+        ),
+        (
+            "seed=4294967295 seeds=2",
+            "seeds must stay below 4294967296 (2^32), so use seed <= 4294967294",
+        ),
+        ("optim=hig optim.tau=2", "optim.tau=2 is not allowed: use a number >= 0 and < 1"),
+        (
+            "optim=hig optim.route=qr",
+            "optim.route='qr' is not allowed: choose one of auto, svd, gram",
+        ),
+        (
+            "optim=adam optim.learning_rate=0",
+            "optim.learning_rate=0 is not allowed: use a number > 0",
+        ),
+        ("overwrite=sometimes", "overwrite='sometimes' is not allowed: choose one of False, True"),
+        ("unroll=0", "unroll=0 is not allowed: use a whole number >= 1"),
+        ("seeds=0", "seeds=0 is not allowed: use a whole number >= 1"),
+        (
+            "optim=hig seeds=2",
+            "seeds=2 cannot retry failed factorisations in float64: add optim.retry_float64=false",
+        ),
+        (
+            "init_from=7",
+            "init_from=7 is not allowed: use the path of a results.h5, or leave init_from out",
+        ),
+    ],
+)
 def test_bad_values_are_refused_with_the_key_and_what_is_allowed(override, fragment, tmp_path):
     outcome, _ = run_experiment(load("task=oscillator", *override.split()), tmp_path)
-    assert outcome.status == "refused" and fragment in outcome.reason and "\n" not in outcome.reason, outcome.reason
+    assert (
+        outcome.status == "refused" and fragment in outcome.reason and "\n" not in outcome.reason
+    ), outcome.reason
 
 
-@pytest.mark.parametrize("override, fragment", [
-    ("task.grid=1", "task.grid=1 is not allowed: use a whole number >= 2"),
-    ("task.smoothness=-1", "task.smoothness=-1 is not allowed: use a number >= 0"),
-])
+@pytest.mark.parametrize(
+    "override, fragment",
+    [
+        ("task.grid=1", "task.grid=1 is not allowed: use a whole number >= 2"),
+        ("task.smoothness=-1", "task.smoothness=-1 is not allowed: use a number >= 0"),
+    ],
+)
 def test_bad_poisson_values_are_refused(override, fragment, tmp_path):
     outcome, _ = run_experiment(load(override), tmp_path)
     assert outcome.status == "refused" and fragment in outcome.reason
@@ -113,10 +160,15 @@ def test_an_unwritable_output_folder_is_a_one_line_error(tmp_path, make_target):
         target = tmp_path / "file.txt" / "run"
     else:
         target = "/proc/physgrad/run"  # not writable, even for root
-    for args in (["run", f"hydra.run.dir={target}"], ["run", "-m", "optim=adam,gd", f"hydra.sweep.dir={target}"]):
+    for args in (
+        ["run", f"hydra.run.dir={target}"],
+        ["run", "-m", "optim=adam,gd", f"hydra.sweep.dir={target}"],
+    ):
         result = physgrad(*args, "trainer.iterations=1", check=False)
         lines = result.stderr.strip().splitlines()
-        assert result.returncode == 2 and len(lines) == 1 and "cannot write results to" in lines[0], result.stderr
+        assert (
+            result.returncode == 2 and len(lines) == 1 and "cannot write results to" in lines[0]
+        ), result.stderr
 
 
 @pytest.mark.slow
@@ -127,7 +179,7 @@ def test_check_command_is_wired():
     assert result.returncode == 0 and "--small" in result.stdout
 
 
-BROKEN_SCENE = '''
+BROKEN_SCENE = """
 import jax
 import jax.numpy as jnp
 
@@ -156,9 +208,10 @@ def build(key, *, test_size, wrong):
 
     return Scene(init_params=lambda k: init_mlp(k, [1, 8, 1], dtype), draw_batch=draw,
                  test_set=draw(key, test_size),
-                 sample_output=lambda params, sample: physics(apply_mlp(params, sample["x"], hidden="tanh")),
+                 sample_output=lambda params, sample: physics(
+                     apply_mlp(params, sample["x"], hidden="tanh")),
                  sample_loss=lambda y, sample: 0.5 * jnp.sum((y - sample["target"]) ** 2))
-'''
+"""
 
 
 @pytest.mark.parametrize("wrong", [False, True])
@@ -168,15 +221,23 @@ def test_check_finds_a_scene_s_wrong_gradient(tmp_path, monkeypatch, capsys, wro
     (tmp_path / "conf" / "task").mkdir(parents=True)
     (tmp_path / "heat.py").write_text(BROKEN_SCENE)
     (tmp_path / "conf" / "task" / "heat.yaml").write_text(
-        f"_target_: heat.build\nbatch_size: 4\ntest_size: 8\nwrong: {str(wrong).lower()}\n")
+        f"_target_: heat.build\nbatch_size: 4\ntest_size: 8\nwrong: {str(wrong).lower()}\n"
+    )
     monkeypatch.chdir(tmp_path)
     monkeypatch.syspath_prepend(str(tmp_path))
     code = main(["-cd", "conf", "task=heat"])
     lines = capsys.readouterr().out.splitlines()
-    by_name = {line.split(":")[0].split()[-1] if line.startswith(("ok", "FAIL")) else "": line for line in lines}
+    by_name = {
+        line.split(":")[0].split()[-1] if line.startswith(("ok", "FAIL")) else "": line
+        for line in lines
+    }
     assert code == (1 if wrong else 0), lines
-    assert by_name["R"].startswith("FAIL" if wrong else "ok") and "finite differences" in by_name["R"]
-    assert by_name["jacobian"].startswith("ok")  # jvp and vjp share the wrong rule: only differences see it
+    assert (
+        by_name["R"].startswith("FAIL" if wrong else "ok") and "finite differences" in by_name["R"]
+    )
+    assert by_name["jacobian"].startswith(
+        "ok"
+    )  # jvp and vjp share the wrong rule: only differences see it
     assert lines[-1].startswith("task=heat: ") and ("failed: gradient R" in lines[-1]) == wrong
 
 
@@ -186,8 +247,24 @@ def test_check_of_the_example_scene_passes_and_mistakes_are_one_line(monkeypatch
     example = Path(__file__).resolve().parent.parent / "examples" / "custom_scene"
     monkeypatch.chdir(example)
     monkeypatch.syspath_prepend(str(example))
-    assert main(["-cd", "conf", "task=pendulum", "task.train_size=8", "task.test_size=4", "task.unroll=12"]) == 0
+    assert (
+        main(
+            [
+                "-cd",
+                "conf",
+                "task=pendulum",
+                "task.train_size=8",
+                "task.test_size=4",
+                "task.unroll=12",
+            ]
+        )
+        == 0
+    )
     out = capsys.readouterr().out
-    assert all(line.startswith("ok") for line in out.splitlines()[:-1]) and "gradient S" in out and "rollout" in out
+    assert (
+        all(line.startswith("ok") for line in out.splitlines()[:-1])
+        and "gradient S" in out
+        and "rollout" in out
+    )
     assert main(["-cd", "conf", "task.unroll=12"]) == 2
     assert "name the scene to check" in capsys.readouterr().err

@@ -19,24 +19,55 @@ SMALL = ["task.grid=4", "task.test_size=8", "trainer.batch_size=4"]
 
 
 def physgrad(*args, check=True, **kwargs):
-    result = subprocess.run([PHYSGRAD, *args], capture_output=True, text=True, timeout=300, **kwargs)
+    result = subprocess.run(
+        [PHYSGRAD, *args], capture_output=True, text=True, timeout=300, **kwargs
+    )
     if check:
         assert result.returncode == 0, result.stderr[-3000:]
     return result
 
 
 def test_short_run_writes_the_results_schema(tmp_path):
-    physgrad("run", "optim=hig", "trainer.iterations=20", "trainer.eval_every=5", *SMALL, f"hydra.run.dir={tmp_path}")
+    physgrad(
+        "run",
+        "optim=hig",
+        "trainer.iterations=20",
+        "trainer.eval_every=5",
+        *SMALL,
+        f"hydra.run.dir={tmp_path}",
+    )
     with h5py.File(tmp_path / "results.h5", "r") as f:
         attrs = dict(f.attrs)
-        for key in ("task", "optim", "seed", "status", "config", "physgrad_version", "jax_version",
-                    "compile_seconds", "created"):
+        for key in (
+            "task",
+            "optim",
+            "seed",
+            "status",
+            "config",
+            "physgrad_version",
+            "jax_version",
+            "compile_seconds",
+            "created",
+        ):
             assert key in attrs, key
         assert "unroll" not in attrs and "reason" not in attrs
-        assert (attrs["task"], attrs["optim"], attrs["seed"], attrs["status"]) == ("poisson", "hig", 0, "completed")
+        assert (attrs["task"], attrs["optim"], attrs["seed"], attrs["status"]) == (
+            "poisson",
+            "hig",
+            0,
+            "completed",
+        )
         assert "name: hig" in attrs["config"] and "iterations: 20" in attrs["config"]
-        assert attrs["jacobian"] == "layer-factorised"  # the form of J the step used (physgrad.jacobians)
-        assert set(f["train"]) >= {"iteration", "wall_time", "loss", "grad_norm", "kept_singular_values"}
+        assert (
+            attrs["jacobian"] == "layer-factorised"
+        )  # the form of J the step used (physgrad.jacobians)
+        assert set(f["train"]) >= {
+            "iteration",
+            "wall_time",
+            "loss",
+            "grad_norm",
+            "kept_singular_values",
+        }
         assert 0 < f["train/kept_singular_values"][-1] <= 4 * 16  # at most m = batch x outputs
         assert set(f["eval"]) >= {"iteration", "wall_time", "loss", "field_error"}
         wall = f["train/wall_time"][()]
@@ -47,19 +78,35 @@ def test_short_run_writes_the_results_schema(tmp_path):
 
 def test_sweep_then_report(tmp_path):
     sweep = tmp_path / "sweep"
-    result = physgrad("run", "-m", "optim=adam,hig,bptt", "seed=0,1", "trainer.iterations=5", "trainer.eval_every=5",
-                      "task.test_size=4", *SMALL[:1], "trainer.batch_size=2", f"hydra.sweep.dir={sweep}")
+    result = physgrad(
+        "run",
+        "-m",
+        "optim=adam,hig,bptt",
+        "seed=0,1",
+        "trainer.iterations=5",
+        "trainer.eval_every=5",
+        "task.test_size=4",
+        *SMALL[:1],
+        "trainer.batch_size=2",
+        f"hydra.sweep.dir={sweep}",
+    )
     assert "skipped: optim=bptt needs a closed-loop controller" in result.stderr + result.stdout
     files = sorted(sweep.rglob("results.h5"))
     assert len(files) == 6
     statuses = sorted(read_run(f).attrs["status"] for f in files)
     assert statuses == ["completed"] * 4 + ["refused"] * 2
-    assert f"sweep finished: 4 completed, 2 refused in {sweep}; next: physgrad report {sweep}" in result.stdout
+    assert (
+        f"sweep finished: 4 completed, 2 refused in {sweep}; next: physgrad report {sweep}"
+        in result.stdout
+    )
     out = physgrad("report", str(sweep)).stdout
     by_group, by_seed = out.split("Per seed:")
     groups = [line for line in by_group.splitlines() if line.startswith("| poisson | ")]
-    assert [line.split(" | ")[1:4] for line in groups] == [["adam", "2", "2 completed"], ["bptt", "2", "2 refused"],
-                                                           ["hig", "2", "2 completed"]]
+    assert [line.split(" | ")[1:4] for line in groups] == [
+        ["adam", "2", "2 completed"],
+        ["bptt", "2", "2 refused"],
+        ["hig", "2", "2 completed"],
+    ]
     per_seed = [line for line in by_seed.splitlines() if line.startswith("| poisson | ")]
     assert len(per_seed) == 6 and sum("refused" in line for line in per_seed) == 2
     assert (sweep / "report.md").read_text().count("| poisson | ") == 9
@@ -73,21 +120,37 @@ def test_hydra_flags_keep_working(tmp_path):
     assert "physgrad run" in physgrad("--help").stdout
 
 
-@pytest.mark.parametrize("args, fragment", [
-    (["task=nope"], "unknown task 'nope' (choose one of guidance, ks, multicart, oscillator, poisson, quantum, "),
-    (["optim=hgi"], "unknown optim 'hgi': did you mean hig? (choose one of adam, bptt, gauss_newton, gd, hig, "),
-    (["trainer.iteratons=5"], "did you mean trainer.iterations?"),
-    (["optim.lr=0.1"], "did you mean optim.learning_rate?"),
-    (["unroll=8"], "task=poisson has no time axis: remove unroll=8"),
-    (["optim=stable_bptt"], "optim=stable_bptt needs a closed-loop controller"),
-    (["seed=0,1"], "add -m"),
-    (["-m", "optim.learning_rate=interval(0.001,0.1)"], "basic sweeper cannot sample: tune with 'physgrad compare'"),
-])
+@pytest.mark.parametrize(
+    "args, fragment",
+    [
+        (
+            ["task=nope"],
+            "unknown task 'nope' (choose one of guidance, ks, multicart, oscillator, poisson, "
+            "quantum, ",
+        ),
+        (
+            ["optim=hgi"],
+            "unknown optim 'hgi': did you mean hig? (choose one of adam, bptt, gauss_newton, gd, "
+            "hig, ",
+        ),
+        (["trainer.iteratons=5"], "did you mean trainer.iterations?"),
+        (["optim.lr=0.1"], "did you mean optim.learning_rate?"),
+        (["unroll=8"], "task=poisson has no time axis: remove unroll=8"),
+        (["optim=stable_bptt"], "optim=stable_bptt needs a closed-loop controller"),
+        (["seed=0,1"], "add -m"),
+        (
+            ["-m", "optim.learning_rate=interval(0.001,0.1)"],
+            "basic sweeper cannot sample: tune with 'physgrad compare'",
+        ),
+    ],
+)
 def test_user_mistakes_are_one_line_errors(args, fragment, tmp_path):
     result = physgrad("run", *args, f"hydra.run.dir={tmp_path}", check=False)
     assert result.returncode == 2
     lines = result.stderr.strip().splitlines()
-    assert len(lines) == 1 and fragment in lines[0] and "Traceback" not in result.stderr, result.stderr
+    assert len(lines) == 1 and fragment in lines[0] and "Traceback" not in result.stderr, (
+        result.stderr
+    )
 
 
 def wait_for_rows(path: Path, rows: int, process, deadline=120.0):
@@ -104,12 +167,24 @@ def wait_for_rows(path: Path, rows: int, process, deadline=120.0):
     raise AssertionError(f"no {rows} rows in {path} after {deadline} s")
 
 
-@pytest.mark.parametrize("sig, status", [(signal.SIGKILL, "crashed"), (signal.SIGINT, "interrupted"),
-                                         (signal.SIGTERM, "interrupted")])
+@pytest.mark.parametrize(
+    "sig, status",
+    [(signal.SIGKILL, "crashed"), (signal.SIGINT, "interrupted"), (signal.SIGTERM, "interrupted")],
+)
 def test_killed_or_interrupted_run_leaves_a_readable_file(sig, status, tmp_path):
-    process = subprocess.Popen([PHYSGRAD, "run", "trainer.iterations=100000000", "trainer.flush_seconds=0.1",
-                                *SMALL, f"hydra.run.dir={tmp_path}"], stdout=subprocess.DEVNULL,
-                               stderr=subprocess.PIPE, text=True)
+    process = subprocess.Popen(
+        [
+            PHYSGRAD,
+            "run",
+            "trainer.iterations=100000000",
+            "trainer.flush_seconds=0.1",
+            *SMALL,
+            f"hydra.run.dir={tmp_path}",
+        ],
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
     try:
         wait_for_rows(tmp_path / "results.h5", 100, process)
         os.kill(process.pid, sig)
@@ -127,35 +202,59 @@ def test_killed_or_interrupted_run_leaves_a_readable_file(sig, status, tmp_path)
 
 
 def test_without_a_terminal_progress_is_logged_and_the_run_ends_with_one_line(tmp_path):
-    result = physgrad("run", "task=toy", "trainer.time_budget=3", "trainer.log_seconds=0.5",
-                      f"hydra.run.dir={tmp_path}")
+    result = physgrad(
+        "run",
+        "task=toy",
+        "trainer.time_budget=3",
+        "trainer.log_seconds=0.5",
+        f"hydra.run.dir={tmp_path}",
+    )
     lines = result.stdout.splitlines()
     assert any(" compiled in " in line for line in lines)
     progress = [line for line in lines if "toy/adam seed 0 iteration " in line]
-    assert len(progress) >= 2 and all(", loss " in line and " s of training" in line for line in progress)
-    assert "completed after" in lines[-1] and "(stopped by time budget), 3.0 s of training" in lines[-1]
+    assert len(progress) >= 2 and all(
+        ", loss " in line and " s of training" in line for line in progress
+    )
+    assert (
+        "completed after" in lines[-1]
+        and "(stopped by time budget), 3.0 s of training" in lines[-1]
+    )
 
 
-@pytest.mark.parametrize("override, fragment", [
-    ("+trainer.iteratons=5", "unknown key 'trainer.iteratons': did you mean trainer.iterations?"),
-    ("++trainer.iteratons=5", "did you mean trainer.iterations?"),
-    ("+foo=1", "unknown key 'foo' (the top level has: "),
-    ("init_from=a/optim=adam,seed=0/results.h5", "must be quoted, e.g. init_from='"),
-])
+@pytest.mark.parametrize(
+    "override, fragment",
+    [
+        (
+            "+trainer.iteratons=5",
+            "unknown key 'trainer.iteratons': did you mean trainer.iterations?",
+        ),
+        ("++trainer.iteratons=5", "did you mean trainer.iterations?"),
+        ("+foo=1", "unknown key 'foo' (the top level has: "),
+        ("init_from=a/optim=adam,seed=0/results.h5", "must be quoted, e.g. init_from='"),
+    ],
+)
 def test_added_keys_nothing_reads_and_unquoted_paths_are_one_line_errors(override, fragment):
-    from physgrad.errors import UserError
     from physgrad.configs import check_overrides
+    from physgrad.errors import UserError
 
     with pytest.raises(UserError) as caught:
         check_overrides(["task=toy", override], multirun=False)
     assert fragment in str(caught.value) and "\n" not in str(caught.value)
-    check_overrides(["task=toy", "+optim.weight_decay=0.1"], multirun=False)  # a keyword for the factory
+    check_overrides(
+        ["task=toy", "+optim.weight_decay=0.1"], multirun=False
+    )  # a keyword for the factory
 
 
-@pytest.mark.parametrize("override, fragment", [
-    ("seeds=5000", "seeds=5000 is more than 1024 seeds in one process: sweep them instead"),
-    ("init_from=", "init_from='' is not allowed: use the path of a results.h5, or leave init_from out"),
-])
+@pytest.mark.parametrize(
+    "override, fragment",
+    [
+        ("seeds=5000", "seeds=5000 is more than 1024 seeds in one process: sweep them instead"),
+        (
+            "init_from=",
+            "init_from='' is not allowed: use the path of a results.h5, or leave init_from out",
+        ),
+    ],
+)
 def test_sizes_and_empty_paths_are_refused_before_anything_is_built(tmp_path, override, fragment):
     from physgrad.experiment import run_experiment
     from tests.helpers import load

@@ -1,5 +1,6 @@
-"""`physgrad compare`: the command line split into variants, jobs as config files that compose to the intended
-run, equal tuning budgets on disjoint seeds, validation data, and a study on a user's own scene end to end."""
+"""`physgrad compare`: the command line split into variants, jobs as config files that compose to
+the intended run, equal tuning budgets on disjoint seeds, validation data, and a study on a user's
+own scene end to end."""
 
 import csv
 import math
@@ -10,11 +11,17 @@ import numpy as np
 import pytest
 
 import physgrad
+from physgrad.comparison import (
+    build_variants,
+    evaluation_jobs,
+    halton_points,
+    job_yaml,
+    split_overrides,
+    study_settings,
+)
+from physgrad.configs import compose
 from physgrad.errors import UserError
 from physgrad.optim.capabilities import ADAPTIVE, JACOBIAN
-from physgrad.comparison import (build_variants, evaluation_jobs, halton_points, job_yaml,
-                              split_overrides, study_settings)
-from physgrad.configs import compose
 from tests.test_cli import physgrad as console
 
 EXAMPLE = Path(__file__).resolve().parent.parent / "examples" / "custom_scene"
@@ -22,28 +29,49 @@ EXAMPLE = Path(__file__).resolve().parent.parent / "examples" / "custom_scene"
 
 def test_comma_lists_are_variants_and_everything_else_is_common():
     settings, axes, common, hydra_args = split_overrides(
-        ["task=oscillator", "optim=adam,hig", "optim.clip=none,norm", "trainer.time_budget=30", "compare.trials=4",
-         "compare.search.tau=[1e-8,1e-4]", "hydra/launcher=joblib"])
+        [
+            "task=oscillator",
+            "optim=adam,hig",
+            "optim.clip=none,norm",
+            "trainer.time_budget=30",
+            "compare.trials=4",
+            "compare.search.tau=[1e-8,1e-4]",
+            "hydra/launcher=joblib",
+        ]
+    )
     assert settings == {"trials": 4, "search": {"tau": (1e-8, 1e-4)}}
-    assert axes == [("optim", ["optim=adam", "optim=hig"]), ("optim.clip", ["optim.clip=none", "optim.clip=norm"])]
-    assert common == ["task=oscillator", "trainer.time_budget=30"] and hydra_args == ["hydra/launcher=joblib"]
+    assert axes == [
+        ("optim", ["optim=adam", "optim=hig"]),
+        ("optim.clip", ["optim.clip=none", "optim.clip=norm"]),
+    ]
+    assert common == ["task=oscillator", "trainer.time_budget=30"] and hydra_args == [
+        "hydra/launcher=joblib"
+    ]
     variants = build_variants(axes, common, study_settings(settings), [])
-    assert [v.name for v in variants] == ["adam clip=none", "adam clip=norm", "hig clip=none", "hig clip=norm"]
+    assert [v.name for v in variants] == [
+        "adam clip=none",
+        "adam clip=norm",
+        "hig clip=none",
+        "hig clip=norm",
+    ]
     assert variants[0].space == {"learning_rate": ADAPTIVE.search_range}
     assert variants[2].space == {"learning_rate": JACOBIAN.search_range, "tau": (1e-8, 1e-4)}
     assert variants[2].preset == {"learning_rate": 1.0, "tau": 1e-6}  # the oscillator's HIG preset
 
 
-@pytest.mark.parametrize("args, fragment", [
-    (["task=toy", "optim=adam"], "list two or more variants"),
-    (["task=toy", "optim=adam,hig", "compare.trails=3"], "unknown setting compare.trails"),
-    (["task=toy", "optim=adam,hig", "compare.tune_seed=3"], "must differ"),
-    (["task=toy", "optim.learning_rate=interval(0.1,1)"], "list the variants"),
-    (["task=toy", "optim=adam,hig", "compare.search.tau=[1,0.1]"], "0 < low < high"),
-    (["task=toy", "optim=adam,hgi"], "did you mean hig?"),
-    (["task=toy", "optim=adam,hig", "compare.seeds=0"], "compare.seeds"),
-    (["task=toy", "optim=adam,hig", "seed=3"], "compare sets the seeds itself"),
-])
+@pytest.mark.parametrize(
+    "args, fragment",
+    [
+        (["task=toy", "optim=adam"], "list two or more variants"),
+        (["task=toy", "optim=adam,hig", "compare.trails=3"], "unknown setting compare.trails"),
+        (["task=toy", "optim=adam,hig", "compare.tune_seed=3"], "must differ"),
+        (["task=toy", "optim.learning_rate=interval(0.1,1)"], "list the variants"),
+        (["task=toy", "optim=adam,hig", "compare.search.tau=[1,0.1]"], "0 < low < high"),
+        (["task=toy", "optim=adam,hgi"], "did you mean hig?"),
+        (["task=toy", "optim=adam,hig", "compare.seeds=0"], "compare.seeds"),
+        (["task=toy", "optim=adam,hig", "seed=3"], "compare sets the seeds itself"),
+    ],
+)
 def test_bad_studies_are_one_line_errors(args, fragment):
     with pytest.raises(UserError, match=fragment.replace("?", r"\?").replace("[", r"\[")):
         settings, axes, common, _ = split_overrides(args)
@@ -59,13 +87,16 @@ def test_a_variant_the_scene_refuses_stops_the_study_before_anything_trains(tmp_
 
 
 def test_a_job_file_composes_to_the_variant_with_its_trial_settings(tmp_path):
-    """The trial's learning rate wins over the scene's preset (tuning/oscillator_hig.yaml: lr 1), which keeps its
-    batch size; common and variant overrides land as given."""
+    """The trial's learning rate wins over the scene's preset (tuning/oscillator_hig.yaml: lr 1),
+    which keeps its batch size; common and variant overrides land as given."""
     folder = tmp_path / "compare_job"
     folder.mkdir()
     groups = {"task", "optim", "tuning"}
-    text = job_yaml(["task=oscillator", "trainer.iterations=50", "optim=hig", "optim.clip=norm"], groups,
-                    {"optim.learning_rate": 0.3, "seed": 1_000_000, "trainer.validation": True})
+    text = job_yaml(
+        ["task=oscillator", "trainer.iterations=50", "optim=hig", "optim.clip=norm"],
+        groups,
+        {"optim.learning_rate": 0.3, "seed": 1_000_000, "trainer.validation": True},
+    )
     (folder / "tune_v0_t000.yaml").write_text(text)
     cfg = compose(["+compare_job=tune_v0_t000"], config_dirs=[str(tmp_path)])
     assert (cfg.task.name, cfg.optim.name, cfg.optim.clip) == ("oscillator", "hig", "norm")
@@ -77,35 +108,56 @@ def test_halton_points_cover_the_log_range_and_repeat():
     points = halton_points({"learning_rate": (1e-5, 1e-1), "tau": (1e-8, 1e-4)}, 16, 7)
     assert points == halton_points({"learning_rate": (1e-5, 1e-1), "tau": (1e-8, 1e-4)}, 16, 7)
     logs = np.log10([p["learning_rate"] for p in points])
-    assert logs.min() >= -5 and logs.max() <= -1 and len(set(np.floor(logs))) == 4  # every decade is tried
+    assert (
+        logs.min() >= -5 and logs.max() <= -1 and len(set(np.floor(logs))) == 4
+    )  # every decade is tried
     assert all(1e-8 <= p["tau"] <= 1e-4 for p in points)
 
 
 def test_equal_time_evaluations_interleave_the_variants_and_equal_iterations_train_seeds_together():
-    settings, axes, common, _ = split_overrides(["task=toy", "optim=adam,gd", "trainer.time_budget=5"])
+    settings, axes, common, _ = split_overrides(
+        ["task=toy", "optim=adam,gd", "trainer.time_budget=5"]
+    )
     s = study_settings({**settings, "seeds": 3})
     variants = build_variants(axes, common, s, [])
     best = {v.name: {"learning_rate": 0.01} for v in variants}
     timed = evaluation_jobs(variants, best, s, common, {"task", "optim"}, "wall_time", 5.0)
-    assert list(timed) == ["eval_v0_s0", "eval_v1_s0", "eval_v0_s1", "eval_v1_s1", "eval_v0_s2", "eval_v1_s2"]
+    assert list(timed) == [
+        "eval_v0_s0",
+        "eval_v1_s0",
+        "eval_v0_s1",
+        "eval_v1_s1",
+        "eval_v0_s2",
+        "eval_v1_s2",
+    ]
     counted = evaluation_jobs(variants, best, s, common, {"task", "optim"}, "iteration", 300.0)
     assert list(counted) == ["eval_v0", "eval_v1"] and "seeds: 3" in counted["eval_v0"]
     assert "learning_rate: 0.01" in counted["eval_v1"] and "eval_every: 15" in counted["eval_v1"]
 
 
 def test_validation_data_are_held_out_and_evaluated_beside_the_test_set(tmp_path):
-    run = physgrad.run("task=toy", "optim=adam", "trainer.iterations=20", "trainer.eval_every=10",
-                       "trainer.validation=true", out_dir=tmp_path)
+    run = physgrad.run(
+        "task=toy",
+        "optim=adam",
+        "trainer.iterations=20",
+        "trainer.eval_every=10",
+        "trainer.validation=true",
+        out_dir=tmp_path,
+    )
     loss, validation = run.eval["loss"], run.eval["validation_loss"]
     assert loss.shape == validation.shape == (3,) and not np.allclose(loss, validation)
     assert np.allclose(loss, validation, rtol=0.3)  # the same distribution: close, not equal
-    plain = physgrad.run("task=toy", "optim=adam", "trainer.iterations=20", out_dir=tmp_path / "plain")
+    plain = physgrad.run(
+        "task=toy", "optim=adam", "trainer.iterations=20", out_dir=tmp_path / "plain"
+    )
     assert "validation_loss" not in plain.eval  # nobody pays for what they did not ask
 
 
-def test_validation_reads_the_held_out_loss_without_paying_for_the_scene_metrics(tmp_path, monkeypatch):
-    """The validation sets get the loss only (a KS stability rollout would cost 200 steps per state), and it is
-    the loss the full evaluation gives on the same sets."""
+def test_validation_reads_the_held_out_loss_without_paying_for_the_scene_metrics(
+    tmp_path, monkeypatch
+):
+    """The validation sets get the loss only (a KS stability rollout would cost 200 steps per
+    state), and it is the loss the full evaluation gives on the same sets."""
     import physgrad.runner
 
     real, captured = physgrad.runner.compile_training, {}
@@ -115,15 +167,27 @@ def test_validation_reads_the_held_out_loss_without_paying_for_the_scene_metrics
         return captured["compiled"]
 
     monkeypatch.setattr(physgrad.runner, "compile_training", capture)
-    run = physgrad.run("task=toy", "optim=adam", "trainer.iterations=5", "trainer.validation=true", out_dir=tmp_path)
+    run = physgrad.run(
+        "task=toy",
+        "optim=adam",
+        "trainer.iterations=5",
+        "trainer.validation=true",
+        out_dir=tmp_path,
+    )
     compiled, seeds = captured["compiled"], captured["seeds"]
-    assert {"error_first", "error_second"} <= set(run.eval)  # the toy has metrics: the test sets still get them
+    assert {"error_first", "error_second"} <= set(
+        run.eval
+    )  # the toy has metrics: the test sets still get them
     validated = compiled.validate(compiled.params, seeds.validation_sets)
     assert set(validated) == {"loss"}
-    full = compiled.evaluate(compiled.params, seeds.validation_sets)  # toy: the same shapes as the test sets
+    full = compiled.evaluate(
+        compiled.params, seeds.validation_sets
+    )  # toy: the same shapes as the test sets
     np.testing.assert_allclose(np.asarray(validated["loss"]), np.asarray(full["loss"]), rtol=1e-6)
-    assert not np.allclose(np.asarray(validated["loss"]), np.asarray(compiled.evaluate(compiled.params,
-                                                                                      seeds.test_sets)["loss"]))
+    assert not np.allclose(
+        np.asarray(validated["loss"]),
+        np.asarray(compiled.evaluate(compiled.params, seeds.test_sets)["loss"]),
+    )
 
 
 def test_a_scene_whose_data_ignore_the_key_has_no_default_validation_set():
@@ -133,9 +197,13 @@ def test_a_scene_whose_data_ignore_the_key_has_no_default_validation_set():
     from physgrad.tasks import Scene
 
     def build(**_):
-        return Scene(init_params=lambda k: {"w": jax.numpy.zeros(2)}, sample_loss=lambda y, s: (y ** 2).sum(),
-                     test_set={"x": jax.numpy.ones((4, 2))}, train_set={"x": jax.numpy.ones((4, 2))},
-                     sample_output=lambda p, s: p["w"] * s["x"])
+        return Scene(
+            init_params=lambda k: {"w": jax.numpy.zeros(2)},
+            sample_loss=lambda y, s: (y**2).sum(),
+            test_set={"x": jax.numpy.ones((4, 2))},
+            train_set={"x": jax.numpy.ones((4, 2))},
+            sample_output=lambda p, s: p["w"] * s["x"],
+        )
 
     cfg = compose(["task=toy"])
     with pytest.MonkeyPatch.context() as patch:
@@ -145,22 +213,42 @@ def test_a_scene_whose_data_ignore_the_key_has_no_default_validation_set():
 
 
 def test_a_loss_that_blows_up_without_nan_ends_the_run_diverged(tmp_path):
-    """A training loss past trainer.divergence_factor times its first value ends the run diverged, with why."""
-    run = physgrad.run("task=toy", "optim=gd", "optim.learning_rate=3", "trainer.iterations=200",
-                       "trainer.divergence_factor=10", out_dir=tmp_path)
+    """A training loss past trainer.divergence_factor times its first value ends the run diverged,
+    with why."""
+    run = physgrad.run(
+        "task=toy",
+        "optim=gd",
+        "optim.learning_rate=3",
+        "trainer.iterations=200",
+        "trainer.divergence_factor=10",
+        out_dir=tmp_path,
+    )
     assert run.attrs["status"] == "diverged" and "blow-up without NaN" in run.attrs["reason"]
-    assert np.isfinite(run.train["loss"]).all() and run.train["loss"][-1] > 10 * run.train["loss"][0]
+    assert (
+        np.isfinite(run.train["loss"]).all() and run.train["loss"][-1] > 10 * run.train["loss"][0]
+    )
 
 
 @pytest.mark.slow
 @pytest.mark.long
 def test_a_study_on_a_users_own_scene_end_to_end_and_resumed(tmp_path):
-    """examples/custom_scene (the pendulum) with Adam against HIG through the console script: tuning trials on the
-    tuning seed scored by validation loss, 7 paired seeds, verdict tables and CSVs; run again it trains nothing
-    new; with one evaluation file lost it runs that job alone."""
+    """examples/custom_scene (the pendulum) with Adam against HIG through the console script: tuning
+    trials on the tuning seed scored by validation loss, 7 paired seeds, verdict tables and CSVs;
+    run again it trains nothing new; with one evaluation file lost it runs that job alone."""
     study = tmp_path / "study"
-    args = ["compare", "-cd", "conf", "task=pendulum", "optim=adam,hig", "trainer.iterations=24",
-            "task.train_size=64", "task.test_size=32", "compare.trials=3", "compare.seeds=7", f"compare.dir={study}"]
+    args = [
+        "compare",
+        "-cd",
+        "conf",
+        "task=pendulum",
+        "optim=adam,hig",
+        "trainer.iterations=24",
+        "task.train_size=64",
+        "task.test_size=32",
+        "compare.trials=3",
+        "compare.seeds=7",
+        f"compare.dir={study}",
+    ]
     first = console(*args, cwd=EXAMPLE)
     assert "| adam vs hig |" in first.stdout and (study / "compare.md").read_text() in first.stdout
     trials = list(csv.DictReader(open(study / "trials.csv")))
@@ -170,22 +258,35 @@ def test_a_study_on_a_users_own_scene_end_to_end_and_resumed(tmp_path):
     assert len(tuned) == 6 and {r.attrs["seed"] for r in tuned} == {1_000_000}
     assert all("validation_loss" in r.eval for r in tuned)
     runs = list(csv.DictReader(open(study / "runs.csv")))
-    assert sorted((r["variant"], int(r["seed"])) for r in runs) == [(v, s) for v in ("adam", "hig") for s in range(7)]
+    assert sorted((r["variant"], int(r["seed"])) for r in runs) == [
+        (v, s) for v in ("adam", "hig") for s in range(7)
+    ]
     rates = {r["variant"]: physgrad.read_run(r["path"]).attrs["config"] for r in runs}
-    best = {v: min((t for t in trials if t["variant"] == v), key=lambda t: float(t["validation_loss"]))
-            for v in ("adam", "hig")}
+    best = {
+        v: min((t for t in trials if t["variant"] == v), key=lambda t: float(t["validation_loss"]))
+        for v in ("adam", "hig")
+    }
     for variant in ("adam", "hig"):
         assert f"learning_rate: {float(best[variant]['learning_rate'])!r}" in rates[variant]
     comparisons = list(csv.DictReader(open(study / "comparisons.csv")))
-    assert [(c["a"], c["b"], float(c["fraction"])) for c in comparisons] == [("adam", "hig", f)
-                                                                             for f in (0.25, 0.5, 1.0)]
-    assert all(c["verdict"] in ("A better", "B better", "equivalent", "undecided") for c in comparisons)
-    assert int(comparisons[-1]["pairs"]) == 7 and math.isfinite(float(comparisons[-1]["median_ratio"]))
-    assert (study / "sensitivity.png").stat().st_size > 0 and (study / "report" / "loss_vs_iteration.png").exists()
+    assert [(c["a"], c["b"], float(c["fraction"])) for c in comparisons] == [
+        ("adam", "hig", f) for f in (0.25, 0.5, 1.0)
+    ]
+    assert all(
+        c["verdict"] in ("A better", "B better", "equivalent", "undecided") for c in comparisons
+    )
+    assert int(comparisons[-1]["pairs"]) == 7 and math.isfinite(
+        float(comparisons[-1]["median_ratio"])
+    )
+    assert (study / "sensitivity.png").stat().st_size > 0 and (
+        study / "report" / "loss_vs_iteration.png"
+    ).exists()
 
     stamps = {p: p.stat().st_mtime_ns for p in study.rglob("results.h5")}
     again = console(*args, cwd=EXAMPLE)
-    assert {p: p.stat().st_mtime_ns for p in study.rglob("results.h5")} == stamps  # nothing trained again
+    assert {
+        p: p.stat().st_mtime_ns for p in study.rglob("results.h5")
+    } == stamps  # nothing trained again
     assert again.stdout.split("## Verdicts")[1] == first.stdout.split("## Verdicts")[1]
 
     lost = next(iter(sorted((study / "eval").glob("+compare_job=eval_v1_s*"))))
@@ -200,8 +301,14 @@ def test_a_study_on_a_users_own_scene_end_to_end_and_resumed(tmp_path):
 def test_the_python_call_returns_the_tables(tmp_path):
     import physgrad.comparison  # noqa: F401 - importing the module leaves the function physgrad.compare in place
 
-    study = physgrad.compare("task=toy", "optim=adam,gd", "trainer.iterations=30", "compare.trials=2",
-                             "compare.seeds=6", f"compare.dir={tmp_path / 'study'}")
+    study = physgrad.compare(
+        "task=toy",
+        "optim=adam,gd",
+        "trainer.iterations=30",
+        "compare.trials=2",
+        "compare.seeds=6",
+        f"compare.dir={tmp_path / 'study'}",
+    )
     assert list(study.trials.variant) == ["adam", "adam", "gd", "gd"]
     assert sorted(set(study.runs.seed)) == list(range(6)) and len(study.runs) == 12
     assert list(study.comparisons.fraction) == [0.25, 0.5, 1.0] and len(study.verdicts) == 1
@@ -212,9 +319,10 @@ def test_the_python_call_returns_the_tables(tmp_path):
 @pytest.mark.slow
 @pytest.mark.long
 def test_a_study_stopped_at_random_instants_resumes_to_the_same_trials(tmp_path):
-    """SIGTERM to `physgrad compare` while its tuning or evaluation multirun trains (its own session: the signal
-    is passed on once), at random instants, PHYSGRAD_FAULT_REPEATS times: it exits 130, leaves no process behind,
-    and the same command then finishes with exactly compare.trials trials per variant, none asked twice."""
+    """SIGTERM to `physgrad compare` while its tuning or evaluation multirun trains (its own
+    session: the signal is passed on once), at random instants, PHYSGRAD_FAULT_REPEATS times: it
+    exits 130, leaves no process behind, and the same command then finishes with exactly
+    compare.trials trials per variant, none asked twice."""
     import os
     import random
     import signal
@@ -223,13 +331,25 @@ def test_a_study_stopped_at_random_instants_resumes_to_the_same_trials(tmp_path)
 
     from tests.test_cli import PHYSGRAD
 
-    repeats = max(1, int(os.environ.get("PHYSGRAD_FAULT_REPEATS", "1")) // 4)  # a study per kill: 5 at make test-faults
+    repeats = max(
+        1, int(os.environ.get("PHYSGRAD_FAULT_REPEATS", "1")) // 4
+    )  # a study per kill: 5 at make test-faults
     rng = random.Random(0)
     for attempt in range(repeats):
         study = tmp_path / f"study{attempt}"
-        args = [PHYSGRAD, "compare", "task=toy", "optim=adam,gd", "trainer.iterations=400", "compare.trials=3",
-                "compare.seeds=6", f"compare.dir={study}"]
-        process = subprocess.Popen(args, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+        args = [
+            PHYSGRAD,
+            "compare",
+            "task=toy",
+            "optim=adam,gd",
+            "trainer.iterations=400",
+            "compare.trials=3",
+            "compare.seeds=6",
+            f"compare.dir={study}",
+        ]
+        process = subprocess.Popen(
+            args, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True
+        )
         deadline = time.time() + 120
         while not list(study.glob("*/+compare_job=*/results.h5")) and time.time() < deadline:
             time.sleep(0.1)
@@ -238,9 +358,14 @@ def test_a_study_stopped_at_random_instants_resumes_to_the_same_trials(tmp_path)
         output, _ = process.communicate(timeout=120)
         if process.returncode == 0:  # finished before the signal: nothing to resume
             continue
-        assert process.returncode == 130 and "run the same command again to resume" in output, output
-        leftover = subprocess.run(["pgrep", "-f", f"compare.dir={study}|hydra.sweep.dir={study}"],
-                                  capture_output=True, text=True).stdout.split()
+        assert process.returncode == 130 and "run the same command again to resume" in output, (
+            output
+        )
+        leftover = subprocess.run(
+            ["pgrep", "-f", f"compare.dir={study}|hydra.sweep.dir={study}"],
+            capture_output=True,
+            text=True,
+        ).stdout.split()
         assert not leftover, leftover
         finished = subprocess.run(args, capture_output=True, text=True, timeout=300)
         assert finished.returncode == 0, finished.stdout[-2000:] + finished.stderr[-2000:]
@@ -252,13 +377,19 @@ def test_a_study_stopped_at_random_instants_resumes_to_the_same_trials(tmp_path)
 
 @pytest.mark.long
 def test_an_equal_time_study_runs_on_the_calibrated_clock_and_can_reuse_a_calibration(tmp_path):
-    """A time budget: the variants are calibrated once (calibration.json), every run stops where iterations x its
-    variant's cost reach the budget, verdicts read the calibrated clock, and a second study given the first's
-    calibration trains exactly as far."""
+    """A time budget: the variants are calibrated once (calibration.json), every run stops where
+    iterations x its variant's cost reach the budget, verdicts read the calibrated clock, and a
+    second study given the first's calibration trains exactly as far."""
     import json
 
-    common = ["task=toy", "optim=adam,gauss_newton", "trainer.time_budget=0.4", "compare.trials=1", "compare.seeds=6",
-              "trainer.batch_size=16"]
+    common = [
+        "task=toy",
+        "optim=adam,gauss_newton",
+        "trainer.time_budget=0.4",
+        "compare.trials=1",
+        "compare.seeds=6",
+        "trainer.batch_size=16",
+    ]
     study = physgrad.compare(*common, f"compare.dir={tmp_path / 'first'}")
     calibration = json.loads((study.folder / "calibration.json").read_text())
     costs = {name: calibration["costs"][name]["step_seconds"] for name in ("adam", "gauss_newton")}
@@ -268,17 +399,27 @@ def test_an_equal_time_study_runs_on_the_calibrated_clock_and_can_reuse_a_calibr
         assert row.iterations == math.ceil(0.4 / cost - 1e-9) or row.status != "completed", row
         assert row.calibrated_seconds == pytest.approx(row.iterations * cost)
     assert "Clock: calibrated" in study.text and "contended runs A, B" in study.text
-    again = physgrad.compare(*common, f"compare.calibration={study.folder / 'calibration.json'}",
-                             f"compare.dir={tmp_path / 'second'}")
+    again = physgrad.compare(
+        *common,
+        f"compare.calibration={study.folder / 'calibration.json'}",
+        f"compare.dir={tmp_path / 'second'}",
+    )
     assert list(again.runs.iterations) == list(study.runs.iterations)
     with pytest.raises(UserError, match="compare.calibration"):
-        physgrad.compare("task=toy", "optim=adam,gd", "trainer.time_budget=0.4", "compare.trials=1",
-                         f"compare.calibration={study.folder / 'calibration.json'}", f"compare.dir={tmp_path / 'x'}")
+        physgrad.compare(
+            "task=toy",
+            "optim=adam,gd",
+            "trainer.time_budget=0.4",
+            "compare.trials=1",
+            f"compare.calibration={study.folder / 'calibration.json'}",
+            f"compare.dir={tmp_path / 'x'}",
+        )
 
 
 def test_a_learning_rate_schedule_is_tuned_by_its_init_value_and_keeps_its_shape():
-    """ks with Adam has the study's staircase decay (conf/tuning/ks_adam.yaml): compare tunes its init_value; a
-    tuned job's config keeps the decay, whose Adam step after 2,000 updates is 0.9 times the first."""
+    """ks with Adam has the study's staircase decay (conf/tuning/ks_adam.yaml): compare tunes its
+    init_value; a tuned job's config keeps the decay, whose Adam step after 2,000 updates is 0.9
+    times the first."""
     import jax
     import jax.numpy as jnp
     from omegaconf import OmegaConf
@@ -290,11 +431,16 @@ def test_a_learning_rate_schedule_is_tuned_by_its_init_value_and_keeps_its_shape
     adam, gd = build_variants(axes, common, study_settings(given), [])
     assert list(adam.space) == ["learning_rate.init_value"] and list(gd.space) == ["learning_rate"]
     assert adam.preset == {"learning_rate.init_value": pytest.approx(1e-4)}
-    text = job_yaml([*common, *adam.overrides], {"task", "optim"}, {"optim.learning_rate.init_value": 3e-4})
+    text = job_yaml(
+        [*common, *adam.overrides], {"task", "optim"}, {"optim.learning_rate.init_value": 3e-4}
+    )
     node = OmegaConf.create(text.split("\n", 2)[2])  # the job file without its package line
     merged = OmegaConf.merge(adam.config, {k: v for k, v in node.items() if k != "defaults"})
     assert merged.optim.learning_rate.init_value == pytest.approx(3e-4)
-    assert merged.optim.learning_rate.transition_steps == 2000 and merged.optim.learning_rate.decay_rate == 0.9
+    assert (
+        merged.optim.learning_rate.transition_steps == 2000
+        and merged.optim.learning_rate.decay_rate == 0.9
+    )
     rule = build_rule(merged.optim)
     params = {"w": jnp.zeros(3)}
     state = rule.transform.init(params)
@@ -311,16 +457,29 @@ def test_a_learning_rate_schedule_is_tuned_by_its_init_value_and_keeps_its_shape
 
 @pytest.mark.long
 def test_a_study_that_continues_networks_pairs_each_seed_with_its_own_start(tmp_path):
-    """init_from='<start>/seed=${seed}/results.h5': every tuning and evaluation job (one per seed) starts from the
-    network of its own seed; the runs say which."""
+    """init_from='<start>/seed=${seed}/results.h5': every tuning and evaluation job (one per seed)
+    starts from the network of its own seed; the runs say which."""
     from physgrad.results import read_run
 
     start = tmp_path / "start"
-    console("run", "-m", "task=toy", "trainer.iterations=20", "seed=0,1,1000000", f"hydra.sweep.dir={start}",
-            "hydra.sweep.subdir='seed=${seed}'")
-    study = physgrad.compare("task=toy", "optim=adam,gd", "trainer.iterations=20", "compare.trials=1",
-                             "compare.seeds=2", f"init_from='{start}/seed=${{seed}}/results.h5'",
-                             f"compare.dir={tmp_path / 'study'}")
+    console(
+        "run",
+        "-m",
+        "task=toy",
+        "trainer.iterations=20",
+        "seed=0,1,1000000",
+        f"hydra.sweep.dir={start}",
+        "hydra.sweep.subdir='seed=${seed}'",
+    )
+    study = physgrad.compare(
+        "task=toy",
+        "optim=adam,gd",
+        "trainer.iterations=20",
+        "compare.trials=1",
+        "compare.seeds=2",
+        f"init_from='{start}/seed=${{seed}}/results.h5'",
+        f"compare.dir={tmp_path / 'study'}",
+    )
     assert len(study.runs) == 4
     for path in [*study.runs.path, *(tmp_path / "study" / "tune").glob("*/results.h5")]:
         run = read_run(Path(path))
@@ -328,20 +487,35 @@ def test_a_study_that_continues_networks_pairs_each_seed_with_its_own_start(tmp_
 
 
 def test_continuing_networks_evaluates_one_job_per_seed():
-    settings, axes, common, _ = split_overrides(["task=toy", "optim=adam,gd", "trainer.iterations=30",
-                                                 "init_from='start/seed=${seed}/results.h5'"])
+    settings, axes, common, _ = split_overrides(
+        [
+            "task=toy",
+            "optim=adam,gd",
+            "trainer.iterations=30",
+            "init_from='start/seed=${seed}/results.h5'",
+        ]
+    )
     s = study_settings({**settings, "seeds": 3})
     variants = build_variants(axes, common, s, [])
-    jobs = evaluation_jobs(variants, {v.name: {} for v in variants}, s, common, {"task", "optim"}, "iteration", 30.0)
+    jobs = evaluation_jobs(
+        variants, {v.name: {} for v in variants}, s, common, {"task", "optim"}, "iteration", 30.0
+    )
     assert list(jobs) == [f"eval_v{v}_s{seed}" for v in (0, 1) for seed in range(3)]
     assert "seed=${seed}" in jobs["eval_v0_s2"] and "seeds: 1" in jobs["eval_v0_s2"]
 
 
 @pytest.mark.long
 def test_a_finished_study_given_more_trials_tunes_on_from_where_it_stopped(tmp_path):
-    """trials 1 then 3: the first trial is not run again (its results file is untouched), the two new ones are
-    the next Halton points, and the folder is the same study; another budget is still another study."""
-    args = ["task=toy", "optim=adam,gd", "trainer.iterations=20", "compare.seeds=2", f"compare.dir={tmp_path / 's'}"]
+    """trials 1 then 3: the first trial is not run again (its results file is untouched), the two
+    new ones are the next Halton points, and the folder is the same study; another budget is still
+    another study."""
+    args = [
+        "task=toy",
+        "optim=adam,gd",
+        "trainer.iterations=20",
+        "compare.seeds=2",
+        f"compare.dir={tmp_path / 's'}",
+    ]
     physgrad.compare(*args, "compare.trials=1")
     first = tmp_path / "s" / "tune" / "+compare_job=tune_v0_t000" / "results.h5"
     stamp = first.stat().st_mtime_ns
@@ -350,6 +524,7 @@ def test_a_finished_study_given_more_trials_tunes_on_from_where_it_stopped(tmp_p
     assert list(study.trials.variant) == ["adam"] * 3 + ["gd"] * 3
     expected = halton_points({"learning_rate": ADAPTIVE.search_range}, 3, 1_000_000)
     assert list(study.trials[study.trials.variant == "adam"].learning_rate) == pytest.approx(
-        [p["learning_rate"] for p in expected])
+        [p["learning_rate"] for p in expected]
+    )
     with pytest.raises(UserError, match="holds another study"):
         physgrad.compare(*args[:2], "trainer.iterations=30", *args[3:], "compare.trials=3")

@@ -1,5 +1,5 @@
-"""A researcher's own scene and optimiser (examples/custom_scene/, configs in their own folders), the Python API,
-tab completion, and physgrad installed from its wheel."""
+"""A researcher's own scene and optimiser (examples/custom_scene/, configs in their own folders),
+the Python API, tab completion, and physgrad installed from its wheel."""
 
 import os
 import shutil
@@ -11,19 +11,26 @@ import numpy as np
 import pytest
 
 import physgrad
-from physgrad.errors import UserError
 from physgrad.configs import check_overrides
+from physgrad.errors import UserError
 from physgrad.results import read_run
 from physgrad.tasks import Scene, build_scene
-from tests.test_cli import PHYSGRAD, physgrad as run_cli
+from tests.test_cli import PHYSGRAD
+from tests.test_cli import physgrad as run_cli
 
 EXAMPLE = Path(__file__).resolve().parent.parent / "examples" / "custom_scene"
-SHORT = ["trainer.iterations=60", "trainer.eval_every=30", "task.train_size=64", "task.test_size=32"]
+SHORT = [
+    "trainer.iterations=60",
+    "trainer.eval_every=30",
+    "task.train_size=64",
+    "task.test_size=32",
+]
 
 
 @pytest.fixture
 def in_example(monkeypatch):
-    """The working directory of a user of the example: its folder (pendulum.py is importable from there)."""
+    """The working directory of a user of the example: its folder (pendulum.py is importable from
+    there)."""
     monkeypatch.chdir(EXAMPLE)
     monkeypatch.syspath_prepend(str(EXAMPLE))
 
@@ -31,34 +38,69 @@ def in_example(monkeypatch):
 @pytest.mark.slow
 @pytest.mark.long
 def test_the_example_scene_trains_with_every_variant_that_applies(tmp_path):
-    """Through the console script with -cd, from the example's folder: adam, hig (and its tuning file from the
-    user's folder), bptt and stable_bptt (the scene is closed loop), Levenberg-Marquardt, L-BFGS, Muon, and the
-    user's lion."""
-    variants = ["adam", "bptt", "hig", "lbfgs", "levenberg_marquardt", "lion", "muon", "stable_bptt"]
-    result = run_cli("run", "-m", "-cd", "conf", "task=pendulum", f"optim={','.join(variants)}", *SHORT,
-                     f"hydra.sweep.dir={tmp_path}", cwd=EXAMPLE)
+    """Through the console script with -cd, from the example's folder: adam, hig (and its tuning
+    file from the user's folder), bptt and stable_bptt (the scene is closed loop),
+    Levenberg-Marquardt, L-BFGS, Muon, and the user's lion."""
+    variants = [
+        "adam",
+        "bptt",
+        "hig",
+        "lbfgs",
+        "levenberg_marquardt",
+        "lion",
+        "muon",
+        "stable_bptt",
+    ]
+    result = run_cli(
+        "run",
+        "-m",
+        "-cd",
+        "conf",
+        "task=pendulum",
+        f"optim={','.join(variants)}",
+        *SHORT,
+        f"hydra.sweep.dir={tmp_path}",
+        cwd=EXAMPLE,
+    )
     runs = {read_run(p).variant: read_run(p) for p in tmp_path.rglob("results.h5")}
     assert sorted(runs) == variants, result.stderr[-2000:]
     for variant, run in runs.items():
-        assert run.attrs["status"] == "completed" and run.attrs["task"] == "pendulum", (variant, run.attrs)
+        assert run.attrs["status"] == "completed" and run.attrs["task"] == "pendulum", (
+            variant,
+            run.attrs,
+        )
         assert run.attrs["unroll"] == 40 and run.eval["loss"][-1] < run.eval["loss"][0], variant
         assert "upright" in run.eval
-    assert runs["hig"].attrs["batch_size"] == 16 and "learning_rate: 0.1" in runs["hig"].attrs["config"]
+    assert (
+        runs["hig"].attrs["batch_size"] == 16
+        and "learning_rate: 0.1" in runs["hig"].attrs["config"]
+    )
     assert "zeroed_fraction" in runs["stable_bptt"].train and "svd_failures" in runs["hig"].train
 
 
 @pytest.mark.slow
 def test_a_users_optimiser_composes_with_backprop_modes_and_clipping(tmp_path):
-    """An optim YAML in a folder of the user's (adamw with an optax schedule, via hydra.searchpath), and lion
-    with optim.backprop=C and clipping: the combined gradient's diagnostics are logged."""
+    """An optim YAML in a folder of the user's (adamw with an optax schedule, via hydra.searchpath),
+    and lion with optim.backprop=C and clipping: the combined gradient's diagnostics are logged."""
     conf = tmp_path / "myconf" / "optim"
     conf.mkdir(parents=True)
     (conf / "adamw_cosine.yaml").write_text(
         "name: adamw_cosine\n_target_: optax.adamw\nweight_decay: 1e-4\nlearning_rate:\n"
-        "  _target_: optax.cosine_decay_schedule\n  init_value: 1e-3\n  decay_steps: 60\n")
+        "  _target_: optax.cosine_decay_schedule\n  init_value: 1e-3\n  decay_steps: 60\n"
+    )
     searchpath = f"hydra.searchpath=[file://{EXAMPLE / 'conf'},file://{tmp_path / 'myconf'}]"
-    run_cli("run", "-m", "task=pendulum", "optim=adamw_cosine,lion", "optim.backprop=C", "optim.clip=norm", *SHORT,
-            searchpath, f"hydra.sweep.dir={tmp_path / 'out'}", cwd=EXAMPLE)
+    run_cli(
+        "run",
+        "-m",
+        "task=pendulum",
+        "optim=adamw_cosine,lion",
+        "optim.backprop=C",
+        "optim.clip=norm",
+        *SHORT,
+        searchpath,
+        f"hydra.sweep.dir={tmp_path / 'out'}",
+        cwd=EXAMPLE,
+    )
     runs = {read_run(p).attrs["optim"]: read_run(p) for p in (tmp_path / "out").rglob("results.h5")}
     assert sorted(runs) == ["adamw_cosine", "lion"]
     for run in runs.values():
@@ -67,9 +109,15 @@ def test_a_users_optimiser_composes_with_backprop_modes_and_clipping(tmp_path):
 
 
 def test_options_from_a_users_folder_are_valid_and_misspellings_suggest(in_example):
-    check_overrides(["task=pendulum", "optim=lion", "task.gravity=3.7"], multirun=False, config_dirs=["conf"])
-    check_overrides(["task=pendulum,poisson", "optim=lion,hig"], multirun=True, config_dirs=["conf"])
-    with pytest.raises(UserError, match=r"unknown optim 'lino': did you mean lion\? \(choose one of adam, .*lion"):
+    check_overrides(
+        ["task=pendulum", "optim=lion", "task.gravity=3.7"], multirun=False, config_dirs=["conf"]
+    )
+    check_overrides(
+        ["task=pendulum,poisson", "optim=lion,hig"], multirun=True, config_dirs=["conf"]
+    )
+    with pytest.raises(
+        UserError, match=r"unknown optim 'lino': did you mean lion\? \(choose one of adam, .*lion"
+    ):
         check_overrides(["task=pendulum", "optim=lino"], multirun=False, config_dirs=["conf"])
     with pytest.raises(UserError, match="did you mean task.gravity"):
         check_overrides(["task=pendulum", "task.gravty=3"], multirun=False, config_dirs=["conf"])
@@ -78,13 +126,21 @@ def test_options_from_a_users_folder_are_valid_and_misspellings_suggest(in_examp
 
 
 def test_python_api_runs_one_configuration_and_reads_its_curves(in_example, tmp_path):
-    run = physgrad.run("task=pendulum", "optim=stable_bptt", *SHORT, config_dir="conf", out_dir=tmp_path)
+    run = physgrad.run(
+        "task=pendulum", "optim=stable_bptt", *SHORT, config_dir="conf", out_dir=tmp_path
+    )
     assert run.attrs["status"] == "completed" and run.path == tmp_path / "results.h5"
     assert run.train["loss"].shape == (60,) and run.eval["iteration"].tolist() == [0, 30, 60]
     again = physgrad.read_run(tmp_path / "results.h5")
     np.testing.assert_array_equal(again.eval["loss"], run.eval["loss"])
-    seeds = physgrad.run("task=pendulum", "optim=adam", "seeds=2", *SHORT, config_dir="conf",
-                         out_dir=tmp_path / "seeds")
+    seeds = physgrad.run(
+        "task=pendulum",
+        "optim=adam",
+        "seeds=2",
+        *SHORT,
+        config_dir="conf",
+        out_dir=tmp_path / "seeds",
+    )
     assert [r.attrs["seed"] for r in seeds] == [0, 1]
     with pytest.raises(UserError, match="optim=bptt needs a closed-loop controller"):
         physgrad.run("task=poisson", "optim=bptt", out_dir=tmp_path / "refused")
@@ -94,21 +150,47 @@ def test_python_api_runs_one_configuration_and_reads_its_curves(in_example, tmp_
 
 def test_python_api_writes_where_physgrad_run_would(tmp_path, monkeypatch):
     monkeypatch.chdir(tmp_path)
-    run = physgrad.run("task=toy", "optim=hig", "trainer.iterations=3", "task.test_size=8", "trainer.batch_size=4")
+    run = physgrad.run(
+        "task=toy", "optim=hig", "trainer.iterations=3", "task.test_size=8", "trainer.batch_size=4"
+    )
     relative = run.path.relative_to(tmp_path.resolve())
-    assert relative.parts[:2] == ("outputs", "runs") and relative.parent.name.endswith("_toy_hig_s0"), relative
+    assert relative.parts[:2] == ("outputs", "runs") and relative.parent.name.endswith(
+        "_toy_hig_s0"
+    ), relative
     assert run.attrs["status"] == "completed" and (run.path.parent / "loss.png").exists()
 
 
-@pytest.mark.parametrize("node, fragment", [
-    ({"_target_": "pendulum.build"}, "pendulum.build needs task.gravity, task.length, task.damping, task.dt, task.unroll"),
-    ({"_target_": "pendulum.build", "gravity": 9.8, "length": 1, "damping": 0, "dt": 0.1, "unroll": 4,
-      "hidden": [4], "train_size": 4, "test_size": 4, "mass": 1}, "task.mass is not a setting of pendulum.build"),
-    ({"_target_": "pendulum.biuld"}, "task._target_=pendulum.biuld cannot be imported"),
-    ({"_target_": "nomodule.build"}, "task._target_=nomodule.build cannot be imported (ModuleNotFoundError"),
-    ({"_target_": "builtins.dict"}, "returned dict, not a physgrad.tasks.Scene"),
-    ({}, "the task config has no _target_"),
-])
+@pytest.mark.parametrize(
+    "node, fragment",
+    [
+        (
+            {"_target_": "pendulum.build"},
+            "pendulum.build needs task.gravity, task.length, task.damping, task.dt, task.unroll",
+        ),
+        (
+            {
+                "_target_": "pendulum.build",
+                "gravity": 9.8,
+                "length": 1,
+                "damping": 0,
+                "dt": 0.1,
+                "unroll": 4,
+                "hidden": [4],
+                "train_size": 4,
+                "test_size": 4,
+                "mass": 1,
+            },
+            "task.mass is not a setting of pendulum.build",
+        ),
+        ({"_target_": "pendulum.biuld"}, "task._target_=pendulum.biuld cannot be imported"),
+        (
+            {"_target_": "nomodule.build"},
+            "task._target_=nomodule.build cannot be imported (ModuleNotFoundError",
+        ),
+        ({"_target_": "builtins.dict"}, "returned dict, not a physgrad.tasks.Scene"),
+        ({}, "the task config has no _target_"),
+    ],
+)
 def test_a_scene_that_cannot_be_built_is_one_line(in_example, node, fragment):
     import jax
 
@@ -121,7 +203,12 @@ def test_a_scene_has_an_output_or_dynamics_but_not_both():
     with pytest.raises(UserError, match="exactly one of them"):
         Scene(init_params=lambda k: None, sample_loss=lambda y, s: 0.0, test_set={})
     with pytest.raises(UserError, match="needs draw_batch"):
-        Scene(init_params=lambda k: None, sample_loss=lambda y, s: 0.0, test_set={}, sample_output=lambda p, s: 0.0)
+        Scene(
+            init_params=lambda k: None,
+            sample_loss=lambda y, s: 0.0,
+            test_set={},
+            sample_output=lambda p, s: 0.0,
+        )
 
 
 @pytest.mark.slow
@@ -129,45 +216,94 @@ def test_tab_completion_through_hydra(tmp_path):
     env = {**os.environ, "PATH": f"{Path(PHYSGRAD).parent}:{os.environ['PATH']}"}
 
     def query(line):
-        return subprocess.run([PHYSGRAD, "-sc", "query=bash"], env={**env, "COMP_LINE": line}, cwd=EXAMPLE,
-                              capture_output=True, text=True, timeout=120).stdout.split()
+        return subprocess.run(
+            [PHYSGRAD, "-sc", "query=bash"],
+            env={**env, "COMP_LINE": line},
+            cwd=EXAMPLE,
+            capture_output=True,
+            text=True,
+            timeout=120,
+        ).stdout.split()
 
-    assert "task=poisson" in query("physgrad run task=") and "task=pendulum" not in query("physgrad run task=")
+    assert "task=poisson" in query("physgrad run task=") and "task=pendulum" not in query(
+        "physgrad run task="
+    )
     assert "task=pendulum" in query("physgrad run -cd conf task=")
     assert query("physgrad rep") == ["report"]
-    script = ('eval "$(physgrad run -sc install=bash)"; COMP_LINE="physgrad run optim=h"; COMP_POINT=${#COMP_LINE}; '
-              'COMP_WORDS=(physgrad run optim=h); COMP_CWORD=2; hydra_bash_completion; echo "${COMPREPLY[@]}"')
-    result = subprocess.run(["bash", "-c", script], env=env, capture_output=True, text=True, timeout=120)
+    script = (
+        'eval "$(physgrad run -sc install=bash)"; COMP_LINE="physgrad run optim=h"; '
+        "COMP_POINT=${#COMP_LINE}; "
+        "COMP_WORDS=(physgrad run optim=h); COMP_CWORD=2; hydra_bash_completion; echo "
+        '"${COMPREPLY[@]}"'
+    )
+    result = subprocess.run(
+        ["bash", "-c", script], env=env, capture_output=True, text=True, timeout=120
+    )
     assert result.stdout.split() == ["optim=hig"], result.stderr
 
 
 @pytest.mark.slow
 @pytest.mark.long
 def test_the_wheel_installs_and_runs_from_an_unrelated_folder(tmp_path):
-    """`pip wheel .`, then the wheel into a fresh virtual environment, and `physgrad run` from a folder that has
-    nothing of the repository: the configs come from the installed package. To keep the test short the fresh
-    environment reuses this one's dependencies (a .pth line naming its site-packages, which does not activate
-    this environment's editable physgrad); physgrad itself is only the wheel."""
+    """`pip wheel .`, then the wheel into a fresh virtual environment, and `physgrad run` from a
+    folder that has nothing of the repository: the configs come from the installed package. To keep
+    the test short the fresh environment reuses this one's dependencies (a .pth line naming its
+    site-packages, which does not activate this environment's editable physgrad); physgrad itself is
+    only the wheel."""
     import site
 
     repo = EXAMPLE.parent.parent
-    subprocess.run([sys.executable, "-m", "pip", "wheel", "--quiet", "--no-deps", "-w", str(tmp_path / "dist"),
-                    str(repo)], check=True, capture_output=True, timeout=600)
+    subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "pip",
+            "wheel",
+            "--quiet",
+            "--no-deps",
+            "-w",
+            str(tmp_path / "dist"),
+            str(repo),
+        ],
+        check=True,
+        capture_output=True,
+        timeout=600,
+    )
     wheel = next((tmp_path / "dist").glob("physgrad-*.whl"))
     venv = tmp_path / "venv"
     subprocess.run([sys.executable, "-m", "venv", str(venv)], check=True, timeout=300)
     python = venv / "bin" / "python"
-    subprocess.run([python, "-m", "pip", "install", "--quiet", "--no-deps", "--no-index", str(wheel)], check=True,
-                   capture_output=True, timeout=300)
+    subprocess.run(
+        [python, "-m", "pip", "install", "--quiet", "--no-deps", "--no-index", str(wheel)],
+        check=True,
+        capture_output=True,
+        timeout=300,
+    )
     packages = next(venv.glob("lib/python*/site-packages"))
     (packages / "dependencies.pth").write_text("\n".join(site.getsitepackages()) + "\n")
     elsewhere = tmp_path / "elsewhere"
     elsewhere.mkdir()
-    where = subprocess.run([python, "-c", "import physgrad.configs as c; print(c.__file__); print(c.CONF_DIR)"],
-                           cwd=elsewhere, capture_output=True, text=True, check=True).stdout.split()
+    where = subprocess.run(
+        [python, "-c", "import physgrad.configs as c; print(c.__file__); print(c.CONF_DIR)"],
+        cwd=elsewhere,
+        capture_output=True,
+        text=True,
+        check=True,
+    ).stdout.split()
     assert all(Path(p).is_relative_to(packages) for p in where), where
-    result = subprocess.run([venv / "bin" / "physgrad", "run", "task=poisson", "trainer.iterations=5",
-                             "hydra.run.dir=out"], cwd=elsewhere, capture_output=True, text=True, timeout=300)
+    result = subprocess.run(
+        [
+            venv / "bin" / "physgrad",
+            "run",
+            "task=poisson",
+            "trainer.iterations=5",
+            "hydra.run.dir=out",
+        ],
+        cwd=elsewhere,
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
     assert result.returncode == 0, result.stderr[-2000:]
     run = read_run(elsewhere / "out" / "results.h5")
     assert run.attrs["status"] == "completed" and run.train["iteration"].size == 5
@@ -185,18 +321,28 @@ def broken_toy(kind):
     def scene(key, **kwargs):
         good = build(key, **kwargs)
         if kind == "integer loss":
-            return dataclasses.replace(good, sample_loss=lambda y, s: jnp.sum(y > 0).astype(jnp.int32))
+            return dataclasses.replace(
+                good, sample_loss=lambda y, s: jnp.sum(y > 0).astype(jnp.int32)
+            )
         if kind == "vector loss":
             return dataclasses.replace(good, sample_loss=lambda y, s: (y - s["target"]) ** 2)
         test_set = dict(good.test_set, target=good.test_set["target"].at[3, 0].set(jnp.nan))
         return dataclasses.replace(good, test_set=test_set)
+
     return scene
 
 
-@pytest.mark.parametrize("kind, fragment", [("integer loss", "returns int32; it must be a real float"),
-                                            ("vector loss", "returns (2,) per sample; it must return one number"),
-                                            ("NaN test set", "its test_set holds 1 values that are NaN")])
-def test_a_scene_with_a_wrong_loss_or_test_set_is_refused_in_one_line(tmp_path, monkeypatch, kind, fragment):
+@pytest.mark.parametrize(
+    "kind, fragment",
+    [
+        ("integer loss", "returns int32; it must be a real float"),
+        ("vector loss", "returns (2,) per sample; it must return one number"),
+        ("NaN test set", "its test_set holds 1 values that are NaN"),
+    ],
+)
+def test_a_scene_with_a_wrong_loss_or_test_set_is_refused_in_one_line(
+    tmp_path, monkeypatch, kind, fragment
+):
     import physgrad.tasks.toy as toy
     from physgrad.experiment import run_experiment
     from tests.helpers import load
@@ -211,8 +357,10 @@ def test_an_option_without_a_name_is_named_after_its_file(tmp_path):
     from physgrad.experiment import run_experiment
 
     (tmp_path / "task").mkdir()
-    (tmp_path / "task" / "heat.yaml").write_text("_target_: physgrad.tasks.toy.build\nbatch_size: 4\nscale: 0.01\n"
-                                                "hidden: [8]\ntest_size: 8\n")
+    (tmp_path / "task" / "heat.yaml").write_text(
+        "_target_: physgrad.tasks.toy.build\nbatch_size: 4\nscale: 0.01\n"
+        "hidden: [8]\ntest_size: 8\n"
+    )
     cfg = compose(["task=heat", "trainer.iterations=2"], config_dirs=[tmp_path])
     assert cfg.task.name == "heat" and cfg.optim.name == "adam"
     outcome, path = run_experiment(cfg, tmp_path / "run")

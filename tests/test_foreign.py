@@ -1,6 +1,7 @@
-"""Results files, report inputs and sweep folders from somebody else are data: crafted files of every kind are
-refused with a one-line reason (or their text cleaned) and the rest of the report goes on; nothing they name is
-followed, resolved or expanded. Bombs run under a time and memory cap in a child process."""
+"""Results files, report inputs and sweep folders from somebody else are data: crafted files of
+every kind are refused with a one-line reason (or their text cleaned) and the rest of the report
+goes on; nothing they name is followed, resolved or expanded. Bombs run under a time and memory cap
+in a child process."""
 
 import os
 import subprocess
@@ -13,24 +14,41 @@ import numpy as np
 import pytest
 from omegaconf import OmegaConf
 
-from physgrad.report import collect, write_report
 from physgrad.files import clean_text, read_small_yaml
+from physgrad.report import collect, write_report
 from physgrad.results import ResultsWriter, parse_config, read_final, read_params, read_run
 from physgrad.resume import finished_before
 from physgrad.sweeps import job_folders, read_manifest
 
 SECRET = "ssh-rsa AAAA-this-must-never-reach-a-report-0123456789"
-CONFIG = {"seed": 0, "seeds": 1, "task": {"name": "toy", "batch_size": 4}, "optim": {"name": "adam"},
-          "trainer": {"iterations": 3}}
+CONFIG = {
+    "seed": 0,
+    "seeds": 1,
+    "task": {"name": "toy", "batch_size": 4},
+    "optim": {"name": "adam"},
+    "trainer": {"iterations": 3},
+}
 
 
 def good_run(folder: Path, seed: int = 0, **attrs) -> Path:
     """A small valid results file, as physgrad writes it."""
     path = folder / "results.h5"
-    writer = ResultsWriter(path, {"task": "toy", "optim": "adam", "variant": "adam", "seed": seed,
-                                  "config": OmegaConf.to_yaml(OmegaConf.create({**CONFIG, "seed": seed})), **attrs})
+    writer = ResultsWriter(
+        path,
+        {
+            "task": "toy",
+            "optim": "adam",
+            "variant": "adam",
+            "seed": seed,
+            "config": OmegaConf.to_yaml(OmegaConf.create({**CONFIG, "seed": seed})),
+            **attrs,
+        },
+    )
     for i in range(3):
-        writer.append("train", {"iteration": i, "wall_time": 0.1 * (i + 1), "loss": 1.0 / (i + 1), "grad_norm": 1.0})
+        writer.append(
+            "train",
+            {"iteration": i, "wall_time": 0.1 * (i + 1), "loss": 1.0 / (i + 1), "grad_norm": 1.0},
+        )
         writer.append("eval", {"iteration": i, "wall_time": 0.1 * (i + 1), "loss": 1.0 / (i + 1)})
     writer.save_params(np.ones(5))
     writer.finish("completed", stopped_by="iterations", iterations=3, train_seconds=0.3)
@@ -47,6 +65,7 @@ def rewrite(path: Path, edit) -> Path:
 def set_attr(key, value):
     def edit(f):
         f.attrs[key] = value
+
     return edit
 
 
@@ -54,6 +73,7 @@ def replace_column(group, key, data):
     def edit(f):
         del f[group][key]
         f[group].create_dataset(key, data=data)
+
     return edit
 
 
@@ -68,6 +88,7 @@ def external_storage(secret):
     def edit(f):
         del f["eval"]["loss"]
         f["eval"].create_dataset("loss", shape=(3,), dtype="f8", external=[(str(secret), 0, 24)])
+
     return edit
 
 
@@ -75,6 +96,7 @@ def external_link(secret_h5):
     def edit(f):
         del f["train"]
         f["train"] = h5py.ExternalLink(str(secret_h5), "/train")
+
     return edit
 
 
@@ -84,6 +106,7 @@ def virtual_column(secret_h5):
         layout[:] = h5py.VirtualSource(str(secret_h5), "/eval/loss", shape=(3,))
         del f["eval"]["loss"]
         f["eval"].create_virtual_dataset("loss", layout)
+
     return edit
 
 
@@ -106,7 +129,9 @@ CRAFTED = {
     "task is a number": set_attr("task", 7),
     "wall_time is text": replace_column("eval", "wall_time", np.array([b"a", b"b", b"c"])),
     "loss is 2-D": replace_column("eval", "loss", np.ones((3, 2))),
-    "loss is text": replace_column("train", "loss", np.array(["1", "2", "3"], dtype=h5py.string_dtype())),
+    "loss is text": replace_column(
+        "train", "loss", np.array(["1", "2", "3"], dtype=h5py.string_dtype())
+    ),
     "unequal columns": replace_column("eval", "loss", np.ones(5)),
     "a soft link": soft_link,
 }
@@ -144,8 +169,11 @@ def test_a_crafted_file_is_unreadable_with_a_reason_and_the_report_goes_on(tmp_p
 def test_a_file_cannot_read_other_files_into_a_report(tmp_path, secret_file, how):
     source = good_run(tmp_path / "source")  # an HDF5 file a link could point at
     rewrite(source, set_attr("note", SECRET))
-    edit = {"external storage": external_storage(secret_file), "external link": external_link(source),
-            "virtual dataset": virtual_column(source)}[how]
+    edit = {
+        "external storage": external_storage(secret_file),
+        "external link": external_link(source),
+        "virtual dataset": virtual_column(source),
+    }[how]
     crafted = rewrite(good_run(tmp_path / "crafted", seed=1), edit)
     with pytest.raises(ValueError, match="external|virtual|link"):
         read_run(crafted)
@@ -163,6 +191,7 @@ def test_params_stored_elsewhere_are_refused(tmp_path, secret_file):
     def edit(f):
         del f["params"]
         f.create_dataset("params", shape=(3,), dtype="f8", external=[(str(secret_file), 0, 24)])
+
     rewrite(path, edit)
     with pytest.raises(ValueError, match="params"):
         read_params(path)
@@ -176,7 +205,9 @@ def test_text_is_cleaned_of_terminal_escapes_and_cut(tmp_path):
     assert "\x1b" not in run.attrs["reason"] and "\x07" not in run.attrs["reason"]
     assert "\x1b" not in run.variant and run.variant.endswith("$x^2$")
     assert len(run.attrs["hostname"]) < 2100
-    body = write_report([path], out_dir=tmp_path / "report")  # a `$` label is drawn as text, not mathtext
+    body = write_report(
+        [path], out_dir=tmp_path / "report"
+    )  # a `$` label is drawn as text, not mathtext
     assert "\x1b" not in body and (tmp_path / "report" / "loss_vs_time.png").is_file()
     assert clean_text("a\u202eb\nc") == "a\ufffdb c" and clean_text("a\nb", lines=True) == "a\nb"
 
@@ -202,7 +233,13 @@ def test_resume_compares_the_stored_config_as_data_and_resolves_nothing(tmp_path
     cfg = OmegaConf.create({**CONFIG, "overwrite": False})
     path = good_run(tmp_path / "run")
     assert finished_before(path, cfg) is not None  # its own config: skipped as completed
-    rewrite(path, set_attr("config", "seed: ${oc.env:PHYSGRAD_TEST_SECRET}\ntask: ${${oc.env:PHYSGRAD_TEST_SECRET}}\n"))
+    rewrite(
+        path,
+        set_attr(
+            "config",
+            "seed: ${oc.env:PHYSGRAD_TEST_SECRET}\ntask: ${${oc.env:PHYSGRAD_TEST_SECRET}}\n",
+        ),
+    )
     assert finished_before(path, cfg) is None  # a different config: runs again
     assert parse_config(read_run(path).attrs["config"])["seed"] == "${oc.env:PHYSGRAD_TEST_SECRET}"
     for text in ("[1, 2]", "7", "{bad", "a: &x [1]\nb: *x"):
@@ -227,12 +264,16 @@ def interpolation_bomb() -> str:
 
 
 def run_capped(code: str, seconds: int = 60, memory: int = 2 << 30) -> subprocess.CompletedProcess:
-    """code in a child process that caps its own address space (start-up's 3 GiB plus `memory`) first, within
-    `seconds`."""
+    """code in a child process that caps its own address space (start-up's 3 GiB plus `memory`)
+    first, within `seconds`."""
     cap = memory + (3 << 30)
     preamble = f"import resource\nresource.setrlimit(resource.RLIMIT_AS, ({cap}, {cap}))\n"
-    return subprocess.run([sys.executable, "-c", preamble + textwrap.dedent(code)], capture_output=True, text=True,
-                          timeout=seconds)
+    return subprocess.run(
+        [sys.executable, "-c", preamble + textwrap.dedent(code)],
+        capture_output=True,
+        text=True,
+        timeout=seconds,
+    )
 
 
 @pytest.mark.parametrize("bomb", ["alias", "interpolation"])
@@ -276,6 +317,14 @@ def test_sweep_manifests_of_other_types_are_ignored(tmp_path):
 def test_physgrad_files_read_back_unchanged(tmp_path):
     path = good_run(tmp_path / "run", unroll=8, contended=0, load_start=0.5, step_seconds_p50=0.01)
     run = read_run(path)
-    assert run.attrs["seed"] == 0 and run.attrs["unroll"] == 8 and run.attrs["status"] == "completed"
-    assert run.config["trainer"] == {"iterations": 3} and run.eval["loss"].tolist() == [1.0, 0.5, 1 / 3]
-    assert read_params(path).tolist() == [1.0] * 5 and read_final(path)[1]["loss"] == pytest.approx(1 / 3)
+    assert (
+        run.attrs["seed"] == 0 and run.attrs["unroll"] == 8 and run.attrs["status"] == "completed"
+    )
+    assert run.config["trainer"] == {"iterations": 3} and run.eval["loss"].tolist() == [
+        1.0,
+        0.5,
+        1 / 3,
+    ]
+    assert read_params(path).tolist() == [1.0] * 5 and read_final(path)[1]["loss"] == pytest.approx(
+        1 / 3
+    )

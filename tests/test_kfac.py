@@ -1,6 +1,7 @@
-"""K-FAC (physgrad.optim.kfac) against its closed form built from the dense Jacobian with Kronecker products
-(float64), its limits (no damping on an exactly Kronecker-factored problem: the Gauss-Newton step; large damping:
-a scaled gradient step), and through the runner: it trains, and a network without layer factors is refused."""
+"""K-FAC (physgrad.optim.kfac) against its closed form built from the dense Jacobian with Kronecker
+products (float64), its limits (no damping on an exactly Kronecker-factored problem: the
+Gauss-Newton step; large damping: a scaled gradient step), and through the runner: it trains, and a
+network without layer factors is refused."""
 
 import jax
 import jax.numpy as jnp
@@ -16,7 +17,8 @@ from physgrad.optim.spectral import truncated_spectral_direction
 
 
 def network_problem(sizes=(3, 5, 4, 2), batch=7, seed=0):
-    """A tanh MLP followed by a fixed nonlinear 'physics' y = sin(P z): (params, layer J, g = dL/dy, dense J)."""
+    """A tanh MLP followed by a fixed nonlinear 'physics' y = sin(P z): (params, layer J, g = dL/dy,
+    dense J)."""
     rng = np.random.default_rng(seed)
     params = init_mlp(jax.random.PRNGKey(seed), sizes, jnp.float64)
     physics = jnp.asarray(rng.normal(size=(sizes[-1], 3)))
@@ -33,13 +35,18 @@ def network_problem(sizes=(3, 5, 4, 2), batch=7, seed=0):
 
 
 def kronecker_reference(jac: LayerJacobian, g, damping):
-    """The K-FAC step from the dense J: per layer, the columns of W_bar = [W; b] in (in + 1) x out row-major
-    order, A and G from the factors' definitions, (B A_d (x) G_d)^-1 applied to that block of J^T g."""
+    """The K-FAC step from the dense J: per layer, the columns of W_bar = [W; b] in (in + 1) x out
+    row-major order, A and G from the factors' definitions, (B A_d (x) G_d)^-1 applied to that block
+    of J^T g."""
     dense = np.asarray(jac.dense())
     gradient = dense.T @ np.asarray(g).reshape(-1)
     batch = jac.inputs[0].shape[0]
-    sizes = [jac.inputs[l].shape[1] * jac.cotangents[l].shape[2] if kind == "w" else jac.cotangents[l].shape[2]
-             for l, kind in jac.plan.leaves]
+    sizes = [
+        jac.inputs[leaf].shape[1] * jac.cotangents[leaf].shape[2]
+        if kind == "w"
+        else jac.cotangents[leaf].shape[2]
+        for leaf, kind in jac.plan.leaves
+    ]
     starts = np.cumsum([0, *sizes])
     step = np.zeros_like(gradient)
     for layer in range(len(jac.inputs)):
@@ -47,15 +54,21 @@ def kronecker_reference(jac: LayerJacobian, g, damping):
         a_bar = np.concatenate([a, np.ones((batch, 1))], axis=1)
         delta = np.asarray(jac.cotangents[layer]).reshape(-1, jac.cotangents[layer].shape[2])
         a_factor, g_factor = a_bar.T @ a_bar / batch, delta.T @ delta / batch
-        a_damped = a_factor + np.sqrt(damping) * np.trace(a_factor) / len(a_factor) * np.eye(len(a_factor))
-        g_damped = g_factor + np.sqrt(damping) * np.trace(g_factor) / len(g_factor) * np.eye(len(g_factor))
+        a_damped = a_factor + np.sqrt(damping) * np.trace(a_factor) / len(a_factor) * np.eye(
+            len(a_factor)
+        )
+        g_damped = g_factor + np.sqrt(damping) * np.trace(g_factor) / len(g_factor) * np.eye(
+            len(g_factor)
+        )
         w = jac.plan.leaves.index((layer, "w"))
         b = jac.plan.leaves.index((layer, "b"))
         fan_in = a.shape[1]
-        block = np.concatenate([gradient[starts[w]:starts[w + 1]], gradient[starts[b]:starts[b + 1]]])
+        block = np.concatenate(
+            [gradient[starts[w] : starts[w + 1]], gradient[starts[b] : starts[b + 1]]]
+        )
         solved = np.linalg.solve(batch * np.kron(a_damped, g_damped), block)
-        step[starts[w]:starts[w + 1]] = solved[:fan_in * g_factor.shape[0]]
-        step[starts[b]:starts[b + 1]] = solved[fan_in * g_factor.shape[0]:]
+        step[starts[w] : starts[w + 1]] = solved[: fan_in * g_factor.shape[0]]
+        step[starts[b] : starts[b + 1]] = solved[fan_in * g_factor.shape[0] :]
     return step
 
 
@@ -70,14 +83,16 @@ def kfac_update(rule_damping, jac, g, learning_rate=1.0):
 def test_the_step_is_the_kronecker_factored_gauss_newton_step(x64, damping):
     _, jac, g, _ = network_problem()
     update, state = kfac_update(damping, jac, g, learning_rate=0.5)
-    np.testing.assert_allclose(update, -0.5 * kronecker_reference(jac, g, damping), rtol=1e-9, atol=1e-12)
+    np.testing.assert_allclose(
+        update, -0.5 * kronecker_reference(jac, g, damping), rtol=1e-9, atol=1e-12
+    )
     assert int(state.failures) == 0
 
 
 def test_on_an_exactly_factored_problem_it_is_the_gauss_newton_step(x64):
-    """One linear layer and a linear least-squares loss: every cotangent is a unit vector, so sum_k delta delta^T
-    = I for every sample, J^T J = B A (x) I exactly, and K-FAC without damping is J^+ g (m > n: full column rank),
-    which solves the least-squares problem in one step."""
+    """One linear layer and a linear least-squares loss: every cotangent is a unit vector, so sum_k
+    delta delta^T = I for every sample, J^T J = B A (x) I exactly, and K-FAC without damping is J^+
+    g (m > n: full column rank), which solves the least-squares problem in one step."""
     rng = np.random.default_rng(3)
     batch, fan_in, fan_out = 12, 3, 2
     params = init_mlp(jax.random.PRNGKey(1), (fan_in, fan_out), jnp.float64)
@@ -91,6 +106,7 @@ def test_on_an_exactly_factored_problem_it_is_the_gauss_newton_step(x64):
     gauss_newton = truncated_spectral_direction(jac.dense(), g.reshape(-1), 1.0, 1e-12, "svd")
     np.testing.assert_allclose(update, -np.asarray(gauss_newton), rtol=1e-8, atol=1e-12)
     from jax.flatten_util import ravel_pytree
+
     flat, unravel = ravel_pytree(params)
     solved = unravel(flat + update)
     x_bar = np.concatenate([np.asarray(inputs), np.ones((batch, 1))], axis=1)
@@ -100,41 +116,58 @@ def test_on_an_exactly_factored_problem_it_is_the_gauss_newton_step(x64):
 
 
 def test_on_a_deep_network_it_differs_from_gauss_newton(x64):
-    """The factorisation is an approximation: on a network with a hidden layer it is not J^+ g (a test that would
-    pass for a rule that computed the exact Gauss-Newton step is no test of K-FAC)."""
+    """The factorisation is an approximation: on a network with a hidden layer it is not J^+ g (a
+    test that would pass for a rule that computed the exact Gauss-Newton step is no test of
+    K-FAC)."""
     _, jac, g, dense = network_problem(batch=40)
     update, _ = kfac_update(1e-10, jac, g)
-    gauss_newton = -np.asarray(truncated_spectral_direction(dense, g.reshape(-1), 1.0, 1e-12, "svd"))
+    gauss_newton = -np.asarray(
+        truncated_spectral_direction(dense, g.reshape(-1), 1.0, 1e-12, "svd")
+    )
     assert np.linalg.norm(update - gauss_newton) > 1e-3 * np.linalg.norm(gauss_newton)
     # but it is a descent direction for the linearised loss: g^T J D < 0
     assert float(np.asarray(g).reshape(-1) @ (np.asarray(dense) @ update)) < 0
 
 
 def test_large_damping_gives_a_scaled_gradient_step(x64):
-    """gamma -> inf: (A + sqrt(gamma) m_A I)^-1 X (G + sqrt(gamma) m_G I)^-1 -> X / (gamma m_A m_G) per layer."""
+    """gamma -> inf: (A + sqrt(gamma) m_A I)^-1 X (G + sqrt(gamma) m_G I)^-1 -> X / (gamma m_A m_G)
+    per layer."""
     _, jac, g, dense = network_problem(seed=2)
     gamma = 1e16
     update, _ = kfac_update(gamma, jac, g)
     gradient = np.asarray(dense).T @ np.asarray(g).reshape(-1)
     expected = np.zeros_like(gradient)
     batch = jac.inputs[0].shape[0]
-    starts = np.cumsum([0, *[jac.inputs[l].shape[1] * jac.cotangents[l].shape[2] if k == "w"
-                             else jac.cotangents[l].shape[2] for l, k in jac.plan.leaves]])
+    starts = np.cumsum(
+        [
+            0,
+            *[
+                jac.inputs[leaf].shape[1] * jac.cotangents[leaf].shape[2]
+                if k == "w"
+                else jac.cotangents[leaf].shape[2]
+                for leaf, k in jac.plan.leaves
+            ],
+        ]
+    )
     for i, (layer, _) in enumerate(jac.plan.leaves):
         a = np.concatenate([np.asarray(jac.inputs[layer]), np.ones((batch, 1))], axis=1)
         delta = np.asarray(jac.cotangents[layer]).reshape(-1, jac.cotangents[layer].shape[2])
         mean_a = np.sum(a * a) / batch / a.shape[1]
         mean_g = np.sum(delta * delta) / batch / delta.shape[1]
-        expected[starts[i]:starts[i + 1]] = -gradient[starts[i]:starts[i + 1]] / (batch * gamma * mean_a * mean_g)
+        expected[starts[i] : starts[i + 1]] = -gradient[starts[i] : starts[i + 1]] / (
+            batch * gamma * mean_a * mean_g
+        )
     np.testing.assert_allclose(update, expected, rtol=1e-5)
 
 
 def test_the_damping_is_free_of_the_problems_scale(x64):
-    """Scaling the physics output by c scales the cotangents and g by c: the step is unchanged (g carries one c,
-    G two, and the damping follows G's mean eigenvalue)."""
+    """Scaling the physics output by c scales the cotangents and g by c: the step is unchanged (g
+    carries one c, G two, and the damping follows G's mean eigenvalue)."""
     _, jac, g, _ = network_problem(seed=4)
     scaled = LayerJacobian(jac.plan, jac.inputs, tuple(10.0 * d for d in jac.cotangents))
-    np.testing.assert_allclose(kfac_update(1e-3, scaled, 10.0 * g)[0], kfac_update(1e-3, jac, g)[0], rtol=1e-9)
+    np.testing.assert_allclose(
+        kfac_update(1e-3, scaled, 10.0 * g)[0], kfac_update(1e-3, jac, g)[0], rtol=1e-9
+    )
 
 
 def test_a_dense_jacobian_is_refused():
@@ -145,12 +178,29 @@ def test_a_dense_jacobian_is_refused():
 
 
 def test_kfac_trains_the_toy_and_is_refused_where_the_network_is_not_layer_factorised(tmp_path):
-    run = physgrad.run("task=toy", "optim=kfac", "trainer.iterations=40", "trainer.eval_every=20",
-                       "trainer.batch_size=64", out_dir=tmp_path / "toy")
+    run = physgrad.run(
+        "task=toy",
+        "optim=kfac",
+        "trainer.iterations=40",
+        "trainer.eval_every=20",
+        "trainer.batch_size=64",
+        out_dir=tmp_path / "toy",
+    )
     assert run.attrs["status"] == "completed" and run.eval["loss"][-1] < 0.5 * run.eval["loss"][0]
     assert run.attrs["jacobian"] == "layer-factorised"
     with pytest.raises(UserError) as refused:
-        physgrad.run("task=multicart", "optim=kfac", "task.poles=2", "unroll=10", "trainer.iterations=2",
-                     out_dir=tmp_path / "multicart")
+        physgrad.run(
+            "task=multicart",
+            "optim=kfac",
+            "task.poles=2",
+            "unroll=10",
+            "trainer.iterations=2",
+            out_dir=tmp_path / "multicart",
+        )
     reason = str(refused.value)
-    assert "optim=kfac" in reason and "task=multicart" in reason and "layer factors" in reason and "\n" not in reason
+    assert (
+        "optim=kfac" in reason
+        and "task=multicart" in reason
+        and "layer factors" in reason
+        and "\n" not in reason
+    )

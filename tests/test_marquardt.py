@@ -1,5 +1,5 @@
-"""Levenberg-Marquardt (physgrad.optim.spectral.marquardt_rule) against closed forms in float64, its damping
-adaptation, and the rules that take optax's extra arguments (L-BFGS) through a real run."""
+"""Levenberg-Marquardt (physgrad.optim.spectral.marquardt_rule) against closed forms in float64, its
+damping adaptation, and the rules that take optax's extra arguments (L-BFGS) through a real run."""
 
 import jax.numpy as jnp
 import numpy as np
@@ -7,8 +7,11 @@ import pytest
 
 import physgrad
 import physgrad.optim
-from physgrad.optim.spectral import marquardt_direction, marquardt_rule, truncated_spectral_direction
-
+from physgrad.optim.spectral import (
+    marquardt_direction,
+    marquardt_rule,
+    truncated_spectral_direction,
+)
 
 
 def random_problem(m=6, n=10, seed=0):
@@ -29,7 +32,9 @@ def test_large_damping_gives_a_scaled_gradient_step(x64, route):
     jac, g = random_problem(seed=1)
     mu = 1e8
     lam = mu * float(jnp.max(jnp.linalg.svd(jac, compute_uv=False)) ** 2)
-    np.testing.assert_allclose(marquardt_direction(jac, g, mu, 1e-12, route)[0], jac.T @ g / lam, rtol=1e-6)
+    np.testing.assert_allclose(
+        marquardt_direction(jac, g, mu, 1e-12, route)[0], jac.T @ g / lam, rtol=1e-6
+    )
 
 
 def test_damping_interpolates_as_the_closed_form(x64):
@@ -56,11 +61,14 @@ def test_a_linear_least_squares_problem_is_solved_in_one_step(x64):
     theta = jnp.zeros(4)
     rule = marquardt_rule(learning_rate=1.0, damping=1e-12, tau=1e-10, route="auto")
     state = rule.init(theta)
-    update, state = rule.update(theta, state, theta, jacobian=a, output_grad=a @ theta - b, value=loss(theta),
-                                value_fn=loss)
+    update, state = rule.update(
+        theta, state, theta, jacobian=a, output_grad=a @ theta - b, value=loss(theta), value_fn=loss
+    )
     solution = np.linalg.lstsq(np.asarray(a), np.asarray(b), rcond=None)[0]
     np.testing.assert_allclose(theta + update, solution, rtol=1e-8)
-    assert not bool(state.rejected) and float(state.mu) == pytest.approx(1e-12 / 3)  # rho = 1: mu / 3
+    assert not bool(state.rejected) and float(state.mu) == pytest.approx(
+        1e-12 / 3
+    )  # rho = 1: mu / 3
 
 
 def test_a_step_that_raises_the_loss_is_rejected_and_the_damping_grows(x64):
@@ -71,21 +79,39 @@ def test_a_step_that_raises_the_loss_is_rejected_and_the_damping_grows(x64):
     worse = lambda p: loss(p) + 100.0  # noqa: E731 - every trial point looks worse
     for growth in (2.0, 4.0):
         mu_before = float(state.mu)
-        update, state = rule.update(theta, state, theta, jacobian=a, output_grad=a @ theta - b, value=loss(theta),
-                                    value_fn=worse)
+        update, state = rule.update(
+            theta,
+            state,
+            theta,
+            jacobian=a,
+            output_grad=a @ theta - b,
+            value=loss(theta),
+            value_fn=worse,
+        )
         assert bool(state.rejected) and np.all(np.asarray(update) == 0.0)
         assert float(state.mu) == pytest.approx(mu_before * growth)
-    update, state = rule.update(theta, state, theta, jacobian=a, output_grad=a @ theta - b, value=loss(theta),
-                                value_fn=loss)  # the true loss: accepted, nu back to 2
-    assert not bool(state.rejected) and float(state.nu) == 2.0 and loss(theta + update) < loss(theta)
+    update, state = rule.update(
+        theta, state, theta, jacobian=a, output_grad=a @ theta - b, value=loss(theta), value_fn=loss
+    )  # the true loss: accepted, nu back to 2
+    assert (
+        not bool(state.rejected) and float(state.nu) == 2.0 and loss(theta + update) < loss(theta)
+    )
 
 
 @pytest.mark.parametrize("optim, batch", [("levenberg_marquardt", 64), ("lbfgs", 1024)])
 def test_the_rules_train_a_scene_through_the_runner(optim, batch, tmp_path):
-    """The toy's loss at least halves in 40 steps (Adam: 0.232 -> 0.227 at either batch size). L-BFGS gets a large
-    batch: at 64 fresh samples per step its line search and curvature pairs follow the noise (0.232 -> 0.225)."""
-    run = physgrad.run("task=toy", f"optim={optim}", "trainer.iterations=40", "trainer.eval_every=20",
-                       "precision=64", f"trainer.batch_size={batch}", out_dir=tmp_path)
+    """The toy's loss at least halves in 40 steps (Adam: 0.232 -> 0.227 at either batch size).
+    L-BFGS gets a large batch: at 64 fresh samples per step its line search and curvature pairs
+    follow the noise (0.232 -> 0.225)."""
+    run = physgrad.run(
+        "task=toy",
+        f"optim={optim}",
+        "trainer.iterations=40",
+        "trainer.eval_every=20",
+        "precision=64",
+        f"trainer.batch_size={batch}",
+        out_dir=tmp_path,
+    )
     assert run.attrs["status"] == "completed" and run.eval["loss"][-1] < 0.5 * run.eval["loss"][0]
     if optim == "levenberg_marquardt":
         assert {"damping", "rejected_step", "kept_singular_values"} <= set(run.train)

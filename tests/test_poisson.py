@@ -51,12 +51,17 @@ def test_reference_network_and_data():
     assert count_params(params) == 24_896
     batch = scene.sample_train(jax.random.PRNGKey(2), 64)
     assert batch["target"].shape == (64, 64)
-    np.testing.assert_allclose(batch["target"], laplace(batch["field"].reshape(64, 8, 8)).reshape(64, 64), atol=1e-5)
+    np.testing.assert_allclose(
+        batch["target"], laplace(batch["field"].reshape(64, 8, 8)).reshape(64, 64), atol=1e-5
+    )
     # a network that returned the true field would have zero loss and zero field error
     y = scene.batch_output(params, batch)
     assert y.shape == (64, 64)
     exact = jax.vmap(scene.sample_loss)(batch["target"], batch)
     np.testing.assert_allclose(exact, 0, atol=0)
     loss = scene.batch_loss(y, batch)
-    np.testing.assert_allclose(loss, np.mean(0.5 * np.sum((np.asarray(y) - np.asarray(batch["target"])) ** 2, 1)),
-                               rtol=1e-5)
+    np.testing.assert_allclose(
+        loss,
+        np.mean(0.5 * np.sum((np.asarray(y) - np.asarray(batch["target"])) ** 2, 1)),
+        rtol=1e-5,
+    )

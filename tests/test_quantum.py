@@ -1,5 +1,5 @@
-"""Quantum dipole scene: closed forms of the discrete Hamiltonian, unitarity of Crank-Nicolson, parity,
-gradients through the tridiagonal solver against loops and finite differences."""
+"""Quantum dipole scene: closed forms of the discrete Hamiltonian, unitarity of Crank-Nicolson,
+parity, gradients through the tridiagonal solver against loops and finite differences."""
 
 import jax
 import jax.numpy as jnp
@@ -8,11 +8,18 @@ import pytest
 
 from physgrad.nets import apply_control_cnn, apply_mlp, count_params
 from physgrad.tasks import build_scene
-from physgrad.tasks.quantum import (apply_hamiltonian, crank_nicolson_step, eigenenergy, eigenstate, fidelity,
-                                    grid, realify)
+from physgrad.tasks.quantum import (
+    apply_hamiltonian,
+    crank_nicolson_step,
+    eigenenergy,
+    eigenstate,
+    fidelity,
+    grid,
+    realify,
+)
 from physgrad.unroll import MODES, rollout
-from tests.reference import check_gradient, forward_states, loop_states
 from tests.helpers import load
+from tests.reference import check_gradient, forward_states, loop_states
 
 
 @pytest.mark.parametrize("points", [14, 32])
@@ -21,7 +28,9 @@ def test_eigenstates_and_energies_match_closed_forms(x64, points):
     assert x[0] == 2.0 / (points + 1) and abs(float(x[-1]) - 2.0 * points / (points + 1)) < 1e-15
     hamiltonian = jax.vmap(lambda e: apply_hamiltonian(e, 0.0, x))(jnp.eye(points)).T
     energies, vectors = np.linalg.eigh(np.asarray(hamiltonian))
-    np.testing.assert_allclose(energies, [eigenenergy(n, points) for n in range(1, points + 1)], rtol=1e-12)
+    np.testing.assert_allclose(
+        energies, [eigenenergy(n, points) for n in range(1, points + 1)], rtol=1e-12
+    )
     for n in (1, 2, 3, 5):
         overlap = abs(float(vectors[:, n - 1] @ eigenstate(n, points, jnp.float64)))
         assert abs(overlap - 1.0) < 1e-12
@@ -32,10 +41,12 @@ def test_free_eigenstate_gains_only_the_crank_nicolson_phase(x64):
     x = grid(points, jnp.float64)
     for n in (1, 3):
         phi = eigenstate(n, points, jnp.float64).astype(jnp.complex128)
-        final, _ = rollout(lambda psi, u: crank_nicolson_step(psi, u, x, dt), lambda psi, k: 0.0, phi, steps)
+        final, _ = rollout(
+            lambda psi, u: crank_nicolson_step(psi, u, x, dt), lambda psi, k: 0.0, phi, steps
+        )
         energy = eigenenergy(n, points)
         factor = (1 - 0.5j * dt * energy) / (1 + 0.5j * dt * energy)
-        np.testing.assert_allclose(final, factor ** steps * phi, atol=1e-12)
+        np.testing.assert_allclose(final, factor**steps * phi, atol=1e-12)
 
 
 @pytest.mark.parametrize("precision, tolerance", [(32, 2e-5), (64, 1e-12)])
@@ -48,8 +59,13 @@ def test_norm_stays_one_for_bounded_random_controls(points, dt, steps, precision
         x = grid(points, real)
         controls = jax.random.uniform(jax.random.PRNGKey(0), (steps,), real, -10.0, 10.0)
         psi0 = eigenstate(1, points, real).astype(jnp.result_type(real, jnp.complex64))
-        _, norms = rollout(lambda psi, u: crank_nicolson_step(psi, u, x, dt), lambda psi, k: controls[k], psi0,
-                           steps, observe=lambda psi, u: jnp.linalg.norm(psi))
+        _, norms = rollout(
+            lambda psi, u: crank_nicolson_step(psi, u, x, dt),
+            lambda psi, k: controls[k],
+            psi0,
+            steps,
+            observe=lambda psi, u: jnp.linalg.norm(psi),
+        )
         assert norms.dtype == real
         drift = float(jnp.max(jnp.abs(norms - 1.0)))
         assert drift < tolerance, drift
@@ -67,8 +83,10 @@ def test_parity_forbids_a_direct_step_from_phi1_to_phi3(x64):
         return abs(complex(jnp.vdot(phi[1], psi))), abs(complex(jnp.vdot(phi[2], psi)))
 
     (to2_big, to3_big), (to2_small, to3_small) = overlaps(1e-2), overlaps(1e-3)
-    np.testing.assert_allclose(to2_big / to2_small, 10.0, rtol=1e-3)   # first order in the field
-    np.testing.assert_allclose(to3_big / to3_small, 100.0, rtol=1e-3)  # second order: zero at first order
+    np.testing.assert_allclose(to2_big / to2_small, 10.0, rtol=1e-3)  # first order in the field
+    np.testing.assert_allclose(
+        to3_big / to3_small, 100.0, rtol=1e-3
+    )  # second order: zero at first order
     assert to3_small < 1e-3 * to2_small
 
 
@@ -77,13 +95,17 @@ def test_hig_preset_network_sizes_and_zero_control():
     params = scene.init_params(jax.random.PRNGKey(1))
     assert count_params(params) == 9484 and scene.unroll == 384
     zero = jax.tree_util.tree_map(jnp.zeros_like, params)
-    metrics = scene.evaluate(zero, scene.test_set)  # u = 0: psi stays phi_1, orthogonal to every target
+    metrics = scene.evaluate(
+        zero, scene.test_set
+    )  # u = 0: psi stays phi_1, orthogonal to every target
     np.testing.assert_allclose(metrics["loss"], 1.0, atol=1e-5)
     np.testing.assert_allclose(metrics["fidelity"], 0.0, atol=1e-5)
 
 
 def test_control_preset_network_and_loss_over_every_step():
-    scene = build_scene(load("task=quantum_control", "task.test_size=16").task, jax.random.PRNGKey(0))
+    scene = build_scene(
+        load("task=quantum_control", "task.test_size=16").task, jax.random.PRNGKey(0)
+    )
     params = scene.init_params(jax.random.PRNGKey(1))
     assert count_params(params) == 11701 and scene.closed_loop
     y = scene.batch_output(params, scene.test_set)
@@ -99,8 +121,11 @@ def test_control_preset_network_and_loss_over_every_step():
 @pytest.mark.long
 def test_gradients_through_the_solver(x64, preset, mode):
     steps = 10
-    scene = build_scene(load(f"task={preset}", "task.train_size=4", "task.test_size=4").task,
-                        jax.random.PRNGKey(2), steps)
+    scene = build_scene(
+        load(f"task={preset}", "task.train_size=4", "task.test_size=4").task,
+        jax.random.PRNGKey(2),
+        steps,
+    )
     cfg = load(f"task={preset}").task
     params = scene.init_params(jax.random.PRNGKey(3))
     sample = jax.tree_util.tree_map(lambda a: a[1], scene.test_set)

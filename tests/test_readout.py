@@ -1,5 +1,6 @@
-"""One read-out for every reader: a study's compare.md / runs.csv and the report/ of the same files give the same
-number for the same run at the same budget, a diverged run and a non-monotone curve among them."""
+"""One read-out for every reader: a study's compare.md / runs.csv and the report/ of the same files
+give the same number for the same run at the same budget, a diverged run and a non-monotone curve
+among them."""
 
 import csv
 import math
@@ -18,13 +19,32 @@ SEEDS = range(6)
 
 
 def write_run(path, variant, seed, x, loss, status="completed", trainer=None, step=1.0):
-    """A results file with held-out evaluations `loss` at iterations x (training seconds step * x)."""
-    config = yaml.safe_dump({"seed": seed, "seeds": 1, "precision": 32, "unroll": None, "init_from": None,
-                             "task": {"name": "toy"}, "optim": {"name": variant},
-                             "trainer": {"iterations": 100, "time_budget": None, **(trainer or {})}})
+    """A results file with held-out evaluations `loss` at iterations x (training seconds step *
+    x)."""
+    config = yaml.safe_dump(
+        {
+            "seed": seed,
+            "seeds": 1,
+            "precision": 32,
+            "unroll": None,
+            "init_from": None,
+            "task": {"name": "toy"},
+            "optim": {"name": variant},
+            "trainer": {"iterations": 100, "time_budget": None, **(trainer or {})},
+        }
+    )
     stopped = {"stopped_by": "time_budget" if (trainer or {}).get("time_budget") else "iterations"}
-    writer = ResultsWriter(path, {"task": "toy", "optim": variant, "variant": variant, "seed": seed,
-                                  "config": config, **(stopped if status == "completed" else {})})
+    writer = ResultsWriter(
+        path,
+        {
+            "task": "toy",
+            "optim": variant,
+            "variant": variant,
+            "seed": seed,
+            "config": config,
+            **(stopped if status == "completed" else {}),
+        },
+    )
     last = int(x[-1]) + (1 if status == "completed" else 0)
     for i in range(last):
         writer.append("train", {"iteration": i, "wall_time": step * (i + 1), "loss": 1.0})
@@ -35,11 +55,14 @@ def write_run(path, variant, seed, x, loss, status="completed", trainer=None, st
 
 
 def study(tmp_path, time_budget=None):
-    """Two variants on six paired seeds, as a study's evaluation folder: hig seed 2 diverges (a NaN evaluation,
-    stopped as diverged), adam seed 3 goes down and up again (non-monotone), adam seed 4 blows up without NaN
-    (a loss 10^5 times its first), hig seed 5 was interrupted before the budget."""
+    """Two variants on six paired seeds, as a study's evaluation folder: hig seed 2 diverges (a NaN
+    evaluation, stopped as diverged), adam seed 3 goes down and up again (non-monotone), adam seed 4
+    blows up without NaN (a loss 10^5 times its first), hig seed 5 was interrupted before the
+    budget."""
     x = np.array([0, 25, 50, 75, 99])
-    step = 0.02 if time_budget else 1.0  # a time budget of 1.5 s: the last evaluation (1.98 s) is past it
+    step = (
+        0.02 if time_budget else 1.0
+    )  # a time budget of 1.5 s: the last evaluation (1.98 s) is past it
     trainer = {"time_budget": time_budget} if time_budget else {}
     for seed in SEEDS:
         adam = np.array([1.0, 0.5, 0.3, 0.2, 0.15]) * (1 + 0.1 * seed)
@@ -54,17 +77,35 @@ def study(tmp_path, time_budget=None):
             hig, hig_x, status["hig"] = np.array([1.0, 0.3, np.nan]), x[:3], "diverged"
         if seed == 5:
             hig, hig_x, status["hig"] = hig[:3], x[:3], "interrupted"
-        write_run(tmp_path / "eval" / f"adam_s{seed}" / "results.h5", "adam", seed, x, adam, status["adam"], trainer,
-                  step)
-        write_run(tmp_path / "eval" / f"hig_s{seed}" / "results.h5", "hig", seed, hig_x, hig, status["hig"], trainer,
-                  step)
+        write_run(
+            tmp_path / "eval" / f"adam_s{seed}" / "results.h5",
+            "adam",
+            seed,
+            x,
+            adam,
+            status["adam"],
+            trainer,
+            step,
+        )
+        write_run(
+            tmp_path / "eval" / f"hig_s{seed}" / "results.h5",
+            "hig",
+            seed,
+            hig_x,
+            hig,
+            status["hig"],
+            trainer,
+            step,
+        )
 
 
 def analysed(tmp_path, axis, budget):
-    """compare's phase 3 on the evaluation files, then `physgrad report` on the same files, as a study writes
-    them: (compare's runs.csv, report/runs.csv), each by path."""
-    variants = [Variant(name, [f"optim={name}"], OmegaConf.create({"task": {"name": "toy"}, "optim": {}}))
-                for name in ("adam", "hig")]
+    """compare's phase 3 on the evaluation files, then `physgrad report` on the same files, as a
+    study writes them: (compare's runs.csv, report/runs.csv), each by path."""
+    variants = [
+        Variant(name, [f"optim={name}"], OmegaConf.create({"task": {"name": "toy"}, "optim": {}}))
+        for name in ("adam", "hig")
+    ]
     curves, statuses = {}, {}
     for variant in variants:
         curves[variant.name], statuses[variant.name] = {}, {}
@@ -72,11 +113,18 @@ def analysed(tmp_path, axis, budget):
             run = read_run(tmp_path / "eval" / f"{variant.name}_s{seed}" / "results.h5")
             curves[variant.name][seed], statuses[variant.name][seed] = run_curve(run, axis), run
     settings: StudySettings = study_settings({"seeds": len(SEEDS)})
-    analyse(tmp_path, variants, {"adam": {}, "hig": {}}, curves, statuses, settings, axis, budget, [])
+    analyse(
+        tmp_path, variants, {"adam": {}, "hig": {}}, curves, statuses, settings, axis, budget, []
+    )
     write_report([tmp_path / "eval"], out_dir=tmp_path / "report")
-    with open(tmp_path / "runs.csv") as compare_csv, open(tmp_path / "report" / "runs.csv") as report_csv:
-        return ({row["path"]: row for row in csv.DictReader(compare_csv)},
-                {row["path"]: row for row in csv.DictReader(report_csv)})
+    with (
+        open(tmp_path / "runs.csv") as compare_csv,
+        open(tmp_path / "report" / "runs.csv") as report_csv,
+    ):
+        return (
+            {row["path"]: row for row in csv.DictReader(compare_csv)},
+            {row["path"]: row for row in csv.DictReader(report_csv)},
+        )
 
 
 def number(text: str) -> float:
@@ -96,11 +144,16 @@ def test_compare_and_report_give_one_number_per_run_at_the_budget(tmp_path, time
     for path, row in compare.items():
         at_budget, test_loss = number(row["test_loss_at_1"]), number(report[path]["test_loss"])
         assert same(at_budget, test_loss), (path, at_budget, test_loss)
-    by_name = {(row["variant"], int(row["seed"])): number(row["test_loss_at_1"]) for row in compare.values()}
+    by_name = {
+        (row["variant"], int(row["seed"])): number(row["test_loss_at_1"])
+        for row in compare.values()
+    }
     assert by_name[("hig", 2)] == math.inf  # diverged (a NaN evaluation)
     assert by_name[("adam", 4)] == math.inf  # blew up without NaN, whatever its last loss
     assert math.isnan(by_name[("hig", 5)])  # interrupted before the budget: no loss at it
-    if time_budget:  # the evaluation after the budget is not read: adam seed 3's last one at or before 1.5 s
+    if (
+        time_budget
+    ):  # the evaluation after the budget is not read: adam seed 3's last one at or before 1.5 s
         assert by_name[("adam", 3)] == 0.3
     else:  # the last evaluation, not the lowest
         assert by_name[("adam", 3)] == 0.45
@@ -118,13 +171,22 @@ def test_compare_and_report_give_one_number_per_run_at_the_budget(tmp_path, time
 def test_the_budget_is_what_the_configuration_asked_for():
     assert budget_of({"trainer": {"iterations": 300, "time_budget": None}}) == ("iteration", 300.0)
     assert budget_of({"trainer": {"iterations": 300, "time_budget": 60}}) == ("wall_time", 60.0)
-    assert budget_of({"trainer": {"time_budget": 60, "clock": "calibrated"}}) == ("calibrated_time", 60.0)
+    assert budget_of({"trainer": {"time_budget": 60, "clock": "calibrated"}}) == (
+        "calibrated_time",
+        60.0,
+    )
     assert budget_of({"trainer": {}}, default_iterations=1000) == ("iteration", 1000.0)
     assert math.isnan(budget_of({})[1])
 
 
 def test_loss_at_reads_the_last_evaluation_at_or_before_the_budget(tmp_path):
-    path = write_run(tmp_path / "results.h5", "adam", 0, np.array([0, 10, 20, 30]), np.array([1.0, 0.2, 0.5, 0.4]))
+    path = write_run(
+        tmp_path / "results.h5",
+        "adam",
+        0,
+        np.array([0, 10, 20, 30]),
+        np.array([1.0, 0.2, 0.5, 0.4]),
+    )
     run = read_run(path)
     assert loss_at(run) == 0.4  # its own budget (100 iterations): the last evaluation
     assert [loss_at(run, x, "iteration") for x in (0, 9, 10, 25, 1000)] == [1.0, 1.0, 0.2, 0.5, 0.4]
@@ -132,5 +194,7 @@ def test_loss_at_reads_the_last_evaluation_at_or_before_the_budget(tmp_path):
     assert time_to_target(run, 0.2, axis="iteration") == 10.0
     assert time_to_target(run, 0.1, axis="iteration") == math.inf
     assert math.isnan(time_to_target(run, math.nan))
-    curve = run_curve(run, "iteration")  # completed: it ran to its budget, so its curve goes on past its end
+    curve = run_curve(
+        run, "iteration"
+    )  # completed: it ran to its budget, so its curve goes on past its end
     assert isinstance(curve, Curve) and curve.end == math.inf and curve.at(10**6) == 0.4

@@ -1,5 +1,5 @@
-"""physgrad report on hand-made results files: scenes and groups, duplicates, labelled sets, thresholds, the
-loss at a common time, CSV export, figures, bad input."""
+"""physgrad report on hand-made results files: scenes and groups, duplicates, labelled sets,
+thresholds, the loss at a common time, CSV export, figures, bad input."""
 
 import csv
 import math
@@ -18,19 +18,58 @@ from physgrad.report import collect, label_runs, run_rows, write_report
 from physgrad.results import ResultsWriter, read_run
 
 
-def fake_run(folder, variant, seed, poles, eval_loss, eval_time, status="completed", optim=None, trainer=None,
-             metrics=None, attrs=None):
-    config = yaml.safe_dump({"seed": seed, "seeds": 1, "precision": 32, "unroll": None, "init_from": None,
-                             "task": {"name": "multicart", "poles": poles, "batch_size": 8},
-                             "optim": {"name": variant, **(optim or {})},
-                             "trainer": {"iterations": 100, "flush_seconds": 1.0, **(trainer or {})}})
-    writer = ResultsWriter(folder / "results.h5", {"task": "multicart", "optim": variant, "variant": variant,
-                                                   "seed": seed, "config": config, **(attrs or {})})
+def fake_run(
+    folder,
+    variant,
+    seed,
+    poles,
+    eval_loss,
+    eval_time,
+    status="completed",
+    optim=None,
+    trainer=None,
+    metrics=None,
+    attrs=None,
+):
+    config = yaml.safe_dump(
+        {
+            "seed": seed,
+            "seeds": 1,
+            "precision": 32,
+            "unroll": None,
+            "init_from": None,
+            "task": {"name": "multicart", "poles": poles, "batch_size": 8},
+            "optim": {"name": variant, **(optim or {})},
+            "trainer": {"iterations": 100, "flush_seconds": 1.0, **(trainer or {})},
+        }
+    )
+    writer = ResultsWriter(
+        folder / "results.h5",
+        {
+            "task": "multicart",
+            "optim": variant,
+            "variant": variant,
+            "seed": seed,
+            "config": config,
+            **(attrs or {}),
+        },
+    )
     for i, t in enumerate(eval_time):
-        writer.append("train", {"iteration": i, "wall_time": t + 0.5, "loss": eval_loss[i], "grad_norm": 1.0})
-        writer.append("eval", {"iteration": i, "wall_time": t, "loss": eval_loss[i],
-                               **{k: v[i] for k, v in (metrics or {}).items()}})
-    writer.finish(status, None if status == "completed" else "loss became nan at iteration 2 (loss)")
+        writer.append(
+            "train", {"iteration": i, "wall_time": t + 0.5, "loss": eval_loss[i], "grad_norm": 1.0}
+        )
+        writer.append(
+            "eval",
+            {
+                "iteration": i,
+                "wall_time": t,
+                "loss": eval_loss[i],
+                **{k: v[i] for k, v in (metrics or {}).items()},
+            },
+        )
+    writer.finish(
+        status, None if status == "completed" else "loss became nan at iteration 2 (loss)"
+    )
 
 
 def label_settings(runs):
@@ -38,8 +77,10 @@ def label_settings(runs):
 
 
 def table_rows(runs, threshold=None):
-    return [{**row, "t(thr) s": row["time_to_threshold"], "s/iter": row["s_per_iter"]}
-            for row in run_rows(runs, threshold)]
+    return [
+        {**row, "t(thr) s": row["time_to_threshold"], "s/iter": row["s_per_iter"]}
+        for row in run_rows(runs, threshold)
+    ]
 
 
 def test_report_groups_by_setting_and_times_the_threshold(tmp_path):
@@ -53,19 +94,30 @@ def test_report_groups_by_setting_and_times_the_threshold(tmp_path):
     assert sorted({run.scene for run in runs}) == ["multicart poles=1", "multicart poles=2"]
     rows = {(r["setting"], r["variant"], r["seed"]): r for r in table_rows(runs)}
     assert len(rows) == 4
-    # threshold per scene: the best group's median final test loss (poles=1: bptt's 0.01, which stable_bptt never
-    # reaches; poles=2: bptt's seeds end at 0.8 and diverged, a median of infinity: no target)
+    # threshold per scene: the best group's median final test loss (poles=1: bptt's 0.01, which
+    # stable_bptt never reaches; poles=2: bptt's seeds end at 0.8 and diverged, a median of
+    # infinity: no target)
     assert rows[("poles=1", "bptt", 0)]["t(thr) s"] == 2.0
-    assert math.isinf(rows[("poles=1", "stable_bptt", 0)]["t(thr) s"])  # never reached: infinite time (readout)
-    assert math.isnan(rows[("poles=2", "bptt", 1)]["t(thr) s"]) and math.isnan(rows[("poles=2", "bptt", 0)]["t(thr) s"])
+    assert math.isinf(
+        rows[("poles=1", "stable_bptt", 0)]["t(thr) s"]
+    )  # never reached: infinite time (readout)
+    assert math.isnan(rows[("poles=2", "bptt", 1)]["t(thr) s"]) and math.isnan(
+        rows[("poles=2", "bptt", 0)]["t(thr) s"]
+    )
     assert rows[("poles=2", "bptt", 1)]["status"] == "diverged"
     assert rows[("poles=1", "bptt", 0)]["s/iter"] == 1.0  # median of the step times 0.5, 1, 1
     fixed = {(r["setting"], r["variant"], r["seed"]): r for r in table_rows(runs, threshold=0.1)}
-    assert fixed[("poles=1", "bptt", 0)]["t(thr) s"] == 1.0 and math.isinf(fixed[("poles=2", "bptt", 0)]["t(thr) s"])
+    assert fixed[("poles=1", "bptt", 0)]["t(thr) s"] == 1.0 and math.isinf(
+        fixed[("poles=2", "bptt", 0)]["t(thr) s"]
+    )
     text = write_report([tmp_path])
     assert "| multicart poles=1 | bptt | 0 | completed |  | 3 | 0.01 |" in text
-    assert "| multicart poles=2 | bptt | 2 | 1 completed, 1 diverged | 0.8 |" in text  # the completed seed only
-    assert (tmp_path / "loss_vs_time.png").stat().st_size > 1000 and (tmp_path / "loss_vs_time.pdf").exists()
+    assert (
+        "| multicart poles=2 | bptt | 2 | 1 completed, 1 diverged | 0.8 |" in text
+    )  # the completed seed only
+    assert (tmp_path / "loss_vs_time.png").stat().st_size > 1000 and (
+        tmp_path / "loss_vs_time.pdf"
+    ).exists()
 
 
 def test_unreadable_files_are_listed_not_fatal(tmp_path):
@@ -77,27 +129,62 @@ def test_unreadable_files_are_listed_not_fatal(tmp_path):
 
 
 def test_median_band_interpolates_in_log_loss():
-    curves = [(np.array([0.0, 2.0]), np.array([1.0, 1e-2])), (np.array([0.0, 4.0]), np.array([1.0, 1e-8]))]
-    curves[1] = (np.array([0.0, 1.0, 4.0]), np.array([1.0, 1e-2, 1e-8]))  # log-linear between 1 and 4
+    curves = [
+        (np.array([0.0, 2.0]), np.array([1.0, 1e-2])),
+        (np.array([0.0, 4.0]), np.array([1.0, 1e-8])),
+    ]
+    curves[1] = (
+        np.array([0.0, 1.0, 4.0]),
+        np.array([1.0, 1e-2, 1e-8]),
+    )  # log-linear between 1 and 4
     grid, median, low, high = median_band(curves)
-    np.testing.assert_allclose(grid, [0.0, 1.0, 2.0])  # every evaluation up to the shortest curve's end
+    np.testing.assert_allclose(
+        grid, [0.0, 1.0, 2.0]
+    )  # every evaluation up to the shortest curve's end
     np.testing.assert_allclose(low, [1.0, 1e-2, 1e-4])
     np.testing.assert_allclose(high, [1.0, 1e-1, 1e-2])
-    np.testing.assert_allclose(median, (low + high) / 2)  # the median of two losses, as the tables take it
+    np.testing.assert_allclose(
+        median, (low + high) / 2
+    )  # the median of two losses, as the tables take it
 
 
 def test_report_draws_the_tradeoff_and_unroll_figures(tmp_path):
     for unroll in (16, 32, 64):
         for variant, scale in (("bptt", 1.0), ("stable_bptt", 0.5)):
             folder = tmp_path / f"{variant}_{unroll}"
-            config = yaml.safe_dump({"seed": 0, "precision": 32, "unroll": unroll,
-                                     "task": {"name": "multicart", "poles": 2, "batch_size": 8}})
-            writer = ResultsWriter(folder / "results.h5", {"task": "multicart", "optim": variant, "variant": variant,
-                                                           "seed": 0, "config": config, "unroll": unroll})
+            config = yaml.safe_dump(
+                {
+                    "seed": 0,
+                    "precision": 32,
+                    "unroll": unroll,
+                    "task": {"name": "multicart", "poles": 2, "batch_size": 8},
+                }
+            )
+            writer = ResultsWriter(
+                folder / "results.h5",
+                {
+                    "task": "multicart",
+                    "optim": variant,
+                    "variant": variant,
+                    "seed": 0,
+                    "config": config,
+                    "unroll": unroll,
+                },
+            )
             for i in range(3):
-                writer.append("train", {"iteration": i, "wall_time": (i + 1) * unroll * 1e-3, "loss": 1.0,
-                                        "grad_norm": 1.0})
-                writer.append("eval", {"iteration": i, "wall_time": i * unroll * 1e-3, "loss": scale / (i + 1)})
+                writer.append(
+                    "train",
+                    {
+                        "iteration": i,
+                        "wall_time": (i + 1) * unroll * 1e-3,
+                        "loss": 1.0,
+                        "grad_norm": 1.0,
+                    },
+                )
+                writer.append(
+                    "eval",
+                    {"iteration": i, "wall_time": i * unroll * 1e-3, "loss": scale / (i + 1)},
+                )
             writer.finish("completed")
     text = write_report([tmp_path])
     for name in ("loss_vs_time", "loss_vs_iteration", "tradeoff", "unroll"):
@@ -125,17 +212,24 @@ def test_threshold_comes_from_completed_runs_only(tmp_path):
 
 
 def test_the_threshold_is_one_every_run_must_train_to_reach(tmp_path):
-    """A run that ends above where every run began (unstable) must not make the threshold trivial: the target is
+    """A run that ends above where every run began (unstable) must not make the threshold trivial:
+    the target is
     the best group's median final loss, reached by training or not at all."""
     for seed in range(3):
-        fake_run(tmp_path / f"hig{seed}", "hig", seed, 1, [1.0, 0.2, 0.05 + 0.01 * seed], [0.0, 1.0, 2.0])
+        fake_run(
+            tmp_path / f"hig{seed}", "hig", seed, 1, [1.0, 0.2, 0.05 + 0.01 * seed], [0.0, 1.0, 2.0]
+        )
         fake_run(tmp_path / f"adam{seed}", "adam", seed, 1, [1.0, 0.6, 0.3], [0.0, 1.5, 3.0])
-    fake_run(tmp_path / "gn", "gauss_newton", 0, 1, [1.0, 5.0, 40.0], [0.0, 0.5, 1.0])  # ends above its start
+    fake_run(
+        tmp_path / "gn", "gauss_newton", 0, 1, [1.0, 5.0, 40.0], [0.0, 0.5, 1.0]
+    )  # ends above its start
     runs, _, _ = collect([tmp_path])
     label_settings(runs)
     assert targets(runs) == {"multicart": pytest.approx(0.06)}  # hig's median
     rows = {(r["variant"], r["seed"]): r for r in table_rows(runs)}
-    assert rows[("hig", 0)]["t(thr) s"] == rows[("hig", 1)]["t(thr) s"] == 2.0 and math.isinf(rows[("hig", 2)]["t(thr) s"])
+    assert rows[("hig", 0)]["t(thr) s"] == rows[("hig", 1)]["t(thr) s"] == 2.0 and math.isinf(
+        rows[("hig", 2)]["t(thr) s"]
+    )
     assert all(math.isinf(rows[("adam", s)]["t(thr) s"]) for s in range(3))
     assert math.isinf(rows[("gauss_newton", 0)]["t(thr) s"])
 
@@ -143,16 +237,33 @@ def test_the_threshold_is_one_every_run_must_train_to_reach(tmp_path):
 def test_a_learning_rate_sweep_is_two_groups_named_by_what_differs(tmp_path):
     for lr, losses in ((1e-3, ([1.0, 0.5], [1.0, 0.4])), (1e-2, ([1.0, 0.1], [1.0, 0.2]))):
         for seed, loss in enumerate(losses):
-            fake_run(tmp_path / f"lr{lr}_s{seed}", "adam", seed, 1, loss, [0.0, 1.0], optim={"learning_rate": lr},
-                     trainer={"flush_seconds": 1.0 + seed})  # a setting that does not change the computation
+            fake_run(
+                tmp_path / f"lr{lr}_s{seed}",
+                "adam",
+                seed,
+                1,
+                loss,
+                [0.0, 1.0],
+                optim={"learning_rate": lr},
+                trainer={"flush_seconds": 1.0 + seed},
+            )  # a setting that does not change the computation
     fake_run(tmp_path / "hig", "hig", 0, 1, [1.0, 0.3], [0.0, 2.0], optim={"learning_rate": 1.0})
-    for index, lr in enumerate((0.0044303752, 0.0044312345)):  # close values (an Optuna study's) stay apart
-        fake_run(tmp_path / f"gd{index}", "gd", 0, 1, [1.0, 0.9], [0.0, 1.0], optim={"learning_rate": lr})
+    for index, lr in enumerate(
+        (0.0044303752, 0.0044312345)
+    ):  # close values (an Optuna study's) stay apart
+        fake_run(
+            tmp_path / f"gd{index}", "gd", 0, 1, [1.0, 0.9], [0.0, 1.0], optim={"learning_rate": lr}
+        )
     runs, _, dropped = collect([tmp_path])
     label_runs(runs)
     assert not dropped
-    assert sorted({run.label for run in runs}) == ["adam learning_rate=0.001", "adam learning_rate=0.01",
-                                                   "gd learning_rate=0.00443038", "gd learning_rate=0.00443123", "hig"]
+    assert sorted({run.label for run in runs}) == [
+        "adam learning_rate=0.001",
+        "adam learning_rate=0.01",
+        "gd learning_rate=0.00443038",
+        "gd learning_rate=0.00443123",
+        "hig",
+    ]
     assert {run.scene for run in runs} == {"multicart"}
     text = write_report([tmp_path])
     assert "| multicart | adam learning_rate=0.001 | 2 | 2 completed | 0.45 [0.4, 0.5] |" in text
@@ -163,41 +274,83 @@ def test_a_learning_rate_sweep_is_two_groups_named_by_what_differs(tmp_path):
 def test_the_same_run_found_twice_or_rerun_counts_once(tmp_path):
     fake_run(tmp_path / "a", "adam", 0, 1, [1.0, 0.5], [0.0, 1.0])
     fake_run(tmp_path / "b", "adam", 1, 1, [1.0, 0.4], [0.0, 1.0])
-    fake_run(tmp_path / "again", "adam", 0, 1, [1.0, 0.3], [0.0, 1.0], status="interrupted",
-             trainer={"eval_every": 7})  # a cadence does not make it another run
+    fake_run(
+        tmp_path / "again",
+        "adam",
+        0,
+        1,
+        [1.0, 0.3],
+        [0.0, 1.0],
+        status="interrupted",
+        trainer={"eval_every": 7},
+    )  # a cadence does not make it another run
     runs, _, dropped = collect([tmp_path, tmp_path / "a", tmp_path / "a" / "results.h5"])
-    assert sorted(run.path.parent.name for run in runs) == ["a", "b"]  # the completed one of the two seed-0 runs
-    assert [(d.path.parent.name, d.kept.parent.name) for d in dropped] == [("a", "a"), ("again", "a")]
+    assert sorted(run.path.parent.name for run in runs) == [
+        "a",
+        "b",
+    ]  # the completed one of the two seed-0 runs
+    assert [(d.path.parent.name, d.kept.parent.name) for d in dropped] == [
+        ("a", "a"),
+        ("again", "a"),
+    ]
     assert dropped[0].why == "the same file, found twice"
     text = write_report([tmp_path, tmp_path / "b"])
     assert f"counted once: {tmp_path / 'b' / 'results.h5'}: the same file, found twice" in text
-    assert f"dropped {tmp_path / 'again' / 'results.h5'}: same configuration and seed as {tmp_path / 'a'}" in text
+    assert (
+        f"dropped {tmp_path / 'again' / 'results.h5'}: same configuration and seed as "
+        f"{tmp_path / 'a'}" in text
+    )
     assert "| multicart | adam | 2 | 2 completed |" in text
 
 
 def test_labelled_sets_are_kept_apart(tmp_path):
     fake_run(tmp_path / "monday" / "x", "adam", 0, 1, [1.0, 0.5], [0.0, 1.0])
     fake_run(tmp_path / "friday" / "x", "adam", 0, 1, [1.0, 0.2], [0.0, 1.0])
-    text = write_report([f"old={tmp_path / 'monday'}", f"new={tmp_path / 'friday'}"], out_dir=tmp_path / "out")
+    text = write_report(
+        [f"old={tmp_path / 'monday'}", f"new={tmp_path / 'friday'}"], out_dir=tmp_path / "out"
+    )
     assert "| multicart | old: adam | 1 | 1 completed | 0.5 |" in text
     assert "| multicart | new: adam | 1 | 1 completed | 0.2 |" in text
     rows = list(csv.DictReader(open(tmp_path / "out" / "runs.csv")))
-    assert sorted((r["set"], r["label"]) for r in rows) == [("new", "new: adam"), ("old", "old: adam")]
+    assert sorted((r["set"], r["label"]) for r in rows) == [
+        ("new", "new: adam"),
+        ("old", "old: adam"),
+    ]
 
 
 def test_loss_at_common_time_uses_only_evaluations_before_it(tmp_path):
-    fake_run(tmp_path / "fast", "adam", 0, 1, [1.0, 0.5, 0.1], [0.0, 1.0, 2.0], trainer={"time_budget": 2.0})
-    fake_run(tmp_path / "slow", "hig", 0, 1, [1.0, 0.6, 0.01], [0.0, 1.5, 6.0], trainer={"time_budget": 6.0})
+    fake_run(
+        tmp_path / "fast",
+        "adam",
+        0,
+        1,
+        [1.0, 0.5, 0.1],
+        [0.0, 1.0, 2.0],
+        trainer={"time_budget": 2.0},
+    )
+    fake_run(
+        tmp_path / "slow",
+        "hig",
+        0,
+        1,
+        [1.0, 0.6, 0.01],
+        [0.0, 1.5, 6.0],
+        trainer={"time_budget": 6.0},
+    )
     fake_run(tmp_path / "bad", "gd", 0, 1, [1.0, 0.9], [0.0, 0.5], status="diverged")
     runs, _, _ = collect([tmp_path])
     label_runs(runs)
     rows = {r["variant"]: r for r in run_rows(runs)}
-    # the common time is the shortest end of training of the completed runs: fast's 2.5 s (its last train row)
+    # the common time is the shortest end of training of the completed runs: fast's 2.5 s (its last
+    # train row)
     assert rows["adam"]["common_time"] == rows["hig"]["common_time"] == 2.5
     assert rows["adam"]["loss_at_common_time"] == 0.1 and rows["hig"]["loss_at_common_time"] == 0.6
-    assert rows["gd"]["loss_at_common_time"] == math.inf  # diverged before that time: an infinite loss, as in a verdict
-    # the last evaluation at or before the time (the verdict's rule, physgrad.readout): hig's evaluation at 6 s is
-    # not read at 5.99 s; a completed run ran to its budget, so its last evaluation is read at any later time
+    assert (
+        rows["gd"]["loss_at_common_time"] == math.inf
+    )  # diverged before that time: an infinite loss, as in a verdict
+    # the last evaluation at or before the time (the verdict's rule, physgrad.readout): hig's
+    # evaluation at 6 s is not read at 5.99 s; a completed run ran to its budget, so its last
+    # evaluation is read at any later time
     run = next(r for r in runs if r.variant == "hig")
     assert loss_at(run, 0.0, "wall_time") == 1.0 and loss_at(run, 1.5, "wall_time") == 0.6
     assert loss_at(run, 5.99, "wall_time") == 0.6 and loss_at(run, 6.0, "wall_time") == 0.01
@@ -206,40 +359,101 @@ def test_loss_at_common_time_uses_only_evaluations_before_it(tmp_path):
 
 
 def test_scene_metrics_and_csv_export(tmp_path):
-    fake_run(tmp_path / "a", "bptt", 0, 2, [1.0, 0.5, 0.25], [0.0, 1.0, 2.0], metrics={"upright": [0.0, 0.5, 1.0]})
+    fake_run(
+        tmp_path / "a",
+        "bptt",
+        0,
+        2,
+        [1.0, 0.5, 0.25],
+        [0.0, 1.0, 2.0],
+        metrics={"upright": [0.0, 0.5, 1.0]},
+    )
     fake_run(tmp_path / "b", "bptt", 1, 2, [1.0, 0.6], [0.0, 1.0], metrics={"upright": [0.0, 0.25]})
     text = write_report([tmp_path])
-    assert "| upright |" in text.splitlines()[2] and "| 0.625 [0.25, 1] |" in text  # median of 1 and 0.25
+    assert (
+        "| upright |" in text.splitlines()[2] and "| 0.625 [0.25, 1] |" in text
+    )  # median of 1 and 0.25
     rows = list(csv.DictReader(open(tmp_path / "runs.csv")))
-    assert len(rows) == 2 and {"path", "label", "setting", "seed", "status", "stopped_by", "iterations",
-                               "train_seconds", "test_loss", "loss_at_common_time", "time_to_threshold",
-                               "upright"} <= set(rows[0])
+    assert len(rows) == 2 and {
+        "path",
+        "label",
+        "setting",
+        "seed",
+        "status",
+        "stopped_by",
+        "iterations",
+        "train_seconds",
+        "test_loss",
+        "loss_at_common_time",
+        "time_to_threshold",
+        "upright",
+    } <= set(rows[0])
     assert sorted(float(r["upright"]) for r in rows) == [0.25, 1.0]
     curves = list(csv.DictReader(open(tmp_path / "curves.csv")))
-    assert {"run", "split", "iteration", "wall_time", "loss", "grad_norm", "upright", "label", "variant", "seed",
-            "scene"} <= set(curves[0])
+    assert {
+        "run",
+        "split",
+        "iteration",
+        "wall_time",
+        "loss",
+        "grad_norm",
+        "upright",
+        "label",
+        "variant",
+        "seed",
+        "scene",
+    } <= set(curves[0])
     # one row per run, split and iteration: 3 + 2 training rows, 3 + 2 evaluations
     assert len(curves) == 10
     a = next(r["run"] for r in rows if r["path"].endswith("a/results.h5"))
     eval_a = [c for c in curves if c["run"] == a and c["split"] == "eval"]
     assert [(int(c["iteration"]), float(c["wall_time"]), float(c["upright"])) for c in eval_a] == [
-        (0, 0.0, 0.0), (1, 1.0, 0.5), (2, 2.0, 1.0)]
+        (0, 0.0, 0.0),
+        (1, 1.0, 0.5),
+        (2, 2.0, 1.0),
+    ]
     assert pd.read_parquet(tmp_path / "curves.parquet").shape[0] == 10
 
 
 def test_read_runs_gives_every_setting_a_column_and_curves_that_plot_without_a_merge(tmp_path):
-    """An Optuna-like set of learning rates: each run's rate is a number in optim.learning_rate (not only in its
-    label), the curves carry label, variant and seed, and the CSV and Parquet files hold the same columns."""
+    """An Optuna-like set of learning rates: each run's rate is a number in optim.learning_rate (not
+    only in its label), the curves carry label, variant and seed, and the CSV and Parquet files hold
+    the same columns."""
     import physgrad
 
     rates = (0.00725701, 0.0311, 0.1)
     for i, lr in enumerate(rates):
-        fake_run(tmp_path / f"t{i}", "adam", 0, 2, [1.0, 0.5 - 0.1 * i], [0.0, 1.0], optim={"learning_rate": lr})
-    fake_run(tmp_path / "hig", "hig", 0, 2, [1.0, 0.05], [0.0, 2.0], optim={"learning_rate": 1.0, "backprop": "C"})
+        fake_run(
+            tmp_path / f"t{i}",
+            "adam",
+            0,
+            2,
+            [1.0, 0.5 - 0.1 * i],
+            [0.0, 1.0],
+            optim={"learning_rate": lr},
+        )
+    fake_run(
+        tmp_path / "hig",
+        "hig",
+        0,
+        2,
+        [1.0, 0.05],
+        [0.0, 2.0],
+        optim={"learning_rate": 1.0, "backprop": "C"},
+    )
     runs, curves = physgrad.read_runs([tmp_path])
     assert sorted(runs.loc[runs["variant"] == "adam", "optim.learning_rate"]) == list(rates)
-    assert {"task.poles", "trainer.iterations", "optim.backprop", "seed", "status", "stopped_by", "unroll",
-            "machine", "run"} <= set(runs.columns)
+    assert {
+        "task.poles",
+        "trainer.iterations",
+        "optim.backprop",
+        "seed",
+        "status",
+        "stopped_by",
+        "unroll",
+        "machine",
+        "run",
+    } <= set(runs.columns)
     assert runs["task.poles"].tolist() == [2] * 4 and runs["run"].tolist() == list(range(4))
     evaluations = curves[curves["split"] == "eval"]
     assert set(evaluations.groupby("label").size()) == {2} and evaluations["label"].nunique() == 4
@@ -247,7 +461,11 @@ def test_read_runs_gives_every_setting_a_column_and_curves_that_plot_without_a_m
     assert merged.groupby("run")["optim.learning_rate"].nunique().eq(1).all()
     write_report([tmp_path])
     on_disk = pd.read_csv(tmp_path / "runs.csv")
-    assert list(on_disk.columns) == list(runs.columns) == list(pd.read_parquet(tmp_path / "runs.parquet").columns)
+    assert (
+        list(on_disk.columns)
+        == list(runs.columns)
+        == list(pd.read_parquet(tmp_path / "runs.parquet").columns)
+    )
     assert sorted(on_disk["optim.learning_rate"].dropna()) == sorted([*rates, 1.0])
 
 
@@ -255,7 +473,14 @@ def test_long_runs_are_thinned_in_csv_and_whole_in_parquet(tmp_path):
     from physgrad.tables import CSV_TRAIN_ROWS
 
     count = 3 * CSV_TRAIN_ROWS + 7
-    fake_run(tmp_path / "long", "adam", 0, 1, np.linspace(1, 0.1, count).tolist(), np.arange(count).tolist())
+    fake_run(
+        tmp_path / "long",
+        "adam",
+        0,
+        1,
+        np.linspace(1, 0.1, count).tolist(),
+        np.arange(count).tolist(),
+    )
     write_report([tmp_path])
     train = pd.read_csv(tmp_path / "curves.csv").query("split == 'train'")
     assert CSV_TRAIN_ROWS // 2 <= len(train) <= CSV_TRAIN_ROWS + 1
@@ -273,9 +498,12 @@ def test_bad_report_input_is_one_line(tmp_path, make, capsys):
     blocker.write_text("")
     (tmp_path / "corrupt").mkdir()
     (tmp_path / "corrupt" / "results.h5").write_bytes(b"garbage")
-    args = {"missing": [str(tmp_path / "nope")], "empty": [str(tmp_path / "empty")],
-            "unreadable": [str(tmp_path / "corrupt")],
-            "unwritable_out": [str(tmp_path / "ok"), "--out", str(blocker / "out")]}[make]
+    args = {
+        "missing": [str(tmp_path / "nope")],
+        "empty": [str(tmp_path / "empty")],
+        "unreadable": [str(tmp_path / "corrupt")],
+        "unwritable_out": [str(tmp_path / "ok"), "--out", str(blocker / "out")],
+    }[make]
     assert main(["report", *args]) == 2
     err = capsys.readouterr().err
     assert err.startswith("physgrad: error: ") and err.count("\n") == 1, err
@@ -299,12 +527,23 @@ def test_notes_of_runs_that_diverged_at_the_same_point_do_not_overprint(tmp_path
     from physgrad.plots import plot_comparison
 
     for seed in (0, 1, 2):
-        fake_run(tmp_path / f"gn{seed}", "gauss_newton", seed, 1, [1.0, 2.0], [0.0, 0.1], status="diverged")
+        fake_run(
+            tmp_path / f"gn{seed}",
+            "gauss_newton",
+            seed,
+            1,
+            [1.0, 2.0],
+            [0.0, 0.1],
+            status="diverged",
+        )
     runs, _, _ = collect([tmp_path])
     label_runs(runs)
     offsets, annotate = [], Axes.annotate
-    monkeypatch.setattr(Axes, "annotate", lambda self, text, xy, **kw: offsets.append(kw["xytext"]) or
-                        annotate(self, text, xy, **kw))
+    monkeypatch.setattr(
+        Axes,
+        "annotate",
+        lambda self, text, xy, **kw: offsets.append(kw["xytext"]) or annotate(self, text, xy, **kw),
+    )
     plot_comparison(runs, tmp_path / "loss.png")
     assert len(offsets) == 3 and len(set(offsets)) == 3
 
@@ -328,7 +567,8 @@ def figures(monkeypatch):
 
 
 def line_colors(fig) -> dict:
-    """legend label (without the counts) -> colour of its line or markers, over every panel of a figure."""
+    """legend label (without the counts) -> colour of its line or markers, over every panel of a
+    figure."""
     found = {}
     for ax in fig.axes:
         for line in ax.get_lines():
@@ -338,16 +578,27 @@ def line_colors(fig) -> dict:
     return found
 
 
-def test_every_group_keeps_its_style_in_every_figure_and_twelve_groups_stay_apart(tmp_path, figures):
+def test_every_group_keeps_its_style_in_every_figure_and_twelve_groups_stay_apart(
+    tmp_path, figures
+):
     from physgrad.plots import group_styles
 
     labels = [f"v{i:02d}" for i in range(12)]
     for i, label in enumerate(labels):
         for seed in range(2):
-            fake_run(tmp_path / f"{label}_{seed}", label, seed, 1, [1.0, 0.5 / (i + 1), 0.1 / (i + 1)],
-                     [0.0, 1.0 + i, 2.0 + i])
+            fake_run(
+                tmp_path / f"{label}_{seed}",
+                label,
+                seed,
+                1,
+                [1.0, 0.5 / (i + 1), 0.1 / (i + 1)],
+                [0.0, 1.0 + i, 2.0 + i],
+            )
     write_report([tmp_path], out_dir=tmp_path / "out")
-    colors = {name: line_colors(figures[name]) for name in ("loss_vs_time", "loss_vs_iteration", "tradeoff")}
+    colors = {
+        name: line_colors(figures[name])
+        for name in ("loss_vs_time", "loss_vs_iteration", "tradeoff")
+    }
     assert colors["loss_vs_time"] == colors["loss_vs_iteration"] == colors["tradeoff"]
     assert set(colors["loss_vs_time"]) == set(labels)
     styles = group_styles(labels)
@@ -362,7 +613,9 @@ def test_every_group_keeps_its_style_in_every_figure_and_twelve_groups_stay_apar
 
 def test_a_diverged_run_does_not_stretch_the_axis(tmp_path, figures):
     fake_run(tmp_path / "ok", "adam", 0, 1, [1.0, 0.1, 0.01], [0.0, 1.0, 2.0])
-    fake_run(tmp_path / "bad", "gauss_newton", 0, 1, [1.0, 1e5, 1e33], [0.0, 1.0, 2.0], status="diverged")
+    fake_run(
+        tmp_path / "bad", "gauss_newton", 0, 1, [1.0, 1e5, 1e33], [0.0, 1.0, 2.0], status="diverged"
+    )
     write_report([tmp_path], out_dir=tmp_path / "out")
     for name in ("loss_vs_time", "loss_vs_iteration"):
         low, high = figures[name].axes[0].get_ylim()
@@ -376,7 +629,11 @@ def test_the_drawn_median_is_the_one_the_table_reports(tmp_path, figures):
     fake_run(tmp_path / "b", "adam", 1, 1, [1.0, 0.5, 3.3], [0.0, 1.0, 2.0])
     text = write_report([tmp_path], out_dir=tmp_path / "out")
     assert "| 1.66 [0.02, 3.3] |" in text
-    line, = [l for l in figures["loss_vs_iteration"].axes[0].get_lines() if l.get_label().startswith("adam")]
+    (line,) = [
+        drawn
+        for drawn in figures["loss_vs_iteration"].axes[0].get_lines()
+        if drawn.get_label().startswith("adam")
+    ]
     assert line.get_ydata()[-1] == pytest.approx(1.66)
 
 
@@ -384,8 +641,16 @@ def test_the_unroll_axis_has_a_tick_at_every_length(tmp_path, figures):
     from physgrad.plots import plot_unroll
 
     for unroll in (4, 16, 64, 256):
-        fake_run(tmp_path / f"u{unroll}", "bptt", 0, 1, [1.0, 1.0 / unroll], [0.0, 1.0], attrs={"unroll": unroll},
-                 trainer={"iterations": unroll})
+        fake_run(
+            tmp_path / f"u{unroll}",
+            "bptt",
+            0,
+            1,
+            [1.0, 1.0 / unroll],
+            [0.0, 1.0],
+            attrs={"unroll": unroll},
+            trainer={"iterations": unroll},
+        )
     runs, _, _ = collect([tmp_path])
     label_runs(runs)
     assert plot_unroll(runs, tmp_path / "unroll")
@@ -396,18 +661,39 @@ def test_the_unroll_axis_has_a_tick_at_every_length(tmp_path, figures):
             assert [t.get_text() for t in ax.get_xticklabels()] == ["4", "16", "64", "256"]
 
 
-def test_the_run_figure_draws_the_rule_s_diagnostics_and_wide_metrics_on_a_log_axis(tmp_path, figures):
+def test_the_run_figure_draws_the_rule_s_diagnostics_and_wide_metrics_on_a_log_axis(
+    tmp_path, figures
+):
     from physgrad.plots import plot_run
 
     writer = ResultsWriter(tmp_path / "results.h5", {"task": "toy", "optim": "hig", "seed": 0})
     for i in range(5):
-        writer.append("train", {"iteration": i, "wall_time": 0.1 * i, "loss": 1.0 / (i + 1), "grad_norm": 1.0,
-                                "update_norm": 0.5, "kept_singular_values": 10 + i, "svd_failures": 0})
-        writer.append("eval", {"iteration": i, "wall_time": 0.1 * i, "loss": 1.0 / (i + 1),
-                               "energy": 10.0 ** (-3 * i)})
+        writer.append(
+            "train",
+            {
+                "iteration": i,
+                "wall_time": 0.1 * i,
+                "loss": 1.0 / (i + 1),
+                "grad_norm": 1.0,
+                "update_norm": 0.5,
+                "kept_singular_values": 10 + i,
+                "svd_failures": 0,
+            },
+        )
+        writer.append(
+            "eval",
+            {
+                "iteration": i,
+                "wall_time": 0.1 * i,
+                "loss": 1.0 / (i + 1),
+                "energy": 10.0 ** (-3 * i),
+            },
+        )
     writer.finish("completed")
     plot_run(read_run(tmp_path / "results.h5"), tmp_path / "loss.png")
     axes = {ax.get_ylabel(): ax for ax in figures["loss"].axes}
-    assert {l.get_label() for l in axes["update rule diagnostic"].get_lines()} == {"kept_singular_values",
-                                                                                  "svd_failures"}
+    assert {drawn.get_label() for drawn in axes["update rule diagnostic"].get_lines()} == {
+        "kept_singular_values",
+        "svd_failures",
+    }
     assert axes["test metric"].get_yscale() == "log"

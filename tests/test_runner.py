@@ -1,4 +1,5 @@
-"""The training loop: stopping rules, divergence, comparability across variants, precision, results files."""
+"""The training loop: stopping rules, divergence, comparability across variants, precision, results
+files."""
 
 import dataclasses
 import re
@@ -18,16 +19,22 @@ SMALL = ["task.grid=4", "task.test_size=8", "trainer.batch_size=4"]
 
 
 def test_divergence_is_an_outcome_with_the_curve_kept(tmp_path):
-    outcome, path = run_experiment(load("optim=gd", "optim.learning_rate=1e30", "trainer.iterations=50", *SMALL), tmp_path)
+    outcome, path = run_experiment(
+        load("optim=gd", "optim.learning_rate=1e30", "trainer.iterations=50", *SMALL), tmp_path
+    )
     run = read_run(path)
     assert outcome.status == "diverged" == run.attrs["status"]
-    match = re.fullmatch(r"(output|loss|gradient|update) became (\S+) at iteration (\d+) \((\w+)\)",
-                         run.attrs["reason"])
+    match = re.fullmatch(
+        r"(output|loss|gradient|update) became (\S+) at iteration (\d+) \((\w+)\)",
+        run.attrs["reason"],
+    )
     assert match and not np.isfinite(float(match[2])), run.attrs["reason"]
     bad_iteration = int(match[3])
     assert not np.isfinite(run.train[match[4]][-1]) and np.isfinite(run.train[match[4]][:-1]).all()
     assert bad_iteration < 49
-    assert run.train["iteration"].size == bad_iteration + 1  # every row up to and including the bad one
+    assert (
+        run.train["iteration"].size == bad_iteration + 1
+    )  # every row up to and including the bad one
     assert np.isfinite(run.train["loss"][0])
 
 
@@ -36,28 +43,40 @@ def test_a_failed_factorisation_is_named_in_the_divergence_reason(tmp_path, monk
     from tests.test_spectral import float32_factorisation_fails
 
     float32_factorisation_fails(monkeypatch)
-    outcome, path = run_experiment(load("optim=hig", "optim.retry_float64=false", "trainer.iterations=5", *SMALL),
-                                   tmp_path)
+    outcome, path = run_experiment(
+        load("optim=hig", "optim.retry_float64=false", "trainer.iterations=5", *SMALL), tmp_path
+    )
     assert outcome.status == "diverged"
-    assert outcome.reason.startswith("update became nan at iteration 0 (update_norm); the SVD/eigh of the Jacobian "
-                                     "did not converge")
-    retried, _ = run_experiment(load("optim=hig", "trainer.iterations=5", *SMALL), tmp_path / "retry")
-    assert retried.status == "completed" and read_run(tmp_path / "retry" / "results.h5").train["svd_failures"][-1] == 0
+    assert outcome.reason.startswith(
+        "update became nan at iteration 0 (update_norm); the SVD/eigh of the Jacobian "
+        "did not converge"
+    )
+    retried, _ = run_experiment(
+        load("optim=hig", "trainer.iterations=5", *SMALL), tmp_path / "retry"
+    )
+    assert (
+        retried.status == "completed"
+        and read_run(tmp_path / "retry" / "results.h5").train["svd_failures"][-1] == 0
+    )
 
 
 def test_time_budget_stops_training(tmp_path):
-    outcome, path = run_experiment(load("trainer.iterations=100000000", "trainer.time_budget=0.5", *SMALL), tmp_path)
+    outcome, path = run_experiment(
+        load("trainer.iterations=100000000", "trainer.time_budget=0.5", *SMALL), tmp_path
+    )
     run = read_run(path)
     assert outcome.status == "completed" and run.attrs["stopped_by"] == "time_budget"
     assert 0.5 <= run.train["wall_time"][-1] == outcome.train_seconds
     assert outcome.iterations < 100000000
-    assert run.eval["iteration"][-1] == outcome.iterations  # a final evaluation at the stopping point
+    assert (
+        run.eval["iteration"][-1] == outcome.iterations
+    )  # a final evaluation at the stopping point
 
 
 class SimulatedClock:
-    """The runner's clock, advanced by the step alone: each step takes `step` seconds (the first `first_extra`
-    more), every other reading 1 microsecond, so budgets, evaluation times and the first-step correction are
-    exact and independent of the machine."""
+    """The runner's clock, advanced by the step alone: each step takes `step` seconds (the first
+    `first_extra` more), every other reading 1 microsecond, so budgets, evaluation times and the
+    first-step correction are exact and independent of the machine."""
 
     def __init__(self, monkeypatch, step=0.01, first_extra=0.0):
         import physgrad.runner
@@ -83,23 +102,42 @@ class SimulatedClock:
         return self.now
 
 
-def test_a_time_budget_alone_runs_until_the_budget_and_passes_it_by_less_than_a_step(tmp_path, monkeypatch):
+def test_a_time_budget_alone_runs_until_the_budget_and_passes_it_by_less_than_a_step(
+    tmp_path, monkeypatch
+):
     clock = SimulatedClock(monkeypatch, step=0.01)
-    outcome, path = run_experiment(load("task=toy", "trainer.time_budget=25", "trainer.eval_every=1000000",
-                                        "trainer.flush_seconds=1"), tmp_path)
+    outcome, path = run_experiment(
+        load(
+            "task=toy",
+            "trainer.time_budget=25",
+            "trainer.eval_every=1000000",
+            "trainer.flush_seconds=1",
+        ),
+        tmp_path,
+    )
     run = read_run(path)
     assert run.attrs["stopped_by"] == "time_budget" == outcome.stopped_by
-    assert outcome.iterations > 2000  # no hidden iteration cap (2000 is the default without a budget)
+    assert (
+        outcome.iterations > 2000
+    )  # no hidden iteration cap (2000 is the default without a budget)
     assert 25 <= outcome.train_seconds < 25 + clock.step and outcome.iterations == clock.calls
-    # evaluations every budget / 20 of training time (trainer.eval_seconds=null), besides start and end
+    # evaluations every budget / 20 of training time (trainer.eval_seconds=null), besides start and
+    # end
     np.testing.assert_allclose(np.diff(run.eval["wall_time"])[:-1], 25 / 20, atol=clock.step + 1e-4)
     assert run.eval["iteration"][-1] == outcome.iterations
 
 
 def test_the_first_step_s_one_off_cost_is_start_up_not_training(tmp_path, monkeypatch):
     SimulatedClock(monkeypatch, step=0.01, first_extra=5.0)
-    outcome, path = run_experiment(load("task=toy", "trainer.iterations=50", "trainer.eval_every=1",
-                                        "trainer.flush_seconds=0.001"), tmp_path)
+    outcome, path = run_experiment(
+        load(
+            "task=toy",
+            "trainer.iterations=50",
+            "trainer.eval_every=1",
+            "trainer.flush_seconds=0.001",
+        ),
+        tmp_path,
+    )
     run = read_run(path)
     assert run.attrs["first_step_overhead_seconds"] == pytest.approx(5.0, abs=1e-4)
     np.testing.assert_allclose(run.train["wall_time"], 0.01 * np.arange(1, 51), atol=1e-4)
@@ -109,28 +147,46 @@ def test_the_first_step_s_one_off_cost_is_start_up_not_training(tmp_path, monkey
 
 def test_evaluations_by_training_time_give_a_slow_variant_a_curve(tmp_path, monkeypatch):
     SimulatedClock(monkeypatch, step=2.0)  # a step as slow as HIG's on a large scene
-    outcome, path = run_experiment(load("task=toy", "trainer.time_budget=20", "trainer.eval_every=100",
-                                        "trainer.eval_seconds=3"), tmp_path)
+    outcome, path = run_experiment(
+        load(
+            "task=toy", "trainer.time_budget=20", "trainer.eval_every=100", "trainer.eval_seconds=3"
+        ),
+        tmp_path,
+    )
     run = read_run(path)
     assert outcome.iterations == 10
-    assert list(run.eval["iteration"]) == [0, 2, 4, 6, 8, 10]  # every 3 s of training: after 4, 8, ... s
+    assert list(run.eval["iteration"]) == [
+        0,
+        2,
+        4,
+        6,
+        8,
+        10,
+    ]  # every 3 s of training: after 4, 8, ... s
 
 
 def test_trainer_settings_resolve_iterations_and_evaluation_times():
     from physgrad.runner import DEFAULT_ITERATIONS, TrainerSettings
 
     def settings(**trainer):
-        return TrainerSettings.from_config({"eval_every": 10, "batch_size": 1, "flush_seconds": 1.0, **trainer})
+        return TrainerSettings.from_config(
+            {"eval_every": 10, "batch_size": 1, "flush_seconds": 1.0, **trainer}
+        )
 
     assert settings().iterations == DEFAULT_ITERATIONS and settings().eval_seconds is None
-    assert settings(time_budget=40.0).iterations is None and settings(time_budget=40.0).eval_seconds == 2.0
+    assert (
+        settings(time_budget=40.0).iterations is None
+        and settings(time_budget=40.0).eval_seconds == 2.0
+    )
     assert settings(time_budget=40.0, iterations=5, eval_seconds=7.0).iterations == 5
     with pytest.raises(UserError, match="trainer.log_seconds=0 is not allowed"):
         settings(log_seconds=0)
 
 
 def test_iterations_stop_training_and_wall_time_is_monotone(tmp_path):
-    outcome, path = run_experiment(load("trainer.iterations=30", "trainer.eval_every=10", *SMALL), tmp_path)
+    outcome, path = run_experiment(
+        load("trainer.iterations=30", "trainer.eval_every=10", *SMALL), tmp_path
+    )
     run = read_run(path)
     assert run.attrs["stopped_by"] == "iterations" and outcome.iterations == 30
     assert list(run.train["iteration"]) == list(range(30))
@@ -144,7 +200,9 @@ def test_iterations_stop_training_and_wall_time_is_monotone(tmp_path):
 def test_same_seed_gives_same_data_and_initial_network_for_every_variant(tmp_path):
     first = {}
     for optim in ("adam", "gd", "hig", "gauss_newton"):
-        _, path = run_experiment(load(f"optim={optim}", "trainer.iterations=1", *SMALL), tmp_path / optim)
+        _, path = run_experiment(
+            load(f"optim={optim}", "trainer.iterations=1", *SMALL), tmp_path / optim
+        )
         run = read_run(path)
         first[optim] = (run.eval["loss"][0], run.train["loss"][0])
     assert len(set(first.values())) == 1, first
@@ -153,8 +211,10 @@ def test_same_seed_gives_same_data_and_initial_network_for_every_variant(tmp_pat
 
 
 def test_jacobian_step_logs_the_plain_gradient_and_forward_pass(x64):
-    """HIG takes y and dL/dtheta = J^T g from its Jacobian pass, not from a separate backward pass: its logged
-    loss, gradient norm and state must equal plain gradient descent's on the same batch (float64)."""
+    """HIG takes y and dL/dtheta = J^T g from its Jacobian pass, not from a separate backward pass:
+    its logged
+    loss, gradient norm and state must equal plain gradient descent's on the same batch
+    (float64)."""
     from physgrad.optim import build_rule
     from physgrad.training import make_step
 
@@ -165,32 +225,45 @@ def test_jacobian_step_logs_the_plain_gradient_and_forward_pass(x64):
     for optim in ("gd", "hig"):
         rule = build_rule(load(f"optim={optim}").optim)
         step = jax.jit(make_step(scene, rule, 4))
-        _, _, logs[optim] = step(params, rule.transform.init(params), 0, jax.random.PRNGKey(2), scene.train_set)
+        _, _, logs[optim] = step(
+            params, rule.transform.init(params), 0, jax.random.PRNGKey(2), scene.train_set
+        )
     for name in ("loss", "grad_norm", "output_max_abs"):
         np.testing.assert_allclose(logs["hig"][name], logs["gd"][name], rtol=1e-10)
 
 
 def test_flat_parameter_scene_computes_what_the_pytree_scene_does(x64):
-    """The runner trains one flat vector per seed (Scene.over_flat_params): outputs, metrics and the gradients
-    of every backprop mode must be the pytree scene's, raveled."""
+    """The runner trains one flat vector per seed (Scene.over_flat_params): outputs, metrics and the
+    gradients of every backprop mode must be the pytree scene's, raveled."""
     from jax.flatten_util import ravel_pytree
 
     from physgrad.unroll import MODES
 
-    scene = build_scene(load("task=multicart", "task.poles=2", "task.test_size=4").task, jax.random.PRNGKey(0))
+    scene = build_scene(
+        load("task=multicart", "task.poles=2", "task.test_size=4").task, jax.random.PRNGKey(0)
+    )
     params = scene.init_params(jax.random.PRNGKey(1))
     flat, unravel = ravel_pytree(params)
     flat_scene = scene.over_flat_params(unravel)
     np.testing.assert_array_equal(flat_scene.init_params(jax.random.PRNGKey(1)), flat)
     for name, value in scene.evaluate(params, scene.test_set).items():
-        np.testing.assert_allclose(flat_scene.evaluate(flat, scene.test_set)[name], value, rtol=1e-12)
+        np.testing.assert_allclose(
+            flat_scene.evaluate(flat, scene.test_set)[name], value, rtol=1e-12
+        )
     batch = scene.sample_train(jax.random.PRNGKey(2), 4)
     for mode in MODES.values():
-        def loss(p, s):
-            return s.batch_loss(jax.vmap(s.backprop_output(mode), in_axes=(None, 0))(p, batch), batch)
 
-        np.testing.assert_allclose(jax.grad(loss)(flat, flat_scene), ravel_pytree(jax.grad(loss)(params, scene))[0],
-                                   rtol=1e-10, atol=1e-14)
+        def loss(p, s):
+            return s.batch_loss(
+                jax.vmap(s.backprop_output(mode), in_axes=(None, 0))(p, batch), batch
+            )
+
+        np.testing.assert_allclose(
+            jax.grad(loss)(flat, flat_scene),
+            ravel_pytree(jax.grad(loss)(params, scene))[0],
+            rtol=1e-10,
+            atol=1e-14,
+        )
 
 
 @pytest.fixture
@@ -205,8 +278,13 @@ def test_precision_64_runs_in_float64(tmp_path, restore_precision):
     set_precision(64)
     scene = build_scene(cfg.task, jax.random.PRNGKey(0))
     assert scene.test_set["target"].dtype == jnp.float64
-    assert all(leaf.dtype == jnp.float64 for leaf in jax.tree_util.tree_leaves(scene.init_params(jax.random.PRNGKey(1))))
-    outcome, path = run_experiment(load("precision=64", "optim=hig", "trainer.iterations=3", *SMALL), tmp_path)
+    assert all(
+        leaf.dtype == jnp.float64
+        for leaf in jax.tree_util.tree_leaves(scene.init_params(jax.random.PRNGKey(1)))
+    )
+    outcome, path = run_experiment(
+        load("precision=64", "optim=hig", "trainer.iterations=3", *SMALL), tmp_path
+    )
     assert outcome.status == "completed" and read_run(path).attrs["precision"] == "64"
     set_precision(32)
     assert build_scene(cfg.task, jax.random.PRNGKey(0)).test_set["target"].dtype == jnp.float32
@@ -215,7 +293,9 @@ def test_precision_64_runs_in_float64(tmp_path, restore_precision):
 def test_writer_appends_in_flushes_and_checks_columns(tmp_path):
     writer = ResultsWriter(tmp_path / "results.h5", {"task": "poisson", "optim": "adam", "seed": 0})
     for i in range(5):
-        writer.append("train", {"iteration": i, "wall_time": 0.1 * i, "loss": 1.0 / (i + 1), "grad_norm": 1.0})
+        writer.append(
+            "train", {"iteration": i, "wall_time": 0.1 * i, "loss": 1.0 / (i + 1), "grad_norm": 1.0}
+        )
         if i == 2:
             writer.flush()
             assert read_run(tmp_path / "results.h5").train["iteration"].tolist() == [0, 1, 2]
@@ -224,7 +304,10 @@ def test_writer_appends_in_flushes_and_checks_columns(tmp_path):
     writer.finish("interrupted", "SIGINT after 5 iterations")
     run = read_run(tmp_path / "results.h5")
     assert run.train["iteration"].tolist() == list(range(5))
-    assert (run.attrs["status"], run.attrs["reason"]) == ("interrupted", "SIGINT after 5 iterations")
+    assert (run.attrs["status"], run.attrs["reason"]) == (
+        "interrupted",
+        "SIGINT after 5 iterations",
+    )
 
 
 def test_rows_are_whole_and_columns_fixed(tmp_path):
@@ -251,8 +334,8 @@ def test_reading_a_foreign_or_corrupt_file_says_so(tmp_path):
 
 
 def test_no_recompilation_after_the_first_iteration(tmp_path):
-    """The step and the evaluation compile once per run (or come from the persistent compilation cache the
-    test session uses), however many iterations follow."""
+    """The step and the evaluation compile once per run (or come from the persistent compilation
+    cache the test session uses), however many iterations follow."""
     compiles = []
 
     def on_compile(name, duration, **kwargs):
@@ -263,15 +346,29 @@ def test_no_recompilation_after_the_first_iteration(tmp_path):
         if name == "/jax/compilation_cache/cache_hits":
             compiles.append(name)
 
-    overrides = ["task=oscillator", "task.closed_loop=true", "optim=stable_bptt", "task.train_size=64",
-                 "task.test_size=8", "trainer.batch_size=8", "unroll=16", "trainer.eval_every=4"]
+    overrides = [
+        "task=oscillator",
+        "task.closed_loop=true",
+        "optim=stable_bptt",
+        "task.train_size=64",
+        "task.test_size=8",
+        "trainer.batch_size=8",
+        "unroll=16",
+        "trainer.eval_every=4",
+    ]
     jax.monitoring.register_event_duration_secs_listener(on_compile)
     jax.monitoring.register_event_listener(on_event)
     try:
         counts = []
-        for iterations in (1, 1, 25):  # the first run also warms the caches of eager set-up operations
+        for iterations in (
+            1,
+            1,
+            25,
+        ):  # the first run also warms the caches of eager set-up operations
             compiles.clear()
-            outcome, _ = run_experiment(load(*overrides, f"trainer.iterations={iterations}"), tmp_path / str(len(counts)))
+            outcome, _ = run_experiment(
+                load(*overrides, f"trainer.iterations={iterations}"), tmp_path / str(len(counts))
+            )
             assert outcome.status == "completed"
             counts.append(len(compiles))
     finally:
@@ -285,8 +382,10 @@ def test_same_seed_same_precision_gives_bitwise_identical_curves(tmp_path):
     for optim in ("adam", "hig"):
         curves = []
         for repeat in range(2):
-            _, path = run_experiment(load(f"optim={optim}", "trainer.iterations=15", "trainer.eval_every=5", *SMALL),
-                                     tmp_path / f"{optim}{repeat}")
+            _, path = run_experiment(
+                load(f"optim={optim}", "trainer.iterations=15", "trainer.eval_every=5", *SMALL),
+                tmp_path / f"{optim}{repeat}",
+            )
             run = read_run(path)
             curves.append((run.train["loss"], run.train["grad_norm"], run.eval["loss"]))
         for first, second in zip(*curves):

@@ -1,5 +1,5 @@
-"""Named sweeps (conf/experiment/), resuming, continuing from another run's network, and sweeps that go on when
-a job fails."""
+"""Named sweeps (conf/experiment/), resuming, continuing from another run's network, and sweeps that
+go on when a job fails."""
 
 import sys
 from pathlib import Path
@@ -11,33 +11,51 @@ from hydra import compose as hydra_compose
 from omegaconf import OmegaConf
 
 from physgrad.configs import CONF_DIR, check_overrides, initialized
-from physgrad.experiment import check_applies, check_config, effective_unroll, prepare, run_experiment
+from physgrad.experiment import (
+    check_applies,
+    check_config,
+    effective_unroll,
+    prepare,
+    run_experiment,
+)
 from physgrad.optim import build_rule
 from physgrad.results import read_run
 from physgrad.sweeps import sweep_jobs as expand_sweep
 from tests.helpers import load
 
 EXPERIMENTS = sorted(p.stem for p in (CONF_DIR / "experiment").glob("*.yaml"))
-TINY = ["task=poisson", "task.grid=4", "task.test_size=8", "trainer.batch_size=4", "trainer.eval_every=5"]
+TINY = [
+    "task=poisson",
+    "task.grid=4",
+    "task.test_size=8",
+    "trainer.batch_size=4",
+    "trainer.eval_every=5",
+]
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "experiments"))
 import reproduce  # noqa: E402
 
 
 def sweep_jobs(experiment: str, extra=()):
-    """Every job's config of a named sweep with extra overrides, as Hydra's basic sweeper makes them (a key given
-    in extra replaces the sweeper's values for it)."""
-    with initialized():  # one Hydra set-up for every job (composing is cheap, setting Hydra up is not)
+    """Every job's config of a named sweep with extra overrides, as Hydra's basic sweeper makes them
+    (a key given in extra replaces the sweeper's values for it)."""
+    with (
+        initialized()
+    ):  # one Hydra set-up for every job (composing is cheap, setting Hydra up is not)
         base = hydra_compose("config", [f"+experiment={experiment}"], return_hydra_config=True)
         params = [f"{key}={value}" for key, value in base.hydra.sweeper.params.items()]
-        return [hydra_compose("config", [f"+experiment={experiment}", *job])
-                for job in expand_sweep([*params, *extra])]
+        return [
+            hydra_compose("config", [f"+experiment={experiment}", *job])
+            for job in expand_sweep([*params, *extra])
+        ]
 
 
-SCENES = {}  # (task config, unroll, precision, seed) -> the scene: the jobs of a sweep share a few of them
+# (task config, unroll, precision, seed) -> the scene: the jobs of a sweep share a few of them
+SCENES = {}
 
 
 def valid(cfg):
-    """Raises on anything a run of cfg would refuse: its settings, its rule, its scene and their combination."""
+    """Raises on anything a run of cfg would refuse: its settings, its rule, its scene and their
+    combination."""
     settings = check_config(cfg)
     build_rule(cfg.optim)
     key = (OmegaConf.to_yaml(cfg.task), effective_unroll(cfg), cfg.precision, cfg.seed)
@@ -66,7 +84,9 @@ def test_every_job_of_a_named_sweep_is_valid(experiment):
     assert len({frozenset(s) for s in seeds.values()}) == 1
 
 
-@pytest.mark.parametrize("figure", [f for f in reproduce.FIGURES if f.quick is not None], ids=lambda f: f.name)
+@pytest.mark.parametrize(
+    "figure", [f for f in reproduce.FIGURES if f.quick is not None], ids=lambda f: f.name
+)
 def test_quick_profile_overrides_are_valid(figure):
     for experiment in figure.experiments:
         overrides = figure.quick[experiment]
@@ -83,25 +103,35 @@ def test_the_claims_plan_lists_every_study_in_parts_of_at_most_80_minutes(capsys
     text = capsys.readouterr().out
     for study in claims.PROFILES["claims"]:
         assert f"compare.dir=outputs/experiments/claims/{study.name} " in text
-    parts = [int(line.split("about ")[1].split(" min")[0]) for line in text.splitlines() if line.startswith("part ")]
+    parts = [
+        int(line.split("about ")[1].split(" min")[0])
+        for line in text.splitlines()
+        if line.startswith("part ")
+    ]
     assert max(parts) <= 80  # every part resumable within a 90-minute run
     hours = float(text.rsplit("expected total: about ", 1)[1].split(" h")[0])
     expected = sum(study.seconds() for study in claims.PROFILES["claims"]) / 3600
-    assert abs(hours - expected) <= 0.05 and abs(sum(parts) / 60 - expected) <= 0.1  # parts cover every study
+    assert (
+        abs(hours - expected) <= 0.05 and abs(sum(parts) / 60 - expected) <= 0.1
+    )  # parts cover every study
     assert reproduce.main(["--profile", "claims-long", "--plan"]) == 0
-    assert "compare.dir=outputs/experiments/claims-long/quantum_control_5" in capsys.readouterr().out
+    assert (
+        "compare.dir=outputs/experiments/claims-long/quantum_control_5" in capsys.readouterr().out
+    )
     assert reproduce.main(["--profile", "claims", "--part", "99"]) == 2
     assert "--part takes numbers from 1 to" in capsys.readouterr().err
 
 
 def test_missing_experiment_is_a_one_line_error():
-    with pytest.raises(Exception, match=r"unknown experiment 'nosuch' \(choose one of fig1_oscillator"):
+    with pytest.raises(
+        Exception, match=r"unknown experiment 'nosuch' \(choose one of fig1_oscillator"
+    ):
         check_overrides(["+experiment=nosuch"], multirun=True)
 
 
 def test_the_manifest_keeps_an_interpolated_override_as_the_job_folder_does(tmp_path):
-    """Hydra writes `init_from=.../${seed}/...` into the job's overrides.yaml unresolved; the manifest must
-    match it, or every job of a continuation sweep is reported as never started."""
+    """Hydra writes `init_from=.../${seed}/...` into the job's overrides.yaml unresolved; the
+    manifest must match it, or every job of a continuation sweep is reported as never started."""
     from physgrad.sweeps import expected_jobs, unfinished_jobs, write_manifest
 
     overrides = ["task=toy", "seed=1", "init_from='runs/seed=${seed}/results.h5'"]
@@ -127,7 +157,9 @@ def test_a_completed_job_is_skipped_unless_overwrite(tmp_path):
     assert read_run(path).attrs["finished"] == created  # untouched
     rerun, _ = run_experiment(load(*TINY, "trainer.iterations=3", "overwrite=true"), tmp_path)
     assert rerun.reason is None
-    changed, _ = run_experiment(load(*TINY, "trainer.iterations=4"), tmp_path)  # another config: run again
+    changed, _ = run_experiment(
+        load(*TINY, "trainer.iterations=4"), tmp_path
+    )  # another config: run again
     assert changed.reason is None and read_run(path).train["iteration"].size == 4
 
 
@@ -137,15 +169,18 @@ def test_an_interrupted_job_is_run_again(tmp_path):
 
     config = read_run(tmp_path / "results.h5").attrs["config"]
     (tmp_path / "results.h5").unlink()  # (a completed file is never replaced by an interrupted one)
-    ResultsWriter(tmp_path / "results.h5", {"task": "toy", "optim": "adam", "seed": 0, "config": config}).finish("interrupted", "SIGINT after 1 iterations")
+    ResultsWriter(
+        tmp_path / "results.h5", {"task": "toy", "optim": "adam", "seed": 0, "config": config}
+    ).finish("interrupted", "SIGINT after 1 iterations")
     outcome, path = run_experiment(load(*TINY, "trainer.iterations=3"), tmp_path)
     assert outcome.reason is None and read_run(path).attrs["status"] == "completed"
 
 
 def test_init_from_continues_from_the_saved_network(tmp_path):
     _, source = run_experiment(load(*TINY, "trainer.iterations=6"), tmp_path / "adam")
-    outcome, path = run_experiment(load(*TINY, "optim=gd", "trainer.iterations=2", f"init_from={source}"),
-                                   tmp_path / "gd")
+    outcome, path = run_experiment(
+        load(*TINY, "optim=gd", "trainer.iterations=2", f"init_from={source}"), tmp_path / "gd"
+    )
     first, second = read_run(source), read_run(path)
     assert outcome.status == "completed"
     # same seed, same test set: the continued run's first evaluation is the source's last
@@ -154,14 +189,19 @@ def test_init_from_continues_from_the_saved_network(tmp_path):
     assert second.offset("wall_time") == pytest.approx(first.final("train", "wall_time"))
 
 
-@pytest.mark.parametrize("source, fragment", [
-    ("missing.h5", "no such file"),
-    ("other", "that run trained a poisson network with"),
-])
+@pytest.mark.parametrize(
+    "source, fragment",
+    [
+        ("missing.h5", "no such file"),
+        ("other", "that run trained a poisson network with"),
+    ],
+)
 @pytest.mark.long
 def test_init_from_a_wrong_run_is_refused(tmp_path, source, fragment):
     if source == "other":
-        _, path = run_experiment(load(*TINY, "task.grid=3", "trainer.iterations=1"), tmp_path / "other")
+        _, path = run_experiment(
+            load(*TINY, "task.grid=3", "trainer.iterations=1"), tmp_path / "other"
+        )
         source = str(path)
     outcome, _ = run_experiment(load(*TINY, f"init_from={tmp_path / source}"), tmp_path / "run")
     assert outcome.status == "refused" and fragment in outcome.reason and "\n" not in outcome.reason
@@ -171,8 +211,16 @@ def test_init_from_a_wrong_run_is_refused(tmp_path, source, fragment):
 def test_init_from_the_job_s_own_results_file_is_refused_and_leaves_it_intact(tmp_path, overwrite):
     _, source = run_experiment(load(*TINY, "trainer.iterations=3"), tmp_path / "run")
     before = source.read_bytes()
-    outcome, _ = run_experiment(load(*TINY, "optim=gd", "trainer.iterations=2", f"init_from={source}",
-                                     f"overwrite={overwrite}"), tmp_path / "run")
+    outcome, _ = run_experiment(
+        load(
+            *TINY,
+            "optim=gd",
+            "trainer.iterations=2",
+            f"init_from={source}",
+            f"overwrite={overwrite}",
+        ),
+        tmp_path / "run",
+    )
     assert outcome.status == "refused" and "is this job's own results file" in outcome.reason
     assert source.read_bytes() == before and read_run(source).attrs["status"] == "completed"
 
@@ -190,17 +238,32 @@ def test_a_failed_job_does_not_stop_the_sweep(tmp_path, monkeypatch):
 
     monkeypatch.setattr(physgrad.experiment, "build_rule", broken_for_gd)
     # the sweep goes on, and exits 1 because a job failed
-    assert main(["run", "-m", "optim=gd,adam", "trainer.iterations=2", *TINY[1:], f"hydra.sweep.dir={tmp_path}"]) == 1
+    assert (
+        main(
+            [
+                "run",
+                "-m",
+                "optim=gd,adam",
+                "trainer.iterations=2",
+                *TINY[1:],
+                f"hydra.sweep.dir={tmp_path}",
+            ]
+        )
+        == 1
+    )
     statuses = {read_run(p).attrs["optim"]: read_run(p) for p in tmp_path.rglob("results.h5")}
     assert statuses["gd"].attrs["status"] == "failed"
     assert statuses["gd"].attrs["reason"] == "RuntimeError: simulated crash"
     assert statuses["adam"].attrs["status"] == "completed"
     assert sorted(p.parent.name for p in tmp_path.rglob("results.h5")) == [
         "optim=adam,task.grid=4,task.test_size=8,trainer.batch_size=4,trainer.eval_every=5,trainer.iterations=2",
-        "optim=gd,task.grid=4,task.test_size=8,trainer.batch_size=4,trainer.eval_every=5,trainer.iterations=2"]
+        "optim=gd,task.grid=4,task.test_size=8,trainer.batch_size=4,trainer.eval_every=5,trainer.iterations=2",
+    ]
 
 
-def test_a_failed_job_of_several_seeds_records_the_failure_in_every_seed_file(tmp_path, monkeypatch):
+def test_a_failed_job_of_several_seeds_records_the_failure_in_every_seed_file(
+    tmp_path, monkeypatch
+):
     import physgrad.experiment
     from physgrad.cli import main
 
@@ -208,39 +271,72 @@ def test_a_failed_job_of_several_seeds_records_the_failure_in_every_seed_file(tm
         raise RuntimeError("simulated crash")
 
     monkeypatch.setattr(physgrad.experiment, "build_rule", broken)
-    assert main(["run", "-m", "seeds=2", "trainer.iterations=2", *TINY[1:], f"hydra.sweep.dir={tmp_path}"]) == 1
+    assert (
+        main(
+            [
+                "run",
+                "-m",
+                "seeds=2",
+                "trainer.iterations=2",
+                *TINY[1:],
+                f"hydra.sweep.dir={tmp_path}",
+            ]
+        )
+        == 1
+    )
     files = sorted(tmp_path.rglob("results.h5"))
     assert [p.parent.name for p in files] == ["seed=0", "seed=1"]  # no stray file beside them
     for seed, path in enumerate(files):
         run = read_run(path)
-        assert (run.attrs["status"], run.attrs["seed"], run.attrs["reason"]) == ("failed", seed,
-                                                                                   "RuntimeError: simulated crash")
+        assert (run.attrs["status"], run.attrs["seed"], run.attrs["reason"]) == (
+            "failed",
+            seed,
+            "RuntimeError: simulated crash",
+        )
 
 
 def test_params_are_saved_unless_the_run_diverged(tmp_path):
     from physgrad.results import read_params
 
     _, path = run_experiment(load(*TINY, "trainer.iterations=2"), tmp_path / "ok")
-    assert np.isfinite(read_params(path)).all() and read_params(path).size == read_run(path).attrs["n_params"]
-    _, diverged = run_experiment(load(*TINY, "optim=gd", "optim.learning_rate=1e30", "trainer.iterations=50"), tmp_path / "bad")
+    assert (
+        np.isfinite(read_params(path)).all()
+        and read_params(path).size == read_run(path).attrs["n_params"]
+    )
+    _, diverged = run_experiment(
+        load(*TINY, "optim=gd", "optim.learning_rate=1e30", "trainer.iterations=50"),
+        tmp_path / "bad",
+    )
     assert read_run(diverged).attrs["status"] == "diverged"
     with pytest.raises(ValueError, match="holds no final network"):
         read_params(diverged)
     # a diverged run is a result: a second call skips it, as it skips a completed one
     written = read_run(diverged).attrs["finished"]
-    again, _ = run_experiment(load(*TINY, "optim=gd", "optim.learning_rate=1e30", "trainer.iterations=50"),
-                              tmp_path / "bad")
-    assert again.status == "diverged" and again.reason.startswith("already diverged (update became inf")
+    again, _ = run_experiment(
+        load(*TINY, "optim=gd", "optim.learning_rate=1e30", "trainer.iterations=50"),
+        tmp_path / "bad",
+    )
+    assert again.status == "diverged" and again.reason.startswith(
+        "already diverged (update became inf"
+    )
     assert read_run(diverged).attrs["finished"] == written
 
 
 @pytest.mark.slow
 def test_submitit_local_sweep_and_resume(tmp_path):
-    """The SLURM path through Hydra's submitit launcher, with its local executor; a second call skips both jobs."""
+    """The SLURM path through Hydra's submitit launcher, with its local executor; a second call
+    skips both jobs."""
     from tests.test_cli import physgrad
 
-    args = ["run", "-m", "hydra/launcher=submitit_local", "optim=adam,gd", "trainer.iterations=3", *TINY[1:],
-            f"hydra.sweep.dir={tmp_path}"]
+    args = [
+        "run",
+        "-m",
+        "hydra/launcher=submitit_local",
+        "optim=adam,gd",
+        "trainer.iterations=3",
+        *TINY[1:],
+        f"hydra.sweep.dir={tmp_path}",
+    ]
     physgrad(*args)
     files = sorted(tmp_path.rglob("results.h5"))
     assert len(files) == 2 and all(read_run(f).attrs["status"] == "completed" for f in files)
@@ -250,12 +346,24 @@ def test_submitit_local_sweep_and_resume(tmp_path):
     assert Path(tmp_path / ".submitit").is_dir()
 
 
-@pytest.mark.parametrize("task", [["task=poisson", "task.grid=4", "task.test_size=8", "trainer.batch_size=4"],
-                                  ["task=multicart", "task.train_size=16", "task.test_size=8", "unroll=20",
-                                   "optim=stable_bptt"]], ids=["fresh batches", "fixed training set"])
+@pytest.mark.parametrize(
+    "task",
+    [
+        ["task=poisson", "task.grid=4", "task.test_size=8", "trainer.batch_size=4"],
+        [
+            "task=multicart",
+            "task.train_size=16",
+            "task.test_size=8",
+            "unroll=20",
+            "optim=stable_bptt",
+        ],
+    ],
+    ids=["fresh batches", "fixed training set"],
+)
 @pytest.mark.long
 def test_seeds_in_one_process_match_separate_runs(tmp_path, task):
-    """seeds=3 trains seeds 0, 1, 2 in one vmapped step; every seed's file has the curves of its own run."""
+    """seeds=3 trains seeds 0, 1, 2 in one vmapped step; every seed's file has the curves of its own
+    run."""
     common = [*task, "precision=64", "trainer.iterations=6", "trainer.eval_every=3"]
     outcome, folder = run_experiment(load(*common, "seeds=3"), tmp_path / "together")
     assert outcome.status == "completed"
@@ -266,41 +374,86 @@ def test_seeds_in_one_process_match_separate_runs(tmp_path, task):
         assert together.attrs["seed"] == seed and together.attrs["wall_time_shared_by"] == 3
         for group in ("train", "eval"):
             for column in ("iteration", "loss"):
-                np.testing.assert_allclose(getattr(together, group)[column], getattr(alone, group)[column],
-                                           rtol=1e-9, atol=1e-12)
+                np.testing.assert_allclose(
+                    getattr(together, group)[column],
+                    getattr(alone, group)[column],
+                    rtol=1e-9,
+                    atol=1e-12,
+                )
     assert (folder / "seed=1" / "loss.png").exists()
 
 
 def test_a_diverging_seed_leaves_the_others_running(tmp_path):
-    # GD at lr 1e-3 on the closed-loop oscillator with batches of 16 blows up from seed 0's initial network only
-    outcome, folder = run_experiment(load("task=oscillator", "task.closed_loop=true", "optim=gd",
-                                          "task.train_size=64", "task.test_size=8", "trainer.batch_size=16",
-                                          "trainer.iterations=4", "seeds=3"), tmp_path)
+    # GD at lr 1e-3 on the closed-loop oscillator with batches of 16 blows up from seed 0's initial
+    # network only
+    outcome, folder = run_experiment(
+        load(
+            "task=oscillator",
+            "task.closed_loop=true",
+            "optim=gd",
+            "task.train_size=64",
+            "task.test_size=8",
+            "trainer.batch_size=16",
+            "trainer.iterations=4",
+            "seeds=3",
+        ),
+        tmp_path,
+    )
     runs = [read_run(folder / f"seed={seed}" / "results.h5") for seed in range(3)]
     assert [run.attrs["status"] for run in runs] == ["diverged", "completed", "completed"]
-    assert outcome.status == "diverged" and "seed #0: output became nan at iteration 1" in outcome.reason
-    assert runs[0].train["iteration"].tolist() == [0, 1] and runs[1].train["iteration"].tolist() == [0, 1, 2, 3]
+    assert (
+        outcome.status == "diverged"
+        and "seed #0: output became nan at iteration 1" in outcome.reason
+    )
+    assert runs[0].train["iteration"].tolist() == [0, 1] and runs[1].train[
+        "iteration"
+    ].tolist() == [0, 1, 2, 3]
     assert runs[1].eval["iteration"].tolist() == [0, 4]
     # what stopped the run is recorded for the seeds that ran to the end only
-    assert "stopped_by" not in runs[0].attrs and runs[1].attrs["stopped_by"] == runs[2].attrs["stopped_by"] == "iterations"
+    assert (
+        "stopped_by" not in runs[0].attrs
+        and runs[1].attrs["stopped_by"] == runs[2].attrs["stopped_by"] == "iterations"
+    )
 
 
 def test_diverged_and_refused_jobs_are_outcomes_not_failures(tmp_path):
     from physgrad.cli import main
 
-    assert main(["run", "-m", "optim=gd,bptt", "optim.learning_rate=1e30", "trainer.iterations=30", *TINY[1:],
-                 f"hydra.sweep.dir={tmp_path}"]) == 0
-    assert sorted(read_run(p).attrs["status"] for p in tmp_path.rglob("results.h5")) == ["diverged", "refused"]
+    assert (
+        main(
+            [
+                "run",
+                "-m",
+                "optim=gd,bptt",
+                "optim.learning_rate=1e30",
+                "trainer.iterations=30",
+                *TINY[1:],
+                f"hydra.sweep.dir={tmp_path}",
+            ]
+        )
+        == 0
+    )
+    assert sorted(read_run(p).attrs["status"] for p in tmp_path.rglob("results.h5")) == [
+        "diverged",
+        "refused",
+    ]
 
 
 def test_the_job_returns_its_validation_loss_to_the_sweeper_never_the_test_loss():
     from physgrad.app import objective
     from physgrad.runner import Outcome
 
-    assert objective(Outcome("completed", None, 10, 1.0, {"loss": 0.25, "validation_loss": 0.5})) == 0.5
-    assert objective(Outcome("completed", None, 10, 1.0, {"loss": 0.25})) == float("inf")  # no validation data
+    assert (
+        objective(Outcome("completed", None, 10, 1.0, {"loss": 0.25, "validation_loss": 0.5}))
+        == 0.5
+    )
+    assert objective(Outcome("completed", None, 10, 1.0, {"loss": 0.25})) == float(
+        "inf"
+    )  # no validation data
     for status in ("diverged", "refused", "failed"):
-        assert objective(Outcome(status, "why", 10, 1.0, {"loss": 0.25, "validation_loss": 0.5})) == float("inf")
+        assert objective(
+            Outcome(status, "why", 10, 1.0, {"loss": 0.25, "validation_loss": 0.5})
+        ) == float("inf")
 
 
 def test_every_seed_of_a_job_is_logged(tmp_path):

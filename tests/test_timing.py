@@ -1,5 +1,6 @@
-"""The calibrated clock, the contention flag and the machine a result was measured on: slow steps are injected
-by replacing the runner's clock, at random instants, and the calibrated time must not move."""
+"""The calibrated clock, the contention flag and the machine a result was measured on: slow steps
+are injected by replacing the runner's clock, at random instants, and the calibrated time must not
+move."""
 
 import numpy as np
 import pytest
@@ -15,8 +16,8 @@ COST = 0.01
 
 
 class LoadedClock(SimulatedClock):
-    """SimulatedClock whose steps are slowed `factor` times at the given step numbers (another process taking
-    the cores for a while)."""
+    """SimulatedClock whose steps are slowed `factor` times at the given step numbers (another
+    process taking the cores for a while)."""
 
     def __init__(self, monkeypatch, slow_steps, factor=20.0):
         super().__init__(monkeypatch, step=COST)
@@ -46,16 +47,20 @@ def quiet_load(monkeypatch):
 
 
 def run_toy(tmp_path, *overrides):
-    outcome, path = run_experiment(load("task=toy", "trainer.eval_every=100000", "trainer.flush_seconds=1",
-                                        *overrides), tmp_path)
+    outcome, path = run_experiment(
+        load("task=toy", "trainer.eval_every=100000", "trainer.flush_seconds=1", *overrides),
+        tmp_path,
+    )
     return outcome, read_run(path)
 
 
 @pytest.mark.parametrize("instants", range(6))
-def test_slow_steps_flag_the_run_and_leave_the_calibrated_time_unchanged(tmp_path, monkeypatch, quiet_load,
-                                                                         instants):
-    """15% of the steps 20 times slower, at random instants: on the calibrated clock the run stops at the same
-    iteration with the same calibrated times as a run without them, its measured time grows, and it is flagged."""
+def test_slow_steps_flag_the_run_and_leave_the_calibrated_time_unchanged(
+    tmp_path, monkeypatch, quiet_load, instants
+):
+    """15% of the steps 20 times slower, at random instants: on the calibrated clock the run stops
+    at the same iteration with the same calibrated times as a run without them, its measured time
+    grows, and it is flagged."""
     budget = ["trainer.time_budget=4", "trainer.step_cost=0.01", "trainer.clock=calibrated"]
     SimulatedClock(monkeypatch, step=COST)
     quiet_outcome, quiet = run_toy(tmp_path / "quiet", *budget)
@@ -69,8 +74,12 @@ def test_slow_steps_flag_the_run_and_leave_the_calibrated_time_unchanged(tmp_pat
     assert quiet_outcome.iterations == loaded_outcome.iterations == 400  # 4 s / 0.01 s per step
     assert quiet.attrs["stopped_by"] == loaded.attrs["stopped_by"] == "time_budget"
     np.testing.assert_array_equal(quiet.train["calibrated_time"], loaded.train["calibrated_time"])
-    np.testing.assert_allclose(loaded.train["calibrated_time"], COST * np.arange(1, 401), rtol=1e-12)
-    np.testing.assert_array_equal(quiet.eval["iteration"], loaded.eval["iteration"])  # evaluations by the budget's clock
+    np.testing.assert_allclose(
+        loaded.train["calibrated_time"], COST * np.arange(1, 401), rtol=1e-12
+    )
+    np.testing.assert_array_equal(
+        quiet.eval["iteration"], loaded.eval["iteration"]
+    )  # evaluations by the budget's clock
     np.testing.assert_array_equal(quiet.eval["calibrated_time"], loaded.eval["calibrated_time"])
     assert loaded.train["wall_time"][-1] > quiet.train["wall_time"][-1] + 50 * COST * 19 * 0.9
     assert quiet.attrs["contended"] == 0 and "contention" not in quiet.attrs
@@ -81,7 +90,8 @@ def test_slow_steps_flag_the_run_and_leave_the_calibrated_time_unchanged(tmp_pat
 
 
 def test_on_the_measured_clock_slow_steps_cost_iterations(tmp_path, monkeypatch, quiet_load):
-    """The measured clock is the default: the same slow steps end the run earlier, and the run is flagged."""
+    """The measured clock is the default: the same slow steps end the run earlier, and the run is
+    flagged."""
     LoadedClock(monkeypatch, range(1, 400, 5))
     outcome, run = run_toy(tmp_path, "trainer.time_budget=4")
     assert outcome.iterations < 400 and run.attrs["contended"] == 1
@@ -89,9 +99,15 @@ def test_on_the_measured_clock_slow_steps_cost_iterations(tmp_path, monkeypatch,
 
 
 def test_a_few_slow_steps_or_a_short_run_are_not_contention():
-    assert contention(step_statistics([COST] * 95 + [20 * COST] * 5), 100, 0.5, 0.5, 2) == ""  # p90 unaffected
-    assert contention(step_statistics([COST, 20 * COST] * 5), 10, 0.5, 0.5, 2) == ""  # too few steps to judge
-    assert "p90/p50" in contention(step_statistics([COST] * 80 + [20 * COST] * 20), 100, 0.5, 0.5, 2)
+    assert (
+        contention(step_statistics([COST] * 95 + [20 * COST] * 5), 100, 0.5, 0.5, 2) == ""
+    )  # p90 unaffected
+    assert (
+        contention(step_statistics([COST, 20 * COST] * 5), 10, 0.5, 0.5, 2) == ""
+    )  # too few steps to judge
+    assert "p90/p50" in contention(
+        step_statistics([COST] * 80 + [20 * COST] * 20), 100, 0.5, 0.5, 2
+    )
     # sub-millisecond steps jitter by fractions of a millisecond on a quiet machine: not contention
     assert contention(step_statistics([3e-4] * 80 + [6e-4] * 20), 100, 0.5, 0.5, 2) == ""
     # a step whose cost depends on the data (a line search) is judged by the load alone
@@ -100,10 +116,13 @@ def test_a_few_slow_steps_or_a_short_run_are_not_contention():
     assert "load average" in contention(spread, 100, 3.5, 0.5, 2, static_cost=False)
 
 
-@pytest.mark.parametrize("load_start, load_end, flagged", [(0.3, 1.9, False), (3.2, 1.0, True), (0.1, 3.0, True),
-                                                          (float("nan"), float("nan"), False)])
+@pytest.mark.parametrize(
+    "load_start, load_end, flagged",
+    [(0.3, 1.9, False), (3.2, 1.0, True), (0.1, 3.0, True), (float("nan"), float("nan"), False)],
+)
 def test_an_oversubscribed_machine_is_contention(load_start, load_end, flagged):
-    """The load average less the run's own process reaching the cores (2): two CPU-bound processes beside it."""
+    """The load average less the run's own process reaching the cores (2): two CPU-bound processes
+    beside it."""
     why = contention(step_statistics([COST] * 100), 100, load_start, load_end, 2)
     assert bool(why) == flagged and (not flagged or "load average" in why)
 
@@ -119,13 +138,30 @@ def test_the_load_average_is_read_at_the_start_and_the_end(tmp_path, monkeypatch
 
 def test_every_file_records_the_machine_and_the_software(tmp_path):
     _, run = run_toy(tmp_path, "trainer.iterations=25")
-    for key in ("cpu_model", "cpu_count", "device", "thread_settings", "jax_version", "jaxlib_version",
-                "physgrad_version", "git_commit", "load_start", "load_end", "step_seconds_p50", "step_seconds_p90",
-                "step_seconds_p99", "contended"):
+    for key in (
+        "cpu_model",
+        "cpu_count",
+        "device",
+        "thread_settings",
+        "jax_version",
+        "jaxlib_version",
+        "physgrad_version",
+        "git_commit",
+        "load_start",
+        "load_end",
+        "step_seconds_p50",
+        "step_seconds_p90",
+        "step_seconds_p99",
+        "contended",
+    ):
         assert key in run.attrs, key
     assert run.attrs["cpu_count"] >= 1 and run.attrs["device"] == "cpu"
-    assert run.attrs["step_seconds_p10"] <= run.attrs["step_seconds_p50"] <= run.attrs["step_seconds_p90"] \
+    assert (
+        run.attrs["step_seconds_p10"]
+        <= run.attrs["step_seconds_p50"]
+        <= run.attrs["step_seconds_p90"]
         <= run.attrs["step_seconds_p99"]
+    )
     assert machine_label(run.attrs).endswith(f"({run.attrs['cpu_count']} cores)")
     assert machine_label({}) == "unknown machine"
 
@@ -138,11 +174,15 @@ def test_the_calibrated_clock_needs_a_step_cost(tmp_path):
 
 
 def test_the_calibration_ranks_real_steps_by_their_cost():
-    """Two configurations interleaved in one process: a Jacobian rule's step costs more than Adam's on the same
-    scene (about 9 to 26 times on the 2-core machine, quiet or beside a 2-core job), both timed in every round."""
+    """Two configurations interleaved in one process: a Jacobian rule's step costs more than Adam's
+    on the same scene (about 9 to 26 times on the 2-core machine, quiet or beside a 2-core job),
+    both timed in every round."""
     from physgrad.comparison.calibration import calibrate
 
-    configs = {name: load("task=toy", f"optim={name}", "trainer.batch_size=64") for name in ("adam", "gauss_newton")}
+    configs = {
+        name: load("task=toy", f"optim={name}", "trainer.batch_size=64")
+        for name in ("adam", "gauss_newton")
+    }
     result = calibrate(configs, seed=0, rounds=40, min_seconds=0.5, max_seconds=60)
     costs = {name: c["step_seconds"] for name, c in result["costs"].items()}
     assert costs["gauss_newton"] > costs["adam"] > 0
@@ -152,10 +192,11 @@ def test_the_calibration_ranks_real_steps_by_their_cost():
 
 @pytest.mark.parametrize("delayed_bursts", [0, 1, 3])
 def test_delays_in_a_few_rounds_leave_the_calibrated_cost_where_it_is(monkeypatch, delayed_bursts):
-    """On a simulated clock (steps of 1 ms and 12 ms, exact): 50 ms of other work in the first step of
-    `delayed_bursts` of every ten bursts of the slow step leaves its cost at 12 ms, the 0.2 quantile over
-    rounds reading the undelayed ones; in nine of ten it is the delayed cost (the injection is seen where it is
-    the rule, so the first case is not a blind clock). The same number of delays whatever the machine's load."""
+    """On a simulated clock (steps of 1 ms and 12 ms, exact): 50 ms of other work in the first step
+    of `delayed_bursts` of every ten bursts of the slow step leaves its cost at 12 ms, the 0.2
+    quantile over rounds reading the undelayed ones; in nine of ten it is the delayed cost (the
+    injection is seen where it is the rule, so the first case is not a blind clock). The same number
+    of delays whatever the machine's load."""
     import types
 
     import physgrad.timing
@@ -175,11 +216,16 @@ def test_delays_in_a_few_rounds_leave_the_calibrated_cost_where_it_is(monkeypatc
                         clock["now"] += 0.05
                 clock["fast_ran"] = clock["fast_ran"] or name == "fast"
                 clock["now"] += costs[name]
+
             return (None,) * 6 + (step,)
 
         monkeypatch.setattr(physgrad.timing, "compiled_step", fake_compiled)
-        monkeypatch.setattr(physgrad.timing, "time", types.SimpleNamespace(perf_counter=lambda: clock["now"]))
-        result = calibrate({"fast": "fast", "slow": "slow"}, seed=0, rounds=40, min_seconds=0.5, max_seconds=60)
+        monkeypatch.setattr(
+            physgrad.timing, "time", types.SimpleNamespace(perf_counter=lambda: clock["now"])
+        )
+        result = calibrate(
+            {"fast": "fast", "slow": "slow"}, seed=0, rounds=40, min_seconds=0.5, max_seconds=60
+        )
         return result["costs"], clock["delays"]
 
     plain, none = calibrated(0)
@@ -187,10 +233,16 @@ def test_delays_in_a_few_rounds_leave_the_calibrated_cost_where_it_is(monkeypatc
     assert plain["fast"]["burst_steps"] == round(BURST_SECONDS / 0.001)
     assert plain["slow"]["burst_steps"] == -(-BURST_SECONDS // 0.012)
     assert plain["slow"]["rounds"] == plain["fast"]["rounds"] >= 40
-    assert plain["slow"]["step_seconds"] == pytest.approx(0.012) and plain["fast"]["step_seconds"] == pytest.approx(0.001)
+    assert plain["slow"]["step_seconds"] == pytest.approx(0.012) and plain["fast"][
+        "step_seconds"
+    ] == pytest.approx(0.001)
     costs, delays = calibrated(delayed_bursts)
     assert delays >= costs["slow"]["rounds"] * delayed_bursts // 10 - 1
-    assert costs["slow"]["step_seconds"] == pytest.approx(0.012) and costs["fast"]["step_seconds"] == pytest.approx(0.001)
+    assert costs["slow"]["step_seconds"] == pytest.approx(0.012) and costs["fast"][
+        "step_seconds"
+    ] == pytest.approx(0.001)
     costs, delays = calibrated(9)
     # (the probe that sizes the bursts sees the delays too, so the bursts are shorter there)
-    assert costs["slow"]["step_seconds"] == pytest.approx(0.012 + 0.05 / costs["slow"]["burst_steps"])
+    assert costs["slow"]["step_seconds"] == pytest.approx(
+        0.012 + 0.05 / costs["slow"]["burst_steps"]
+    )

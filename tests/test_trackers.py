@@ -1,6 +1,6 @@
-"""The `logger` group: TensorBoard, MLflow and Weights & Biases (offline) receive each results file of a job as
-one run, read back here with the libraries' own readers (W&B's offline log with a reader of its record format);
-a failing tracker is a warning, never the run."""
+"""The `logger` group: TensorBoard, MLflow and Weights & Biases (offline) receive each results file
+of a job as one run, read back here with the libraries' own readers (W&B's offline log with a reader
+of its record format); a failing tracker is a warning, never the run."""
 
 import struct
 from pathlib import Path
@@ -12,7 +12,13 @@ from physgrad.results import read_run
 from physgrad.trackers import MLflow, TensorBoard, WandB, track
 from tests.helpers import load
 
-TINY = ("task=toy", "task.test_size=8", "trainer.batch_size=4", "trainer.iterations=4", "trainer.eval_every=2")
+TINY = (
+    "task=toy",
+    "task.test_size=8",
+    "trainer.batch_size=4",
+    "trainer.iterations=4",
+    "trainer.eval_every=2",
+)
 
 
 @pytest.fixture(scope="module")
@@ -26,8 +32,11 @@ def job(tmp_path_factory):
 
 
 def same_series(logged, steps, values) -> bool:
-    """(step, value) pairs against the file's columns: steps exactly, values to float32 (TensorBoard's)."""
-    return [s for s, _ in logged] == list(steps) and [v for _, v in logged] == pytest.approx(list(values), rel=1e-6)
+    """(step, value) pairs against the file's columns: steps exactly, values to float32
+    (TensorBoard's)."""
+    return [s for s, _ in logged] == list(steps) and [v for _, v in logged] == pytest.approx(
+        list(values), rel=1e-6
+    )
 
 
 def test_tensorboard_gets_every_column_of_every_seed(job, tmp_path):
@@ -37,7 +46,9 @@ def test_tensorboard_gets_every_column_of_every_seed(job, tmp_path):
     track([TensorBoard(save_dir=str(tmp_path / "tb"))], paths, folder)
     for path in paths:
         run = read_run(path)
-        events = EventAccumulator(str(tmp_path / "tb" / f"{folder.name}" / f"seed={run.attrs['seed']}"))
+        events = EventAccumulator(
+            str(tmp_path / "tb" / f"{folder.name}" / f"seed={run.attrs['seed']}")
+        )
         events.Reload()
         logged = [(e.step, e.value) for e in events.Scalars("eval/loss")]
         assert same_series(logged, run.eval["iteration"].tolist(), run.eval["loss"].tolist())
@@ -56,17 +67,25 @@ def test_mlflow_gets_a_finished_run_with_params_metrics_and_tags(job, tmp_path):
     assert len(runs) == 2 and {r.info.status for r in runs} == {"FINISHED"}
     for tracked in runs:
         run = read_run(tracked.data.tags["results"])
-        assert tracked.data.params["optim.learning_rate"] == str(run.config["optim"]["learning_rate"])
-        assert tracked.data.tags["seed"] == str(run.attrs["seed"]) and tracked.data.tags["variant"] == "adam"
+        assert tracked.data.params["optim.learning_rate"] == str(
+            run.config["optim"]["learning_rate"]
+        )
+        assert (
+            tracked.data.tags["seed"] == str(run.attrs["seed"])
+            and tracked.data.tags["variant"] == "adam"
+        )
         history = client.get_metric_history(tracked.info.run_id, "train/loss")
-        assert same_series([(m.step, m.value) for m in sorted(history, key=lambda m: m.step)],
-                           run.train["iteration"].tolist(), run.train["loss"].tolist())
+        assert same_series(
+            [(m.step, m.value) for m in sorted(history, key=lambda m: m.step)],
+            run.train["iteration"].tolist(),
+            run.train["loss"].tolist(),
+        )
 
 
 def wandb_records(path: Path):
-    """The protobuf records of a W&B offline log (run-*.wandb): a 7-byte header (':W&B', a 2-byte magic, a
-    version), then 32 KiB blocks of chunks, each a 7-byte header (CRC32, length, type: 1 full, 2 first,
-    3 middle, 4 last) and its bytes."""
+    """The protobuf records of a W&B offline log (run-*.wandb): a 7-byte header (':W&B', a 2-byte
+    magic, a version), then 32 KiB blocks of chunks, each a 7-byte header (CRC32, length, type: 1
+    full, 2 first, 3 middle, 4 last) and its bytes."""
     from wandb.proto import wandb_internal_pb2
 
     data, block, records, pending = path.read_bytes(), 32 * 1024, [], b""
@@ -77,8 +96,8 @@ def wandb_records(path: Path):
         if left < 7:  # the rest of a block too short for a header is padding
             position += left
             continue
-        _, length, kind = struct.unpack("<IHB", data[position:position + 7])
-        chunk = data[position + 7:position + 7 + length]
+        _, length, kind = struct.unpack("<IHB", data[position : position + 7])
+        chunk = data[position + 7 : position + 7 + length]
         position += 7 + length
         if kind == 0 and length == 0:
             continue
@@ -95,14 +114,25 @@ def test_wandb_offline_run_holds_the_history_and_the_config(job, tmp_path):
 
     folder, paths = job
     track([WandB(dir=str(tmp_path))], paths[:1], folder)  # whole on disk when it returns
-    log, = tmp_path.glob("wandb/offline-run-*/run-*.wandb")
+    (log,) = tmp_path.glob("wandb/offline-run-*/run-*.wandb")
     records = wandb_records(log)
-    history = [{item.key or "/".join(item.nested_key): json.loads(item.value_json) for item in r.history.item}
-               for r in records if r.WhichOneof("record_type") == "history"]
+    history = [
+        {
+            item.key or "/".join(item.nested_key): json.loads(item.value_json)
+            for item in r.history.item
+        }
+        for r in records
+        if r.WhichOneof("record_type") == "history"
+    ]
     run = read_run(paths[0])
     eval_loss = [(h["_step"], h["eval/loss"]) for h in history if "eval/loss" in h]
     assert same_series(eval_loss, run.eval["iteration"].tolist(), run.eval["loss"].tolist())
-    keys = {item.key for r in records if r.WhichOneof("record_type") == "run" for item in r.run.config.update}
+    keys = {
+        item.key
+        for r in records
+        if r.WhichOneof("record_type") == "run"
+        for item in r.run.config.update
+    }
     assert "optim.learning_rate" in keys and "trainer.iterations" in keys
     assert any(r.WhichOneof("record_type") == "exit" and r.exit.exit_code == 0 for r in records)
 
@@ -124,7 +154,16 @@ def test_the_logger_group_runs_every_tracker_once_per_job_of_a_sweep(tmp_path, m
     from physgrad.cli import main
 
     monkeypatch.chdir(tmp_path)
-    code = main(["run", "-m", *TINY, "optim=adam,gd", "logger=many", f"hydra.sweep.dir={tmp_path / 'sweep'}"])
+    code = main(
+        [
+            "run",
+            "-m",
+            *TINY,
+            "optim=adam,gd",
+            "logger=many",
+            f"hydra.sweep.dir={tmp_path / 'sweep'}",
+        ]
+    )
     assert code == 0
     assert len(list((tmp_path / "sweep").glob("*/tensorboard/events.out.tfevents.*"))) == 2
     client = MlflowClient(f"sqlite:///{tmp_path / 'outputs' / 'mlflow.db'}")
@@ -137,7 +176,19 @@ def test_a_logger_entry_that_cannot_be_built_is_one_line(tmp_path, capsys):
     from physgrad.cli import main
 
     with pytest.raises(SystemExit) as leaving:
-        main(["run", *TINY, "logger=tensorboard", "+logger.tensorboard.flush_secs=3", f"hydra.run.dir={tmp_path}"])
+        main(
+            [
+                "run",
+                *TINY,
+                "logger=tensorboard",
+                "+logger.tensorboard.flush_secs=3",
+                f"hydra.run.dir={tmp_path}",
+            ]
+        )
     assert leaving.value.code == 2
     err = capsys.readouterr().err.strip().splitlines()
-    assert len(err) == 1 and "logger.tensorboard.flush_secs is not a setting of physgrad.trackers.TensorBoard" in err[0]
+    assert (
+        len(err) == 1
+        and "logger.tensorboard.flush_secs is not a setting of physgrad.trackers.TensorBoard"
+        in err[0]
+    )

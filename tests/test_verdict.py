@@ -1,6 +1,6 @@
-"""The verdict rule (physgrad.verdict) on synthetic data with known answers: clear wins, identical variants,
-non-monotone curves, NaN and blow-ups without NaN, the budget edge, Holm's correction, and the error rates of
-the rule itself under the null and under a known effect."""
+"""The verdict rule (physgrad.verdict) on synthetic data with known answers: clear wins, identical
+variants, non-monotone curves, NaN and blow-ups without NaN, the budget edge, Holm's correction, and
+the error rates of the rule itself under the null and under a known effect."""
 
 import math
 
@@ -8,14 +8,29 @@ import numpy as np
 import pytest
 
 from physgrad.readout import Curve, target_loss
-from physgrad.verdict import (A_BETTER, B_BETTER, EQUIVALENT, LOG_CAP, UNDECIDED, compare_variants, decide,
-                              divergence_test, holm, log_ratio, paired, seeds_needed)
+from physgrad.verdict import (
+    A_BETTER,
+    B_BETTER,
+    EQUIVALENT,
+    LOG_CAP,
+    UNDECIDED,
+    compare_variants,
+    decide,
+    divergence_test,
+    holm,
+    log_ratio,
+    paired,
+    seeds_needed,
+)
 
 SEEDS = range(10)
 
 
-def flat_curves(finals: dict[int, float], budget: float = 100.0, start: float = 1.0) -> dict[int, Curve]:
-    """Per seed a curve that falls linearly from `start` to its final loss, evaluated every 10 % of the budget."""
+def flat_curves(
+    finals: dict[int, float], budget: float = 100.0, start: float = 1.0
+) -> dict[int, Curve]:
+    """Per seed a curve that falls linearly from `start` to its final loss, evaluated every 10 % of
+    the budget."""
     x = np.linspace(0, budget, 11)
     return {s: Curve(x, np.linspace(start, final, 11), budget) for s, final in finals.items()}
 
@@ -37,27 +52,36 @@ def test_two_identical_variants_are_equivalent_never_better():
     rng = np.random.default_rng(2)
     base = np.exp(rng.normal(0, 0.5, 10))
     a = {s: base[s] * math.exp(rng.normal(0, 0.01)) for s in SEEDS}
-    (result,) = compare_variants({"A": flat_curves(a), "B": flat_curves(dict(enumerate(base)))}, 100.0)
+    (result,) = compare_variants(
+        {"A": flat_curves(a), "B": flat_curves(dict(enumerate(base)))}, 100.0
+    )
     assert result.verdict == EQUIVALENT
     exact = paired(list(base), list(base))  # bit-identical runs: every log ratio 0
     assert decide(exact, exact.p_difference, exact.p_equivalent)[0] == EQUIVALENT
 
 
 def test_a_difference_at_the_margin_is_undecided_and_a_small_one_equivalent():
-    """10 % better with 5 % run noise: different in every seed, but neither clearly beyond the 10 % margin nor
-    within it; 5 % better with 1 % noise: level within 10 %."""
+    """10 % better with 5 % run noise: different in every seed, but neither clearly beyond the 10 %
+    margin nor within it; 5 % better with 1 % noise: level within 10 %."""
     rng = np.random.default_rng(3)
     base = np.exp(rng.normal(0, 0.5, 10))
     edge = {s: base[s] / 1.1 * math.exp(rng.normal(0, 0.05)) for s in SEEDS}
-    (result,) = compare_variants({"A": flat_curves(edge), "B": flat_curves(dict(enumerate(base)))}, 100.0)
-    assert result.verdict == UNDECIDED and "not by 10%" in result.verdicts[1.0][1], result.verdicts[1.0]
+    (result,) = compare_variants(
+        {"A": flat_curves(edge), "B": flat_curves(dict(enumerate(base)))}, 100.0
+    )
+    assert result.verdict == UNDECIDED and "not by 10%" in result.verdicts[1.0][1], result.verdicts[
+        1.0
+    ]
     small = {s: 0.95 * base[s] * math.exp(rng.normal(0, 0.01)) for s in SEEDS}
-    (result,) = compare_variants({"A": flat_curves(small), "B": flat_curves(dict(enumerate(base)))}, 100.0)
+    (result,) = compare_variants(
+        {"A": flat_curves(small), "B": flat_curves(dict(enumerate(base)))}, 100.0
+    )
     assert result.verdict == EQUIVALENT
 
 
 def test_the_loss_at_the_budget_is_the_last_evaluation_not_the_best_so_far():
-    """Non-monotone: A dips to 0.1 halfway and ends at 2.0; B ends at 1.0: B is better at the budget."""
+    """Non-monotone: A dips to 0.1 halfway and ends at 2.0; B ends at 1.0: B is better at the
+    budget."""
     x = np.array([0, 25, 50, 75, 100.0])
     a = {s: Curve(x, np.array([3.0, 1.0, 0.1, 1.5, 2.0]) * (1 + 0.01 * s), 100.0) for s in SEEDS}
     b = {s: Curve(x, np.array([3.0, 2.0, 1.5, 1.2, 1.0]) * (1 + 0.01 * s), 100.0) for s in SEEDS}
@@ -77,7 +101,9 @@ def test_the_step_that_crosses_a_time_budget_counts_against_its_variant():
 def test_a_nan_held_out_loss_counts_as_diverged_and_keeps_its_pair():
     x = np.linspace(0, 100, 11)
     a = flat_curves({s: 0.5 for s in SEEDS})
-    a[3] = Curve(x, np.r_[np.linspace(1, 0.5, 10), np.nan], 100.0)  # status completed, NaN loss at the end
+    a[3] = Curve(
+        x, np.r_[np.linspace(1, 0.5, 10), np.nan], 100.0
+    )  # status completed, NaN loss at the end
     b = flat_curves({s: 1.0 for s in SEEDS})
     (result,) = compare_variants({"A": a, "B": b}, 100.0)
     p = result.at[1.0]
@@ -103,8 +129,9 @@ def test_a_run_that_ended_early_without_diverging_leaves_its_pair_out():
 
 
 def test_a_median_or_interval_next_to_a_divergence_is_not_a_ratio_of_e500():
-    """10 seeds, B diverged in 5: the median averages a diverged pair with a finite one; it and the interval ends
-    that do so are reported as the divergence (ratio 0), the others as finite ratios."""
+    """10 seeds, B diverged in 5: the median averages a diverged pair with a finite one; it and the
+    interval ends that do so are reported as the divergence (ratio 0), the others as finite
+    ratios."""
     a = [0.5] * 10
     b = [math.inf] * 5 + [1.0] * 5
     p = paired(a, b)
@@ -113,23 +140,29 @@ def test_a_median_or_interval_next_to_a_divergence_is_not_a_ratio_of_e500():
 
 
 def test_a_median_halfway_between_a_divergence_and_a_tie_is_the_divergence():
-    """6 seeds: B diverged in 3 where A did not, both diverged in 3: the median averages -LOG_CAP with 0 to exactly
-    -LOG_CAP / 2, which is the divergence boundary, not a ratio of e^-500."""
+    """6 seeds: B diverged in 3 where A did not, both diverged in 3: the median averages -LOG_CAP
+    with 0 to exactly -LOG_CAP / 2, which is the divergence boundary, not a ratio of e^-500."""
     p = paired([0.5] * 3 + [math.inf] * 3, [math.inf] * 6)
     assert p.median == -LOG_CAP and p.ratio == 0.0
     p = paired([math.inf] * 3 + [0.5] * 3, [0.5] * 3 + [math.inf] * 3)
-    assert p.median == 0.0 and p.ratio == 1.0  # ties of +-LOG_CAP: the median is an even split, not a boundary
+    assert (
+        p.median == 0.0 and p.ratio == 1.0
+    )  # ties of +-LOG_CAP: the median is an even split, not a boundary
 
 
 def test_the_lowest_and_highest_median_targets():
-    """The lowest median is the best group's typical loss, the highest the worst finite one; a group diverged in
-    most runs has no finite median and sets neither; NaN (missing) losses are left out; none finite: NaN."""
+    """The lowest median is the best group's typical loss, the highest the worst finite one; a group
+    diverged in most runs has no finite median and sets neither; NaN (missing) losses are left out;
+    none finite: NaN."""
     from physgrad.readout import highest_median, lowest_median
 
     losses = {"A": [0.1, 0.2, 0.3, math.nan], "B": [0.4, 0.5, 0.6], "C": [math.inf, math.inf, 0.01]}
     assert lowest_median(losses) == ("A", pytest.approx(0.2))
     assert highest_median(losses) == ("B", pytest.approx(0.5))
-    assert highest_median({"A": [1.0, 2.0], "B": [2.0, 1.0]}) == ("A", 1.5)  # a tie: the first group
+    assert highest_median({"A": [1.0, 2.0], "B": [2.0, 1.0]}) == (
+        "A",
+        1.5,
+    )  # a tie: the first group
     for rule in (lowest_median, highest_median):
         name, value = rule({"C": [math.inf, 1.0, math.inf], "D": [math.nan]})
         assert name == "" and math.isnan(value)
@@ -150,48 +183,79 @@ def test_holm_against_hand_computed_values():
 
 
 def test_the_signed_rank_p_value_is_scipys_with_ties_zeros_and_divergences():
-    """The vectorised exact sign-flip enumeration against scipy.stats.wilcoxon's own (zero_method 'zsplit') on
-    log ratios with ties, zeros and +-LOG_CAP, and without, up to 15 pairs (beyond 13 scipy alone decides); and the
-    closed form: n distinct positive ratios have P(W+ >= observed) = 2^-n."""
+    """The vectorised exact sign-flip enumeration against scipy.stats.wilcoxon's own (zero_method
+    'zsplit') on log ratios with ties, zeros and +-LOG_CAP, and without, up to 15 pairs (beyond 13
+    scipy alone decides); and the closed form: n distinct positive ratios have P(W+ >= observed) =
+    2^-n."""
     from scipy.stats import wilcoxon
 
     from physgrad.verdict import _wilcoxon
 
     rng = np.random.default_rng(5)
-    for trial in range(12):  # scipy's own enumeration is the slow one: ties at up to 9 pairs, 1 to 15 without
-        r = (rng.choice([-LOG_CAP, -1.0, -0.5, 0.0, 0.5, 1.0, 2.0, LOG_CAP], int(rng.integers(2, 10))) if trial % 2
-             else rng.normal(0.3, 1.0, int(rng.integers(2, 16))))
+    for trial in range(
+        12
+    ):  # scipy's own enumeration is the slow one: ties at up to 9 pairs, 1 to 15 without
+        r = (
+            rng.choice(
+                [-LOG_CAP, -1.0, -0.5, 0.0, 0.5, 1.0, 2.0, LOG_CAP], int(rng.integers(2, 10))
+            )
+            if trial % 2
+            else rng.normal(0.3, 1.0, int(rng.integers(2, 16)))
+        )
         if not np.any(r):
             continue
         for alternative in ("less", "greater"):
             assert _wilcoxon(r, alternative) == pytest.approx(
-                wilcoxon(r, zero_method="zsplit", alternative=alternative).pvalue, rel=1e-12, abs=1e-15), (r, alternative)
+                wilcoxon(r, zero_method="zsplit", alternative=alternative).pvalue,
+                rel=1e-12,
+                abs=1e-15,
+            ), (r, alternative)
     for n in (2, 5, 10, 13):
-        assert _wilcoxon(np.arange(1.0, n + 1), "greater") == pytest.approx(2.0 ** -n, rel=1e-12)
+        assert _wilcoxon(np.arange(1.0, n + 1), "greater") == pytest.approx(2.0**-n, rel=1e-12)
         assert _wilcoxon(np.arange(1.0, n + 1), "less") == pytest.approx(1.0, rel=1e-12)
 
 
 def test_too_few_seeds_are_undecided_whatever_the_data():
     assert [seeds_needed(0.05, m) for m in (1, 3, 6)] == [6, 7, 8]
     few = {s: 0.5 for s in range(6)}
-    results = compare_variants({"A": flat_curves(few), "B": flat_curves({s: 1.0 for s in range(6)}),
-                                "C": flat_curves({s: 2.0 for s in range(6)})}, 100.0)
-    assert all(r.verdict == UNDECIDED and "at least 7 needed" in r.verdicts[1.0][1] for r in results)
+    results = compare_variants(
+        {
+            "A": flat_curves(few),
+            "B": flat_curves({s: 1.0 for s in range(6)}),
+            "C": flat_curves({s: 2.0 for s in range(6)}),
+        },
+        100.0,
+    )
+    assert all(
+        r.verdict == UNDECIDED and "at least 7 needed" in r.verdicts[1.0][1] for r in results
+    )
 
 
 def test_the_trend_is_reported_in_both_directions():
     x = np.array([0, 50, 100.0])
-    closing = compare_variants({"A": {s: Curve(x, np.array([1, 0.1, 0.8]), 100.0) for s in SEEDS},
-                                "B": {s: Curve(x, np.array([1, 1.0, 1.0]), 100.0) for s in SEEDS}}, 100.0)[0]
-    opening = compare_variants({"A": {s: Curve(x, np.array([1, 0.8, 0.1]), 100.0) for s in SEEDS},
-                                "B": {s: Curve(x, np.array([1, 1.0, 1.0]), 100.0) for s in SEEDS}}, 100.0)[0]
+    closing = compare_variants(
+        {
+            "A": {s: Curve(x, np.array([1, 0.1, 0.8]), 100.0) for s in SEEDS},
+            "B": {s: Curve(x, np.array([1, 1.0, 1.0]), 100.0) for s in SEEDS},
+        },
+        100.0,
+    )[0]
+    opening = compare_variants(
+        {
+            "A": {s: Curve(x, np.array([1, 0.8, 0.1]), 100.0) for s in SEEDS},
+            "B": {s: Curve(x, np.array([1, 1.0, 1.0]), 100.0) for s in SEEDS},
+        },
+        100.0,
+    )[0]
     assert closing.trend == "gap narrowing" and opening.trend == "gap widening"
 
 
 def test_holm_runs_over_the_comparisons_of_one_study():
     rng = np.random.default_rng(4)
-    curves = {name: flat_curves({s: f * math.exp(rng.normal(0, 0.02)) for s in SEEDS})
-              for name, f in (("A", 0.5), ("B", 1.0), ("C", 2.0))}
+    curves = {
+        name: flat_curves({s: f * math.exp(rng.normal(0, 0.02)) for s in SEEDS})
+        for name, f in (("A", 0.5), ("B", 1.0), ("C", 2.0))
+    }
     results = compare_variants(curves, 100.0)
     assert [(r.a, r.b) for r in results] == [("A", "B"), ("A", "C"), ("B", "C")]
     raw = [r.at[1.0].p_difference for r in results]
@@ -200,8 +264,9 @@ def test_holm_runs_over_the_comparisons_of_one_study():
 
 
 def test_error_rates_of_the_rule_under_the_null_and_under_a_known_effect():
-    """Simulated studies of 10 paired seeds with log-normal seed and run noise: identical variants are called
-    different in at most alpha of them; a variant 30 % better (run noise 10 %) is found in almost all."""
+    """Simulated studies of 10 paired seeds with log-normal seed and run noise: identical variants
+    are called different in at most alpha of them; a variant 30 % better (run noise 10 %) is found
+    in almost all."""
     rng = np.random.default_rng(5)
     false_calls, found = 0, 0
     trials = 200
@@ -218,7 +283,9 @@ def test_error_rates_of_the_rule_under_the_null_and_under_a_known_effect():
 
 
 def test_divergence_counts_and_the_target():
-    assert divergence_test(0, 10, 10, 10) < 1e-4 and divergence_test(3, 10, 3, 10) == pytest.approx(1.0)
+    assert divergence_test(0, 10, 10, 10) < 1e-4 and divergence_test(3, 10, 3, 10) == pytest.approx(
+        1.0
+    )
     curves = {"A": flat_curves({s: 0.2 for s in SEEDS}), "B": flat_curves({s: 0.5 for s in SEEDS})}
     assert target_loss(curves, 100.0) == ("A", pytest.approx(0.2))
     assert curves["B"][0].reaches(0.2, 100.0) == math.inf
@@ -226,12 +293,14 @@ def test_divergence_counts_and_the_target():
     assert curves["A"][0].reaches(0.5, 100.0) == pytest.approx(70.0)
 
 
-# --- trend claims: the advantage grows from the easy setting to the hard one -----------------------------------
+# --- trend claims: the advantage grows from the easy setting to the hard one
+# -----------------------------------
 
 
 def test_an_advantage_that_grows_is_found_and_a_uniform_one_is_not():
-    """A/B is 0.9 at the easy end and 0.3 at the hard end (run noise 10%): grows, by about 3x; the same 0.5 at
-    both ends (a uniform advantage, which a test of the hard end alone would pass): does not grow."""
+    """A/B is 0.9 at the easy end and 0.3 at the hard end (run noise 10%): grows, by about 3x; the
+    same 0.5 at both ends (a uniform advantage, which a test of the hard end alone would pass): does
+    not grow."""
     from physgrad.verdict import DOES_NOT_GROW, GROWS, interaction
 
     rng = np.random.default_rng(11)
@@ -240,7 +309,9 @@ def test_an_advantage_that_grows_is_found_and_a_uniform_one_is_not():
     result = interaction(easy, hard)
     assert result.verdict == GROWS and result.p < 0.01
     assert result.factor == pytest.approx(1 / 3, rel=0.15) and result.high < -math.log(1.1)
-    uniform = interaction(np.log(0.5) + rng.normal(0, 0.1, 10), np.log(0.5) + rng.normal(0, 0.1, 10))
+    uniform = interaction(
+        np.log(0.5) + rng.normal(0, 0.1, 10), np.log(0.5) + rng.normal(0, 0.1, 10)
+    )
     assert uniform.verdict == DOES_NOT_GROW and uniform.low > -math.log(1.1)
     reversed_ = interaction(hard, easy)  # the advantage shrinks
     assert reversed_.verdict == DOES_NOT_GROW and reversed_.difference > 0
@@ -251,15 +322,24 @@ def test_a_trend_with_few_pairs_missing_pairs_or_wide_noise_is_undecided():
 
     rng = np.random.default_rng(12)
     few = interaction(np.zeros(4), np.full(4, -2.0))  # a large effect, but 4 pairs at the easy end
-    assert few.verdict == UNDECIDED and few.pairs_easy == 4 and few.difference == pytest.approx(-2.0)
-    with_nan = interaction([0.0, math.nan, *rng.normal(0, 0.05, 8)], [-1.0, math.nan, *(-1 + rng.normal(0, 0.05, 8))])
-    assert with_nan.pairs_easy == 9 and with_nan.pairs_hard == 9 and with_nan.factor == pytest.approx(math.exp(-1), rel=0.1)
+    assert (
+        few.verdict == UNDECIDED and few.pairs_easy == 4 and few.difference == pytest.approx(-2.0)
+    )
+    with_nan = interaction(
+        [0.0, math.nan, *rng.normal(0, 0.05, 8)], [-1.0, math.nan, *(-1 + rng.normal(0, 0.05, 8))]
+    )
+    assert (
+        with_nan.pairs_easy == 9
+        and with_nan.pairs_hard == 9
+        and with_nan.factor == pytest.approx(math.exp(-1), rel=0.1)
+    )
     noisy = interaction(rng.normal(0, 2.0, 8), -0.3 + rng.normal(0, 2.0, 8))
     assert noisy.verdict == UNDECIDED and noisy.low < -math.log(1.1) < noisy.high
 
 
 def test_a_diverged_baseline_at_the_hard_end_counts_as_a_growing_advantage():
-    """B diverged in every seed at the hard end (log ratio -LOG_CAP): the advantage is as large as it gets."""
+    """B diverged in every seed at the hard end (log ratio -LOG_CAP): the advantage is as large as
+    it gets."""
     from physgrad.verdict import GROWS, interaction
 
     rng = np.random.default_rng(13)
@@ -268,15 +348,22 @@ def test_a_diverged_baseline_at_the_hard_end_counts_as_a_growing_advantage():
 
 
 def test_the_trend_rule_under_the_null_calls_growth_rarely_and_finds_a_known_one():
-    """200 simulated pairs of settings, 10 seeds each, seed noise 30% on the log ratio: no trend is called
-    "grows" in at most alpha of them; a halving of A/B at the hard end is found in most."""
+    """200 simulated pairs of settings, 10 seeds each, seed noise 30% on the log ratio: no trend is
+    called "grows" in at most alpha of them; a halving of A/B at the hard end is found in most."""
     from physgrad.verdict import GROWS, interaction
 
     rng = np.random.default_rng(14)
     false_calls = found = 0
     for trial in range(200):
-        false_calls += interaction(rng.normal(-0.2, 0.3, 10), rng.normal(-0.2, 0.3, 10), seed=trial).verdict == GROWS
-        found += interaction(rng.normal(-0.2, 0.3, 10), rng.normal(-0.2 - math.log(2), 0.3, 10),
-                             seed=trial).verdict == GROWS
+        false_calls += (
+            interaction(rng.normal(-0.2, 0.3, 10), rng.normal(-0.2, 0.3, 10), seed=trial).verdict
+            == GROWS
+        )
+        found += (
+            interaction(
+                rng.normal(-0.2, 0.3, 10), rng.normal(-0.2 - math.log(2), 0.3, 10), seed=trial
+            ).verdict
+            == GROWS
+        )
     assert false_calls / 200 <= 0.05
     assert found / 200 >= 0.7

@@ -1,8 +1,9 @@
 """An inverted pendulum on a motor: a closed-loop controller must catch it and hold it upright.
 
-theta = 0 is upright; theta'' = (g / l) sin(theta) - damping * theta' + torque. Semi-implicit Euler with step dt.
-Start: theta and theta' uniform in [-0.6, 0.6]. The physical output y is the final state (theta, theta'), and the
-per-sample loss |y|^2: zero when the pendulum ends upright and at rest.
+theta = 0 is upright; theta'' = (g / l) sin(theta) - damping * theta' + torque. Semi-implicit Euler
+with step dt. Start: theta and theta' uniform in [-0.6, 0.6]. The physical output y is the final
+state (theta, theta'), and the per-sample loss |y|^2: zero when the pendulum ends upright and at
+rest.
 """
 
 import jax
@@ -35,8 +36,13 @@ def build(key, *, gravity, length, damping, dt, unroll, hidden, train_size, test
         init_params=lambda k: init_mlp(k, [2, *hidden, 1], dtype),
         train_set=starts(train_key, train_size),
         test_set=starts(test_key, test_size),
-        dynamics=Dynamics(step=step, policy=policy, initial=lambda sample: sample["state"], unroll=unroll,
-                          closed_loop=True),
-        sample_loss=lambda y, sample: jnp.sum(y ** 2),
+        dynamics=Dynamics(
+            step=step,
+            policy=policy,
+            initial=lambda sample: sample["state"],
+            unroll=unroll,
+            closed_loop=True,
+        ),
+        sample_loss=lambda y, sample: jnp.sum(y**2),
         sample_metrics=lambda params, sample, y: {"upright": (jnp.abs(y[0]) < 0.1).astype(dtype)},
     )

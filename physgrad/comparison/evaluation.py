@@ -1,34 +1,46 @@
-"""Phase 2 of a study: each variant at its best trial's settings on compare.seeds paired seeds (trained together
-in one vectorised step when the budget is in iterations; one job per seed, variants interleaved, for time
-budgets)."""
+"""Phase 2 of a study: each variant at its best trial's settings on compare.seeds paired seeds
+(trained together in one vectorised step when the budget is in iterations; one job per seed,
+variants interleaved, for time budgets)."""
 
 from __future__ import annotations
 
 from physgrad.comparison.jobs import cadence, job_runs, job_yaml, launch
-from physgrad.optim.capabilities import batches_over_seeds
-from physgrad.readout import run_curve
 from physgrad.comparison.spec import StudySettings
 from physgrad.errors import UserError
+from physgrad.optim.capabilities import batches_over_seeds
+from physgrad.readout import run_curve
 
 
-def evaluation_jobs(variants, best, settings: StudySettings, common, groups, axis, budget) -> dict[str, str]:
-    """The evaluation's jobs in launch order: per variant one job of all seeds trained together when the budget
-    is in iterations (one per seed where the rule's float64 retry does not batch or init_from starts each seed
-    from its own network, e.g. init_from='start/seed=${seed}/results.h5'); for time budgets one job per
-    seed, variants interleaved (A, B, C for the first seed, then the next), so that a drift in the machine's
-    load does not line up with a variant."""
+def evaluation_jobs(
+    variants, best, settings: StudySettings, common, groups, axis, budget
+) -> dict[str, str]:
+    """The evaluation's jobs in launch order: per variant one job of all seeds trained together when
+    the budget is in iterations (one per seed where the rule's float64 retry does not batch or
+    init_from starts each seed from its own network, e.g.
+    init_from='start/seed=${seed}/results.h5'); for time budgets one job per seed, variants
+    interleaved (A, B, C for the first seed, then the next), so that a drift in the machine's load
+    does not line up with a variant."""
     seeds = settings.evaluation_seeds
     jobs = {}
 
     def spec(variant, seed, count):
         values = {f"optim.{k}": v for k, v in best[variant.name].items()}
-        values.update({"seed": seed, "seeds": count, **cadence(variant.config, axis, budget), **variant.job_values})
+        values.update(
+            {
+                "seed": seed,
+                "seeds": count,
+                **cadence(variant.config, axis, budget),
+                **variant.job_values,
+            }
+        )
         return job_yaml([*common, *variant.overrides], groups, values)
 
     if axis == "iteration":
         for index, variant in enumerate(variants):
             # a float64 retry does not batch under vmap, and init_from starts one network per job
-            if (not batches_over_seeds(variant.config.optim) or variant.config.get("init_from")) and len(seeds) > 1:
+            if (
+                not batches_over_seeds(variant.config.optim) or variant.config.get("init_from")
+            ) and len(seeds) > 1:
                 jobs.update({f"eval_v{index}_s{seed}": spec(variant, seed, 1) for seed in seeds})
             else:
                 jobs[f"eval_v{index}"] = spec(variant, seeds[0], len(seeds))
@@ -39,10 +51,21 @@ def evaluation_jobs(variants, best, settings: StudySettings, common, groups, axi
     return jobs
 
 
-def evaluation(folder, variants, best, settings: StudySettings, common, groups, axis, budget, config_dir,
-               hydra_args, say):
-    """Phase 2: every variant at its tuned settings on the paired evaluation seeds; (curves, runs) per variant
-    and seed."""
+def evaluation(
+    folder,
+    variants,
+    best,
+    settings: StudySettings,
+    common,
+    groups,
+    axis,
+    budget,
+    config_dir,
+    hydra_args,
+    say,
+):
+    """Phase 2: every variant at its tuned settings on the paired evaluation seeds; (curves, runs)
+    per variant and seed."""
     jobs = evaluation_jobs(variants, best, settings, common, groups, axis, budget)
     code = launch(folder, "eval", jobs, config_dir, hydra_args, say)
     if code == 130:
@@ -54,7 +77,9 @@ def evaluation(folder, variants, best, settings: StudySettings, common, groups, 
             if name == f"eval_v{index}" or name.startswith(f"eval_v{index}_s"):
                 for run in job_runs(folder / "eval", name):
                     if run.attrs.get("status") == "refused":
-                        raise UserError(f"variant {variant.name} is refused: {run.attrs.get('reason')}")
+                        raise UserError(
+                            f"variant {variant.name} is refused: {run.attrs.get('reason')}"
+                        )
                     seed = run.attrs.get("seed")
                     if isinstance(seed, int):
                         curves[variant.name][seed] = run_curve(run, axis)

@@ -8,18 +8,22 @@ import numpy as np
 
 
 def plot_sensitivity(path: Path, variants, trials_rows, best) -> None:
-    """Validation loss at the budget against the learning rate, one panel per variant: every trial, the chosen
-    one starred, the preset as a dashed line, diverged trials as crosses at the top."""
+    """Validation loss at the budget against the learning rate, one panel per variant: every trial,
+    the chosen one starred, the preset as a dashed line, diverged trials as crosses at the top."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    columns = min(len(variants), 3)  # at most three panels a row: six variants are two rows, not one strip
+    columns = min(
+        len(variants), 3
+    )  # at most three panels a row: six variants are two rows, not one strip
     panel_rows = -(-len(variants) // columns)
-    fig, grid = plt.subplots(panel_rows, columns, figsize=(3.6 * columns, 3.2 * panel_rows), squeeze=False)
-    axes = [list(grid.ravel()[:len(variants)])]
-    for ax in grid.ravel()[len(variants):]:
+    fig, grid = plt.subplots(
+        panel_rows, columns, figsize=(3.6 * columns, 3.2 * panel_rows), squeeze=False
+    )
+    axes = [list(grid.ravel()[: len(variants)])]
+    for ax in grid.ravel()[len(variants) :]:
         ax.remove()
     for ax, variant in zip(axes[0], variants):
         rows = [r for r in trials_rows if r["variant"] == variant.name]
@@ -33,8 +37,15 @@ def plot_sensitivity(path: Path, variants, trials_rows, best) -> None:
             ax.scatter(lr[~ok], np.full((~ok).sum(), top), marker="x", color="C3", label="diverged")
         if rate in best[variant.name]:
             chosen = [r for r in rows if r.get(rate) == best[variant.name][rate]]
-            ax.scatter([best[variant.name][rate]], [chosen[0]["validation_loss"]], marker="*", s=140,
-                       color="C1", label="chosen", zorder=3)
+            ax.scatter(
+                [best[variant.name][rate]],
+                [chosen[0]["validation_loss"]],
+                marker="*",
+                s=140,
+                color="C1",
+                label="chosen",
+                zorder=3,
+            )
         preset = variant.preset.get(rate)
         if isinstance(preset, (int, float)):
             ax.axvline(preset, ls="--", color="0.4", label="preset")
@@ -50,7 +61,14 @@ def plot_sensitivity(path: Path, variants, trials_rows, best) -> None:
     for ax in axes[0]:  # one legend for all panels, below them, off the data
         for handle, label in zip(*ax.get_legend_handles_labels()):
             legend.setdefault(label, handle)
-    fig.legend(legend.values(), legend.keys(), loc="lower center", ncol=len(legend), fontsize=8, frameon=False)
+    fig.legend(
+        legend.values(),
+        legend.keys(),
+        loc="lower center",
+        ncol=len(legend),
+        fontsize=8,
+        frameon=False,
+    )
     fig.tight_layout(rect=(0, 0.07 / panel_rows, 1, 1))
     for suffix in (".png", ".pdf"):
         fig.savefig(path.with_suffix(suffix), dpi=130)

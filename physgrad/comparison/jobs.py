@@ -1,5 +1,5 @@
-"""A study's jobs as config files, run as Hydra multiruns of `physgrad run` into the study folder, and read back;
-and the study folder itself (which study it holds)."""
+"""A study's jobs as config files, run as Hydra multiruns of `physgrad run` into the study folder,
+and read back; and the study folder itself (which study it holds)."""
 
 from __future__ import annotations
 
@@ -11,16 +11,17 @@ import subprocess
 import sys
 from pathlib import Path
 
-
 from physgrad.errors import UserError
 from physgrad.interrupts import SignalInterrupt, take_lost
 
-# what does not make a study another: its folder, Hydra's settings, and the number of trials (a finished study
-# given more trials tunes on from where it stopped: the Halton points of n trials begin with those of fewer)
+# what does not make a study another: its folder, Hydra's settings, and the number of trials (a
+# finished study given more trials tunes on from where it stopped: the Halton points of n trials
+# begin with those of fewer)
 NOT_THE_STUDY = ("compare.dir", "compare.trials", "hydra")
 
 
-# --- the study folder --------------------------------------------------------------------------------------
+# --- the study folder
+# --------------------------------------------------------------------------------------
 
 
 def same_study(record: dict | None):
@@ -28,21 +29,31 @@ def same_study(record: dict | None):
     if not isinstance(record, dict):
         return None
     overrides = record.get("overrides")
-    return ([o for o in overrides if not str(o).startswith(NOT_THE_STUDY)] if isinstance(overrides, list) else None,
-            record.get("config_dir"))
+    return (
+        [o for o in overrides if not str(o).startswith(NOT_THE_STUDY)]
+        if isinstance(overrides, list)
+        else None,
+        record.get("config_dir"),
+    )
 
 
 def default_folder(overrides: list[str], config_dir: str | None, task: str) -> Path:
-    text = json.dumps([sorted(o for o in overrides if not o.startswith(NOT_THE_STUDY)),
-                       os.path.abspath(config_dir) if config_dir else None])
+    text = json.dumps(
+        [
+            sorted(o for o in overrides if not o.startswith(NOT_THE_STUDY)),
+            os.path.abspath(config_dir) if config_dir else None,
+        ]
+    )
     return Path("outputs") / "compare" / f"{task}-{hashlib.sha1(text.encode()).hexdigest()[:8]}"
 
 
 def record_study(folder: Path, overrides: list[str], config_dir: str | None) -> None:
-    """The study's command in folder/study.json; a folder that holds another study is a UserError (the same
-    study given more trials is the same study: its record is updated)."""
-    record = {"overrides": [o for o in overrides if not o.startswith(("compare.dir", "hydra"))],
-              "config_dir": os.path.abspath(config_dir) if config_dir else None}
+    """The study's command in folder/study.json; a folder that holds another study is a UserError
+    (the same study given more trials is the same study: its record is updated)."""
+    record = {
+        "overrides": [o for o in overrides if not o.startswith(("compare.dir", "hydra"))],
+        "config_dir": os.path.abspath(config_dir) if config_dir else None,
+    }
     stored = folder / "study.json"
     if stored.exists():
         try:
@@ -50,13 +61,17 @@ def record_study(folder: Path, overrides: list[str], config_dir: str | None) -> 
         except (OSError, ValueError):
             before = None
         if same_study(before) != same_study(record):
-            raise UserError(f"{folder} holds another study ({' '.join((before or {}).get('overrides', ['?']))}): "
-                            "give another compare.dir")
+            raise UserError(
+                f"{folder} holds another study "
+                f"({' '.join((before or {}).get('overrides', ['?']))}): "
+                "give another compare.dir"
+            )
     if not stored.exists() or before != record:  # new, or the same study given more trials
         stored.write_text(json.dumps(record, indent=1) + "\n")
 
 
-# --- jobs as config files ---------------------------------------------------------------------------------
+# --- jobs as config files
+# ---------------------------------------------------------------------------------
 
 
 def _nested(values: dict) -> dict:
@@ -71,8 +86,9 @@ def _nested(values: dict) -> dict:
 
 
 def job_yaml(overrides: list[str], groups: set, values: dict) -> str:
-    """One job as a config file appended to the run config (+compare_job=NAME): the group choices among the
-    overrides as `override /group: option`, every other override and `values` as keys (packaged _global_)."""
+    """One job as a config file appended to the run config (+compare_job=NAME): the group choices
+    among the overrides as `override /group: option`, every other override and `values` as keys
+    (packaged _global_)."""
     from hydra.core.override_parser.overrides_parser import OverridesParser
     from omegaconf import OmegaConf
 
@@ -91,19 +107,21 @@ def job_yaml(overrides: list[str], groups: set, values: dict) -> str:
 
 
 def cadence(cfg, axis: str, budget: float) -> dict:
-    """Evaluations fine enough to read the budget's quarters (time budgets: the runner's budget / 20)."""
+    """Evaluations fine enough to read the budget's quarters (time budgets: the runner's budget /
+    20)."""
     if axis == "iteration" and cfg.trainer.get("eval_every", 100) * 20 > budget:
         return {"trainer.eval_every": max(1, int(budget) // 20)}
     return {}
 
 
-# --- running ----------------------------------------------------------------------------------------------
+# --- running
+# ----------------------------------------------------------------------------------------------
 
 
 def launch(folder: Path, phase: str, jobs: dict[str, str], config_dir, hydra_args, say) -> int:
-    """Write the jobs' config files and run them as one multirun into folder/phase (a job that completed or
-    diverged before with the same config is skipped); its output goes to folder/<phase>.log. Returns the
-    multirun's exit status."""
+    """Write the jobs' config files and run them as one multirun into folder/phase (a job that
+    completed or diverged before with the same config is skipped); its output goes to
+    folder/<phase>.log. Returns the multirun's exit status."""
     configs = folder / "configs" / "compare_job"
     configs.mkdir(parents=True, exist_ok=True)
     for name, text in jobs.items():
@@ -115,12 +133,17 @@ def launch(folder: Path, phase: str, jobs: dict[str, str], config_dir, hydra_arg
     with open(folder / f"{phase}.log", "a") as log:
         log.write(f"\n$ {' '.join(command)}\n")
         log.flush()
-        lost = take_lost()  # a signal the interpreter dropped since the last phase (physgrad.interrupts)
+        lost = (
+            take_lost()
+        )  # a signal the interpreter dropped since the last phase (physgrad.interrupts)
         if lost is not None:
             raise SignalInterrupt(lost)
-        # its own session: a terminal's Ctrl-C reaches this process only, which passes it (or a SIGTERM) on once,
-        # so the sweep stops as a whole and records what it stopped (physgrad.sweeps)
-        process = subprocess.Popen(command, stdout=log, stderr=subprocess.STDOUT, start_new_session=True)
+        # its own session: a terminal's Ctrl-C reaches this process only, which passes it (or a
+        # SIGTERM) on once, so the sweep stops as a whole and records what it stopped
+        # (physgrad.sweeps)
+        process = subprocess.Popen(
+            command, stdout=log, stderr=subprocess.STDOUT, start_new_session=True
+        )
         received = []
 
         def forward(signum, frame):
@@ -141,9 +164,12 @@ def launch(folder: Path, phase: str, jobs: dict[str, str], config_dir, hydra_arg
         return code
 
 
-def multirun_command(folder: Path, phase: str, jobs: dict[str, str], config_dir, hydra_args) -> list[str]:
-    """`physgrad run -m` over the jobs' config files (+compare_job=a,b,...) into folder/phase, with the study's
-    config folder and Hydra overrides (a hydra.searchpath given is searched before the jobs' folder)."""
+def multirun_command(
+    folder: Path, phase: str, jobs: dict[str, str], config_dir, hydra_args
+) -> list[str]:
+    """`physgrad run -m` over the jobs' config files (+compare_job=a,b,...) into folder/phase, with
+    the study's config folder and Hydra overrides (a hydra.searchpath given is searched before the
+    jobs' folder)."""
     search = [f"file://{(folder / 'configs').resolve()}"]
     extra = []
     for arg in hydra_args:
@@ -153,9 +179,18 @@ def multirun_command(folder: Path, phase: str, jobs: dict[str, str], config_dir,
             search = searchpath_entries([arg]) + search
         else:
             extra.append(arg)
-    return [sys.executable, "-m", "physgrad", "run", "-m", *(["-cd", config_dir] if config_dir else []),
-            f"hydra.searchpath=[{','.join(search)}]", f"hydra.sweep.dir={folder / phase}", *extra,
-            "+compare_job=" + ",".join(jobs)]
+    return [
+        sys.executable,
+        "-m",
+        "physgrad",
+        "run",
+        "-m",
+        *(["-cd", config_dir] if config_dir else []),
+        f"hydra.searchpath=[{','.join(search)}]",
+        f"hydra.sweep.dir={folder / phase}",
+        *extra,
+        "+compare_job=" + ",".join(jobs),
+    ]
 
 
 def job_runs(sweep: Path, name: str) -> list:

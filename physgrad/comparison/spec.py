@@ -1,5 +1,5 @@
-"""What a study compares: its settings (compare.KEY=VALUE), its variants (the comma lists of the command line,
-each composed, with the search space of its tuning) and its budget."""
+"""What a study compares: its settings (compare.KEY=VALUE), its variants (the comma lists of the
+command line, each composed, with the search space of its tuning) and its budget."""
 
 from __future__ import annotations
 
@@ -12,25 +12,43 @@ from physgrad.readout import budget_of as budget_of_config
 from physgrad.verdict import ALPHA, MARGIN
 
 SETTINGS = {  # compare.<key>: default, meaning
-    "trials": (16, "tuning trials per variant (more on a finished study tunes on from where it stopped)"),
+    "trials": (
+        16,
+        "tuning trials per variant (more on a finished study tunes on from where it stopped)",
+    ),
     "seeds": (10, "paired evaluation seeds"),
     "seed": (0, "the first evaluation seed (seed .. seed + seeds - 1)"),
-    "tune_seed": (1_000_000, "the seed of every tuning trial (data, network, batches), disjoint from the evaluation seeds"),
+    "tune_seed": (
+        1_000_000,
+        "the seed of every tuning trial (data, network, batches), disjoint from the evaluation "
+        "seeds",
+    ),
     "margin": (MARGIN, "better means a loss ratio beyond this factor; equivalent means within it"),
     "alpha": (ALPHA, "the level of the tests after Holm's correction"),
     "dir": (None, "the study folder (default: outputs/compare/<task>-<hash of the command>)"),
-    "search": ({}, "search spaces: compare.search.<optim key>=[low,high] (log-uniform), for every variant with that key"),
+    "search": (
+        {},
+        "search spaces: compare.search.<optim key>=[low,high] (log-uniform), for every variant "
+        "with that key",
+    ),
     "tune": (True, "false: evaluate the variants at their configured settings without tuning"),
-    "clock": ("calibrated", "time budgets: calibrated (iterations x each variant's step cost measured in one "
-                            "interleaved calibration, immune to the machine's load) or measured (training seconds)"),
-    "calibration": (None, "a calibration.json to use instead of calibrating (e.g. one measured on a quiet machine)"),
+    "clock": (
+        "calibrated",
+        "time budgets: calibrated (iterations x each variant's step cost measured in one "
+        "interleaved calibration, immune to the machine's load) or measured (training seconds)",
+    ),
+    "calibration": (
+        None,
+        "a calibration.json to use instead of calibrating (e.g. one measured on a quiet machine)",
+    ),
 }
 PHASES = ("tune", "eval")
 
 
 @dataclass(frozen=True)
 class StudySettings:
-    """The compare.* settings of a study (SETTINGS gives each one's meaning and default), checked."""
+    """The compare.* settings of a study (SETTINGS gives each one's meaning and default),
+    checked."""
 
     trials: int
     seeds: int
@@ -61,7 +79,9 @@ class Variant:
     overrides: list[str]  # the variant's own overrides (key=value)
     config: object = None  # the composed config (common + variant overrides)
     space: dict = field(default_factory=dict)  # optim key -> (low, high), log-uniform
-    job_values: dict = field(default_factory=dict)  # settings every job of the variant gets (its step cost)
+    job_values: dict = field(
+        default_factory=dict
+    )  # settings every job of the variant gets (its step cost)
 
     @property
     def preset(self) -> dict:
@@ -75,9 +95,9 @@ class Variant:
 
 
 def learning_rate_key(optim_cfg) -> str | None:
-    """The optim key compare tunes: learning_rate, or learning_rate.init_value where the rate is a schedule
-    (e.g. _target_: optax.exponential_decay with init_value: the schedule's shape is kept, its scale tuned);
-    None if there is neither."""
+    """The optim key compare tunes: learning_rate, or learning_rate.init_value where the rate is a
+    schedule (e.g. _target_: optax.exponential_decay with init_value: the schedule's shape is kept,
+    its scale tuned); None if there is neither."""
     rate = optim_cfg.get("learning_rate")
     if rate is None:
         return None
@@ -86,7 +106,8 @@ def learning_rate_key(optim_cfg) -> str | None:
     return "learning_rate"
 
 
-# --- parsing the command line -----------------------------------------------------------------------------
+# --- parsing the command line
+# -----------------------------------------------------------------------------
 
 
 def parse_arguments(args: list[str]) -> tuple[list[str], str | None]:
@@ -101,14 +122,17 @@ def parse_arguments(args: list[str]) -> tuple[list[str], str | None]:
         elif arg.startswith("--config-dir="):
             config_dir = arg.split("=", 1)[1]
         elif arg.startswith("-"):
-            raise UserError(f"physgrad compare does not take {arg}: give overrides (key=value) and -cd DIR")
+            raise UserError(
+                f"physgrad compare does not take {arg}: give overrides (key=value) and -cd DIR"
+            )
         else:
             overrides.append(arg)
     return overrides, config_dir
 
 
 def split_overrides(overrides: list[str]) -> tuple[dict, list, list, list]:
-    """(compare settings, variant axes [(key, [values as override strings])], common overrides, hydra overrides)."""
+    """(compare settings, variant axes [(key, [values as override strings])], common overrides,
+    hydra overrides)."""
     from hydra.core.override_parser.overrides_parser import OverridesParser
     from hydra.errors import HydraException
 
@@ -120,16 +144,21 @@ def split_overrides(overrides: list[str]) -> tuple[dict, list, list, list]:
     for override in parsed:
         key = override.key_or_group
         if key.startswith("compare."):
-            _compare_setting(override, key[len("compare."):], settings)
+            _compare_setting(override, key[len("compare.") :], settings)
         elif key.startswith("hydra"):
             hydra_args.append(override.input_line)
         elif key in ("seed", "seeds"):
-            raise UserError(f"'{override.input_line}': compare sets the seeds itself: use compare.seeds=N (evaluation "
-                            "seeds), compare.seed=S (the first one) or compare.tune_seed=S (tuning)")
+            raise UserError(
+                f"'{override.input_line}': compare sets the seeds itself: use compare.seeds=N "
+                "(evaluation "
+                "seeds), compare.seed=S (the first one) or compare.tune_seed=S (tuning)"
+            )
         elif override.is_sweep_override():
             if override.is_interval_sweep() or override.is_range_sweep():
-                raise UserError(f"'{override.input_line}': list the variants (a,b,c); compare searches each "
-                                "variant's learning rate itself (compare.search)")
+                raise UserError(
+                    f"'{override.input_line}': list the variants (a,b,c); compare searches each "
+                    "variant's learning rate itself (compare.search)"
+                )
             prefix = "+" if override.is_add() else ""
             values = list(override.sweep_string_iterator())
             axes.append((key, [f"{prefix}{key}={value}" for value in values]))
@@ -147,12 +176,20 @@ def _compare_setting(override, name: str, settings: dict) -> None:
         raise UserError(f"unknown setting compare.{name} (choose from {', '.join(SETTINGS)})")
     if top == "search":
         value = override.value()
-        if name == "search" or not (isinstance(value, list) and len(value) == 2
-                                     and all(isinstance(v, (int, float)) and v > 0 for v in value)
-                                     and value[0] < value[1]):
-            raise UserError(f"{override.input_line}: give compare.search.<optim key>=[low,high] with "
-                            "0 < low < high (a log-uniform range)")
-        settings.setdefault("search", {})[name[len("search."):]] = (float(value[0]), float(value[1]))
+        if name == "search" or not (
+            isinstance(value, list)
+            and len(value) == 2
+            and all(isinstance(v, (int, float)) and v > 0 for v in value)
+            and value[0] < value[1]
+        ):
+            raise UserError(
+                f"{override.input_line}: give compare.search.<optim key>=[low,high] with "
+                "0 < low < high (a log-uniform range)"
+            )
+        settings.setdefault("search", {})[name[len("search.") :]] = (
+            float(value[0]),
+            float(value[1]),
+        )
     else:
         settings[top] = override.value()
 
@@ -176,16 +213,21 @@ def study_settings(given: dict) -> StudySettings:
     if not isinstance(settings.tune, bool):
         raise UserError(f"compare.tune={settings.tune!r}: use true or false")
     if settings.seed <= settings.tune_seed < settings.seed + settings.seeds:
-        raise UserError(f"compare.tune_seed={settings.tune_seed} is one of the evaluation seeds {settings.seed}.."
-                        f"{settings.seed + settings.seeds - 1}: tuning and evaluation seeds must differ")
+        raise UserError(
+            f"compare.tune_seed={settings.tune_seed} is one of the evaluation seeds "
+            f"{settings.seed}.."
+            f"{settings.seed + settings.seeds - 1}: tuning and evaluation seeds must differ"
+        )
     return settings
 
 
-# --- the variants ------------------------------------------------------------------------------------------
+# --- the variants
+# ------------------------------------------------------------------------------------------
 
 
 def variant_name(overrides: list[str]) -> str:
-    """adam; hig; bptt clip=norm: a group's choice by its value, a key by its last part and value."""
+    """adam; hig; bptt clip=norm: a group's choice by its value, a key by its last part and
+    value."""
     parts = []
     for override in overrides:
         key, _, value = override.lstrip("+").partition("=")
@@ -197,7 +239,9 @@ def build_variants(axes, common, settings: StudySettings, config_dirs) -> list[V
     from physgrad.configs import check_overrides, compose
 
     if not axes:
-        raise UserError("nothing to compare: list two or more variants, e.g. optim=adam,gauss_newton,hig")
+        raise UserError(
+            "nothing to compare: list two or more variants, e.g. optim=adam,gauss_newton,hig"
+        )
     variants = []
     for combo in itertools.product(*(values for _, values in axes)):
         overrides = list(combo)
@@ -206,20 +250,27 @@ def build_variants(axes, common, settings: StudySettings, config_dirs) -> list[V
         space = search_space(cfg.optim, settings) if settings.tune else {}
         variants.append(Variant(variant_name(overrides), overrides, cfg, space))
     if len(variants) < 2:
-        raise UserError("nothing to compare: list two or more variants, e.g. optim=adam,gauss_newton,hig")
+        raise UserError(
+            "nothing to compare: list two or more variants, e.g. optim=adam,gauss_newton,hig"
+        )
     names = [v.name for v in variants]
     if len(set(names)) < len(names):
-        raise UserError(f"two variants have the same name ({', '.join(names)}): give distinct values")
+        raise UserError(
+            f"two variants have the same name ({', '.join(names)}): give distinct values"
+        )
     return variants
 
 
 def search_space(optim_cfg, settings: StudySettings) -> dict:
-    """The tuned optim keys of a variant with their log-uniform ranges: its learning rate over its rule
-    family's range (physgrad.optim.capabilities), and every compare.search key its optim has."""
+    """The tuned optim keys of a variant with their log-uniform ranges: its learning rate over its
+    rule family's range (physgrad.optim.capabilities), and every compare.search key its optim
+    has."""
     rate = learning_rate_key(optim_cfg)
     if rate is None:
-        raise UserError(f"optim={optim_cfg.get('name')} has no learning_rate to tune (a number, or a schedule "
-                        "with init_value): add one to its YAML, or compare it untuned (compare.tune=false)")
+        raise UserError(
+            f"optim={optim_cfg.get('name')} has no learning_rate to tune (a number, or a schedule "
+            "with init_value): add one to its YAML, or compare it untuned (compare.tune=false)"
+        )
     space = {rate: capabilities(optim_cfg).search_range}
     for key, bounds in settings.search.items():
         if key in optim_cfg:
@@ -228,9 +279,9 @@ def search_space(optim_cfg, settings: StudySettings) -> dict:
 
 
 def check_variants_build(variants: list[Variant], seed: int) -> None:
-    """Every variant's run config checked and its scene and rule built as its jobs will (on the tuning seed), so
-    that a variant the scene refuses (a backprop mode on a scene without time, a bad setting) stops the study in
-    one line before anything trains."""
+    """Every variant's run config checked and its scene and rule built as its jobs will (on the
+    tuning seed), so that a variant the scene refuses (a backprop mode on a scene without time, a
+    bad setting) stops the study in one line before anything trains."""
     from omegaconf import open_dict
 
     from physgrad.experiment import check_config, prepare
@@ -246,8 +297,8 @@ def check_variants_build(variants: list[Variant], seed: int) -> None:
 
 
 def budget_of(cfg) -> tuple[str, float]:
-    """The study's budget from a variant's config (readout.budget_of, the runner's default iterations where
-    trainer.iterations is unset)."""
+    """The study's budget from a variant's config (readout.budget_of, the runner's default
+    iterations where trainer.iterations is unset)."""
     from physgrad.runner import DEFAULT_ITERATIONS
 
     return budget_of_config(cfg, DEFAULT_ITERATIONS)

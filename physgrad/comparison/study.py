@@ -1,17 +1,23 @@
-"""`physgrad compare`: which variant trains this scene best, tuned with equal budgets, decided on paired seeds.
+"""`physgrad compare`: which variant trains this scene best, tuned with equal budgets, decided on
+paired seeds.
 
-    physgrad compare [-cd DIR] task=<scene> optim=adam,gauss_newton,hig [trainer.time_budget=60] [compare.KEY=V]
+    physgrad compare [-cd DIR] task=<scene> optim=adam,gauss_newton,hig [trainer.time_budget=60]
+    [compare.KEY=V]
 
-Every comma list on the command line is an axis of variants (their product, as in a Hydra multirun); every
-other override is common to all jobs. A study runs in three phases, each a Hydra multirun of `physgrad run`
-(so `hydra/launcher=...` applies) into the study folder, and resumes where it stopped when the same command
-runs again:
-1. tuning: compare.trials trials per variant, on the tuning seed, at the study's budget, over its search space
-   (log-uniform; scrambled Halton points, as AlgoPerf; an Optuna study per variant in tuning.journal); each trial
-   is scored by its VALIDATION loss at the budget;
-2. evaluation: each variant at its best trial's settings on compare.seeds paired seeds (trained together in one
-   vectorised step when the budget is in iterations; one job per seed, variants interleaved, for time budgets);
-3. the verdicts (physgrad.verdict) from the TEST loss: compare.md, trials.csv, runs.csv, comparisons.csv,
+Every comma list on the command line is an axis of variants (their product, as in a Hydra multirun);
+every other override is common to all jobs. A study runs in three phases, each a Hydra multirun of
+`physgrad run` (so `hydra/launcher=...` applies) into the study folder, and resumes where it stopped
+when the same command runs again:
+1. tuning: compare.trials trials per variant, on the tuning seed, at the study's budget, over its
+  search space
+   (log-uniform; scrambled Halton points, as AlgoPerf; an Optuna study per variant in
+   tuning.journal); each trial is scored by its VALIDATION loss at the budget;
+2. evaluation: each variant at its best trial's settings on compare.seeds paired seeds (trained
+  together in one
+   vectorised step when the budget is in iterations; one job per seed, variants interleaved, for
+   time budgets);
+3. the verdicts (physgrad.verdict) from the TEST loss: compare.md, trials.csv, runs.csv,
+  comparisons.csv,
    sensitivity.png and the sweep's report (figures of the curves) under report/.
 docs/protocol.md gives the protocol and its reasons.
 """
@@ -29,8 +35,15 @@ from physgrad.comparison.calibration import calibrated_clock
 from physgrad.comparison.evaluation import evaluation
 from physgrad.comparison.figure import plot_sensitivity
 from physgrad.comparison.jobs import default_folder, record_study
-from physgrad.comparison.spec import (SETTINGS, budget_of, build_variants, check_variants_build, parse_arguments,
-                                      split_overrides, study_settings)
+from physgrad.comparison.spec import (
+    SETTINGS,
+    budget_of,
+    build_variants,
+    check_variants_build,
+    parse_arguments,
+    split_overrides,
+    study_settings,
+)
 from physgrad.comparison.summary import analyse, trial_rows
 from physgrad.comparison.tuning import tuning
 from physgrad.errors import UserError
@@ -66,30 +79,65 @@ def run_study(overrides: list[str], config_dir: str | None = None, say=print) ->
     comparisons = len(variants) * (len(variants) - 1) // 2
     needed = seeds_needed(settings.alpha, comparisons)
     if settings.seeds < needed:
-        say(f"warning: {settings.seeds} seeds cannot decide {comparisons} comparisons at alpha {settings.alpha:g}: "
-            f"every verdict will be undecided (compare.seeds={needed} or more)")
+        say(
+            f"warning: {settings.seeds} seeds cannot decide {comparisons} comparisons at alpha "
+            f"{settings.alpha:g}: "
+            f"every verdict will be undecided (compare.seeds={needed} or more)"
+        )
     groups = set(first.hydra.runtime.choices.keys())
     axis, budget = budget_of(first)
-    folder = (Path(settings.dir) if settings.dir
-              else default_folder(overrides, config_dir, str(first.task.get("name"))))
+    folder = (
+        Path(settings.dir)
+        if settings.dir
+        else default_folder(overrides, config_dir, str(first.task.get("name")))
+    )
     folder.mkdir(parents=True, exist_ok=True)
     record_study(folder, overrides, config_dir)
     try:
         with own_folder(folder, "study"):
-            say(f"study {folder}: {len(variants)} variants ({', '.join(v.name for v in variants)}), budget "
-                f"{budget:g} {'iterations' if axis == 'iteration' else 's'}; the same command resumes it")
+            say(
+                f"study {folder}: {len(variants)} variants "
+                f"({', '.join(v.name for v in variants)}), budget "
+                f"{budget:g} {'iterations' if axis == 'iteration' else 's'}; the same command "
+                "resumes it"
+            )
             calibration = None
             if axis == "wall_time" and settings.clock == "calibrated":
-                calibration = calibrated_clock(folder, variants, settings.tune_seed, settings.calibration, say)
+                calibration = calibrated_clock(
+                    folder, variants, settings.tune_seed, settings.calibration, say
+                )
                 axis = "calibrated_time"
-            best = tuning(folder, variants, settings, common, groups, axis, budget, config_dir, hydra_args, say)
+            best = tuning(
+                folder,
+                variants,
+                settings,
+                common,
+                groups,
+                axis,
+                budget,
+                config_dir,
+                hydra_args,
+                say,
+            )
             rows = trial_rows(folder, variants)
             if rows:
                 plot_sensitivity(folder / "sensitivity", variants, rows, best)
-            curves, statuses = evaluation(folder, variants, best, settings, common, groups, axis, budget, config_dir,
-                                          hydra_args, say)
-            runs, comparisons, trials, verdicts, text = analyse(folder, variants, best, curves, statuses, settings,
-                                                                axis, budget, rows, calibration)
+            curves, statuses = evaluation(
+                folder,
+                variants,
+                best,
+                settings,
+                common,
+                groups,
+                axis,
+                budget,
+                config_dir,
+                hydra_args,
+                say,
+            )
+            runs, comparisons, trials, verdicts, text = analyse(
+                folder, variants, best, curves, statuses, settings, axis, budget, rows, calibration
+            )
             write_curves_report(folder, say)
     except FolderOwned as error:
         raise UserError(str(error)) from None
@@ -97,7 +145,8 @@ def run_study(overrides: list[str], config_dir: str | None = None, say=print) ->
 
 
 def write_curves_report(folder: Path, say) -> None:
-    """The sweep's report (figures of the evaluation curves) under folder/report; a failure is said, not raised."""
+    """The sweep's report (figures of the evaluation curves) under folder/report; a failure is said,
+    not raised."""
     try:
         from physgrad.report import write_report
 
@@ -122,10 +171,15 @@ def main(args: list[str]) -> int:
     try:
         study = run_study(overrides, config_dir)
     except KeyboardInterrupt:
-        print("physgrad compare: interrupted; run the same command again to resume", file=sys.stderr)
+        print(
+            "physgrad compare: interrupted; run the same command again to resume", file=sys.stderr
+        )
         return 130
     finally:
         signal.signal(signal.SIGTERM, previous)
     print(study.text)
-    print(f"wrote {study.folder / 'compare.md'}, trials.csv, runs.csv, comparisons.csv, sensitivity.png, report/")
+    print(
+        f"wrote {study.folder / 'compare.md'}, trials.csv, runs.csv, comparisons.csv, "
+        "sensitivity.png, report/"
+    )
     return 0

@@ -1,5 +1,5 @@
-"""Phase 3 of a study: the verdicts (physgrad.verdict) from the TEST loss, and what they are written to:
-compare.md, trials.csv, runs.csv and comparisons.csv."""
+"""Phase 3 of a study: the verdicts (physgrad.verdict) from the TEST loss, and what they are written
+to: compare.md, trials.csv, runs.csv and comparisons.csv."""
 
 from __future__ import annotations
 
@@ -28,10 +28,21 @@ def _ratio_text(p) -> str:
     return f"{fmt(p.ratio)} [{fmt(_exp(p.low))}, {fmt(_exp(p.high))}]"
 
 
-def analyse(folder: Path, variants, best, curves, statuses, settings: StudySettings, axis, budget, trials_rows,
-            calibration=None):
-    """The verdicts and tables of the evaluation runs, written to folder (trials.csv, runs.csv, comparisons.csv,
-    compare.md); returns (runs, comparisons, trials, verdicts, compare.md's text)."""
+def analyse(
+    folder: Path,
+    variants,
+    best,
+    curves,
+    statuses,
+    settings: StudySettings,
+    axis,
+    budget,
+    trials_rows,
+    calibration=None,
+):
+    """The verdicts and tables of the evaluation runs, written to folder (trials.csv, runs.csv,
+    comparisons.csv, compare.md); returns (runs, comparisons, trials, verdicts, compare.md's
+    text)."""
     import pandas as pd
 
     unit = _unit(axis)
@@ -53,8 +64,8 @@ def analyse(folder: Path, variants, best, curves, statuses, settings: StudySetti
 
 
 def run_rows(variants, curves, statuses, axis, budget, target) -> list[dict]:
-    """runs.csv: one row per evaluation run, with its test loss at each fraction of the budget and its time to
-    the target."""
+    """runs.csv: one row per evaluation run, with its test loss at each fraction of the budget and
+    its time to the target."""
     from physgrad.machine import machine_label
 
     unit = _unit(axis)
@@ -62,15 +73,27 @@ def run_rows(variants, curves, statuses, axis, budget, target) -> list[dict]:
     for variant in variants:
         for seed in sorted(curves[variant.name]):
             run = statuses[variant.name][seed]
-            row = {"variant": variant.name, "seed": seed, "axis": axis, "budget": budget, "status": run.attrs.get("status"),
-                   "stopped_by": run.attrs.get("stopped_by"), "iterations": run.final("train", "iteration") + 1,
-                   "train_seconds": run.final("train", "wall_time"),
-                   "calibrated_seconds": (run.final("train", "calibrated_time") if "calibrated_time" in run.train
-                                          else math.nan),
-                   "contended": bool(run.attrs.get("contended", 0)), "contention": run.attrs.get("contention", ""),
-                   "step_seconds_p50": run.attrs.get("step_seconds_p50", math.nan),
-                   "step_seconds_p90": run.attrs.get("step_seconds_p90", math.nan),
-                   "machine": machine_label(run.attrs), "path": str(run.path)}
+            row = {
+                "variant": variant.name,
+                "seed": seed,
+                "axis": axis,
+                "budget": budget,
+                "status": run.attrs.get("status"),
+                "stopped_by": run.attrs.get("stopped_by"),
+                "iterations": run.final("train", "iteration") + 1,
+                "train_seconds": run.final("train", "wall_time"),
+                "calibrated_seconds": (
+                    run.final("train", "calibrated_time")
+                    if "calibrated_time" in run.train
+                    else math.nan
+                ),
+                "contended": bool(run.attrs.get("contended", 0)),
+                "contention": run.attrs.get("contention", ""),
+                "step_seconds_p50": run.attrs.get("step_seconds_p50", math.nan),
+                "step_seconds_p90": run.attrs.get("step_seconds_p90", math.nan),
+                "machine": machine_label(run.attrs),
+                "path": str(run.path),
+            }
             for fraction in FRACTIONS:
                 row[f"test_loss_at_{fraction:g}"] = loss_at(run, budget * fraction, axis)
             row["diverged_by_budget"] = math.isinf(row["test_loss_at_1"])
@@ -85,115 +108,211 @@ def comparison_rows(verdicts, budget) -> list[dict]:
     for v in verdicts:
         for fraction in FRACTIONS:
             p = v.at[fraction]
-            rows.append({
-                "a": v.a, "b": v.b, "fraction": fraction, "budget": budget * fraction, "pairs": p.pairs,
-                "a_lower_in": p.wins_a, "missing": p.missing, "median_ratio": p.ratio,
-                "ci_low": _exp(p.low), "ci_high": _exp(p.high),
-                "p_difference_holm": v.p_difference[fraction], "p_equivalent_holm": v.p_equivalent[fraction],
-                "diverged_a": p.diverged_a, "diverged_b": p.diverged_b,
-                "p_divergence_fisher": divergence_test(p.diverged_a, p.pairs + p.missing, p.diverged_b,
-                                                       p.pairs + p.missing),
-                "verdict": v.verdicts[fraction][0], "why": v.verdicts[fraction][1]})
+            rows.append(
+                {
+                    "a": v.a,
+                    "b": v.b,
+                    "fraction": fraction,
+                    "budget": budget * fraction,
+                    "pairs": p.pairs,
+                    "a_lower_in": p.wins_a,
+                    "missing": p.missing,
+                    "median_ratio": p.ratio,
+                    "ci_low": _exp(p.low),
+                    "ci_high": _exp(p.high),
+                    "p_difference_holm": v.p_difference[fraction],
+                    "p_equivalent_holm": v.p_equivalent[fraction],
+                    "diverged_a": p.diverged_a,
+                    "diverged_b": p.diverged_b,
+                    "p_divergence_fisher": divergence_test(
+                        p.diverged_a, p.pairs + p.missing, p.diverged_b, p.pairs + p.missing
+                    ),
+                    "verdict": v.verdicts[fraction][0],
+                    "why": v.verdicts[fraction][1],
+                }
+            )
     return rows
 
 
 def verdict_lines(variants, runs, verdicts, settings: StudySettings, axis, budget) -> list[str]:
     """compare.md's title, the study's budget and rule, and its verdicts table."""
-    budget_text = {"wall_time": f"{budget:g} s of training (measured clock)",
-                   "calibrated_time": f"{budget:g} s of training on the calibrated clock (iterations x the variant's "
-                                      "calibrated step cost; the measured seconds are in runs.csv)",
-                   }.get(axis, f"{budget:g} iterations")
-    contended = {v.name: int(runs[runs.variant == v.name]["contended"].sum()) if len(runs) else 0
-                 for v in variants}
-    lines = [f"# Which gradient: {variants[0].config.task.get('name')}, {', '.join(v.name for v in variants)}", "",
-             f"Budget: {budget_text} per run. Tuning: {settings.trials if settings.tune else 0} trials per variant "
-             f"on seed {settings.tune_seed}, scored by the validation loss at the budget. Evaluation: seeds "
-             f"{settings.seed}..{settings.seed + settings.seeds - 1}, paired (same data and initial network), "
-             f"verdicts on the test loss. Rule: docs/protocol.md (margin {settings.margin:g}, alpha "
-             f"{settings.alpha:g}, Holm over {len(verdicts)} comparisons).", "",
-             "## Verdicts", "",
-             "| A vs B | verdict at the budget | median A/B [95% interval] | A lower in | verdict at 1/4, 1/2 | "
-             "stable | trend 1/2 -> 1 | diverged A, B | contended runs A, B |", "|---|---|---|---|---|---|---|---|---|"]
+    budget_text = {
+        "wall_time": f"{budget:g} s of training (measured clock)",
+        "calibrated_time": f"{budget:g} s of training on the calibrated clock (iterations x the "
+        "variant's "
+        "calibrated step cost; the measured seconds are in runs.csv)",
+    }.get(axis, f"{budget:g} iterations")
+    contended = {
+        v.name: int(runs[runs.variant == v.name]["contended"].sum()) if len(runs) else 0
+        for v in variants
+    }
+    lines = [
+        f"# Which gradient: {variants[0].config.task.get('name')}, "
+        f"{', '.join(v.name for v in variants)}",
+        "",
+        f"Budget: {budget_text} per run. Tuning: {settings.trials if settings.tune else 0} trials "
+        "per variant "
+        f"on seed {settings.tune_seed}, scored by the validation loss at the budget. Evaluation: "
+        "seeds "
+        f"{settings.seed}..{settings.seed + settings.seeds - 1}, paired (same data and initial "
+        "network), "
+        f"verdicts on the test loss. Rule: docs/protocol.md (margin {settings.margin:g}, alpha "
+        f"{settings.alpha:g}, Holm over {len(verdicts)} comparisons).",
+        "",
+        "## Verdicts",
+        "",
+        "| A vs B | verdict at the budget | median A/B [95% interval] | A lower in | verdict at "
+        "1/4, 1/2 | "
+        "stable | trend 1/2 -> 1 | diverged A, B | contended runs A, B |",
+        "|---|---|---|---|---|---|---|---|---|",
+    ]
     for v in verdicts:
         p = v.at[1.0]
-        flag = " (timing contended)" if axis == "wall_time" and (contended[v.a] or contended[v.b]) else ""
-        lines.append(f"| {v.a} vs {v.b} | **{v.verdict}**{flag} ({v.verdicts[1.0][1]}) | {_ratio_text(p)} | "
-                     f"{p.wins_a} of {p.pairs}{f' ({p.missing} missing)' if p.missing else ''} | "
-                     f"{v.verdicts[0.25][0]}, {v.verdicts[0.5][0]} | {'yes' if v.stable else 'no'} | {v.trend} | "
-                     f"{p.diverged_a}, {p.diverged_b} | {contended[v.a]}, {contended[v.b]} |")
+        flag = (
+            " (timing contended)"
+            if axis == "wall_time" and (contended[v.a] or contended[v.b])
+            else ""
+        )
+        lines.append(
+            f"| {v.a} vs {v.b} | **{v.verdict}**{flag} ({v.verdicts[1.0][1]}) | {_ratio_text(p)} | "
+            f"{p.wins_a} of {p.pairs}{f' ({p.missing} missing)' if p.missing else ''} | "
+            f"{v.verdicts[0.25][0]}, {v.verdicts[0.5][0]} | {'yes' if v.stable else 'no'} | "
+            f"{v.trend} | "
+            f"{p.diverged_a}, {p.diverged_b} | {contended[v.a]}, {contended[v.b]} |"
+        )
     return lines
 
 
 def variant_lines(variants, runs, best, unit, target_variant, target) -> list[str]:
-    """compare.md's variants table (tuned and preset settings, test loss at the budget, time to target) and the
-    target."""
-    lines = ["", "## Variants", "",
-             f"| variant | tuned | preset | test loss at the budget: median [min, max] | diverged | "
-             f"to target ({unit}): median, reached |", "|---|---|---|---|---|---|"]
+    """compare.md's variants table (tuned and preset settings, test loss at the budget, time to
+    target) and the target."""
+    lines = [
+        "",
+        "## Variants",
+        "",
+        f"| variant | tuned | preset | test loss at the budget: median [min, max] | diverged | "
+        f"to target ({unit}): median, reached |",
+        "|---|---|---|---|---|---|",
+    ]
     for variant in variants:
         sub = runs[runs.variant == variant.name] if len(runs) else runs
         losses = sub["test_loss_at_1"].to_numpy(float) if len(sub) else np.empty(0)
         present = losses[~np.isnan(losses)]
         reach = sub[f"to_target_{unit}"].to_numpy(float) if len(sub) else np.empty(0)
-        tuned = ", ".join(f"{k}={fmt(val)}" for k, val in best[variant.name].items()) or "as configured"
-        preset = ", ".join(f"{k}={fmt(float(val)) if isinstance(val, (int, float)) else val}"
-                           for k, val in variant.preset.items()) or "-"
-        spread = (f"{fmt(float(np.median(present)))} [{fmt(float(present.min()))}, {fmt(float(present.max()))}]"
-                  if present.size else "-")
-        lines.append(f"| {variant.name} | {tuned} | {preset} | {spread} | {int(np.isinf(present).sum())} of "
-                     f"{present.size} | {fmt(float(np.median(reach))) if reach.size else '-'}, "
-                     f"{int(np.isfinite(reach).sum())} of {reach.size} |")
-    lines += ["", f"Target: {fmt(target)}, the median test loss of {target_variant or '-'} (the lowest) at the "
-              "budget; a run that never reaches it counts as infinite. Losses at 1/4 and 1/2 of the budget and "
-              "per seed: runs.csv; every comparison at every fraction with its p-values: comparisons.csv; "
-              "trials: trials.csv and sensitivity.png; curves: report/."]
+        tuned = (
+            ", ".join(f"{k}={fmt(val)}" for k, val in best[variant.name].items()) or "as configured"
+        )
+        preset = (
+            ", ".join(
+                f"{k}={fmt(float(val)) if isinstance(val, (int, float)) else val}"
+                for k, val in variant.preset.items()
+            )
+            or "-"
+        )
+        spread = (
+            f"{fmt(float(np.median(present)))} [{fmt(float(present.min()))}, "
+            f"{fmt(float(present.max()))}]"
+            if present.size
+            else "-"
+        )
+        lines.append(
+            f"| {variant.name} | {tuned} | {preset} | {spread} | {int(np.isinf(present).sum())} of "
+            f"{present.size} | {fmt(float(np.median(reach))) if reach.size else '-'}, "
+            f"{int(np.isfinite(reach).sum())} of {reach.size} |"
+        )
+    lines += [
+        "",
+        f"Target: {fmt(target)}, the median test loss of {target_variant or '-'} (the lowest) at "
+        "the "
+        "budget; a run that never reaches it counts as infinite. Losses at 1/4 and 1/2 of the "
+        "budget and "
+        "per seed: runs.csv; every comparison at every fraction with its p-values: "
+        "comparisons.csv; "
+        "trials: trials.csv and sensitivity.png; curves: report/.",
+    ]
     return lines
 
 
 def timing_lines(variants, runs, axis, calibration) -> list[str]:
-    """compare.md's timing section: the clock, the calibration's step costs, contended runs, the machines."""
+    """compare.md's timing section: the clock, the calibration's step costs, contended runs, the
+    machines."""
     lines = ["", "## Timing", ""]
     if axis == "calibrated_time" and calibration:
-        lines += [f"Clock: calibrated. Step costs measured with every variant's compiled step interleaved in one "
-                  f"process (the {calibration['quantile']:g} quantile over rounds; load average "
-                  f"{calibration['load_start']:.2f} -> {calibration['load_end']:.2f}); a run's time is its "
-                  "iterations times its variant's cost, so the machine's load cannot change how far a variant "
-                  "gets. The measured clock: compare.clock=measured.", "",
-                  "| variant | calibrated step cost | median in the calibration | rounds | measured p50 in the runs "
-                  "| contended runs |", "|---|---|---|---|---|---|"]
+        lines += [
+            "Clock: calibrated. Step costs measured with every variant's compiled step "
+            "interleaved in one "
+            f"process (the {calibration['quantile']:g} quantile over rounds; load average "
+            f"{calibration['load_start']:.2f} -> {calibration['load_end']:.2f}); a run's time is "
+            "its "
+            "iterations times its variant's cost, so the machine's load cannot change how far a "
+            "variant "
+            "gets. The measured clock: compare.clock=measured.",
+            "",
+            "| variant | calibrated step cost | median in the calibration | rounds | measured p50 "
+            "in the runs "
+            "| contended runs |",
+            "|---|---|---|---|---|---|",
+        ]
         for variant in variants:
             cost = calibration["costs"][variant.name]
             sub = runs[runs.variant == variant.name] if len(runs) else runs
-            p50 = float(np.nanmedian(sub["step_seconds_p50"])) if len(sub) and sub["step_seconds_p50"].notna().any() \
+            p50 = (
+                float(np.nanmedian(sub["step_seconds_p50"]))
+                if len(sub) and sub["step_seconds_p50"].notna().any()
                 else math.nan
-            lines.append(f"| {variant.name} | {fmt(cost['step_seconds'])} s | {fmt(cost['median_seconds'])} s | "
-                         f"{cost['rounds']} | {fmt(p50)} s | {int(sub['contended'].sum()) if len(sub) else 0} of "
-                         f"{len(sub)} |")
+            )
+            lines.append(
+                f"| {variant.name} | {fmt(cost['step_seconds'])} s | "
+                f"{fmt(cost['median_seconds'])} s | "
+                f"{cost['rounds']} | {fmt(p50)} s | "
+                f"{int(sub['contended'].sum()) if len(sub) else 0} of "
+                f"{len(sub)} |"
+            )
         from physgrad.machine import contention
 
-        busy = contention({}, 0, calibration["load_start"], calibration["load_end"],
-                          int(calibration["machine"].get("cpu_count", 1)))
+        busy = contention(
+            {},
+            0,
+            calibration["load_start"],
+            calibration["load_end"],
+            int(calibration["machine"].get("cpu_count", 1)),
+        )
         if busy:
-            lines += ["", f"**Warning**: the calibration ran on a busy machine ({busy}): the step costs of the "
-                          "variants are not slowed alike by other work, so recalibrate on a quiet machine or give "
-                          "one with compare.calibration."]
+            lines += [
+                "",
+                f"**Warning**: the calibration ran on a busy machine ({busy}): the step costs of "
+                "the "
+                "variants are not slowed alike by other work, so recalibrate on a quiet machine "
+                "or give "
+                "one with compare.calibration.",
+            ]
     elif axis == "wall_time":
-        lines += ["Clock: measured (training seconds as timed). A run flagged contended (step times spread or the "
-                  "machine oversubscribed, docs/decisions.md) was slowed by other work: a verdict that uses one is "
-                  "marked. The calibrated clock is the default (compare.clock=calibrated)."]
+        lines += [
+            "Clock: measured (training seconds as timed). A run flagged contended (step times "
+            "spread or the "
+            "machine oversubscribed, docs/decisions.md) was slowed by other work: a verdict that "
+            "uses one is "
+            "marked. The calibrated clock is the default (compare.clock=calibrated)."
+        ]
     else:
         lines += ["Budget in iterations: the clock does not enter the verdicts."]
     machines = sorted(set(runs["machine"])) if len(runs) else []
     if len(machines) > 1:
-        lines += ["", f"**Warning**: the runs come from {len(machines)} machines ({'; '.join(machines)}): "
-                      "their times are not comparable."]
+        lines += [
+            "",
+            f"**Warning**: the runs come from {len(machines)} machines ({'; '.join(machines)}): "
+            "their times are not comparable.",
+        ]
     elif machines:
         lines += ["", f"Machine: {machines[0]}."]
     flagged = runs[runs.contended] if len(runs) else runs
     if len(flagged):
-        lines += ["", f"Contended runs: {len(flagged)} of {len(runs)} "
-                      f"(e.g. {flagged.iloc[0]['variant']} seed {flagged.iloc[0]['seed']}: "
-                      f"{flagged.iloc[0]['contention']})."]
+        lines += [
+            "",
+            f"Contended runs: {len(flagged)} of {len(runs)} "
+            f"(e.g. {flagged.iloc[0]['variant']} seed {flagged.iloc[0]['seed']}: "
+            f"{flagged.iloc[0]['contention']}).",
+        ]
     return lines
 
 
@@ -208,6 +327,13 @@ def trial_rows(folder: Path, variants) -> list[dict]:
     for variant in variants:
         study = optuna.load_study(study_name=variant.name, storage=storage)
         for t in study.trials:
-            rows.append({"variant": variant.name, "trial": t.number, **t.params,
-                         "validation_loss": t.value if t.value is not None else math.nan, "state": t.state.name})
+            rows.append(
+                {
+                    "variant": variant.name,
+                    "trial": t.number,
+                    **t.params,
+                    "validation_loss": t.value if t.value is not None else math.nan,
+                    "state": t.state.name,
+                }
+            )
     return rows

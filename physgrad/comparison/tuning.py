@@ -1,6 +1,6 @@
-"""Phase 1 of a study: compare.trials trials per variant on the tuning seed, at the study's budget, over its
-search space (log-uniform; scrambled Halton points, as AlgoPerf; an Optuna study per variant in tuning.journal),
-each scored by its VALIDATION loss at the budget."""
+"""Phase 1 of a study: compare.trials trials per variant on the tuning seed, at the study's budget,
+over its search space (log-uniform; scrambled Halton points, as AlgoPerf; an Optuna study per
+variant in tuning.journal), each scored by its VALIDATION loss at the budget."""
 
 from __future__ import annotations
 
@@ -8,25 +8,47 @@ import math
 from pathlib import Path
 
 from physgrad.comparison.jobs import cadence, job_runs, job_yaml, launch
-from physgrad.readout import run_curve
 from physgrad.comparison.spec import StudySettings, Variant
 from physgrad.errors import UserError
+from physgrad.readout import run_curve
 
 
 def halton_points(space: dict, count: int, seed: int) -> list[dict]:
-    """count scrambled Halton points mapped log-uniformly onto the space (one dimension per key, sorted)."""
+    """count scrambled Halton points mapped log-uniformly onto the space (one dimension per key,
+    sorted)."""
     from scipy.stats import qmc
 
     keys = sorted(space)
     unit = qmc.Halton(d=len(keys), scramble=True, seed=seed).random(count)
-    return [{key: float(math.exp(math.log(space[key][0]) + u * (math.log(space[key][1]) - math.log(space[key][0]))))
-             for key, u in zip(keys, row)} for row in unit]
+    return [
+        {
+            key: float(
+                math.exp(
+                    math.log(space[key][0])
+                    + u * (math.log(space[key][1]) - math.log(space[key][0]))
+                )
+            )
+            for key, u in zip(keys, row)
+        }
+        for row in unit
+    ]
 
 
-def tuning(folder: Path, variants: list[Variant], settings: StudySettings, common, groups, axis, budget, config_dir,
-           hydra_args, say) -> dict[str, dict]:
-    """Phase 1: trials per variant (equal numbers), scored by validation loss at the budget; returns the best
-    settings per variant (its configured ones where every trial diverged or tuning is off)."""
+def tuning(
+    folder: Path,
+    variants: list[Variant],
+    settings: StudySettings,
+    common,
+    groups,
+    axis,
+    budget,
+    config_dir,
+    hydra_args,
+    say,
+) -> dict[str, dict]:
+    """Phase 1: trials per variant (equal numbers), scored by validation loss at the budget; returns
+    the best settings per variant (its configured ones where every trial diverged or tuning is
+    off)."""
     import optuna
 
     best = {v.name: {} for v in variants}
@@ -34,14 +56,16 @@ def tuning(folder: Path, variants: list[Variant], settings: StudySettings, commo
         return best
     optuna.logging.set_verbosity(optuna.logging.WARNING)
     storage = optuna.storages.JournalStorage(
-        optuna.storages.journal.JournalFileBackend(str(folder / "tuning.journal")))
+        optuna.storages.journal.JournalFileBackend(str(folder / "tuning.journal"))
+    )
     studies, pending = {}, {}
     for index, variant in enumerate(variants):
-        study = optuna.create_study(study_name=variant.name, storage=storage, direction="minimize",
-                                    load_if_exists=True)
+        study = optuna.create_study(
+            study_name=variant.name, storage=storage, direction="minimize", load_if_exists=True
+        )
         studies[variant.name] = study
         points = halton_points(variant.space, settings.trials, settings.tune_seed + index)
-        for point in points[len(study.trials):]:
+        for point in points[len(study.trials) :]:
             study.enqueue_trial(point)
         from optuna.trial import TrialState
 
@@ -57,28 +81,47 @@ def tuning(folder: Path, variants: list[Variant], settings: StudySettings, commo
             trial = pending.get((index, k))
             if trial is not None:
                 values = {f"optim.{key}": value for key, value in trial.params.items()}
-                values.update({"seed": settings.tune_seed, "seeds": 1, "trainer.validation": True,
-                               **variant.job_values})
+                values.update(
+                    {
+                        "seed": settings.tune_seed,
+                        "seeds": 1,
+                        "trainer.validation": True,
+                        **variant.job_values,
+                    }
+                )
                 values.update(cadence(variant.config, axis, budget))
-                jobs[f"tune_v{index}_t{k:03d}"] = job_yaml([*common, *variant.overrides], groups, values)
+                jobs[f"tune_v{index}_t{k:03d}"] = job_yaml(
+                    [*common, *variant.overrides], groups, values
+                )
     if jobs:
         code = launch(folder, "tune", jobs, config_dir, hydra_args, say)
         if code == 130:
             raise KeyboardInterrupt
         _score_trials(folder, variants, studies, pending, axis, budget)
     for variant in variants:
-        done = [t for t in studies[variant.name].trials if t.value is not None and math.isfinite(t.value)]
-        if len(studies[variant.name].trials) and any(t.value is None for t in studies[variant.name].trials):
-            raise UserError(f"tuning of {variant.name} did not finish (see {folder / 'tune.log'}): run the same "
-                            "command again to resume")
+        done = [
+            t
+            for t in studies[variant.name].trials
+            if t.value is not None and math.isfinite(t.value)
+        ]
+        if len(studies[variant.name].trials) and any(
+            t.value is None for t in studies[variant.name].trials
+        ):
+            raise UserError(
+                f"tuning of {variant.name} did not finish (see {folder / 'tune.log'}): run the "
+                "same "
+                "command again to resume"
+            )
         if done:
             best[variant.name] = dict(min(done, key=lambda t: t.value).params)
     return best
 
 
-def _score_trials(folder: Path, variants: list[Variant], studies: dict, pending: dict, axis, budget) -> None:
-    """Each pending trial whose job ran to its end told its validation loss at the budget (a diverged one:
-    infinity); one not run to its end stays pending (run again next time)."""
+def _score_trials(
+    folder: Path, variants: list[Variant], studies: dict, pending: dict, axis, budget
+) -> None:
+    """Each pending trial whose job ran to its end told its validation loss at the budget (a
+    diverged one: infinity); one not run to its end stays pending (run again next time)."""
     for index, k in pending:
         runs = job_runs(folder / "tune", f"tune_v{index}_t{k:03d}")
         if not runs or runs[0].attrs.get("status") in ("running", "interrupted", "crashed"):

@@ -1,8 +1,8 @@
 """Update rules, each an optax GradientTransformation, built from the `optim` config group.
 
-An optim config names a factory with ``_target_`` (any optax factory, e.g. optax.adam or optax.lion, or
-physgrad's spectral rule for Gauss-Newton and HIG) and gives its keyword arguments; ``name``, ``backprop``
-and ``clip`` are physgrad's own keys and are not passed to the factory.
+An optim config names a factory with ``_target_`` (any optax factory, e.g. optax.adam or optax.lion,
+or physgrad's spectral rule for Gauss-Newton and HIG) and gives its keyword arguments; ``name``,
+``backprop`` and ``clip`` are physgrad's own keys and are not passed to the factory.
 """
 
 from __future__ import annotations
@@ -22,13 +22,18 @@ from physgrad.optim.spectral import JacobianRule, MarquardtRule
 from physgrad.validate import call_target, choice, number
 
 RESERVED_KEYS = ("name", "backprop", "clip")
-CLIPPING = {"none": None, "value": lambda: optax.clip(1.0), "norm": lambda: optax.clip_by_global_norm(1.0)}
+CLIPPING = {
+    "none": None,
+    "value": lambda: optax.clip(1.0),
+    "norm": lambda: optax.clip_by_global_norm(1.0),
+}
 
 
 class UpdateRule(NamedTuple):
-    """transform: the optax transformation; gradient: the gradient pass, how the step gets the gradient and
-    the rule's extra arguments (physgrad.gradients); on_layers: the rule is given the network's parameter tree
-    (its layers), not one flat vector (rules that are not element-wise: Muon, Adafactor, LAMB, LARS, ...)."""
+    """transform: the optax transformation; gradient: the gradient pass, how the step gets the
+    gradient and the rule's extra arguments (physgrad.gradients); on_layers: the rule is given the
+    network's parameter tree (its layers), not one flat vector (rules that are not element-wise:
+    Muon, Adafactor, LAMB, LARS, ...)."""
 
     transform: optax.GradientTransformation
     gradient: Callable
@@ -40,34 +45,43 @@ class UpdateRule(NamedTuple):
 
 
 def build_rule(optim_cfg) -> UpdateRule:
-    """The factory's transformation, behind the clipping of ``optim.clip`` (element-wise to [-1, 1], global
-    norm 1, or none), with the gradient pass its kind and ``optim.backprop`` ask for."""
-    node = OmegaConf.to_container(optim_cfg, resolve=True) if OmegaConf.is_config(optim_cfg) else dict(optim_cfg)
+    """The factory's transformation, behind the clipping of ``optim.clip`` (element-wise to [-1, 1],
+    global norm 1, or none), with the gradient pass its kind and ``optim.backprop`` ask for."""
+    node = (
+        OmegaConf.to_container(optim_cfg, resolve=True)
+        if OmegaConf.is_config(optim_cfg)
+        else dict(optim_cfg)
+    )
     if isinstance(node.get("learning_rate"), (int, float)):
         number("optim.learning_rate", node["learning_rate"], 0, open_low=True)
     clip = choice("optim.clip", node.get("clip", "none"), tuple(CLIPPING))
     transform = call_target("optim", node, reserved=RESERVED_KEYS)
     if not hasattr(transform, "init") or not hasattr(transform, "update"):
-        raise UserError(f"optim._target_={node['_target_']} returned {type(transform).__name__}, not an optax "
-                        "GradientTransformation")
+        raise UserError(
+            f"optim._target_={node['_target_']} returned {type(transform).__name__}, not an optax "
+            "GradientTransformation"
+        )
     jacobian = isinstance(transform, JacobianRule)
-    # Levenberg-Marquardt takes value and value_fn; an optax rule that needs optax's extra arguments (optax.lbfgs)
-    # is found by tracing once the parameters are known (needs_value_arguments)
+    # Levenberg-Marquardt takes value and value_fn; an optax rule that needs optax's extra arguments
+    # (optax.lbfgs) is found by tracing once the parameters are known (needs_value_arguments)
     gradient = gradient_pass(node.get("backprop"), jacobian, isinstance(transform, MarquardtRule))
     on_layers = not jacobian and not capabilities(node).elementwise
     if clip != "none":
         if isinstance(transform, JacobianRule):
-            raise UserError(f"optim.clip={clip} applies to gradient-based rules, and {node.get('name')} takes "
-                            "the Jacobian: remove optim.clip")
+            raise UserError(
+                f"optim.clip={clip} applies to gradient-based rules, and {node.get('name')} takes "
+                "the Jacobian: remove optim.clip"
+            )
         transform = optax.chain(CLIPPING[clip](), transform)
     return UpdateRule(transform, gradient, on_layers)
 
 
 def on_tree(transform, unravel) -> optax.GradientTransformationExtraArgs:
-    """The rule applied to the network's parameter tree while physgrad keeps one flat vector: gradient,
+    """The rule applied to the network's parameter tree while physgrad keeps one flat vector:
+    gradient,
     parameters and the extra arguments grad and value_fn are unravelled into the tree (unravel, from
-    ravel_pytree) before the rule and its update is ravelled after it; slices and a concatenation, which XLA
-    fuses into the step."""
+    ravel_pytree) before the rule and its update is ravelled after it; slices and a concatenation,
+    which XLA fuses into the step."""
 
     def init(flat_params):
         return transform.init(unravel(flat_params))
@@ -78,8 +92,9 @@ def on_tree(transform, unravel) -> optax.GradientTransformationExtraArgs:
         if "value_fn" in extra:
             value_fn = extra["value_fn"]
             extra["value_fn"] = lambda tree: value_fn(ravel_pytree(tree)[0])
-        tree_updates, state = transform.update(unravel(updates), state,
-                                               None if params is None else unravel(params), **extra)
+        tree_updates, state = transform.update(
+            unravel(updates), state, None if params is None else unravel(params), **extra
+        )
         return ravel_pytree(tree_updates)[0], state
 
     return optax.GradientTransformationExtraArgs(init, update)
@@ -91,9 +106,10 @@ def matrix_leaves(params) -> int:
 
 
 def needs_value_arguments(transform, params) -> bool:
-    """Whether an optax rule's update needs optax's extra arguments value, grad and value_fn (optax.lbfgs's line
-    search does): its update is traced once without them (jax.eval_shape, nothing computed) and a TypeError
-    about missing keyword arguments says so. A chain passes the arguments on to the members that take them."""
+    """Whether an optax rule's update needs optax's extra arguments value, grad and value_fn
+    (optax.lbfgs's line search does): its update is traced once without them (jax.eval_shape,
+    nothing computed) and a TypeError about missing keyword arguments says so. A chain passes the
+    arguments on to the members that take them."""
     if not isinstance(transform, optax.GradientTransformationExtraArgs):
         return False
     state = jax.eval_shape(transform.init, params)
@@ -105,8 +121,8 @@ def needs_value_arguments(transform, params) -> bool:
 
 
 def state_logs(opt_state: Any) -> dict:
-    """Scalars an update rule reports about itself: every node of its state with a logs() method (e.g. the
-    spectral rules' svd_failures), merged."""
+    """Scalars an update rule reports about itself: every node of its state with a logs() method
+    (e.g. the spectral rules' svd_failures), merged."""
     logs = {}
     for node in jax.tree_util.tree_leaves(opt_state, is_leaf=lambda x: hasattr(x, "logs")):
         if hasattr(node, "logs"):

@@ -1,20 +1,21 @@
-"""What each update rule needs and allows, declared once and read by the rule builder, the runner's checks and
-`physgrad compare` (a new rule is one entry here).
+"""What each update rule needs and allows, declared once and read by the rule builder, the runner's
+checks and `physgrad compare` (a new rule is one entry here).
 
-A rule is known by its factory (`_target_`), not by the name of its config file: a renamed copy of adam.yaml is
-Adam. Capabilities:
-- needs_jacobian: the step takes the network-through-physics Jacobian (Gauss-Newton, HIG, Levenberg-Marquardt,
-  K-FAC), through the Jacobian pass of physgrad.gradients;
-- elementwise: the rule acts on every parameter element on its own (or on global inner products), so on one flat
-  vector it computes exactly what it computes on the network's tree, in one fused kernel instead of one per
-  layer; every other rule is given the network's layers (Muon, Adafactor, LAMB, LARS, ...);
+A rule is known by its factory (`_target_`), not by the name of its config file: a renamed copy of
+adam.yaml is Adam. Capabilities:
+- needs_jacobian: the step takes the network-through-physics Jacobian (Gauss-Newton, HIG,
+  Levenberg-Marquardt, K-FAC), through the Jacobian pass of physgrad.gradients;
+- elementwise: the rule acts on every parameter element on its own (or on global inner products), so
+  on one flat vector it computes exactly what it computes on the network's tree, in one fused kernel
+  instead of one per layer; every other rule is given the network's layers (Muon, Adafactor, LAMB,
+  LARS, ...);
 - needs_matrices: the rule has nothing to do without 2-D weight matrices (Muon);
-- needs_layer_factors: the rule takes the Jacobian in layer factors (K-FAC's Kronecker factors), which a
-  scene whose Jacobian is only available per sample cannot give;
-- search_range: the log-uniform learning-rate range `physgrad compare` tunes over, per family, each spanning
-  the papers' presets by two decades or more on either side (docs/protocol.md).
-Whether a configured rule's step batches over seeds (one vmapped step for seeds=N) depends on its settings too:
-batches_over_seeds.
+- needs_layer_factors: the rule takes the Jacobian in layer factors (K-FAC's Kronecker factors),
+  which a scene whose Jacobian is only available per sample cannot give;
+- search_range: the log-uniform learning-rate range `physgrad compare` tunes over, per family, each
+  spanning the papers' presets by two decades or more on either side (docs/protocol.md).
+Whether a configured rule's step batches over seeds (one vmapped step for seeds=N) depends on its
+settings too: batches_over_seeds.
 """
 
 from __future__ import annotations
@@ -32,31 +33,58 @@ class Capabilities:
     needs_layer_factors: bool = False
 
 
-JACOBIAN = Capabilities("jacobian", (1e-3, 1e1), needs_jacobian=True)  # mean-over-samples loss; presets 0.5 to 1
-ADAPTIVE = Capabilities("adaptive", (1e-5, 1e-1))  # Adam and the other optax rules (presets 1e-4 to 1e-3)
+JACOBIAN = Capabilities(
+    "jacobian", (1e-3, 1e1), needs_jacobian=True
+)  # mean-over-samples loss; presets 0.5 to 1
+ADAPTIVE = Capabilities(
+    "adaptive", (1e-5, 1e-1)
+)  # Adam and the other optax rules (presets 1e-4 to 1e-3)
 ADAPTIVE_ELEMENTWISE = Capabilities("adaptive", ADAPTIVE.search_range, elementwise=True)
 
 RULES: dict[str, Capabilities] = {
     "physgrad.optim.spectral.spectral_rule": JACOBIAN,
     "physgrad.optim.spectral.marquardt_rule": JACOBIAN,
-    "physgrad.optim.kfac.kfac": Capabilities("jacobian", JACOBIAN.search_range, needs_jacobian=True,
-                                             needs_layer_factors=True),
+    "physgrad.optim.kfac.kfac": Capabilities(
+        "jacobian", JACOBIAN.search_range, needs_jacobian=True, needs_layer_factors=True
+    ),
     "optax.sgd": Capabilities("sgd", (1e-4, 1e1), elementwise=True),  # plain gradient descent
-    "optax.lbfgs": Capabilities("lbfgs", (1e-2, 1e1), elementwise=True),  # scales the direction before its line search
+    "optax.lbfgs": Capabilities(
+        "lbfgs", (1e-2, 1e1), elementwise=True
+    ),  # scales the direction before its line search
     "optax.contrib.muon": Capabilities("adaptive", ADAPTIVE.search_range, needs_matrices=True),
-    **{f"optax.{name}": ADAPTIVE_ELEMENTWISE for name in (
-        "adam", "adamw", "adamax", "adamaxw", "nadam", "nadamw", "radam", "amsgrad", "adabelief", "adadelta",
-        "adagrad", "adan", "lion", "rmsprop", "sign_sgd", "noisy_sgd", "yogi", "rprop")},
+    **{
+        f"optax.{name}": ADAPTIVE_ELEMENTWISE
+        for name in (
+            "adam",
+            "adamw",
+            "adamax",
+            "adamaxw",
+            "nadam",
+            "nadamw",
+            "radam",
+            "amsgrad",
+            "adabelief",
+            "adadelta",
+            "adagrad",
+            "adan",
+            "lion",
+            "rmsprop",
+            "sign_sgd",
+            "noisy_sgd",
+            "yogi",
+            "rprop",
+        )
+    },
 }
 
 
 def capabilities(optim_cfg) -> Capabilities:
-    """The capabilities of the rule an optim config builds (by its `_target_`); a factory not listed here is an
-    adaptive rule given the network's layers."""
+    """The capabilities of the rule an optim config builds (by its `_target_`); a factory not listed
+    here is an adaptive rule given the network's layers."""
     return RULES.get(str(optim_cfg.get("_target_", "")), ADAPTIVE)
 
 
 def batches_over_seeds(optim_cfg) -> bool:
-    """Whether seeds=N trains in one vmapped step: not where a failed factorisation is retried in float64
-    (optim.retry_float64), which decides per seed on the host."""
+    """Whether seeds=N trains in one vmapped step: not where a failed factorisation is retried in
+    float64 (optim.retry_float64), which decides per seed on the host."""
     return not optim_cfg.get("retry_float64")

@@ -1,10 +1,11 @@
 """Scenes: one module per physical setup behind the small `Scene` interface.
 
-A task config names the function that builds its scene with ``_target_`` (built-in or a user's own, e.g.
-``_target_: mylab.pendulum.build``). physgrad calls it with the config's other keys as keyword arguments plus
-``key``, a PRNG key that seeds the scene's data (and nothing else). ``name`` and ``batch_size`` are read by
-physgrad itself; a temporal scene has an ``unroll`` key (its number of time steps), which the top-level
-``unroll=N`` replaces. docs/extending.md describes the interface for authors of new scenes.
+A task config names the function that builds its scene with ``_target_`` (built-in or a user's own,
+e.g. ``_target_: mylab.pendulum.build``). physgrad calls it with the config's other keys as keyword
+arguments plus ``key``, a PRNG key that seeds the scene's data (and nothing else). ``name`` and
+``batch_size`` are read by physgrad itself; a temporal scene has an ``unroll`` key (its number of
+time steps), which the top-level ``unroll=N`` replaces. docs/extending.md describes the interface
+for authors of new scenes.
 """
 
 from __future__ import annotations
@@ -25,11 +26,12 @@ RESERVED_KEYS = ("name", "batch_size")
 
 
 def draw_from(key, batch_size: int, train_set):
-    """draw_batch for a fixed training set: batch_size samples drawn without replacement, independently at
-    every iteration (from that iteration's key).
+    """draw_batch for a fixed training set: batch_size samples drawn without replacement,
+    independently at every iteration (from that iteration's key).
 
-    The subset is the top batch_size of one uniform draw per sample (every subset equally likely), which
-    costs far less than the full shuffle of jax.random.choice(replace=False) (docs/decisions.md)."""
+    The subset is the top batch_size of one uniform draw per sample (every subset equally likely),
+    which costs far less than the full shuffle of jax.random.choice(replace=False)
+    (docs/decisions.md)."""
     size = jax.tree_util.tree_leaves(train_set)[0].shape[0]
     index = jax.lax.top_k(jax.random.uniform(key, (size,)), batch_size)[1]
     return jax.tree_util.tree_map(lambda leaf: leaf[index], train_set)
@@ -46,18 +48,19 @@ class Scene:
     init_params(key) -> params: the network's initial parameters (a pytree);
     sample_loss(y, sample) -> scalar: the per-sample loss L_i(y); the batch loss is their MEAN;
     test_set: the held-out samples (a pytree with a leading sample axis);
-    sample_output(params, sample) -> y: the physical output of one sample (a flat vector of k components), for
-    a scene without time; a temporal scene gives ``dynamics`` instead and sample_output follows from it;
-    dynamics: the rollout of a temporal scene (physgrad.unroll.Dynamics);
-    train_set: a fixed training set (None when every batch is drawn fresh by draw_batch);
-    draw_batch(key, batch_size, train_set) -> batch: a training minibatch; by default drawn from train_set;
-    sample_metrics(params, sample, y) -> {name: scalar}: extra held-out metrics, averaged over the test set;
-    figure(params, test_set, path): a per-run figure of the trained network (e.g. trajectories of a few test
-    samples), drawn after training into path (scene.png beside loss.png); optional;
-    test_output(params, sample) -> y: the output the held-out loss is computed on, where it differs from the
-    training output (e.g. a fixed rollout horizon whatever the training unroll); default: sample_output;
-    validation_set: held-out samples for tuning and early decisions (same structure as test_set); default
-    (None): the test set of the same scene built from another data key (physgrad.experiment.validation_set).
+    sample_output(params, sample) -> y: the physical output of one sample (a flat vector of k
+    components), for a scene without time; a temporal scene gives ``dynamics`` instead and
+    sample_output follows from it; dynamics: the rollout of a temporal scene
+    (physgrad.unroll.Dynamics); train_set: a fixed training set (None when every batch is drawn
+    fresh by draw_batch); draw_batch(key, batch_size, train_set) -> batch: a training minibatch; by
+    default drawn from train_set; sample_metrics(params, sample, y) -> {name: scalar}: extra
+    held-out metrics, averaged over the test set; figure(params, test_set, path): a per-run figure
+    of the trained network (e.g. trajectories of a few test samples), drawn after training into path
+    (scene.png beside loss.png); optional; test_output(params, sample) -> y: the output the held-out
+    loss is computed on, where it differs from the training output (e.g. a fixed rollout horizon
+    whatever the training unroll); default: sample_output; validation_set: held-out samples for
+    tuning and early decisions (same structure as test_set); default (None): the test set of the
+    same scene built from another data key (physgrad.experiment.validation_set).
     """
 
     init_params: Callable[[Any], Any]
@@ -74,10 +77,15 @@ class Scene:
 
     def __post_init__(self):
         if (self.sample_output is None) == (self.dynamics is None):
-            raise UserError("a Scene takes sample_output (a scene without time) or dynamics (a temporal scene), "
-                            "exactly one of them")
+            raise UserError(
+                "a Scene takes sample_output (a scene without time) or dynamics (a temporal "
+                "scene), "
+                "exactly one of them"
+            )
         if self.train_set is None and self.draw_batch is draw_from:
-            raise UserError("a Scene without a train_set needs draw_batch (a fresh batch every iteration)")
+            raise UserError(
+                "a Scene without a train_set needs draw_batch (a fresh batch every iteration)"
+            )
         if self.dynamics is not None:
             object.__setattr__(self, "sample_output", self.dynamics.output(REGULAR))
 
@@ -87,7 +95,8 @@ class Scene:
 
     @property
     def closed_loop(self) -> bool:
-        """The network acts inside the rollout on the state it sees (the BPTT modes M, S and C apply)."""
+        """The network acts inside the rollout on the state it sees (the BPTT modes M, S and C
+        apply)."""
         return self.dynamics is not None and self.dynamics.closed_loop
 
     @property
@@ -96,10 +105,15 @@ class Scene:
 
     @property
     def train_size(self) -> int | None:
-        return None if self.train_set is None else jax.tree_util.tree_leaves(self.train_set)[0].shape[0]
+        return (
+            None
+            if self.train_set is None
+            else jax.tree_util.tree_leaves(self.train_set)[0].shape[0]
+        )
 
     def backprop_output(self, backprop: Backprop) -> Callable[[Any, Any], jax.Array]:
-        """sample_output with the gradient stops of a backprop-through-time mode (temporal scenes)."""
+        """sample_output with the gradient stops of a backprop-through-time mode (temporal
+        scenes)."""
         if self.dynamics is None:
             if backprop != REGULAR:
                 raise ValueError("a scene without time has no backprop-through-time modes")
@@ -107,22 +121,26 @@ class Scene:
         return self.dynamics.output(backprop)
 
     def over_flat_params(self, unravel) -> "Scene":
-        """This scene with the network's parameters as one flat vector (unravel: vector -> parameter pytree,
-        from ravel_pytree): an optimiser then updates one array in one fused kernel instead of one per layer
-        (docs/decisions.md)."""
+        """This scene with the network's parameters as one flat vector (unravel: vector -> parameter
+        pytree, from ravel_pytree): an optimiser then updates one array in one fused kernel instead
+        of one per layer (docs/decisions.md)."""
 
         def flat(fn):
             return lambda flat_params, *args: fn(unravel(flat_params), *args)
 
-        changes = {"init_params": lambda key: ravel_pytree(self.init_params(key))[0],
-                   "sample_metrics": flat(self.sample_metrics)}
+        changes = {
+            "init_params": lambda key: ravel_pytree(self.init_params(key))[0],
+            "sample_metrics": flat(self.sample_metrics),
+        }
         if self.test_output is not None:
             changes["test_output"] = flat(self.test_output)
         if self.dynamics is None:
             changes["sample_output"] = flat(self.sample_output)
         else:
             changes["sample_output"] = None  # follows from the new dynamics
-            changes["dynamics"] = dataclasses.replace(self.dynamics, policy=flat(self.dynamics.policy))
+            changes["dynamics"] = dataclasses.replace(
+                self.dynamics, policy=flat(self.dynamics.policy)
+            )
         return dataclasses.replace(self, **changes)
 
     def sample_train(self, key, batch_size: int):
@@ -137,14 +155,16 @@ class Scene:
         return jnp.mean(jax.vmap(self.sample_loss)(y, batch))
 
     def evaluate(self, params, batch) -> dict:
-        """Held-out loss and scene metrics, each a mean over the samples of ``batch`` (on test_output)."""
+        """Held-out loss and scene metrics, each a mean over the samples of ``batch`` (on
+        test_output)."""
         y = self.held_out_output(params, batch)
         metrics = jax.vmap(self.sample_metrics, in_axes=(None, 0, 0))(params, batch, y)
         return {"loss": self.batch_loss(y, batch), **{k: jnp.mean(v) for k, v in metrics.items()}}
 
     def held_out_loss(self, params, batch) -> dict:
-        """{"loss": the held-out loss of ``batch``} without the scene metrics: what validation reads (tuning
-        and early choices need the loss only; a metric such as a long stability rollout can cost many times it)."""
+        """{"loss": the held-out loss of ``batch``} without the scene metrics: what validation reads
+        (tuning and early choices need the loss only; a metric such as a long stability rollout can
+        cost many times it)."""
         return {"loss": self.batch_loss(self.held_out_output(params, batch), batch)}
 
     def held_out_output(self, params, batch) -> jax.Array:
@@ -154,18 +174,24 @@ class Scene:
 
 
 def build_scene(task_cfg, key, unroll: int | None = None) -> Scene:
-    """The scene a task config names (``_target_``), seeded by ``key``; ``unroll`` replaces a temporal scene's
-    number of time steps (task.unroll). UserError (one line) for a setting the build function does not take or
-    refuses, and if the function does not return a Scene."""
+    """The scene a task config names (``_target_``), seeded by ``key``; ``unroll`` replaces a
+    temporal scene's number of time steps (task.unroll). UserError (one line) for a setting the
+    build function does not take or refuses, and if the function does not return a Scene."""
     from omegaconf import OmegaConf
 
     from physgrad.validate import call_target
 
-    node = OmegaConf.to_container(task_cfg, resolve=True) if OmegaConf.is_config(task_cfg) else dict(task_cfg)
+    node = (
+        OmegaConf.to_container(task_cfg, resolve=True)
+        if OmegaConf.is_config(task_cfg)
+        else dict(task_cfg)
+    )
     if unroll is not None:
         node["unroll"] = unroll
     scene = call_target("task", node, reserved=RESERVED_KEYS, key=key)
     if not isinstance(scene, Scene):
-        raise UserError(f"task._target_={node.get('_target_')} returned {type(scene).__name__}, not a "
-                        "physgrad.tasks.Scene")
+        raise UserError(
+            f"task._target_={node.get('_target_')} returned {type(scene).__name__}, not a "
+            "physgrad.tasks.Scene"
+        )
     return scene

@@ -1,16 +1,19 @@
-"""Guidance by repulsion (StableBPTT paper): drivers, steered by the network, herd evaders to the origin.
+"""Guidance by repulsion (StableBPTT paper): drivers, steered by the network, herd evaders to the
+origin.
 
 Agents move in the plane; the state holds every agent's position and velocity, drivers first:
-shape (drivers + evaders, 2, 2) = (agent, [position, velocity], [x, y]); all velocities start at 0. With the
-softened distance d(r) = softening + |r|, v_k = x_driver,k - sum_j x_evader,j (a sum over the evaders, not their
-centroid) and orth(v) = (-v_y, v_x), the network's gains c_k = (c_k0, c_k1) give the accelerations
-    driver k:  c_k0 v_k + c_k1 orth(v_k) - driver_friction v_driver,k + spreading sum_{i != k} (x_k - x_i) / d_ki^2
-    evader j:  repulsion sum_k (x_j - x_driver,k) / d_kj^2 - evader_friction v_evader,j
+shape (drivers + evaders, 2, 2) = (agent, [position, velocity], [x, y]); all velocities start at 0.
+With the softened distance d(r) = softening + |r|, v_k = x_driver,k - sum_j x_evader,j (a sum over
+the evaders, not their centroid) and orth(v) = (-v_y, v_x), the network's gains c_k = (c_k0, c_k1)
+give the accelerations
+    driver k:  c_k0 v_k + c_k1 orth(v_k) - driver_friction v_driver,k + spreading sum_{i != k} (x_k
+    - x_i) / d_ki^2 evader j:  repulsion sum_k (x_j - x_driver,k) / d_kj^2 - evader_friction
+      v_evader,j
                + flocking sum_{i != j} p(d_ij) (x_i - x_j),   p(d) = (flock_distance / d - 1) / d
-(the sums over i run over agents of the same kind). As written, p > 0 pulls evaders together closer than
-flock_distance and pushes them apart beyond it. Explicit Euler: x' = x + dt v, v' = v + dt a(x, v).
-Per-sample loss: the mean over steps 1..unroll, evaders and coordinates of x_evader^2, plus control_cost times
-the mean of c^2 over steps, drivers and both gains.
+(the sums over i run over agents of the same kind). As written, p > 0 pulls evaders together closer
+than flock_distance and pushes them apart beyond it. Explicit Euler: x' = x + dt v, v' = v + dt a(x,
+v). Per-sample loss: the mean over steps 1..unroll, evaders and coordinates of x_evader^2, plus
+control_cost times the mean of c^2 over steps, drivers and both gains.
 """
 
 from __future__ import annotations
@@ -30,15 +33,16 @@ from physgrad.validate import layer_widths, number
 
 
 def safe_norm(r: jax.Array) -> jax.Array:
-    """|r| over the last axis, with a zero gradient (not NaN) where r = 0: an agent's distance to itself."""
-    squared = jnp.sum(r ** 2, axis=-1)
+    """|r| over the last axis, with a zero gradient (not NaN) where r = 0: an agent's distance to
+    itself."""
+    squared = jnp.sum(r**2, axis=-1)
     positive = squared > 0
     return jnp.where(positive, jnp.sqrt(jnp.where(positive, squared, 1.0)), 0.0)
 
 
 def pairwise(x_to: jax.Array, x_from: jax.Array, softening: float, weight) -> jax.Array:
-    """sum_i weight(d_ai) (x_to,a - x_from,i) for every a: (A, 2) and (B, 2) -> (A, 2), d = softening + |r|.
-    A pair at distance 0 (an agent and itself) contributes exactly 0."""
+    """sum_i weight(d_ai) (x_to,a - x_from,i) for every a: (A, 2) and (B, 2) -> (A, 2), d =
+    softening + |r|. A pair at distance 0 (an agent and itself) contributes exactly 0."""
     r = x_to[:, None, :] - x_from[None, :, :]
     return jnp.sum(weight(softening + safe_norm(r))[..., None] * r, axis=1)
 
@@ -51,13 +55,20 @@ def accelerations(state, gains, drivers: int, physics: dict):
     towards = x_drivers - jnp.sum(x_evaders, axis=0)
     orthogonal = jnp.stack([-towards[:, 1], towards[:, 0]], axis=-1)
     control = gains[:, :1] * towards + gains[:, 1:] * orthogonal
-    spread = pairwise(x_drivers, x_drivers, eps, lambda d: d ** -2)
-    driver = control - physics["driver_friction"] * velocities[:drivers] + physics["spreading"] * spread
-    repel = pairwise(x_evaders, x_drivers, eps, lambda d: d ** -2)
+    spread = pairwise(x_drivers, x_drivers, eps, lambda d: d**-2)
+    driver = (
+        control - physics["driver_friction"] * velocities[:drivers] + physics["spreading"] * spread
+    )
+    repel = pairwise(x_evaders, x_drivers, eps, lambda d: d**-2)
     distance = physics["flock_distance"]
-    flock = -pairwise(x_evaders, x_evaders, eps, lambda d: (distance / d - 1.0) / d)  # (x_i - x_j) p(d_ij)
-    evader = (physics["repulsion"] * repel - physics["evader_friction"] * velocities[drivers:]
-              + physics["flocking"] * flock)
+    flock = -pairwise(
+        x_evaders, x_evaders, eps, lambda d: (distance / d - 1.0) / d
+    )  # (x_i - x_j) p(d_ij)
+    evader = (
+        physics["repulsion"] * repel
+        - physics["evader_friction"] * velocities[drivers:]
+        + physics["flocking"] * flock
+    )
     return jnp.concatenate([driver, evader])
 
 
@@ -69,8 +80,9 @@ def euler_step(state, gains, dt: float, drivers: int, physics: dict):
 
 
 def initial_states(key, count: int, drivers: int, evaders: int, dtype) -> jax.Array:
-    """Drivers on the annulus 3 <= r <= 4 (uniform radius and angle, each driver on its own); evaders around one
-    shared centre on the annulus 1 <= r <= 2, each offset by U[-0.5, 0.5]^2; every velocity 0."""
+    """Drivers on the annulus 3 <= r <= 4 (uniform radius and angle, each driver on its own);
+    evaders around one shared centre on the annulus 1 <= r <= 2, each offset by U[-0.5, 0.5]^2;
+    every velocity 0."""
     k_driver, k_centre, k_offset = jax.random.split(key, 3)
 
     def annulus(k, shape, low, high):
@@ -92,13 +104,14 @@ def initial_state(sample) -> jax.Array:
 
 
 def init_network(key, *, agents: int, drivers: int, hidden, dtype):
-    """An MLP from the flattened state (4 numbers per agent) to two gains per driver, its output layer zero (the
-    gains start at exactly 0)."""
+    """An MLP from the flattened state (4 numbers per agent) to two gains per driver, its output
+    layer zero (the gains start at exactly 0)."""
     return init_mlp(key, [4 * agents, *hidden, 2 * drivers], dtype, zero_last=True)
 
 
 def gains(params, state, k, *, drivers: int) -> jax.Array:
-    """c = MLP(state flattened) with tanh hidden layers, shape (drivers, 2); the same at every step k."""
+    """c = MLP(state flattened) with tanh hidden layers, shape (drivers, 2); the same at every step
+    k."""
     return apply_mlp(params, state.reshape(-1), hidden="tanh").reshape(drivers, 2)
 
 
@@ -108,45 +121,52 @@ def controller(params, sample, *, drivers: int):
 
 
 def observe(state, gains, sample, *, drivers: int) -> jax.Array:
-    """Per step: the mean of x_evader^2 (over evaders and coordinates) and of c^2 (over drivers, gains)."""
-    return jnp.stack([jnp.mean(state[drivers:, 0] ** 2), jnp.mean(gains ** 2)])
+    """Per step: the mean of x_evader^2 (over evaders and coordinates) and of c^2 (over drivers,
+    gains)."""
+    return jnp.stack([jnp.mean(state[drivers:, 0] ** 2), jnp.mean(gains**2)])
 
 
 def readout(final, observed, sample) -> jax.Array:
-    """y = both per-step terms of the loss: (evader term at steps 1..unroll, control term at each step)."""
+    """y = both per-step terms of the loss: (evader term at steps 1..unroll, control term at each
+    step)."""
     return observed.T.reshape(-1)
 
 
 @dataclass(frozen=True)
 class Loss:
-    """L = mean(evader term over steps) + control_cost mean(control term over steps), y as given by readout."""
+    """L = mean(evader term over steps) + control_cost mean(control term over steps), y as given by
+    readout."""
 
     unroll: int
     control_cost: float
 
     def physics_loss(self, y) -> jax.Array:
-        return jnp.mean(y[:self.unroll])
+        return jnp.mean(y[: self.unroll])
 
     def sample_loss(self, y, sample) -> jax.Array:
-        return self.physics_loss(y) + self.control_cost * jnp.mean(y[self.unroll:])
+        return self.physics_loss(y) + self.control_cost * jnp.mean(y[self.unroll :])
 
     def sample_metrics(self, params, sample, y) -> dict:
         return {"physics_loss": self.physics_loss(y)}
 
 
 def agent_paths(params, states, *, step, policy, unroll: int) -> np.ndarray:
-    """Positions of every agent at steps 0..unroll under the network, shape (samples, unroll + 1, agents, 2)."""
+    """Positions of every agent at steps 0..unroll under the network, shape (samples, unroll + 1,
+    agents, 2)."""
 
     def positions(state):
-        _, visited = rollout(step, policy(params, {"state": state}), state, unroll, observe=lambda x, c: x[:, 0])
+        _, visited = rollout(
+            step, policy(params, {"state": state}), state, unroll, observe=lambda x, c: x[:, 0]
+        )
         return jnp.concatenate([state[None, :, 0], visited])  # (unroll + 1, agents, 2)
 
     return np.asarray(jax.jit(jax.vmap(positions))(states))
 
 
 def plot_paths(ax, trajectory: np.ndarray, index: int, drivers: int) -> None:
-    """One test state's paths: drivers red, evaders blue, start hollow, end filled, the origin a cross. The view
-    holds the start and the evaders' paths; a driver that leaves it is drawn to its edge."""
+    """One test state's paths: drivers red, evaders blue, start hollow, end filled, the origin a
+    cross. The view holds the start and the evaders' paths; a driver that leaves it is drawn to its
+    edge."""
     for agent in range(trajectory.shape[1]):
         colour = "tab:red" if agent < drivers else "tab:blue"
         ax.plot(trajectory[:, agent, 0], trajectory[:, agent, 1], color=colour, lw=1.2)
@@ -162,8 +182,11 @@ def plot_paths(ax, trajectory: np.ndarray, index: int, drivers: int) -> None:
     ax.grid(True, alpha=0.3)
 
 
-def draw_paths(params, test_set, path, count: int = 4, *, step, policy, unroll: int, dt: float, drivers: int):
-    """Agent paths of the trained network for the first ``count`` test states, side by side, saved to path."""
+def draw_paths(
+    params, test_set, path, count: int = 4, *, step, policy, unroll: int, dt: float, drivers: int
+):
+    """Agent paths of the trained network for the first ``count`` test states, side by side, saved
+    to path."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -174,11 +197,13 @@ def draw_paths(params, test_set, path, count: int = 4, *, step, policy, unroll: 
     fig, axes = plt.subplots(1, count, figsize=(3.6 * count, 3.9), squeeze=False)
     for index, (ax, trajectory) in enumerate(zip(axes[0], paths)):
         plot_paths(ax, trajectory, index, drivers)
-    handles = [plt.Line2D([], [], color="tab:red", label="drivers"),
-               plt.Line2D([], [], color="tab:blue", label="evaders"),
-               plt.Line2D([], [], ls="", marker="o", mfc="white", color="gray", label="start"),
-               plt.Line2D([], [], ls="", marker="o", color="gray", label=f"end (t = {unroll * dt:.3g})"),
-               plt.Line2D([], [], ls="", marker="+", color="k", label="target (origin)")]
+    handles = [
+        plt.Line2D([], [], color="tab:red", label="drivers"),
+        plt.Line2D([], [], color="tab:blue", label="evaders"),
+        plt.Line2D([], [], ls="", marker="o", mfc="white", color="gray", label="start"),
+        plt.Line2D([], [], ls="", marker="o", color="gray", label=f"end (t = {unroll * dt:.3g})"),
+        plt.Line2D([], [], ls="", marker="+", color="k", label="target (origin)"),
+    ]
     fig.legend(handles=handles, loc="lower center", ncol=5, fontsize=8, frameon=False)
     fig.suptitle("guidance: agent paths under the trained controller", fontsize=10)
     fig.tight_layout(rect=(0, 0.1, 1, 0.94))
@@ -186,21 +211,41 @@ def draw_paths(params, test_set, path, count: int = 4, *, step, policy, unroll: 
     plt.close(fig)
 
 
-def build(key, *, drivers, evaders, dt, unroll, control_cost, softening, repulsion, evader_friction, flocking,
-          flock_distance, driver_friction, spreading, hidden, train_size, test_size) -> Scene:
-    """The scene: the network sees the whole state (agents x [position, velocity] x [x, y], flattened) and gives
-    two gains per driver; y holds the per-step terms of the loss (see ``readout``)."""
+def build(
+    key,
+    *,
+    drivers,
+    evaders,
+    dt,
+    unroll,
+    control_cost,
+    softening,
+    repulsion,
+    evader_friction,
+    flocking,
+    flock_distance,
+    driver_friction,
+    spreading,
+    hidden,
+    train_size,
+    test_size,
+) -> Scene:
+    """The scene: the network sees the whole state (agents x [position, velocity] x [x, y],
+    flattened) and gives two gains per driver; y holds the per-step terms of the loss (see
+    ``readout``)."""
     drivers = number("task.drivers", drivers, 1, integer=True)
     evaders = number("task.evaders", evaders, 1, integer=True)
     dt = number("task.dt", dt, 0, open_low=True)
     control_cost = number("task.control_cost", control_cost, 0)
-    physics = {"softening": number("task.softening", softening, 0, open_low=True),
-               "repulsion": number("task.repulsion", repulsion),
-               "evader_friction": number("task.evader_friction", evader_friction),
-               "flocking": number("task.flocking", flocking),
-               "flock_distance": number("task.flock_distance", flock_distance),
-               "driver_friction": number("task.driver_friction", driver_friction),
-               "spreading": number("task.spreading", spreading)}
+    physics = {
+        "softening": number("task.softening", softening, 0, open_low=True),
+        "repulsion": number("task.repulsion", repulsion),
+        "evader_friction": number("task.evader_friction", evader_friction),
+        "flocking": number("task.flocking", flocking),
+        "flock_distance": number("task.flock_distance", flock_distance),
+        "driver_friction": number("task.driver_friction", driver_friction),
+        "spreading": number("task.spreading", spreading),
+    }
     hidden = layer_widths("task.hidden", hidden)
     train_size = number("task.train_size", train_size, 1, integer=True)
     test_size = number("task.test_size", test_size, 1, integer=True)
@@ -211,11 +256,20 @@ def build(key, *, drivers, evaders, dt, unroll, control_cost, softening, repulsi
     loss = Loss(unroll, control_cost)
     train_key, test_key = jax.random.split(key)
     return Scene(
-        init_params=partial(init_network, agents=drivers + evaders, drivers=drivers, hidden=hidden, dtype=dtype),
+        init_params=partial(
+            init_network, agents=drivers + evaders, drivers=drivers, hidden=hidden, dtype=dtype
+        ),
         train_set={"state": initial_states(train_key, train_size, drivers, evaders, dtype)},
         test_set={"state": initial_states(test_key, test_size, drivers, evaders, dtype)},
-        dynamics=Dynamics(step=step, policy=policy, initial=initial_state, unroll=unroll, closed_loop=True,
-                          readout=readout, observe=partial(observe, drivers=drivers)),
+        dynamics=Dynamics(
+            step=step,
+            policy=policy,
+            initial=initial_state,
+            unroll=unroll,
+            closed_loop=True,
+            readout=readout,
+            observe=partial(observe, drivers=drivers),
+        ),
         sample_loss=loss.sample_loss,
         sample_metrics=loss.sample_metrics,
         figure=partial(draw_paths, step=step, policy=policy, unroll=unroll, dt=dt, drivers=drivers),

@@ -1,25 +1,29 @@
-"""Kuramoto-Sivashinsky neural simulator (the unrolling study, List, Chen, Bali, Thuerey, CMAME 2025): a network
-learns a time stepper from trajectories and is trained over m unrolled steps.
+"""Kuramoto-Sivashinsky neural simulator (the unrolling study, List, Chen, Bali, Thuerey, CMAME
+2025): a network learns a time stepper from trajectories and is trained over m unrolled steps.
 
-    u_t + u u_x + u_xx + u_xxxx = 0,  periodic, `points` grid points, length L = 2 pi * base_domain * size.
+    u_t + u u_x + u_xx + u_xxxx = 0,  periodic, `points` grid points, length L = 2 pi * base_domain
+    * size.
 
-In Fourier space u_t = lin u + N(u) with lin(kappa) = kappa^2 - kappa^4, N(u) = -(i kappa / 2) FFT(u^2) and
-kappa = 2 pi n / L. Exponential time differencing with step h, x = lin h, phi1 = (e^x - 1)/x,
-phi2 = (e^x - 1 - x)/x^2 (phi1(0) = 1, phi2(0) = 1/2):
+In Fourier space u_t = lin u + N(u) with lin(kappa) = kappa^2 - kappa^4, N(u) = -(i kappa / 2)
+FFT(u^2) and kappa = 2 pi n / L. Exponential time differencing with step h, x = lin h, phi1 = (e^x -
+1)/x, phi2 = (e^x - 1 - x)/x^2 (phi1(0) = 1, phi2(0) = 1/2):
     ETD1:    u' = e^x u + h phi1 N(u)
-    ETD2RK:  a = ETD1(u),  u' = a + h phi2 (N(a) - N(u))       (Cox and Matthews' second-order scheme)
-One model step is `substeps` solver steps (2 x 0.5 in the study). Ground truth: ETD2RK, generated in float64;
-the coarse solver P of the correction stepper: ETD1 with the same h.
+    ETD2RK:  a = ETD1(u),  u' = a + h phi2 (N(a) - N(u))       (Cox and Matthews' second-order
+    scheme)
+One model step is `substeps` solver steps (2 x 0.5 in the study). Ground truth: ETD2RK, generated in
+float64; the coarse solver P of the correction stepper: ETD1 with the same h.
 
-Steppers (task.stepper): predict s' = f(s) (the network alone); correct s' = P(s) + dt f(s) (dt = h, as the
-study scales the correction). The network sees the state and a constant channel holding the size factor.
+Steppers (task.stepper): predict s' = f(s) (the network alone); correct s' = P(s) + dt f(s) (dt = h,
+as the study scales the correction). The network sees the state and a constant channel holding the
+size factor.
 
-Training modalities (task.training): WIG unrolls m steps with gradients through time; NOG unrolls m steps with
-the state detached before every step (no gradient through time); ONE trains on one-step pairs: each sample is m
-independent ground-truth pairs, so a batch of B holds B*m pairs and costs what B unrolled windows cost, with
-the same number of updates (the study's compute matching: batch and epochs times m). Loss: the mean squared
-error over the m predicted states and the grid. Held-out loss: the study's relative error over `horizon` steps
-of an autoregressive rollout from each test state, mean_k mean_x (u_k - u*_k)^2 / max_{k,x} u*_k^2.
+Training modalities (task.training): WIG unrolls m steps with gradients through time; NOG unrolls m
+steps with the state detached before every step (no gradient through time); ONE trains on one-step
+pairs: each sample is m independent ground-truth pairs, so a batch of B holds B*m pairs and costs
+what B unrolled windows cost, with the same number of updates (the study's compute matching: batch
+and epochs times m). Loss: the mean squared error over the m predicted states and the grid. Held-out
+loss: the study's relative error over `horizon` steps of an autoregressive rollout from each test
+state, mean_k mean_x (u_k - u*_k)^2 / max_{k,x} u*_k^2.
 """
 
 from __future__ import annotations
@@ -49,33 +53,45 @@ STEPPERS = ("predict", "correct")
 TRAININGS = ("WIG", "NOG", "ONE")
 # bump when the generated data would change for the same settings
 DATA_VERSION = 2  # 2: a validation set beside the test set
-TEST_SEED, VALIDATION_SEED = 1000, 2000  # numpy seeds of the held-out states: TEST_SEED + the test size's index
-# rollouts that leave [-DIVERGED_FACTOR, DIVERGED_FACTOR] x the ground truth's largest |u| count as unstable
+TEST_SEED, VALIDATION_SEED = (
+    1000,
+    2000,
+)  # numpy seeds of the held-out states: TEST_SEED + the test size's index
+# rollouts that leave [-DIVERGED_FACTOR, DIVERGED_FACTOR] x the ground truth's largest |u| count as
+# unstable
 DIVERGED_FACTOR = 3.0
 # the study's clamp of a relative error per step (a rollout that blows up counts this much per step)
 ERROR_CAP = 30.0
-# the long rollout's accuracy horizon: steps before the correlation with the ground truth first drops below this
+# the long rollout's accuracy horizon: steps before the correlation with the ground truth first
+# drops below this
 DECORRELATION = 0.5
 
 
-# ---------------------------------------------------------------------------------------------------------- solver
+# --------------------------------------------------------------------------------------------------
+# solver
+
 
 def _series_or_exact(x, exact, coefficients):
-    """exact(x) where |x| >= 0.1, else the Taylor series sum_k coefficients[k] x^k (exact would cancel)."""
+    """exact(x) where |x| >= 0.1, else the Taylor series sum_k coefficients[k] x^k (exact would
+    cancel)."""
     small = jnp.abs(x) < 0.1
     safe = jnp.where(small, 1.0, x)
-    series = sum(c * x ** k for k, c in enumerate(coefficients))
+    series = sum(c * x**k for k, c in enumerate(coefficients))
     return jnp.where(small, series, exact(safe))
 
 
 def phi1(x):
     """(e^x - 1) / x, to round-off also near x = 0."""
-    return _series_or_exact(x, lambda z: jnp.expm1(z) / z, [1 / math.factorial(k + 1) for k in range(9)])
+    return _series_or_exact(
+        x, lambda z: jnp.expm1(z) / z, [1 / math.factorial(k + 1) for k in range(9)]
+    )
 
 
 def phi2(x):
     """(e^x - 1 - x) / x^2, to round-off also near x = 0."""
-    return _series_or_exact(x, lambda z: (jnp.expm1(z) - z) / z ** 2, [1 / math.factorial(k + 2) for k in range(9)])
+    return _series_or_exact(
+        x, lambda z: (jnp.expm1(z) - z) / z**2, [1 / math.factorial(k + 2) for k in range(9)]
+    )
 
 
 def wavenumbers(points: int, length):
@@ -89,10 +105,11 @@ def nonlinear(u, kappa):
 
 
 def etd_step(u, length, h: float, order: int):
-    """One ETD1 (order 1) or ETD2RK (order 2) step of size h; u real on the grid, length L (may be traced)."""
+    """One ETD1 (order 1) or ETD2RK (order 2) step of size h; u real on the grid, length L (may be
+    traced)."""
     points = u.shape[-1]
     kappa = wavenumbers(points, length)
-    x = (kappa ** 2 - kappa ** 4) * h
+    x = (kappa**2 - kappa**4) * h
     u_hat, n_u = jnp.fft.rfft(u), nonlinear(u, kappa)
     a_hat = jnp.exp(x) * u_hat + h * phi1(x) * n_u
     if order == 1:
@@ -112,37 +129,54 @@ def domain_length(base_domain: float, size):
     return 2 * jnp.pi * base_domain * size
 
 
-# ------------------------------------------------------------------------------------------------------------ data
+# --------------------------------------------------------------------------------------------------
+# data
+
 
 def train_initial_states(points: int, base_domain: float, size: float) -> np.ndarray:
     """The study's six training initial states on x_j = D j / points with D = base_domain * size:
-    cos(2 pi x) + a cos(2 pi x / D) (1 + b sin(2 pi x / D)) for (a, b) in (0.1, +-0.1), (-0.2, +-0.3),
-    (0.3, +-0.5)."""
+    cos(2 pi x) + a cos(2 pi x / D) (1 + b sin(2 pi x / D)) for (a, b) in (0.1, +-0.1), (-0.2,
+    +-0.3), (0.3, +-0.5)."""
     d = base_domain * size
     x = d * np.arange(points) / points
-    return np.stack([np.cos(2 * np.pi * x) + a * np.cos(2 * np.pi * x / d) * (1 + b * np.sin(2 * np.pi * x / d))
-                     for a in (0.1, -0.2, 0.3) for b in ({0.1: (0.1, -0.1), -0.2: (0.3, -0.3), 0.3: (0.5, -0.5)}[a])])
+    return np.stack(
+        [
+            np.cos(2 * np.pi * x)
+            + a * np.cos(2 * np.pi * x / d) * (1 + b * np.sin(2 * np.pi * x / d))
+            for a in (0.1, -0.2, 0.3)
+            for b in ({0.1: (0.1, -0.1), -0.2: (0.3, -0.3), 0.3: (0.5, -0.5)}[a])
+        ]
+    )
 
 
-def test_initial_states(points: int, base_domain: float, size: float, count: int, seed: int) -> np.ndarray:
-    """The study's test family: cos(pi x) + c cos(2 pi x / D) (1 - s sin(2 pi x / D)), c ~ U(-0.1, 0.1),
-    s ~ U(-2, 2), drawn from a fixed seed per test size."""
+def test_initial_states(
+    points: int, base_domain: float, size: float, count: int, seed: int
+) -> np.ndarray:
+    """The study's test family: cos(pi x) + c cos(2 pi x / D) (1 - s sin(2 pi x / D)), c ~ U(-0.1,
+    0.1), s ~ U(-2, 2), drawn from a fixed seed per test size."""
     d = base_domain * size
     x = d * np.arange(points) / points
     rng = np.random.default_rng(seed)
     c, s = rng.uniform(-0.1, 0.1, count), rng.uniform(-2.0, 2.0, count)
-    return np.cos(np.pi * x) + c[:, None] * np.cos(2 * np.pi * x / d) * (1 - s[:, None] * np.sin(2 * np.pi * x / d))
+    return np.cos(np.pi * x) + c[:, None] * np.cos(2 * np.pi * x / d) * (
+        1 - s[:, None] * np.sin(2 * np.pi * x / d)
+    )
 
 
-def trajectories(initial: np.ndarray, lengths: np.ndarray, steps: int, h: float, substeps: int) -> np.ndarray:
-    """Ground truth in float64 (whatever the run's precision): initial (n, points), one domain length per row ->
-    (n, steps + 1, points), ETD2RK model steps."""
+def trajectories(
+    initial: np.ndarray, lengths: np.ndarray, steps: int, h: float, substeps: int
+) -> np.ndarray:
+    """Ground truth in float64 (whatever the run's precision): initial (n, points), one domain
+    length per row -> (n, steps + 1, points), ETD2RK model steps."""
     with jax.enable_x64(True):
+
         def advance(u, _):
             u = jax.vmap(lambda v, length: solver_step(v, length, h, substeps, 2))(u, lengths)
             return u, u
 
-        _, states = jax.jit(lambda u0: jax.lax.scan(advance, u0, None, length=steps))(jnp.asarray(initial))
+        _, states = jax.jit(lambda u0: jax.lax.scan(advance, u0, None, length=steps))(
+            jnp.asarray(initial)
+        )
         return np.concatenate([initial[:, None], np.asarray(states).transpose(1, 0, 2)], axis=1)
 
 
@@ -153,12 +187,16 @@ def cache_dir() -> Path:
     return Path(os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache") / "physgrad"
 
 
-def generate(settings: dict, initial_by_size: list, sizes: list, warmup: int, steps: int) -> np.ndarray:
-    """Ground truth from each size's initial states: `warmup` model steps dropped, then `steps` kept ->
-    (len(sizes), initial states per size, steps + 1, points)."""
+def generate(
+    settings: dict, initial_by_size: list, sizes: list, warmup: int, steps: int
+) -> np.ndarray:
+    """Ground truth from each size's initial states: `warmup` model steps dropped, then `steps` kept
+    -> (len(sizes), initial states per size, steps + 1, points)."""
     initial = np.concatenate(initial_by_size)
-    lengths = np.repeat([float(domain_length(settings["base_domain"], size)) for size in sizes],
-                        [len(i) for i in initial_by_size])
+    lengths = np.repeat(
+        [float(domain_length(settings["base_domain"], size)) for size in sizes],
+        [len(i) for i in initial_by_size],
+    )
     warm = trajectories(initial, lengths, warmup, settings["dt"], settings["substeps"])[:, -1]
     states = trajectories(warm, lengths, steps, settings["dt"], settings["substeps"])
     return states.reshape(len(sizes), -1, *states.shape[1:])
@@ -169,8 +207,9 @@ def dataset(settings: dict) -> dict:
     cache_dir()/ks-<hash of the settings>.npz (a change of any setting names another file).
 
     train: (sizes, 6, train_steps + 1, points) after `warmup` steps; test: (test sizes, test_count,
-    test_steps + 1, points) after 2 * warmup steps (the study starts its test rollouts 200 steps into
-    trajectories cropped after 200); validation: as test, from other seeds of the same family."""
+    test_steps + 1, points) after 2 * warmup steps (the study starts its test rollouts 200 steps
+    into trajectories cropped after 200); validation: as test, from other seeds of the same
+    family."""
     key = json.dumps({**settings, "version": DATA_VERSION}, sort_keys=True)
     path = cache_dir() / f"ks-{hashlib.sha256(key.encode()).hexdigest()[:16]}.npz"
     if path.exists():
@@ -181,13 +220,20 @@ def dataset(settings: dict) -> dict:
         except (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile):
             pass  # damaged or foreign: generate again
     s = settings
-    initial = [train_initial_states(s["points"], s["base_domain"], size) for size in s["train_sizes"]]
+    initial = [
+        train_initial_states(s["points"], s["base_domain"], size) for size in s["train_sizes"]
+    ]
     data = {"train": generate(s, initial, s["train_sizes"], s["warmup"], s["train_steps"])}
-    # test and validation: the test family from a fixed seed per test size (first seed + its index); validation
-    # from other seeds, for tuning (physgrad compare), so that no choice is made on the test states
+    # test and validation: the test family from a fixed seed per test size (first seed + its index);
+    # validation from other seeds, for tuning (physgrad compare), so that no choice is made on the
+    # test states
     for part, first_seed in (("test", TEST_SEED), ("validation", VALIDATION_SEED)):
-        initial = [test_initial_states(s["points"], s["base_domain"], size, s["test_count"], first_seed + index)
-                   for index, size in enumerate(s["test_sizes"])]
+        initial = [
+            test_initial_states(
+                s["points"], s["base_domain"], size, s["test_count"], first_seed + index
+            )
+            for index, size in enumerate(s["test_sizes"])
+        ]
         data[part] = generate(s, initial, s["test_sizes"], 2 * s["warmup"], s["test_steps"])
     path.parent.mkdir(parents=True, exist_ok=True)
     content = io.BytesIO()
@@ -199,27 +245,45 @@ def dataset(settings: dict) -> dict:
 def training_set(train, sizes: list[float], dtype) -> dict:
     """train (sizes, initial states, frames, points) as flat frames, each with its size factor."""
     train = jnp.asarray(train, dtype)
-    return {"frames": train.reshape(-1, train.shape[-1]),
-            "size": jnp.repeat(jnp.asarray(sizes, dtype), train.shape[1] * train.shape[2])}
+    return {
+        "frames": train.reshape(-1, train.shape[-1]),
+        "size": jnp.repeat(jnp.asarray(sizes, dtype), train.shape[1] * train.shape[2]),
+    }
 
 
-def draw_windows(training: str, unroll: int, trajectories_count: int, frames_count: int, key, batch_size: int,
-                 frames_set: dict) -> dict:
+def draw_windows(
+    training: str,
+    unroll: int,
+    trajectories_count: int,
+    frames_count: int,
+    key,
+    batch_size: int,
+    frames_set: dict,
+) -> dict:
     """B windows of m + 1 consecutive frames (trajectory and start uniform) from the flat frames of
-    `trajectories_count` trajectories of `frames_count` frames; for ONE, B x m independent one-step pairs, m per
-    sample."""
+    `trajectories_count` trajectories of `frames_count` frames; for ONE, B x m independent one-step
+    pairs, m per sample."""
     pairs = batch_size * unroll if training == "ONE" else batch_size
     span = 1 if training == "ONE" else unroll
     k_trajectory, k_start = jax.random.split(key)
     trajectory = jax.random.randint(k_trajectory, (pairs,), 0, trajectories_count)
-    first = trajectory * frames_count + jax.random.randint(k_start, (pairs,), 0, frames_count - span)
-    frames = frames_set["frames"][first[:, None] + jnp.arange(span + 1)]  # (pairs, span + 1, points)
+    first = trajectory * frames_count + jax.random.randint(
+        k_start, (pairs,), 0, frames_count - span
+    )
+    frames = frames_set["frames"][
+        first[:, None] + jnp.arange(span + 1)
+    ]  # (pairs, span + 1, points)
     size = frames_set["size"][first]
     if training == "ONE":
         frames = frames.reshape(batch_size, unroll, 2, frames.shape[-1])
         size = size.reshape(batch_size, unroll)
-        return {"inputs": frames[:, :, 0], "target": frames[:, :, 1], "sizes": size,
-                "state": frames[:, 0, 0], "size": size[:, 0]}
+        return {
+            "inputs": frames[:, :, 0],
+            "target": frames[:, :, 1],
+            "sizes": size,
+            "state": frames[:, 0, 0],
+            "size": size[:, 0],
+        }
     return {"state": frames[:, 0], "target": frames[:, 1:], "size": size}
 
 
@@ -228,17 +292,26 @@ def held_out_set(frames, sizes: list[float], horizon: int, dtype) -> dict:
     frames = jnp.asarray(frames, dtype)
     states = frames[:, :, 0].reshape(-1, frames.shape[-1])
     targets = frames[:, :, 1:].reshape(-1, frames.shape[2] - 1, frames.shape[-1])
-    return {"state": states, "target": targets, "size": jnp.repeat(jnp.asarray(sizes, dtype), frames.shape[1]),
-            # the study's normaliser: the largest u*^2 over frames 0..horizon, the state itself included
-            "scale": jnp.maximum(jnp.max(states ** 2, axis=1), jnp.max(targets[:, :horizon] ** 2, axis=(1, 2)))}
+    return {
+        "state": states,
+        "target": targets,
+        "size": jnp.repeat(jnp.asarray(sizes, dtype), frames.shape[1]),
+        # the study's normaliser: the largest u*^2 over frames 0..horizon, the state itself included
+        "scale": jnp.maximum(
+            jnp.max(states**2, axis=1), jnp.max(targets[:, :horizon] ** 2, axis=(1, 2))
+        ),
+    }
 
 
-# ----------------------------------------------------------------------------------------------------------- model
+# --------------------------------------------------------------------------------------------------
+# model
+
 
 @dataclass(frozen=True)
 class Stepper:
-    """The learned stepper: s' = f(s) (kind "predict") or P(s) + h f(s) (kind "correct"), f the ResNet of
-    physgrad.nets and P `substeps` ETD1 steps of size h on the domain 2 pi * base_domain * size."""
+    """The learned stepper: s' = f(s) (kind "predict") or P(s) + h f(s) (kind "correct"), f the
+    ResNet of physgrad.nets and P `substeps` ETD1 steps of size h on the domain 2 pi * base_domain *
+    size."""
 
     kind: str
     base_domain: float
@@ -258,7 +331,9 @@ class Stepper:
 
     def autoregressive(self, params, u, size, steps: int):
         """The learned stepper's states 1..steps from u: (steps, points)."""
-        return jax.lax.scan(lambda v, _: (self.advance(params, v, size),) * 2, u, None, length=steps)[1]
+        return jax.lax.scan(
+            lambda v, _: (self.advance(params, v, size),) * 2, u, None, length=steps
+        )[1]
 
 
 def detach(state, training: str):
@@ -267,7 +342,8 @@ def detach(state, training: str):
 
 
 def rollout_step(stepper: Stepper, training: str, state, output):
-    """x_{k+1}: for ONE the policy's output itself; else the stepper's step from the (for NOG detached) state."""
+    """x_{k+1}: for ONE the policy's output itself; else the stepper's step from the (for NOG
+    detached) state."""
     if training == "ONE":
         return output, state[1]
     u, size = detach(state, training)
@@ -275,29 +351,36 @@ def rollout_step(stepper: Stepper, training: str, state, output):
 
 
 def rollout_policy(stepper: Stepper, training: str, params, sample):
-    """ONE: the learned stepper from the sample's k-th ground-truth state; else the network on the state."""
+    """ONE: the learned stepper from the sample's k-th ground-truth state; else the network on the
+    state."""
     if training == "ONE":
         return lambda state, k: stepper.advance(params, sample["inputs"][k], sample["sizes"][k])
     return lambda state, k: apply_resnet(params, *detach(state, training))
 
 
 def dynamics(stepper: Stepper, training: str, unroll: int) -> Dynamics:
-    """The rollout of m steps of the training modality; y = the m predicted states. The rollout state is
-    (u, size); the network is the policy and the solver the physics, so that the modes M and S of physgrad.unroll
-    stop what they stop in the control scenes."""
-    return Dynamics(step=partial(rollout_step, stepper, training), policy=partial(rollout_policy, stepper, training),
-                    initial=lambda sample: (sample["state"], sample["size"]), unroll=unroll, closed_loop=True,
-                    readout=lambda final, observed, sample: observed.reshape(-1),
-                    observe=lambda state, control, sample: state[0])
+    """The rollout of m steps of the training modality; y = the m predicted states. The rollout
+    state is (u, size); the network is the policy and the solver the physics, so that the modes M
+    and S of physgrad.unroll stop what they stop in the control scenes."""
+    return Dynamics(
+        step=partial(rollout_step, stepper, training),
+        policy=partial(rollout_policy, stepper, training),
+        initial=lambda sample: (sample["state"], sample["size"]),
+        unroll=unroll,
+        closed_loop=True,
+        readout=lambda final, observed, sample: observed.reshape(-1),
+        observe=lambda state, control, sample: state[0],
+    )
 
 
 def sample_loss(y, sample):
-    """Training samples: the MSE over the predicted steps and the grid. Test samples: the study's relative
-    error, mean_k min(mean_x (u_k - u*_k)^2 / scale, ERROR_CAP) with scale = max u*^2 over frames 0..horizon (a
-    non-finite step counts ERROR_CAP, so that a model blowing up has a finite, comparable error)."""
+    """Training samples: the MSE over the predicted steps and the grid. Test samples: the study's
+    relative error, mean_k min(mean_x (u_k - u*_k)^2 / scale, ERROR_CAP) with scale = max u*^2 over
+    frames 0..horizon (a non-finite step counts ERROR_CAP, so that a model blowing up has a finite,
+    comparable error)."""
     target = sample["target"]
     predicted = y.reshape(-1, target.shape[-1])
-    squared = (predicted - target[:predicted.shape[0]]) ** 2
+    squared = (predicted - target[: predicted.shape[0]]) ** 2
     if "scale" not in sample:
         return jnp.mean(squared)
     per_step = jnp.mean(squared, axis=1) / sample["scale"]
@@ -305,31 +388,38 @@ def sample_loss(y, sample):
 
 
 def held_out_output(stepper: Stepper, horizon: int, params, sample):
-    """The held-out loss's output: `horizon` steps of the learned stepper, whatever the training unroll."""
+    """The held-out loss's output: `horizon` steps of the learned stepper, whatever the training
+    unroll."""
     return stepper.autoregressive(params, sample["state"], sample["size"], horizon).reshape(-1)
 
 
 def stability_metrics(stepper: Stepper, long_horizon: int, dtype, params, sample, y) -> dict:
-    """unstable_fraction: the long rollout leaves DIVERGED_FACTOR x the ground truth's largest |u| or is not
-    finite; decorrelation_steps: steps before its correlation with the ground truth first drops below
-    DECORRELATION (long_horizon if never)."""
+    """unstable_fraction: the long rollout leaves DIVERGED_FACTOR x the ground truth's largest |u|
+    or is not finite; decorrelation_steps: steps before its correlation with the ground truth first
+    drops below DECORRELATION (long_horizon if never)."""
     states = stepper.autoregressive(params, sample["state"], sample["size"], long_horizon)
     truth = sample["target"][:long_horizon]
     finite = jnp.isfinite(states)
     states = jnp.where(finite, states, 0.0)
-    unstable = ~jnp.all(finite) | (jnp.max(jnp.abs(states)) > DIVERGED_FACTOR * jnp.max(jnp.abs(truth)))
+    unstable = ~jnp.all(finite) | (
+        jnp.max(jnp.abs(states)) > DIVERGED_FACTOR * jnp.max(jnp.abs(truth))
+    )
     below = jax.vmap(pearson)(states, truth) < DECORRELATION
     steps = jnp.where(jnp.any(below), jnp.argmax(below), long_horizon)
     return {"unstable_fraction": unstable.astype(dtype), "decorrelation_steps": steps.astype(dtype)}
 
 
-# ----------------------------------------------------------------------------------------------------------- scene
+# --------------------------------------------------------------------------------------------------
+# scene
+
 
 def sizes(name: str, value) -> list[float]:
     """A non-empty list of positive size factors."""
     listed = list(value) if isinstance(value, (list, tuple)) else None
     if not listed:
-        raise UserError(f"{name}={value!r} is not allowed: use a list of positive size factors, e.g. [0.9, 1.0]")
+        raise UserError(
+            f"{name}={value!r} is not allowed: use a list of positive size factors, e.g. [0.9, 1.0]"
+        )
     return [number(f"{name}[{i}]", v, 0, open_low=True) for i, v in enumerate(listed)]
 
 
@@ -340,8 +430,19 @@ def pearson(a, b):
     return jnp.where(norms > 0, jnp.sum(a * b) / jnp.where(norms > 0, norms, 1.0), 0.0)
 
 
-def data_settings(unroll: int, points, base_domain, train_sizes, test_sizes, dt, substeps, warmup, train_steps,
-                  test_count, test_steps) -> dict:
+def data_settings(
+    unroll: int,
+    points,
+    base_domain,
+    train_sizes,
+    test_sizes,
+    dt,
+    substeps,
+    warmup,
+    train_steps,
+    test_count,
+    test_steps,
+) -> dict:
     """The checked settings the data depend on (the key of dataset's cache)."""
     points = number("task.points", points, 4, integer=True)
     if points % 2:
@@ -360,17 +461,51 @@ def data_settings(unroll: int, points, base_domain, train_sizes, test_sizes, dt,
     }
 
 
-def build(key, *, stepper, training, unroll, points, base_domain, train_sizes, test_sizes, dt, substeps, warmup,
-          train_steps, test_count, test_steps, horizon, long_horizon, channels, blocks, zero_output) -> Scene:
-    """The scene; see the module docstring for the equations, steppers and training modalities. The data do
-    not depend on ``key`` (the study's fixed initial states): seeds differ in network and minibatches."""
+def build(
+    key,
+    *,
+    stepper,
+    training,
+    unroll,
+    points,
+    base_domain,
+    train_sizes,
+    test_sizes,
+    dt,
+    substeps,
+    warmup,
+    train_steps,
+    test_count,
+    test_steps,
+    horizon,
+    long_horizon,
+    channels,
+    blocks,
+    zero_output,
+) -> Scene:
+    """The scene; see the module docstring for the equations, steppers and training modalities. The
+    data do not depend on ``key`` (the study's fixed initial states): seeds differ in network and
+    minibatches."""
     stepper = choice("task.stepper", stepper, STEPPERS)
     training = choice("task.training", training, TRAININGS)
     unroll = number("task.unroll", unroll, 1, integer=True)
-    settings = data_settings(unroll, points, base_domain, train_sizes, test_sizes, dt, substeps, warmup, train_steps,
-                             test_count, test_steps)
+    settings = data_settings(
+        unroll,
+        points,
+        base_domain,
+        train_sizes,
+        test_sizes,
+        dt,
+        substeps,
+        warmup,
+        train_steps,
+        test_count,
+        test_steps,
+    )
     horizon = number("task.horizon", horizon, 1, settings["test_steps"] + 1, integer=True)
-    long_horizon = number("task.long_horizon", long_horizon, horizon, settings["test_steps"] + 1, integer=True)
+    long_horizon = number(
+        "task.long_horizon", long_horizon, horizon, settings["test_steps"] + 1, integer=True
+    )
     channels = number("task.channels", channels, 1, integer=True)
     blocks = number("task.blocks", blocks, 0, integer=True)
     zero_output = flag("task.zero_output", zero_output)
@@ -379,32 +514,46 @@ def build(key, *, stepper, training, unroll, points, base_domain, train_sizes, t
     model = Stepper(stepper, settings["base_domain"], settings["dt"], settings["substeps"])
     train_shape = data["train"].shape  # (sizes, initial states, frames, points)
     return Scene(
-        init_params=partial(init_resnet, channels=channels, blocks=blocks, dtype=dtype, zero_output=zero_output),
+        init_params=partial(
+            init_resnet, channels=channels, blocks=blocks, dtype=dtype, zero_output=zero_output
+        ),
         train_set=training_set(data["train"], settings["train_sizes"], dtype),
-        draw_batch=partial(draw_windows, training, unroll, train_shape[0] * train_shape[1], train_shape[2]),
+        draw_batch=partial(
+            draw_windows, training, unroll, train_shape[0] * train_shape[1], train_shape[2]
+        ),
         test_set=held_out_set(data["test"], settings["test_sizes"], horizon, dtype),
         validation_set=held_out_set(data["validation"], settings["test_sizes"], horizon, dtype),
         test_output=partial(held_out_output, model, horizon),
         dynamics=dynamics(model, training, unroll),
         sample_loss=sample_loss,
         sample_metrics=partial(stability_metrics, model, long_horizon, dtype),
-        figure=partial(draw_rollouts, stepper=model, variant=f"{stepper}, {training}, m = {unroll}",
-                       horizon=horizon, long_horizon=long_horizon),
+        figure=partial(
+            draw_rollouts,
+            stepper=model,
+            variant=f"{stepper}, {training}, m = {unroll}",
+            horizon=horizon,
+            long_horizon=long_horizon,
+        ),
     )
 
 
-def draw_rollouts(params, test_set, path, stepper: Stepper, variant: str, horizon: int, long_horizon: int):
-    """scene.png: a test rollout against the ground truth as space-time images (truth, model, difference),
-    and the relative error per rollout step (median over the test states, with the coarse solver alone for
-    reference)."""
+def draw_rollouts(
+    params, test_set, path, stepper: Stepper, variant: str, horizon: int, long_horizon: int
+):
+    """scene.png: a test rollout against the ground truth as space-time images (truth, model,
+    difference), and the relative error per rollout step (median over the test states, with the
+    coarse solver alone for reference)."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
     steps = long_horizon
-    model = np.asarray(jax.jit(jax.vmap(lambda u, s: stepper.autoregressive(params, u, s, steps)))(
-        test_set["state"], test_set["size"]))
+    model = np.asarray(
+        jax.jit(jax.vmap(lambda u, s: stepper.autoregressive(params, u, s, steps)))(
+            test_set["state"], test_set["size"]
+        )
+    )
     truth = np.asarray(test_set["target"][:, :steps])
 
     def solver_alone(u, size):
@@ -413,35 +562,54 @@ def draw_rollouts(params, test_set, path, stepper: Stepper, variant: str, horizo
     baseline = np.asarray(jax.jit(jax.vmap(solver_alone))(test_set["state"], test_set["size"]))
     scale = np.max(truth[:, :horizon] ** 2, axis=(1, 2))[:, None]
     with np.errstate(all="ignore"):  # capped as the held-out loss caps it
-        errors = {label: np.where(np.isfinite(e), np.minimum(e, ERROR_CAP), ERROR_CAP)
-                  for label, e in (("network", np.mean((model - truth) ** 2, axis=2) / scale),
-                                   ("coarse solver P alone", np.mean((baseline - truth) ** 2, axis=2) / scale))}
+        errors = {
+            label: np.where(np.isfinite(e), np.minimum(e, ERROR_CAP), ERROR_CAP)
+            for label, e in (
+                ("network", np.mean((model - truth) ** 2, axis=2) / scale),
+                ("coarse solver P alone", np.mean((baseline - truth) ** 2, axis=2) / scale),
+            )
+        }
     sizes = np.asarray(test_set["size"])
     index = int(np.argmin(np.abs(sizes - np.median(sizes))))  # an interpolating size
     shown = min(steps, 200)
     fig = plt.figure(figsize=(13, 6.2))
     grid = fig.add_gridspec(2, 3, height_ratios=[1.0, 0.9])
     limit = float(np.max(np.abs(truth[index, :shown])))
-    panels = (("ground truth (ETD2RK)", truth[index]), ("network rollout", model[index]),
-              ("network - truth", model[index] - truth[index]))
+    panels = (
+        ("ground truth (ETD2RK)", truth[index]),
+        ("network rollout", model[index]),
+        ("network - truth", model[index] - truth[index]),
+    )
     for column, (title, field) in enumerate(panels):
         ax = fig.add_subplot(grid[0, column])
-        image = ax.imshow(np.clip(field[:shown].T, -2 * limit, 2 * limit), aspect="auto", origin="lower",
-                          cmap="RdBu_r", vmin=-limit, vmax=limit, extent=(1, shown, 0, field.shape[1]))
+        image = ax.imshow(
+            np.clip(field[:shown].T, -2 * limit, 2 * limit),
+            aspect="auto",
+            origin="lower",
+            cmap="RdBu_r",
+            vmin=-limit,
+            vmax=limit,
+            extent=(1, shown, 0, field.shape[1]),
+        )
         ax.set_title(f"{title}, size {sizes[index]:.3g}", fontsize=9)
         ax.set_xlabel("rollout step")
         ax.set_ylabel("grid point")
     fig.colorbar(image, ax=fig.axes, shrink=0.6, pad=0.01, label="u")
     ax = fig.add_subplot(grid[1, :])
     for label, error in errors.items():
-        ax.semilogy(np.arange(1, steps + 1), np.median(error, axis=0), label=f"{label}: median over "
-                    f"{len(error)} test states")
+        ax.semilogy(
+            np.arange(1, steps + 1),
+            np.median(error, axis=0),
+            label=f"{label}: median over {len(error)} test states",
+        )
     ax.axhline(ERROR_CAP, color="k", lw=0.8, ls="--", label=f"cap ({ERROR_CAP:g}: blown up)")
     ax.axvline(horizon, color="gray", ls=":", lw=1, label=f"the study's horizon ({horizon} steps)")
     ax.set_xlabel("rollout step")
     ax.set_ylabel("mean_x (u - u*)^2 / max u*^2")
     ax.grid(True, which="both", alpha=0.3)
     ax.legend(fontsize=8)
-    fig.suptitle(f"Kuramoto-Sivashinsky: learned stepper ({variant}) on held-out test states", fontsize=10)
+    fig.suptitle(
+        f"Kuramoto-Sivashinsky: learned stepper ({variant}) on held-out test states", fontsize=10
+    )
     fig.savefig(path, dpi=100, bbox_inches="tight")
     plt.close(fig)

@@ -1,11 +1,13 @@
 """Multi-pole cart-pole swing-up (StableBPTT paper): n poles on one cart, one shared force F.
 
-theta = 0 is upright. With g = 9.8, pole mass m = 0.1, total mass M = 1.1 (not scaled with n), half length l:
+theta = 0 is upright. With g = 9.8, pole mass m = 0.1, total mass M = 1.1 (not scaled with n), half
+length l:
     A_i = (F + m l thetadot_i^2 sin theta_i) / M
     thetaddot_i = (g sin theta_i - cos theta_i A_i) / (l (4/3 - m cos^2 theta_i / M))
     xddot = (F + m l sum_i (thetadot_i^2 sin theta_i - thetaddot_i cos theta_i)) / M
 Semi-implicit Euler: velocities first, then positions with the new velocities.
-State: [x, theta_1..theta_n, xdot, thetadot_1..thetadot_n]. Loss: 1 - mean_i cos theta_i at the final step.
+State: [x, theta_1..theta_n, xdot, thetadot_1..thetadot_n]. Loss: 1 - mean_i cos theta_i at the
+final step.
 """
 
 from __future__ import annotations
@@ -24,9 +26,13 @@ GRAVITY, POLE_MASS, TOTAL_MASS = 9.8, 0.1, 1.1
 def accelerations(theta, theta_dot, force, half_length):
     """(xddot, thetaddot) of the equations above."""
     sin, cos = jnp.sin(theta), jnp.cos(theta)
-    a = (force + POLE_MASS * half_length * theta_dot ** 2 * sin) / TOTAL_MASS
-    theta_ddot = (GRAVITY * sin - cos * a) / (half_length * (4.0 / 3.0 - POLE_MASS * cos ** 2 / TOTAL_MASS))
-    x_ddot = (force + POLE_MASS * half_length * jnp.sum(theta_dot ** 2 * sin - theta_ddot * cos)) / TOTAL_MASS
+    a = (force + POLE_MASS * half_length * theta_dot**2 * sin) / TOTAL_MASS
+    theta_ddot = (GRAVITY * sin - cos * a) / (
+        half_length * (4.0 / 3.0 - POLE_MASS * cos**2 / TOTAL_MASS)
+    )
+    x_ddot = (
+        force + POLE_MASS * half_length * jnp.sum(theta_dot**2 * sin - theta_ddot * cos)
+    ) / TOTAL_MASS
     return x_ddot, theta_ddot
 
 
@@ -39,8 +45,11 @@ def euler_step(state, force, dt, half_length):
     return jnp.concatenate([positions + dt * velocities, velocities])
 
 
-def build(key, *, poles, dt, unroll, half_length, hidden, checkpoint, train_size, test_size) -> Scene:
-    """The scene: a closed-loop controller state -> hidden tanh layers -> force, last layer zero-initialised."""
+def build(
+    key, *, poles, dt, unroll, half_length, hidden, checkpoint, train_size, test_size
+) -> Scene:
+    """The scene: a closed-loop controller state -> hidden tanh layers -> force, last layer
+    zero-initialised."""
     poles = number("task.poles", poles, 1, integer=True)
     dt = number("task.dt", dt, 0, open_low=True)
     half_length = number("task.half_length", half_length, 0, open_low=True)
@@ -64,16 +73,25 @@ def build(key, *, poles, dt, unroll, half_length, hidden, checkpoint, train_size
         return lambda state, k: apply_mlp(params, state, hidden="tanh")[0]
 
     def cos_poles(final, observed, sample):
-        return jnp.cos(final[1:1 + poles])  # y: cos(theta_i) of every pole at the end
+        return jnp.cos(final[1 : 1 + poles])  # y: cos(theta_i) of every pole at the end
 
     train_key, test_key = jax.random.split(key)
 
     return Scene(
-        init_params=lambda k: init_mlp(k, sizes, dtype, zero_last=True),  # the initial force is exactly 0
+        init_params=lambda k: init_mlp(
+            k, sizes, dtype, zero_last=True
+        ),  # the initial force is exactly 0
         train_set=make_states(train_key, train_size),
         test_set=make_states(test_key, test_size),
-        dynamics=Dynamics(step=step, policy=policy, initial=lambda sample: sample["state"], unroll=unroll,
-                          closed_loop=True, readout=cos_poles, checkpoint=checkpoint),
+        dynamics=Dynamics(
+            step=step,
+            policy=policy,
+            initial=lambda sample: sample["state"],
+            unroll=unroll,
+            closed_loop=True,
+            readout=cos_poles,
+            checkpoint=checkpoint,
+        ),
         sample_loss=lambda y, sample: 1.0 - jnp.mean(y),
         sample_metrics=lambda params, sample, y: {"upright": jnp.mean(y > 0.9)},
     )

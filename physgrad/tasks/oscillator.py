@@ -24,15 +24,15 @@ def vector_field(x, u, alpha, gain):
     q, p = jnp.split(x, 2)
     zero = jnp.zeros_like(q[:1])
     to_right = jnp.concatenate([q[1:] - q[:-1], zero])  # q_{i+1} - q_i
-    to_left = jnp.concatenate([zero, q[:-1] - q[1:]])   # q_{i-1} - q_i
+    to_left = jnp.concatenate([zero, q[:-1] - q[1:]])  # q_{i-1} - q_i
     drive = jnp.zeros_like(q).at[-1].set(gain * u)
-    return jnp.concatenate([p, -q + alpha * (to_right ** 3 + to_left ** 3) + drive])
+    return jnp.concatenate([p, -q + alpha * (to_right**3 + to_left**3) + drive])
 
 
 def energy(x, alpha):
     """H(q, p) without the control term."""
     q, p = jnp.split(x, 2)
-    return 0.5 * jnp.sum(q ** 2 + p ** 2) + 0.25 * alpha * jnp.sum((q[:-1] - q[1:]) ** 4)
+    return 0.5 * jnp.sum(q**2 + p**2) + 0.25 * alpha * jnp.sum((q[:-1] - q[1:]) ** 4)
 
 
 def rk4_step(x, u, dt, alpha, gain):
@@ -44,10 +44,22 @@ def rk4_step(x, u, dt, alpha, gain):
     return x + dt / 6.0 * (k1 + 2.0 * k2 + 2.0 * k3 + k4)
 
 
-def build(key, *, oscillators, alpha, gain, dt, unroll, closed_loop, hidden, checkpoint, train_size,
-          test_size) -> Scene:
-    """The scene; closed_loop: the network sees (state, target) and gives this step's control, else (open loop,
-    the paper's) it maps the target to every control at once."""
+def build(
+    key,
+    *,
+    oscillators,
+    alpha,
+    gain,
+    dt,
+    unroll,
+    closed_loop,
+    hidden,
+    checkpoint,
+    train_size,
+    test_size,
+) -> Scene:
+    """The scene; closed_loop: the network sees (state, target) and gives this step's control, else
+    (open loop, the paper's) it maps the target to every control at once."""
     n = number("task.oscillators", oscillators, 1, integer=True)
     dt = number("task.dt", dt, 0, open_low=True)
     alpha, gain = number("task.alpha", alpha), number("task.gain", gain)
@@ -77,7 +89,13 @@ def build(key, *, oscillators, alpha, gain, dt, unroll, closed_loop, hidden, che
         init_params=lambda k: init_mlp(k, sizes, dtype),
         train_set={"x0": train_x0},
         test_set={"x0": test_x0},
-        dynamics=Dynamics(step=step, policy=policy, initial=lambda sample: sample["x0"], unroll=unroll,
-                          closed_loop=closed_loop, checkpoint=checkpoint),
+        dynamics=Dynamics(
+            step=step,
+            policy=policy,
+            initial=lambda sample: sample["x0"],
+            unroll=unroll,
+            closed_loop=closed_loop,
+            checkpoint=checkpoint,
+        ),
         sample_loss=lambda y, sample: jnp.sum((y - sample["x0"]) ** 2),
     )

@@ -2,8 +2,8 @@
 
 Cell-centred grid, spacing 1, zero Dirichlet boundary (ghost cells 0), 5-point stencil:
     (Laplace x)_{ij} = x_{i+1,j} + x_{i-1,j} + x_{i,j+1} + x_{i,j-1} - 4 x_{ij}.
-The network maps y* (N^2) to x_hat (N^2); the physical output is y = Laplace(x_hat) and the per-sample loss
-is 1/2 * sum_cells (y - y*)^2.
+The network maps y* (N^2) to x_hat (N^2); the physical output is y = Laplace(x_hat) and the
+per-sample loss is 1/2 * sum_cells (y - y*)^2.
 """
 
 from __future__ import annotations
@@ -19,8 +19,13 @@ from physgrad.validate import number
 def laplace(x: jax.Array) -> jax.Array:
     """5-point Laplacian with zero ghost cells over the last two axes."""
     padded = jnp.pad(x, [(0, 0)] * (x.ndim - 2) + [(1, 1), (1, 1)])
-    return (padded[..., 2:, 1:-1] + padded[..., :-2, 1:-1] + padded[..., 1:-1, 2:] + padded[..., 1:-1, :-2]
-            - 4.0 * x)
+    return (
+        padded[..., 2:, 1:-1]
+        + padded[..., :-2, 1:-1]
+        + padded[..., 1:-1, 2:]
+        + padded[..., 1:-1, :-2]
+        - 4.0 * x
+    )
 
 
 def laplace_eigenvalues(n: int) -> jax.Array:
@@ -30,8 +35,8 @@ def laplace_eigenvalues(n: int) -> jax.Array:
 
 
 def sine_basis(n: int, dtype=None) -> jax.Array:
-    """Orthonormal, symmetric DST-I matrix S_ik = sqrt(2/(N+1)) sin(pi i k / (N+1)): the eigenvectors of
-    the 1-D Dirichlet Laplacian."""
+    """Orthonormal, symmetric DST-I matrix S_ik = sqrt(2/(N+1)) sin(pi i k / (N+1)): the
+    eigenvectors of the 1-D Dirichlet Laplacian."""
     idx = jnp.arange(1, n + 1, dtype=dtype)
     return jnp.sqrt(2.0 / (n + 1)) * jnp.sin(jnp.pi * idx[:, None] * idx[None, :] / (n + 1))
 
@@ -43,9 +48,10 @@ def solve_poisson(y: jax.Array) -> jax.Array:
 
 
 def smooth_fields(key, count: int, n: int, smoothness: float, dtype) -> jax.Array:
-    """Random fields: complex Gaussian Fourier coefficients weighted by (1/|k|^2)^smoothness, the k = 0 mode
-    dropped (the reference's |k|^2 <= 0.1 cut removes only that mode on integer wave numbers), real part of
-    the inverse FFT, each sample normalised to mean 0 and standard deviation 1."""
+    """Random fields: complex Gaussian Fourier coefficients weighted by (1/|k|^2)^smoothness, the k
+    = 0 mode dropped (the reference's |k|^2 <= 0.1 cut removes only that mode on integer wave
+    numbers), real part of the inverse FFT, each sample normalised to mean 0 and standard deviation
+    1."""
     k = jnp.fft.fftfreq(n) * n
     k2 = k[:, None] ** 2 + k[None, :] ** 2
     weight = jnp.where(k2 > 0.1, 1.0 / jnp.where(k2 > 0.1, k2, 1.0) ** smoothness, 0.0)
@@ -61,11 +67,20 @@ def build(key, *, grid, smoothness, test_size) -> Scene:
     test_size = number("task.test_size", test_size, 1, integer=True)
     dtype = jnp.zeros(()).dtype  # float64 under precision=64
     cells = n * n
-    sizes = [cells, cells, 2 * cells, cells, cells]  # 64 -> 64 -> 128 -> 64 -> 64 at N = 8: 24,896 params
+    sizes = [
+        cells,
+        cells,
+        2 * cells,
+        cells,
+        cells,
+    ]  # 64 -> 64 -> 128 -> 64 -> 64 at N = 8: 24,896 params
 
     def make_batch(k, count):
         fields = smooth_fields(k, count, n, smoothness, dtype)
-        return {"target": laplace(fields).reshape(count, cells), "field": fields.reshape(count, cells)}
+        return {
+            "target": laplace(fields).reshape(count, cells),
+            "field": fields.reshape(count, cells),
+        }
 
     def predict(params, sample):
         return apply_mlp(params, sample["target"], hidden="tanh")
@@ -81,7 +96,9 @@ def build(key, *, grid, smoothness, test_size) -> Scene:
 
     return Scene(
         init_params=lambda k: init_mlp(k, sizes, dtype),
-        draw_batch=lambda k, count, train_set: make_batch(k, count),  # fresh every iteration, as the reference
+        draw_batch=lambda k, count, train_set: make_batch(
+            k, count
+        ),  # fresh every iteration, as the reference
         test_set=make_batch(key, test_size),
         sample_output=sample_output,
         sample_loss=sample_loss,

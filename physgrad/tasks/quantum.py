@@ -1,15 +1,18 @@
-"""Quantum dipole control (HIG and StableBPTT papers): steer a particle in a box with a field u(t) x.
+"""Quantum dipole control (HIG and StableBPTT papers): steer a particle in a box with a field u(t)
+x.
 
-i dpsi/dt = (-d^2/dx^2 + u(t) x) psi on (0, 2), psi = 0 at both walls (hbar = 1, m = 1/2), on the interior
-points x_j = j dx, j = 1..N, dx = 2 / (N + 1). H = -D2 + u diag(x) with D2 the 3-point Laplacian / dx^2.
-Crank-Nicolson, a tridiagonal solve per sample and step:
+i dpsi/dt = (-d^2/dx^2 + u(t) x) psi on (0, 2), psi = 0 at both walls (hbar = 1, m = 1/2), on the
+interior points x_j = j dx, j = 1..N, dx = 2 / (N + 1). H = -D2 + u diag(x) with D2 the 3-point
+Laplacian / dx^2. Crank-Nicolson, a tridiagonal solve per sample and step:
     (I + i dt/2 H) psi_{n+1} = (I - i dt/2 H) psi_n.
-Discrete eigenstates phi_n(j) = sin(pi n j / (N + 1)) (normalised), energies (4/dx^2) sin^2(pi n / (2(N + 1))).
+Discrete eigenstates phi_n(j) = sin(pi n j / (N + 1)) (normalised), energies (4/dx^2) sin^2(pi n /
+(2(N + 1))).
 
 Two presets share this module (conf/task/quantum.yaml, conf/task/quantum_control.yaml):
-- HIG: start in phi_1, reach a random real mix of phi_2 and phi_3; loss 1 - |<target|psi(T)>|^2; open loop.
-- StableBPTT: start in a random complex mix of phi_1 and phi_2, reach phi_n; loss sum_t (1 - |<phi_n|psi_t>|^2);
-  closed loop.
+- HIG: start in phi_1, reach a random real mix of phi_2 and phi_3; loss 1 - |<target|psi(T)>|^2;
+  open loop.
+- StableBPTT: start in a random complex mix of phi_1 and phi_2, reach phi_n; loss sum_t (1 -
+  |<phi_n|psi_t>|^2); closed loop.
 """
 
 from __future__ import annotations
@@ -41,23 +44,25 @@ def eigenstate(level: int, points: int, dtype=jnp.float32) -> jax.Array:
 
 def eigenenergy(level: int, points: int) -> float:
     dx = 2.0 / (points + 1)
-    return 4.0 / dx ** 2 * float(jnp.sin(jnp.pi * level / (2 * (points + 1)))) ** 2
+    return 4.0 / dx**2 * float(jnp.sin(jnp.pi * level / (2 * (points + 1)))) ** 2
 
 
 def apply_hamiltonian(psi, u, x):
-    """H psi = -(psi_{j+1} - 2 psi_j + psi_{j-1}) / dx^2 + u x_j psi_j with psi = 0 beyond the walls."""
+    """H psi = -(psi_{j+1} - 2 psi_j + psi_{j-1}) / dx^2 + u x_j psi_j with psi = 0 beyond the
+    walls."""
     dx = x[0]
     padded = jnp.pad(psi, 1)
-    return -(padded[2:] - 2.0 * psi + padded[:-2]) / dx ** 2 + u * x * psi
+    return -(padded[2:] - 2.0 * psi + padded[:-2]) / dx**2 + u * x * psi
 
 
 def crank_nicolson_step(psi, u, x, dt):
-    """Solve (I + i dt/2 H) psi_next = (I - i dt/2 H) psi with a tridiagonal solver (O(N) per sample)."""
+    """Solve (I + i dt/2 H) psi_next = (I - i dt/2 H) psi with a tridiagonal solver (O(N) per
+    sample)."""
     dx = x[0]
     half = 0.5j * dt
     rhs = psi - half * apply_hamiltonian(psi, u, x)
-    diagonal = 1.0 + half * (2.0 / dx ** 2 + u * x)
-    off = jnp.full_like(psi, -half / dx ** 2)
+    diagonal = 1.0 + half * (2.0 / dx**2 + u * x)
+    off = jnp.full_like(psi, -half / dx**2)
     lower, upper = off.at[0].set(0.0), off.at[-1].set(0.0)
     return tridiagonal_solve(lower, diagonal, upper, rhs[:, None])[:, 0]
 
@@ -78,8 +83,8 @@ def eigenstates(points: int, levels: int, dtype) -> list[jax.Array]:
 
 
 def start_states(k_start, k_phase, count: int, start: str, phi, dtype) -> jax.Array:
-    """psi_0: phi_1 ("ground"), or ("mix12") (m_1 phi_1 + m_2 phi_2) / |m| with m_i = c_i exp(i a_i),
-    c_i ~ N(0, 1), a_i ~ U[0, 2 pi)."""
+    """psi_0: phi_1 ("ground"), or ("mix12") (m_1 phi_1 + m_2 phi_2) / |m| with m_i = c_i exp(i
+    a_i), c_i ~ N(0, 1), a_i ~ U[0, 2 pi)."""
     if start == "ground":
         return jnp.broadcast_to(phi[0], (count, phi[0].shape[0]))
     c = jax.random.normal(k_start, (count, 2), dtype)
@@ -89,14 +94,17 @@ def start_states(k_start, k_phase, count: int, start: str, phi, dtype) -> jax.Ar
 
 
 def target_states(k_target, count: int, target: str, level: int, phi, dtype) -> jax.Array:
-    """The target: ("mix23") (c_2 phi_2 + c_3 phi_3) / |c| with c_i ~ N(0, 1), real; or ("level") phi_level."""
+    """The target: ("mix23") (c_2 phi_2 + c_3 phi_3) / |c| with c_i ~ N(0, 1), real; or ("level")
+    phi_level."""
     if target == "mix23":
         c = jax.random.normal(k_target, (count, 2), dtype)
         return (c[:, :1] * phi[1] + c[:, 1:] * phi[2]) / jnp.linalg.norm(c, axis=1, keepdims=True)
     return jnp.broadcast_to(phi[level - 1], (count, phi[0].shape[0]))
 
 
-def make_samples(key, count: int, *, points: int, start: str, target: str, level: int, dtype) -> dict:
+def make_samples(
+    key, count: int, *, points: int, start: str, target: str, level: int, dtype
+) -> dict:
     """``count`` samples {"psi0": start state, "target": target state}, both complex."""
     cplx = jnp.result_type(dtype, jnp.complex64)
     phi = eigenstates(points, max(3, level), dtype)
@@ -112,8 +120,9 @@ def initial_state(sample) -> jax.Array:
 
 
 def init_network(key, *, points: int, network: str, closed_loop: bool, hidden, unroll: int, dtype):
-    """closed loop: the control CNN on psi ("cnn") or an MLP from (psi, target) as real numbers to u ("dense");
-    open loop: an MLP from the target as real numbers to the controls of all unroll steps."""
+    """closed loop: the control CNN on psi ("cnn") or an MLP from (psi, target) as real numbers to u
+    ("dense"); open loop: an MLP from the target as real numbers to the controls of all unroll
+    steps."""
     if closed_loop and network == "cnn":
         return init_control_cnn(key, points, dtype)
     if closed_loop:
@@ -147,7 +156,8 @@ def closed_loop_policy(params, sample, *, control):
 
 
 def open_loop_policy(params, sample):
-    """The controller of one sample: all unroll controls u = MLP([Re target, Im target]) at once, indexed by k."""
+    """The controller of one sample: all unroll controls u = MLP([Re target, Im target]) at once,
+    indexed by k."""
     return partial(scheduled, apply_mlp(params, realify(sample["target"]), hidden="tanh"))
 
 
@@ -158,8 +168,9 @@ def step_fidelity(psi, u, sample) -> jax.Array:
 
 @dataclass(frozen=True)
 class Objective:
-    """every_step: y = the fidelity F_t of every step, L = sum_t (1 - F_t); otherwise y = psi(T) as real numbers
-    [Re, Im] and L = 1 - |<target|psi(T)>|^2. The metric is the final fidelity either way."""
+    """every_step: y = the fidelity F_t of every step, L = sum_t (1 - F_t); otherwise y = psi(T) as
+    real numbers [Re, Im] and L = 1 - |<target|psi(T)>|^2. The metric is the final fidelity either
+    way."""
 
     every_step: bool
     points: int
@@ -170,7 +181,7 @@ class Objective:
     def final_fidelity(self, y, sample) -> jax.Array:
         if self.every_step:
             return y[-1]
-        return fidelity(sample["target"], y[:self.points] + 1j * y[self.points:])
+        return fidelity(sample["target"], y[: self.points] + 1j * y[self.points :])
 
     def sample_loss(self, y, sample) -> jax.Array:
         return jnp.sum(1.0 - y) if self.every_step else 1.0 - self.final_fidelity(y, sample)
@@ -179,43 +190,81 @@ class Objective:
         return {"fidelity": self.final_fidelity(y, sample)}
 
 
-def build(key, *, points, dt, unroll, start, target, target_level, loss, closed_loop, network, hidden,
-          checkpoint, train_size, test_size) -> Scene:
-    """The scene, either preset: every difference between them is one of these settings (docs/decisions.md)."""
+def build(
+    key,
+    *,
+    points,
+    dt,
+    unroll,
+    start,
+    target,
+    target_level,
+    loss,
+    closed_loop,
+    network,
+    hidden,
+    checkpoint,
+    train_size,
+    test_size,
+) -> Scene:
+    """The scene, either preset: every difference between them is one of these settings
+    (docs/decisions.md)."""
     points = number("task.points", points, 3, integer=True)
     dt = number("task.dt", dt, 0, open_low=True)
     start = choice("task.start", start, ("ground", "mix12"))
     target = choice("task.target", target, ("mix23", "level"))
     level = number("task.target_level", target_level, 1, integer=True)
     if target == "level" and level > points:
-        raise UserError(f"task.target_level={level} is not allowed: the grid has {points} levels (task.points)")
+        raise UserError(
+            f"task.target_level={level} is not allowed: the grid has {points} levels (task.points)"
+        )
     every_step = choice("task.loss", loss, ("final", "every_step")) == "every_step"
     network = choice("task.network", network, ("dense", "cnn"))
     closed_loop = flag("task.closed_loop", closed_loop)
     if network == "cnn" and not closed_loop:
-        raise UserError("task.network=cnn is the closed-loop controller: use task.closed_loop=true or "
-                        "task.network=dense")
+        raise UserError(
+            "task.network=cnn is the closed-loop controller: use task.closed_loop=true or "
+            "task.network=dense"
+        )
     train_size = number("task.train_size", train_size, 1, integer=True)
     test_size = number("task.test_size", test_size, 1, integer=True)
     hidden = layer_widths("task.hidden", hidden)
     checkpoint = flag("task.checkpoint", checkpoint)
 
     real = jnp.zeros(()).dtype
-    samples = partial(make_samples, points=points, start=start, target=target, level=level, dtype=real)
+    samples = partial(
+        make_samples, points=points, start=start, target=target, level=level, dtype=real
+    )
     if closed_loop:
-        policy = partial(closed_loop_policy, control=cnn_control if network == "cnn" else dense_control)
+        policy = partial(
+            closed_loop_policy, control=cnn_control if network == "cnn" else dense_control
+        )
     else:
         policy = open_loop_policy
     objective = Objective(every_step, points)
     train_key, test_key = jax.random.split(key)
     return Scene(
-        init_params=partial(init_network, points=points, network=network, closed_loop=closed_loop, hidden=hidden,
-                            unroll=unroll, dtype=real),
+        init_params=partial(
+            init_network,
+            points=points,
+            network=network,
+            closed_loop=closed_loop,
+            hidden=hidden,
+            unroll=unroll,
+            dtype=real,
+        ),
         train_set=samples(train_key, train_size),
         test_set=samples(test_key, test_size),
-        dynamics=Dynamics(step=partial(crank_nicolson_step, x=grid(points, real), dt=dt), policy=policy,
-                          initial=initial_state, unroll=unroll, closed_loop=closed_loop, readout=objective.readout,
-                          checkpoint=checkpoint, observe=step_fidelity if every_step else None),
+        dynamics=Dynamics(
+            step=partial(crank_nicolson_step, x=grid(points, real), dt=dt),
+            policy=policy,
+            initial=initial_state,
+            unroll=unroll,
+            closed_loop=closed_loop,
+            readout=objective.readout,
+            checkpoint=checkpoint,
+            observe=step_fidelity if every_step else None,
+        ),
         sample_loss=objective.sample_loss,
         sample_metrics=objective.sample_metrics,
     )

@@ -1,10 +1,10 @@
 """The badly scaled toy of the HIG paper: learn x -> (sin 6x, cos 9x) through a "physics" that
 scales its second component by lambda.
 
-Input x ~ U(-1, 1); the network predicts (a, b); the physical output is y = P(a, b) = (a, lambda b) and the
-per-sample loss is 1/2 |y - P(sin 6x, cos 9x)|^2. With lambda = 0.01 the second component contributes 10^-4
-of the curvature of the first: gradient methods neglect it, a full inversion (Gauss-Newton) amplifies it by
-1/lambda, and the half inversion of HIG balances the two.
+Input x ~ U(-1, 1); the network predicts (a, b); the physical output is y = P(a, b) = (a, lambda b)
+and the per-sample loss is 1/2 |y - P(sin 6x, cos 9x)|^2. With lambda = 0.01 the second component
+contributes 10^-4 of the curvature of the first: gradient methods neglect it, a full inversion
+(Gauss-Newton) amplifies it by 1/lambda, and the half inversion of HIG balances the two.
 """
 
 from __future__ import annotations
