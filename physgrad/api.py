@@ -14,14 +14,21 @@ from __future__ import annotations
 
 import os
 import sys
+from collections.abc import Iterable
 from pathlib import Path
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:  # imported where they are used: `import physgrad` stays light
+    from physgrad.comparison.study import Study
+    from physgrad.results import Run
+    from physgrad.tables import Tables
 
 
 def run(
     *overrides: str,
     out_dir: str | os.PathLike | None = None,
     config_dir: str | os.PathLike | None = None,
-):
+) -> Run | list[Run]:
     """Train one configuration, given as the overrides `physgrad run` takes (e.g. "task=poisson",
     "optim=hig", "trainer.iterations=100"), and return its results (physgrad.results.Run: attributes
     and the /train and /eval columns as numpy arrays; a list of them, one per seed, with seeds=N >
@@ -58,7 +65,7 @@ def run(
     return read_run(path)
 
 
-def compare(*overrides: str, config_dir: str | os.PathLike | None = None):
+def compare(*overrides: str, config_dir: str | os.PathLike | None = None) -> Study:
     """Which variant trains this scene best, as `physgrad compare` decides it (tuned with equal
     budgets, paired seeds, verdicts with intervals; docs/protocol.md), e.g.
     ``physgrad.compare("task=toy", "optim=adam,hig", "trainer.iterations=300",
@@ -70,7 +77,7 @@ def compare(*overrides: str, config_dir: str | os.PathLike | None = None):
     return run_study(list(overrides), config_dir=config_dir, say=lambda line: None)
 
 
-def read_runs(paths, threshold: float | None = None):
+def read_runs(paths: Iterable[str | Path], threshold: float | None = None) -> Tables:
     """Every run under the given results files or folders (LABEL=PATH sets too) as two pandas
     DataFrames: ``runs, curves = physgrad.read_runs(["outputs/multirun/..."])``. runs: one row per
     run, every setting in a column of its own (optim.learning_rate, task.poles, trainer.iterations,
@@ -83,7 +90,7 @@ def read_runs(paths, threshold: float | None = None):
     return read(paths, threshold)
 
 
-def read_run(path: str | os.PathLike):
+def read_run(path: str | os.PathLike) -> Run:
     """One results.h5 read back: attributes (run.attrs) and the /train and /eval columns
     (run.train["loss"], run.eval["wall_time"], ...) as numpy arrays."""
     from physgrad.results import read_run as read

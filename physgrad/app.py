@@ -5,10 +5,14 @@ from __future__ import annotations
 
 import hashlib
 import logging
+import os
 import sys
 from collections import Counter
+from collections.abc import Iterable
 from contextlib import ExitStack
+from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import hydra
 import numpy as np
@@ -20,24 +24,21 @@ from omegaconf import DictConfig, OmegaConf
 from physgrad.configs import CONF_DIR, name_options
 from physgrad.errors import UserError
 from physgrad.experiment import run_experiment
+from physgrad.runner import Outcome
 from physgrad.sweeps import record_job, stop_count
 from physgrad.trackers import build_trackers, track
 
 log = logging.getLogger("physgrad")
 
 
-OUTCOMES = (
-    "completed",
-    "diverged",
-    "refused",
-)  # what an experiment can find; anything else is a failure
-FAILED_JOBS: list[
-    int
-] = []  # set by SweepSummary at the end of a sweep: `physgrad run -m` exits 1 if non-zero
+# what an experiment can find; anything else is a failure
+OUTCOMES = ("completed", "diverged", "refused")
+# set by SweepSummary at the end of a sweep: `physgrad run -m` exits 1 if non-zero
+FAILED_JOBS: list[int] = []
 INTERRUPTED_BY_SIGNAL: list[str] = []  # ... and 130 if a signal stopped it (the signal's name)
 
 
-def job_folder_name(override_dirname: str, task_overrides) -> str:
+def job_folder_name(override_dirname: str, task_overrides: Iterable | None) -> str:
     """The job folder of a sweep (hydra.sweep.subdir): the job's overrides
     (hydra.job.override_dirname), plus init_from when the command line sets it, as a short hash of
     the path (a path's slashes would make folders, and without it two jobs that differ only in
@@ -63,11 +64,18 @@ class JobLogFile(logging.FileHandler):
     """The job's log file (hydra.job_logging's file handler), opened at its first record: a folder
     that cannot be written (read-only, full) costs one warning line, not the job or the sweep."""
 
-    def __init__(self, filename, mode="a", encoding=None, delay=True, errors=None):
+    def __init__(
+        self,
+        filename: str | os.PathLike,
+        mode: str = "a",
+        encoding: str | None = None,
+        delay: bool = True,
+        errors: str | None = None,
+    ) -> None:
         super().__init__(filename, mode, encoding, delay=True, errors=errors)
         self.unwritable = False
 
-    def emit(self, record):
+    def emit(self, record: logging.LogRecord) -> None:
         if self.unwritable:
             return
         try:
@@ -93,7 +101,7 @@ class SweepSummary(Callback):
         # a launcher sends the callbacks to its workers with each job: the sweep's state stays here
         return {}
 
-    def on_multirun_start(self, config: DictConfig, **kwargs) -> None:
+    def on_multirun_start(self, config: DictConfig, **kwargs: Any) -> None:
         from physgrad.errors import FolderOwned
         from physgrad.files import own_folder
         from physgrad.results import find_results
@@ -123,7 +131,7 @@ class SweepSummary(Callback):
         FAILED_JOBS.clear()
         INTERRUPTED_BY_SIGNAL.clear()
 
-    def on_multirun_end(self, config: DictConfig, **kwargs) -> None:
+    def on_multirun_end(self, config: DictConfig, **kwargs: Any) -> None:
         from physgrad.results import find_results, read_final
         from physgrad.sweeps import unfinished_jobs
 
@@ -176,7 +184,7 @@ def save_traceback(folder: Path) -> Path | None:
         return None
 
 
-def write_provenance(out_dir: Path, cfg: DictConfig, hydra_cfg) -> None:
+def write_provenance(out_dir: Path, cfg: DictConfig, hydra_cfg: DictConfig) -> None:
     """What Hydra writes into .hydra/ when hydra.output_subdir is set (config.yaml, hydra.yaml,
     overrides.yaml), written here instead, once the job holds its folder: a second process refused
     for that folder must not replace a live job's record of how it was started."""
@@ -231,7 +239,7 @@ def seed_lines(folder: Path) -> list[str]:
     return lines
 
 
-def objective(outcome) -> float:
+def objective(outcome: Outcome) -> float:
     """What the job returns to a sweeper that optimises: the final VALIDATION loss of a completed
     run (trainer.validation=true; a budgeted run's last evaluation is at its budget), never the test
     loss, which verdicts read; infinity for anything else (no validation data, diverged, refused,
@@ -240,9 +248,24 @@ def objective(outcome) -> float:
     return float(loss) if loss is not None else float("inf")
 
 
-@hydra.main(version_base="1.3", config_path=str(CONF_DIR), config_name="config")
-def job(cfg: DictConfig) -> float:
-    hydra_cfg = HydraConfig.get()
+@dataclass
+class Job:
+    """One job of `physgrad run` as Hydra started it: its label (task/optim seeds), its folder, the
+    sweep's folder (None for a single run), its overrides, and whether it held its folder."""
+
+    name: str
+    out_dir: Path
+    sweep: Path | None
+    overrides: list[str]
+    owned: bool = False  # set once the job holds its folder: only then is anything written there
+
+    @property
+    def multirun(self) -> bool:
+        return self.sweep is not None
+
+
+def job_of(cfg: DictConfig, hydra_cfg: DictConfig) -> Job:
+    """The job Hydra started, its task and optim named after their options."""
     # a scene or optimiser named by _target_ may live in the folder the command was started from,
     # also when a launcher runs this job in another process
     if hydra_cfg.runtime.cwd not in sys.path:
@@ -255,75 +278,112 @@ def job(cfg: DictConfig) -> float:
         if isinstance(count, int) and isinstance(cfg.seed, int) and count > 1
         else f"seed {cfg.seed}"
     )
-    name = f"{cfg.task.get('name')}/{cfg.optim.get('name')} {seeds}"
-    out_dir = Path(hydra_cfg.runtime.output_dir)
-    sweep = Path(hydra_cfg.sweep.dir) if multirun else None
-    stopped = stop_count(sweep) if sweep is not None else None
+    return Job(
+        name=f"{cfg.task.get('name')}/{cfg.optim.get('name')} {seeds}",
+        out_dir=Path(hydra_cfg.runtime.output_dir),
+        sweep=Path(hydra_cfg.sweep.dir) if multirun else None,
+        overrides=[str(o) for o in hydra_cfg.overrides.task],
+    )
+
+
+@hydra.main(version_base="1.3", config_path=str(CONF_DIR), config_name="config")
+def job(cfg: DictConfig) -> float:
+    """One job of `physgrad run`: not started in a stopped sweep, its trackers built, the run
+    (run_experiment), then its record in the sweep, its trackers fed and its end told; returns what
+    a sweeper optimises (objective). A single run exits 2 when refused, 1 when failed, 130 when
+    interrupted."""
+    hydra_cfg = HydraConfig.get()
+    this = job_of(cfg, hydra_cfg)
+    stopped = stop_count(this.sweep) if this.sweep is not None else None
     if stopped is not None:
-        log.warning("%s not started: the sweep was stopped (%s)", name, stopped[0])
+        log.warning("%s not started: the sweep was stopped (%s)", this.name, stopped[0])
         return float("inf")
-    overrides = [str(o) for o in hydra_cfg.overrides.task]
-    owned = []
+    trackers = job_trackers(cfg, this)
+    if trackers is None:
+        return float("inf")
+
+    def on_owned() -> None:  # the job folder is held: only now is anything written into it
+        this.owned = True
+        write_provenance(this.out_dir, cfg, hydra_cfg)
+        if this.sweep is not None:
+            record_job(this.sweep, this.out_dir, this.overrides, "started")
+
     try:
-        trackers = build_trackers(cfg.get("logger"))
+        outcome, path = run_experiment(cfg, this.out_dir, this.sweep, on_owned)
+    except Exception as error:  # noqa: BLE001 - one line, the traceback in the job folder; a sweep goes on
+        return job_failed(this, error)
+    if this.owned:  # a job refused because another process holds its folder records nothing
+        record_and_track(this, outcome, trackers)
+    return job_ended(this, outcome, path)
+
+
+def job_trackers(cfg: DictConfig, this: Job) -> list | None:
+    """The experiment trackers of logger=...; None when their settings are refused (the job is
+    skipped in a sweep; a single run exits 2)."""
+    try:
+        return build_trackers(cfg.get("logger"))
     except UserError as error:
-        if not multirun:
+        if not this.multirun:
             print(f"physgrad: error: {error}", file=sys.stderr)
             sys.exit(2)
-        log.warning("%s skipped: %s", name, error)
-        return float("inf")
+        log.warning("%s skipped: %s", this.name, error)
+        return None
 
-    def on_owned():  # the job folder is held: only now is anything written into it
-        owned.append(True)
-        write_provenance(out_dir, cfg, hydra_cfg)
-        if sweep is not None:
-            record_job(sweep, out_dir, overrides, "started")
 
-    try:
-        outcome, path = run_experiment(cfg, out_dir, sweep, on_owned)
-    except Exception as error:  # noqa: BLE001 - one line, the traceback in the job folder; a sweep goes on
-        where = save_traceback(out_dir) if owned else None
-        if isinstance(
-            error, OSError
-        ):  # the results file could not be written (disk full, permissions)
-            message = str(error).splitlines()[0]
-            if not owned:
-                message = f"cannot write the job folder {out_dir}: {error.strerror or message}"
-        else:
-            message = f"{type(error).__name__}: {str(error).splitlines()[0] if str(error) else ''}"
-        message += f" (traceback: {where})" if where else ""
-        if sweep is not None:
-            record_job(sweep, out_dir, overrides, "failed", message)
-        if not multirun:
-            print(f"physgrad: error: {name} failed: {message}", file=sys.stderr)
-            sys.exit(1)
-        log.error("%s failed: %s", name, message)
-        return float("inf")
-    if (
-        sweep is not None and owned
-    ):  # a job refused because another process holds its folder records nothing
-        record_job(sweep, out_dir, overrides, outcome.status, outcome.reason)
-    if trackers and owned:
+def job_failed(this: Job, error: Exception) -> float:
+    """A job that raised: one line (the traceback in the job folder's error.txt), recorded in the
+    sweep, which goes on; a single run exits 1. Called while the error is handled."""
+    where = save_traceback(this.out_dir) if this.owned else None
+    if isinstance(error, OSError):  # the results file could not be written (disk full, permissions)
+        message = str(error).splitlines()[0]
+        if not this.owned:
+            message = f"cannot write the job folder {this.out_dir}: {error.strerror or message}"
+    else:
+        message = f"{type(error).__name__}: {str(error).splitlines()[0] if str(error) else ''}"
+    message += f" (traceback: {where})" if where else ""
+    if this.sweep is not None:
+        record_job(this.sweep, this.out_dir, this.overrides, "failed", message)
+    if not this.multirun:
+        print(f"physgrad: error: {this.name} failed: {message}", file=sys.stderr)
+        sys.exit(1)
+    log.error("%s failed: %s", this.name, message)
+    return float("inf")
+
+
+def record_and_track(this: Job, outcome: Outcome, trackers: list) -> None:
+    """For a job that held its folder: its outcome in the sweep's record, and its results files
+    sent to the experiment trackers."""
+    if this.sweep is not None:
+        record_job(this.sweep, this.out_dir, this.overrides, outcome.status, outcome.reason)
+    if trackers:
         track(
             trackers,
             [
                 p
-                for p in [out_dir / "results.h5", *sorted(out_dir.glob("seed=*/results.h5"))]
+                for p in [
+                    this.out_dir / "results.h5",
+                    *sorted(this.out_dir.glob("seed=*/results.h5")),
+                ]
                 if p.is_file()
             ],
-            out_dir,
+            this.out_dir,
         )
+
+
+def job_ended(this: Job, outcome: Outcome, path: Path) -> float:
+    """The job's end told: a refused job's reason (a single run exits 2), else one line of how it
+    ended, each seed's for several; a single run that was interrupted exits 130."""
     if outcome.status == "refused":
-        if not multirun:
+        if not this.multirun:
             print(f"physgrad: error: {outcome.reason}", file=sys.stderr)
             sys.exit(2)
-        log.warning("%s skipped: %s", name, outcome.reason)
+        log.warning("%s skipped: %s", this.name, outcome.reason)
         return objective(outcome)
     test = outcome.final_eval.get("loss") if outcome.status == "completed" else None
     stopped = f" (stopped by {outcome.stopped_by.replace('_', ' ')})" if outcome.stopped_by else ""
     log.info(
         "%s %s after %d iterations%s, %.1f s of training%s%s -> %s",
-        name,
+        this.name,
         outcome.status,
         outcome.iterations,
         stopped,
@@ -334,8 +394,6 @@ def job(cfg: DictConfig) -> float:
     )
     for line in seed_lines(path) if path.is_dir() else ():
         log.info("%s", line)
-    if (
-        outcome.status == "interrupted" and not multirun
-    ):  # in a sweep, the others are told (physgrad.sweeps)
-        sys.exit(130)
+    if outcome.status == "interrupted" and not this.multirun:
+        sys.exit(130)  # in a sweep, the others are told (physgrad.sweeps)
     return objective(outcome)

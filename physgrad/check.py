@@ -20,10 +20,15 @@ import argparse
 import math
 import sys
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
+
+if TYPE_CHECKING:
+    from physgrad.nets import Params
 
 
 @dataclass(frozen=True)
@@ -43,9 +48,25 @@ def run_cases(small: bool) -> list[RunCase]:
         if small
         else (lambda n: f"trainer.iterations={n}")
     )
-    oscillator = ["task=oscillator", "trainer.eval_every=50"] + (
-        ["task.train_size=512", "task.test_size=256"] if small else []
+    oscillator = ("task=oscillator", "trainer.eval_every=50") + (
+        ("task.train_size=512", "task.test_size=256") if small else ()
     )
+    cases = _stiff_oscillator_cases(small, its, oscillator)
+    if not small:
+        cases += _long_unroll_cases(its, oscillator)
+    cases += _guidance_cases(small, its)
+    toy = ("task=toy", "trainer.eval_every=100")
+    cases += [
+        RunCase("badly scaled toy (lambda 0.01)", (*toy, f"optim={o}", its(3000)))
+        for o in ("adam", "gauss_newton", "hig", "levenberg_marquardt", "kfac", "lbfgs", "muon")
+    ]
+    return cases + _too_large_cases(small, its, oscillator)
+
+
+def _stiff_oscillator_cases(
+    small: bool, its: Callable[[int], str], oscillator: tuple[str, ...]
+) -> list[RunCase]:
+    """The oscillator with a stiff coupling and with a large time step."""
     jacobian = (
         ("adam", "hig") if small else ("adam", "gauss_newton", "hig", "levenberg_marquardt", "kfac")
     )
@@ -64,39 +85,48 @@ def run_cases(small: bool) -> list[RunCase]:
         )
         for o in (("hig",) if small else jacobian)
     ]
-    if not small:
-        cases += [
-            RunCase(
-                "oscillator long unroll, 1024 steps",
-                (*oscillator, f"optim={o}", "unroll=1024", its(100)),
-            )
-            for o in ("adam", "hig")
-        ]
-        cases += [
-            RunCase(
-                "quantum long unroll, 4096 steps",
-                (
-                    "task=quantum",
-                    f"optim={o}",
-                    "unroll=4096",
-                    "task.test_size=128",
-                    "trainer.eval_every=5",
-                    its(10),
-                ),
-            )
-            for o in ("adam", "hig")
-        ]
-        cases += [
-            RunCase(
-                "multicart 4 poles, 400 steps",
-                ("task=multicart", f"optim={o}", "task.poles=4", "unroll=400", its(300)),
-            )
-            for o in ("bptt", "stable_bptt")
-        ]
+    return cases
+
+
+def _long_unroll_cases(its: Callable[[int], str], oscillator: tuple[str, ...]) -> list[RunCase]:
+    """Long rollouts (the full suite only): oscillator, quantum and the 4-pole cart."""
+    cases = [
+        RunCase(
+            "oscillator long unroll, 1024 steps",
+            (*oscillator, f"optim={o}", "unroll=1024", its(100)),
+        )
+        for o in ("adam", "hig")
+    ]
+    cases += [
+        RunCase(
+            "quantum long unroll, 4096 steps",
+            (
+                "task=quantum",
+                f"optim={o}",
+                "unroll=4096",
+                "task.test_size=128",
+                "trainer.eval_every=5",
+                its(10),
+            ),
+        )
+        for o in ("adam", "hig")
+    ]
+    cases += [
+        RunCase(
+            "multicart 4 poles, 400 steps",
+            ("task=multicart", f"optim={o}", "task.poles=4", "unroll=400", its(300)),
+        )
+        for o in ("bptt", "stable_bptt")
+    ]
+    return cases
+
+
+def _guidance_cases(small: bool, its: Callable[[int], str]) -> list[RunCase]:
+    """Agents that pass close to each other."""
     # softening 0.001 lets agents that pass close feel forces up to repulsion / 0.001^2 = 1.5e7
     # (10^4 times the reference's 1.5e3 at d = 0.1): stiff for explicit Euler at dt = 1/15, with
     # spikes in the BPTT gradient
-    cases += [
+    return [
         RunCase(
             "guidance near contact (softening 0.001)",
             (
@@ -110,11 +140,12 @@ def run_cases(small: bool) -> list[RunCase]:
         )
         for o in (("bptt",) if small else ("bptt", "stable_bptt"))
     ]
-    toy = ("task=toy", "trainer.eval_every=100")
-    cases += [
-        RunCase("badly scaled toy (lambda 0.01)", (*toy, f"optim={o}", its(3000)))
-        for o in ("adam", "gauss_newton", "hig", "levenberg_marquardt", "kfac", "lbfgs", "muon")
-    ]
+
+
+def _too_large_cases(
+    small: bool, its: Callable[[int], str], oscillator: tuple[str, ...]
+) -> list[RunCase]:
+    """A learning rate of 1e6 on every kind of update rule."""
     too_large = (
         [("oscillator", "gd"), ("oscillator", "hig"), ("multicart", "bptt")]
         if small
@@ -130,6 +161,7 @@ def run_cases(small: bool) -> list[RunCase]:
             ("quantum", "adam"),
         ]
     )
+    cases = []
     for task, optim in too_large:
         extra = tuple(oscillator[1:]) if task == "oscillator" else ("task.test_size=64",)
         cases.append(
@@ -202,7 +234,7 @@ def quantum_norm_drift(small: bool) -> list[dict]:
                 jax.random.PRNGKey(0), (unroll,), real, -1.0, 1.0
             )
 
-            def body(psi, u):
+            def body(psi: jax.Array, u: jax.Array) -> tuple[jax.Array, jax.Array]:
                 psi = crank_nicolson_step(psi, u, x, 0.05)
                 return psi, jnp.abs(jnp.linalg.norm(psi) - 1.0)
 
@@ -256,7 +288,7 @@ def bptt_gradient_growth(small: bool) -> list[dict]:
             batch = scene.sample_train(batch_key, 8)
             output = scene.backprop_output(MODES[mode])
 
-            def loss(p):
+            def loss(p: Params) -> jax.Array:
                 return scene.batch_loss(jax.vmap(output, in_axes=(None, 0))(p, batch), batch)
 
             norms.append(float(optax.tree.norm(jax.jit(jax.grad(loss))(params))))

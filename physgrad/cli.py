@@ -10,6 +10,7 @@ from __future__ import annotations
 import argparse
 import signal
 import sys
+from collections.abc import Iterable
 from pathlib import Path
 
 from physgrad.errors import UserError
@@ -111,7 +112,7 @@ HEAVY_IMPORTS = {
 }
 
 
-def import_holding_signals(modules) -> None:
+def import_holding_signals(modules: Iterable[str]) -> None:
     """Import modules with SIGINT and SIGTERM held back until they are loaded: an exception landing
     inside a C extension's initialisation (jaxlib's, numpy's) turns into an ImportError traceback or
     a crash. A signal that came meanwhile is handled right after (about a second later at most)."""

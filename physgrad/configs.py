@@ -13,10 +13,15 @@ import difflib
 import importlib.resources
 import itertools
 import os
+from collections.abc import Iterable, Iterator, Mapping
 from contextlib import contextmanager
 from pathlib import Path
+from typing import TYPE_CHECKING, Any
 
 from physgrad.errors import UserError
+
+if TYPE_CHECKING:  # omegaconf (Hydra's) is loaded where a config is composed, not on import
+    from omegaconf import DictConfig
 
 CONF_DIR = Path(str(importlib.resources.files("physgrad.conf")))
 _ABSENT = object()
@@ -25,7 +30,7 @@ RENAMED = {"lr": "learning_rate", "steps": "unroll", "controller": "closed_loop"
 
 
 @contextmanager
-def initialized(config_dirs=()):
+def initialized(config_dirs: Iterable[str | os.PathLike] = ()) -> Iterator[Any]:
     """Hydra's global state set up as `physgrad run -cd DIR` would: the built-in configs, then every
     folder of config_dirs (searched after them, as Hydra searches -cd). Restores the previous state
     on exit."""
@@ -54,7 +59,11 @@ def initialized(config_dirs=()):
         restore_gh_from_backup(backup)
 
 
-def compose(overrides=(), config_dirs=(), return_hydra_config: bool = False):
+def compose(
+    overrides: Iterable[str] = (),
+    config_dirs: Iterable[str | os.PathLike] = (),
+    return_hydra_config: bool = False,
+) -> DictConfig:
     """The config of one run (the compose API: no output folder, no launcher); UserError (one line)
     for an unknown option or key."""
     from hydra import compose as hydra_compose
@@ -73,7 +82,7 @@ def compose(overrides=(), config_dirs=(), return_hydra_config: bool = False):
     return cfg
 
 
-def name_options(cfg, choices) -> None:
+def name_options(cfg: DictConfig, choices: Mapping) -> None:
     """A task or optim YAML without `name:` is named after its option (task=heat: heat), as it was
     chosen."""
     from omegaconf import open_dict
@@ -85,7 +94,7 @@ def name_options(cfg, choices) -> None:
                 node.name = str(chosen).rpartition("/")[2]
 
 
-def searchpath_entries(overrides) -> list[str]:
+def searchpath_entries(overrides: Iterable[str]) -> list[str]:
     """The folders a `hydra.searchpath=[...]` override adds."""
     from hydra.core.override_parser.overrides_parser import OverridesParser
 
@@ -102,27 +111,38 @@ def unknown_option(group: str, value: str, options: list[str]) -> UserError:
     return UserError(f"unknown {group} '{value}'{hint} (choose one of {', '.join(options)})")
 
 
-def check_overrides(overrides: list[str], multirun: bool, config_dirs=()) -> None:
+def check_overrides(
+    overrides: list[str], multirun: bool, config_dirs: Iterable[str | os.PathLike] = ()
+) -> None:
     """Raise UserError (one line) for an unknown option of a config group (the built-in ones and
     those in the user's folders), a key no config has, or a sweep without -m."""
-    from hydra import compose as hydra_compose
+    parsed = _parse_overrides(overrides)
+    sweeper = _sweeper(parsed)
+    with initialized([*config_dirs, *searchpath_entries(overrides)]) as loader:
+        group_values, keys = _group_choices_and_keys(parsed, loader, multirun, sweeper)
+        _check_combinations(group_values, keys)
+
+
+def _parse_overrides(overrides: list[str]) -> list[Any]:
+    """Hydra's parse of the overrides; UserError (one line) for one it cannot read."""
     from hydra.core.override_parser.overrides_parser import OverridesParser
-    from hydra.core.override_parser.types import Glob
-    from hydra.errors import HydraException, MissingConfigException
+    from hydra.errors import HydraException
 
     try:
-        parsed = OverridesParser.create().parse_overrides(overrides)
+        return OverridesParser.create().parse_overrides(overrides)
     except HydraException as error:
         hint = ""
-        if "mismatched input '='" in str(
-            error
-        ):  # e.g. init_from=<sweep>/optim=adam,seed=0/results.h5
+        # e.g. init_from=<sweep>/optim=adam,seed=0/results.h5
+        if "mismatched input '='" in str(error):
             hint = (
                 ": a value that holds '=' or ',' (a sweep's job folder in a path) must be quoted, "
                 "e.g. init_from='outputs/multirun/.../optim=adam,seed=0/results.h5'"
             )
         raise UserError(f"cannot read the overrides: {str(error).splitlines()[0]}{hint}") from None
 
+
+def _sweeper(parsed: list[Any]) -> str:
+    """The hydra/sweeper chosen (basic unless set); UserError for optuna without its plugin."""
     sweeper = next((str(o.value()) for o in parsed if o.key_or_group == "hydra/sweeper"), "basic")
     if sweeper == "optuna":
         try:
@@ -133,62 +153,83 @@ def check_overrides(overrides: list[str], multirun: bool, config_dirs=()) -> Non
                 "sit "
                 "beside physgrad's optuna): tune with 'physgrad compare' (docs/protocol.md)"
             ) from None
-    with initialized([*config_dirs, *searchpath_entries(overrides)]) as loader:
-        groups = set(loader.list_groups(""))
-        group_values: dict[str, list[str]] = {}
-        keys = []
-        for override in parsed:
-            key, value = override.key_or_group, override.value()
-            if override.is_sweep_override() and not multirun:
-                raise UserError(
-                    f"'{override.input_line}' sweeps several values: add -m (--multirun) to run "
-                    "them all"
-                )
-            if override.is_interval_sweep() and sweeper == "basic":
-                raise UserError(
-                    f"'{override.input_line}' is a search interval, which Hydra's basic sweeper "
-                    "cannot "
-                    "sample: tune with 'physgrad compare' (it searches each variant's learning "
-                    "rate, "
-                    "docs/protocol.md), or list values: choice(a,b,c) or a,b,c"
-                )
-            if key.startswith("hydra") or override.is_delete():
-                continue
-            if key in groups and override.package is None:
-                options = sorted(loader.get_group_options(key))
-                if isinstance(value, Glob):
-                    values = value.filter(options)
-                elif override.is_sweep_override():
-                    values = list(override.sweep_string_iterator())
-                else:
-                    values = [override.get_value_element_as_str()]
-                for choice in values:
-                    if choice not in options:
-                        raise unknown_option(key, choice, options)
-                group_values[("+" if override.is_add() else "") + key] = values
-            elif not override.is_add() and not override.is_force_add():
-                keys.append(key)
-            elif not key.startswith(("task.", "optim.", "logger.")):
-                # `+key` adds a keyword to the factory of a scene, a rule or a tracker; elsewhere
-                # nothing reads it
-                keys.append(key)
-
-        for combo in itertools.product(*group_values.values()):
-            combo = dict(zip(group_values, combo))
-            try:
-                cfg = hydra_compose("config", overrides=[f"{g}={v}" for g, v in combo.items()])
-            except MissingConfigException as error:
-                group, _, choice = (error.missing_cfg_file or "").rpartition("/")
-                if group and error.options is not None:
-                    raise unknown_option(group, choice, sorted(error.options)) from None
-                raise UserError(str(error).strip().splitlines()[0]) from None
-            except HydraException as error:
-                raise UserError(str(error).strip().splitlines()[0]) from None
-            for key in keys:
-                _check_key(cfg, key, combo)
+    return sweeper
 
 
-def _check_key(cfg, key: str, combo: dict) -> None:
+def _group_choices_and_keys(
+    parsed: list[Any], loader: Any, multirun: bool, sweeper: str
+) -> tuple[dict[str, list[str]], list[str]]:
+    """The options chosen per config group (each checked against the group's options) and the keys
+    to look up in every combination of them; UserError for a sweep without -m or an interval the
+    basic sweeper cannot sample."""
+    from hydra.core.override_parser.types import Glob
+
+    groups = set(loader.list_groups(""))
+    group_values: dict[str, list[str]] = {}
+    keys = []
+    for override in parsed:
+        key, value = override.key_or_group, override.value()
+        _check_sweep(override, multirun, sweeper)
+        if key.startswith("hydra") or override.is_delete():
+            continue
+        if key in groups and override.package is None:
+            options = sorted(loader.get_group_options(key))
+            if isinstance(value, Glob):
+                values = value.filter(options)
+            elif override.is_sweep_override():
+                values = list(override.sweep_string_iterator())
+            else:
+                values = [override.get_value_element_as_str()]
+            for choice in values:
+                if choice not in options:
+                    raise unknown_option(key, choice, options)
+            group_values[("+" if override.is_add() else "") + key] = values
+        elif not override.is_add() and not override.is_force_add():
+            keys.append(key)
+        elif not key.startswith(("task.", "optim.", "logger.")):
+            # `+key` adds a keyword to the factory of a scene, a rule or a tracker; elsewhere
+            # nothing reads it
+            keys.append(key)
+    return group_values, keys
+
+
+def _check_sweep(override: Any, multirun: bool, sweeper: str) -> None:
+    """A sweep of several values needs -m; a search interval needs a sweeper that samples one."""
+    if override.is_sweep_override() and not multirun:
+        raise UserError(
+            f"'{override.input_line}' sweeps several values: add -m (--multirun) to run them all"
+        )
+    if override.is_interval_sweep() and sweeper == "basic":
+        raise UserError(
+            f"'{override.input_line}' is a search interval, which Hydra's basic sweeper "
+            "cannot "
+            "sample: tune with 'physgrad compare' (it searches each variant's learning "
+            "rate, "
+            "docs/protocol.md), or list values: choice(a,b,c) or a,b,c"
+        )
+
+
+def _check_combinations(group_values: dict[str, list[str]], keys: list[str]) -> None:
+    """Every combination of the chosen options composed, and each key looked up in it."""
+    from hydra import compose as hydra_compose
+    from hydra.errors import HydraException, MissingConfigException
+
+    for combo in itertools.product(*group_values.values()):
+        combo = dict(zip(group_values, combo))
+        try:
+            cfg = hydra_compose("config", overrides=[f"{g}={v}" for g, v in combo.items()])
+        except MissingConfigException as error:
+            group, _, choice = (error.missing_cfg_file or "").rpartition("/")
+            if group and error.options is not None:
+                raise unknown_option(group, choice, sorted(error.options)) from None
+            raise UserError(str(error).strip().splitlines()[0]) from None
+        except HydraException as error:
+            raise UserError(str(error).strip().splitlines()[0]) from None
+        for key in keys:
+            _check_key(cfg, key, combo)
+
+
+def _check_key(cfg: DictConfig, key: str, combo: dict) -> None:
     from omegaconf import DictConfig, OmegaConf
 
     if OmegaConf.select(cfg, key, default=_ABSENT) is not _ABSENT:

@@ -1,5 +1,5 @@
-"""From a composed config to a finished run: validate, refuse what does not apply, build, train,
-write."""
+"""From a composed config to a finished run: validate, refuse what does not apply (the checks are
+in physgrad.refusals), build, train, write."""
 
 from __future__ import annotations
 
@@ -10,77 +10,40 @@ import os
 import time
 from collections.abc import Callable
 from pathlib import Path
+from typing import Any
 
 import jax
 import jax.numpy as jnp
-from jax.flatten_util import ravel_pytree
 from omegaconf import DictConfig, OmegaConf
 
 from physgrad.errors import FolderOwned, UserError
 from physgrad.files import own_folder
 from physgrad.gradients import JacobianPass
-from physgrad.interrupts import stop_on_signals
+from physgrad.interrupts import StopRequest, stop_on_signals
 from physgrad.machine import machine_attributes
 from physgrad.nets import count_params
-from physgrad.optim import UpdateRule, build_rule, matrix_leaves, needs_value_arguments
-from physgrad.optim.capabilities import batches_over_seeds, capabilities
+from physgrad.optim import UpdateRule, build_rule, needs_value_arguments
+from physgrad.optim.capabilities import capabilities
+from physgrad.refusals import (
+    check_applies,
+    check_config,
+    check_layer_factors,
+    check_matrices,
+    check_scene_values,
+    check_seeds_together,
+    starts_from_itself,
+    too_many_seeds,
+)
 from physgrad.results import ResultsWriter, read_final, record_outcome
 from physgrad.resume import finished_before, start_from
+from physgrad.run_figures import draw_run_figures
 from physgrad.runner import Outcome, TrainerSettings, train
 from physgrad.sweeps import mark_stopped, watching
 from physgrad.tasks import Scene, build_scene
 from physgrad.training import Seeds, stack
-from physgrad.validate import choice, finite_numbers, flag, number
 from physgrad.version import __version__
 
 log = logging.getLogger("physgrad")
-SEED_LIMIT = 2**32
-# seeds trained together in one vectorised step: each has its own data, network and results file, so
-# memory and the files grow with it; more seeds than this are a sweep (seed=0,1,... -m), which also
-# runs in parallel
-SEEDS_LIMIT = 1024
-
-
-def check_config(cfg: DictConfig) -> TrainerSettings:
-    """The run's own keys (top level and trainer) validated, NaN and infinity refused everywhere,
-    and an unroll length refused for a scene without time (its task config has no `unroll`). The
-    task and optim settings are checked by the code that reads them (the scene's build function, the
-    update rule's factory)."""
-    finite_numbers(OmegaConf.to_container(cfg, resolve=True))
-    choice("precision", cfg.get("precision"), (32, 64))
-    flag("overwrite", cfg.get("overwrite"))
-    flag("trainer.validation", cfg.trainer.get("validation", False))
-    if cfg.get("init_from") is not None and (
-        not isinstance(cfg.init_from, str) or not cfg.init_from.strip()
-    ):
-        raise UserError(
-            f"init_from={cfg.init_from!r} is not allowed: use the path of a results.h5, or leave "
-            "init_from out (null) to start from a fresh network"
-        )
-    # PRNGKey(seed) keeps the low 32 bits of the seed: seeds 2^32 apart would be the same run
-    number("seed", cfg.get("seed"), 0, SEED_LIMIT, integer=True)
-    number("seeds", cfg.get("seeds"), 1, SEEDS_LIMIT + 1, integer=True)
-    if cfg.seed + cfg.seeds > SEED_LIMIT:
-        raise UserError(
-            f"seed={cfg.seed} with seeds={cfg.seeds} reaches seed {cfg.seed + cfg.seeds - 1}: "
-            "seeds must "
-            f"stay below {SEED_LIMIT} (2^32), so use seed <= {SEED_LIMIT - cfg.seeds}"
-        )
-    for section in ("task", "optim"):
-        if not isinstance(cfg[section].get("name"), str) or not cfg[section].name:
-            raise UserError(
-                f"the {section} config has no name: add one (e.g. name: mine), it labels results"
-            )
-    if cfg.get("unroll") is not None:
-        if "unroll" not in cfg.task:
-            raise UserError(
-                f"task={cfg.task.name} has no time axis: remove unroll={cfg.unroll} "
-                "(unroll applies to temporal scenes only)"
-            )
-        number("unroll", cfg.unroll, 1, integer=True)
-    elif "unroll" in cfg.task:
-        number("task.unroll", cfg.task.unroll, 1, integer=True)
-    return TrainerSettings.from_config(cfg.trainer)
 
 
 def effective_unroll(cfg: DictConfig) -> int | None:
@@ -89,27 +52,6 @@ def effective_unroll(cfg: DictConfig) -> int | None:
     if "unroll" not in cfg.task:
         return None
     return cfg.unroll if cfg.get("unroll") is not None else cfg.task.unroll
-
-
-def check_applies(scene: Scene, cfg: DictConfig) -> None:
-    """Refuse a backprop-through-time mode on a scene whose network does not act inside a rollout:
-    the scene's
-    traits decide, whatever the rule."""
-    backprop = cfg.optim.get("backprop")
-    if backprop is None or scene.closed_loop:
-        return
-    if not scene.time_axis:
-        why = "has no time axis"
-    elif "closed_loop" in cfg.task:
-        why = "has an open-loop controller: set task.closed_loop=true, or"
-    else:
-        why = "has an open-loop controller"
-    raise UserError(
-        f"optim={cfg.optim.name} needs a closed-loop controller in time "
-        f"(optim.backprop={backprop}), "
-        f"and task={cfg.task.name} {why}{':' if why[-1] != ',' else ''} use a rule without "
-        "optim.backprop (adam, gd, gauss_newton, hig)"
-    )
 
 
 def set_precision(bits: int) -> None:
@@ -121,7 +63,7 @@ def set_precision(bits: int) -> None:
 PRESET_BACKPROP = {"bptt": "R", "stable_bptt": "C"}
 
 
-def variant_label(optim_cfg) -> str:
+def variant_label(optim_cfg: DictConfig) -> str:
     """The optim name, plus the backprop mode and clipping where they differ from what the name
     implies (so that a report keeps `bptt` with mode M apart from plain `bptt`): e.g. bptt[M],
     stable_bptt[clip=norm], lion[C]."""
@@ -180,9 +122,8 @@ def build_seeds(
     """The scene and, stacked over the given seeds, what differs between them: data (test set, fixed
     training set), initial network and minibatch key, each from its own split of PRNGKey(seed).
     UserError if the batch does not fit the training set."""
-    keys = [
-        jax.random.split(jax.random.PRNGKey(seed), 3) for seed in seeds
-    ]  # data, init, minibatches
+    # data, init, minibatches
+    keys = [jax.random.split(jax.random.PRNGKey(seed), 3) for seed in seeds]
     scenes = []
     for key in keys:  # checkpoint (a pending stop) between seeds: a thousand of them take a while
         if checkpoint is not None:
@@ -209,7 +150,7 @@ def build_seeds(
 VALIDATION_KEY = 1  # fold_in(data key, 1): the data key of the default validation set
 
 
-def validation_set(cfg: DictConfig, scene: Scene, data_key):
+def validation_set(cfg: DictConfig, scene: Scene, data_key: jax.Array) -> Any:
     """The scene's validation_set if it has one; else the test set of the same scene built from
     another data key (fold_in(data key, VALIDATION_KEY)): held-out samples of the same distribution,
     disjoint from the test set by construction. UserError if that set equals the test set (a scene
@@ -228,44 +169,10 @@ def validation_set(cfg: DictConfig, scene: Scene, data_key):
     if same:
         raise UserError(
             f"task={cfg.task.get('name')} builds the same test set from every data key, so it has "
-            "no "
-            "validation data: give its Scene a validation_set, or draw its data from `key` "
+            "no validation data: give its Scene a validation_set, or draw its data from `key` "
             "(docs/extending.md)"
         )
     return other
-
-
-def check_scene_values(scene: Scene, seeds: Seeds, name: str) -> None:
-    """What a scene gives is what the runner needs (UserError, one line, else): a per-sample loss
-    that is one real floating-point number (an integer loss has no gradient, a vector would be
-    averaged silently), and held-out data without NaN or infinity (a test loss over them would be
-    NaN from the start)."""
-    params = seeds.network()
-    sample = jax.tree_util.tree_map(lambda leaf: leaf[0, 0], seeds.test_sets)
-    output = scene.sample_output if scene.test_output is None else scene.test_output
-    loss = jax.eval_shape(lambda p, s: scene.sample_loss(output(p, s), s), params, sample)
-    if not hasattr(loss, "shape") or loss.shape != ():
-        raise UserError(
-            f"task={name}: sample_loss returns {getattr(loss, 'shape', type(loss).__name__)} per "
-            "sample; it must return one number (reduce it, e.g. jnp.sum or jnp.mean)"
-        )
-    if not jnp.issubdtype(loss.dtype, jnp.floating):
-        raise UserError(
-            f"task={name}: sample_loss returns {loss.dtype}; it must be a real float (compute it "
-            "in "
-            "floating point; for a complex output take abs() or .real)"
-        )
-    for which, data in (("test_set", seeds.test_sets), ("validation_set", seeds.validation_sets)):
-        bad = sum(
-            int(jnp.size(leaf) - jnp.isfinite(leaf).sum())
-            for leaf in jax.tree_util.tree_leaves(data)
-            if jnp.issubdtype(leaf.dtype, jnp.inexact)
-        )
-        if bad:
-            raise UserError(
-                f"task={name}: its {which} holds {bad} values that are NaN or infinite: a held-out "
-                "loss over it is not a number; fix the data the scene's build function draws"
-            )
 
 
 def prepare(
@@ -283,12 +190,7 @@ def prepare(
     check_scene_values(scene, seeds, cfg.task.name)
     check_applies(scene, cfg)
     kind = capabilities(cfg.optim)
-    if kind.needs_matrices and not matrix_leaves(seeds.network()):
-        raise UserError(
-            f"optim={cfg.optim.name} orthogonalises the network's matrices and "
-            f"task={cfg.task.name}'s "
-            "network has none (no 2-D parameters): its Muon partition would be empty; use adam"
-        )
+    check_matrices(cfg, kind, seeds)
     if not rule.uses_jacobian and needs_value_arguments(rule.transform, seeds.network()):
         rule = rule._replace(gradient=dataclasses.replace(rule.gradient, with_value=True))
     if rule.uses_jacobian:
@@ -301,13 +203,7 @@ def prepare(
                 scene.sample_output, seeds.network(), sample, with_value=rule.gradient.with_value
             )
         )
-        if kind.needs_layer_factors and rule.gradient.plan is None:
-            raise UserError(
-                f"optim={cfg.optim.name} needs the Jacobian in layer factors and "
-                f"task={cfg.task.name} "
-                f"gives it per sample ({rule.gradient.why_per_sample}): use levenberg_marquardt or "
-                "gauss_newton"
-            )
+        check_layer_factors(cfg, kind, rule.gradient)
     return scene, rule, seeds
 
 
@@ -346,40 +242,45 @@ def run_experiment(
         with own_folder(out_dir), stop_on_signals(on_first) as stop, watching(sweep, stop):
             if on_owned is not None:
                 on_owned()
-            seeds = cfg.get("seeds", 1)
-            if (
-                isinstance(seeds, int) and seeds > SEEDS_LIMIT
-            ):  # refused before one file per seed is named
-                return Outcome(
-                    "refused",
-                    f"seeds={seeds} is more than {SEEDS_LIMIT} seeds in one process: sweep "
-                    f"them instead (physgrad run -m seed=0,1,2,...), or use seeds <= {SEEDS_LIMIT}",
-                    0,
-                    0.0,
-                    {},
-                ), Path(out_dir)
+            why = too_many_seeds(cfg)  # refused before one file per seed is named
+            if why is not None:
+                return refused(why), Path(out_dir)
             paths = seed_paths(cfg, out_dir)
             where = paths[0][1] if len(paths) == 1 else Path(out_dir)
-            if cfg.get("init_from") and any(
-                Path(str(cfg.init_from)).resolve() == path.resolve() for _, path in paths
-            ):
-                # refused without a results file: writing one would destroy the network it names
-                return Outcome(
-                    "refused",
-                    f"init_from={cfg.init_from} is this job's own results file, which the "
-                    "run would overwrite: start from another run's results.h5",
-                    0,
-                    0.0,
-                    {},
-                ), where
+            why = starts_from_itself(cfg, paths)  # refused without a results file
+            if why is not None:
+                return refused(why), where
             return run_owned(cfg, paths, stop), where
     except FolderOwned as error:
-        return Outcome("refused", str(error), 0, 0.0, {}), Path(out_dir) / (
+        return refused(str(error)), Path(out_dir) / (
             "results.h5" if cfg.get("seeds", 1) == 1 else ""
         )
 
 
-def run_owned(cfg: DictConfig, paths: list[tuple[int, Path]], stop) -> Outcome:
+def refused(reason: str) -> Outcome:
+    """The outcome of a job refused before training."""
+    return Outcome("refused", reason, 0, 0.0, {})
+
+
+def record_before_training(
+    cfg: DictConfig,
+    paths: list[tuple[int, Path]],
+    status: str,
+    reason: str,
+    stop: StopRequest | None = None,
+) -> None:
+    """A results file of attributes only (status and reason) for every seed of a job that ended
+    before training; with stop, no more of them once a second signal came (stop.at_once) and a file
+    that cannot be written is skipped."""
+    for seed, path in paths:
+        if stop is not None and stop.at_once:  # a second signal: stop writing files too
+            break
+        attrs = {**run_attributes(cfg, effective_unroll(cfg)), "seed": seed}
+        with contextlib.suppress(OSError) if stop is not None else contextlib.nullcontext():
+            record_outcome(path, attrs, status, reason)
+
+
+def run_owned(cfg: DictConfig, paths: list[tuple[int, Path]], stop: StopRequest) -> Outcome:
     """run_experiment, once the job folder is held and signals are handled. Until training starts a
     signal ends the job at once (resume checks, building many seeds' data: nothing is half done
     there), its files saying interrupted; from then on the training loop acts on it between
@@ -391,93 +292,33 @@ def run_owned(cfg: DictConfig, paths: list[tuple[int, Path]], stop) -> Outcome:
     except KeyboardInterrupt as interrupt:
         stop.raising = False
         why = f"{interrupt.args[0] if interrupt.args else 'SIGINT'} before training"
-        for seed, path in paths:
-            if stop.at_once:  # a second signal: stop writing files too
-                break
-            with contextlib.suppress(OSError):
-                record_outcome(
-                    path,
-                    {**run_attributes(cfg, effective_unroll(cfg)), "seed": seed},
-                    "interrupted",
-                    why,
-                )
+        record_before_training(cfg, paths, "interrupted", why, stop)
         return Outcome("interrupted", why, 0, 0.0, {})
     finally:
         stop.raising = False
 
 
-def set_up_and_train(cfg: DictConfig, paths: list[tuple[int, Path]], stop) -> Outcome:
-    for _, path in paths:
-        stop.raise_if_stopped()
-        set_aside_unreadable(path)
-    if not cfg.get("overwrite", False):
-        previous = []
-        for _, path in paths:
-            stop.raise_if_stopped()
-            previous.append(finished_before(path, cfg))
-        if all(previous):
-            return job_outcome(previous)
+def set_up_and_train(cfg: DictConfig, paths: list[tuple[int, Path]], stop: StopRequest) -> Outcome:
+    """The job's steps once it holds its folder: the outcome of an earlier run with the same config
+    (unless overwrite=true), else the checks and building (refused or failed: files that say so),
+    the results files, training, and the figures."""
+    earlier = finished_earlier(cfg, paths, stop)
+    if earlier is not None:
+        return earlier
     try:
-        settings = check_config(cfg)
-        if len(paths) > 1 and cfg.get("init_from"):
-            raise UserError(
-                f"init_from starts one network: use seeds=1 (not seeds={len(paths)}) with it"
-            )
-        if len(paths) > 1 and not batches_over_seeds(cfg.optim):
-            # its lax.cond traced under x64 does not batch under vmap (jax 0.10): a known limitation
-            raise UserError(
-                f"seeds={len(paths)} cannot retry failed factorisations in float64: add "
-                "optim.retry_float64=false, or use seeds=1"
-            )
-        scene, rule, seeds = prepare(
-            cfg, [seed for seed, _ in paths], settings, stop.raise_if_stopped
-        )
-        origin = {}
-        if cfg.get("init_from"):
-            first, origin = start_from(cfg.init_from, seeds.network(), cfg.task.name)
-            seeds = dataclasses.replace(seeds, params=stack([first]))
+        settings, scene, rule, seeds, origin = set_up(cfg, paths, stop)
     except UserError as error:
         stop.raising = False
-        for seed, path in paths:
-            record_outcome(
-                path,
-                {**run_attributes(cfg, effective_unroll(cfg)), "seed": seed},
-                "refused",
-                str(error),
-            )
-        return Outcome("refused", str(error), 0, 0.0, {})
+        record_before_training(cfg, paths, "refused", str(error))
+        return refused(str(error))
     except Exception as error:  # before training: the files say failed, with the reason
         stop.raising = False
-        reason = f"{type(error).__name__}: {error}".splitlines()[0]
-        for seed, path in paths:
-            record_outcome(
-                path, {**run_attributes(cfg, effective_unroll(cfg)), "seed": seed}, "failed", reason
-            )
-        raise
-
-    attrs = run_attributes(cfg, scene.unroll)
-    if rule.uses_jacobian:
-        attrs["jacobian"] = rule.gradient.name
-    if origin:
-        attrs["variant"] += f" (from {origin['init_variant']})"
-    if len(paths) > 1:
-        attrs["wall_time_shared_by"] = len(
-            paths
-        )  # every seed's wall_time is the one shared vectorised run
-    writers = [
-        ResultsWriter(
-            path,
-            {
-                **attrs,
-                **origin,
-                "seed": seed,
-                "batch_size": settings.batch_size,
-                "n_params": count_params(seeds.network()),
-                **machine_attributes(),
-            },
+        record_before_training(
+            cfg, paths, "failed", f"{type(error).__name__}: {error}".splitlines()[0]
         )
-        for seed, path in paths
-    ]
+        raise
+    attrs = job_attributes(cfg, scene, rule, origin, len(paths))
+    writers = open_writers(paths, attrs, settings, seeds)
     label = f"{cfg.task.name}/{cfg.optim.name} seed {cfg.seed}" + (
         f" (+{len(paths) - 1})" if len(paths) > 1 else ""
     )
@@ -495,44 +336,70 @@ def set_up_and_train(cfg: DictConfig, paths: list[tuple[int, Path]], stop) -> Ou
     return job_outcome(outcomes)
 
 
-FIGURE_SEEDS = 8  # per-seed figures drawn for a job of many seeds (about half a second each)
+def finished_earlier(
+    cfg: DictConfig, paths: list[tuple[int, Path]], stop: StopRequest
+) -> Outcome | None:
+    """Unreadable results files set aside; then, unless overwrite=true, the outcome of the run that
+    finished every seed's file before with the same config, or None if the job is to run."""
+    for _, path in paths:
+        stop.raise_if_stopped()
+        set_aside_unreadable(path)
+    if cfg.get("overwrite", False):
+        return None
+    previous = []
+    for _, path in paths:
+        stop.raise_if_stopped()
+        previous.append(finished_before(path, cfg))
+    return job_outcome(previous) if all(previous) else None
 
 
-def draw_run_figures(
-    scene: Scene, seeds: Seeds, writers: list[ResultsWriter], outcomes: list[Outcome], stop=None
-) -> None:
-    """loss.png per seed (the first FIGURE_SEEDS of a job of more: physgrad report draws them all
-    together), and the scene's own figure of the trained network where it has one; none for a run
-    written aside of a completed results.h5 it did not replace (the figures beside it are that
-    run's). A signal (stop) ends the drawing: the results are final already."""
-    from physgrad.plots import plot_run  # matplotlib only once training is over
-    from physgrad.results import read_params, read_run
+def set_up(
+    cfg: DictConfig, paths: list[tuple[int, Path]], stop: StopRequest
+) -> tuple[TrainerSettings, Scene, UpdateRule, Seeds, dict]:
+    """The config checked, the scene, rule and seeds built (prepare), and the network init_from
+    names put in place, with the attributes of its origin; UserError for what is refused."""
+    settings = check_config(cfg)
+    check_seeds_together(cfg, len(paths))
+    scene, rule, seeds = prepare(cfg, [seed for seed, _ in paths], settings, stop.raise_if_stopped)
+    origin = {}
+    if cfg.get("init_from"):
+        first, origin = start_from(cfg.init_from, seeds.network(), cfg.task.name)
+        seeds = dataclasses.replace(seeds, params=stack([first]))
+    return settings, scene, rule, seeds, origin
 
-    unravel = ravel_pytree(seeds.network())[1]
-    if len(writers) > FIGURE_SEEDS:
-        log.info(
-            "loss.png drawn for the first %d of %d seeds: physgrad report %s draws them all",
-            FIGURE_SEEDS,
-            len(writers),
-            writers[0].path.parent.parent,
+
+def job_attributes(
+    cfg: DictConfig, scene: Scene, rule: UpdateRule, origin: dict, count: int
+) -> dict:
+    """The root attributes every seed's file of a job shares: the run's (run_attributes), the form
+    of J a rule uses, the origin of a network started from another run's (init_from), and, for
+    seeds trained together, their number."""
+    attrs = run_attributes(cfg, scene.unroll)
+    if rule.uses_jacobian:
+        attrs["jacobian"] = rule.gradient.name
+    if origin:
+        attrs["variant"] += f" (from {origin['init_variant']})"
+    if count > 1:
+        # every seed's wall_time is the one shared vectorised run
+        attrs["wall_time_shared_by"] = count
+    return {**attrs, **origin}
+
+
+def open_writers(
+    paths: list[tuple[int, Path]], attrs: dict, settings: TrainerSettings, seeds: Seeds
+) -> list[ResultsWriter]:
+    """One ResultsWriter per seed (its first write made): the job's attributes, the seed's, and the
+    machine's."""
+    return [
+        ResultsWriter(
+            path,
+            {
+                **attrs,
+                "seed": seed,
+                "batch_size": settings.batch_size,
+                "n_params": count_params(seeds.network()),
+                **machine_attributes(),
+            },
         )
-    for index, writer in enumerate(writers[:FIGURE_SEEDS]):
-        if stop is not None and stop.signal_name is not None:
-            return
-        path = writer.path
-        if writer.live != path:
-            log.warning(
-                "%s kept (completed); this run ended %s and is in %s",
-                path,
-                outcomes[index].status,
-                writer.live.name,
-            )
-            continue
-        plot_run(read_run(path), path.with_name("loss.png"))
-        # a network was saved; not after an interrupt, whose user wants the process to end now (an
-        # abandoned step may still hold the cores)
-        if scene.figure is not None and outcomes[index].status not in ("diverged", "interrupted"):
-            test_set = jax.tree_util.tree_map(lambda leaf: leaf[index], seeds.test_sets)
-            scene.figure(
-                unravel(jnp.asarray(read_params(path))), test_set, path.with_name("scene.png")
-            )
+        for seed, path in paths
+    ]

@@ -16,9 +16,11 @@ import re
 import socket
 import stat
 import time
+from collections.abc import Iterator
 from contextlib import contextmanager
 from datetime import datetime
 from pathlib import Path
+from typing import IO, Any
 
 import yaml
 
@@ -64,7 +66,7 @@ def _lock(fd: int, lock_path: Path) -> bool:
 
 
 @contextmanager
-def own_folder(folder: str | os.PathLike, what: str = "job"):
+def own_folder(folder: str | os.PathLike, what: str = "job") -> Iterator[None]:
     """Hold the folder for this process while the block runs: an exclusive lock on
     folder/.physgrad-<what> (flock, or a POSIX lock where the file system has no flock), which the
     operating system releases when the process ends however it ends, so a dead owner never blocks a
@@ -133,9 +135,8 @@ TEXT_LIMIT = 2000  # characters of one text attribute (config excepted): longer 
 CONFIG_LIMIT = 1 << 20  # bytes of the stored config; a physgrad config is a few kB
 
 
-_UNSAFE = re.compile(
-    "[\x00-\x08\x0b-\x1f\x7f-\x9f\u202a-\u202e\u2066-\u2069]"
-)  # C0/C1 controls, bidi overrides
+# C0/C1 controls, bidi overrides
+_UNSAFE = re.compile("[\x00-\x08\x0b-\x1f\x7f-\x9f\u202a-\u202e\u2066-\u2069]")
 
 
 def clean_text(text: str, limit: int | None = TEXT_LIMIT, lines: bool = False) -> str:
@@ -149,13 +150,13 @@ class _NoAliases(yaml.SafeLoader):
     """YAML without aliases: a few bytes of nested aliases expand to gigabytes (a 'billion laughs'),
     and physgrad never writes one."""
 
-    def compose_node(self, parent, index):
+    def compose_node(self, parent: yaml.Node | None, index: Any) -> yaml.Node | None:
         if self.check_event(yaml.AliasEvent):
             raise yaml.YAMLError("aliases (*name) are not allowed")
         return super().compose_node(parent, index)
 
 
-def load_yaml(text: str):
+def load_yaml(text: str) -> Any:
     """Plain YAML data (no aliases, no tags beyond YAML's own); ValueError (one line) if it is not
     that."""
     try:
@@ -166,13 +167,12 @@ def load_yaml(text: str):
         ) from None
 
 
-def read_small_yaml(path: Path, limit: int = CONFIG_LIMIT):
+def read_small_yaml(path: Path, limit: int = CONFIG_LIMIT) -> Any:
     """load_yaml of a regular file of at most limit bytes (a sweep's jobs.yaml, overrides.yaml,
     Optuna's optimization_results.yaml: other people's folders too); ValueError (one line)
     otherwise."""
-    fd = os.open(
-        path, os.O_RDONLY | os.O_NONBLOCK | getattr(os, "O_NOCTTY", 0)
-    )  # OSError if absent
+    # OSError if absent
+    fd = os.open(path, os.O_RDONLY | os.O_NONBLOCK | getattr(os, "O_NOCTTY", 0))
     try:
         mode = os.fstat(fd).st_mode
         if not stat.S_ISREG(mode):
@@ -189,7 +189,7 @@ def read_small_yaml(path: Path, limit: int = CONFIG_LIMIT):
 
 
 @contextmanager
-def replaced_text(path: Path):
+def replaced_text(path: Path) -> Iterator[IO[str]]:
     """A text file written beside path and renamed onto it when the block ends without error (else
     removed): an interrupted writer leaves the previous file or none, never a truncated one."""
     temporary = path.with_name(f".{path.name}.{os.getpid()}.tmp")

@@ -15,7 +15,9 @@ of the physics shows first).
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
+from typing import TYPE_CHECKING, Any
 
 import jax
 import jax.numpy as jnp
@@ -26,10 +28,14 @@ from physgrad.errors import UserError
 from physgrad.jacobians import LayerPlan, dense_jacobian, layer_jacobian, plan_layers
 from physgrad.unroll import MODES, PHYSICS_ONLY, REGULAR, Backprop
 
+if TYPE_CHECKING:
+    from physgrad.nets import Params, Pytree
+    from physgrad.tasks import Scene
+
 BACKPROP_MODES = ("R", "M", "S", "C")
 
 
-def batch_loss_fn(scene, batch):
+def batch_loss_fn(scene: Scene, batch: Pytree) -> Callable[[Params], jax.Array]:
     """theta -> L(y(theta)) on one batch, through the regular output: what a line search
     (optax.lbfgs) or a gain ratio (Levenberg-Marquardt) evaluates at trial parameters (optax's extra
     argument value_fn)."""
@@ -38,7 +44,12 @@ def batch_loss_fn(scene, batch):
     )
 
 
-def _loss_and_pullback(scene, sample_output, params, batch):
+def _loss_and_pullback(
+    scene: Scene,
+    sample_output: Callable[[Params, Pytree], jax.Array],
+    params: Params,
+    batch: Pytree,
+) -> tuple[jax.Array, Params, jax.Array]:
     """(loss, dL/dtheta, max |y|) from one forward and one backward pass of the batch output."""
     y, pullback = jax.vjp(lambda p: jax.vmap(sample_output, in_axes=(None, 0))(p, batch), params)
     loss, output_grad = jax.value_and_grad(scene.batch_loss)(y, batch)
@@ -55,7 +66,9 @@ class Regular:
         False  # give the rule optax's extra arguments value, grad and value_fn (e.g. optax.lbfgs)
     )
 
-    def __call__(self, scene, params, batch):
+    def __call__(
+        self, scene: Scene, params: Params, batch: Pytree
+    ) -> tuple[jax.Array, Params, dict[str, Any], dict[str, jax.Array]]:
         loss, grads, output_max = _loss_and_pullback(
             scene, scene.backprop_output(self.backprop), params, batch
         )
@@ -75,7 +88,9 @@ class Combined:
 
     with_value: bool = False  # as Regular's
 
-    def __call__(self, scene, params, batch):
+    def __call__(
+        self, scene: Scene, params: Params, batch: Pytree
+    ) -> tuple[jax.Array, Params, dict[str, Any], dict[str, jax.Array]]:
         loss, g_regular, output_max = _loss_and_pullback(scene, scene.sample_output, params, batch)
         _, g_physics, _ = _loss_and_pullback(
             scene, scene.backprop_output(PHYSICS_ONLY), params, batch
@@ -107,7 +122,13 @@ class JacobianPass:
     )
 
     @classmethod
-    def for_network(cls, sample_output, params, sample, with_value: bool = False) -> "JacobianPass":
+    def for_network(
+        cls,
+        sample_output: Callable[[Params, Pytree], jax.Array],
+        params: Params,
+        sample: Pytree,
+        with_value: bool = False,
+    ) -> "JacobianPass":
         """The layer-factorised pass where plan_layers allows it, else the per-sample pass with the
         reason."""
         plan = plan_layers(sample_output, params, sample)
@@ -124,7 +145,9 @@ class JacobianPass:
             return "layer-factorised"
         return "per-sample" + (f": {self.why_per_sample}" if self.why_per_sample else "")
 
-    def __call__(self, scene, params, batch):
+    def __call__(
+        self, scene: Scene, params: Params, batch: Pytree
+    ) -> tuple[jax.Array, Params, dict[str, Any], dict[str, jax.Array]]:
         if self.plan is None:
             y, jac = dense_jacobian(scene.sample_output, params, batch)
         else:
@@ -139,7 +162,9 @@ class JacobianPass:
         return loss, grads, extra, {"output_max_abs": jnp.max(jnp.abs(y))}
 
 
-def gradient_pass(backprop: str | None, uses_jacobian: bool, with_value: bool = False):
+def gradient_pass(
+    backprop: str | None, uses_jacobian: bool, with_value: bool = False
+) -> Regular | Combined | JacobianPass:
     """The gradient pass of a rule: the Jacobian pass for rules that take J, else the backprop
     mode's (None: R); with_value: the rule also takes optax's extra arguments value (and grad) and
     value_fn."""
@@ -161,7 +186,7 @@ def gradient_pass(backprop: str | None, uses_jacobian: bool, with_value: bool = 
     return Regular(MODES[backprop or "R"], with_value)
 
 
-def combine_signs(g_physics, g_regular):
+def combine_signs(g_physics: Params, g_regular: Params) -> Params:
     """C = g_M where sign(g_M) == sign(g_R), else 0, per parameter element (its magnitude is always
     g_M's)."""
     return jax.tree_util.tree_map(
@@ -171,7 +196,7 @@ def combine_signs(g_physics, g_regular):
     )
 
 
-def tree_cosine(a, b) -> jax.Array:
+def tree_cosine(a: Params, b: Params) -> jax.Array:
     """<a, b> / (|a| |b|) over whole pytrees; 0 where either is the zero vector (the angle is
     undefined)."""
     dot = sum(
@@ -181,7 +206,7 @@ def tree_cosine(a, b) -> jax.Array:
     return jnp.where(norms > 0, dot / jnp.where(norms > 0, norms, 1.0), 0.0)
 
 
-def sign_disagreement(a, b) -> jax.Array:
+def sign_disagreement(a: Params, b: Params) -> jax.Array:
     """Fraction of components where sign(a) != sign(b): the ones the combined gradient sets to
     zero."""
     leaves = zip(jax.tree_util.tree_leaves(a), jax.tree_util.tree_leaves(b))

@@ -25,12 +25,15 @@ from __future__ import annotations
 import signal
 import sys
 import threading
+from collections.abc import Callable, Iterator
 from contextlib import contextmanager
+from types import FrameType
+from typing import Any, NoReturn
 
-INTERRUPTS = (
-    signal.SIGINT,
-    signal.SIGTERM,
-)  # what stops physgrad: Ctrl-C, and kill's or a scheduler's TERM
+# what stops physgrad: Ctrl-C, and kill's or a scheduler's TERM
+INTERRUPTS = (signal.SIGINT, signal.SIGTERM)
+# what signal.signal installs: a function of the signal number and the frame, or SIG_DFL / SIG_IGN
+SignalHandler = Callable[[int, FrameType | None], Any] | int | signal.Handlers | None
 WAKE_SECONDS = 0.05  # how often a thread waiting for a step looks at signals
 # steps left computing after a second signal: the command line ends with os._exit while one is
 # alive, since a daemon thread that returns from XLA into a finalising interpreter aborts the
@@ -43,12 +46,11 @@ class SignalInterrupt(KeyboardInterrupt):
     'SIGTERM')."""
 
 
-LOST: list[
-    str
-] = []  # names of signals whose SignalInterrupt was dropped by the interpreter, oldest first
+# names of signals whose SignalInterrupt was dropped by the interpreter, oldest first
+LOST: list[str] = []
 
 
-def raise_interrupt(signum, frame):
+def raise_interrupt(signum: int, frame: FrameType | None) -> NoReturn:
     """Signal handler: SIGINT and SIGTERM both as a (Signal)KeyboardInterrupt naming the signal."""
     raise SignalInterrupt(signal.Signals(signum).name)
 
@@ -61,14 +63,14 @@ def take_lost() -> str | None:
     return name
 
 
-def install(handler) -> dict:
+def install(handler: SignalHandler) -> dict:
     """handler for SIGINT and SIGTERM; returns the handlers it replaced. ValueError outside the main
     thread."""
     return {sig: signal.signal(sig, handler) for sig in INTERRUPTS}
 
 
 @contextmanager
-def handling_signals(handler):
+def handling_signals(handler: SignalHandler) -> Iterator[bool]:
     """While inside: SIGINT and SIGTERM go to handler, and the previous handlers are back after.
     Yields whether it was installed: not in a thread other than the main one, where signals are left
     alone."""
@@ -87,7 +89,7 @@ def handling_signals(handler):
 
 
 @contextmanager
-def signals_held():
+def signals_held() -> Iterator[None]:
     """SIGINT and SIGTERM held back (blocked) while inside; one that came meanwhile is handled on
     leaving."""
     held = signal.pthread_sigmask(signal.SIG_BLOCK, set(INTERRUPTS))
@@ -106,17 +108,16 @@ class StopRequest:
     only counted. `on_first` is called with the signal's name at the first one (a sweep records
     there that it is being stopped)."""
 
-    def __init__(self, on_first=None):
+    def __init__(self, on_first: Callable[[str], None] | None = None) -> None:
         self.signal_name: str | None = None
         self.at_once = False
         self.received = 0
         self.on_first = on_first
-        self.raising = (
-            False  # set-up (no step running, no file half written): a signal raises at once
-        )
+        # set-up (no step running, no file half written): a signal raises at once
+        self.raising = False
         self._waiting: threading.Event | None = None
 
-    def __call__(self, signum, frame):
+    def __call__(self, signum: int, frame: FrameType | None) -> None:
         self.received += 1
         self.request(signal.Signals(signum).name, at_once=self.signal_name is not None)
         if self.raising:
@@ -140,14 +141,14 @@ class StopRequest:
             if waiting is not None:
                 waiting.set()
 
-    def call(self, fn, *args):
+    def call(self, fn: Callable[..., Any], *args: Any) -> Any:
         """fn(*args), computed in a helper thread (XLA's CPU client runs a computation in the thread
         that calls it; fn returns once its results are ready), while this thread waits in slices so
         that the signal handler runs; raises KeyboardInterrupt if a second signal came first (the
         computation is left to finish unseen)."""
         ready, result = threading.Event(), []
 
-        def compute():
+        def compute() -> None:
             try:
                 result.append(fn(*args))
             except BaseException as error:  # noqa: BLE001 - handed to the waiting thread
@@ -180,7 +181,7 @@ class StopInterrupt(KeyboardInterrupt):
 
 
 @contextmanager
-def keeping_lost_interrupts():
+def keeping_lost_interrupts() -> Iterator[None]:
     """While inside: an interrupt the interpreter cannot raise is kept, silently, for the next check
     (a StopInterrupt's stop is already requested on its StopRequest; a SignalInterrupt's signal goes
     to LOST); any other unraisable exception is reported as before. Inside another one (the console
@@ -190,7 +191,7 @@ def keeping_lost_interrupts():
         yield
         return
 
-    def unraisable(info):
+    def unraisable(info: Any) -> None:  # sys.UnraisableHookArgs
         if isinstance(info.exc_value, StopInterrupt):
             # the stop stays requested: the job's next check (raise_if_stopped, the loop's) acts on
             # it
@@ -209,7 +210,7 @@ def keeping_lost_interrupts():
 
 
 @contextmanager
-def stop_on_signals(on_first=None):
+def stop_on_signals(on_first: Callable[[str], None] | None = None) -> Iterator[StopRequest]:
     """The job's StopRequest handling SIGINT and SIGTERM while inside, with a signal the interpreter
     dropped before the job (LOST) taken as its first, and interrupts that cannot be raised kept
     (keeping_lost_interrupts). Outside the main thread signals are left alone (the StopRequest still

@@ -17,7 +17,9 @@ Two forms, chosen once per run (`plan_layers`):
 
 from __future__ import annotations
 
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import jax
 import jax.numpy as jnp
@@ -25,6 +27,13 @@ from jax.extend.core import Var
 from jax.flatten_util import ravel_pytree
 
 from physgrad.nets import layer_tap
+
+if TYPE_CHECKING:
+    import numpy as np
+    from jax.extend.core import ClosedJaxpr
+    from jax.typing import DTypeLike
+
+    from physgrad.nets import Params, Pytree
 
 
 @dataclass(frozen=True)
@@ -38,7 +47,7 @@ class DenseJacobian:
         return self.matrix.shape
 
     @property
-    def dtype(self):
+    def dtype(self) -> np.dtype:
         return self.matrix.dtype
 
     def dense(self) -> jax.Array:
@@ -56,7 +65,7 @@ class DenseJacobian:
     def finite(self) -> jax.Array:
         return jnp.isfinite(self.matrix).all()
 
-    def astype(self, dtype) -> "DenseJacobian":
+    def astype(self, dtype: DTypeLike) -> "DenseJacobian":
         return DenseJacobian(self.matrix.astype(dtype))
 
 
@@ -90,7 +99,7 @@ class LayerJacobian:
         return batch * k, n
 
     @property
-    def dtype(self):
+    def dtype(self) -> np.dtype:
         return self.cotangents[0].dtype
 
     def dense(self) -> jax.Array:
@@ -135,24 +144,26 @@ class LayerJacobian:
     def finite(self) -> jax.Array:
         return jnp.all(jnp.stack([jnp.isfinite(x).all() for x in (*self.inputs, *self.cotangents)]))
 
-    def astype(self, dtype) -> "LayerJacobian":
+    def astype(self, dtype: DTypeLike) -> "LayerJacobian":
         cast = lambda arrays: tuple(x.astype(dtype) for x in arrays)  # noqa: E731
         return LayerJacobian(self.plan, cast(self.inputs), cast(self.cotangents))
 
 
-def as_jacobian(jac) -> "DenseJacobian | LayerJacobian":
+def as_jacobian(jac: DenseJacobian | LayerJacobian | jax.Array) -> "DenseJacobian | LayerJacobian":
     """A form of J as it is, a plain m x n matrix as a DenseJacobian."""
     return jac if isinstance(jac, (DenseJacobian, LayerJacobian)) else DenseJacobian(jac)
 
 
-def dense_jacobian(sample_output, params, batch) -> tuple[jax.Array, DenseJacobian]:
+def dense_jacobian(
+    sample_output: Callable[[Params, Pytree], jax.Array], params: Params, batch: Pytree
+) -> tuple[jax.Array, DenseJacobian]:
     """y (batch, k) and J (m x n, m = batch * k) from one per-sample reverse-mode pass, vmapped over
     the batch: J's rows are sample major, its columns follow ravel_pytree(params). The forward pass
     that builds each sample's pullback also gives y, so a step needs no separate forward or gradient
     pass (dL/dtheta = J^T g)."""
     flat, unravel = ravel_pytree(params)
 
-    def output_twice(flat_params, sample):
+    def output_twice(flat_params: jax.Array, sample: Pytree) -> tuple[jax.Array, jax.Array]:
         y = sample_output(unravel(flat_params), sample)
         return y, y
 
@@ -164,11 +175,11 @@ class _Recorder:
     """Layer tap for planning: which parameter leaves each apply_mlp layer uses (by identity), and
     the rank of its input."""
 
-    def __init__(self, leaf_index: dict):
+    def __init__(self, leaf_index: dict) -> None:
         self.leaf_index = leaf_index
         self.layers: list[tuple] = []
 
-    def __call__(self, layer, x):
+    def __call__(self, layer: dict[str, jax.Array], x: jax.Array) -> jax.Array:
         w, b = layer["w"], layer["b"]
         self.layers.append(
             (self.leaf_index.get(id(w)), self.leaf_index.get(id(b)), x.ndim, w.shape[1])
@@ -182,12 +193,16 @@ class _Perturbed:
     network's own and every pre-activation must belong to the trace of the planned function (one
     inside a scan or a vmap has its own trace: the layer would run several times per sample)."""
 
-    def __init__(self, perturbations, kernels=None):
+    def __init__(
+        self,
+        perturbations: Sequence[jax.Array],
+        kernels: Sequence[tuple[jax.Array, jax.Array]] | None = None,
+    ) -> None:
         self.perturbations = perturbations
         self.kernels = kernels
         self.inputs: list = []
 
-    def __call__(self, layer, x):
+    def __call__(self, layer: dict[str, jax.Array], x: jax.Array) -> jax.Array:
         index = len(self.inputs)
         self.inputs.append(x)
         if index >= len(self.perturbations):
@@ -205,7 +220,7 @@ class _NotPlannable(Exception):
     pass
 
 
-def _depends_on(closed_jaxpr, inputs: int, outputs: int) -> bool:
+def _depends_on(closed_jaxpr: ClosedJaxpr, inputs: int, outputs: int) -> bool:
     """Whether any of the first ``outputs`` outputs may depend on any of the first ``inputs`` inputs
     (an equation with a dependent operand makes all its results dependent: conservative)."""
     jaxpr = closed_jaxpr.jaxpr
@@ -216,7 +231,9 @@ def _depends_on(closed_jaxpr, inputs: int, outputs: int) -> bool:
     return any(isinstance(v, Var) and v in tainted for v in jaxpr.outvars[:outputs])
 
 
-def plan_layers(sample_output, params, sample) -> LayerPlan | str:
+def plan_layers(
+    sample_output: Callable[[Params, Pytree], jax.Array], params: Params, sample: Pytree
+) -> LayerPlan | str:
     """The layer plan of a scene's network, or why the per-sample pass is kept (a phrase).
 
     The factorised form is exact when every parameter leaf is the kernel or bias of one apply_mlp
@@ -226,7 +243,7 @@ def plan_layers(sample_output, params, sample) -> LayerPlan | str:
     leaves, treedef = jax.tree_util.tree_flatten(params)
     recorders = []
 
-    def record(*leaf_values):
+    def record(*leaf_values: jax.Array) -> jax.Array:
         tree = jax.tree_util.tree_unflatten(treedef, leaf_values)
         recorder = _Recorder({id(leaf): i for i, leaf in enumerate(leaf_values)})
         recorders.append(recorder)
@@ -262,7 +279,9 @@ def plan_layers(sample_output, params, sample) -> LayerPlan | str:
         for w_leaf, b_leaf, *_ in layers
     ]
 
-    def detached(leaf_values, kernel_values):
+    def detached(
+        leaf_values: list[jax.Array], kernel_values: list[tuple[jax.Array, jax.Array]]
+    ) -> tuple[jax.Array, list[jax.Array]]:
         tap = _Perturbed([jnp.zeros((width,), leaves[0].dtype) for width in widths], kernel_values)
         with layer_tap(tap):
             y = sample_output(jax.tree_util.tree_unflatten(treedef, leaf_values), sample)
@@ -280,15 +299,22 @@ def plan_layers(sample_output, params, sample) -> LayerPlan | str:
 
 
 def layer_jacobian(
-    sample_output, params, batch, plan: LayerPlan
+    sample_output: Callable[[Params, Pytree], jax.Array],
+    params: Params,
+    batch: Pytree,
+    plan: LayerPlan,
 ) -> tuple[jax.Array, LayerJacobian]:
     """y (batch, k) and J in factors: per sample, one forward pass with zero perturbations p_l added
     to every pre-activation, then dy/dp_l by reverse mode (k passes that stop at the layers'
     pre-activations)."""
     dtype = jax.tree_util.tree_leaves(params)[0].dtype
 
-    def per_sample(sample):
-        def output(perturbations):
+    def per_sample(
+        sample: Pytree,
+    ) -> tuple[jax.Array, tuple[jax.Array, ...], tuple[jax.Array, ...]]:
+        def output(
+            perturbations: list[jax.Array],
+        ) -> tuple[jax.Array, tuple[jax.Array, list[jax.Array]]]:
             tap = _Perturbed(perturbations)
             with layer_tap(tap):
                 y = sample_output(params, sample)

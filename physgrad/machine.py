@@ -20,6 +20,7 @@ import functools
 import os
 import platform
 import subprocess
+from collections.abc import Mapping, Sequence
 from pathlib import Path
 
 import numpy as np
@@ -119,7 +120,7 @@ def machine_attributes() -> dict:
     }
 
 
-def machine_label(attrs) -> str:
+def machine_label(attrs: Mapping) -> str:
     """One line naming where a run was measured: CPU model and cores, and the device when it is not
     the CPU."""
     model = str(attrs.get("cpu_model", "") or "")
@@ -130,7 +131,7 @@ def machine_label(attrs) -> str:
     return label if not device or device == "cpu" else f"{label}, {device}"
 
 
-def step_statistics(step_seconds) -> dict:
+def step_statistics(step_seconds: Sequence[float]) -> dict:
     """p10, p50, p90 and p99 of a run's step times (seconds; the first, compiling call left out by
     the caller)."""
     times = np.asarray(step_seconds, float)
@@ -173,3 +174,22 @@ def contention(
             f"load average {max(loads):.2f} with {cores} cores (other work beside the run)"
         )
     return "; ".join(reasons)
+
+
+def timing_attributes(
+    step_seconds: list[float], load_start: float, load_end: float, static_cost: bool = True
+) -> dict:
+    """The step-time percentiles, the load average at the start and the end, and the contention flag
+    with its reason (contention)."""
+    statistics = step_statistics(step_seconds)
+    cores = cpu_count()
+    why = contention(statistics, len(step_seconds), load_start, load_end, cores, static_cost)
+    attrs = {
+        **statistics,
+        "load_start": load_start,
+        "load_end": load_end,
+        "contended": int(bool(why)),
+    }
+    if why:
+        attrs["contention"] = why
+    return attrs

@@ -1,13 +1,24 @@
 """Networks as plain pytrees: dense networks (a list of {"w": (in, out), "b": (out,)} layers), the
 quantum controller's CNN and the Kuramoto-Sivashinsky scene's 1-D residual convolutional network."""
 
+from __future__ import annotations
+
 import math
-from collections.abc import Sequence
+from collections.abc import Callable, Iterator, Sequence
 from contextlib import contextmanager
+from typing import TYPE_CHECKING, Any
 
 import jax
 import jax.numpy as jnp
 import numpy as np
+
+if TYPE_CHECKING:
+    from jax.typing import DTypeLike
+
+# For annotations: a network's parameters (a pytree of arrays), and any other pytree of arrays (a
+# sample, a batch, a state)
+Params = Any
+Pytree = Any
 
 ACTIVATIONS = {"tanh": jnp.tanh, "relu": jax.nn.relu, "linear": lambda z: z}
 
@@ -18,7 +29,9 @@ _TAPS: list = []
 
 
 @contextmanager
-def layer_tap(tap):
+def layer_tap(
+    tap: Callable[[dict[str, jax.Array], jax.Array], jax.Array],
+) -> Iterator[Callable[[dict[str, jax.Array], jax.Array], jax.Array]]:
     """Route every apply_mlp layer traced inside the block through tap(layer, x) ->
     pre-activation."""
     _TAPS.append(tap)
@@ -28,7 +41,9 @@ def layer_tap(tap):
         _TAPS.pop()
 
 
-def init_mlp(key, sizes: Sequence[int], dtype, zero_last: bool = False):
+def init_mlp(
+    key: jax.Array, sizes: Sequence[int], dtype: DTypeLike, zero_last: bool = False
+) -> list[dict[str, jax.Array]]:
     """Glorot-uniform kernels and zero biases (the Keras defaults the reference code trains with).
 
     A kernel of shape (fan_in, fan_out) is drawn from U(-a, a) with a = sqrt(6 / (fan_in +
@@ -46,7 +61,9 @@ def init_mlp(key, sizes: Sequence[int], dtype, zero_last: bool = False):
     return layers
 
 
-def apply_mlp(layers, x, hidden: str, output: str = "linear"):
+def apply_mlp(
+    layers: Sequence[dict[str, jax.Array]], x: jax.Array, hidden: str, output: str = "linear"
+) -> jax.Array:
     """z_{l+1} = act(z_l W_l + b_l) with act = hidden on every layer but the last, output on the
     last.
 
@@ -59,11 +76,13 @@ def apply_mlp(layers, x, hidden: str, output: str = "linear"):
     return x
 
 
-def count_params(tree) -> int:
+def count_params(tree: Params) -> int:
     return sum(leaf.size for leaf in jax.tree_util.tree_leaves(tree))
 
 
-def init_control_cnn(key, points: int, dtype, filters: int = 60):
+def init_control_cnn(
+    key: jax.Array, points: int, dtype: DTypeLike, filters: int = 60
+) -> dict[str, dict[str, jax.Array]]:
     """The StableBPTT paper's quantum controller: psi as an (N, 2) image of (Re, Im) ->
     conv2d 60 filters k=(3, 2) stride 2 tanh -> conv1d 60 k=3 stride 2 tanh -> dense 1 (valid
     padding). 11,701 parameters at N = 32. Glorot-uniform kernels with Keras' fans (kernel size
@@ -71,7 +90,7 @@ def init_control_cnn(key, points: int, dtype, filters: int = 60):
     k1, k2, k3 = jax.random.split(key, 3)
     length = ((points - 3) // 2 + 1 - 3) // 2 + 1
 
-    def glorot(k, shape, fan_in, fan_out):
+    def glorot(k: jax.Array, shape: tuple[int, ...], fan_in: int, fan_out: int) -> jax.Array:
         limit = (6.0 / (fan_in + fan_out)) ** 0.5
         return jax.random.uniform(k, shape, dtype, -limit, limit)
 
@@ -91,7 +110,7 @@ def init_control_cnn(key, points: int, dtype, filters: int = 60):
     }
 
 
-def apply_control_cnn(params, image):
+def apply_control_cnn(params: dict[str, dict[str, jax.Array]], image: jax.Array) -> jax.Array:
     """image: (N, 2) real array -> scalar control."""
     x = jax.lax.conv_general_dilated(
         image[None, :, :, None],
@@ -108,7 +127,9 @@ def apply_control_cnn(params, image):
     return (x.reshape(-1) @ params["dense"]["w"] + params["dense"]["b"])[0]
 
 
-def init_resnet(key, channels: int, blocks: int, dtype, zero_output: bool = False):
+def init_resnet(
+    key: jax.Array, channels: int, blocks: int, dtype: DTypeLike, zero_output: bool = False
+) -> Params:
     """The unrolling study's 1-D convolutional ResNet: conv(2 -> C), `blocks` residual blocks of two
     convolutions (x <- leaky(conv(leaky(conv(x))) + x)), conv(C -> 1); kernel 3, circular padding,
     biases everywhere. PyTorch's default initialisation: weights and biases ~ U(-1/sqrt(3 C_in),
@@ -147,19 +168,19 @@ def init_resnet(key, channels: int, blocks: int, dtype, zero_output: bool = Fals
     }
 
 
-def circular_conv(x, layer):
+def circular_conv(x: jax.Array, layer: dict[str, jax.Array]) -> jax.Array:
     """out[i] = sum_k x[i + k - 1] w[k] + b on a periodic grid; x: (points, C_in) -> (points,
     C_out)."""
     taps = jnp.concatenate([jnp.roll(x, 1, axis=0), x, jnp.roll(x, -1, axis=0)], axis=1)
     return taps @ layer["w"].reshape(-1, layer["w"].shape[-1]) + layer["b"]
 
 
-def leaky(z):
+def leaky(z: jax.Array) -> jax.Array:
     """leaky_relu with slope 0.01 below 0 (PyTorch's default)."""
     return jax.nn.leaky_relu(z, 0.01)
 
 
-def apply_resnet(params, u, size):
+def apply_resnet(params: Params, u: jax.Array, size: jax.Array | float) -> jax.Array:
     """f(u, size): (points,) -> (points,), the size factor as a constant second input channel."""
     x = circular_conv(jnp.stack([u, jnp.full_like(u, size)], axis=1), params["input"])
 

@@ -1,37 +1,39 @@
-"""Figures: per run (losses, gradient norm and the scene's metrics) and per comparison (one line per
-group of runs: the median over seeds with markers at the evaluations and the min-max band).
-Comparison figures are written as PNG and PDF through matplotlib's Agg backend."""
+"""Figures: the style every figure shares (one colour, line style and marker per group; legends
+beside the panels; log axes that read well; PNG and PDF through matplotlib's Agg backend) and the
+figure of one run (losses, gradient norm and the scene's metrics). The report's figures, which
+compare runs, are in physgrad.report_figures."""
 
 from __future__ import annotations
 
-from collections import defaultdict
+from collections.abc import Iterable
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import matplotlib
 
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
-from matplotlib.ticker import FixedLocator, FuncFormatter, MaxNLocator, NullFormatter, NullLocator  # noqa: E402
+from matplotlib.ticker import FuncFormatter, MaxNLocator, NullFormatter, NullLocator  # noqa: E402
 
-from physgrad.readout import loss_at, targets, time_to_target  # noqa: E402
 from physgrad.results import Run, natural_key  # noqa: E402
 
-MAX_MARKERS = 40  # markers per curve at most (evaluations beyond that are thinned out evenly)
-
+if TYPE_CHECKING:
+    from matplotlib.axes import Axes
+    from matplotlib.figure import Figure
 
 COLORS = plt.get_cmap("tab10").colors
 LINESTYLES = ("-", "--", ":", "-.")
 MARKERS = ("o", "s", "^", "D", "v", "P")
 
 
-def literal(text) -> str:
+def literal(text: object) -> str:
     """Text from a results file (anyone's) as matplotlib should draw it: a `$` is a dollar sign, not
     the start of mathtext to parse (which fails on unbalanced or invalid expressions)."""
     return str(text).replace("$", r"\$")
 
 
-def group_styles(labels) -> dict[str, dict]:
+def group_styles(labels: Iterable[str]) -> dict[str, dict]:
     """One style per group label, the same in every figure and panel of a report: tab10's ten
     colours, and past ten groups another line style and marker with each round of colours, so no two
     groups look alike."""
@@ -46,11 +48,12 @@ def group_styles(labels) -> dict[str, dict]:
     return styles
 
 
-def _styles_for(runs: list[Run], styles: dict | None) -> dict:
+def styles_for(runs: list[Run], styles: dict | None) -> dict:
+    """The styles given, else group_styles of these runs' groups."""
     return styles if styles is not None else group_styles(run.label or run.variant for run in runs)
 
 
-def _legend_outside(ax, **kwargs) -> None:
+def legend_outside(ax: Axes, **kwargs: object) -> None:
     """The legend beside the panel, right of its data (the figure is saved with
     bbox_inches="tight")."""
     ax.legend(
@@ -63,7 +66,7 @@ def _legend_outside(ax, **kwargs) -> None:
     )
 
 
-def _limit_to(ax, values, pad: float = 3.0) -> None:
+def limit_to(ax: Axes, values: Iterable[float], pad: float = 3.0) -> None:
     """y limits (a log axis) that hold the given values: diverged runs, drawn after, leave at the
     top edge."""
     values = np.asarray([v for v in values if np.isfinite(v) and v > 0], float)
@@ -72,11 +75,11 @@ def _limit_to(ax, values, pad: float = 3.0) -> None:
         ax.set_ylim(low / pad, high * pad)
 
 
-def _three_figures(value, _position=None) -> str:
+def _three_figures(value: float, _position: int | None = None) -> str:
     return f"{value:.3g}"
 
 
-def log_axis(ax, which: str = "y") -> None:
+def log_axis(ax: Axes, which: str = "y") -> None:
     """A log axis whose labels read well: decades in scientific notation, and where the data span
     less than a decade, a few evenly spaced values with three significant figures (matplotlib's
     default then labels minor ticks such as 9.9992x10^-1)."""
@@ -88,6 +91,22 @@ def log_axis(ax, which: str = "y") -> None:
         axis.set_major_formatter(FuncFormatter(_three_figures))
         axis.set_minor_locator(NullLocator())
         axis.set_minor_formatter(NullFormatter())
+
+
+def save_figure(fig: Figure, path: str | Path, note: str) -> None:
+    """path without suffix: written as path.png and path.pdf."""
+    top = 1.0
+    if note:
+        fig.suptitle(literal(note), fontsize=9, color="dimgray")
+        top -= (
+            0.2 + 0.17 * (note.count("\n") + 1)
+        ) / fig.get_figheight()  # the note's lines, in inches
+    fig.tight_layout(rect=(0, 0, 1, top))
+    for suffix in (".png", ".pdf"):
+        fig.savefig(
+            Path(path).with_suffix(suffix), dpi=110, bbox_inches="tight"
+        )  # legends sit outside
+    plt.close(fig)
 
 
 PLAIN_COLUMNS = ("iteration", "wall_time", "calibrated_time", "loss", "grad_norm")
@@ -164,7 +183,7 @@ def plot_run(run: Run, path: str | Path) -> None:
     plt.close(fig)
 
 
-def _fit_axis(ax) -> None:
+def _fit_axis(ax: Axes) -> None:
     """A log y axis where the drawn values are positive and span more than two decades."""
     values = np.concatenate(
         [np.asarray(line.get_ydata(), float) for line in ax.get_lines()] or [np.empty(0)]
@@ -174,7 +193,7 @@ def _fit_axis(ax) -> None:
         log_axis(ax)
 
 
-def _empty_or_legend(ax, ylabel: str, empty: str) -> None:
+def _empty_or_legend(ax: Axes, ylabel: str, empty: str) -> None:
     ax.set_xlabel("iteration")
     ax.grid(True, which="both", alpha=0.3)
     if ax.get_lines():
@@ -182,347 +201,3 @@ def _empty_or_legend(ax, ylabel: str, empty: str) -> None:
         ax.legend(fontsize=8)
     else:
         ax.text(0.5, 0.5, empty, ha="center", va="center", transform=ax.transAxes, color="dimgray")
-
-
-def median_band(curves: list[tuple[np.ndarray, np.ndarray]]):
-    """Median and min-max of several (x, loss) curves at every x where one of them was evaluated, up
-    to the shortest curve's end (between a curve's evaluations interpolated in log(loss)). The
-    median is that of the losses themselves, as the tables report it (for an even count the mean of
-    the middle two, not their geometric mean)."""
-    end = min(x[-1] for x, _ in curves)
-    grid = np.unique(np.concatenate([x[x <= end] for x, _ in curves]))
-    values = 10 ** np.array(
-        [np.interp(grid, x, np.log10(np.maximum(y, 1e-300))) for x, y in curves]
-    )
-    at_evaluations = [np.isin(grid, x) for x, _ in curves]
-    for row, (x, y), exact in zip(
-        values, curves, at_evaluations
-    ):  # no round trip through log10 where measured
-        row[exact] = y[np.searchsorted(x, grid[exact])]
-    return grid, np.median(values, axis=0), values.min(axis=0), values.max(axis=0)
-
-
-def _panels(count: int, width: float = 5.5, height: float = 4.0, max_columns: int = 4):
-    columns = max(1, min(count, max_columns))
-    rows = max(1, -(-count // columns))
-    # at least 8 inches wide, so that the note above the panels fits
-    fig, axes = plt.subplots(
-        rows, columns, figsize=(max(8.0, width * columns), height * rows), squeeze=False
-    )
-    for ax in axes.flat[count:]:
-        ax.set_visible(False)
-    return fig, list(axes.flat)
-
-
-def _save(fig, path, note: str) -> None:
-    """path without suffix: written as path.png and path.pdf."""
-    top = 1.0
-    if note:
-        fig.suptitle(literal(note), fontsize=9, color="dimgray")
-        top -= (
-            0.2 + 0.17 * (note.count("\n") + 1)
-        ) / fig.get_figheight()  # the note's lines, in inches
-    fig.tight_layout(rect=(0, 0, 1, top))
-    for suffix in (".png", ".pdf"):
-        fig.savefig(
-            Path(path).with_suffix(suffix), dpi=110, bbox_inches="tight"
-        )  # legends sit outside
-    plt.close(fig)
-
-
-def _short_reason(reason: str) -> str:
-    """'loss became nan at iteration 12 (loss); the SVD ...' -> 'loss became nan at iteration
-    12'."""
-    return reason.split(" (")[0].split(";")[0]
-
-
-def use_log_x(ends: list[float], logx: str) -> bool:
-    """auto: when the curves' ends (median per group) span a decade or more, so that a fast method
-    is not a vertical line at the left of a slow one's curve."""
-    if logx != "auto":
-        return logx == "on"
-    positive = [end for end in ends if end > 0]
-    return len(positive) > 1 and max(positive) / min(positive) >= 10
-
-
-def plot_comparison(
-    runs: list[Run],
-    path: str | Path,
-    x_key: str = "wall_time",
-    note: str = "",
-    logx: str = "auto",
-    styles: dict | None = None,
-) -> None:
-    """Held-out loss against training time (or iteration), one panel per scene, one line per group
-    in its style (group_styles: the same in every figure): the median over its seeds (the tables'
-    statistic) with a marker at each evaluation and the min-max band; diverged runs each on their
-    own, dashed, ending in a cross labelled with the reason, or in a triangle at the top edge where
-    they left the range of the other curves (the y axis is fitted to the runs that did not diverge).
-    A run started from another's network begins where that run ended. The x axis is symmetric-log
-    (linear around 0, so the initial evaluation stays visible) where use_log_x says so. Legends sit
-    right of the panels."""
-    styles = _styles_for(runs, styles)
-    by_scene = defaultdict(lambda: defaultdict(lambda: {"ok": [], "diverged": []}))
-    for run in runs:
-        loss = run.eval.get("loss")
-        if loss is not None and loss.size and np.isfinite(loss).any():
-            finite = np.isfinite(loss)
-            kind = "diverged" if run.attrs.get("status") == "diverged" else "ok"
-            curve = (
-                run.eval[x_key][finite] + run.offset(x_key),
-                loss[finite],
-                run.attrs.get("reason") or "",
-            )
-            by_scene[run.scene][run.label or run.variant][kind].append(curve)
-    scenes = sorted(by_scene, key=natural_key) or ["(no runs with evaluations)"]
-    fig, axes = _panels(len(scenes))
-    for ax, scene in zip(axes, scenes):
-        groups = by_scene.get(scene, {})
-        ends, smallest, banded, shown = [], [], False, []
-        for label, kinds in sorted(groups.items(), key=lambda item: natural_key(item[0])):
-            curves = kinds["ok"]
-            style = styles.get(label, {})
-            text = f"{label} (n={len(curves)}" + (
-                f", {len(kinds['diverged'])} diverged)" if kinds["diverged"] else ")"
-            )
-            if curves:
-                grid, median, low, high = median_band([(x, y) for x, y, _ in curves])
-                every = max(1, len(grid) // MAX_MARKERS)
-                ax.plot(grid, median, ms=3, markevery=every, label=literal(text), **style)
-                if len(curves) > 1:
-                    ax.fill_between(grid, low, high, color=style.get("color"), alpha=0.2, lw=0)
-                    banded = True
-                shown += [*low, *high]
-                ends.append(float(np.median([x[-1] for x, _, _ in curves])))
-                smallest += [x[x > 0].min() for x, _, _ in curves if (x > 0).any()]
-            elif kinds["diverged"]:
-                ax.plot([], [], lw=0.8, label=literal(text), **{**style, "linestyle": "--"})
-            for x, _, _ in kinds["diverged"]:
-                smallest += [x[x > 0].min()] if (x > 0).any() else []
-        if not shown:  # every run diverged: fit the axis to where they were finite
-            shown = [v for kinds in groups.values() for _, y, _ in kinds["diverged"] for v in y]
-        _limit_to(ax, shown)
-        top, notes = ax.get_ylim()[1], 0
-        for label, kinds in sorted(groups.items(), key=lambda item: natural_key(item[0])):
-            color = styles.get(label, {}).get("color")
-            for x, y, reason in kinds["diverged"]:
-                ax.plot(x, y, "--", lw=0.8, color=color)
-                above = y[-1] > top
-                ax.plot(
-                    x[-1:],
-                    [min(y[-1], top)],
-                    "^" if above else "x",
-                    ms=7,
-                    color=color,
-                    clip_on=False,
-                )
-                # runs that diverge early end at nearly the same point: stack their notes instead of
-                # overprinting
-                ax.annotate(
-                    literal(_short_reason(reason) + (f" (loss {y[-1]:.3g})" if above else "")),
-                    (x[-1], min(y[-1], top)),
-                    xytext=(4, -10 - 9 * notes),
-                    textcoords="offset points",
-                    fontsize=7,
-                    color=color,
-                    annotation_clip=False,
-                )
-                notes += 1
-        ax.set_title(literal(scene), fontsize=10)
-        ax.set_xlabel(
-            {
-                "wall_time": "training time, measured clock [s]",
-                "calibrated_time": "training time, calibrated clock [s]",
-            }.get(x_key, "iteration")
-        )
-        ax.set_ylabel("test loss")
-        log_axis(ax)
-        if smallest and use_log_x(ends, logx):
-            ax.set_xscale("symlog", linthresh=min(smallest))
-            ax.set_xlim(left=0)
-        ax.grid(True, which="both", alpha=0.3)
-        if groups:
-            _legend_outside(
-                ax, title="line: median over n seeds" + (", band: min-max" if banded else "")
-            )
-    _save(fig, path, note)
-
-
-def plot_tradeoff(
-    runs: list[Run],
-    path: str | Path,
-    note: str = "",
-    styles: dict | None = None,
-    thresholds: dict | None = None,
-) -> None:
-    """Error against run time, per scene, one point per seed in its group's style: the final test
-    loss against the seconds per iteration (top) and against the training seconds until the test
-    loss first reached the scene's threshold (bottom; readout.targets: the best group's median, so a
-    budget does not set the x value); a diverged seed as a triangle at the top edge of the top panel
-    at its seconds per iteration."""
-    styles = _styles_for(runs, styles)
-    limits = targets(runs) if thresholds is None else thresholds
-    by_scene = defaultdict(lambda: defaultdict(lambda: {"ok": [], "diverged": []}))
-    for run in runs:
-        final, per_iter = loss_at(run), run.seconds_per_iteration
-        if not np.isfinite(per_iter):
-            continue
-        if run.attrs.get("status") == "completed" and np.isfinite(final):
-            limit = limits.get(run.scene, np.nan)
-            reach = time_to_target(run, limit)
-            by_scene[run.scene][run.label or run.variant]["ok"].append((per_iter, reach, final))
-        elif run.attrs.get("status") == "diverged":
-            by_scene[run.scene][run.label or run.variant]["diverged"].append(per_iter)
-    scenes = sorted(by_scene, key=natural_key) or ["(no finished runs)"]
-    columns = min(
-        len(scenes), 4
-    )  # scenes per row; each scene is a pair of panels stacked vertically
-    rows = -(-len(scenes) // columns)
-    fig, axes = plt.subplots(
-        2 * rows, columns, figsize=(max(8.0, 5.0 * columns), 7.0 * rows), squeeze=False
-    )
-    for ax in axes[:, :].flat:
-        ax.set_visible(False)
-    for index, scene in enumerate(scenes):
-        top, bottom = (
-            axes[2 * (index // columns), index % columns],
-            axes[2 * (index // columns) + 1, index % columns],
-        )
-        groups = sorted(by_scene.get(scene, {}).items(), key=lambda item: natural_key(item[0]))
-        for label, kinds in groups:
-            style = {k: v for k, v in styles.get(label, {}).items() if k != "linestyle"}
-            points = np.array(kinds["ok"], float).reshape(-1, 3)
-            diverged = f", {len(kinds['diverged'])} diverged" if kinds["diverged"] else ""
-            top.plot(
-                points[:, 0],
-                points[:, 2],
-                linestyle="none",
-                label=literal(f"{label} (n={len(points)}{diverged})"),
-                **style,
-            )
-            reached = np.isfinite(points[:, 1])
-            bottom.plot(points[reached, 1], points[reached, 2], linestyle="none", **style)
-        _limit_to(top, [p[2] for _, kinds in groups for p in kinds["ok"]])
-        _limit_to(bottom, [p[2] for _, kinds in groups for p in kinds["ok"]])
-        edge = top.get_ylim()[1]
-        for label, kinds in groups:
-            for per_iter in kinds["diverged"]:
-                top.plot(
-                    [per_iter],
-                    [edge],
-                    "^",
-                    ms=7,
-                    color=styles.get(label, {}).get("color"),
-                    clip_on=False,
-                )
-        limit = limits.get(scene, np.nan)
-        finished = [p for _, kinds in groups for p in kinds["ok"]]
-        reached = sum(np.isfinite(p[1]) for p in finished)
-        bottom.text(
-            0.98,
-            0.96,
-            f"reached by {reached} of {len(finished)} completed runs",
-            transform=bottom.transAxes,
-            ha="right",
-            va="top",
-            fontsize=7,
-            color="dimgray",
-        )
-        for ax, label in (
-            (top, "seconds per iteration"),
-            (
-                bottom,
-                f"training seconds to test loss {limit:.3g}"
-                if np.isfinite(limit)
-                else "training seconds to the threshold (none)",
-            ),
-        ):
-            ax.set_visible(True)
-            xs = np.concatenate(
-                [np.asarray(line.get_xdata(), float) for line in ax.get_lines()] or [np.empty(0)]
-            )
-            if (
-                xs.size and xs.min() > 0
-            ):  # (a threshold reached at the start has time 0: a linear axis then)
-                log_axis(ax, "x")
-            if xs.size:
-                log_axis(ax, "y")
-            ax.set_xlabel(label)
-            ax.set_ylabel("final test loss")
-            ax.grid(True, which="both", alpha=0.3)
-        top.set_title(literal(scene), fontsize=10)
-        if groups:
-            _legend_outside(top, title="one point per seed; \u25b2 diverged")
-    _save(fig, path, note)
-
-
-def plot_unroll(
-    runs: list[Run], path: str | Path, note: str = "", styles: dict | None = None
-) -> bool:
-    """Final test loss and seconds per iteration against the unroll length, per task and group
-    (median over seeds, with min-max bars); False (and no file) when no task has runs at several
-    unroll lengths."""
-    by_scene = defaultdict(lambda: defaultdict(lambda: defaultdict(list)))
-    for run in runs:
-        unroll = run.attrs.get("unroll")
-        if unroll is not None:
-            scene = " ".join(word for word in run.scene.split() if not word.startswith("unroll="))
-            final = (
-                loss_at(run) if run.attrs.get("status") == "completed" else np.nan
-            )  # diverged: no loss
-            by_scene[scene][run.label or run.variant][int(unroll)].append(
-                (final, run.seconds_per_iteration)
-            )
-    scenes = sorted(
-        scene
-        for scene, groups in by_scene.items()
-        if len({u for lengths in groups.values() for u in lengths}) > 1
-    )
-    if not scenes:
-        return False
-    styles = _styles_for(runs, styles)
-    fig, axes = plt.subplots(
-        2, len(scenes), figsize=(max(8.0, 5 * len(scenes)), 7.5), squeeze=False
-    )
-    for column, scene in enumerate(scenes):
-        every_unroll = sorted({u for lengths in by_scene[scene].values() for u in lengths})
-        for label, lengths in sorted(
-            by_scene[scene].items(), key=lambda item: natural_key(item[0])
-        ):
-            unrolls = sorted(lengths)
-            for row in (0, 1):
-                values = [np.array([v[row] for v in lengths[u]], float) for u in unrolls]
-                median = np.array(
-                    [np.nanmedian(v) if np.isfinite(v).any() else np.nan for v in values]
-                )
-                low = median - np.array(
-                    [np.nanmin(v) if np.isfinite(v).any() else np.nan for v in values]
-                )
-                high = (
-                    np.array([np.nanmax(v) if np.isfinite(v).any() else np.nan for v in values])
-                    - median
-                )
-                axes[row, column].errorbar(
-                    unrolls,
-                    median,
-                    yerr=[low, high],
-                    capsize=3,
-                    label=literal(label) if row == 0 else None,
-                    **styles.get(label, {}),
-                )
-        for row, label in enumerate(("final test loss", "seconds per iteration")):
-            ax = axes[row, column]
-            ax.set_xscale("log", base=2)
-            # a tick at every unroll length run (a log axis alone labels only the powers of ten in
-            # range)
-            ax.xaxis.set_major_locator(FixedLocator(every_unroll))
-            ax.xaxis.set_major_formatter(FuncFormatter(lambda v, _: f"{v:.0f}"))
-            ax.xaxis.set_minor_locator(NullLocator())
-            log_axis(ax)
-            ax.set_xlabel("unroll length (time steps)")
-            ax.set_ylabel(label)
-            ax.grid(True, which="both", alpha=0.3)
-        axes[0, column].set_title(literal(scene), fontsize=10)
-        _legend_outside(axes[0, column], title="median over seeds, bars: min-max")
-    _save(fig, path, note)
-    return True

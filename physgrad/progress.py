@@ -4,10 +4,25 @@ from __future__ import annotations
 
 import logging
 import time
+from collections.abc import Callable
+from typing import Protocol
 
 from tqdm import tqdm
 
 log = logging.getLogger("physgrad")
+
+
+class Budget(Protocol):
+    """What the progress shown reads of a run's settings (physgrad.runner.TrainerSettings)."""
+
+    @property
+    def iterations(self) -> int | None: ...
+
+    @property
+    def time_budget(self) -> float | None: ...
+
+    @property
+    def log_seconds(self) -> float: ...
 
 
 class Progress:
@@ -17,7 +32,9 @@ class Progress:
     with iteration, loss and elapsed training time. settings: the run's TrainerSettings
     (physgrad.runner); clock: the clock the loop reads (the runner's, which tests replace)."""
 
-    def __init__(self, settings, label: str, clock=time.perf_counter):
+    def __init__(
+        self, settings: Budget, label: str, clock: Callable[[], float] = time.perf_counter
+    ) -> None:
         self.settings, self.label, self.clock = settings, label, clock
         self.by_time = settings.time_budget is not None
         total = settings.time_budget if self.by_time else settings.iterations

@@ -25,12 +25,13 @@ from __future__ import annotations
 
 import math
 from collections import defaultdict
-from collections.abc import Mapping
+from collections.abc import Iterable, Mapping
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
-from physgrad.results import parse_config
+from physgrad.results import Run, parse_config
 
 # a loss above this many times its first value counts as diverged (trainer.divergence_factor)
 DIVERGENCE_FACTOR = 1e4
@@ -87,7 +88,7 @@ class Curve:
         return math.inf
 
 
-def run_curve(run, axis: str, column: str = "loss") -> Curve:
+def run_curve(run: Run, axis: str, column: str = "loss") -> Curve:
     """The run's held-out `column` on the axis (iteration, wall_time or calibrated_time), on the
     shared axis of a run started from another's network, ending where its training ended (inf: a
     completed run)."""
@@ -107,7 +108,7 @@ def run_curve(run, axis: str, column: str = "loss") -> Curve:
     )
 
 
-def config_value(config: Mapping, dotted: str, default=None):
+def config_value(config: Mapping, dotted: str, default: Any = None) -> Any:
     """A value of a nested configuration (a dict or an OmegaConf DictConfig) by its dotted key."""
     node = config
     for part in dotted.split("."):
@@ -129,7 +130,7 @@ def budget_of(config: Mapping, default_iterations: int | None = None) -> tuple[s
     return "iteration", float(iterations) if iterations is not None else math.nan
 
 
-def run_budget(run) -> tuple[str, float]:
+def run_budget(run: Run) -> tuple[str, float]:
     """(axis, budget) of a run read back: its stored configuration's budget, else the iterations it
     trained."""
     axis, budget = budget_of(run.config or {})
@@ -139,7 +140,7 @@ def run_budget(run) -> tuple[str, float]:
 
 
 def loss_at(
-    run, budget: float | None = None, axis: str | None = None, column: str = "loss"
+    run: Run, budget: float | None = None, axis: str | None = None, column: str = "loss"
 ) -> float:
     """The run's held-out loss at the budget on the axis (Curve.at); by default at the run's own
     budget."""
@@ -150,7 +151,7 @@ def loss_at(
 
 
 def time_to_target(
-    run, target: float, budget: float | None = None, axis: str = "wall_time"
+    run: Run, target: float, budget: float | None = None, axis: str = "wall_time"
 ) -> float:
     """The run's x (training seconds by default) at its first held-out evaluation at or below target
     by the budget (Curve.reaches; by default the run's own budget where it is on this axis, else no
@@ -206,7 +207,7 @@ def target_loss(curves: dict[str, dict[int, Curve]], budget: float) -> tuple[str
     )
 
 
-def targets(runs) -> dict[str, float]:
+def targets(runs: Iterable[Run]) -> dict[str, float]:
     """Per scene of a report (run.scene), the target of time to target: lowest_median over its
     groups (run.label, else the variant) of each run's loss at its own budget. Every run has to
     train to get there, and a group that never does says so. (The worst final loss would be reached
@@ -228,7 +229,7 @@ def flat_config(tree: Mapping, prefix: str = "") -> dict:
     return flat
 
 
-def config_row(run) -> dict:
+def config_row(run: Run) -> dict:
     """The run's resolved configuration as one row of dotted keys (empty if it holds none):
     read_run's parsed
     copy, or for a Run built in memory its config attribute parsed the same way
@@ -242,7 +243,7 @@ def config_row(run) -> dict:
     return flat_config(tree)
 
 
-def fmt(value) -> str:
+def fmt(value: object) -> str:
     """A number as printed in every table: three significant figures, '-' for a missing one (None,
     NaN), inf and -inf as such; any other value as its text."""
     if value is None or (isinstance(value, float) and math.isnan(value)):

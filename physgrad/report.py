@@ -1,13 +1,8 @@
 """`physgrad report`: tables, figures and CSV files that compare runs, from results files alone.
 
-Runs are compared like with like. A *scene* is a task with the problem settings that differ between
-its runs (task keys, unroll, precision): one panel and one block of rows each. Within a scene, a
-*group* is every run with the same resolved configuration except the seed (and keys that do not
-change what is computed: output paths, logging, evaluation cadence, init_from's file name): its
-label is the variant plus the settings that differ between the scene's runs of that variant, e.g.
-``adam learning_rate=0.01``. The same configuration and seed found twice counts once (the report
-names what it dropped). Sets of runs given as LABEL=PATH keep their label in front of the group's,
-so sweeps from different days can be compared.
+Runs are compared like with like: by scene (one panel and one block of rows each) and, within a
+scene, by group (every seed of one configuration), as physgrad.runs finds, labels and de-duplicates
+them. The report names what it dropped as a duplicate and what it could not read.
 """
 
 from __future__ import annotations
@@ -15,7 +10,7 @@ from __future__ import annotations
 import math
 import os
 from collections import Counter, defaultdict
-from dataclasses import dataclass
+from collections.abc import Iterable, Sequence
 from pathlib import Path
 
 import numpy as np
@@ -23,171 +18,13 @@ import numpy as np
 from physgrad.errors import UserError
 from physgrad.files import clean_text, read_small_yaml, replaced_text
 from physgrad.machine import machine_label
-from physgrad.readout import config_row, fmt, loss_at, targets, time_to_target
-from physgrad.results import Run, find_results, natural_key, read_run
+from physgrad.readout import fmt, loss_at, targets, time_to_target
+from physgrad.results import Run, natural_key
+from physgrad.runs import Dropped, collect, label_runs, parse_sources, setting_text
 from physgrad.sweeps import unfinished_jobs
 from physgrad.tables import Tables, tables, write_tables
 
-# keys that never tell two runs apart: the seed (what a group pools over), files and cadences that
-# do not change the computation (`seeds` does count: seeds trained together share one step time)
-# (init_from is identified by the variant's "from ...")
-NOT_COMPUTATION = (
-    "seed",
-    "overwrite",
-    "init_from",
-    "trainer.flush_seconds",
-    "trainer.log_seconds",
-    "trainer.eval_every",
-    "trainer.eval_seconds",
-)
-# problem settings besides task.*: each value is its own scene
-SCENE_KEYS = ("unroll", "precision")
-# what the variant label already says
-VARIANT_KEYS = ("task.name", "optim.name", "optim.backprop", "optim.clip")
 METADATA = ("iteration", "wall_time", "calibrated_time")
-
-
-def parse_sources(arguments) -> list[tuple[str, Path]]:
-    """(set label, path) per argument: a path as given (label ""), or LABEL=PATH where the whole
-    argument is not itself an existing path (Hydra's job folders have '=' in their names)."""
-    sources = []
-    for argument in map(str, arguments):
-        label, sep, rest = argument.partition("=")
-        if sep and not Path(argument).exists() and label and "/" not in label:
-            sources.append((label, Path(rest)))
-        else:
-            sources.append(("", Path(argument)))
-    return sources
-
-
-@dataclass
-class Dropped:
-    path: Path
-    kept: Path
-    why: str
-
-
-def collect(arguments) -> tuple[list[Run], list[tuple[Path, str]], list[Dropped]]:
-    """Every readable run under the given paths (or LABEL=PATH sets), without duplicates; (path,
-    reason) for each file that is not a readable results file; and what was dropped as a duplicate.
-    UserError (one line) if a path does not exist or holds no results file."""
-    runs, unreadable, seen, repeated = [], [], {}, []
-    for label, path in parse_sources(arguments):
-        try:
-            found = find_results([path])
-        except FileNotFoundError as error:
-            raise UserError(f"{error}: give results.h5 files or folders that hold them") from None
-        if not found:
-            raise UserError(f"{path}: no results.h5 under it: give the folder of a run or a sweep")
-        for file in found:
-            key = (label, file.resolve())
-            if key in seen:  # a folder and its parent both given: the same file once
-                if seen[key] is not None:
-                    repeated.append(Dropped(file, seen[key], "the same file, found twice"))
-                    seen[key] = None  # said once
-                continue
-            seen[key] = file
-            try:
-                run = read_run(file)
-            except ValueError as error:
-                unreadable.append((file, str(error)))
-                continue
-            run.collection = label
-            runs.append(run)
-    runs, dropped = drop_duplicates(runs)
-    return runs, unreadable, repeated + dropped
-
-
-def _identity(run: Run) -> tuple:
-    """What makes two files the same run: the set, every setting that changes the computation (as
-    for grouping), the seed the file trained and the network it started from; a file without a
-    stored configuration is only itself."""
-    config = {k: v for k, v in config_row(run).items() if k not in NOT_COMPUTATION}
-    if not config:
-        return (str(run.path.resolve()),)
-    return (
-        run.collection,
-        repr(sorted(config.items())),
-        run.attrs.get("task"),
-        run.variant,
-        str(run.attrs.get("seed")),
-        str(run.attrs.get("init_from", "")),
-    )  # another start is another run
-
-
-def drop_duplicates(runs: list[Run]) -> tuple[list[Run], list[Dropped]]:
-    """One run per configuration and seed: a completed run before any other, then the newest."""
-    by_identity = defaultdict(list)
-    for run in runs:
-        by_identity[_identity(run)].append(run)
-    kept, dropped = [], []
-    for same in by_identity.values():
-        same.sort(
-            key=lambda r: (r.attrs.get("status") == "completed", str(r.attrs.get("finished", ""))),
-            reverse=True,
-        )
-        kept.append(same[0])
-        dropped += [Dropped(r.path, same[0].path, "same configuration and seed") for r in same[1:]]
-    order = {id(run): i for i, run in enumerate(runs)}
-    return sorted(kept, key=lambda r: order[id(r)]), dropped
-
-
-def _value(value) -> str:
-    """A setting's value in a label: six significant figures, so that close values (an Optuna
-    study's learning rates) keep apart, while round ones stay short (0.01)."""
-    return f"{value:.6g}" if isinstance(value, float) else str(value)
-
-
-def label_runs(runs: list[Run]) -> None:
-    """Set each run's scene settings (run.setting, e.g. "poles=3") and group label (run.label, e.g.
-    "old: adam learning_rate=0.01"): scene settings are the task keys, unroll and precision that
-    differ between runs of the same task; group settings every other key that differs between runs
-    of the same variant in the same scene (seed and NOT_COMPUTATION keys aside)."""
-    configs = {
-        id(run): {k: v for k, v in config_row(run).items() if k not in NOT_COMPUTATION}
-        for run in runs
-    }
-    for (
-        run
-    ) in runs:  # the unroll length the run used (unroll=null means the scene's own, task.unroll)
-        if "unroll" in run.attrs:
-            configs[id(run)]["unroll"] = run.attrs["unroll"]
-
-    def varying(members, keys_of):
-        keys = sorted({k for run in members for k in keys_of(configs[id(run)])})
-        return [k for k in keys if len({repr(configs[id(run)].get(k)) for run in members}) > 1]
-
-    def scene_key(k: str) -> bool:
-        return k.startswith("task.") and k not in ("task.name", "task.batch_size")
-
-    by_task = defaultdict(list)
-    for run in runs:
-        by_task[run.attrs.get("task")].append(run)
-    for members in by_task.values():
-        keys = varying(
-            members, lambda config: [k for k in config if scene_key(k) or k in SCENE_KEYS]
-        )
-        for run in members:
-            run.setting = " ".join(
-                f"{k.removeprefix('task.')}={_value(configs[id(run)].get(k))}" for k in keys
-            )
-    by_variant = defaultdict(list)
-    for run in runs:
-        by_variant[(run.scene, run.variant)].append(run)
-    for members in by_variant.values():
-        keys = varying(
-            members,
-            lambda config: [
-                k for k in config if not (scene_key(k) or k in SCENE_KEYS or k in VARIANT_KEYS)
-            ],
-        )
-        for run in members:
-            settings = " ".join(
-                f"{k.split('.', 1)[-1]}={_value(configs[id(run)].get(k))}" for k in keys
-            )
-            run.label = " ".join(part for part in (run.variant, settings) if part)
-            if run.collection:
-                run.label = f"{run.collection}: {run.label}"
 
 
 def common_times(runs: list[Run]) -> dict[str, float]:
@@ -270,7 +107,7 @@ def _float_attr(run: Run, key: str) -> float:
     )
 
 
-def _spread(values) -> str:
+def _spread(values: Iterable[object]) -> str:
     """median [min, max] of the finite values (the median alone for one)."""
     finite = [v for v in values if isinstance(v, (int, float)) and math.isfinite(v)]
     if not finite:
@@ -280,7 +117,7 @@ def _spread(values) -> str:
     return f"{fmt(float(np.median(finite)))} [{fmt(float(min(finite)))}, {fmt(float(max(finite)))}]"
 
 
-def _counts(values, plain_if_one: bool = False) -> str:
+def _counts(values: Iterable[str], plain_if_one: bool = False) -> str:
     """'2 completed, 1 diverged'; the value alone if all agree and plain_if_one."""
     counts = Counter(v for v in values if v)
     if plain_if_one and len(counts) == 1:
@@ -371,14 +208,14 @@ PER_SEED = (
 )
 
 
-def markdown_table(rows: list[dict], columns) -> str:
+def markdown_table(rows: list[dict], columns: Sequence[str]) -> str:
     lines = ["| " + " | ".join(columns) + " |", "|" + "---|" * len(columns)]
     for row in rows:
         lines.append("| " + " | ".join(fmt(row[c]).replace("|", "/") for c in columns) + " |")
     return "\n".join(lines) + "\n"
 
 
-def read_runs(paths, threshold: float | None = None) -> Tables:
+def read_runs(paths: Iterable[str | Path], threshold: float | None = None) -> Tables:
     """Every readable run under the paths (files, folders, LABEL=PATH sets, as `physgrad report`
     takes them) as tidy tables (Tables: .runs and .curves, pandas DataFrames), grouped and labelled
     as a report does. UserError (one line) if a path does not exist or holds no results file;
@@ -388,7 +225,7 @@ def read_runs(paths, threshold: float | None = None) -> Tables:
     return tables(runs, run_rows(runs, threshold))
 
 
-def output_folder(arguments, out_dir) -> Path:
+def output_folder(arguments: Sequence[str | Path], out_dir: str | Path | None) -> Path:
     """--out, else the first path's folder; UserError (one line) if it cannot be created or
     written."""
     first = parse_sources(arguments)[0][1]
@@ -406,7 +243,11 @@ def output_folder(arguments, out_dir) -> Path:
 
 
 def write_report(
-    paths, out_dir=None, threshold: float | None = None, note: str = "", logx: str = "auto"
+    paths: Sequence[str | Path],
+    out_dir: str | Path | None = None,
+    threshold: float | None = None,
+    note: str = "",
+    logx: str = "auto",
 ) -> str:
     """Print-ready text; also writes into out_dir (default: the first path's folder) report.md,
     runs.csv, curves.csv and the figures (PNG and PDF): loss_vs_time, loss_vs_iteration, tradeoff
@@ -431,6 +272,8 @@ def write_report(
     with replaced_text(out / "report.md") as f:  # last: a report.md beside complete tables only
         f.write(body)
     chosen = {scene: threshold for scene in limits} if threshold is not None else limits
+    from physgrad.report_figures import write_figures  # matplotlib only once it draws
+
     figures = write_figures(runs, out, note, logx, chosen)
     return body + (
         f"wrote {out / 'report.md'}, runs.csv, curves.csv (and .parquet) and {', '.join(figures)} "
@@ -439,7 +282,11 @@ def write_report(
 
 
 def summary_lines(
-    paths, runs: list[Run], rows: list[dict], threshold: float | None, limits: dict[str, float]
+    paths: Sequence[str | Path],
+    runs: list[Run],
+    rows: list[dict],
+    threshold: float | None,
+    limits: dict[str, float],
 ) -> list[str]:
     """report.md's tables (per group, per seed) with what their columns mean."""
     names = metric_names(runs)
@@ -500,7 +347,9 @@ def summary_lines(
     ]
 
 
-def file_notes(paths, unreadable: list[tuple[Path, str]], dropped: list[Dropped]) -> list[str]:
+def file_notes(
+    paths: Sequence[str | Path], unreadable: list[tuple[Path, str]], dropped: list[Dropped]
+) -> list[str]:
     """What the report did not count, and why: unreadable files, duplicates, jobs a sweep expected
     that left no results file; and the best trial of a study of Hydra's Optuna sweeper."""
     text = [f"unreadable: {reason}" for _, reason in unreadable]
@@ -527,7 +376,7 @@ def file_notes(paths, unreadable: list[tuple[Path, str]], dropped: list[Dropped]
                 text.append(f"unreadable: {clean_text(str(error))}")
                 continue
             settings = " ".join(
-                f"{k}={_value(v)}" for k, v in (best.get("best_params") or {}).items()
+                f"{k}={setting_text(v)}" for k, v in (best.get("best_params") or {}).items()
             )
             text.append(
                 f"tuned by Optuna in {path}: best {settings} (objective "
@@ -535,31 +384,3 @@ def file_notes(paths, unreadable: list[tuple[Path, str]], dropped: list[Dropped]
                 "final test loss)"
             )
     return text
-
-
-def write_figures(
-    runs: list[Run], out: Path, note: str, logx: str, thresholds: dict[str, float]
-) -> list[str]:
-    """The report's figures (PNG and PDF) in one style per group across all of them; the PNG names
-    written."""
-    from physgrad.plots import group_styles, plot_comparison, plot_tradeoff, plot_unroll
-
-    styles = group_styles(run.label or run.variant for run in runs)
-    plot_comparison(runs, out / "loss_vs_time", "wall_time", note, logx, styles)
-    plot_comparison(runs, out / "loss_vs_iteration", "iteration", note, logx, styles)
-    figures = [f"{name}.png" for name in FIGURES[:2]]
-    calibrated = [run for run in runs if "calibrated_time" in run.eval]
-    if calibrated:
-        plot_comparison(
-            calibrated, out / "loss_vs_calibrated_time", "calibrated_time", note, logx, styles
-        )
-    plot_tradeoff(runs, out / "tradeoff", note, styles, thresholds)
-    figures.append("tradeoff.png")
-    if calibrated:
-        figures.append("loss_vs_calibrated_time.png")
-    if plot_unroll(runs, out / "unroll", note, styles):
-        figures.append("unroll.png")
-    return figures
-
-
-FIGURES = ("loss_vs_time", "loss_vs_iteration", "tradeoff", "unroll")

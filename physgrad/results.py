@@ -3,14 +3,15 @@ table.
 
 Layout (see docs/results.md):
   root attributes: task, optim, unroll (temporal scenes only), seed, status, reason, config,
-  physgrad_version,
-                   jax_version, compile_seconds, created, and a few descriptive extras;
+                   physgrad_version, jax_version, compile_seconds, created, and a few descriptive
+                   extras;
   /train/{iteration, wall_time, loss, grad_norm, ...}: one row per iteration;
   /eval/{iteration, wall_time, loss, <scene metrics>}: held-out evaluations;
   /params: the final network as one flat vector (every run that did not diverge or fail).
 At every flush the whole file is written beside results.h5 and renamed onto it, so a run killed at
 any moment leaves a complete file holding every row flushed so far, and readers never share a file
-with the writer.
+with the writer. A file is read as foreign data, every attribute and column checked before it is
+used (physgrad.foreign).
 """
 
 from __future__ import annotations
@@ -18,33 +19,29 @@ from __future__ import annotations
 import math
 import os
 import re
-import stat
-from contextlib import contextmanager
+from collections.abc import Iterable
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
 import h5py
 import numpy as np
 
 from physgrad.errors import ResultsWriteError
-from physgrad.files import (
-    CONFIG_LIMIT,
-    clean_text,
-    file_kind,
-    load_yaml,
-    owner_tag,
-    replace_file,
-    timestamp,
-    with_live_status,
+from physgrad.files import CONFIG_LIMIT, clean_text, load_yaml, owner_tag, replace_file, timestamp
+from physgrad.foreign import (
+    STATUSES,
+    checked_attrs,
+    checked_columns,
+    checked_params,
+    checked_tables,
+    open_results,
+    read_columns,
 )
 
-STATUSES = ("running", "completed", "diverged", "interrupted", "failed", "refused")
 GROUPS = ("train", "eval")
-
-
-ASIDE_SUFFIX = (
-    ".overwriting.h5"  # a re-run's file while a completed results.h5 it would replace stays valid
-)
+# a re-run's file while a completed results.h5 it would replace stays valid
+ASIDE_SUFFIX = ".overwriting.h5"
 
 
 def holds_completed(path: Path) -> bool:
@@ -64,7 +61,7 @@ class ResultsWriter:
     writer. A completed results.h5 is not replaced before its successor has completed: until then
     the run writes results.overwriting.h5 beside it."""
 
-    def __init__(self, path: str | os.PathLike, attrs: dict, write: bool = True):
+    def __init__(self, path: str | os.PathLike, attrs: dict, write: bool = True) -> None:
         self.path = Path(path)
         self.path.parent.mkdir(parents=True, exist_ok=True)
         self.live = (
@@ -95,7 +92,7 @@ class ResultsWriter:
         if write:  # (not for a file that is finished at once: see record_outcome)
             self._write()
 
-    def set_columns(self, group: str, names) -> None:
+    def set_columns(self, group: str, names: Iterable[str]) -> None:
         """Fix the columns of a group; append_row() then takes values in this order."""
         names = tuple(names)
         if self._columns[group] is not None and set(self._columns[group]) != set(names):
@@ -132,7 +129,7 @@ class ResultsWriter:
                 rows.clear()
         self._write(sync)
 
-    def set_attrs(self, **attrs) -> None:
+    def set_attrs(self, **attrs: Any) -> None:
         """Set (None: remove) root attributes; they reach the file with the next flush()."""
         for key, value in attrs.items():
             if value is None:
@@ -145,7 +142,9 @@ class ResultsWriter:
         the next flush()."""
         self._params = np.asarray(flat)
 
-    def finish(self, status: str, reason: str | None = None, sync: bool = True, **attrs) -> None:
+    def finish(
+        self, status: str, reason: str | None = None, sync: bool = True, **attrs: Any
+    ) -> None:
         """Record the final status (and the reason for anything but completed) and write the file,
         synced to disk (sync). A completed run written aside replaces the completed results.h5 only
         now."""
@@ -197,9 +196,8 @@ class ResultsWriter:
 
 def record_outcome(path: str | os.PathLike, attrs: dict, status: str, reason: str) -> None:
     """A results file of attributes only, for a job refused, failed or interrupted before training:
-    one write,
-    not synced (a job of a thousand seeds writes a thousand of them, and a signal must not wait for
-    that); a completed file at path is kept, as ResultsWriter keeps it."""
+    one write, not synced (a job of a thousand seeds writes a thousand of them, and a signal must
+    not wait for that); a completed file at path is kept, as ResultsWriter keeps it."""
     ResultsWriter(path, attrs, write=False).finish(status, reason, sync=False)
 
 
@@ -211,15 +209,13 @@ class Run:
     attrs: dict
     train: dict
     eval: dict
-    setting: str = (
-        ""  # the problem settings that tell this run's scene apart from others of its task
-    )
+    # the problem settings that tell this run's scene apart from others of its task
+    setting: str = ""
     # in a report: its group (variant and the method settings that differ), see physgrad.report
     label: str = ""
     collection: str = ""  # in a report: the label of the set of runs it was found in (LABEL=PATH)
-    config: dict = field(
-        default_factory=dict
-    )  # the stored config parsed as plain data (parse_config)
+    # the stored config parsed as plain data (parse_config)
+    config: dict = field(default_factory=dict)
 
     @property
     def scene(self) -> str:
@@ -246,74 +242,6 @@ class Run:
         return float(values[-1]) if values.size else math.nan
 
 
-# Reading: a results file may come from anyone, so it is data. A reader opens regular files only,
-# follows no link, external storage or virtual dataset, checks every attribute's type and every
-# column's shape, dtype and size before using it, cuts long text, replaces control characters
-# (terminal escapes) and parses the stored config as plain YAML without aliases; it never resolves
-# or instantiates anything. A file failing a check is refused with one line (ValueError) naming the
-# check.
-COLUMN_LIMIT = 1 << 26  # elements of one /train or /eval column (512 MiB of float64) ...
-FILE_COLUMNS_LIMIT = 1 << 28  # ... and of all of a file's columns together
-REQUIRED_TEXT = ("status", "task", "optim")
-INTEGER_ATTRS = frozenset(
-    {
-        "seed",
-        "unroll",
-        "iterations",
-        "batch_size",
-        "n_params",
-        "wall_time_shared_by",
-        "init_iterations",
-        "cpu_count",
-        "contended",
-    }
-)
-NUMBER_ATTRS = frozenset(
-    {
-        "compile_seconds",
-        "train_seconds",
-        "first_step_overhead_seconds",
-        "init_train_seconds",
-        "step_cost",
-        "load_start",
-        "load_end",
-        "step_seconds_p10",
-        "step_seconds_p50",
-        "step_seconds_p90",
-        "step_seconds_p99",
-    }
-)
-TEXT_ATTRS = frozenset(
-    {
-        "task",
-        "optim",
-        "variant",
-        "status",
-        "reason",
-        "stopped_by",
-        "config",
-        "precision",
-        "physgrad_version",
-        "jax_version",
-        "jaxlib_version",
-        "git_commit",
-        "cpu_model",
-        "device",
-        "thread_settings",
-        "hostname",
-        "created",
-        "finished",
-        "owner",
-        "heartbeat",
-        "jacobian",
-        "clock",
-        "contention",
-        "init_from",
-        "init_variant",
-    }
-)
-
-
 def parse_config(text: str) -> dict:
     """The stored config as plain data (nested dicts, lists, scalars), text cleaned as clean_text;
     ValueError (one line) if it is too long, not YAML, holds an alias or is not a mapping.
@@ -329,167 +257,12 @@ def parse_config(text: str) -> dict:
     return _clean_tree(tree)
 
 
-def _clean_tree(tree):
+def _clean_tree(tree: Any) -> Any:
     if isinstance(tree, dict):
         return {clean_text(str(key)): _clean_tree(value) for key, value in tree.items()}
     if isinstance(tree, list):
         return [_clean_tree(value) for value in tree]
     return clean_text(tree) if isinstance(tree, str) else tree
-
-
-@contextmanager
-def _open_results(path: Path):
-    """The HDF5 file at path, opened from a descriptor of a regular file (a FIFO, device or socket
-    named results.h5 is refused without blocking on it); ValueError (one line) if it cannot be
-    opened."""
-    try:
-        fd = os.open(path, os.O_RDONLY | os.O_NONBLOCK | getattr(os, "O_NOCTTY", 0))
-    except OSError as error:
-        raise ValueError(f"{path}: cannot be opened ({error.strerror or error})") from None
-    try:
-        mode = os.fstat(fd).st_mode
-        if not stat.S_ISREG(mode):
-            raise ValueError(f"{path}: not a regular file ({file_kind(mode)}): refused")
-        with os.fdopen(fd, "rb", closefd=False) as stream:
-            try:
-                f = h5py.File(stream, "r")
-            except (OSError, RuntimeError, ValueError) as error:
-                raise ValueError(
-                    f"{path}: cannot be read as HDF5 "
-                    f"({clean_text(str(error).splitlines()[0], 200)})"
-                ) from None
-            with f:
-                yield f
-    finally:
-        os.close(fd)
-
-
-def _checked_attrs(path: Path, f: h5py.File) -> dict:
-    """The root attributes, each checked: text (cleaned, cut), integers and numbers where physgrad
-    computes with them, other scalars kept, arrays of unknown attributes dropped. ValueError naming
-    the first that fails."""
-    attrs = {}
-    for key in f.attrs:
-        name = clean_text(key, 200)
-        try:
-            value = f.attrs[key]
-        except (OSError, RuntimeError, TypeError, ValueError) as error:
-            raise ValueError(
-                f"{path}: attribute {name!r} cannot be read ({clean_text(str(error), 200)})"
-            ) from None
-        if isinstance(value, np.ndarray) and value.shape == ():
-            value = value[()]
-        if isinstance(value, (bytes, np.bytes_)):
-            value = bytes(value).decode(errors="replace")
-        elif isinstance(value, np.generic):
-            value = value.item()
-        expected = (
-            "an integer"
-            if key in INTEGER_ATTRS
-            else "a number"
-            if key in NUMBER_ATTRS
-            else "text"
-            if key in TEXT_ATTRS
-            else None
-        )
-        if isinstance(value, str):
-            if key == "config":
-                if len(value) > CONFIG_LIMIT:
-                    raise ValueError(
-                        f"{path}: attribute 'config' is longer than {CONFIG_LIMIT} characters"
-                    )
-                value = clean_text(value, None, lines=True)
-            else:
-                value = clean_text(value)
-        ok = (
-            isinstance(value, str)
-            if expected == "text"
-            else isinstance(value, int) and not isinstance(value, bool)
-            if expected == "an integer"
-            else isinstance(value, (int, float)) and not isinstance(value, bool)
-            if expected == "a number"
-            else isinstance(value, (str, int, float, bool))
-        )
-        if key == "seed" and isinstance(value, str):
-            # allowed for a refused job only (the invalid value it was refused for): checked below
-            ok = True
-        if not ok:
-            if expected is None:
-                continue  # an unknown attribute physgrad does not read: dropped
-            raise ValueError(
-                f"{path}: attribute {name!r} is {_describe(value)}, expected {expected}"
-            )
-        attrs[name] = value
-    missing = [key for key in (*REQUIRED_TEXT, "seed") if key not in attrs]
-    if missing:
-        raise ValueError(f"{path}: not a physgrad results file (no {', '.join(missing)} attribute)")
-    if attrs["status"] not in STATUSES:
-        raise ValueError(f"{path}: status {attrs['status']!r} is none of {', '.join(STATUSES)}")
-    if isinstance(attrs["seed"], str) and attrs["status"] != "refused":
-        raise ValueError(
-            f"{path}: attribute 'seed' is {_describe(attrs['seed'])}, expected an integer"
-        )
-    return with_live_status(attrs)
-
-
-def _describe(value) -> str:
-    if isinstance(value, np.ndarray):
-        return f"an array of shape {value.shape}"
-    kind = "text" if isinstance(value, str) else type(value).__name__
-    return f"{kind} {clean_text(repr(value), 40)}"
-
-
-def _checked_group(path: Path, f: h5py.File, group: str) -> h5py.Group:
-    link = f.get(group, getlink=True)
-    if link is None:
-        raise ValueError(f"{path}: not a physgrad results file (no /{group})")
-    if not isinstance(link, h5py.HardLink) or not isinstance(f[group], h5py.Group):
-        raise ValueError(
-            f"{path}: /{group} is a {type(link).__name__}, not a group: links are not followed"
-        )
-    return f[group]
-
-
-def _checked_columns(path: Path, f: h5py.File, group: str) -> dict[str, h5py.Dataset]:
-    """The datasets of /group after the checks (not read yet): hard links to 1-D numeric datasets
-    stored in this file, of equal length, holding iteration and loss (and in /eval wall_time) when
-    there are any."""
-    g, columns = _checked_group(path, f, group), {}
-    for key in g:
-        name = clean_text(key, 200)
-        link = g.get(key, getlink=True)
-        if not isinstance(link, h5py.HardLink) or not isinstance(g[key], h5py.Dataset):
-            raise ValueError(
-                f"{path}: /{group}/{name} is a {type(link).__name__}, not a dataset: links are not "
-                "followed"
-            )
-        column = g[key]
-        if column.external or column.is_virtual:
-            raise ValueError(
-                f"{path}: /{group}/{name} keeps its data in other files (external or virtual "
-                "storage): refused"
-            )
-        if column.ndim != 1 or column.dtype.kind not in "fiub":
-            raise ValueError(
-                f"{path}: /{group}/{name} is {column.ndim}-D of {column.dtype}, expected a 1-D "
-                "numeric column"
-            )
-        if column.size > COLUMN_LIMIT:
-            raise ValueError(
-                f"{path}: /{group}/{name} has {column.size} rows, more than {COLUMN_LIMIT}"
-            )
-        columns[name] = column
-    lengths = {key: column.shape[0] for key, column in columns.items()}
-    if len(set(lengths.values())) > 1:
-        raise ValueError(
-            f"{path}: /{group} columns have unequal lengths {lengths}: the file is damaged"
-        )
-    needed = {"iteration", "loss"} | (
-        {"wall_time"} if group == "eval" else set()
-    )  # what readers index
-    if columns and needed - set(columns):
-        raise ValueError(f"{path}: /{group} lacks {', '.join(sorted(needed - set(columns)))}")
-    return columns
 
 
 def _config_of(path: Path, attrs: dict) -> dict:
@@ -500,26 +273,21 @@ def _config_of(path: Path, attrs: dict) -> dict:
 
 
 def read_run(path: str | os.PathLike) -> Run:
-    """Read one results file with every check above; ValueError with a one-line reason if it is not
-    a physgrad results file, cannot be read, fails a check or is inconsistent."""
+    """Read one results file with every check of physgrad.foreign; ValueError with a one-line
+    reason if it is not a physgrad results file, cannot be read, fails a check or is
+    inconsistent."""
     path = Path(path)
-    with _open_results(path) as f:
-        attrs = _checked_attrs(path, f)
-        columns = {group: _checked_columns(path, f, group) for group in GROUPS}
-        if sum(c.size for group in columns.values() for c in group.values()) > FILE_COLUMNS_LIMIT:
-            raise ValueError(
-                f"{path}: more than {FILE_COLUMNS_LIMIT} values in /train and /eval together"
-            )
+    with open_results(path) as f:
+        attrs = checked_attrs(path, f)
+        columns = checked_tables(path, f, GROUPS)
         config = _config_of(path, attrs)
-        try:
-            data = {
+        data = read_columns(
+            path,
+            lambda: {
                 group: {key: column[()] for key, column in cols.items()}
                 for group, cols in columns.items()
-            }
-        except (OSError, RuntimeError, ValueError) as error:
-            raise ValueError(
-                f"{path}: a column cannot be read ({clean_text(str(error).splitlines()[0], 200)})"
-            ) from None
+            },
+        )
     return Run(path, attrs, data["train"], data["eval"], config=config)
 
 
@@ -528,17 +296,15 @@ def read_final(path: str | os.PathLike) -> tuple[dict, dict]:
     resumed sweep checks every job this way), with the checks of read_run; ValueError (one line) as
     read_run."""
     path = Path(path)
-    with _open_results(path) as f:
-        attrs = _checked_attrs(path, f)
-        _checked_columns(path, f, "train")
-        columns = _checked_columns(path, f, "eval")
+    with open_results(path) as f:
+        attrs = checked_attrs(path, f)
+        checked_columns(path, f, "train")
+        columns = checked_columns(path, f, "eval")
         _config_of(path, attrs)
-        try:
-            last = {key: column[-1].item() for key, column in columns.items() if column.shape[0]}
-        except (OSError, RuntimeError, ValueError) as error:
-            raise ValueError(
-                f"{path}: a column cannot be read ({clean_text(str(error).splitlines()[0], 200)})"
-            ) from None
+        last = read_columns(
+            path,
+            lambda: {key: column[-1].item() for key, column in columns.items() if column.shape[0]},
+        )
     return attrs, last
 
 
@@ -546,26 +312,9 @@ def read_params(path: str | os.PathLike) -> np.ndarray:
     """The flat final parameters a run saved, checked as read_run's columns; ValueError (one line)
     if the file has none or is not readable."""
     path = Path(path)
-    with _open_results(path) as f:
-        attrs = _checked_attrs(path, f)
-        if "params" not in f:
-            raise ValueError(
-                f"{path} holds no final network (status {attrs['status']}): use a run that finished"
-            )
-        link = f.get("params", getlink=True)
-        params = f["params"] if isinstance(link, h5py.HardLink) else None
-        if (
-            not isinstance(params, h5py.Dataset)
-            or params.external
-            or params.is_virtual
-            or params.ndim != 1
-            or params.dtype.kind != "f"
-            or params.size > COLUMN_LIMIT
-        ):
-            raise ValueError(
-                f"{path}: /params is not a 1-D float vector stored in the file: refused"
-            )
-        return params[()]
+    with open_results(path) as f:
+        attrs = checked_attrs(path, f)
+        return checked_params(path, f, attrs["status"])[()]
 
 
 def natural_key(text: str) -> list:
@@ -577,7 +326,7 @@ def natural_key(text: str) -> list:
     ]
 
 
-def find_results(paths) -> list[Path]:
+def find_results(paths: Iterable[str | os.PathLike]) -> list[Path]:
     """Every results.h5 at or under the given files and folders, in sorted order."""
     found = []
     for path in map(Path, paths):

@@ -52,7 +52,7 @@ def finished_before(path: Path, cfg: DictConfig) -> Outcome | None:
     )
 
 
-def start_from(path: str, params, task_name: str) -> tuple[Any, dict]:
+def start_from(path: str, params: Any, task_name: str) -> tuple[Any, dict]:
     """The final network of the run at path, in the structure and dtype of params, and attributes
     that record where it came from; UserError (one line) if it is missing or does not fit this
     scene's network."""

@@ -9,44 +9,44 @@ HDF5 flushes, logging and the progress bar fall outside the timed intervals.
 
 `train` runs a TrainingLoop in named steps: start (compile, first evaluation), iterate (step, count
 its time, guard the rows, stop at a budget, evaluate, flush), end, and finish (the final files). The
-compiled step itself and the seeds trained together are in physgrad.training; signals in
+compiled step itself and the seeds trained together are in physgrad.training, the check of each
+step's rows in physgrad.guard, the seeds' results files in physgrad.writers, signals in
 physgrad.interrupts.
 """
 
 from __future__ import annotations
 
 import logging
-import math
 import time
-from dataclasses import dataclass, field
+from collections.abc import Mapping
+from dataclasses import dataclass
 
 import jax
 import numpy as np
 
 from physgrad.errors import ResultsWriteError, UserError
+from physgrad.guard import RowGuard
 from physgrad.interrupts import StopRequest, stop_on_signals
-from physgrad.machine import contention, cpu_count, load_average, step_statistics
+from physgrad.machine import load_average, timing_attributes
 from physgrad.optim import UpdateRule
 from physgrad.progress import Progress
 from physgrad.readout import DIVERGENCE_FACTOR
 from physgrad.results import ResultsWriter
 from physgrad.tasks import Scene
-from physgrad.training import CompiledTraining, Seeds, compile_training
+from physgrad.training import CompiledTraining, Seeds, compile_training, ready
 from physgrad.validate import choice, number
+from physgrad.writers import SeedRun, Writers, finish_or_mark
 
 log = logging.getLogger("physgrad")
 clock = time.perf_counter  # every interval of the loop is read from this clock (tests replace it)
 DEFAULT_ITERATIONS = 2000  # trainer.iterations=null without a time budget
 CLOCKS = ("measured", "calibrated")
-EVALUATIONS_PER_BUDGET = (
-    20  # trainer.eval_seconds=null with a time budget: an evaluation every budget / 20
-)
-SLOW_STEP_SECONDS = (
-    0.2  # a step at least this long runs in a helper thread, so that a second signal ends it
-)
-FLUSH_COST_FACTOR = (
-    20  # the file is rewritten at most every 20 times what one write takes (<= 5 % of the time)
-)
+# trainer.eval_seconds=null with a time budget: an evaluation every budget / 20
+EVALUATIONS_PER_BUDGET = 20
+# a step at least this long runs in a helper thread, so that a second signal ends it
+SLOW_STEP_SECONDS = 0.2
+# the file is rewritten at most every 20 times what one write takes (<= 5 % of the time)
+FLUSH_COST_FACTOR = 20
 
 
 @dataclass(frozen=True)
@@ -63,15 +63,13 @@ class TrainerSettings:
     flush_seconds: float
     log_seconds: float
     divergence_factor: float | None = DIVERGENCE_FACTOR
-    step_cost: float | None = (
-        None  # seconds per step from a calibration (physgrad.calibration), or None
-    )
-    clock: str = (
-        "measured"  # which clock the time budget and eval_seconds read: measured | calibrated
-    )
+    # seconds per step from a calibration (physgrad.calibration), or None
+    step_cost: float | None = None
+    # which clock the time budget and eval_seconds read: measured | calibrated
+    clock: str = "measured"
 
     @classmethod
-    def from_config(cls, trainer_cfg) -> "TrainerSettings":
+    def from_config(cls, trainer_cfg: Mapping) -> TrainerSettings:
         """trainer.iterations=null means 2000 without a time budget and no limit with one;
         trainer.eval_seconds= null means time_budget / 20 with a budget (so that a slow variant
         still gets a curve) and none without."""
@@ -91,18 +89,17 @@ class TrainerSettings:
         if clock == "calibrated" and step_cost is None:
             raise UserError(
                 "trainer.clock=calibrated needs trainer.step_cost (seconds per step from a "
-                "calibration: "
-                "physgrad compare measures it) or trainer.clock=measured"
+                "calibration: physgrad compare measures it) or trainer.clock=measured"
             )
+        if iterations is None and budget is None:
+            iterations = DEFAULT_ITERATIONS
+        if eval_seconds is None and budget is not None:
+            eval_seconds = budget / EVALUATIONS_PER_BUDGET
         return cls(
-            iterations=iterations
-            if iterations is not None or budget is not None
-            else DEFAULT_ITERATIONS,
+            iterations=iterations,
             time_budget=budget,
             eval_every=number("trainer.eval_every", trainer_cfg.get("eval_every"), 1, integer=True),
-            eval_seconds=eval_seconds
-            if eval_seconds is not None or budget is None
-            else budget / EVALUATIONS_PER_BUDGET,
+            eval_seconds=eval_seconds,
             batch_size=number("trainer.batch_size", trainer_cfg.get("batch_size"), 1, integer=True),
             flush_seconds=number(
                 "trainer.flush_seconds", trainer_cfg.get("flush_seconds"), 0, open_low=True
@@ -132,153 +129,6 @@ class Outcome:
     stopped_by: str | None = None  # iterations | time_budget (completed runs)
 
 
-# checked for NaN/Inf after every step, in causal order: the physical output (the simulated state or
-# what is read out of it: a blow-up of the physics shows here first), the loss, the gradient, the
-# update; the first non-finite one is the reason
-GUARDED = ("output_max_abs", "loss", "grad_norm", "update_norm")
-QUANTITY = {
-    "output_max_abs": "output",
-    "loss": "loss",
-    "grad_norm": "gradient",
-    "update_norm": "update",
-}
-
-
-def divergence_reason(quantity: str, logs: dict, iteration: int, svd_failures_before: float) -> str:
-    """One line: which quantity went non-finite first, its value, the iteration, and a failed
-    factorisation if that is what happened at this step."""
-    reason = f"{QUANTITY[quantity]} became {logs[quantity]} at iteration {iteration} ({quantity})"
-    if logs.get("svd_failures", 0.0) > svd_failures_before:
-        reason += (
-            "; the SVD/eigh of the Jacobian did not converge (optim.retry_float64=true retries it "
-            "in "
-            "float64, precision=64 runs everything in float64)"
-        )
-    return reason
-
-
-def blew_up(loss: float, first_loss: float | None, factor: float | None) -> bool:
-    """A finite training loss past factor times the first step's (a blow-up that has not reached NaN
-    yet); never when the first loss is 0 or the bound is off (factor None)."""
-    return (
-        factor is not None
-        and first_loss is not None
-        and first_loss > 0
-        and loss > factor * first_loss
-    )
-
-
-def timing_attributes(
-    step_seconds: list[float], load_start: float, load_end: float, static_cost: bool = True
-) -> dict:
-    """The step-time percentiles, the load average at the start and the end, and the contention flag
-    with its reason (physgrad.machine.contention)."""
-    statistics = step_statistics(step_seconds)
-    cores = cpu_count()
-    why = contention(statistics, len(step_seconds), load_start, load_end, cores, static_cost)
-    attrs = {
-        **statistics,
-        "load_start": load_start,
-        "load_end": load_end,
-        "contended": int(bool(why)),
-    }
-    if why:
-        attrs["contention"] = why
-    return attrs
-
-
-@dataclass
-class SeedRun:
-    """What the loop tracks for one seed: its results file, how it ended so far, its last
-    evaluation, and the factorisation failures counted before the current step (to name them in a
-    divergence reason)."""
-
-    writer: ResultsWriter
-    status: str = "completed"
-    reason: str | None = None
-    iterations: int | None = None  # set when the seed stops before the others (diverged)
-    latest_eval: dict = field(default_factory=dict)
-    svd_failures: float = 0.0
-    first_loss: float | None = (
-        None  # the training loss of the first step: the scale of the blow-up bound
-    )
-
-    @property
-    def running(self) -> bool:
-        return self.status == "completed"
-
-
-def finish_or_mark(writer: ResultsWriter, status: str, reason: str | None, **attrs) -> str | None:
-    """writer.finish(), and if the file cannot be written (disk full) status failed set on the file
-    as it is; returns the write error as one line, or None."""
-    try:
-        writer.finish(status, reason, **attrs)
-        return None
-    except ResultsWriteError as error:
-        writer.mark_failed_in_place(
-            f"{error}; the run ended {status}" + (f" ({reason})" if reason else "")
-        )
-        return str(error)
-
-
-class Writers:
-    """The results files of the seeds trained together (one ResultsWriter per seed), written
-    alike."""
-
-    def __init__(self, writers):
-        self.writers = list(writers)
-
-    def __len__(self) -> int:
-        return len(self.writers)
-
-    def set_attrs(self, **attrs) -> None:
-        for writer in self.writers:
-            writer.set_attrs(**attrs)
-
-    def set_columns(self, group: str, names) -> None:
-        for writer in self.writers:
-            writer.set_columns(group, names)
-
-    def shift_buffered_time(self, seconds: float) -> None:
-        for writer in self.writers:
-            writer.shift_buffered_time(seconds)
-
-    def flush(self) -> None:
-        for writer in self.writers:
-            writer.flush()
-
-
-class RowGuard:
-    """The check of one seed's logged scalars after a step: NaN/Inf in a GUARDED quantity, or a
-    finite loss past trainer.divergence_factor times the first step's (a blow-up without NaN)."""
-
-    def __init__(self, log_names: list[str], divergence_factor: float | None):
-        self.names, self.factor = log_names, divergence_factor
-        self.guarded = [log_names.index(name) for name in GUARDED]
-        self.loss_at = log_names.index("loss")
-        self.svd_at = log_names.index("svd_failures") if "svd_failures" in log_names else None
-
-    def check(self, run: SeedRun, row: list, iteration: int) -> str | None:
-        """Why the seed diverged at this step, or None; keeps the seed's first loss (the blow-up
-        bound's scale) and its count of failed factorisations (to name a new one in a later
-        reason)."""
-        bad = next((self.names[i] for i in self.guarded if not math.isfinite(row[i])), None)
-        if run.first_loss is None:
-            run.first_loss = row[self.loss_at]
-        if bad is not None:
-            return divergence_reason(bad, dict(zip(self.names, row)), iteration, run.svd_failures)
-        if blew_up(row[self.loss_at], run.first_loss, self.factor):
-            return (
-                f"loss grew to {row[self.loss_at]:.4g} at iteration {iteration}, more than "
-                f"trainer.divergence_factor={self.factor:g} times its first value "
-                f"{run.first_loss:.4g} "
-                "(a blow-up without NaN)"
-            )
-        if self.svd_at is not None:
-            run.svd_failures = row[self.svd_at]
-        return None
-
-
 class TrainingLoop:
     """One run of train(): the compiled step and evaluation, the seeds' parameters and state, the
     training clock, and when the files are written. Its steps, in order: start, iterate, end, then
@@ -292,14 +142,9 @@ class TrainingLoop:
         settings: TrainerSettings,
         stop: StopRequest,
         progress: Progress,
-    ):
-        self.rule, self.seeds, self.settings, self.stop, self.progress = (
-            rule,
-            seeds,
-            settings,
-            stop,
-            progress,
-        )
+    ) -> None:
+        self.rule, self.seeds, self.settings = rule, seeds, settings
+        self.stop, self.progress = stop, progress
         self.runs = [SeedRun(writer) for writer in writers]
         self.writers = Writers(writers)
         self.compiled: CompiledTraining | None = None
@@ -308,9 +153,8 @@ class TrainingLoop:
         self.done = 0  # iterations finished
         self.train_seconds = 0.0
         self.first_step_seconds = 0.0
-        self.step_seconds: list[
-            float
-        ] = []  # every step's time but the first (compiling) call's: contention
+        # every step's time but the first (compiling) call's: contention
+        self.step_seconds: list[float] = []
         self.last_eval_seconds = 0.0
         self.stopped_by: str | None = None
         self.last_flush, self.flush_interval = 0.0, settings.flush_seconds
@@ -431,12 +275,8 @@ class TrainingLoop:
             run.writer.append_row("train", (iteration, *times, *row))
             reason = self.guard.check(run, row, iteration)
             if reason is not None:
-                run.status, run.iterations, run.reason, diverged = (
-                    "diverged",
-                    self.done,
-                    reason,
-                    True,
-                )
+                run.status, run.iterations, run.reason = "diverged", self.done, reason
+                diverged = True
         return [(index, run) for index, run in running if run.running] if diverged else running
 
     def budget_spent(self) -> str | None:
@@ -533,10 +373,8 @@ class TrainingLoop:
         outcomes, write_errors = [], []
         for index, run in enumerate(self.runs):
             flat = None if self.params is None else np.asarray(self.params[index])
-            if (
-                flat is not None and run.status != "diverged" and np.isfinite(flat).all()
-            ):  # init_from can use it
-                run.writer.save_params(flat)
+            if flat is not None and run.status != "diverged" and np.isfinite(flat).all():
+                run.writer.save_params(flat)  # init_from can use it
             iterations = run.iterations or self.done
             error = finish_or_mark(
                 run.writer,
@@ -560,12 +398,6 @@ class TrainingLoop:
         if write_errors:
             raise ResultsWriteError(write_errors[0])
         return outcomes
-
-
-def ready(step):
-    """step, returning once its results are computed (what StopRequest.call runs in its helper
-    thread)."""
-    return lambda *args: jax.block_until_ready(step(*args))
 
 
 def train(

@@ -19,13 +19,22 @@ initial network):
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import jax
 import jax.numpy as jnp
 from jax.flatten_util import ravel_pytree
 
 from physgrad.unroll import MODES, REGULAR, Backprop, Dynamics
+
+if TYPE_CHECKING:
+    from omegaconf import DictConfig
+
+    from physgrad.nets import Params, Pytree
+    from physgrad.tasks import Scene
+    from physgrad.training import Seeds
 
 BATCH = 3  # training samples the checks use
 DIRECTIONS = 3  # random directions of the finite differences
@@ -43,7 +52,7 @@ class Check:
         return f"{'ok  ' if self.passed else 'FAIL'}  {self.name}: {self.detail}"
 
 
-def relative_error(a, b) -> float:
+def relative_error(a: Pytree, b: Pytree) -> float:
     """max |a - b| / max(max |b|, tiny) over every leaf of two pytrees."""
     a, b = ravel_pytree(a)[0], ravel_pytree(b)[0]
     scale = max(float(jnp.max(jnp.abs(b))) if b.size else 0.0, 1e-300)
@@ -51,8 +60,13 @@ def relative_error(a, b) -> float:
 
 
 def loop_states(
-    step, policy, x0, unroll: int, backprop: Backprop = REGULAR, frozen: list | None = None
-):
+    step: Callable[[Pytree, Pytree], Pytree],
+    policy: Callable[[Pytree, int], Pytree],
+    x0: Pytree,
+    unroll: int,
+    backprop: Backprop = REGULAR,
+    frozen: list | None = None,
+) -> tuple[list, list]:
     """(x_1 .. x_unroll, c_0 .. c_unroll-1) of c_k = policy(x_k, k), x_{k+1} = step(x_k, c_k) by a
     plain Python loop (no lax.scan, no stop_gradient): the inputs a mode stops are the constant
     forward states `frozen` (x_0 .. x_unroll at the parameters the gradient is taken at; None:
@@ -70,7 +84,12 @@ def loop_states(
     return states, controls
 
 
-def forward_states(step, policy, x0, unroll: int) -> list:
+def forward_states(
+    step: Callable[[Pytree, Pytree], Pytree],
+    policy: Callable[[Pytree, int], Pytree],
+    x0: Pytree,
+    unroll: int,
+) -> list:
     """x_0 .. x_unroll of the forward pass by a plain loop, as constants (stop_gradient): the values
     every mode shares."""
     states = [x0]
@@ -79,7 +98,7 @@ def forward_states(step, policy, x0, unroll: int) -> list:
     return [jax.lax.stop_gradient(state) for state in states]
 
 
-def dynamics_forward_states(dynamics: Dynamics, params, sample) -> list:
+def dynamics_forward_states(dynamics: Dynamics, params: Params, sample: Pytree) -> list:
     """forward_states of a scene's Dynamics for one sample."""
     return forward_states(
         dynamics.step, dynamics.policy(params, sample), dynamics.initial(sample), dynamics.unroll
@@ -87,8 +106,12 @@ def dynamics_forward_states(dynamics: Dynamics, params, sample) -> list:
 
 
 def loop_output(
-    dynamics: Dynamics, params, sample, backprop: Backprop = REGULAR, frozen: list | None = None
-):
+    dynamics: Dynamics,
+    params: Params,
+    sample: Pytree,
+    backprop: Backprop = REGULAR,
+    frozen: list | None = None,
+) -> jax.Array:
     """A temporal scene's output y for one sample by loop_states (frozen: dynamics_forward_states at
     the parameters the gradient is taken at)."""
     if frozen is None:
@@ -111,8 +134,12 @@ def loop_output(
 
 
 def finite_difference_check(
-    loss, params, gradient, directions: int = DIRECTIONS, rtol: float = FD_RTOL
-):
+    loss: Callable[[Params], jax.Array],
+    params: Params,
+    gradient: Params,
+    directions: int = DIRECTIONS,
+    rtol: float = FD_RTOL,
+) -> tuple[float, float]:
     """(worst relative mismatch, tolerance) of gradient . d against finite differences of loss along
     random unit directions d: the fourth-order central stencil (8 (L(h) - L(-h)) - (L(2h) - L(-2h)))
     / 12h with h = 1e-3 times the parameters' typical size, whose truncation (h^4) and round-off
@@ -134,7 +161,7 @@ def finite_difference_check(
     return worst, rtol
 
 
-def check_scene(cfg) -> list[Check]:
+def check_scene(cfg: DictConfig) -> list[Check]:
     """Every check above on the scene of a composed config (precision is set to 64 here); an
     exception in the scene's code is a failed check with its one-line message."""
     try:
@@ -149,117 +176,29 @@ def check_scene(cfg) -> list[Check]:
         ]
 
 
-def _check_scene(cfg) -> list[Check]:
+def _check_scene(cfg: DictConfig) -> list[Check]:
     from physgrad.errors import UserError
-    from physgrad.experiment import build_seeds, check_scene_values, set_precision
+    from physgrad.experiment import build_seeds, set_precision
+    from physgrad.refusals import check_scene_values
 
     set_precision(64)
-    checks: list[Check] = []
     name = str(cfg.task.get("name", "?"))
     try:
         scene, seeds = build_seeds(cfg, [int(cfg.seed)], 1)
         check_scene_values(scene, seeds, name)
     except UserError as error:
         return [Check("builds", False, str(error))]
-    checks.append(Check("builds", True, f"task={name} in float64"))
+    checks = [Check("builds", True, f"task={name} in float64")]
     params = seeds.network()
-    test_set = jax.tree_util.tree_map(lambda leaf: leaf[0], seeds.test_sets)
     batch = scene.sample_train(jax.random.PRNGKey(1), min(BATCH, scene.train_size or BATCH))
-
-    def batch_loss(output):
-        return lambda p: scene.batch_loss(jax.vmap(output, in_axes=(None, 0))(p, batch), batch)
-
     y = scene.batch_output(params, batch)
-    loss = batch_loss(scene.sample_output)(params)
-    evaluation = scene.evaluate(params, test_set)
-    bad = [
-        what
-        for what, value in (("output", y), ("loss", loss), *evaluation.items())
-        if not bool(jnp.all(jnp.isfinite(value)))
-    ]
-    checks.append(
-        Check(
-            "finite",
-            not bad,
-            f"not finite at initialisation: {', '.join(bad)}"
-            if bad
-            else f"output {tuple(y.shape)}, loss {float(loss):.6g}, held-out loss "
-            f"{float(evaluation['loss']):.6g}",
-        )
-    )
-
-    again, seeds_again = build_seeds(cfg, [int(cfg.seed)], 1)
-    batch_again = again.sample_train(jax.random.PRNGKey(1), min(BATCH, again.train_size or BATCH))
-    differences = {
-        what: relative_error(a, b)
-        for what, a, b in (
-            ("test set", seeds_again.test_sets, seeds.test_sets),
-            ("network", seeds_again.params, seeds.params),
-            ("batch", batch_again, batch),
-            ("loss", batch_loss(again.sample_output)(params), loss),
-        )
-    }
-    differing = [what for what, error in differences.items() if error != 0.0]
-    checks.append(
-        Check(
-            "deterministic",
-            not differing,
-            "the same seed gives another " + ", ".join(differing)
-            if differing
-            else "data, network, batch and loss identical from the same seed",
-        )
-    )
-
+    loss = _batch_loss(scene, scene.sample_output, batch)(params)
+    checks.append(_finite_check(scene, seeds, params, y, loss))
+    checks.append(_deterministic_check(cfg, scene, seeds, params, batch, loss))
     if scene.dynamics is not None:
-        looped = jnp.stack(
-            [loop_output(scene.dynamics, params, _index(batch, i)) for i in range(_size(batch))]
-        )
-        error = relative_error(y, looped)
-        checks.append(
-            Check(
-                "rollout",
-                error <= EXACT_RTOL,
-                f"scan against a Python loop over {scene.unroll} steps: "
-                f"relative difference {error:.1e} (at most {EXACT_RTOL:.0e})",
-            )
-        )
-
-    modes = ["R", "M", "S"] if scene.closed_loop else ["R"]
-    for mode in modes:
-        backprop = MODES[mode]
-        scan_loss = batch_loss(scene.backprop_output(backprop))
-        gradient = jax.grad(scan_loss)(params)
-        if scene.dynamics is not None:
-            frozen = [
-                dynamics_forward_states(scene.dynamics, params, _index(batch, i))
-                for i in range(_size(batch))
-            ]
-
-            def loop_loss(p, backprop=backprop, frozen=frozen):
-                outputs = jnp.stack(
-                    [
-                        loop_output(scene.dynamics, p, _index(batch, i), backprop, frozen[i])
-                        for i in range(_size(batch))
-                    ]
-                )
-                return scene.batch_loss(outputs, batch)
-
-            against_loop = relative_error(gradient, jax.grad(loop_loss)(params))
-            reference = loop_loss
-        else:
-            against_loop, reference = 0.0, scan_loss
-        worst, tolerance = finite_difference_check(reference, params, gradient)
-        passed = against_loop <= 1e-7 and worst <= tolerance
-        loop_text = f"against the loop {against_loop:.1e}, " if scene.dynamics is not None else ""
-        checks.append(
-            Check(
-                f"gradient {mode}",
-                passed,
-                f"{loop_text}against finite differences {worst:.1e} "
-                f"(at most {tolerance:.0e}) along {DIRECTIONS} random directions",
-            )
-        )
-
+        checks.append(_rollout_check(scene, params, batch, y))
+    for mode in ["R", "M", "S"] if scene.closed_loop else ["R"]:
+        checks.append(_gradient_check(scene, params, batch, mode))
     if not scene.closed_loop:
         try:
             checks.append(_jacobian_check(scene, params, batch))
@@ -270,7 +209,112 @@ def _check_scene(cfg) -> list[Check]:
     return checks
 
 
-def _jacobian_check(scene, params, batch) -> Check:
+def _batch_loss(
+    scene: Scene, output: Callable[[Params, Pytree], jax.Array], batch: Pytree
+) -> Callable[[Params], jax.Array]:
+    """theta -> the scene's loss of `output` over the batch, one sample at a time."""
+    return lambda p: scene.batch_loss(jax.vmap(output, in_axes=(None, 0))(p, batch), batch)
+
+
+def _finite_check(
+    scene: Scene, seeds: Seeds, params: Params, y: jax.Array, loss: jax.Array
+) -> Check:
+    """The output, the loss and the held-out evaluation are finite at initialisation."""
+    test_set = jax.tree_util.tree_map(lambda leaf: leaf[0], seeds.test_sets)
+    evaluation = scene.evaluate(params, test_set)
+    bad = [
+        what
+        for what, value in (("output", y), ("loss", loss), *evaluation.items())
+        if not bool(jnp.all(jnp.isfinite(value)))
+    ]
+    return Check(
+        "finite",
+        not bad,
+        f"not finite at initialisation: {', '.join(bad)}"
+        if bad
+        else f"output {tuple(y.shape)}, loss {float(loss):.6g}, held-out loss "
+        f"{float(evaluation['loss']):.6g}",
+    )
+
+
+def _deterministic_check(
+    cfg: DictConfig, scene: Scene, seeds: Seeds, params: Params, batch: Pytree, loss: jax.Array
+) -> Check:
+    """The scene built again from the same seed gives the same data, network, batch and loss."""
+    from physgrad.experiment import build_seeds
+
+    again, seeds_again = build_seeds(cfg, [int(cfg.seed)], 1)
+    batch_again = again.sample_train(jax.random.PRNGKey(1), min(BATCH, again.train_size or BATCH))
+    differences = {
+        what: relative_error(a, b)
+        for what, a, b in (
+            ("test set", seeds_again.test_sets, seeds.test_sets),
+            ("network", seeds_again.params, seeds.params),
+            ("batch", batch_again, batch),
+            ("loss", _batch_loss(scene, again.sample_output, batch)(params), loss),
+        )
+    }
+    differing = [what for what, error in differences.items() if error != 0.0]
+    return Check(
+        "deterministic",
+        not differing,
+        "the same seed gives another " + ", ".join(differing)
+        if differing
+        else "data, network, batch and loss identical from the same seed",
+    )
+
+
+def _rollout_check(scene: Scene, params: Params, batch: Pytree, y: jax.Array) -> Check:
+    """A temporal scene's lax.scan rollout against a plain Python loop."""
+    looped = jnp.stack(
+        [loop_output(scene.dynamics, params, _index(batch, i)) for i in range(_size(batch))]
+    )
+    error = relative_error(y, looped)
+    return Check(
+        "rollout",
+        error <= EXACT_RTOL,
+        f"scan against a Python loop over {scene.unroll} steps: "
+        f"relative difference {error:.1e} (at most {EXACT_RTOL:.0e})",
+    )
+
+
+def _gradient_check(scene: Scene, params: Params, batch: Pytree, mode: str) -> Check:
+    """The gradient of one backprop mode against the plain loop's (temporal scenes) and against
+    finite differences."""
+    backprop = MODES[mode]
+    scan_loss = _batch_loss(scene, scene.backprop_output(backprop), batch)
+    gradient = jax.grad(scan_loss)(params)
+    if scene.dynamics is not None:
+        frozen = [
+            dynamics_forward_states(scene.dynamics, params, _index(batch, i))
+            for i in range(_size(batch))
+        ]
+
+        def loop_loss(p: Params) -> jax.Array:
+            outputs = jnp.stack(
+                [
+                    loop_output(scene.dynamics, p, _index(batch, i), backprop, frozen[i])
+                    for i in range(_size(batch))
+                ]
+            )
+            return scene.batch_loss(outputs, batch)
+
+        against_loop = relative_error(gradient, jax.grad(loop_loss)(params))
+        reference = loop_loss
+    else:
+        against_loop, reference = 0.0, scan_loss
+    worst, tolerance = finite_difference_check(reference, params, gradient)
+    passed = against_loop <= 1e-7 and worst <= tolerance
+    loop_text = f"against the loop {against_loop:.1e}, " if scene.dynamics is not None else ""
+    return Check(
+        f"gradient {mode}",
+        passed,
+        f"{loop_text}against finite differences {worst:.1e} "
+        f"(at most {tolerance:.0e}) along {DIRECTIONS} random directions",
+    )
+
+
+def _jacobian_check(scene: Scene, params: Params, batch: Pytree) -> Check:
     from physgrad.gradients import JacobianPass
 
     first = _index(batch, 0)
@@ -279,7 +323,7 @@ def _jacobian_check(scene, params, batch) -> Check:
     jac = extra["jacobian"]
     flat, unravel = ravel_pytree(params)
 
-    def outputs(flat_params):
+    def outputs(flat_params: jax.Array) -> jax.Array:
         return scene.batch_output(unravel(flat_params), batch).reshape(-1)
 
     v = jax.random.normal(jax.random.PRNGKey(7), flat.shape, flat.dtype)
@@ -305,11 +349,11 @@ def _jacobian_check(scene, params, batch) -> Check:
     )
 
 
-def _size(batch) -> int:
+def _size(batch: Pytree) -> int:
     return jax.tree_util.tree_leaves(batch)[0].shape[0]
 
 
-def _index(batch, i):
+def _index(batch: Pytree, i: int) -> Pytree:
     return jax.tree_util.tree_map(lambda leaf: leaf[i], batch)
 
 

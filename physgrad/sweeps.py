@@ -17,14 +17,16 @@ import os
 import signal
 import threading
 import time
+from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
+from types import FrameType
 
 import yaml
-from omegaconf import OmegaConf
+from omegaconf import DictConfig, OmegaConf
 
 from physgrad.files import clean_text, owner_alive, owner_tag, read_small_yaml, replace_file
-from physgrad.interrupts import handling_signals
+from physgrad.interrupts import StopRequest, handling_signals
 
 log = logging.getLogger("physgrad")
 MANIFEST = "jobs.yaml"
@@ -34,7 +36,7 @@ LAUNCHER_ENV = "PHYSGRAD_SWEEP_LAUNCHER"
 WATCH_SECONDS = 0.25
 
 
-def expected_jobs(config) -> list[list[str]] | None:
+def expected_jobs(config: DictConfig) -> list[list[str]] | None:
     """The jobs Hydra's basic sweeper will launch for this config (hydra.sweeper.params, then the
     command line), each a list of overrides; None for another sweeper (Optuna decides its trials as
     it goes)."""
@@ -208,10 +210,10 @@ class LauncherSignals:
     (its jobs, in this process or in workers, see it); a third signal ends the launcher at once
     (KeyboardInterrupt)."""
 
-    def __init__(self, sweep: Path):
+    def __init__(self, sweep: Path) -> None:
         self.sweep, self.received = sweep, 0
 
-    def __call__(self, signum, frame):
+    def __call__(self, signum: int, frame: FrameType | None) -> None:
         self.received += 1
         name = signal.Signals(signum).name
         mark_stopped(self.sweep, name, self.received)
@@ -227,7 +229,7 @@ class LauncherSignals:
 
 
 @contextmanager
-def launcher_signals(sweep: Path):
+def launcher_signals(sweep: Path) -> Iterator[None]:
     """LauncherSignals handling SIGINT and SIGTERM in the process that launches the sweep (its main
     thread), whose pid its workers inherit (LAUNCHER_ENV)."""
     with handling_signals(LauncherSignals(sweep)) as installed:
@@ -242,7 +244,7 @@ def launcher_signals(sweep: Path):
 
 
 @contextmanager
-def watching(sweep: Path | None, stop):
+def watching(sweep: Path | None, stop: StopRequest) -> Iterator[None]:
     """While a job of a sweep runs: a thread that passes the sweep's stop mark on to the job's
     StopRequest (physgrad.interrupts), and, in a launcher's worker process, the launcher's end (its
     parent changes) as a SIGTERM."""
@@ -255,7 +257,7 @@ def watching(sweep: Path | None, stop):
     )
     parent, finished = os.getppid(), threading.Event()
 
-    def watch():
+    def watch() -> None:
         while not finished.wait(WATCH_SECONDS):
             mark = stop_count(sweep)
             if mark is not None:

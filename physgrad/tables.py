@@ -44,7 +44,7 @@ class Tables(NamedTuple):
 
 
 def tables(runs: list[Run], rows: list[dict]) -> Tables:
-    """The runs (labelled: report.label_runs) with their report rows (report.run_rows) as tidy
+    """The runs (labelled: runs.label_runs) with their report rows (report.run_rows) as tidy
     pandas tables; see Tables."""
     by_path = {str(run.path): run for run in runs}
     records, curves = [], []

@@ -5,10 +5,24 @@ several functions called in turn. Used by the calibrated clock (physgrad.compari
 from __future__ import annotations
 
 import time
+from collections.abc import Callable
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:
+    from omegaconf import DictConfig
+
+    from physgrad.optim import UpdateRule
+    from physgrad.runner import TrainerSettings
+    from physgrad.tasks import Scene
+    from physgrad.training import CompiledTraining, Seeds
 
 
 def interleaved_times(
-    fns: list, repeats: int, min_seconds: float, warmup: bool = True, max_seconds: float = 120.0
+    fns: list[Callable[[], object]],
+    repeats: int,
+    min_seconds: float,
+    warmup: bool = True,
+    max_seconds: float = 120.0,
 ) -> list[list[float]]:
     """The wall times of each fn() (which must block until its results are ready), called in turn,
     one call each per round, so that a step and its baseline see the same machine (on 2 shared cores
@@ -33,13 +47,16 @@ def interleaved_times(
     return times
 
 
-def compiled_step(cfg, seeds: list[int]):
+def compiled_step(
+    cfg: DictConfig, seeds: list[int]
+) -> tuple[TrainerSettings, Scene, UpdateRule, Seeds, CompiledTraining, float, Callable[[], None]]:
     """The scene, rule, seeds and compiled training exactly as `physgrad run` builds them, the
     compile time and one_step() (one training step, blocking)."""
     import jax
     import numpy as np
 
-    from physgrad.experiment import check_config, prepare
+    from physgrad.experiment import prepare
+    from physgrad.refusals import check_config
     from physgrad.runner import compile_training
 
     settings = check_config(cfg)
@@ -50,7 +67,7 @@ def compiled_step(cfg, seeds: list[int]):
 
     state = [compiled.params, compiled.opt_state]
 
-    def one_step():
+    def one_step() -> None:
         state[0], state[1], _ = compiled.step(
             state[0], state[1], np.int32(0), stacked.train_keys, stacked.train_sets
         )

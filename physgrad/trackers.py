@@ -16,6 +16,7 @@ import logging
 import math
 import os
 from collections import defaultdict
+from collections.abc import Iterator, Mapping
 from pathlib import Path
 
 import yaml
@@ -26,7 +27,7 @@ log = logging.getLogger("physgrad")
 TAGS = ("task", "optim", "variant", "seed", "status", "stopped_by", "unroll")
 
 
-def run_metrics(run: Run):
+def run_metrics(run: Run) -> Iterator[tuple[str, int, float]]:
     """(key, iteration, value) of every finite value of every /train and /eval column but the
     iteration."""
     for split in ("train", "eval"):
@@ -61,7 +62,7 @@ class TensorBoard:
     save_dir/<name> (default: the job folder's tensorboard/, one folder per seed): `tensorboard
     --logdir <sweep folder>` then shows every job of a sweep."""
 
-    def __init__(self, save_dir: str | None = None):
+    def __init__(self, save_dir: str | None = None) -> None:
         self.save_dir = save_dir
 
     def log_run(self, run: Run, name: str, folder: Path) -> None:
@@ -99,7 +100,7 @@ class MLflow:
     1000 metrics, 100 parameters per call); the run ends FINISHED (completed), FAILED (diverged,
     failed) or KILLED (interrupted, refused)."""
 
-    def __init__(self, tracking_uri: str | None = None, experiment_name: str = "physgrad"):
+    def __init__(self, tracking_uri: str | None = None, experiment_name: str = "physgrad") -> None:
         self.tracking_uri = tracking_uri or f"sqlite:///{os.path.abspath('outputs/mlflow.db')}"
         self.experiment_name = experiment_name
 
@@ -143,7 +144,7 @@ class WandB:
         mode: str = "offline",
         dir: str | None = None,
         entity: str | None = None,
-    ):
+    ) -> None:
         self.project, self.mode, self.dir, self.entity = project, mode, dir, entity
 
     def log_run(self, run: Run, name: str, folder: Path) -> None:
@@ -177,7 +178,7 @@ class WandB:
             log.info("W&B offline run of %s in %s: upload it with `wandb sync`", name, tracked.dir)
 
 
-def build_trackers(logger_cfg) -> list:
+def build_trackers(logger_cfg: Mapping | None) -> list:
     """The trackers a `logger` config names (a mapping of name -> node with _target_); UserError
     (one line) for an entry that cannot be built."""
     from omegaconf import OmegaConf

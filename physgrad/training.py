@@ -9,6 +9,7 @@ leading axis (`Seeds`, `stack`) and the step and the evaluation are vectorised o
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
@@ -22,7 +23,7 @@ from physgrad.optim import UpdateRule, on_tree, state_logs
 from physgrad.tasks import Scene
 
 
-def make_step(scene: Scene, rule: UpdateRule, batch_size: int):
+def make_step(scene: Scene, rule: UpdateRule, batch_size: int) -> Callable[..., tuple]:
     """(params, opt_state, iteration, train_key, train_set) -> (params, opt_state, logs); the
     minibatch is drawn inside from fold_in(train_key, iteration) (out of train_set, if the scene has
     a fixed one), so every variant with the same seed and batch size sees the same batches. The
@@ -30,7 +31,9 @@ def make_step(scene: Scene, rule: UpdateRule, batch_size: int):
     logs (physgrad.gradients); the rule's state may add logs of its own
     (physgrad.optim.state_logs)."""
 
-    def step(params, opt_state, iteration, train_key, train_set):
+    def step(
+        params: Any, opt_state: Any, iteration: jax.Array, train_key: jax.Array, train_set: Any
+    ) -> tuple[Any, Any, dict]:
         batch = scene.draw_batch(jax.random.fold_in(train_key, iteration), batch_size, train_set)
         loss, grads, extra, pass_logs = rule.gradient(scene, params, batch)
         updates, opt_state = rule.transform.update(grads, opt_state, params, **extra)
@@ -46,12 +49,12 @@ def make_step(scene: Scene, rule: UpdateRule, batch_size: int):
     return step
 
 
-def packed_logs(step, names: list[str]):
+def packed_logs(step: Callable[..., tuple], names: list[str]) -> Callable[..., tuple]:
     """The step with its logged scalars stacked into one vector (one device-to-host transfer per
     iteration instead of one per scalar); their names are stored into `names` when the step is
     traced."""
 
-    def packed(*args):
+    def packed(*args: Any) -> tuple[Any, Any, jax.Array]:
         params, opt_state, logs = step(*args)
         names[:] = sorted(logs)
         dtype = logs["loss"].dtype
@@ -77,26 +80,26 @@ class Seeds:
     def count(self) -> int:
         return self.train_keys.shape[0]
 
-    def network(self, index: int = 0):
+    def network(self, index: int = 0) -> Any:
         """The initial network (parameter pytree) of one seed."""
         return jax.tree_util.tree_map(lambda leaf: leaf[index], self.params)
 
 
-def stack(trees: list):
+def stack(trees: list) -> Any:
     """Stack pytrees along a new leading axis (None stays None)."""
     if trees[0] is None:
         return None
     return jax.tree_util.tree_map(lambda *leaves: jnp.stack(leaves), *trees)
 
 
-def over_seeds(fn, count: int, in_axes: tuple):
+def over_seeds(fn: Callable[..., Any], count: int, in_axes: tuple) -> Callable[..., Any]:
     """fn vectorised over the leading seed axis of the arguments marked 0 (jax.vmap); with one seed,
     the same function on that seed's slice, without vmap, so a single run compiles exactly its own
     computation."""
     if count > 1:
         return jax.vmap(fn, in_axes=in_axes)
 
-    def single(*args):
+    def single(*args: Any) -> Any:
         args = [
             jax.tree_util.tree_map(lambda x: x[0], a) if axis == 0 else a
             for a, axis in zip(args, in_axes)
@@ -104,6 +107,12 @@ def over_seeds(fn, count: int, in_axes: tuple):
         return jax.tree_util.tree_map(lambda x: x[None], fn(*args))
 
     return single
+
+
+def ready(step: Callable[..., Any]) -> Callable[..., Any]:
+    """step, returning once its results are computed (what StopRequest.call runs in its helper
+    thread)."""
+    return lambda *args: jax.block_until_ready(step(*args))
 
 
 @dataclass(frozen=True)
@@ -117,9 +126,8 @@ class CompiledTraining:
     params: jax.Array
     opt_state: Any
     log_names: list
-    validate: Any = (
-        None  # the held-out loss compiled for the validation sets (the loss only, no metrics)
-    )
+    # the held-out loss compiled for the validation sets (the loss only, no metrics)
+    validate: Any = None
 
 
 def compile_training(
@@ -132,9 +140,7 @@ def compile_training(
     unravel = ravel_pytree(seeds.network())[1]
     flat_scene = scene.over_flat_params(unravel)
     params = jax.vmap(lambda tree: ravel_pytree(tree)[0])(seeds.params)
-    if (
-        rule.on_layers
-    ):  # a rule that is not element-wise sees the network's layers (physgrad.optim.on_tree)
+    if rule.on_layers:  # a rule that is not element-wise sees the network's layers (optim.on_tree)
         rule = rule._replace(transform=on_tree(rule.transform, unravel))
     count = seeds.count
     opt_state = over_seeds(rule.transform.init, count, (0,))(params)
@@ -160,9 +166,7 @@ def compile_training(
                 jax.tree_util.tree_leaves(seeds.test_sets),
             )
         )
-        if same and set(evaluating.out_info) == {
-            "loss"
-        }:  # no metrics: the test evaluation is the loss
+        if same and set(evaluating.out_info) == {"loss"}:  # no metrics: the test evaluation is it
             validate = evaluate
         # validation reads the loss only: its metrics (a KS stability rollout: 200 steps) are not
         # paid

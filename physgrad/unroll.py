@@ -18,11 +18,14 @@ output y(params, sample) with that mode's gradient stops.
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Any, Callable, NamedTuple
+from typing import TYPE_CHECKING, Any, Callable, NamedTuple
 
 import jax
 import jax.numpy as jnp
 from jax import lax
+
+if TYPE_CHECKING:
+    from physgrad.nets import Params, Pytree
 
 
 class Backprop(NamedTuple):
@@ -41,12 +44,12 @@ MODES = {"R": REGULAR, "M": PHYSICS_ONLY, "S": STOPPED}
 def rollout(
     step: Callable,
     policy: Callable,
-    x0,
+    x0: Pytree,
     unroll: int,
     backprop: Backprop = REGULAR,
     observe: Callable | None = None,
     checkpoint: bool = False,
-):
+) -> tuple[Pytree, Pytree]:
     """Scan x_{k+1} = step(x_k', policy(x_k'', k)) for k = 0..unroll-1, with x_k' and x_k'' the
     state or its stopped copy as ``backprop`` says. Returns (x_unroll, stacked observe(x_{k+1},
     c_k)) where observe defaults to None (nothing stacked).
@@ -57,7 +60,7 @@ def rollout(
     state only.
     """
 
-    def body(x, k):
+    def body(x: Pytree, k: jax.Array) -> tuple[Pytree, Pytree]:
         policy_input = lax.stop_gradient(x) if backprop.stop_policy_input else x
         physics_input = lax.stop_gradient(x) if backprop.stop_physics_input else x
         control = policy(policy_input, k)
@@ -69,7 +72,7 @@ def rollout(
     return lax.scan(body, x0, jnp.arange(unroll))
 
 
-def final_state(final, observed, sample):
+def final_state(final: Pytree, observed: Pytree, sample: Pytree) -> Pytree:
     """The default readout: y = x_unroll."""
     return final
 
@@ -100,7 +103,7 @@ class Dynamics:
     def output(self, backprop: Backprop = REGULAR) -> Callable[[Any, Any], jax.Array]:
         """y(params, sample) with the gradient stops of ``backprop``."""
 
-        def sample_output(params, sample):
+        def sample_output(params: Params, sample: Pytree) -> jax.Array:
             observe = None if self.observe is None else (lambda x, c: self.observe(x, c, sample))
             final, observed = rollout(
                 self.step,

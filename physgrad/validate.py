@@ -12,12 +12,21 @@ import difflib
 import inspect
 import math
 import numbers
+from collections.abc import Callable, Collection
 from typing import Any
 
 from physgrad.errors import UserError
 
 
-def number(name: str, value, low=None, high=None, integer=False, optional=False, open_low=False):
+def number(
+    name: str,
+    value: Any,
+    low: float | None = None,
+    high: float | None = None,
+    integer: bool = False,
+    optional: bool = False,
+    open_low: bool = False,
+) -> Any:
     """``value`` if it is a finite (whole) number within [low, high) (or (low, high) with
     open_low)."""
     if value is None and optional:
@@ -45,7 +54,7 @@ def number(name: str, value, low=None, high=None, integer=False, optional=False,
     return value
 
 
-def choice(name: str, value, choices):
+def choice(name: str, value: Any, choices: Collection[Any]) -> Any:
     if value not in choices:
         raise UserError(
             f"{name}={value!r} is not allowed: choose one of {', '.join(map(str, choices))}"
@@ -53,11 +62,11 @@ def choice(name: str, value, choices):
     return value
 
 
-def flag(name: str, value) -> bool:
+def flag(name: str, value: Any) -> bool:
     return choice(name, value, (False, True))
 
 
-def layer_widths(name: str, value) -> list[int]:
+def layer_widths(name: str, value: Any) -> list[int]:
     """A non-empty list of positive whole numbers (hidden layer widths)."""
     widths = list(value) if isinstance(value, (list, tuple)) else None
     if not widths or not all(
@@ -69,7 +78,7 @@ def layer_widths(name: str, value) -> list[int]:
     return widths
 
 
-def finite_numbers(tree, prefix: str = "") -> None:
+def finite_numbers(tree: Any, prefix: str = "") -> None:
     """Refuse NaN and infinity anywhere in a (plain, resolved) config: no setting of physgrad means
     "unbounded" by inf (a missing limit is null)."""
     items = (
@@ -92,7 +101,7 @@ def finite_numbers(tree, prefix: str = "") -> None:
         finite_numbers(value, name)
 
 
-def call_target(section: str, node: dict, reserved=(), **runtime) -> Any:
+def call_target(section: str, node: dict, reserved: Collection[str] = (), **runtime: Any) -> Any:
     """Call the function that ``node['_target_']`` names with the node's other keys (but
     ``reserved``, which physgrad reads itself) as keyword arguments, plus ``runtime``. Nested
     ``_target_`` nodes are built first (hydra.utils.instantiate), so a schedule can be an argument.
@@ -123,7 +132,9 @@ def call_target(section: str, node: dict, reserved=(), **runtime) -> Any:
     return function(**kwargs, **runtime)
 
 
-def _check_keywords(section: str, target: str, function, given: set, runtime: set) -> None:
+def _check_keywords(
+    section: str, target: str, function: Callable[..., Any], given: set, runtime: set
+) -> None:
     try:
         parameters = inspect.signature(function).parameters
     except (TypeError, ValueError):  # a builtin without a signature: let the call itself decide

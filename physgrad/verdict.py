@@ -26,6 +26,7 @@ from __future__ import annotations
 
 import math
 import warnings
+from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -282,7 +283,7 @@ def compare_variants(
     pairs: list[tuple[str, str]] | None = None,
     margin: float = MARGIN,
     alpha: float = ALPHA,
-    fractions=FRACTIONS,
+    fractions: Sequence[float] = FRACTIONS,
 ) -> list[PairVerdict]:
     """Every pair (A, B) of variants (default: all pairs, in the given order) decided at each
     fraction of the budget; Holm's correction runs over the pairs at each fraction. curves: variant
@@ -352,7 +353,11 @@ GROWS, DOES_NOT_GROW = "grows", "does not grow"
 
 
 def interaction(
-    r_easy, r_hard, margin: float = MARGIN, alpha: float = ALPHA, seed: int = 0
+    r_easy: Iterable[float],
+    r_hard: Iterable[float],
+    margin: float = MARGIN,
+    alpha: float = ALPHA,
+    seed: int = 0,
 ) -> Interaction:
     """The trend claim "A's advantage over B is larger at the hard end": d = median(r_hard) -
     median(r_easy), r the per-seed log ratios A/B of each setting (NaN: pair left out), with a

@@ -5,16 +5,13 @@ import math
 
 import pytest
 
-from physgrad.bench import (
+from physgrad.bench_measure import (
     _median_times,
-    floor_seconds,
-    jacobian_table,
     measure_floors,
     measure_seeds,
     measure_variant,
-    seeds_table,
-    table,
 )
+from physgrad.bench_tables import floor_seconds, jacobian_table, seeds_table, table
 
 
 @pytest.mark.long

@@ -15,9 +15,10 @@ import pytest
 from omegaconf import OmegaConf
 
 from physgrad.files import clean_text, read_small_yaml
-from physgrad.report import collect, write_report
+from physgrad.report import write_report
 from physgrad.results import ResultsWriter, parse_config, read_final, read_params, read_run
 from physgrad.resume import finished_before
+from physgrad.runs import collect
 from physgrad.sweeps import job_folders, read_manifest
 
 SECRET = "ssh-rsa AAAA-this-must-never-reach-a-report-0123456789"

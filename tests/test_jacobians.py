@@ -189,7 +189,8 @@ def test_built_in_scenes_get_the_form_their_network_allows():
     whose network acts at every step of the rollout, and the CNN controller keep the per-sample pass
     (the results file names the form: tests/test_cli.py)."""
     from physgrad.configs import compose
-    from physgrad.experiment import check_config, prepare
+    from physgrad.experiment import prepare
+    from physgrad.refusals import check_config
 
     # one scene of each kind (poisson's form is checked in its results file: tests/test_cli.py)
     expected = {"oscillator": True, "multicart": False, "quantum_control": False}
@@ -216,7 +217,8 @@ def test_training_steps_are_the_same_on_both_forms(x64):
     import numpy as onp
 
     from physgrad.configs import compose
-    from physgrad.experiment import check_config, prepare
+    from physgrad.experiment import prepare
+    from physgrad.refusals import check_config
     from physgrad.runner import compile_training
 
     cfg = compose(

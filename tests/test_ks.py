@@ -12,7 +12,7 @@ import pytest
 
 from physgrad.nets import apply_resnet, init_resnet
 from physgrad.tasks import build_scene
-from physgrad.tasks.ks import (
+from physgrad.tasks.ks_solver import (
     cache_dir,
     dataset,
     etd_step,
@@ -466,7 +466,7 @@ def test_the_validation_states_are_the_test_family_from_other_seeds(tmp_path, mo
     the test family's members from fixed seeds (test 1000 + the size's index, validation 2000 + it),
     warmed up 2 x warmup model steps by the ground-truth solver."""
     from physgrad.experiment import validation_set
-    from physgrad.tasks.ks import domain_length, test_initial_states, trajectories
+    from physgrad.tasks.ks_solver import domain_length, test_initial_states, trajectories
 
     monkeypatch.setenv("PHYSGRAD_CACHE", str(tmp_path))
     settings = {

@@ -12,10 +12,12 @@ import pandas as pd
 import pytest
 import yaml
 
-from physgrad.plots import log_axis, median_band, use_log_x
+from physgrad.plots import log_axis
 from physgrad.readout import loss_at, targets
-from physgrad.report import collect, label_runs, run_rows, write_report
+from physgrad.report import run_rows, write_report
+from physgrad.report_figures import median_band, use_log_x
 from physgrad.results import ResultsWriter, read_run
+from physgrad.runs import collect, label_runs
 
 
 def fake_run(
@@ -524,7 +526,7 @@ def test_figure_axes_read_well():
 def test_notes_of_runs_that_diverged_at_the_same_point_do_not_overprint(tmp_path, monkeypatch):
     from matplotlib.axes import Axes
 
-    from physgrad.plots import plot_comparison
+    from physgrad.report_figures import plot_comparison
 
     for seed in (0, 1, 2):
         fake_run(
@@ -638,7 +640,7 @@ def test_the_drawn_median_is_the_one_the_table_reports(tmp_path, figures):
 
 
 def test_the_unroll_axis_has_a_tick_at_every_length(tmp_path, figures):
-    from physgrad.plots import plot_unroll
+    from physgrad.report_figures import plot_unroll
 
     for unroll in (4, 16, 64, 256):
         fake_run(

@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import json
 import math
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
@@ -63,8 +64,8 @@ def calibrate(
     )
     lengths = [max(1, math.ceil(BURST_SECONDS / max(float(np.median(t)), 1e-9))) for t in probe]
 
-    def burst(step, length):
-        def run():
+    def burst(step: Callable[[], None], length: int) -> Callable[[], None]:
+        def run() -> None:
             for _ in range(length):
                 step()
 
@@ -111,7 +112,11 @@ def write_calibration(path: Path, calibration: dict) -> None:
 
 
 def calibrated_clock(
-    folder: Path, variants: list[Variant], seed: int, given: str | None, say
+    folder: Path,
+    variants: list[Variant],
+    seed: int,
+    given: str | None,
+    say: Callable[[str], object],
 ) -> dict:
     """Each variant's step cost (calibrate), measured once per study and stored in its folder (a
     resumed study reuses it), or taken from a given calibration.json (compare.calibration); every

@@ -4,15 +4,29 @@ variants interleaved, for time budgets)."""
 
 from __future__ import annotations
 
+from collections.abc import Callable
+from pathlib import Path
+from typing import TYPE_CHECKING
+
 from physgrad.comparison.jobs import cadence, job_runs, job_yaml, launch
-from physgrad.comparison.spec import StudySettings
+from physgrad.comparison.spec import StudySettings, Variant
 from physgrad.errors import UserError
 from physgrad.optim.capabilities import batches_over_seeds
 from physgrad.readout import run_curve
 
+if TYPE_CHECKING:
+    from physgrad.readout import Curve
+    from physgrad.results import Run
+
 
 def evaluation_jobs(
-    variants, best, settings: StudySettings, common, groups, axis, budget
+    variants: list[Variant],
+    best: dict[str, dict],
+    settings: StudySettings,
+    common: list[str],
+    groups: set[str],
+    axis: str,
+    budget: float,
 ) -> dict[str, str]:
     """The evaluation's jobs in launch order: per variant one job of all seeds trained together when
     the budget is in iterations (one per seed where the rule's float64 retry does not batch or
@@ -23,7 +37,7 @@ def evaluation_jobs(
     seeds = settings.evaluation_seeds
     jobs = {}
 
-    def spec(variant, seed, count):
+    def spec(variant: Variant, seed: int, count: int) -> str:
         values = {f"optim.{k}": v for k, v in best[variant.name].items()}
         values.update(
             {
@@ -52,18 +66,18 @@ def evaluation_jobs(
 
 
 def evaluation(
-    folder,
-    variants,
-    best,
+    folder: Path,
+    variants: list[Variant],
+    best: dict[str, dict],
     settings: StudySettings,
-    common,
-    groups,
-    axis,
-    budget,
-    config_dir,
-    hydra_args,
-    say,
-):
+    common: list[str],
+    groups: set[str],
+    axis: str,
+    budget: float,
+    config_dir: str | None,
+    hydra_args: list[str],
+    say: Callable[[str], object],
+) -> tuple[dict[str, dict[int, Curve]], dict[str, dict[int, Run]]]:
     """Phase 2: every variant at its tuned settings on the paired evaluation seeds; (curves, runs)
     per variant and seed."""
     jobs = evaluation_jobs(variants, best, settings, common, groups, axis, budget)

@@ -3,11 +3,17 @@
 from __future__ import annotations
 
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
+if TYPE_CHECKING:
+    from physgrad.comparison.spec import Variant
 
-def plot_sensitivity(path: Path, variants, trials_rows, best) -> None:
+
+def plot_sensitivity(
+    path: Path, variants: list[Variant], trials_rows: list[dict], best: dict[str, dict]
+) -> None:
     """Validation loss at the budget against the learning rate, one panel per variant: every trial,
     the chosen one starred, the preset as a dashed line, diverged trials as crosses at the top."""
     import matplotlib

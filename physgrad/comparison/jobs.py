@@ -9,10 +9,19 @@ import os
 import signal
 import subprocess
 import sys
+from collections.abc import Callable
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from physgrad.errors import UserError
 from physgrad.interrupts import SignalInterrupt, take_lost
+
+if TYPE_CHECKING:
+    from types import FrameType
+
+    from omegaconf import DictConfig
+
+    from physgrad.results import Run
 
 # what does not make a study another: its folder, Hydra's settings, and the number of trials (a
 # finished study given more trials tunes on from where it stopped: the Halton points of n trials
@@ -24,7 +33,7 @@ NOT_THE_STUDY = ("compare.dir", "compare.trials", "hydra")
 # --------------------------------------------------------------------------------------
 
 
-def same_study(record: dict | None):
+def same_study(record: dict | None) -> tuple[list | None, object] | None:
     """The parts of a study.json record that identify the study."""
     if not isinstance(record, dict):
         return None
@@ -106,7 +115,7 @@ def job_yaml(overrides: list[str], groups: set, values: dict) -> str:
     return text + OmegaConf.to_yaml(OmegaConf.create(_nested(keys)))
 
 
-def cadence(cfg, axis: str, budget: float) -> dict:
+def cadence(cfg: DictConfig, axis: str, budget: float) -> dict:
     """Evaluations fine enough to read the budget's quarters (time budgets: the runner's budget /
     20)."""
     if axis == "iteration" and cfg.trainer.get("eval_every", 100) * 20 > budget:
@@ -118,7 +127,14 @@ def cadence(cfg, axis: str, budget: float) -> dict:
 # ----------------------------------------------------------------------------------------------
 
 
-def launch(folder: Path, phase: str, jobs: dict[str, str], config_dir, hydra_args, say) -> int:
+def launch(
+    folder: Path,
+    phase: str,
+    jobs: dict[str, str],
+    config_dir: str | None,
+    hydra_args: list[str],
+    say: Callable[[str], object],
+) -> int:
     """Write the jobs' config files and run them as one multirun into folder/phase (a job that
     completed or diverged before with the same config is skipped); its output goes to
     folder/<phase>.log. Returns the multirun's exit status."""
@@ -146,7 +162,7 @@ def launch(folder: Path, phase: str, jobs: dict[str, str], config_dir, hydra_arg
         )
         received = []
 
-        def forward(signum, frame):
+        def forward(signum: int, frame: FrameType | None) -> None:
             received.append(signum)
             process.send_signal(signum)
 
@@ -165,7 +181,7 @@ def launch(folder: Path, phase: str, jobs: dict[str, str], config_dir, hydra_arg
 
 
 def multirun_command(
-    folder: Path, phase: str, jobs: dict[str, str], config_dir, hydra_args
+    folder: Path, phase: str, jobs: dict[str, str], config_dir: str | None, hydra_args: list[str]
 ) -> list[str]:
     """`physgrad run -m` over the jobs' config files (+compare_job=a,b,...) into folder/phase, with
     the study's config folder and Hydra overrides (a hydra.searchpath given is searched before the
@@ -193,7 +209,7 @@ def multirun_command(
     ]
 
 
-def job_runs(sweep: Path, name: str) -> list:
+def job_runs(sweep: Path, name: str) -> list[Run]:
     from physgrad.results import read_run
 
     folder = sweep / f"+compare_job={name}"

@@ -5,11 +5,16 @@ from __future__ import annotations
 
 import itertools
 from dataclasses import dataclass, field, fields
+from typing import TYPE_CHECKING, Any
 
 from physgrad.errors import UserError
 from physgrad.optim.capabilities import capabilities
 from physgrad.readout import budget_of as budget_of_config
 from physgrad.verdict import ALPHA, MARGIN
+
+if TYPE_CHECKING:
+    from hydra.core.override_parser.types import Override
+    from omegaconf import DictConfig
 
 SETTINGS = {  # compare.<key>: default, meaning
     "trials": (
@@ -62,7 +67,7 @@ class StudySettings:
     clock: str
     calibration: str | None
 
-    def __getitem__(self, key: str):
+    def __getitem__(self, key: str) -> Any:
         """settings["seeds"] as settings.seeds, for callers of the dict these settings were."""
         if key not in {f.name for f in fields(self)}:
             raise KeyError(key)
@@ -94,7 +99,7 @@ class Variant:
         return next((key for key in self.space if key.startswith("learning_rate")), "learning_rate")
 
 
-def learning_rate_key(optim_cfg) -> str | None:
+def learning_rate_key(optim_cfg: DictConfig) -> str | None:
     """The optim key compare tunes: learning_rate, or learning_rate.init_value where the rate is a
     schedule (e.g. _target_: optax.exponential_decay with init_value: the schedule's shape is kept,
     its scale tuned); None if there is neither."""
@@ -169,7 +174,7 @@ def split_overrides(overrides: list[str]) -> tuple[dict, list, list, list]:
     return settings, axes, common, hydra_args
 
 
-def _compare_setting(override, name: str, settings: dict) -> None:
+def _compare_setting(override: Override, name: str, settings: dict) -> None:
     """compare.<name>=value into settings (a search range under settings["search"])."""
     top = name.split(".")[0]
     if top not in SETTINGS:
@@ -235,7 +240,12 @@ def variant_name(overrides: list[str]) -> str:
     return " ".join(parts)
 
 
-def build_variants(axes, common, settings: StudySettings, config_dirs) -> list[Variant]:
+def build_variants(
+    axes: list[tuple[str, list[str]]],
+    common: list[str],
+    settings: StudySettings,
+    config_dirs: list[str],
+) -> list[Variant]:
     from physgrad.configs import check_overrides, compose
 
     if not axes:
@@ -261,7 +271,7 @@ def build_variants(axes, common, settings: StudySettings, config_dirs) -> list[V
     return variants
 
 
-def search_space(optim_cfg, settings: StudySettings) -> dict:
+def search_space(optim_cfg: DictConfig, settings: StudySettings) -> dict:
     """The tuned optim keys of a variant with their log-uniform ranges: its learning rate over its
     rule family's range (physgrad.optim.capabilities), and every compare.search key its optim
     has."""
@@ -284,7 +294,8 @@ def check_variants_build(variants: list[Variant], seed: int) -> None:
     bad setting) stops the study in one line before anything trains."""
     from omegaconf import open_dict
 
-    from physgrad.experiment import check_config, prepare
+    from physgrad.experiment import prepare
+    from physgrad.refusals import check_config
 
     for variant in variants:
         cfg = variant.config.copy()
@@ -296,7 +307,7 @@ def check_variants_build(variants: list[Variant], seed: int) -> None:
             raise UserError(f"variant {variant.name}: {error}") from None
 
 
-def budget_of(cfg) -> tuple[str, float]:
+def budget_of(cfg: DictConfig) -> tuple[str, float]:
     """The study's budget from a variant's config (readout.budget_of, the runner's default
     iterations where trainer.iterations is unset)."""
     from physgrad.runner import DEFAULT_ITERATIONS

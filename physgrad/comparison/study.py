@@ -28,6 +28,7 @@ import os
 import signal
 import sys
 import warnings
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -37,6 +38,7 @@ from physgrad.comparison.figure import plot_sensitivity
 from physgrad.comparison.jobs import default_folder, record_study
 from physgrad.comparison.spec import (
     SETTINGS,
+    StudySettings,
     budget_of,
     build_variants,
     check_variants_build,
@@ -63,7 +65,9 @@ class Study:
     text: str
 
 
-def run_study(overrides: list[str], config_dir: str | None = None, say=print) -> Study:
+def run_study(
+    overrides: list[str], config_dir: str | None = None, say: Callable[[str], object] = print
+) -> Study:
     """The whole study (module docstring); resumes from its folder."""
     from physgrad.errors import FolderOwned
     from physgrad.files import own_folder
@@ -76,14 +80,7 @@ def run_study(overrides: list[str], config_dir: str | None = None, say=print) ->
     variants = build_variants(axes, common, settings, config_dirs)
     check_variants_build(variants, settings.tune_seed)
     first = variants[0].config
-    comparisons = len(variants) * (len(variants) - 1) // 2
-    needed = seeds_needed(settings.alpha, comparisons)
-    if settings.seeds < needed:
-        say(
-            f"warning: {settings.seeds} seeds cannot decide {comparisons} comparisons at alpha "
-            f"{settings.alpha:g}: "
-            f"every verdict will be undecided (compare.seeds={needed} or more)"
-        )
+    _warn_if_undecidable(settings, len(variants), say)
     groups = set(first.hydra.runtime.choices.keys())
     axis, budget = budget_of(first)
     folder = (
@@ -144,7 +141,19 @@ def run_study(overrides: list[str], config_dir: str | None = None, say=print) ->
     return Study(folder, trials, runs, comparisons, verdicts, text)
 
 
-def write_curves_report(folder: Path, say) -> None:
+def _warn_if_undecidable(settings: StudySettings, count: int, say: Callable[[str], object]) -> None:
+    """A warning where the study's seeds are too few for any verdict among count variants."""
+    comparisons = count * (count - 1) // 2
+    needed = seeds_needed(settings.alpha, comparisons)
+    if settings.seeds < needed:
+        say(
+            f"warning: {settings.seeds} seeds cannot decide {comparisons} comparisons at alpha "
+            f"{settings.alpha:g}: "
+            f"every verdict will be undecided (compare.seeds={needed} or more)"
+        )
+
+
+def write_curves_report(folder: Path, say: Callable[[str], object]) -> None:
     """The sweep's report (figures of the evaluation curves) under folder/report; a failure is said,
     not raised."""
     try:

@@ -5,12 +5,20 @@ from __future__ import annotations
 
 import math
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
-from physgrad.comparison.spec import StudySettings
+from physgrad.comparison.spec import StudySettings, Variant
 from physgrad.readout import fmt, loss_at, target_loss, time_to_target
 from physgrad.verdict import FRACTIONS, compare_variants, divergence_test
+
+if TYPE_CHECKING:
+    import pandas as pd
+
+    from physgrad.readout import Curve
+    from physgrad.results import Run
+    from physgrad.verdict import Paired, PairVerdict
 
 
 def _exp(log_value: float) -> float:
@@ -24,22 +32,22 @@ def _unit(axis: str) -> str:
     return "iterations" if axis == "iteration" else "s"
 
 
-def _ratio_text(p) -> str:
+def _ratio_text(p: Paired) -> str:
     return f"{fmt(p.ratio)} [{fmt(_exp(p.low))}, {fmt(_exp(p.high))}]"
 
 
 def analyse(
     folder: Path,
-    variants,
-    best,
-    curves,
-    statuses,
+    variants: list[Variant],
+    best: dict[str, dict],
+    curves: dict[str, dict[int, Curve]],
+    statuses: dict[str, dict[int, Run]],
     settings: StudySettings,
-    axis,
-    budget,
-    trials_rows,
-    calibration=None,
-):
+    axis: str,
+    budget: float,
+    trials_rows: list[dict],
+    calibration: dict | None = None,
+) -> tuple[pd.DataFrame, pd.DataFrame, pd.DataFrame, list[PairVerdict], str]:
     """The verdicts and tables of the evaluation runs, written to folder (trials.csv, runs.csv,
     comparisons.csv, compare.md); returns (runs, comparisons, trials, verdicts, compare.md's
     text)."""
@@ -63,7 +71,14 @@ def analyse(
     return runs, comparisons, trials, verdicts, text
 
 
-def run_rows(variants, curves, statuses, axis, budget, target) -> list[dict]:
+def run_rows(
+    variants: list[Variant],
+    curves: dict[str, dict[int, Curve]],
+    statuses: dict[str, dict[int, Run]],
+    axis: str,
+    budget: float,
+    target: float,
+) -> list[dict]:
     """runs.csv: one row per evaluation run, with its test loss at each fraction of the budget and
     its time to the target."""
     from physgrad.machine import machine_label
@@ -102,7 +117,7 @@ def run_rows(variants, curves, statuses, axis, budget, target) -> list[dict]:
     return rows
 
 
-def comparison_rows(verdicts, budget) -> list[dict]:
+def comparison_rows(verdicts: list[PairVerdict], budget: float) -> list[dict]:
     """comparisons.csv: every pair at every fraction of the budget."""
     rows = []
     for v in verdicts:
@@ -134,7 +149,14 @@ def comparison_rows(verdicts, budget) -> list[dict]:
     return rows
 
 
-def verdict_lines(variants, runs, verdicts, settings: StudySettings, axis, budget) -> list[str]:
+def verdict_lines(
+    variants: list[Variant],
+    runs: pd.DataFrame,
+    verdicts: list[PairVerdict],
+    settings: StudySettings,
+    axis: str,
+    budget: float,
+) -> list[str]:
     """compare.md's title, the study's budget and rule, and its verdicts table."""
     budget_text = {
         "wall_time": f"{budget:g} s of training (measured clock)",
@@ -183,7 +205,14 @@ def verdict_lines(variants, runs, verdicts, settings: StudySettings, axis, budge
     return lines
 
 
-def variant_lines(variants, runs, best, unit, target_variant, target) -> list[str]:
+def variant_lines(
+    variants: list[Variant],
+    runs: pd.DataFrame,
+    best: dict[str, dict],
+    unit: str,
+    target_variant: str,
+    target: float,
+) -> list[str]:
     """compare.md's variants table (tuned and preset settings, test loss at the budget, time to
     target) and the target."""
     lines = [
@@ -233,59 +262,14 @@ def variant_lines(variants, runs, best, unit, target_variant, target) -> list[st
     return lines
 
 
-def timing_lines(variants, runs, axis, calibration) -> list[str]:
+def timing_lines(
+    variants: list[Variant], runs: pd.DataFrame, axis: str, calibration: dict | None
+) -> list[str]:
     """compare.md's timing section: the clock, the calibration's step costs, contended runs, the
     machines."""
     lines = ["", "## Timing", ""]
     if axis == "calibrated_time" and calibration:
-        lines += [
-            "Clock: calibrated. Step costs measured with every variant's compiled step "
-            "interleaved in one "
-            f"process (the {calibration['quantile']:g} quantile over rounds; load average "
-            f"{calibration['load_start']:.2f} -> {calibration['load_end']:.2f}); a run's time is "
-            "its "
-            "iterations times its variant's cost, so the machine's load cannot change how far a "
-            "variant "
-            "gets. The measured clock: compare.clock=measured.",
-            "",
-            "| variant | calibrated step cost | median in the calibration | rounds | measured p50 "
-            "in the runs "
-            "| contended runs |",
-            "|---|---|---|---|---|---|",
-        ]
-        for variant in variants:
-            cost = calibration["costs"][variant.name]
-            sub = runs[runs.variant == variant.name] if len(runs) else runs
-            p50 = (
-                float(np.nanmedian(sub["step_seconds_p50"]))
-                if len(sub) and sub["step_seconds_p50"].notna().any()
-                else math.nan
-            )
-            lines.append(
-                f"| {variant.name} | {fmt(cost['step_seconds'])} s | "
-                f"{fmt(cost['median_seconds'])} s | "
-                f"{cost['rounds']} | {fmt(p50)} s | "
-                f"{int(sub['contended'].sum()) if len(sub) else 0} of "
-                f"{len(sub)} |"
-            )
-        from physgrad.machine import contention
-
-        busy = contention(
-            {},
-            0,
-            calibration["load_start"],
-            calibration["load_end"],
-            int(calibration["machine"].get("cpu_count", 1)),
-        )
-        if busy:
-            lines += [
-                "",
-                f"**Warning**: the calibration ran on a busy machine ({busy}): the step costs of "
-                "the "
-                "variants are not slowed alike by other work, so recalibrate on a quiet machine "
-                "or give "
-                "one with compare.calibration.",
-            ]
+        lines += _calibration_lines(variants, runs, calibration)
     elif axis == "wall_time":
         lines += [
             "Clock: measured (training seconds as timed). A run flagged contended (step times "
@@ -316,7 +300,61 @@ def timing_lines(variants, runs, axis, calibration) -> list[str]:
     return lines
 
 
-def trial_rows(folder: Path, variants) -> list[dict]:
+def _calibration_lines(variants: list[Variant], runs: pd.DataFrame, calibration: dict) -> list[str]:
+    """The calibrated clock: how the step costs were measured, each variant's cost against its
+    runs' measured steps, and a warning where the calibration's machine was busy."""
+    lines = [
+        "Clock: calibrated. Step costs measured with every variant's compiled step "
+        "interleaved in one "
+        f"process (the {calibration['quantile']:g} quantile over rounds; load average "
+        f"{calibration['load_start']:.2f} -> {calibration['load_end']:.2f}); a run's time is "
+        "its "
+        "iterations times its variant's cost, so the machine's load cannot change how far a "
+        "variant "
+        "gets. The measured clock: compare.clock=measured.",
+        "",
+        "| variant | calibrated step cost | median in the calibration | rounds | measured p50 "
+        "in the runs "
+        "| contended runs |",
+        "|---|---|---|---|---|---|",
+    ]
+    for variant in variants:
+        cost = calibration["costs"][variant.name]
+        sub = runs[runs.variant == variant.name] if len(runs) else runs
+        p50 = (
+            float(np.nanmedian(sub["step_seconds_p50"]))
+            if len(sub) and sub["step_seconds_p50"].notna().any()
+            else math.nan
+        )
+        lines.append(
+            f"| {variant.name} | {fmt(cost['step_seconds'])} s | "
+            f"{fmt(cost['median_seconds'])} s | "
+            f"{cost['rounds']} | {fmt(p50)} s | "
+            f"{int(sub['contended'].sum()) if len(sub) else 0} of "
+            f"{len(sub)} |"
+        )
+    from physgrad.machine import contention
+
+    busy = contention(
+        {},
+        0,
+        calibration["load_start"],
+        calibration["load_end"],
+        int(calibration["machine"].get("cpu_count", 1)),
+    )
+    if busy:
+        lines += [
+            "",
+            f"**Warning**: the calibration ran on a busy machine ({busy}): the step costs of "
+            "the "
+            "variants are not slowed alike by other work, so recalibrate on a quiet machine "
+            "or give "
+            "one with compare.calibration.",
+        ]
+    return lines
+
+
+def trial_rows(folder: Path, variants: list[Variant]) -> list[dict]:
     import optuna
 
     path = folder / "tuning.journal"

@@ -5,6 +5,7 @@ variant in tuning.journal), each scored by its VALIDATION loss at the budget."""
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from pathlib import Path
 
 from physgrad.comparison.jobs import cadence, job_runs, job_yaml, launch
@@ -38,43 +39,21 @@ def tuning(
     folder: Path,
     variants: list[Variant],
     settings: StudySettings,
-    common,
-    groups,
-    axis,
-    budget,
-    config_dir,
-    hydra_args,
-    say,
+    common: list[str],
+    groups: set[str],
+    axis: str,
+    budget: float,
+    config_dir: str | None,
+    hydra_args: list[str],
+    say: Callable[[str], object],
 ) -> dict[str, dict]:
     """Phase 1: trials per variant (equal numbers), scored by validation loss at the budget; returns
     the best settings per variant (its configured ones where every trial diverged or tuning is
     off)."""
-    import optuna
-
     best = {v.name: {} for v in variants}
     if not settings.tune:
         return best
-    optuna.logging.set_verbosity(optuna.logging.WARNING)
-    storage = optuna.storages.JournalStorage(
-        optuna.storages.journal.JournalFileBackend(str(folder / "tuning.journal"))
-    )
-    studies, pending = {}, {}
-    for index, variant in enumerate(variants):
-        study = optuna.create_study(
-            study_name=variant.name, storage=storage, direction="minimize", load_if_exists=True
-        )
-        studies[variant.name] = study
-        points = halton_points(variant.space, settings.trials, settings.tune_seed + index)
-        for point in points[len(study.trials) :]:
-            study.enqueue_trial(point)
-        from optuna.trial import TrialState
-
-        while any(t.state == TrialState.WAITING for t in study.get_trials(deepcopy=False)):
-            trial = study.ask()
-            for key, (low, high) in sorted(variant.space.items()):
-                trial.suggest_float(key, low, high, log=True)
-        for trial in study.get_trials(deepcopy=False, states=(TrialState.RUNNING,)):
-            pending[(index, trial.number)] = trial
+    studies, pending = _open_studies(folder, variants, settings)
     jobs = {}
     for k in range(settings.trials):  # interleaved: trial k of every variant, then k + 1
         for index, variant in enumerate(variants):
@@ -117,8 +96,40 @@ def tuning(
     return best
 
 
+def _open_studies(
+    folder: Path, variants: list[Variant], settings: StudySettings
+) -> tuple[dict, dict]:
+    """Each variant's Optuna study in folder/tuning.journal, with its Halton points enqueued and
+    asked for; (studies by variant name, the trials not yet told by (variant index, trial
+    number))."""
+    import optuna
+
+    optuna.logging.set_verbosity(optuna.logging.WARNING)
+    storage = optuna.storages.JournalStorage(
+        optuna.storages.journal.JournalFileBackend(str(folder / "tuning.journal"))
+    )
+    studies, pending = {}, {}
+    for index, variant in enumerate(variants):
+        study = optuna.create_study(
+            study_name=variant.name, storage=storage, direction="minimize", load_if_exists=True
+        )
+        studies[variant.name] = study
+        points = halton_points(variant.space, settings.trials, settings.tune_seed + index)
+        for point in points[len(study.trials) :]:
+            study.enqueue_trial(point)
+        from optuna.trial import TrialState
+
+        while any(t.state == TrialState.WAITING for t in study.get_trials(deepcopy=False)):
+            trial = study.ask()
+            for key, (low, high) in sorted(variant.space.items()):
+                trial.suggest_float(key, low, high, log=True)
+        for trial in study.get_trials(deepcopy=False, states=(TrialState.RUNNING,)):
+            pending[(index, trial.number)] = trial
+    return studies, pending
+
+
 def _score_trials(
-    folder: Path, variants: list[Variant], studies: dict, pending: dict, axis, budget
+    folder: Path, variants: list[Variant], studies: dict, pending: dict, axis: str, budget: float
 ) -> None:
     """Each pending trial whose job ran to its end told its validation loss at the budget (a
     diverged one: infinity); one not run to its end stays pending (run again next time)."""

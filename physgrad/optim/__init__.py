@@ -7,6 +7,7 @@ or physgrad's spectral rule for Gauss-Newton and HIG) and gives its keyword argu
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from typing import Any, Callable, NamedTuple
 
 import jax
@@ -44,7 +45,7 @@ class UpdateRule(NamedTuple):
         return isinstance(self.transform, JacobianRule)
 
 
-def build_rule(optim_cfg) -> UpdateRule:
+def build_rule(optim_cfg: Mapping[str, Any]) -> UpdateRule:
     """The factory's transformation, behind the clipping of ``optim.clip`` (element-wise to [-1, 1],
     global norm 1, or none), with the gradient pass its kind and ``optim.backprop`` ask for."""
     node = (
@@ -76,17 +77,21 @@ def build_rule(optim_cfg) -> UpdateRule:
     return UpdateRule(transform, gradient, on_layers)
 
 
-def on_tree(transform, unravel) -> optax.GradientTransformationExtraArgs:
+def on_tree(
+    transform: optax.GradientTransformation, unravel: Callable[[jax.Array], optax.Params]
+) -> optax.GradientTransformationExtraArgs:
     """The rule applied to the network's parameter tree while physgrad keeps one flat vector:
     gradient,
     parameters and the extra arguments grad and value_fn are unravelled into the tree (unravel, from
     ravel_pytree) before the rule and its update is ravelled after it; slices and a concatenation,
     which XLA fuses into the step."""
 
-    def init(flat_params):
+    def init(flat_params: jax.Array) -> optax.OptState:
         return transform.init(unravel(flat_params))
 
-    def update(updates, state, params=None, **extra):
+    def update(
+        updates: jax.Array, state: optax.OptState, params: jax.Array | None = None, **extra: Any
+    ) -> tuple[jax.Array, optax.OptState]:
         if "grad" in extra:
             extra["grad"] = unravel(extra["grad"])
         if "value_fn" in extra:
@@ -100,12 +105,12 @@ def on_tree(transform, unravel) -> optax.GradientTransformationExtraArgs:
     return optax.GradientTransformationExtraArgs(init, update)
 
 
-def matrix_leaves(params) -> int:
+def matrix_leaves(params: optax.Params) -> int:
     """The number of 2-D parameter arrays (what Muon orthogonalises)."""
     return sum(jnp.ndim(leaf) == 2 for leaf in jax.tree_util.tree_leaves(params))
 
 
-def needs_value_arguments(transform, params) -> bool:
+def needs_value_arguments(transform: optax.GradientTransformation, params: optax.Params) -> bool:
     """Whether an optax rule's update needs optax's extra arguments value, grad and value_fn
     (optax.lbfgs's line search does): its update is traced once without them (jax.eval_shape,
     nothing computed) and a TypeError about missing keyword arguments says so. A chain passes the

@@ -20,7 +20,9 @@ settings too: batches_over_seeds.
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from dataclasses import dataclass
+from typing import Any
 
 
 @dataclass(frozen=True)
@@ -78,13 +80,13 @@ RULES: dict[str, Capabilities] = {
 }
 
 
-def capabilities(optim_cfg) -> Capabilities:
+def capabilities(optim_cfg: Mapping[str, Any]) -> Capabilities:
     """The capabilities of the rule an optim config builds (by its `_target_`); a factory not listed
     here is an adaptive rule given the network's layers."""
     return RULES.get(str(optim_cfg.get("_target_", "")), ADAPTIVE)
 
 
-def batches_over_seeds(optim_cfg) -> bool:
+def batches_over_seeds(optim_cfg: Mapping[str, Any]) -> bool:
     """Whether seeds=N trains in one vmapped step: not where a failed factorisation is retried in
     float64 (optim.retry_float64), which decides per seed on the host."""
     return not optim_cfg.get("retry_float64")

@@ -26,7 +26,8 @@ sizes in + 1 and out, instead of the m x m eigendecomposition of J J^T.
 
 from __future__ import annotations
 
-from typing import NamedTuple
+from collections.abc import Sequence
+from typing import TYPE_CHECKING, NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -36,6 +37,11 @@ from physgrad.errors import UserError
 from physgrad.jacobians import LayerJacobian, as_jacobian
 from physgrad.optim.spectral import JacobianRule
 from physgrad.validate import number
+
+if TYPE_CHECKING:
+    import optax
+
+    from physgrad.jacobians import DenseJacobian
 
 
 class KroneckerRule(JacobianRule):
@@ -65,7 +71,7 @@ def batch_factors(jac: LayerJacobian) -> tuple[tuple, tuple]:
     return tuple(inputs), tuple(cotangents)
 
 
-def _damped(factor: jax.Array, sqrt_gamma) -> jax.Array:
+def _damped(factor: jax.Array, sqrt_gamma: jax.Array) -> jax.Array:
     """factor + sqrt(gamma) * mean eigenvalue * I (an all-zero factor gets sqrt(gamma) * I)."""
     mean = jnp.trace(factor) / factor.shape[0]
     mean = jnp.where(mean > 0, mean, 1.0)
@@ -73,7 +79,11 @@ def _damped(factor: jax.Array, sqrt_gamma) -> jax.Array:
 
 
 def kronecker_direction(
-    jac: LayerJacobian, gradient: jax.Array, inputs_factors, cotangents_factors, damping
+    jac: LayerJacobian,
+    gradient: jax.Array,
+    inputs_factors: Sequence[jax.Array],
+    cotangents_factors: Sequence[jax.Array],
+    damping: float,
 ) -> jax.Array:
     """D = per layer (1/B) (A_l + pi sqrt(gamma) I)^-1 grad_W_bar (G_l + sqrt(gamma)/pi I)^-1, in
     the ravel_pytree order of the parameters (jac.plan.leaves), from the flat gradient J^T g; solved
@@ -116,10 +126,17 @@ def kfac(learning_rate: float, damping: float = 1e-3) -> KroneckerRule:
     number("optim.learning_rate", learning_rate, 0, open_low=True)
     number("optim.damping", damping, 0)
 
-    def init(params):
+    def init(params: optax.Params) -> KroneckerState:
         return KroneckerState(jnp.zeros((), jnp.int32))
 
-    def update(updates, state, params=None, *, jacobian, output_grad):
+    def update(
+        updates: optax.Updates,
+        state: KroneckerState,
+        params: optax.Params | None = None,
+        *,
+        jacobian: DenseJacobian | LayerJacobian | jax.Array,
+        output_grad: jax.Array,
+    ) -> tuple[optax.Updates, KroneckerState]:
         jac = as_jacobian(jacobian)
         if not isinstance(jac, LayerJacobian):
             raise UserError(

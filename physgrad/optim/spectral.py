@@ -12,7 +12,8 @@ eigh in float64 (about 5x faster at the reference sizes; docs/decisions.md has t
 from __future__ import annotations
 
 import contextlib
-from typing import NamedTuple
+from collections.abc import Callable
+from typing import TYPE_CHECKING, NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -21,6 +22,9 @@ from jax.flatten_util import ravel_pytree
 
 from physgrad.jacobians import as_jacobian
 from physgrad.validate import choice, flag, number
+
+if TYPE_CHECKING:
+    from physgrad.jacobians import DenseJacobian, LayerJacobian
 
 ROUTES = ("auto", "svd", "gram")
 # The Gram route resolves singular values down to about sqrt(m * eps_64) * max(s) (~1e-6 at m =
@@ -37,7 +41,7 @@ def _kept_scale(s: jax.Array, kappa: float, tau: float, power: float = 1.0) -> j
 
 
 def svd_direction(
-    jac, output_grad: jax.Array, kappa: float, tau: float
+    jac: DenseJacobian | LayerJacobian, output_grad: jax.Array, kappa: float, tau: float
 ) -> tuple[jax.Array, jax.Array]:
     """V diag(s^-kappa) U^T g from the thin SVD J = U diag(s) V^T, in J's precision; and the number
     of singular values kept."""
@@ -46,7 +50,7 @@ def svd_direction(
 
 
 def gram_direction(
-    jac, output_grad: jax.Array, kappa: float, tau: float
+    jac: DenseJacobian | LayerJacobian, output_grad: jax.Array, kappa: float, tau: float
 ) -> tuple[jax.Array, jax.Array]:
     """J^T U diag(lambda^-(kappa+1)/2) U^T g from J J^T = U diag(lambda) U^T, formed and decomposed
     in float64; and the number of singular values kept.
@@ -76,7 +80,11 @@ def resolve_route(route: str, tau: float, shape: tuple[int, int]) -> str:
 
 
 def _direction(
-    jac, output_grad, kappa: float, tau: float, route: str
+    jac: DenseJacobian | LayerJacobian | jax.Array,
+    output_grad: jax.Array,
+    kappa: float,
+    tau: float,
+    route: str,
 ) -> tuple[jax.Array, jax.Array]:
     jac = as_jacobian(jac)
     route = resolve_route(route, tau, jac.shape)
@@ -84,7 +92,11 @@ def _direction(
 
 
 def truncated_spectral_direction(
-    jac, output_grad: jax.Array, kappa: float, tau: float, route: str = "svd"
+    jac: DenseJacobian | LayerJacobian | jax.Array,
+    output_grad: jax.Array,
+    kappa: float,
+    tau: float,
+    route: str = "svd",
 ) -> jax.Array:
     """V diag(s^-kappa) U^T g over the singular values with s > tau * max(s); the rest contribute 0.
 
@@ -126,10 +138,17 @@ def spectral_direction(
     fails too.
     """
 
-    def init(params):
+    def init(params: optax.Params) -> SpectralState:
         return SpectralState(failures=jnp.zeros((), jnp.int32), kept=jnp.zeros((), jnp.int32))
 
-    def update(updates, state, params=None, *, jacobian, output_grad):
+    def update(
+        updates: optax.Updates,
+        state: SpectralState,
+        params: optax.Params | None = None,
+        *,
+        jacobian: DenseJacobian | LayerJacobian | jax.Array,
+        output_grad: jax.Array,
+    ) -> tuple[optax.Updates, SpectralState]:
         jac = as_jacobian(jacobian)
         g = output_grad.reshape(-1).astype(jac.dtype)
         direction, kept = _direction(jac, g, kappa, tau, route)
@@ -137,7 +156,7 @@ def spectral_direction(
         failed = inputs_finite & ~jnp.isfinite(direction).all()
         if retry_float64:
 
-            def in_float64():
+            def in_float64() -> tuple[jax.Array, jax.Array]:
                 with jax.enable_x64(True):
                     wide, wide_kept = _direction(
                         jac.astype(jnp.float64), g.astype(jnp.float64), kappa, tau, route
@@ -189,7 +208,9 @@ DAMPING_RANGE = (
 )  # the relative damping mu stays within this (no under- or overflow of lambda)
 
 
-def _eigenbasis(jac, g: jax.Array, tau: float, route: str):
+def _eigenbasis(
+    jac: DenseJacobian | LayerJacobian, g: jax.Array, tau: float, route: str
+) -> tuple[jax.Array, jax.Array, jax.Array, jax.Array]:
     """(l, U, c, keep): the squared singular values l = s^2 of J, the left singular vectors U, the
     coefficients c = U^T g and the kept ones (s > tau max(s)), from the thin SVD (J's precision) or,
     on the Gram route, from eigh(J J^T) in float64 (call under jax.enable_x64 for that route)."""
@@ -229,7 +250,13 @@ class MarquardtState(NamedTuple):
         }
 
 
-def marquardt_direction(jac, g: jax.Array, mu, tau: float, route: str):
+def marquardt_direction(
+    jac: DenseJacobian | LayerJacobian | jax.Array,
+    g: jax.Array,
+    mu: jax.Array | float,
+    tau: float,
+    route: str,
+) -> tuple[jax.Array, jax.Array, jax.Array, jax.Array]:
     """d = J^T (J J^T + lambda I)^-1 g over the kept singular values, lambda = mu * max(s^2)
     (relative, so mu is free of the problem's scale); also (l w, c) for the model's predicted
     reduction, with w = 1 / (l + lambda)."""
@@ -271,7 +298,7 @@ def marquardt_rule(
     choice("optim.route", route, ROUTES)
     flag("optim.adapt", adapt)
 
-    def init(params):
+    def init(params: optax.Params) -> MarquardtState:
         dtype = jnp.asarray(ravel_pytree(params)[0]).dtype
         zero = jnp.zeros((), jnp.int32)
         return MarquardtState(
@@ -282,7 +309,16 @@ def marquardt_rule(
             kept=zero,
         )
 
-    def update(updates, state, params=None, *, jacobian, output_grad, value=None, value_fn=None):
+    def update(
+        updates: optax.Updates,
+        state: MarquardtState,
+        params: optax.Params | None = None,
+        *,
+        jacobian: DenseJacobian | LayerJacobian | jax.Array,
+        output_grad: jax.Array,
+        value: jax.Array | None = None,
+        value_fn: Callable[[optax.Params], jax.Array] | None = None,
+    ) -> tuple[optax.Updates, MarquardtState]:
         jac = as_jacobian(jacobian)
         g = output_grad.reshape(-1).astype(jac.dtype)
         direction, lw, c, kept = marquardt_direction(jac, g, state.mu, tau, route)

@@ -11,8 +11,9 @@ for authors of new scenes.
 from __future__ import annotations
 
 import dataclasses
+from collections.abc import Mapping
 from dataclasses import dataclass, field
-from typing import Any, Callable
+from typing import TYPE_CHECKING, Any, Callable
 
 import jax
 import jax.numpy as jnp
@@ -21,11 +22,14 @@ from jax.flatten_util import ravel_pytree
 from physgrad.errors import UserError
 from physgrad.unroll import REGULAR, Backprop, Dynamics
 
+if TYPE_CHECKING:
+    from physgrad.nets import Params, Pytree
+
 # task keys that physgrad reads itself and does not pass to the scene's build function
 RESERVED_KEYS = ("name", "batch_size")
 
 
-def draw_from(key, batch_size: int, train_set):
+def draw_from(key: jax.Array, batch_size: int, train_set: Pytree) -> Pytree:
     """draw_batch for a fixed training set: batch_size samples drawn without replacement,
     independently at every iteration (from that iteration's key).
 
@@ -37,7 +41,7 @@ def draw_from(key, batch_size: int, train_set):
     return jax.tree_util.tree_map(lambda leaf: leaf[index], train_set)
 
 
-def no_metrics(params, sample, y) -> dict:
+def no_metrics(params: Params, sample: Pytree, y: jax.Array) -> dict:
     return {}
 
 
@@ -75,7 +79,7 @@ class Scene:
     test_output: Callable[[Any, Any], jax.Array] | None = None
     validation_set: Any = None
 
-    def __post_init__(self):
+    def __post_init__(self) -> None:
         if (self.sample_output is None) == (self.dynamics is None):
             raise UserError(
                 "a Scene takes sample_output (a scene without time) or dynamics (a temporal "
@@ -120,12 +124,12 @@ class Scene:
             return self.sample_output
         return self.dynamics.output(backprop)
 
-    def over_flat_params(self, unravel) -> "Scene":
+    def over_flat_params(self, unravel: Callable[[jax.Array], Params]) -> "Scene":
         """This scene with the network's parameters as one flat vector (unravel: vector -> parameter
         pytree, from ravel_pytree): an optimiser then updates one array in one fused kernel instead
         of one per layer (docs/decisions.md)."""
 
-        def flat(fn):
+        def flat(fn: Callable[..., Any]) -> Callable[..., Any]:
             return lambda flat_params, *args: fn(unravel(flat_params), *args)
 
         changes = {
@@ -143,37 +147,37 @@ class Scene:
             )
         return dataclasses.replace(self, **changes)
 
-    def sample_train(self, key, batch_size: int):
+    def sample_train(self, key: jax.Array, batch_size: int) -> Pytree:
         return self.draw_batch(key, batch_size, self.train_set)
 
-    def batch_output(self, params, batch) -> jax.Array:
+    def batch_output(self, params: Params, batch: Pytree) -> jax.Array:
         """y for a batch: shape (batch, k), sample major."""
         return jax.vmap(self.sample_output, in_axes=(None, 0))(params, batch)
 
-    def batch_loss(self, y, batch) -> jax.Array:
+    def batch_loss(self, y: jax.Array, batch: Pytree) -> jax.Array:
         """L(y) = mean_i L_i(y_i)."""
         return jnp.mean(jax.vmap(self.sample_loss)(y, batch))
 
-    def evaluate(self, params, batch) -> dict:
+    def evaluate(self, params: Params, batch: Pytree) -> dict:
         """Held-out loss and scene metrics, each a mean over the samples of ``batch`` (on
         test_output)."""
         y = self.held_out_output(params, batch)
         metrics = jax.vmap(self.sample_metrics, in_axes=(None, 0, 0))(params, batch, y)
         return {"loss": self.batch_loss(y, batch), **{k: jnp.mean(v) for k, v in metrics.items()}}
 
-    def held_out_loss(self, params, batch) -> dict:
+    def held_out_loss(self, params: Params, batch: Pytree) -> dict:
         """{"loss": the held-out loss of ``batch``} without the scene metrics: what validation reads
         (tuning and early choices need the loss only; a metric such as a long stability rollout can
         cost many times it)."""
         return {"loss": self.batch_loss(self.held_out_output(params, batch), batch)}
 
-    def held_out_output(self, params, batch) -> jax.Array:
+    def held_out_output(self, params: Params, batch: Pytree) -> jax.Array:
         """y for held-out samples: test_output where the scene has one, sample_output otherwise."""
         output = self.sample_output if self.test_output is None else self.test_output
         return jax.vmap(output, in_axes=(None, 0))(params, batch)
 
 
-def build_scene(task_cfg, key, unroll: int | None = None) -> Scene:
+def build_scene(task_cfg: Mapping[str, Any], key: jax.Array, unroll: int | None = None) -> Scene:
     """The scene a task config names (``_target_``), seeded by ``key``; ``unroll`` replaces a
     temporal scene's number of time steps (task.unroll). UserError (one line) for a setting the
     build function does not take or refuses, and if the function does not return a Scene."""

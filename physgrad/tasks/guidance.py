@@ -19,8 +19,11 @@ control_cost times the mean of c^2 over steps, drivers and both gains.
 from __future__ import annotations
 
 import math
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from functools import partial
+from os import PathLike
+from typing import TYPE_CHECKING
 
 import jax
 import jax.numpy as jnp
@@ -31,6 +34,12 @@ from physgrad.tasks import Scene
 from physgrad.unroll import Dynamics, rollout
 from physgrad.validate import layer_widths, number
 
+if TYPE_CHECKING:
+    from jax.typing import DTypeLike
+    from matplotlib.axes import Axes
+
+    from physgrad.nets import Params
+
 
 def safe_norm(r: jax.Array) -> jax.Array:
     """|r| over the last axis, with a zero gradient (not NaN) where r = 0: an agent's distance to
@@ -40,14 +49,19 @@ def safe_norm(r: jax.Array) -> jax.Array:
     return jnp.where(positive, jnp.sqrt(jnp.where(positive, squared, 1.0)), 0.0)
 
 
-def pairwise(x_to: jax.Array, x_from: jax.Array, softening: float, weight) -> jax.Array:
+def pairwise(
+    x_to: jax.Array,
+    x_from: jax.Array,
+    softening: float,
+    weight: Callable[[jax.Array], jax.Array],
+) -> jax.Array:
     """sum_i weight(d_ai) (x_to,a - x_from,i) for every a: (A, 2) and (B, 2) -> (A, 2), d =
     softening + |r|. A pair at distance 0 (an agent and itself) contributes exactly 0."""
     r = x_to[:, None, :] - x_from[None, :, :]
     return jnp.sum(weight(softening + safe_norm(r))[..., None] * r, axis=1)
 
 
-def accelerations(state, gains, drivers: int, physics: dict):
+def accelerations(state: jax.Array, gains: jax.Array, drivers: int, physics: dict) -> jax.Array:
     """d(velocity)/dt of every agent, shape (agents, 2); gains: (drivers, 2)."""
     positions, velocities = state[:, 0], state[:, 1]
     x_drivers, x_evaders = positions[:drivers], positions[drivers:]
@@ -72,20 +86,24 @@ def accelerations(state, gains, drivers: int, physics: dict):
     return jnp.concatenate([driver, evader])
 
 
-def euler_step(state, gains, dt: float, drivers: int, physics: dict):
+def euler_step(
+    state: jax.Array, gains: jax.Array, dt: float, drivers: int, physics: dict
+) -> jax.Array:
     """Explicit Euler on positions and velocities, both from the current state."""
     positions, velocities = state[:, 0], state[:, 1]
     acceleration = accelerations(state, gains, drivers, physics)
     return jnp.stack([positions + dt * velocities, velocities + dt * acceleration], axis=1)
 
 
-def initial_states(key, count: int, drivers: int, evaders: int, dtype) -> jax.Array:
+def initial_states(
+    key: jax.Array, count: int, drivers: int, evaders: int, dtype: DTypeLike
+) -> jax.Array:
     """Drivers on the annulus 3 <= r <= 4 (uniform radius and angle, each driver on its own);
     evaders around one shared centre on the annulus 1 <= r <= 2, each offset by U[-0.5, 0.5]^2;
     every velocity 0."""
     k_driver, k_centre, k_offset = jax.random.split(key, 3)
 
-    def annulus(k, shape, low, high):
+    def annulus(k: jax.Array, shape: tuple[int, ...], low: float, high: float) -> jax.Array:
         k_angle, k_radius = jax.random.split(k)
         angle = jax.random.uniform(k_angle, shape, dtype, 0.0, 2.0 * math.pi)
         radius = jax.random.uniform(k_radius, shape, dtype, low, high)
@@ -98,35 +116,41 @@ def initial_states(key, count: int, drivers: int, evaders: int, dtype) -> jax.Ar
     return jnp.stack([positions, jnp.zeros_like(positions)], axis=2)
 
 
-def initial_state(sample) -> jax.Array:
+def initial_state(sample: dict[str, jax.Array]) -> jax.Array:
     """x_0 = the sample's state."""
     return sample["state"]
 
 
-def init_network(key, *, agents: int, drivers: int, hidden, dtype):
+def init_network(
+    key: jax.Array, *, agents: int, drivers: int, hidden: Sequence[int], dtype: DTypeLike
+) -> Params:
     """An MLP from the flattened state (4 numbers per agent) to two gains per driver, its output
     layer zero (the gains start at exactly 0)."""
     return init_mlp(key, [4 * agents, *hidden, 2 * drivers], dtype, zero_last=True)
 
 
-def gains(params, state, k, *, drivers: int) -> jax.Array:
+def gains(params: Params, state: jax.Array, k: jax.Array, *, drivers: int) -> jax.Array:
     """c = MLP(state flattened) with tanh hidden layers, shape (drivers, 2); the same at every step
     k."""
     return apply_mlp(params, state.reshape(-1), hidden="tanh").reshape(drivers, 2)
 
 
-def controller(params, sample, *, drivers: int):
+def controller(
+    params: Params, sample: dict[str, jax.Array], *, drivers: int
+) -> Callable[[jax.Array, jax.Array], jax.Array]:
     """The closed-loop controller of one sample: (state, k) -> gains."""
     return partial(gains, params, drivers=drivers)
 
 
-def observe(state, gains, sample, *, drivers: int) -> jax.Array:
+def observe(
+    state: jax.Array, gains: jax.Array, sample: dict[str, jax.Array], *, drivers: int
+) -> jax.Array:
     """Per step: the mean of x_evader^2 (over evaders and coordinates) and of c^2 (over drivers,
     gains)."""
     return jnp.stack([jnp.mean(state[drivers:, 0] ** 2), jnp.mean(gains**2)])
 
 
-def readout(final, observed, sample) -> jax.Array:
+def readout(final: jax.Array, observed: jax.Array, sample: dict[str, jax.Array]) -> jax.Array:
     """y = both per-step terms of the loss: (evader term at steps 1..unroll, control term at each
     step)."""
     return observed.T.reshape(-1)
@@ -140,21 +164,28 @@ class Loss:
     unroll: int
     control_cost: float
 
-    def physics_loss(self, y) -> jax.Array:
+    def physics_loss(self, y: jax.Array) -> jax.Array:
         return jnp.mean(y[: self.unroll])
 
-    def sample_loss(self, y, sample) -> jax.Array:
+    def sample_loss(self, y: jax.Array, sample: dict[str, jax.Array]) -> jax.Array:
         return self.physics_loss(y) + self.control_cost * jnp.mean(y[self.unroll :])
 
-    def sample_metrics(self, params, sample, y) -> dict:
+    def sample_metrics(self, params: Params, sample: dict[str, jax.Array], y: jax.Array) -> dict:
         return {"physics_loss": self.physics_loss(y)}
 
 
-def agent_paths(params, states, *, step, policy, unroll: int) -> np.ndarray:
+def agent_paths(
+    params: Params,
+    states: jax.Array,
+    *,
+    step: Callable[[jax.Array, jax.Array], jax.Array],
+    policy: Callable[[Params, dict[str, jax.Array]], Callable[[jax.Array, jax.Array], jax.Array]],
+    unroll: int,
+) -> np.ndarray:
     """Positions of every agent at steps 0..unroll under the network, shape (samples, unroll + 1,
     agents, 2)."""
 
-    def positions(state):
+    def positions(state: jax.Array) -> jax.Array:
         _, visited = rollout(
             step, policy(params, {"state": state}), state, unroll, observe=lambda x, c: x[:, 0]
         )
@@ -163,7 +194,7 @@ def agent_paths(params, states, *, step, policy, unroll: int) -> np.ndarray:
     return np.asarray(jax.jit(jax.vmap(positions))(states))
 
 
-def plot_paths(ax, trajectory: np.ndarray, index: int, drivers: int) -> None:
+def plot_paths(ax: Axes, trajectory: np.ndarray, index: int, drivers: int) -> None:
     """One test state's paths: drivers red, evaders blue, start hollow, end filled, the origin a
     cross. The view holds the start and the evaders' paths; a driver that leaves it is drawn to its
     edge."""
@@ -183,8 +214,17 @@ def plot_paths(ax, trajectory: np.ndarray, index: int, drivers: int) -> None:
 
 
 def draw_paths(
-    params, test_set, path, count: int = 4, *, step, policy, unroll: int, dt: float, drivers: int
-):
+    params: Params,
+    test_set: dict[str, jax.Array],
+    path: str | PathLike[str],
+    count: int = 4,
+    *,
+    step: Callable[[jax.Array, jax.Array], jax.Array],
+    policy: Callable[[Params, dict[str, jax.Array]], Callable[[jax.Array, jax.Array], jax.Array]],
+    unroll: int,
+    dt: float,
+    drivers: int,
+) -> None:
     """Agent paths of the trained network for the first ``count`` test states, side by side, saved
     to path."""
     import matplotlib
@@ -212,23 +252,23 @@ def draw_paths(
 
 
 def build(
-    key,
+    key: jax.Array,
     *,
-    drivers,
-    evaders,
-    dt,
-    unroll,
-    control_cost,
-    softening,
-    repulsion,
-    evader_friction,
-    flocking,
-    flock_distance,
-    driver_friction,
-    spreading,
-    hidden,
-    train_size,
-    test_size,
+    drivers: int,
+    evaders: int,
+    dt: float,
+    unroll: int,
+    control_cost: float,
+    softening: float,
+    repulsion: float,
+    evader_friction: float,
+    flocking: float,
+    flock_distance: float,
+    driver_friction: float,
+    spreading: float,
+    hidden: Sequence[int],
+    train_size: int,
+    test_size: int,
 ) -> Scene:
     """The scene: the network sees the whole state (agents x [position, velocity] x [x, y],
     flattened) and gives two gains per driver; y holds the per-step terms of the loss (see

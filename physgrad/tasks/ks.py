@@ -28,35 +28,35 @@ state, mean_k mean_x (u_k - u*_k)^2 / max_{k,x} u*_k^2.
 
 from __future__ import annotations
 
-import hashlib
-import io
-import json
-import math
-import os
-import zipfile
 from dataclasses import dataclass
 from functools import partial
 from pathlib import Path
+from typing import Any, Callable
 
 import jax
 import jax.numpy as jnp
 import numpy as np
+from jax.typing import DTypeLike
 
 from physgrad.errors import UserError
-from physgrad.files import replace_file
 from physgrad.nets import apply_resnet, init_resnet
 from physgrad.tasks import Scene
+from physgrad.tasks.ks_solver import (
+    dataset,
+    domain_length,
+    draw_windows,
+    held_out_set,
+    solver_step,
+    training_set,
+)
 from physgrad.unroll import Dynamics
 from physgrad.validate import choice, flag, number
 
+Params = Any  # a pytree of network parameters
+State = tuple[jax.Array, jax.Array]  # the rollout state (u, size)
+
 STEPPERS = ("predict", "correct")
 TRAININGS = ("WIG", "NOG", "ONE")
-# bump when the generated data would change for the same settings
-DATA_VERSION = 2  # 2: a validation set beside the test set
-TEST_SEED, VALIDATION_SEED = (
-    1000,
-    2000,
-)  # numpy seeds of the held-out states: TEST_SEED + the test size's index
 # rollouts that leave [-DIVERGED_FACTOR, DIVERGED_FACTOR] x the ground truth's largest |u| count as
 # unstable
 DIVERGED_FACTOR = 3.0
@@ -65,242 +65,6 @@ ERROR_CAP = 30.0
 # the long rollout's accuracy horizon: steps before the correlation with the ground truth first
 # drops below this
 DECORRELATION = 0.5
-
-
-# --------------------------------------------------------------------------------------------------
-# solver
-
-
-def _series_or_exact(x, exact, coefficients):
-    """exact(x) where |x| >= 0.1, else the Taylor series sum_k coefficients[k] x^k (exact would
-    cancel)."""
-    small = jnp.abs(x) < 0.1
-    safe = jnp.where(small, 1.0, x)
-    series = sum(c * x**k for k, c in enumerate(coefficients))
-    return jnp.where(small, series, exact(safe))
-
-
-def phi1(x):
-    """(e^x - 1) / x, to round-off also near x = 0."""
-    return _series_or_exact(
-        x, lambda z: jnp.expm1(z) / z, [1 / math.factorial(k + 1) for k in range(9)]
-    )
-
-
-def phi2(x):
-    """(e^x - 1 - x) / x^2, to round-off also near x = 0."""
-    return _series_or_exact(
-        x, lambda z: (jnp.expm1(z) - z) / z**2, [1 / math.factorial(k + 2) for k in range(9)]
-    )
-
-
-def wavenumbers(points: int, length):
-    """kappa_n = 2 pi n / L for the rfft modes n = 0 .. points/2."""
-    return 2 * jnp.pi * jnp.arange(points // 2 + 1) / length
-
-
-def nonlinear(u, kappa):
-    """N(u) = -(i kappa / 2) FFT(u^2), the transform of -u u_x."""
-    return -0.5j * kappa * jnp.fft.rfft(u * u)
-
-
-def etd_step(u, length, h: float, order: int):
-    """One ETD1 (order 1) or ETD2RK (order 2) step of size h; u real on the grid, length L (may be
-    traced)."""
-    points = u.shape[-1]
-    kappa = wavenumbers(points, length)
-    x = (kappa**2 - kappa**4) * h
-    u_hat, n_u = jnp.fft.rfft(u), nonlinear(u, kappa)
-    a_hat = jnp.exp(x) * u_hat + h * phi1(x) * n_u
-    if order == 1:
-        return jnp.fft.irfft(a_hat, points)
-    a = jnp.fft.irfft(a_hat, points)
-    return jnp.fft.irfft(a_hat + h * phi2(x) * (nonlinear(a, kappa) - n_u), points)
-
-
-def solver_step(u, length, h: float, substeps: int, order: int):
-    """One model step: `substeps` ETD steps of size h."""
-    for _ in range(substeps):
-        u = etd_step(u, length, h, order)
-    return u
-
-
-def domain_length(base_domain: float, size):
-    return 2 * jnp.pi * base_domain * size
-
-
-# --------------------------------------------------------------------------------------------------
-# data
-
-
-def train_initial_states(points: int, base_domain: float, size: float) -> np.ndarray:
-    """The study's six training initial states on x_j = D j / points with D = base_domain * size:
-    cos(2 pi x) + a cos(2 pi x / D) (1 + b sin(2 pi x / D)) for (a, b) in (0.1, +-0.1), (-0.2,
-    +-0.3), (0.3, +-0.5)."""
-    d = base_domain * size
-    x = d * np.arange(points) / points
-    return np.stack(
-        [
-            np.cos(2 * np.pi * x)
-            + a * np.cos(2 * np.pi * x / d) * (1 + b * np.sin(2 * np.pi * x / d))
-            for a in (0.1, -0.2, 0.3)
-            for b in ({0.1: (0.1, -0.1), -0.2: (0.3, -0.3), 0.3: (0.5, -0.5)}[a])
-        ]
-    )
-
-
-def test_initial_states(
-    points: int, base_domain: float, size: float, count: int, seed: int
-) -> np.ndarray:
-    """The study's test family: cos(pi x) + c cos(2 pi x / D) (1 - s sin(2 pi x / D)), c ~ U(-0.1,
-    0.1), s ~ U(-2, 2), drawn from a fixed seed per test size."""
-    d = base_domain * size
-    x = d * np.arange(points) / points
-    rng = np.random.default_rng(seed)
-    c, s = rng.uniform(-0.1, 0.1, count), rng.uniform(-2.0, 2.0, count)
-    return np.cos(np.pi * x) + c[:, None] * np.cos(2 * np.pi * x / d) * (
-        1 - s[:, None] * np.sin(2 * np.pi * x / d)
-    )
-
-
-def trajectories(
-    initial: np.ndarray, lengths: np.ndarray, steps: int, h: float, substeps: int
-) -> np.ndarray:
-    """Ground truth in float64 (whatever the run's precision): initial (n, points), one domain
-    length per row -> (n, steps + 1, points), ETD2RK model steps."""
-    with jax.enable_x64(True):
-
-        def advance(u, _):
-            u = jax.vmap(lambda v, length: solver_step(v, length, h, substeps, 2))(u, lengths)
-            return u, u
-
-        _, states = jax.jit(lambda u0: jax.lax.scan(advance, u0, None, length=steps))(
-            jnp.asarray(initial)
-        )
-        return np.concatenate([initial[:, None], np.asarray(states).transpose(1, 0, 2)], axis=1)
-
-
-def cache_dir() -> Path:
-    """$PHYSGRAD_CACHE, else $XDG_CACHE_HOME/physgrad, else ~/.cache/physgrad."""
-    if os.environ.get("PHYSGRAD_CACHE"):
-        return Path(os.environ["PHYSGRAD_CACHE"])
-    return Path(os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache") / "physgrad"
-
-
-def generate(
-    settings: dict, initial_by_size: list, sizes: list, warmup: int, steps: int
-) -> np.ndarray:
-    """Ground truth from each size's initial states: `warmup` model steps dropped, then `steps` kept
-    -> (len(sizes), initial states per size, steps + 1, points)."""
-    initial = np.concatenate(initial_by_size)
-    lengths = np.repeat(
-        [float(domain_length(settings["base_domain"], size)) for size in sizes],
-        [len(i) for i in initial_by_size],
-    )
-    warm = trajectories(initial, lengths, warmup, settings["dt"], settings["substeps"])[:, -1]
-    states = trajectories(warm, lengths, steps, settings["dt"], settings["substeps"])
-    return states.reshape(len(sizes), -1, *states.shape[1:])
-
-
-def dataset(settings: dict) -> dict:
-    """The training and test trajectories for ``settings``, generated on first use and cached in
-    cache_dir()/ks-<hash of the settings>.npz (a change of any setting names another file).
-
-    train: (sizes, 6, train_steps + 1, points) after `warmup` steps; test: (test sizes, test_count,
-    test_steps + 1, points) after 2 * warmup steps (the study starts its test rollouts 200 steps
-    into trajectories cropped after 200); validation: as test, from other seeds of the same
-    family."""
-    key = json.dumps({**settings, "version": DATA_VERSION}, sort_keys=True)
-    path = cache_dir() / f"ks-{hashlib.sha256(key.encode()).hexdigest()[:16]}.npz"
-    if path.exists():
-        try:
-            with np.load(path) as stored:
-                if str(stored["settings"]) == key:
-                    return {part: stored[part] for part in ("train", "test", "validation")}
-        except (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile):
-            pass  # damaged or foreign: generate again
-    s = settings
-    initial = [
-        train_initial_states(s["points"], s["base_domain"], size) for size in s["train_sizes"]
-    ]
-    data = {"train": generate(s, initial, s["train_sizes"], s["warmup"], s["train_steps"])}
-    # test and validation: the test family from a fixed seed per test size (first seed + its index);
-    # validation from other seeds, for tuning (physgrad compare), so that no choice is made on the
-    # test states
-    for part, first_seed in (("test", TEST_SEED), ("validation", VALIDATION_SEED)):
-        initial = [
-            test_initial_states(
-                s["points"], s["base_domain"], size, s["test_count"], first_seed + index
-            )
-            for index, size in enumerate(s["test_sizes"])
-        ]
-        data[part] = generate(s, initial, s["test_sizes"], 2 * s["warmup"], s["test_steps"])
-    path.parent.mkdir(parents=True, exist_ok=True)
-    content = io.BytesIO()
-    np.savez(content, **data, settings=np.array(key))
-    replace_file(path, content.getvalue())  # a concurrent job of a sweep reads a whole file or none
-    return data
-
-
-def training_set(train, sizes: list[float], dtype) -> dict:
-    """train (sizes, initial states, frames, points) as flat frames, each with its size factor."""
-    train = jnp.asarray(train, dtype)
-    return {
-        "frames": train.reshape(-1, train.shape[-1]),
-        "size": jnp.repeat(jnp.asarray(sizes, dtype), train.shape[1] * train.shape[2]),
-    }
-
-
-def draw_windows(
-    training: str,
-    unroll: int,
-    trajectories_count: int,
-    frames_count: int,
-    key,
-    batch_size: int,
-    frames_set: dict,
-) -> dict:
-    """B windows of m + 1 consecutive frames (trajectory and start uniform) from the flat frames of
-    `trajectories_count` trajectories of `frames_count` frames; for ONE, B x m independent one-step
-    pairs, m per sample."""
-    pairs = batch_size * unroll if training == "ONE" else batch_size
-    span = 1 if training == "ONE" else unroll
-    k_trajectory, k_start = jax.random.split(key)
-    trajectory = jax.random.randint(k_trajectory, (pairs,), 0, trajectories_count)
-    first = trajectory * frames_count + jax.random.randint(
-        k_start, (pairs,), 0, frames_count - span
-    )
-    frames = frames_set["frames"][
-        first[:, None] + jnp.arange(span + 1)
-    ]  # (pairs, span + 1, points)
-    size = frames_set["size"][first]
-    if training == "ONE":
-        frames = frames.reshape(batch_size, unroll, 2, frames.shape[-1])
-        size = size.reshape(batch_size, unroll)
-        return {
-            "inputs": frames[:, :, 0],
-            "target": frames[:, :, 1],
-            "sizes": size,
-            "state": frames[:, 0, 0],
-            "size": size[:, 0],
-        }
-    return {"state": frames[:, 0], "target": frames[:, 1:], "size": size}
-
-
-def held_out_set(frames, sizes: list[float], horizon: int, dtype) -> dict:
-    """Rollout samples from held-out trajectories (test sizes, count, frames, points)."""
-    frames = jnp.asarray(frames, dtype)
-    states = frames[:, :, 0].reshape(-1, frames.shape[-1])
-    targets = frames[:, :, 1:].reshape(-1, frames.shape[2] - 1, frames.shape[-1])
-    return {
-        "state": states,
-        "target": targets,
-        "size": jnp.repeat(jnp.asarray(sizes, dtype), frames.shape[1]),
-        # the study's normaliser: the largest u*^2 over frames 0..horizon, the state itself included
-        "scale": jnp.maximum(
-            jnp.max(states**2, axis=1), jnp.max(targets[:, :horizon] ** 2, axis=(1, 2))
-        ),
-    }
 
 
 # --------------------------------------------------------------------------------------------------
@@ -318,30 +82,32 @@ class Stepper:
     h: float
     substeps: int
 
-    def coarse(self, u, size):
+    def coarse(self, u: jax.Array, size: float | jax.Array) -> jax.Array:
         """P: the first-order solver over one model step."""
         return solver_step(u, domain_length(self.base_domain, size), self.h, self.substeps, 1)
 
-    def stepped(self, u, size, correction):
+    def stepped(self, u: jax.Array, size: float | jax.Array, correction: jax.Array) -> jax.Array:
         """The next state from the network's output f(s)."""
         return correction if self.kind == "predict" else self.coarse(u, size) + self.h * correction
 
-    def advance(self, params, u, size):
+    def advance(self, params: Params, u: jax.Array, size: float | jax.Array) -> jax.Array:
         return self.stepped(u, size, apply_resnet(params, u, size))
 
-    def autoregressive(self, params, u, size, steps: int):
+    def autoregressive(
+        self, params: Params, u: jax.Array, size: float | jax.Array, steps: int
+    ) -> jax.Array:
         """The learned stepper's states 1..steps from u: (steps, points)."""
         return jax.lax.scan(
             lambda v, _: (self.advance(params, v, size),) * 2, u, None, length=steps
         )[1]
 
 
-def detach(state, training: str):
+def detach(state: State, training: str) -> State:
     """NOG: the state detached before every step, wherever it goes; WIG: the state itself."""
     return jax.lax.stop_gradient(state) if training == "NOG" else state
 
 
-def rollout_step(stepper: Stepper, training: str, state, output):
+def rollout_step(stepper: Stepper, training: str, state: State, output: jax.Array) -> State:
     """x_{k+1}: for ONE the policy's output itself; else the stepper's step from the (for NOG
     detached) state."""
     if training == "ONE":
@@ -350,7 +116,9 @@ def rollout_step(stepper: Stepper, training: str, state, output):
     return stepper.stepped(u, size, output), size
 
 
-def rollout_policy(stepper: Stepper, training: str, params, sample):
+def rollout_policy(
+    stepper: Stepper, training: str, params: Params, sample: dict
+) -> Callable[[State, jax.Array], jax.Array]:
     """ONE: the learned stepper from the sample's k-th ground-truth state; else the network on the
     state."""
     if training == "ONE":
@@ -373,7 +141,7 @@ def dynamics(stepper: Stepper, training: str, unroll: int) -> Dynamics:
     )
 
 
-def sample_loss(y, sample):
+def sample_loss(y: jax.Array, sample: dict) -> jax.Array:
     """Training samples: the MSE over the predicted steps and the grid. Test samples: the study's
     relative error, mean_k min(mean_x (u_k - u*_k)^2 / scale, ERROR_CAP) with scale = max u*^2 over
     frames 0..horizon (a non-finite step counts ERROR_CAP, so that a model blowing up has a finite,
@@ -387,13 +155,20 @@ def sample_loss(y, sample):
     return jnp.mean(jnp.where(jnp.isfinite(per_step), jnp.minimum(per_step, ERROR_CAP), ERROR_CAP))
 
 
-def held_out_output(stepper: Stepper, horizon: int, params, sample):
+def held_out_output(stepper: Stepper, horizon: int, params: Params, sample: dict) -> jax.Array:
     """The held-out loss's output: `horizon` steps of the learned stepper, whatever the training
     unroll."""
     return stepper.autoregressive(params, sample["state"], sample["size"], horizon).reshape(-1)
 
 
-def stability_metrics(stepper: Stepper, long_horizon: int, dtype, params, sample, y) -> dict:
+def stability_metrics(
+    stepper: Stepper,
+    long_horizon: int,
+    dtype: DTypeLike,
+    params: Params,
+    sample: dict,
+    y: jax.Array,
+) -> dict:
     """unstable_fraction: the long rollout leaves DIVERGED_FACTOR x the ground truth's largest |u|
     or is not finite; decorrelation_steps: steps before its correlation with the ground truth first
     drops below DECORRELATION (long_horizon if never)."""
@@ -413,7 +188,7 @@ def stability_metrics(stepper: Stepper, long_horizon: int, dtype, params, sample
 # scene
 
 
-def sizes(name: str, value) -> list[float]:
+def sizes(name: str, value: Any) -> list[float]:
     """A non-empty list of positive size factors."""
     listed = list(value) if isinstance(value, (list, tuple)) else None
     if not listed:
@@ -423,7 +198,7 @@ def sizes(name: str, value) -> list[float]:
     return [number(f"{name}[{i}]", v, 0, open_low=True) for i, v in enumerate(listed)]
 
 
-def pearson(a, b):
+def pearson(a: jax.Array, b: jax.Array) -> jax.Array:
     """The correlation of two fields over the grid (0 where either is constant)."""
     a, b = a - jnp.mean(a), b - jnp.mean(b)
     norms = jnp.sqrt(jnp.sum(a * a) * jnp.sum(b * b))
@@ -432,16 +207,16 @@ def pearson(a, b):
 
 def data_settings(
     unroll: int,
-    points,
-    base_domain,
-    train_sizes,
-    test_sizes,
-    dt,
-    substeps,
-    warmup,
-    train_steps,
-    test_count,
-    test_steps,
+    points: int,
+    base_domain: float,
+    train_sizes: list[float],
+    test_sizes: list[float],
+    dt: float,
+    substeps: int,
+    warmup: int,
+    train_steps: int,
+    test_count: int,
+    test_steps: int,
 ) -> dict:
     """The checked settings the data depend on (the key of dataset's cache)."""
     points = number("task.points", points, 4, integer=True)
@@ -462,26 +237,26 @@ def data_settings(
 
 
 def build(
-    key,
+    key: jax.Array,
     *,
-    stepper,
-    training,
-    unroll,
-    points,
-    base_domain,
-    train_sizes,
-    test_sizes,
-    dt,
-    substeps,
-    warmup,
-    train_steps,
-    test_count,
-    test_steps,
-    horizon,
-    long_horizon,
-    channels,
-    blocks,
-    zero_output,
+    stepper: str,
+    training: str,
+    unroll: int,
+    points: int,
+    base_domain: float,
+    train_sizes: list[float],
+    test_sizes: list[float],
+    dt: float,
+    substeps: int,
+    warmup: int,
+    train_steps: int,
+    test_count: int,
+    test_steps: int,
+    horizon: int,
+    long_horizon: int,
+    channels: int,
+    blocks: int,
+    zero_output: bool,
 ) -> Scene:
     """The scene; see the module docstring for the equations, steppers and training modalities. The
     data do not depend on ``key`` (the study's fixed initial states): seeds differ in network and
@@ -537,18 +312,12 @@ def build(
     )
 
 
-def draw_rollouts(
-    params, test_set, path, stepper: Stepper, variant: str, horizon: int, long_horizon: int
-):
-    """scene.png: a test rollout against the ground truth as space-time images (truth, model,
-    difference), and the relative error per rollout step (median over the test states, with the
-    coarse solver alone for reference)."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    steps = long_horizon
+def rollout_errors(
+    params: Params, test_set: dict, stepper: Stepper, horizon: int, steps: int
+) -> tuple[np.ndarray, np.ndarray, dict[str, np.ndarray]]:
+    """draw_rollouts' data: the network's rollouts and the ground truth over ``steps`` steps (test
+    states, steps, points), and the relative error per test state and step of the network and of the
+    coarse solver alone, capped as the held-out loss caps it."""
     model = np.asarray(
         jax.jit(jax.vmap(lambda u, s: stepper.autoregressive(params, u, s, steps)))(
             test_set["state"], test_set["size"]
@@ -556,7 +325,7 @@ def draw_rollouts(
     )
     truth = np.asarray(test_set["target"][:, :steps])
 
-    def solver_alone(u, size):
+    def solver_alone(u: jax.Array, size: jax.Array) -> jax.Array:
         return jax.lax.scan(lambda v, _: (stepper.coarse(v, size),) * 2, u, None, length=steps)[1]
 
     baseline = np.asarray(jax.jit(jax.vmap(solver_alone))(test_set["state"], test_set["size"]))
@@ -569,6 +338,28 @@ def draw_rollouts(
                 ("coarse solver P alone", np.mean((baseline - truth) ** 2, axis=2) / scale),
             )
         }
+    return model, truth, errors
+
+
+def draw_rollouts(
+    params: Params,
+    test_set: dict,
+    path: str | Path,
+    stepper: Stepper,
+    variant: str,
+    horizon: int,
+    long_horizon: int,
+) -> None:
+    """scene.png: a test rollout against the ground truth as space-time images (truth, model,
+    difference), and the relative error per rollout step (median over the test states, with the
+    coarse solver alone for reference)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    steps = long_horizon
+    model, truth, errors = rollout_errors(params, test_set, stepper, horizon, steps)
     sizes = np.asarray(test_set["size"])
     index = int(np.argmin(np.abs(sizes - np.median(sizes))))  # an interpolating size
     shown = min(steps, 200)

@@ -12,6 +12,9 @@ final step.
 
 from __future__ import annotations
 
+from collections.abc import Callable, Sequence
+from typing import TYPE_CHECKING
+
 import jax
 import jax.numpy as jnp
 
@@ -20,10 +23,15 @@ from physgrad.tasks import Scene
 from physgrad.unroll import Dynamics
 from physgrad.validate import flag, layer_widths, number
 
+if TYPE_CHECKING:
+    from physgrad.nets import Params
+
 GRAVITY, POLE_MASS, TOTAL_MASS = 9.8, 0.1, 1.1
 
 
-def accelerations(theta, theta_dot, force, half_length):
+def accelerations(
+    theta: jax.Array, theta_dot: jax.Array, force: jax.Array, half_length: float
+) -> tuple[jax.Array, jax.Array]:
     """(xddot, thetaddot) of the equations above."""
     sin, cos = jnp.sin(theta), jnp.cos(theta)
     a = (force + POLE_MASS * half_length * theta_dot**2 * sin) / TOTAL_MASS
@@ -36,7 +44,7 @@ def accelerations(theta, theta_dot, force, half_length):
     return x_ddot, theta_ddot
 
 
-def euler_step(state, force, dt, half_length):
+def euler_step(state: jax.Array, force: jax.Array, dt: float, half_length: float) -> jax.Array:
     """Semi-implicit Euler: v_{k+1} = v_k + dt a(q_k, v_k), q_{k+1} = q_k + dt v_{k+1}."""
     half = state.shape[0] // 2
     positions, velocities = state[:half], state[half:]
@@ -46,7 +54,16 @@ def euler_step(state, force, dt, half_length):
 
 
 def build(
-    key, *, poles, dt, unroll, half_length, hidden, checkpoint, train_size, test_size
+    key: jax.Array,
+    *,
+    poles: int,
+    dt: float,
+    unroll: int,
+    half_length: float,
+    hidden: Sequence[int],
+    checkpoint: bool,
+    train_size: int,
+    test_size: int,
 ) -> Scene:
     """The scene: a closed-loop controller state -> hidden tanh layers -> force, last layer
     zero-initialised."""
@@ -59,20 +76,22 @@ def build(
     sizes = [2 * (1 + poles), *layer_widths("task.hidden", hidden), 1]
     checkpoint = flag("task.checkpoint", checkpoint)
 
-    def make_states(k, count):
+    def make_states(k: jax.Array, count: int) -> dict[str, jax.Array]:
         """Hanging: theta_i = pi + U[-1, 1] pi/6; x, xdot and thetadot_i ~ U[-1, 1]."""
         k_theta, k_rest = jax.random.split(k)
         theta = jnp.pi + jax.random.uniform(k_theta, (count, poles), dtype, -1.0, 1.0) * jnp.pi / 6
         rest = jax.random.uniform(k_rest, (count, 2 + poles), dtype, -1.0, 1.0)
         return {"state": jnp.concatenate([rest[:, :1], theta, rest[:, 1:]], axis=1)}
 
-    def step(state, force):
+    def step(state: jax.Array, force: jax.Array) -> jax.Array:
         return euler_step(state, force, dt, half_length)
 
-    def policy(params, sample):
+    def policy(
+        params: Params, sample: dict[str, jax.Array]
+    ) -> Callable[[jax.Array, jax.Array], jax.Array]:
         return lambda state, k: apply_mlp(params, state, hidden="tanh")[0]
 
-    def cos_poles(final, observed, sample):
+    def cos_poles(final: jax.Array, observed: None, sample: dict[str, jax.Array]) -> jax.Array:
         return jnp.cos(final[1 : 1 + poles])  # y: cos(theta_i) of every pole at the end
 
     train_key, test_key = jax.random.split(key)

@@ -10,6 +10,9 @@ Per-sample loss: sum_j (x_j(T) - x0_j)^2, with x0 ~ U[0,1)^(2n) the start and th
 
 from __future__ import annotations
 
+from collections.abc import Callable, Sequence
+from typing import TYPE_CHECKING
+
 import jax
 import jax.numpy as jnp
 
@@ -18,8 +21,11 @@ from physgrad.tasks import Scene
 from physgrad.unroll import Dynamics
 from physgrad.validate import flag, layer_widths, number
 
+if TYPE_CHECKING:
+    from physgrad.nets import Params
 
-def vector_field(x, u, alpha, gain):
+
+def vector_field(x: jax.Array, u: jax.Array, alpha: float, gain: float) -> jax.Array:
     """dx/dt for one state x = [q, p] and a scalar control u."""
     q, p = jnp.split(x, 2)
     zero = jnp.zeros_like(q[:1])
@@ -29,13 +35,13 @@ def vector_field(x, u, alpha, gain):
     return jnp.concatenate([p, -q + alpha * (to_right**3 + to_left**3) + drive])
 
 
-def energy(x, alpha):
+def energy(x: jax.Array, alpha: float) -> jax.Array:
     """H(q, p) without the control term."""
     q, p = jnp.split(x, 2)
     return 0.5 * jnp.sum(q**2 + p**2) + 0.25 * alpha * jnp.sum((q[:-1] - q[1:]) ** 4)
 
 
-def rk4_step(x, u, dt, alpha, gain):
+def rk4_step(x: jax.Array, u: jax.Array, dt: float, alpha: float, gain: float) -> jax.Array:
     """One classic Runge-Kutta step of size dt with u constant over the step."""
     k1 = vector_field(x, u, alpha, gain)
     k2 = vector_field(x + 0.5 * dt * k1, u, alpha, gain)
@@ -45,18 +51,18 @@ def rk4_step(x, u, dt, alpha, gain):
 
 
 def build(
-    key,
+    key: jax.Array,
     *,
-    oscillators,
-    alpha,
-    gain,
-    dt,
-    unroll,
-    closed_loop,
-    hidden,
-    checkpoint,
-    train_size,
-    test_size,
+    oscillators: int,
+    alpha: float,
+    gain: float,
+    dt: float,
+    unroll: int,
+    closed_loop: bool,
+    hidden: Sequence[int],
+    checkpoint: bool,
+    train_size: int,
+    test_size: int,
 ) -> Scene:
     """The scene; closed_loop: the network sees (state, target) and gives this step's control, else
     (open loop, the paper's) it maps the target to every control at once."""
@@ -71,10 +77,12 @@ def build(
     dtype = jnp.zeros(()).dtype
     sizes = [4 * n, *hidden, 1] if closed_loop else [2 * n, *hidden, unroll]
 
-    def step(x, u):
+    def step(x: jax.Array, u: jax.Array) -> jax.Array:
         return rk4_step(x, u, dt, alpha, gain)
 
-    def policy(params, sample):
+    def policy(
+        params: Params, sample: dict[str, jax.Array]
+    ) -> Callable[[jax.Array, jax.Array], jax.Array]:
         target = sample["x0"]
         if closed_loop:
             return lambda x, k: apply_mlp(params, jnp.concatenate([x, target]), hidden="relu")[0]

@@ -8,12 +8,19 @@ per-sample loss is 1/2 * sum_cells (y - y*)^2.
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 import jax
 import jax.numpy as jnp
 
 from physgrad.nets import apply_mlp, init_mlp
 from physgrad.tasks import Scene
 from physgrad.validate import number
+
+if TYPE_CHECKING:
+    from jax.typing import DTypeLike
+
+    from physgrad.nets import Params
 
 
 def laplace(x: jax.Array) -> jax.Array:
@@ -34,7 +41,7 @@ def laplace_eigenvalues(n: int) -> jax.Array:
     return one_d[:, None] + one_d[None, :]
 
 
-def sine_basis(n: int, dtype=None) -> jax.Array:
+def sine_basis(n: int, dtype: DTypeLike | None = None) -> jax.Array:
     """Orthonormal, symmetric DST-I matrix S_ik = sqrt(2/(N+1)) sin(pi i k / (N+1)): the
     eigenvectors of the 1-D Dirichlet Laplacian."""
     idx = jnp.arange(1, n + 1, dtype=dtype)
@@ -47,7 +54,9 @@ def solve_poisson(y: jax.Array) -> jax.Array:
     return s @ ((s @ y @ s) / laplace_eigenvalues(y.shape[-1]).astype(y.dtype)) @ s
 
 
-def smooth_fields(key, count: int, n: int, smoothness: float, dtype) -> jax.Array:
+def smooth_fields(
+    key: jax.Array, count: int, n: int, smoothness: float, dtype: DTypeLike
+) -> jax.Array:
     """Random fields: complex Gaussian Fourier coefficients weighted by (1/|k|^2)^smoothness, the k
     = 0 mode dropped (the reference's |k|^2 <= 0.1 cut removes only that mode on integer wave
     numbers), real part of the inverse FFT, each sample normalised to mean 0 and standard deviation
@@ -61,7 +70,7 @@ def smooth_fields(key, count: int, n: int, smoothness: float, dtype) -> jax.Arra
     return field / field.std(axis=(-2, -1), keepdims=True)
 
 
-def build(key, *, grid, smoothness, test_size) -> Scene:
+def build(key: jax.Array, *, grid: int, smoothness: float, test_size: int) -> Scene:
     n = number("task.grid", grid, 2, integer=True)
     smoothness = number("task.smoothness", smoothness, 0)
     test_size = number("task.test_size", test_size, 1, integer=True)
@@ -75,23 +84,25 @@ def build(key, *, grid, smoothness, test_size) -> Scene:
         cells,
     ]  # 64 -> 64 -> 128 -> 64 -> 64 at N = 8: 24,896 params
 
-    def make_batch(k, count):
+    def make_batch(k: jax.Array, count: int) -> dict[str, jax.Array]:
         fields = smooth_fields(k, count, n, smoothness, dtype)
         return {
             "target": laplace(fields).reshape(count, cells),
             "field": fields.reshape(count, cells),
         }
 
-    def predict(params, sample):
+    def predict(params: Params, sample: dict[str, jax.Array]) -> jax.Array:
         return apply_mlp(params, sample["target"], hidden="tanh")
 
-    def sample_output(params, sample):
+    def sample_output(params: Params, sample: dict[str, jax.Array]) -> jax.Array:
         return laplace(predict(params, sample).reshape(n, n)).reshape(cells)
 
-    def sample_loss(y, sample):
+    def sample_loss(y: jax.Array, sample: dict[str, jax.Array]) -> jax.Array:
         return 0.5 * jnp.sum((y - sample["target"]) ** 2)
 
-    def sample_metrics(params, sample, y):
+    def sample_metrics(
+        params: Params, sample: dict[str, jax.Array], y: jax.Array
+    ) -> dict[str, jax.Array]:
         return {"field_error": jnp.mean(jnp.abs(predict(params, sample) - sample["field"]))}
 
     return Scene(

@@ -19,10 +19,12 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from functools import partial
+from typing import Any, Callable
 
 import jax
 import jax.numpy as jnp
 from jax.lax.linalg import tridiagonal_solve
+from jax.typing import DTypeLike
 
 from physgrad.errors import UserError
 from physgrad.nets import apply_control_cnn, apply_mlp, init_control_cnn, init_mlp
@@ -30,13 +32,19 @@ from physgrad.tasks import Scene
 from physgrad.unroll import Dynamics
 from physgrad.validate import choice, flag, layer_widths, number
 
+Params = Any  # a pytree of network parameters
+# a closed-loop controller: (params, psi, target) -> u
+Control = Callable[[Params, jax.Array, jax.Array], jax.Array]
+# the controller of one sample: (psi_k, k) -> u_k
+Policy = Callable[[jax.Array, jax.Array], jax.Array]
 
-def grid(points: int, dtype=jnp.float32) -> jax.Array:
+
+def grid(points: int, dtype: DTypeLike = jnp.float32) -> jax.Array:
     """x_j = j * dx, j = 1..N, built from integers."""
     return jnp.arange(1, points + 1, dtype=dtype) * (2.0 / (points + 1))
 
 
-def eigenstate(level: int, points: int, dtype=jnp.float32) -> jax.Array:
+def eigenstate(level: int, points: int, dtype: DTypeLike = jnp.float32) -> jax.Array:
     j = jnp.arange(1, points + 1, dtype=dtype)
     phi = jnp.sin(jnp.pi * level * j / (points + 1))
     return phi / jnp.linalg.norm(phi)
@@ -47,7 +55,7 @@ def eigenenergy(level: int, points: int) -> float:
     return 4.0 / dx**2 * float(jnp.sin(jnp.pi * level / (2 * (points + 1)))) ** 2
 
 
-def apply_hamiltonian(psi, u, x):
+def apply_hamiltonian(psi: jax.Array, u: float | jax.Array, x: jax.Array) -> jax.Array:
     """H psi = -(psi_{j+1} - 2 psi_j + psi_{j-1}) / dx^2 + u x_j psi_j with psi = 0 beyond the
     walls."""
     dx = x[0]
@@ -55,7 +63,7 @@ def apply_hamiltonian(psi, u, x):
     return -(padded[2:] - 2.0 * psi + padded[:-2]) / dx**2 + u * x * psi
 
 
-def crank_nicolson_step(psi, u, x, dt):
+def crank_nicolson_step(psi: jax.Array, u: float | jax.Array, x: jax.Array, dt: float) -> jax.Array:
     """Solve (I + i dt/2 H) psi_next = (I - i dt/2 H) psi with a tridiagonal solver (O(N) per
     sample)."""
     dx = x[0]
@@ -67,22 +75,29 @@ def crank_nicolson_step(psi, u, x, dt):
     return tridiagonal_solve(lower, diagonal, upper, rhs[:, None])[:, 0]
 
 
-def fidelity(target, psi):
+def fidelity(target: jax.Array, psi: jax.Array) -> jax.Array:
     """|<target|psi>|^2."""
     return jnp.abs(jnp.vdot(target, psi)) ** 2
 
 
-def realify(psi):
+def realify(psi: jax.Array) -> jax.Array:
     return jnp.concatenate([psi.real, psi.imag])
 
 
-def eigenstates(points: int, levels: int, dtype) -> list[jax.Array]:
+def eigenstates(points: int, levels: int, dtype: DTypeLike) -> list[jax.Array]:
     """phi_1..phi_levels as complex vectors (complex of the precision of ``dtype``)."""
     cplx = jnp.result_type(dtype, jnp.complex64)
     return [eigenstate(n, points, dtype).astype(cplx) for n in range(1, levels + 1)]
 
 
-def start_states(k_start, k_phase, count: int, start: str, phi, dtype) -> jax.Array:
+def start_states(
+    k_start: jax.Array,
+    k_phase: jax.Array,
+    count: int,
+    start: str,
+    phi: list[jax.Array],
+    dtype: DTypeLike,
+) -> jax.Array:
     """psi_0: phi_1 ("ground"), or ("mix12") (m_1 phi_1 + m_2 phi_2) / |m| with m_i = c_i exp(i
     a_i), c_i ~ N(0, 1), a_i ~ U[0, 2 pi)."""
     if start == "ground":
@@ -93,7 +108,9 @@ def start_states(k_start, k_phase, count: int, start: str, phi, dtype) -> jax.Ar
     return (mix[:, :1] * phi[0] + mix[:, 1:] * phi[1]) / jnp.linalg.norm(mix, axis=1, keepdims=True)
 
 
-def target_states(k_target, count: int, target: str, level: int, phi, dtype) -> jax.Array:
+def target_states(
+    k_target: jax.Array, count: int, target: str, level: int, phi: list[jax.Array], dtype: DTypeLike
+) -> jax.Array:
     """The target: ("mix23") (c_2 phi_2 + c_3 phi_3) / |c| with c_i ~ N(0, 1), real; or ("level")
     phi_level."""
     if target == "mix23":
@@ -103,7 +120,14 @@ def target_states(k_target, count: int, target: str, level: int, phi, dtype) -> 
 
 
 def make_samples(
-    key, count: int, *, points: int, start: str, target: str, level: int, dtype
+    key: jax.Array,
+    count: int,
+    *,
+    points: int,
+    start: str,
+    target: str,
+    level: int,
+    dtype: DTypeLike,
 ) -> dict:
     """``count`` samples {"psi0": start state, "target": target state}, both complex."""
     cplx = jnp.result_type(dtype, jnp.complex64)
@@ -114,12 +138,21 @@ def make_samples(
     return {"psi0": psi0.astype(cplx), "target": targets.astype(cplx)}
 
 
-def initial_state(sample) -> jax.Array:
+def initial_state(sample: dict) -> jax.Array:
     """x_0 = psi_0."""
     return sample["psi0"]
 
 
-def init_network(key, *, points: int, network: str, closed_loop: bool, hidden, unroll: int, dtype):
+def init_network(
+    key: jax.Array,
+    *,
+    points: int,
+    network: str,
+    closed_loop: bool,
+    hidden: list[int],
+    unroll: int,
+    dtype: DTypeLike,
+) -> Params:
     """closed loop: the control CNN on psi ("cnn") or an MLP from (psi, target) as real numbers to u
     ("dense"); open loop: an MLP from the target as real numbers to the controls of all unroll
     steps."""
@@ -130,38 +163,40 @@ def init_network(key, *, points: int, network: str, closed_loop: bool, hidden, u
     return init_mlp(key, [2 * points, *hidden, unroll], dtype)
 
 
-def cnn_control(params, psi, target) -> jax.Array:
+def cnn_control(params: Params, psi: jax.Array, target: jax.Array) -> jax.Array:
     """u = CNN(psi as an (N, 2) image of (Re, Im)); the target is not an input."""
     return apply_control_cnn(params, jnp.stack([psi.real, psi.imag], axis=1))
 
 
-def dense_control(params, psi, target) -> jax.Array:
+def dense_control(params: Params, psi: jax.Array, target: jax.Array) -> jax.Array:
     """u = MLP([Re psi, Im psi, Re target, Im target]) with tanh hidden layers."""
     return apply_mlp(params, jnp.concatenate([realify(psi), realify(target)]), hidden="tanh")[0]
 
 
-def feedback(control, params, target, psi, k) -> jax.Array:
+def feedback(
+    control: Control, params: Params, target: jax.Array, psi: jax.Array, k: jax.Array
+) -> jax.Array:
     """u_k = control(params, psi_k, target)."""
     return control(params, psi, target)
 
 
-def scheduled(controls, psi, k) -> jax.Array:
+def scheduled(controls: jax.Array, psi: jax.Array, k: jax.Array) -> jax.Array:
     """u_k = controls[k], whatever the state."""
     return controls[k]
 
 
-def closed_loop_policy(params, sample, *, control):
+def closed_loop_policy(params: Params, sample: dict, *, control: Control) -> Policy:
     """The controller of one sample: (psi, k) -> control(params, psi, target)."""
     return partial(feedback, control, params, sample["target"])
 
 
-def open_loop_policy(params, sample):
+def open_loop_policy(params: Params, sample: dict) -> Policy:
     """The controller of one sample: all unroll controls u = MLP([Re target, Im target]) at once,
     indexed by k."""
     return partial(scheduled, apply_mlp(params, realify(sample["target"]), hidden="tanh"))
 
 
-def step_fidelity(psi, u, sample) -> jax.Array:
+def step_fidelity(psi: jax.Array, u: jax.Array, sample: dict) -> jax.Array:
     """Observed per step: |<target|psi_{k+1}>|^2."""
     return fidelity(sample["target"], psi)
 
@@ -175,37 +210,37 @@ class Objective:
     every_step: bool
     points: int
 
-    def readout(self, final, fidelities, sample) -> jax.Array:
+    def readout(self, final: jax.Array, fidelities: jax.Array | None, sample: dict) -> jax.Array:
         return fidelities if self.every_step else realify(final)
 
-    def final_fidelity(self, y, sample) -> jax.Array:
+    def final_fidelity(self, y: jax.Array, sample: dict) -> jax.Array:
         if self.every_step:
             return y[-1]
         return fidelity(sample["target"], y[: self.points] + 1j * y[self.points :])
 
-    def sample_loss(self, y, sample) -> jax.Array:
+    def sample_loss(self, y: jax.Array, sample: dict) -> jax.Array:
         return jnp.sum(1.0 - y) if self.every_step else 1.0 - self.final_fidelity(y, sample)
 
-    def sample_metrics(self, params, sample, y) -> dict:
+    def sample_metrics(self, params: Params, sample: dict, y: jax.Array) -> dict:
         return {"fidelity": self.final_fidelity(y, sample)}
 
 
 def build(
-    key,
+    key: jax.Array,
     *,
-    points,
-    dt,
-    unroll,
-    start,
-    target,
-    target_level,
-    loss,
-    closed_loop,
-    network,
-    hidden,
-    checkpoint,
-    train_size,
-    test_size,
+    points: int,
+    dt: float,
+    unroll: int,
+    start: str,
+    target: str,
+    target_level: int,
+    loss: str,
+    closed_loop: bool,
+    network: str,
+    hidden: list[int],
+    checkpoint: bool,
+    train_size: int,
+    test_size: int,
 ) -> Scene:
     """The scene, either preset: every difference between them is one of these settings
     (docs/decisions.md)."""

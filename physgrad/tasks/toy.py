@@ -9,6 +9,9 @@ contributes 10^-4 of the curvature of the first: gradient methods neglect it, a 
 
 from __future__ import annotations
 
+from collections.abc import Sequence
+from typing import TYPE_CHECKING
+
 import jax
 import jax.numpy as jnp
 
@@ -16,29 +19,34 @@ from physgrad.nets import apply_mlp, init_mlp
 from physgrad.tasks import Scene
 from physgrad.validate import layer_widths, number
 
+if TYPE_CHECKING:
+    from physgrad.nets import Params
+
 
 def targets(x: jax.Array) -> jax.Array:
     return jnp.stack([jnp.sin(6.0 * x), jnp.cos(9.0 * x)], axis=-1)
 
 
-def build(key, *, scale, hidden, test_size) -> Scene:
+def build(key: jax.Array, *, scale: float, hidden: Sequence[int], test_size: int) -> Scene:
     scale = number("task.scale", scale, 0, open_low=True)
     hidden = layer_widths("task.hidden", hidden)
     test_size = number("task.test_size", test_size, 1, integer=True)
     dtype = jnp.zeros(()).dtype
     physics = jnp.array([1.0, scale], dtype)
 
-    def make_batch(k, count):
+    def make_batch(k: jax.Array, count: int) -> dict[str, jax.Array]:
         x = jax.random.uniform(k, (count, 1), dtype, -1.0, 1.0)
         return {"x": x, "target": physics * targets(x[:, 0])}
 
-    def sample_output(params, sample):
+    def sample_output(params: Params, sample: dict[str, jax.Array]) -> jax.Array:
         return physics * apply_mlp(params, sample["x"], hidden="tanh")
 
-    def sample_loss(y, sample):
+    def sample_loss(y: jax.Array, sample: dict[str, jax.Array]) -> jax.Array:
         return 0.5 * jnp.sum((y - sample["target"]) ** 2)
 
-    def sample_metrics(params, sample, y):
+    def sample_metrics(
+        params: Params, sample: dict[str, jax.Array], y: jax.Array
+    ) -> dict[str, jax.Array]:
         # the error of each component of the network's prediction, before the physics scales it
         error = jnp.abs(apply_mlp(params, sample["x"], hidden="tanh") - targets(sample["x"][0]))
         return {"error_first": error[0], "error_second": error[1]}

@@ -1,0 +1,296 @@
+"""A results file read as foreign data: it may come from anyone. A reader opens regular files only,
+follows no link, external storage or virtual dataset, checks every attribute's type and every
+column's shape, dtype and size before using it, and cuts long text and replaces control characters
+(terminal escapes); it never resolves or instantiates anything. A file failing a check is refused
+with one line (ValueError) naming the check. physgrad.results reads through these checks."""
+
+from __future__ import annotations
+
+import os
+import stat
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
+from pathlib import Path
+from typing import Any
+
+import h5py
+import numpy as np
+
+from physgrad.files import CONFIG_LIMIT, clean_text, file_kind, with_live_status
+
+STATUSES = ("running", "completed", "diverged", "interrupted", "failed", "refused")
+COLUMN_LIMIT = 1 << 26  # elements of one /train or /eval column (512 MiB of float64) ...
+FILE_COLUMNS_LIMIT = 1 << 28  # ... and of all of a file's columns together
+REQUIRED_TEXT = ("status", "task", "optim")
+INTEGER_ATTRS = frozenset(
+    {
+        "seed",
+        "unroll",
+        "iterations",
+        "batch_size",
+        "n_params",
+        "wall_time_shared_by",
+        "init_iterations",
+        "cpu_count",
+        "contended",
+    }
+)
+NUMBER_ATTRS = frozenset(
+    {
+        "compile_seconds",
+        "train_seconds",
+        "first_step_overhead_seconds",
+        "init_train_seconds",
+        "step_cost",
+        "load_start",
+        "load_end",
+        "step_seconds_p10",
+        "step_seconds_p50",
+        "step_seconds_p90",
+        "step_seconds_p99",
+    }
+)
+TEXT_ATTRS = frozenset(
+    {
+        "task",
+        "optim",
+        "variant",
+        "status",
+        "reason",
+        "stopped_by",
+        "config",
+        "precision",
+        "physgrad_version",
+        "jax_version",
+        "jaxlib_version",
+        "git_commit",
+        "cpu_model",
+        "device",
+        "thread_settings",
+        "hostname",
+        "created",
+        "finished",
+        "owner",
+        "heartbeat",
+        "jacobian",
+        "clock",
+        "contention",
+        "init_from",
+        "init_variant",
+    }
+)
+
+
+@contextmanager
+def open_results(path: Path) -> Iterator[h5py.File]:
+    """The HDF5 file at path, opened from a descriptor of a regular file (a FIFO, device or socket
+    named results.h5 is refused without blocking on it); ValueError (one line) if it cannot be
+    opened."""
+    try:
+        fd = os.open(path, os.O_RDONLY | os.O_NONBLOCK | getattr(os, "O_NOCTTY", 0))
+    except OSError as error:
+        raise ValueError(f"{path}: cannot be opened ({error.strerror or error})") from None
+    try:
+        mode = os.fstat(fd).st_mode
+        if not stat.S_ISREG(mode):
+            raise ValueError(f"{path}: not a regular file ({file_kind(mode)}): refused")
+        with os.fdopen(fd, "rb", closefd=False) as stream:
+            try:
+                f = h5py.File(stream, "r")
+            except (OSError, RuntimeError, ValueError) as error:
+                raise ValueError(
+                    f"{path}: cannot be read as HDF5 "
+                    f"({clean_text(str(error).splitlines()[0], 200)})"
+                ) from None
+            with f:
+                yield f
+    finally:
+        os.close(fd)
+
+
+def checked_attrs(path: Path, f: h5py.File) -> dict:
+    """The root attributes, each checked: text (cleaned, cut), integers and numbers where physgrad
+    computes with them, other scalars kept, arrays of unknown attributes dropped. ValueError naming
+    the first that fails."""
+    attrs = {}
+    for key in f.attrs:
+        name = clean_text(key, 200)
+        value = _attribute(path, f, key, name)
+        expected = _expected(key)
+        # a text seed is allowed for a refused job only (the invalid value it was refused for)
+        if not _fits(value, expected) and not (key == "seed" and isinstance(value, str)):
+            if expected is None:
+                continue  # an unknown attribute physgrad does not read: dropped
+            raise ValueError(
+                f"{path}: attribute {name!r} is {_describe(value)}, expected {expected}"
+            )
+        attrs[name] = value
+    _check_required(path, attrs)
+    return with_live_status(attrs)
+
+
+def _attribute(path: Path, f: h5py.File, key: str, name: str) -> Any:
+    """One root attribute read as a Python scalar (text decoded, cleaned and cut; the config kept
+    whole up to CONFIG_LIMIT, its lines kept), or an array as stored."""
+    try:
+        value = f.attrs[key]
+    except (OSError, RuntimeError, TypeError, ValueError) as error:
+        raise ValueError(
+            f"{path}: attribute {name!r} cannot be read ({clean_text(str(error), 200)})"
+        ) from None
+    if isinstance(value, np.ndarray) and value.shape == ():
+        value = value[()]
+    if isinstance(value, (bytes, np.bytes_)):
+        value = bytes(value).decode(errors="replace")
+    elif isinstance(value, np.generic):
+        value = value.item()
+    if isinstance(value, str):
+        if key == "config":
+            if len(value) > CONFIG_LIMIT:
+                raise ValueError(
+                    f"{path}: attribute 'config' is longer than {CONFIG_LIMIT} characters"
+                )
+            value = clean_text(value, None, lines=True)
+        else:
+            value = clean_text(value)
+    return value
+
+
+def _expected(key: str) -> str | None:
+    """What an attribute physgrad reads must be; None for one it does not read."""
+    if key in INTEGER_ATTRS:
+        return "an integer"
+    if key in NUMBER_ATTRS:
+        return "a number"
+    return "text" if key in TEXT_ATTRS else None
+
+
+def _fits(value: Any, expected: str | None) -> bool:
+    """Whether value is what _expected asks for (any scalar for an attribute physgrad does not
+    read)."""
+    if expected == "text":
+        return isinstance(value, str)
+    if expected == "an integer":
+        return isinstance(value, int) and not isinstance(value, bool)
+    if expected == "a number":
+        return isinstance(value, (int, float)) and not isinstance(value, bool)
+    return isinstance(value, (str, int, float, bool))
+
+
+def _check_required(path: Path, attrs: dict) -> None:
+    """The attributes every results file has: status (one of STATUSES), task, optim and seed (an
+    integer unless the job was refused)."""
+    missing = [key for key in (*REQUIRED_TEXT, "seed") if key not in attrs]
+    if missing:
+        raise ValueError(f"{path}: not a physgrad results file (no {', '.join(missing)} attribute)")
+    if attrs["status"] not in STATUSES:
+        raise ValueError(f"{path}: status {attrs['status']!r} is none of {', '.join(STATUSES)}")
+    if isinstance(attrs["seed"], str) and attrs["status"] != "refused":
+        raise ValueError(
+            f"{path}: attribute 'seed' is {_describe(attrs['seed'])}, expected an integer"
+        )
+
+
+def _describe(value: Any) -> str:
+    if isinstance(value, np.ndarray):
+        return f"an array of shape {value.shape}"
+    kind = "text" if isinstance(value, str) else type(value).__name__
+    return f"{kind} {clean_text(repr(value), 40)}"
+
+
+def _checked_group(path: Path, f: h5py.File, group: str) -> h5py.Group:
+    link = f.get(group, getlink=True)
+    if link is None:
+        raise ValueError(f"{path}: not a physgrad results file (no /{group})")
+    if not isinstance(link, h5py.HardLink) or not isinstance(f[group], h5py.Group):
+        raise ValueError(
+            f"{path}: /{group} is a {type(link).__name__}, not a group: links are not followed"
+        )
+    return f[group]
+
+
+def checked_columns(path: Path, f: h5py.File, group: str) -> dict[str, h5py.Dataset]:
+    """The datasets of /group after the checks (not read yet): hard links to 1-D numeric datasets
+    stored in this file, of equal length, holding iteration and loss (and in /eval wall_time) when
+    there are any."""
+    g, columns = _checked_group(path, f, group), {}
+    for key in g:
+        name = clean_text(key, 200)
+        columns[name] = _checked_column(path, g, group, key, name)
+    lengths = {key: column.shape[0] for key, column in columns.items()}
+    if len(set(lengths.values())) > 1:
+        raise ValueError(
+            f"{path}: /{group} columns have unequal lengths {lengths}: the file is damaged"
+        )
+    needed = {"iteration", "loss"} | ({"wall_time"} if group == "eval" else set())  # readers index
+    if columns and needed - set(columns):
+        raise ValueError(f"{path}: /{group} lacks {', '.join(sorted(needed - set(columns)))}")
+    return columns
+
+
+def _checked_column(path: Path, g: h5py.Group, group: str, key: str, name: str) -> h5py.Dataset:
+    """One dataset of /group: a hard link to a 1-D numeric dataset stored in this file, of at most
+    COLUMN_LIMIT rows."""
+    link = g.get(key, getlink=True)
+    if not isinstance(link, h5py.HardLink) or not isinstance(g[key], h5py.Dataset):
+        raise ValueError(
+            f"{path}: /{group}/{name} is a {type(link).__name__}, not a dataset: links are not "
+            "followed"
+        )
+    column = g[key]
+    if column.external or column.is_virtual:
+        raise ValueError(
+            f"{path}: /{group}/{name} keeps its data in other files (external or virtual "
+            "storage): refused"
+        )
+    if column.ndim != 1 or column.dtype.kind not in "fiub":
+        raise ValueError(
+            f"{path}: /{group}/{name} is {column.ndim}-D of {column.dtype}, expected a 1-D "
+            "numeric column"
+        )
+    if column.size > COLUMN_LIMIT:
+        raise ValueError(
+            f"{path}: /{group}/{name} has {column.size} rows, more than {COLUMN_LIMIT}"
+        )
+    return column
+
+
+def checked_tables(path: Path, f: h5py.File, groups: tuple[str, ...]) -> dict[str, dict]:
+    """checked_columns of every group, with at most FILE_COLUMNS_LIMIT values in all."""
+    columns = {group: checked_columns(path, f, group) for group in groups}
+    if sum(c.size for group in columns.values() for c in group.values()) > FILE_COLUMNS_LIMIT:
+        raise ValueError(
+            f"{path}: more than {FILE_COLUMNS_LIMIT} values in /train and /eval together"
+        )
+    return columns
+
+
+def checked_params(path: Path, f: h5py.File, status: str) -> h5py.Dataset:
+    """/params after the checks (not read yet): a hard link to a 1-D float dataset stored in this
+    file, of at most COLUMN_LIMIT values; ValueError (one line) if the file has none."""
+    if "params" not in f:
+        raise ValueError(
+            f"{path} holds no final network (status {status}): use a run that finished"
+        )
+    link = f.get("params", getlink=True)
+    params = f["params"] if isinstance(link, h5py.HardLink) else None
+    if (
+        not isinstance(params, h5py.Dataset)
+        or params.external
+        or params.is_virtual
+        or params.ndim != 1
+        or params.dtype.kind != "f"
+        or params.size > COLUMN_LIMIT
+    ):
+        raise ValueError(f"{path}: /params is not a 1-D float vector stored in the file: refused")
+    return params
+
+
+def read_columns(path: Path, read: Callable[[], Any]) -> Any:
+    """read() of checked columns, ValueError (one line) if HDF5 cannot read one."""
+    try:
+        return read()
+    except (OSError, RuntimeError, ValueError) as error:
+        raise ValueError(
+            f"{path}: a column cannot be read ({clean_text(str(error).splitlines()[0], 200)})"
+        ) from None
