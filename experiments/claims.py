@@ -76,9 +76,8 @@ class Study:
     untuned)."""
 
     name: str
-    overrides: tuple[
-        str, ...
-    ]  # compare's overrides: variant axes (comma lists) and common settings
+    # compare's overrides: variant axes (comma lists) and common settings
+    overrides: tuple[str, ...]
     trials: int
     seeds: int
     tune_seconds: float  # one tuning job on the 2-core machine (start-up and compilation included)
@@ -437,8 +436,7 @@ CLAIMS = (
     Claim(
         "oscillators: HIG below Adam and Gauss-Newton",
         "HIG paper (Schnell, Holl and Thuerey, ICLR 2022), Figure 1: on the coupled oscillators "
-        "HIG reaches a "
-        "lower test loss than Adam and Gauss-Newton in the same wall-clock time",
+        "HIG reaches a lower test loss than Adam and Gauss-Newton in the same wall-clock time",
         (Lower("oscillator", "hig", "adam"), Lower("oscillator", "hig", "gauss_newton")),
     ),
     Claim(
@@ -449,8 +447,7 @@ CLAIMS = (
     Claim(
         "Poisson: HIG after Adam improves further than Adam",
         "HIG paper, Figure 3: continuing an Adam-trained network with HIG lowers the loss further "
-        "than "
-        "continuing with Adam",
+        "than continuing with Adam",
         (Lower("poisson_continue", "hig", "adam"),),
         "each seed continues its own Adam network (20 s of Adam, measured clock)",
     ),
@@ -462,8 +459,7 @@ CLAIMS = (
         "cart_2",
         "cart_4",
         "C against R under each clipping of the reference's sweep (none, value, norm), at 4 poles "
-        "and as "
-        "a trend from 2 to 4 poles",
+        "and as a trend from 2 to 4 poles",
     ),
     Claim(
         "quantum control: C below R at higher target levels",
@@ -478,8 +474,7 @@ CLAIMS = (
     _stable_bptt(
         "guidance: C below R at small control cost",
         "StableBPTT paper, Figure 8: on guidance by repulsion C is better than R for small "
-        "regularisation "
-        "coefficients rc",
+        "regularisation coefficients rc",
         "guidance_1",
         "guidance_0.001",
         "C against R under each clipping, at rc = 0.001 and as a trend from rc = 1",
@@ -495,8 +490,7 @@ CLAIMS = (
     Claim(
         "KS: WIG best, NOG close, ONE worse",
         "Unrolling study, Kuramoto-Sivashinsky: training with gradients through the unroll (WIG) "
-        "gives the "
-        "lowest error, without them (NOG) comes close, one-step training (ONE) is worse",
+        "gives the lowest error, without them (NOG) comes close, one-step training (ONE) is worse",
         (
             Lower("ks_training", "training=WIG", "training=ONE"),
             Lower("ks_training", "training=NOG", "training=ONE"),
@@ -507,8 +501,7 @@ CLAIMS = (
     Claim(
         "KS: a best unroll length",
         "Unrolling study, Kuramoto-Sivashinsky: the error has a minimum at an intermediate unroll "
-        "length (the "
-        "study trains at m = 3): longer is not always better",
+        "length (the study trains at m = 3): longer is not always better",
         (Lower("ks_unroll", "3", "1"), Lower("ks_unroll", "3", "8")),
         "every m continues the same one-step (ONE) network of its seed, as the study starts "
         "longer unrolls",
@@ -516,8 +509,7 @@ CLAIMS = (
     Claim(
         "toy: HIG converges where Adam and Gauss-Newton stall",
         "HIG paper, toy example (also the PBDL book's HIG chapter): on the badly scaled toy with "
-        "lambda = 0.01 "
-        "HIG converges while Adam and Gauss-Newton stall",
+        "lambda = 0.01 HIG converges while Adam and Gauss-Newton stall",
         (
             Lower("toy", "hig", "adam", "error_second"),
             Lower("toy", "hig", "gauss_newton", "error_second"),
@@ -696,8 +688,7 @@ def decide_grows(easy: StudyRuns, hard: StudyRuns, part: Grows) -> Decision:
     measured = (
         f"{part.a} / {part.b}: {_r(_exp(float(np.median(finite(r_easy)))))} at {part.easy}, "
         f"{_r(_exp(float(np.median(finite(r_hard)))))} at {part.hard}; hard / easy = "
-        f"{_r(result.factor)} "
-        f"[{_r(_exp(result.low))}, {_r(_exp(result.high))}]"
+        f"{_r(result.factor)} [{_r(_exp(result.low))}, {_r(_exp(result.high))}]"
     )
     verdict = HOLDS if result.verdict == GROWS else OPEN if result.verdict == UNDECIDED else FAILS
     return Decision(verdict, measured, f"{result.verdict}: {result.why}")
@@ -847,8 +838,7 @@ def claims_table(root: Path, studies=None) -> str:
     names = {s.name for s in studies} if studies is not None else None
     lines = [
         "| claim (paper, where) | part | study, budget | tuned: measured | tuned: verdict | "
-        "presets: measured | "
-        "presets: verdict |",
+        "presets: measured | presets: verdict |",
         "|---|---|---|---|---|---|---|",
     ]
     for claim in CLAIMS:
@@ -869,8 +859,7 @@ def claims_table(root: Path, studies=None) -> str:
             )
             lines.append(
                 f"| {head} | {part.text()} | {_part_study(part)}, {budget} | {d.measured} | "
-                f"{d.verdict} "
-                f"({d.why}) | {p.measured} | {p.verdict} ({p.why}) |"
+                f"{d.verdict} ({d.why}) | {p.measured} | {p.verdict} ({p.why}) |"
             )
     return "\n".join(lines) + "\n"
 
@@ -1045,19 +1034,16 @@ def regime_map(root: Path, out: Path, note: str = "") -> str:
         "its 95% interval (below 1: HIG gets there first; a seed that never reaches the target "
         "counts as "
         "infinite, a pair where neither does as a tie; 0 or inf: in the middle pair one variant "
-        "got there and "
-        f"the other did not). Machine: {machine or '-'}.\n",
+        f"got there and the other did not). Machine: {machine or '-'}.\n",
         "| study | conditioning | HIG step / Adam step | time to target HIG / Adam [95%] | "
-        "reached HIG, Adam of n | "
-        "verdict |",
+        "reached HIG, Adam of n | verdict |",
         "|---|---|---|---|---|---|",
     ]
     for found in cells.values():
         for c in found:
             lines.append(
                 f"| {c.study} | {c.conditioning:g} | {_r(c.cost_ratio)} | {_r(c.ratio)} "
-                f"[{_r(c.low)}, "
-                f"{_r(c.high)}] | {c.reached[0]}, {c.reached[1]} of {c.reached[2]} | "
+                f"[{_r(c.low)}, {_r(c.high)}] | {c.reached[0]}, {c.reached[1]} of {c.reached[2]} | "
                 f"{MAP_VERDICTS.get(c.verdict, c.verdict)} |"
             )
     return "\n".join(lines) + "\n"
@@ -1074,8 +1060,7 @@ def write(root: Path, out: Path, note: str = "", profile: str = "claims") -> str
         + rule
         + "\n\n"
         f"Studies under {root}; each study's own table (variants, tuned settings, every pair, "
-        "timing): "
-        "`<study>/compare.md`.\n\n"
+        "timing): `<study>/compare.md`.\n\n"
         + claims_table(root, studies)
         + (regime_map(root, out, note) if set(MAP) <= set(studies) else "")
     )
@@ -1088,7 +1073,6 @@ if __name__ == "__main__":
         print(__doc__.split("\n\n")[1], file=sys.stderr)
         sys.exit(2)
     source = Path(sys.argv[1])
-    profile = (
-        source.name if source.name in PROFILES else "claims"
-    )  # outputs/experiments/claims-long: that profile's
+    # outputs/experiments/claims-long: that profile's
+    profile = source.name if source.name in PROFILES else "claims"
     print(write(source, Path(sys.argv[2]) if len(sys.argv) == 3 else source, profile=profile))

@@ -94,8 +94,7 @@ def claims(table) -> str:
     )
     lines.append(
         f"| correction beats prediction (about 4.5x lower error) | {measured} | correct lower in "
-        f"{wins} / "
-        f"{compared} |"
+        f"{wins} / {compared} |"
     )
     # 2: WIG best, NOG close; WIG far below ONE
     for stepper in STEPPERS:

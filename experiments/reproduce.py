@@ -50,9 +50,8 @@ class Figure:
     title: str
     experiments: tuple[str, ...]
     shows: tuple[str, ...]  # which of the report's figures this one is
-    quick: dict[str, list[str]] | None = field(
-        default_factory=dict
-    )  # experiment -> quick overrides; None: not in it
+    # experiment -> quick overrides; None: not in it
+    quick: dict[str, list[str]] | None = field(default_factory=dict)
     runs_shown: tuple[
         str, ...
     ] = ()  # globs of job folders whose per-run scene figure (scene.png) is shown too
@@ -198,8 +197,7 @@ def print_plan(figures: list[Figure], profile: str) -> None:
             count += len(jobs)
             print(
                 f"{figure.name}: +experiment={sweep.experiment} -> "
-                f"outputs/experiments/{profile}/{sweep.experiment} "
-                f"({len(jobs)} jobs)"
+                f"outputs/experiments/{profile}/{sweep.experiment} ({len(jobs)} jobs)"
             )
             for job in jobs:
                 print("    " + " ".join(job))
@@ -228,11 +226,9 @@ NOTES = {
     "quick": "QUICK PROFILE: budgets scaled down from the papers' (see experiments/reproduce.py)",
     "paper": "paper profile: the papers' budgets",
     "claims": "CLAIMS PROFILE: physgrad compare studies (tuned, paired seeds, calibrated clock), "
-    "budgets sized for "
-    "a 2-core machine (experiments/claims.py)",
+    "budgets sized for a 2-core machine (experiments/claims.py)",
     "claims-long": "CLAIMS-LONG PROFILE: the claims with the smallest share of the paper's "
-    "budget, run further "
-    "(experiments/claims.py)",
+    "budget, run further (experiments/claims.py)",
 }
 
 
@@ -265,16 +261,14 @@ def print_claims_plan(profile: str, root: Path) -> None:
             tuning = study.trials * study.variants()
             print(
                 f"    {study.name}: {study.variants()} variants, {study.trials} trials each "
-                f"({tuning} tuning jobs), "
-                f"{study.seeds} seeds ({study.eval_jobs()} evaluation jobs"
+                f"({tuning} tuning jobs), {study.seeds} seeds ({study.eval_jobs()} evaluation jobs"
                 f"{f', {study.eval_jobs(preset=True)} untuned' if study.preset else ''}), about "
                 f"{study.seconds() / 60:.0f} min"
             )
             print(f"        physgrad compare {' '.join(study.command(root))}")
     print(
         f"expected total: about {total / 3600:.1f} h on a 2-core machine, in parts run one after "
-        "another "
-        "(each resumes where it stopped; finished jobs are skipped)"
+        "another (each resumes where it stopped; finished jobs are skipped)"
     )
 
 
@@ -443,8 +437,7 @@ def main(argv: list[str] | None = None) -> int:
         "",
         note + ".",
         f"Wall time of this reproduction: {minutes:.1f} min (jobs that completed or diverged "
-        "before were "
-        "skipped, not rerun).",
+        "before were skipped, not rerun).",
         *(["", "Sweeps that did not finish cleanly: " + ", ".join(failed)] if failed else []),
         "",
     ]

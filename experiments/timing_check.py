@@ -163,8 +163,7 @@ def main(argv=None) -> int:
     lines += [
         "",
         f"Verdicts {'agree' if same else 'DIFFER'}; loaded medians "
-        f"{'within' if within else 'OUTSIDE'} "
-        "the quiet seed ranges.",
+        f"{'within' if within else 'OUTSIDE'} the quiet seed ranges.",
     ]
     text = "\n".join(lines) + "\n"
     (out / "timing_check.md").write_text(text)

@@ -28,8 +28,7 @@ def table(rows: list[dict]) -> str:
         if "runner_overhead" in row:
             overhead = (
                 f"{100 * row['runner_overhead']:.1f}% ({row['overhead_iterations']} it; "
-                "evaluations "
-                f"{100 * row['eval_share']:.0f}%)"
+                f"evaluations {100 * row['eval_share']:.0f}%)"
             )
         lines.append(
             f"| {row['task']} | {row['variant']} | {duration(row['step_s'])} | "
@@ -55,8 +54,7 @@ def jacobian_table(rows: list[dict]) -> str:
     lines = [
         "| scene | variant | J (m x n), route | form of J | step | step, per-sample J | speed-up | "
         "eigh, in turn with the step | eigh numpy / scipy evr / scipy evd / jax | bare fwd+bwd | "
-        "step / (fastest eigh + fwd+bwd) | "
-        "peak RSS (per-sample J) |",
+        "step / (fastest eigh + fwd+bwd) | peak RSS (per-sample J) |",
         "|---|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     for row in rows:
@@ -82,8 +80,7 @@ def jacobian_table(rows: list[dict]) -> str:
         lines.append(
             f"| {row['task']} | {row['variant']} | {row['jac_shape'][0]} x {row['jac_shape'][1]}, "
             f"{row['route']} | {form} | {duration(row['step_s'])} | {duration(per_sample)} | "
-            f"{speed_up} | "
-            f"{duration(row['eigh_s'])} | {eigh} | "
+            f"{speed_up} | {duration(row['eigh_s'])} | {eigh} | "
             f"{duration(row['loss_grad_s'])} | {ratio} | {peak} |"
         )
     return "\n".join(lines) + "\n"
@@ -96,16 +93,14 @@ def machine() -> str:
 
     return (
         f"{platform.processor() or platform.machine()}, {os.cpu_count()} cores, jax "
-        f"{jax.__version__} on "
-        f"{jax.devices()[0].device_kind}"
+        f"{jax.__version__} on {jax.devices()[0].device_kind}"
     )
 
 
 def seeds_table(rows: list[dict]) -> str:
     lines = [
         "| scene | variant | s/iter, 1 seed | s/iter, N seeds vectorised | throughput gain (N x "
-        "t1 / tN) "
-        "| peak RSS (both in one process) |",
+        "t1 / tN) | peak RSS (both in one process) |",
         "|---|---|---|---|---|---|",
     ]
     for row in rows:
@@ -134,14 +129,11 @@ def page(
     all), the variants' table, the Jacobian variants' table and, where measured, the seeds'."""
     header = (
         f"# physgrad benchmark\n\nMachine: {described}. Reference sizes, float32 unless marked "
-        "f64, "
-        f"median of >= {repeats} steps and >= {min_seconds:g} s after "
-        "compilation, each step "
+        f"f64, median of >= {repeats} steps and >= {min_seconds:g} s after compilation, each step "
         "timed in turn with its baselines (bare loss and gradient, the per-sample Jacobian, the "
         "eigh floor); "
         "compile: the step and the evaluation, ahead of time; peak RSS: after the step's first "
-        "call; "
-        f"{seconds:.0f} s in all.\n\n"
+        f"call; {seconds:.0f} s in all.\n\n"
     )
     seeds_text = (
         (

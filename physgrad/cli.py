@@ -288,9 +288,8 @@ def report_command(args: list[str]) -> int:
         note=options.note,
         logx=options.logx,
     )
-    print(
-        clean_text(body, None, lines=True), end=""
-    )  # paths of others' folders may hold terminal escapes
+    # paths of others' folders may hold terminal escapes
+    print(clean_text(body, None, lines=True), end="")
     return 0
 
 

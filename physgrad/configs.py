@@ -150,8 +150,7 @@ def _sweeper(parsed: list[Any]) -> str:
         except ImportError:
             raise UserError(
                 "hydra/sweeper=optuna is not installed (its plugin needs optuna < 3, which cannot "
-                "sit "
-                "beside physgrad's optuna): tune with 'physgrad compare' (docs/protocol.md)"
+                "sit beside physgrad's optuna): tune with 'physgrad compare' (docs/protocol.md)"
             ) from None
     return sweeper
 
@@ -201,10 +200,8 @@ def _check_sweep(override: Any, multirun: bool, sweeper: str) -> None:
         )
     if override.is_interval_sweep() and sweeper == "basic":
         raise UserError(
-            f"'{override.input_line}' is a search interval, which Hydra's basic sweeper "
-            "cannot "
-            "sample: tune with 'physgrad compare' (it searches each variant's learning "
-            "rate, "
+            f"'{override.input_line}' is a search interval, which Hydra's basic sweeper cannot "
+            "sample: tune with 'physgrad compare' (it searches each variant's learning rate, "
             "docs/protocol.md), or list values: choice(a,b,c) or a,b,c"
         )
 

@@ -31,12 +31,13 @@ def owner_tag() -> str:
     return f"pid {os.getpid()} on {socket.gethostname()}"
 
 
+# what "locks unsupported" looks like
 NO_LOCKS = {
     errno.ENOLCK,
     errno.ENOSYS,
     errno.EOPNOTSUPP,
     errno.EINVAL,
-}  # what "locks unsupported" looks like
+}
 HELD = {errno.EWOULDBLOCK, errno.EAGAIN, errno.EACCES}  # what "another process holds it" looks like
 
 

@@ -171,8 +171,7 @@ def gradient_pass(
     if backprop is not None and backprop not in BACKPROP_MODES:
         raise UserError(
             f"optim.backprop={backprop!r} is not allowed: choose one of "
-            f"{', '.join(BACKPROP_MODES)} "
-            "or null"
+            f"{', '.join(BACKPROP_MODES)} or null"
         )
     if uses_jacobian:
         if backprop is not None:

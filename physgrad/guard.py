@@ -27,8 +27,7 @@ def divergence_reason(quantity: str, logs: dict, iteration: int, svd_failures_be
     if logs.get("svd_failures", 0.0) > svd_failures_before:
         reason += (
             "; the SVD/eigh of the Jacobian did not converge (optim.retry_float64=true retries it "
-            "in "
-            "float64, precision=64 runs everything in float64)"
+            "in float64, precision=64 runs everything in float64)"
         )
     return reason
 
@@ -67,8 +66,7 @@ class RowGuard:
             return (
                 f"loss grew to {row[self.loss_at]:.4g} at iteration {iteration}, more than "
                 f"trainer.divergence_factor={self.factor:g} times its first value "
-                f"{run.first_loss:.4g} "
-                "(a blow-up without NaN)"
+                f"{run.first_loss:.4g} (a blow-up without NaN)"
             )
         if self.svd_at is not None:
             run.svd_failures = row[self.svd_at]

@@ -98,14 +98,12 @@ def save_figure(fig: Figure, path: str | Path, note: str) -> None:
     top = 1.0
     if note:
         fig.suptitle(literal(note), fontsize=9, color="dimgray")
-        top -= (
-            0.2 + 0.17 * (note.count("\n") + 1)
-        ) / fig.get_figheight()  # the note's lines, in inches
+        # the note's lines, in inches
+        top -= (0.2 + 0.17 * (note.count("\n") + 1)) / fig.get_figheight()
     fig.tight_layout(rect=(0, 0, 1, top))
     for suffix in (".png", ".pdf"):
-        fig.savefig(
-            Path(path).with_suffix(suffix), dpi=110, bbox_inches="tight"
-        )  # legends sit outside
+        # legends sit outside
+        fig.savefig(Path(path).with_suffix(suffix), dpi=110, bbox_inches="tight")
     plt.close(fig)
 
 

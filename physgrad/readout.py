@@ -63,9 +63,8 @@ class Curve:
             return math.nan
         losses = np.asarray(self.loss, float)[: before[-1] + 1]
         if not np.isfinite(losses).all():
-            return (
-                math.inf
-            )  # a NaN or inf held-out loss is a divergence, whatever the run's status said
+            # a NaN or inf held-out loss is a divergence, whatever the run's status said
+            return math.inf
         if (
             self.divergence_factor is not None
             and losses[0] > 0

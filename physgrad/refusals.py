@@ -62,8 +62,7 @@ def check_seeds(cfg: DictConfig) -> None:
     if cfg.seed + cfg.seeds > SEED_LIMIT:
         raise UserError(
             f"seed={cfg.seed} with seeds={cfg.seeds} reaches seed {cfg.seed + cfg.seeds - 1}: "
-            "seeds must "
-            f"stay below {SEED_LIMIT} (2^32), so use seed <= {SEED_LIMIT - cfg.seeds}"
+            f"seeds must stay below {SEED_LIMIT} (2^32), so use seed <= {SEED_LIMIT - cfg.seeds}"
         )
 
 
@@ -156,8 +155,7 @@ def check_scene_values(scene: Scene, seeds: Seeds, name: str) -> None:
     if not jnp.issubdtype(loss.dtype, jnp.floating):
         raise UserError(
             f"task={name}: sample_loss returns {loss.dtype}; it must be a real float (compute it "
-            "in "
-            "floating point; for a complex output take abs() or .real)"
+            "in floating point; for a complex output take abs() or .real)"
         )
     for which, data in (("test_set", seeds.test_sets), ("validation_set", seeds.validation_sets)):
         bad = sum(
@@ -188,8 +186,7 @@ def check_layer_factors(cfg: DictConfig, kind: Capabilities, gradient: JacobianP
     per sample."""
     if kind.needs_layer_factors and gradient.plan is None:
         raise UserError(
-            f"optim={cfg.optim.name} needs the Jacobian in layer factors and "
-            f"task={cfg.task.name} "
+            f"optim={cfg.optim.name} needs the Jacobian in layer factors and task={cfg.task.name} "
             f"gives it per sample ({gradient.why_per_sample}): use levenberg_marquardt or "
             "gauss_newton"
         )

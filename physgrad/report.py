@@ -135,9 +135,8 @@ def group_rows(rows: list[dict], names: list[str]) -> list[dict]:
         groups[(row["scene"], row["label"])].append(row)
     table = []
     for (scene, label), members in groups.items():
-        completed = [
-            r for r in members if r["status"] == "completed"
-        ]  # a diverged run's last loss says nothing
+        # a diverged run's last loss says nothing
+        completed = [r for r in members if r["status"] == "completed"]
         reached = [r["time_to_threshold"] for r in members if math.isfinite(r["time_to_threshold"])]
         time_to = (
             "-"
@@ -175,8 +174,7 @@ def timing_notes(rows: list[dict], scenes: list[str]) -> list[str]:
         if len(machines) > 1:
             notes.append(
                 f"warning: the runs of {scene} come from {len(machines)} machines "
-                f"({'; '.join(machines)}): "
-                "their times are not comparable"
+                f"({'; '.join(machines)}): their times are not comparable"
             )
         else:
             notes.append(f"{scene} measured on {machines[0]}.")
@@ -184,8 +182,7 @@ def timing_notes(rows: list[dict], scenes: list[str]) -> list[str]:
     if contended:
         notes.append(
             f"warning: {len(contended)} of {len(rows)} runs were contended (their measured times "
-            "were "
-            "slowed by other work; calibrated times, where present, are not): "
+            "were slowed by other work; calibrated times, where present, are not): "
             + "; ".join(f"{r['label']} seed {r['seed']}: {r['contention']}" for r in contended[:5])
             + (" ..." if len(contended) > 5 else "")
         )
@@ -311,8 +308,7 @@ def summary_lines(
     else:
         threshold_text = (
             "each scene's target: the median final test loss of its best group, as physgrad "
-            "compare "
-            "sets it (--threshold sets one)"
+            "compare sets it (--threshold sets one)"
         )
     per_scene = "; ".join(
         f"{scene}: common time {fmt(common.get(scene, math.nan))} s, threshold "
@@ -330,11 +326,9 @@ def summary_lines(
         "loss at common time: the last evaluation at or before the shortest training time of the "
         "scene's "
         "completed runs (as physgrad compare reads a budget: physgrad.readout), so every variant "
-        "is compared "
-        "at equal training time; time to threshold: "
+        "is compared at equal training time; time to threshold: "
         f"median training seconds until the test loss first reached {threshold_text}, over the "
-        "seeds that "
-        f"did (n/N when not all). {per_scene}.",
+        f"seeds that did (n/N when not all). {per_scene}.",
         "",
         "Per seed:",
         "",
@@ -342,8 +336,7 @@ def summary_lines(
         "Times are training seconds (steps only: compilation and the first step's one-off cost "
         "are apart, in "
         "compile_seconds and runs.csv); a run started from another's network counts from where "
-        "that run ended "
-        "on the common time axis, and from its own start in train_seconds.",
+        "that run ended on the common time axis, and from its own start in train_seconds.",
     ]
 
 
@@ -380,7 +373,6 @@ def file_notes(
             )
             text.append(
                 f"tuned by Optuna in {path}: best {settings} (objective "
-                f"{fmt(best.get('best_value'))}: the "
-                "final test loss)"
+                f"{fmt(best.get('best_value'))}: the final test loss)"
             )
     return text

@@ -251,9 +251,8 @@ def plot_tradeoff(
     limits = targets(runs) if thresholds is None else thresholds
     by_scene = _tradeoff_points(runs, limits)
     scenes = sorted(by_scene, key=natural_key) or ["(no finished runs)"]
-    columns = min(
-        len(scenes), 4
-    )  # scenes per row; each scene is a pair of panels stacked vertically
+    # scenes per row; each scene is a pair of panels stacked vertically
+    columns = min(len(scenes), 4)
     rows = -(-len(scenes) // columns)
     fig, axes = plt.subplots(
         2 * rows, columns, figsize=(max(8.0, 5.0 * columns), 7.0 * rows), squeeze=False
@@ -374,9 +373,8 @@ def plot_unroll(
         unroll = run.attrs.get("unroll")
         if unroll is not None:
             scene = " ".join(word for word in run.scene.split() if not word.startswith("unroll="))
-            final = (
-                loss_at(run) if run.attrs.get("status") == "completed" else np.nan
-            )  # diverged: no loss
+            # diverged: no loss
+            final = loss_at(run) if run.attrs.get("status") == "completed" else np.nan
             by_scene[scene][run.label or run.variant][int(unroll)].append(
                 (final, run.seconds_per_iteration)
             )

@@ -81,9 +81,8 @@ class ResultsWriter:
         }
         self._columns: dict[str, tuple[str, ...] | None] = {group: None for group in GROUPS}
         self._rows: dict[str, list[tuple]] = {group: [] for group in GROUPS}  # not yet flushed
-        self._data: dict[str, dict[str, list[np.ndarray]]] = {
-            group: {} for group in GROUPS
-        }  # flushed chunks
+        # flushed chunks
+        self._data: dict[str, dict[str, list[np.ndarray]]] = {group: {} for group in GROUPS}
         self._params: np.ndarray | None = None
         for stale in self.live.parent.glob(
             f".{self.live.name}.*.tmp"

@@ -20,9 +20,8 @@ def comparable_config(cfg: DictConfig) -> dict:
     change what a run computes."""
     plain = OmegaConf.to_container(cfg, resolve=True)
     plain.pop("overwrite", None)
-    return parse_config(
-        OmegaConf.to_yaml(plain)
-    )  # the stored text's round trip: YAML's types, cleaned text
+    # the stored text's round trip: YAML's types, cleaned text
+    return parse_config(OmegaConf.to_yaml(plain))
 
 
 def finished_before(path: Path, cfg: DictConfig) -> Outcome | None:

@@ -100,6 +100,7 @@ def _identity(run: Run) -> tuple:
     config = {k: v for k, v in config_row(run).items() if k not in NOT_COMPUTATION}
     if not config:
         return (str(run.path.resolve()),)
+    # another start is another run
     return (
         run.collection,
         repr(sorted(config.items())),
@@ -107,7 +108,7 @@ def _identity(run: Run) -> tuple:
         run.variant,
         str(run.attrs.get("seed")),
         str(run.attrs.get("init_from", "")),
-    )  # another start is another run
+    )
 
 
 def drop_duplicates(runs: list[Run]) -> tuple[list[Run], list[Dropped]]:

@@ -16,6 +16,7 @@ from physgrad.files import replaced_text
 from physgrad.readout import config_row
 from physgrad.results import Run
 
+# repeated in curves
 ID_COLUMNS = (
     "set",
     "task",
@@ -25,7 +26,7 @@ ID_COLUMNS = (
     "label",
     "seed",
     "status",
-)  # repeated in curves
+)
 CSV_TRAIN_ROWS = (
     1000  # curves.csv keeps every evaluation and at most this many training rows per run
 )

@@ -235,9 +235,8 @@ def test_check_finds_a_scene_s_wrong_gradient(tmp_path, monkeypatch, capsys, wro
     assert (
         by_name["R"].startswith("FAIL" if wrong else "ok") and "finite differences" in by_name["R"]
     )
-    assert by_name["jacobian"].startswith(
-        "ok"
-    )  # jvp and vjp share the wrong rule: only differences see it
+    # jvp and vjp share the wrong rule: only differences see it
+    assert by_name["jacobian"].startswith("ok")
     assert lines[-1].startswith("task=heat: ") and ("failed: gradient R" in lines[-1]) == wrong
 
 

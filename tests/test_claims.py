@@ -177,9 +177,8 @@ def test_stall_tells_a_stalled_variant_from_a_slow_and_an_unstable_one(tmp_path,
     verdict, ((_, d),) = claims.decide_claim(
         claim_of(claims.Stalls("toy", "diverged", "error_second")), tmp_path
     )
-    assert (
-        verdict == FAILS and "rising" in d.why and "diverged in 10 of 10" in d.measured
-    )  # not a tie of infinities
+    # not a tie of infinities
+    assert verdict == FAILS and "rising" in d.why and "diverged in 10 of 10" in d.measured
 
 
 def test_a_claim_without_its_study_is_open_and_says_why(tmp_path, studies):
@@ -267,9 +266,8 @@ def test_the_regime_map_target_is_what_the_slower_variant_typically_reaches(tmp_
     cell = claims.map_cell(tmp_path, study)
     assert cell.reached == (10, 5, 10) and cell.ratio == 0.0 and cell.high == pytest.approx(0.5)
     assert cell.verdict == "A better" and claims.MAP_VERDICTS[cell.verdict] == "HIG first"
-    assert (
-        math.isnan(cell.cost_ratio) and cell.conditioning == 1.0
-    )  # no calibration file: no cost, no crash
+    # no calibration file: no cost, no crash
+    assert math.isnan(cell.cost_ratio) and cell.conditioning == 1.0
     # Adam diverged in most seeds: its median is not finite, the target is HIG's own median, reached
     # by HIG in half its seeds and by Adam never: HIG first where it got there, ties elsewhere
     studies[study.name] = FakeStudy(
@@ -293,9 +291,8 @@ def test_the_regime_map_target_is_what_the_slower_variant_typically_reaches(tmp_
     assert (
         cell.reached == (0, 0, 10) and cell.verdict == claims.NO_TARGET and math.isnan(cell.ratio)
     )
-    claims.plot_map(
-        {"oscillators": [cell]}, tmp_path / "payoff.png", "a machine"
-    )  # a blank cell, drawn
+    # a blank cell, drawn
+    claims.plot_map({"oscillators": [cell]}, tmp_path / "payoff.png", "a machine")
     assert (tmp_path / "payoff.png").stat().st_size > 10_000
 
 
@@ -349,9 +346,8 @@ def test_a_study_command_names_its_folder_seeds_trials_and_the_presets_clock(tmp
     )
     assert f"compare.calibration={tmp_path / 'oscillator' / 'calibration.json'}" in preset
     cart = next(s for s in claims.STUDIES if s.name == "cart_4")
-    assert (
-        cart.variants() == 6 and cart.eval_jobs() == 6
-    )  # seeds trained together, one job per variant
+    # seeds trained together, one job per variant
+    assert cart.variants() == 6 and cart.eval_jobs() == 6
     unroll = next(s for s in claims.STUDIES if s.name == "ks_unroll")
     assert unroll.eval_jobs() == 3 * unroll.seeds  # init_from: one network per job
     assert any(

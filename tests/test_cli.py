@@ -58,9 +58,8 @@ def test_short_run_writes_the_results_schema(tmp_path):
             "completed",
         )
         assert "name: hig" in attrs["config"] and "iterations: 20" in attrs["config"]
-        assert (
-            attrs["jacobian"] == "layer-factorised"
-        )  # the form of J the step used (physgrad.jacobians)
+        # the form of J the step used (physgrad.jacobians)
+        assert attrs["jacobian"] == "layer-factorised"
         assert set(f["train"]) >= {
             "iteration",
             "wall_time",
@@ -240,9 +239,8 @@ def test_added_keys_nothing_reads_and_unquoted_paths_are_one_line_errors(overrid
     with pytest.raises(UserError) as caught:
         check_overrides(["task=toy", override], multirun=False)
     assert fragment in str(caught.value) and "\n" not in str(caught.value)
-    check_overrides(
-        ["task=toy", "+optim.weight_decay=0.1"], multirun=False
-    )  # a keyword for the factory
+    # a keyword for the factory
+    check_overrides(["task=toy", "+optim.weight_decay=0.1"], multirun=False)
 
 
 @pytest.mark.parametrize(

@@ -108,9 +108,8 @@ def test_halton_points_cover_the_log_range_and_repeat():
     points = halton_points({"learning_rate": (1e-5, 1e-1), "tau": (1e-8, 1e-4)}, 16, 7)
     assert points == halton_points({"learning_rate": (1e-5, 1e-1), "tau": (1e-8, 1e-4)}, 16, 7)
     logs = np.log10([p["learning_rate"] for p in points])
-    assert (
-        logs.min() >= -5 and logs.max() <= -1 and len(set(np.floor(logs))) == 4
-    )  # every decade is tried
+    # every decade is tried
+    assert logs.min() >= -5 and logs.max() <= -1 and len(set(np.floor(logs))) == 4
     assert all(1e-8 <= p["tau"] <= 1e-4 for p in points)
 
 
@@ -175,14 +174,12 @@ def test_validation_reads_the_held_out_loss_without_paying_for_the_scene_metrics
         out_dir=tmp_path,
     )
     compiled, seeds = captured["compiled"], captured["seeds"]
-    assert {"error_first", "error_second"} <= set(
-        run.eval
-    )  # the toy has metrics: the test sets still get them
+    # the toy has metrics: the test sets still get them
+    assert {"error_first", "error_second"} <= set(run.eval)
     validated = compiled.validate(compiled.params, seeds.validation_sets)
     assert set(validated) == {"loss"}
-    full = compiled.evaluate(
-        compiled.params, seeds.validation_sets
-    )  # toy: the same shapes as the test sets
+    # toy: the same shapes as the test sets
+    full = compiled.evaluate(compiled.params, seeds.validation_sets)
     np.testing.assert_allclose(np.asarray(validated["loss"]), np.asarray(full["loss"]), rtol=1e-6)
     assert not np.allclose(
         np.asarray(validated["loss"]),
@@ -331,9 +328,8 @@ def test_a_study_stopped_at_random_instants_resumes_to_the_same_trials(tmp_path)
 
     from tests.test_cli import PHYSGRAD
 
-    repeats = max(
-        1, int(os.environ.get("PHYSGRAD_FAULT_REPEATS", "1")) // 4
-    )  # a study per kill: 5 at make test-faults
+    # a study per kill: 5 at make test-faults
+    repeats = max(1, int(os.environ.get("PHYSGRAD_FAULT_REPEATS", "1")) // 4)
     rng = random.Random(0)
     for attempt in range(repeats):
         study = tmp_path / f"study{attempt}"

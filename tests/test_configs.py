@@ -173,9 +173,8 @@ def test_per_scene_variant_settings_come_from_config():
         0.5,
         64,
     )
-    assert (
-        load("optim=hig", "optim.learning_rate=0.1").optim.learning_rate == 0.1
-    )  # the command line wins
+    # the command line wins
+    assert load("optim=hig", "optim.learning_rate=0.1").optim.learning_rate == 0.1
     assert load("optim=gauss_newton").optim.kappa == 1.0
     # the batch size has one source, task.batch_size, and trainer.batch_size overrides it
     assert load("task=oscillator", "optim=hig", "task.batch_size=64").trainer.batch_size == 64

@@ -78,18 +78,16 @@ def test_a_writer_killed_at_random_instants_leaves_a_consistent_file(tmp_path):
             assert read_run(path).attrs["status"] == "crashed"  # its writer is gone
             process = start_writer(path)
             continue
-        os.kill(
-            process.pid, signal.SIGSTOP
-        )  # freeze it anywhere: what a kill at this instant leaves
+        # freeze it anywhere: what a kill at this instant leaves
+        os.kill(process.pid, signal.SIGSTOP)
         assert_consistent(path)
         rows_seen.add((kill // 10, read_run(path).train.get("iteration", np.empty(0)).size))
         os.kill(process.pid, signal.SIGCONT)
     process.kill()
     process.wait()
     assert_consistent(path)
-    assert (
-        len(rows_seen) > kills // 3
-    )  # the instants really were spread over many writes of each writer
+    # the instants really were spread over many writes of each writer
+    assert len(rows_seen) > kills // 3
 
 
 def test_sigkill_at_random_instants_leaves_readable_files(tmp_path):
@@ -279,9 +277,8 @@ def test_signals_in_bursts_at_random_instants_always_end_interrupted(tmp_path):
 def test_a_completed_file_is_replaced_only_by_a_completed_one(tmp_path):
     first, path = run_experiment_in(tmp_path)
     kept = read_run(path).attrs["created"]
-    writer = ResultsWriter(
-        path, {"task": "toy", "optim": "adam", "seed": 0}
-    )  # a re-run (overwrite=true) that ends interrupted
+    # a re-run (overwrite=true) that ends interrupted
+    writer = ResultsWriter(path, {"task": "toy", "optim": "adam", "seed": 0})
     writer.append("train", {"iteration": 0, "loss": 1.0})
     writer.finish("interrupted", "SIGINT after 1 iterations")
     assert read_run(path).attrs["created"] == kept and read_run(path).attrs["status"] == "completed"

@@ -206,9 +206,8 @@ def test_text_is_cleaned_of_terminal_escapes_and_cut(tmp_path):
     assert "\x1b" not in run.attrs["reason"] and "\x07" not in run.attrs["reason"]
     assert "\x1b" not in run.variant and run.variant.endswith("$x^2$")
     assert len(run.attrs["hostname"]) < 2100
-    body = write_report(
-        [path], out_dir=tmp_path / "report"
-    )  # a `$` label is drawn as text, not mathtext
+    # a `$` label is drawn as text, not mathtext
+    body = write_report([path], out_dir=tmp_path / "report")
     assert "\x1b" not in body and (tmp_path / "report" / "loss_vs_time.png").is_file()
     assert clean_text("a\u202eb\nc") == "a\ufffdb c" and clean_text("a\nb", lines=True) == "a\nb"
 

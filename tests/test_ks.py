@@ -188,9 +188,8 @@ def test_network_against_numpy_and_its_size(x64):
     )
     reference = init_resnet(jax.random.PRNGKey(0), 16, 10, jnp.float32)
     assert sum(leaf.size for leaf in jax.tree_util.tree_leaves(reference)) == 15841
-    bound = 1 / math.sqrt(
-        3 * 16
-    )  # PyTorch's default: U(-1/sqrt(fan_in), 1/sqrt(fan_in)), fan_in = 3 C_in
+    # PyTorch's default: U(-1/sqrt(fan_in), 1/sqrt(fan_in)), fan_in = 3 C_in
+    bound = 1 / math.sqrt(3 * 16)
     blocks = reference["blocks"]["first"]["w"]
     assert 0.9 * bound < float(jnp.max(jnp.abs(blocks))) <= bound
     zero = init_resnet(jax.random.PRNGKey(0), 16, 10, jnp.float32, zero_output=True)
@@ -453,12 +452,10 @@ def test_study_claims_compare_seed_by_seed():
 def test_adam_on_ks_uses_pytorchs_epsilon_as_the_study_does():
     from physgrad.configs import compose
 
-    assert (
-        compose(["task=ks", "optim=adam"]).optim.eps == 1e-8
-    )  # PyTorch's default (the study's framework)
-    assert (
-        compose(["task=oscillator", "optim=adam"]).optim.eps == 1e-7
-    )  # Keras's, as the HIG references
+    # PyTorch's default (the study's framework)
+    assert compose(["task=ks", "optim=adam"]).optim.eps == 1e-8
+    # Keras's, as the HIG references
+    assert compose(["task=oscillator", "optim=adam"]).optim.eps == 1e-7
 
 
 def test_the_validation_states_are_the_test_family_from_other_seeds(tmp_path, monkeypatch):
@@ -490,9 +487,8 @@ def test_the_validation_states_are_the_test_family_from_other_seeds(tmp_path, mo
             warm = trajectories(initial, lengths, 10, 0.5, 2)[:, -1]
             np.testing.assert_allclose(data[part][index, :, 0], warm, rtol=1e-12, atol=1e-12)
     assert not np.allclose(data["validation"], data["test"])
-    np.testing.assert_array_equal(
-        dataset(settings)["validation"], data["validation"]
-    )  # read back from the cache
+    # read back from the cache
+    np.testing.assert_array_equal(dataset(settings)["validation"], data["validation"])
 
     scene = scene_of()
     held_out = validation_set(load("task=ks", *SMALL), scene, jax.random.PRNGKey(0))

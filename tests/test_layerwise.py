@@ -49,9 +49,8 @@ def reference_step(scene, transform, seeds, settings, on_layers: bool):
 
 @pytest.mark.long
 def test_muon_orthogonalises_each_layer_not_one_flat_vector(x64):
-    scene, rule, seeds, settings = toy(
-        "muon", "precision=64"
-    )  # float64: the comparison is of rules, not of round-off
+    # float64: the comparison is of rules, not of round-off
+    scene, rule, seeds, settings = toy("muon", "precision=64")
     assert rule.on_layers
     muon = optax.contrib.muon(0.02, adam_learning_rate=1e-3, beta=0.95)
     stepped = first_step(scene, rule, seeds, settings)

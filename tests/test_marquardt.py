@@ -66,9 +66,8 @@ def test_a_linear_least_squares_problem_is_solved_in_one_step(x64):
     )
     solution = np.linalg.lstsq(np.asarray(a), np.asarray(b), rcond=None)[0]
     np.testing.assert_allclose(theta + update, solution, rtol=1e-8)
-    assert not bool(state.rejected) and float(state.mu) == pytest.approx(
-        1e-12 / 3
-    )  # rho = 1: mu / 3
+    # rho = 1: mu / 3
+    assert not bool(state.rejected) and float(state.mu) == pytest.approx(1e-12 / 3)
 
 
 def test_a_step_that_raises_the_loss_is_rejected_and_the_damping_grows(x64):
@@ -90,9 +89,10 @@ def test_a_step_that_raises_the_loss_is_rejected_and_the_damping_grows(x64):
         )
         assert bool(state.rejected) and np.all(np.asarray(update) == 0.0)
         assert float(state.mu) == pytest.approx(mu_before * growth)
+    # the true loss: accepted, nu back to 2
     update, state = rule.update(
         theta, state, theta, jacobian=a, output_grad=a @ theta - b, value=loss(theta), value_fn=loss
-    )  # the true loss: accepted, nu back to 2
+    )
     assert (
         not bool(state.rejected) and float(state.nu) == 2.0 and loss(theta + update) < loss(theta)
     )

@@ -75,9 +75,8 @@ def test_unforced_energy_drift_is_fourth_order(x64):
 def test_zero_control_loss_is_about_0_80():
     cfg = load("task=oscillator")
     scene = build_scene(cfg.task, jax.random.PRNGKey(0))
-    zero = jax.tree_util.tree_map(
-        jnp.zeros_like, scene.init_params(jax.random.PRNGKey(1))
-    )  # u = 0 throughout
+    # u = 0 throughout
+    zero = jax.tree_util.tree_map(jnp.zeros_like, scene.init_params(jax.random.PRNGKey(1)))
     loss = float(scene.evaluate(zero, scene.test_set)["loss"])
     assert abs(loss - 0.80) < 0.03, loss
 

@@ -84,9 +84,8 @@ def test_parity_forbids_a_direct_step_from_phi1_to_phi3(x64):
 
     (to2_big, to3_big), (to2_small, to3_small) = overlaps(1e-2), overlaps(1e-3)
     np.testing.assert_allclose(to2_big / to2_small, 10.0, rtol=1e-3)  # first order in the field
-    np.testing.assert_allclose(
-        to3_big / to3_small, 100.0, rtol=1e-3
-    )  # second order: zero at first order
+    # second order: zero at first order
+    np.testing.assert_allclose(to3_big / to3_small, 100.0, rtol=1e-3)
     assert to3_small < 1e-3 * to2_small
 
 
@@ -95,9 +94,8 @@ def test_hig_preset_network_sizes_and_zero_control():
     params = scene.init_params(jax.random.PRNGKey(1))
     assert count_params(params) == 9484 and scene.unroll == 384
     zero = jax.tree_util.tree_map(jnp.zeros_like, params)
-    metrics = scene.evaluate(
-        zero, scene.test_set
-    )  # u = 0: psi stays phi_1, orthogonal to every target
+    # u = 0: psi stays phi_1, orthogonal to every target
+    metrics = scene.evaluate(zero, scene.test_set)
     np.testing.assert_allclose(metrics["loss"], 1.0, atol=1e-5)
     np.testing.assert_allclose(metrics["fidelity"], 0.0, atol=1e-5)
 

@@ -60,9 +60,8 @@ def study(tmp_path, time_budget=None):
     blows up without NaN (a loss 10^5 times its first), hig seed 5 was interrupted before the
     budget."""
     x = np.array([0, 25, 50, 75, 99])
-    step = (
-        0.02 if time_budget else 1.0
-    )  # a time budget of 1.5 s: the last evaluation (1.98 s) is past it
+    # a time budget of 1.5 s: the last evaluation (1.98 s) is past it
+    step = 0.02 if time_budget else 1.0
     trainer = {"time_budget": time_budget} if time_budget else {}
     for seed in SEEDS:
         adam = np.array([1.0, 0.5, 0.3, 0.2, 0.15]) * (1 + 0.1 * seed)
@@ -194,7 +193,6 @@ def test_loss_at_reads_the_last_evaluation_at_or_before_the_budget(tmp_path):
     assert time_to_target(run, 0.2, axis="iteration") == 10.0
     assert time_to_target(run, 0.1, axis="iteration") == math.inf
     assert math.isnan(time_to_target(run, math.nan))
-    curve = run_curve(
-        run, "iteration"
-    )  # completed: it ran to its budget, so its curve goes on past its end
+    # completed: it ran to its budget, so its curve goes on past its end
+    curve = run_curve(run, "iteration")
     assert isinstance(curve, Curve) and curve.end == math.inf and curve.at(10**6) == 0.4

@@ -100,9 +100,8 @@ def test_report_groups_by_setting_and_times_the_threshold(tmp_path):
     # stable_bptt never reaches; poles=2: bptt's seeds end at 0.8 and diverged, a median of
     # infinity: no target)
     assert rows[("poles=1", "bptt", 0)]["t(thr) s"] == 2.0
-    assert math.isinf(
-        rows[("poles=1", "stable_bptt", 0)]["t(thr) s"]
-    )  # never reached: infinite time (readout)
+    # never reached: infinite time (readout)
+    assert math.isinf(rows[("poles=1", "stable_bptt", 0)]["t(thr) s"])
     assert math.isnan(rows[("poles=2", "bptt", 1)]["t(thr) s"]) and math.isnan(
         rows[("poles=2", "bptt", 0)]["t(thr) s"]
     )
@@ -114,9 +113,8 @@ def test_report_groups_by_setting_and_times_the_threshold(tmp_path):
     )
     text = write_report([tmp_path])
     assert "| multicart poles=1 | bptt | 0 | completed |  | 3 | 0.01 |" in text
-    assert (
-        "| multicart poles=2 | bptt | 2 | 1 completed, 1 diverged | 0.8 |" in text
-    )  # the completed seed only
+    # the completed seed only
+    assert "| multicart poles=2 | bptt | 2 | 1 completed, 1 diverged | 0.8 |" in text
     assert (tmp_path / "loss_vs_time.png").stat().st_size > 1000 and (
         tmp_path / "loss_vs_time.pdf"
     ).exists()
@@ -135,19 +133,18 @@ def test_median_band_interpolates_in_log_loss():
         (np.array([0.0, 2.0]), np.array([1.0, 1e-2])),
         (np.array([0.0, 4.0]), np.array([1.0, 1e-8])),
     ]
+    # log-linear between 1 and 4
     curves[1] = (
         np.array([0.0, 1.0, 4.0]),
         np.array([1.0, 1e-2, 1e-8]),
-    )  # log-linear between 1 and 4
+    )
     grid, median, low, high = median_band(curves)
-    np.testing.assert_allclose(
-        grid, [0.0, 1.0, 2.0]
-    )  # every evaluation up to the shortest curve's end
+    # every evaluation up to the shortest curve's end
+    np.testing.assert_allclose(grid, [0.0, 1.0, 2.0])
     np.testing.assert_allclose(low, [1.0, 1e-2, 1e-4])
     np.testing.assert_allclose(high, [1.0, 1e-1, 1e-2])
-    np.testing.assert_allclose(
-        median, (low + high) / 2
-    )  # the median of two losses, as the tables take it
+    # the median of two losses, as the tables take it
+    np.testing.assert_allclose(median, (low + high) / 2)
 
 
 def test_report_draws_the_tradeoff_and_unroll_figures(tmp_path):
@@ -222,9 +219,8 @@ def test_the_threshold_is_one_every_run_must_train_to_reach(tmp_path):
             tmp_path / f"hig{seed}", "hig", seed, 1, [1.0, 0.2, 0.05 + 0.01 * seed], [0.0, 1.0, 2.0]
         )
         fake_run(tmp_path / f"adam{seed}", "adam", seed, 1, [1.0, 0.6, 0.3], [0.0, 1.5, 3.0])
-    fake_run(
-        tmp_path / "gn", "gauss_newton", 0, 1, [1.0, 5.0, 40.0], [0.0, 0.5, 1.0]
-    )  # ends above its start
+    # ends above its start
+    fake_run(tmp_path / "gn", "gauss_newton", 0, 1, [1.0, 5.0, 40.0], [0.0, 0.5, 1.0])
     runs, _, _ = collect([tmp_path])
     label_settings(runs)
     assert targets(runs) == {"multicart": pytest.approx(0.06)}  # hig's median
@@ -239,6 +235,7 @@ def test_the_threshold_is_one_every_run_must_train_to_reach(tmp_path):
 def test_a_learning_rate_sweep_is_two_groups_named_by_what_differs(tmp_path):
     for lr, losses in ((1e-3, ([1.0, 0.5], [1.0, 0.4])), (1e-2, ([1.0, 0.1], [1.0, 0.2]))):
         for seed, loss in enumerate(losses):
+            # a setting that does not change the computation
             fake_run(
                 tmp_path / f"lr{lr}_s{seed}",
                 "adam",
@@ -248,7 +245,7 @@ def test_a_learning_rate_sweep_is_two_groups_named_by_what_differs(tmp_path):
                 [0.0, 1.0],
                 optim={"learning_rate": lr},
                 trainer={"flush_seconds": 1.0 + seed},
-            )  # a setting that does not change the computation
+            )
     fake_run(tmp_path / "hig", "hig", 0, 1, [1.0, 0.3], [0.0, 2.0], optim={"learning_rate": 1.0})
     for index, lr in enumerate(
         (0.0044303752, 0.0044312345)
@@ -276,6 +273,7 @@ def test_a_learning_rate_sweep_is_two_groups_named_by_what_differs(tmp_path):
 def test_the_same_run_found_twice_or_rerun_counts_once(tmp_path):
     fake_run(tmp_path / "a", "adam", 0, 1, [1.0, 0.5], [0.0, 1.0])
     fake_run(tmp_path / "b", "adam", 1, 1, [1.0, 0.4], [0.0, 1.0])
+    # a cadence does not make it another run
     fake_run(
         tmp_path / "again",
         "adam",
@@ -285,12 +283,13 @@ def test_the_same_run_found_twice_or_rerun_counts_once(tmp_path):
         [0.0, 1.0],
         status="interrupted",
         trainer={"eval_every": 7},
-    )  # a cadence does not make it another run
+    )
     runs, _, dropped = collect([tmp_path, tmp_path / "a", tmp_path / "a" / "results.h5"])
+    # the completed one of the two seed-0 runs
     assert sorted(run.path.parent.name for run in runs) == [
         "a",
         "b",
-    ]  # the completed one of the two seed-0 runs
+    ]
     assert [(d.path.parent.name, d.kept.parent.name) for d in dropped] == [
         ("a", "a"),
         ("again", "a"),
@@ -347,9 +346,8 @@ def test_loss_at_common_time_uses_only_evaluations_before_it(tmp_path):
     # train row)
     assert rows["adam"]["common_time"] == rows["hig"]["common_time"] == 2.5
     assert rows["adam"]["loss_at_common_time"] == 0.1 and rows["hig"]["loss_at_common_time"] == 0.6
-    assert (
-        rows["gd"]["loss_at_common_time"] == math.inf
-    )  # diverged before that time: an infinite loss, as in a verdict
+    # diverged before that time: an infinite loss, as in a verdict
+    assert rows["gd"]["loss_at_common_time"] == math.inf
     # the last evaluation at or before the time (the verdict's rule, physgrad.readout): hig's
     # evaluation at 6 s is not read at 5.99 s; a completed run ran to its budget, so its last
     # evaluation is read at any later time
@@ -372,9 +370,8 @@ def test_scene_metrics_and_csv_export(tmp_path):
     )
     fake_run(tmp_path / "b", "bptt", 1, 2, [1.0, 0.6], [0.0, 1.0], metrics={"upright": [0.0, 0.25]})
     text = write_report([tmp_path])
-    assert (
-        "| upright |" in text.splitlines()[2] and "| 0.625 [0.25, 1] |" in text
-    )  # median of 1 and 0.25
+    # median of 1 and 0.25
+    assert "| upright |" in text.splitlines()[2] and "| 0.625 [0.25, 1] |" in text
     rows = list(csv.DictReader(open(tmp_path / "runs.csv")))
     assert len(rows) == 2 and {
         "path",

@@ -87,9 +87,8 @@ def test_any_optax_factory_composes_with_clipping_and_the_combined_gradient():
     updates, _ = rule.transform.update(
         {"w": jnp.array([50.0, -0.2])}, rule.transform.init(params), params
     )
-    np.testing.assert_allclose(
-        updates["w"], [-1e-3, 1e-3], rtol=1e-6
-    )  # lion: -lr sign(clipped gradient)
+    # lion: -lr sign(clipped gradient)
+    np.testing.assert_allclose(updates["w"], [-1e-3, 1e-3], rtol=1e-6)
 
 
 def test_nested_targets_build_a_schedule():
@@ -111,9 +110,8 @@ def test_nested_targets_build_a_schedule():
     for _ in range(3):
         updates, state = rule.transform.update({"w": jnp.array([1.0])}, state, params)
         sizes.append(float(abs(updates["w"][0])))
-    np.testing.assert_allclose(
-        sizes, [1.0, 0.5, 0.0], rtol=1e-4
-    )  # Adam: first steps of size lr (eps aside)
+    # Adam: first steps of size lr (eps aside)
+    np.testing.assert_allclose(sizes, [1.0, 0.5, 0.0], rtol=1e-4)
 
 
 @pytest.mark.parametrize("optim", ["adam", "bptt", "stable_bptt"])

@@ -32,9 +32,8 @@ def test_divergence_is_an_outcome_with_the_curve_kept(tmp_path):
     bad_iteration = int(match[3])
     assert not np.isfinite(run.train[match[4]][-1]) and np.isfinite(run.train[match[4]][:-1]).all()
     assert bad_iteration < 49
-    assert (
-        run.train["iteration"].size == bad_iteration + 1
-    )  # every row up to and including the bad one
+    # every row up to and including the bad one
+    assert run.train["iteration"].size == bad_iteration + 1
     assert np.isfinite(run.train["loss"][0])
 
 
@@ -68,9 +67,8 @@ def test_time_budget_stops_training(tmp_path):
     assert outcome.status == "completed" and run.attrs["stopped_by"] == "time_budget"
     assert 0.5 <= run.train["wall_time"][-1] == outcome.train_seconds
     assert outcome.iterations < 100000000
-    assert (
-        run.eval["iteration"][-1] == outcome.iterations
-    )  # a final evaluation at the stopping point
+    # a final evaluation at the stopping point
+    assert run.eval["iteration"][-1] == outcome.iterations
 
 
 class SimulatedClock:
@@ -117,9 +115,8 @@ def test_a_time_budget_alone_runs_until_the_budget_and_passes_it_by_less_than_a_
     )
     run = read_run(path)
     assert run.attrs["stopped_by"] == "time_budget" == outcome.stopped_by
-    assert (
-        outcome.iterations > 2000
-    )  # no hidden iteration cap (2000 is the default without a budget)
+    # no hidden iteration cap (2000 is the default without a budget)
+    assert outcome.iterations > 2000
     assert 25 <= outcome.train_seconds < 25 + clock.step and outcome.iterations == clock.calls
     # evaluations every budget / 20 of training time (trainer.eval_seconds=null), besides start and
     # end
@@ -155,6 +152,7 @@ def test_evaluations_by_training_time_give_a_slow_variant_a_curve(tmp_path, monk
     )
     run = read_run(path)
     assert outcome.iterations == 10
+    # every 3 s of training: after 4, 8, ... s
     assert list(run.eval["iteration"]) == [
         0,
         2,
@@ -162,7 +160,7 @@ def test_evaluations_by_training_time_give_a_slow_variant_a_curve(tmp_path, monk
         6,
         8,
         10,
-    ]  # every 3 s of training: after 4, 8, ... s
+    ]
 
 
 def test_trainer_settings_resolve_iterations_and_evaluation_times():

@@ -109,9 +109,8 @@ def test_float32_gram_route_resolves_a_wide_spectrum():
 def test_auto_route_takes_gram_only_where_it_resolves_tau():
     assert resolve_route("auto", 1e-6, (512, 2956)) == "gram"
     assert resolve_route("auto", 1e-8, (512, 2956)) == "svd"  # s^2 below float64's reach
-    assert (
-        resolve_route("auto", 1e-5, (300, 200)) == "svd"
-    )  # tall J: its Gram matrix is the larger one
+    # tall J: its Gram matrix is the larger one
+    assert resolve_route("auto", 1e-5, (300, 200)) == "svd"
     assert resolve_route("svd", 1e-2, (2, 5)) == "svd"
 
 

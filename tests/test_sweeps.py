@@ -106,9 +106,8 @@ def test_the_claims_plan_lists_every_study_in_parts_of_at_most_80_minutes(capsys
     assert max(parts) <= 80  # every part resumable within a 90-minute run
     hours = float(text.rsplit("expected total: about ", 1)[1].split(" h")[0])
     expected = sum(study.seconds() for study in claims.PROFILES["claims"]) / 3600
-    assert (
-        abs(hours - expected) <= 0.05 and abs(sum(parts) / 60 - expected) <= 0.1
-    )  # parts cover every study
+    # parts cover every study
+    assert abs(hours - expected) <= 0.05 and abs(sum(parts) / 60 - expected) <= 0.1
     assert reproduce.main(["--profile", "claims-long", "--plan"]) == 0
     assert (
         "compare.dir=outputs/experiments/claims-long/quantum_control_5" in capsys.readouterr().out
@@ -152,9 +151,8 @@ def test_a_completed_job_is_skipped_unless_overwrite(tmp_path):
     assert read_run(path).attrs["finished"] == created  # untouched
     rerun, _ = run_experiment(load(*TINY, "trainer.iterations=3", "overwrite=true"), tmp_path)
     assert rerun.reason is None
-    changed, _ = run_experiment(
-        load(*TINY, "trainer.iterations=4"), tmp_path
-    )  # another config: run again
+    # another config: run again
+    changed, _ = run_experiment(load(*TINY, "trainer.iterations=4"), tmp_path)
     assert changed.reason is None and read_run(path).train["iteration"].size == 4
 
 
@@ -442,9 +440,8 @@ def test_the_job_returns_its_validation_loss_to_the_sweeper_never_the_test_loss(
         objective(Outcome("completed", None, 10, 1.0, {"loss": 0.25, "validation_loss": 0.5}))
         == 0.5
     )
-    assert objective(Outcome("completed", None, 10, 1.0, {"loss": 0.25})) == float(
-        "inf"
-    )  # no validation data
+    # no validation data
+    assert objective(Outcome("completed", None, 10, 1.0, {"loss": 0.25})) == float("inf")
     for status in ("diverged", "refused", "failed"):
         assert objective(
             Outcome(status, "why", 10, 1.0, {"loss": 0.25, "validation_loss": 0.5})

@@ -77,9 +77,8 @@ def test_slow_steps_flag_the_run_and_leave_the_calibrated_time_unchanged(
     np.testing.assert_allclose(
         loaded.train["calibrated_time"], COST * np.arange(1, 401), rtol=1e-12
     )
-    np.testing.assert_array_equal(
-        quiet.eval["iteration"], loaded.eval["iteration"]
-    )  # evaluations by the budget's clock
+    # evaluations by the budget's clock
+    np.testing.assert_array_equal(quiet.eval["iteration"], loaded.eval["iteration"])
     np.testing.assert_array_equal(quiet.eval["calibrated_time"], loaded.eval["calibrated_time"])
     assert loaded.train["wall_time"][-1] > quiet.train["wall_time"][-1] + 50 * COST * 19 * 0.9
     assert quiet.attrs["contended"] == 0 and "contention" not in quiet.attrs
@@ -99,12 +98,10 @@ def test_on_the_measured_clock_slow_steps_cost_iterations(tmp_path, monkeypatch,
 
 
 def test_a_few_slow_steps_or_a_short_run_are_not_contention():
-    assert (
-        contention(step_statistics([COST] * 95 + [20 * COST] * 5), 100, 0.5, 0.5, 2) == ""
-    )  # p90 unaffected
-    assert (
-        contention(step_statistics([COST, 20 * COST] * 5), 10, 0.5, 0.5, 2) == ""
-    )  # too few steps to judge
+    # p90 unaffected
+    assert contention(step_statistics([COST] * 95 + [20 * COST] * 5), 100, 0.5, 0.5, 2) == ""
+    # too few steps to judge
+    assert contention(step_statistics([COST, 20 * COST] * 5), 10, 0.5, 0.5, 2) == ""
     assert "p90/p50" in contention(
         step_statistics([COST] * 80 + [20 * COST] * 20), 100, 0.5, 0.5, 2
     )

@@ -101,9 +101,8 @@ def test_the_step_that_crosses_a_time_budget_counts_against_its_variant():
 def test_a_nan_held_out_loss_counts_as_diverged_and_keeps_its_pair():
     x = np.linspace(0, 100, 11)
     a = flat_curves({s: 0.5 for s in SEEDS})
-    a[3] = Curve(
-        x, np.r_[np.linspace(1, 0.5, 10), np.nan], 100.0
-    )  # status completed, NaN loss at the end
+    # status completed, NaN loss at the end
+    a[3] = Curve(x, np.r_[np.linspace(1, 0.5, 10), np.nan], 100.0)
     b = flat_curves({s: 1.0 for s in SEEDS})
     (result,) = compare_variants({"A": a, "B": b}, 100.0)
     p = result.at[1.0]
@@ -145,9 +144,8 @@ def test_a_median_halfway_between_a_divergence_and_a_tie_is_the_divergence():
     p = paired([0.5] * 3 + [math.inf] * 3, [math.inf] * 6)
     assert p.median == -LOG_CAP and p.ratio == 0.0
     p = paired([math.inf] * 3 + [0.5] * 3, [0.5] * 3 + [math.inf] * 3)
-    assert (
-        p.median == 0.0 and p.ratio == 1.0
-    )  # ties of +-LOG_CAP: the median is an even split, not a boundary
+    # ties of +-LOG_CAP: the median is an even split, not a boundary
+    assert p.median == 0.0 and p.ratio == 1.0
 
 
 def test_the_lowest_and_highest_median_targets():
@@ -159,10 +157,11 @@ def test_the_lowest_and_highest_median_targets():
     losses = {"A": [0.1, 0.2, 0.3, math.nan], "B": [0.4, 0.5, 0.6], "C": [math.inf, math.inf, 0.01]}
     assert lowest_median(losses) == ("A", pytest.approx(0.2))
     assert highest_median(losses) == ("B", pytest.approx(0.5))
+    # a tie: the first group
     assert highest_median({"A": [1.0, 2.0], "B": [2.0, 1.0]}) == (
         "A",
         1.5,
-    )  # a tie: the first group
+    )
     for rule in (lowest_median, highest_median):
         name, value = rule({"C": [math.inf, 1.0, math.inf], "D": [math.nan]})
         assert name == "" and math.isnan(value)

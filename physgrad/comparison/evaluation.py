@@ -4,12 +4,10 @@ variants interleaved, for time budgets)."""
 
 from __future__ import annotations
 
-from collections.abc import Callable
-from pathlib import Path
 from typing import TYPE_CHECKING
 
-from physgrad.comparison.jobs import cadence, job_runs, job_yaml, launch
-from physgrad.comparison.spec import StudySettings, Variant
+from physgrad.comparison.jobs import Launcher, cadence, job_runs, job_yaml
+from physgrad.comparison.spec import StudyPlan, StudySettings, Variant
 from physgrad.errors import UserError
 from physgrad.optim.capabilities import batches_over_seeds
 from physgrad.readout import run_curve
@@ -66,24 +64,15 @@ def evaluation_jobs(
 
 
 def evaluation(
-    folder: Path,
-    variants: list[Variant],
-    best: dict[str, dict],
-    settings: StudySettings,
-    common: list[str],
-    groups: set[str],
-    axis: str,
-    budget: float,
-    config_dir: str | None,
-    hydra_args: list[str],
-    say: Callable[[str], object],
+    plan: StudyPlan, best: dict[str, dict], launcher: Launcher
 ) -> tuple[dict[str, dict[int, Curve]], dict[str, dict[int, Run]]]:
     """Phase 2: every variant at its tuned settings on the paired evaluation seeds; (curves, runs)
     per variant and seed."""
-    jobs = evaluation_jobs(variants, best, settings, common, groups, axis, budget)
-    code = launch(folder, "eval", jobs, config_dir, hydra_args, say)
-    if code == 130:
-        raise KeyboardInterrupt
+    variants, folder, axis = plan.variants, launcher.folder, plan.axis
+    jobs = evaluation_jobs(
+        variants, best, plan.settings, plan.common, plan.groups, axis, plan.budget
+    )
+    launcher.run("eval", jobs)
     curves, statuses = {}, {}
     for index, variant in enumerate(variants):
         curves[variant.name], statuses[variant.name] = {}, {}

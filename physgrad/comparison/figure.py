@@ -21,9 +21,8 @@ def plot_sensitivity(
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    columns = min(
-        len(variants), 3
-    )  # at most three panels a row: six variants are two rows, not one strip
+    # at most three panels a row: six variants are two rows, not one strip
+    columns = min(len(variants), 3)
     panel_rows = -(-len(variants) // columns)
     fig, grid = plt.subplots(
         panel_rows, columns, figsize=(3.6 * columns, 3.2 * panel_rows), squeeze=False

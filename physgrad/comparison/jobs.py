@@ -10,6 +10,7 @@ import signal
 import subprocess
 import sys
 from collections.abc import Callable
+from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -72,8 +73,7 @@ def record_study(folder: Path, overrides: list[str], config_dir: str | None) -> 
         if same_study(before) != same_study(record):
             raise UserError(
                 f"{folder} holds another study "
-                f"({' '.join((before or {}).get('overrides', ['?']))}): "
-                "give another compare.dir"
+                f"({' '.join((before or {}).get('overrides', ['?']))}): give another compare.dir"
             )
     if not stored.exists() or before != record:  # new, or the same study given more trials
         stored.write_text(json.dumps(record, indent=1) + "\n")
@@ -127,6 +127,24 @@ def cadence(cfg: DictConfig, axis: str, budget: float) -> dict:
 # ----------------------------------------------------------------------------------------------
 
 
+@dataclass(frozen=True)
+class Launcher:
+    """Where and how a study's jobs run: the study folder, the user's config folder, Hydra's own
+    arguments of the command line (a launcher, a search path) and the printer of progress lines."""
+
+    folder: Path
+    config_dir: str | None
+    hydra_args: list[str]
+    say: Callable[[str], object]
+
+    def run(self, phase: str, jobs: dict[str, str]) -> None:
+        """The jobs as one multirun into folder/phase (launch); KeyboardInterrupt where it was
+        interrupted."""
+        code = launch(self.folder, phase, jobs, self.config_dir, self.hydra_args, self.say)
+        if code == 130:
+            raise KeyboardInterrupt
+
+
 def launch(
     folder: Path,
     phase: str,
@@ -149,9 +167,8 @@ def launch(
     with open(folder / f"{phase}.log", "a") as log:
         log.write(f"\n$ {' '.join(command)}\n")
         log.flush()
-        lost = (
-            take_lost()
-        )  # a signal the interpreter dropped since the last phase (physgrad.interrupts)
+        # a signal the interpreter dropped since the last phase (physgrad.interrupts)
+        lost = take_lost()
         if lost is not None:
             raise SignalInterrupt(lost)
         # its own session: a terminal's Ctrl-C reaches this process only, which passes it (or a

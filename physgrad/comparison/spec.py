@@ -84,9 +84,8 @@ class Variant:
     overrides: list[str]  # the variant's own overrides (key=value)
     config: object = None  # the composed config (common + variant overrides)
     space: dict = field(default_factory=dict)  # optim key -> (low, high), log-uniform
-    job_values: dict = field(
-        default_factory=dict
-    )  # settings every job of the variant gets (its step cost)
+    # settings every job of the variant gets (its step cost)
+    job_values: dict = field(default_factory=dict)
 
     @property
     def preset(self) -> dict:
@@ -97,6 +96,20 @@ class Variant:
     @property
     def rate_key(self) -> str:
         return next((key for key in self.space if key.startswith("learning_rate")), "learning_rate")
+
+
+@dataclass
+class StudyPlan:
+    """What a study compares and how: its variants, settings, the overrides common to every variant,
+    the config groups the command line chose (job files name them), and the budget on its axis
+    (iteration, wall_time or calibrated_time)."""
+
+    variants: list[Variant]
+    settings: StudySettings
+    common: list[str]
+    groups: set[str]
+    axis: str
+    budget: float
 
 
 def learning_rate_key(optim_cfg: DictConfig) -> str | None:
@@ -155,8 +168,7 @@ def split_overrides(overrides: list[str]) -> tuple[dict, list, list, list]:
         elif key in ("seed", "seeds"):
             raise UserError(
                 f"'{override.input_line}': compare sets the seeds itself: use compare.seeds=N "
-                "(evaluation "
-                "seeds), compare.seed=S (the first one) or compare.tune_seed=S (tuning)"
+                "(evaluation seeds), compare.seed=S (the first one) or compare.tune_seed=S (tuning)"
             )
         elif override.is_sweep_override():
             if override.is_interval_sweep() or override.is_range_sweep():

@@ -35,9 +35,10 @@ from pathlib import Path
 from physgrad.comparison.calibration import calibrated_clock
 from physgrad.comparison.evaluation import evaluation
 from physgrad.comparison.figure import plot_sensitivity
-from physgrad.comparison.jobs import default_folder, record_study
+from physgrad.comparison.jobs import Launcher, default_folder, record_study
 from physgrad.comparison.spec import (
     SETTINGS,
+    StudyPlan,
     StudySettings,
     budget_of,
     build_variants,
@@ -104,34 +105,13 @@ def run_study(
                     folder, variants, settings.tune_seed, settings.calibration, say
                 )
                 axis = "calibrated_time"
-            best = tuning(
-                folder,
-                variants,
-                settings,
-                common,
-                groups,
-                axis,
-                budget,
-                config_dir,
-                hydra_args,
-                say,
-            )
+            plan = StudyPlan(variants, settings, common, groups, axis, budget)
+            launcher = Launcher(folder, config_dir, hydra_args, say)
+            best = tuning(plan, launcher)
             rows = trial_rows(folder, variants)
             if rows:
                 plot_sensitivity(folder / "sensitivity", variants, rows, best)
-            curves, statuses = evaluation(
-                folder,
-                variants,
-                best,
-                settings,
-                common,
-                groups,
-                axis,
-                budget,
-                config_dir,
-                hydra_args,
-                say,
-            )
+            curves, statuses = evaluation(plan, best, launcher)
             runs, comparisons, trials, verdicts, text = analyse(
                 folder, variants, best, curves, statuses, settings, axis, budget, rows, calibration
             )
@@ -148,8 +128,7 @@ def _warn_if_undecidable(settings: StudySettings, count: int, say: Callable[[str
     if settings.seeds < needed:
         say(
             f"warning: {settings.seeds} seeds cannot decide {comparisons} comparisons at alpha "
-            f"{settings.alpha:g}: "
-            f"every verdict will be undecided (compare.seeds={needed} or more)"
+            f"{settings.alpha:g}: every verdict will be undecided (compare.seeds={needed} or more)"
         )
 
 

@@ -161,8 +161,7 @@ def verdict_lines(
     budget_text = {
         "wall_time": f"{budget:g} s of training (measured clock)",
         "calibrated_time": f"{budget:g} s of training on the calibrated clock (iterations x the "
-        "variant's "
-        "calibrated step cost; the measured seconds are in runs.csv)",
+        "variant's calibrated step cost; the measured seconds are in runs.csv)",
     }.get(axis, f"{budget:g} iterations")
     contended = {
         v.name: int(runs[runs.variant == v.name]["contended"].sum()) if len(runs) else 0
@@ -184,8 +183,7 @@ def verdict_lines(
         "## Verdicts",
         "",
         "| A vs B | verdict at the budget | median A/B [95% interval] | A lower in | verdict at "
-        "1/4, 1/2 | "
-        "stable | trend 1/2 -> 1 | diverged A, B | contended runs A, B |",
+        "1/4, 1/2 | stable | trend 1/2 -> 1 | diverged A, B | contended runs A, B |",
         "|---|---|---|---|---|---|---|---|---|",
     ]
     for v in verdicts:
@@ -199,8 +197,7 @@ def verdict_lines(
             f"| {v.a} vs {v.b} | **{v.verdict}**{flag} ({v.verdicts[1.0][1]}) | {_ratio_text(p)} | "
             f"{p.wins_a} of {p.pairs}{f' ({p.missing} missing)' if p.missing else ''} | "
             f"{v.verdicts[0.25][0]}, {v.verdicts[0.5][0]} | {'yes' if v.stable else 'no'} | "
-            f"{v.trend} | "
-            f"{p.diverged_a}, {p.diverged_b} | {contended[v.a]}, {contended[v.b]} |"
+            f"{v.trend} | {p.diverged_a}, {p.diverged_b} | {contended[v.a]}, {contended[v.b]} |"
         )
     return lines
 
@@ -252,12 +249,9 @@ def variant_lines(
     lines += [
         "",
         f"Target: {fmt(target)}, the median test loss of {target_variant or '-'} (the lowest) at "
-        "the "
-        "budget; a run that never reaches it counts as infinite. Losses at 1/4 and 1/2 of the "
-        "budget and "
-        "per seed: runs.csv; every comparison at every fraction with its p-values: "
-        "comparisons.csv; "
-        "trials: trials.csv and sensitivity.png; curves: report/.",
+        "the budget; a run that never reaches it counts as infinite. Losses at 1/4 and 1/2 of the "
+        "budget and per seed: runs.csv; every comparison at every fraction with its p-values: "
+        "comparisons.csv; trials: trials.csv and sensitivity.png; curves: report/.",
     ]
     return lines
 
@@ -275,8 +269,7 @@ def timing_lines(
             "Clock: measured (training seconds as timed). A run flagged contended (step times "
             "spread or the "
             "machine oversubscribed, docs/decisions.md) was slowed by other work: a verdict that "
-            "uses one is "
-            "marked. The calibrated clock is the default (compare.clock=calibrated)."
+            "uses one is marked. The calibrated clock is the default (compare.clock=calibrated)."
         ]
     else:
         lines += ["Budget in iterations: the clock does not enter the verdicts."]
@@ -307,15 +300,12 @@ def _calibration_lines(variants: list[Variant], runs: pd.DataFrame, calibration:
         "Clock: calibrated. Step costs measured with every variant's compiled step "
         "interleaved in one "
         f"process (the {calibration['quantile']:g} quantile over rounds; load average "
-        f"{calibration['load_start']:.2f} -> {calibration['load_end']:.2f}); a run's time is "
-        "its "
+        f"{calibration['load_start']:.2f} -> {calibration['load_end']:.2f}); a run's time is its "
         "iterations times its variant's cost, so the machine's load cannot change how far a "
-        "variant "
-        "gets. The measured clock: compare.clock=measured.",
+        "variant gets. The measured clock: compare.clock=measured.",
         "",
         "| variant | calibrated step cost | median in the calibration | rounds | measured p50 "
-        "in the runs "
-        "| contended runs |",
+        "in the runs | contended runs |",
         "|---|---|---|---|---|---|",
     ]
     for variant in variants:
@@ -327,11 +317,9 @@ def _calibration_lines(variants: list[Variant], runs: pd.DataFrame, calibration:
             else math.nan
         )
         lines.append(
-            f"| {variant.name} | {fmt(cost['step_seconds'])} s | "
-            f"{fmt(cost['median_seconds'])} s | "
+            f"| {variant.name} | {fmt(cost['step_seconds'])} s | {fmt(cost['median_seconds'])} s | "
             f"{cost['rounds']} | {fmt(p50)} s | "
-            f"{int(sub['contended'].sum()) if len(sub) else 0} of "
-            f"{len(sub)} |"
+            f"{int(sub['contended'].sum()) if len(sub) else 0} of {len(sub)} |"
         )
     from physgrad.machine import contention
 
@@ -345,11 +333,9 @@ def _calibration_lines(variants: list[Variant], runs: pd.DataFrame, calibration:
     if busy:
         lines += [
             "",
-            f"**Warning**: the calibration ran on a busy machine ({busy}): the step costs of "
-            "the "
+            f"**Warning**: the calibration ran on a busy machine ({busy}): the step costs of the "
             "variants are not slowed alike by other work, so recalibrate on a quiet machine "
-            "or give "
-            "one with compare.calibration.",
+            "or give one with compare.calibration.",
         ]
     return lines
 

@@ -5,11 +5,10 @@ variant in tuning.journal), each scored by its VALIDATION loss at the budget."""
 from __future__ import annotations
 
 import math
-from collections.abc import Callable
 from pathlib import Path
 
-from physgrad.comparison.jobs import cadence, job_runs, job_yaml, launch
-from physgrad.comparison.spec import StudySettings, Variant
+from physgrad.comparison.jobs import Launcher, cadence, job_runs, job_yaml
+from physgrad.comparison.spec import StudyPlan, StudySettings, Variant
 from physgrad.errors import UserError
 from physgrad.readout import run_curve
 
@@ -35,21 +34,12 @@ def halton_points(space: dict, count: int, seed: int) -> list[dict]:
     ]
 
 
-def tuning(
-    folder: Path,
-    variants: list[Variant],
-    settings: StudySettings,
-    common: list[str],
-    groups: set[str],
-    axis: str,
-    budget: float,
-    config_dir: str | None,
-    hydra_args: list[str],
-    say: Callable[[str], object],
-) -> dict[str, dict]:
+def tuning(plan: StudyPlan, launcher: Launcher) -> dict[str, dict]:
     """Phase 1: trials per variant (equal numbers), scored by validation loss at the budget; returns
     the best settings per variant (its configured ones where every trial diverged or tuning is
     off)."""
+    variants, settings, folder = plan.variants, plan.settings, launcher.folder
+    common, groups, axis, budget = plan.common, plan.groups, plan.axis, plan.budget
     best = {v.name: {} for v in variants}
     if not settings.tune:
         return best
@@ -73,9 +63,7 @@ def tuning(
                     [*common, *variant.overrides], groups, values
                 )
     if jobs:
-        code = launch(folder, "tune", jobs, config_dir, hydra_args, say)
-        if code == 130:
-            raise KeyboardInterrupt
+        launcher.run("tune", jobs)
         _score_trials(folder, variants, studies, pending, axis, budget)
     for variant in variants:
         done = [
@@ -88,8 +76,7 @@ def tuning(
         ):
             raise UserError(
                 f"tuning of {variant.name} did not finish (see {folder / 'tune.log'}): run the "
-                "same "
-                "command again to resume"
+                "same command again to resume"
             )
         if done:
             best[variant.name] = dict(min(done, key=lambda t: t.value).params)

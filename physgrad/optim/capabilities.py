@@ -35,12 +35,10 @@ class Capabilities:
     needs_layer_factors: bool = False
 
 
-JACOBIAN = Capabilities(
-    "jacobian", (1e-3, 1e1), needs_jacobian=True
-)  # mean-over-samples loss; presets 0.5 to 1
-ADAPTIVE = Capabilities(
-    "adaptive", (1e-5, 1e-1)
-)  # Adam and the other optax rules (presets 1e-4 to 1e-3)
+# mean-over-samples loss; presets 0.5 to 1
+JACOBIAN = Capabilities("jacobian", (1e-3, 1e1), needs_jacobian=True)
+# Adam and the other optax rules (presets 1e-4 to 1e-3)
+ADAPTIVE = Capabilities("adaptive", (1e-5, 1e-1))
 ADAPTIVE_ELEMENTWISE = Capabilities("adaptive", ADAPTIVE.search_range, elementwise=True)
 
 RULES: dict[str, Capabilities] = {

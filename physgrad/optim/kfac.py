@@ -142,8 +142,7 @@ def kfac(learning_rate: float, damping: float = 1e-3) -> KroneckerRule:
             raise UserError(
                 "optim=kfac needs the Jacobian in layer factors (a network built with "
                 "physgrad.nets.apply_mlp, each layer applied once per sample): use "
-                "levenberg_marquardt "
-                "or gauss_newton"
+                "levenberg_marquardt or gauss_newton"
             )
         flat, unravel = ravel_pytree(updates)
         inputs_factor, cotangents_factor = batch_factors(jac)

@@ -202,10 +202,11 @@ def gauss_newton(learning_rate: float, tau: float) -> JacobianRule:
 # --- Levenberg-Marquardt
 # ----------------------------------------------------------------------------------
 
+# the relative damping mu stays within this (no under- or overflow of lambda)
 DAMPING_RANGE = (
     1e-12,
     1e12,
-)  # the relative damping mu stays within this (no under- or overflow of lambda)
+)
 
 
 def _eigenbasis(

@@ -83,8 +83,7 @@ class Scene:
         if (self.sample_output is None) == (self.dynamics is None):
             raise UserError(
                 "a Scene takes sample_output (a scene without time) or dynamics (a temporal "
-                "scene), "
-                "exactly one of them"
+                "scene), exactly one of them"
             )
         if self.train_set is None and self.draw_batch is draw_from:
             raise UserError(

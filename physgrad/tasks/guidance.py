@@ -75,9 +75,8 @@ def accelerations(state: jax.Array, gains: jax.Array, drivers: int, physics: dic
     )
     repel = pairwise(x_evaders, x_drivers, eps, lambda d: d**-2)
     distance = physics["flock_distance"]
-    flock = -pairwise(
-        x_evaders, x_evaders, eps, lambda d: (distance / d - 1.0) / d
-    )  # (x_i - x_j) p(d_ij)
+    # (x_i - x_j) p(d_ij)
+    flock = -pairwise(x_evaders, x_evaders, eps, lambda d: (distance / d - 1.0) / d)
     evader = (
         physics["repulsion"] * repel
         - physics["evader_friction"] * velocities[drivers:]

@@ -26,10 +26,11 @@ from physgrad.files import replace_file
 
 # bump when the generated data would change for the same settings
 DATA_VERSION = 2  # 2: a validation set beside the test set
+# numpy seeds of the held-out states: TEST_SEED + the test size's index
 TEST_SEED, VALIDATION_SEED = (
     1000,
     2000,
-)  # numpy seeds of the held-out states: TEST_SEED + the test size's index
+)
 
 
 # --------------------------------------------------------------------------------------------------
@@ -239,9 +240,8 @@ def draw_windows(
     first = trajectory * frames_count + jax.random.randint(
         k_start, (pairs,), 0, frames_count - span
     )
-    frames = frames_set["frames"][
-        first[:, None] + jnp.arange(span + 1)
-    ]  # (pairs, span + 1, points)
+    # (pairs, span + 1, points)
+    frames = frames_set["frames"][first[:, None] + jnp.arange(span + 1)]
     size = frames_set["size"][first]
     if training == "ONE":
         frames = frames.reshape(batch_size, unroll, 2, frames.shape[-1])

@@ -76,13 +76,14 @@ def build(key: jax.Array, *, grid: int, smoothness: float, test_size: int) -> Sc
     test_size = number("task.test_size", test_size, 1, integer=True)
     dtype = jnp.zeros(()).dtype  # float64 under precision=64
     cells = n * n
+    # 64 -> 64 -> 128 -> 64 -> 64 at N = 8: 24,896 params
     sizes = [
         cells,
         cells,
         2 * cells,
         cells,
         cells,
-    ]  # 64 -> 64 -> 128 -> 64 -> 64 at N = 8: 24,896 params
+    ]
 
     def make_batch(k: jax.Array, count: int) -> dict[str, jax.Array]:
         fields = smooth_fields(k, count, n, smoothness, dtype)
