@@ -74,7 +74,8 @@ def compare(*overrides: str, config_dir: str | os.PathLike | None = None) -> Stu
     resumes when called again with the same overrides."""
     from physgrad.comparison import run_study
 
-    return run_study(list(overrides), config_dir=config_dir, say=lambda line: None)
+    folder = None if config_dir is None else str(config_dir)
+    return run_study(list(overrides), config_dir=folder, say=lambda line: None)
 
 
 def read_runs(paths: Iterable[str | Path], threshold: float | None = None) -> Tables:

@@ -524,3 +524,33 @@ def test_a_finished_study_given_more_trials_tunes_on_from_where_it_stopped(tmp_p
     )
     with pytest.raises(UserError, match="holds another study"):
         physgrad.compare(*args[:2], "trainer.iterations=30", *args[3:], "compare.trials=3")
+
+
+@pytest.mark.slow
+def test_two_names_for_one_rule_are_tuned_alike_in_either_order_and_equivalent(tmp_path):
+    """A copy of adam.yaml under another name, listed second and then first: the same trial points
+    and tuned rate (the points do not depend on a variant's position or name), identical paired
+    runs, and the verdict "equivalent"."""
+    from physgrad.configs import CONF_DIR
+
+    optim = tmp_path / "conf" / "optim"
+    optim.mkdir(parents=True)
+    (optim / "adam_copy.yaml").write_text(
+        (CONF_DIR / "optim" / "adam.yaml").read_text().replace("name: adam", "name: adam_copy")
+    )
+    common = ["task=toy", "trainer.iterations=30", "compare.trials=2", "compare.seeds=6"]
+    studies = [
+        physgrad.compare(
+            *common, f"optim={order}", f"compare.dir={tmp_path / str(k)}", config_dir=optim.parent
+        )
+        for k, order in enumerate(("adam,adam_copy", "adam_copy,adam"))
+    ]
+    for study in studies:
+        tried = study.trials.groupby("variant")["learning_rate"].apply(list)
+        assert tried["adam"] == tried["adam_copy"]
+        losses = study.runs.pivot(index="seed", columns="variant", values="test_loss_at_1")
+        assert (losses["adam"] == losses["adam_copy"]).all()
+        assert [v.verdict for v in study.verdicts] == ["equivalent"]
+    assert list(studies[0].trials.sort_values(["variant", "learning_rate"]).learning_rate) == list(
+        studies[1].trials.sort_values(["variant", "learning_rate"]).learning_rate
+    )

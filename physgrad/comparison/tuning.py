@@ -101,7 +101,9 @@ def _open_studies(
             study_name=variant.name, storage=storage, direction="minimize", load_if_exists=True
         )
         studies[variant.name] = study
-        points = halton_points(variant.space, settings.trials, settings.tune_seed + index)
+        # the same scrambled points for every variant (one seed): a variant's position or name
+        # never changes where it is tried, so two names for one rule are tuned alike
+        points = halton_points(variant.space, settings.trials, settings.tune_seed)
         for point in points[len(study.trials) :]:
             study.enqueue_trial(point)
         from optuna.trial import TrialState
