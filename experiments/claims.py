@@ -652,7 +652,7 @@ def decide_pairs(runs: StudyRuns, parts: list) -> list[Decision]:
                 else OPEN
             )
         diverged = "".join(
-            f"; {name} diverged in {k} of {p.pairs + p.missing}"
+            f"; {name} diverged in {k} of {p.seeds}"
             for name, k in ((part.a, p.diverged_a), (part.b, p.diverged_b))
             if k
         )

@@ -7,8 +7,9 @@ x:
 - each run's loss at x is read by physgrad.readout (Curve.at): its last evaluation at or before x,
   infinite if it diverged by x, missing (NaN) if it ended before x without diverging: such a pair is
   left out and counted;
-- per seed r = log(loss_A / loss_B); both diverged is a tie (r = 0), one diverged is +-LOG_CAP
-  (beyond any finite ratio: it only enters through ranks and the median);
+- per seed r = log(loss_A / loss_B); a pair where both diverged is left out and counted (it is
+  no evidence of a difference nor of equivalence), one diverged is +-LOG_CAP (beyond any finite
+  ratio: it only enters through ranks and the median);
 - the median of r with a percentile bootstrap 95% interval (scipy.stats.bootstrap, 10,000 resamples,
   fixed seed); one-sided Wilcoxon signed-rank tests for "A lower" and "B lower" (zeros split), whose
   smaller p, doubled, is the comparison's p of a difference; two one-sided Wilcoxon tests of |r| <
@@ -130,7 +131,9 @@ def median_interval(
 @dataclass(frozen=True)
 class Paired:
     """The paired comparison of A and B at one budget: per-seed log ratios (NaN: pair left out),
-    their median with its interval, and the raw one-sided p-values (before Holm's correction)."""
+    their median with its interval, and the raw one-sided p-values (before Holm's correction). A
+    pair where both runs diverged says nothing about which variant trains better, nor that they
+    train alike: it is left out of every statistic and counted as both_diverged."""
 
     log_ratios: tuple[float, ...]
     median: float
@@ -142,6 +145,12 @@ class Paired:
     diverged_a: int
     diverged_b: int
     missing: int  # pairs left out (a run without a loss at this budget)
+    both_diverged: int = 0  # pairs left out because both runs diverged
+
+    @property
+    def seeds(self) -> int:
+        """Every seed of the comparison: pairs, missing ones and those where both diverged."""
+        return self.pairs + self.missing + self.both_diverged
 
     @property
     def pairs(self) -> int:
@@ -168,7 +177,8 @@ def paired(a: list[float], b: list[float], margin: float = MARGIN, seed: int = 0
     """Paired statistics of the losses a[i], b[i] of seed i at one budget (inf: diverged, NaN:
     missing)."""
     a, b = np.asarray(a, float), np.asarray(b, float)
-    r_all = np.array([log_ratio(x, y) for x, y in zip(a, b)])
+    both = np.isinf(a) & np.isinf(b)
+    r_all = np.array([math.nan if gone else log_ratio(x, y) for x, y, gone in zip(a, b, both)])
     r = r_all[~np.isnan(r_all)]
     delta = math.log(margin)
     low, high = (snap(v) for v in median_interval(r, seed=seed))
@@ -184,7 +194,8 @@ def paired(a: list[float], b: list[float], margin: float = MARGIN, seed: int = 0
         else 1.0,
         diverged_a=int(np.sum(np.isinf(a))),
         diverged_b=int(np.sum(np.isinf(b))),
-        missing=int(np.sum(np.isnan(r_all))),
+        missing=int(np.sum(np.isnan(r_all) & ~both)),
+        both_diverged=int(np.sum(both)),
     )
 
 
@@ -221,9 +232,10 @@ def decide(
     delta = math.log(margin)
     needed = seeds_needed(alpha, comparisons)
     if p.pairs < needed:
+        both = f"; both diverged on {p.both_diverged} of {p.seeds} seeds" if p.both_diverged else ""
         return UNDECIDED, (
             f"{p.pairs} paired seeds cannot reach p < {alpha:g} over {comparisons} comparisons "
-            f"(at least {needed} needed)"
+            f"(at least {needed} needed){both}"
         )
     if p.high < -delta and p_difference < alpha:
         return A_BETTER, f"interval below 1/{margin:g}, p = {p_difference:.2g}"

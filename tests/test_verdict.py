@@ -127,6 +127,43 @@ def test_a_run_that_ended_early_without_diverging_leaves_its_pair_out():
     assert result.at[1.0].pairs == 9 and result.at[1.0].missing == 1
 
 
+def diverged_curves(seeds) -> dict:
+    """Runs stopped as diverged at iteration 30 of a budget of 100."""
+    x = np.array([0.0, 10.0, 20.0])
+    return {s: Curve(x, np.array([1.0, 0.8, 0.9]), 30.0, diverged=True) for s in seeds}
+
+
+def test_both_diverged_is_never_evidence_of_equivalence():
+    """Both variants diverge on every seed: no pair says anything, so no verdict (a tie rule called
+    this "equivalent"); nine seeds of double divergence and one where A is 5x B: one pair,
+    undecided; identical losses on 6 seeds beside 4 double divergences: equivalent on the 6, with
+    the 4 counted."""
+    (both,) = compare_variants({"A": diverged_curves(SEEDS), "B": diverged_curves(SEEDS)}, 100.0)
+    p = both.at[1.0]
+    assert p.pairs == 0 and p.both_diverged == 10 and p.missing == 0 and p.seeds == 10
+    assert both.verdict == UNDECIDED and "both diverged on 10 of 10 seeds" in both.verdicts[1.0][1]
+    a, b = diverged_curves(range(1, 10)), diverged_curves(range(1, 10))
+    a.update(flat_curves({0: 5.0}))
+    b.update(flat_curves({0: 1.0}))
+    (one,) = compare_variants({"A": a, "B": b}, 100.0)
+    assert one.at[1.0].pairs == 1 and one.verdict == UNDECIDED
+    a, b = diverged_curves(range(6, 10)), diverged_curves(range(6, 10))
+    a.update(flat_curves({s: 0.5 for s in range(6)}))
+    b.update(flat_curves({s: 0.5 for s in range(6)}))
+    (alike,) = compare_variants({"A": a, "B": b}, 100.0)
+    assert alike.at[1.0].pairs == 6 and alike.at[1.0].both_diverged == 4
+    assert alike.verdict == EQUIVALENT
+
+
+def test_one_side_diverged_still_counts_against_it():
+    """B diverges on every seed, A on none: A better, whatever the losses."""
+    (result,) = compare_variants(
+        {"A": flat_curves({s: 3.0 for s in SEEDS}), "B": diverged_curves(SEEDS)}, 100.0
+    )
+    assert result.at[1.0].pairs == 10 and result.at[1.0].both_diverged == 0
+    assert result.verdict == A_BETTER
+
+
 def test_a_median_or_interval_next_to_a_divergence_is_not_a_ratio_of_e500():
     """10 seeds, B diverged in 5: the median averages a diverged pair with a finite one; it and the
     interval ends that do so are reported as the divergence (ratio 0), the others as finite

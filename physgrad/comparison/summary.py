@@ -132,6 +132,7 @@ def comparison_rows(verdicts: list[PairVerdict], budget: float) -> list[dict]:
                     "pairs": p.pairs,
                     "a_lower_in": p.wins_a,
                     "missing": p.missing,
+                    "both_diverged": p.both_diverged,
                     "median_ratio": p.ratio,
                     "ci_low": _exp(p.low),
                     "ci_high": _exp(p.high),
@@ -140,7 +141,7 @@ def comparison_rows(verdicts: list[PairVerdict], budget: float) -> list[dict]:
                     "diverged_a": p.diverged_a,
                     "diverged_b": p.diverged_b,
                     "p_divergence_fisher": divergence_test(
-                        p.diverged_a, p.pairs + p.missing, p.diverged_b, p.pairs + p.missing
+                        p.diverged_a, p.seeds, p.diverged_b, p.seeds
                     ),
                     "verdict": v.verdicts[fraction][0],
                     "why": v.verdicts[fraction][1],
@@ -195,7 +196,8 @@ def verdict_lines(
         )
         lines.append(
             f"| {v.a} vs {v.b} | **{v.verdict}**{flag} ({v.verdicts[1.0][1]}) | {_ratio_text(p)} | "
-            f"{p.wins_a} of {p.pairs}{f' ({p.missing} missing)' if p.missing else ''} | "
+            f"{p.wins_a} of {p.pairs}{f' ({p.missing} missing)' if p.missing else ''}"
+            f"{f' ({p.both_diverged} both diverged)' if p.both_diverged else ''} | "
             f"{v.verdicts[0.25][0]}, {v.verdicts[0.5][0]} | {'yes' if v.stable else 'no'} | "
             f"{v.trend} | {p.diverged_a}, {p.diverged_b} | {contended[v.a]}, {contended[v.b]} |"
         )
