@@ -210,6 +210,17 @@ def holm(pvalues: list[float]) -> list[float]:
     return adjusted
 
 
+def seeds_for_one_against(alpha: float = ALPHA, comparisons: int = 1) -> int:
+    """The fewest paired seeds with which "better" can be decided with one seed on the other side:
+    the exact two-sided p of the signed-rank test when that seed has the smallest |r|, 4 / 2^n, must
+    be below alpha / comparisons (Holm's strictest step). 7 for one comparison at 0.05, 8 for three,
+    9 for six. With fewer, every seed must lie on one side."""
+    n = 1
+    while 4.0 / 2.0**n >= alpha / comparisons:
+        n += 1
+    return n
+
+
 def seeds_needed(alpha: float = ALPHA, comparisons: int = 1) -> int:
     """The fewest paired seeds with which a comparison can be decided at all: the smallest two-sided
     p of the signed-rank test, 2 / 2^n (every seed on one side), must be below alpha / comparisons

@@ -554,3 +554,26 @@ def test_two_names_for_one_rule_are_tuned_alike_in_either_order_and_equivalent(t
     assert list(studies[0].trials.sort_values(["variant", "learning_rate"]).learning_rate) == list(
         studies[1].trials.sort_values(["variant", "learning_rate"]).learning_rate
     )
+
+
+def test_a_tuned_value_at_the_edge_of_its_range_is_warned_about():
+    """The outer tenth of the log range on either side is the edge (1.6e-05 and 0.08 of
+    [1e-05, 0.1]), the middle is not (0.001); a variant evaluated as configured has nothing
+    tuned."""
+    from physgrad.comparison import Variant
+    from physgrad.comparison.summary import edge_lines
+
+    space = {"learning_rate": (1e-5, 1e-1)}
+    variants = [Variant(name, [f"optim={name}"], None, dict(space)) for name in "abcd"]
+    best = {
+        "a": {"learning_rate": 1.6e-5},
+        "b": {"learning_rate": 1e-3},
+        "c": {"learning_rate": 0.08},
+        "d": {},
+    }
+    lines = [line for line in edge_lines(variants, best) if line]
+    assert len(lines) == 2
+    assert lines[0].startswith("warning: a's tuned learning_rate=1.6e-05 lies in the lowest tenth")
+    assert lines[1].startswith("warning: c's tuned learning_rate=0.08 lies in the highest tenth")
+    assert "compare.search.learning_rate=[low,high]" in lines[1]
+    assert edge_lines(variants[1:2] + variants[3:], best) == []

@@ -162,6 +162,8 @@ def test_compare_and_report_give_one_number_per_run_at_the_budget(tmp_path, time
     target = targets.pop()
     text = (tmp_path / "compare.md").read_text()
     assert f"Target: {target:.3g}," in text
+    # 6 seeds, one comparison: one seed against leaves p = 4 / 2^6 above 0.05
+    assert "needs every seed on one side" in text and "compare.seeds=7 would allow one" in text
     if time_budget:
         for path, row in compare.items():
             assert same(number(row["to_target_s"]), number(report[path]["time_to_threshold"])), path

@@ -403,3 +403,20 @@ def test_the_trend_rule_under_the_null_calls_growth_rarely_and_finds_a_known_one
         )
     assert false_calls / 200 <= 0.05
     assert found / 200 >= 0.7
+
+
+def test_the_seeds_for_a_verdict_with_one_seed_against_match_scipys_exact_test():
+    """One seed on the other side, with the smallest |r| (the most favourable place): the first
+    seed count at which scipy's exact two-sided signed-rank p is below alpha / comparisons."""
+    from scipy.stats import wilcoxon
+
+    from physgrad.verdict import seeds_for_one_against
+
+    for comparisons in (1, 3, 6, 15):
+        n = 2
+        while True:
+            r = np.r_[-0.5, np.arange(1, n) + 0.5]
+            if wilcoxon(r, method="exact").pvalue < 0.05 / comparisons:
+                break
+            n += 1
+        assert seeds_for_one_against(0.05, comparisons) == n, comparisons

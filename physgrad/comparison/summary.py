@@ -11,7 +11,7 @@ import numpy as np
 
 from physgrad.comparison.spec import StudySettings, Variant
 from physgrad.readout import fmt, loss_at, target_loss, time_to_target
-from physgrad.verdict import FRACTIONS, compare_variants, divergence_test
+from physgrad.verdict import FRACTIONS, compare_variants, divergence_test, seeds_for_one_against
 
 if TYPE_CHECKING:
     import pandas as pd
@@ -201,7 +201,21 @@ def verdict_lines(
             f"{v.verdicts[0.25][0]}, {v.verdicts[0.5][0]} | {'yes' if v.stable else 'no'} | "
             f"{v.trend} | {p.diverged_a}, {p.diverged_b} | {contended[v.a]}, {contended[v.b]} |"
         )
-    return lines
+    return lines + unanimity_lines(settings.seeds, settings.alpha, len(verdicts))
+
+
+def unanimity_lines(seeds: int, alpha: float, comparisons: int) -> list[str]:
+    """Where the seeds are too few for a verdict of "better" with any seed on the other side, a
+    sentence that says so and which seed count would allow one."""
+    enough = seeds_for_one_against(alpha, comparisons)
+    if seeds >= enough or comparisons < 1:
+        return []
+    return [
+        "",
+        f"With {seeds} seeds and {comparisons} comparison{'s' if comparisons > 1 else ''} at alpha "
+        f'{alpha:g}, "better" needs every seed on one side: one seed against leaves p above '
+        f"alpha after Holm's correction. compare.seeds={enough} would allow one against.",
+    ]
 
 
 def variant_lines(
@@ -248,6 +262,7 @@ def variant_lines(
             f"{present.size} | {fmt(float(np.median(reach))) if reach.size else '-'}, "
             f"{int(np.isfinite(reach).sum())} of {reach.size} |"
         )
+    lines += edge_lines(variants, best)
     lines += [
         "",
         f"Target: {fmt(target)}, the median test loss of {target_variant or '-'} (the lowest) at "
@@ -256,6 +271,31 @@ def variant_lines(
         "comparisons.csv; trials: trials.csv and sensitivity.png; curves: report/.",
     ]
     return lines
+
+
+EDGE = 0.1  # a tuned value in the outer tenth of its log range is at the range's edge
+
+
+def edge_lines(variants: list[Variant], best: dict[str, dict]) -> list[str]:
+    """A warning per tuned value in the outer tenth of its log-uniform range: the best trial may lie
+    beyond the range, which should then be widened (compare.search.KEY=[low,high])."""
+    lines = []
+    for variant in variants:
+        for key, value in best[variant.name].items():
+            low, high = variant.space.get(key, (None, None))
+            if low is None or not value > 0:
+                continue
+            where = (math.log(value) - math.log(low)) / (math.log(high) - math.log(low))
+            if EDGE <= where <= 1 - EDGE:
+                continue
+            side = "lowest" if where < EDGE else "highest"
+            tuned, bounds = fmt(float(value)), f"[{fmt(float(low))}, {fmt(float(high))}]"
+            lines.append(
+                f"warning: {variant.name}'s tuned {key}={tuned} lies in the {side} tenth of its "
+                f"range {bounds}: the best setting may lie beyond it; widen the range "
+                f"(compare.search.{key}=[low,high])"
+            )
+    return ([""] + lines) if lines else []
 
 
 def timing_lines(
