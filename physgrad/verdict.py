@@ -285,6 +285,13 @@ class PairVerdict:
         return self.verdicts[0.5][0] == self.verdicts[1.0][0]
 
     @property
+    def reversed(self) -> bool:
+        """One variant better at one fraction of the budget and the other at another (X/4, X/2, X):
+        the ranking flips as training goes on, which the X/2-against-X flag alone cannot see."""
+        found = {self.verdicts[f][0] for f in FRACTIONS}
+        return A_BETTER in found and B_BETTER in found
+
+    @property
     def trend(self) -> str:
         """How the median ratio moved from X/2 to X, in either direction."""
         half, full = self.at[0.5].median, self.at[1.0].median

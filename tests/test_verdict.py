@@ -420,3 +420,16 @@ def test_the_seeds_for_a_verdict_with_one_seed_against_match_scipys_exact_test()
                 break
             n += 1
         assert seeds_for_one_against(0.05, comparisons) == n, comparisons
+
+
+def test_a_ranking_that_flips_with_the_budget_is_called_reversed():
+    """A falls fast and stalls at 0.5, B falls slowly to 0.1: A better at X/4, B better at X; a
+    steady advantage is not reversed."""
+    x = np.linspace(0, 100, 11)
+    a = {s: Curve(x, np.r_[1.0, np.full(10, 0.5)] * (1 + 0.01 * s), 100.0) for s in SEEDS}
+    b = {s: Curve(x, np.linspace(1.0, 0.1, 11) * (1 + 0.01 * s), 100.0) for s in SEEDS}
+    (flip,) = compare_variants({"A": a, "B": b}, 100.0)
+    assert flip.verdicts[0.25][0] == A_BETTER and flip.verdict == B_BETTER and flip.reversed
+    steady = flat_curves({s: 0.5 for s in SEEDS})
+    (same,) = compare_variants({"A": steady, "B": flat_curves({s: 1.0 for s in SEEDS})}, 100.0)
+    assert same.verdict == A_BETTER and not same.reversed

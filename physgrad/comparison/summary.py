@@ -194,6 +194,8 @@ def verdict_lines(
             if axis == "wall_time" and (contended[v.a] or contended[v.b])
             else ""
         )
+        if v.reversed:
+            flag += f" (reversed: {v.verdicts[0.25][0]}, {v.verdicts[0.5][0]} at 1/4, 1/2)"
         lines.append(
             f"| {v.a} vs {v.b} | **{v.verdict}**{flag} ({v.verdicts[1.0][1]}) | {_ratio_text(p)} | "
             f"{p.wins_a} of {p.pairs}{f' ({p.missing} missing)' if p.missing else ''}"
