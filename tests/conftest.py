@@ -25,8 +25,19 @@ if "PHYSGRAD_CACHE" not in os.environ:
     atexit.register(shutil.rmtree, _data, ignore_errors=True)
     os.environ["PHYSGRAD_CACHE"] = _data
 
+import sys  # noqa: E402
+
+import absl.logging  # noqa: E402
 import jax  # noqa: E402
 import pytest  # noqa: E402
+
+# absl's log handler (optax imports absl) closes its stream when logging shuts handlers down, unless
+# that stream is the current sys.stderr or sys.stdout. Created here, its stream would be pytest's
+# capture file; a test that runs Hydra (whose logging set-up shuts every handler down) under capsys,
+# when sys.stderr is another object, would then close pytest's capture file, and every later test
+# of the worker errors with "I/O operation on closed file". The interpreter's own stderr is never
+# closed.
+absl.logging.get_absl_handler().python_handler.stream = sys.__stderr__
 
 
 @pytest.fixture
