@@ -112,6 +112,8 @@ class Study:
             f"compare.dir={root / (self.name + ('-preset' if preset else ''))}",
             f"compare.seeds={self.seeds}",
             f"compare.trials={self.trials}",
+            # one tuning study, as these claims were decided; repeated studies: docs/protocol.md
+            "compare.studies=1",
         ]
         if preset:
             settings.append("compare.tune=false")
@@ -564,6 +566,8 @@ def read_study(folder: Path) -> StudyRuns | None:
     if not table.is_file():
         return None
     runs = pd.read_csv(table)
+    if "study" in runs:  # the first tuning study's runs: the claims are decided on one
+        runs = runs[runs["study"].astype(str) == "0"]
     if not len(runs) or not {"variant", "seed", "axis", "budget", "path"} <= set(runs.columns):
         return None
     paths = {}

@@ -275,6 +275,8 @@ class PairVerdict:
     p_difference: dict = field(default_factory=dict)  # fraction -> Holm-corrected
     p_equivalent: dict = field(default_factory=dict)
     verdicts: dict = field(default_factory=dict)  # fraction -> (verdict, why)
+    # over repeated tuning studies (across_studies): each study's own verdicts
+    studies: list = field(default_factory=list)
 
     @property
     def verdict(self) -> str:
@@ -340,6 +342,69 @@ def compare_variants(
                 result.at[fraction], pd, pe, margin, alpha, len(results)
             )
     return results
+
+
+def majority(studies: int) -> int:
+    """How many of the tuning studies a verdict must hold in: more than half of them."""
+    return studies // 2 + 1
+
+
+def across_studies(per_study: Sequence[Sequence[PairVerdict]]) -> list[PairVerdict]:
+    """Every pair decided over repeated tuning studies (per_study[k]: study k's compare_variants,
+    the same pairs in the same order). A verdict holds at a fraction of the budget where more than
+    half of the studies reached it there and no study reached another (A better against B better,
+    or either against equivalent); otherwise the pair is undecided there, and why names each
+    study's verdict. Each study tunes anew (its own seed and trial points), so a difference that
+    one tuning draw produces, two names for one rule tuned to different rates, must recur in
+    another draw to count; docs/protocol.md gives the rule's error rates on simulated studies. The
+    corrected p-values are those of the weakest study of the majority (the majority-th smallest).
+    at[fraction] pools the pairs of all studies: counts, divergences and the median of the pooled
+    log ratios; its interval spans the studies' intervals (from the lowest low to the highest
+    high), descriptive, as a study's pairs share one tuning."""
+    if len(per_study) == 1:
+        return list(per_study[0])
+    need = majority(len(per_study))
+    combined = []
+    for pair in zip(*per_study):
+        first = pair[0]
+        result = PairVerdict(first.a, first.b, first.budget, studies=list(pair))
+        for fraction in first.at:
+            at = [v.at[fraction] for v in pair]
+            ratios = [r for p in at for r in p.log_ratios]
+            finite = np.array([r for r in ratios if not math.isnan(r)])
+            result.at[fraction] = Paired(
+                log_ratios=tuple(ratios),
+                median=snap(float(np.median(finite))) if finite.size else math.nan,
+                low=min(p.low for p in at),
+                high=max(p.high for p in at),
+                p_a=sorted(p.p_a for p in at)[need - 1],
+                p_b=sorted(p.p_b for p in at)[need - 1],
+                p_equivalent=sorted(p.p_equivalent for p in at)[need - 1],
+                diverged_a=sum(p.diverged_a for p in at),
+                diverged_b=sum(p.diverged_b for p in at),
+                missing=sum(p.missing for p in at),
+                both_diverged=sum(p.both_diverged for p in at),
+            )
+            result.p_difference[fraction] = sorted(v.p_difference[fraction] for v in pair)[need - 1]
+            result.p_equivalent[fraction] = sorted(v.p_equivalent[fraction] for v in pair)[need - 1]
+            found = [v.verdicts[fraction][0] for v in pair]
+            decided = set(found) - {UNDECIDED}
+            listed = ", ".join(found)
+            if len(decided) == 1 and found.count(next(iter(decided))) >= need:
+                result.verdicts[fraction] = (
+                    next(iter(decided)),
+                    f"{found.count(next(iter(decided)))} of {len(pair)} tuning studies: {listed}",
+                )
+            elif len(decided) > 1:
+                result.verdicts[fraction] = (UNDECIDED, f"the tuning studies disagree ({listed})")
+            else:
+                result.verdicts[fraction] = (
+                    UNDECIDED,
+                    f"{len(pair) - found.count(UNDECIDED)} of {len(pair)} tuning studies decided, "
+                    f"{need} needed ({listed})",
+                )
+        combined.append(result)
+    return combined
 
 
 def divergence_test(diverged_a: int, n_a: int, diverged_b: int, n_b: int) -> float:

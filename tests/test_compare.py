@@ -119,19 +119,18 @@ def test_equal_time_evaluations_interleave_the_variants_and_equal_iterations_tra
     )
     s = study_settings({**settings, "seeds": 3})
     variants = build_variants(axes, common, s, [])
-    best = {v.name: {"learning_rate": 0.01} for v in variants}
+    # two tuning studies: each study's own tuned rate, the same seeds
+    best = [{v.name: {"learning_rate": rate} for v in variants} for rate in (0.01, 0.02)]
     timed = evaluation_jobs(variants, best, s, common, {"task", "optim"}, "wall_time", 5.0)
     assert list(timed) == [
-        "eval_v0_s0",
-        "eval_v1_s0",
-        "eval_v0_s1",
-        "eval_v1_s1",
-        "eval_v0_s2",
-        "eval_v1_s2",
+        f"eval_{study}v{v}_s{seed}" for seed in range(3) for study in ("", "st1_") for v in (0, 1)
     ]
+    assert "learning_rate: 0.02" in timed["eval_st1_v0_s2"] and "seed: 2" in timed["eval_st1_v0_s2"]
     counted = evaluation_jobs(variants, best, s, common, {"task", "optim"}, "iteration", 300.0)
-    assert list(counted) == ["eval_v0", "eval_v1"] and "seeds: 3" in counted["eval_v0"]
+    assert list(counted) == ["eval_v0", "eval_v1", "eval_st1_v0", "eval_st1_v1"]
+    assert "seeds: 3" in counted["eval_v0"] and "seeds: 3" in counted["eval_st1_v1"]
     assert "learning_rate: 0.01" in counted["eval_v1"] and "eval_every: 15" in counted["eval_v1"]
+    assert "learning_rate: 0.02" in counted["eval_st1_v1"]
 
 
 def test_validation_data_are_held_out_and_evaluated_beside_the_test_set(tmp_path):
@@ -303,14 +302,34 @@ def test_the_python_call_returns_the_tables(tmp_path):
         "optim=adam,gd",
         "trainer.iterations=30",
         "compare.trials=2",
+        "compare.studies=2",
         "compare.seeds=6",
         f"compare.dir={tmp_path / 'study'}",
     )
-    assert list(study.trials.variant) == ["adam", "adam", "gd", "gd"]
-    assert sorted(set(study.runs.seed)) == list(range(6)) and len(study.runs) == 12
-    assert list(study.comparisons.fraction) == [0.25, 0.5, 1.0] and len(study.verdicts) == 1
-    assert study.verdicts[0].verdict == study.comparisons.verdict.iloc[-1]
+    # two tuning studies of two trials per variant, each on its own seed and points
+    assert list(zip(study.trials.study, study.trials.variant)) == [
+        (k, v) for k in (0, 1) for v in ("adam", "adam", "gd", "gd")
+    ]
+    rates = study.trials.groupby(["study", "variant"])["learning_rate"].apply(list)
+    assert rates[0, "adam"] != rates[1, "adam"] and rates[0, "gd"] != rates[1, "gd"]
+    tuned = {
+        physgrad.read_run(p).attrs["seed"] for p in (study.folder / "tune").rglob("results.h5")
+    }
+    assert tuned == {1_000_000, 1_000_001}
+    # each study's best evaluated on the same six seeds
+    assert len(study.runs) == 24 and set(study.runs.study) == {0, 1}
+    assert all(
+        sorted(g) == list(range(6)) for _, g in study.runs.groupby(["study", "variant"]).seed
+    )
+    # the verdicts over both studies first, then each study's own
+    assert list(study.comparisons.study) == ["all"] * 3 + [0] * 3 + [1] * 3
+    assert len(study.verdicts) == 1 and len(study.verdicts[0].studies) == 2
+    assert study.verdicts[0].verdict == study.comparisons.verdict.iloc[2]
+    assert study.verdicts[0].at[1.0].pairs == sum(
+        s.at[1.0].pairs for s in study.verdicts[0].studies
+    )
     assert (study.folder / "compare.md").read_text() == study.text
+    assert "must hold in 2 of the 2 tuning studies" in study.text
 
 
 @pytest.mark.slow
@@ -494,7 +513,7 @@ def test_continuing_networks_evaluates_one_job_per_seed():
     s = study_settings({**settings, "seeds": 3})
     variants = build_variants(axes, common, s, [])
     jobs = evaluation_jobs(
-        variants, {v.name: {} for v in variants}, s, common, {"task", "optim"}, "iteration", 30.0
+        variants, [{v.name: {} for v in variants}], s, common, {"task", "optim"}, "iteration", 30.0
     )
     assert list(jobs) == [f"eval_v{v}_s{seed}" for v in (0, 1) for seed in range(3)]
     assert "seed=${seed}" in jobs["eval_v0_s2"] and "seeds: 1" in jobs["eval_v0_s2"]
@@ -529,8 +548,8 @@ def test_a_finished_study_given_more_trials_tunes_on_from_where_it_stopped(tmp_p
 @pytest.mark.slow
 def test_two_names_for_one_rule_are_tuned_alike_in_either_order_and_equivalent(tmp_path):
     """A copy of adam.yaml under another name, listed second and then first: the same trial points
-    and tuned rate (the points do not depend on a variant's position or name), identical paired
-    runs, and the verdict "equivalent"."""
+    and tuned rate in each of the three tuning studies (the default; the points do not depend on a
+    variant's position or name), identical paired runs, and the verdict "equivalent"."""
     from physgrad.configs import CONF_DIR
 
     optim = tmp_path / "conf" / "optim"
@@ -547,8 +566,11 @@ def test_two_names_for_one_rule_are_tuned_alike_in_either_order_and_equivalent(t
     ]
     for study in studies:
         tried = study.trials.groupby("variant")["learning_rate"].apply(list)
+        assert len(tried["adam"]) == 6  # two trials in each of three tuning studies
         assert tried["adam"] == tried["adam_copy"]
-        losses = study.runs.pivot(index="seed", columns="variant", values="test_loss_at_1")
+        losses = study.runs.pivot(
+            index=["study", "seed"], columns="variant", values="test_loss_at_1"
+        )
         assert (losses["adam"] == losses["adam_copy"]).all()
         assert [v.verdict for v in study.verdicts] == ["equivalent"]
     assert list(studies[0].trials.sort_values(["variant", "learning_rate"]).learning_rate) == list(
@@ -571,9 +593,9 @@ def test_a_tuned_value_at_the_edge_of_its_range_is_warned_about():
         "c": {"learning_rate": 0.08},
         "d": {},
     }
-    lines = [line for line in edge_lines(variants, best) if line]
+    lines = [line for line in edge_lines(variants, [best]) if line]
     assert len(lines) == 2
     assert lines[0].startswith("warning: a's tuned learning_rate=1.6e-05 lies in the lowest tenth")
     assert lines[1].startswith("warning: c's tuned learning_rate=0.08 lies in the highest tenth")
     assert "compare.search.learning_rate=[low,high]" in lines[1]
-    assert edge_lines(variants[1:2] + variants[3:], best) == []
+    assert edge_lines(variants[1:2] + variants[3:], [best]) == []

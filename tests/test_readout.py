@@ -111,10 +111,9 @@ def analysed(tmp_path, axis, budget):
         for seed in SEEDS:
             run = read_run(tmp_path / "eval" / f"{variant.name}_s{seed}" / "results.h5")
             curves[variant.name][seed], statuses[variant.name][seed] = run_curve(run, axis), run
-    settings: StudySettings = study_settings({"seeds": len(SEEDS)})
-    analyse(
-        tmp_path, variants, {"adam": {}, "hig": {}}, curves, statuses, settings, axis, budget, []
-    )
+    settings: StudySettings = study_settings({"seeds": len(SEEDS), "studies": 1})
+    best = [{"adam": {}, "hig": {}}]
+    analyse(tmp_path, variants, best, [curves], [statuses], settings, axis, budget, [])
     write_report([tmp_path / "eval"], out_dir=tmp_path / "report")
     with (
         open(tmp_path / "runs.csv") as compare_csv,

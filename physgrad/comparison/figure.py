@@ -12,10 +12,11 @@ if TYPE_CHECKING:
 
 
 def plot_sensitivity(
-    path: Path, variants: list[Variant], trials_rows: list[dict], best: dict[str, dict]
+    path: Path, variants: list[Variant], trials_rows: list[dict], best: list[dict[str, dict]]
 ) -> None:
-    """Validation loss at the budget against the learning rate, one panel per variant: every trial,
-    the chosen one starred, the preset as a dashed line, diverged trials as crosses at the top."""
+    """Validation loss at the budget against the learning rate, one panel per variant: every trial
+    (a colour per tuning study), each study's chosen one starred, the preset as a dashed line,
+    diverged trials as crosses at the top."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -35,15 +36,22 @@ def plot_sensitivity(
         rate = variant.rate_key
         lr = np.array([r.get(rate, np.nan) for r in rows], float)
         loss = np.array([r["validation_loss"] for r in rows], float)
+        study = np.array([r.get("study", 0) for r in rows], int)
         ok = np.isfinite(loss)
-        ax.scatter(lr[ok], loss[ok], s=18, color="C0", label="trial")
+        for k in range(len(best)):
+            mine = ok & (study == k)
+            label = "trial" if len(best) == 1 else f"trial, study {k}"
+            ax.scatter(lr[mine], loss[mine], s=18, color=f"C{2 * k}", label=label)
         if (~ok).any():
             top = loss[ok].max() * 2 if ok.any() else 1.0
             ax.scatter(lr[~ok], np.full((~ok).sum(), top), marker="x", color="C3", label="diverged")
-        if rate in best[variant.name]:
-            chosen = [r for r in rows if r.get(rate) == best[variant.name][rate]]
+        for k, chosen_settings in enumerate(best):
+            if rate not in chosen_settings[variant.name]:
+                continue
+            value = chosen_settings[variant.name][rate]
+            chosen = [r for r in rows if r.get(rate) == value and r.get("study", 0) == k]
             ax.scatter(
-                [best[variant.name][rate]],
+                [value],
                 [chosen[0]["validation_loss"]],
                 marker="*",
                 s=140,

@@ -24,10 +24,10 @@ if TYPE_CHECKING:
 
     from physgrad.results import Run
 
-# what does not make a study another: its folder, Hydra's settings, and the number of trials (a
-# finished study given more trials tunes on from where it stopped: the Halton points of n trials
-# begin with those of fewer)
-NOT_THE_STUDY = ("compare.dir", "compare.trials", "hydra")
+# what does not make a study another: its folder, Hydra's settings, and the number of trials and of
+# tuning studies (a finished study given more trials tunes on from where it stopped: the Halton
+# points of n trials begin with those of fewer; given more studies, it adds them)
+NOT_THE_STUDY = ("compare.dir", "compare.trials", "compare.studies", "hydra")
 
 
 # --- the study folder

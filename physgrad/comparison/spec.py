@@ -21,12 +21,17 @@ SETTINGS = {  # compare.<key>: default, meaning
         16,
         "tuning trials per variant (more on a finished study tunes on from where it stopped)",
     ),
+    "studies": (
+        3,
+        "repeated tuning studies, each with its own tuning seed (tune_seed + k) and trial points; "
+        "a verdict must hold in every one (docs/protocol.md)",
+    ),
     "seeds": (10, "paired evaluation seeds"),
     "seed": (0, "the first evaluation seed (seed .. seed + seeds - 1)"),
     "tune_seed": (
         1_000_000,
-        "the seed of every tuning trial (data, network, batches), disjoint from the evaluation "
-        "seeds",
+        "the seed of the first study's tuning trials (data, network, batches; study k: "
+        "tune_seed + k), disjoint from the evaluation seeds",
     ),
     "margin": (MARGIN, "better means a loss ratio beyond this factor; equivalent means within it"),
     "alpha": (ALPHA, "the level of the tests after Holm's correction"),
@@ -56,6 +61,7 @@ class StudySettings:
     checked."""
 
     trials: int
+    studies: int
     seeds: int
     seed: int
     tune_seed: int
@@ -76,6 +82,18 @@ class StudySettings:
     @property
     def evaluation_seeds(self) -> list[int]:
         return list(range(self.seed, self.seed + self.seeds))
+
+    @property
+    def study_count(self) -> int:
+        """Tuning studies run: compare.studies, or one where nothing is tuned (no tuning variance
+        to sample)."""
+        return self.studies if self.tune else 1
+
+
+def study_prefix(study: int) -> str:
+    """What a job name of tuning study k starts with after its phase: nothing for the first study
+    (a study folder written before repeated studies reads as its first), st<k>_ for the others."""
+    return "" if study == 0 else f"st{study}_"
 
 
 @dataclass
@@ -217,6 +235,7 @@ def study_settings(given: dict) -> StudySettings:
     values = {key: default for key, (default, _) in SETTINGS.items()}
     values.update(given)
     number("compare.trials", values["trials"], 1, 10_000, integer=True)
+    number("compare.studies", values["studies"], 1, 100, integer=True)
     number("compare.seeds", values["seeds"], 1, 10_000, integer=True)
     number("compare.seed", values["seed"], 0, 2**32, integer=True)
     number("compare.tune_seed", values["tune_seed"], 0, 2**32, integer=True)
@@ -229,10 +248,11 @@ def study_settings(given: dict) -> StudySettings:
     settings = StudySettings(**values)
     if not isinstance(settings.tune, bool):
         raise UserError(f"compare.tune={settings.tune!r}: use true or false")
-    if settings.seed <= settings.tune_seed < settings.seed + settings.seeds:
+    last_tuning = settings.tune_seed + settings.studies - 1
+    if settings.tune_seed < settings.seed + settings.seeds and settings.seed <= last_tuning:
         raise UserError(
-            f"compare.tune_seed={settings.tune_seed} is one of the evaluation seeds "
-            f"{settings.seed}.."
+            f"the tuning seeds {settings.tune_seed}..{last_tuning} (compare.tune_seed, one per "
+            f"study) overlap the evaluation seeds {settings.seed}.."
             f"{settings.seed + settings.seeds - 1}: tuning and evaluation seeds must differ"
         )
     return settings

@@ -108,7 +108,7 @@ def run_study(
             plan = StudyPlan(variants, settings, common, groups, axis, budget)
             launcher = Launcher(folder, config_dir, hydra_args, say)
             best = tuning(plan, launcher)
-            rows = trial_rows(folder, variants)
+            rows = trial_rows(folder, variants, settings.study_count)
             if rows:
                 plot_sensitivity(folder / "sensitivity", variants, rows, best)
             curves, statuses = evaluation(plan, best, launcher)

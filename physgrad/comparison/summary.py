@@ -11,7 +11,14 @@ import numpy as np
 
 from physgrad.comparison.spec import StudySettings, Variant
 from physgrad.readout import fmt, loss_at, target_loss, time_to_target
-from physgrad.verdict import FRACTIONS, compare_variants, divergence_test, seeds_for_one_against
+from physgrad.verdict import (
+    FRACTIONS,
+    across_studies,
+    compare_variants,
+    divergence_test,
+    majority,
+    seeds_for_one_against,
+)
 
 if TYPE_CHECKING:
     import pandas as pd
@@ -39,25 +46,41 @@ def _ratio_text(p: Paired) -> str:
 def analyse(
     folder: Path,
     variants: list[Variant],
-    best: dict[str, dict],
-    curves: dict[str, dict[int, Curve]],
-    statuses: dict[str, dict[int, Run]],
+    best: list[dict[str, dict]],
+    curves: list[dict[str, dict[int, Curve]]],
+    statuses: list[dict[str, dict[int, Run]]],
     settings: StudySettings,
     axis: str,
     budget: float,
     trials_rows: list[dict],
     calibration: dict | None = None,
 ) -> tuple[pd.DataFrame, pd.DataFrame, pd.DataFrame, list[PairVerdict], str]:
-    """The verdicts and tables of the evaluation runs, written to folder (trials.csv, runs.csv,
-    comparisons.csv, compare.md); returns (runs, comparisons, trials, verdicts, compare.md's
+    """The verdicts and tables of the evaluation runs of every tuning study (best, curves and
+    statuses: one entry per study), written to folder (trials.csv, runs.csv, comparisons.csv,
+    compare.md); returns (runs, comparisons, trials, verdicts over the studies, compare.md's
     text)."""
     import pandas as pd
 
     unit = _unit(axis)
-    verdicts = compare_variants(curves, budget, margin=settings.margin, alpha=settings.alpha)
-    target_variant, target = target_loss(curves, budget)
-    runs = pd.DataFrame(run_rows(variants, curves, statuses, axis, budget, target))
-    comparisons = pd.DataFrame(comparison_rows(verdicts, budget))
+    per_study = [
+        compare_variants(by_variant, budget, margin=settings.margin, alpha=settings.alpha)
+        for by_variant in curves
+    ]
+    verdicts = across_studies(per_study)
+    # the target: the lowest median over every study's runs of a variant
+    pooled = {
+        v.name: {(k, seed): c for k, runs in enumerate(curves) for seed, c in runs[v.name].items()}
+        for v in variants
+    }
+    target_variant, target = target_loss(pooled, budget)
+    runs = pd.DataFrame(
+        [
+            row
+            for k in range(len(curves))
+            for row in run_rows(variants, curves[k], statuses[k], axis, budget, target, k)
+        ]
+    )
+    comparisons = pd.DataFrame(comparison_rows(verdicts, budget, per_study))
     trials = pd.DataFrame(trials_rows)
     trials.to_csv(folder / "trials.csv", index=False)
     runs.to_csv(folder / "runs.csv", index=False)
@@ -78,9 +101,10 @@ def run_rows(
     axis: str,
     budget: float,
     target: float,
+    study: int = 0,
 ) -> list[dict]:
-    """runs.csv: one row per evaluation run, with its test loss at each fraction of the budget and
-    its time to the target."""
+    """runs.csv: one row per evaluation run (of tuning study `study`), with its test loss at each
+    fraction of the budget and its time to the target."""
     from physgrad.machine import machine_label
 
     unit = _unit(axis)
@@ -90,6 +114,7 @@ def run_rows(
             run = statuses[variant.name][seed]
             row = {
                 "variant": variant.name,
+                "study": study,
                 "seed": seed,
                 "axis": axis,
                 "budget": budget,
@@ -117,14 +142,22 @@ def run_rows(
     return rows
 
 
-def comparison_rows(verdicts: list[PairVerdict], budget: float) -> list[dict]:
-    """comparisons.csv: every pair at every fraction of the budget."""
+def comparison_rows(
+    verdicts: list[PairVerdict], budget: float, per_study: list[list[PairVerdict]] | None = None
+) -> list[dict]:
+    """comparisons.csv: every pair at every fraction of the budget; with repeated tuning studies the
+    verdicts over all studies (study "all") and then each study's own."""
+    per_study = per_study or [verdicts]
+    labelled = [(0, verdicts)] if len(per_study) == 1 else [("all", verdicts)]
+    if len(per_study) > 1:
+        labelled += list(enumerate(per_study))
     rows = []
-    for v in verdicts:
+    for study, v in ((study, v) for study, vs in labelled for v in vs):
         for fraction in FRACTIONS:
             p = v.at[fraction]
             rows.append(
                 {
+                    "study": study,
                     "a": v.a,
                     "b": v.b,
                     "fraction": fraction,
@@ -172,18 +205,18 @@ def verdict_lines(
         f"# Which gradient: {variants[0].config.task.get('name')}, "
         f"{', '.join(v.name for v in variants)}",
         "",
-        f"Budget: {budget_text} per run. Tuning: {settings.trials if settings.tune else 0} trials "
-        "per variant "
-        f"on seed {settings.tune_seed}, scored by the validation loss at the budget. Evaluation: "
-        "seeds "
+        f"Budget: {budget_text} per run. {_tuning_text(settings)} Evaluation: seeds "
         f"{settings.seed}..{settings.seed + settings.seeds - 1}, paired (same data and initial "
         "network), "
         f"verdicts on the test loss. Rule: docs/protocol.md (margin {settings.margin:g}, alpha "
-        f"{settings.alpha:g}, Holm over {len(verdicts)} comparisons).",
+        f"{settings.alpha:g}, Holm over {len(verdicts)} "
+        f"comparison{'s' if len(verdicts) > 1 else ''}"
+        f"{_studies_rule(settings)}).",
         "",
         "## Verdicts",
         "",
-        "| A vs B | verdict at the budget | median A/B [95% interval] | A lower in | verdict at "
+        f"| A vs B | verdict at the budget | median A/B [95% interval]"
+        f"{', per tuning study' if settings.study_count > 1 else ''} | A lower in | verdict at "
         "1/4, 1/2 | stable | trend 1/2 -> 1 | diverged A, B | contended runs A, B |",
         "|---|---|---|---|---|---|---|---|---|",
     ]
@@ -197,13 +230,41 @@ def verdict_lines(
         if v.reversed:
             flag += f" (reversed: {v.verdicts[0.25][0]}, {v.verdicts[0.5][0]} at 1/4, 1/2)"
         lines.append(
-            f"| {v.a} vs {v.b} | **{v.verdict}**{flag} ({v.verdicts[1.0][1]}) | {_ratio_text(p)} | "
+            f"| {v.a} vs {v.b} | **{v.verdict}**{flag} ({v.verdicts[1.0][1]}) | "
+            f"{'; '.join(_ratio_text(s.at[1.0]) for s in v.studies) or _ratio_text(p)} | "
             f"{p.wins_a} of {p.pairs}{f' ({p.missing} missing)' if p.missing else ''}"
             f"{f' ({p.both_diverged} both diverged)' if p.both_diverged else ''} | "
             f"{v.verdicts[0.25][0]}, {v.verdicts[0.5][0]} | {'yes' if v.stable else 'no'} | "
             f"{v.trend} | {p.diverged_a}, {p.diverged_b} | {contended[v.a]}, {contended[v.b]} |"
         )
     return lines + unanimity_lines(settings.seeds, settings.alpha, len(verdicts))
+
+
+def _tuning_text(settings: StudySettings) -> str:
+    if not settings.tune:
+        return "Not tuned: every variant at its configured settings."
+    if settings.study_count == 1:
+        return (
+            f"Tuning: {settings.trials} trials per variant on seed {settings.tune_seed}, the same "
+            "points for every variant, scored by the validation loss at the budget."
+        )
+    last = settings.tune_seed + settings.study_count - 1
+    return (
+        f"Tuning: {settings.study_count} independent tuning studies of {settings.trials} trials "
+        f"per variant (seeds {settings.tune_seed}..{last}, each study its own trial points, the "
+        "same for every variant), scored by the validation loss at the budget; each study's best "
+        "is evaluated."
+    )
+
+
+def _studies_rule(settings: StudySettings) -> str:
+    if settings.study_count == 1:
+        return ""
+    return (
+        f"; a verdict must hold in {majority(settings.study_count)} of the "
+        f"{settings.study_count} tuning studies with none against it; the table gives each "
+        "study's median ratio and interval in turn"
+    )
 
 
 def unanimity_lines(seeds: int, alpha: float, comparisons: int) -> list[str]:
@@ -223,13 +284,13 @@ def unanimity_lines(seeds: int, alpha: float, comparisons: int) -> list[str]:
 def variant_lines(
     variants: list[Variant],
     runs: pd.DataFrame,
-    best: dict[str, dict],
+    best: list[dict[str, dict]],
     unit: str,
     target_variant: str,
     target: float,
 ) -> list[str]:
-    """compare.md's variants table (tuned and preset settings, test loss at the budget, time to
-    target) and the target."""
+    """compare.md's variants table (tuned settings, one value per tuning study, and the preset;
+    test loss at the budget over every study's runs; time to target) and the target."""
     lines = [
         "",
         "## Variants",
@@ -243,9 +304,7 @@ def variant_lines(
         losses = sub["test_loss_at_1"].to_numpy(float) if len(sub) else np.empty(0)
         present = losses[~np.isnan(losses)]
         reach = sub[f"to_target_{unit}"].to_numpy(float) if len(sub) else np.empty(0)
-        tuned = (
-            ", ".join(f"{k}={fmt(val)}" for k, val in best[variant.name].items()) or "as configured"
-        )
+        tuned = tuned_text([study[variant.name] for study in best])
         preset = (
             ", ".join(
                 f"{k}={fmt(float(val)) if isinstance(val, (int, float)) else val}"
@@ -275,15 +334,42 @@ def variant_lines(
     return lines
 
 
+def _outermost(values: list[float], bounds: tuple | None) -> float:
+    """The value nearest either end of its log range."""
+    if bounds is None:
+        return values[0]
+    low, high = (math.log(b) for b in bounds)
+    return max(values, key=lambda v: abs((math.log(v) - low) / (high - low) - 0.5) if v > 0 else 0)
+
+
+def tuned_text(per_study: list[dict]) -> str:
+    """A variant's tuned settings, each key with its value in every tuning study in turn
+    (learning_rate=0.001, 0.0021, 0.0013): the spread the tuning itself leaves."""
+    keys = list(dict.fromkeys(key for settings in per_study for key in settings))
+    return (
+        "; ".join(
+            f"{key}=" + ", ".join(fmt(float(s[key])) if key in s else "-" for s in per_study)
+            for key in keys
+        )
+        or "as configured"
+    )
+
+
 EDGE = 0.1  # a tuned value in the outer tenth of its log range is at the range's edge
 
 
-def edge_lines(variants: list[Variant], best: dict[str, dict]) -> list[str]:
-    """A warning per tuned value in the outer tenth of its log-uniform range: the best trial may lie
-    beyond the range, which should then be widened (compare.search.KEY=[low,high])."""
+def edge_lines(variants: list[Variant], best: list[dict[str, dict]]) -> list[str]:
+    """A warning per tuned value in the outer tenth of its log-uniform range (in any tuning study;
+    best: per study): the best trial may lie beyond the range, which should then be widened
+    (compare.search.KEY=[low,high])."""
     lines = []
     for variant in variants:
-        for key, value in best[variant.name].items():
+        found = {}
+        for study in best:
+            for key, value in study[variant.name].items():
+                found.setdefault(key, []).append(value)
+        for key, values in found.items():
+            value = _outermost(values, variant.space.get(key))
             low, high = variant.space.get(key, (None, None))
             if low is None or not value > 0:
                 continue
@@ -384,20 +470,25 @@ def _calibration_lines(variants: list[Variant], runs: pd.DataFrame, calibration:
     return lines
 
 
-def trial_rows(folder: Path, variants: list[Variant]) -> list[dict]:
+def trial_rows(folder: Path, variants: list[Variant], studies: int = 1) -> list[dict]:
+    """trials.csv: every trial of the first `studies` tuning studies, variant by variant within a
+    study."""
     import optuna
+
+    from physgrad.comparison.tuning import optuna_study_name
 
     path = folder / "tuning.journal"
     if not path.exists():
         return []
     storage = optuna.storages.JournalStorage(optuna.storages.journal.JournalFileBackend(str(path)))
     rows = []
-    for variant in variants:
-        study = optuna.load_study(study_name=variant.name, storage=storage)
+    for k, variant in ((k, v) for k in range(studies) for v in variants):
+        study = optuna.load_study(study_name=optuna_study_name(variant, k), storage=storage)
         for t in study.trials:
             rows.append(
                 {
                     "variant": variant.name,
+                    "study": k,
                     "trial": t.number,
                     **t.params,
                     "validation_loss": t.value if t.value is not None else math.nan,

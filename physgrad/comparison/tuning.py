@@ -1,6 +1,8 @@
-"""Phase 1 of a study: compare.trials trials per variant on the tuning seed, at the study's budget,
-over its search space (log-uniform; scrambled Halton points, as AlgoPerf; an Optuna study per
-variant in tuning.journal), each scored by its VALIDATION loss at the budget."""
+"""Phase 1 of a study: compare.studies tuning studies, each of compare.trials trials per variant on
+its own tuning seed, at the study's budget, over the variant's search space (log-uniform; scrambled
+Halton points, the same for every variant of a study and another scramble per study, as AlgoPerf's
+repeated studies; an Optuna study per variant and tuning study in tuning.journal), each trial scored
+by its VALIDATION loss at the budget."""
 
 from __future__ import annotations
 
@@ -8,7 +10,7 @@ import math
 from pathlib import Path
 
 from physgrad.comparison.jobs import Launcher, cadence, job_runs, job_yaml
-from physgrad.comparison.spec import StudyPlan, StudySettings, Variant
+from physgrad.comparison.spec import StudyPlan, StudySettings, Variant, study_prefix
 from physgrad.errors import UserError
 from physgrad.readout import run_curve
 
@@ -34,86 +36,104 @@ def halton_points(space: dict, count: int, seed: int) -> list[dict]:
     ]
 
 
-def tuning(plan: StudyPlan, launcher: Launcher) -> dict[str, dict]:
-    """Phase 1: trials per variant (equal numbers), scored by validation loss at the budget; returns
-    the best settings per variant (its configured ones where every trial diverged or tuning is
-    off)."""
+def tuning(plan: StudyPlan, launcher: Launcher) -> list[dict[str, dict]]:
+    """Phase 1: trials per variant (equal numbers) in each of the settings' tuning studies, scored
+    by validation loss at the budget; returns per study the best settings per variant (its
+    configured ones where every trial diverged or tuning is off)."""
     variants, settings, folder = plan.variants, plan.settings, launcher.folder
     common, groups, axis, budget = plan.common, plan.groups, plan.axis, plan.budget
-    best = {v.name: {} for v in variants}
+    count = settings.study_count
+    best = [{v.name: {} for v in variants} for _ in range(count)]
     if not settings.tune:
         return best
     studies, pending = _open_studies(folder, variants, settings)
     jobs = {}
-    for k in range(settings.trials):  # interleaved: trial k of every variant, then k + 1
-        for index, variant in enumerate(variants):
-            trial = pending.get((index, k))
-            if trial is not None:
+    # interleaved: trial k of every study and variant, then k + 1, so that a study stopped early
+    # has tried every variant alike
+    for k in range(settings.trials):
+        for study in range(count):
+            for index, variant in enumerate(variants):
+                trial = pending.get((study, index, k))
+                if trial is None:
+                    continue
                 values = {f"optim.{key}": value for key, value in trial.params.items()}
                 values.update(
                     {
-                        "seed": settings.tune_seed,
+                        "seed": settings.tune_seed + study,
                         "seeds": 1,
                         "trainer.validation": True,
                         **variant.job_values,
                     }
                 )
                 values.update(cadence(variant.config, axis, budget))
-                jobs[f"tune_v{index}_t{k:03d}"] = job_yaml(
+                jobs[trial_job(study, index, k)] = job_yaml(
                     [*common, *variant.overrides], groups, values
                 )
     if jobs:
         launcher.run("tune", jobs)
         _score_trials(folder, variants, studies, pending, axis, budget)
-    for variant in variants:
-        done = [
-            t
-            for t in studies[variant.name].trials
-            if t.value is not None and math.isfinite(t.value)
-        ]
-        if len(studies[variant.name].trials) and any(
-            t.value is None for t in studies[variant.name].trials
-        ):
-            raise UserError(
-                f"tuning of {variant.name} did not finish (see {folder / 'tune.log'}): run the "
-                "same command again to resume"
-            )
-        if done:
-            best[variant.name] = dict(min(done, key=lambda t: t.value).params)
+    for study in range(count):
+        for variant in variants:
+            trials = studies[study, variant.name].trials
+            if any(t.value is None for t in trials):
+                raise UserError(
+                    f"tuning of {variant.name} did not finish (see {folder / 'tune.log'}): run the "
+                    "same command again to resume"
+                )
+            done = [t for t in trials if math.isfinite(t.value)]
+            if done:
+                best[study][variant.name] = dict(min(done, key=lambda t: t.value).params)
     return best
+
+
+def trial_job(study: int, index: int, trial: int) -> str:
+    """The job name of trial k of variant index in tuning study `study`."""
+    return f"tune_{study_prefix(study)}v{index}_t{trial:03d}"
+
+
+def optuna_study_name(variant: Variant, study: int) -> str:
+    """The Optuna study of a variant's tuning study k in tuning.journal (the first keeps the
+    variant's name, as a folder written before repeated studies has it)."""
+    return variant.name if study == 0 else f"{variant.name} (study {study})"
 
 
 def _open_studies(
     folder: Path, variants: list[Variant], settings: StudySettings
 ) -> tuple[dict, dict]:
-    """Each variant's Optuna study in folder/tuning.journal, with its Halton points enqueued and
-    asked for; (studies by variant name, the trials not yet told by (variant index, trial
-    number))."""
+    """Each variant's Optuna study per tuning study in folder/tuning.journal, with its Halton points
+    enqueued and asked for; (Optuna studies by (study, variant name), the trials not yet told by
+    (study, variant index, trial number))."""
     import optuna
+    from optuna.trial import TrialState
 
     optuna.logging.set_verbosity(optuna.logging.WARNING)
     storage = optuna.storages.JournalStorage(
         optuna.storages.journal.JournalFileBackend(str(folder / "tuning.journal"))
     )
     studies, pending = {}, {}
-    for index, variant in enumerate(variants):
-        study = optuna.create_study(
-            study_name=variant.name, storage=storage, direction="minimize", load_if_exists=True
-        )
-        studies[variant.name] = study
-        # the same scrambled points for every variant (one seed): a variant's position or name
-        # never changes where it is tried, so two names for one rule are tuned alike
-        points = halton_points(variant.space, settings.trials, settings.tune_seed)
-        for point in points[len(study.trials) :]:
-            study.enqueue_trial(point)
-        from optuna.trial import TrialState
-
-        while any(t.state == TrialState.WAITING for t in study.get_trials(deepcopy=False)):
-            trial = study.ask()
-            for key, (low, high) in sorted(variant.space.items()):
-                trial.suggest_float(key, low, high, log=True)
-        for trial in study.get_trials(deepcopy=False, states=(TrialState.RUNNING,)):
-            pending[(index, trial.number)] = trial
+    for study_index in range(settings.study_count):
+        # the same scrambled points for every variant of one study (one seed per study): a
+        # variant's position or name never changes where it is tried, so two names for one rule
+        # are tuned alike; each study has its own scramble, so the studies sample the tuning's
+        # variance
+        seed = settings.tune_seed + study_index
+        for index, variant in enumerate(variants):
+            study = optuna.create_study(
+                study_name=optuna_study_name(variant, study_index),
+                storage=storage,
+                direction="minimize",
+                load_if_exists=True,
+            )
+            studies[study_index, variant.name] = study
+            points = halton_points(variant.space, settings.trials, seed)
+            for point in points[len(study.trials) :]:
+                study.enqueue_trial(point)
+            while any(t.state == TrialState.WAITING for t in study.get_trials(deepcopy=False)):
+                trial = study.ask()
+                for key, (low, high) in sorted(variant.space.items()):
+                    trial.suggest_float(key, low, high, log=True)
+            for trial in study.get_trials(deepcopy=False, states=(TrialState.RUNNING,)):
+                pending[study_index, index, trial.number] = trial
     return studies, pending
 
 
@@ -122,12 +142,12 @@ def _score_trials(
 ) -> None:
     """Each pending trial whose job ran to its end told its validation loss at the budget (a
     diverged one: infinity); one not run to its end stays pending (run again next time)."""
-    for index, k in pending:
-        runs = job_runs(folder / "tune", f"tune_v{index}_t{k:03d}")
+    for study, index, k in pending:
+        runs = job_runs(folder / "tune", trial_job(study, index, k))
         if not runs or runs[0].attrs.get("status") in ("running", "interrupted", "crashed"):
             continue  # not run to its end: run again next time
         run = runs[0]
         if run.attrs.get("status") == "refused":
             raise UserError(f"variant {variants[index].name} is refused: {run.attrs.get('reason')}")
         value = run_curve(run, axis, "validation_loss").at(budget)
-        studies[variants[index].name].tell(k, value if not math.isnan(value) else math.inf)
+        studies[study, variants[index].name].tell(k, value if not math.isnan(value) else math.inf)
