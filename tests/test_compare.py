@@ -242,6 +242,7 @@ def test_a_study_on_a_users_own_scene_end_to_end_and_resumed(tmp_path):
         "task.train_size=64",
         "task.test_size=32",
         "compare.trials=3",
+        "compare.studies=1",
         "compare.seeds=7",
         f"compare.dir={study}",
     ]
@@ -330,6 +331,8 @@ def test_the_python_call_returns_the_tables(tmp_path):
     )
     assert (study.folder / "compare.md").read_text() == study.text
     assert "must hold in 2 of the 2 tuning studies" in study.text
+    # an iteration budget still says what a step costs each variant
+    assert "| adam | " in study.text.split("step time: median of the runs' p50")[1]
 
 
 @pytest.mark.slow
@@ -359,6 +362,7 @@ def test_a_study_stopped_at_random_instants_resumes_to_the_same_trials(tmp_path)
             "optim=adam,gd",
             "trainer.iterations=400",
             "compare.trials=3",
+            "compare.studies=1",
             "compare.seeds=6",
             f"compare.dir={study}",
         ]
@@ -402,6 +406,7 @@ def test_an_equal_time_study_runs_on_the_calibrated_clock_and_can_reuse_a_calibr
         "optim=adam,gauss_newton",
         "trainer.time_budget=0.4",
         "compare.trials=1",
+        "compare.studies=1",
         "compare.seeds=6",
         "trainer.batch_size=16",
     ]
@@ -491,6 +496,7 @@ def test_a_study_that_continues_networks_pairs_each_seed_with_its_own_start(tmp_
         "optim=adam,gd",
         "trainer.iterations=20",
         "compare.trials=1",
+        "compare.studies=1",
         "compare.seeds=2",
         f"init_from='{start}/seed=${{seed}}/results.h5'",
         f"compare.dir={tmp_path / 'study'}",
@@ -522,25 +528,31 @@ def test_continuing_networks_evaluates_one_job_per_seed():
 @pytest.mark.long
 def test_a_finished_study_given_more_trials_tunes_on_from_where_it_stopped(tmp_path):
     """trials 1 then 3: the first trial is not run again (its results file is untouched), the two
-    new ones are the next Halton points, and the folder is the same study; another budget is still
-    another study."""
+    new ones are the next Halton points, and the folder is the same study; given a second tuning
+    study, it adds that study's trials and evaluation and trains nothing of the first again;
+    another budget is still another study."""
     args = [
         "task=toy",
         "optim=adam,gd",
         "trainer.iterations=20",
-        "compare.seeds=2",
+        "compare.seeds=6",
         f"compare.dir={tmp_path / 's'}",
     ]
-    physgrad.compare(*args, "compare.trials=1")
+    physgrad.compare(*args, "compare.trials=1", "compare.studies=1")
     first = tmp_path / "s" / "tune" / "+compare_job=tune_v0_t000" / "results.h5"
     stamp = first.stat().st_mtime_ns
-    study = physgrad.compare(*args, "compare.trials=3")
+    study = physgrad.compare(*args, "compare.trials=3", "compare.studies=1")
     assert first.stat().st_mtime_ns == stamp
     assert list(study.trials.variant) == ["adam"] * 3 + ["gd"] * 3
     expected = halton_points({"learning_rate": ADAPTIVE.search_range}, 3, 1_000_000)
     assert list(study.trials[study.trials.variant == "adam"].learning_rate) == pytest.approx(
         [p["learning_rate"] for p in expected]
     )
+    stamps = {p: p.stat().st_mtime_ns for p in (tmp_path / "s").rglob("results.h5")}
+    two = physgrad.compare(*args, "compare.trials=3", "compare.studies=2")
+    assert all(p.stat().st_mtime_ns == stamp for p, stamp in stamps.items())
+    assert list(two.trials.study) == [0] * 6 + [1] * 6 and len(two.runs) == 24
+    assert len(two.verdicts[0].studies) == 2
     with pytest.raises(UserError, match="holds another study"):
         physgrad.compare(*args[:2], "trainer.iterations=30", *args[3:], "compare.trials=3")
 
@@ -599,3 +611,43 @@ def test_a_tuned_value_at_the_edge_of_its_range_is_warned_about():
     assert lines[1].startswith("warning: c's tuned learning_rate=0.08 lies in the highest tenth")
     assert "compare.search.learning_rate=[low,high]" in lines[1]
     assert edge_lines(variants[1:2] + variants[3:], [best]) == []
+
+
+def test_the_plan_costs_every_job_of_a_study_from_compile_and_step_times():
+    """variant_cost's arithmetic on given costs: tuning = trials x studies runs of (compile + budget
+    x step); an iteration budget evaluates a vectorised variant in one job per study (seeds x
+    budget x step of training), a float64-retrying rule and any time budget in one job per seed."""
+    from physgrad.comparison.plan import variant_cost
+    from physgrad.comparison.spec import StudyPlan
+
+    settings, axes, common, _ = split_overrides(
+        ["task=toy", "optim=adam,gauss_newton", "compare.trials=4", "compare.studies=2"]
+    )
+    s = study_settings({**settings, "seeds": 6})
+    adam, gauss_newton = build_variants(axes, common, s, [])
+    plan = StudyPlan([adam, gauss_newton], s, common, {"task", "optim"}, "iteration", 100.0)
+    cost = variant_cost(plan, adam, 2.0, 0.01)
+    assert (cost.tuning_runs, cost.tuning_seconds) == (8, pytest.approx(8 * (2.0 + 1.0)))
+    assert (cost.evaluation_jobs, cost.evaluation_seconds) == (2, pytest.approx(2 * 2.0 + 12 * 1.0))
+    retrying = variant_cost(plan, gauss_newton, 2.0, 0.01)  # optim.retry_float64: a job per seed
+    assert (retrying.evaluation_jobs, retrying.evaluation_seconds) == (
+        12,
+        pytest.approx(12 * 2.0 + 12 * 1.0),
+    )
+    timed = StudyPlan([adam, gauss_newton], s, common, {"task", "optim"}, "wall_time", 5.0)
+    cost = variant_cost(timed, adam, 2.0, 0.01)
+    assert cost.tuning_seconds == pytest.approx(8 * 7.0) and cost.evaluation_jobs == 12
+    assert cost.seconds == pytest.approx(8 * 7.0 + 12 * 7.0)
+
+
+def test_plan_prints_the_estimate_and_trains_nothing(tmp_path):
+    out = console(
+        "compare",
+        "--plan",
+        "task=toy",
+        "optim=adam,gd",
+        "trainer.iterations=50",
+        f"compare.dir={tmp_path / 'study'}",
+    )
+    assert "| adam |" in out.stdout and "| gd |" in out.stdout and "Total: about" in out.stdout
+    assert not (tmp_path / "study").exists()

@@ -175,7 +175,11 @@ def launch(
         # SIGTERM) on once, so the sweep stops as a whole and records what it stopped
         # (physgrad.sweeps)
         process = subprocess.Popen(
-            command, stdout=log, stderr=subprocess.STDOUT, start_new_session=True
+            command,
+            stdout=log,
+            stderr=subprocess.STDOUT,
+            start_new_session=True,
+            env=job_environment(folder),
         )
         received = []
 
@@ -195,6 +199,16 @@ def launch(
         if received:
             raise KeyboardInterrupt(signal.Signals(received[0]).name)
         return code
+
+
+def job_environment(folder: Path) -> dict[str, str]:
+    """The environment of a study's jobs: this process's, with JAX's persistent compilation cache in
+    folder/jax-cache unless the user chose one (JAX_COMPILATION_CACHE_DIR). The jobs of a study
+    compile the same evaluations, data generators and, where only a tuned value differs, often the
+    same steps again: a cached executable is the same code, so results do not change."""
+    env = dict(os.environ)
+    env.setdefault("JAX_COMPILATION_CACHE_DIR", str((folder / "jax-cache").resolve()))
+    return env
 
 
 def multirun_command(

@@ -146,12 +146,15 @@ def learning_rate_key(optim_cfg: DictConfig) -> str | None:
 # -----------------------------------------------------------------------------
 
 
-def parse_arguments(args: list[str]) -> tuple[list[str], str | None]:
-    """Hydra's -cd/--config-dir DIR pulled out of the argument list; the rest are overrides."""
-    overrides, config_dir, rest = [], None, list(args)
+def parse_arguments(args: list[str]) -> tuple[list[str], str | None, bool]:
+    """Hydra's -cd/--config-dir DIR and --plan pulled out of the argument list; the rest are
+    overrides. (overrides, config_dir, plan)."""
+    overrides, config_dir, plan, rest = [], None, False, list(args)
     while rest:
         arg = rest.pop(0)
-        if arg in ("-cd", "--config-dir"):
+        if arg == "--plan":
+            plan = True
+        elif arg in ("-cd", "--config-dir"):
             if not rest:
                 raise UserError(f"{arg} needs a folder")
             config_dir = rest.pop(0)
@@ -159,11 +162,12 @@ def parse_arguments(args: list[str]) -> tuple[list[str], str | None]:
             config_dir = arg.split("=", 1)[1]
         elif arg.startswith("-"):
             raise UserError(
-                f"physgrad compare does not take {arg}: give overrides (key=value) and -cd DIR"
+                f"physgrad compare does not take {arg}: give overrides (key=value), -cd DIR and "
+                "--plan"
             )
         else:
             overrides.append(arg)
-    return overrides, config_dir
+    return overrides, config_dir, plan
 
 
 def split_overrides(overrides: list[str]) -> tuple[dict, list, list, list]:

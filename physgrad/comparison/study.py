@@ -1,8 +1,11 @@
 """`physgrad compare`: which variant trains this scene best, tuned with equal budgets, decided on
 paired seeds.
 
-    physgrad compare [-cd DIR] task=<scene> optim=adam,gauss_newton,hig [trainer.time_budget=60]
-    [compare.KEY=V]
+    physgrad compare [-cd DIR] [--plan] task=<scene> optim=adam,gauss_newton,hig
+    [trainer.time_budget=60] [compare.KEY=V]
+
+--plan estimates the study's cost from each variant's measured compile time and step cost, and
+trains nothing.
 
 Every comma list on the command line is an axis of variants (their product, as in a Hydra multirun);
 every other override is common to all jobs. A study runs in three phases, each a Hydra multirun of
@@ -73,17 +76,17 @@ def run_study(
     from physgrad.errors import FolderOwned
     from physgrad.files import own_folder
 
-    settings_given, axes, common, hydra_args = split_overrides(overrides)
-    settings = study_settings(settings_given)
-    config_dirs = [config_dir] if config_dir else []
-    if os.getcwd() not in sys.path:  # a scene or optimiser named by _target_, as for `physgrad run`
-        sys.path.append(os.getcwd())
-    variants = build_variants(axes, common, settings, config_dirs)
-    check_variants_build(variants, settings.tune_seed)
+    plan, hydra_args = compose_study(overrides, config_dir)
+    variants, settings, common, groups, axis, budget = (
+        plan.variants,
+        plan.settings,
+        plan.common,
+        plan.groups,
+        plan.axis,
+        plan.budget,
+    )
     first = variants[0].config
     _warn_if_undecidable(settings, len(variants), say)
-    groups = set(first.hydra.runtime.choices.keys())
-    axis, budget = budget_of(first)
     folder = (
         Path(settings.dir)
         if settings.dir
@@ -121,6 +124,23 @@ def run_study(
     return Study(folder, trials, runs, comparisons, verdicts, text)
 
 
+def compose_study(overrides: list[str], config_dir: str | None) -> tuple[StudyPlan, list[str]]:
+    """The study a command line asks for, every variant composed and built once on the tuning seed
+    (a variant the scene refuses is a UserError here, before anything trains); (plan, Hydra's own
+    arguments). The plan's axis is the budget's (wall_time before calibration)."""
+    settings_given, axes, common, hydra_args = split_overrides(overrides)
+    settings = study_settings(settings_given)
+    config_dirs = [config_dir] if config_dir else []
+    if os.getcwd() not in sys.path:  # a scene or optimiser named by _target_, as for `physgrad run`
+        sys.path.append(os.getcwd())
+    variants = build_variants(axes, common, settings, config_dirs)
+    check_variants_build(variants, settings.tune_seed)
+    first = variants[0].config
+    groups = set(first.hydra.runtime.choices.keys())
+    axis, budget = budget_of(first)
+    return StudyPlan(variants, settings, common, groups, axis, budget), hydra_args
+
+
 def _warn_if_undecidable(settings: StudySettings, count: int, say: Callable[[str], object]) -> None:
     """A warning where the study's seeds are too few for any verdict among count variants."""
     comparisons = count * (count - 1) // 2
@@ -152,7 +172,12 @@ def main(args: list[str]) -> int:
         for key, (default, meaning) in SETTINGS.items():
             print(f"  compare.{key:<10} {meaning} (default {default})")
         return 0
-    overrides, config_dir = parse_arguments(args)
+    overrides, config_dir, plan_only = parse_arguments(args)
+    if plan_only:
+        from physgrad.comparison.plan import plan_text
+
+        print(plan_text(*compose_study(overrides, config_dir)[:1]))
+        return 0
 
     # SIGTERM as Ctrl-C: the study's files are left as a resumable state
     previous = signal.signal(signal.SIGTERM, raise_interrupt)

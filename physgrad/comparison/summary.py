@@ -403,6 +403,7 @@ def timing_lines(
         ]
     else:
         lines += ["Budget in iterations: the clock does not enter the verdicts."]
+        lines += step_cost_lines(variants, runs)
     machines = sorted(set(runs["machine"])) if len(runs) else []
     if len(machines) > 1:
         lines += [
@@ -421,6 +422,33 @@ def timing_lines(
             f"{flagged.iloc[0]['contention']}).",
         ]
     return lines
+
+
+def step_cost_lines(variants: list[Variant], runs: pd.DataFrame) -> list[str]:
+    """What an iteration costs each variant, as its evaluation runs measured it: the median over
+    runs of their median step time, and their training seconds (seeds trained together in one
+    job share one step)."""
+    if not len(runs):
+        return []
+    lines = [
+        "",
+        "| variant | step time: median of the runs' p50 | training seconds per run: median |",
+        "|---|---|---|",
+    ]
+    for variant in variants:
+        sub = runs[runs.variant == variant.name]
+        step = sub["step_seconds_p50"].astype(float)
+        train = sub["train_seconds"].astype(float)
+        lines.append(
+            f"| {variant.name} | "
+            f"{fmt(float(np.nanmedian(step))) + ' s' if step.notna().any() else '-'} | "
+            f"{fmt(float(np.nanmedian(train))) + ' s' if train.notna().any() else '-'} |"
+        )
+    return lines + [
+        "",
+        "Seeds trained together in one vectorised job share each step, so a step here is that of "
+        "all seeds of the job.",
+    ]
 
 
 def _calibration_lines(variants: list[Variant], runs: pd.DataFrame, calibration: dict) -> list[str]:
