@@ -651,3 +651,19 @@ def test_plan_prints_the_estimate_and_trains_nothing(tmp_path):
     )
     assert "| adam |" in out.stdout and "| gd |" in out.stdout and "Total: about" in out.stdout
     assert not (tmp_path / "study").exists()
+
+
+def test_a_studys_jobs_share_a_compilation_cache_in_its_folder_unless_the_user_names_one(
+    tmp_path, monkeypatch
+):
+    from physgrad.comparison.jobs import job_environment
+
+    monkeypatch.delenv("JAX_COMPILATION_CACHE_DIR", raising=False)
+    monkeypatch.delenv("JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS", raising=False)
+    env = job_environment(tmp_path)
+    assert env["JAX_COMPILATION_CACHE_DIR"] == str((tmp_path / "jax-cache").resolve())
+    assert env["JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS"] == "0"
+    monkeypatch.setenv("JAX_COMPILATION_CACHE_DIR", "/elsewhere")
+    env = job_environment(tmp_path)
+    assert env["JAX_COMPILATION_CACHE_DIR"] == "/elsewhere"
+    assert "JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS" not in env

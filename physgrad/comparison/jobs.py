@@ -207,7 +207,11 @@ def job_environment(folder: Path) -> dict[str, str]:
     compile the same evaluations, data generators and, where only a tuned value differs, often the
     same steps again: a cached executable is the same code, so results do not change."""
     env = dict(os.environ)
-    env.setdefault("JAX_COMPILATION_CACHE_DIR", str((folder / "jax-cache").resolve()))
+    if "JAX_COMPILATION_CACHE_DIR" not in env:
+        env["JAX_COMPILATION_CACHE_DIR"] = str((folder / "jax-cache").resolve())
+        # every executable, not only those that took a second to compile: a study's jobs compile
+        # many small ones (evaluations, data generators) alike, each a fraction of a second
+        env.setdefault("JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS", "0")
     return env
 
 
