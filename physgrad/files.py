@@ -110,6 +110,32 @@ def own_folder(folder: str | os.PathLike, what: str = "job") -> Iterator[None]:
         os.close(fd)  # releases the lock; the file stays (removing it would race with a new owner)
 
 
+def cache_dir() -> Path:
+    """The user's physgrad cache (generated datasets, compiled executables): $PHYSGRAD_CACHE, else
+    $XDG_CACHE_HOME/physgrad, else ~/.cache/physgrad."""
+    if os.environ.get("PHYSGRAD_CACHE"):
+        return Path(os.environ["PHYSGRAD_CACHE"])
+    return Path(os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache") / "physgrad"
+
+
+def open_append(path: Path) -> IO[str]:
+    """path opened for appending text, created if absent, without following a link (a folder that
+    may come from someone else could hold one pointing anywhere); OSError (ELOOP) for a link, and a
+    ValueError (one line) for anything that is not a regular file."""
+    fd = os.open(
+        path, os.O_WRONLY | os.O_APPEND | os.O_CREAT | os.O_NOFOLLOW | os.O_NONBLOCK, 0o644
+    )
+    try:
+        mode = os.fstat(fd).st_mode
+        if not stat.S_ISREG(mode):
+            raise ValueError(f"{path}: {file_kind(mode)}, not a file: refused")
+        os.set_blocking(fd, True)
+        return os.fdopen(fd, "a")
+    except BaseException:
+        os.close(fd)
+        raise
+
+
 def replace_file(path: Path, content: bytes, sync: bool = False) -> None:
     """Write content beside path (.NAME.<pid>.tmp) and rename it onto path: a reader, or a process
     killed at any instant, sees the old file or the new one, never a part (sync: onto the disk

@@ -653,17 +653,59 @@ def test_plan_prints_the_estimate_and_trains_nothing(tmp_path):
     assert not (tmp_path / "study").exists()
 
 
-def test_a_studys_jobs_share_a_compilation_cache_in_its_folder_unless_the_user_names_one(
+def test_a_studys_jobs_share_a_compilation_cache_in_the_users_cache_unless_they_name_one(
     tmp_path, monkeypatch
 ):
+    """The cache holds compiled code, so it is the user's (PHYSGRAD_CACHE/jax), never the study
+    folder's, which may come from someone else."""
     from physgrad.comparison.jobs import job_environment
 
+    monkeypatch.setenv("PHYSGRAD_CACHE", str(tmp_path / "cache"))
     monkeypatch.delenv("JAX_COMPILATION_CACHE_DIR", raising=False)
     monkeypatch.delenv("JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS", raising=False)
-    env = job_environment(tmp_path)
-    assert env["JAX_COMPILATION_CACHE_DIR"] == str((tmp_path / "jax-cache").resolve())
+    env = job_environment()
+    assert env["JAX_COMPILATION_CACHE_DIR"] == str(tmp_path / "cache" / "jax")
     assert env["JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS"] == "0"
     monkeypatch.setenv("JAX_COMPILATION_CACHE_DIR", "/elsewhere")
-    env = job_environment(tmp_path)
+    env = job_environment()
     assert env["JAX_COMPILATION_CACHE_DIR"] == "/elsewhere"
     assert "JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS" not in env
+
+
+def test_a_study_folder_from_someone_else_runs_no_code_and_its_links_are_not_followed(tmp_path):
+    """A study folder holds configs of the jobs as a record only: a tuning option planted in its
+    configs/ (here one that would change the budget and build a logger whose _target_ runs a shell
+    command) is never on the jobs' config search path, a link planted where a job's record is
+    written is replaced, not written through, and a phase log that is a link is refused in one
+    line."""
+    study, outside, marker = tmp_path / "study", tmp_path / "outside.yaml", tmp_path / "ran"
+    planted = study / "configs" / "tuning"
+    planted.mkdir(parents=True)
+    (planted / "toy_gd.yaml").write_text(
+        "# @package _global_\ntrainer:\n  iterations: 7\nlogger:\n  evil:\n"
+        f"    _target_: os.system\n    command: touch {marker}\n"
+    )
+    (study / "configs" / "compare_job").mkdir()
+    outside.write_text("theirs\n")
+    (study / "configs" / "compare_job" / "tune_v1_t000.yaml").symlink_to(outside)
+    args = [
+        "task=toy",
+        "optim=adam,gd",
+        "trainer.iterations=20",
+        "compare.trials=1",
+        "compare.studies=1",
+        "compare.seeds=6",
+        f"compare.dir={study}",
+    ]
+    result = physgrad.compare(*args)
+    assert not marker.exists() and outside.read_text() == "theirs\n"
+    assert set(result.runs.iterations) == {20}
+    record = study / "configs" / "compare_job" / "tune_v1_t000.yaml"
+    assert not record.is_symlink() and "learning_rate" in record.read_text()
+
+    (study / "eval.log").unlink()
+    (study / "eval.log").symlink_to(outside)
+    (study / "eval").rename(tmp_path / "old_eval")  # the evaluation must run again
+    with pytest.raises(UserError, match="eval.log: a link: refused"):
+        physgrad.compare(*args)
+    assert outside.read_text() == "theirs\n"

@@ -155,16 +155,50 @@ def launch(
 ) -> int:
     """Write the jobs' config files and run them as one multirun into folder/phase (a job that
     completed or diverged before with the same config is skipped); its output goes to
-    folder/<phase>.log. Returns the multirun's exit status."""
-    configs = folder / "configs" / "compare_job"
-    configs.mkdir(parents=True, exist_ok=True)
-    for name, text in jobs.items():
-        path = configs / f"{name}.yaml"
-        if not path.exists() or path.read_text() != text:
-            path.write_text(text)
-    command = multirun_command(folder, phase, jobs, config_dir, hydra_args)
-    say(f"{phase}: {len(jobs)} jobs -> {folder / phase} (log: {folder / (phase + '.log')})")
-    with open(folder / f"{phase}.log", "a") as log:
+    folder/<phase>.log. Returns the multirun's exit status.
+
+    The multirun reads the job files from a folder this process creates and removes (never from
+    the study folder, which may come from someone else: a config placed there, a tuning/ or
+    logger/ option with a _target_, would otherwise run as code); folder/configs/compare_job/ keeps
+    a copy as the record of the exact runs, written beside and renamed (a link planted there is
+    replaced, not followed)."""
+    import shutil
+    import tempfile
+
+    from physgrad.files import replace_file
+
+    record = folder / "configs" / "compare_job"
+    record.mkdir(parents=True, exist_ok=True)
+    private = Path(tempfile.mkdtemp(prefix="physgrad-jobs-"))
+    try:
+        (private / "compare_job").mkdir()
+        for name, text in jobs.items():
+            (private / "compare_job" / f"{name}.yaml").write_text(text)
+            replace_file(record / f"{name}.yaml", text.encode())
+        command = multirun_command(private, folder, phase, jobs, config_dir, hydra_args)
+        say(f"{phase}: {len(jobs)} jobs -> {folder / phase} (log: {folder / (phase + '.log')})")
+        return _run_multirun(command, folder / f"{phase}.log", job_environment())
+    finally:
+        shutil.rmtree(private, ignore_errors=True)
+
+
+def _run_multirun(command: list[str], log_path: Path, env: dict[str, str]) -> int:
+    """The multirun as a child process in its own session, its output appended to log_path (opened
+    without following a link: a study folder may come from someone else)."""
+    import errno
+
+    from physgrad.files import open_append
+
+    try:
+        log = open_append(log_path)
+    except (OSError, ValueError) as error:
+        why = (
+            "a link: refused (a study folder may come from someone else)"
+            if getattr(error, "errno", None) == errno.ELOOP
+            else str(getattr(error, "strerror", None) or error)
+        )
+        raise UserError(f"{log_path}: {why}; remove it or give another compare.dir") from None
+    with log:
         log.write(f"\n$ {' '.join(command)}\n")
         log.flush()
         # a signal the interpreter dropped since the last phase (physgrad.interrupts)
@@ -179,7 +213,7 @@ def launch(
             stdout=log,
             stderr=subprocess.STDOUT,
             start_new_session=True,
-            env=job_environment(folder),
+            env=env,
         )
         received = []
 
@@ -201,14 +235,18 @@ def launch(
         return code
 
 
-def job_environment(folder: Path) -> dict[str, str]:
+def job_environment() -> dict[str, str]:
     """The environment of a study's jobs: this process's, with JAX's persistent compilation cache in
-    folder/jax-cache unless the user chose one (JAX_COMPILATION_CACHE_DIR). The jobs of a study
-    compile the same evaluations, data generators and, where only a tuned value differs, often the
-    same steps again: a cached executable is the same code, so results do not change."""
+    the user's physgrad cache (physgrad.files.cache_dir()/jax) unless the user chose one
+    (JAX_COMPILATION_CACHE_DIR). The jobs of a study compile the same evaluations, data generators
+    and, where only a tuned value differs, often the same steps again: a cached executable is the
+    same code, so results do not change. Never in the study folder: a compiled executable is code,
+    and a study folder may come from someone else."""
+    from physgrad.files import cache_dir
+
     env = dict(os.environ)
     if "JAX_COMPILATION_CACHE_DIR" not in env:
-        env["JAX_COMPILATION_CACHE_DIR"] = str((folder / "jax-cache").resolve())
+        env["JAX_COMPILATION_CACHE_DIR"] = str(cache_dir() / "jax")
         # every executable, not only those that took a second to compile: a study's jobs compile
         # many small ones (evaluations, data generators) alike, each a fraction of a second
         env.setdefault("JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS", "0")
@@ -216,12 +254,17 @@ def job_environment(folder: Path) -> dict[str, str]:
 
 
 def multirun_command(
-    folder: Path, phase: str, jobs: dict[str, str], config_dir: str | None, hydra_args: list[str]
+    job_files: Path,
+    folder: Path,
+    phase: str,
+    jobs: dict[str, str],
+    config_dir: str | None,
+    hydra_args: list[str],
 ) -> list[str]:
-    """`physgrad run -m` over the jobs' config files (+compare_job=a,b,...) into folder/phase, with
-    the study's config folder and Hydra overrides (a hydra.searchpath given is searched before the
-    jobs' folder)."""
-    search = [f"file://{(folder / 'configs').resolve()}"]
+    """`physgrad run -m` over the jobs' config files in job_files/compare_job (+compare_job=a,b,...)
+    into folder/phase, with the user's config folder and Hydra overrides (a hydra.searchpath given
+    is searched before the jobs' files)."""
+    search = [f"file://{job_files.resolve()}"]
     extra = []
     for arg in hydra_args:
         if arg.startswith("hydra.searchpath="):

@@ -12,9 +12,7 @@ import hashlib
 import io
 import json
 import math
-import os
 import zipfile
-from pathlib import Path
 from typing import Callable
 
 import jax
@@ -22,7 +20,7 @@ import jax.numpy as jnp
 import numpy as np
 from jax.typing import DTypeLike
 
-from physgrad.files import replace_file
+from physgrad.files import cache_dir, replace_file
 
 # bump when the generated data would change for the same settings
 DATA_VERSION = 2  # 2: a validation set beside the test set
@@ -148,13 +146,6 @@ def trajectories(
             jnp.asarray(initial)
         )
         return np.concatenate([initial[:, None], np.asarray(states).transpose(1, 0, 2)], axis=1)
-
-
-def cache_dir() -> Path:
-    """$PHYSGRAD_CACHE, else $XDG_CACHE_HOME/physgrad, else ~/.cache/physgrad."""
-    if os.environ.get("PHYSGRAD_CACHE"):
-        return Path(os.environ["PHYSGRAD_CACHE"])
-    return Path(os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache") / "physgrad"
 
 
 def generate(
