@@ -14,7 +14,7 @@ from typing import Any
 
 import jax
 import jax.numpy as jnp
-from omegaconf import DictConfig, OmegaConf
+from omegaconf import DictConfig, OmegaConf, open_dict
 
 from physgrad.errors import FolderOwned, UserError
 from physgrad.files import own_folder
@@ -33,6 +33,7 @@ from physgrad.refusals import (
     check_seeds_together,
     starts_from_itself,
     too_many_seeds,
+    trial_values_refusal,
 )
 from physgrad.results import ResultsWriter, read_final, record_outcome
 from physgrad.resume import finished_before, start_from
@@ -93,8 +94,13 @@ def run_attributes(cfg: DictConfig, unroll: int | None = None) -> dict:
 
 
 def seed_paths(cfg: DictConfig, out_dir: str | Path) -> list[tuple[int, Path]]:
-    """(seed, results file) of every seed a job trains: out_dir/results.h5 for one seed,
-    out_dir/seed=<s>/ results.h5 for seeds > 1 (seed, seed + 1, ...)."""
+    """(seed, results file) of every member a job trains: out_dir/results.h5 for one seed,
+    out_dir/seed=<s>/ results.h5 for seeds > 1 (seed, seed + 1, ...), out_dir/trial=<i>/results.h5
+    for the members of trial_values (all on seed)."""
+    values = cfg.get("trial_values")
+    if values is not None:
+        count = len(next(iter(values.values())))
+        return [(cfg.seed, Path(out_dir) / f"trial={i}" / "results.h5") for i in range(count)]
     count = cfg.get("seeds", 1)
     count = count if isinstance(count, int) and count > 0 else 1
     if count == 1:
@@ -102,6 +108,25 @@ def seed_paths(cfg: DictConfig, out_dir: str | Path) -> list[tuple[int, Path]]:
     return [
         (cfg.seed + i, Path(out_dir) / f"seed={cfg.seed + i}" / "results.h5") for i in range(count)
     ]
+
+
+def member_configs(cfg: DictConfig, count: int) -> list[DictConfig]:
+    """The config of each of a job's count members: the job's for seeds; for trial_values (checked
+    by refusals.trial_values_refusal) the job's with each key of the optim config set to the
+    member's value and trial_values left out, so that its results file says what it ran, as a job
+    of that one trial would."""
+    values = cfg.get("trial_values")
+    if values is None:
+        return [cfg] * count
+    members = []
+    for i in range(count):
+        member = cfg.copy()
+        with open_dict(member):
+            member.trial_values = None
+            for key, per_member in values.items():
+                member.optim[key] = per_member[i]
+        members.append(member)
+    return members
 
 
 def job_outcome(outcomes: list[Outcome]) -> Outcome:
@@ -124,11 +149,14 @@ def build_seeds(
     UserError if the batch does not fit the training set."""
     # data, init, minibatches
     keys = [jax.random.split(jax.random.PRNGKey(seed), 3) for seed in seeds]
-    scenes = []
-    for key in keys:  # checkpoint (a pending stop) between seeds: a thousand of them take a while
-        if checkpoint is not None:
+    built = {}  # the members of trial_values share one seed: its scene is built once
+    for seed, key in zip(seeds, keys):
+        if seed in built:
+            continue
+        if checkpoint is not None:  # a pending stop, between seeds: a thousand take a while
             checkpoint()
-        scenes.append(build_scene(cfg.task, key[0], effective_unroll(cfg)))
+        built[seed] = build_scene(cfg.task, key[0], effective_unroll(cfg))
+    scenes = [built[seed] for seed in seeds]
     scene = scenes[0]  # the physics and the network; only the data differ between seeds
     if scene.train_size is not None and batch_size > scene.train_size:
         raise UserError(
@@ -185,7 +213,7 @@ def prepare(
     (UserError): everything a run (and `make bench`) does before compiling."""
     set_precision(cfg.precision)
     logging.getLogger("jax").setLevel(logging.WARNING)
-    rule = build_rule(cfg.optim)
+    rule = build_rule(cfg.optim, cfg.get("trial_values"))
     scene, seeds = build_seeds(cfg, seed_list, settings.batch_size, checkpoint)
     check_scene_values(scene, seeds, cfg.task.name)
     check_applies(scene, cfg)
@@ -242,7 +270,8 @@ def run_experiment(
         with own_folder(out_dir), stop_on_signals(on_first) as stop, watching(sweep, stop):
             if on_owned is not None:
                 on_owned()
-            why = too_many_seeds(cfg)  # refused before one file per seed is named
+            # refused before one file per member is named
+            why = too_many_seeds(cfg) or trial_values_refusal(cfg)
             if why is not None:
                 return refused(why), Path(out_dir)
             paths = seed_paths(cfg, out_dir)
@@ -272,10 +301,10 @@ def record_before_training(
     """A results file of attributes only (status and reason) for every seed of a job that ended
     before training; with stop, no more of them once a second signal came (stop.at_once) and a file
     that cannot be written is skipped."""
-    for seed, path in paths:
+    for (seed, path), member in zip(paths, member_configs(cfg, len(paths))):
         if stop is not None and stop.at_once:  # a second signal: stop writing files too
             break
-        attrs = {**run_attributes(cfg, effective_unroll(cfg)), "seed": seed}
+        attrs = {**run_attributes(member, effective_unroll(cfg)), "seed": seed}
         with contextlib.suppress(OSError) if stop is not None else contextlib.nullcontext():
             record_outcome(path, attrs, status, reason)
 
@@ -317,7 +346,10 @@ def set_up_and_train(cfg: DictConfig, paths: list[tuple[int, Path]], stop: StopR
             cfg, paths, "failed", f"{type(error).__name__}: {error}".splitlines()[0]
         )
         raise
-    attrs = job_attributes(cfg, scene, rule, origin, len(paths))
+    attrs = [
+        job_attributes(member, scene, rule, origin, len(paths))
+        for member in member_configs(cfg, len(paths))
+    ]
     writers = open_writers(paths, attrs, settings, seeds)
     label = f"{cfg.task.name}/{cfg.optim.name} seed {cfg.seed}" + (
         f" (+{len(paths) - 1})" if len(paths) > 1 else ""
@@ -347,9 +379,9 @@ def finished_earlier(
     if cfg.get("overwrite", False):
         return None
     previous = []
-    for _, path in paths:
+    for (_, path), member in zip(paths, member_configs(cfg, len(paths))):
         stop.raise_if_stopped()
-        previous.append(finished_before(path, cfg))
+        previous.append(finished_before(path, member))
     return job_outcome(previous) if all(previous) else None
 
 
@@ -386,20 +418,20 @@ def job_attributes(
 
 
 def open_writers(
-    paths: list[tuple[int, Path]], attrs: dict, settings: TrainerSettings, seeds: Seeds
+    paths: list[tuple[int, Path]], attrs: list[dict], settings: TrainerSettings, seeds: Seeds
 ) -> list[ResultsWriter]:
-    """One ResultsWriter per seed (its first write made): the job's attributes, the seed's, and the
-    machine's."""
+    """One ResultsWriter per member (its first write made): the member's attributes (attrs, one per
+    path), its seed, and the machine's."""
     return [
         ResultsWriter(
             path,
             {
-                **attrs,
+                **member_attrs,
                 "seed": seed,
                 "batch_size": settings.batch_size,
                 "n_params": count_params(seeds.network()),
                 **machine_attributes(),
             },
         )
-        for seed, path in paths
+        for (seed, path), member_attrs in zip(paths, attrs)
     ]

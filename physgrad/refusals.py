@@ -92,6 +92,43 @@ def too_many_seeds(cfg: DictConfig) -> str | None:
     return None
 
 
+def trial_values_refusal(cfg: DictConfig) -> str | None:
+    """Why a job's trial_values (optim key -> one value per member) are refused before one file per
+    member is named, or None: each key a number of the optim config, the same number of values
+    (1 .. SEEDS_LIMIT) for every key, each a positive finite number, with one seed and no
+    init_from."""
+    given = cfg.get("trial_values")
+    if given is None:
+        return None
+    from omegaconf import ListConfig
+
+    if not isinstance(given, DictConfig) or not given:
+        return (
+            "trial_values must map optim keys to lists of values, e.g. "
+            "{learning_rate: [0.001, 0.01]}"
+        )
+    counts = set()
+    for key, values in given.items():
+        if not isinstance(cfg.optim.get(key), (int, float)) or isinstance(cfg.optim.get(key), bool):
+            return (
+                f"trial_values.{key}: optim.{key} is not a number of optim={cfg.optim.get('name')}"
+            )
+        if not isinstance(values, ListConfig) or not all(
+            isinstance(v, (int, float)) and not isinstance(v, bool) and 0 < v < float("inf")
+            for v in values
+        ):
+            return f"trial_values.{key}: give a list of positive numbers"
+        counts.add(len(values))
+    if len(counts) != 1 or not 0 < next(iter(counts)) <= SEEDS_LIMIT:
+        return f"trial_values: give every key the same number of values (1 to {SEEDS_LIMIT})"
+    if cfg.get("seeds", 1) != 1 or cfg.get("init_from"):
+        return (
+            "trial_values trains its members on one seed, each from that seed's network: use "
+            "seeds=1 and no init_from"
+        )
+    return None
+
+
 def starts_from_itself(cfg: DictConfig, paths: list[tuple[int, Path]]) -> str | None:
     """Why a job whose init_from is one of its own results files is refused (writing one would
     destroy the network it names), or None."""
@@ -112,9 +149,15 @@ def check_seeds_together(cfg: DictConfig, count: int) -> None:
         raise UserError(f"init_from starts one network: use seeds=1 (not seeds={count}) with it")
     if count > 1 and not batches_over_seeds(cfg.optim):
         # its lax.cond traced under x64 does not batch under vmap (jax 0.10): a known limitation
+        members = (
+            f"seeds={count}"
+            if cfg.get("trial_values") is None
+            else f"trial_values ({count} members together)"
+        )
+        instead = "use seeds=1" if cfg.get("trial_values") is None else "train one trial per job"
         raise UserError(
-            f"seeds={count} cannot retry failed factorisations in float64: add "
-            "optim.retry_float64=false, or use seeds=1"
+            f"{members} cannot retry failed factorisations in float64: add "
+            f"optim.retry_float64=false, or {instead}"
         )
 
 

@@ -19,7 +19,7 @@ import numpy as np
 import optax
 from jax.flatten_util import ravel_pytree
 
-from physgrad.optim import UpdateRule, on_tree, state_logs
+from physgrad.optim import UpdateRule, on_tree, set_member_values, state_logs
 from physgrad.tasks import Scene
 
 
@@ -144,6 +144,8 @@ def compile_training(
         rule = rule._replace(transform=on_tree(rule.transform, unravel))
     count = seeds.count
     opt_state = over_seeds(rule.transform.init, count, (0,))(params)
+    if rule.member_values:  # trials trained together: each member's own learning rate, ...
+        opt_state = set_member_values(opt_state, rule.member_values)
     log_names: list[str] = []
     one_step = packed_logs(make_step(flat_scene, rule, batch_size), log_names)
     step = (

@@ -101,12 +101,19 @@ def finite_numbers(tree: Any, prefix: str = "") -> None:
         finite_numbers(value, name)
 
 
-def call_target(section: str, node: dict, reserved: Collection[str] = (), **runtime: Any) -> Any:
+def call_target(
+    section: str,
+    node: dict,
+    reserved: Collection[str] = (),
+    through: Callable[[Callable[..., Any]], Callable[..., Any]] | None = None,
+    **runtime: Any,
+) -> Any:
     """Call the function that ``node['_target_']`` names with the node's other keys (but
     ``reserved``, which physgrad reads itself) as keyword arguments, plus ``runtime``. Nested
     ``_target_`` nodes are built first (hydra.utils.instantiate), so a schedule can be an argument.
-    ``section`` ("task", "optim") names the config group in messages. UserError if the target cannot
-    be imported or does not take the keys given."""
+    ``section`` ("task", "optim") names the config group in messages; ``through`` wraps the function
+    before the call (optax.inject_hyperparams). UserError if the target cannot be imported or does
+    not take the keys given."""
     from hydra.utils import get_object, instantiate
 
     target = node.get("_target_")
@@ -129,7 +136,7 @@ def call_target(section: str, node: dict, reserved: Collection[str] = (), **runt
     settings = {k: v for k, v in node.items() if k != "_target_" and k not in reserved}
     _check_keywords(section, target, function, set(settings), set(runtime))
     kwargs = instantiate(settings, _convert_="all") if settings else {}
-    return function(**kwargs, **runtime)
+    return (through(function) if through is not None else function)(**kwargs, **runtime)
 
 
 def _check_keywords(

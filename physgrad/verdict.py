@@ -396,12 +396,12 @@ def across_studies(per_study: Sequence[Sequence[PairVerdict]]) -> list[PairVerdi
                     f"{found.count(next(iter(decided)))} of {len(pair)} tuning studies: {listed}",
                 )
             elif len(decided) > 1:
-                result.verdicts[fraction] = (UNDECIDED, f"the tuning studies disagree ({listed})")
+                result.verdicts[fraction] = (UNDECIDED, f"the tuning studies disagree: {listed}")
             else:
                 result.verdicts[fraction] = (
                     UNDECIDED,
                     f"{len(pair) - found.count(UNDECIDED)} of {len(pair)} tuning studies decided, "
-                    f"{need} needed ({listed})",
+                    f"{need} needed: {listed}",
                 )
         combined.append(result)
     return combined

@@ -687,7 +687,7 @@ def test_a_study_folder_from_someone_else_runs_no_code_and_its_links_are_not_fol
     )
     (study / "configs" / "compare_job").mkdir()
     outside.write_text("theirs\n")
-    (study / "configs" / "compare_job" / "tune_v1_t000.yaml").symlink_to(outside)
+    (study / "configs" / "compare_job" / "eval_v0.yaml").symlink_to(outside)
     args = [
         "task=toy",
         "optim=adam,gd",
@@ -700,8 +700,8 @@ def test_a_study_folder_from_someone_else_runs_no_code_and_its_links_are_not_fol
     result = physgrad.compare(*args)
     assert not marker.exists() and outside.read_text() == "theirs\n"
     assert set(result.runs.iterations) == {20}
-    record = study / "configs" / "compare_job" / "tune_v1_t000.yaml"
-    assert not record.is_symlink() and "learning_rate" in record.read_text()
+    record = study / "configs" / "compare_job" / "eval_v0.yaml"
+    assert not record.is_symlink() and "seeds: 6" in record.read_text()
 
     (study / "eval.log").unlink()
     (study / "eval.log").symlink_to(outside)
@@ -709,3 +709,19 @@ def test_a_study_folder_from_someone_else_runs_no_code_and_its_links_are_not_fol
     with pytest.raises(UserError, match="eval.log: a link: refused"):
         physgrad.compare(*args)
     assert outside.read_text() == "theirs\n"
+
+
+def test_which_variants_train_their_trials_together():
+    """One vectorised job per study where the tuned learning rate can be an input of an optax rule
+    and the members stop together (iterations, calibrated clock); one job per trial for a rule that
+    retries in float64 or takes the Jacobian, and on the measured clock."""
+    from physgrad.comparison.tuning import trials_together
+
+    settings, axes, common, _ = split_overrides(
+        ["task=toy", "optim=adam,gd,gauss_newton,hig", "trainer.iterations=30"]
+    )
+    variants = build_variants(axes, common, study_settings(settings), [])
+    together = {v.name: trials_together(v, "iteration") for v in variants}
+    assert together == {"adam": True, "gd": True, "gauss_newton": False, "hig": False}
+    assert trials_together(variants[0], "calibrated_time")
+    assert not trials_together(variants[0], "wall_time")

@@ -408,3 +408,45 @@ def test_first_signal_asks_to_stop_second_ends_a_step_still_computing():
         request.call(lambda: release.wait(30))  # a step that would take 30 s
     assert time.perf_counter() - start < 5
     release.set()
+
+
+@pytest.mark.parametrize("optim", ["adam", "gd"])
+def test_trials_trained_together_are_the_runs_of_one_job_per_trial(tmp_path, optim):
+    """trial_values trains one member per learning rate on one seed in one vectorised step: each
+    member's curves equal the run of that learning rate alone (float32 round-off), and its file
+    records that learning rate and no trial_values, as a job of that one trial would."""
+    rates = [1e-3, 1e-2, 0.1]
+    common = ["task=toy", f"optim={optim}", "trainer.iterations=30", "trainer.eval_every=10"]
+    together = load(*common, f"trial_values={{learning_rate:{rates}}}")
+    run_experiment(together, tmp_path / "together")
+    for i, rate in enumerate(rates):
+        member = read_run(tmp_path / "together" / f"trial={i}" / "results.h5")
+        _, path = run_experiment(
+            load(*common, f"optim.learning_rate={rate}"), tmp_path / f"alone{i}"
+        )
+        alone = read_run(path)
+        assert member.attrs["status"] == alone.attrs["status"] == "completed"
+        np.testing.assert_allclose(member.train["loss"], alone.train["loss"], rtol=1e-5)
+        np.testing.assert_allclose(member.eval["loss"], alone.eval["loss"], rtol=1e-5)
+        assert member.config["optim"]["learning_rate"] == rate
+        assert member.config["trial_values"] is None and member.attrs["seed"] == 0
+    losses = [read_run(tmp_path / "together" / f"trial={i}" / "results.h5") for i in range(3)]
+    assert len({float(r.eval["loss"][-1]) for r in losses}) == 3  # three learning rates, three runs
+
+
+@pytest.mark.parametrize(
+    "overrides, why",
+    [
+        (["trial_values={learning_rate:[0.001,-1]}"], "a list of positive numbers"),
+        (["trial_values={momentum:[0.1]}"], "optim.momentum is not a number"),
+        (["trial_values={learning_rate:[0.1,0.2]}", "seeds=2"], "use seeds=1"),
+        (["optim=hig", "trial_values={learning_rate:[0.1,0.2]}"], "or train one trial per job"),
+        (
+            ["optim=hig", "optim.retry_float64=false", "trial_values={learning_rate:[0.1,0.2]}"],
+            "cannot train trials together",
+        ),
+    ],
+)
+def test_trial_values_a_job_cannot_train_are_refused_in_one_line(tmp_path, overrides, why):
+    outcome, _ = run_experiment(load("task=toy", "trainer.iterations=5", *overrides), tmp_path)
+    assert outcome.status == "refused" and why in outcome.reason and "\n" not in outcome.reason

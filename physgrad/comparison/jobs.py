@@ -287,12 +287,24 @@ def multirun_command(
     ]
 
 
+def _member_order(path: Path) -> tuple[str, int, str]:
+    """seed=2 before seed=10; a folder name that is no number (someone else's) last."""
+    kind, _, number = path.parent.name.partition("=")
+    return (kind, int(number) if number.isdigit() else 2**63, number)
+
+
 def job_runs(sweep: Path, name: str) -> list[Run]:
+    """The readable runs of a job: its results.h5, or its members' (seed=<s>/ or trial=<i>/, in
+    numeric order)."""
     from physgrad.results import read_run
 
     folder = sweep / f"+compare_job={name}"
     runs = []
-    for path in sorted(folder.glob("results.h5")) + sorted(folder.glob("seed=*/results.h5")):
+    members = sorted(
+        [*folder.glob("seed=*/results.h5"), *folder.glob("trial=*/results.h5")],
+        key=_member_order,
+    )
+    for path in sorted(folder.glob("results.h5")) + members:
         try:
             runs.append(read_run(path))
         except ValueError:

@@ -104,6 +104,8 @@ class Variant:
     space: dict = field(default_factory=dict)  # optim key -> (low, high), log-uniform
     # settings every job of the variant gets (its step cost)
     job_values: dict = field(default_factory=dict)
+    # its tuning trials train together in one vectorised job per study (tuning.trials_together)
+    trials_together: bool = False
 
     @property
     def preset(self) -> dict:

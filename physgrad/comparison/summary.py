@@ -205,7 +205,8 @@ def verdict_lines(
         f"# Which gradient: {variants[0].config.task.get('name')}, "
         f"{', '.join(v.name for v in variants)}",
         "",
-        f"Budget: {budget_text} per run. {_tuning_text(settings)} Evaluation: seeds "
+        f"Budget: {budget_text} per run. {_tuning_text(settings)}{_batching_text(variants)} "
+        "Evaluation: seeds "
         f"{settings.seed}..{settings.seed + settings.seeds - 1}, paired (same data and initial "
         "network), "
         f"verdicts on the test loss. Rule: docs/protocol.md (margin {settings.margin:g}, alpha "
@@ -255,6 +256,20 @@ def _tuning_text(settings: StudySettings) -> str:
         "same for every variant), scored by the validation loss at the budget; each study's best "
         "is evaluated."
     )
+
+
+def _batching_text(variants: list[Variant]) -> str:
+    """Which variants trained their trials together in one vectorised job per study, and which one
+    job per trial (a rule whose tuned values cannot be inputs, a float64 retry, a measured
+    clock)."""
+    together = [v.name for v in variants if v.trials_together]
+    alone = [v.name for v in variants if not v.trials_together]
+    if not any(v.space for v in variants):
+        return ""
+    if not together:
+        return " Trials: one job each."
+    text = f" Trials trained together, one vectorised job per study: {', '.join(together)}"
+    return text + (f"; one job per trial: {', '.join(alone)}." if alone else ".")
 
 
 def _studies_rule(settings: StudySettings) -> str:

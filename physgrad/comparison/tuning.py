@@ -47,31 +47,51 @@ def tuning(plan: StudyPlan, launcher: Launcher) -> list[dict[str, dict]]:
     if not settings.tune:
         return best
     studies, pending = _open_studies(folder, variants, settings)
-    jobs = {}
-    # interleaved: trial k of every study and variant, then k + 1, so that a study stopped early
-    # has tried every variant alike
+    for variant in variants:
+        variant.trials_together = trials_together(variant, axis)
+
+    def job_values(study: int, variant: Variant) -> dict:
+        values = {
+            "seed": settings.tune_seed + study,
+            "seeds": 1,
+            "trainer.validation": True,
+            **variant.job_values,
+        }
+        return {**values, **cadence(variant.config, axis, budget)}
+
+    jobs, batches = {}, {}
+    # one vectorised job per study and variant where the rule takes its tuned values as inputs
+    for study in range(count):
+        for index, variant in enumerate(variants):
+            waiting = sorted(k for s, i, k in pending if (s, i) == (study, index))
+            if variant.trials_together and waiting:
+                values = {
+                    "trial_values": {
+                        key: [pending[study, index, k].params[key] for k in waiting]
+                        for key in sorted(variant.space)
+                    },
+                    **job_values(study, variant),
+                }
+                jobs[batch_job(study, index)] = job_yaml(
+                    [*common, *variant.overrides], groups, values
+                )
+                batches[study, index] = waiting
+    # the others one job per trial, interleaved: trial k of every study and variant, then k + 1,
+    # so that a study stopped early has tried every variant alike
     for k in range(settings.trials):
         for study in range(count):
             for index, variant in enumerate(variants):
                 trial = pending.get((study, index, k))
-                if trial is None:
+                if trial is None or variant.trials_together:
                     continue
                 values = {f"optim.{key}": value for key, value in trial.params.items()}
-                values.update(
-                    {
-                        "seed": settings.tune_seed + study,
-                        "seeds": 1,
-                        "trainer.validation": True,
-                        **variant.job_values,
-                    }
-                )
-                values.update(cadence(variant.config, axis, budget))
+                values.update(job_values(study, variant))
                 jobs[trial_job(study, index, k)] = job_yaml(
                     [*common, *variant.overrides], groups, values
                 )
     if jobs:
         launcher.run("tune", jobs)
-        _score_trials(folder, variants, studies, pending, axis, budget)
+        _score_trials(folder, variants, studies, pending, batches, axis, budget)
     for study in range(count):
         for variant in variants:
             trials = studies[study, variant.name].trials
@@ -84,6 +104,35 @@ def tuning(plan: StudyPlan, launcher: Launcher) -> list[dict[str, dict]]:
             if done:
                 best[study][variant.name] = dict(min(done, key=lambda t: t.value).params)
     return best
+
+
+def trials_together(variant: Variant, axis: str) -> bool:
+    """Whether a variant's trials of one study train in one vectorised job (trial_values): the
+    budget in iterations or on the calibrated clock (members then stop together), a rule that
+    batches over seeds (no float64 retry) and takes its tuned values as inputs of an optax
+    transformation (not physgrad's Jacobian rules), top-level keys, no init_from."""
+    from physgrad.optim import build_rule
+    from physgrad.optim.capabilities import batches_over_seeds
+
+    optim = variant.config.optim
+    if (
+        axis not in ("iteration", "calibrated_time")
+        or not variant.space
+        or any("." in key for key in variant.space)
+        or not batches_over_seeds(optim)
+        or variant.config.get("init_from")
+    ):
+        return False
+    try:
+        build_rule(optim, {key: [low] for key, (low, _) in variant.space.items()})
+    except UserError:
+        return False
+    return True
+
+
+def batch_job(study: int, index: int) -> str:
+    """The job name of the trials of variant index in tuning study `study` trained together."""
+    return f"tune_{study_prefix(study)}v{index}_trials"
 
 
 def trial_job(study: int, index: int, trial: int) -> str:
@@ -138,15 +187,37 @@ def _open_studies(
 
 
 def _score_trials(
-    folder: Path, variants: list[Variant], studies: dict, pending: dict, axis: str, budget: float
+    folder: Path,
+    variants: list[Variant],
+    studies: dict,
+    pending: dict,
+    batches: dict,
+    axis: str,
+    budget: float,
 ) -> None:
     """Each pending trial whose job ran to its end told its validation loss at the budget (a
-    diverged one: infinity); one not run to its end stays pending (run again next time)."""
+    diverged one: infinity); one not run to its end stays pending (run again next time). batches:
+    (study, variant index) -> the trial numbers trained together, in the order of their members."""
+    found = {}
+    for (study, index), numbers in batches.items():
+        members = job_runs(folder / "tune", batch_job(study, index))
+        if len(members) != len(numbers):
+            continue
+        for k, run in zip(numbers, members):
+            # a member's file says which values it ran: one left from other trials is not theirs
+            optim = run.config.get("optim", {}) if isinstance(run.config, dict) else {}
+            if all(
+                optim.get(key) == value for key, value in pending[study, index, k].params.items()
+            ):
+                found[study, index, k] = run
     for study, index, k in pending:
-        runs = job_runs(folder / "tune", trial_job(study, index, k))
-        if not runs or runs[0].attrs.get("status") in ("running", "interrupted", "crashed"):
+        if (study, index) in batches:
+            run = found.get((study, index, k))
+        else:
+            runs = job_runs(folder / "tune", trial_job(study, index, k))
+            run = runs[0] if runs else None
+        if run is None or run.attrs.get("status") in ("running", "interrupted", "crashed"):
             continue  # not run to its end: run again next time
-        run = runs[0]
         if run.attrs.get("status") == "refused":
             raise UserError(f"variant {variants[index].name} is refused: {run.attrs.get('reason')}")
         value = run_curve(run, axis, "validation_loss").at(budget)

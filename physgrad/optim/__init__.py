@@ -39,15 +39,24 @@ class UpdateRule(NamedTuple):
     transform: optax.GradientTransformation
     gradient: Callable
     on_layers: bool = False
+    # trials trained together: per optim key, one value per member (the transform holds these keys
+    # as inputs in its state, optax.inject_hyperparams; set_member_values puts them there)
+    member_values: Mapping[str, tuple[float, ...]] | None = None
 
     @property
     def uses_jacobian(self) -> bool:
         return isinstance(self.transform, JacobianRule)
 
 
-def build_rule(optim_cfg: Mapping[str, Any]) -> UpdateRule:
+def build_rule(
+    optim_cfg: Mapping[str, Any], member_values: Mapping[str, Any] | None = None
+) -> UpdateRule:
     """The factory's transformation, behind the clipping of ``optim.clip`` (element-wise to [-1, 1],
-    global norm 1, or none), with the gradient pass its kind and ``optim.backprop`` ask for."""
+    global norm 1, or none), with the gradient pass its kind and ``optim.backprop`` ask for.
+    member_values (optim key -> one value per member, the job's trial_values): those keys become
+    inputs of the transformation (optax.inject_hyperparams: the same rule, its values held in its
+    state), so members with other values train in one vectorised step; UserError for a rule whose
+    factory cannot take them so."""
     node = (
         OmegaConf.to_container(optim_cfg, resolve=True)
         if OmegaConf.is_config(optim_cfg)
@@ -56,13 +65,25 @@ def build_rule(optim_cfg: Mapping[str, Any]) -> UpdateRule:
     if isinstance(node.get("learning_rate"), (int, float)):
         number("optim.learning_rate", node["learning_rate"], 0, open_low=True)
     clip = choice("optim.clip", node.get("clip", "none"), tuple(CLIPPING))
-    transform = call_target("optim", node, reserved=RESERVED_KEYS)
+    through = None
+    if member_values:
+        static = tuple(
+            k for k in node if k not in member_values and k not in (*RESERVED_KEYS, "_target_")
+        )
+        through = lambda factory: optax.inject_hyperparams(factory, static_args=static)  # noqa: E731
+    transform = call_target("optim", node, reserved=RESERVED_KEYS, through=through)
     if not hasattr(transform, "init") or not hasattr(transform, "update"):
         raise UserError(
             f"optim._target_={node['_target_']} returned {type(transform).__name__}, not an optax "
             "GradientTransformation"
         )
     jacobian = isinstance(transform, JacobianRule)
+    if member_values and not _holds_inputs(transform, member_values):
+        raise UserError(
+            f"optim={node.get('name')} cannot train trials together (its "
+            f"{', '.join(member_values)} cannot be an input of its optax transformation): "
+            "train one trial per job"
+        )
     # Levenberg-Marquardt takes value and value_fn; an optax rule that needs optax's extra arguments
     # (optax.lbfgs) is found by tracing once the parameters are known (needs_value_arguments)
     gradient = gradient_pass(node.get("backprop"), jacobian, isinstance(transform, MarquardtRule))
@@ -74,7 +95,47 @@ def build_rule(optim_cfg: Mapping[str, Any]) -> UpdateRule:
                 "the Jacobian: remove optim.clip"
             )
         transform = optax.chain(CLIPPING[clip](), transform)
-    return UpdateRule(transform, gradient, on_layers)
+    values = (
+        {k: tuple(float(v) for v in vs) for k, vs in member_values.items()}
+        if member_values
+        else None
+    )
+    return UpdateRule(transform, gradient, on_layers, values)
+
+
+def _holds_inputs(transform: optax.GradientTransformation, keys: Mapping[str, Any]) -> bool:
+    """Whether the transformation built through inject_hyperparams holds every key as an input in
+    its state (its initial state traced, nothing computed)."""
+    try:
+        state = jax.eval_shape(transform.init, jnp.zeros(2))
+    except Exception:  # noqa: BLE001 - a factory that cannot be traced so cannot batch its values
+        return False
+    found = set()
+    for node in jax.tree_util.tree_leaves(state, is_leaf=_is_injected):
+        if _is_injected(node):
+            found |= set(node.hyperparams)
+    return set(keys) <= found
+
+
+def _is_injected(node: Any) -> bool:
+    return isinstance(node, (optax.InjectHyperparamsState, optax.InjectStatefulHyperparamsState))
+
+
+def set_member_values(opt_state: Any, values: Mapping[str, tuple[float, ...]]) -> Any:
+    """The optimiser state of members stacked on a leading axis, with each member's values of the
+    injected keys (values: key -> one per member) in place of the configured ones."""
+
+    def put(node: Any) -> Any:
+        if not _is_injected(node):
+            return node
+        hyperparams = dict(node.hyperparams)
+        for key, per_member in values.items():
+            hyperparams[key] = jnp.asarray(per_member, hyperparams[key].dtype).reshape(
+                hyperparams[key].shape
+            )
+        return node._replace(hyperparams=hyperparams)
+
+    return jax.tree_util.tree_map(put, opt_state, is_leaf=_is_injected)
 
 
 def on_tree(
