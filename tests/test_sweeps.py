@@ -224,10 +224,10 @@ def test_a_failed_job_does_not_stop_the_sweep(tmp_path, monkeypatch):
 
     real = physgrad.experiment.build_rule
 
-    def broken_for_gd(optim_cfg):
+    def broken_for_gd(optim_cfg, member_values=None):
         if optim_cfg.name == "gd":
             raise RuntimeError("simulated crash")
-        return real(optim_cfg)
+        return real(optim_cfg, member_values)
 
     monkeypatch.setattr(physgrad.experiment, "build_rule", broken_for_gd)
     # the sweep goes on, and exits 1 because a job failed
@@ -260,7 +260,7 @@ def test_a_failed_job_of_several_seeds_records_the_failure_in_every_seed_file(
     import physgrad.experiment
     from physgrad.cli import main
 
-    def broken(optim_cfg):
+    def broken(optim_cfg, member_values=None):
         raise RuntimeError("simulated crash")
 
     monkeypatch.setattr(physgrad.experiment, "build_rule", broken)
