@@ -122,8 +122,8 @@ def plan_text(plan: StudyPlan) -> str:
         f"Total: about {_duration(total)}"
         + (" (with the calibration of the step costs)" if calibration else "")
         + ". Compiling and training only: start-up, the held-out evaluations and writing files add "
-        "to it, a study resumed skips what it finished, and the compilation cache in the study "
-        "folder can make later jobs compile faster. Measured on "
+        "to it, a study resumed skips what it finished, and JAX's compilation cache (in the user's "
+        "physgrad cache) can make later jobs compile faster. Measured on "
         f"{machine_label(machine_attributes())}, one seed, now; nothing was trained or written.",
     ]
     return "\n".join(lines)
