@@ -539,7 +539,8 @@ def test_a_finished_study_given_more_trials_tunes_on_from_where_it_stopped(tmp_p
         f"compare.dir={tmp_path / 's'}",
     ]
     physgrad.compare(*args, "compare.trials=1", "compare.studies=1")
-    first = tmp_path / "s" / "tune" / "+compare_job=tune_v0_t000" / "results.h5"
+    # adam's trials train together: trial 0 is member 0 of the first job
+    first = tmp_path / "s" / "tune" / "+compare_job=tune_v0_t000" / "trial=0" / "results.h5"
     stamp = first.stat().st_mtime_ns
     study = physgrad.compare(*args, "compare.trials=3", "compare.studies=1")
     assert first.stat().st_mtime_ns == stamp

@@ -72,7 +72,7 @@ def tuning(plan: StudyPlan, launcher: Launcher) -> list[dict[str, dict]]:
                     },
                     **job_values(study, variant),
                 }
-                jobs[batch_job(study, index)] = job_yaml(
+                jobs[batch_job(study, index, waiting)] = job_yaml(
                     [*common, *variant.overrides], groups, values
                 )
                 batches[study, index] = waiting
@@ -130,9 +130,12 @@ def trials_together(variant: Variant, axis: str) -> bool:
     return True
 
 
-def batch_job(study: int, index: int) -> str:
-    """The job name of the trials of variant index in tuning study `study` trained together."""
-    return f"tune_{study_prefix(study)}v{index}_trials"
+def batch_job(study: int, index: int, numbers: list[int]) -> str:
+    """The job name of trials `numbers` of variant index in tuning study `study` trained together:
+    tune_v0_t000-015 (one trial: as its own job's name). Trials added to a finished study get a
+    job of their own, so the files of those told before stay as they are."""
+    last = f"-{numbers[-1]:03d}" if len(numbers) > 1 else ""
+    return f"tune_{study_prefix(study)}v{index}_t{numbers[0]:03d}{last}"
 
 
 def trial_job(study: int, index: int, trial: int) -> str:
@@ -200,7 +203,7 @@ def _score_trials(
     (study, variant index) -> the trial numbers trained together, in the order of their members."""
     found = {}
     for (study, index), numbers in batches.items():
-        members = job_runs(folder / "tune", batch_job(study, index))
+        members = job_runs(folder / "tune", batch_job(study, index, numbers))
         if len(members) != len(numbers):
             continue
         for k, run in zip(numbers, members):
