@@ -49,6 +49,9 @@ SLOW_STEP_SECONDS = 0.2
 FLUSH_COST_FACTOR = 20
 
 
+MIN_STEP_COST = 1e-6  # seconds: the calibrated clock's floor (trainer.step_cost, calibration.json)
+
+
 @dataclass(frozen=True)
 class TrainerSettings:
     """The `trainer` config section: when to stop, evaluate, write and log. iterations is None for
@@ -82,8 +85,10 @@ class TrainerSettings:
         eval_seconds = number(
             "trainer.eval_seconds", trainer_cfg.get("eval_seconds"), 0, optional=True, open_low=True
         )
+        # a training step faster than a microsecond is no step: such a cost would never end a
+        # time budget
         step_cost = number(
-            "trainer.step_cost", trainer_cfg.get("step_cost"), 0, optional=True, open_low=True
+            "trainer.step_cost", trainer_cfg.get("step_cost"), MIN_STEP_COST, 3600.0, optional=True
         )
         clock = choice("trainer.clock", trainer_cfg.get("clock", "measured"), CLOCKS)
         if clock == "calibrated" and step_cost is None:

@@ -70,6 +70,11 @@ def test_comma_lists_are_variants_and_everything_else_is_common():
         (["task=toy", "optim=adam,hgi"], "did you mean hig?"),
         (["task=toy", "optim=adam,hig", "compare.seeds=0"], "compare.seeds"),
         (["task=toy", "optim=adam,hig", "seed=3"], "compare sets the seeds itself"),
+        (["task=toy", "optim=adam,hig", "compare.seeds=2000"], "compare.seeds"),
+        (["task=toy", "optim=adam,hig", "hydra.sweep.dir=x"], "give compare.dir=DIR instead"),
+        (["task=toy", "optim=adam,hig", "hydra.run.dir=x"], "give compare.dir=DIR instead"),
+        # tuning seeds 2, 3, 4 of three studies reach the evaluation seeds 3 ..
+        (["task=toy", "optim=adam,hig", "compare.tune_seed=2", "compare.seed=3"], "must differ"),
     ],
 )
 def test_bad_studies_are_one_line_errors(args, fragment):
@@ -726,3 +731,53 @@ def test_which_variants_train_their_trials_together():
     assert together == {"adam": True, "gd": True, "gauss_newton": False, "hig": False}
     assert trials_together(variants[0], "calibrated_time")
     assert not trials_together(variants[0], "wall_time")
+
+
+def test_a_calibration_is_used_only_whole_and_within_a_physical_step_cost(tmp_path):
+    """Every field of calibration.json is checked (it may come from someone else): a missing
+    field, a step faster than a microsecond or slower than an hour, a non-number: not used
+    (compare calibrates again, or refuses a given one in one line)."""
+    import json
+
+    from physgrad.comparison.calibration import read_calibration
+
+    whole = {
+        "quantile": 0.2,
+        "load_start": 0.5,
+        "load_end": 0.6,
+        "machine": {"cpu_count": 2},
+        "costs": {"adam": {"step_seconds": 1e-4, "median_seconds": 1.2e-4, "rounds": 30}},
+    }
+    path = tmp_path / "calibration.json"
+    path.write_text(json.dumps(whole))
+    assert read_calibration(path, ["adam"]) == whole
+    assert read_calibration(path, ["adam", "hig"]) is None
+    for broken in (
+        {k: v for k, v in whole.items() if k != "quantile"},
+        {**whole, "machine": "x"},
+        {**whole, "load_start": "high"},
+        {**whole, "costs": {"adam": {**whole["costs"]["adam"], "step_seconds": 1e-300}}},
+        {**whole, "costs": {"adam": {**whole["costs"]["adam"], "step_seconds": 1e9}}},
+        {**whole, "costs": {"adam": {"step_seconds": 1e-4}}},
+        [1, 2],
+    ):
+        path.write_text(json.dumps(broken))
+        assert read_calibration(path, ["adam"]) is None, broken
+    path.write_text('{"quantile": 0.2, "costs": ')  # cut short
+    assert read_calibration(path, ["adam"]) is None
+
+
+def test_a_step_cost_faster_than_a_microsecond_is_refused(tmp_path):
+    from physgrad.experiment import run_experiment
+    from tests.helpers import load
+
+    outcome, _ = run_experiment(
+        load(
+            "task=toy",
+            "trainer.time_budget=0.5",
+            "trainer.clock=calibrated",
+            "trainer.step_cost=1e-300",
+        ),
+        tmp_path,
+    )
+    assert outcome.status == "refused" and "trainer.step_cost" in outcome.reason

@@ -92,17 +92,46 @@ def calibrate(
 
 
 def read_calibration(path: Path, names: list[str]) -> dict | None:
-    """The stored calibration if it holds a finite, positive cost for every one of names (else None:
-    calibrate
-    again)."""
+    """The stored calibration if it is whole: a quantile in (0, 1), load averages, the machine, and
+    for every one of names a step cost of at least MIN_STEP_COST (a microsecond) and below an hour,
+    its median and rounds; else None (calibrate again). A file that may come from someone else is
+    read as data, at most 1 MB."""
+    from physgrad.runner import MIN_STEP_COST
+
+    def seconds(value: object) -> bool:
+        return (
+            isinstance(value, (int, float))
+            and not isinstance(value, bool)
+            and MIN_STEP_COST <= value < 3600
+        )
+
+    def finite(value: object) -> bool:
+        return (
+            isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
+        )
+
     try:
-        stored = json.loads(Path(path).read_text())
-        costs = {name: float(stored["costs"][name]["step_seconds"]) for name in names}
-    except (OSError, ValueError, KeyError, TypeError):
+        with open(path, "rb") as file:
+            stored = json.loads(file.read(1 << 20).decode())
+        whole = (
+            isinstance(stored, dict)
+            and finite(stored.get("quantile"))
+            and 0 < stored["quantile"] < 1
+            and finite(stored.get("load_start"))
+            and finite(stored.get("load_end"))
+            and isinstance(stored.get("machine"), dict)
+            and isinstance(stored.get("costs"), dict)
+            and all(
+                isinstance(stored["costs"].get(name), dict)
+                and seconds(stored["costs"][name].get("step_seconds"))
+                and seconds(stored["costs"][name].get("median_seconds"))
+                and isinstance(stored["costs"][name].get("rounds"), int)
+                for name in names
+            )
+        )
+    except (OSError, ValueError):
         return None
-    if not all(math.isfinite(c) and c > 0 for c in costs.values()):
-        return None
-    return stored
+    return stored if whole else None
 
 
 def write_calibration(path: Path, calibration: dict) -> None:

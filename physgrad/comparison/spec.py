@@ -187,6 +187,11 @@ def split_overrides(overrides: list[str]) -> tuple[dict, list, list, list]:
         key = override.key_or_group
         if key.startswith("compare."):
             _compare_setting(override, key[len("compare.") :], settings)
+        elif key in ("hydra.sweep.dir", "hydra.run.dir", "hydra.sweep.subdir"):
+            raise UserError(
+                f"'{override.input_line}': compare puts every job into the study folder: give "
+                "compare.dir=DIR instead"
+            )
         elif key.startswith("hydra"):
             hydra_args.append(override.input_line)
         elif key in ("seed", "seeds"):
@@ -242,7 +247,10 @@ def study_settings(given: dict) -> StudySettings:
     values.update(given)
     number("compare.trials", values["trials"], 1, 10_000, integer=True)
     number("compare.studies", values["studies"], 1, 100, integer=True)
-    number("compare.seeds", values["seeds"], 1, 10_000, integer=True)
+    from physgrad.refusals import SEEDS_LIMIT
+
+    # an evaluation job trains every seed of a variant together, and a job holds at most SEEDS_LIMIT
+    number("compare.seeds", values["seeds"], 1, SEEDS_LIMIT + 1, integer=True)
     number("compare.seed", values["seed"], 0, 2**32, integer=True)
     number("compare.tune_seed", values["tune_seed"], 0, 2**32, integer=True)
     number("compare.margin", values["margin"], 1, open_low=True)
