@@ -78,14 +78,17 @@ def compare(*overrides: str, config_dir: str | os.PathLike | None = None) -> Stu
     return run_study(list(overrides), config_dir=folder, say=lambda line: None)
 
 
-def read_runs(paths: Iterable[str | Path], threshold: float | None = None) -> Tables:
-    """Every run under the given results files or folders (LABEL=PATH sets too) as two pandas
-    DataFrames: ``runs, curves = physgrad.read_runs(["outputs/multirun/..."])``. runs: one row per
-    run, every setting in a column of its own (optim.learning_rate, task.poles, trainer.iterations,
-    ..., seed, status, the machine) and the report's numbers (test_loss, time_to_threshold, ...);
-    curves: one row per run, split and iteration with the run's id and label, variant, seed, ..., so
-    that e.g. ``seaborn.lineplot(curves.query("split == 'eval'"), x="wall_time", y="loss",
-    hue="label")`` needs no merge. See docs/results.md."""
+def read_runs(
+    paths: Iterable[str | Path] | str | os.PathLike, threshold: float | None = None
+) -> Tables:
+    """Every run under the given results files or folders (LABEL=PATH sets too; one path alone, or a
+    list) as two pandas DataFrames: ``runs, curves =
+    physgrad.read_runs("outputs/multirun/...")``. runs: one row per run, every setting in a
+    column of its own (optim.learning_rate, task.poles, trainer.iterations, ..., seed, status,
+    the machine) and the report's numbers (test_loss, time_to_threshold, ...); curves: one row
+    per run, split and iteration with the run's id and label, variant, seed, ..., so that e.g.
+    ``seaborn.lineplot(curves.query("split == 'eval'"), x="wall_time", y="loss", hue="label")``
+    needs no merge. See docs/results.md."""
     from physgrad.report import read_runs as read
 
     return read(paths, threshold)

@@ -212,12 +212,16 @@ def markdown_table(rows: list[dict], columns: Sequence[str]) -> str:
     return "\n".join(lines) + "\n"
 
 
-def read_runs(paths: Iterable[str | Path], threshold: float | None = None) -> Tables:
+def read_runs(
+    paths: Iterable[str | Path] | str | os.PathLike, threshold: float | None = None
+) -> Tables:
     """Every readable run under the paths (files, folders, LABEL=PATH sets, as `physgrad report`
-    takes them) as tidy tables (Tables: .runs and .curves, pandas DataFrames), grouped and labelled
-    as a report does. UserError (one line) if a path does not exist or holds no results file;
-    unreadable files are left out."""
-    runs, _, _ = collect([str(path) for path in paths])
+    takes them; one path may be given alone, as a string or a Path) as tidy tables (Tables: .runs
+    and .curves, pandas DataFrames), grouped and labelled as a report does. UserError (one line) if
+    a path does not exist or holds no results file; unreadable files are left out."""
+    if isinstance(paths, (str, os.PathLike)):  # one path, not its characters
+        paths = [paths]
+    runs, _, _ = collect([os.fspath(path) for path in paths])
     label_runs(runs)
     return tables(runs, run_rows(runs, threshold))
 

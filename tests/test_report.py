@@ -441,6 +441,9 @@ def test_read_runs_gives_every_setting_a_column_and_curves_that_plot_without_a_m
         optim={"learning_rate": 1.0, "backprop": "C"},
     )
     runs, curves = physgrad.read_runs([tmp_path])
+    # one path alone, as a string or a Path, is that path, not a list of its characters
+    for alone in (str(tmp_path), tmp_path):
+        assert physgrad.read_runs(alone).runs.equals(runs)
     assert sorted(runs.loc[runs["variant"] == "adam", "optim.learning_rate"]) == list(rates)
     assert {
         "task.poles",
