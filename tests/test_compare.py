@@ -781,3 +781,41 @@ def test_a_step_cost_faster_than_a_microsecond_is_refused(tmp_path):
         tmp_path,
     )
     assert outcome.status == "refused" and "trainer.step_cost" in outcome.reason
+
+
+def test_a_tuning_journal_cut_short_is_repaired_and_a_foreign_one_refused(tmp_path):
+    """The last line cut short (a kill during an append): moved aside with a one-line note, and
+    Optuna reads the rest, the trial it would have told still waiting; a line that is no record in
+    the middle: one line."""
+    import optuna
+
+    from physgrad.comparison.tuning import set_aside_damage
+
+    path = tmp_path / "tuning.journal"
+    storage = optuna.storages.JournalStorage(optuna.storages.journal.JournalFileBackend(str(path)))
+    study = optuna.create_study(study_name="adam", storage=storage)
+    for value in (0.1, 0.2):
+        trial = study.ask({"learning_rate": optuna.distributions.FloatDistribution(1e-5, 1)})
+        study.tell(trial, value)
+    whole = path.read_bytes()
+    for cut in (5, len(whole.splitlines()[-1]) // 2):
+        path.write_bytes(whole[:-cut])
+        notes = []
+        set_aside_damage(path, notes.append)
+        assert len(notes) == 1 and "cut short" in notes[0]
+        reread = optuna.load_study(
+            study_name="adam",
+            storage=optuna.storages.JournalStorage(
+                optuna.storages.journal.JournalFileBackend(str(path))
+            ),
+        )
+        assert [t.value for t in reread.trials][0] == 0.1
+        assert len(list(tmp_path.glob("tuning.journal.damaged-*"))) >= 1
+    path.write_bytes(whole)
+    notes = []
+    set_aside_damage(path, notes.append)  # a whole journal is left alone
+    assert notes == [] and path.read_bytes() == whole
+    lines = whole.split(b"\n")
+    path.write_bytes(b"\n".join([lines[0], b"\x00\xffgarbage", *lines[1:]]))
+    with pytest.raises(UserError, match="line 2 is not a record of Optuna's journal"):
+        set_aside_damage(path, notes.append)

@@ -7,6 +7,7 @@ by its VALIDATION loss at the budget."""
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from pathlib import Path
 
 from physgrad.comparison.jobs import Launcher, cadence, job_runs, job_yaml
@@ -46,7 +47,7 @@ def tuning(plan: StudyPlan, launcher: Launcher) -> list[dict[str, dict]]:
     best = [{v.name: {} for v in variants} for _ in range(count)]
     if not settings.tune:
         return best
-    studies, pending = _open_studies(folder, variants, settings)
+    studies, pending = _open_studies(folder, variants, settings, launcher.say)
     for variant in variants:
         variant.trials_together = trials_together(variant, axis)
 
@@ -150,7 +151,7 @@ def optuna_study_name(variant: Variant, study: int) -> str:
 
 
 def _open_studies(
-    folder: Path, variants: list[Variant], settings: StudySettings
+    folder: Path, variants: list[Variant], settings: StudySettings, say: Callable[[str], object]
 ) -> tuple[dict, dict]:
     """Each variant's Optuna study per tuning study in folder/tuning.journal, with its Halton points
     enqueued and asked for; (Optuna studies by (study, variant name), the trials not yet told by
@@ -159,6 +160,7 @@ def _open_studies(
     from optuna.trial import TrialState
 
     optuna.logging.set_verbosity(optuna.logging.WARNING)
+    set_aside_damage(folder / "tuning.journal", say)
     storage = optuna.storages.JournalStorage(
         optuna.storages.journal.JournalFileBackend(str(folder / "tuning.journal"))
     )
@@ -187,6 +189,43 @@ def _open_studies(
             for trial in study.get_trials(deepcopy=False, states=(TrialState.RUNNING,)):
                 pending[study_index, index, trial.number] = trial
     return studies, pending
+
+
+def set_aside_damage(path: Path, say: Callable[[str], object]) -> None:
+    """Optuna's journal is one JSON object per line, appended. A kill or a full disk during an
+    append leaves the last line cut short: it is moved to <journal>.damaged-<time> with a one-line
+    note, and the trials it would have told run again. Any other line that is not a JSON object is a
+    UserError (one line): the journal is not Optuna's, or was changed by hand."""
+    import json
+
+    from physgrad.files import replace_file, timestamp
+
+    if not path.is_file():
+        return
+    data = path.read_bytes()
+    lines = data.split(b"\n")
+    kept = 0  # bytes of whole records
+    for number, line in enumerate(lines):
+        try:
+            whole = isinstance(json.loads(line), dict) if line.strip() else True
+        except ValueError:
+            whole = False
+        if whole:
+            kept += len(line) + 1
+            continue
+        if any(rest.strip() for rest in lines[number + 1 :]):
+            raise UserError(
+                f"{path}: line {number + 1} is not a record of Optuna's journal: move the file "
+                "away to tune again (its trials will run again)"
+            )
+        damaged = path.with_name(f"{path.name}.damaged-{timestamp()}")
+        damaged.write_bytes(data[kept:])
+        replace_file(path, data[:kept])
+        say(
+            f"note: the last line of {path} was cut short (a stop or a full disk while it was "
+            f"written): moved to {damaged.name}; the trials it would have told run again"
+        )
+        return
 
 
 def _score_trials(
