@@ -154,6 +154,18 @@ def replace_file(path: Path, content: bytes, sync: bool = False) -> None:
         raise
 
 
+def write_figure(fig: Any, path: str | os.PathLike, **options: Any) -> None:
+    """A matplotlib figure saved to path (the format from its suffix), written beside and renamed
+    (replace_file): a reader sees the old figure or the new one, and a link at path (a folder that
+    may come from someone else) is replaced, not written through."""
+    import io
+
+    path = Path(path)
+    buffer = io.BytesIO()
+    fig.savefig(buffer, format=path.suffix.lstrip(".") or "png", **options)
+    replace_file(path, buffer.getvalue())
+
+
 def timestamp() -> str:
     return time.strftime("%Y-%m-%dT%H:%M:%S%z")
 

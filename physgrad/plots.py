@@ -16,6 +16,7 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 from matplotlib.ticker import FuncFormatter, MaxNLocator, NullFormatter, NullLocator  # noqa: E402
 
+from physgrad.files import write_figure
 from physgrad.results import Run, natural_key  # noqa: E402
 
 if TYPE_CHECKING:
@@ -103,7 +104,7 @@ def save_figure(fig: Figure, path: str | Path, note: str) -> None:
     fig.tight_layout(rect=(0, 0, 1, top))
     for suffix in (".png", ".pdf"):
         # legends sit outside
-        fig.savefig(Path(path).with_suffix(suffix), dpi=110, bbox_inches="tight")
+        write_figure(fig, Path(path).with_suffix(suffix), dpi=110, bbox_inches="tight")
     plt.close(fig)
 
 
@@ -177,7 +178,7 @@ def plot_run(run: Run, path: str | Path) -> None:
         fontsize=10,
     )
     fig.tight_layout()
-    fig.savefig(path, dpi=110)
+    write_figure(fig, path, dpi=110)
     plt.close(fig)
 
 

@@ -553,16 +553,16 @@ def test_notes_of_runs_that_diverged_at_the_same_point_do_not_overprint(tmp_path
 @pytest.fixture
 def figures(monkeypatch):
     """Every figure a report saves, kept open: {file stem: Figure}."""
-    import matplotlib.figure
+    import physgrad.plots
 
     saved = {}
-    real = matplotlib.figure.Figure.savefig
+    real = physgrad.plots.write_figure
 
     def keep(fig, path, *args, **kwargs):
         saved[Path(path).stem] = fig
         return real(fig, path, *args, **kwargs)
 
-    monkeypatch.setattr(matplotlib.figure.Figure, "savefig", keep)
+    monkeypatch.setattr(physgrad.plots, "write_figure", keep)
     monkeypatch.setattr(plt, "close", lambda fig=None: None)
     yield saved
     plt.close("all")
@@ -699,3 +699,18 @@ def test_the_run_figure_draws_the_rule_s_diagnostics_and_wide_metrics_on_a_log_a
         "svd_failures",
     }
     assert axes["test metric"].get_yscale() == "log"
+
+
+def test_a_report_replaces_a_figure_that_is_a_link_and_never_writes_through_it(tmp_path):
+    """A folder from someone else with its figure names linked to a file elsewhere: the report's
+    figures replace the links; the file they pointed at is untouched."""
+    fake_run(tmp_path / "a", "adam", 0, 1, [1.0, 0.5], [0.0, 1.0])
+    fake_run(tmp_path / "b", "hig", 0, 1, [1.0, 0.2], [0.0, 2.0])
+    outside = tmp_path.parent / f"{tmp_path.name}-outside"
+    outside.write_bytes(b"theirs")
+    for name in ("loss_vs_time.png", "loss_vs_time.pdf", "loss_vs_iteration.png"):
+        (tmp_path / name).symlink_to(outside)
+    write_report([tmp_path])
+    assert outside.read_bytes() == b"theirs"
+    for name in ("loss_vs_time.png", "loss_vs_time.pdf", "loss_vs_iteration.png"):
+        assert not (tmp_path / name).is_symlink() and (tmp_path / name).stat().st_size > 1000

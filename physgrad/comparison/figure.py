@@ -7,6 +7,8 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
+from physgrad.files import write_figure
+
 if TYPE_CHECKING:
     from physgrad.comparison.spec import Variant
 
@@ -84,5 +86,5 @@ def plot_sensitivity(
     )
     fig.tight_layout(rect=(0, 0.07 / panel_rows, 1, 1))
     for suffix in (".png", ".pdf"):
-        fig.savefig(path.with_suffix(suffix), dpi=130)
+        write_figure(fig, path.with_suffix(suffix), dpi=130)
     plt.close(fig)

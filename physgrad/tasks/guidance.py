@@ -29,6 +29,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from physgrad.files import write_figure
 from physgrad.nets import apply_mlp, init_mlp
 from physgrad.tasks import Scene
 from physgrad.unroll import Dynamics, rollout
@@ -246,7 +247,7 @@ def draw_paths(
     fig.legend(handles=handles, loc="lower center", ncol=5, fontsize=8, frameon=False)
     fig.suptitle("guidance: agent paths under the trained controller", fontsize=10)
     fig.tight_layout(rect=(0, 0.1, 1, 0.94))
-    fig.savefig(path, dpi=110)
+    write_figure(fig, path, dpi=110)
     plt.close(fig)
 
 

@@ -39,6 +39,7 @@ import numpy as np
 from jax.typing import DTypeLike
 
 from physgrad.errors import UserError
+from physgrad.files import write_figure
 from physgrad.nets import apply_resnet, init_resnet
 from physgrad.tasks import Scene
 from physgrad.tasks.ks_solver import (
@@ -402,5 +403,5 @@ def draw_rollouts(
     fig.suptitle(
         f"Kuramoto-Sivashinsky: learned stepper ({variant}) on held-out test states", fontsize=10
     )
-    fig.savefig(path, dpi=100, bbox_inches="tight")
+    write_figure(fig, path, dpi=100, bbox_inches="tight")
     plt.close(fig)
