@@ -12,7 +12,7 @@ from collections.abc import Iterable
 from contextlib import ExitStack
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import IO, Any
 
 import hydra
 import numpy as np
@@ -74,6 +74,12 @@ class JobLogFile(logging.FileHandler):
     ) -> None:
         super().__init__(filename, mode, encoding, delay=True, errors=errors)
         self.unwritable = False
+
+    def _open(self) -> IO[str]:
+        # appended without following a link: a rerun sweep's folder may come from someone else
+        from physgrad.files import open_append
+
+        return open_append(Path(self.baseFilename))
 
     def emit(self, record: logging.LogRecord) -> None:
         if self.unwritable:

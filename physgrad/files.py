@@ -73,13 +73,20 @@ def own_folder(folder: str | os.PathLike, what: str = "job") -> Iterator[None]:
     operating system releases when the process ends however it ends, so a dead owner never blocks a
     new one. FolderOwned (one line naming the owner's pid, host and start time) if a live process
     holds it; LockingUnsupported (one line) where the file system has no locks; OSError if the
-    folder cannot be written. The lock file must stay: a second process that finds it deleted
-    creates its own (see docs/results.md)."""
+    folder cannot be written or the lock file is a link. The lock file must stay: a second process
+    that finds it deleted creates its own (see docs/results.md)."""
     folder = Path(folder)
     folder.mkdir(parents=True, exist_ok=True)
     lock_path = folder / f".physgrad-{what}"
     while True:
-        fd = os.open(lock_path, os.O_RDWR | os.O_CREAT, 0o644)
+        # never through a link: a folder from someone else could point it at any file, which the
+        # owner line below would overwrite (OSError ELOOP)
+        try:
+            fd = os.open(lock_path, os.O_RDWR | os.O_CREAT | os.O_NOFOLLOW, 0o644)
+        except OSError as error:
+            if error.errno == errno.ELOOP:
+                raise OSError(errno.ELOOP, f"{lock_path.name} is a link: refused") from None
+            raise
         try:
             taken = _lock(fd, lock_path)
         except BaseException:

@@ -752,3 +752,29 @@ def test_a_signal_inside_a_garbage_collector_callback_is_kept_not_printed(capfd)
             with pytest.raises(KeyboardInterrupt):
                 stop.raise_if_stopped()
         assert "Exception ignored" not in capfd.readouterr().err
+
+
+def test_a_lock_file_or_job_log_that_is_a_link_is_never_written_through(tmp_path, capsys):
+    """A job folder from someone else whose .physgrad-job or physgrad.log links to a file elsewhere:
+    the lock is refused in one line (OSError naming it), the log is refused with one warning and
+    the run logs to the terminal; the linked file is untouched either way."""
+    import logging
+
+    from physgrad.app import JobLogFile
+    from physgrad.files import own_folder
+
+    outside = tmp_path / "outside"
+    outside.write_text("theirs\n")
+    job = tmp_path / "job"
+    job.mkdir()
+    (job / ".physgrad-job").symlink_to(outside)
+    with pytest.raises(OSError, match=r"\.physgrad-job is a link: refused"):
+        with own_folder(job):
+            pass
+    (job / "physgrad.log").symlink_to(outside)
+    handler = JobLogFile(job / "physgrad.log")
+    handler.emit(logging.LogRecord("physgrad", logging.INFO, __file__, 1, "a line", None, None))
+    handler.close()
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "cannot be written" in err[0] and "logging to the terminal" in err[0]
+    assert outside.read_text() == "theirs\n"
