@@ -819,3 +819,26 @@ def test_a_tuning_journal_cut_short_is_repaired_and_a_foreign_one_refused(tmp_pa
     path.write_bytes(b"\n".join([lines[0], b"\x00\xffgarbage", *lines[1:]]))
     with pytest.raises(UserError, match="line 2 is not a record of Optuna's journal"):
         set_aside_damage(path, notes.append)
+
+
+def test_only_the_runs_an_evaluation_asked_for_make_a_verdict():
+    """An evaluation file counts only if it ran to its end on an evaluation seed with the study's
+    tuned values: a failed, interrupted or running job, a foreign seed, or a file left by another
+    run (another learning rate: a job skipped because its folder was held) is named."""
+    from physgrad.comparison.evaluation import _not_asked_for
+    from physgrad.results import Run
+
+    settings = study_settings({"seeds": 6})
+    tuned = {"learning_rate": 0.00165}
+
+    def run(status="completed", seed=2, rate=0.00165, reason=None):
+        attrs = {"status": status, "seed": seed, **({"reason": reason} if reason else {})}
+        return Run(Path("x"), attrs, {}, {}, config={"optim": {"learning_rate": rate}})
+
+    assert _not_asked_for(run(), tuned, settings) is None
+    assert _not_asked_for(run("diverged"), tuned, settings) is None
+    assert _not_asked_for(run("failed", reason="boom"), tuned, settings) == "failed (boom)"
+    assert _not_asked_for(run("running"), tuned, settings) == "running"
+    assert "not an evaluation seed" in _not_asked_for(run(seed=1_000_000), tuned, settings)
+    assert "not the tuned 0.00165" in _not_asked_for(run(rate=1.65e-5), tuned, settings)
+    assert _not_asked_for(run(rate=1.65e-5), {}, settings) is None  # untuned: as configured

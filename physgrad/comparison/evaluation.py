@@ -76,13 +76,16 @@ def evaluation(
     plan: StudyPlan, best: list[dict[str, dict]], launcher: Launcher
 ) -> tuple[list[dict[str, dict[int, Curve]]], list[dict[str, dict[int, Run]]]]:
     """Phase 2: every variant at each tuning study's settings on the paired evaluation seeds;
-    (curves, runs) per study, variant and seed."""
+    (curves, runs) per study, variant and seed. Only runs the jobs asked for count: each seed's
+    file must hold that seed and the study's tuned values and have run to its end (completed or
+    diverged); a job that was refused, failed, skipped or left another run's file is a UserError
+    (one line, the first such job and how many), never a verdict from other runs."""
     variants, folder, axis = plan.variants, launcher.folder, plan.axis
     jobs = evaluation_jobs(
         variants, best, plan.settings, plan.common, plan.groups, axis, plan.budget
     )
     launcher.run("eval", jobs)
-    curves, statuses = [], []
+    curves, statuses, problems = [], [], []
     for study in range(len(best)):
         curves.append({})
         statuses.append({})
@@ -97,8 +100,39 @@ def evaluation(
                         raise UserError(
                             f"variant {variant.name} is refused: {run.attrs.get('reason')}"
                         )
-                    seed = run.attrs.get("seed")
-                    if isinstance(seed, int):
-                        curves[study][variant.name][seed] = run_curve(run, axis)
-                        statuses[study][variant.name][seed] = run
+                    why = _not_asked_for(run, best[study][variant.name], plan.settings)
+                    if why is not None:
+                        problems.append(f"{name}: {why}")
+                        continue
+                    curves[study][variant.name][run.attrs["seed"]] = run_curve(run, axis)
+                    statuses[study][variant.name][run.attrs["seed"]] = run
+            missing = set(plan.settings.evaluation_seeds) - set(curves[study][variant.name])
+            if missing and not any(p.startswith(whole) for p in problems):
+                problems.append(f"{whole}: no results for seed {min(missing)}")
+    if problems:
+        more = f" (and {len(problems) - 1} more)" if len(problems) > 1 else ""
+        raise UserError(
+            f"the evaluation did not run as asked: {problems[0]}{more} (see "
+            f"{folder / 'eval.log'}): run the same command again to resume"
+        )
     return curves, statuses
+
+
+def _not_asked_for(run: Run, tuned: dict, settings: StudySettings) -> str | None:
+    """Why an evaluation run is not one the study asked for (its seed, its tuned values, run to its
+    end), or None."""
+    status = run.attrs.get("status")
+    if status not in ("completed", "diverged"):
+        reason = run.attrs.get("reason")
+        return f"{status}" + (f" ({reason})" if reason else "")
+    seed = run.attrs.get("seed")
+    if not isinstance(seed, int) or seed not in settings.evaluation_seeds:
+        return f"seed {seed!r} is not an evaluation seed"
+    optim = run.config.get("optim", {}) if isinstance(run.config, dict) else {}
+    for key, value in tuned.items():
+        stored = optim
+        for part in key.split("."):
+            stored = stored.get(part) if isinstance(stored, dict) else None
+        if stored != value:
+            return f"its {key} is {stored!r}, not the tuned {value!r} (another run's file)"
+    return None
