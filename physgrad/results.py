@@ -19,7 +19,7 @@ from __future__ import annotations
 import math
 import os
 import re
-from collections.abc import Iterable
+from collections.abc import Iterable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -326,13 +326,33 @@ def natural_key(text: str) -> list:
 
 
 def find_results(paths: Iterable[str | os.PathLike]) -> list[Path]:
-    """Every results.h5 at or under the given files and folders, in sorted order."""
+    """Every results.h5 at or under the given files and folders, in sorted order. Under a folder the
+    walk does not follow links to folders (a folder from someone else could point one at / or at
+    itself) and needs no recursion however deep it goes; a results.h5 that is itself a link is
+    listed, for the reader to refuse (physgrad.runs.collect)."""
     found = []
     for path in map(Path, paths):
         if path.is_file():
             found.append(path)
         elif path.is_dir():
-            found.extend(sorted(path.rglob("results.h5")))
+            found.extend(sorted(_walk_results(path)))
         else:
             raise FileNotFoundError(f"{path}: no such file or folder")
     return found
+
+
+def _walk_results(top: Path) -> Iterator[Path]:
+    """results.h5 entries under top (whatever they are: the reader refuses what is not a regular
+    file), folders walked with an explicit stack and never through a link."""
+    stack = [top]
+    while stack:
+        folder = stack.pop()
+        try:
+            entries = list(os.scandir(folder))
+        except OSError:
+            continue  # unreadable or vanished: nothing found there
+        for entry in entries:
+            if entry.name == "results.h5" and not entry.is_dir(follow_symlinks=False):
+                yield Path(entry.path)  # a file, a link, a FIFO...: the reader says which
+            elif entry.is_dir(follow_symlinks=False):
+                stack.append(Path(entry.path))

@@ -82,6 +82,10 @@ def collect(
                     seen[key] = None  # said once
                 continue
             seen[key] = file
+            if file.is_symlink() and file != Path(path):
+                # found under a folder: a link could point anywhere (another run, /proc/...)
+                unreadable.append((file, "a link: not followed (give the file it points to)"))
+                continue
             try:
                 run = read_run(file)
             except ValueError as error:

@@ -714,3 +714,37 @@ def test_a_report_replaces_a_figure_that_is_a_link_and_never_writes_through_it(t
     assert outside.read_bytes() == b"theirs"
     for name in ("loss_vs_time.png", "loss_vs_time.pdf", "loss_vs_iteration.png"):
         assert not (tmp_path / name).is_symlink() and (tmp_path / name).stat().st_size > 1000
+
+
+def test_a_folder_from_someone_else_is_walked_without_following_links_or_recursing(tmp_path):
+    """Under a folder: a results.h5 that is a link (to another run, to a file outside) is listed as
+    not followed; a link to a folder (here a loop back to the top) is not entered; a run 1,500
+    folders deep is found (no recursion limit)."""
+    import physgrad
+    from physgrad.runs import collect
+
+    fake_run(tmp_path / "a", "adam", 0, 1, [1.0, 0.5], [0.0, 1.0])
+    outside = tmp_path.parent / f"{tmp_path.name}-elsewhere"
+    fake_run(outside, "hig", 0, 1, [1.0, 0.2], [0.0, 1.0])
+    (tmp_path / "b").mkdir()
+    (tmp_path / "b" / "results.h5").symlink_to(outside / "results.h5")
+    (tmp_path / "loop").symlink_to(tmp_path)
+    levels = [tmp_path / "deep"]
+    for _ in range(1500):  # one level at a time: pathlib's mkdir(parents=True) recurses
+        levels.append(levels[-1] / "d")
+    try:
+        for level in levels:
+            level.mkdir()
+        fake_run(levels[-1], "gd", 0, 1, [1.0, 0.7], [0.0, 1.0])
+        runs, unreadable, _ = collect([tmp_path])
+    finally:  # shutil.rmtree, which pytest cleans up with, recurses: take the tree down here
+        for level in reversed(levels):
+            if level.is_dir():
+                for entry in level.iterdir():
+                    if not entry.is_dir():
+                        entry.unlink()
+                level.rmdir()
+    assert sorted(r.variant for r in runs) == ["adam", "gd"]
+    assert [(p.parent.name, why.split(":")[0]) for p, why in unreadable] == [("b", "a link")]
+    # the file itself, named by the user, is read
+    assert physgrad.read_runs(tmp_path / "b" / "results.h5").runs["variant"].tolist() == ["hig"]
