@@ -559,8 +559,13 @@ class StudyRuns:
 
 def read_study(folder: Path) -> StudyRuns | None:
     """The study's runs.csv (written by physgrad compare) as StudyRuns; None if the study has not
-    finished."""
+    finished. The table is data from a folder that may come from someone else: each run's file is
+    looked for in the folder's own eval/ (the part of its recorded path from "eval" on), never at
+    the path as written (an absolute path or "..": anywhere); a row whose seed, budget or path
+    cannot be read so is a UserError (one line)."""
     import pandas as pd
+
+    from physgrad.errors import UserError
 
     table = folder / "runs.csv"
     if not table.is_file():
@@ -570,19 +575,23 @@ def read_study(folder: Path) -> StudyRuns | None:
         runs = runs[runs["study"].astype(str) == "0"]
     if not len(runs) or not {"variant", "seed", "axis", "budget", "path"} <= set(runs.columns):
         return None
+    inside = (folder / "eval").resolve()
     paths = {}
-    for row in runs.itertuples():
-        path = Path(str(row.path))
-        if (
-            not path.is_absolute() and "eval" in path.parts
-        ):  # relative to where compare ran: find it in the folder
-            parts = path.parts
-            path = folder / Path(*parts[len(parts) - 1 - parts[::-1].index("eval") :])
-        paths.setdefault(str(row.variant), {})[int(row.seed)] = str(path)
+    for number, row in enumerate(runs.itertuples(), start=2):
+        parts = Path(str(row.path)).parts
+        seed = str(row.seed)
+        if "eval" not in parts or not seed.isdigit():
+            raise UserError(f"{table} line {number}: not a run of this study (seed {seed!r})")
+        path = folder.joinpath(*parts[len(parts) - 1 - parts[::-1].index("eval") :])
+        if ".." in path.relative_to(folder).parts or not path.resolve().is_relative_to(inside):
+            raise UserError(f"{table} line {number}: its path leaves {folder / 'eval'}")
+        paths.setdefault(str(row.variant), {})[int(seed)] = str(path)
+    try:
+        budget = float(runs["budget"].iloc[0])
+    except ValueError:
+        raise UserError(f"{table}: budget {runs['budget'].iloc[0]!r} is not a number") from None
     machines = sorted(set(runs["machine"].astype(str))) if "machine" in runs else []
-    return StudyRuns(
-        folder, str(runs["axis"].iloc[0]), float(runs["budget"].iloc[0]), paths, "; ".join(machines)
-    )
+    return StudyRuns(folder, str(runs["axis"].iloc[0]), budget, paths, "; ".join(machines))
 
 
 @dataclass(frozen=True)
@@ -1079,4 +1088,10 @@ if __name__ == "__main__":
     source = Path(sys.argv[1])
     # outputs/experiments/claims-long: that profile's
     profile = source.name if source.name in PROFILES else "claims"
-    print(write(source, Path(sys.argv[2]) if len(sys.argv) == 3 else source, profile=profile))
+    from physgrad.errors import UserError
+
+    try:
+        print(write(source, Path(sys.argv[2]) if len(sys.argv) == 3 else source, profile=profile))
+    except UserError as error:  # a study folder that is not what its tables say: one line
+        print(f"claims: error: {error}", file=sys.stderr)
+        sys.exit(2)

@@ -321,7 +321,13 @@ def run_claims(profile: str, parts: list[int], root: Path, out: Path) -> int:
                     return 130
                 if code != 0:
                     failed.append(f"{study.name}{'-preset' if preset else ''} (exit {code})")
-    write(root, out, NOTES[profile], profile)
+    from physgrad.errors import UserError
+
+    try:
+        write(root, out, NOTES[profile], profile)
+    except UserError as error:  # a study folder that is not what its tables say: one line
+        print(f"reproduce: error: {error}", file=sys.stderr)
+        return 2
     print(
         f"reproduce: wrote {out / (profile + '.md')}"
         + (f"; did not finish: {', '.join(failed)}" if failed else "")

@@ -408,3 +408,37 @@ def test_a_study_without_a_presets_twin_says_so_for_the_presets(tmp_path, studie
     assert claims.decide_claim(claim, tmp_path)[0] == HOLDS
     verdict, ((_, d),) = claims.decide_claim(claim, tmp_path, "-preset")
     assert verdict == claims.NOT_RUN and "no presets' twin" in d.why
+
+
+def test_a_studys_runs_table_is_data_its_paths_stay_in_the_study_folder(tmp_path):
+    """runs.csv names each run's file; the claims read it from the study's own eval/ whatever the
+    table says (an absolute path elsewhere, a path through ..), and a row they cannot read so (a
+    seed or budget that is no number, a path without eval/, a link out of eval/) is one line."""
+    from physgrad.errors import UserError
+
+    read_study = claims.read_study
+
+    study = tmp_path / "study"
+    (study / "eval" / "+compare_job=eval_v0" / "seed=0").mkdir(parents=True)
+    (tmp_path / "elsewhere").mkdir()
+    header = "variant,study,seed,axis,budget,path\n"
+
+    def table(*rows: str) -> None:
+        (study / "runs.csv").write_text(header + "".join(f"{row}\n" for row in rows))
+
+    table("adam,0,0,iteration,30,/anywhere/eval/+compare_job=eval_v0/seed=0/results.h5")
+    found = read_study(study)
+    assert found.paths == {
+        "adam": {0: str(study / "eval" / "+compare_job=eval_v0" / "seed=0" / "results.h5")}
+    }
+    (study / "eval" / "out").symlink_to(tmp_path / "elsewhere")
+    for row, why in (
+        ("adam,0,abc,iteration,30,eval/x/results.h5", "not a run of this study"),
+        ("adam,0,0,iteration,30,/etc/passwd", "not a run of this study"),
+        ("adam,0,0,iteration,30,eval/../../elsewhere/results.h5", "leaves"),
+        ("adam,0,0,iteration,30,eval/out/results.h5", "leaves"),
+        ("adam,0,0,iteration,x,eval/x/results.h5", "is not a number"),
+    ):
+        table(row)
+        with pytest.raises(UserError, match=why):
+            read_study(study)
