@@ -263,7 +263,7 @@ def report_command(args: list[str]) -> int:
     )
     parser.add_argument(
         "--threshold",
-        type=float,
+        type=positive_loss,
         default=None,
         help="test loss for the time-to-reach column (default: per scene, the median final test "
         "loss of its best group, the target physgrad compare uses)",
@@ -291,6 +291,21 @@ def report_command(args: list[str]) -> int:
     # paths of others' folders may hold terminal escapes
     print(clean_text(body, None, lines=True), end="")
     return 0
+
+
+def positive_loss(text: str) -> float:
+    """A loss given on the command line: a finite number above 0 (argparse's one-line error
+    otherwise: 0, a negative, nan or inf reaches no run or every run)."""
+    import argparse
+    import math
+
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a number") from None
+    if not (math.isfinite(value) and value > 0):
+        raise argparse.ArgumentTypeError(f"{text} is not a loss: give a finite number above 0")
+    return value
 
 
 if __name__ == "__main__":

@@ -260,3 +260,14 @@ def test_sizes_and_empty_paths_are_refused_before_anything_is_built(tmp_path, ov
     outcome, _ = run_experiment(load("task=toy", "trainer.iterations=2", override), tmp_path)
     assert outcome.status == "refused" and fragment in outcome.reason
     assert len(list(tmp_path.rglob("results.h5"))) <= 1
+
+
+@pytest.mark.parametrize("threshold", ["0", "-1", "nan", "inf", "x"])
+def test_a_report_threshold_that_is_no_loss_is_refused(tmp_path, threshold, capsys):
+    from physgrad.cli import main
+
+    with pytest.raises(SystemExit) as leaving:
+        main(["report", str(tmp_path), "--threshold", threshold])
+    err = capsys.readouterr().err
+    assert leaving.value.code == 2 and "--threshold" in err
+    assert "not a loss" in err or "not a number" in err

@@ -72,6 +72,7 @@ def test_comma_lists_are_variants_and_everything_else_is_common():
         (["task=toy", "optim=adam,hig", "seed=3"], "compare sets the seeds itself"),
         (["task=toy", "optim=adam,hig", "compare.seeds=2000"], "compare.seeds"),
         (["task=toy", "optim=adam,hig", "hydra.sweep.dir=x"], "give compare.dir=DIR instead"),
+        (["task=toy", "optim=adam,hig", "compare.dir=a,b"], "takes one value"),
         (["task=toy", "optim=adam,hig", "hydra.run.dir=x"], "give compare.dir=DIR instead"),
         # tuning seeds 2, 3, 4 of three studies reach the evaluation seeds 3 ..
         (["task=toy", "optim=adam,hig", "compare.tune_seed=2", "compare.seed=3"], "must differ"),

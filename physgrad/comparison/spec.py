@@ -220,6 +220,11 @@ def _compare_setting(override: Override, name: str, settings: dict) -> None:
     top = name.split(".")[0]
     if top not in SETTINGS:
         raise UserError(f"unknown setting compare.{name} (choose from {', '.join(SETTINGS)})")
+    if override.is_sweep_override():
+        raise UserError(
+            f"'{override.input_line}': compare.{name} takes one value (a comma in a folder name: "
+            f"quote it, compare.{name}='a,b')"
+        )
     if top == "search":
         value = override.value()
         if name == "search" or not (
