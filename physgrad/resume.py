@@ -69,6 +69,17 @@ def start_from(path: str, params: Any, task_name: str) -> tuple[Any, dict]:
             f"{flat.size} "
             f"parameters, this one is {task_name} with {own.size}: use a run of the same scene"
         )
+    status = source.attrs.get("status")
+    if status != "completed":
+        # a network from a run that diverged, was interrupted or is still running is allowed (to
+        # go on from where it stopped), but it is not the end of a finished run: say so, and keep it
+        import logging
+
+        logging.getLogger("physgrad").warning(
+            "init_from=%s: that run ended %s, not completed: starting from its last network",
+            path,
+            status,
+        )
     attrs = {
         "init_from": str(path),
         "init_variant": source.variant,

@@ -182,6 +182,24 @@ def test_init_from_continues_from_the_saved_network(tmp_path):
     assert second.offset("wall_time") == pytest.approx(first.final("train", "wall_time"))
 
 
+def test_init_from_a_run_that_did_not_complete_says_so(tmp_path, caplog):
+    """A network from an interrupted (or diverged) run may be gone on from, with one warning that
+    names its status; a completed one gives none."""
+    import h5py
+
+    _, source = run_experiment(load(*TINY, "trainer.iterations=4"), tmp_path / "adam")
+    cfg = load(*TINY, "optim=gd", "trainer.iterations=2", f"init_from={source}")
+    with caplog.at_level("WARNING", logger="physgrad"):
+        run_experiment(cfg, tmp_path / "after_completed")
+    assert not [r for r in caplog.records if "init_from" in r.getMessage()]
+    with h5py.File(source, "r+") as f:
+        f.attrs["status"] = "interrupted"
+    with caplog.at_level("WARNING", logger="physgrad"):
+        outcome, _ = run_experiment(cfg, tmp_path / "after_interrupted")
+    warned = [r.getMessage() for r in caplog.records if "init_from" in r.getMessage()]
+    assert outcome.status == "completed" and len(warned) == 1 and "ended interrupted" in warned[0]
+
+
 @pytest.mark.parametrize(
     "source, fragment",
     [
