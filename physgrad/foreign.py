@@ -21,6 +21,9 @@ from physgrad.files import CONFIG_LIMIT, clean_text, file_kind, with_live_status
 STATUSES = ("running", "completed", "diverged", "interrupted", "failed", "refused")
 COLUMN_LIMIT = 1 << 26  # elements of one /train or /eval column (512 MiB of float64) ...
 FILE_COLUMNS_LIMIT = 1 << 28  # ... and of all of a file's columns together
+# ... and their bytes at most this many times the file's size (+1 MiB): physgrad writes its columns
+# uncompressed, and a few MB of compressed zeros would otherwise unpack into gigabytes
+EXPANSION_LIMIT = 8
 REQUIRED_TEXT = ("status", "task", "optim")
 INTEGER_ATTRS = frozenset(
     {
@@ -258,9 +261,17 @@ def _checked_column(path: Path, g: h5py.Group, group: str, key: str, name: str) 
 def checked_tables(path: Path, f: h5py.File, groups: tuple[str, ...]) -> dict[str, dict]:
     """checked_columns of every group, with at most FILE_COLUMNS_LIMIT values in all."""
     columns = {group: checked_columns(path, f, group) for group in groups}
-    if sum(c.size for group in columns.values() for c in group.values()) > FILE_COLUMNS_LIMIT:
+    every = [c for group in columns.values() for c in group.values()]
+    if sum(c.size for c in every) > FILE_COLUMNS_LIMIT:
         raise ValueError(
             f"{path}: more than {FILE_COLUMNS_LIMIT} values in /train and /eval together"
+        )
+    unpacked, stored = sum(c.size * c.dtype.itemsize for c in every), os.stat(path).st_size
+    if unpacked > EXPANSION_LIMIT * stored + (1 << 20):
+        raise ValueError(
+            f"{path}: its columns unpack to {unpacked >> 20} MiB from a file of "
+            f"{max(stored >> 20, 1)} MiB or less (more than {EXPANSION_LIMIT} times): refused, as "
+            "physgrad writes them uncompressed"
         )
     return columns
 

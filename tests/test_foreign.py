@@ -328,3 +328,23 @@ def test_physgrad_files_read_back_unchanged(tmp_path):
     assert read_params(path).tolist() == [1.0] * 5 and read_final(path)[1]["loss"] == pytest.approx(
         1 / 3
     )
+
+
+def test_columns_that_unpack_far_beyond_the_file_are_refused(tmp_path):
+    """A few MB of gzip-compressed zeros that would unpack into 448 MiB: refused in one line before
+    anything is read (physgrad writes its columns uncompressed, so its own files hold
+    about as many bytes as their columns)."""
+    path = good_run(tmp_path / "run")
+    assert read_run(path).train["loss"].size == 3
+
+    def bomb(f):
+        for group in ("train", "eval"):
+            for key in list(f[group]):
+                del f[group][key]
+                f[group].create_dataset(key, data=np.zeros(1 << 23), compression="gzip")
+
+    rewrite(path, bomb)
+    assert path.stat().st_size < (8 << 20)
+    with pytest.raises(ValueError, match="unpack to") as refused:
+        read_run(path)
+    assert "\n" not in str(refused.value)
