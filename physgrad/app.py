@@ -24,6 +24,7 @@ from omegaconf import DictConfig, OmegaConf
 from physgrad.configs import CONF_DIR, name_options
 from physgrad.errors import UserError
 from physgrad.experiment import run_experiment
+from physgrad.gpus import claim_gpu
 from physgrad.runner import Outcome
 from physgrad.sweeps import record_job, stop_count
 from physgrad.trackers import build_trackers, track
@@ -299,6 +300,7 @@ def job(cfg: DictConfig) -> float:
     a sweeper optimises (objective). A single run exits 2 when refused, 1 when failed, 130 when
     interrupted."""
     hydra_cfg = HydraConfig.get()
+    claim_gpu(int(hydra_cfg.job.get("num") or 0))  # before jax starts: one GPU per job process
     this = job_of(cfg, hydra_cfg)
     stopped = stop_count(this.sweep) if this.sweep is not None else None
     if stopped is not None:

@@ -26,7 +26,7 @@ import json
 import subprocess
 import sys
 import time
-from collections.abc import Iterable
+from collections.abc import Callable, Iterable
 from pathlib import Path
 
 from physgrad.bench_measure import measure_floors, measure_seeds, measure_variant
@@ -83,9 +83,14 @@ SEED_OVERRIDES = {
 
 
 def run_seeds(
-    scenes: Iterable[str], count: int, repeats: int, min_seconds: float, timeout: float
+    scenes: Iterable[str],
+    count: int,
+    repeats: int,
+    min_seconds: float,
+    timeout: float,
+    on_row: Callable[[list[dict]], object] = lambda rows: None,
 ) -> list[dict]:
-    rows = []
+    rows: list[dict] = []
     for task, optim in SEED_CASES:
         if task not in scenes:
             continue
@@ -102,6 +107,7 @@ def run_seeds(
             timeout,
         )
         rows.append({"task": task, "variant": optim, **result})
+        on_row(rows)
     return rows
 
 
@@ -118,9 +124,14 @@ def _subprocess(kind: str, payload: dict, timeout: float) -> dict:
 
 
 def run_bench(
-    scenes: Iterable[str], repeats: int, min_seconds: float, timeout: float
+    scenes: Iterable[str],
+    repeats: int,
+    min_seconds: float,
+    timeout: float,
+    on_row: Callable[[list[dict]], object] = lambda rows: None,
 ) -> list[dict]:
-    rows = []
+    """Every scene x variant measured in its own subprocess; on_row(rows so far) after each."""
+    rows: list[dict] = []
     for task in scenes:
         jobs = [
             (optim, [f"task={task}", f"optim={optim}"])
@@ -154,6 +165,7 @@ def run_bench(
                 + (f" ({', '.join(settings)})" if settings else "")
             )
             rows.append({"task": task, "variant": variant, "precision": precision, **result})
+            on_row(rows)
     return rows
 
 
@@ -214,26 +226,43 @@ def main(argv: list[str] | None = None) -> int:
         )
         return 2
     start = time.perf_counter()
-    rows = run_bench(scenes, options.repeats, options.min_seconds, options.timeout)
-    seed_rows = run_seeds(
-        scenes, options.vectorised_seeds, options.repeats, options.min_seconds, options.timeout
-    )
-    described = machine()
-    text = page(
-        rows,
-        seed_rows,
-        described,
-        options.repeats,
-        options.min_seconds,
-        time.perf_counter() - start,
-        options.vectorised_seeds,
-    )
     out = Path(options.out)
     out.parent.mkdir(parents=True, exist_ok=True)
-    out.write_text(text)
-    out.with_suffix(".json").write_text(
-        json.dumps({"variants": rows, "seeds": seed_rows}, indent=1, default=str)
+    described = machine()
+
+    def write(rows: list[dict], seed_rows: list[dict]) -> str:
+        """The page as measured so far: a bench cut short keeps every row it finished."""
+        text = page(
+            rows,
+            seed_rows,
+            described,
+            options.repeats,
+            options.min_seconds,
+            time.perf_counter() - start,
+            options.vectorised_seeds,
+        )
+        out.write_text(text)
+        out.with_suffix(".json").write_text(
+            json.dumps({"variants": rows, "seeds": seed_rows}, indent=1, default=str)
+        )
+        return text
+
+    rows = run_bench(
+        scenes,
+        options.repeats,
+        options.min_seconds,
+        options.timeout,
+        on_row=lambda so_far: write(so_far, []),
     )
+    seed_rows = run_seeds(
+        scenes,
+        options.vectorised_seeds,
+        options.repeats,
+        options.min_seconds,
+        options.timeout,
+        on_row=lambda so_far: write(rows, so_far),
+    )
+    text = write(rows, seed_rows)
     print(text, end="")
     return 0
 

@@ -26,6 +26,7 @@ from jax.flatten_util import ravel_pytree
 
 from physgrad.errors import UserError
 from physgrad.jacobians import LayerPlan, dense_jacobian, layer_jacobian, plan_layers
+from physgrad.tridiagonal import jacobian_route
 from physgrad.unroll import MODES, PHYSICS_ONLY, REGULAR, Backprop
 
 if TYPE_CHECKING:
@@ -148,10 +149,11 @@ class JacobianPass:
     def __call__(
         self, scene: Scene, params: Params, batch: Pytree
     ) -> tuple[jax.Array, Params, dict[str, Any], dict[str, jax.Array]]:
-        if self.plan is None:
-            y, jac = dense_jacobian(scene.sample_output, params, batch)
-        else:
-            y, jac = layer_jacobian(scene.sample_output, params, batch, self.plan)
+        with jacobian_route():  # a scene's small solves take the path fastest for many rows
+            if self.plan is None:
+                y, jac = dense_jacobian(scene.sample_output, params, batch)
+            else:
+                y, jac = layer_jacobian(scene.sample_output, params, batch, self.plan)
         loss, output_grad = jax.value_and_grad(scene.batch_loss)(y, batch)
         grads = ravel_pytree(params)[1](
             jac.transpose_apply(output_grad.reshape(-1).astype(jac.dtype))

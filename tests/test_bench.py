@@ -77,3 +77,26 @@ def test_seeds_are_timed_against_one_seed_in_the_same_process():
     assert result["seeds"] == 2 and result["single_step_s"] > 0 and result["step_s"] > 0
     gain = 2 * result["single_step_s"] / result["step_s"]
     assert f"| {gain:.2f}x |" in seeds_table([{"task": "poisson", "variant": "adam", **result}])
+
+
+def test_a_bench_cut_short_keeps_every_row_it_finished(tmp_path, monkeypatch):
+    """The page is written after every row: a bench stopped in its third measurement (a device
+    lent for minutes, a timeout) leaves the first two in the table."""
+    from physgrad import bench
+
+    measured = []
+
+    def fake_subprocess(kind, payload, timeout):
+        if len(measured) == 2:
+            raise KeyboardInterrupt
+        measured.append(payload["overrides"])
+        return {"step_s": 0.001 * len(measured), "compile_s": 1.0, "peak_rss_gb": 0.1}
+
+    monkeypatch.setattr(bench, "_subprocess", fake_subprocess)
+    out = tmp_path / "bench.md"
+    with pytest.raises(KeyboardInterrupt):
+        bench.main(["--scenes", "poisson", "--out", str(out)])
+    text = out.read_text()
+    for overrides in measured:
+        assert f"| poisson | {overrides[1].removeprefix('optim=')} |" in text
+    assert len(measured) == 2

@@ -241,10 +241,12 @@ def job_environment() -> dict[str, str]:
     (JAX_COMPILATION_CACHE_DIR). The jobs of a study compile the same evaluations, data generators
     and, where only a tuned value differs, often the same steps again: a cached executable is the
     same code, so results do not change. Never in the study folder: a compiled executable is code,
-    and a study folder may come from someone else."""
+    and a study folder may come from someone else. The GPU settings are those the command started
+    with (physgrad.gpus: each job claims its own GPU)."""
     from physgrad.files import cache_dir
+    from physgrad.gpus import original_environment
 
-    env = dict(os.environ)
+    env = original_environment()
     if "JAX_COMPILATION_CACHE_DIR" not in env:
         env["JAX_COMPILATION_CACHE_DIR"] = str(cache_dir() / "jax")
         # every executable, not only those that took a second to compile: a study's jobs compile

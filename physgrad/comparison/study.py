@@ -75,8 +75,11 @@ def run_study(
     """The whole study (module docstring); resumes from its folder."""
     from physgrad.errors import FolderOwned
     from physgrad.files import own_folder
+    from physgrad.gpus import local_launcher_args, pin_this_process
 
+    gpus = pin_this_process()  # before this process starts jax (building the variants does)
     plan, hydra_args = compose_study(overrides, config_dir)
+    hydra_args = local_launcher_args(hydra_args, gpus)
     variants, settings, common, groups, axis, budget = (
         plan.variants,
         plan.settings,
@@ -102,6 +105,8 @@ def run_study(
                 f"{budget:g} {'iterations' if axis == 'iteration' else 's'}; the same command "
                 "resumes it"
             )
+            if gpus > 1:
+                say(f"{gpus} GPUs: each phase runs {gpus} jobs side by side, one per GPU")
             calibration = None
             if axis == "wall_time" and settings.clock == "calibrated":
                 calibration = calibrated_clock(

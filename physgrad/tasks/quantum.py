@@ -23,12 +23,12 @@ from typing import Any, Callable
 
 import jax
 import jax.numpy as jnp
-from jax.lax.linalg import tridiagonal_solve
 from jax.typing import DTypeLike
 
 from physgrad.errors import UserError
 from physgrad.nets import apply_control_cnn, apply_mlp, init_control_cnn, init_mlp
 from physgrad.tasks import Scene
+from physgrad.tridiagonal import Solve, library_solve, solve_for
 from physgrad.unroll import Dynamics
 from physgrad.validate import choice, flag, layer_widths, number
 
@@ -63,16 +63,21 @@ def apply_hamiltonian(psi: jax.Array, u: float | jax.Array, x: jax.Array) -> jax
     return -(padded[2:] - 2.0 * psi + padded[:-2]) / dx**2 + u * x * psi
 
 
-def crank_nicolson_step(psi: jax.Array, u: float | jax.Array, x: jax.Array, dt: float) -> jax.Array:
-    """Solve (I + i dt/2 H) psi_next = (I - i dt/2 H) psi with a tridiagonal solver (O(N) per
-    sample)."""
+def crank_nicolson_step(
+    psi: jax.Array,
+    u: float | jax.Array,
+    x: jax.Array,
+    dt: float,
+    solve: Solve = library_solve,
+) -> jax.Array:
+    """Solve (I + i dt/2 H) psi_next = (I - i dt/2 H) psi, a tridiagonal system (O(N) per sample),
+    by `solve` (physgrad.tridiagonal: the scene takes the device's fastest path)."""
     dx = x[0]
     half = 0.5j * dt
     rhs = psi - half * apply_hamiltonian(psi, u, x)
     diagonal = 1.0 + half * (2.0 / dx**2 + u * x)
     off = jnp.full_like(psi, -half / dx**2)
-    lower, upper = off.at[0].set(0.0), off.at[-1].set(0.0)
-    return tridiagonal_solve(lower, diagonal, upper, rhs[:, None])[:, 0]
+    return solve(off.at[0].set(0.0), diagonal, off.at[-1].set(0.0), rhs)
 
 
 def fidelity(target: jax.Array, psi: jax.Array) -> jax.Array:
@@ -291,7 +296,12 @@ def build(
         train_set=samples(train_key, train_size),
         test_set=samples(test_key, test_size),
         dynamics=Dynamics(
-            step=partial(crank_nicolson_step, x=grid(points, real), dt=dt),
+            step=partial(
+                crank_nicolson_step,
+                x=grid(points, real),
+                dt=dt,
+                solve=solve_for(jax.default_backend()),
+            ),
             policy=policy,
             initial=initial_state,
             unroll=unroll,
