@@ -16,7 +16,7 @@ own rules (physgrad.verdict), over the comparisons the paper makes:
   study);
 - "A close to B": holds when A is better or equivalent within the stated margin, fails when B is
   better;
-- "A's advantage over B grows from the easy setting to the hard one": physgrad.verdict.interaction
+- "A's advantage over B grows from the easy setting to the hard one": physgrad.trend.interaction
   on the two studies' per-seed log ratios (the ratio at the hard end below the one at the easy end,
   with an interval);
 - "A stalls": the variant's own loss at the budget against its loss at half the budget, paired by
@@ -36,15 +36,14 @@ from pathlib import Path
 import numpy as np
 
 from physgrad.readout import highest_median
+from physgrad.trend import GROWS, interaction
 from physgrad.verdict import (
     A_BETTER,
     B_BETTER,
     EQUIVALENT,
-    GROWS,
     MARGIN,
     UNDECIDED,
     compare_variants,
-    interaction,
     paired,
 )
 

@@ -338,7 +338,7 @@ def test_an_advantage_that_grows_is_found_and_a_uniform_one_is_not():
     """A/B is 0.9 at the easy end and 0.3 at the hard end (run noise 10%): grows, by about 3x; the
     same 0.5 at both ends (a uniform advantage, which a test of the hard end alone would pass): does
     not grow."""
-    from physgrad.verdict import DOES_NOT_GROW, GROWS, interaction
+    from physgrad.trend import DOES_NOT_GROW, GROWS, interaction
 
     rng = np.random.default_rng(11)
     easy = np.log(0.9) + rng.normal(0, 0.1, 10)
@@ -355,7 +355,8 @@ def test_an_advantage_that_grows_is_found_and_a_uniform_one_is_not():
 
 
 def test_a_trend_with_few_pairs_missing_pairs_or_wide_noise_is_undecided():
-    from physgrad.verdict import UNDECIDED, interaction
+    from physgrad.trend import interaction
+    from physgrad.verdict import UNDECIDED
 
     rng = np.random.default_rng(12)
     few = interaction(np.zeros(4), np.full(4, -2.0))  # a large effect, but 4 pairs at the easy end
@@ -377,7 +378,7 @@ def test_a_trend_with_few_pairs_missing_pairs_or_wide_noise_is_undecided():
 def test_a_diverged_baseline_at_the_hard_end_counts_as_a_growing_advantage():
     """B diverged in every seed at the hard end (log ratio -LOG_CAP): the advantage is as large as
     it gets."""
-    from physgrad.verdict import GROWS, interaction
+    from physgrad.trend import GROWS, interaction
 
     rng = np.random.default_rng(13)
     result = interaction(rng.normal(-0.1, 0.1, 10), np.full(10, -LOG_CAP))
@@ -387,7 +388,7 @@ def test_a_diverged_baseline_at_the_hard_end_counts_as_a_growing_advantage():
 def test_the_trend_rule_under_the_null_calls_growth_rarely_and_finds_a_known_one():
     """200 simulated pairs of settings, 10 seeds each, seed noise 30% on the log ratio: no trend is
     called "grows" in at most alpha of them; a halving of A/B at the hard end is found in most."""
-    from physgrad.verdict import GROWS, interaction
+    from physgrad.trend import GROWS, interaction
 
     rng = np.random.default_rng(14)
     false_calls = found = 0

@@ -9,6 +9,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
+from physgrad.comparison.clock_text import timing_lines
 from physgrad.comparison.spec import StudySettings, Variant
 from physgrad.readout import fmt, loss_at, target_loss, time_to_target
 from physgrad.verdict import (
@@ -399,118 +400,6 @@ def edge_lines(variants: list[Variant], best: list[dict[str, dict]]) -> list[str
                 f"(compare.search.{key}=[low,high])"
             )
     return ([""] + lines) if lines else []
-
-
-def timing_lines(
-    variants: list[Variant], runs: pd.DataFrame, axis: str, calibration: dict | None
-) -> list[str]:
-    """compare.md's timing section: the clock, the calibration's step costs, contended runs, the
-    machines."""
-    lines = ["", "## Timing", ""]
-    if axis == "calibrated_time" and calibration:
-        lines += _calibration_lines(variants, runs, calibration)
-    elif axis == "wall_time":
-        lines += [
-            "Clock: measured (training seconds as timed). A run flagged contended (step times "
-            "spread or the "
-            "machine oversubscribed, docs/decisions.md) was slowed by other work: a verdict that "
-            "uses one is marked. The calibrated clock is the default (compare.clock=calibrated)."
-        ]
-    else:
-        lines += ["Budget in iterations: the clock does not enter the verdicts."]
-        lines += step_cost_lines(variants, runs)
-    machines = sorted(set(runs["machine"])) if len(runs) else []
-    if len(machines) > 1:
-        lines += [
-            "",
-            f"**Warning**: the runs come from {len(machines)} machines ({'; '.join(machines)}): "
-            "their times are not comparable.",
-        ]
-    elif machines:
-        lines += ["", f"Machine: {machines[0]}."]
-    flagged = runs[runs.contended] if len(runs) else runs
-    if len(flagged):
-        lines += [
-            "",
-            f"Contended runs: {len(flagged)} of {len(runs)} "
-            f"(e.g. {flagged.iloc[0]['variant']} seed {flagged.iloc[0]['seed']}: "
-            f"{flagged.iloc[0]['contention']}).",
-        ]
-    return lines
-
-
-def step_cost_lines(variants: list[Variant], runs: pd.DataFrame) -> list[str]:
-    """What an iteration costs each variant, as its evaluation runs measured it: the median over
-    runs of their median step time, and their training seconds (seeds trained together in one
-    job share one step)."""
-    if not len(runs):
-        return []
-    lines = [
-        "",
-        "| variant | step time: median of the runs' p50 | training seconds per run: median |",
-        "|---|---|---|",
-    ]
-    for variant in variants:
-        sub = runs[runs.variant == variant.name]
-        step = sub["step_seconds_p50"].astype(float)
-        train = sub["train_seconds"].astype(float)
-        lines.append(
-            f"| {variant.name} | "
-            f"{fmt(float(np.nanmedian(step))) + ' s' if step.notna().any() else '-'} | "
-            f"{fmt(float(np.nanmedian(train))) + ' s' if train.notna().any() else '-'} |"
-        )
-    return lines + [
-        "",
-        "Seeds trained together in one vectorised job share each step, so a step here is that of "
-        "all seeds of the job.",
-    ]
-
-
-def _calibration_lines(variants: list[Variant], runs: pd.DataFrame, calibration: dict) -> list[str]:
-    """The calibrated clock: how the step costs were measured, each variant's cost against its
-    runs' measured steps, and a warning where the calibration's machine was busy."""
-    lines = [
-        "Clock: calibrated. Step costs measured with every variant's compiled step "
-        "interleaved in one "
-        f"process (the {calibration['quantile']:g} quantile over rounds; load average "
-        f"{calibration['load_start']:.2f} -> {calibration['load_end']:.2f}); a run's time is its "
-        "iterations times its variant's cost, so the machine's load cannot change how far a "
-        "variant gets. The measured clock: compare.clock=measured.",
-        "",
-        "| variant | calibrated step cost | median in the calibration | rounds | measured p50 "
-        "in the runs | contended runs |",
-        "|---|---|---|---|---|---|",
-    ]
-    for variant in variants:
-        cost = calibration["costs"][variant.name]
-        sub = runs[runs.variant == variant.name] if len(runs) else runs
-        p50 = (
-            float(np.nanmedian(sub["step_seconds_p50"]))
-            if len(sub) and sub["step_seconds_p50"].notna().any()
-            else math.nan
-        )
-        lines.append(
-            f"| {variant.name} | {fmt(cost['step_seconds'])} s | {fmt(cost['median_seconds'])} s | "
-            f"{cost['rounds']} | {fmt(p50)} s | "
-            f"{int(sub['contended'].sum()) if len(sub) else 0} of {len(sub)} |"
-        )
-    from physgrad.machine import contention
-
-    busy = contention(
-        {},
-        0,
-        calibration["load_start"],
-        calibration["load_end"],
-        int(calibration["machine"].get("cpu_count", 1)),
-    )
-    if busy:
-        lines += [
-            "",
-            f"**Warning**: the calibration ran on a busy machine ({busy}): the step costs of the "
-            "variants are not slowed alike by other work, so recalibrate on a quiet machine "
-            "or give one with compare.calibration.",
-        ]
-    return lines
 
 
 def trial_rows(folder: Path, variants: list[Variant], studies: int = 1) -> list[dict]:

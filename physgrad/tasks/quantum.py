@@ -201,6 +201,14 @@ def open_loop_policy(params: Params, sample: dict) -> Policy:
     return partial(scheduled, apply_mlp(params, realify(sample["target"]), hidden="tanh"))
 
 
+def policy_for(closed_loop: bool, network: str) -> Callable[..., Policy]:
+    """(params, sample) -> the sample's controller: the network sees psi_t every step (closed loop)
+    or gives every control at once from the target (open loop)."""
+    if not closed_loop:
+        return open_loop_policy
+    return partial(closed_loop_policy, control=cnn_control if network == "cnn" else dense_control)
+
+
 def step_fidelity(psi: jax.Array, u: jax.Array, sample: dict) -> jax.Array:
     """Observed per step: |<target|psi_{k+1}>|^2."""
     return fidelity(sample["target"], psi)
@@ -275,12 +283,7 @@ def build(
     samples = partial(
         make_samples, points=points, start=start, target=target, level=level, dtype=real
     )
-    if closed_loop:
-        policy = partial(
-            closed_loop_policy, control=cnn_control if network == "cnn" else dense_control
-        )
-    else:
-        policy = open_loop_policy
+    policy = policy_for(closed_loop, network)
     objective = Objective(every_step, points)
     train_key, test_key = jax.random.split(key)
     return Scene(
