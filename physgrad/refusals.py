@@ -15,7 +15,7 @@ from omegaconf import DictConfig, OmegaConf
 from physgrad.errors import UserError
 from physgrad.gradients import JacobianPass
 from physgrad.optim import matrix_leaves
-from physgrad.optim.capabilities import Capabilities, batches_over_seeds
+from physgrad.optim.capabilities import Capabilities
 from physgrad.runner import TrainerSettings
 from physgrad.tasks import Scene
 from physgrad.training import Seeds
@@ -143,22 +143,9 @@ def starts_from_itself(cfg: DictConfig, paths: list[tuple[int, Path]]) -> str | 
 
 
 def check_seeds_together(cfg: DictConfig, count: int) -> None:
-    """Seeds trained together (count > 1) refused with init_from (it starts one network) and with a
-    rule that does not batch over seeds."""
+    """Seeds trained together (count > 1) refused with init_from (it starts one network)."""
     if count > 1 and cfg.get("init_from"):
         raise UserError(f"init_from starts one network: use seeds=1 (not seeds={count}) with it")
-    if count > 1 and not batches_over_seeds(cfg.optim):
-        # its lax.cond traced under x64 does not batch under vmap (jax 0.10): a known limitation
-        members = (
-            f"seeds={count}"
-            if cfg.get("trial_values") is None
-            else f"trial_values ({count} members together)"
-        )
-        instead = "use seeds=1" if cfg.get("trial_values") is None else "train one trial per job"
-        raise UserError(
-            f"{members} cannot retry failed factorisations in float64: add "
-            f"optim.retry_float64=false, or {instead}"
-        )
 
 
 def check_applies(scene: Scene, cfg: DictConfig) -> None:

@@ -20,6 +20,7 @@ import optax
 from jax.flatten_util import ravel_pytree
 
 from physgrad.optim import UpdateRule, on_tree, set_member_values, state_logs
+from physgrad.optim.spectral import SEEDS_AXIS
 from physgrad.tasks import Scene
 
 
@@ -96,8 +97,8 @@ def over_seeds(fn: Callable[..., Any], count: int, in_axes: tuple) -> Callable[.
     """fn vectorised over the leading seed axis of the arguments marked 0 (jax.vmap); with one seed,
     the same function on that seed's slice, without vmap, so a single run compiles exactly its own
     computation."""
-    if count > 1:
-        return jax.vmap(fn, in_axes=in_axes)
+    if count > 1:  # the axis named, so that a rule can act on all seeds at once (any_seed)
+        return jax.vmap(fn, in_axes=in_axes, axis_name=SEEDS_AXIS)
 
     def single(*args: Any) -> Any:
         args = [

@@ -122,10 +122,6 @@ def test_bptt_gradient_growth_is_measured(small_check):
         ("unroll=0", "unroll=0 is not allowed: use a whole number >= 1"),
         ("seeds=0", "seeds=0 is not allowed: use a whole number >= 1"),
         (
-            "optim=hig seeds=2",
-            "seeds=2 cannot retry failed factorisations in float64: add optim.retry_float64=false",
-        ),
-        (
             "init_from=7",
             "init_from=7 is not allowed: use the path of a results.h5, or leave init_from out",
         ),

@@ -410,11 +410,12 @@ def test_first_signal_asks_to_stop_second_ends_a_step_still_computing():
     release.set()
 
 
-@pytest.mark.parametrize("optim", ["adam", "gd"])
+@pytest.mark.parametrize("optim", ["adam", "gd", "hig", "gauss_newton"])
 def test_trials_trained_together_are_the_runs_of_one_job_per_trial(tmp_path, optim):
     """trial_values trains one member per learning rate on one seed in one vectorised step: each
     member's curves equal the run of that learning rate alone (float32 round-off), and its file
-    records that learning rate and no trial_values, as a job of that one trial would."""
+    records that learning rate and no trial_values, as a job of that one trial would. The Jacobian
+    rules too, with their float64 retry on (its default)."""
     rates = [1e-3, 1e-2, 0.1]
     common = ["task=toy", f"optim={optim}", "trainer.iterations=30", "trainer.eval_every=10"]
     together = load(*common, f"trial_values={{learning_rate:{rates}}}")
@@ -440,9 +441,8 @@ def test_trials_trained_together_are_the_runs_of_one_job_per_trial(tmp_path, opt
         (["trial_values={learning_rate:[0.001,-1]}"], "a list of positive numbers"),
         (["trial_values={momentum:[0.1]}"], "optim.momentum is not a number"),
         (["trial_values={learning_rate:[0.1,0.2]}", "seeds=2"], "use seeds=1"),
-        (["optim=hig", "trial_values={learning_rate:[0.1,0.2]}"], "or train one trial per job"),
         (
-            ["optim=hig", "optim.retry_float64=false", "trial_values={learning_rate:[0.1,0.2]}"],
+            ["optim=levenberg_marquardt", "trial_values={learning_rate:[0.1,0.2]}"],
             "cannot train trials together",
         ),
     ],

@@ -229,6 +229,61 @@ def test_a_failed_factorisation_is_retried_in_float64_and_counted_only_if_it_sta
         assert failures == 1 and not jnp.isfinite(updates["w"]).any()
 
 
+def test_seeds_trained_together_retry_only_the_seed_whose_factorisation_failed(monkeypatch):
+    """Three seeds in one vmapped step (the seeds' named axis, as physgrad.training vectorises):
+    the float32 factorisation fails for seed 1 only. Seed 1 takes the float64 result; seeds 0 and
+    2 keep their own float32 update bit for bit; none is counted as failed; and the retry stays one
+    cond for all seeds (float64 only in a step where one failed), not a select that computes it
+    every step."""
+    import physgrad.optim.spectral as spectral
+    from physgrad.jacobians import as_jacobian
+    from physgrad.training import over_seeds
+
+    real = spectral._direction
+
+    def flaky(jac, g, kappa, tau, route="svd"):  # fails where J's first entry is above 1, in f32
+        result, kept = real(jac, g, kappa, tau, route)
+        bad = (as_jacobian(jac).dense()[0, 0] > 1.0) & (jac.dtype == jnp.float32)
+        return jnp.where(bad, jnp.nan, result), kept
+
+    monkeypatch.setattr(spectral, "_direction", flaky)
+    rule = spectral_rule(1.0, 0.5, 1e-6, "svd", retry_float64=True)
+    seeds = []
+    for key in range(3):
+        data, theta, sample_output, batch_loss = linear_problem(jax.random.PRNGKey(20 + key))
+        first = 2.0 if key == 1 else -2.0  # only seed 1's factorisation fails
+        data["a"] = data["a"].at[:, 0, 0].set(first)
+        (_, y), _ = jax.value_and_grad(batch_loss, has_aux=True)(theta)
+        _, jac = output_and_jacobian(sample_output, theta, data)
+        seeds.append((theta, jac, (y - data["b"]) / 3))
+    stacked = jax.tree_util.tree_map(lambda *leaves: jnp.stack(leaves), *seeds)
+
+    def update(theta, jac, g):
+        return rule.update(theta, rule.init(theta), theta, jacobian=jac, output_grad=g)
+
+    together = over_seeds(update, 3, (0, 0, 0))
+    (updates, state) = jax.jit(together)(*stacked)
+    assert optax.tree.get(state, "failures").tolist() == [0, 0, 0]
+    for index, (theta, jac, g) in enumerate(seeds):
+        alone, _ = jax.jit(update)(theta, jac, g)
+        mine = jax.tree_util.tree_map(lambda leaf: leaf[index], updates)
+        if index == 1:
+            with jax.enable_x64(True):
+                expected = -truncated_spectral_direction(
+                    jac.astype(jnp.float64), g.ravel().astype(jnp.float64), 0.5, 1e-6
+                )
+            flat = jnp.concatenate([mine["c"], mine["w"]])
+            np.testing.assert_allclose(flat, expected, rtol=1e-5, atol=1e-6)
+        else:
+            for key in theta:
+                np.testing.assert_array_equal(mine[key], alone[key])
+    jaxpr = jax.make_jaxpr(together)(*stacked).jaxpr
+    names = {eqn.primitive.name for eqn in jaxpr.eqns}
+    conds = [eqn for eqn in jaxpr.eqns if eqn.primitive.name == "cond"]
+    # one predicate for all seeds: the cond's predicate is a scalar, reduced over the seeds' axis
+    assert "psum" in names and conds and all(eqn.invars[0].aval.shape == () for eqn in conds)
+
+
 def test_non_finite_jacobian_is_not_counted_as_a_factorisation_failure():
     rule = spectral_rule(1.0, 0.5, 1e-6, "svd")
     params = {"w": jnp.ones(3)}

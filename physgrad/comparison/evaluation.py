@@ -9,7 +9,6 @@ from typing import TYPE_CHECKING
 from physgrad.comparison.jobs import Launcher, cadence, job_runs, job_yaml
 from physgrad.comparison.spec import StudyPlan, StudySettings, Variant, study_prefix
 from physgrad.errors import UserError
-from physgrad.optim.capabilities import batches_over_seeds
 from physgrad.readout import run_curve
 
 if TYPE_CHECKING:
@@ -28,8 +27,8 @@ def evaluation_jobs(
 ) -> dict[str, str]:
     """The evaluation's jobs in launch order, for each tuning study's best settings (best[k]): per
     variant one job of all seeds trained together when the budget is in iterations (one per seed
-    where the rule's float64 retry does not batch or init_from starts each seed from its own
-    network, e.g. init_from='start/seed=${seed}/results.h5'); for time budgets one job per seed,
+    where init_from starts each seed from its own network, e.g.
+    init_from='start/seed=${seed}/results.h5'); for time budgets one job per seed,
     variants and studies interleaved (A, B, C of each study for the first seed, then the next), so
     that a drift in the machine's load does not line up with a variant."""
     seeds = settings.evaluation_seeds
@@ -50,11 +49,8 @@ def evaluation_jobs(
     if axis == "iteration":
         for study in range(len(best)):
             for index, variant in enumerate(variants):
-                # a float64 retry does not batch under vmap, and init_from starts one network per
-                # job
-                if (
-                    not batches_over_seeds(variant.config.optim) or variant.config.get("init_from")
-                ) and len(seeds) > 1:
+                # init_from starts one network per job
+                if variant.config.get("init_from") and len(seeds) > 1:
                     for seed in seeds:
                         jobs[evaluation_job(study, index, seed)] = spec(study, variant, seed, 1)
                 else:

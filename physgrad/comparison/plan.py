@@ -60,17 +60,11 @@ def variant_cost(plan: StudyPlan, variant: Variant, compile_s: float, step_s: fl
     (iterations x step cost, or the time budget); the evaluation of an iteration budget trains its
     seeds in one job, counted as seeds x the one-seed step (an upper bound where vmap makes seeds
     cheaper)."""
-    from physgrad.optim.capabilities import batches_over_seeds
-
     settings = plan.settings
     studies, seeds = settings.study_count, settings.seeds
     train = plan.budget * step_s if plan.axis == "iteration" else plan.budget
     tuning_runs = settings.trials * studies if settings.tune else 0
-    together = (
-        plan.axis == "iteration"
-        and batches_over_seeds(variant.config.optim)
-        and not variant.config.get("init_from")
-    )
+    together = plan.axis == "iteration" and not variant.config.get("init_from")
     jobs = studies if together else studies * seeds
     evaluation = jobs * compile_s + studies * seeds * train
     return VariantCost(

@@ -110,17 +110,15 @@ def tuning(plan: StudyPlan, launcher: Launcher) -> list[dict[str, dict]]:
 def trials_together(variant: Variant, axis: str) -> bool:
     """Whether a variant's trials of one study train in one vectorised job (trial_values): the
     budget in iterations or on the calibrated clock (members then stop together), a rule that
-    batches over seeds (no float64 retry) and takes its tuned values as inputs of an optax
-    transformation (not physgrad's Jacobian rules), top-level keys, no init_from."""
+    takes its tuned values as inputs of its optax transformation (not Levenberg-Marquardt or
+    K-FAC), top-level keys, no init_from."""
     from physgrad.optim import build_rule
-    from physgrad.optim.capabilities import batches_over_seeds
 
     optim = variant.config.optim
     if (
         axis not in ("iteration", "calibrated_time")
         or not variant.space
         or any("." in key for key in variant.space)
-        or not batches_over_seeds(optim)
         or variant.config.get("init_from")
     ):
         return False

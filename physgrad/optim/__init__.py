@@ -77,6 +77,8 @@ def build_rule(
             f"optim._target_={node['_target_']} returned {type(transform).__name__}, not an optax "
             "GradientTransformation"
         )
+    if member_values:
+        transform = _as_built(node, transform)
     jacobian = isinstance(transform, JacobianRule)
     if member_values and not _holds_inputs(transform, member_values):
         raise UserError(
@@ -101,6 +103,20 @@ def build_rule(
         else None
     )
     return UpdateRule(transform, gradient, on_layers, values)
+
+
+def _as_built(node: dict, injected: optax.GradientTransformation) -> optax.GradientTransformation:
+    """The transformation built through inject_hyperparams, as the kind of rule the factory builds
+    (inject_hyperparams returns a plain optax transformation): a Jacobian rule stays one, so its
+    step still builds J for it; a rule with a kind of its own that the injected form would lose
+    (Levenberg-Marquardt's extra arguments) is refused."""
+    plain = call_target("optim", node, reserved=RESERVED_KEYS)
+    if isinstance(plain, MarquardtRule):
+        raise UserError(
+            f"optim={node.get('name')} cannot train trials together (its gain ratio takes the "
+            "loss function as an argument): train one trial per job"
+        )
+    return JacobianRule(*injected) if isinstance(plain, JacobianRule) else injected
 
 
 def _holds_inputs(transform: optax.GradientTransformation, keys: Mapping[str, Any]) -> bool:

@@ -14,8 +14,6 @@ adam.yaml is Adam. Capabilities:
   which a scene whose Jacobian is only available per sample cannot give;
 - search_range: the log-uniform learning-rate range `physgrad compare` tunes over, per family, each
   spanning the papers' presets by two decades or more on either side (docs/protocol.md).
-Whether a configured rule's step batches over seeds (one vmapped step for seeds=N) depends on its
-settings too: batches_over_seeds.
 """
 
 from __future__ import annotations
@@ -82,9 +80,3 @@ def capabilities(optim_cfg: Mapping[str, Any]) -> Capabilities:
     """The capabilities of the rule an optim config builds (by its `_target_`); a factory not listed
     here is an adaptive rule given the network's layers."""
     return RULES.get(str(optim_cfg.get("_target_", "")), ADAPTIVE)
-
-
-def batches_over_seeds(optim_cfg: Mapping[str, Any]) -> bool:
-    """Whether seeds=N trains in one vmapped step: not where a failed factorisation is retried in
-    float64 (optim.retry_float64), which decides per seed on the host."""
-    return not optim_cfg.get("retry_float64")

@@ -105,6 +105,19 @@ def truncated_spectral_direction(
     return _direction(jac, output_grad, kappa, tau, route)[0]
 
 
+SEEDS_AXIS = "seeds"  # the vmap axis of the seeds (or trial members) trained together
+
+
+def any_seed(flag: jax.Array) -> jax.Array:
+    """Whether flag holds for any of the seeds trained together in one vmapped step (the axis
+    SEEDS_AXIS, physgrad.training.over_seeds): one predicate, not batched; outside such a vmap,
+    flag itself."""
+    try:
+        return jax.lax.psum(flag.astype(jnp.int32), SEEDS_AXIS) > 0
+    except NameError:  # not under the seeds' vmap: one run
+        return flag
+
+
 class SpectralState(NamedTuple):
     """failures: steps whose factorisation returned non-finite values from finite inputs (LAPACK did
     not converge), counted so that the runner can name the cause when the update turns non-finite;
@@ -135,7 +148,8 @@ def spectral_direction(
     since J^T g carries no more than J and g.
     A factorisation that fails (non-finite direction from a finite J and g) is counted in the state;
     with retry_float64 it is repeated in float64 first (the failed step only), and counted if that
-    fails too.
+    fails too. Seeds trained together retry in one float64 factorisation of them all where any
+    failed, and each keeps its own float32 result unless its own failed.
     """
 
     def init(params: optax.Params) -> SpectralState:
@@ -157,13 +171,22 @@ def spectral_direction(
         if retry_float64:
 
             def in_float64() -> tuple[jax.Array, jax.Array]:
-                with jax.enable_x64(True):
-                    wide, wide_kept = _direction(
-                        jac.astype(jnp.float64), g.astype(jnp.float64), kappa, tau, route
-                    )
-                return wide.astype(jac.dtype), wide_kept
+                wide, wide_kept = _direction(
+                    jac.astype(jnp.float64), g.astype(jnp.float64), kappa, tau, route
+                )
+                # only a seed whose factorisation failed takes the float64 result
+                return (
+                    jnp.where(failed, wide.astype(jac.dtype), direction),
+                    jnp.where(failed, wide_kept, kept),
+                )
 
-            direction, kept = jax.lax.cond(failed, in_float64, lambda: (direction, kept))
+            # traced whole under x64 (a cond traced so batches under vmap), on one predicate for all
+            # seeds trained together, so that it stays a cond: float64 only in a step where one
+            # failed
+            with jax.enable_x64(True):
+                direction, kept = jax.lax.cond(
+                    any_seed(failed), in_float64, lambda: (direction, kept)
+                )
             failed = inputs_finite & ~jnp.isfinite(direction).all()
         state = SpectralState(failures=state.failures + failed.astype(jnp.int32), kept=kept)
         return ravel_pytree(updates)[1](direction), state
@@ -177,7 +200,8 @@ def spectral_rule(
     """theta <- theta - lr * V diag(s^-kappa) U^T g (lr in the mean-loss convention): Gauss-Newton
     at kappa = 1, HIG at kappa = 1/2, gradient descent at kappa = -1. Checks its own settings
     (optim.*)."""
-    number("optim.learning_rate", learning_rate, 0, open_low=True)
+    if not isinstance(learning_rate, jax.Array):  # an array: trials' values held in the state
+        number("optim.learning_rate", learning_rate, 0, open_low=True)
     number("optim.kappa", kappa)
     number("optim.tau", tau, 0, 1)
     choice("optim.route", route, ROUTES)
