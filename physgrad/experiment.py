@@ -357,7 +357,8 @@ def set_up_and_train(cfg: DictConfig, paths: list[tuple[int, Path]], stop: StopR
     stop.raising = False  # the training loop acts on signals between steps
     outcomes = train(scene, rule, seeds, writers, settings, label=label, stop=stop)
     try:
-        draw_run_figures(scene, seeds, writers, outcomes, stop)
+        if cfg.get("figures", True):
+            draw_run_figures(scene, seeds, writers, outcomes, stop)
     except Exception as error:  # noqa: BLE001 - the results are final: a figure (a scene's own, too) is no failure
         log.warning(
             "figures of %s not drawn: %s: %s",

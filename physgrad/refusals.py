@@ -36,6 +36,7 @@ def check_config(cfg: DictConfig) -> TrainerSettings:
     finite_numbers(OmegaConf.to_container(cfg, resolve=True))
     choice("precision", cfg.get("precision"), (32, 64))
     flag("overwrite", cfg.get("overwrite"))
+    flag("figures", cfg.get("figures", True))
     flag("trainer.validation", cfg.trainer.get("validation", False))
     if cfg.get("init_from") is not None and (
         not isinstance(cfg.init_from, str) or not cfg.init_from.strip()

@@ -14,12 +14,16 @@ from physgrad.errors import UserError
 from physgrad.results import Run, parse_config, read_final, read_params
 from physgrad.runner import Outcome
 
+# keys that do not change what a run computes (a run stored without them is the same run)
+NOT_RESULT_KEYS = ("overwrite", "figures")
+
 
 def comparable_config(cfg: DictConfig) -> dict:
     """The resolved config as plain data, as results.h5 stores it, without the keys that do not
     change what a run computes."""
     plain = OmegaConf.to_container(cfg, resolve=True)
-    plain.pop("overwrite", None)
+    for key in NOT_RESULT_KEYS:
+        plain.pop(key, None)
     # the stored text's round trip: YAML's types, cleaned text
     return parse_config(OmegaConf.to_yaml(plain))
 
@@ -36,7 +40,8 @@ def finished_before(path: Path, cfg: DictConfig) -> Outcome | None:
         stored = parse_config(attrs.get("config", ""))
     except ValueError:
         return None
-    stored.pop("overwrite", None)
+    for key in NOT_RESULT_KEYS:
+        stored.pop(key, None)
     status = attrs.get("status")
     if status not in ("completed", "diverged") or stored != comparable_config(cfg):
         return None

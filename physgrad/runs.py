@@ -28,6 +28,7 @@ from physgrad.results import Run, find_results, read_run
 NOT_COMPUTATION = (
     "seed",
     "overwrite",
+    "figures",
     "init_from",
     "trainer.flush_seconds",
     "trainer.log_seconds",

@@ -156,6 +156,29 @@ def test_a_completed_job_is_skipped_unless_overwrite(tmp_path):
     assert changed.reason is None and read_run(path).train["iteration"].size == 4
 
 
+def test_figures_false_draws_none_and_does_not_change_which_run_it_is(tmp_path):
+    """figures=false: no loss.png; the run is the same run as with figures (a re-run with them is
+    skipped, and one stored by a physgrad without the key is the same run too)."""
+    first, path = run_experiment(load(*TINY, "trainer.iterations=3", "figures=false"), tmp_path)
+    assert first.status == "completed" and not (tmp_path / "loss.png").exists()
+    again, _ = run_experiment(load(*TINY, "trainer.iterations=3"), tmp_path)
+    assert "already completed" in again.reason
+    import h5py
+
+    from physgrad.results import parse_config
+
+    with h5py.File(path, "a") as f:  # as an older physgrad stored it: no figures key
+        stored = parse_config(f.attrs["config"])
+        stored.pop("figures")
+        import yaml
+
+        f.attrs["config"] = yaml.safe_dump(stored)
+    older, _ = run_experiment(load(*TINY, "trainer.iterations=3", "figures=false"), tmp_path)
+    assert "already completed" in older.reason
+    refused, _ = run_experiment(load(*TINY, "figures=maybe"), tmp_path / "bad")
+    assert refused.status == "refused" and "figures" in refused.reason
+
+
 def test_an_interrupted_job_is_run_again(tmp_path):
     run_experiment(load(*TINY, "trainer.iterations=3"), tmp_path)
     from physgrad.results import ResultsWriter

@@ -40,6 +40,7 @@ def evaluation_jobs(
             {
                 "seed": seed,
                 "seeds": count,
+                "figures": False,  # the study's report/ draws every run
                 **cadence(variant.config, axis, budget),
                 **variant.job_values,
             }

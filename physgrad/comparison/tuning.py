@@ -55,6 +55,7 @@ def tuning(plan: StudyPlan, launcher: Launcher) -> list[dict[str, dict]]:
         values = {
             "seed": settings.tune_seed + study,
             "seeds": 1,
+            "figures": False,  # the study's report/ draws every run
             "trainer.validation": True,
             **variant.job_values,
         }
