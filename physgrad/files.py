@@ -66,6 +66,23 @@ def _lock(fd: int, lock_path: Path) -> bool:
     )
 
 
+def lock_holder(stat: os.stat_result) -> int | None:
+    """The pid of another process holding a lock on the file `stat` describes, as the kernel lists
+    it (/proc/locks, Linux: flock and POSIX locks); None where that cannot be told."""
+    try:
+        lines = Path("/proc/locks").read_text().splitlines()
+    except OSError:
+        return None
+    device = f"{os.major(stat.st_dev):02x}:{os.minor(stat.st_dev):02x}:{stat.st_ino}"
+    for line in lines:
+        fields = line.split()
+        if "->" in fields or len(fields) < 6:  # a process waiting for the lock, not holding it
+            continue
+        if fields[5] == device and fields[4].isdigit() and int(fields[4]) != os.getpid():
+            return int(fields[4])
+    return None
+
+
 @contextmanager
 def own_folder(folder: str | os.PathLike, what: str = "job") -> Iterator[None]:
     """Hold the folder for this process while the block runs: an exclusive lock on
@@ -93,11 +110,13 @@ def own_folder(folder: str | os.PathLike, what: str = "job") -> Iterator[None]:
             os.close(fd)
             raise
         if not taken:
-            owner = (
-                clean_text(os.pread(fd, 512, 0).decode(errors="replace").strip(), 300)
-                or "another process"
-            )
+            says = clean_text(os.pread(fd, 512, 0).decode(errors="replace").strip(), 300)
+            holder = lock_holder(os.fstat(fd))
             os.close(fd)
+            owner = says or "another process"
+            if holder is not None and not says.startswith(f"pid {holder} "):
+                # the file's text is anyone's to write: name the process the system says holds it
+                owner = f"pid {holder} on this host (its lock file says: {says or 'nothing'})"
             raise FolderOwned(
                 f"{folder} is being written by {owner} (another {what}): wait for it to end, stop "
                 "it, or write somewhere else"

@@ -218,10 +218,23 @@ def read_runs(
     """Every readable run under the paths (files, folders, LABEL=PATH sets, as `physgrad report`
     takes them; one path may be given alone, as a string or a Path) as tidy tables (Tables: .runs
     and .curves, pandas DataFrames), grouped and labelled as a report does. UserError (one line) if
-    a path does not exist or holds no results file; unreadable files are left out."""
+    a path does not exist or holds no results file; unreadable files are left out, with one warning
+    that names the first and why."""
     if isinstance(paths, (str, os.PathLike)):  # one path, not its characters
         paths = [paths]
-    runs, _, _ = collect([os.fspath(path) for path in paths])
+    runs, unreadable, _ = collect([os.fspath(path) for path in paths])
+    if unreadable:
+        import warnings
+
+        first, why = unreadable[0]
+        why = str(why).removeprefix(f"{first}: ")
+        more = f" (and {len(unreadable) - 1} more)" if len(unreadable) > 1 else ""
+        warnings.warn(
+            f"{len(unreadable)} results file{'s' if len(unreadable) > 1 else ''} left out as "
+            f"unreadable: {first}: {why}{more}",
+            UserWarning,
+            stacklevel=3,
+        )
     label_runs(runs)
     return tables(runs, run_rows(runs, threshold))
 

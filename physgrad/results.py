@@ -241,10 +241,28 @@ class Run:
         return float(values[-1]) if values.size else math.nan
 
 
+CONFIG_KEYS_LIMIT = 10_000  # settings in a stored config; a physgrad config holds about a hundred
+
+
+def _settings(tree: Any) -> int:
+    """The mappings' keys and the lists' items of a parsed config, counted without recursion."""
+    count, pending = 0, [tree]
+    while pending:
+        node = pending.pop()
+        if isinstance(node, dict):
+            count += len(node)
+            pending.extend(node.values())
+        elif isinstance(node, list):
+            count += len(node)
+            pending.extend(node)
+    return count
+
+
 def parse_config(text: str) -> dict:
     """The stored config as plain data (nested dicts, lists, scalars), text cleaned as clean_text;
-    ValueError (one line) if it is too long, not YAML, holds an alias or is not a mapping.
-    Interpolations such as ${...} stay the text they are."""
+    ValueError (one line) if it is too long, not YAML, holds an alias, is not a mapping or holds
+    more than CONFIG_KEYS_LIMIT settings (a table would get a column for each). Interpolations such
+    as ${...} stay the text they are."""
     if len(text.encode(errors="replace")) > CONFIG_LIMIT:
         raise ValueError(f"the config attribute is longer than {CONFIG_LIMIT} bytes")
     try:
@@ -253,6 +271,11 @@ def parse_config(text: str) -> dict:
         raise ValueError(f"the config attribute is {error}") from None
     if not isinstance(tree, dict):
         raise ValueError(f"the config attribute is a {type(tree).__name__}, not a mapping")
+    if _settings(tree) > CONFIG_KEYS_LIMIT:
+        raise ValueError(
+            f"the config attribute holds more than {CONFIG_KEYS_LIMIT} settings (a physgrad config "
+            "holds about a hundred)"
+        )
     return _clean_tree(tree)
 
 

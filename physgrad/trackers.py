@@ -92,6 +92,24 @@ MLFLOW_STATUS = {
 }
 
 
+def opens_as_sqlite(path: Path) -> None:
+    """ValueError (one line) unless path is, or can become, an SQLite database: MLflow retries a
+    store it cannot open for minutes."""
+    import contextlib
+    import sqlite3
+
+    if path.exists() and not path.is_file():
+        raise ValueError(f"{path} is not a file: move it away or set logger's tracking_uri")
+    try:
+        with contextlib.closing(sqlite3.connect(f"{path.as_uri()}?mode=rwc", uri=True)) as db:
+            db.execute("PRAGMA schema_version").fetchone()
+    except sqlite3.Error as error:
+        raise ValueError(
+            f"{path} cannot be opened as an SQLite database ({error}): move it away or set "
+            "logger's tracking_uri"
+        ) from None
+
+
 class MLflow:
     """An MLflow run per results file in `experiment_name`, in the store at tracking_uri (default:
     the local
@@ -109,7 +127,9 @@ class MLflow:
         from mlflow.tracking import MlflowClient
 
         if self.tracking_uri.startswith("sqlite:///"):
-            Path(self.tracking_uri[len("sqlite:///") :]).parent.mkdir(parents=True, exist_ok=True)
+            database = Path(self.tracking_uri[len("sqlite:///") :])
+            database.parent.mkdir(parents=True, exist_ok=True)
+            opens_as_sqlite(database)
         client = MlflowClient(self.tracking_uri)
         experiment = client.get_experiment_by_name(self.experiment_name)
         experiment_id = (

@@ -12,7 +12,7 @@ import difflib
 import inspect
 import math
 import numbers
-from collections.abc import Callable, Collection
+from collections.abc import Callable, Collection, Sequence
 from typing import Any
 
 from physgrad.errors import UserError
@@ -60,6 +60,20 @@ def choice(name: str, value: Any, choices: Collection[Any]) -> Any:
             f"{name}={value!r} is not allowed: choose one of {', '.join(map(str, choices))}"
         )
     return value
+
+
+ARRAY_LIMIT = 2**31 - 1  # elements of one array: XLA indexes and passes sizes as 32-bit integers
+
+
+def array_size(what: str, shape: Sequence[int], settings: str) -> None:
+    """UserError (one line) where a scene would build an array of more elements than ARRAY_LIMIT,
+    naming the settings that make it."""
+    count = math.prod(int(n) for n in shape)
+    if count > ARRAY_LIMIT:
+        raise UserError(
+            f"{what} would hold {count:,} numbers, more than one array can (2^31 - 1): use a "
+            f"smaller {settings}"
+        )
 
 
 def flag(name: str, value: Any) -> bool:

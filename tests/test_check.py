@@ -94,6 +94,11 @@ def test_bptt_gradient_growth_is_measured(small_check):
         ("task.alpha=strong", "task.alpha='strong' is not allowed: use a number"),
         ("task.dt=-0.1", "task.dt=-0.1 is not allowed: use a number > 0"),
         ("task.oscillators=1.5", "task.oscillators=1.5 is not allowed: use a whole number >= 1"),
+        (
+            "task.oscillators=100000000",
+            "the training set would hold 819,200,000,000 numbers, more than one array can "
+            "(2^31 - 1): use a smaller task.oscillators or task.train_size",
+        ),
         ("trainer.eval_every=0", "trainer.eval_every=0 is not allowed: use a whole number >= 1"),
         (
             "trainer.time_budget=-5",

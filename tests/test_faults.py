@@ -778,3 +778,36 @@ def test_a_lock_file_or_job_log_that_is_a_link_is_never_written_through(tmp_path
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "cannot be written" in err[0] and "logging to the terminal" in err[0]
     assert outside.read_text() == "theirs\n"
+
+
+def test_a_held_folder_names_the_process_holding_its_lock_not_only_what_its_file_says(tmp_path):
+    """The lock file's text comes from whoever wrote the folder (it may be someone else's): the
+    refusal names the process that holds the lock, as the operating system knows it."""
+    holder = subprocess.Popen(
+        [
+            sys.executable,
+            "-c",
+            textwrap.dedent(f"""
+        import os, time
+        from physgrad.files import own_folder
+        with own_folder({str(tmp_path)!r}):
+            fd = os.open({str(tmp_path / ".physgrad-job")!r}, os.O_WRONLY)
+            os.pwrite(fd, b"pid 1 on elsewhere since then      ", 0)
+            print("held", flush=True)
+            time.sleep(60)
+    """),
+        ],
+        stdout=subprocess.PIPE,
+        text=True,
+    )
+    try:
+        assert holder.stdout.readline().strip() == "held"
+        with pytest.raises(FolderOwned) as caught:
+            with own_folder(tmp_path):
+                pass
+        message = str(caught.value)
+        assert f"pid {holder.pid}" in message and "pid 1 on elsewhere" in message
+        assert "\n" not in message
+    finally:
+        holder.kill()
+        holder.wait()

@@ -348,3 +348,18 @@ def test_columns_that_unpack_far_beyond_the_file_are_refused(tmp_path):
     with pytest.raises(ValueError, match="unpack to") as refused:
         read_run(path)
     assert "\n" not in str(refused.value)
+
+
+def test_a_config_with_more_settings_than_any_physgrad_run_is_refused_in_one_line():
+    """A stored config of 100,000 keys (under the byte limit) would make a table of as many
+    columns: refused before it is flattened."""
+    from physgrad.results import CONFIG_KEYS_LIMIT, parse_config
+
+    text = "\n".join(f"k{i}: 0" for i in range(100_000))  # under the byte limit
+    with pytest.raises(ValueError, match=f"more than {CONFIG_KEYS_LIMIT} settings") as caught:
+        parse_config(text)
+    assert "\n" not in str(caught.value)
+    nested = "a:\n" + "\n".join(f"  k{i}: [1, 2]" for i in range(CONFIG_KEYS_LIMIT))
+    with pytest.raises(ValueError, match="settings"):
+        parse_config(nested)
+    assert parse_config("a: 1\nb: {c: [1, 2]}") == {"a": 1, "b": {"c": [1, 2]}}

@@ -748,3 +748,18 @@ def test_a_folder_from_someone_else_is_walked_without_following_links_or_recursi
     assert [(p.parent.name, why.split(":")[0]) for p, why in unreadable] == [("b", "a link")]
     # the file itself, named by the user, is read
     assert physgrad.read_runs(tmp_path / "b" / "results.h5").runs["variant"].tolist() == ["hig"]
+
+
+def test_read_runs_says_which_files_it_left_out_and_why(tmp_path):
+    """An unreadable results file beside a good one: the good run comes back, and one warning
+    names the file left out and the reason."""
+    import physgrad
+    from physgrad.experiment import run_experiment
+    from tests.helpers import load
+
+    run_experiment(load("task=toy", "trainer.iterations=3"), tmp_path / "good")
+    (tmp_path / "bad").mkdir()
+    (tmp_path / "bad" / "results.h5").write_bytes(b"not an HDF5 file" * 8)
+    with pytest.warns(UserWarning, match=r"1 results file left out.*bad/results\.h5") as caught:
+        tables = physgrad.read_runs(tmp_path)
+    assert len(tables.runs) == 1 and "\n" not in str(caught[0].message)

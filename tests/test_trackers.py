@@ -218,3 +218,21 @@ def test_hydra_under_capsys_leaves_pytests_capture_open_after_absl_was_imported(
         timeout=300,
     )
     assert ran.returncode == 0 and "3 passed" in ran.stdout, ran.stdout[-2000:] + ran.stderr[-2000:]
+
+
+def test_a_database_that_is_no_sqlite_file_is_one_warning_at_once(job, tmp_path, caplog):
+    """An outputs/mlflow.db that cannot be opened (garbage bytes, a folder in its place): one
+    warning line naming it, without MLflow's minutes of connection retries."""
+    import logging
+
+    folder, paths = job
+    garbage = tmp_path / "garbage.db"
+    garbage.write_bytes(b"this is not an sqlite database\x00" * 64)
+    a_folder = tmp_path / "folder.db"
+    a_folder.mkdir()
+    for bad in (garbage, a_folder):
+        caplog.clear()
+        with caplog.at_level(logging.WARNING, logger="physgrad"):
+            track([MLflow(tracking_uri=f"sqlite:///{bad}")], paths[:1], folder)
+        warnings = [r.getMessage() for r in caplog.records if r.levelno >= logging.WARNING]
+        assert len(warnings) == 1 and str(bad) in warnings[0] and "\n" not in warnings[0]

@@ -19,7 +19,7 @@ import jax.numpy as jnp
 from physgrad.nets import apply_mlp, init_mlp
 from physgrad.tasks import Scene
 from physgrad.unroll import Dynamics
-from physgrad.validate import flag, layer_widths, number
+from physgrad.validate import array_size, flag, layer_widths, number
 
 if TYPE_CHECKING:
     from physgrad.nets import Params
@@ -76,6 +76,10 @@ def build(
     checkpoint = flag("task.checkpoint", checkpoint)
     dtype = jnp.zeros(()).dtype
     sizes = [4 * n, *hidden, 1] if closed_loop else [2 * n, *hidden, unroll]
+    array_size("the training set", (train_size, 2 * n), "task.oscillators or task.train_size")
+    array_size("the test set", (test_size, 2 * n), "task.oscillators or task.test_size")
+    for fan_in, fan_out in zip(sizes[:-1], sizes[1:]):
+        array_size("a layer of the network", (fan_in, fan_out), "task.oscillators or task.hidden")
 
     def step(x: jax.Array, u: jax.Array) -> jax.Array:
         return rk4_step(x, u, dt, alpha, gain)
