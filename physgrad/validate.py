@@ -115,6 +115,55 @@ def finite_numbers(tree: Any, prefix: str = "") -> None:
         finite_numbers(value, name)
 
 
+# Modules whose functions are never a scene, an update rule, a schedule or a tracker, but run
+# commands, code or I/O as they are called: a `_target_` in them is refused wherever it stands (a
+# config is composed from the package, the user's -cd folder and the command line only; this
+# catches a hostile file that reaches them anyway).
+DENIED_TARGET_MODULES = (
+    "builtins",
+    "os",
+    "posix",
+    "subprocess",
+    "shutil",
+    "sys",
+    "importlib",
+    "runpy",
+    "code",
+    "pty",
+    "socket",
+    "ctypes",
+    "pickle",
+    "marshal",
+    "webbrowser",
+    "multiprocessing",
+    "signal",
+)
+
+
+def allowed_target(section: str, target: str) -> None:
+    """physgrad's one policy for every `_target_` it calls (call_target, nested ones included):
+    UserError (one line) for a target in DENIED_TARGET_MODULES or a private name."""
+    parts = target.split(".")
+    if parts[0] in DENIED_TARGET_MODULES or any(p.startswith("__") for p in parts):
+        raise UserError(
+            f"{section}._target_={target} is not allowed: a target builds a scene, an update "
+            "rule, a schedule or a tracker, not a function of a system module"
+        )
+
+
+def _nested_targets(section: str, node: Any) -> None:
+    """allowed_target for every `_target_` under node, without recursion."""
+    pending = [(section, node)]
+    while pending:
+        where, value = pending.pop()
+        if isinstance(value, dict):
+            if isinstance(value.get("_target_"), str):
+                allowed_target(where, value["_target_"])
+            pending.extend((f"{where}.{k}", v) for k, v in value.items())
+        elif isinstance(value, list):
+            pending.extend((f"{where}[{i}]", v) for i, v in enumerate(value))
+
+
 def call_target(
     section: str,
     node: dict,
@@ -127,7 +176,7 @@ def call_target(
     ``_target_`` nodes are built first (hydra.utils.instantiate), so a schedule can be an argument.
     ``section`` ("task", "optim") names the config group in messages; ``through`` wraps the function
     before the call (optax.inject_hyperparams). UserError if the target cannot be imported or does
-    not take the keys given."""
+    not take the keys given, or if it or a nested one is not allowed (allowed_target)."""
     from hydra.utils import get_object, instantiate
 
     target = node.get("_target_")
@@ -136,6 +185,8 @@ def call_target(
             f"the {section} config has no _target_: name the function that builds it "
             f"(e.g. _target_: mylab.pendulum.build)"
         )
+    allowed_target(section, target)
+    _nested_targets(section, {k: v for k, v in node.items() if k != "_target_"})
     try:
         function = get_object(target)
     except Exception as error:  # noqa: BLE001 - Hydra wraps import errors of every kind

@@ -363,3 +363,30 @@ def test_a_config_with_more_settings_than_any_physgrad_run_is_refused_in_one_lin
     with pytest.raises(ValueError, match="settings"):
         parse_config(nested)
     assert parse_config("a: 1\nb: {c: [1, 2]}") == {"a": 1, "b": {"c": [1, 2]}}
+
+
+@pytest.mark.parametrize(
+    "override",
+    [
+        "task._target_=os.system",
+        "optim._target_=subprocess.run",
+        "+optim.learning_rate={_target_:os.system,command:'touch MARK'}",
+        "task._target_=builtins.exec",
+    ],
+)
+def test_every_target_physgrad_calls_passes_one_policy(tmp_path, override, monkeypatch):
+    """A `_target_` naming a system function (a shell command, code, a subprocess) is refused in one
+    line wherever it stands (the task, the rule, a nested schedule, a tracker) and nothing runs."""
+    from physgrad.errors import UserError
+    from physgrad.experiment import run_experiment
+    from physgrad.trackers import build_trackers
+    from tests.helpers import load
+
+    monkeypatch.chdir(tmp_path)
+    outcome, _ = run_experiment(load("task=toy", "trainer.iterations=2", override), tmp_path / "r")
+    assert outcome.status == "refused" and "not allowed" in outcome.reason
+    assert "\n" not in outcome.reason and not (tmp_path / "MARK").exists()
+    evil = {"evil": {"_target_": "os.system", "command": "touch MARK"}}
+    with pytest.raises(UserError, match="logger.evil._target_=os.system is not allowed"):
+        build_trackers(OmegaConf.create(evil))
+    assert not (tmp_path / "MARK").exists()
