@@ -8,6 +8,8 @@ the Hydra app: every Hydra feature (-m, --cfg, --help, launchers) keeps working.
 from __future__ import annotations
 
 import argparse
+import errno
+import os
 import signal
 import sys
 from collections.abc import Iterable
@@ -158,6 +160,25 @@ def dispatch(argv: list[str]) -> int:
 
         print(f"physgrad: error: {clean_text(str(error), None)}", file=sys.stderr)
         return 2
+    except MemoryError:
+        print(
+            "physgrad: error: out of memory: free some, or give fewer or smaller runs; the files "
+            "written so far are kept",
+            file=sys.stderr,
+        )
+        return 1
+    except OSError as error:
+        if error.errno not in (errno.ENOSPC, errno.EDQUOT):
+            raise
+        from physgrad.files import clean_text
+
+        where = clean_text(os.fspath(error.filename), 300) if error.filename else "a file"
+        print(
+            f"physgrad: error: no space left writing {where}: free some and run the same command "
+            "again (finished runs are kept; a study resumes where it stopped)",
+            file=sys.stderr,
+        )
+        return 1
 
 
 def run_command(args: list[str]) -> int:

@@ -92,6 +92,9 @@ def collect(
             except ValueError as error:
                 unreadable.append((file, str(error)))
                 continue
+            except MemoryError:
+                unreadable.append((file, "too large to read into this machine's memory"))
+                continue
             run.collection = label
             runs.append(run)
     runs, dropped = drop_duplicates(runs)

@@ -811,3 +811,63 @@ def test_a_held_folder_names_the_process_holding_its_lock_not_only_what_its_file
     finally:
         holder.kill()
         holder.wait()
+
+
+@pytest.fixture(scope="module")
+def two_runs(tmp_path_factory):
+    from physgrad.experiment import run_experiment
+
+    folder = tmp_path_factory.mktemp("two_runs")
+    for optim in ("adam", "gd"):
+        run_experiment(load("task=toy", f"optim={optim}", "trainer.iterations=3"), folder / optim)
+    return folder
+
+
+def test_a_full_disk_is_one_line_at_every_write_of_a_report(two_runs, tmp_path, capsys):
+    """ENOSPC injected at the k-th file a report opens for writing (tables, figures), k = 0..N:
+    every time exit 1 and one line that says what to do; the runs read are untouched."""
+    import builtins
+
+    from physgrad.cli import main
+
+    before = {p: p.read_bytes() for p in two_runs.rglob("results.h5")}
+    real_open = builtins.open
+    opened = [0]
+    outcomes = []
+    for fail_at in range(12):
+        opened[0] = 0
+
+        def full_disk(file, mode="r", *args, fail_at=fail_at, **kwargs):
+            if any(c in str(mode) for c in "wax+"):
+                opened[0] += 1
+                if opened[0] > fail_at:
+                    raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC), str(file))
+            return real_open(file, mode, *args, **kwargs)
+
+        builtins.open = full_disk
+        try:
+            code = main(["report", str(two_runs), "--out", str(tmp_path / f"out{fail_at}")])
+        finally:
+            builtins.open = real_open
+        err = capsys.readouterr().err.strip()
+        outcomes.append(code)
+        if code != 0:
+            assert code == 1 and "no space left writing" in err and "\n" not in err, err
+    assert outcomes.count(1) >= 5  # the injection reached the report's writes many times
+    assert {p: p.read_bytes() for p in two_runs.rglob("results.h5")} == before
+
+
+def test_a_file_too_large_for_memory_is_left_out_and_the_rest_is_read(two_runs, monkeypatch):
+    from physgrad import runs
+
+    real = runs.read_run
+
+    def huge(path):
+        if "gd" in str(path):
+            raise MemoryError
+        return real(path)
+
+    monkeypatch.setattr(runs, "read_run", huge)
+    found, unreadable, _ = runs.collect([str(two_runs)])
+    assert [r.attrs["optim"] for r in found] == ["adam"]
+    assert len(unreadable) == 1 and "memory" in unreadable[0][1]
