@@ -139,6 +139,7 @@ def finite_difference_check(
     gradient: Params,
     directions: int = DIRECTIONS,
     rtol: float = FD_RTOL,
+    step_scale: float = 1.0,
 ) -> tuple[float, float]:
     """(worst relative mismatch, tolerance) of gradient . d against finite differences of loss along
     random unit directions d: the fourth-order central stencil (8 (L(h) - L(-h)) - (L(2h) - L(-2h)))
@@ -148,7 +149,7 @@ def finite_difference_check(
     wrong gradient is off by O(|gradient|) in a random direction."""
     flat, unravel = ravel_pytree(params)
     flat_gradient = ravel_pytree(gradient)[0]
-    h = 1e-3 * max(1.0, float(jnp.linalg.norm(flat)) / max(flat.size, 1) ** 0.5)
+    h = step_scale * 1e-3 * max(1.0, float(jnp.linalg.norm(flat)) / max(flat.size, 1) ** 0.5)
     worst = 0.0
     for i in range(directions):
         direction = jax.random.normal(jax.random.PRNGKey(100 + i), flat.shape, flat.dtype)
@@ -310,8 +311,24 @@ def _gradient_check(scene: Scene, params: Params, batch: Pytree, mode: str) -> C
         f"gradient {mode}",
         passed,
         f"{loop_text}against finite differences {worst:.1e} "
-        f"(at most {tolerance:.0e}) along {DIRECTIONS} random directions",
+        f"(at most {tolerance:.0e}) along {DIRECTIONS} random directions"
+        + ("" if worst <= tolerance else _step_hint(reference, params, gradient, worst)),
     )
+
+
+def _step_hint(reference: Callable, params: Params, gradient: Params, worst: float) -> str:
+    """Why finite differences may disagree: the error again at a 10x smaller step. A wrong
+    derivative stays off by the same amount; a loss that is not smooth in the parameters (an
+    adaptive solver accepting other steps, a step count or a branch that changes) does not
+    settle."""
+    smaller, _ = finite_difference_check(reference, params, gradient, step_scale=0.1)
+    if smaller < 0.5 * worst or smaller > 2 * worst:
+        return (
+            f"; {smaller:.1e} at a 10x smaller step: the differences do not settle, so the loss "
+            "is not smooth in the parameters (an adaptive solver changes its accepted steps): "
+            "tighten the solver's tolerances (rtol, atol near 1e-10) or check with a fixed step"
+        )
+    return f"; {smaller:.1e} at a 10x smaller step: the derivative itself is off"
 
 
 def _jacobian_check(scene: Scene, params: Params, batch: Pytree) -> Check:
@@ -328,7 +345,7 @@ def _jacobian_check(scene: Scene, params: Params, batch: Pytree) -> Check:
 
     v = jax.random.normal(jax.random.PRNGKey(7), flat.shape, flat.dtype)
     u = jax.random.normal(jax.random.PRNGKey(8), outputs(flat).shape, flat.dtype)
-    jv = jax.jvp(outputs, (flat,), (v,))[1]
+    jv, forward = forward_or_reverse(outputs, flat, v)
     jtu = jax.vjp(outputs, flat)[1](u)[0]
     dense = jac.dense()
     errors = {
@@ -345,8 +362,27 @@ def _jacobian_check(scene: Scene, params: Params, batch: Pytree) -> Check:
         worst <= 1e-7,
         f"{route.name}: "
         + ", ".join(f"{k} {e:.1e}" for k, e in errors.items())
-        + " (at most 1e-07)",
+        + " (at most 1e-07)"
+        + (
+            ""
+            if forward is None
+            else f"; J v by reverse mode: the scene has no forward mode ({forward}), which "
+            "physgrad's routes do not need"
+        ),
     )
+
+
+def forward_or_reverse(
+    outputs: Callable[[jax.Array], jax.Array], flat: jax.Array, v: jax.Array
+) -> tuple[jax.Array, str | None]:
+    """(J v, None) by forward mode (jax.jvp); where the scene's code has no forward mode (a
+    custom_vjp, as diffrax's default adjoint), J v from the rows of J in reverse mode (jax.jacrev)
+    and the reason forward mode failed."""
+    try:
+        return jax.jvp(outputs, (flat,), (v,))[1], None
+    except TypeError as error:
+        reason = str(error).splitlines()[0] if str(error) else type(error).__name__
+        return jax.jacrev(outputs)(flat) @ v, reason
 
 
 def _size(batch: Pytree) -> int:

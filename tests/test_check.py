@@ -268,3 +268,83 @@ def test_check_of_the_example_scene_passes_and_mistakes_are_one_line(monkeypatch
     )
     assert main(["-cd", "conf", "task.unroll=12"]) == 2
     assert "name the scene to check" in capsys.readouterr().err
+
+
+LIBRARY_LIKE_SCENE = """
+import jax
+import jax.numpy as jnp
+
+from physgrad.nets import apply_mlp, init_mlp
+from physgrad.tasks import Scene
+
+
+@jax.custom_vjp
+def solve(z):  # a correct derivative in reverse mode only, as diffrax's default adjoint
+    return jnp.tanh(z)
+
+
+def solve_fwd(z):
+    return jnp.tanh(z), z
+
+
+def solve_bwd(z, g):
+    return ((1.0 - jnp.tanh(z) ** 2) * g,)
+
+
+solve.defvjp(solve_fwd, solve_bwd)
+
+
+def stepped(z):  # an adaptive solver's accepted steps: jumps that autodiff does not see
+    return jnp.tanh(z) + 1e-3 * jax.lax.stop_gradient(jnp.floor(z / 3e-3))
+
+
+def build(key, *, test_size, kind):
+    dtype = jnp.zeros(()).dtype
+    physics = {"reverse_only": solve, "stepped": stepped}[kind]
+
+    def draw(k, count, train_set=None):
+        x = jax.random.uniform(k, (count, 1), dtype, -1.0, 1.0)
+        return {"x": x, "target": jnp.sin(3 * x)}
+
+    return Scene(init_params=lambda k: init_mlp(k, [1, 8, 1], dtype), draw_batch=draw,
+                 test_set=draw(key, test_size),
+                 sample_output=lambda params, sample: physics(
+                     apply_mlp(params, sample["x"], hidden="tanh")),
+                 sample_loss=lambda y, sample: 0.5 * jnp.sum((y - sample["target"]) ** 2))
+"""
+
+
+@pytest.mark.parametrize("kind", ["reverse_only", "stepped", "wrong"])
+def test_check_explains_reverse_only_scenes_and_gradients_that_do_not_settle(
+    tmp_path, monkeypatch, capsys, kind
+):
+    """A scene with no forward mode (a custom_vjp) passes, its Jacobian check built in reverse
+    mode and saying so; a loss with jumps autodiff does not see (an adaptive solver) fails with the
+    differences at two step sizes and what to do; a wrong derivative is called off."""
+    from physgrad.check import main
+
+    (tmp_path / "conf" / "task").mkdir(parents=True)
+    module = f"scene_{kind}"  # a module name of its own: the others may be imported already
+    if kind == "wrong":
+        (tmp_path / f"{module}.py").write_text(BROKEN_SCENE)
+        setting = "wrong: true"
+    else:
+        (tmp_path / f"{module}.py").write_text(LIBRARY_LIKE_SCENE)
+        setting = f"kind: {kind}"
+    (tmp_path / "conf" / "task" / "heat.yaml").write_text(
+        f"_target_: {module}.build\nbatch_size: 4\ntest_size: 8\n{setting}\n"
+    )
+    monkeypatch.chdir(tmp_path)
+    monkeypatch.syspath_prepend(str(tmp_path))
+    code = main(["-cd", "conf", "task=heat"])
+    lines = capsys.readouterr().out.splitlines()
+    gradient = next(line for line in lines if "gradient R" in line)
+    jacobian = next(line for line in lines if "jacobian" in line.split(":")[0])
+    if kind == "reverse_only":
+        assert code == 0 and jacobian.startswith("ok") and "J v by reverse mode" in jacobian
+        assert "custom_vjp" in jacobian
+    elif kind == "stepped":
+        assert code == 1 and gradient.startswith("FAIL") and "do not settle" in gradient
+        assert "tolerances" in gradient
+    else:
+        assert code == 1 and "the derivative itself is off" in gradient

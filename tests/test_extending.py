@@ -187,7 +187,11 @@ def test_python_api_writes_where_physgrad_run_would(tmp_path, monkeypatch):
             {"_target_": "nomodule.build"},
             "task._target_=nomodule.build cannot be imported (ModuleNotFoundError",
         ),
-        ({"_target_": "builtins.dict"}, "returned dict, not a physgrad.tasks.Scene"),
+        (
+            {"_target_": "collections.OrderedDict"},
+            "returned OrderedDict, not a physgrad.tasks.Scene",
+        ),
+        ({"_target_": "builtins.dict"}, "task._target_=builtins.dict is not allowed"),
         ({}, "the task config has no _target_"),
     ],
 )

@@ -60,8 +60,12 @@ def test_each_rule_gets_its_gradient_route(overrides, route):
             "optim._target_=optax.adamm cannot be imported",
         ),
         (
+            ["optim=adam", "optim._target_=collections.OrderedDict"],
+            "returned OrderedDict, not an optax GradientTransformation",
+        ),
+        (
             ["optim=adam", "optim._target_=builtins.dict"],
-            "returned dict, not an optax GradientTransformation",
+            "optim._target_=builtins.dict is not allowed",
         ),
     ],
 )
