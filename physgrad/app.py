@@ -22,7 +22,7 @@ from hydra.types import RunMode
 from omegaconf import DictConfig, OmegaConf
 
 from physgrad.configs import CONF_DIR, name_options
-from physgrad.errors import UserError
+from physgrad.errors import UserError, innermost_cause
 from physgrad.experiment import run_experiment
 from physgrad.gpus import claim_gpu
 from physgrad.runner import Outcome
@@ -347,7 +347,7 @@ def job_failed(this: Job, error: Exception) -> float:
         if not this.owned:
             message = f"cannot write the job folder {this.out_dir}: {error.strerror or message}"
     else:
-        message = f"{type(error).__name__}: {str(error).splitlines()[0] if str(error) else ''}"
+        message = innermost_cause(error)
     message += f" (traceback: {where})" if where else ""
     if this.sweep is not None:
         record_job(this.sweep, this.out_dir, this.overrides, "failed", message)

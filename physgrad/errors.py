@@ -7,6 +7,26 @@ without locks).
 """
 
 
+def innermost_cause(error: BaseException) -> str:
+    """An error in one line: its first line, or, where its text carries a Python traceback (an
+    exception raised in a host callback of a compiled step: a solver's step limit, an equinox or
+    checkify error, as XLA reports it), the exception line that ends it."""
+    text = str(error).strip()
+    lines = [line.strip() for line in text.splitlines() if line.strip()]
+    if "Traceback (most recent call last)" in text and lines:
+        return lines[-1]
+    first = lines[0] if lines else ""
+    return f"{type(error).__name__}: {first}" if first else type(error).__name__
+
+
+def scene_failed(error: BaseException) -> bool:
+    """Whether an error raised by a compiled step came from the scene's own code called back on
+    the host (a solver that gave up, an equinox runtime check): XLA reports such an exception as a
+    callback error carrying its traceback."""
+    first = str(error).strip().splitlines()[0] if str(error).strip() else ""
+    return "callback error" in first.lower()
+
+
 class UserError(Exception):
     """A mistake in what the user asked for; reported as one line, never as a traceback."""
 

@@ -24,7 +24,7 @@ from dataclasses import dataclass
 import jax
 import numpy as np
 
-from physgrad.errors import ResultsWriteError, UserError
+from physgrad.errors import ResultsWriteError, UserError, innermost_cause, scene_failed
 from physgrad.guard import RowGuard
 from physgrad.interrupts import StopRequest, stop_on_signals
 from physgrad.machine import load_average, timing_attributes
@@ -349,6 +349,15 @@ class TrainingLoop:
         if any(run.running and run.latest_eval["iteration"] != self.done for run in self.runs):
             self.record_eval(self.done)
 
+    def solver_failed(self, error: BaseException) -> None:
+        """The scene's own code gave up inside a step (a solver's step limit, an equinox check):
+        the variant failing on the scene, an endpoint like a divergence (the seeds still running
+        end diverged, rows kept, the cause in one line), not a crash of the run."""
+        reason = f"solver failed: {innermost_cause(error)}"
+        for run in self.runs:
+            if run.running:
+                run.status, run.iterations, run.reason = "diverged", self.done, reason
+
     def interrupted(self, interrupt: KeyboardInterrupt) -> None:
         """The seeds still running end interrupted, with the signal and the iterations done as the
         reason."""
@@ -360,7 +369,7 @@ class TrainingLoop:
     def failed(self, error: BaseException) -> None:
         """Every file ends failed with the error in one line (marked failed in place if it cannot be
         written)."""
-        message = f"{type(error).__name__}: {str(error).splitlines()[0] if str(error) else ''}"
+        message = innermost_cause(error)
         if isinstance(error, ResultsWriteError):
             message = str(error)
         for run in self.runs:
@@ -432,8 +441,13 @@ def train(
         # compiling can take minutes: inside the guard, so a failure or an interrupt there is
         # recorded too
         loop.start(scene)
-        loop.iterate()
-        loop.end()
+        try:
+            loop.iterate()
+            loop.end()
+        except Exception as error:  # the scene's own code gave up in a step or an evaluation
+            if not scene_failed(error):
+                raise
+            loop.solver_failed(error)
     except KeyboardInterrupt as interrupt:
         loop.interrupted(interrupt)
     except BaseException as error:

@@ -369,3 +369,74 @@ def test_an_option_without_a_name_is_named_after_its_file(tmp_path):
     assert cfg.task.name == "heat" and cfg.optim.name == "adam"
     outcome, path = run_experiment(cfg, tmp_path / "run")
     assert outcome.status == "completed" and read_run(path).attrs["task"] == "heat"
+
+
+GIVING_UP_SCENE = """
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from physgrad.nets import apply_mlp, init_mlp
+from physgrad.tasks import Scene
+
+CALLS = [0]
+
+
+def solver(z):  # a library's solver called back on the host, giving up after some steps
+    CALLS[0] += 1
+    if CALLS[0] > LIMIT:
+        raise RuntimeError("The maximum number of solver steps was reached. Try increasing "
+                           "max_steps.")
+    return np.tanh(np.asarray(z))
+
+
+def physics(z):
+    return jax.pure_callback(solver, jax.ShapeDtypeStruct(z.shape, z.dtype), z,
+                             vmap_method="sequential")
+
+
+def build(key, *, test_size, limit):
+    global LIMIT
+    LIMIT = limit
+    dtype = jnp.zeros(()).dtype
+
+    def draw(k, count, train_set=None):
+        x = jax.random.uniform(k, (count, 1), dtype, -1.0, 1.0)
+        return {"x": x, "target": jnp.sin(3 * x)}
+
+    return Scene(init_params=lambda k: init_mlp(k, [1, 8, 1], dtype), draw_batch=draw,
+                 test_set=draw(key, test_size),
+                 sample_output=lambda params, sample: physics(jax.lax.stop_gradient(
+                     apply_mlp(params, sample["x"], hidden="tanh"))) + apply_mlp(
+                     params, sample["x"], hidden="tanh"),
+                 sample_loss=lambda y, sample: 0.5 * jnp.sum((y - sample["target"]) ** 2))
+"""
+
+
+def test_a_solver_that_gives_up_in_a_step_ends_the_run_diverged_with_its_cause(
+    tmp_path, monkeypatch
+):
+    """An exception the scene's code raises inside the compiled step (a host callback, as a
+    diffrax solver's step limit through equinox) is the variant failing on the scene: the run ends
+    diverged, its rows kept, with the innermost cause in one line, and is counted as a
+    divergence."""
+    (tmp_path / "conf" / "task").mkdir(parents=True)
+    (tmp_path / "giving_up.py").write_text(GIVING_UP_SCENE)
+    (tmp_path / "conf" / "task" / "giving_up.yaml").write_text(
+        "_target_: giving_up.build\nbatch_size: 4\ntest_size: 8\nlimit: 300\n"
+    )
+    monkeypatch.chdir(tmp_path)
+    monkeypatch.syspath_prepend(str(tmp_path))
+    run = physgrad.run(
+        "task=giving_up",
+        "optim=adam",
+        "trainer.iterations=200",
+        "trainer.eval_every=20",
+        config_dir="conf",
+        out_dir=tmp_path / "run",
+    )
+    reason = run.attrs["reason"]
+    assert run.attrs["status"] == "diverged" and reason.startswith("solver failed: RuntimeError: ")
+    assert "maximum number of solver steps" in reason and "\n" not in reason
+    done = int(run.attrs["iterations"])
+    assert 0 < done < 200 and run.train["loss"].shape == (done,)
