@@ -101,7 +101,8 @@ def opens_as_sqlite(path: Path) -> None:
     if path.exists() and not path.is_file():
         raise ValueError(f"{path} is not a file: move it away or set logger's tracking_uri")
     try:
-        with contextlib.closing(sqlite3.connect(f"{path.as_uri()}?mode=rwc", uri=True)) as db:
+        uri = f"{path.resolve().as_uri()}?mode=rwc"  # MLflow reads a relative path from here
+        with contextlib.closing(sqlite3.connect(uri, uri=True)) as db:
             db.execute("PRAGMA schema_version").fetchone()
     except sqlite3.Error as error:
         raise ValueError(

@@ -236,3 +236,11 @@ def test_a_database_that_is_no_sqlite_file_is_one_warning_at_once(job, tmp_path,
             track([MLflow(tracking_uri=f"sqlite:///{bad}")], paths[:1], folder)
         warnings = [r.getMessage() for r in caplog.records if r.levelno >= logging.WARNING]
         assert len(warnings) == 1 and str(bad) in warnings[0] and "\n" not in warnings[0]
+
+
+def test_a_relative_database_path_is_checked_where_mlflow_opens_it(tmp_path, monkeypatch):
+    from physgrad.trackers import opens_as_sqlite
+
+    monkeypatch.chdir(tmp_path)
+    opens_as_sqlite(Path("relative.db"))  # created here, as MLflow would
+    assert (tmp_path / "relative.db").is_file()
