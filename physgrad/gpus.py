@@ -129,8 +129,18 @@ def original_environment() -> dict[str, str]:
 
 def local_launcher_args(hydra_args: list[str], gpus: int) -> list[str]:
     """Hydra's arguments for a comparison's jobs: with several GPUs and no launcher chosen, the
-    jobs run side by side, one per GPU (the joblib launcher, one process per GPU)."""
+    jobs run side by side, one per GPU (the joblib launcher, one process per GPU; where that plugin
+    is not installed, one after another, with a warning that says how to install it)."""
+    import importlib.util
+
     chose = any(arg.split("=")[0] in ("hydra/launcher", "+hydra/launcher") for arg in hydra_args)
     if gpus <= 1 or chose:
+        return hydra_args
+    if importlib.util.find_spec("hydra_plugins.hydra_joblib_launcher") is None:
+        log.warning(
+            "%d GPUs, but Hydra's joblib launcher is not installed: the jobs run one after another "
+            "on one GPU (pip install 'physgrad[launchers]' runs one per GPU)",
+            gpus,
+        )
         return hydra_args
     return [*hydra_args, "hydra/launcher=joblib", f"hydra.launcher.n_jobs={gpus}"]

@@ -129,6 +129,21 @@ def test_several_gpus_run_a_comparisons_jobs_side_by_side_unless_a_launcher_is_c
     assert gpus.local_launcher_args(chosen, 4) == chosen
 
 
+def test_without_the_joblib_plugin_the_jobs_run_in_turn_with_a_warning(monkeypatch, caplog):
+    import importlib.util
+    import logging
+
+    real = importlib.util.find_spec
+    monkeypatch.setattr(
+        importlib.util,
+        "find_spec",
+        lambda name, *a: None if name == "hydra_plugins.hydra_joblib_launcher" else real(name, *a),
+    )
+    with caplog.at_level(logging.WARNING, logger="physgrad.gpus"):
+        assert gpus.local_launcher_args([], 4) == []
+    assert "physgrad[launchers]" in caplog.text
+
+
 @pytest.mark.long
 def test_jobs_of_a_local_parallel_sweep_each_claim_their_own_gpu(tmp_path):
     """Two jobs side by side (the joblib launcher) on a machine that names two GPUs: each job's log
