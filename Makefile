@@ -4,7 +4,7 @@ VENV ?= .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 
-.PHONY: setup run lint test test-long test-fast test-faults bench check-stability reproduce-figures clean
+.PHONY: setup run lint test test-long test-cluster test-fast test-faults bench check-stability reproduce-figures clean
 
 setup: $(STAMP)
 
@@ -32,12 +32,21 @@ lint: setup
 	$(BIN)/ruff format --check $(LINTED)
 
 test: lint
-	$(BIN)/python -m pytest -q $(XDIST) -m "not long" tests
+	$(BIN)/python -m pytest -q $(XDIST) -m "not long and not cluster" tests
 
 # the long checks (numerics through whole solvers, end-to-end studies, the full scene x optim matrix, the small
 # stability suite); CI runs them after make test
 test-long: setup
 	$(BIN)/python -m pytest -q -m long tests
+
+# studies on a real one-node SLURM cluster with faults injected (scancel, a time limit, SIGKILL of the
+# launching command): as root on Debian, installs SLURM, munge, slurmdbd and MariaDB from Debian's packages
+# where missing, starts the daemons by hand and stops them at the end (tests/cluster/slurm.sh; docs/cluster.md)
+SLURM_STATE ?= /tmp/physgrad-slurm
+test-cluster: setup
+	PHYSGRAD_SLURM_STATE=$(SLURM_STATE) bash tests/cluster/slurm.sh start
+	SLURM_CONF=$(SLURM_STATE)/slurm.conf $(BIN)/python -m pytest -q -m cluster tests/cluster; \
+		status=$$?; PHYSGRAD_SLURM_STATE=$(SLURM_STATE) bash tests/cluster/slurm.sh stop; exit $$status
 
 # the fault-injection suite repeated many times (every randomised fault x REPEATS; 4 minutes at REPEATS=2 on 2
 # cores, the randomised cases growing linearly with it) and the crafted foreign files
@@ -47,7 +56,7 @@ test-faults: setup
 		tests/test_compare.py::test_a_study_stopped_at_random_instants_resumes_to_the_same_trials
 
 test-fast: setup
-	$(BIN)/python -m pytest -q $(XDIST) -m "not slow and not long" tests
+	$(BIN)/python -m pytest -q $(XDIST) -m "not slow and not long and not cluster" tests
 
 # step time, compile time and peak memory per scene x variant, with floors; writes outputs/bench/benchmarks.md
 bench: setup

@@ -46,7 +46,7 @@ def calibrate_under_load(overrides: list[str]) -> dict:
     from omegaconf import open_dict
 
     from physgrad.comparison import build_variants, split_overrides, study_settings
-    from physgrad.comparison.calibration import calibrate
+    from physgrad.timing import calibrate
 
     given, axes, common, _ = split_overrides(overrides)
     settings = study_settings(given)

@@ -109,6 +109,7 @@ class SweepSummary(Callback):
         return {}
 
     def on_multirun_start(self, config: DictConfig, **kwargs: Any) -> None:
+        from physgrad.cluster import use_physgrad_launcher
         from physgrad.errors import FolderOwned
         from physgrad.files import own_folder
         from physgrad.results import find_results
@@ -129,6 +130,7 @@ class SweepSummary(Callback):
             )
             sys.exit(2)
         (folder / STOP_MARK).unlink(missing_ok=True)
+        use_physgrad_launcher(config)  # before Hydra builds the launcher: physgrad.cluster
         jobs = expected_jobs(config)
         if jobs is not None:
             write_manifest(folder, jobs)
@@ -155,9 +157,10 @@ class SweepSummary(Callback):
                 # untouched by this sweep: completed or diverged before with the same config, or
                 # another job's
                 earlier += 1
-        for job_name, why in unfinished_jobs(folder):
-            written[why.split(":")[0]] += 1
+        for job_name, why in unfinished_jobs(folder, interrupted=True):
             log.warning("job %s: %s", job_name, why)
+            if not why.startswith("interrupted"):  # an interrupted run's file is counted above
+                written[why.split(":")[0]] += 1
         stopped = stop_count(folder)
         INTERRUPTED_BY_SIGNAL[:] = [stopped[0]] if stopped else []
         # a run left running or crashed (its worker was killed), interrupted, failed, unreadable or
@@ -306,6 +309,8 @@ def job(cfg: DictConfig) -> float:
     if stopped is not None:
         log.warning("%s not started: the sweep was stopped (%s)", this.name, stopped[0])
         return float("inf")
+    if cfg.get("calibrate") is not None:
+        return calibration_job(cfg, this)
     trackers = job_trackers(cfg, this)
     if trackers is None:
         return float("inf")
@@ -323,6 +328,38 @@ def job(cfg: DictConfig) -> float:
     if this.owned:  # a job refused because another process holds its folder records nothing
         record_and_track(this, outcome, trackers)
     return job_ended(this, outcome, path)
+
+
+def calibration_job(cfg: DictConfig, this: Job) -> float:
+    """A study's calibration as one of its jobs, so that the step costs are measured where the jobs
+    run: the step costs of the configs in cfg.calibrate ({variant: config}) on cfg.seed
+    (physgrad.timing.calibrate, with the host and device) into the job folder's calibration.json. A
+    signal ends it at once, interrupted (no file)."""
+    from physgrad.files import own_folder
+    from physgrad.interrupts import stop_on_signals
+    from physgrad.timing import write_calibration_of
+
+    try:
+        with own_folder(this.out_dir), stop_on_signals() as stop:
+            this.owned = True
+            if this.sweep is not None:
+                record_job(this.sweep, this.out_dir, this.overrides, "started")
+            stop.raising = True
+            stop.raise_if_stopped()
+            path = write_calibration_of(cfg.calibrate, int(cfg.seed), this.out_dir)
+            stop.raising = False
+    except KeyboardInterrupt as interrupt:
+        why = f"{interrupt.args[0] if interrupt.args else 'SIGINT'} while calibrating"
+        if this.sweep is not None and this.owned:
+            record_job(this.sweep, this.out_dir, this.overrides, "interrupted", why)
+        log.warning("calibration interrupted: %s", why)
+        return float("inf")
+    except Exception as error:  # noqa: BLE001 - one line, the traceback in the job folder
+        return job_failed(this, error)
+    if this.sweep is not None:
+        record_job(this.sweep, this.out_dir, this.overrides, "completed")
+    log.info("calibrated the step costs of %d variants -> %s", len(cfg.calibrate), path)
+    return 0.0
 
 
 def job_trackers(cfg: DictConfig, this: Job) -> list | None:

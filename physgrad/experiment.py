@@ -39,7 +39,7 @@ from physgrad.results import ResultsWriter, read_final, record_outcome
 from physgrad.resume import finished_before, start_from
 from physgrad.run_figures import draw_run_figures
 from physgrad.runner import Outcome, TrainerSettings, train
-from physgrad.sweeps import mark_stopped, watching
+from physgrad.sweeps import in_launcher, mark_stopped, watching
 from physgrad.tasks import Scene, build_scene
 from physgrad.training import Seeds, stack
 from physgrad.version import __version__
@@ -261,12 +261,19 @@ def run_experiment(
     the reason. A job that completed before with the same config is not run again unless
     overwrite=true. The job holds out_dir for its whole duration (another live process writing
     there: refused, nothing touched) and handles SIGINT and SIGTERM from start-up until its files
-    are final; in a sweep (sweep: its folder) a signal to the job stops the sweep, and the sweep's
-    stop reaches the job (physgrad.sweeps). on_owned runs once the folder is held, before anything
+    are final; in a sweep (sweep: its folder) a signal to the job stops the sweep where the job runs
+    in the sweep's launching process (else the job alone), and the sweep's stop reaches the job
+    (physgrad.sweeps). on_owned runs once the folder is held, before anything
     else is written into it (the command line's provenance, .hydra/). A failure before training
     leaves files with status failed; ResultsWriteError if they cannot be written."""
     try:
-        on_first = None if sweep is None else (lambda name: mark_stopped(sweep, name))
+        # a signal to the process that launched the sweep is the user's: the sweep stops; one to a
+        # worker or a scheduler's job (scancel, a time limit) ends that job alone
+        on_first = (
+            (lambda name: mark_stopped(sweep, name))
+            if sweep is not None and in_launcher()
+            else None
+        )
         with own_folder(out_dir), stop_on_signals(on_first) as stop, watching(sweep, stop):
             if on_owned is not None:
                 on_owned()

@@ -7,7 +7,8 @@ signal. During a job (start-up, training and writing the final files) the job's 
 handles it: the first signal asks the training loop to stop after the current step, a second one
 ends the wait for a step still computing; it raises only while the job is setting up
 (StopInterrupt), where nothing is half done. `handling_signals` installs a handler for both signals,
-`stop_on_signals` the job's.
+`stop_on_signals` the job's (which also takes a scheduler's warning signal, SIGUSR2, as a stop:
+a job ends `interrupted` before its time limit, its rows kept).
 
 A signal handler's exception is raised in whatever Python code runs when the signal arrives. If that
 code is one the interpreter runs on its own (a garbage-collector callback such as jaxlib's, a
@@ -22,6 +23,7 @@ JAX is loaded.
 
 from __future__ import annotations
 
+import os
 import signal
 import sys
 import threading
@@ -32,6 +34,22 @@ from typing import Any, NoReturn
 
 # what stops physgrad: Ctrl-C, and kill's or a scheduler's TERM
 INTERRUPTS = (signal.SIGINT, signal.SIGTERM)
+# what also stops a job: a scheduler's warning that its time is nearly up or that it is preempted
+# (SLURM's --signal, USR2 as submitit asks for it; SUBMITIT_PREEMPT_SIGNAL names another)
+WARNING_SIGNAL = getattr(
+    signal, "SIG" + os.environ.get("SUBMITIT_PREEMPT_SIGNAL", "USR2").upper(), signal.SIGUSR2
+)
+JOB_SIGNALS = (*INTERRUPTS, WARNING_SIGNAL)
+
+
+def signal_label(signum: int) -> str:
+    """The signal's name, with what it means where that is not plain (the scheduler's warning)."""
+    name = signal.Signals(signum).name
+    if signum == WARNING_SIGNAL and signum not in INTERRUPTS:
+        return f"{name} (the scheduler's warning: time limit or preemption)"
+    return name
+
+
 # what signal.signal installs: a function of the signal number and the frame, or SIG_DFL / SIG_IGN
 SignalHandler = Callable[[int, FrameType | None], Any] | int | signal.Handlers | None
 WAKE_SECONDS = 0.05  # how often a thread waiting for a step looks at signals
@@ -63,19 +81,19 @@ def take_lost() -> str | None:
     return name
 
 
-def install(handler: SignalHandler) -> dict:
-    """handler for SIGINT and SIGTERM; returns the handlers it replaced. ValueError outside the main
-    thread."""
-    return {sig: signal.signal(sig, handler) for sig in INTERRUPTS}
+def install(handler: SignalHandler, signals: tuple = INTERRUPTS) -> dict:
+    """handler for signals (SIGINT and SIGTERM); returns the handlers it replaced. ValueError
+    outside the main thread."""
+    return {sig: signal.signal(sig, handler) for sig in signals}
 
 
 @contextmanager
-def handling_signals(handler: SignalHandler) -> Iterator[bool]:
-    """While inside: SIGINT and SIGTERM go to handler, and the previous handlers are back after.
-    Yields whether it was installed: not in a thread other than the main one, where signals are left
-    alone."""
+def handling_signals(handler: SignalHandler, signals: tuple = INTERRUPTS) -> Iterator[bool]:
+    """While inside: signals (SIGINT and SIGTERM) go to handler, and the previous handlers are back
+    after. Yields whether it was installed: not in a thread other than the main one, where signals
+    are left alone."""
     try:
-        previous = install(handler)
+        previous = install(handler, signals)
     except ValueError:  # not the main thread
         previous = None
     if previous is None:
@@ -119,7 +137,7 @@ class StopRequest:
 
     def __call__(self, signum: int, frame: FrameType | None) -> None:
         self.received += 1
-        self.request(signal.Signals(signum).name, at_once=self.signal_name is not None)
+        self.request(signal_label(signum), at_once=self.signal_name is not None)
         if self.raising:
             self.raising = False  # one exception; what handles it writes the files
             raise StopInterrupt(self.signal_name)
@@ -216,7 +234,7 @@ def stop_on_signals(on_first: Callable[[str], None] | None = None) -> Iterator[S
     (keeping_lost_interrupts). Outside the main thread signals are left alone (the StopRequest still
     takes a sweep's stop)."""
     request = StopRequest(on_first)
-    with handling_signals(request) as installed:
+    with handling_signals(request, JOB_SIGNALS) as installed:
         if not installed:
             yield request
             return

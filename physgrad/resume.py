@@ -15,7 +15,7 @@ from physgrad.results import Run, parse_config, read_final, read_params
 from physgrad.runner import Outcome
 
 # keys that do not change what a run computes (a run stored without them is the same run)
-NOT_RESULT_KEYS = ("overwrite", "figures")
+NOT_RESULT_KEYS = ("overwrite", "figures", "calibrate")
 
 
 def comparable_config(cfg: DictConfig) -> dict:

@@ -29,6 +29,7 @@ NOT_COMPUTATION = (
     "seed",
     "overwrite",
     "figures",
+    "calibrate",
     "init_from",
     "trainer.flush_seconds",
     "trainer.log_seconds",

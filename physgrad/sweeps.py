@@ -15,6 +15,7 @@ import hashlib
 import logging
 import os
 import signal
+import sys
 import threading
 import time
 from collections.abc import Iterator
@@ -31,8 +32,14 @@ from physgrad.interrupts import StopRequest, handling_signals
 log = logging.getLogger("physgrad")
 MANIFEST = "jobs.yaml"
 STOP_MARK = ".physgrad-stop"
-# pid of the process that launched the sweep, inherited by its workers
+# "<pid> <host>" of the process that launched the sweep, inherited by its workers (and by a
+# scheduler's jobs on other hosts, where the same pid is another process)
 LAUNCHER_ENV = "PHYSGRAD_SWEEP_LAUNCHER"
+# pid of the `physgrad compare` whose phase this sweep is: the sweep stops when that process ends
+STUDY_ENV = "PHYSGRAD_STUDY"
+# what a launcher asks to be done at a sweep's stop (physgrad's SLURM launcher: cancel its waiting
+# jobs), called once, at the first signal
+ON_STOP: list = []
 WATCH_SECONDS = 0.25
 
 
@@ -100,15 +107,29 @@ def job_folders(folder: Path) -> dict[frozenset, Path]:
     return found
 
 
+def scheduler_job() -> str | None:
+    """This job's id at its scheduler (SLURM: `<array job>_<task>` for a job array), or None."""
+    array, task = os.environ.get("SLURM_ARRAY_JOB_ID"), os.environ.get("SLURM_ARRAY_TASK_ID")
+    if array and task:
+        return f"{array}_{task}"
+    return os.environ.get("SLURM_JOB_ID")
+
+
 JOB_STATES = ".physgrad-jobs"  # in the sweep folder: one small YAML file per job that started
 
 
 def record_job(
-    sweep: Path, job_folder: Path, overrides: list[str], state: str, reason: str | None = None
+    sweep: Path,
+    job_folder: Path,
+    overrides: list[str],
+    state: str,
+    reason: str | None = None,
+    scheduler: str | None = None,
 ) -> None:
     """The job's state (started, or its outcome) and reason in the sweep folder, where it can be
-    written even when the job's own folder cannot; written by rename. A failure to write it is
-    logged, not raised."""
+    written even when the job's own folder cannot; written by rename; with the scheduler's id of
+    the job (scheduler, else this process's: scheduler_job). A failure to write it is logged, not
+    raised."""
     name = hashlib.sha1(str(job_folder.resolve()).encode()).hexdigest()[:16]
     record = {
         "folder": str(job_folder),
@@ -116,6 +137,7 @@ def record_job(
         "state": state,
         "reason": reason,
         "owner": owner_tag(),
+        "scheduler": scheduler or scheduler_job(),
         "time": time.strftime("%Y-%m-%dT%H:%M:%S%z"),
     }
     try:
@@ -147,22 +169,27 @@ def job_states(sweep: Path) -> dict[frozenset, dict]:
                 "reason": clean_text(str(record.get("reason") or ""), 300),
                 "folder": clean_text(str(record.get("folder", "")), 500),
                 "owner": str(record.get("owner", "")),
+                "scheduler": clean_text(str(record.get("scheduler") or ""), 40),
             }
     return found
 
 
-def unfinished_jobs(folder: Path) -> list[tuple[str, str]]:
-    """The jobs that left no results file, from the manifest and the recorded job states: (their
-    overrides joined by commas, why: `never started`, `failed: <reason>` as recorded, `crashed` for
-    a job recorded as started whose process is gone, `no results file`)."""
+def unfinished_jobs(folder: Path, interrupted: bool = False) -> list[tuple[str, str]]:
+    """The jobs that left no results file (interrupted: or left it interrupted), from the manifest
+    and the recorded job states: (their overrides joined by commas, why: `never started`,
+    `failed: <reason>` or `interrupted: <reason>` as recorded, `crashed` for a job recorded as
+    started whose process is gone, `no results file`; with the scheduler's job id where it ran under
+    one)."""
     jobs, states, missing = read_manifest(folder) or [], job_states(folder), []
     folders = job_folders(folder)
     for job in [*jobs, *[sorted(key) for key in states if sorted(key) not in map(sorted, jobs)]]:
         state, where = states.get(frozenset(job)), folders.get(frozenset(job))
         if state is not None:
             where = Path(state["folder"]) if state["folder"] else where
-        if where is not None and where.is_dir() and any(where.rglob("results.h5")):
+        ended = where is not None and where.is_dir() and any(where.rglob("results.h5"))
+        if ended and not (interrupted and state is not None and state["state"] == "interrupted"):
             continue
+        at = f" (SLURM job {state['scheduler']})" if state and state.get("scheduler") else ""
         if state is None:
             missing.append((",".join(job), "never started" if where is None else "no results file"))
         elif state["state"] == "started":
@@ -170,14 +197,15 @@ def unfinished_jobs(folder: Path) -> list[tuple[str, str]]:
             missing.append(
                 (
                     ",".join(job),
-                    "crashed before writing results" if gone else "started, no results yet",
+                    ("crashed before writing results" if gone else "started, no results yet") + at,
                 )
             )
         else:
             missing.append(
                 (
                     ",".join(job),
-                    f"{state['state']}: {state['reason']}" if state["reason"] else state["state"],
+                    (f"{state['state']}: {state['reason']}" if state["reason"] else state["state"])
+                    + at,
                 )
             )
     return missing
@@ -205,6 +233,32 @@ def mark_stopped(sweep: Path, name: str, count: int = 1) -> None:
         )
 
 
+def launcher_pid() -> int | None:
+    """The pid of the process that launched this sweep, where it runs on this host; else None."""
+    import socket
+
+    pid, _, host = os.environ.get(LAUNCHER_ENV, "").partition(" ")
+    return int(pid) if pid.isdigit() and host == socket.gethostname() else None
+
+
+def in_launcher() -> bool:
+    """Whether this process launched the sweep it runs a job of (Hydra's basic launcher runs its
+    jobs in that process): a signal to it is the user's, for the whole sweep. A job in a worker
+    (joblib, a scheduler's job) takes its own signal for itself: a scheduler sends scancel, time
+    limits and preemption to one job."""
+    return launcher_pid() == os.getpid()
+
+
+def cancel_waiting() -> None:
+    """What launchers registered in ON_STOP, each once; a failure is logged."""
+    while ON_STOP:
+        action = ON_STOP.pop()
+        try:
+            action()
+        except Exception as error:  # noqa: BLE001 - stopping goes on
+            log.warning("could not cancel the sweep's waiting jobs: %s", error)
+
+
 class LauncherSignals:
     """The launching process's handler for SIGINT and SIGTERM during a sweep: mark the sweep stopped
     (its jobs, in this process or in workers, see it); a third signal ends the launcher at once
@@ -220,12 +274,29 @@ class LauncherSignals:
         if self.received == 1:
             log.warning(
                 "%s: stopping the sweep: running jobs end after their current step and are "
-                "recorded as "
-                "interrupted, no job starts (send it again to end running steps at once)",
+                "recorded as interrupted, waiting jobs are cancelled or do not start (send it "
+                "again to end running steps at once)",
                 name,
             )
+            cancel_waiting()
         elif self.received >= 3:
             raise KeyboardInterrupt(name)
+
+
+def end_with_study() -> None:
+    """In a sweep that `physgrad compare` launched (STUDY_ENV: its pid), a SIGTERM to this process
+    when that one ends, however it ends (SIGKILL too: Linux's parent-death signal), taken as a stop
+    of the sweep (LauncherSignals: running jobs end interrupted, waiting ones are cancelled), so
+    that nothing goes on submitting and waiting for a study nobody runs."""
+    study = os.environ.pop(STUDY_ENV, "")
+    if not study.isdigit() or not sys.platform.startswith("linux"):
+        return
+    import ctypes
+
+    pr_set_pdeathsig = 1
+    ctypes.CDLL(None, use_errno=True).prctl(pr_set_pdeathsig, signal.SIGTERM)
+    if os.getppid() != int(study):  # it ended before the line above
+        os.kill(os.getpid(), signal.SIGTERM)
 
 
 @contextmanager
@@ -236,11 +307,15 @@ def launcher_signals(sweep: Path) -> Iterator[None]:
         if not installed:  # not the main thread
             yield
             return
-        os.environ[LAUNCHER_ENV] = str(os.getpid())
+        import socket
+
+        os.environ[LAUNCHER_ENV] = f"{os.getpid()} {socket.gethostname()}"
+        end_with_study()
         try:
             yield
         finally:
             os.environ.pop(LAUNCHER_ENV, None)
+            ON_STOP.clear()
 
 
 @contextmanager
@@ -251,10 +326,8 @@ def watching(sweep: Path | None, stop: StopRequest) -> Iterator[None]:
     if sweep is None:
         yield
         return
-    launcher = os.environ.get(LAUNCHER_ENV)
-    watch_parent = (
-        launcher is not None and int(launcher) != os.getpid() and int(launcher) == os.getppid()
-    )
+    launcher = launcher_pid()
+    watch_parent = launcher is not None and launcher != os.getpid() and launcher == os.getppid()
     parent, finished = os.getppid(), threading.Event()
 
     def watch() -> None:

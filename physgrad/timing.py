@@ -4,8 +4,10 @@ several functions called in turn. Used by the calibrated clock (physgrad.compari
 
 from __future__ import annotations
 
+import math
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
+from pathlib import Path
 from typing import TYPE_CHECKING
 
 if TYPE_CHECKING:
@@ -74,3 +76,81 @@ def compiled_step(
         jax.block_until_ready(state[0])
 
     return settings, scene, rule, stacked, compiled, compile_s, one_step
+
+
+# the calibrated clock (physgrad.comparison.calibration): its rule and measurement
+CALIBRATION_QUANTILE = 0.2
+BURST_SECONDS = 0.05  # the length of one variant's turn in a round
+ROUNDS = 30  # at least this many rounds ...
+MIN_SECONDS = 3.0  # ... and this many seconds of steps in all ...
+MAX_SECONDS = 60.0  # ... but no more than this (slow steps: fewer rounds)
+
+
+def calibrate(
+    configs: dict,
+    seed: int,
+    rounds: int = ROUNDS,
+    min_seconds: float = MIN_SECONDS,
+    max_seconds: float = MAX_SECONDS,
+) -> dict:
+    """{name: step cost in seconds} for every composed config (a variant each; refused ones raise
+    UserError), from their compiled training steps (as `physgrad run` builds them, one seed) timed
+    in turn, one step each per round, after one untimed step each; plus the machine and the samples'
+    spread. Each step advances its own state, so a rule whose state changes its cost (damping, line
+    searches) is timed along its trajectory."""
+    import numpy as np
+
+    from physgrad.machine import load_average, machine_attributes
+
+    steps = {}
+    for name, cfg in configs.items():
+        steps[name] = compiled_step(cfg, [seed])[-1]
+    load_start = load_average()
+    probe = interleaved_times(
+        list(steps.values()), 3, 0.0, warmup=True, max_seconds=max_seconds / 4
+    )
+    lengths = [max(1, math.ceil(BURST_SECONDS / max(float(np.median(t)), 1e-9))) for t in probe]
+
+    def burst(step: Callable[[], None], length: int) -> Callable[[], None]:
+        def run() -> None:
+            for _ in range(length):
+                step()
+
+        return run
+
+    bursts = [burst(step, length) for step, length in zip(steps.values(), lengths)]
+    times = interleaved_times(bursts, rounds, min_seconds, warmup=False, max_seconds=max_seconds)
+    costs = {}
+    for name, samples, length in zip(steps, times, lengths):
+        samples = np.asarray(samples) / length
+        costs[name] = {
+            "step_seconds": float(np.quantile(samples, CALIBRATION_QUANTILE)),
+            "median_seconds": float(np.median(samples)),
+            "rounds": int(samples.size),
+            "burst_steps": length,
+        }
+    return {
+        "quantile": CALIBRATION_QUANTILE,
+        "costs": costs,
+        "load_start": load_start,
+        "load_end": load_average(),
+        "machine": machine_attributes(),
+    }
+
+
+def write_calibration_of(configs: Mapping, seed: int, folder: Path) -> Path:
+    """calibrate() of {name: config} (each a whole resolved run config) into
+    folder/calibration.json, written by rename; returns its path."""
+    import json
+
+    from omegaconf import OmegaConf
+
+    from physgrad.files import replace_file
+
+    plain = {
+        str(name): OmegaConf.create(OmegaConf.to_container(config, resolve=True))
+        for name, config in configs.items()
+    }
+    path = Path(folder) / "calibration.json"
+    replace_file(path, json.dumps(calibrate(plain, seed), indent=1).encode())
+    return path

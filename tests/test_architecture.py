@@ -36,6 +36,7 @@ LAYERS = [
             "machine",
             "gpus",
             "sweeps",
+            "cluster",
             "version",
         },
     ),

@@ -174,7 +174,7 @@ def test_the_calibration_ranks_real_steps_by_their_cost():
     """Two configurations interleaved in one process: a Jacobian rule's step costs more than Adam's
     on the same scene (about 9 to 26 times on the 2-core machine, quiet or beside a 2-core job),
     both timed in every round."""
-    from physgrad.comparison.calibration import calibrate
+    from physgrad.timing import calibrate
 
     configs = {
         name: load("task=toy", f"optim={name}", "trainer.batch_size=64")
@@ -197,7 +197,7 @@ def test_delays_in_a_few_rounds_leave_the_calibrated_cost_where_it_is(monkeypatc
     import types
 
     import physgrad.timing
-    from physgrad.comparison.calibration import BURST_SECONDS, calibrate
+    from physgrad.timing import BURST_SECONDS, calibrate
 
     def calibrated(delayed_of_ten):
         clock = {"now": 0.0, "fast_ran": True, "bursts": 0, "delays": 0}

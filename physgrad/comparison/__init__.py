@@ -3,7 +3,7 @@ spec (settings, variants, budget), jobs (job files, launching, the study folder)
 calibrated clock), tuning (phase 1), evaluation (phase 2), summary (phase 3: verdicts, tables,
 compare.md), figure (sensitivity.png) and study (the phases in turn, and the command)."""
 
-from physgrad.comparison.calibration import calibrate, calibrated_clock
+from physgrad.comparison.calibration import calibrated_clock
 from physgrad.comparison.evaluation import evaluation, evaluation_jobs
 from physgrad.comparison.jobs import job_runs, job_yaml, launch
 from physgrad.comparison.spec import (
@@ -22,6 +22,7 @@ from physgrad.comparison.spec import (
 from physgrad.comparison.study import Study, main, run_study
 from physgrad.comparison.summary import analyse
 from physgrad.comparison.tuning import halton_points, tuning
+from physgrad.timing import calibrate
 
 __all__ = [
     "PHASES",

@@ -24,71 +24,13 @@ from __future__ import annotations
 
 import json
 import math
-from collections.abc import Callable
 from pathlib import Path
 
-import numpy as np
-
-from physgrad.comparison.spec import Variant
+from physgrad.comparison.jobs import Launcher
+from physgrad.comparison.spec import StudyPlan
 from physgrad.errors import UserError
 
-CALIBRATION_QUANTILE = 0.2
 CALIBRATION_FILE = "calibration.json"
-BURST_SECONDS = 0.05  # the length of one variant's turn in a round
-ROUNDS = 30  # at least this many rounds ...
-MIN_SECONDS = 3.0  # ... and this many seconds of steps in all ...
-MAX_SECONDS = 60.0  # ... but no more than this (slow steps: fewer rounds)
-
-
-def calibrate(
-    configs: dict,
-    seed: int,
-    rounds: int = ROUNDS,
-    min_seconds: float = MIN_SECONDS,
-    max_seconds: float = MAX_SECONDS,
-) -> dict:
-    """{name: step cost in seconds} for every composed config (a variant each; refused ones raise
-    UserError), from their compiled training steps (as `physgrad run` builds them, one seed) timed
-    in turn, one step each per round, after one untimed step each; plus the machine and the samples'
-    spread. Each step advances its own state, so a rule whose state changes its cost (damping, line
-    searches) is timed along its trajectory."""
-    from physgrad.machine import load_average, machine_attributes
-    from physgrad.timing import compiled_step, interleaved_times
-
-    steps = {}
-    for name, cfg in configs.items():
-        steps[name] = compiled_step(cfg, [seed])[-1]
-    load_start = load_average()
-    probe = interleaved_times(
-        list(steps.values()), 3, 0.0, warmup=True, max_seconds=max_seconds / 4
-    )
-    lengths = [max(1, math.ceil(BURST_SECONDS / max(float(np.median(t)), 1e-9))) for t in probe]
-
-    def burst(step: Callable[[], None], length: int) -> Callable[[], None]:
-        def run() -> None:
-            for _ in range(length):
-                step()
-
-        return run
-
-    bursts = [burst(step, length) for step, length in zip(steps.values(), lengths)]
-    times = interleaved_times(bursts, rounds, min_seconds, warmup=False, max_seconds=max_seconds)
-    costs = {}
-    for name, samples, length in zip(steps, times, lengths):
-        samples = np.asarray(samples) / length
-        costs[name] = {
-            "step_seconds": float(np.quantile(samples, CALIBRATION_QUANTILE)),
-            "median_seconds": float(np.median(samples)),
-            "rounds": int(samples.size),
-            "burst_steps": length,
-        }
-    return {
-        "quantile": CALIBRATION_QUANTILE,
-        "costs": costs,
-        "load_start": load_start,
-        "load_end": load_average(),
-        "machine": machine_attributes(),
-    }
 
 
 def read_calibration(path: Path, names: list[str]) -> dict | None:
@@ -140,18 +82,17 @@ def write_calibration(path: Path, calibration: dict) -> None:
     replace_file(Path(path), json.dumps(calibration, indent=1).encode())
 
 
-def calibrated_clock(
-    folder: Path,
-    variants: list[Variant],
-    seed: int,
-    given: str | None,
-    say: Callable[[str], object],
-) -> dict:
-    """Each variant's step cost (calibrate), measured once per study and stored in its folder (a
-    resumed study reuses it), or taken from a given calibration.json (compare.calibration); every
-    job of a variant then runs on the calibrated clock with that cost."""
-    from omegaconf import open_dict
+def calibrated_clock(plan: StudyPlan, launcher: Launcher, given: str | None) -> dict:
+    """Each variant's step cost (physgrad.timing.calibrate), measured once per study by one job of
+    the study (phase `calibration`, launched like the others: on a cluster, where the jobs run) and
+    stored in its folder (a resumed study reuses it), or taken from a given calibration.json
+    (compare.calibration); every job of a variant then runs on the calibrated clock with that
+    cost."""
+    from omegaconf import OmegaConf, open_dict
 
+    from physgrad.comparison.jobs import job_yaml
+
+    folder, variants = launcher.folder, plan.variants
     path = folder / CALIBRATION_FILE
     names = [v.name for v in variants]
     if given is not None:
@@ -164,14 +105,28 @@ def calibrated_clock(
         write_calibration(path, calibration)
     calibration = read_calibration(path, names)
     if calibration is None:
-        say(f"calibrating the step costs of {len(variants)} variants, interleaved in one process")
+        launcher.say(
+            f"calibrating the step costs of {len(variants)} variants, interleaved in one job"
+        )
         configs = {}
         for variant in variants:
             cfg = variant.config.copy()
             with open_dict(cfg):
                 del cfg["hydra"]
-            configs[variant.name] = cfg
-        calibration = calibrate(configs, seed)
+            configs[variant.name] = OmegaConf.to_container(cfg, resolve=True)
+        values = {"seed": plan.settings.tune_seed, "calibrate": configs, "figures": False}
+        first = variants[0]
+        launcher.run(
+            "calibration",
+            {"calibration": job_yaml([*plan.common, *first.overrides], plan.groups, values)},
+        )
+        measured = folder / "calibration" / "+compare_job=calibration" / CALIBRATION_FILE
+        calibration = read_calibration(measured, names)
+        if calibration is None:
+            raise UserError(
+                f"the calibration did not finish (see {folder / 'calibration.log'}): run the same "
+                "command again to resume"
+            )
         write_calibration(path, calibration)
     for variant in variants:
         cost = float(calibration["costs"][variant.name]["step_seconds"])

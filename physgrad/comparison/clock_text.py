@@ -108,8 +108,19 @@ def _calibration_lines(variants: list[Variant], runs: pd.DataFrame, calibration:
             f"{cost['rounds']} | {fmt(p50)} s | "
             f"{int(sub['contended'].sum()) if len(sub) else 0} of {len(sub)} |"
         )
-    from physgrad.machine import contention
+    from physgrad.machine import contention, machine_label
 
+    measured_on = machine_label(calibration["machine"])
+    elsewhere = sorted(set(runs["machine"]) - {measured_on}) if len(runs) else []
+    if elsewhere:
+        host = str(calibration["machine"].get("hostname", "") or "?")
+        lines += [
+            "",
+            f"**Warning**: the step costs were calibrated on {measured_on} (host {host}), but runs "
+            f"ran on {'; '.join(elsewhere)}: the calibrated clock does not give those runs the "
+            "time their steps took there. Calibrate where the jobs run (the calibration is a job "
+            "of the study, sent with the same launcher: delete calibration.json and run again).",
+        ]
     busy = contention(
         {},
         0,

@@ -7,7 +7,7 @@ from __future__ import annotations
 from typing import TYPE_CHECKING
 
 from physgrad.comparison.jobs import Launcher, cadence, job_runs, job_yaml
-from physgrad.comparison.spec import StudyPlan, StudySettings, Variant, study_prefix
+from physgrad.comparison.spec import StudyPlan, StudySettings, Variant, study_prefix, variant_index
 from physgrad.errors import UserError
 from physgrad.readout import run_curve
 
@@ -81,7 +81,7 @@ def evaluation(
     jobs = evaluation_jobs(
         variants, best, plan.settings, plan.common, plan.groups, axis, plan.budget
     )
-    launcher.run("eval", jobs)
+    launcher.run("eval", jobs, {name: variants[variant_index(name)].config for name in jobs})
     curves, statuses, problems = [], [], []
     for study in range(len(best)):
         curves.append({})

@@ -16,6 +16,7 @@ from typing import TYPE_CHECKING
 
 from physgrad.errors import UserError
 from physgrad.interrupts import SignalInterrupt, take_lost
+from physgrad.sweeps import STUDY_ENV
 
 if TYPE_CHECKING:
     from types import FrameType
@@ -137,12 +138,93 @@ class Launcher:
     hydra_args: list[str]
     say: Callable[[str], object]
 
-    def run(self, phase: str, jobs: dict[str, str]) -> None:
-        """The jobs as one multirun into folder/phase (launch); KeyboardInterrupt where it was
-        interrupted."""
-        code = launch(self.folder, phase, jobs, self.config_dir, self.hydra_args, self.say)
+    def run(self, phase: str, jobs: dict[str, str], configs: dict | None = None) -> None:
+        """The jobs as one multirun into folder/phase (launch), leaving out those whose results
+        files finished before with the same config (configs: each job's variant config, to tell;
+        none left: nothing is launched); KeyboardInterrupt where it was interrupted; UserError
+        (one line) where the multirun was refused or jobs did not finish (interrupted one by one:
+        scancel, a time limit, preemption; never started; crashed), naming them, their scheduler
+        ids and why."""
+        sweep = self.folder / phase
+        todo = {
+            name: text
+            for name, text in jobs.items()
+            if configs is None or not job_finished(sweep, name, text, configs[name])
+        }
+        if not todo:
+            self.say(f"{phase}: the {len(jobs)} jobs finished before: nothing to launch")
+            return
+        if len(todo) < len(jobs):
+            self.say(f"{phase}: {len(jobs) - len(todo)} of {len(jobs)} jobs finished before")
+        code = launch(self.folder, phase, todo, self.config_dir, self.hydra_args, self.say)
         if code == 130:
             raise KeyboardInterrupt
+        if code != 0:
+            _raise_unfinished(sweep, phase, todo, self.folder / f"{phase}.log")
+
+
+def job_finished(sweep: Path, name: str, text: str, variant_config: DictConfig) -> bool:
+    """Whether the job `name` (its config file's text, written by job_yaml for a variant of this
+    config) finished before: every member's results file completed or diverged with the config the
+    job would run (physgrad.resume.finished_before: the check the job itself makes at its start)."""
+    import yaml
+    from omegaconf import OmegaConf, open_dict
+
+    from physgrad.experiment import member_configs, seed_paths
+    from physgrad.resume import finished_before
+
+    cfg = variant_config.copy()
+    keys = yaml.safe_load(text) or {}
+    keys.pop("defaults", None)
+    with open_dict(cfg):
+        cfg.pop("hydra", None)
+        cfg = OmegaConf.merge(cfg, keys)
+    if cfg.get("overwrite", False):
+        return False
+    paths = seed_paths(cfg, sweep / f"+compare_job={name}")
+    return all(
+        finished_before(path, member) is not None
+        for (_, path), member in zip(paths, member_configs(cfg, len(paths)))
+    )
+
+
+def _raise_unfinished(sweep: Path, phase: str, jobs: dict[str, str], log_path: Path) -> None:
+    """A multirun that ended with a failure: UserError naming the jobs of `jobs` that did not
+    finish (not the failed or refused ones: the phase reads those as outcomes) with their scheduler
+    ids and why, or the multirun's own refusal (its `physgrad: error:` line in the log)."""
+    from physgrad.sweeps import unfinished_jobs
+
+    prefix = "+compare_job="
+    left = [
+        (job.removeprefix(prefix), why)
+        for job, why in unfinished_jobs(sweep, interrupted=True)
+        if job.removeprefix(prefix) in jobs and not why.startswith(("failed", "refused"))
+    ]
+    if left:
+        listed = "; ".join(f"{name}: {why}" for name, why in left[:3])
+        more = f"; and {len(left) - 3} more" if len(left) > 3 else ""
+        raise UserError(
+            f"{phase}: {len(left)} of {len(jobs)} jobs did not finish ({listed}{more}; log: "
+            f"{log_path}): run the same command again to finish them"
+        )
+    refusal = _last_error(log_path)
+    if refusal is not None:
+        raise UserError(f"{phase}: {refusal}")
+
+
+def _last_error(log_path: Path) -> str | None:
+    """The last `physgrad: error:` line the multirun wrote to its log (read as data, its tail)."""
+    from physgrad.files import clean_text
+
+    try:
+        with open(log_path, "rb") as file:
+            file.seek(max(0, file.seek(0, 2) - (1 << 16)))
+            tail = file.read().decode(errors="replace")
+    except OSError:
+        return None
+    tail = tail.rpartition("\n$ ")[2]  # this launch's part
+    lines = [line for line in tail.splitlines() if line.startswith("physgrad: error: ")]
+    return clean_text(lines[-1].removeprefix("physgrad: error: "), 400) if lines else None
 
 
 def launch(
@@ -213,7 +295,7 @@ def _run_multirun(command: list[str], log_path: Path, env: dict[str, str]) -> in
             stdout=log,
             stderr=subprocess.STDOUT,
             start_new_session=True,
-            env=env,
+            env={**env, STUDY_ENV: str(os.getpid())},
         )
         received = []
 

@@ -90,6 +90,14 @@ class StudySettings:
         return self.studies if self.tune else 1
 
 
+def variant_index(job: str) -> int:
+    """The variant index a job name holds (tune_v2_t003, tune_st1_v0_t000-007, eval_v1_s3: v<index>
+    after the phase and study)."""
+    import re
+
+    return int(re.match(r"^[a-z]+_(?:st\d+_)?v(\d+)", job).group(1))
+
+
 def study_prefix(study: int) -> str:
     """What a job name of tuning study k starts with after its phase: nothing for the first study
     (a study folder written before repeated studies reads as its first), st<k>_ for the others."""

@@ -108,13 +108,11 @@ def run_study(
             if gpus > 1:
                 say(f"{gpus} GPUs: each phase runs {gpus} jobs side by side, one per GPU")
             calibration = None
+            launcher = Launcher(folder, config_dir, hydra_args, say)
             if axis == "wall_time" and settings.clock == "calibrated":
-                calibration = calibrated_clock(
-                    folder, variants, settings.tune_seed, settings.calibration, say
-                )
+                calibration = calibrated_clock(plan, launcher, settings.calibration)
                 axis = "calibrated_time"
             plan = StudyPlan(variants, settings, common, groups, axis, budget)
-            launcher = Launcher(folder, config_dir, hydra_args, say)
             best = tuning(plan, launcher)
             rows = trial_rows(folder, variants, settings.study_count)
             if rows:

@@ -11,7 +11,7 @@ from collections.abc import Callable
 from pathlib import Path
 
 from physgrad.comparison.jobs import Launcher, cadence, job_runs, job_yaml
-from physgrad.comparison.spec import StudyPlan, StudySettings, Variant, study_prefix
+from physgrad.comparison.spec import StudyPlan, StudySettings, Variant, study_prefix, variant_index
 from physgrad.errors import UserError
 from physgrad.readout import run_curve
 
@@ -92,7 +92,7 @@ def tuning(plan: StudyPlan, launcher: Launcher) -> list[dict[str, dict]]:
                     [*common, *variant.overrides], groups, values
                 )
     if jobs:
-        launcher.run("tune", jobs)
+        launcher.run("tune", jobs, {name: variants[variant_index(name)].config for name in jobs})
         _score_trials(folder, variants, studies, pending, batches, axis, budget)
     for study in range(count):
         for variant in variants:

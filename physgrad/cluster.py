@@ -1,0 +1,131 @@
+"""A sweep's jobs on SLURM (docs/cluster.md): physgrad's commands run
+`hydra/launcher=submitit_slurm` through physgrad's subclass of submitit's launcher
+(hydra_plugins.physgrad_launchers.slurm), which sends the jobs as one job array as submitit's
+does, and then:
+- waits for every job: one that ends without a result (scancel of a waiting job, SIGKILL after the
+  scheduler's grace period, a lost node) is recorded in the sweep with its SLURM id and state, and
+  the others go on (submitit's launcher stops the whole sweep at the first such job);
+- at a stop of the sweep (a signal to the launching command, or the end of `physgrad compare`
+  above it), cancels the tasks of the array still waiting, instead of starting them to be skipped.
+A job's own signal (scancel, its time limit, preemption, submitit's SIGUSR2 warning) ends that job
+alone, `interrupted`, its rows kept (physgrad.experiment, physgrad.interrupts).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+import subprocess
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+from omegaconf import DictConfig, open_dict, read_write
+
+log = logging.getLogger("physgrad")
+SUBMITIT_SLURM = "hydra_plugins.hydra_submitit_launcher.submitit_launcher.SlurmLauncher"
+PHYSGRAD_SLURM = "hydra_plugins.physgrad_launchers.slurm.SlurmLauncher"
+
+
+def use_physgrad_launcher(config: DictConfig) -> None:
+    """Before the sweep's launcher is built (Hydra's on_multirun_start): submitit's SLURM launcher
+    replaced by physgrad's, its settings kept."""
+    launcher = config.hydra.get("launcher")
+    if launcher is not None and launcher.get("_target_") == SUBMITIT_SLURM:
+        from hydra.core.plugins import Plugins
+
+        from hydra_plugins.physgrad_launchers.slurm import SlurmLauncher
+
+        # Hydra's scan of hydra_plugins does not see a package installed in editable mode
+        Plugins.instance().register(SlurmLauncher)
+        with read_write(launcher), open_dict(launcher):
+            launcher._target_ = PHYSGRAD_SLURM
+
+
+def launch_array(launcher: Any, job_overrides: Sequence[Sequence[str]], first: int) -> list:
+    """The jobs as one SLURM job array (submitit), each job's result in turn: the job's return
+    value, or, for a job that ended without one, infinity with the job recorded in the sweep as
+    `not run` or `killed` (its SLURM id and state); the array's waiting tasks are cancelled at a
+    stop of the sweep (physgrad.sweeps.ON_STOP)."""
+    import submitit
+    from hydra.core.singleton import Singleton
+    from hydra.core.utils import JobReturn, JobStatus, filter_overrides
+    from hydra_plugins.hydra_submitit_launcher.config import BaseQueueConf
+
+    from physgrad.sweeps import ON_STOP
+
+    params = dict(launcher.params)
+    executor = submitit.AutoExecutor(
+        cluster="slurm",
+        folder=params.pop("submitit_folder"),
+        slurm_max_num_timeout=params.pop("max_num_timeout", 0),
+    )
+    shared = {field.name for field in dataclasses.fields(BaseQueueConf)}
+    executor.update_parameters(
+        **{key if key in shared else f"slurm_{key}": value for key, value in params.items()}
+    )
+    sweep = Path(str(launcher.config.hydra.sweep.dir))
+    sweep.mkdir(parents=True, exist_ok=True)
+    calls = []
+    for number, overrides in enumerate(job_overrides, start=first):
+        log.info("\t#%d : %s", number, " ".join(filter_overrides(overrides)))
+        calls.append(
+            (
+                list(overrides),
+                "hydra.sweep.dir",
+                number,
+                f"job_id_for_{number}",
+                Singleton.get_state(),
+            )
+        )
+    jobs = executor.map_array(launcher, *zip(*calls))
+    if jobs:
+        log.info("SLURM job array %s: %d jobs", array_id(jobs[0].job_id), len(jobs))
+        ON_STOP.append(lambda: cancel_waiting(jobs))
+    returns = []
+    for job, overrides in zip(jobs, job_overrides):
+        try:
+            returns.append(job.results()[0])
+        except Exception as error:  # noqa: BLE001 - one job's end is not the sweep's
+            state = job.state
+            record_lost_job(sweep, list(overrides), job.job_id, state, error)
+            returns.append(
+                JobReturn(
+                    overrides=list(overrides),
+                    _return_value=float("inf"),
+                    status=JobStatus.COMPLETED,
+                )
+            )
+    return returns
+
+
+def array_id(job_id: str) -> str:
+    """The array's id of a task's id (`123_4`: 123)."""
+    return str(job_id).partition("_")[0]
+
+
+def cancel_waiting(jobs: list) -> None:
+    """scancel of the array's tasks still waiting (running ones stop themselves at the sweep's stop
+    mark, ending interrupted with their rows)."""
+    ids = sorted({array_id(job.job_id) for job in jobs})
+    subprocess.run(
+        ["scancel", "--state=PENDING", *ids], check=False, capture_output=True, timeout=60
+    )
+    log.warning("cancelled the waiting jobs of SLURM job array %s", ", ".join(ids))
+
+
+def record_lost_job(
+    sweep: Path, overrides: list[str], job_id: str, state: str, error: Exception
+) -> None:
+    """A job that ended without a result, in the sweep's job states (where the job recorded nothing
+    itself: it never started, or was killed before it could): `not run` (cancelled or failed
+    waiting) or `killed`, with its SLURM id and state."""
+    from physgrad.sweeps import job_states, record_job
+
+    known = job_states(sweep).get(frozenset(overrides))
+    log.warning("SLURM job %s ended without a result (%s): %s", job_id, state, error)
+    if known is not None and known["state"] != "started":
+        return  # it ended itself (interrupted, failed): its own record says how
+    folder = Path(known["folder"]) if known is not None else sweep / f".slurm-{job_id}"
+    what = "killed" if known is not None else "not run"
+    record_job(sweep, folder, overrides, what, f"SLURM state {state}", scheduler=job_id)

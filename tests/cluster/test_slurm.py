@@ -1,0 +1,249 @@
+"""Studies and sweeps on a real SLURM cluster (`make test-cluster`: tests/cluster/slurm.sh starts a
+one-node cluster and sets SLURM_CONF), through `hydra/launcher=submitit_slurm`, with the faults a
+cluster brings: scancel of a running and of a waiting job, a job's time limit, SIGKILL of the
+launching command; then the reruns. Checked: one job's end is not the sweep's, the study names the
+jobs that did not finish with their SLURM ids, reruns submit only what is missing, nothing is left
+running, and the verdict and test losses equal those of the local launcher."""
+
+from __future__ import annotations
+
+import csv
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+pytestmark = pytest.mark.cluster
+
+LAUNCHER = [
+    "hydra/launcher=submitit_slurm",
+    "hydra.launcher.partition=debug",
+    "hydra.launcher.timeout_min=10",
+]
+PHYSGRAD = [sys.executable, "-m", "physgrad"]
+
+
+@pytest.fixture(scope="module", autouse=True)
+def cluster() -> None:
+    if not os.environ.get("SLURM_CONF"):
+        pytest.fail("no cluster: run `make test-cluster` (it starts one and sets SLURM_CONF)")
+    subprocess.run(["sinfo"], check=True, capture_output=True)
+
+
+def squeue() -> list[tuple[str, str]]:
+    """(job id, state) of this user's jobs in the queue."""
+    out = subprocess.run(
+        ["squeue", "-h", "-o", "%i %t"], check=True, capture_output=True, text=True
+    ).stdout
+    return [tuple(line.split()) for line in out.splitlines() if line.strip()]
+
+
+def wait_until(what: str, test: object, seconds: float = 120.0) -> object:
+    end = time.monotonic() + seconds
+    while time.monotonic() < end:
+        value = test()
+        if value:
+            return value
+        time.sleep(0.5)
+    raise AssertionError(f"waited {seconds:.0f} s for {what}; queue: {squeue()}")
+
+
+def running_task(task: int, seconds: float = 0.0) -> str | None:
+    """The id of array task `task` once it has run for `seconds` (the queue's TIME column)."""
+    out = subprocess.run(
+        ["squeue", "-h", "-t", "R", "-o", "%i %M"], check=True, capture_output=True, text=True
+    ).stdout
+    for line in out.splitlines():
+        job, elapsed = line.split()
+        parts = [int(p) for p in elapsed.replace("-", ":").split(":")]
+        ran = sum(p * 60**i for i, p in enumerate(reversed(parts)))
+        if job.endswith(f"_{task}") and ran >= seconds:
+            return job
+    return None
+
+
+def states(sweep: Path) -> dict[str, dict]:
+    """The recorded state of each job of a sweep, by its overrides."""
+    import yaml
+
+    found = {}
+    for path in (sweep / ".physgrad-jobs").glob("*.yaml"):
+        record = yaml.safe_load(path.read_text())
+        found[",".join(record["overrides"])] = record
+    return found
+
+
+def no_sweep_left() -> bool:
+    """No `physgrad run -m` alive and no job in the queue."""
+    alive = subprocess.run(
+        ["pgrep", "-f", "physgrad run -m"], capture_output=True, text=True
+    ).stdout.split()
+    return not alive and not squeue()
+
+
+def test_one_jobs_end_is_not_the_sweeps(tmp_path: Path) -> None:
+    """scancel of a running job ends it alone, interrupted with its rows and its SLURM id; scancel
+    of a waiting job records it as not run; the other jobs complete; the sweep exits 1."""
+    sweep = tmp_path / "sweep"
+    process = subprocess.Popen(
+        [
+            *PHYSGRAD,
+            "run",
+            "-m",
+            "task=toy",
+            "optim=adam,hig,gauss_newton",
+            "trainer.iterations=100000000",
+            "trainer.time_budget=12",
+            *LAUNCHER,
+            f"hydra.sweep.dir={sweep}",
+        ],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT,
+        text=True,
+    )
+    try:
+        # 2 cores: tasks 0 and 1 run, task 2 waits
+        first = wait_until("task 0 running for 6 s", lambda: running_task(0, 6))
+        waiting = wait_until(
+            "task 2 waiting",
+            lambda: next((j for j, s in squeue() if j.endswith("_2") and s == "PD"), None),
+        )
+        subprocess.run(["scancel", first], check=True)
+        subprocess.run(["scancel", waiting], check=True)
+        out, _ = process.communicate(timeout=180)
+    finally:
+        process.kill()
+    assert process.returncode == 1, out
+    recorded = states(sweep)
+    by_optim = {key.split("optim=")[1].split(",")[0]: r for key, r in recorded.items()}
+    assert by_optim["adam"]["state"] == "interrupted" and "SIGTERM" in by_optim["adam"]["reason"]
+    assert by_optim["adam"]["scheduler"] == first
+    assert by_optim["hig"]["state"] == "completed"
+    assert by_optim["gauss_newton"]["state"] == "not run"
+    assert "CANCELLED" in by_optim["gauss_newton"]["reason"]
+    from physgrad.results import read_final
+
+    attrs, _ = read_final(next((sweep).glob("*optim=adam*/results.h5")))
+    assert attrs["status"] == "interrupted" and int(attrs["iterations"]) > 0
+    assert f"(SLURM job {first})" in out and f"(SLURM job {waiting})" in out
+    wait_until("the queue to empty", no_sweep_left, 60)
+
+
+def test_a_time_limit_ends_the_job_interrupted(tmp_path: Path) -> None:
+    """A job whose time limit comes: SLURM's warning signal (submitit's SIGUSR2) ends it
+    interrupted, not failed, and the sweep reports it."""
+    sweep = tmp_path / "sweep"
+    done = subprocess.run(
+        [
+            *PHYSGRAD,
+            "run",
+            "-m",
+            "task=toy",
+            "optim=adam",
+            "trainer.iterations=100000000",
+            "trainer.time_budget=600",
+            *LAUNCHER[:2],
+            "hydra.launcher.timeout_min=1",
+            "hydra.launcher.signal_delay_s=30",
+            f"hydra.sweep.dir={sweep}",
+        ],
+        capture_output=True,
+        text=True,
+        timeout=240,
+    )
+    assert done.returncode == 1, done.stdout + done.stderr
+    (record,) = states(sweep).values()
+    assert record["state"] == "interrupted", record
+    assert record["reason"].startswith("SIGUSR2 (the scheduler's warning"), record
+    wait_until("the queue to empty", no_sweep_left, 60)
+
+
+STUDY = [
+    "task=toy",
+    "optim=adam,hig",
+    "trainer.iterations=12000",
+    "compare.trials=2",
+    "compare.seeds=6",
+    "compare.studies=1",
+]
+
+
+def compare(folder: Path, *extra: str, **popen: object) -> subprocess.Popen:
+    return subprocess.Popen(
+        [*PHYSGRAD, "compare", *STUDY, f"compare.dir={folder}", *extra],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT,
+        text=True,
+        start_new_session=True,  # a SIGKILL to it alone, as a user's kill -9
+        **popen,
+    )
+
+
+def test_a_study_survives_scancel_and_a_killed_launcher(tmp_path: Path) -> None:
+    """A study under SLURM: scancel of one tuning job (the study names it and exits non-zero), the
+    rerun killed with SIGKILL while a job runs (nothing is left running or waiting), the last rerun
+    submits only what is missing; the verdict and every test loss equal the local launcher's."""
+    folder = tmp_path / "slurm"
+    first = compare(folder, *LAUNCHER)
+    try:
+        # tuning: one job per variant (trials together); task 1 is HIG's
+        hig = wait_until("HIG's tuning job running for 5 s", lambda: running_task(1, 5), 180)
+        subprocess.run(["scancel", hig], check=True)
+        out, _ = first.communicate(timeout=300)
+    finally:
+        first.kill()
+    assert first.returncode == 2, out
+    assert "tune: 1 of 2 jobs did not finish" in out and f"(SLURM job {hig})" in out, out
+
+    second = compare(folder, *LAUNCHER)
+    try:
+        wait_until("the rerun's job running", lambda: running_task(0, 3), 180)
+        os.killpg(second.pid, signal.SIGKILL)
+        second.wait(timeout=30)
+        out = second.stdout.read()
+    finally:
+        second.kill()
+    assert "tune: 1 of 2 jobs finished before" in out, out
+    wait_until("nothing left running or waiting", no_sweep_left, 90)
+
+    finished = {
+        path: path.stat().st_mtime_ns
+        for path in (folder / "tune").rglob("results.h5")
+        if read_status(path) in ("completed", "diverged")
+    }
+    assert finished
+    third = compare(folder, *LAUNCHER)
+    out, _ = third.communicate(timeout=600)
+    assert third.returncode == 0, out
+    redone = [p for p, t in finished.items() if p.stat().st_mtime_ns != t]
+    assert not redone, f"finished jobs ran again: {redone}"
+    again = compare(folder, *LAUNCHER)
+    out, _ = again.communicate(timeout=300)
+    assert again.returncode == 0 and "jobs ->" not in out, out  # nothing submitted
+
+    local = tmp_path / "local"
+    here = compare(local)
+    out, _ = here.communicate(timeout=600)
+    assert here.returncode == 0, out
+    assert verdicts(folder) == verdicts(local)
+    assert final_losses(folder) == pytest.approx(final_losses(local), rel=1e-6)
+
+
+def read_status(path: Path) -> str:
+    from physgrad.results import read_final
+
+    return str(read_final(path)[0].get("status"))
+
+
+def verdicts(folder: Path) -> list[tuple[str, str, str]]:
+    with open(folder / "comparisons.csv") as file:
+        return [(r["study"], r["a"], r["b"], r["verdict"]) for r in csv.DictReader(file)]
+
+
+def final_losses(folder: Path) -> dict[tuple[str, str], float]:
+    with open(folder / "runs.csv") as file:
+        return {(r["variant"], r["seed"]): float(r["test_loss_at_1"]) for r in csv.DictReader(file)}
