@@ -26,7 +26,7 @@ run: setup
 PYTEST_WORKERS ?= auto
 XDIST := $(if $(filter 0,$(PYTEST_WORKERS)),-p no:xdist,-n $(PYTEST_WORKERS) --maxprocesses=4)
 # ruff first (100 columns; pyproject.toml): a lint or layout finding fails the tests in seconds
-LINTED := physgrad tests experiments examples
+LINTED := physgrad hydra_plugins tests experiments examples
 lint: setup
 	$(BIN)/ruff check $(LINTED)
 	$(BIN)/ruff format --check $(LINTED)

@@ -156,6 +156,7 @@ def test_a_rerun_launches_only_the_jobs_without_finished_results(tmp_path):
     assert "eval: 1 of 2 jobs finished before" in third.stdout
     assert "eval: 1 jobs ->" in third.stdout
     assert all(p.stat().st_mtime_ns == t for p, t in kept.items())
+
     def verdicts(out: str) -> str:  # compare.md up to its timing section (measured step times)
         return out.split("# Which")[1].split("## Timing")[0]
 
