@@ -97,8 +97,8 @@ def test_a_killed_study_leaves_no_sweep_running_and_resumes(tmp_path):
     folder = tmp_path / "study"
     study = [
         "task=toy",
-        "optim=adam,hig",
-        "trainer.iterations=3000",
+        "optim=adam,gd",
+        "trainer.iterations=20000",
         "compare.trials=2",
         "compare.seeds=6",
         "compare.studies=1",
@@ -116,7 +116,7 @@ def test_a_killed_study_leaves_no_sweep_running_and_resumes(tmp_path):
             "the orphaned sweep to end",
             lambda: (
                 not subprocess.run(
-                    ["pgrep", "-f", f"hydra.sweep.dir={folder}/tune"], capture_output=True
+                    ["pgrep", "-f", f"hydra.sweep.dir={folder}/"], capture_output=True
                 ).stdout
             ),
             60,

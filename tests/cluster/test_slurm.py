@@ -8,6 +8,7 @@ running, and the verdict and test losses equal those of the local launcher."""
 from __future__ import annotations
 
 import csv
+import json
 import os
 import signal
 import subprocess
@@ -162,10 +163,84 @@ def test_a_time_limit_ends_the_job_interrupted(tmp_path: Path) -> None:
     wait_until("the queue to empty", no_sweep_left, 60)
 
 
+def test_a_stopped_sweep_cancels_its_waiting_jobs(tmp_path: Path) -> None:
+    """SIGTERM to the launching command: the running jobs end interrupted after their step, the
+    waiting job is cancelled without ever running, the sweep exits 130 and nothing is left."""
+    sweep = tmp_path / "sweep"
+    process = subprocess.Popen(
+        [
+            *PHYSGRAD,
+            "run",
+            "-m",
+            "task=toy",
+            "optim=adam,gd,hig",
+            "trainer.iterations=100000000",
+            "trainer.time_budget=60",
+            *LAUNCHER,
+            f"hydra.sweep.dir={sweep}",
+        ],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT,
+        text=True,
+    )
+    try:
+        wait_until("tasks 0 and 1 running", lambda: running_task(0, 4) and running_task(1, 4))
+        waiting = wait_until(
+            "task 2 waiting",
+            lambda: next((j for j, s in squeue() if j.endswith("_2") and s == "PD"), None),
+        )
+        process.send_signal(signal.SIGTERM)
+        out, _ = process.communicate(timeout=120)
+    finally:
+        process.kill()
+    assert process.returncode == 130, out
+    wait_until("the queue to empty", no_sweep_left, 60)
+    accounting = subprocess.run(
+        ["sacct", "-n", "-X", "-P", "-o", "JobID,State,Start", "-j", waiting],
+        check=True,
+        capture_output=True,
+        text=True,
+    ).stdout
+    assert "CANCELLED" in accounting and "Unknown" in accounting, accounting  # never started
+    recorded = {key.split("optim=")[1].split(",")[0]: r for key, r in states(sweep).items()}
+    assert recorded["adam"]["state"] == recorded["gd"]["state"] == "interrupted", recorded
+    assert recorded["hig"]["state"] == "not run", recorded
+
+
+def test_an_equal_time_study_calibrates_where_its_jobs_run(tmp_path: Path) -> None:
+    """The calibration of an equal-time study is a job of the study, sent to SLURM with the others;
+    calibration.json records the host it ran on."""
+    import socket
+
+    folder = tmp_path / "study"
+    done = subprocess.run(
+        [
+            *PHYSGRAD,
+            "compare",
+            "task=toy",
+            "optim=adam,gd",
+            "trainer.time_budget=1",
+            "compare.trials=2",
+            "compare.seeds=6",
+            "compare.studies=1",
+            f"compare.dir={folder}",
+            *LAUNCHER,
+        ],
+        capture_output=True,
+        text=True,
+        timeout=400,
+    )
+    assert done.returncode == 0, done.stdout + done.stderr
+    assert "SLURM job array" in (folder / "calibration.log").read_text()
+    calibration = json.loads((folder / "calibration.json").read_text())
+    assert calibration["machine"]["hostname"] == socket.gethostname()
+    assert "calibrated on" not in (folder / "compare.md").read_text()  # the same machine
+
+
 STUDY = [
     "task=toy",
     "optim=adam,hig",
-    "trainer.iterations=12000",
+    "trainer.iterations=8000",
     "compare.trials=2",
     "compare.seeds=6",
     "compare.studies=1",
