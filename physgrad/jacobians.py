@@ -231,6 +231,21 @@ def _depends_on(closed_jaxpr: ClosedJaxpr, inputs: int, outputs: int) -> bool:
     return any(isinstance(v, Var) and v in tainted for v in jaxpr.outvars[:outputs])
 
 
+def _network_library(params: Params) -> str | None:
+    """The library a network's parameters are a module of (equinox, flax), where they are one."""
+    found = []
+
+    def module(node: object) -> bool:
+        library = type(node).__module__.partition(".")[0]
+        if library in ("equinox", "flax"):
+            found.append(library)
+            return True
+        return False
+
+    jax.tree_util.tree_flatten(params, is_leaf=module)
+    return found[0] if found else None
+
+
 def plan_layers(
     sample_output: Callable[[Params, Pytree], jax.Array], params: Params, sample: Pytree
 ) -> LayerPlan | str:
@@ -256,6 +271,12 @@ def plan_layers(
         return f"the output could not be traced layer by layer ({type(error).__name__})"
     layers = recorders[0].layers
     if not layers:
+        library = _network_library(params)
+        if library is not None:
+            return (
+                f"the network is a {library} module, whose layers physgrad cannot see (its "
+                "weights through physgrad.nets.apply_mlp would give the layer-factorised form)"
+            )
         return "the network is not built with physgrad.nets.apply_mlp"
     where: dict[int, tuple[int, str]] = {}
     for index, (w_leaf, b_leaf, ndim, _) in enumerate(layers):

@@ -420,6 +420,10 @@ def test_an_equal_time_study_runs_on_the_calibrated_clock_and_can_reuse_a_calibr
     calibration = json.loads((study.folder / "calibration.json").read_text())
     costs = {name: calibration["costs"][name]["step_seconds"] for name in ("adam", "gauss_newton")}
     assert costs["gauss_newton"] > costs["adam"] > 0
+    # measured by a job of the study, launched like the others (on a cluster: where the jobs run)
+    measured = study.folder / "calibration" / "+compare_job=calibration" / "calibration.json"
+    assert json.loads(measured.read_text()) == calibration
+    assert calibration["machine"]["hostname"]
     for _, row in study.runs.iterrows():
         cost = costs[row.variant]
         assert row.iterations == math.ceil(0.4 / cost - 1e-9) or row.status != "completed", row
