@@ -11,7 +11,7 @@ setup: $(STAMP)
 $(STAMP): pyproject.toml
 	$(PYTHON) -m venv $(VENV)
 	$(BIN)/python -m pip install --quiet --upgrade pip
-	$(BIN)/python -m pip install --quiet -e ".[test,launchers,trackers]"
+	$(BIN)/python -m pip install --quiet -e ".[test,launchers,trackers,sims]"
 	touch $(STAMP)
 
 # the README's first command: a small comparison with a verdict (the toy scene, Adam / Gauss-Newton / HIG, each

@@ -274,7 +274,8 @@ def plan_layers(
         library = _network_library(params)
         if library is not None:
             return (
-                f"the network is a {library} module, whose layers physgrad cannot see (its "
+                f"the network is {'an' if library == 'equinox' else 'a'} {library} module, whose "
+                "layers physgrad cannot see (its "
                 "weights through physgrad.nets.apply_mlp would give the layer-factorised form)"
             )
         return "the network is not built with physgrad.nets.apply_mlp"

@@ -187,8 +187,10 @@ def unfinished_jobs(folder: Path, interrupted: bool = False) -> list[tuple[str, 
         if state is not None:
             where = Path(state["folder"]) if state["folder"] else where
         # a job's file: its results, or the step costs of a study's calibration job
-        ended = where is not None and where.is_dir() and (
-            any(where.rglob("results.h5")) or (where / "calibration.json").is_file()
+        ended = (
+            where is not None
+            and where.is_dir()
+            and (any(where.rglob("results.h5")) or (where / "calibration.json").is_file())
         )
         if ended and not (interrupted and state is not None and state["state"] == "interrupted"):
             continue
