@@ -45,7 +45,7 @@ def build(
     train_size,
     test_size,
 ):
-    """physgrad calls this with the keys of conf/task/ode_control.yaml and a PRNG key for the data."""
+    """physgrad calls this with the keys of conf/task/ode_control.yaml and a PRNG key."""
     t1 = number("task.t1", t1, 0, open_low=True)
     dtype = jnp.zeros(()).dtype
     frequencies = jnp.arange(1, modes + 1, dtype=dtype) * jnp.pi / t1
