@@ -30,7 +30,7 @@ import json
 import math
 import re
 import sys
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -43,6 +43,7 @@ from physgrad.verdict import (
     EQUIVALENT,
     MARGIN,
     UNDECIDED,
+    across_studies,
     compare_variants,
     paired,
 )
@@ -543,6 +544,8 @@ class StudyRuns:
     budget: float
     paths: dict
     machine: str = ""
+    # with repeated tuning studies: every study's runs, the first (this one's paths) included
+    tuning: tuple = ()
 
     def curves(self, variant: str, column: str = "loss") -> dict:
         from physgrad.readout import run_curve
@@ -564,26 +567,43 @@ class StudyRuns:
 
 
 def read_study(folder: Path) -> StudyRuns | None:
-    """The study's runs.csv (written by physgrad compare) as StudyRuns; None if the study has not
-    finished. The table is data from a folder that may come from someone else: each run's file is
-    looked for in the folder's own eval/ (the part of its recorded path from "eval" on), never at
-    the path as written (an absolute path or "..": anywhere); a row whose seed, budget or path
-    cannot be read so is a UserError (one line)."""
+    """The study's runs.csv (written by physgrad compare) as StudyRuns of its first tuning study,
+    with every tuning study's in `tuning` where it has several (Lower and Close parts are decided
+    over them by the package's rule, physgrad.verdict.across_studies; the trend, stall and map
+    parts read the first); None if the study has not finished. The table is data from a folder
+    that may come from someone else: each run's file is looked for in the folder's own eval/ (the
+    part of its recorded path from "eval" on), never at the path as written (an absolute path or
+    "..": anywhere); a row whose seed, budget or path cannot be read so is a UserError (one
+    line)."""
     import pandas as pd
-
-    from physgrad.errors import UserError
 
     table = folder / "runs.csv"
     if not table.is_file():
         return None
-    runs = pd.read_csv(table)
-    if "study" in runs:  # the first tuning study's runs: the claims are decided on one
-        runs = runs[runs["study"].astype(str) == "0"]
+    table_runs = pd.read_csv(table)
+    if "study" not in table_runs:  # written before repeated tuning studies: one study
+        return _study_runs(folder, table, table_runs)
+    found = [
+        _study_runs(folder, table, table_runs[table_runs["study"].astype(str) == str(k)])
+        for k in sorted(set(table_runs["study"].astype(str)), key=lambda k: (len(k), k))
+    ]
+    if not found or any(study is None for study in found):
+        return None
+    if len(found) == 1:
+        return found[0]
+    return replace(found[0], tuning=tuple(found))
+
+
+def _study_runs(folder: Path, table: Path, runs: object) -> StudyRuns | None:
+    """One tuning study's rows of runs.csv as StudyRuns (read_study)."""
+    from physgrad.errors import UserError
+
     if not len(runs) or not {"variant", "seed", "axis", "budget", "path"} <= set(runs.columns):
         return None
     inside = (folder / "eval").resolve()
     paths = {}
-    for number, row in enumerate(runs.itertuples(), start=2):
+    for row in runs.itertuples():
+        number = int(row.Index) + 2  # the table's line (a header, then rows from 0)
         parts = Path(str(row.path)).parts
         seed = str(row.seed)
         if "eval" not in parts or not seed.isdigit():
@@ -647,11 +667,18 @@ def decide_pairs(runs: StudyRuns, parts: list) -> list[Decision]:
             for p in present
             if getattr(p, "column", "loss") == column and getattr(p, "margin", MARGIN) == margin
         ]
-        curves = {n: runs.curves(n, column) for n in {v for p in others for v in (p.a, p.b)}}
-        results = compare_variants(
-            curves, runs.budget, pairs=[(p.a, p.b) for p in others], margin=margin
-        )
-        result = results[others.index(part)]
+        names = {v for p in others for v in (p.a, p.b)}
+        # each tuning study decided alone, then over the studies by the package's rule
+        per_study = [
+            compare_variants(
+                {n: study.curves(n, column) for n in names},
+                runs.budget,
+                pairs=[(p.a, p.b) for p in others],
+                margin=margin,
+            )
+            for study in (runs.tuning or (runs,))
+        ]
+        result = across_studies(per_study)[others.index(part)]
         p = result.at[1.0]
         verdict, why = result.verdicts[1.0]
         if isinstance(part, Close):
@@ -679,6 +706,7 @@ def decide_pairs(runs: StudyRuns, parts: list) -> list[Decision]:
             f"{part.a} / {part.b} = {_r(p.ratio)} [{_r(_exp(p.low))}, {_r(_exp(p.high))}], "
             f"{part.a} lower in "
             f"{p.wins_a} of {p.pairs}; at half the budget {_r(result.at[0.5].ratio)}{diverged}"
+            + (f"; over {len(runs.tuning)} tuning studies" if runs.tuning else "")
         )
         decisions.append(Decision(claim, measured, f"{verdict}: {why}"))
     return decisions

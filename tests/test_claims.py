@@ -442,3 +442,59 @@ def test_a_studys_runs_table_is_data_its_paths_stay_in_the_study_folder(tmp_path
         table(row)
         with pytest.raises(UserError, match=why):
             read_study(study)
+    # repeated tuning studies: each study's runs, and a bad row named by its line in the table
+    table(
+        "adam,0,0,iteration,30,eval/+compare_job=eval_v0/seed=0/results.h5",
+        "adam,1,0,iteration,30,eval/+compare_job=eval_st1_v0/seed=0/results.h5",
+        "adam,1,1,iteration,30,eval/../../elsewhere/results.h5",
+    )
+    with pytest.raises(UserError, match="line 4: its path leaves"):
+        read_study(study)
+    table(
+        "adam,0,0,iteration,30,eval/+compare_job=eval_v0/seed=0/results.h5",
+        "adam,1,0,iteration,30,eval/+compare_job=eval_st1_v0/seed=0/results.h5",
+        "adam,2,0,iteration,30,eval/+compare_job=eval_st2_v0/seed=0/results.h5",
+    )
+    found = read_study(study)
+    assert len(found.tuning) == 3 and found.paths == found.tuning[0].paths
+    assert found.tuning[2].paths["adam"][0].endswith("eval_st2_v0/seed=0/results.h5")
+
+
+def tuned(name: str, a_over_b: list[float]) -> FakeStudy:
+    """A study of three tuning studies; in study k, a's loss is a_over_b[k] times b's (every
+    seed, with the seeds' spread); 1.0: the two within noise of each other."""
+    rng = np.random.default_rng(7)
+    studies = []
+    for k, factor in enumerate(a_over_b):
+        noise = rng.normal(0, 0.3, 10) if factor == 1.0 else np.zeros(10)
+        studies.append(
+            FakeStudy(
+                f"{name}-{k}",
+                {
+                    "a": {s: falling(factor * base(s) * np.exp(noise[s])) for s in TEN},
+                    "b": {s: falling(base(s)) for s in TEN},
+                },
+            )
+        )
+    first = studies[0]
+    first.tuning = tuple(studies)
+    return first
+
+
+@pytest.mark.parametrize(
+    "factors, verdict",
+    [
+        ([0.5, 0.5, 1.0], HOLDS),  # 2 of 3 studies, none against
+        ([0.5, 0.5, 0.5], HOLDS),
+        ([0.5, 1.0, 1.0], OPEN),  # 1 of 3
+        ([0.5, 2.0, 0.5], OPEN),  # the studies disagree
+        ([2.0, 2.0, 1.0], FAILS),
+    ],
+)
+def test_a_lower_part_is_decided_over_the_tuning_studies(tmp_path, studies, factors, verdict):
+    """With repeated tuning studies a Lower part holds where A is better in a majority of the
+    studies and in none is it worse, by the package's rule (physgrad.verdict.across_studies)."""
+    studies["s"] = tuned("s", factors)
+    found, ((_, decision),) = claims.decide_claim(claim_of(claims.Lower("s", "a", "b")), tmp_path)
+    assert found == verdict, decision
+    assert "over 3 tuning studies" in decision.measured
