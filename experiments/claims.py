@@ -86,6 +86,16 @@ class Study:
     preset: bool | str = (
         True  # also evaluate the presets untuned (a key=value: with that override replaced)
     )
+    studies: int = 1  # independent tuning studies (compare.studies); CLAIM_STUDIES for the claims
+    # a slice of a longer study (chunks): it adds tuning study `studies` of `slice_of` (compare
+    # given more studies adds them); 0: the whole study
+    slice_of: int = 0
+
+    @property
+    def label(self) -> str:
+        return self.name + (
+            f" (tuning study {self.studies} of {self.slice_of})" if self.slice_of else ""
+        )
 
     def variants(self, preset: bool = False) -> int:
         return math.prod(
@@ -112,8 +122,8 @@ class Study:
             f"compare.dir={root / (self.name + ('-preset' if preset else ''))}",
             f"compare.seeds={self.seeds}",
             f"compare.trials={self.trials}",
-            # one tuning study, as these claims were decided; repeated studies: docs/protocol.md
-            "compare.studies=1",
+            # repeated tuning studies (docs/protocol.md); the untuned presets are one study
+            f"compare.studies={1 if preset else self.studies}",
         ]
         if preset:
             settings.append("compare.tune=false")
@@ -124,12 +134,14 @@ class Study:
     def seconds(self) -> float:
         """The expected wall time: tuning, evaluation, the presets' evaluation, the start networks,
         calibration."""
-        total = (
+        new = 1 if self.slice_of else self.studies  # the tuning studies this command adds
+        first = self.slice_of == 0 or self.studies == 1
+        total = new * (
             self.trials * self.variants() * self.tune_seconds + self.eval_jobs() * self.eval_seconds
         )
         total += self.eval_jobs(preset=True) * self.eval_seconds if self.preset else 0.0
-        total += (self.seeds + 1) * self.start.job_seconds if self.start else 0.0
-        return total + (30.0 * self.variants() if self.timed else 0.0)
+        total += (self.seeds + 1) * self.start.job_seconds if self.start and first else 0.0
+        return total + (30.0 * self.variants() if self.timed and first else 0.0)
 
 
 def _values(override: str) -> list[str]:
@@ -167,83 +179,115 @@ KS_START = Start(
 )
 POISSON_START = Start("poisson_start", ("task=poisson", "optim=adam", "trainer.time_budget=20"), 30)
 
-STUDIES = (
-    _study(
-        "oscillator",
-        "task=oscillator optim=adam,gauss_newton,hig trainer.time_budget=15",
-        3,
-        7,
-        25,
-        25,
-    ),
-    _study(
-        "quantum", "task=quantum optim=adam,hig trainer.time_budget=20", 2, 6, 32, 32, preset=False
-    ),
-    Study(
-        "poisson_continue",
+# the claims' protocol (docs/protocol.md): every variant tuned with CLAIM_TRIALS trials on the same
+# points in each of CLAIM_STUDIES independent tuning studies, evaluated on CLAIM_SEEDS paired seeds:
+# enough for a verdict with one seed against it for up to 6 comparisons of a study (verdict.
+# seeds_for_one_against: 9), so neither iteration nor equal-time claims need every seed on one side
+CLAIM_TRIALS, CLAIM_STUDIES, CLAIM_SEEDS = 8, 3, 10
+
+
+def _claim_study(study: Study) -> Study:
+    """The study under the claims' protocol (its own trials and seeds, the numbers of the earlier
+    one-study profile, are replaced; its per-job costs stay)."""
+    return replace(study, trials=CLAIM_TRIALS, seeds=CLAIM_SEEDS, studies=CLAIM_STUDIES)
+
+
+STUDIES = tuple(
+    map(
+        _claim_study,
         (
-            "task=poisson",
-            "optim=adam,hig",
-            "trainer.time_budget=30",
-            "init_from='{root}/poisson_start/seed=${seed}/results.h5'",
+            _study(
+                "oscillator",
+                "task=oscillator optim=adam,gauss_newton,hig trainer.time_budget=15",
+                3,
+                7,
+                25,
+                25,
+            ),
+            _study(
+                "quantum",
+                "task=quantum optim=adam,hig trainer.time_budget=20",
+                2,
+                6,
+                32,
+                32,
+                preset=False,
+            ),
+            Study(
+                "poisson_continue",
+                (
+                    "task=poisson",
+                    "optim=adam,hig",
+                    "trainer.time_budget=30",
+                    "init_from='{root}/poisson_start/seed=${seed}/results.h5'",
+                ),
+                2,
+                6,
+                43,
+                43,
+                start=POISSON_START,
+                preset=False,
+            ),
+            _study(
+                "toy", "task=toy optim=adam,gauss_newton,hig trainer.time_budget=8", 3, 7, 18, 18
+            ),
+            _study("cart_2", f"{CART} task.poles=2", 2, 10, 17, 100, preset="optim.clip=none"),
+            _study("cart_4", f"{CART} task.poles=4", 2, 10, 17, 120, preset="optim.clip=none"),
+            _study("quantum_control_3", f"{QUANTUM_CONTROL} task.target_level=3", 2, 6, 43, 220),
+            _study("quantum_control_5", f"{QUANTUM_CONTROL} task.target_level=5", 2, 6, 43, 220),
+            _study(
+                "guidance_1",
+                f"{GUIDANCE} task.control_cost=1",
+                2,
+                10,
+                20,
+                115,
+                preset="optim.clip=none",
+            ),
+            _study(
+                "guidance_0.001",
+                f"{GUIDANCE} task.control_cost=0.001",
+                2,
+                10,
+                20,
+                115,
+                preset="optim.clip=none",
+            ),
+            _study(
+                "ks_training",
+                f"{KS} task.stepper=correct task.training=WIG,NOG,ONE unroll=3",
+                3,
+                10,
+                50,
+                270,
+            ),
+            _study(
+                "ks_stepper",
+                # the abstract's pair (NOG correcting, WIG predicting) and WIG against WIG
+                f"{KS} task.training=NOG,WIG task.stepper=correct,predict unroll=3",
+                3,
+                10,
+                50,
+                270,
+            ),
+            Study(
+                "ks_unroll",
+                (
+                    *KS.split(),
+                    "task.stepper=correct",
+                    "task.training=WIG",
+                    "unroll=1,3,8",
+                    "init_from='{root}/ks_start/seed=${seed}/results.h5'",
+                ),
+                2,
+                8,
+                50,
+                50,
+                start=KS_START,
+                preset=False,
+            ),
         ),
-        2,
-        6,
-        43,
-        43,
-        start=POISSON_START,
-        preset=False,
-    ),
-    _study("toy", "task=toy optim=adam,gauss_newton,hig trainer.time_budget=8", 3, 7, 18, 18),
-    _study("cart_2", f"{CART} task.poles=2", 2, 10, 17, 100, preset="optim.clip=none"),
-    _study("cart_4", f"{CART} task.poles=4", 2, 10, 17, 120, preset="optim.clip=none"),
-    _study("quantum_control_3", f"{QUANTUM_CONTROL} task.target_level=3", 2, 6, 43, 220),
-    _study("quantum_control_5", f"{QUANTUM_CONTROL} task.target_level=5", 2, 6, 43, 220),
-    _study(
-        "guidance_1", f"{GUIDANCE} task.control_cost=1", 2, 10, 20, 115, preset="optim.clip=none"
-    ),
-    _study(
-        "guidance_0.001",
-        f"{GUIDANCE} task.control_cost=0.001",
-        2,
-        10,
-        20,
-        115,
-        preset="optim.clip=none",
-    ),
-    _study(
-        "ks_training",
-        f"{KS} task.stepper=correct task.training=WIG,NOG,ONE unroll=3",
-        3,
-        10,
-        50,
-        270,
-    ),
-    _study(
-        "ks_stepper",
-        # the abstract's comparison (NOG correcting against WIG predicting) and WIG against WIG
-        f"{KS} task.training=NOG,WIG task.stepper=correct,predict unroll=3",
-        3,
-        10,
-        50,
-        270,
-    ),
-    Study(
-        "ks_unroll",
-        (
-            *KS.split(),
-            "task.stepper=correct",
-            "task.training=WIG",
-            "unroll=1,3,8",
-            "init_from='{root}/ks_start/seed=${seed}/results.h5'",
-        ),
-        2,
-        8,
-        50,
-        50,
-        start=KS_START,
-        preset=False,
-    ),
+    )
 )
 
 # The regime map: HIG against Adam per cell, both tuned in the cell; the conditioning of the physics
@@ -345,11 +389,29 @@ def starts(studies) -> list[Start]:
     return found
 
 
+def slices(study: Study, limit_seconds: float) -> list[Study]:
+    """A study longer than limit_seconds with repeated tuning studies as one slice per tuning study
+    (the k-th runs compare with compare.studies=k: the same study given one more tuning study adds
+    it); the untuned presets with the last slice. Otherwise the study itself."""
+    if study.seconds() <= limit_seconds or study.studies == 1:
+        return [study]
+    return [
+        replace(
+            study,
+            studies=k,
+            slice_of=study.studies,
+            preset=study.preset if k == study.studies else False,
+        )
+        for k in range(1, study.studies + 1)
+    ]
+
+
 def chunks(studies, limit_seconds: float = 80 * 60) -> list[list[Study]]:
-    """The studies in order, grouped into parts of at most limit_seconds expected (a study longer
-    than that is a part of its own; it resumes job by job)."""
+    """The studies in order, grouped into parts of at most limit_seconds expected; a longer study
+    is cut into its tuning studies (slices); a slice still longer is a part of its own (it resumes
+    job by job)."""
     parts, current, used = [], [], 0.0
-    for study in studies:
+    for study in (piece for whole in studies for piece in slices(whole, limit_seconds)):
         if current and used + study.seconds() > limit_seconds:
             parts.append(current)
             current, used = [], 0.0

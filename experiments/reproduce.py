@@ -258,12 +258,15 @@ def print_claims_plan(profile: str, root: Path) -> None:
                 "(one job per seed)"
             )
         for study in part:
-            tuning = study.trials * study.variants()
+            new = 1 if study.slice_of else study.studies
+            tuning = new * study.trials * study.variants()
             print(
-                f"    {study.name}: {study.variants()} variants, {study.trials} trials each "
-                f"({tuning} tuning jobs), {study.seeds} seeds ({study.eval_jobs()} evaluation jobs"
+                f"    {study.label}: {study.variants()} variants, {study.trials} trials each in "
+                f"{new} tuning stud{'y' if new == 1 else 'ies'} (at most "
+                f"{tuning} tuning jobs: the trials of an optax rule train together), "
+                f"{study.seeds} seeds ({new * study.eval_jobs()} evaluation jobs"
                 f"{f', {study.eval_jobs(preset=True)} untuned' if study.preset else ''}), about "
-                f"{study.seconds() / 60:.0f} min"
+                f"{study.seconds() / 60:.0f} min (an upper bound: one job per trial)"
             )
             print(f"        physgrad compare {' '.join(study.command(root))}")
     print(

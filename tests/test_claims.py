@@ -357,9 +357,26 @@ def test_a_study_command_names_its_folder_seeds_trials_and_the_presets_clock(tmp
 
 
 def test_parts_stay_under_the_limit_and_keep_the_order():
+    """Every study in order; one longer than a part cut into its tuning studies 1, 2, 3 (each a
+    compare of one more study), the slices costing what the whole does, the presets with the
+    last."""
     for profile in claims.PROFILES.values():
         parts = claims.chunks(profile)
-        assert [s for part in parts for s in part] == list(profile)
+        pieces = iter(s for part in parts for s in part)
+        for study in profile:
+            piece = next(pieces)
+            if piece == study:
+                continue
+            cut = [piece] + [next(pieces) for _ in range(study.studies - 1)]
+            assert [(s.name, s.studies, s.slice_of) for s in cut] == [
+                (study.name, k, study.studies) for k in range(1, study.studies + 1)
+            ]
+            assert sum(s.seconds() for s in cut) == pytest.approx(study.seconds())
+            assert [bool(s.preset) for s in cut] == [False] * (study.studies - 1) + [
+                bool(study.preset)
+            ]
+            assert f"compare.studies={study.studies - 1}" in cut[-2].command(Path("r"))
+        assert next(pieces, None) is None
         assert all(sum(s.seconds() for s in part) <= 80 * 60 or len(part) == 1 for part in parts)
 
 
