@@ -4,21 +4,24 @@ claim is read from them, claims.md with tuned and preset verdicts side by side, 
 
 Usage: python experiments/claims.py STUDIES_FOLDER [OUT_FOLDER]
 (STUDIES_FOLDER holds the profile's study folders: outputs/experiments/claims, or .../claims-long
-for that profile's claims-long.md.)
+or .../claims-gpu for that profile's markdown.)
 
-Every study is a `physgrad compare` (docs/protocol.md): each variant tuned with the same number of
-trials on a tuning seed and scored by its validation loss, then evaluated on paired seeds, the
-verdicts from the test loss; its untuned twin (`<study>-preset`, compare.tune=false) evaluates the
-presets on the same seeds and clock. Time budgets run on the calibrated clock (iterations x each
-variant's calibrated step cost). A claim is read from the studies' evaluation runs with physgrad's
-own rules (physgrad.verdict), over the comparisons the paper makes:
-- "A lower than B": the paired verdict at the budget (Holm over the claim's comparisons in that
-  study);
+Every study is a `physgrad compare` (docs/protocol.md): each variant tuned with the same trial
+points (8 per variant) in each of 3 independent tuning studies, scored by its validation loss on
+the tuning seed, then evaluated at its best trial on 10 paired seeds, the verdicts from the test
+loss; its untuned twin (`<study>-preset`, compare.tune=false) evaluates the presets on the same
+seeds and clock. Time budgets run on the calibrated clock (iterations x each variant's calibrated
+step cost). A claim is read from the studies' evaluation runs with physgrad's own rules
+(physgrad.verdict), over the comparisons the paper makes, at X/4, X/2 and X of the budget X (the
+same runs, tuned for X, read earlier):
+- "A lower than B": the paired verdict (Holm over the claim's comparisons in that study), in each
+  tuning study, then over the studies (physgrad.verdict.across_studies: a majority of them, none
+  against);
 - "A close to B": holds when A is better or equivalent within the stated margin, fails when B is
   better;
 - "A's advantage over B grows from the easy setting to the hard one": physgrad.trend.interaction
   on the two studies' per-seed log ratios (the ratio at the hard end below the one at the easy end,
-  with an interval);
+  with an interval), the first tuning study's;
 - "A stalls": the variant's own loss at the budget against its loss at half the budget, paired by
   seed: stalled when the two are equivalent within the margin (neither still falling nor rising).
 A claim holds if every part holds, does not hold if one does not, and is not settled otherwise.
@@ -41,6 +44,7 @@ from physgrad.verdict import (
     A_BETTER,
     B_BETTER,
     EQUIVALENT,
+    FRACTIONS,
     MARGIN,
     UNDECIDED,
     across_studies,
@@ -319,66 +323,86 @@ MAP_OSCILLATOR = tuple(
 )
 MAP = MAP_TOY + MAP_OSCILLATOR
 
-# claims-long: the claims whose budget is a small fraction of the paper's, run further (their own
-# folders)
-LONG = (
-    _study(
-        "quantum_control_3",
-        f"{QUANTUM_CONTROL.replace('=150', '=1000')} task.target_level=3",
-        2,
-        6,
-        230,
-        1200,
-        preset=False,
-    ),
-    _study(
-        "quantum_control_5",
-        f"{QUANTUM_CONTROL.replace('=150', '=1000')} task.target_level=5",
-        2,
-        6,
-        230,
-        1200,
-        preset=False,
-    ),
-    # 4 trials, a decade apart: with 2 (two decades apart) NOG's were 0.052 (diverged) and 5.2e-4,
-    # and NOG at WIG's tuned 1.6e-3 halved WIG's validation error on the tuning seed
-    # (docs/claims.md)
-    _study(
-        "ks_training",
-        f"{KS.replace('=1000', '=5000')} task.stepper=correct task.training=WIG,NOG,ONE unroll=3",
-        4,
-        10,
-        150,
-        1200,
-        preset=False,
-    ),
-    _study(
-        "oscillator",
-        "task=oscillator optim=adam,gauss_newton,hig trainer.time_budget=120",
-        2,
-        7,
-        130,
-        130,
-        preset=False,
-    ),
-    Study(
-        "poisson_continue",
+# claims-long: the claims whose verdict turned with the budget, run four times as long under the
+# same protocol (their own folders): a quarter of the budget is the claims profile's
+LONG = tuple(
+    map(
+        _claim_study,
         (
-            "task=poisson",
-            "optim=adam,hig",
-            "trainer.time_budget=120",
-            "init_from='{root}/poisson_start/seed=${seed}/results.h5'",
+            _study(
+                "oscillator",
+                "task=oscillator optim=adam,gauss_newton,hig trainer.time_budget=60",
+                2,
+                7,
+                70,
+                70,
+                preset=False,
+            ),
+            _study(
+                "quantum_control_3",
+                f"{QUANTUM_CONTROL.replace('=150', '=600')} task.target_level=3",
+                2,
+                6,
+                150,
+                800,
+                preset=False,
+            ),
+            _study(
+                "quantum_control_5",
+                f"{QUANTUM_CONTROL.replace('=150', '=600')} task.target_level=5",
+                2,
+                6,
+                150,
+                800,
+                preset=False,
+            ),
         ),
-        2,
-        6,
-        135,
-        135,
-        start=POISSON_START,
-        preset=False,
-    ),
+    )
 )
 
-PROFILES = {"claims": STUDIES + MAP, "claims-long": LONG}
+# claims-gpu: the claims that need budgets a 2-core machine cannot give, for one GPU. Poisson's
+# HIG step (the SVD of a 4,096-row Jacobian) costs about 13 s on 2 CPU cores and about 128 ms on
+# an H100: 300 s of continuation are about 2,300 HIG steps there (23 here). A job on the
+# calibrated clock costs its budget plus start-up whatever the step costs; the
+# Kuramoto-Sivashinsky jobs are costed at the 2-core machine's update (0.21 s for ten networks),
+# which was not measured on a GPU.
+GPU_POISSON_START = Start(
+    "poisson_start", ("task=poisson", "optim=adam", "trainer.time_budget=300"), 330
+)
+GPU = tuple(
+    map(
+        _claim_study,
+        (
+            Study(
+                "poisson_continue",
+                (
+                    "task=poisson",
+                    "optim=adam,hig",
+                    "trainer.time_budget=300",
+                    "init_from='{root}/poisson_start/seed=${seed}/results.h5'",
+                ),
+                2,
+                6,
+                330,
+                330,
+                start=GPU_POISSON_START,
+                preset=False,
+            ),
+            _study(
+                "ks_training",
+                f"{KS.replace('=1000', '=42500')} task.stepper=correct "
+                "task.training=WIG,NOG,ONE unroll=3",
+                3,
+                10,
+                1400,
+                9500,
+                preset=False,
+            ),
+        ),
+    )
+)
+
+PROFILES = {"claims": STUDIES + MAP, "claims-long": LONG, "claims-gpu": GPU}
 
 
 def starts(studies) -> list[Start]:
@@ -482,19 +506,30 @@ class Claim:
     paper: str  # the claim as the paper states it, and where
     parts: tuple
     note: str = ""  # how the comparison is made, where it departs from the paper's
+    # the paper's training: iterations, or seconds of training time on the paper's hardware
+    # (paper_seconds); nan: not stated as a number
+    paper_budget: float = math.nan
+    paper_budget_text: str = "-"
+    paper_seconds: bool = False
 
 
 R_VARIANTS = ("none", "value", "norm")
+# the unrolling study's training: about 42,500 updates for WIG and NOG (docs/decisions.md)
+KS_UPDATES = 42_500
 
 
 def _bptt(clip: str, mode: str) -> str:
     return f"backprop={mode} clip={clip}"
 
 
-def _stable_bptt(name: str, paper: str, easy: str, hard: str, note: str) -> Claim:
+# the StableBPTT paper trains 32,000 iterations (guidance: 1,000 epochs of 32 batches of 8)
+STABLE_BPTT_ITERATIONS = 32_000
+
+
+def _stable_bptt(name: str, paper: str, easy: str, hard: str, note: str, budget: str) -> Claim:
     parts = [Lower(hard, _bptt(c, "C"), _bptt(c, "R")) for c in R_VARIANTS]
     parts += [Grows(easy, hard, _bptt(c, "C"), _bptt(c, "R")) for c in R_VARIANTS]
-    return Claim(name, paper, tuple(parts), note)
+    return Claim(name, paper, tuple(parts), note, STABLE_BPTT_ITERATIONS, budget)
 
 
 CLAIMS = (
@@ -503,11 +538,15 @@ CLAIMS = (
         "HIG paper (Schnell, Holl and Thuerey, ICLR 2022), Figure 1: on the coupled oscillators "
         "HIG reaches a lower test loss than Adam and Gauss-Newton in the same wall-clock time",
         (Lower("oscillator", "hig", "adam"), Lower("oscillator", "hig", "gauss_newton")),
+        paper_budget=3600.0,
+        paper_budget_text="about an hour (a GPU)",
+        paper_seconds=True,
     ),
     Claim(
         "quantum dipole: HIG below Adam",
         "HIG paper, Figure 2: on quantum dipole control HIG beats Adam in wall-clock time",
         (Lower("quantum", "hig", "adam"),),
+        paper_budget_text="hours",
     ),
     Claim(
         "Poisson: HIG after Adam improves further than Adam",
@@ -515,6 +554,7 @@ CLAIMS = (
         "than continuing with Adam",
         (Lower("poisson_continue", "hig", "adam"),),
         "each seed continues its own Adam network (20 s of Adam, measured clock)",
+        paper_budget_text="hours",
     ),
     _stable_bptt(
         "cart: C keeps solving as poles are added, R degrades",
@@ -525,6 +565,7 @@ CLAIMS = (
         "cart_4",
         "C against R under each clipping of the reference's sweep (none, value, norm), at 4 poles "
         "and as a trend from 2 to 4 poles",
+        "32,000 iterations",
     ),
     Claim(
         "quantum control: C below R at higher target levels",
@@ -535,6 +576,8 @@ CLAIMS = (
             Grows("quantum_control_3", "quantum_control_5", "backprop=C", "backprop=R"),
         ),
         "without clipping only (the clipping variants triple a scene whose step costs 0.2 s)",
+        STABLE_BPTT_ITERATIONS,
+        "32,000 iterations",
     ),
     _stable_bptt(
         "guidance: C below R at small control cost",
@@ -543,6 +586,7 @@ CLAIMS = (
         "guidance_1",
         "guidance_0.001",
         "C against R under each clipping, at rc = 0.001 and as a trend from rc = 1",
+        "1,000 epochs (32,000 iterations)",
     ),
     Claim(
         "KS: correction beats prediction",
@@ -557,6 +601,8 @@ CLAIMS = (
         "m = 3; first the abstract's pair (NOG correcting, WIG predicting), then WIG against WIG "
         "(labelled: the pair physgrad measured before); the factor is the median ratio "
         "predict / correct",
+        KS_UPDATES,
+        "about 42,500 updates",
     ),
     Claim(
         "KS: WIG best, NOG close, ONE worse",
@@ -568,6 +614,8 @@ CLAIMS = (
             Close("ks_training", "training=NOG", "training=WIG", 1.25),
         ),
         "correction stepper, m = 3; close: NOG within 25% of WIG",
+        KS_UPDATES,
+        "about 42,500 updates (ONE about 40,700)",
     ),
     Claim(
         "KS: a best unroll length",
@@ -576,6 +624,8 @@ CLAIMS = (
         (Lower("ks_unroll", "3", "1"), Lower("ks_unroll", "3", "8")),
         "every m continues the same one-step (ONE) network of its seed, as the study starts "
         "longer unrolls",
+        KS_UPDATES,
+        "about 42,500 updates",
     ),
     Claim(
         "toy: HIG converges where Adam and Gauss-Newton stall",
@@ -703,6 +753,14 @@ def _exp(log_value: float) -> float:
     return math.exp(log_value) if abs(log_value) < 700 else (0.0 if log_value < 0 else math.inf)
 
 
+def _fraction_text(fraction: float) -> str:
+    """1/4 of the budget: "X/4"; the budget: "X"."""
+    if fraction == 1.0:
+        return "X"
+    whole = round(1 / fraction)
+    return f"X/{whole}" if math.isclose(whole * fraction, 1.0) else f"{fraction:g} X"
+
+
 def _budget_text(runs: StudyRuns) -> str:
     return {
         "iteration": f"{runs.budget:g} iterations",
@@ -711,8 +769,10 @@ def _budget_text(runs: StudyRuns) -> str:
     }.get(runs.axis, f"{runs.budget:g}")
 
 
-def decide_pairs(runs: StudyRuns, parts: list) -> list[Decision]:
-    """The Lower and Close parts of one study, with Holm's correction over them."""
+def decide_pairs(runs: StudyRuns, parts: list, fraction: float = 1.0) -> list[Decision]:
+    """The Lower and Close parts of one study at `fraction` of its budget, with Holm's correction
+    over them."""
+    fractions = tuple(sorted({*FRACTIONS, fraction}))
     decisions = []
     present = [p for p in parts if p.a in runs.paths and p.b in runs.paths]
     for part in parts:
@@ -737,12 +797,13 @@ def decide_pairs(runs: StudyRuns, parts: list) -> list[Decision]:
                 runs.budget,
                 pairs=[(p.a, p.b) for p in others],
                 margin=margin,
+                fractions=fractions,
             )
             for study in (runs.tuning or (runs,))
         ]
         result = across_studies(per_study)[others.index(part)]
-        p = result.at[1.0]
-        verdict, why = result.verdicts[1.0]
+        p = result.at[fraction]
+        verdict, why = result.verdicts[fraction]
         if isinstance(part, Close):
             claim = (
                 HOLDS
@@ -764,33 +825,39 @@ def decide_pairs(runs: StudyRuns, parts: list) -> list[Decision]:
             for name, k in ((part.a, p.diverged_a), (part.b, p.diverged_b))
             if k
         )
+        earlier = "; ".join(
+            f"at {_fraction_text(f)} {_r(result.at[f].ratio)} ({result.verdicts[f][0]})"
+            for f in fractions
+            if f < fraction
+        )
         measured = (
             f"{part.a} / {part.b} = {_r(p.ratio)} [{_r(_exp(p.low))}, {_r(_exp(p.high))}], "
-            f"{part.a} lower in "
-            f"{p.wins_a} of {p.pairs}; at half the budget {_r(result.at[0.5].ratio)}{diverged}"
+            f"{part.a} lower in {p.wins_a} of {p.pairs}{diverged}"
+            + (f"; {earlier}" if earlier else "")
             + (f"; over {len(runs.tuning)} tuning studies" if runs.tuning else "")
         )
         decisions.append(Decision(claim, measured, f"{verdict}: {why}"))
     return decisions
 
 
-def log_ratios_at_budget(runs: StudyRuns, a: str, b: str) -> list[float]:
+def log_ratios_at_budget(runs: StudyRuns, a: str, b: str, fraction: float = 1.0) -> list[float]:
     ca, cb = runs.curves(a), runs.curves(b)
     seeds = sorted(set(ca) | set(cb))
+    x = runs.budget * fraction
     p = paired(
-        [ca[s].at(runs.budget) if s in ca else math.nan for s in seeds],
-        [cb[s].at(runs.budget) if s in cb else math.nan for s in seeds],
+        [ca[s].at(x) if s in ca else math.nan for s in seeds],
+        [cb[s].at(x) if s in cb else math.nan for s in seeds],
     )
     return list(p.log_ratios)
 
 
-def decide_grows(easy: StudyRuns, hard: StudyRuns, part: Grows) -> Decision:
+def decide_grows(easy: StudyRuns, hard: StudyRuns, part: Grows, fraction: float = 1.0) -> Decision:
     for runs in (easy, hard):
         if not {part.a, part.b} <= set(runs.paths):
             return Decision(NOT_RUN, "-", f"no runs of {part.a} and {part.b} in {runs.folder}")
     r_easy, r_hard = (
-        log_ratios_at_budget(easy, part.a, part.b),
-        log_ratios_at_budget(hard, part.a, part.b),
+        log_ratios_at_budget(easy, part.a, part.b, fraction),
+        log_ratios_at_budget(hard, part.a, part.b, fraction),
     )
     result = interaction(r_easy, r_hard)
     finite = lambda r: [v for v in r if not math.isnan(v)]  # noqa: E731
@@ -803,13 +870,14 @@ def decide_grows(easy: StudyRuns, hard: StudyRuns, part: Grows) -> Decision:
     return Decision(verdict, measured, f"{result.verdict}: {result.why}")
 
 
-def decide_stall(runs: StudyRuns, part: Stalls) -> Decision:
+def decide_stall(runs: StudyRuns, part: Stalls, fraction: float = 1.0) -> Decision:
+    """Stalled by `fraction` of the budget: the loss there against the loss at half of it."""
     if part.variant not in runs.paths:
         return Decision(NOT_RUN, "-", f"no runs of {part.variant} in {runs.folder}")
     curves = runs.curves(part.variant, part.column)
     seeds = sorted(curves)
-    full = [curves[s].at(runs.budget) for s in seeds]
-    half = [curves[s].at(runs.budget / 2) for s in seeds]
+    full = [curves[s].at(runs.budget * fraction) for s in seeds]
+    half = [curves[s].at(runs.budget * fraction / 2) for s in seeds]
     first = [float(curves[s].loss[0]) if len(curves[s].loss) else math.nan for s in seeds]
     # a run that diverged by half the budget has no level there: it counts as rising from its start
     # (a tie of two infinities would read as "stalled")
@@ -834,13 +902,14 @@ def decide_stall(runs: StudyRuns, part: Stalls) -> Decision:
 
 
 def decide_claim(
-    claim: Claim, root: Path, suffix: str = ""
+    claim: Claim, root: Path, suffix: str = "", fraction: float = 1.0, profile: tuple = ()
 ) -> tuple[str, list[tuple[object, Decision]]]:
-    """The claim's verdict from the studies under root (suffix "-preset": the untuned twins) and its
-    parts'."""
+    """The claim's verdict at `fraction` of its budget from the studies under root (suffix
+    "-preset": the untuned twins) and its parts'. profile: the studies of the profile that ran
+    them (default: the claims profile's)."""
     cache = {}
 
-    specs = {s.name: s for s in STUDIES + MAP + LONG}
+    specs = {s.name: s for s in (profile or STUDIES + MAP)}
 
     def study(name):
         if name not in cache:
@@ -876,7 +945,7 @@ def decide_claim(
     for name, parts in by_study.items():
         runs = study(name)
         found = (
-            decide_pairs(runs, parts)
+            decide_pairs(runs, parts, fraction)
             if runs is not None
             else [Decision(NOT_RUN, "-", f"{name} has no presets' twin (cut for time)")]
             * len(parts)
@@ -895,7 +964,7 @@ def decide_claim(
             rows.append(
                 (
                     part,
-                    decide_grows(easy, hard, part)
+                    decide_grows(easy, hard, part, fraction)
                     if easy and hard
                     else Decision(OPEN, "-", "a study of the trend has not finished"),
                 )
@@ -905,7 +974,7 @@ def decide_claim(
             rows.append(
                 (
                     part,
-                    decide_stall(runs, part)
+                    decide_stall(runs, part, fraction)
                     if runs
                     else Decision(OPEN, "-", "the study has not finished"),
                 )
@@ -953,8 +1022,9 @@ def claims_table(root: Path, studies=None) -> str:
     for claim in CLAIMS:
         if names is not None and not studies_of(claim) <= names:
             continue
-        verdict, rows = decide_claim(claim, root)
-        preset_verdict, preset_rows = decide_claim(claim, root, "-preset")
+        profile = tuple(studies) if studies is not None else ()
+        verdict, rows = decide_claim(claim, root, profile=profile)
+        preset_verdict, preset_rows = decide_claim(claim, root, "-preset", profile=profile)
         for i, ((part, d), (_, p)) in enumerate(zip(rows, preset_rows)):
             runs = read_study(root / getattr(part, "study", getattr(part, "hard", "")))
             budget = _budget_text(runs) if runs else "-"
@@ -970,6 +1040,102 @@ def claims_table(root: Path, studies=None) -> str:
                 f"| {head} | {part.text()} | {_part_study(part)}, {budget} | {d.measured} | "
                 f"{d.verdict} ({d.why}) | {p.measured} | {p.verdict} ({p.why}) |"
             )
+    return "\n".join(lines) + "\n"
+
+
+def claim_verdicts(
+    claim: Claim, root: Path, suffix: str = "", profile: tuple = ()
+) -> dict[float, str]:
+    """The claim's verdict at each fraction of the budget (FRACTIONS: X/4, X/2, X)."""
+    return {f: decide_claim(claim, root, suffix, f, profile)[0] for f in FRACTIONS}
+
+
+def study_protocol(folder: Path) -> tuple[int, int, int] | None:
+    """What a finished study ran: (trials per variant and tuning study, tuning studies, seeds),
+    read from its trials.csv and runs.csv (0 trials: untuned); None if it has not finished."""
+    import pandas as pd
+
+    runs = read_study(folder)
+    if runs is None:
+        return None
+    studies = len(runs.tuning) or 1
+    seeds = max((len(by) for by in runs.paths.values()), default=0)
+    trials = 0
+    table = folder / "trials.csv"
+    if table.is_file():
+        rows = pd.read_csv(table)
+        if {"variant", "trial"} <= set(rows.columns) and len(rows):
+            keys = ["variant", "study"] if "study" in rows.columns else ["variant"]
+            trials = int(rows.groupby(keys)["trial"].nunique().max())
+    return trials, studies, seeds
+
+
+def _main_study(claim: Claim) -> str:
+    """The study that gives a claim its budget: the first part's (a trend's hard end)."""
+    part = claim.parts[0]
+    return part.hard if isinstance(part, Grows) else part.study
+
+
+def _share_text(claim: Claim, runs: StudyRuns) -> str:
+    """The budget here against the paper's, e.g. "1,500 iterations (4.7% of 32,000 iterations)"."""
+    here = _budget_text(runs)
+    seconds = runs.axis in ("wall_time", "calibrated_time")
+    if math.isnan(claim.paper_budget) or seconds != claim.paper_seconds:
+        return f"{here}; the paper's: {claim.paper_budget_text}"
+    share = 100 * runs.budget / claim.paper_budget
+    return f"{here}: {share:.2g}% of the paper's {claim.paper_budget_text}"
+
+
+def _verdicts_text(verdicts: dict[float, str]) -> list[str]:
+    return [f"**{verdicts[f]}**" if f == 1.0 else verdicts[f] for f in FRACTIONS]
+
+
+NOT_YET = "not run yet"
+
+
+def headline_table(root: Path, profile: tuple, further: tuple = ()) -> str:
+    """One row per claim: what its studies ran (trials per variant in each tuning study, tuning
+    studies, paired seeds), the budget and its share of the paper's, the tuned verdict at X/4, X/2
+    and X, the presets' at X, and, where a profile of longer budgets ran the claim (further:
+    (folder, that profile's studies) pairs: claims-long, claims-gpu), its budget and verdicts at
+    its X/4, X/2 and X. A claim that holds at one budget and does not at another says so first."""
+    lines = [
+        "| claim | trials x tuning studies, seeds | budget here | tuned at X/4 | X/2 | X | "
+        "presets at X | longer budget: X/4, X/2, X |",
+        "|---|---|---|---|---|---|---|---|",
+    ]
+    names = {s.name for s in profile}
+    for claim in CLAIMS:
+        if not studies_of(claim) <= names:
+            continue
+        main = _main_study(claim)
+        runs = read_study(root / main)
+        if runs is None:
+            lines.append(f"| {claim.name} | {NOT_YET} | | | | | | |")
+            continue
+        trials, studies, seeds = study_protocol(root / main)
+        tuned = claim_verdicts(claim, root, profile=profile)
+        preset, _ = decide_claim(claim, root, "-preset", 1.0, profile)
+        longer, seen = "not in a longer profile", list(tuned.values())
+        for folder, studies_there in further:
+            if not studies_of(claim) <= {s.name for s in studies_there}:
+                continue
+            long_runs = read_study(folder / main)
+            if long_runs is None:
+                longer = f"{NOT_YET} ({folder.name})"
+                continue
+            found = claim_verdicts(claim, folder, profile=studies_there)
+            seen += found.values()
+            longer = f"{folder.name}, {_budget_text(long_runs)}: " + ", ".join(
+                _verdicts_text(found)
+            )
+        turned = HOLDS in seen and FAILS in seen
+        head = f"{'**reverses with the budget**: ' if turned else ''}{claim.name}"
+        lines.append(
+            f"| {head} | {trials} x {studies}, {seeds} | {_share_text(claim, runs)} | "
+            + " | ".join(_verdicts_text(tuned))
+            + f" | {preset} | {longer} |"
+        )
     return "\n".join(lines) + "\n"
 
 
@@ -1164,12 +1330,21 @@ def write(root: Path, out: Path, note: str = "", profile: str = "claims") -> str
     out.mkdir(parents=True, exist_ok=True)
     rule = __doc__.split("\n\n")[2]
     studies = PROFILES[profile]
+    # the claims profile's headline also reads the profiles of longer budgets beside its folder
+    further = (
+        tuple((root.parent / name, PROFILES[name]) for name in ("claims-long", "claims-gpu"))
+        if profile == "claims"
+        else ()
+    )
     text = (
         f"# The papers' claims, measured\n\n{note + chr(10) + chr(10) if note else ''}"
         + rule
         + "\n\n"
         f"Studies under {root}; each study's own table (variants, tuned settings, every pair, "
-        "timing): `<study>/compare.md`.\n\n"
+        "timing): `<study>/compare.md`. X is a study's budget; a verdict at X/4 or X/2 reads "
+        "the same runs (tuned for X) earlier.\n\n"
+        + headline_table(root, studies, further)
+        + "\n"
         + claims_table(root, studies)
         + (regime_map(root, out, note) if set(MAP) <= set(studies) else "")
     )

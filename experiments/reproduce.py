@@ -1,6 +1,7 @@
-"""`make reproduce-figures [PROFILE=quick|paper|claims|claims-long]`: run the figure sweeps of
-conf/experiment/ and write the figures and one markdown summary into outputs/figures/; or, for the
-claims profiles, the papers' claims as `physgrad compare` studies and outputs/figures/claims.md.
+"""`make reproduce-figures [PROFILE=quick|paper|claims|claims-long|claims-gpu]`: run the figure
+sweeps of conf/experiment/ and write the figures and one markdown summary into outputs/figures/;
+or, for the claims profiles, the papers' claims as `physgrad compare` studies and
+outputs/figures/<profile>.md.
 
 The experiment configs hold the papers' budgets (PROFILE=paper). The quick profile (the default)
 runs the same sweeps with the budgets below, so that everything finishes in about 45 minutes on a
@@ -11,10 +12,11 @@ is `physgrad report` of its runs: the same table and figures that command writes
 
 The claims profile runs the studies of experiments/claims.py (STUDIES and the regime map MAP), each
 a `physgrad compare` (tuned, paired seeds, calibrated clock) and its untuned twin, into
-outputs/experiments/claims/<study>; claims-long runs the claims whose budget is a small fraction of
-the paper's further. Both resume study by study and job by job; `--plan` prints the studies, their
-expected time and the parts of at most about 80 minutes that `--part K` runs one at a time;
-claims.md is written from whatever studies have finished.
+outputs/experiments/claims/<study>; claims-long runs the claims whose verdict turned with the
+budget four times as long, claims-gpu the claims that need budgets for one GPU. Each resumes
+study by study and job by job; `--plan` prints the studies, their expected time and the parts of
+at most about 80 minutes that `--part K` runs one at a time; the markdown is written from
+whatever studies have finished.
 """
 
 from __future__ import annotations
@@ -227,8 +229,10 @@ NOTES = {
     "paper": "paper profile: the papers' budgets",
     "claims": "CLAIMS PROFILE: physgrad compare studies (tuned, paired seeds, calibrated clock), "
     "budgets sized for a 2-core machine (experiments/claims.py)",
-    "claims-long": "CLAIMS-LONG PROFILE: the claims with the smallest share of the paper's "
-    "budget, run further (experiments/claims.py)",
+    "claims-long": "CLAIMS-LONG PROFILE: the claims whose verdict turned with the budget, run "
+    "four times as long (experiments/claims.py)",
+    "claims-gpu": "CLAIMS-GPU PROFILE: the claims that need budgets a 2-core machine cannot give, "
+    "for one GPU (experiments/claims.py)",
 }
 
 
@@ -240,6 +244,14 @@ def claims_parts(profile: str) -> list:
     from claims import PROFILES, chunks  # experiments/ is this script's folder
 
     return chunks(PROFILES[profile])
+
+
+ON_2_CORES = "on a 2-core machine"
+PLAN_MACHINE = {
+    "claims-gpu": "on one GPU (Poisson's jobs cost their calibrated budget whatever the step "
+    "costs; the Kuramoto-Sivashinsky jobs are costed at the 2-core machine's update, which was "
+    "not measured on a GPU)"
+}
 
 
 def print_claims_plan(profile: str, root: Path) -> None:
@@ -270,8 +282,8 @@ def print_claims_plan(profile: str, root: Path) -> None:
             )
             print(f"        physgrad compare {' '.join(study.command(root))}")
     print(
-        f"expected total: about {total / 3600:.1f} h on a 2-core machine, in parts run one after "
-        "another (each resumes where it stopped; finished jobs are skipped)"
+        f"expected total: about {total / 3600:.1f} h {PLAN_MACHINE.get(profile, ON_2_CORES)}, in "
+        "parts run one after another (each resumes where it stopped; finished jobs are skipped)"
     )
 
 

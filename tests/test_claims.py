@@ -4,6 +4,7 @@ target) decided by physgrad's rules on synthetic curves with known answers."""
 
 import math
 import sys
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -391,7 +392,7 @@ def test_every_study_composes_and_its_variants_apply():
         study_settings,
     )
 
-    for study in claims.STUDIES + claims.MAP + claims.LONG:
+    for study in claims.STUDIES + claims.MAP + claims.LONG + claims.GPU:
         overrides = [o for o in study.command(Path("/nowhere")) if not o.startswith("init_from")]
         given, axes, common, _ = split_overrides(overrides)
         s = study_settings(given)
@@ -515,3 +516,85 @@ def test_a_lower_part_is_decided_over_the_tuning_studies(tmp_path, studies, fact
     found, ((_, decision),) = claims.decide_claim(claim_of(claims.Lower("s", "a", "b")), tmp_path)
     assert found == verdict, decision
     assert "over 3 tuning studies" in decision.measured
+
+
+def crossing(final_a: float, s: int) -> Curve:
+    """A loss that falls fast and then stops at final_a x base (b's falls steadily to base): A is
+    far ahead early and behind at the budget when final_a > 1."""
+    loss = base(s) * np.maximum(final_a, 40.0 * np.exp(-X / 60.0))
+    return Curve(X, loss, X[-1])
+
+
+def test_a_claim_is_decided_at_each_fraction_of_its_budget_and_a_reversal_heads_its_row(
+    tmp_path, studies
+):
+    """A ahead at X/4 and behind at X (a claim that turns with the budget): the claim holds at X/4,
+    does not at X, and the headline says it reverses; the longer profile's verdicts count for the
+    reversal too."""
+    slow = {s: Curve(X, base(s) * 100.0 ** (1 - X / X[-1]), X[-1]) for s in TEN}
+    studies["oscillator"] = FakeStudy(
+        "oscillator",
+        {"hig": {s: crossing(3.0, s) for s in TEN}, "adam": slow, "gauss_newton": slow},
+    )
+    studies["oscillator"].folder = tmp_path / "oscillator"
+    claim = next(c for c in claims.CLAIMS if c.name.startswith("oscillators"))
+    verdicts = claims.claim_verdicts(claim, tmp_path)
+    assert verdicts[0.25] == HOLDS and verdicts[1.0] == FAILS, verdicts
+    _, rows = claims.decide_claim(claim, tmp_path, fraction=1.0)
+    assert "at X/4" in rows[0][1].measured and "(A better)" in rows[0][1].measured
+    table = claims.headline_table(tmp_path, claims.PROFILES["claims"])
+    row = next(line for line in table.splitlines() if "oscillators" in line)
+    assert row.startswith("| **reverses with the budget**: oscillators")
+    assert "| holds |" in row and "**does not hold**" in row
+    # the paper's hour is no share of iterations
+    assert "1000 iterations; the paper's: about an hour (a GPU)" in row
+    # a claim that holds at every fraction does not reverse, unless a longer profile's verdict does
+    studies["oscillator"] = FakeStudy(
+        "oscillator",
+        {"hig": {s: falling(0.01 * base(s)) for s in TEN}, "adam": slow, "gauss_newton": slow},
+    )
+    row = next(
+        line
+        for line in claims.headline_table(tmp_path, claims.PROFILES["claims"]).splitlines()
+        if "oscillators" in line
+    )
+    assert "reverses" not in row and row.count("holds") == 3
+
+
+def test_the_headline_states_what_a_study_ran_from_its_own_tables(tmp_path):
+    """Trials per variant and tuning study from trials.csv, the tuning studies and seeds from
+    runs.csv: what ran, not what the profile asked for."""
+    study = tmp_path / "cart_4"
+    rows = ["variant,study,seed,axis,budget,path"]
+    trials = ["variant,study,trial,learning_rate,validation_loss,state"]
+    for k in range(3):
+        for variant in ("a", "b"):
+            for seed in range(10):
+                job = f"eval_st{k}_{variant}"
+                (study / "eval" / job).mkdir(parents=True, exist_ok=True)
+                rows.append(f"{variant},{k},{seed},iteration,1500,eval/{job}/results.h5")
+            trials += [f"{variant},{k},{t},0.001,0.5,COMPLETE" for t in range(8)]
+    (study / "runs.csv").write_text("\n".join(rows) + "\n")
+    (study / "trials.csv").write_text("\n".join(trials) + "\n")
+    assert claims.study_protocol(study) == (8, 3, 10)
+    assert claims.study_protocol(tmp_path / "nothing") is None
+    cart = next(c for c in claims.CLAIMS if c.name.startswith("cart"))
+    runs = claims.read_study(study)
+    assert claims._share_text(cart, runs) == (
+        "1500 iterations: 4.7% of the paper's 32,000 iterations"
+    )
+    oscillators = next(c for c in claims.CLAIMS if c.name.startswith("oscillators"))
+    timed = replace(runs, axis="calibrated_time", budget=15.0)
+    assert claims._share_text(oscillators, timed) == (
+        "15 s (calibrated clock): 0.42% of the paper's about an hour (a GPU)"
+    )
+
+
+def test_the_presets_verdict_reads_the_profile_that_ran_the_study(tmp_path, studies):
+    """A study name shared by two profiles (oscillator in claims and claims-long) is read with the
+    profile that ran it: the claims profile's oscillator has a presets' twin, claims-long's not."""
+    claim = next(c for c in claims.CLAIMS if c.name.startswith("oscillators"))
+    verdict, rows = claims.decide_claim(claim, tmp_path, "-preset")
+    assert verdict == OPEN and "has no finished study" in rows[0][1].why
+    verdict, rows = claims.decide_claim(claim, tmp_path, "-preset", profile=claims.LONG)
+    assert verdict == claims.NOT_RUN and "no presets' twin" in rows[0][1].why
