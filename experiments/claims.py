@@ -21,9 +21,10 @@ same runs, tuned for X, read earlier):
   better;
 - "A's advantage over B grows from the easy setting to the hard one": physgrad.trend.interaction
   on the two studies' per-seed log ratios (the ratio at the hard end below the one at the easy end,
-  with an interval), the first tuning study's;
+  with an interval), in each tuning study and then over them as above;
 - "A stalls": the variant's own loss at the budget against its loss at half the budget, paired by
-  seed: stalled when the two are equivalent within the margin (neither still falling nor rising).
+  seed: stalled when the two are equivalent within the margin (neither still falling nor rising),
+  in each tuning study and then over them.
 A claim holds if every part holds, does not hold if one does not, and is not settled otherwise.
 """
 
@@ -49,6 +50,7 @@ from physgrad.verdict import (
     UNDECIDED,
     across_studies,
     compare_variants,
+    over_studies,
     paired,
 )
 
@@ -681,8 +683,9 @@ class StudyRuns:
 def read_study(folder: Path) -> StudyRuns | None:
     """The study's runs.csv (written by physgrad compare) as StudyRuns of its first tuning study,
     with every tuning study's in `tuning` where it has several (Lower and Close parts are decided
-    over them by the package's rule, physgrad.verdict.across_studies; the trend, stall and map
-    parts read the first); None if the study has not finished. The table is data from a folder
+    over them by the package's rule, physgrad.verdict.across_studies; the trend and stall parts
+    are decided in each and over them by the same rule, verdict.over_studies; the regime map reads
+    the first); None if the study has not finished. The table is data from a folder
     that may come from someone else: each run's file is looked for in the folder's own eval/ (the
     part of its recorded path from "eval" on), never at the path as written (an absolute path or
     "..": anywhere); a row whose seed, budget or path cannot be read so is a UserError (one
@@ -851,29 +854,53 @@ def log_ratios_at_budget(runs: StudyRuns, a: str, b: str, fraction: float = 1.0)
     return list(p.log_ratios)
 
 
+def _tuning_studies(runs: StudyRuns) -> tuple:
+    return runs.tuning or (runs,)
+
+
+def _over_studies(verdicts: list[str], whys: list[str]) -> tuple[str, str]:
+    """One study's verdict and why as they are; several by the package's rule over tuning studies
+    (physgrad.verdict.over_studies: a majority, none against)."""
+    if len(verdicts) == 1:
+        return verdicts[0], whys[0]
+    return over_studies(verdicts)
+
+
 def decide_grows(easy: StudyRuns, hard: StudyRuns, part: Grows, fraction: float = 1.0) -> Decision:
+    """The trend in each tuning study (its easy and its hard setting's runs), then over the
+    studies."""
     for runs in (easy, hard):
         if not {part.a, part.b} <= set(runs.paths):
             return Decision(NOT_RUN, "-", f"no runs of {part.a} and {part.b} in {runs.folder}")
-    r_easy, r_hard = (
-        log_ratios_at_budget(easy, part.a, part.b, fraction),
-        log_ratios_at_budget(hard, part.a, part.b, fraction),
-    )
-    result = interaction(r_easy, r_hard)
+    pairs = list(zip(_tuning_studies(easy), _tuning_studies(hard)))
+    ratios = [
+        (
+            log_ratios_at_budget(e, part.a, part.b, fraction),
+            log_ratios_at_budget(h, part.a, part.b, fraction),
+        )
+        for e, h in pairs
+    ]
+    results = [interaction(r_easy, r_hard) for r_easy, r_hard in ratios]
+    found, why = _over_studies([r.verdict for r in results], [r.why for r in results])
     finite = lambda r: [v for v in r if not math.isnan(v)]  # noqa: E731
+    pooled_easy = finite([v for r, _ in ratios for v in r])
+    pooled_hard = finite([v for _, r in ratios for v in r])
+    median = lambda r: _r(_exp(float(np.median(r)))) if r else "-"  # noqa: E731
     measured = (
-        f"{part.a} / {part.b}: {_r(_exp(float(np.median(finite(r_easy)))))} at {part.easy}, "
-        f"{_r(_exp(float(np.median(finite(r_hard)))))} at {part.hard}; hard / easy = "
-        f"{_r(result.factor)} [{_r(_exp(result.low))}, {_r(_exp(result.high))}]"
+        f"{part.a} / {part.b}: {median(pooled_easy)} at {part.easy}, {median(pooled_hard)} at "
+        f"{part.hard}; hard / easy = "
+        + ", ".join(f"{_r(r.factor)} [{_r(_exp(r.low))}, {_r(_exp(r.high))}]" for r in results)
+        + (f" in {len(results)} tuning studies" if len(results) > 1 else "")
     )
-    verdict = HOLDS if result.verdict == GROWS else OPEN if result.verdict == UNDECIDED else FAILS
-    return Decision(verdict, measured, f"{result.verdict}: {result.why}")
+    verdict = HOLDS if found == GROWS else OPEN if found == UNDECIDED else FAILS
+    return Decision(verdict, measured, f"{found}: {why}")
 
 
-def decide_stall(runs: StudyRuns, part: Stalls, fraction: float = 1.0) -> Decision:
-    """Stalled by `fraction` of the budget: the loss there against the loss at half of it."""
-    if part.variant not in runs.paths:
-        return Decision(NOT_RUN, "-", f"no runs of {part.variant} in {runs.folder}")
+def _stall_in(runs: StudyRuns, part: Stalls, fraction: float) -> tuple:
+    """One tuning study's stall test: (paired loss at the fraction / at half of it, losses there,
+    losses at the start, verdict, why)."""
+    from physgrad.verdict import decide
+
     curves = runs.curves(part.variant, part.column)
     seeds = sorted(curves)
     full = [curves[s].at(runs.budget * fraction) for s in seeds]
@@ -883,19 +910,30 @@ def decide_stall(runs: StudyRuns, part: Stalls, fraction: float = 1.0) -> Decisi
     # (a tie of two infinities would read as "stalled")
     half = [h if not math.isinf(h) else f for h, f in zip(half, first)]
     p = paired(full, half)
-    from physgrad.verdict import decide
-
     verdict, why = decide(p, p.p_difference, p.p_equivalent)
+    return p, full, first, verdict, why
+
+
+def decide_stall(runs: StudyRuns, part: Stalls, fraction: float = 1.0) -> Decision:
+    """Stalled by `fraction` of the budget: the loss there against the loss at half of it, paired
+    by seed, in each tuning study, then over the studies."""
+    if part.variant not in runs.paths:
+        return Decision(NOT_RUN, "-", f"no runs of {part.variant} in {runs.folder}")
+    tests = [_stall_in(study, part, fraction) for study in _tuning_studies(runs)]
+    verdict, why = _over_studies([t[3] for t in tests], [t[4] for t in tests])
     claim = {EQUIVALENT: HOLDS, A_BETTER: FAILS}.get(verdict, OPEN)
     if verdict == B_BETTER:  # rising: unstable, not stalled
         claim, why = FAILS, f"rising, not stalled ({why})"
     elif verdict == A_BETTER:
         why = f"still falling ({why})"
+    full = [v for t in tests for v in t[1]]
+    first = [v for t in tests for v in t[2]]
     diverged = sum(math.isinf(v) for v in full)
     measured = (
-        f"{part.column} at the budget / at half of it = {_r(p.ratio)} [{_r(_exp(p.low))}, "
-        f"{_r(_exp(p.high))}]"
-        f"; at the budget / at the start: {_r(float(np.nanmedian(np.divide(full, first))))}"
+        f"{part.column} at the budget / at half of it = "
+        + ", ".join(f"{_r(p.ratio)} [{_r(_exp(p.low))}, {_r(_exp(p.high))}]" for p, *_ in tests)
+        + (f" in {len(tests)} tuning studies" if len(tests) > 1 else "")
+        + f"; at the budget / at the start: {_r(float(np.nanmedian(np.divide(full, first))))}"
         + (f"; diverged in {diverged} of {len(full)}" if diverged else "")
     )
     return Decision(claim, measured, f"{verdict}: {why}")

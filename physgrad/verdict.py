@@ -387,24 +387,28 @@ def across_studies(per_study: Sequence[Sequence[PairVerdict]]) -> list[PairVerdi
             )
             result.p_difference[fraction] = sorted(v.p_difference[fraction] for v in pair)[need - 1]
             result.p_equivalent[fraction] = sorted(v.p_equivalent[fraction] for v in pair)[need - 1]
-            found = [v.verdicts[fraction][0] for v in pair]
-            decided = set(found) - {UNDECIDED}
-            listed = ", ".join(found)
-            if len(decided) == 1 and found.count(next(iter(decided))) >= need:
-                result.verdicts[fraction] = (
-                    next(iter(decided)),
-                    f"{found.count(next(iter(decided)))} of {len(pair)} tuning studies: {listed}",
-                )
-            elif len(decided) > 1:
-                result.verdicts[fraction] = (UNDECIDED, f"the tuning studies disagree: {listed}")
-            else:
-                result.verdicts[fraction] = (
-                    UNDECIDED,
-                    f"{len(pair) - found.count(UNDECIDED)} of {len(pair)} tuning studies decided, "
-                    f"{need} needed: {listed}",
-                )
+            result.verdicts[fraction] = over_studies([v.verdicts[fraction][0] for v in pair])
         combined.append(result)
     return combined
+
+
+def over_studies(found: Sequence[str], undecided: str = UNDECIDED) -> tuple[str, str]:
+    """One verdict from each repeated tuning study's (found[k]) by across_studies' rule: the
+    verdict more than half of the studies reached when no study reached another; `undecided`
+    otherwise, with why naming each study's verdict."""
+    need = majority(len(found))
+    decided = set(found) - {undecided}
+    listed = ", ".join(found)
+    if len(decided) == 1 and found.count(next(iter(decided))) >= need:
+        verdict = next(iter(decided))
+        return verdict, f"{found.count(verdict)} of {len(found)} tuning studies: {listed}"
+    if len(decided) > 1:
+        return undecided, f"the tuning studies disagree: {listed}"
+    return (
+        undecided,
+        f"{len(found) - found.count(undecided)} of {len(found)} tuning studies decided, "
+        f"{need} needed: {listed}",
+    )
 
 
 def divergence_test(diverged_a: int, n_a: int, diverged_b: int, n_b: int) -> float:

@@ -598,3 +598,70 @@ def test_the_presets_verdict_reads_the_profile_that_ran_the_study(tmp_path, stud
     assert verdict == OPEN and "has no finished study" in rows[0][1].why
     verdict, rows = claims.decide_claim(claim, tmp_path, "-preset", profile=claims.LONG)
     assert verdict == claims.NOT_RUN and "no presets' twin" in rows[0][1].why
+
+
+def three_studies(name: str, per_study: list[dict]) -> FakeStudy:
+    """A study of len(per_study) tuning studies, study k's runs per_study[k]."""
+    found = [FakeStudy(f"{name}-{k}", by) for k, by in enumerate(per_study)]
+    found[0].tuning = tuple(found)
+    return found[0]
+
+
+@pytest.mark.parametrize(
+    "hard_ratios, verdict, why",
+    [
+        ([0.3, 0.3, 0.3], HOLDS, "3 of 3 tuning studies"),
+        ([0.3, 0.3, 0.9 / 1.1], HOLDS, "2 of 3 tuning studies"),  # the third undecided
+        ([0.3, 0.3, 1.2], OPEN, "disagree"),  # the third against: does not grow
+        ([0.3, 0.9 / 1.1, 0.9 / 1.1], OPEN, "1 of 3 tuning studies decided"),
+        ([1.2, 1.2, 1.2], FAILS, "3 of 3 tuning studies"),
+    ],
+)
+def test_a_trend_is_decided_in_each_tuning_study_and_then_over_them(
+    tmp_path, studies, hard_ratios, verdict, why
+):
+    """C/R 0.9 at the easy end in every study; at the hard end 0.3 (grows), 0.9/1.1 (lower by the
+    margin itself: undecided) or 1.2 (higher: does not grow) per study. Over three studies
+    by the package's rule: a majority, none against."""
+    spread = np.linspace(-0.05, 0.05, 10)  # the seeds' scatter, the same in every study
+
+    def runs(ratio):
+        return {
+            "C": {s: falling(ratio * base(s) * math.exp(spread[(3 * s) % 10])) for s in TEN},
+            "R": {s: falling(base(s)) for s in TEN},
+        }
+
+    studies["easy"] = three_studies("easy", [runs(0.9) for _ in hard_ratios])
+    studies["hard"] = three_studies("hard", [runs(r) for r in hard_ratios])
+    found, ((_, d),) = claims.decide_claim(
+        claim_of(claims.Grows("easy", "hard", "C", "R")), tmp_path
+    )
+    assert found == verdict and why in d.why, d
+    assert "in 3 tuning studies" in d.measured
+
+
+@pytest.mark.parametrize(
+    "slopes, verdict",
+    [
+        (["stalled", "stalled", "stalled"], HOLDS),
+        (["stalled", "stalled", "slow"], OPEN),  # one study still falling: against the majority
+        (["slow", "slow", "slow"], FAILS),
+    ],
+)
+def test_a_stall_is_decided_in_each_tuning_study_and_then_over_them(
+    tmp_path, studies, slopes, verdict
+):
+    rng = np.random.default_rng(12)
+    noise = lambda: math.exp(rng.normal(0, 0.01))  # noqa: E731
+    shapes = {"stalled": (0.5, 0.5), "slow": (0.1, 0.3)}
+
+    def runs(kind):
+        final, half = shapes[kind]
+        return {
+            "adam": {s: falling(final * base(s) * noise(), base(s), half * base(s)) for s in TEN}
+        }
+
+    studies["toy"] = three_studies("toy", [runs(k) for k in slopes])
+    found, ((_, d),) = claims.decide_claim(claim_of(claims.Stalls("toy", "adam")), tmp_path)
+    assert found == verdict, d
+    assert "in 3 tuning studies" in d.measured

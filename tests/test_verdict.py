@@ -511,3 +511,24 @@ def test_a_true_2x_effect_is_found_by_the_default_study():
 
     found = simulate(2.0, 16, 3, sims=200)
     assert found[A_BETTER] >= 160 and found[B_BETTER] == 0
+
+
+@pytest.mark.parametrize(
+    "found, verdict, why",
+    [
+        (["A better"] * 3, "A better", "3 of 3 tuning studies"),
+        (["A better", "undecided", "A better"], "A better", "2 of 3 tuning studies"),
+        (["A better", "undecided", "undecided"], "undecided", "1 of 3 tuning studies decided, 2"),
+        (["A better", "A better", "B better"], "undecided", "disagree"),
+        (["A better", "A better", "equivalent"], "undecided", "disagree"),
+        (["grows", "does not grow", "undecided"], "undecided", "disagree"),
+        (["grows", "grows", "undecided"], "grows", "2 of 3"),
+        (["B better"] * 2, "B better", "2 of 2"),
+        (["B better", "undecided"], "undecided", "1 of 2 tuning studies decided, 2 needed"),
+    ],
+)
+def test_one_verdict_over_tuning_studies_needs_a_majority_and_none_against(found, verdict, why):
+    from physgrad.verdict import over_studies
+
+    got, reason = over_studies(found)
+    assert got == verdict and why in reason, reason
