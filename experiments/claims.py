@@ -555,7 +555,8 @@ CLAIMS = (
         "HIG paper, Figure 3: continuing an Adam-trained network with HIG lowers the loss further "
         "than continuing with Adam",
         (Lower("poisson_continue", "hig", "adam"),),
-        "each seed continues its own Adam network (20 s of Adam, measured clock)",
+        "each seed continues its own Adam network (poisson_start: Adam on the measured clock, 20 s "
+        "in the claims profile, 300 s in claims-gpu)",
         paper_budget_text="hours",
     ),
     _stable_bptt(
@@ -806,23 +807,12 @@ def decide_pairs(runs: StudyRuns, parts: list, fraction: float = 1.0) -> list[De
         ]
         result = across_studies(per_study)[others.index(part)]
         p = result.at[fraction]
-        verdict, why = result.verdicts[fraction]
-        if isinstance(part, Close):
-            claim = (
-                HOLDS
-                if verdict in (A_BETTER, EQUIVALENT)
-                else FAILS
-                if verdict == B_BETTER
-                else OPEN
-            )
-        else:
-            claim = (
-                HOLDS
-                if verdict == A_BETTER
-                else FAILS
-                if verdict in (B_BETTER, EQUIVALENT)
-                else OPEN
-            )
+        found = [v.verdicts[fraction] for v in (result.studies or [result])]
+        claim, why = _over_studies(
+            [_pair_outcome(part, verdict) for verdict, _ in found],
+            [f"{verdict}: {why}" for verdict, why in found],
+            [verdict for verdict, _ in found],
+        )
         diverged = "".join(
             f"; {name} diverged in {k} of {p.seeds}"
             for name, k in ((part.a, p.diverged_a), (part.b, p.diverged_b))
@@ -839,8 +829,16 @@ def decide_pairs(runs: StudyRuns, parts: list, fraction: float = 1.0) -> list[De
             + (f"; {earlier}" if earlier else "")
             + (f"; over {len(runs.tuning)} tuning studies" if runs.tuning else "")
         )
-        decisions.append(Decision(claim, measured, f"{verdict}: {why}"))
+        decisions.append(Decision(claim, measured, why))
     return decisions
+
+
+def _pair_outcome(part, verdict: str) -> str:
+    """What a pair's verdict says of a Lower part (A better: holds; B better or equivalent: does
+    not hold) or a Close part (A better or equivalent: holds; B better: does not hold)."""
+    if isinstance(part, Close):
+        return {A_BETTER: HOLDS, EQUIVALENT: HOLDS, B_BETTER: FAILS}.get(verdict, OPEN)
+    return {A_BETTER: HOLDS, EQUIVALENT: FAILS, B_BETTER: FAILS}.get(verdict, OPEN)
 
 
 def log_ratios_at_budget(runs: StudyRuns, a: str, b: str, fraction: float = 1.0) -> list[float]:
@@ -858,12 +856,15 @@ def _tuning_studies(runs: StudyRuns) -> tuple:
     return runs.tuning or (runs,)
 
 
-def _over_studies(verdicts: list[str], whys: list[str]) -> tuple[str, str]:
-    """One study's verdict and why as they are; several by the package's rule over tuning studies
-    (physgrad.verdict.over_studies: a majority, none against)."""
-    if len(verdicts) == 1:
-        return verdicts[0], whys[0]
-    return over_studies(verdicts)
+def _over_studies(outcomes: list[str], whys: list[str], verdicts: list[str]) -> tuple[str, str]:
+    """A part's outcome (holds, does not hold, not settled) from each tuning study's, with why:
+    one study's as it is; several by the package's rule over tuning studies
+    (physgrad.verdict.over_studies: a majority, none against) applied to what each study's verdict
+    says of the part, so that two verdicts that both support it (A better and equivalent, for "A
+    close to B") do not count as a disagreement; why lists each study's verdict."""
+    if len(outcomes) == 1:
+        return outcomes[0], whys[0]
+    return over_studies(outcomes, undecided=OPEN, labels=verdicts)
 
 
 def decide_grows(easy: StudyRuns, hard: StudyRuns, part: Grows, fraction: float = 1.0) -> Decision:
@@ -872,6 +873,13 @@ def decide_grows(easy: StudyRuns, hard: StudyRuns, part: Grows, fraction: float 
     for runs in (easy, hard):
         if not {part.a, part.b} <= set(runs.paths):
             return Decision(NOT_RUN, "-", f"no runs of {part.a} and {part.b} in {runs.folder}")
+    if len(_tuning_studies(easy)) != len(_tuning_studies(hard)):
+        return Decision(
+            OPEN,
+            "-",
+            f"{part.easy} has {len(_tuning_studies(easy))} tuning studies and {part.hard} "
+            f"{len(_tuning_studies(hard))}: decided when both have finished the same number",
+        )
     pairs = list(zip(_tuning_studies(easy), _tuning_studies(hard)))
     ratios = [
         (
@@ -881,7 +889,12 @@ def decide_grows(easy: StudyRuns, hard: StudyRuns, part: Grows, fraction: float 
         for e, h in pairs
     ]
     results = [interaction(r_easy, r_hard) for r_easy, r_hard in ratios]
-    found, why = _over_studies([r.verdict for r in results], [r.why for r in results])
+    trend = {GROWS: HOLDS, UNDECIDED: OPEN}
+    verdict, why = _over_studies(
+        [trend.get(r.verdict, FAILS) for r in results],
+        [f"{r.verdict}: {r.why}" for r in results],
+        [r.verdict for r in results],
+    )
     finite = lambda r: [v for v in r if not math.isnan(v)]  # noqa: E731
     pooled_easy = finite([v for r, _ in ratios for v in r])
     pooled_hard = finite([v for _, r in ratios for v in r])
@@ -892,8 +905,7 @@ def decide_grows(easy: StudyRuns, hard: StudyRuns, part: Grows, fraction: float 
         + ", ".join(f"{_r(r.factor)} [{_r(_exp(r.low))}, {_r(_exp(r.high))}]" for r in results)
         + (f" in {len(results)} tuning studies" if len(results) > 1 else "")
     )
-    verdict = HOLDS if found == GROWS else OPEN if found == UNDECIDED else FAILS
-    return Decision(verdict, measured, f"{found}: {why}")
+    return Decision(verdict, measured, why)
 
 
 def _stall_in(runs: StudyRuns, part: Stalls, fraction: float) -> tuple:
@@ -920,12 +932,14 @@ def decide_stall(runs: StudyRuns, part: Stalls, fraction: float = 1.0) -> Decisi
     if part.variant not in runs.paths:
         return Decision(NOT_RUN, "-", f"no runs of {part.variant} in {runs.folder}")
     tests = [_stall_in(study, part, fraction) for study in _tuning_studies(runs)]
-    verdict, why = _over_studies([t[3] for t in tests], [t[4] for t in tests])
-    claim = {EQUIVALENT: HOLDS, A_BETTER: FAILS}.get(verdict, OPEN)
-    if verdict == B_BETTER:  # rising: unstable, not stalled
-        claim, why = FAILS, f"rising, not stalled ({why})"
-    elif verdict == A_BETTER:
-        why = f"still falling ({why})"
+    # falling (A better: the loss at the budget lower) is slow, rising (B better) unstable: neither
+    # is stalled
+    says = {EQUIVALENT: "stalled", A_BETTER: "still falling", B_BETTER: "rising, not stalled"}
+    claim, why = _over_studies(
+        [{EQUIVALENT: HOLDS, A_BETTER: FAILS, B_BETTER: FAILS}.get(t[3], OPEN) for t in tests],
+        [f"{t[3]}: {says.get(t[3], '')} ({t[4]})" for t in tests],
+        [says.get(t[3], t[3]) for t in tests],
+    )
     full = [v for t in tests for v in t[1]]
     first = [v for t in tests for v in t[2]]
     diverged = sum(math.isinf(v) for v in full)
@@ -936,7 +950,7 @@ def decide_stall(runs: StudyRuns, part: Stalls, fraction: float = 1.0) -> Decisi
         + f"; at the budget / at the start: {_r(float(np.nanmedian(np.divide(full, first))))}"
         + (f"; diverged in {diverged} of {len(full)}" if diverged else "")
     )
-    return Decision(claim, measured, f"{verdict}: {why}")
+    return Decision(claim, measured, why)
 
 
 def decide_claim(
@@ -1115,13 +1129,15 @@ def _main_study(claim: Claim) -> str:
 
 
 def _share_text(claim: Claim, runs: StudyRuns) -> str:
-    """The budget here against the paper's, e.g. "1,500 iterations (4.7% of 32,000 iterations)"."""
+    """The budget here against the paper's, e.g. "1500 iterations: 4.7% of the paper's 32,000
+    iterations"."""
     here = _budget_text(runs)
     seconds = runs.axis in ("wall_time", "calibrated_time")
     if math.isnan(claim.paper_budget) or seconds != claim.paper_seconds:
         return f"{here}; the paper's: {claim.paper_budget_text}"
     share = 100 * runs.budget / claim.paper_budget
-    return f"{here}: {share:.2g}% of the paper's {claim.paper_budget_text}"
+    percent = f"{share:.2g}" if share < 10 else f"{share:.0f}"
+    return f"{here}: {percent}% of the paper's {claim.paper_budget_text}"
 
 
 def _verdicts_text(verdicts: dict[float, str]) -> list[str]:
@@ -1136,7 +1152,8 @@ def headline_table(root: Path, profile: tuple, further: tuple = ()) -> str:
     studies, paired seeds), the budget and its share of the paper's, the tuned verdict at X/4, X/2
     and X, the presets' at X, and, where a profile of longer budgets ran the claim (further:
     (folder, that profile's studies) pairs: claims-long, claims-gpu), its budget and verdicts at
-    its X/4, X/2 and X. A claim that holds at one budget and does not at another says so first."""
+    its X/4, X/2 and X, with what it ran. A claim that holds at one budget and does not at another
+    says so first (apart, where one of the two is the GPU profile's: the machine changed too)."""
     lines = [
         "| claim | trials x tuning studies, seeds | budget here | tuned at X/4 | X/2 | X | "
         "presets at X | longer budget: X/4, X/2, X |",
@@ -1154,7 +1171,7 @@ def headline_table(root: Path, profile: tuple, further: tuple = ()) -> str:
         trials, studies, seeds = study_protocol(root / main)
         tuned = claim_verdicts(claim, root, profile=profile)
         preset, _ = decide_claim(claim, root, "-preset", 1.0, profile)
-        longer, seen = "not in a longer profile", list(tuned.values())
+        longer, seen, elsewhere = "not in a longer profile", list(tuned.values()), []
         for folder, studies_there in further:
             if not studies_of(claim) <= {s.name for s in studies_there}:
                 continue
@@ -1163,12 +1180,20 @@ def headline_table(root: Path, profile: tuple, further: tuple = ()) -> str:
                 longer = f"{NOT_YET} ({folder.name})"
                 continue
             found = claim_verdicts(claim, folder, profile=studies_there)
-            seen += found.values()
-            longer = f"{folder.name}, {_budget_text(long_runs)}: " + ", ".join(
+            # the GPU's profile changes the machine with the budget: its turns are told apart
+            (elsewhere if studies_there == GPU else seen).extend(found.values())
+            t, k, n = study_protocol(folder / main)
+            longer = f"{folder.name}, {_budget_text(long_runs)} ({t} x {k}, {n}): " + ", ".join(
                 _verdicts_text(found)
             )
-        turned = HOLDS in seen and FAILS in seen
-        head = f"{'**reverses with the budget**: ' if turned else ''}{claim.name}"
+        turned = (
+            "**reverses with the budget**: "
+            if HOLDS in seen and FAILS in seen
+            else "**turns with a GPU's budget**: "
+            if {HOLDS, FAILS} <= {*seen, *elsewhere}
+            else ""
+        )
+        head = f"{turned}{claim.name}"
         lines.append(
             f"| {head} | {trials} x {studies}, {seeds} | {_share_text(claim, runs)} | "
             + " | ".join(_verdicts_text(tuned))

@@ -392,13 +392,15 @@ def across_studies(per_study: Sequence[Sequence[PairVerdict]]) -> list[PairVerdi
     return combined
 
 
-def over_studies(found: Sequence[str], undecided: str = UNDECIDED) -> tuple[str, str]:
+def over_studies(
+    found: Sequence[str], undecided: str = UNDECIDED, labels: Sequence[str] = ()
+) -> tuple[str, str]:
     """One verdict from each repeated tuning study's (found[k]) by across_studies' rule: the
     verdict more than half of the studies reached when no study reached another; `undecided`
-    otherwise, with why naming each study's verdict."""
+    otherwise, with why naming each study's verdict (or its label, labels[k])."""
     need = majority(len(found))
     decided = set(found) - {undecided}
-    listed = ", ".join(found)
+    listed = ", ".join(labels or found)
     if len(decided) == 1 and found.count(next(iter(decided))) >= need:
         verdict = next(iter(decided))
         return verdict, f"{found.count(verdict)} of {len(found)} tuning studies: {listed}"

@@ -45,8 +45,13 @@ class FakeStudy(claims.StudyRuns):
 
 @pytest.fixture
 def studies(monkeypatch):
+    """Studies by folder name, or by the whole folder path where one is given (two profiles'
+    folders of one study name)."""
     found = {}
-    monkeypatch.setattr(claims, "read_study", lambda folder: found.get(Path(folder).name))
+    monkeypatch.setattr(
+        claims, "read_study", lambda folder: found.get(str(folder), found.get(Path(folder).name))
+    )
+    monkeypatch.setattr(claims, "study_protocol", lambda folder: (8, 3, 10))
     return found
 
 
@@ -559,6 +564,50 @@ def test_a_claim_is_decided_at_each_fraction_of_its_budget_and_a_reversal_heads_
         if "oscillators" in line
     )
     assert "reverses" not in row and row.count("holds") == 3
+    # ... unless a longer profile's verdict does: read from its own folder, with what it ran
+    longer = tmp_path / "claims-long"
+    studies[str(longer / "oscillator")] = FakeStudy(
+        "oscillator",
+        {"hig": {s: crossing(3.0, s) for s in TEN}, "adam": slow, "gauss_newton": slow},
+    )
+    further = ((longer, claims.LONG), (tmp_path / "claims-gpu", claims.GPU))
+    table = claims.headline_table(tmp_path, claims.PROFILES["claims"], further)
+    row = next(line for line in table.splitlines() if "oscillators" in line)
+    assert row.startswith("| **reverses with the budget**: oscillators"), row
+    assert "claims-long, 1000 iterations (8 x 3, 10): holds" in row and "**does not hold**" in row
+    # a claim the longer profiles do not run says so; one they run but have not finished too
+    studies["quantum"] = FakeStudy("quantum", {"hig": slow, "adam": slow})
+    studies["ks_training"] = FakeStudy("ks_training", {})
+    studies[str(tmp_path / "claims-gpu" / "ks_training")] = None  # not finished there
+    table = claims.headline_table(tmp_path, claims.PROFILES["claims"], further)
+    row = next(line for line in table.splitlines() if line.startswith("| quantum dipole"))
+    assert "not in a longer profile" in row
+    row = next(line for line in table.splitlines() if "WIG best" in line)
+    assert "not run yet (claims-gpu)" in row
+
+
+def test_a_turn_that_comes_with_the_gpu_profile_is_told_apart(tmp_path, studies):
+    """Poisson does not hold on 2 cores and holds in claims-gpu: the machine changed with the
+    budget, so the row says so, not "reverses with the budget"."""
+    studies["poisson_continue"] = FakeStudy(
+        "poisson_continue",
+        {
+            "hig": {s: falling(2.0 * base(s)) for s in TEN},
+            "adam": {s: falling(base(s)) for s in TEN},
+        },
+    )
+    studies[str(tmp_path / "claims-gpu" / "poisson_continue")] = FakeStudy(
+        "poisson_continue",
+        {
+            "hig": {s: falling(0.5 * base(s)) for s in TEN},
+            "adam": {s: falling(base(s)) for s in TEN},
+        },
+    )
+    further = ((tmp_path / "claims-long", claims.LONG), (tmp_path / "claims-gpu", claims.GPU))
+    table = claims.headline_table(tmp_path, claims.PROFILES["claims"], further)
+    row = next(line for line in table.splitlines() if "Poisson" in line)
+    assert row.startswith("| **turns with a GPU's budget**: Poisson"), row
+    assert "**does not hold**" in row and "claims-gpu" in row and "**holds**" in row
 
 
 def test_the_headline_states_what_a_study_ran_from_its_own_tables(tmp_path):
@@ -665,3 +714,58 @@ def test_a_stall_is_decided_in_each_tuning_study_and_then_over_them(
     found, ((_, d),) = claims.decide_claim(claim_of(claims.Stalls("toy", "adam")), tmp_path)
     assert found == verdict, d
     assert "in 3 tuning studies" in d.measured
+
+
+def test_a_trend_over_settings_with_different_numbers_of_tuning_studies_waits(tmp_path, studies):
+    """A profile cut into slices can have finished three tuning studies of the easy setting and one
+    of the hard: the trend is not decided from the one pair."""
+    spread = np.linspace(-0.05, 0.05, 10)
+
+    def runs(ratio):
+        return {
+            "C": {s: falling(ratio * base(s) * math.exp(spread[(3 * s) % 10])) for s in TEN},
+            "R": {s: falling(base(s)) for s in TEN},
+        }
+
+    studies["easy"] = three_studies("easy", [runs(0.9)] * 3)
+    studies["hard"] = FakeStudy("hard", runs(0.3))
+    found, ((_, d),) = claims.decide_claim(
+        claim_of(claims.Grows("easy", "hard", "C", "R")), tmp_path
+    )
+    assert found == OPEN and "3 tuning studies and hard 1" in d.why, d
+
+
+def test_studies_whose_verdicts_all_support_a_part_agree(tmp_path, studies):
+    """Over tuning studies a part is decided by what each study's verdict says of it: for "A close
+    to B" both A better and equivalent support it, for "A lower than B" both B better and
+    equivalent go against it; for a stall both still falling and rising say "not stalled"."""
+    spread = np.linspace(-0.01, 0.01, 10)
+
+    def pair(ratio):
+        return {
+            "a": {s: falling(ratio * base(s) * math.exp(spread[(3 * s) % 10])) for s in TEN},
+            "b": {s: falling(base(s)) for s in TEN},
+        }
+
+    # A better (0.5), equivalent (1.0), equivalent
+    studies["s"] = three_studies("s", [pair(0.5), pair(1.0), pair(1.0)])
+    found, ((_, d),) = claims.decide_claim(claim_of(claims.Close("s", "a", "b", 1.25)), tmp_path)
+    assert found == HOLDS and "3 of 3" in d.why and "A better, equivalent" in d.why, d
+    # for "a lower than b" the same studies are 1 for, 2 against: not settled
+    found, ((_, d),) = claims.decide_claim(claim_of(claims.Lower("s", "a", "b")), tmp_path)
+    assert found == OPEN and "disagree" in d.why, d
+    # B better (2.0), equivalent, B better: A is not lower in any study
+    studies["s"] = three_studies("s", [pair(2.0), pair(1.0), pair(2.0)])
+    found, ((_, d),) = claims.decide_claim(claim_of(claims.Lower("s", "a", "b")), tmp_path)
+    assert found == FAILS and "3 of 3" in d.why, d
+    noise = lambda s: math.exp(spread[(7 * s) % 10])  # noqa: E731
+    shapes = {"slow": (0.1, 0.3), "rising": (3.0, 0.9)}
+
+    def adam(kind):
+        final, half = shapes[kind]
+        curves = {s: falling(final * base(s) * noise(s), base(s), half * base(s)) for s in TEN}
+        return {"adam": curves}
+
+    studies["toy"] = three_studies("toy", [adam("slow"), adam("rising"), adam("slow")])
+    found, ((_, d),) = claims.decide_claim(claim_of(claims.Stalls("toy", "adam")), tmp_path)
+    assert found == FAILS and "still falling, rising, not stalled, still falling" in d.why, d
