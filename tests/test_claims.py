@@ -419,17 +419,19 @@ def test_the_ks_study_table_says_when_a_claim_has_nothing_to_compare():
 
 
 def test_a_study_without_a_presets_twin_says_so_for_the_presets(tmp_path, studies):
-    studies["quantum"] = FakeStudy(
-        "quantum",
+    """The claims profile runs every study's presets' twin; the longer profiles run none."""
+    studies["quantum_control_5"] = FakeStudy(
+        "quantum_control_5",
         {
-            "hig": {s: falling(0.5 * base(s)) for s in TEN},
-            "adam": {s: falling(base(s)) for s in TEN},
+            "backprop=C": {s: falling(0.5 * base(s)) for s in TEN},
+            "backprop=R": {s: falling(base(s)) for s in TEN},
         },
     )
-    claim = claim_of(claims.Lower("quantum", "hig", "adam"))
-    assert not next(s for s in claims.STUDIES if s.name == "quantum").preset
-    assert claims.decide_claim(claim, tmp_path)[0] == HOLDS
-    verdict, ((_, d),) = claims.decide_claim(claim, tmp_path, "-preset")
+    claim = claim_of(claims.Lower("quantum_control_5", "backprop=C", "backprop=R"))
+    assert all(s.preset for s in claims.STUDIES)
+    assert not any(s.preset for s in claims.LONG + claims.GPU)
+    assert claims.decide_claim(claim, tmp_path, profile=claims.LONG)[0] == HOLDS
+    verdict, ((_, d),) = claims.decide_claim(claim, tmp_path, "-preset", profile=claims.LONG)
     assert verdict == claims.NOT_RUN and "no presets' twin" in d.why
 
 
@@ -553,6 +555,7 @@ def test_a_claim_is_decided_at_each_fraction_of_its_budget_and_a_reversal_heads_
     assert "| holds |" in row and "**does not hold**" in row
     # the paper's hour is no share of iterations
     assert "1000 iterations; the paper's: about an hour (a GPU)" in row
+    assert "| not run yet |" in row  # the presets' twin has no finished study
     # a claim that holds at every fraction does not reverse, unless a longer profile's verdict does
     studies["oscillator"] = FakeStudy(
         "oscillator",
