@@ -15,8 +15,9 @@ step cost). A claim is read from the studies' evaluation runs with physgrad's ow
 (physgrad.verdict), over the comparisons the paper makes, at X/4, X/2 and X of the budget X (the
 same runs, tuned for X, read earlier):
 - "A lower than B": the paired verdict (Holm over the claim's comparisons in that study), in each
-  tuning study, then over the studies (physgrad.verdict.across_studies: a majority of them, none
-  against);
+  tuning study, then over the studies by what each study's verdict says of the part
+  (physgrad.verdict.over_studies: a majority of them, none against; "equivalent" goes against "A
+  lower than B" and supports "A close to B");
 - "A close to B": holds when A is better or equivalent within the stated margin, fails when B is
   better;
 - "A's advantage over B grows from the easy setting to the hard one": physgrad.trend.interaction
