@@ -287,12 +287,18 @@ def print_claims_plan(profile: str, root: Path) -> None:
     )
 
 
-def run_start(start, seeds: int, root: Path) -> int:
-    """The networks a study continues from: one job per evaluation seed and the tuning seed, in
-    <root>/<name>/seed=S."""
+def start_seeds(seeds: int, tuning_studies: int) -> list[int]:
+    """The seeds a study that continues networks needs a start network for: its evaluation seeds
+    and the tuning seed of each tuning study (compare's tune_seed + k)."""
     from claims import TUNE_SEED
 
-    seed_list = ",".join(str(s) for s in [*range(seeds), TUNE_SEED])
+    return [*range(seeds), *(TUNE_SEED + k for k in range(tuning_studies))]
+
+
+def run_start(start, seeds: int, tuning_studies: int, root: Path) -> int:
+    """The networks a study continues from: one job per start seed (start_seeds), in
+    <root>/<name>/seed=S; those that finished before are skipped."""
+    seed_list = ",".join(str(s) for s in start_seeds(seeds, tuning_studies))
     command = [
         sys.executable,
         "-m",
@@ -319,7 +325,9 @@ def run_claims(profile: str, parts: list[int], root: Path, out: Path) -> int:
         part = all_parts[index - 1]
         for start in starts(part):
             seeds = max(s.seeds for s in part if s.start == start)
-            if run_start(start, seeds, root) != 0:
+            # a slice k of a study adds tuning study k: the start networks of studies 1..k
+            tuning_studies = max(s.studies for s in part if s.start == start)
+            if run_start(start, seeds, tuning_studies, root) != 0:
                 failed.append(start.name)
         for study in part:
             for preset in (False, True) if study.preset else (False,):

@@ -772,3 +772,24 @@ def test_studies_whose_verdicts_all_support_a_part_agree(tmp_path, studies):
     studies["toy"] = three_studies("toy", [adam("slow"), adam("rising"), adam("slow")])
     found, ((_, d),) = claims.decide_claim(claim_of(claims.Stalls("toy", "adam")), tmp_path)
     assert found == FAILS and "still falling, rising, not stalled, still falling" in d.why, d
+
+
+def test_a_continuing_study_gets_a_start_network_for_every_tuning_seed(tmp_path):
+    """A study that continues networks (init_from) tunes each tuning study on its own seed
+    (compare's tune_seed + k): the profile makes a start network for each, and for the evaluation
+    seeds, and plans their cost once over the slices."""
+    import reproduce
+
+    from physgrad.comparison import split_overrides, study_settings
+
+    study = next(s for s in claims.STUDIES if s.name == "poisson_continue")
+    given, *_ = split_overrides(study.command(tmp_path))
+    settings = study_settings(given)
+    tuning_seeds = [settings.tune_seed + k for k in range(settings.studies)]
+    wanted = reproduce.start_seeds(study.seeds, study.studies)
+    assert set(tuning_seeds) | set(settings.evaluation_seeds) == set(wanted)
+    slices = claims.slices(study, 0)
+    assert [reproduce.start_seeds(s.seeds, s.studies)[-1] for s in slices] == tuning_seeds
+    starts = study.start.job_seconds * len(wanted)
+    whole_without_start = replace(study, start=None).seconds()
+    assert study.seconds() - whole_without_start == pytest.approx(starts)
