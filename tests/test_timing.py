@@ -180,7 +180,10 @@ def test_the_calibration_ranks_real_steps_by_their_cost():
         name: load("task=toy", f"optim={name}", "trainer.batch_size=64")
         for name in ("adam", "gauss_newton")
     }
-    result = calibrate(configs, seed=0, rounds=40, min_seconds=0.5, max_seconds=60)
+    # max_seconds well above what 40 rounds of bursts take (about 10 s with a study beside it; 31
+    # rounds were done at 60 s with a study and the whole suite beside it), so that a loaded machine
+    # slows the calibration without cutting its rounds: the count is what is asserted
+    result = calibrate(configs, seed=0, rounds=40, min_seconds=0.5, max_seconds=600)
     costs = {name: c["step_seconds"] for name, c in result["costs"].items()}
     assert costs["gauss_newton"] > costs["adam"] > 0
     assert result["costs"]["gauss_newton"]["rounds"] == result["costs"]["adam"]["rounds"] >= 40
