@@ -642,6 +642,7 @@ CLAIMS = (
         ),
         "on the second component's error (the one lambda scales down): HIG lower, and Adam's and "
         "Gauss-Newton's no longer falling from half the budget to the budget",
+        paper_budget_text="not recorded (a toy that shows the mechanism)",
     ),
 )
 
@@ -937,7 +938,7 @@ def decide_stall(runs: StudyRuns, part: Stalls, fraction: float = 1.0) -> Decisi
     says = {EQUIVALENT: "stalled", A_BETTER: "still falling", B_BETTER: "rising, not stalled"}
     claim, why = _over_studies(
         [{EQUIVALENT: HOLDS, A_BETTER: FAILS, B_BETTER: FAILS}.get(t[3], OPEN) for t in tests],
-        [f"{t[3]}: {says.get(t[3], '')} ({t[4]})" for t in tests],
+        [f"{t[3]}{f': {says[t[3]]}' if t[3] in says else ''} ({t[4]})" for t in tests],
         [says.get(t[3], t[3]) for t in tests],
     )
     full = [v for t in tests for v in t[1]]

@@ -185,6 +185,16 @@ def test_stall_tells_a_stalled_variant_from_a_slow_and_an_unstable_one(tmp_path,
     )
     # not a tie of infinities
     assert verdict == FAILS and "rising" in d.why and "diverged in 10 of 10" in d.measured
+    # half the seeds 30% up, half 30% down: undecided, said once (no empty label before the test's)
+    error["mixed"] = {
+        s: falling((0.65 if s % 2 else 0.35) * base(s) * noise(), base(s), 0.5 * base(s))
+        for s in TEN
+    }
+    studies["toy"] = FakeStudy("toy", error, columns={"error_second": error})
+    verdict, ((_, d),) = claims.decide_claim(
+        claim_of(claims.Stalls("toy", "mixed", "error_second")), tmp_path
+    )
+    assert verdict == OPEN and d.why.startswith("undecided (") and ":  (" not in d.why, d.why
 
 
 def test_a_claim_without_its_study_is_open_and_says_why(tmp_path, studies):
