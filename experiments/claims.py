@@ -1032,6 +1032,17 @@ def decide_claim(
                     else Decision(OPEN, "-", "the study has not finished"),
                 )
             )
+    if suffix:  # a presets' twin that fixes an axis runs only the papers' value of it: say so
+        fixed = {n: specs[n].preset for n in specs if isinstance(specs[n].preset, str)}
+        rows = [
+            (
+                part,
+                _fixed_by_twin(
+                    d, [fixed[n] for n in sorted(studies_of(claim_of_part(part))) if n in fixed]
+                ),
+            )
+            for part, d in rows
+        ]
     # a part whose variants a study does not run (the presets' study fixes the clipping) is left out
     # of the claim's verdict, which then speaks for the parts that were run
     verdicts = [d.verdict for _, d in rows if d.verdict != NOT_RUN]
@@ -1045,6 +1056,14 @@ def decide_claim(
     if rows and not verdicts and suffix:
         verdict = NOT_RUN  # the presets' twin of none of the claim's parts was run
     return verdict, rows
+
+
+def _fixed_by_twin(decision: Decision, fixed: list[str]) -> Decision:
+    """A part the presets' twin does not run because the twin fixes an axis (optim.clip=none, the
+    papers' setting) says that, not which variants are missing."""
+    if decision.verdict != NOT_RUN or not fixed:
+        return decision
+    return Decision(NOT_RUN, "-", f"the presets' twin runs {fixed[0]} only (the papers' setting)")
 
 
 def _part_study(part) -> str:

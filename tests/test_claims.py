@@ -214,6 +214,34 @@ def test_a_claim_without_its_study_is_open_and_says_why(tmp_path, studies):
     assert verdict == HOLDS and [d.verdict for _, d in rows] == [claims.NOT_RUN, HOLDS]
 
 
+def test_a_presets_twin_that_fixes_the_clipping_says_why_it_leaves_a_part_out(tmp_path, studies):
+    """The StableBPTT twins run the papers' setting (no clipping) only: the clipped parts say so,
+    and the claim's presets' verdict speaks for the unclipped part."""
+    study = claims.Study(
+        "cartx",
+        ("task=multicart", "optim.backprop=R,C", "optim.clip=none,value"),
+        8,
+        10,
+        1,
+        1,
+        preset="optim.clip=none",
+    )
+    studies["cartx-preset"] = FakeStudy(
+        "cartx-preset",
+        {
+            "backprop=C clip=none": {s: falling(0.5 * base(s)) for s in TEN},
+            "backprop=R clip=none": {s: falling(base(s)) for s in TEN},
+        },
+    )
+    claim = claim_of(
+        claims.Lower("cartx", "backprop=C clip=none", "backprop=R clip=none"),
+        claims.Lower("cartx", "backprop=C clip=value", "backprop=R clip=value"),
+    )
+    verdict, rows = claims.decide_claim(claim, tmp_path, "-preset", profile=(study,))
+    assert verdict == HOLDS and [d.verdict for _, d in rows] == [HOLDS, claims.NOT_RUN]
+    assert rows[1][1].why == "the presets' twin runs optim.clip=none only (the papers' setting)"
+
+
 def test_the_regime_map_cell_is_the_time_to_target_ratio(tmp_path, studies, monkeypatch):
     """HIG reaches the target (the lower median loss at the budget) at 200 iterations in every seed,
     Adam at 800: ratio 0.25; a seed where Adam never reaches it counts as infinite."""
