@@ -31,6 +31,7 @@ A claim holds if every part holds, does not hold if one does not, and is not set
 
 from __future__ import annotations
 
+import argparse
 import json
 import math
 import re
@@ -1437,17 +1438,34 @@ def write(root: Path, out: Path, note: str = "", profile: str = "claims") -> str
     return text
 
 
-if __name__ == "__main__":
-    if len(sys.argv) not in (2, 3):
-        print(__doc__.split("\n\n")[1], file=sys.stderr)
-        sys.exit(2)
-    source = Path(sys.argv[1])
-    # outputs/experiments/claims-long: that profile's
-    profile = source.name if source.name in PROFILES else "claims"
+def main(argv: list[str] | None = None) -> int:
+    """Writes OUT_FOLDER/<profile>.md (claims.md, claims-long.md, claims-gpu.md) from STUDIES."""
+    parser = argparse.ArgumentParser(
+        prog="claims.py", description=__doc__.split("\n\n")[0].replace("\n", " ")
+    )
+    parser.add_argument(
+        "studies", type=Path, help="the profile's study folders (outputs/experiments/claims)"
+    )
+    parser.add_argument("out", type=Path, nargs="?", help="where claims.md goes (default: STUDIES)")
+    args = parser.parse_args(argv)
     from physgrad.errors import UserError
 
+    if not args.studies.is_dir():  # before anything is written: a typo must not create folders
+        print(
+            f"claims: error: no study folder {args.studies}: give the profile's folder, "
+            "e.g. outputs/experiments/claims",
+            file=sys.stderr,
+        )
+        return 2
+    # outputs/experiments/claims-long: that profile's
+    profile = args.studies.name if args.studies.name in PROFILES else "claims"
     try:
-        print(write(source, Path(sys.argv[2]) if len(sys.argv) == 3 else source, profile=profile))
+        print(write(args.studies, args.out or args.studies, profile=profile))
     except UserError as error:  # a study folder that is not what its tables say: one line
         print(f"claims: error: {error}", file=sys.stderr)
-        sys.exit(2)
+        return 2
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

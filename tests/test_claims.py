@@ -831,3 +831,17 @@ def test_a_continuing_study_gets_a_start_network_for_every_tuning_seed(tmp_path)
     starts = study.start.job_seconds * len(wanted)
     whole_without_start = replace(study, start=None).seconds()
     assert study.seconds() - whole_without_start == pytest.approx(starts)
+
+
+def test_the_command_line_checks_its_folder_before_it_writes(tmp_path, capsys):
+    """--help prints the usage and a missing study folder is a one-line error: neither writes a
+    file or a folder (a mistyped path used to get a claims.md of its own)."""
+    with pytest.raises(SystemExit) as help_exit:
+        claims.main(["--help"])
+    assert help_exit.value.code == 0
+    assert "STUDIES" in capsys.readouterr().out
+    missing = tmp_path / "claimz"
+    assert claims.main([str(missing), str(tmp_path / "out")]) == 2
+    error = capsys.readouterr().err.strip()
+    assert error.startswith("claims: error: no study folder") and "\n" not in error
+    assert list(tmp_path.iterdir()) == []
