@@ -159,7 +159,7 @@ def test_a_rerun_launches_only_the_jobs_without_finished_results(tmp_path):
 
     def verdicts(out: str) -> list[str]:
         """compare.md up to its timing section, without the last column of the verdict table:
-        "contended runs" says how loaded the machine was while a job ran, which a rerun may change."""
+        "contended runs" says how loaded the machine was while a job ran: a rerun may change it."""
         text = out.split("# Which")[1].split("## Timing")[0].splitlines()
         head = next(i for i, line in enumerate(text) if line.startswith("| A vs B"))
         assert text[head].endswith("| contended runs A, B |")
