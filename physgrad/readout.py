@@ -3,9 +3,11 @@ read_runs, the claims, the trackers) reads through these functions, so two table
 cannot disagree about one run.
 
 - A run's held-out curve on an axis (iteration, wall_time or calibrated_time) is its /eval column
-  against that axis, shifted to the shared axis of a run started from another's network (init_from),
-  and ends where its training ended; a completed run ran to its budget, so its curve goes on past
-  its last evaluation.
+  against that axis, counted from the run's own start, as its budget is (trainer.iterations and
+  trainer.time_budget are the run's own training, a run started from another's network (init_from)
+  included), and ends where its training ended; a completed run ran to its budget, so its curve goes
+  on past its last evaluation. The shared axis, on which a continued run starts where its start run
+  ended (Run.offset), is for placing curves side by side: the report's figures and its common time.
 - The loss at budget x is the last evaluation at or before x: the step that crosses a time budget
   counts against its variant, and an evaluation after it is not read at the budget. It is infinite
   when the run diverged by x: stopped as diverged, a non-finite held-out loss, or a loss above
@@ -88,12 +90,11 @@ class Curve:
 
 
 def run_curve(run: Run, axis: str, column: str = "loss") -> Curve:
-    """The run's held-out `column` on the axis (iteration, wall_time or calibrated_time), on the
-    shared axis of a run started from another's network, ending where its training ended (inf: a
-    completed run)."""
-    offset = run.offset(axis)
-    x = np.asarray(run.eval.get(axis, np.empty(0)), float) + offset
-    end = run.final("train", axis) + (1 if axis == "iteration" else 0) + offset
+    """The run's held-out `column` on the axis (iteration, wall_time or calibrated_time), counted
+    from the run's own start (a run started from another's network too: its budget counts its own
+    training), ending where its training ended (inf: a completed run)."""
+    x = np.asarray(run.eval.get(axis, np.empty(0)), float)
+    end = run.final("train", axis) + (1 if axis == "iteration" else 0)
     status = run.attrs.get("status")
     if status == "completed":
         end = math.inf  # ran to its budget: its last evaluation at or before any x counts

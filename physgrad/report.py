@@ -74,7 +74,8 @@ def run_rows(runs: list[Run], threshold: float | None = None) -> list[dict]:
                 "train_loss": float(np.median(train_loss[-10:])) if train_loss.size else math.nan,
                 "test_loss": loss_at(run),
                 "common_time": at,
-                "loss_at_common_time": loss_at(run, at, "wall_time")
+                # the common time is on the shared axis; a continued run's own clock starts later
+                "loss_at_common_time": loss_at(run, at - run.offset("wall_time"), "wall_time")
                 if math.isfinite(at)
                 else math.nan,
                 "threshold": limit,

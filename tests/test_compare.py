@@ -488,7 +488,9 @@ def test_a_learning_rate_schedule_is_tuned_by_its_init_value_and_keeps_its_shape
 @pytest.mark.long
 def test_a_study_that_continues_networks_pairs_each_seed_with_its_own_start(tmp_path):
     """init_from='<start>/seed=${seed}/results.h5': every tuning and evaluation job (one per seed)
-    starts from the network of its own seed; the runs say which."""
+    starts from the network of its own seed; the runs say which, and are read after their own
+    training."""
+    from physgrad.readout import loss_at
     from physgrad.results import read_run
 
     start = tmp_path / "start"
@@ -515,6 +517,10 @@ def test_a_study_that_continues_networks_pairs_each_seed_with_its_own_start(tmp_
     for path in [*study.runs.path, *(tmp_path / "study" / "tune").glob("*/results.h5")]:
         run = read_run(Path(path))
         assert run.attrs["init_from"] == str(start / f"seed={run.attrs['seed']}" / "results.h5")
+    # each run is read after its own 20 iterations, not at the network it started from
+    started_at = {s: loss_at(read_run(start / f"seed={s}" / "results.h5")) for s in (0, 1)}
+    assert all(row.test_loss_at_1 != started_at[row.seed] for row in study.runs.itertuples())
+    assert study.trials.validation_loss.nunique() == 2  # adam's and gd's trial
 
 
 def test_continuing_networks_evaluates_one_job_per_seed():
