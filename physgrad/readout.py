@@ -37,6 +37,11 @@ from physgrad.results import Run, parse_config
 
 # a loss above this many times its first value counts as diverged (trainer.divergence_factor)
 DIVERGENCE_FACTOR = 1e4
+# The version of these rules: raised whenever what Curve.at gives for a stored run changes. A tuning
+# journal records the version its trials were scored with (physgrad.comparison.tuning), so that a
+# study tuned under another read-out is read again rather than kept. 1: a continued run read on the
+# shared axis; 2: every run read on its own training.
+READOUT_VERSION = 2
 AXES = ("iteration", "wall_time", "calibrated_time")
 
 

@@ -840,6 +840,103 @@ def test_a_tuning_journal_cut_short_is_repaired_and_a_foreign_one_refused(tmp_pa
         set_aside_damage(path, notes.append)
 
 
+def _journal(path, studies):
+    """A tuning journal by hand: {study name: (readout attr or None, told values, asked only)}."""
+    import optuna
+
+    storage = optuna.storages.JournalStorage(optuna.storages.journal.JournalFileBackend(str(path)))
+    rate = {"learning_rate": optuna.distributions.FloatDistribution(1e-5, 1, log=True)}
+    for name, (version, told, asked) in studies.items():
+        study = optuna.create_study(study_name=name, storage=storage)
+        if version is not None:
+            study.set_user_attr("readout", version)
+        for value in told:
+            study.tell(study.ask(rate), value)
+        for _ in range(asked):
+            study.ask(rate)
+
+
+@pytest.mark.parametrize(
+    "studies, stale",
+    [
+        ({"adam": (None, [0.1], 0)}, "unrecorded"),
+        ({"adam": (1, [0.1, 0.2], 0), "gd": (None, [], 2)}, "1"),
+        ({"adam": (2, [0.1], 0), "gd": (1, [0.3], 1), "hig": (None, [0.2], 0)}, "1-unrecorded"),
+        ({"adam": (2, [0.1], 1), "gd": (None, [], 1)}, None),
+    ],
+)
+def test_a_tuning_journal_scored_by_another_read_out_is_set_aside(tmp_path, studies, stale):
+    """A study with a told trial and another read-out's version (or none: before it was recorded)
+    sends the whole journal aside under a name that says which, with a one-line note; trials only
+    asked, or told under this version, keep it."""
+    from physgrad.comparison.tuning import set_aside_stale
+    from physgrad.readout import READOUT_VERSION
+
+    path = tmp_path / "tuning.journal"
+    _journal(path, studies)
+    whole = path.read_bytes()
+    notes = []
+    set_aside_stale(path, notes.append)
+    if stale is None:
+        assert notes == [] and path.read_bytes() == whole
+        return
+    assert not path.exists() and len(notes) == 1
+    (aside,) = tmp_path.glob(f"tuning.journal.read-out-{stale}-*")
+    assert aside.read_bytes() == whole
+    assert f"version {stale}" in notes[0] and f"version {READOUT_VERSION}" in notes[0]
+    set_aside_stale(path, notes.append)  # nothing left to set aside
+    assert len(notes) == 1
+
+
+@pytest.mark.long
+def test_a_study_tuned_under_another_read_out_is_read_again_without_training(tmp_path):
+    """A study whose journal holds values another read-out gave (forged here: the same points,
+    the opposite ranking, no version) is read again from its runs when resumed: the same trial
+    values and tuned settings as read the first time, no tuning job trained again."""
+    import optuna
+
+    from physgrad.comparison import run_study
+
+    args = [
+        "task=toy",
+        "optim=adam,gd",
+        "trainer.iterations=20",
+        "compare.trials=3",
+        "compare.studies=1",
+        "compare.seeds=2",
+        f"compare.dir={tmp_path / 's'}",
+    ]
+    first = physgrad.compare(*args)
+    journal = tmp_path / "s" / "tuning.journal"
+    storage = optuna.storages.JournalStorage(
+        optuna.storages.journal.JournalFileBackend(str(journal))
+    )
+    told = {
+        name: [t.params for t in optuna.load_study(study_name=name, storage=storage).trials]
+        for name in optuna.get_all_study_names(storage)
+    }
+    journal.unlink()
+    forged = optuna.storages.JournalStorage(
+        optuna.storages.journal.JournalFileBackend(str(journal))
+    )
+    rate = {"learning_rate": optuna.distributions.FloatDistribution(1e-5, 0.1, log=True)}
+    for name, points in told.items():
+        study = optuna.create_study(study_name=name, storage=forged)
+        for k, point in enumerate(points):
+            study.enqueue_trial(point)
+            study.tell(study.ask(rate), -float(k))  # the last trial "best"
+    runs = sorted((tmp_path / "s" / "tune").rglob("results.h5"))
+    stamps = [p.stat().st_mtime_ns for p in runs]
+    notes = []
+    again = run_study(args, config_dir=None, say=notes.append)
+    assert sum("scored by another read-out (version unrecorded" in n for n in notes) == 1
+    assert sorted((tmp_path / "s" / "tune").rglob("results.h5")) == runs
+    assert [p.stat().st_mtime_ns for p in runs] == stamps
+    assert list(again.trials.validation_loss) == list(first.trials.validation_loss)
+    assert list(again.runs.test_loss_at_1) == list(first.runs.test_loss_at_1)
+    assert len(list((tmp_path / "s").glob("tuning.journal.read-out-unrecorded-*"))) == 1
+
+
 def test_only_the_runs_an_evaluation_asked_for_make_a_verdict():
     """An evaluation file counts only if it ran to its end on an evaluation seed with the study's
     tuned values: a failed, interrupted or running job, a foreign seed, or a file left by another

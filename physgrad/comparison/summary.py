@@ -407,12 +407,12 @@ def trial_rows(folder: Path, variants: list[Variant], studies: int = 1) -> list[
     study."""
     import optuna
 
-    from physgrad.comparison.tuning import optuna_study_name
+    from physgrad.comparison.tuning import journal_storage, optuna_study_name
 
     path = folder / "tuning.journal"
     if not path.exists():
         return []
-    storage = optuna.storages.JournalStorage(optuna.storages.journal.JournalFileBackend(str(path)))
+    storage = journal_storage(path)
     rows = []
     for k, variant in ((k, v) for k in range(studies) for v in variants):
         study = optuna.load_study(study_name=optuna_study_name(variant, k), storage=storage)

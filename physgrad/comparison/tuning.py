@@ -9,11 +9,15 @@ from __future__ import annotations
 import math
 from collections.abc import Callable
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from physgrad.comparison.jobs import Launcher, cadence, job_runs, job_yaml
 from physgrad.comparison.spec import StudyPlan, StudySettings, Variant, study_prefix, variant_index
 from physgrad.errors import UserError
-from physgrad.readout import run_curve
+from physgrad.readout import READOUT_VERSION, run_curve
+
+if TYPE_CHECKING:
+    from optuna.storages import JournalStorage
 
 
 def halton_points(space: dict, count: int, seed: int) -> list[dict]:
@@ -160,9 +164,8 @@ def _open_studies(
 
     optuna.logging.set_verbosity(optuna.logging.WARNING)
     set_aside_damage(folder / "tuning.journal", say)
-    storage = optuna.storages.JournalStorage(
-        optuna.storages.journal.JournalFileBackend(str(folder / "tuning.journal"))
-    )
+    set_aside_stale(folder / "tuning.journal", say)
+    storage = journal_storage(folder / "tuning.journal")
     studies, pending = {}, {}
     for study_index in range(settings.study_count):
         # the same scrambled points for every variant of one study (one seed per study): a
@@ -177,6 +180,8 @@ def _open_studies(
                 direction="minimize",
                 load_if_exists=True,
             )
+            if "readout" not in study.user_attrs:
+                study.set_user_attr("readout", READOUT_VERSION)
             studies[study_index, variant.name] = study
             points = halton_points(variant.space, settings.trials, seed)
             for point in points[len(study.trials) :]:
@@ -188,6 +193,13 @@ def _open_studies(
             for trial in study.get_trials(deepcopy=False, states=(TrialState.RUNNING,)):
                 pending[study_index, index, trial.number] = trial
     return studies, pending
+
+
+def journal_storage(path: Path) -> JournalStorage:
+    """Optuna's storage over the journal file at path (one JSON record per line, appended)."""
+    import optuna
+
+    return optuna.storages.JournalStorage(optuna.storages.journal.JournalFileBackend(str(path)))
 
 
 def set_aside_damage(path: Path, say: Callable[[str], object]) -> None:
@@ -225,6 +237,40 @@ def set_aside_damage(path: Path, say: Callable[[str], object]) -> None:
             f"written): moved to {damaged.name}; the trials it would have told run again"
         )
         return
+
+
+def set_aside_stale(path: Path, say: Callable[[str], object]) -> None:
+    """A journal with a trial told under another read-out (its Optuna study's "readout" differs
+    from physgrad.readout.READOUT_VERSION, or is not recorded: written before it was) is moved to
+    <journal>.read-out-<version>-<time> with a one-line note. Its trials are then asked again at the
+    same points and read from their runs by this read-out; a job that finished is not trained
+    again."""
+    import optuna
+    from optuna.trial import TrialState
+
+    from physgrad.files import timestamp
+
+    if not path.is_file():
+        return
+    storage = journal_storage(path)
+    versions = set()
+    for name in optuna.get_all_study_names(storage):
+        study = optuna.load_study(study_name=name, storage=storage)
+        version = study.user_attrs.get("readout")
+        if version != READOUT_VERSION and study.get_trials(
+            deepcopy=False, states=(TrialState.COMPLETE,)
+        ):
+            versions.add("unrecorded" if version is None else str(version))
+    if not versions:
+        return
+    older = "-".join(sorted(versions))
+    aside = path.with_name(f"{path.name}.read-out-{older}-{timestamp()}")
+    path.rename(aside)
+    say(
+        f"note: {path} holds trials scored by another read-out (version {older}; this physgrad "
+        f"reads with version {READOUT_VERSION}): moved to {aside.name}; its trials are read again "
+        "from their runs, and a job that finished is not trained again"
+    )
 
 
 def _score_trials(
