@@ -298,7 +298,7 @@ STUDIES = tuple(
 )
 
 # The regime map: HIG against Adam per cell, both tuned in the cell with the claims' trials on
-# shared points (one tuning study: a map is no claim) and evaluated on the claims' seeds; the
+# shared points (one tuning study: a map is no claim) and evaluated on 6 paired seeds; the
 # conditioning of the physics across, HIG's step cost relative to Adam's (the Jacobian's rows: the
 # batch) down. With 2 trials HIG was tried at 1.6e-3 and 0.16 of [0.001, 10] on the oscillators,
 # about 30 times below the rate 8 trials find.
@@ -307,7 +307,7 @@ MAP_TOY = tuple(
         f"map_toy_{scale}_b{batch}",
         f"task=toy optim=adam,hig task.scale={scale} task.batch_size={batch} trainer.time_budget=5",
         CLAIM_TRIALS,
-        CLAIM_SEEDS,
+        6,
         15,
         15,
         preset=False,
@@ -320,7 +320,7 @@ MAP_OSCILLATOR = tuple(
         f"map_oscillator_{alpha}",
         f"task=oscillator optim=adam,hig task.alpha={alpha} trainer.time_budget=10",
         CLAIM_TRIALS,
-        CLAIM_SEEDS,
+        6,
         20,
         20,
         preset=False,
@@ -1250,7 +1250,7 @@ def map_cell(root: Path, study: Study) -> Cell | None:
     infinite, as a divergence does; a pair where neither does is a tie). The target is the higher of
     the two variants' median test loss at the budget (readout.highest_median): what the slower
     variant typically gets to, which the faster one reaches in most seeds. compare's target (the
-    lower median) is reached by only about half the better variant's seeds, so with few seeds most
+    lower median) is reached by only about half the better variant's seeds, so with 6 seeds most
     pairs are ties of two misses and no cell can be decided."""
     runs = read_study(root / study.name)
     if runs is None or not {"hig", "adam"} <= set(runs.paths):
