@@ -54,6 +54,7 @@ from physgrad.verdict import (
     compare_variants,
     over_studies,
     paired,
+    ratio_of,
 )
 
 HOLDS, FAILS, OPEN = "holds", "does not hold", "not settled"
@@ -756,12 +757,6 @@ def _r(x: float) -> str:
     return f"{x:.3g}"
 
 
-def _exp(log_value: float) -> float:
-    if math.isnan(log_value):
-        return math.nan
-    return math.exp(log_value) if abs(log_value) < 700 else (0.0 if log_value < 0 else math.inf)
-
-
 def _fraction_text(fraction: float) -> str:
     """1/4 of the budget: "X/4"; the budget: "X"."""
     if fraction == 1.0:
@@ -829,7 +824,7 @@ def decide_pairs(runs: StudyRuns, parts: list, fraction: float = 1.0) -> list[De
             if f < fraction
         )
         measured = (
-            f"{part.a} / {part.b} = {_r(p.ratio)} [{_r(_exp(p.low))}, {_r(_exp(p.high))}], "
+            f"{part.a} / {part.b} = {_r(p.ratio)} [{_r(ratio_of(p.low))}, {_r(ratio_of(p.high))}], "
             f"{part.a} lower in {p.wins_a} of {p.pairs}{diverged}"
             + (f"; {earlier}" if earlier else "")
             + (f"; over {len(runs.tuning)} tuning studies" if runs.tuning else "")
@@ -903,11 +898,13 @@ def decide_grows(easy: StudyRuns, hard: StudyRuns, part: Grows, fraction: float 
     finite = lambda r: [v for v in r if not math.isnan(v)]  # noqa: E731
     pooled_easy = finite([v for r, _ in ratios for v in r])
     pooled_hard = finite([v for _, r in ratios for v in r])
-    median = lambda r: _r(_exp(float(np.median(r)))) if r else "-"  # noqa: E731
+    median = lambda r: _r(ratio_of(float(np.median(r)))) if r else "-"  # noqa: E731
     measured = (
         f"{part.a} / {part.b}: {median(pooled_easy)} at {part.easy}, {median(pooled_hard)} at "
         f"{part.hard}; hard / easy = "
-        + ", ".join(f"{_r(r.factor)} [{_r(_exp(r.low))}, {_r(_exp(r.high))}]" for r in results)
+        + ", ".join(
+            f"{_r(r.factor)} [{_r(ratio_of(r.low))}, {_r(ratio_of(r.high))}]" for r in results
+        )
         + (f" in {len(results)} tuning studies" if len(results) > 1 else "")
     )
     return Decision(verdict, measured, why)
@@ -950,7 +947,9 @@ def decide_stall(runs: StudyRuns, part: Stalls, fraction: float = 1.0) -> Decisi
     diverged = sum(math.isinf(v) for v in full)
     measured = (
         f"{part.column} at the budget / at half of it = "
-        + ", ".join(f"{_r(p.ratio)} [{_r(_exp(p.low))}, {_r(_exp(p.high))}]" for p, *_ in tests)
+        + ", ".join(
+            f"{_r(p.ratio)} [{_r(ratio_of(p.low))}, {_r(ratio_of(p.high))}]" for p, *_ in tests
+        )
         + (f" in {len(tests)} tuning studies" if len(tests) > 1 else "")
         + f"; at the budget / at the start: {_r(float(np.nanmedian(np.divide(full, first))))}"
         + (f"; diverged in {diverged} of {len(full)}" if diverged else "")
@@ -1294,7 +1293,14 @@ def map_cell(root: Path, study: Study) -> Cell | None:
             study.name, conditioning, cost, math.nan, math.nan, math.nan, reached, NO_TARGET
         )
     return Cell(
-        study.name, conditioning, cost, p.ratio, _exp(p.low), _exp(p.high), reached, result.verdict
+        study.name,
+        conditioning,
+        cost,
+        p.ratio,
+        ratio_of(p.low),
+        ratio_of(p.high),
+        reached,
+        result.verdict,
     )
 
 

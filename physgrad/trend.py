@@ -11,7 +11,15 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from physgrad.verdict import ALPHA, CONFIDENCE, MARGIN, MIN_PAIRS, RESAMPLES, UNDECIDED
+from physgrad.verdict import (
+    ALPHA,
+    CONFIDENCE,
+    MARGIN,
+    MIN_PAIRS,
+    RESAMPLES,
+    UNDECIDED,
+    ratio_of,
+)
 
 
 @dataclass(frozen=True)
@@ -33,11 +41,7 @@ class Interaction:
 
     @property
     def factor(self) -> float:
-        return (
-            math.exp(self.difference)
-            if abs(self.difference) < 700
-            else (0.0 if self.difference < 0 else math.inf)
-        )
+        return ratio_of(self.difference)
 
 
 GROWS, DOES_NOT_GROW = "grows", "does not grow"
@@ -97,6 +101,6 @@ def interaction(
     else:
         verdict, why = (
             UNDECIDED,
-            f"p = {p:.2g}, interval [{math.exp(low):.3g}, {math.exp(high):.3g}]",
+            f"p = {p:.2g}, interval [{ratio_of(low):.3g}, {ratio_of(high):.3g}]",
         )
     return Interaction(d, low, high, p, easy.size, hard.size, verdict, why)

@@ -39,8 +39,9 @@ ALPHA = 0.05
 CONFIDENCE = 0.95
 RESAMPLES = 10_000
 MIN_PAIRS = 5  # below this no test can reach ALPHA after correction; the verdict stays undecided
-# |log ratio| standing for "one side diverged" (a finite log ratio of float64 losses is < 1500)
-LOG_CAP = 1e3
+# |log ratio| standing for "one side diverged": beyond every finite log ratio of float64 losses
+# (< 1500), and far enough that its average with any of them (a median of an even count) is too
+LOG_CAP = 1e4
 FRACTIONS = (0.25, 0.5, 1.0)
 A_BETTER, B_BETTER, EQUIVALENT, UNDECIDED = "A better", "B better", "equivalent", "undecided"
 
@@ -59,10 +60,23 @@ def log_ratio(a: float, b: float) -> float:
     return float(np.clip(math.log(a / b), -LOG_CAP, LOG_CAP))
 
 
-def snap(log_value: float) -> float:
-    """A median (or an interval end) that averages a diverged side's +-LOG_CAP with a finite log
-    ratio lies at the divergence boundary: it is reported as +-LOG_CAP, not as a ratio of e^500."""
-    return math.copysign(LOG_CAP, log_value) if abs(log_value) >= LOG_CAP / 2 else log_value
+def snap(log_value: float, log_ratios: np.ndarray) -> float:
+    """A median or interval end of log_ratios that lies beyond every finite one (|value| above the
+    largest |ratio| short of LOG_CAP) can only come from a diverged side's +-LOG_CAP, averaged with
+    a finite ratio (a median of an even count) or interpolated towards one (a bootstrap
+    percentile): it is reported as the divergence, +-LOG_CAP, not as a ratio of e^300."""
+    size = np.abs(np.asarray(log_ratios, float))
+    finite = size[size < LOG_CAP]
+    bound = float(finite.max()) if finite.size else 0.0
+    return math.copysign(LOG_CAP, log_value) if abs(log_value) > bound else log_value
+
+
+def ratio_of(log_value: float) -> float:
+    """exp(log_value), with a log ratio past what float64 holds (+-LOG_CAP: one side diverged) as
+    0 or infinity; NaN stays NaN."""
+    if math.isnan(log_value):
+        return math.nan
+    return math.exp(log_value) if abs(log_value) < 700 else (0.0 if log_value < 0 else math.inf)
 
 
 EXACT_PAIRS = (
@@ -166,11 +180,7 @@ class Paired:
 
     @property
     def ratio(self) -> float:
-        return (
-            math.exp(self.median)
-            if abs(self.median) < LOG_CAP
-            else (math.inf if self.median > 0 else 0.0)
-        )
+        return ratio_of(self.median)
 
 
 def paired(a: list[float], b: list[float], margin: float = MARGIN, seed: int = 0) -> Paired:
@@ -181,10 +191,10 @@ def paired(a: list[float], b: list[float], margin: float = MARGIN, seed: int = 0
     r_all = np.array([math.nan if gone else log_ratio(x, y) for x, y, gone in zip(a, b, both)])
     r = r_all[~np.isnan(r_all)]
     delta = math.log(margin)
-    low, high = (snap(v) for v in median_interval(r, seed=seed))
+    low, high = (snap(v, r) for v in median_interval(r, seed=seed))
     return Paired(
         log_ratios=tuple(float(v) for v in r_all),
-        median=snap(float(np.median(r))) if r.size else math.nan,
+        median=snap(float(np.median(r)), r) if r.size else math.nan,
         low=low,
         high=high,
         p_a=_wilcoxon(r, "less"),
@@ -374,7 +384,7 @@ def across_studies(per_study: Sequence[Sequence[PairVerdict]]) -> list[PairVerdi
             finite = np.array([r for r in ratios if not math.isnan(r)])
             result.at[fraction] = Paired(
                 log_ratios=tuple(ratios),
-                median=snap(float(np.median(finite))) if finite.size else math.nan,
+                median=snap(float(np.median(finite)), finite) if finite.size else math.nan,
                 low=min(p.low for p in at),
                 high=max(p.high for p in at),
                 p_a=sorted(p.p_a for p in at)[need - 1],

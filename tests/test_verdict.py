@@ -186,6 +186,58 @@ def test_a_median_halfway_between_a_divergence_and_a_tie_is_the_divergence():
     assert p.median == 0.0 and p.ratio == 1.0
 
 
+def test_no_median_or_interval_end_is_a_blend_of_a_divergence_and_a_finite_ratio():
+    """300 random sets of 6 to 12 pairs with losses spread over 12 decades, divergences on either
+    side and on both, ties and losses of 0: the median and both interval ends are the divergence
+    (+-LOG_CAP) or lie within the finite log ratios of the pairs, and every reported ratio is 0,
+    infinite or within their range (never e^+-300 from a diverged pair averaged or interpolated
+    with a finite one); the same for the pooled median over tuning studies."""
+    from physgrad.verdict import ratio_of
+
+    rng = np.random.default_rng(7)
+
+    def draw(n):
+        a, b = 10.0 ** rng.uniform(-6, 6, n), 10.0 ** rng.uniform(-6, 6, n)
+        for losses in (a, b):
+            losses[rng.random(n) < rng.uniform(0, 0.5)] = math.inf
+            losses[rng.random(n) < 0.05] = 0.0
+        tied = rng.random(n) < 0.1
+        b[tied] = a[tied]
+        return a, b
+
+    def within(value, ratios):
+        finite = np.abs([r for r in ratios if abs(r) < LOG_CAP])
+        bound = finite.max() if finite.size else 0.0
+        return math.isnan(value) or abs(value) == LOG_CAP or abs(value) <= bound + 1e-12
+
+    for case in range(300):
+        n = int(rng.integers(6, 13))
+        a, b = draw(n)
+        p = paired(list(a), list(b), seed=case)
+        ratios = [r for r in p.log_ratios if not math.isnan(r)]
+        for value in (p.median, p.low, p.high):
+            assert within(value, ratios), (case, value, ratios)
+            shown = ratio_of(value)
+            assert math.isnan(shown) or shown in (0.0, math.inf) or 1e-13 < shown < 1e13
+    # the regime map's case: HIG missed the target in 2 of 6 seeds; the interval's upper end had
+    # read e^498.8 (3.2e216), the average of a missed seed's LOG_CAP and a finite ratio
+    p = paired([0.1] * 3 + [math.inf] * 2 + [0.2], [1.0] * 6)
+    assert p.high == LOG_CAP and p.low == pytest.approx(math.log(0.1))
+    assert p.median == pytest.approx((math.log(0.1) + math.log(0.2)) / 2)
+    studies = []
+    for _ in range(3):
+        a, b = draw(10)
+        curves = {
+            name: {
+                s: Curve(np.array([0.0]), np.array([v]), 1.0, False, None) for s, v in enumerate(x)
+            }
+            for name, x in (("A", a), ("B", b))
+        }
+        studies.append(compare_variants(curves, 1.0))
+    (pooled,) = across_studies(studies)
+    assert within(pooled.at[1.0].median, pooled.at[1.0].log_ratios)
+
+
 def test_the_lowest_and_highest_median_targets():
     """The lowest median is the best group's typical loss, the highest the worst finite one; a group
     diverged in most runs has no finite median and sets neither; NaN (missing) losses are left out;
@@ -383,6 +435,17 @@ def test_a_diverged_baseline_at_the_hard_end_counts_as_a_growing_advantage():
     rng = np.random.default_rng(13)
     result = interaction(rng.normal(-0.1, 0.1, 10), np.full(10, -LOG_CAP))
     assert result.verdict == GROWS and result.factor == 0.0
+
+
+def test_an_undecided_trend_with_divergences_on_both_sides_says_why_in_ratios():
+    """Half the hard end's pairs diverged on A's side and half on B's: undecided, its interval
+    reaching both divergences, said as 0 and inf (e^+-LOG_CAP is past float64: it was an
+    OverflowError)."""
+    from physgrad.trend import interaction
+
+    rng = np.random.default_rng(14)
+    result = interaction(rng.normal(0, 0.1, 10), np.array([-LOG_CAP, LOG_CAP] * 5))
+    assert result.verdict == UNDECIDED and "interval [0, inf]" in result.why
 
 
 def test_the_trend_rule_under_the_null_calls_growth_rarely_and_finds_a_known_one():

@@ -18,6 +18,7 @@ from physgrad.verdict import (
     compare_variants,
     divergence_test,
     majority,
+    ratio_of,
     seeds_for_one_against,
 )
 
@@ -29,19 +30,12 @@ if TYPE_CHECKING:
     from physgrad.verdict import Paired, PairVerdict
 
 
-def _exp(log_value: float) -> float:
-    """A ratio from a log ratio, with LOG_CAP (one side diverged) as 0 or infinity."""
-    if math.isnan(log_value):
-        return math.nan
-    return math.exp(log_value) if abs(log_value) < 700 else (0.0 if log_value < 0 else math.inf)
-
-
 def _unit(axis: str) -> str:
     return "iterations" if axis == "iteration" else "s"
 
 
 def _ratio_text(p: Paired) -> str:
-    return f"{fmt(p.ratio)} [{fmt(_exp(p.low))}, {fmt(_exp(p.high))}]"
+    return f"{fmt(p.ratio)} [{fmt(ratio_of(p.low))}, {fmt(ratio_of(p.high))}]"
 
 
 def analyse(
@@ -168,8 +162,8 @@ def comparison_rows(
                     "missing": p.missing,
                     "both_diverged": p.both_diverged,
                     "median_ratio": p.ratio,
-                    "ci_low": _exp(p.low),
-                    "ci_high": _exp(p.high),
+                    "ci_low": ratio_of(p.low),
+                    "ci_high": ratio_of(p.high),
                     "p_difference_holm": v.p_difference[fraction],
                     "p_equivalent_holm": v.p_equivalent[fraction],
                     "diverged_a": p.diverged_a,
