@@ -892,7 +892,8 @@ def test_a_tuning_journal_scored_by_another_read_out_is_set_aside(tmp_path, stud
 def test_a_study_tuned_under_another_read_out_is_read_again_without_training(tmp_path):
     """A study whose journal holds values another read-out gave (forged here: the same points,
     the opposite ranking, no version) is read again from its runs when resumed: the same trial
-    values and tuned settings as read the first time, no tuning job trained again."""
+    values and tuned settings as read the first time, no tuning job trained again, also where the
+    trials were added in pieces (1, then 3: adam's trained together in two jobs)."""
     import optuna
 
     from physgrad.comparison import run_study
@@ -901,12 +902,15 @@ def test_a_study_tuned_under_another_read_out_is_read_again_without_training(tmp
         "task=toy",
         "optim=adam,gd",
         "trainer.iterations=20",
-        "compare.trials=3",
         "compare.studies=1",
         "compare.seeds=2",
         f"compare.dir={tmp_path / 's'}",
     ]
+    physgrad.compare(*args, "compare.trials=1")
+    args.append("compare.trials=3")
     first = physgrad.compare(*args)
+    jobs = sorted(p.name for p in (tmp_path / "s" / "tune").iterdir())
+    assert "+compare_job=tune_v0_t000" in jobs and "+compare_job=tune_v0_t001-002" in jobs
     journal = tmp_path / "s" / "tuning.journal"
     storage = optuna.storages.JournalStorage(
         optuna.storages.journal.JournalFileBackend(str(journal))
@@ -931,6 +935,7 @@ def test_a_study_tuned_under_another_read_out_is_read_again_without_training(tmp
     again = run_study(args, config_dir=None, say=notes.append)
     assert sum("scored by another read-out (version unrecorded" in n for n in notes) == 1
     assert sorted((tmp_path / "s" / "tune").rglob("results.h5")) == runs
+    assert sorted(p.name for p in (tmp_path / "s" / "tune").iterdir()) == jobs
     assert [p.stat().st_mtime_ns for p in runs] == stamps
     assert list(again.trials.validation_loss) == list(first.trials.validation_loss)
     assert list(again.runs.test_loss_at_1) == list(first.runs.test_loss_at_1)

@@ -52,6 +52,7 @@ def tuning(plan: StudyPlan, launcher: Launcher) -> list[dict[str, dict]]:
     if not settings.tune:
         return best
     studies, pending = _open_studies(folder, variants, settings, launcher.say)
+    _tell_trained(folder, variants, settings, studies, pending, axis, budget)
     for variant in variants:
         variant.trials_together = trials_together(variant, axis)
 
@@ -271,6 +272,60 @@ def set_aside_stale(path: Path, say: Callable[[str], object]) -> None:
         f"reads with version {READOUT_VERSION}): moved to {aside.name}; its trials are read again "
         "from their runs, and a job that finished is not trained again"
     )
+
+
+def _tell_trained(
+    folder: Path,
+    variants: list[Variant],
+    settings: StudySettings,
+    studies: dict,
+    pending: dict,
+    axis: str,
+    budget: float,
+) -> None:
+    """Each pending trial that a finished run of this tuning study and variant already trained (a
+    member of any of its jobs in tune/ whose file holds the trial's values and tuning seed) is told
+    from that run, without training it again: its job's name may differ from the one it would get
+    now, where trials were added in pieces and the journal was set aside (set_aside_stale). Job
+    folders that are links are not followed."""
+    import re
+
+    tune = folder / "tune"
+    if not pending or not tune.is_dir():
+        return
+    names = sorted(
+        entry.name.removeprefix("+compare_job=")
+        for entry in tune.iterdir()
+        if entry.name.startswith("+compare_job=tune_") and not entry.is_symlink() and entry.is_dir()
+    )
+    for (study, index), keys in _by_study_variant(pending).items():
+        pattern = re.compile(rf"tune_{study_prefix(study)}v{index}_t\d{{3}}(-\d{{3}})?")
+        runs = [run for name in names if pattern.fullmatch(name) for run in job_runs(tune, name)]
+        for k in keys:
+            params = pending[study, index, k].params
+            for run in runs:
+                config = run.config if isinstance(run.config, dict) else {}
+                optim = config.get("optim", {})
+                if (
+                    run.attrs.get("status") in ("completed", "diverged")
+                    and config.get("seed") == settings.tune_seed + study
+                    and isinstance(optim, dict)
+                    and all(optim.get(key) == value for key, value in params.items())
+                ):
+                    value = run_curve(run, axis, "validation_loss").at(budget)
+                    studies[study, variants[index].name].tell(
+                        k, value if not math.isnan(value) else math.inf
+                    )
+                    del pending[study, index, k]
+                    break
+
+
+def _by_study_variant(pending: dict) -> dict[tuple[int, int], list[int]]:
+    """(study, variant index, trial) keys grouped: (study, variant index) -> trial numbers."""
+    grouped: dict[tuple[int, int], list[int]] = {}
+    for study, index, k in sorted(pending):
+        grouped.setdefault((study, index), []).append(k)
+    return grouped
 
 
 def _score_trials(
