@@ -934,6 +934,7 @@ def test_a_study_tuned_under_another_read_out_is_read_again_without_training(tmp
     notes = []
     again = run_study(args, config_dir=None, say=notes.append)
     assert sum("scored by another read-out (version unrecorded" in n for n in notes) == 1
+    assert "tune: 6 trials read again from the runs that trained them" in notes
     assert sorted((tmp_path / "s" / "tune").rglob("results.h5")) == runs
     assert sorted(p.name for p in (tmp_path / "s" / "tune").iterdir()) == jobs
     assert [p.stat().st_mtime_ns for p in runs] == stamps

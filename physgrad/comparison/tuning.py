@@ -51,8 +51,10 @@ def tuning(plan: StudyPlan, launcher: Launcher) -> list[dict[str, dict]]:
     best = [{v.name: {} for v in variants} for _ in range(count)]
     if not settings.tune:
         return best
-    studies, pending = _open_studies(folder, variants, settings, launcher.say)
-    _tell_trained(folder, variants, settings, studies, pending, axis, budget)
+    studies, pending, reread = _open_studies(folder, variants, settings, launcher.say)
+    if reread:
+        told = _tell_trained(folder, variants, settings, studies, pending, axis, budget)
+        launcher.say(f"tune: {told} trials read again from the runs that trained them")
     for variant in variants:
         variant.trials_together = trials_together(variant, axis)
 
@@ -156,16 +158,16 @@ def optuna_study_name(variant: Variant, study: int) -> str:
 
 def _open_studies(
     folder: Path, variants: list[Variant], settings: StudySettings, say: Callable[[str], object]
-) -> tuple[dict, dict]:
+) -> tuple[dict, dict, bool]:
     """Each variant's Optuna study per tuning study in folder/tuning.journal, with its Halton points
     enqueued and asked for; (Optuna studies by (study, variant name), the trials not yet told by
-    (study, variant index, trial number))."""
+    (study, variant index, trial number), whether the journal was set aside to be read again)."""
     import optuna
     from optuna.trial import TrialState
 
     optuna.logging.set_verbosity(optuna.logging.WARNING)
     set_aside_damage(folder / "tuning.journal", say)
-    set_aside_stale(folder / "tuning.journal", say)
+    reread = set_aside_stale(folder / "tuning.journal", say)
     storage = journal_storage(folder / "tuning.journal")
     studies, pending = {}, {}
     for study_index in range(settings.study_count):
@@ -193,7 +195,7 @@ def _open_studies(
                     trial.suggest_float(key, low, high, log=True)
             for trial in study.get_trials(deepcopy=False, states=(TrialState.RUNNING,)):
                 pending[study_index, index, trial.number] = trial
-    return studies, pending
+    return studies, pending, reread
 
 
 def journal_storage(path: Path) -> JournalStorage:
@@ -240,19 +242,19 @@ def set_aside_damage(path: Path, say: Callable[[str], object]) -> None:
         return
 
 
-def set_aside_stale(path: Path, say: Callable[[str], object]) -> None:
+def set_aside_stale(path: Path, say: Callable[[str], object]) -> bool:
     """A journal with a trial told under another read-out (its Optuna study's "readout" differs
     from physgrad.readout.READOUT_VERSION, or is not recorded: written before it was) is moved to
     <journal>.read-out-<version>-<time> with a one-line note. Its trials are then asked again at the
     same points and read from their runs by this read-out; a job that finished is not trained
-    again."""
+    again. Returns whether it was set aside."""
     import optuna
     from optuna.trial import TrialState
 
     from physgrad.files import timestamp
 
     if not path.is_file():
-        return
+        return False
     storage = journal_storage(path)
     versions = set()
     for name in optuna.get_all_study_names(storage):
@@ -263,7 +265,7 @@ def set_aside_stale(path: Path, say: Callable[[str], object]) -> None:
         ):
             versions.add("unrecorded" if version is None else str(version))
     if not versions:
-        return
+        return False
     older = "-".join(sorted(versions))
     aside = path.with_name(f"{path.name}.read-out-{older}-{timestamp()}")
     path.rename(aside)
@@ -272,6 +274,7 @@ def set_aside_stale(path: Path, say: Callable[[str], object]) -> None:
         f"reads with version {READOUT_VERSION}): moved to {aside.name}; its trials are read again "
         "from their runs, and a job that finished is not trained again"
     )
+    return True
 
 
 def _tell_trained(
@@ -282,17 +285,18 @@ def _tell_trained(
     pending: dict,
     axis: str,
     budget: float,
-) -> None:
-    """Each pending trial that a finished run of this tuning study and variant already trained (a
-    member of any of its jobs in tune/ whose file holds the trial's values and tuning seed) is told
-    from that run, without training it again: its job's name may differ from the one it would get
-    now, where trials were added in pieces and the journal was set aside (set_aside_stale). Job
-    folders that are links are not followed."""
+) -> int:
+    """After the journal was set aside (set_aside_stale): each pending trial that a finished run of
+    this tuning study and variant already trained (a member of any of its jobs in tune/ whose file
+    holds the trial's values and tuning seed) is told from that run, without training it again; its
+    job's name may differ from the one it would get now, where trials were added in pieces. Job
+    folders that are links are not followed. Returns the number told."""
     import re
 
     tune = folder / "tune"
     if not pending or not tune.is_dir():
-        return
+        return 0
+    told = 0
     names = sorted(
         entry.name.removeprefix("+compare_job=")
         for entry in tune.iterdir()
@@ -317,7 +321,9 @@ def _tell_trained(
                         k, value if not math.isnan(value) else math.inf
                     )
                     del pending[study, index, k]
+                    told += 1
                     break
+    return told
 
 
 def _by_study_variant(pending: dict) -> dict[tuple[int, int], list[int]]:
