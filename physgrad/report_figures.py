@@ -139,7 +139,6 @@ def plot_comparison(
     for ax, scene in zip(axes, scenes):
         groups = by_scene.get(scene, {})
         ends, smallest, banded = _draw_medians(ax, groups, styles)
-        _draw_diverged(ax, groups, styles)
         ax.set_title(literal(scene), fontsize=10)
         ax.set_xlabel(X_LABELS.get(x_key, "iteration"))
         ax.set_ylabel("test loss")
@@ -147,6 +146,8 @@ def plot_comparison(
         if smallest and use_log_x(ends, logx):
             ax.set_xscale("symlog", linthresh=min(smallest))
             ax.set_xlim(left=0)
+        # after the scales: where a diverged run's note goes depends on where its end is drawn
+        _draw_diverged(ax, groups, styles)
         ax.grid(True, which="both", alpha=0.3)
         if groups:
             legend_outside(
@@ -222,12 +223,16 @@ def _draw_diverged(ax: Axes, groups: dict, styles: dict) -> None:
                 clip_on=False,
             )
             # runs that diverge early end at nearly the same point: stack their notes instead of
-            # overprinting
+            # overprinting; a note for a run that ends in the right half of the axes runs leftwards,
+            # so that it stays inside the axes instead of running into the legend
+            ending = ax.transData.transform((x[-1], min(y[-1], top)))
+            leftwards = ax.transAxes.inverted().transform(ending)[0] > 0.5
             ax.annotate(
                 literal(_short_reason(reason) + (f" (loss {y[-1]:.3g})" if above else "")),
                 (x[-1], min(y[-1], top)),
-                xytext=(4, -10 - 9 * notes),
+                xytext=(-4 if leftwards else 4, -10 - 9 * notes),
                 textcoords="offset points",
+                horizontalalignment="right" if leftwards else "left",
                 fontsize=7,
                 color=color,
                 annotation_clip=False,
