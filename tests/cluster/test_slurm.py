@@ -107,8 +107,11 @@ def test_one_jobs_end_is_not_the_sweeps(tmp_path: Path) -> None:
         text=True,
     )
     try:
-        # 2 cores: tasks 0 and 1 run, task 2 waits
-        first = wait_until("task 0 running for 6 s", lambda: running_task(0, 6))
+        # 2 cores: tasks 0 and 1 run, task 2 waits. Task 0 (Adam) is cancelled once its file holds
+        # trained rows: a job's queue time says nothing of it, as start-up and compiling take from
+        # 3 s to over 10 s with the machine's load
+        first = wait_until("task 0 running", lambda: running_task(0))
+        wait_until("Adam's first trained rows", lambda: trained_rows(sweep, "adam"), 180)
         waiting = wait_until(
             "task 2 waiting",
             lambda: next((j for j, s in squeue() if j.endswith("_2") and s == "PD"), None),
@@ -307,6 +310,19 @@ def test_a_study_survives_scancel_and_a_killed_launcher(tmp_path: Path) -> None:
     assert here.returncode == 0, out
     assert verdicts(folder) == verdicts(local)
     assert final_losses(folder) == pytest.approx(final_losses(local), rel=1e-6)
+
+
+def trained_rows(sweep: Path, optim: str) -> int:
+    """The /train rows the running job of `optim` has written to its results file so far (0 before
+    its first write; the file is replaced whole at each write, never half-written)."""
+    from physgrad.results import read_run
+
+    for path in sweep.glob(f"*optim={optim}*/results.h5"):
+        try:
+            return len(read_run(path).train.get("iteration", ()))
+        except (OSError, ValueError):
+            return 0
+    return 0
 
 
 def read_status(path: Path) -> str:
