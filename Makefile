@@ -4,7 +4,7 @@ VENV ?= .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 
-.PHONY: setup run lint test test-long test-cluster test-fast test-faults bench check-stability reproduce-figures clean
+.PHONY: setup run lint test test-long test-cluster test-fast test-faults coverage bench check-stability reproduce-figures clean
 
 setup: $(STAMP)
 
@@ -21,10 +21,16 @@ RUN_STUDY := task=toy optim=adam,gauss_newton,hig trainer.iterations=300 compare
 run: setup
 	$(BIN)/physgrad compare $(if $(ARGS),$(ARGS),$(RUN_STUDY))
 
-# tests in parallel processes (pytest-xdist), one per core up to 4: 12 minutes on 2 cores against about 19 in one
-# process (the suite is mostly single-threaded tracing and compiling); PYTEST_WORKERS=0 runs it in one process
+# the tests stand in four layers, each a folder that runs alone (.venv/bin/python -m pytest tests/unit):
+# unit (pure functions), numerics (closed forms, finite differences, loop against scan), integration
+# (run_experiment at tiny sizes), e2e (the console script); make test runs all four in parallel
+# processes (pytest-xdist, one per core up to 4; PYTEST_WORKERS=0 runs them in one process) and prints
+# its wall and CPU time (user + sys of every process it started)
+LAYERS := tests/unit tests/numerics tests/integration tests/e2e
 PYTEST_WORKERS ?= auto
 XDIST := $(if $(filter 0,$(PYTEST_WORKERS)),-p no:xdist,-n $(PYTEST_WORKERS) --maxprocesses=4)
+SHELL := /bin/bash
+TIMED = TIMEFORMAT="$@: %R s wall, %U s user + %S s sys CPU"; time
 # ruff first (100 columns; pyproject.toml): a lint or layout finding fails the tests in seconds
 LINTED := physgrad hydra_plugins tests experiments examples
 lint: setup
@@ -32,13 +38,13 @@ lint: setup
 	$(BIN)/ruff format --check $(LINTED)
 
 test: lint
-	$(BIN)/python -m pytest -q $(XDIST) -m "not long and not cluster" tests
+	$(TIMED) $(BIN)/python -m pytest -q $(XDIST) -m "not long and not cluster" $(LAYERS)
 
 # the long checks (numerics through whole solvers, end-to-end studies, the full scene x optim matrix, the small
 # stability suite); CI runs them after make test, in parallel processes as make test (19 minutes with 2 on a
 # 2-core machine; in one process they took 31 minutes on a CI machine)
 test-long: setup
-	$(BIN)/python -m pytest -q $(XDIST) -m long tests
+	$(TIMED) $(BIN)/python -m pytest -q $(XDIST) -m long $(LAYERS)
 
 # studies on a real one-node SLURM cluster with faults injected (scancel, a time limit, SIGKILL of the
 # launching command): as root on Debian, installs SLURM, munge, slurmdbd and MariaDB from Debian's packages
@@ -53,11 +59,20 @@ test-cluster: setup
 # cores, the randomised cases growing linearly with it) and the crafted foreign files
 REPEATS ?= 20
 test-faults: setup
-	PHYSGRAD_FAULT_REPEATS=$(REPEATS) $(BIN)/python -m pytest -q tests/test_faults.py tests/test_foreign.py \
-		tests/test_compare.py::test_a_study_stopped_at_random_instants_resumes_to_the_same_trials
+	PHYSGRAD_FAULT_REPEATS=$(REPEATS) $(BIN)/python -m pytest -q tests/*/test_faults.py tests/*/test_foreign.py \
+		tests/e2e/test_compare.py::test_a_study_stopped_at_random_instants_resumes_to_the_same_trials
 
+# the layers that start no run: seconds to a minute
 test-fast: setup
-	$(BIN)/python -m pytest -q $(XDIST) -m "not slow and not long and not cluster" tests
+	$(TIMED) $(BIN)/python -m pytest -q $(XDIST) -m "not long and not cluster" tests/unit tests/numerics
+
+# the line coverage of physgrad/ over make test and make test-long (one run under coverage.py, subprocesses
+# included; about twice as long as the two)
+coverage: setup
+	rm -f .coverage .coverage.*
+	$(TIMED) $(BIN)/coverage run -m pytest -q $(XDIST) -m "not cluster" $(LAYERS)
+	$(BIN)/coverage combine -q
+	$(BIN)/coverage report
 
 # step time, compile time and peak memory per scene x variant, with floors; writes outputs/bench/benchmarks.md
 bench: setup

@@ -109,7 +109,7 @@ class SweepSummary(Callback):
         return {}
 
     def on_multirun_start(self, config: DictConfig, **kwargs: Any) -> None:
-        from physgrad.cluster import use_physgrad_launcher
+        from hydra_plugins.physgrad_launchers.slurm import use_physgrad_launcher
         from physgrad.errors import FolderOwned
         from physgrad.files import own_folder
         from physgrad.results import find_results
@@ -130,7 +130,7 @@ class SweepSummary(Callback):
             )
             sys.exit(2)
         (folder / STOP_MARK).unlink(missing_ok=True)
-        use_physgrad_launcher(config)  # before Hydra builds the launcher: physgrad.cluster
+        use_physgrad_launcher(config)  # before Hydra builds the launcher (physgrad.cluster)
         jobs = expected_jobs(config)
         if jobs is not None:
             write_manifest(folder, jobs)

@@ -20,26 +20,7 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
-from omegaconf import DictConfig, open_dict, read_write
-
 log = logging.getLogger("physgrad")
-SUBMITIT_SLURM = "hydra_plugins.hydra_submitit_launcher.submitit_launcher.SlurmLauncher"
-PHYSGRAD_SLURM = "hydra_plugins.physgrad_launchers.slurm.SlurmLauncher"
-
-
-def use_physgrad_launcher(config: DictConfig) -> None:
-    """Before the sweep's launcher is built (Hydra's on_multirun_start): submitit's SLURM launcher
-    replaced by physgrad's, its settings kept."""
-    launcher = config.hydra.get("launcher")
-    if launcher is not None and launcher.get("_target_") == SUBMITIT_SLURM:
-        from hydra.core.plugins import Plugins
-
-        from hydra_plugins.physgrad_launchers.slurm import SlurmLauncher
-
-        # Hydra's scan of hydra_plugins does not see a package installed in editable mode
-        Plugins.instance().register(SlurmLauncher)
-        with read_write(launcher), open_dict(launcher):
-            launcher._target_ = PHYSGRAD_SLURM
 
 
 def launch_array(launcher: Any, job_overrides: Sequence[Sequence[str]], first: int) -> list:

@@ -1,7 +1,7 @@
 """Solving one small tridiagonal system A x = r per sample, by the path that is fast on the device.
 
 A has `lower` (lower[0] = 0), `diagonal` and `upper` (upper[-1] = 0), all of length N. Three paths
-give the same x to float tolerance (tests/test_tridiagonal.py) and differ only in speed:
+give the same x to float tolerance (tests/numerics/test_tridiagonal.py) and differ only in speed:
 
 - "library": jax.lax.linalg.tridiagonal_solve (LAPACK gtsv on the CPU, cuSPARSE gtsv2 on a GPU).
   The fastest on the CPU, and on a GPU for a plain gradient; on a GPU, inside the per-sample

@@ -47,3 +47,48 @@ def x64():
     jax.config.update("jax_enable_x64", True)
     yield
     jax.config.update("jax_enable_x64", previous)
+
+
+# Fixtures that tests of more than one layer use
+
+
+@pytest.fixture
+def in_example(monkeypatch):
+    """The working directory of a user of examples/custom_scene/: its folder (pendulum.py is
+    importable from there)."""
+    from tests.helpers import REPO
+
+    example = REPO / "examples" / "custom_scene"
+    monkeypatch.chdir(example)
+    monkeypatch.syspath_prepend(str(example))
+
+
+@pytest.fixture
+def secret_file(tmp_path):
+    """A file that a crafted results file must never read into a report (its text: SECRET)."""
+    import numpy as np
+
+    from tests.helpers import SECRET
+
+    path = tmp_path / "id_rsa"
+    path.write_bytes(np.frombuffer(SECRET.encode().ljust(24 * 8, b"x"), dtype=np.uint8).tobytes())
+    return path
+
+
+@pytest.fixture
+def studies(monkeypatch):
+    """experiments/claims.py reading fake studies: by folder name, or by the whole folder path where
+    one is given (two profiles' folders of one study name)."""
+    from pathlib import Path
+
+    from tests.helpers import REPO
+
+    sys.path.insert(0, str(REPO / "experiments"))
+    import claims
+
+    found = {}
+    monkeypatch.setattr(
+        claims, "read_study", lambda folder: found.get(str(folder), found.get(Path(folder).name))
+    )
+    monkeypatch.setattr(claims, "study_protocol", lambda folder: (8, 3, 10))
+    return found

@@ -3,7 +3,11 @@ one-node cluster and sets SLURM_CONF), through `hydra/launcher=submitit_slurm`, 
 cluster brings: scancel of a running and of a waiting job, a job's time limit, SIGKILL of the
 launching command; then the reruns. Checked: one job's end is not the sweep's, the study names the
 jobs that did not finish with their SLURM ids, reruns submit only what is missing, nothing is left
-running, and the verdict and test losses equal those of the local launcher."""
+running, and the verdict and test losses equal those of the local launcher.
+
+A cluster is shared: every check of the queue or of processes is scoped to the test's own jobs (a
+SLURM job name of its own) and its own processes (those whose command line names its folder), so
+the tests pass beside other users' jobs and physgrad sweeps."""
 
 from __future__ import annotations
 
@@ -20,12 +24,10 @@ import pytest
 
 pytestmark = pytest.mark.cluster
 
-LAUNCHER = [
-    "hydra/launcher=submitit_slurm",
-    "hydra.launcher.partition=debug",
-    "hydra.launcher.timeout_min=10",
-]
 PHYSGRAD = [sys.executable, "-m", "physgrad"]
+# the SLURM job name of the running test's jobs (set per test: the queue checks see only them)
+OWN = {"name": "", "folder": ""}
+LAUNCHER: list[str] = []
 
 
 @pytest.fixture(scope="module", autouse=True)
@@ -35,10 +37,45 @@ def cluster() -> None:
     subprocess.run(["sinfo"], check=True, capture_output=True)
 
 
-def squeue() -> list[tuple[str, str]]:
-    """(job id, state) of this user's jobs in the queue."""
+@pytest.fixture(scope="module", autouse=True)
+def someone_elses_sweep(tmp_path_factory: pytest.TempPathFactory) -> None:
+    """An unrelated `physgrad run -m` alive beside the tests (stopped with SIGSTOP, so that it takes
+    no core from them), as on a shared node: the tests must not take it for their own."""
+    folder = tmp_path_factory.mktemp("someone-else")
+    other = subprocess.Popen(
+        [*PHYSGRAD, "run", "-m", "task=toy", "optim=adam,gd", f"hydra.sweep.dir={folder}"],
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.DEVNULL,
+        start_new_session=True,
+    )
+    time.sleep(1.0)
+    os.killpg(other.pid, signal.SIGSTOP)
+    yield
+    os.killpg(other.pid, signal.SIGKILL)
+    other.wait()
+
+
+@pytest.fixture(autouse=True)
+def own_jobs(tmp_path: Path, request: pytest.FixtureRequest) -> None:
+    """This test's jobs carry a job name of their own and its commands name its tmp_path."""
+    OWN["name"] = f"pg{os.getpid()}-{request.node.name[:40]}"
+    OWN["folder"] = str(tmp_path)
+    LAUNCHER[:] = [
+        "hydra/launcher=submitit_slurm",
+        "hydra.launcher.partition=debug",
+        "hydra.launcher.timeout_min=10",
+        f"hydra.launcher.name={OWN['name']}",
+    ]
+
+
+def squeue(*options: str) -> list[tuple[str, ...]]:
+    """(job id, state) of this test's jobs in the queue (its job name), or the columns options ask
+    for."""
     out = subprocess.run(
-        ["squeue", "-h", "-o", "%i %t"], check=True, capture_output=True, text=True
+        ["squeue", "-h", "-n", OWN["name"], *(options or ("-o", "%i %t"))],
+        check=True,
+        capture_output=True,
+        text=True,
     ).stdout
     return [tuple(line.split()) for line in out.splitlines() if line.strip()]
 
@@ -55,11 +92,7 @@ def wait_until(what: str, test: object, seconds: float = 120.0) -> object:
 
 def running_task(task: int, seconds: float = 0.0) -> str | None:
     """The id of array task `task` once it has run for `seconds` (the queue's TIME column)."""
-    out = subprocess.run(
-        ["squeue", "-h", "-t", "R", "-o", "%i %M"], check=True, capture_output=True, text=True
-    ).stdout
-    for line in out.splitlines():
-        job, elapsed = line.split()
+    for job, elapsed in squeue("-t", "R", "-o", "%i %M"):
         parts = [int(p) for p in elapsed.replace("-", ":").split(":")]
         ran = sum(p * 60**i for i, p in enumerate(reversed(parts)))
         if job.endswith(f"_{task}") and ran >= seconds:
@@ -78,12 +111,25 @@ def states(sweep: Path) -> dict[str, dict]:
     return found
 
 
+def own_physgrad_processes() -> list[int]:
+    """The physgrad processes alive whose command line names this test's folder (the sweeps and
+    studies it started, and their children's multiruns), whoever else runs physgrad here."""
+    found = []
+    for proc in Path("/proc").iterdir():
+        if not proc.name.isdigit() or int(proc.name) == os.getpid():
+            continue
+        try:
+            words = (proc / "cmdline").read_bytes().decode(errors="replace").split("\0")
+        except OSError:  # ended meanwhile
+            continue
+        if any("physgrad" in w for w in words) and any(OWN["folder"] in w for w in words):
+            found.append(int(proc.name))
+    return found
+
+
 def no_sweep_left() -> bool:
-    """No `physgrad run -m` alive and no job in the queue."""
-    alive = subprocess.run(
-        ["pgrep", "-f", "physgrad run -m"], capture_output=True, text=True
-    ).stdout.split()
-    return not alive and not squeue()
+    """None of this test's physgrad processes alive and none of its jobs in the queue."""
+    return not own_physgrad_processes() and not squeue()
 
 
 def test_one_jobs_end_is_not_the_sweeps(tmp_path: Path) -> None:
@@ -150,7 +196,7 @@ def test_a_time_limit_ends_the_job_interrupted(tmp_path: Path) -> None:
             "optim=adam",
             "trainer.iterations=100000000",
             "trainer.time_budget=600",
-            *LAUNCHER[:2],
+            *(o for o in LAUNCHER if not o.startswith("hydra.launcher.timeout_min")),
             "hydra.launcher.timeout_min=1",
             "hydra.launcher.signal_delay_s=30",
             f"hydra.sweep.dir={sweep}",

@@ -1,0 +1,198 @@
+"""End-to-end layer (the console script in subprocesses) of the tests of:
+End to end through the installed console script and the real HDF5 files."""
+
+import os
+import signal
+import subprocess
+import time
+from pathlib import Path
+
+import h5py
+import numpy as np
+import pytest
+
+from physgrad.results import read_run
+from tests.helpers import PHYSGRAD
+from tests.helpers import console as physgrad
+
+SMALL = ["task.grid=4", "task.test_size=8", "trainer.batch_size=4"]
+
+
+def test_short_run_writes_the_results_schema(tmp_path):
+    physgrad(
+        "run",
+        "optim=hig",
+        "trainer.iterations=20",
+        "trainer.eval_every=5",
+        *SMALL,
+        f"hydra.run.dir={tmp_path}",
+    )
+    with h5py.File(tmp_path / "results.h5", "r") as f:
+        attrs = dict(f.attrs)
+        for key in (
+            "task",
+            "optim",
+            "seed",
+            "status",
+            "config",
+            "physgrad_version",
+            "jax_version",
+            "compile_seconds",
+            "created",
+        ):
+            assert key in attrs, key
+        assert "unroll" not in attrs and "reason" not in attrs
+        assert (attrs["task"], attrs["optim"], attrs["seed"], attrs["status"]) == (
+            "poisson",
+            "hig",
+            0,
+            "completed",
+        )
+        assert "name: hig" in attrs["config"] and "iterations: 20" in attrs["config"]
+        # the form of J the step used (physgrad.jacobians)
+        assert attrs["jacobian"] == "layer-factorised"
+        assert set(f["train"]) >= {
+            "iteration",
+            "wall_time",
+            "loss",
+            "grad_norm",
+            "kept_singular_values",
+        }
+        assert 0 < f["train/kept_singular_values"][-1] <= 4 * 16  # at most m = batch x outputs
+        assert set(f["eval"]) >= {"iteration", "wall_time", "loss", "field_error"}
+        wall = f["train/wall_time"][()]
+        assert wall.shape == (20,) and np.all(np.diff(wall) > 0) and wall[0] > 0
+        assert f["eval/iteration"][()].tolist() == [0, 5, 10, 15, 20]
+    assert (tmp_path / "loss.png").stat().st_size > 1000
+
+
+def test_sweep_then_report(tmp_path):
+    sweep = tmp_path / "sweep"
+    result = physgrad(
+        "run",
+        "-m",
+        "optim=adam,hig,bptt",
+        "seed=0,1",
+        "trainer.iterations=5",
+        "trainer.eval_every=5",
+        "task.test_size=4",
+        *SMALL[:1],
+        "trainer.batch_size=2",
+        f"hydra.sweep.dir={sweep}",
+    )
+    assert "skipped: optim=bptt needs a closed-loop controller" in result.stderr + result.stdout
+    files = sorted(sweep.rglob("results.h5"))
+    assert len(files) == 6
+    statuses = sorted(read_run(f).attrs["status"] for f in files)
+    assert statuses == ["completed"] * 4 + ["refused"] * 2
+    assert (
+        f"sweep finished: 4 completed, 2 refused in {sweep}; next: physgrad report {sweep}"
+        in result.stdout
+    )
+    out = physgrad("report", str(sweep)).stdout
+    by_group, by_seed = out.split("Per seed:")
+    groups = [line for line in by_group.splitlines() if line.startswith("| poisson | ")]
+    assert [line.split(" | ")[1:4] for line in groups] == [
+        ["adam", "2", "2 completed"],
+        ["bptt", "2", "2 refused"],
+        ["hig", "2", "2 completed"],
+    ]
+    per_seed = [line for line in by_seed.splitlines() if line.startswith("| poisson | ")]
+    assert len(per_seed) == 6 and sum("refused" in line for line in per_seed) == 2
+    assert (sweep / "report.md").read_text().count("| poisson | ") == 9
+    assert (sweep / "loss_vs_time.png").stat().st_size > 1000
+
+
+def test_hydra_flags_keep_working(tmp_path):
+    cfg = physgrad("run", "--cfg", "job", "optim=hig").stdout
+    assert "name: hig" in cfg and "learning_rate: 0.64" in cfg and "iterations: null" in cfg
+    assert "Configuration groups" in physgrad("run", "--help").stdout
+    assert "physgrad run" in physgrad("--help").stdout
+
+
+@pytest.mark.parametrize(
+    "args, fragment",
+    [
+        # refused before a job starts (the others of this kind: tests/unit/test_cli.py)
+        (["optim=hgi"], "unknown optim 'hgi': did you mean hig?"),
+        # refused by the job, once its config is composed (tests/integration/test_configs.py)
+        (["unroll=8"], "task=poisson has no time axis: remove unroll=8"),
+        (["optim=stable_bptt"], "optim=stable_bptt needs a closed-loop controller"),
+    ],
+)
+def test_a_user_mistake_is_one_line_on_the_console(args, fragment, tmp_path):
+    """The rendering of a user's mistake by the console script: exit code 2, one line on stderr, no
+    traceback."""
+    result = physgrad("run", *args, f"hydra.run.dir={tmp_path}", check=False)
+    assert result.returncode == 2
+    lines = result.stderr.strip().splitlines()
+    assert len(lines) == 1 and fragment in lines[0], result.stderr
+    assert "Traceback" not in result.stderr
+
+
+def wait_for_rows(path: Path, rows: int, process, deadline=120.0):
+    start = time.time()
+    while time.time() - start < deadline:
+        assert process.poll() is None, process.communicate()
+        try:
+            with h5py.File(path, "r", locking=False) as f:
+                if "train/iteration" in f and f["train/iteration"].shape[0] >= rows:
+                    return
+        except (OSError, KeyError):
+            pass  # not created yet, or caught mid-flush
+        time.sleep(0.2)
+    raise AssertionError(f"no {rows} rows in {path} after {deadline} s")
+
+
+@pytest.mark.parametrize(
+    "sig, status",
+    [(signal.SIGKILL, "crashed"), (signal.SIGINT, "interrupted"), (signal.SIGTERM, "interrupted")],
+)
+def test_killed_or_interrupted_run_leaves_a_readable_file(sig, status, tmp_path):
+    process = subprocess.Popen(
+        [
+            PHYSGRAD,
+            "run",
+            "trainer.iterations=100000000",
+            "trainer.flush_seconds=0.1",
+            *SMALL,
+            f"hydra.run.dir={tmp_path}",
+        ],
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
+    try:
+        wait_for_rows(tmp_path / "results.h5", 100, process)
+        os.kill(process.pid, sig)
+        _, stderr = process.communicate(timeout=60)
+    finally:
+        process.kill()
+    run = read_run(tmp_path / "results.h5")
+    assert run.attrs["status"] == status, stderr
+    rows = run.train["iteration"]
+    assert rows.size >= 100 and rows.tolist() == list(range(rows.size))
+    assert np.all(np.diff(run.train["wall_time"]) > 0)
+    if sig != signal.SIGKILL:
+        assert process.returncode == 130
+        assert f"after {rows.size} iterations" in run.attrs["reason"]
+
+
+def test_without_a_terminal_progress_is_logged_and_the_run_ends_with_one_line(tmp_path):
+    result = physgrad(
+        "run",
+        "task=toy",
+        "trainer.time_budget=3",
+        "trainer.log_seconds=0.5",
+        f"hydra.run.dir={tmp_path}",
+    )
+    lines = result.stdout.splitlines()
+    assert any(" compiled in " in line for line in lines)
+    progress = [line for line in lines if "toy/adam seed 0 iteration " in line]
+    assert len(progress) >= 2 and all(
+        ", loss " in line and " s of training" in line for line in progress
+    )
+    assert (
+        "completed after" in lines[-1]
+        and "(stopped by time budget), 3.0 s of training" in lines[-1]
+    )

@@ -1,0 +1,320 @@
+"""Integration layer (run_experiment and the commands in-process, at tiny sizes) of the tests of:
+Stability suite (physgrad check), bad input of every kind, and the output folder check."""
+
+import re
+
+import pytest
+
+from physgrad.check import markdown, run_check
+from physgrad.experiment import run_experiment
+from tests.helpers import REPO, load
+
+
+@pytest.fixture(scope="module")
+def small_check(tmp_path_factory):
+    rows = run_check(small=True, out_dir=tmp_path_factory.mktemp("check"))
+    print(markdown(rows))
+    return rows
+
+
+def rows_of(rows, case_start):
+    found = [row for row in rows if row["case"].startswith(case_start)]
+    assert found, case_start
+    return found
+
+
+@pytest.mark.long
+def test_small_check_has_no_failures_and_every_outcome_is_named(small_check):
+    for row in small_check:
+        assert row["outcome"] in (
+            "converged",
+            "stalled",
+            "grew",
+            "diverged",
+            "refused",
+            "finite",
+        ), row
+
+
+@pytest.mark.long
+def test_far_too_large_learning_rates_end_as_outcomes(small_check):
+    rows = [row for row in small_check if "learning rate 1e6" in row["case"]]
+    assert len(rows) == 3
+    for row in rows:
+        assert row["outcome"] in ("diverged", "stalled", "grew"), row
+        if row["outcome"] == "diverged":
+            assert re.fullmatch(
+                r"(output|loss|gradient|update) became \S+ at iteration \d+ \(\w+\)", row["detail"]
+            )
+
+
+@pytest.mark.long
+def test_rank_deficient_jacobians_give_finite_directions(small_check):
+    rows = rows_of(small_check, "rank-deficient J")
+    assert len(rows) == 12 and all(row["outcome"] == "finite" for row in rows)
+    for row in rows:
+        errors = dict(re.findall(r"(\de[-+]\d+): (\S+?)(?:,|$)", row["detail"].split("tau ", 1)[1]))
+        if "all-zero" in row["case"]:
+            assert all(float(e) == 0.0 for e in errors.values())  # exactly the zero update
+        elif row["precision"] == "64":
+            # duplicated samples: rank m/2, the copies' singular values are exactly 0 and must be
+            # dropped
+            assert all(float(errors[t]) < 1e-6 for t in ("1e-06", "1e-04", "1e-02")), row
+
+
+@pytest.mark.long
+def test_schroedinger_norm_drift_is_round_off(small_check):
+    for row in rows_of(small_check, "quantum norm"):
+        drift = float(row["detail"].rsplit(": ", 1)[1])
+        assert drift < (1e-12 if row["precision"] == "64" else 1e-3), row
+
+
+@pytest.mark.long
+def test_bptt_gradient_growth_is_measured(small_check):
+    rows = {row["variant"]: row for row in rows_of(small_check, "multicart 4 poles: gradient norm")}
+    assert set(rows) == {"bptt[R]", "bptt[M]"} and all(
+        row["outcome"] == "finite" for row in rows.values()
+    )
+    # the modes differ (with the zero output layer of the initial network they would coincide)
+    assert rows["bptt[R]"]["detail"] != rows["bptt[M]"]["detail"]
+
+
+@pytest.mark.parametrize(
+    "override, fragment",
+    [
+        (
+            "task.hidden=[0,20]",
+            "task.hidden=[0, 20] is not allowed: use a list of positive layer widths",
+        ),
+        (
+            "task.checkpoint=maybe",
+            "task.checkpoint='maybe' is not allowed: choose one of False, True",
+        ),
+        ("task.alpha=strong", "task.alpha='strong' is not allowed: use a number"),
+        ("task.dt=-0.1", "task.dt=-0.1 is not allowed: use a number > 0"),
+        ("task.oscillators=1.5", "task.oscillators=1.5 is not allowed: use a whole number >= 1"),
+        (
+            "task.oscillators=100000000",
+            "the training set would hold 819,200,000,000 numbers, more than one array can "
+            "(2^31 - 1): use a smaller task.oscillators or task.train_size",
+        ),
+        ("trainer.eval_every=0", "trainer.eval_every=0 is not allowed: use a whole number >= 1"),
+        (
+            "trainer.time_budget=-5",
+            "trainer.time_budget=-5 is not allowed: use a number > 0 or null",
+        ),
+        ("precision=16", "precision=16 is not allowed: choose one of 32, 64"),
+        ("seed=-1", "seed=-1 is not allowed: use a whole number >= 0"),
+        (
+            "seed=4294967296",
+            "seed=4294967296 is not allowed: use a whole number >= 0 and < 4294967296",
+        ),
+        (
+            "seed=4294967295 seeds=2",
+            "seeds must stay below 4294967296 (2^32), so use seed <= 4294967294",
+        ),
+        ("optim=hig optim.tau=2", "optim.tau=2 is not allowed: use a number >= 0 and < 1"),
+        (
+            "optim=hig optim.route=qr",
+            "optim.route='qr' is not allowed: choose one of auto, svd, gram",
+        ),
+        (
+            "optim=adam optim.learning_rate=0",
+            "optim.learning_rate=0 is not allowed: use a number > 0",
+        ),
+        ("overwrite=sometimes", "overwrite='sometimes' is not allowed: choose one of False, True"),
+        ("unroll=0", "unroll=0 is not allowed: use a whole number >= 1"),
+        ("seeds=0", "seeds=0 is not allowed: use a whole number >= 1"),
+        (
+            "init_from=7",
+            "init_from=7 is not allowed: use the path of a results.h5, or leave init_from out",
+        ),
+    ],
+)
+def test_bad_values_are_refused_with_the_key_and_what_is_allowed(override, fragment, tmp_path):
+    outcome, _ = run_experiment(load("task=oscillator", *override.split()), tmp_path)
+    assert (
+        outcome.status == "refused" and fragment in outcome.reason and "\n" not in outcome.reason
+    ), outcome.reason
+
+
+@pytest.mark.parametrize(
+    "override, fragment",
+    [
+        ("task.grid=1", "task.grid=1 is not allowed: use a whole number >= 2"),
+        ("task.smoothness=-1", "task.smoothness=-1 is not allowed: use a number >= 0"),
+    ],
+)
+def test_bad_poisson_values_are_refused(override, fragment, tmp_path):
+    outcome, _ = run_experiment(load(override), tmp_path)
+    assert outcome.status == "refused" and fragment in outcome.reason
+
+
+BROKEN_SCENE = """
+import jax
+import jax.numpy as jnp
+
+from physgrad.nets import apply_mlp, init_mlp
+from physgrad.tasks import Scene
+
+
+@jax.custom_jvp
+def squash(z):
+    return jnp.tanh(z)
+
+
+@squash.defjvp
+def squash_jvp(primals, tangents):  # the author's derivative is off by a factor of 2
+    (z,), (dz,) = primals, tangents
+    return jnp.tanh(z), 2.0 * (1.0 - jnp.tanh(z) ** 2) * dz
+
+
+def build(key, *, test_size, wrong):
+    dtype = jnp.zeros(()).dtype
+    physics = squash if wrong else jnp.tanh
+
+    def draw(k, count, train_set=None):
+        x = jax.random.uniform(k, (count, 1), dtype, -1.0, 1.0)
+        return {"x": x, "target": jnp.sin(3 * x)}
+
+    return Scene(init_params=lambda k: init_mlp(k, [1, 8, 1], dtype), draw_batch=draw,
+                 test_set=draw(key, test_size),
+                 sample_output=lambda params, sample: physics(
+                     apply_mlp(params, sample["x"], hidden="tanh")),
+                 sample_loss=lambda y, sample: 0.5 * jnp.sum((y - sample["target"]) ** 2))
+"""
+
+
+@pytest.mark.parametrize("wrong", [False, True])
+def test_check_finds_a_scene_s_wrong_gradient(tmp_path, monkeypatch, capsys, wrong):
+    from physgrad.check import main
+
+    (tmp_path / "conf" / "task").mkdir(parents=True)
+    (tmp_path / "heat.py").write_text(BROKEN_SCENE)
+    (tmp_path / "conf" / "task" / "heat.yaml").write_text(
+        f"_target_: heat.build\nbatch_size: 4\ntest_size: 8\nwrong: {str(wrong).lower()}\n"
+    )
+    monkeypatch.chdir(tmp_path)
+    monkeypatch.syspath_prepend(str(tmp_path))
+    code = main(["-cd", "conf", "task=heat"])
+    lines = capsys.readouterr().out.splitlines()
+    by_name = {
+        line.split(":")[0].split()[-1] if line.startswith(("ok", "FAIL")) else "": line
+        for line in lines
+    }
+    assert code == (1 if wrong else 0), lines
+    assert (
+        by_name["R"].startswith("FAIL" if wrong else "ok") and "finite differences" in by_name["R"]
+    )
+    # jvp and vjp share the wrong rule: only differences see it
+    assert by_name["jacobian"].startswith("ok")
+    assert lines[-1].startswith("task=heat: ") and ("failed: gradient R" in lines[-1]) == wrong
+
+
+def test_check_of_the_example_scene_passes_and_mistakes_are_one_line(monkeypatch, capsys):
+    from physgrad.check import main
+
+    example = REPO / "examples" / "custom_scene"
+    monkeypatch.chdir(example)
+    monkeypatch.syspath_prepend(str(example))
+    assert (
+        main(
+            [
+                "-cd",
+                "conf",
+                "task=pendulum",
+                "task.train_size=8",
+                "task.test_size=4",
+                "task.unroll=12",
+            ]
+        )
+        == 0
+    )
+    out = capsys.readouterr().out
+    assert (
+        all(line.startswith("ok") for line in out.splitlines()[:-1])
+        and "gradient S" in out
+        and "rollout" in out
+    )
+    assert main(["-cd", "conf", "task.unroll=12"]) == 2
+    assert "name the scene to check" in capsys.readouterr().err
+
+
+LIBRARY_LIKE_SCENE = """
+import jax
+import jax.numpy as jnp
+
+from physgrad.nets import apply_mlp, init_mlp
+from physgrad.tasks import Scene
+
+
+@jax.custom_vjp
+def solve(z):  # a correct derivative in reverse mode only, as diffrax's default adjoint
+    return jnp.tanh(z)
+
+
+def solve_fwd(z):
+    return jnp.tanh(z), z
+
+
+def solve_bwd(z, g):
+    return ((1.0 - jnp.tanh(z) ** 2) * g,)
+
+
+solve.defvjp(solve_fwd, solve_bwd)
+
+
+def stepped(z):  # an adaptive solver's accepted steps: jumps that autodiff does not see
+    return jnp.tanh(z) + 1e-3 * jax.lax.stop_gradient(jnp.floor(z / 3e-3))
+
+
+def build(key, *, test_size, kind):
+    dtype = jnp.zeros(()).dtype
+    physics = {"reverse_only": solve, "stepped": stepped}[kind]
+
+    def draw(k, count, train_set=None):
+        x = jax.random.uniform(k, (count, 1), dtype, -1.0, 1.0)
+        return {"x": x, "target": jnp.sin(3 * x)}
+
+    return Scene(init_params=lambda k: init_mlp(k, [1, 8, 1], dtype), draw_batch=draw,
+                 test_set=draw(key, test_size),
+                 sample_output=lambda params, sample: physics(
+                     apply_mlp(params, sample["x"], hidden="tanh")),
+                 sample_loss=lambda y, sample: 0.5 * jnp.sum((y - sample["target"]) ** 2))
+"""
+
+
+@pytest.mark.parametrize("kind", ["reverse_only", "stepped", "wrong"])
+def test_check_explains_reverse_only_scenes_and_gradients_that_do_not_settle(
+    tmp_path, monkeypatch, capsys, kind
+):
+    """A scene with no forward mode (a custom_vjp) passes, its Jacobian check built in reverse
+    mode and saying so; a loss with jumps autodiff does not see (an adaptive solver) fails with the
+    differences at two step sizes and what to do; a wrong derivative is called off."""
+    from physgrad.check import main
+
+    (tmp_path / "conf" / "task").mkdir(parents=True)
+    module = f"scene_{kind}"  # a module name of its own: the others may be imported already
+    if kind == "wrong":
+        (tmp_path / f"{module}.py").write_text(BROKEN_SCENE)
+        setting = "wrong: true"
+    else:
+        (tmp_path / f"{module}.py").write_text(LIBRARY_LIKE_SCENE)
+        setting = f"kind: {kind}"
+    (tmp_path / "conf" / "task" / "heat.yaml").write_text(
+        f"_target_: {module}.build\nbatch_size: 4\ntest_size: 8\n{setting}\n"
+    )
+    monkeypatch.chdir(tmp_path)
+    monkeypatch.syspath_prepend(str(tmp_path))
+    code = main(["-cd", "conf", "task=heat"])
+    lines = capsys.readouterr().out.splitlines()
+    gradient = next(line for line in lines if "gradient R" in line)
+    jacobian = next(line for line in lines if "jacobian" in line.split(":")[0])
+    if kind == "reverse_only":
+        assert code == 0 and jacobian.startswith("ok") and "J v by reverse mode" in jacobian
+        assert "custom_vjp" in jacobian
+    elif kind == "stepped":
+        assert code == 1 and gradient.startswith("FAIL") and "do not settle" in gradient
+        assert "tolerances" in gradient
+    else:
+        assert code == 1 and "the derivative itself is off" in gradient

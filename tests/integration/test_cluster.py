@@ -1,0 +1,48 @@
+"""Integration layer (run_experiment and the commands in-process, at tiny sizes) of the tests of:
+What a cluster does to a study, with the local launchers where the behaviour is the same there
+(the real SLURM cluster: tests/cluster, `make test-cluster`): a signal to one job ends that job
+alone; a killed `physgrad compare` leaves no sweep running; reruns launch only what is missing;
+the study names the jobs that did not finish with their scheduler ids; physgrad's SLURM launcher
+waits for every job and cancels the waiting ones at a stop; the calibration runs as a job and a
+study whose runs ran elsewhere is flagged."""
+
+from __future__ import annotations
+
+import pytest
+
+from physgrad.errors import UserError
+
+
+def test_the_sweeps_own_refusal_is_said_in_one_line(tmp_path):
+    from physgrad.comparison.jobs import _raise_unfinished
+
+    log = tmp_path / "tune.log"
+    log.write_text(
+        "\n$ physgrad run -m a\nphysgrad: error: old refusal\n"
+        "\n$ physgrad run -m b\nphysgrad: error: /x/tune is being written by pid 28452 on vm "
+        "(another sweep)\n"
+    )
+    with pytest.raises(UserError, match=r"^tune: /x/tune is being written by pid 28452 on vm"):
+        _raise_unfinished(tmp_path / "tune", "tune", {"tune_v0_t000": ""}, log)
+
+
+def test_submitits_slurm_launcher_is_run_as_physgrads():
+    pytest.importorskip("hydra_plugins.hydra_submitit_launcher")
+    from omegaconf import OmegaConf
+
+    from hydra_plugins.physgrad_launchers.slurm import (
+        PHYSGRAD_SLURM,
+        SUBMITIT_SLURM,
+        use_physgrad_launcher,
+    )
+
+    config = OmegaConf.create(
+        {"hydra": {"launcher": {"_target_": SUBMITIT_SLURM, "partition": "x"}}}
+    )
+    OmegaConf.set_readonly(config, True)
+    use_physgrad_launcher(config)
+    assert config.hydra.launcher._target_ == PHYSGRAD_SLURM
+    assert config.hydra.launcher.partition == "x"
+    other = OmegaConf.create({"hydra": {"launcher": {"_target_": "x.JoblibLauncher"}}})
+    use_physgrad_launcher(other)
+    assert other.hydra.launcher._target_ == "x.JoblibLauncher"

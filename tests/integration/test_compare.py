@@ -1,0 +1,611 @@
+"""Integration layer (run_experiment and the commands in-process, at tiny sizes) of the tests of:
+`physgrad compare`: the command line split into variants, jobs as config files that compose to
+the intended run, equal tuning budgets on disjoint seeds, validation data, and a study on a user's
+own scene end to end."""
+
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+import physgrad
+from physgrad.comparison import (
+    build_variants,
+    evaluation_jobs,
+    halton_points,
+    job_yaml,
+    split_overrides,
+    study_settings,
+)
+from physgrad.errors import UserError
+from physgrad.optim.capabilities import ADAPTIVE, JACOBIAN
+
+
+def test_comma_lists_are_variants_and_everything_else_is_common():
+    settings, axes, common, hydra_args = split_overrides(
+        [
+            "task=oscillator",
+            "optim=adam,hig",
+            "optim.clip=none,norm",
+            "trainer.time_budget=30",
+            "compare.trials=4",
+            "compare.search.tau=[1e-8,1e-4]",
+            "hydra/launcher=joblib",
+        ]
+    )
+    assert settings == {"trials": 4, "search": {"tau": (1e-8, 1e-4)}}
+    assert axes == [
+        ("optim", ["optim=adam", "optim=hig"]),
+        ("optim.clip", ["optim.clip=none", "optim.clip=norm"]),
+    ]
+    assert common == ["task=oscillator", "trainer.time_budget=30"] and hydra_args == [
+        "hydra/launcher=joblib"
+    ]
+    variants = build_variants(axes, common, study_settings(settings), [])
+    assert [v.name for v in variants] == [
+        "adam clip=none",
+        "adam clip=norm",
+        "hig clip=none",
+        "hig clip=norm",
+    ]
+    assert variants[0].space == {"learning_rate": ADAPTIVE.search_range}
+    assert variants[2].space == {"learning_rate": JACOBIAN.search_range, "tau": (1e-8, 1e-4)}
+    assert variants[2].preset == {"learning_rate": 1.0, "tau": 1e-6}  # the oscillator's HIG preset
+
+
+def test_a_variant_the_scene_refuses_stops_the_study_before_anything_trains(tmp_path):
+    from physgrad.comparison import run_study
+
+    with pytest.raises(UserError, match="variant bptt: optim=bptt needs a closed-loop controller"):
+        run_study(["task=toy", "optim=adam,bptt", f"compare.dir={tmp_path}"], say=lambda line: None)
+    assert not (tmp_path / "tune").exists()
+
+
+def test_halton_points_cover_the_log_range_and_repeat():
+    points = halton_points({"learning_rate": (1e-5, 1e-1), "tau": (1e-8, 1e-4)}, 16, 7)
+    assert points == halton_points({"learning_rate": (1e-5, 1e-1), "tau": (1e-8, 1e-4)}, 16, 7)
+    logs = np.log10([p["learning_rate"] for p in points])
+    # every decade is tried
+    assert logs.min() >= -5 and logs.max() <= -1 and len(set(np.floor(logs))) == 4
+    assert all(1e-8 <= p["tau"] <= 1e-4 for p in points)
+
+
+def test_equal_time_evaluations_interleave_the_variants_and_equal_iterations_train_seeds_together():
+    settings, axes, common, _ = split_overrides(
+        ["task=toy", "optim=adam,gd", "trainer.time_budget=5"]
+    )
+    s = study_settings({**settings, "seeds": 3})
+    variants = build_variants(axes, common, s, [])
+    # two tuning studies: each study's own tuned rate, the same seeds
+    best = [{v.name: {"learning_rate": rate} for v in variants} for rate in (0.01, 0.02)]
+    timed = evaluation_jobs(variants, best, s, common, {"task", "optim"}, "wall_time", 5.0)
+    assert list(timed) == [
+        f"eval_{study}v{v}_s{seed}" for seed in range(3) for study in ("", "st1_") for v in (0, 1)
+    ]
+    assert "learning_rate: 0.02" in timed["eval_st1_v0_s2"] and "seed: 2" in timed["eval_st1_v0_s2"]
+    counted = evaluation_jobs(variants, best, s, common, {"task", "optim"}, "iteration", 300.0)
+    assert list(counted) == ["eval_v0", "eval_v1", "eval_st1_v0", "eval_st1_v1"]
+    assert "seeds: 3" in counted["eval_v0"] and "seeds: 3" in counted["eval_st1_v1"]
+    assert "learning_rate: 0.01" in counted["eval_v1"] and "eval_every: 15" in counted["eval_v1"]
+    assert "learning_rate: 0.02" in counted["eval_st1_v1"]
+
+
+def test_validation_data_are_held_out_and_evaluated_beside_the_test_set(tmp_path):
+    run = physgrad.run(
+        "task=toy",
+        "optim=adam",
+        "trainer.iterations=20",
+        "trainer.eval_every=10",
+        "trainer.validation=true",
+        out_dir=tmp_path,
+    )
+    loss, validation = run.eval["loss"], run.eval["validation_loss"]
+    assert loss.shape == validation.shape == (3,) and not np.allclose(loss, validation)
+    assert np.allclose(loss, validation, rtol=0.3)  # the same distribution: close, not equal
+    plain = physgrad.run(
+        "task=toy", "optim=adam", "trainer.iterations=20", out_dir=tmp_path / "plain"
+    )
+    assert "validation_loss" not in plain.eval  # nobody pays for what they did not ask
+
+
+def test_validation_reads_the_held_out_loss_without_paying_for_the_scene_metrics(
+    tmp_path, monkeypatch
+):
+    """The validation sets get the loss only (a KS stability rollout would cost 200 steps per
+    state), and it is the loss the full evaluation gives on the same sets."""
+    import physgrad.runner
+
+    real, captured = physgrad.runner.compile_training, {}
+
+    def capture(scene, rule, seeds, batch_size):
+        captured.update(compiled=real(scene, rule, seeds, batch_size), seeds=seeds)
+        return captured["compiled"]
+
+    monkeypatch.setattr(physgrad.runner, "compile_training", capture)
+    run = physgrad.run(
+        "task=toy",
+        "optim=adam",
+        "trainer.iterations=5",
+        "trainer.validation=true",
+        out_dir=tmp_path,
+    )
+    compiled, seeds = captured["compiled"], captured["seeds"]
+    # the toy has metrics: the test sets still get them
+    assert {"error_first", "error_second"} <= set(run.eval)
+    validated = compiled.validate(compiled.params, seeds.validation_sets)
+    assert set(validated) == {"loss"}
+    # toy: the same shapes as the test sets
+    full = compiled.evaluate(compiled.params, seeds.validation_sets)
+    np.testing.assert_allclose(np.asarray(validated["loss"]), np.asarray(full["loss"]), rtol=1e-6)
+    assert not np.allclose(
+        np.asarray(validated["loss"]),
+        np.asarray(compiled.evaluate(compiled.params, seeds.test_sets)["loss"]),
+    )
+
+
+def test_a_loss_that_blows_up_without_nan_ends_the_run_diverged(tmp_path):
+    """A training loss past trainer.divergence_factor times its first value ends the run diverged,
+    with why."""
+    run = physgrad.run(
+        "task=toy",
+        "optim=gd",
+        "optim.learning_rate=3",
+        "trainer.iterations=200",
+        "trainer.divergence_factor=10",
+        out_dir=tmp_path,
+    )
+    assert run.attrs["status"] == "diverged" and "blow-up without NaN" in run.attrs["reason"]
+    assert (
+        np.isfinite(run.train["loss"]).all() and run.train["loss"][-1] > 10 * run.train["loss"][0]
+    )
+
+
+def test_the_python_call_returns_the_tables(tmp_path):
+    import physgrad.comparison  # noqa: F401 - importing the module leaves the function physgrad.compare in place
+
+    study = physgrad.compare(
+        "task=toy",
+        "optim=adam,gd",
+        "trainer.iterations=30",
+        "compare.trials=2",
+        "compare.studies=2",
+        "compare.seeds=6",
+        f"compare.dir={tmp_path / 'study'}",
+    )
+    # two tuning studies of two trials per variant, each on its own seed and points
+    assert list(zip(study.trials.study, study.trials.variant)) == [
+        (k, v) for k in (0, 1) for v in ("adam", "adam", "gd", "gd")
+    ]
+    rates = study.trials.groupby(["study", "variant"])["learning_rate"].apply(list)
+    assert rates[0, "adam"] != rates[1, "adam"] and rates[0, "gd"] != rates[1, "gd"]
+    tuned = {
+        physgrad.read_run(p).attrs["seed"] for p in (study.folder / "tune").rglob("results.h5")
+    }
+    assert tuned == {1_000_000, 1_000_001}
+    # each study's best evaluated on the same six seeds
+    assert len(study.runs) == 24 and set(study.runs.study) == {0, 1}
+    assert all(
+        sorted(g) == list(range(6)) for _, g in study.runs.groupby(["study", "variant"]).seed
+    )
+    # the verdicts over both studies first, then each study's own
+    assert list(study.comparisons.study) == ["all"] * 3 + [0] * 3 + [1] * 3
+    assert len(study.verdicts) == 1 and len(study.verdicts[0].studies) == 2
+    assert study.verdicts[0].verdict == study.comparisons.verdict.iloc[2]
+    assert study.verdicts[0].at[1.0].pairs == sum(
+        s.at[1.0].pairs for s in study.verdicts[0].studies
+    )
+    assert (study.folder / "compare.md").read_text() == study.text
+    assert "must hold in 2 of the 2 tuning studies" in study.text
+    # an iteration budget still says what a step costs each variant
+    assert "| adam | " in study.text.split("step time: median of the runs' p50")[1]
+
+
+@pytest.mark.long
+def test_an_equal_time_study_runs_on_the_calibrated_clock_and_can_reuse_a_calibration(tmp_path):
+    """A time budget: the variants are calibrated once (calibration.json), every run stops where
+    iterations x its variant's cost reach the budget, verdicts read the calibrated clock, and a
+    second study given the first's calibration trains exactly as far."""
+    import json
+
+    common = [
+        "task=toy",
+        "optim=adam,gauss_newton",
+        "trainer.time_budget=0.4",
+        "compare.trials=1",
+        "compare.studies=1",
+        "compare.seeds=6",
+        "trainer.batch_size=16",
+    ]
+    study = physgrad.compare(*common, f"compare.dir={tmp_path / 'first'}")
+    calibration = json.loads((study.folder / "calibration.json").read_text())
+    costs = {name: calibration["costs"][name]["step_seconds"] for name in ("adam", "gauss_newton")}
+    assert costs["gauss_newton"] > costs["adam"] > 0
+    # measured by a job of the study, launched like the others (on a cluster: where the jobs run)
+    measured = study.folder / "calibration" / "+compare_job=calibration" / "calibration.json"
+    assert json.loads(measured.read_text()) == calibration
+    assert calibration["machine"]["hostname"]
+    for _, row in study.runs.iterrows():
+        cost = costs[row.variant]
+        assert row.iterations == math.ceil(0.4 / cost - 1e-9) or row.status != "completed", row
+        assert row.calibrated_seconds == pytest.approx(row.iterations * cost)
+    assert "Clock: calibrated" in study.text and "contended runs A, B" in study.text
+    again = physgrad.compare(
+        *common,
+        f"compare.calibration={study.folder / 'calibration.json'}",
+        f"compare.dir={tmp_path / 'second'}",
+    )
+    assert list(again.runs.iterations) == list(study.runs.iterations)
+    with pytest.raises(UserError, match="compare.calibration"):
+        physgrad.compare(
+            "task=toy",
+            "optim=adam,gd",
+            "trainer.time_budget=0.4",
+            "compare.trials=1",
+            f"compare.calibration={study.folder / 'calibration.json'}",
+            f"compare.dir={tmp_path / 'x'}",
+        )
+
+
+def test_a_learning_rate_schedule_is_tuned_by_its_init_value_and_keeps_its_shape():
+    """ks with Adam has the study's staircase decay (conf/tuning/ks_adam.yaml): compare tunes its
+    init_value; a tuned job's config keeps the decay, whose Adam step after 2,000 updates is 0.9
+    times the first."""
+    import jax
+    import jax.numpy as jnp
+    from omegaconf import OmegaConf
+
+    from physgrad.comparison import split_overrides, study_settings
+    from physgrad.optim import build_rule
+
+    given, axes, common, _ = split_overrides(["task=ks", "optim=adam,gd", "trainer.iterations=10"])
+    adam, gd = build_variants(axes, common, study_settings(given), [])
+    assert list(adam.space) == ["learning_rate.init_value"] and list(gd.space) == ["learning_rate"]
+    assert adam.preset == {"learning_rate.init_value": pytest.approx(1e-4)}
+    text = job_yaml(
+        [*common, *adam.overrides], {"task", "optim"}, {"optim.learning_rate.init_value": 3e-4}
+    )
+    node = OmegaConf.create(text.split("\n", 2)[2])  # the job file without its package line
+    merged = OmegaConf.merge(adam.config, {k: v for k, v in node.items() if k != "defaults"})
+    assert merged.optim.learning_rate.init_value == pytest.approx(3e-4)
+    assert (
+        merged.optim.learning_rate.transition_steps == 2000
+        and merged.optim.learning_rate.decay_rate == 0.9
+    )
+    rule = build_rule(merged.optim)
+    params = {"w": jnp.zeros(3)}
+    state = rule.transform.init(params)
+    update = jax.jit(rule.transform.update)
+    grads = {"w": jnp.ones(3)}
+    first, state = update(grads, state, params)
+    for _ in range(1999):
+        later, state = update(grads, state, params)
+    step_2000, _ = update(grads, state, params)  # the 2001st update: count 2000, one decay
+    assert float(first["w"][0]) == pytest.approx(-3e-4, rel=1e-3)
+    assert float(later["w"][0]) == pytest.approx(-3e-4, rel=1e-3)
+    assert float(step_2000["w"][0]) == pytest.approx(-3e-4 * 0.9, rel=1e-3)
+
+
+@pytest.mark.long
+def test_a_finished_study_given_more_trials_tunes_on_from_where_it_stopped(tmp_path):
+    """trials 1 then 3: the first trial is not run again (its results file is untouched), the two
+    new ones are the next Halton points, and the folder is the same study; given a second tuning
+    study, it adds that study's trials and evaluation and trains nothing of the first again;
+    another budget is still another study."""
+    args = [
+        "task=toy",
+        "optim=adam,gd",
+        "trainer.iterations=20",
+        "compare.seeds=6",
+        f"compare.dir={tmp_path / 's'}",
+    ]
+    physgrad.compare(*args, "compare.trials=1", "compare.studies=1")
+    # adam's trials train together: trial 0 is member 0 of the first job
+    first = tmp_path / "s" / "tune" / "+compare_job=tune_v0_t000" / "trial=0" / "results.h5"
+    stamp = first.stat().st_mtime_ns
+    study = physgrad.compare(*args, "compare.trials=3", "compare.studies=1")
+    assert first.stat().st_mtime_ns == stamp
+    assert list(study.trials.variant) == ["adam"] * 3 + ["gd"] * 3
+    expected = halton_points({"learning_rate": ADAPTIVE.search_range}, 3, 1_000_000)
+    assert list(study.trials[study.trials.variant == "adam"].learning_rate) == pytest.approx(
+        [p["learning_rate"] for p in expected]
+    )
+    stamps = {p: p.stat().st_mtime_ns for p in (tmp_path / "s").rglob("results.h5")}
+    two = physgrad.compare(*args, "compare.trials=3", "compare.studies=2")
+    assert all(p.stat().st_mtime_ns == stamp for p, stamp in stamps.items())
+    assert list(two.trials.study) == [0] * 6 + [1] * 6 and len(two.runs) == 24
+    assert len(two.verdicts[0].studies) == 2
+    with pytest.raises(UserError, match="holds another study"):
+        physgrad.compare(*args[:2], "trainer.iterations=30", *args[3:], "compare.trials=3")
+
+
+def test_two_names_for_one_rule_are_tuned_alike_in_either_order_and_equivalent(tmp_path):
+    """A copy of adam.yaml under another name, listed second and then first: the same trial points
+    and tuned rate in each of the three tuning studies (the default; the points do not depend on a
+    variant's position or name), identical paired runs, and the verdict "equivalent"."""
+    from physgrad.configs import CONF_DIR
+
+    optim = tmp_path / "conf" / "optim"
+    optim.mkdir(parents=True)
+    (optim / "adam_copy.yaml").write_text(
+        (CONF_DIR / "optim" / "adam.yaml").read_text().replace("name: adam", "name: adam_copy")
+    )
+    common = ["task=toy", "trainer.iterations=30", "compare.trials=2", "compare.seeds=6"]
+    studies = [
+        physgrad.compare(
+            *common, f"optim={order}", f"compare.dir={tmp_path / str(k)}", config_dir=optim.parent
+        )
+        for k, order in enumerate(("adam,adam_copy", "adam_copy,adam"))
+    ]
+    for study in studies:
+        tried = study.trials.groupby("variant")["learning_rate"].apply(list)
+        assert len(tried["adam"]) == 6  # two trials in each of three tuning studies
+        assert tried["adam"] == tried["adam_copy"]
+        losses = study.runs.pivot(
+            index=["study", "seed"], columns="variant", values="test_loss_at_1"
+        )
+        assert (losses["adam"] == losses["adam_copy"]).all()
+        assert [v.verdict for v in study.verdicts] == ["equivalent"]
+    assert list(studies[0].trials.sort_values(["variant", "learning_rate"]).learning_rate) == list(
+        studies[1].trials.sort_values(["variant", "learning_rate"]).learning_rate
+    )
+
+
+def test_a_tuned_value_at_the_edge_of_its_range_is_warned_about():
+    """The outer tenth of the log range on either side is the edge (1.6e-05 and 0.08 of
+    [1e-05, 0.1]), the middle is not (0.001); a variant evaluated as configured has nothing
+    tuned."""
+    from physgrad.comparison import Variant
+    from physgrad.comparison.summary import edge_lines
+
+    space = {"learning_rate": (1e-5, 1e-1)}
+    variants = [Variant(name, [f"optim={name}"], None, dict(space)) for name in "abcd"]
+    best = {
+        "a": {"learning_rate": 1.6e-5},
+        "b": {"learning_rate": 1e-3},
+        "c": {"learning_rate": 0.08},
+        "d": {},
+    }
+    lines = [line for line in edge_lines(variants, [best]) if line]
+    assert len(lines) == 2
+    assert lines[0].startswith("warning: a's tuned learning_rate=1.6e-05 lies in the lowest tenth")
+    assert lines[1].startswith("warning: c's tuned learning_rate=0.08 lies in the highest tenth")
+    assert "compare.search.learning_rate=[low,high]" in lines[1]
+    assert edge_lines(variants[1:2] + variants[3:], [best]) == []
+
+
+def test_the_plan_costs_every_job_of_a_study_from_compile_and_step_times():
+    """variant_cost's arithmetic on given costs: tuning = trials x studies runs of (compile + budget
+    x step); an iteration budget evaluates a vectorised variant in one job per study (seeds x
+    budget x step of training; the Jacobian rules too, their float64 retry batching), a time
+    budget in one job per seed."""
+    from physgrad.comparison.plan import variant_cost
+    from physgrad.comparison.spec import StudyPlan
+
+    settings, axes, common, _ = split_overrides(
+        ["task=toy", "optim=adam,gauss_newton", "compare.trials=4", "compare.studies=2"]
+    )
+    s = study_settings({**settings, "seeds": 6})
+    adam, gauss_newton = build_variants(axes, common, s, [])
+    plan = StudyPlan([adam, gauss_newton], s, common, {"task", "optim"}, "iteration", 100.0)
+    cost = variant_cost(plan, adam, 2.0, 0.01)
+    assert (cost.tuning_runs, cost.tuning_seconds) == (8, pytest.approx(8 * (2.0 + 1.0)))
+    assert (cost.evaluation_jobs, cost.evaluation_seconds) == (2, pytest.approx(2 * 2.0 + 12 * 1.0))
+    retrying = variant_cost(plan, gauss_newton, 2.0, 0.01)  # optim.retry_float64 batches
+    assert (retrying.evaluation_jobs, retrying.evaluation_seconds) == (
+        2,
+        pytest.approx(2 * 2.0 + 12 * 1.0),
+    )
+    timed = StudyPlan([adam, gauss_newton], s, common, {"task", "optim"}, "wall_time", 5.0)
+    cost = variant_cost(timed, adam, 2.0, 0.01)
+    assert cost.tuning_seconds == pytest.approx(8 * 7.0) and cost.evaluation_jobs == 12
+    assert cost.seconds == pytest.approx(8 * 7.0 + 12 * 7.0)
+
+
+def test_a_studys_jobs_share_a_compilation_cache_in_the_users_cache_unless_they_name_one(
+    tmp_path, monkeypatch
+):
+    """The cache holds compiled code, so it is the user's (PHYSGRAD_CACHE/jax), never the study
+    folder's, which may come from someone else."""
+    from physgrad.comparison.jobs import job_environment
+
+    monkeypatch.setenv("PHYSGRAD_CACHE", str(tmp_path / "cache"))
+    monkeypatch.delenv("JAX_COMPILATION_CACHE_DIR", raising=False)
+    monkeypatch.delenv("JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS", raising=False)
+    env = job_environment()
+    assert env["JAX_COMPILATION_CACHE_DIR"] == str(tmp_path / "cache" / "jax")
+    assert env["JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS"] == "0"
+    monkeypatch.setenv("JAX_COMPILATION_CACHE_DIR", "/elsewhere")
+    env = job_environment()
+    assert env["JAX_COMPILATION_CACHE_DIR"] == "/elsewhere"
+    assert "JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS" not in env
+
+
+def test_a_study_folder_from_someone_else_runs_no_code_and_its_links_are_not_followed(tmp_path):
+    """A study folder holds configs of the jobs as a record only: a tuning option planted in its
+    configs/ (here one that would change the budget and build a logger whose _target_ runs a shell
+    command) is never on the jobs' config search path, a link planted where a job's record is
+    written is replaced, not written through, and a phase log that is a link is refused in one
+    line."""
+    study, outside, marker = tmp_path / "study", tmp_path / "outside.yaml", tmp_path / "ran"
+    planted = study / "configs" / "tuning"
+    planted.mkdir(parents=True)
+    (planted / "toy_gd.yaml").write_text(
+        "# @package _global_\ntrainer:\n  iterations: 7\nlogger:\n  evil:\n"
+        f"    _target_: os.system\n    command: touch {marker}\n"
+    )
+    (study / "configs" / "compare_job").mkdir()
+    outside.write_text("theirs\n")
+    (study / "configs" / "compare_job" / "eval_v0.yaml").symlink_to(outside)
+    args = [
+        "task=toy",
+        "optim=adam,gd",
+        "trainer.iterations=20",
+        "compare.trials=1",
+        "compare.studies=1",
+        "compare.seeds=6",
+        f"compare.dir={study}",
+    ]
+    result = physgrad.compare(*args)
+    assert not marker.exists() and outside.read_text() == "theirs\n"
+    assert set(result.runs.iterations) == {20}
+    record = study / "configs" / "compare_job" / "eval_v0.yaml"
+    assert not record.is_symlink() and "seeds: 6" in record.read_text()
+
+    (study / "eval.log").unlink()
+    (study / "eval.log").symlink_to(outside)
+    (study / "eval").rename(tmp_path / "old_eval")  # the evaluation must run again
+    with pytest.raises(UserError, match="eval.log: a link: refused"):
+        physgrad.compare(*args)
+    assert outside.read_text() == "theirs\n"
+
+
+def test_which_variants_train_their_trials_together():
+    """One vectorised job per study where the tuned learning rate can be an input of the rule's
+    optax transformation (Gauss-Newton and HIG too, their float64 retry included) and members stop
+    together (iterations, calibrated clock); one job per trial for Levenberg-Marquardt (its gain
+    ratio takes the loss function) and on the measured clock."""
+    from physgrad.comparison.tuning import trials_together
+
+    settings, axes, common, _ = split_overrides(
+        ["task=toy", "optim=adam,gd,gauss_newton,hig,levenberg_marquardt", "trainer.iterations=30"]
+    )
+    variants = build_variants(axes, common, study_settings(settings), [])
+    together = {v.name: trials_together(v, "iteration") for v in variants}
+    assert together == {
+        "adam": True,
+        "gd": True,
+        "gauss_newton": True,
+        "hig": True,
+        "levenberg_marquardt": False,
+    }
+    assert trials_together(variants[0], "calibrated_time")
+    assert not trials_together(variants[0], "wall_time")
+
+
+def test_a_calibration_is_used_only_whole_and_within_a_physical_step_cost(tmp_path):
+    """Every field of calibration.json is checked (it may come from someone else): a missing
+    field, a step faster than a microsecond or slower than an hour, a non-number: not used
+    (compare calibrates again, or refuses a given one in one line)."""
+    import json
+
+    from physgrad.comparison.calibration import read_calibration
+
+    whole = {
+        "quantile": 0.2,
+        "load_start": 0.5,
+        "load_end": 0.6,
+        "machine": {"cpu_count": 2},
+        "costs": {"adam": {"step_seconds": 1e-4, "median_seconds": 1.2e-4, "rounds": 30}},
+    }
+    path = tmp_path / "calibration.json"
+    path.write_text(json.dumps(whole))
+    assert read_calibration(path, ["adam"]) == whole
+    assert read_calibration(path, ["adam", "hig"]) is None
+    for broken in (
+        {k: v for k, v in whole.items() if k != "quantile"},
+        {**whole, "machine": "x"},
+        {**whole, "load_start": "high"},
+        {**whole, "costs": {"adam": {**whole["costs"]["adam"], "step_seconds": 1e-300}}},
+        {**whole, "costs": {"adam": {**whole["costs"]["adam"], "step_seconds": 1e9}}},
+        {**whole, "costs": {"adam": {"step_seconds": 1e-4}}},
+        [1, 2],
+    ):
+        path.write_text(json.dumps(broken))
+        assert read_calibration(path, ["adam"]) is None, broken
+    path.write_text('{"quantile": 0.2, "costs": ')  # cut short
+    assert read_calibration(path, ["adam"]) is None
+
+
+def test_a_step_cost_faster_than_a_microsecond_is_refused(tmp_path):
+    from physgrad.experiment import run_experiment
+    from tests.helpers import load
+
+    outcome, _ = run_experiment(
+        load(
+            "task=toy",
+            "trainer.time_budget=0.5",
+            "trainer.clock=calibrated",
+            "trainer.step_cost=1e-300",
+        ),
+        tmp_path,
+    )
+    assert outcome.status == "refused" and "trainer.step_cost" in outcome.reason
+
+
+@pytest.mark.long
+def test_a_study_tuned_under_another_read_out_is_read_again_without_training(tmp_path):
+    """A study whose journal holds values another read-out gave (forged here: the same points,
+    the opposite ranking, no version) is read again from its runs when resumed: the same trial
+    values and tuned settings as read the first time, no tuning job trained again, also where the
+    trials were added in pieces (1, then 3: adam's trained together in two jobs)."""
+    import optuna
+
+    from physgrad.comparison import run_study
+
+    args = [
+        "task=toy",
+        "optim=adam,gd",
+        "trainer.iterations=20",
+        "compare.studies=1",
+        "compare.seeds=2",
+        f"compare.dir={tmp_path / 's'}",
+    ]
+    physgrad.compare(*args, "compare.trials=1")
+    args.append("compare.trials=3")
+    first = physgrad.compare(*args)
+    jobs = sorted(p.name for p in (tmp_path / "s" / "tune").iterdir())
+    assert "+compare_job=tune_v0_t000" in jobs and "+compare_job=tune_v0_t001-002" in jobs
+    journal = tmp_path / "s" / "tuning.journal"
+    storage = optuna.storages.JournalStorage(
+        optuna.storages.journal.JournalFileBackend(str(journal))
+    )
+    told = {
+        name: [t.params for t in optuna.load_study(study_name=name, storage=storage).trials]
+        for name in optuna.get_all_study_names(storage)
+    }
+    journal.unlink()
+    forged = optuna.storages.JournalStorage(
+        optuna.storages.journal.JournalFileBackend(str(journal))
+    )
+    rate = {"learning_rate": optuna.distributions.FloatDistribution(1e-5, 0.1, log=True)}
+    for name, points in told.items():
+        study = optuna.create_study(study_name=name, storage=forged)
+        for k, point in enumerate(points):
+            study.enqueue_trial(point)
+            study.tell(study.ask(rate), -float(k))  # the last trial "best"
+    runs = sorted((tmp_path / "s" / "tune").rglob("results.h5"))
+    stamps = [p.stat().st_mtime_ns for p in runs]
+    notes = []
+    again = run_study(args, config_dir=None, say=notes.append)
+    assert sum("scored by another read-out (version unrecorded" in n for n in notes) == 1
+    assert "tune: 6 trials read again from the runs that trained them" in notes
+    assert sorted((tmp_path / "s" / "tune").rglob("results.h5")) == runs
+    assert sorted(p.name for p in (tmp_path / "s" / "tune").iterdir()) == jobs
+    assert [p.stat().st_mtime_ns for p in runs] == stamps
+    assert list(again.trials.validation_loss) == list(first.trials.validation_loss)
+    assert list(again.runs.test_loss_at_1) == list(first.runs.test_loss_at_1)
+    assert len(list((tmp_path / "s").glob("tuning.journal.read-out-unrecorded-*"))) == 1
+
+
+def test_only_the_runs_an_evaluation_asked_for_make_a_verdict():
+    """An evaluation file counts only if it ran to its end on an evaluation seed with the study's
+    tuned values: a failed, interrupted or running job, a foreign seed, or a file left by another
+    run (another learning rate: a job skipped because its folder was held) is named."""
+    from physgrad.comparison.evaluation import _not_asked_for
+    from physgrad.results import Run
+
+    settings = study_settings({"seeds": 6})
+    tuned = {"learning_rate": 0.00165}
+
+    def run(status="completed", seed=2, rate=0.00165, reason=None):
+        attrs = {"status": status, "seed": seed, **({"reason": reason} if reason else {})}
+        return Run(Path("x"), attrs, {}, {}, config={"optim": {"learning_rate": rate}})
+
+    assert _not_asked_for(run(), tuned, settings) is None
+    assert _not_asked_for(run("diverged"), tuned, settings) is None
+    assert _not_asked_for(run("failed", reason="boom"), tuned, settings) == "failed (boom)"
+    assert _not_asked_for(run("running"), tuned, settings) == "running"
+    assert "not an evaluation seed" in _not_asked_for(run(seed=1_000_000), tuned, settings)
+    assert "not the tuned 0.00165" in _not_asked_for(run(rate=1.65e-5), tuned, settings)
+    assert _not_asked_for(run(rate=1.65e-5), {}, settings) is None  # untuned: as configured

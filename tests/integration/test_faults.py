@@ -1,0 +1,360 @@
+"""Integration layer (run_experiment and the commands in-process, at tiny sizes) of the tests of:
+Faults injected many times and at many instants: writers killed mid-write, a second writer, live
+readers with HDF5's default file locking, full disks, signals in bursts, damaged files, stopped
+sweeps.
+
+The short form runs in `make test`; `make test-faults` repeats every randomised fault many more
+times (PHYSGRAD_FAULT_REPEATS, see docs/results.md)."""
+
+import dataclasses
+import errno
+import os
+import random
+import signal
+import threading
+import time
+from pathlib import Path
+
+import h5py
+import numpy as np
+import pytest
+
+from physgrad.files import own_folder
+from physgrad.results import ResultsWriter, read_run
+from tests.helpers import load
+from tests.unit.test_faults import (
+    REPEATS,
+)
+
+
+def run_experiment_in(folder, *overrides):
+    from physgrad.experiment import run_experiment
+
+    return run_experiment(load("task=toy", "trainer.iterations=3", *overrides), folder)
+
+
+def test_signals_in_bursts_at_random_instants_always_end_interrupted(tmp_path):
+    """Two to four signals a few milliseconds apart, at random instants of a run (compile, steps,
+    flushes); the process stays alive, the file is final and consistent."""
+    from physgrad.experiment import prepare
+    from physgrad.interrupts import stop_on_signals
+    from physgrad.runner import TrainerSettings, train
+
+    rng = random.Random(2)
+    cfg = load("task=toy", "trainer.flush_seconds=0.001")
+    settings = TrainerSettings.from_config(cfg.trainer)
+    settings = dataclasses.replace(settings, iterations=None, time_budget=30.0)
+    for trial in range(4 * REPEATS):
+        scene, rule, seeds = prepare(cfg, [0], settings)
+        writer = ResultsWriter(
+            tmp_path / f"{trial}" / "results.h5", {"task": "toy", "optim": "adam", "seed": 0}
+        )
+        times = sorted(
+            rng.uniform(0.0, 2.0) + k * rng.uniform(0.0, 0.01) for k in range(rng.randint(2, 4))
+        )
+        with stop_on_signals() as stop:  # stays installed until the last signal arrived
+            start = time.monotonic()
+            timers = [
+                threading.Timer(
+                    t, os.kill, (os.getpid(), rng.choice([signal.SIGINT, signal.SIGTERM]))
+                )
+                for t in times
+            ]
+            for timer in timers:
+                timer.start()
+            (outcome,) = train(scene, rule, seeds, [writer], settings, stop=stop)
+            for timer in timers:
+                timer.join()
+        assert time.monotonic() - start < 25
+        run = read_run(writer.path)
+        assert outcome.status == run.attrs["status"] == "interrupted", run.attrs
+        assert run.train.get("iteration", np.empty(0)).tolist() == list(range(outcome.iterations))
+
+
+def test_a_completed_file_is_replaced_only_by_a_completed_one(tmp_path):
+    first, path = run_experiment_in(tmp_path)
+    kept = read_run(path).attrs["created"]
+    # a re-run (overwrite=true) that ends interrupted
+    writer = ResultsWriter(path, {"task": "toy", "optim": "adam", "seed": 0})
+    writer.append("train", {"iteration": 0, "loss": 1.0})
+    writer.finish("interrupted", "SIGINT after 1 iterations")
+    assert read_run(path).attrs["created"] == kept and read_run(path).attrs["status"] == "completed"
+    assert read_run(path.with_name("results.overwriting.h5")).attrs["status"] == "interrupted"
+    again, _ = run_experiment_in(tmp_path, "overwrite=true", "trainer.iterations=4")
+    assert again.status == "completed" and read_run(path).train["iteration"].size == 4
+    assert not path.with_name("results.overwriting.h5").exists()  # renamed onto results.h5
+
+
+@pytest.mark.parametrize("content", [b"", b"not hdf5 at all", "foreign"])
+def test_a_damaged_or_foreign_file_is_set_aside_and_the_job_reruns(tmp_path, content):
+    path = tmp_path / "results.h5"
+    if content == "foreign":
+        with h5py.File(path, "w") as f:
+            f["data"] = np.arange(3)
+    else:
+        path.write_bytes(content)
+    outcome, _ = run_experiment_in(tmp_path)
+    assert outcome.status == "completed" and read_run(path).attrs["status"] == "completed"
+    (aside,) = tmp_path.glob("results.h5.unreadable-*")
+    if content != "foreign":
+        assert aside.read_bytes() == content
+
+
+def test_a_job_folder_that_cannot_be_written_fails_alone_with_its_reason(tmp_path, monkeypatch):
+    """A read-only job folder (injected: the tests may run as root, whom chmod does not stop) fails
+    that job with one line; the sweep goes on, its summary and exit code say so, and the reason is
+    recorded."""
+    import physgrad.experiment as experiment
+    from physgrad.cli import main
+    from physgrad.sweeps import unfinished_jobs
+
+    real = experiment.own_folder
+
+    def read_only(folder, what="job"):
+        if "optim=gd" in str(folder):
+            raise PermissionError(errno.EACCES, "Permission denied", str(folder))
+        return real(folder, what)
+
+    monkeypatch.setattr(experiment, "own_folder", read_only)
+    code = main(
+        [
+            "run",
+            "-m",
+            "task=toy",
+            "optim=gd,adam",
+            "trainer.iterations=2",
+            f"hydra.sweep.dir={tmp_path}",
+        ]
+    )
+    assert code == 1
+    assert read_run(next(tmp_path.glob("optim=adam*/results.h5"))).attrs["status"] == "completed"
+    ((job, why),) = unfinished_jobs(tmp_path)
+    assert (
+        "optim=gd" in job
+        and why.startswith("failed: cannot write the job folder")
+        and "Permission denied" in why
+    )
+    assert not list(tmp_path.glob("optim=gd*/.hydra"))
+
+
+def test_a_writer_on_another_host_is_judged_by_its_heartbeat():
+    from physgrad.files import STALE_SECONDS, timestamp, with_live_status
+
+    now = time.time()
+    old = time.strftime("%Y-%m-%dT%H:%M:%S%z", time.localtime(now - STALE_SECONDS - 60))
+    for heartbeat, status in (
+        (timestamp(), "running"),
+        (old, "crashed"),
+        ("not a time", "running"),
+    ):
+        attrs = with_live_status(
+            {
+                "status": "running",
+                "owner": "pid 7 on a-host-that-is-not-this-one",
+                "heartbeat": heartbeat,
+            },
+            now,
+        )
+        assert attrs["status"] == status
+    assert (
+        "has not written for"
+        in with_live_status(
+            {"status": "running", "owner": "pid 7 on elsewhere", "heartbeat": old}, now
+        )["reason"]
+    )
+
+
+def test_a_scene_figure_that_raises_costs_a_warning_not_the_run(tmp_path, monkeypatch):
+    import physgrad.experiment as experiment
+
+    def broken(*args):
+        raise TypeError("figure() takes 2 positional arguments but 3 were given")
+
+    monkeypatch.setattr(experiment, "draw_run_figures", broken)
+    outcome, path = run_experiment_in(tmp_path)
+    assert outcome.status == "completed" and read_run(path).attrs["status"] == "completed"
+
+
+def test_an_interrupted_report_leaves_the_previous_tables(tmp_path, monkeypatch):
+    import physgrad.report as report
+    import physgrad.tables as tables
+
+    run_experiment_in(tmp_path / "run")
+    report.write_report([tmp_path / "run"], out_dir=tmp_path / "report")
+    before = {
+        name: (tmp_path / "report" / name).read_bytes()
+        for name in ("report.md", "runs.csv", "curves.csv")
+    }
+    rng = random.Random(4)
+    real = tables.pd.DataFrame.to_csv
+    for _ in range(5 * REPEATS):
+        calls, stop_at, cut = [0], rng.randint(1, 2), rng.random()
+
+        def interrupted(frame, f, *args, **kwargs):  # part of a table written, then a signal
+            calls[0] += 1
+            text = real(frame, None, *args, **kwargs)
+            if calls[0] >= stop_at:
+                f.write(text[: int(cut * len(text))])
+                raise KeyboardInterrupt("SIGINT")
+            f.write(text)
+
+        monkeypatch.setattr(tables.pd.DataFrame, "to_csv", interrupted)
+        with pytest.raises(KeyboardInterrupt):
+            report.write_report([tmp_path / "run"], out_dir=tmp_path / "report")
+        after = {name: (tmp_path / "report" / name).read_bytes() for name in before}
+        assert after == before and not list((tmp_path / "report").glob(".*.tmp"))
+
+
+@pytest.mark.parametrize("name", ["config.yaml", "hydra.yaml", "overrides.yaml"])
+def test_a_full_disk_while_writing_hydra_fails_that_job_alone_in_one_line(
+    tmp_path, monkeypatch, name
+):
+    """ENOSPC while physgrad writes a job's .hydra/ (each of its files): that job fails with one
+    line and its reason recorded, no half-written file is left, and the sweep's other job runs."""
+    import physgrad.files as files
+    from physgrad.cli import main
+    from physgrad.sweeps import job_states
+
+    real = files.replace_file
+
+    def full(path, content, sync=False):
+        if path.name == name and path.parent.name == ".hydra" and "optim=gd" in str(path):
+            raise OSError(errno.ENOSPC, "No space left on device", str(path))
+        return real(path, content, sync)
+
+    monkeypatch.setattr(files, "replace_file", full)
+    assert (
+        main(
+            [
+                "run",
+                "-m",
+                "task=toy",
+                "optim=gd,adam",
+                "trainer.iterations=2",
+                f"hydra.sweep.dir={tmp_path}",
+            ]
+        )
+        == 1
+    )
+    states = {Path(s["folder"]).name.split(",")[0]: s for s in job_states(tmp_path).values()}
+    assert states["optim=adam"]["state"] == "completed"
+    assert (
+        states["optim=gd"]["state"] == "failed"
+        and "No space left on device" in states["optim=gd"]["reason"]
+    )
+    assert not list(tmp_path.rglob("*.tmp")) and not list(tmp_path.glob("optim=gd*/results.h5"))
+
+
+def test_a_signal_inside_a_garbage_collector_callback_is_kept_not_printed(capfd):
+    """During set-up a signal raises at once, but raised inside code the interpreter runs on its own
+    (jax's gc callback, injected here at every collection) it cannot propagate: no 'Exception
+    ignored' traceback, and the stop stays requested for the job's next check."""
+    import gc
+
+    from physgrad.interrupts import stop_on_signals
+
+    def callback(phase, info):
+        if phase == "start":
+            os.kill(os.getpid(), signal.SIGINT)
+            for _ in range(10_000):  # Python bytecode: the handler runs in here
+                pass
+
+    for _ in range(5 * REPEATS):
+        with stop_on_signals() as stop:
+            stop.raising = True
+            gc.callbacks.append(callback)
+            try:
+                gc.collect()
+            except KeyboardInterrupt:
+                pytest.fail("raised out of the garbage collector")
+            finally:
+                gc.callbacks.remove(callback)
+            assert stop.signal_name == "SIGINT" and not stop.raising
+            with pytest.raises(KeyboardInterrupt):
+                stop.raise_if_stopped()
+        assert "Exception ignored" not in capfd.readouterr().err
+
+
+def test_a_lock_file_or_job_log_that_is_a_link_is_never_written_through(tmp_path, capsys):
+    """A job folder from someone else whose .physgrad-job or physgrad.log links to a file elsewhere:
+    the lock is refused in one line (OSError naming it), the log is refused with one warning and
+    the run logs to the terminal; the linked file is untouched either way."""
+    import logging
+
+    from physgrad.app import JobLogFile
+
+    outside = tmp_path / "outside"
+    outside.write_text("theirs\n")
+    job = tmp_path / "job"
+    job.mkdir()
+    (job / ".physgrad-job").symlink_to(outside)
+    with pytest.raises(OSError, match=r"\.physgrad-job is a link: refused"):
+        with own_folder(job):
+            pass
+    (job / "physgrad.log").symlink_to(outside)
+    handler = JobLogFile(job / "physgrad.log")
+    handler.emit(logging.LogRecord("physgrad", logging.INFO, __file__, 1, "a line", None, None))
+    handler.close()
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "cannot be written" in err[0] and "logging to the terminal" in err[0]
+    assert outside.read_text() == "theirs\n"
+
+
+@pytest.fixture(scope="module")
+def two_runs(tmp_path_factory):
+    from physgrad.experiment import run_experiment
+
+    folder = tmp_path_factory.mktemp("two_runs")
+    for optim in ("adam", "gd"):
+        run_experiment(load("task=toy", f"optim={optim}", "trainer.iterations=3"), folder / optim)
+    return folder
+
+
+def test_a_full_disk_is_one_line_at_every_write_of_a_report(two_runs, tmp_path, capsys):
+    """ENOSPC injected at the k-th file a report opens for writing (tables, figures), k = 0..N:
+    every time exit 1 and one line that says what to do; the runs read are untouched."""
+    import builtins
+
+    from physgrad.cli import main
+
+    before = {p: p.read_bytes() for p in two_runs.rglob("results.h5")}
+    real_open = builtins.open
+    opened = [0]
+    outcomes = []
+    for fail_at in range(12):
+        opened[0] = 0
+
+        def full_disk(file, mode="r", *args, fail_at=fail_at, **kwargs):
+            if any(c in str(mode) for c in "wax+"):
+                opened[0] += 1
+                if opened[0] > fail_at:
+                    raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC), str(file))
+            return real_open(file, mode, *args, **kwargs)
+
+        builtins.open = full_disk
+        try:
+            code = main(["report", str(two_runs), "--out", str(tmp_path / f"out{fail_at}")])
+        finally:
+            builtins.open = real_open
+        err = capsys.readouterr().err.strip()
+        outcomes.append(code)
+        if code != 0:
+            assert code == 1 and "no space left writing" in err and "\n" not in err, err
+    assert outcomes.count(1) >= 5  # the injection reached the report's writes many times
+    assert {p: p.read_bytes() for p in two_runs.rglob("results.h5")} == before
+
+
+def test_a_file_too_large_for_memory_is_left_out_and_the_rest_is_read(two_runs, monkeypatch):
+    from physgrad import runs
+
+    real = runs.read_run
+
+    def huge(path):
+        if "gd" in str(path):
+            raise MemoryError
+        return real(path)
+
+    monkeypatch.setattr(runs, "read_run", huge)
+    found, unreadable, _ = runs.collect([str(two_runs)])
+    assert [r.attrs["optim"] for r in found] == ["adam"]
+    assert len(unreadable) == 1 and "memory" in unreadable[0][1]

@@ -1,0 +1,217 @@
+"""Integration layer (run_experiment and the commands in-process, at tiny sizes) of the tests of:
+Results files, report inputs and sweep folders from somebody else are data: crafted files of
+every kind are refused with a one-line reason (or their text cleaned) and the rest of the report
+goes on; nothing they name is followed, resolved or expanded. Bombs run under a time and memory cap
+in a child process."""
+
+import h5py
+import numpy as np
+import pytest
+from omegaconf import OmegaConf
+
+from physgrad.files import clean_text
+from physgrad.report import write_report
+from physgrad.results import parse_config, read_final, read_run
+from physgrad.runs import collect
+from physgrad.sweeps import job_folders, read_manifest
+from tests.helpers import SECRET
+from tests.unit.test_foreign import (
+    good_run,
+    rewrite,
+    set_attr,
+)
+
+
+def replace_column(group, key, data):
+    def edit(f):
+        del f[group][key]
+        f[group].create_dataset(key, data=data)
+
+    return edit
+
+
+def external_storage(secret):
+    def edit(f):
+        del f["eval"]["loss"]
+        f["eval"].create_dataset("loss", shape=(3,), dtype="f8", external=[(str(secret), 0, 24)])
+
+    return edit
+
+
+def external_link(secret_h5):
+    def edit(f):
+        del f["train"]
+        f["train"] = h5py.ExternalLink(str(secret_h5), "/train")
+
+    return edit
+
+
+def virtual_column(secret_h5):
+    def edit(f):
+        layout = h5py.VirtualLayout(shape=(3,), dtype="f8")
+        layout[:] = h5py.VirtualSource(str(secret_h5), "/eval/loss", shape=(3,))
+        del f["eval"]["loss"]
+        f["eval"].create_virtual_dataset("loss", layout)
+
+    return edit
+
+
+def soft_link(f):
+    f["elsewhere"] = np.ones(3)
+    del f["eval"]["loss"]
+    f["eval"]["loss"] = h5py.SoftLink("/elsewhere")
+
+
+CRAFTED = {
+    "config is an int": set_attr("config", "42"),
+    "config is a list": set_attr("config", "[1, 2]"),
+    "config is bad YAML": set_attr("config", "task: [unclosed"),
+    "config holds an alias": set_attr("config", "a: &x [1]\nb: *x\n"),
+    "seed is text": set_attr("seed", "zero"),
+    "seed is an array": set_attr("seed", np.arange(3)),
+    "status unknown": set_attr("status", "great"),
+    "iterations is text": set_attr("iterations", "many"),
+    "train_seconds is text": set_attr("train_seconds", "3 s"),
+    "task is a number": set_attr("task", 7),
+    "wall_time is text": replace_column("eval", "wall_time", np.array([b"a", b"b", b"c"])),
+    "loss is 2-D": replace_column("eval", "loss", np.ones((3, 2))),
+    "loss is text": replace_column(
+        "train", "loss", np.array(["1", "2", "3"], dtype=h5py.string_dtype())
+    ),
+    "unequal columns": replace_column("eval", "loss", np.ones(5)),
+    "a soft link": soft_link,
+}
+
+
+def no_seed(f):
+    del f.attrs["seed"]
+
+
+def no_wall_time(f):
+    del f["eval"]["wall_time"]
+
+
+CRAFTED["seed missing"] = no_seed
+CRAFTED["eval without wall_time"] = no_wall_time
+
+
+@pytest.mark.parametrize("kind", sorted(CRAFTED))
+def test_a_crafted_file_is_unreadable_with_a_reason_and_the_report_goes_on(tmp_path, kind):
+    good_run(tmp_path / "good")
+    rewrite(good_run(tmp_path / "bad", seed=1), CRAFTED[kind])
+    with pytest.raises(ValueError) as caught:
+        read_run(tmp_path / "bad" / "results.h5")
+    assert "\n" not in str(caught.value) and str(tmp_path / "bad") in str(caught.value)
+    with pytest.raises(ValueError):
+        read_final(tmp_path / "bad" / "results.h5")
+    body = write_report([tmp_path], out_dir=tmp_path / "report")
+    assert "unreadable: " in body and "bad/results.h5" in body
+    runs, unreadable, _ = collect([tmp_path])
+    assert [run.path.parent.name for run in runs] == ["good"] and len(unreadable) == 1
+    assert (tmp_path / "report" / "loss_vs_time.png").is_file()
+
+
+@pytest.mark.parametrize("how", ["external storage", "external link", "virtual dataset"])
+def test_a_file_cannot_read_other_files_into_a_report(tmp_path, secret_file, how):
+    source = good_run(tmp_path / "source")  # an HDF5 file a link could point at
+    rewrite(source, set_attr("note", SECRET))
+    edit = {
+        "external storage": external_storage(secret_file),
+        "external link": external_link(source),
+        "virtual dataset": virtual_column(source),
+    }[how]
+    crafted = rewrite(good_run(tmp_path / "crafted", seed=1), edit)
+    with pytest.raises(ValueError, match="external|virtual|link"):
+        read_run(crafted)
+    with pytest.raises(ValueError):
+        read_final(crafted)
+    write_report([crafted, source], out_dir=tmp_path / "report")
+    curves = (tmp_path / "report" / "curves.csv").read_text()
+    assert "crafted" not in curves and SECRET[:20] not in curves
+    assert SECRET[:20] not in (tmp_path / "report" / "report.md").read_text()
+
+
+def test_text_is_cleaned_of_terminal_escapes_and_cut(tmp_path):
+    path = good_run(tmp_path / "run", variant="adam\x1b[31m$x^2$")
+    rewrite(path, set_attr("hostname", "h" * 10_000))
+    rewrite(path, set_attr("reason", "\x1b]0;owned\x07\x1b[2Jcleared"))
+    run = read_run(path)
+    assert "\x1b" not in run.attrs["reason"] and "\x07" not in run.attrs["reason"]
+    assert "\x1b" not in run.variant and run.variant.endswith("$x^2$")
+    assert len(run.attrs["hostname"]) < 2100
+    # a `$` label is drawn as text, not mathtext
+    body = write_report([path], out_dir=tmp_path / "report")
+    assert "\x1b" not in body and (tmp_path / "report" / "loss_vs_time.png").is_file()
+    assert clean_text("a\u202eb\nc") == "a\ufffdb c" and clean_text("a\nb", lines=True) == "a\nb"
+
+
+def test_sweep_manifests_of_other_types_are_ignored(tmp_path):
+    (tmp_path / "jobs.yaml").write_text("jobs: 7\n")
+    assert read_manifest(tmp_path) is None
+    (tmp_path / "jobs.yaml").write_text("jobs: [[a=1], [{b: 2}]]\n")
+    assert read_manifest(tmp_path) is None
+    (tmp_path / "j" / ".hydra").mkdir(parents=True)
+    (tmp_path / "j" / ".hydra" / "overrides.yaml").write_text("{a: 1}\n")
+    assert job_folders(tmp_path) == {}
+
+
+def test_columns_that_unpack_far_beyond_the_file_are_refused(tmp_path):
+    """A few MB of gzip-compressed zeros that would unpack into 448 MiB: refused in one line before
+    anything is read (physgrad writes its columns uncompressed, so its own files hold
+    about as many bytes as their columns)."""
+    path = good_run(tmp_path / "run")
+    assert read_run(path).train["loss"].size == 3
+
+    def bomb(f):
+        for group in ("train", "eval"):
+            for key in list(f[group]):
+                del f[group][key]
+                f[group].create_dataset(key, data=np.zeros(1 << 23), compression="gzip")
+
+    rewrite(path, bomb)
+    assert path.stat().st_size < (8 << 20)
+    with pytest.raises(ValueError, match="unpack to") as refused:
+        read_run(path)
+    assert "\n" not in str(refused.value)
+
+
+def test_a_config_with_more_settings_than_any_physgrad_run_is_refused_in_one_line():
+    """A stored config of 100,000 keys (under the byte limit) would make a table of as many
+    columns: refused before it is flattened."""
+    from physgrad.results import CONFIG_KEYS_LIMIT
+
+    text = "\n".join(f"k{i}: 0" for i in range(100_000))  # under the byte limit
+    with pytest.raises(ValueError, match=f"more than {CONFIG_KEYS_LIMIT} settings") as caught:
+        parse_config(text)
+    assert "\n" not in str(caught.value)
+    nested = "a:\n" + "\n".join(f"  k{i}: [1, 2]" for i in range(CONFIG_KEYS_LIMIT))
+    with pytest.raises(ValueError, match="settings"):
+        parse_config(nested)
+    assert parse_config("a: 1\nb: {c: [1, 2]}") == {"a": 1, "b": {"c": [1, 2]}}
+
+
+@pytest.mark.parametrize(
+    "override",
+    [
+        "task._target_=os.system",
+        "optim._target_=subprocess.run",
+        "+optim.learning_rate={_target_:os.system,command:'touch MARK'}",
+        "task._target_=builtins.exec",
+    ],
+)
+def test_every_target_physgrad_calls_passes_one_policy(tmp_path, override, monkeypatch):
+    """A `_target_` naming a system function (a shell command, code, a subprocess) is refused in one
+    line wherever it stands (the task, the rule, a nested schedule, a tracker) and nothing runs."""
+    from physgrad.errors import UserError
+    from physgrad.experiment import run_experiment
+    from physgrad.trackers import build_trackers
+    from tests.helpers import load
+
+    monkeypatch.chdir(tmp_path)
+    outcome, _ = run_experiment(load("task=toy", "trainer.iterations=2", override), tmp_path / "r")
+    assert outcome.status == "refused" and "not allowed" in outcome.reason
+    assert "\n" not in outcome.reason and not (tmp_path / "MARK").exists()
+    evil = {"evil": {"_target_": "os.system", "command": "touch MARK"}}
+    with pytest.raises(UserError, match="logger.evil._target_=os.system is not allowed"):
+        build_trackers(OmegaConf.create(evil))
+    assert not (tmp_path / "MARK").exists()

@@ -1,0 +1,73 @@
+"""Integration layer (run_experiment and the commands in-process, at tiny sizes) of the tests of:
+One GPU per job on a machine with several (physgrad.gpus), checked on a CPU machine: the GPUs are
+named by CUDA_VISIBLE_DEVICES, each job process claims one, processes side by side never share one
+while one is free, and a claim ends with its process however it ends."""
+
+import os
+
+import pytest
+
+from physgrad import gpus
+
+
+@pytest.mark.parametrize(
+    "listed, expected",
+    [
+        ("0,1,2", ["0", "1", "2"]),
+        ("", []),
+        ("-1", []),
+        ("0, 2,-1,3", ["0", "2"]),  # CUDA stops at the first invalid entry
+        ("GPU-aa,GPU-bb", ["GPU-aa", "GPU-bb"]),
+        ("3", ["3"]),
+    ],
+)
+def test_visible_gpus_read_cuda_visible_devices(listed, expected):
+    assert gpus.visible_gpus({"CUDA_VISIBLE_DEVICES": listed}) == expected
+
+
+def test_one_gpu_or_none_changes_nothing(tmp_path, monkeypatch):
+    monkeypatch.setenv("XDG_RUNTIME_DIR", str(tmp_path))
+    for listed in ("0", "", "-1"):
+        monkeypatch.setenv("CUDA_VISIBLE_DEVICES", listed)
+        assert gpus.claim_gpu() is None
+        assert os.environ["CUDA_VISIBLE_DEVICES"] == listed
+
+
+def test_a_comparison_pins_itself_and_its_jobs_get_the_environment_it_started_with(monkeypatch):
+    monkeypatch.setenv("CUDA_VISIBLE_DEVICES", "4,5")
+    monkeypatch.delenv("XLA_PYTHON_CLIENT_PREALLOCATE", raising=False)
+    monkeypatch.setattr(gpus, "_original", {})
+    assert gpus.pin_this_process() == 2
+    assert os.environ["CUDA_VISIBLE_DEVICES"] == "4"
+    assert os.environ["XLA_PYTHON_CLIENT_PREALLOCATE"] == "false"
+    from physgrad.comparison.jobs import job_environment
+
+    env = job_environment()
+    assert env["CUDA_VISIBLE_DEVICES"] == "4,5" and "XLA_PYTHON_CLIENT_PREALLOCATE" not in env
+
+
+def test_several_gpus_run_a_comparisons_jobs_side_by_side_unless_a_launcher_is_chosen():
+    assert gpus.local_launcher_args([], 1) == []
+    assert gpus.local_launcher_args([], 0) == []
+    assert gpus.local_launcher_args(["hydra.verbose=true"], 4) == [
+        "hydra.verbose=true",
+        "hydra/launcher=joblib",
+        "hydra.launcher.n_jobs=4",
+    ]
+    chosen = ["hydra/launcher=submitit_slurm"]
+    assert gpus.local_launcher_args(chosen, 4) == chosen
+
+
+def test_without_the_joblib_plugin_the_jobs_run_in_turn_with_a_warning(monkeypatch, caplog):
+    import importlib.util
+    import logging
+
+    real = importlib.util.find_spec
+    monkeypatch.setattr(
+        importlib.util,
+        "find_spec",
+        lambda name, *a: None if name == "hydra_plugins.hydra_joblib_launcher" else real(name, *a),
+    )
+    with caplog.at_level(logging.WARNING, logger="physgrad.gpus"):
+        assert gpus.local_launcher_args([], 4) == []
+    assert "physgrad[launchers]" in caplog.text

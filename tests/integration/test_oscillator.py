@@ -1,0 +1,34 @@
+"""Integration layer (run_experiment and the commands in-process, at tiny sizes) of the tests of:
+Oscillator physics against closed forms and invariants; the unroll combinator against plain loops
+and finite differences; the BPTT modes against hand-derived gradients."""
+
+import numpy as np
+import pytest
+
+from tests.helpers import load
+
+
+def test_long_unroll_runs_for_adam(tmp_path):
+    """unroll=1024 at the reference batch size (512) trains without exhausting memory."""
+    from physgrad.experiment import run_experiment
+    from physgrad.results import read_run
+
+    cfg = load(
+        "task=oscillator", "optim=adam", "unroll=1024", "trainer.iterations=2", "task.test_size=64"
+    )
+    outcome, path = run_experiment(cfg, tmp_path)
+    assert outcome.status == "completed", outcome.reason
+    assert read_run(path).attrs["unroll"] == 1024
+
+
+@pytest.mark.parametrize("optim", ["hig", "gauss_newton"])
+def test_jacobian_rules_take_finite_steps_at_the_reference_settings(optim, tmp_path):
+    from physgrad.experiment import run_experiment
+    from physgrad.results import read_run
+
+    outcome, path = run_experiment(
+        load("task=oscillator", f"optim={optim}", "trainer.iterations=3", "task.test_size=64"),
+        tmp_path,
+    )
+    assert outcome.status == "completed", outcome.reason
+    assert np.all(np.isfinite(read_run(path).train["update_norm"]))

@@ -1,0 +1,190 @@
+"""Integration layer (run_experiment and the commands in-process, at tiny sizes) of the tests of:
+The calibrated clock, the contention flag and the machine a result was measured on: slow steps
+are injected by replacing the runner's clock, at random instants, and the calibrated time must not
+move."""
+
+import numpy as np
+import pytest
+
+import physgrad.runner
+from physgrad.experiment import run_experiment
+from physgrad.machine import contention, machine_label, step_statistics
+from physgrad.results import read_run
+from tests.helpers import SimulatedClock, load
+
+COST = 0.01
+
+
+class LoadedClock(SimulatedClock):
+    """SimulatedClock whose steps are slowed `factor` times at the given step numbers (another
+    process taking the cores for a while)."""
+
+    def __init__(self, monkeypatch, slow_steps, factor=20.0):
+        super().__init__(monkeypatch, step=COST)
+        self.slow, self.factor = set(slow_steps), factor
+        real = physgrad.runner.compile_training  # the simulated one
+        monkeypatch.setattr(physgrad.runner, "compile_training", self.slowed(real))
+
+    def slowed(self, compile_training):
+        import dataclasses
+
+        def compile_with_slow_steps(*args, **kwargs):
+            compiled = compile_training(*args, **kwargs)
+
+            def step(*step_args):
+                if self.calls in self.slow:
+                    self.now += COST * (self.factor - 1)
+                return compiled.step(*step_args)
+
+            return dataclasses.replace(compiled, step=step)
+
+        return compile_with_slow_steps
+
+
+@pytest.fixture
+def quiet_load(monkeypatch):
+    monkeypatch.setattr(physgrad.runner, "load_average", lambda: 0.2)
+
+
+def run_toy(tmp_path, *overrides):
+    outcome, path = run_experiment(
+        load("task=toy", "trainer.eval_every=100000", "trainer.flush_seconds=1", *overrides),
+        tmp_path,
+    )
+    return outcome, read_run(path)
+
+
+@pytest.mark.parametrize("instants", range(6))
+def test_slow_steps_flag_the_run_and_leave_the_calibrated_time_unchanged(
+    tmp_path, monkeypatch, quiet_load, instants
+):
+    """15% of the steps 20 times slower, at random instants: on the calibrated clock the run stops
+    at the same iteration with the same calibrated times as a run without them, its measured time
+    grows, and it is flagged."""
+    budget = ["trainer.time_budget=4", "trainer.step_cost=0.01", "trainer.clock=calibrated"]
+    SimulatedClock(monkeypatch, step=COST)
+    quiet_outcome, quiet = run_toy(tmp_path / "quiet", *budget)
+    monkeypatch.undo()
+    monkeypatch.setattr(physgrad.runner, "load_average", lambda: 0.2)
+    rng = np.random.default_rng(instants)
+    slow = rng.choice(np.arange(1, 400), size=60, replace=False)
+    LoadedClock(monkeypatch, slow)
+    loaded_outcome, loaded = run_toy(tmp_path / "loaded", *budget)
+
+    assert quiet_outcome.iterations == loaded_outcome.iterations == 400  # 4 s / 0.01 s per step
+    assert quiet.attrs["stopped_by"] == loaded.attrs["stopped_by"] == "time_budget"
+    np.testing.assert_array_equal(quiet.train["calibrated_time"], loaded.train["calibrated_time"])
+    np.testing.assert_allclose(
+        loaded.train["calibrated_time"], COST * np.arange(1, 401), rtol=1e-12
+    )
+    # evaluations by the budget's clock
+    np.testing.assert_array_equal(quiet.eval["iteration"], loaded.eval["iteration"])
+    np.testing.assert_array_equal(quiet.eval["calibrated_time"], loaded.eval["calibrated_time"])
+    assert loaded.train["wall_time"][-1] > quiet.train["wall_time"][-1] + 50 * COST * 19 * 0.9
+    assert quiet.attrs["contended"] == 0 and "contention" not in quiet.attrs
+    assert loaded.attrs["contended"] == 1 and "p90/p50" in loaded.attrs["contention"]
+    assert loaded.attrs["step_seconds_p90"] > 1.5 * loaded.attrs["step_seconds_p50"]
+    assert loaded.attrs["step_seconds_p50"] == pytest.approx(COST, rel=1e-3)
+    assert loaded.attrs["clock"] == "calibrated" and loaded.attrs["step_cost"] == COST
+
+
+def test_on_the_measured_clock_slow_steps_cost_iterations(tmp_path, monkeypatch, quiet_load):
+    """The measured clock is the default: the same slow steps end the run earlier, and the run is
+    flagged."""
+    LoadedClock(monkeypatch, range(1, 400, 5))
+    outcome, run = run_toy(tmp_path, "trainer.time_budget=4")
+    assert outcome.iterations < 400 and run.attrs["contended"] == 1
+    assert "calibrated_time" not in run.train and "clock" not in run.attrs
+
+
+def test_a_few_slow_steps_or_a_short_run_are_not_contention():
+    # p90 unaffected
+    assert contention(step_statistics([COST] * 95 + [20 * COST] * 5), 100, 0.5, 0.5, 2) == ""
+    # too few steps to judge
+    assert contention(step_statistics([COST, 20 * COST] * 5), 10, 0.5, 0.5, 2) == ""
+    assert "p90/p50" in contention(
+        step_statistics([COST] * 80 + [20 * COST] * 20), 100, 0.5, 0.5, 2
+    )
+    # sub-millisecond steps jitter by fractions of a millisecond on a quiet machine: not contention
+    assert contention(step_statistics([3e-4] * 80 + [6e-4] * 20), 100, 0.5, 0.5, 2) == ""
+    # a step whose cost depends on the data (a line search) is judged by the load alone
+    spread = step_statistics([COST] * 80 + [20 * COST] * 20)
+    assert contention(spread, 100, 0.5, 0.5, 2, static_cost=False) == ""
+    assert "load average" in contention(spread, 100, 3.5, 0.5, 2, static_cost=False)
+
+
+@pytest.mark.parametrize(
+    "load_start, load_end, flagged",
+    [(0.3, 1.9, False), (3.2, 1.0, True), (0.1, 3.0, True), (float("nan"), float("nan"), False)],
+)
+def test_an_oversubscribed_machine_is_contention(load_start, load_end, flagged):
+    """The load average less the run's own process reaching the cores (2): two CPU-bound processes
+    beside it."""
+    why = contention(step_statistics([COST] * 100), 100, load_start, load_end, 2)
+    assert bool(why) == flagged and (not flagged or "load average" in why)
+
+
+def test_the_load_average_is_read_at_the_start_and_the_end(tmp_path, monkeypatch):
+    readings = iter([3.5, 0.4])
+    monkeypatch.setattr(physgrad.runner, "load_average", lambda: next(readings))
+    SimulatedClock(monkeypatch, step=COST)
+    _, run = run_toy(tmp_path, "trainer.iterations=30")
+    assert (run.attrs["load_start"], run.attrs["load_end"]) == (3.5, 0.4)
+    assert run.attrs["contended"] == 1 and "load average 3.50" in run.attrs["contention"]
+
+
+def test_every_file_records_the_machine_and_the_software(tmp_path):
+    _, run = run_toy(tmp_path, "trainer.iterations=25")
+    for key in (
+        "cpu_model",
+        "cpu_count",
+        "device",
+        "thread_settings",
+        "jax_version",
+        "jaxlib_version",
+        "physgrad_version",
+        "git_commit",
+        "load_start",
+        "load_end",
+        "step_seconds_p50",
+        "step_seconds_p90",
+        "step_seconds_p99",
+        "contended",
+    ):
+        assert key in run.attrs, key
+    assert run.attrs["cpu_count"] >= 1 and run.attrs["device"] == "cpu"
+    assert (
+        run.attrs["step_seconds_p10"]
+        <= run.attrs["step_seconds_p50"]
+        <= run.attrs["step_seconds_p90"]
+        <= run.attrs["step_seconds_p99"]
+    )
+    assert machine_label(run.attrs).endswith(f"({run.attrs['cpu_count']} cores)")
+    assert machine_label({}) == "unknown machine"
+
+
+def test_the_calibrated_clock_needs_a_step_cost(tmp_path):
+    outcome, _ = run_experiment(load("task=toy", "trainer.clock=calibrated"), tmp_path)
+    assert outcome.status == "refused" and "trainer.step_cost" in outcome.reason
+    outcome, _ = run_experiment(load("task=toy", "trainer.clock=wall"), tmp_path / "b")
+    assert outcome.status == "refused" and "trainer.clock" in outcome.reason
+
+
+def test_the_calibration_ranks_real_steps_by_their_cost():
+    """Two configurations interleaved in one process: a Jacobian rule's step costs more than Adam's
+    on the same scene (about 9 to 26 times on the 2-core machine, quiet or beside a 2-core job),
+    both timed in every round."""
+    from physgrad.timing import calibrate
+
+    configs = {
+        name: load("task=toy", f"optim={name}", "trainer.batch_size=64")
+        for name in ("adam", "gauss_newton")
+    }
+    # max_seconds well above what 40 rounds of bursts take (about 10 s with a study beside it; 31
+    # rounds were done at 60 s with a study and the whole suite beside it), so that a loaded machine
+    # slows the calibration without cutting its rounds: the count is what is asserted
+    result = calibrate(configs, seed=0, rounds=40, min_seconds=0.5, max_seconds=600)
+    costs = {name: c["step_seconds"] for name, c in result["costs"].items()}
+    assert costs["gauss_newton"] > costs["adam"] > 0
+    assert result["costs"]["gauss_newton"]["rounds"] == result["costs"]["adam"]["rounds"] >= 40
+    assert result["machine"]["cpu_count"] >= 1

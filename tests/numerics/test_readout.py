@@ -1,0 +1,146 @@
+"""Numerics layer (closed forms, finite differences, synthetic data with known answers) of:
+One read-out for every reader: a study's compare.md / runs.csv and the report/ of the same files
+give the same number for the same run at the same budget, a diverged run and a non-monotone curve
+among them."""
+
+import csv
+import math
+
+import numpy as np
+import pytest
+from omegaconf import OmegaConf
+
+from physgrad.comparison import StudySettings, Variant, analyse, study_settings
+from physgrad.readout import budget_of, run_curve
+from physgrad.report import write_report
+from physgrad.results import read_run
+from tests.unit.test_readout import (
+    write_run,
+)
+
+SEEDS = range(6)
+
+
+def study(tmp_path, time_budget=None):
+    """Two variants on six paired seeds, as a study's evaluation folder: hig seed 2 diverges (a NaN
+    evaluation, stopped as diverged), adam seed 3 goes down and up again (non-monotone), adam seed 4
+    blows up without NaN (a loss 10^5 times its first), hig seed 5 was interrupted before the
+    budget."""
+    x = np.array([0, 25, 50, 75, 99])
+    # a time budget of 1.5 s: the last evaluation (1.98 s) is past it
+    step = 0.02 if time_budget else 1.0
+    trainer = {"time_budget": time_budget} if time_budget else {}
+    for seed in SEEDS:
+        adam = np.array([1.0, 0.5, 0.3, 0.2, 0.15]) * (1 + 0.1 * seed)
+        hig = np.array([1.0, 0.3, 0.1, 0.05, 0.04]) * (1 + 0.1 * seed)
+        status = {"adam": "completed", "hig": "completed"}
+        if seed == 3:
+            adam = np.array([1.0, 0.1, 0.6, 0.3, 0.45])
+        if seed == 4:
+            adam = np.array([1.0, 0.5, 2e5, 3e5, 0.1])
+        hig_x = x
+        if seed == 2:
+            hig, hig_x, status["hig"] = np.array([1.0, 0.3, np.nan]), x[:3], "diverged"
+        if seed == 5:
+            hig, hig_x, status["hig"] = hig[:3], x[:3], "interrupted"
+        write_run(
+            tmp_path / "eval" / f"adam_s{seed}" / "results.h5",
+            "adam",
+            seed,
+            x,
+            adam,
+            status["adam"],
+            trainer,
+            step,
+        )
+        write_run(
+            tmp_path / "eval" / f"hig_s{seed}" / "results.h5",
+            "hig",
+            seed,
+            hig_x,
+            hig,
+            status["hig"],
+            trainer,
+            step,
+        )
+
+
+def analysed(tmp_path, axis, budget):
+    """compare's phase 3 on the evaluation files, then `physgrad report` on the same files, as a
+    study writes them: (compare's runs.csv, report/runs.csv), each by path."""
+    variants = [
+        Variant(name, [f"optim={name}"], OmegaConf.create({"task": {"name": "toy"}, "optim": {}}))
+        for name in ("adam", "hig")
+    ]
+    curves, statuses = {}, {}
+    for variant in variants:
+        curves[variant.name], statuses[variant.name] = {}, {}
+        for seed in SEEDS:
+            run = read_run(tmp_path / "eval" / f"{variant.name}_s{seed}" / "results.h5")
+            curves[variant.name][seed], statuses[variant.name][seed] = run_curve(run, axis), run
+    settings: StudySettings = study_settings({"seeds": len(SEEDS), "studies": 1})
+    best = [{"adam": {}, "hig": {}}]
+    analyse(tmp_path, variants, best, [curves], [statuses], settings, axis, budget, [])
+    write_report([tmp_path / "eval"], out_dir=tmp_path / "report")
+    with (
+        open(tmp_path / "runs.csv") as compare_csv,
+        open(tmp_path / "report" / "runs.csv") as report_csv,
+    ):
+        return (
+            {row["path"]: row for row in csv.DictReader(compare_csv)},
+            {row["path"]: row for row in csv.DictReader(report_csv)},
+        )
+
+
+def number(text: str) -> float:
+    return math.nan if text in ("", "nan") else float(text)
+
+
+def same(a: float, b: float) -> bool:
+    return (math.isnan(a) and math.isnan(b)) or a == b
+
+
+@pytest.mark.parametrize("time_budget", [None, 1.5])
+def test_compare_and_report_give_one_number_per_run_at_the_budget(tmp_path, time_budget):
+    study(tmp_path, time_budget)
+    axis, budget = ("wall_time", time_budget) if time_budget else ("iteration", 100.0)
+    compare, report = analysed(tmp_path, axis, budget)
+    assert sorted(compare) == sorted(report) and len(compare) == 12
+    for path, row in compare.items():
+        at_budget, test_loss = number(row["test_loss_at_1"]), number(report[path]["test_loss"])
+        assert same(at_budget, test_loss), (path, at_budget, test_loss)
+    by_name = {
+        (row["variant"], int(row["seed"])): number(row["test_loss_at_1"])
+        for row in compare.values()
+    }
+    assert by_name[("hig", 2)] == math.inf  # diverged (a NaN evaluation)
+    assert by_name[("adam", 4)] == math.inf  # blew up without NaN, whatever its last loss
+    assert math.isnan(by_name[("hig", 5)])  # interrupted before the budget: no loss at it
+    if (
+        time_budget
+    ):  # the evaluation after the budget is not read: adam seed 3's last one at or before 1.5 s
+        assert by_name[("adam", 3)] == 0.3
+    else:  # the last evaluation, not the lowest
+        assert by_name[("adam", 3)] == 0.45
+    # one target (the lowest median at the budget) and one time to it, in both tables
+    targets = {number(row["threshold"]) for row in report.values()}
+    assert len(targets) == 1
+    target = targets.pop()
+    text = (tmp_path / "compare.md").read_text()
+    assert f"Target: {target:.3g}," in text
+    # 6 seeds, one comparison: one seed against leaves p = 4 / 2^6 above 0.05
+    assert "needs every seed on one side" in text and "compare.seeds=7 would allow one" in text
+    if time_budget:
+        for path, row in compare.items():
+            assert same(number(row["to_target_s"]), number(report[path]["time_to_threshold"])), path
+
+
+def test_the_budget_is_what_the_configuration_asked_for():
+    assert budget_of({"trainer": {"iterations": 300, "time_budget": None}}) == ("iteration", 300.0)
+    assert budget_of({"trainer": {"iterations": 300, "time_budget": 60}}) == ("wall_time", 60.0)
+    assert budget_of({"trainer": {"time_budget": 60, "clock": "calibrated"}}) == (
+        "calibrated_time",
+        60.0,
+    )
+    assert budget_of({"trainer": {}}, default_iterations=1000) == ("iteration", 1000.0)
+    assert math.isnan(budget_of({})[1])

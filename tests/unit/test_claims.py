@@ -1,0 +1,553 @@
+"""Unit layer (pure functions, no scene compiled) of the tests of:
+experiments/claims.py: the claims profile as physgrad compare studies (what it runs, what the
+plan says) and each kind of claim part (lower, close, grows, stalls, the regime map's time to
+target) decided by physgrad's rules on synthetic curves with known answers."""
+
+import math
+import sys
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from tests.helpers import REPO
+
+sys.path.insert(0, str(REPO / "experiments"))
+
+import claims  # noqa: E402
+from claims import FAILS, HOLDS, OPEN  # noqa: E402
+
+from physgrad.readout import Curve  # noqa: E402
+
+X = np.arange(0, 1001, 100, dtype=float)
+
+TEN = range(10)
+
+
+def falling(final: float, start: float = 1.0, half: float | None = None) -> Curve:
+    """A loss from start to final over 1000 iterations, at `half` at 500 (default: geometric in
+    between)."""
+    loss = start * (final / start) ** (X / X[-1])
+    if half is not None:
+        loss = np.interp(X, [0, 500, 1000], [start, half, final])
+    return Curve(X, loss, X[-1])
+
+
+class FakeStudy(claims.StudyRuns):
+    """A study's runs as synthetic curves: variant -> seed -> Curve (column -> ... for other
+    columns)."""
+
+    def __init__(self, name, by_variant, columns=None, budget=1000.0):
+        super().__init__(
+            Path(name), "iteration", budget, {v: dict.fromkeys(by) for v, by in by_variant.items()}
+        )
+        self.by_variant, self.columns = by_variant, columns or {}
+
+    def curves(self, variant, column="loss"):
+        return (self.columns.get(column) or self.by_variant)[variant]
+
+
+def seeds_of(fn) -> dict:
+    rng = np.random.default_rng(abs(hash(fn.__name__ if hasattr(fn, "__name__") else 0)) % 2**32)
+    return {s: fn(s, rng) for s in TEN}
+
+
+def base(s: int) -> float:
+    return 0.1 * (1 + 0.3 * s)  # seeds differ a lot; the pairing removes it
+
+
+def claim_of(*parts) -> claims.Claim:
+    return claims.Claim("test", "a paper's claim", parts)
+
+
+def test_close_holds_within_its_margin_and_fails_beyond_it(tmp_path, studies):
+    rng = np.random.default_rng(3)
+    studies["s"] = FakeStudy(
+        "s",
+        {
+            "wig": {s: falling(base(s)) for s in TEN},
+            "near": {s: falling(1.12 * base(s) * math.exp(rng.normal(0, 0.01))) for s in TEN},
+            "far": {s: falling(1.6 * base(s)) for s in TEN},
+        },
+    )
+    # 12% worse: not "lower", not equivalent within 10%, but within 25%
+    assert claims.decide_claim(claim_of(claims.Lower("s", "near", "wig")), tmp_path)[0] == FAILS
+    assert (
+        claims.decide_claim(claim_of(claims.Close("s", "near", "wig", 1.25)), tmp_path)[0] == HOLDS
+    )
+    verdict, ((_, d),) = claims.decide_claim(
+        claim_of(claims.Close("s", "far", "wig", 1.25)), tmp_path
+    )
+    assert verdict == FAILS and "B better" in d.why
+
+
+def test_a_trend_holds_only_where_the_advantage_grows(tmp_path, studies):
+    """C/R 0.9 at the easy end and 0.3 at the hard end: grows; 0.3 at both ends (a uniform
+    advantage, which the hard end alone would pass): does not hold."""
+    rng = np.random.default_rng(4)
+
+    def study(name, ratio):
+        studies[name] = FakeStudy(
+            name,
+            {
+                "C": {s: falling(ratio * base(s) * math.exp(rng.normal(0, 0.05))) for s in TEN},
+                "R": {s: falling(base(s)) for s in TEN},
+            },
+        )
+
+    study("easy", 0.9), study("hard", 0.3), study("easy_uniform", 0.3)
+    verdict, ((_, d),) = claims.decide_claim(
+        claim_of(claims.Grows("easy", "hard", "C", "R")), tmp_path
+    )
+    assert verdict == HOLDS and "hard / easy = 0.3" in d.measured
+    assert (
+        claims.decide_claim(claim_of(claims.Grows("easy_uniform", "hard", "C", "R")), tmp_path)[0]
+        == FAILS
+    )
+    assert (
+        claims.decide_claim(
+            claim_of(
+                claims.Lower("hard", "C", "R"), claims.Grows("easy_uniform", "hard", "C", "R")
+            ),
+            tmp_path,
+        )[0]
+        == FAILS
+    )
+    verdict, ((_, d),) = claims.decide_claim(
+        claim_of(claims.Grows("missing", "hard", "C", "R")), tmp_path
+    )
+    assert verdict == OPEN and "not finished" in d.why
+
+
+def test_stall_tells_a_stalled_variant_from_a_slow_and_an_unstable_one(tmp_path, studies):
+    """Stalled: the error at the budget within 10% of the error at half of it; still falling 3x
+    (Adam on the toy's second component): fails, as slow; rising above the start (Gauss-Newton):
+    fails, as unstable."""
+    rng = np.random.default_rng(5)
+    noise = lambda: math.exp(rng.normal(0, 0.01))  # noqa: E731
+    error = {
+        "stalled": {s: falling(0.50 * base(s) * noise(), base(s), 0.5 * base(s)) for s in TEN},
+        "slow": {s: falling(0.1 * base(s) * noise(), base(s), 0.3 * base(s)) for s in TEN},
+        "unstable": {s: falling(3.0 * base(s) * noise(), base(s), 0.9 * base(s)) for s in TEN},
+        "diverged": {s: Curve(X, np.where(X < 300, 1.0, np.inf), 300.0, True) for s in TEN},
+    }
+    studies["toy"] = FakeStudy("toy", error, columns={"error_second": error})
+    verdict, ((_, d),) = claims.decide_claim(
+        claim_of(claims.Stalls("toy", "stalled", "error_second")), tmp_path
+    )
+    assert verdict == HOLDS and "equivalent" in d.why
+    verdict, ((_, d),) = claims.decide_claim(
+        claim_of(claims.Stalls("toy", "slow", "error_second")), tmp_path
+    )
+    assert verdict == FAILS and "still falling" in d.why and "= 0.33" in d.measured
+    verdict, ((_, d),) = claims.decide_claim(
+        claim_of(claims.Stalls("toy", "unstable", "error_second")), tmp_path
+    )
+    assert verdict == FAILS and "rising" in d.why and "start: 2.99" in d.measured
+    verdict, ((_, d),) = claims.decide_claim(
+        claim_of(claims.Stalls("toy", "diverged", "error_second")), tmp_path
+    )
+    # not a tie of infinities
+    assert verdict == FAILS and "rising" in d.why and "diverged in 10 of 10" in d.measured
+    # half the seeds 30% up, half 30% down: undecided, said once (no empty label before the test's)
+    error["mixed"] = {
+        s: falling((0.65 if s % 2 else 0.35) * base(s) * noise(), base(s), 0.5 * base(s))
+        for s in TEN
+    }
+    studies["toy"] = FakeStudy("toy", error, columns={"error_second": error})
+    verdict, ((_, d),) = claims.decide_claim(
+        claim_of(claims.Stalls("toy", "mixed", "error_second")), tmp_path
+    )
+    assert verdict == OPEN and d.why.startswith("undecided (") and ":  (" not in d.why, d.why
+
+
+def test_a_claim_without_its_study_is_open_and_says_why(tmp_path, studies):
+    verdict, ((_, d),) = claims.decide_claim(claim_of(claims.Lower("nowhere", "a", "b")), tmp_path)
+    assert verdict == OPEN and "no finished study" in d.why
+    studies["s"] = FakeStudy(
+        "s",
+        {"a": {s: falling(0.5 * base(s)) for s in TEN}, "c": {s: falling(base(s)) for s in TEN}},
+    )
+    verdict, ((_, d),) = claims.decide_claim(claim_of(claims.Lower("s", "a", "b")), tmp_path)
+    assert verdict == OPEN and d.verdict == claims.NOT_RUN and "no runs of b" in d.why
+    # a part the study does not run (a presets' twin without the clipping variants) leaves the
+    # verdict to the rest
+    verdict, rows = claims.decide_claim(
+        claim_of(claims.Lower("s", "a", "b"), claims.Lower("s", "a", "c")), tmp_path
+    )
+    assert verdict == HOLDS and [d.verdict for _, d in rows] == [claims.NOT_RUN, HOLDS]
+
+
+def test_a_presets_twin_that_fixes_the_clipping_says_why_it_leaves_a_part_out(tmp_path, studies):
+    """The StableBPTT twins run the papers' setting (no clipping) only: the clipped parts say so,
+    and the claim's presets' verdict speaks for the unclipped part."""
+    study = claims.Study(
+        "cartx",
+        ("task=multicart", "optim.backprop=R,C", "optim.clip=none,value"),
+        8,
+        10,
+        1,
+        1,
+        preset="optim.clip=none",
+    )
+    studies["cartx-preset"] = FakeStudy(
+        "cartx-preset",
+        {
+            "backprop=C clip=none": {s: falling(0.5 * base(s)) for s in TEN},
+            "backprop=R clip=none": {s: falling(base(s)) for s in TEN},
+        },
+    )
+    claim = claim_of(
+        claims.Lower("cartx", "backprop=C clip=none", "backprop=R clip=none"),
+        claims.Lower("cartx", "backprop=C clip=value", "backprop=R clip=value"),
+    )
+    verdict, rows = claims.decide_claim(claim, tmp_path, "-preset", profile=(study,))
+    assert verdict == HOLDS and [d.verdict for _, d in rows] == [HOLDS, claims.NOT_RUN]
+    assert rows[1][1].why == "the presets' twin runs optim.clip=none only (the papers' setting)"
+
+
+def test_the_regime_map_cell_is_the_time_to_target_ratio(tmp_path, studies, monkeypatch):
+    """HIG reaches the target (the lower median loss at the budget) at 200 iterations in every seed,
+    Adam at 800: ratio 0.25; a seed where Adam never reaches it counts as infinite."""
+    x = X
+
+    def reaching(at, final):
+        return Curve(x, np.where(x < at, 1.0, final), x[-1])
+
+    study = claims.Study(
+        "map_toy_0.01_b16",
+        ("task=toy", "optim=adam,hig", "task.scale=0.01"),
+        2,
+        10,
+        1,
+        1,
+        preset=False,
+    )
+    studies[study.name] = FakeStudy(
+        study.name,
+        {
+            "hig": {s: reaching(200, 0.1) for s in TEN},
+            "adam": {s: reaching(800 if s else 2000, 0.1) for s in TEN},
+        },
+    )
+    (tmp_path / study.name).mkdir()
+    (tmp_path / study.name / "calibration.json").write_text(
+        '{"costs": {"hig": {"step_seconds": 0.03}, "adam": {"step_seconds": 0.01}}}'
+    )
+    cell = claims.map_cell(tmp_path, study)
+    assert (
+        cell.ratio == pytest.approx(0.25)
+        and cell.reached == (10, 9, 10)
+        and cell.verdict == "A better"
+    )
+    assert cell.cost_ratio == pytest.approx(3.0) and cell.conditioning == 0.01
+    monkeypatch.setattr(claims, "MAP_TOY", (study,))
+    monkeypatch.setattr(claims, "MAP_OSCILLATOR", ())
+    monkeypatch.setattr(claims, "MAP", (study,))
+    text = claims.regime_map(tmp_path, tmp_path)
+    assert "| map_toy_0.01_b16 | 0.01 | 3 | 0.25 [" in text
+    assert (tmp_path / "payoff.png").stat().st_size > 10_000
+
+
+def test_the_regime_map_target_is_what_the_slower_variant_typically_reaches(tmp_path, studies):
+    """HIG falls from 1 to 0.05, Adam to 0.2 (x 1 + 0.05 seed; geometric in iterations): the target
+    is Adam's median at the budget (0.245), which HIG passes at 500 iterations in every seed and
+    Adam only at 1000 in the 5 seeds that end below it. The lower median (HIG's, compare's target)
+    would leave 5 pairs ties of two misses; here every pair is a HIG win: ratio 0.5 in 5 seeds and 0
+    (Adam never there) in 5, median 0, HIG first."""
+    study = claims.Study(
+        "map_oscillator_1",
+        ("task=oscillator", "optim=adam,hig", "task.alpha=1"),
+        2,
+        10,
+        1,
+        1,
+        preset=False,
+    )
+    studies[study.name] = FakeStudy(
+        study.name,
+        {
+            "hig": {s: falling(0.05 * (1 + 0.05 * s)) for s in TEN},
+            "adam": {s: falling(0.2 * (1 + 0.05 * s)) for s in TEN},
+        },
+    )
+    cell = claims.map_cell(tmp_path, study)
+    assert cell.reached == (10, 5, 10) and cell.ratio == 0.0 and cell.high == pytest.approx(0.5)
+    assert cell.verdict == "A better" and claims.MAP_VERDICTS[cell.verdict] == "HIG first"
+    # no calibration file: no cost, no crash
+    assert math.isnan(cell.cost_ratio) and cell.conditioning == 1.0
+    # Adam diverged in most seeds: its median is not finite, the target is HIG's own median, reached
+    # by HIG in half its seeds and by Adam never: HIG first where it got there, ties elsewhere
+    studies[study.name] = FakeStudy(
+        study.name,
+        {
+            "hig": {s: falling(0.05 * (1 + 0.05 * s)) for s in TEN},
+            "adam": {s: Curve(X, np.where(X < 300, 1.0, np.inf), X[-1], True, None) for s in TEN},
+        },
+    )
+    cell = claims.map_cell(tmp_path, study)
+    assert cell.reached[:2] == (5, 0) and cell.verdict == "undecided"
+    # both diverged everywhere: no target, nobody reaches it, all ties
+    studies[study.name] = FakeStudy(
+        study.name,
+        {
+            v: {s: Curve(X, np.where(X < 300, 1.0, np.inf), X[-1], True, None) for s in TEN}
+            for v in ("hig", "adam")
+        },
+    )
+    cell = claims.map_cell(tmp_path, study)
+    assert (
+        cell.reached == (0, 0, 10) and cell.verdict == claims.NO_TARGET and math.isnan(cell.ratio)
+    )
+    # a blank cell, drawn
+    claims.plot_map({"oscillators": [cell]}, tmp_path / "payoff.png", "a machine")
+    assert (tmp_path / "payoff.png").stat().st_size > 10_000
+
+
+def test_a_study_without_a_presets_twin_says_so_for_the_presets(tmp_path, studies):
+    """The claims profile runs every study's presets' twin; the longer profiles run none."""
+    studies["quantum_control_5"] = FakeStudy(
+        "quantum_control_5",
+        {
+            "backprop=C": {s: falling(0.5 * base(s)) for s in TEN},
+            "backprop=R": {s: falling(base(s)) for s in TEN},
+        },
+    )
+    claim = claim_of(claims.Lower("quantum_control_5", "backprop=C", "backprop=R"))
+    assert all(s.preset for s in claims.STUDIES)
+    assert not any(s.preset for s in claims.LONG + claims.GPU)
+    assert claims.decide_claim(claim, tmp_path, profile=claims.LONG)[0] == HOLDS
+    verdict, ((_, d),) = claims.decide_claim(claim, tmp_path, "-preset", profile=claims.LONG)
+    assert verdict == claims.NOT_RUN and "no presets' twin" in d.why
+
+
+def test_a_studys_runs_table_is_data_its_paths_stay_in_the_study_folder(tmp_path):
+    """runs.csv names each run's file; the claims read it from the study's own eval/ whatever the
+    table says (an absolute path elsewhere, a path through ..), and a row they cannot read so (a
+    seed or budget that is no number, a path without eval/, a link out of eval/) is one line."""
+    from physgrad.errors import UserError
+
+    read_study = claims.read_study
+
+    study = tmp_path / "study"
+    (study / "eval" / "+compare_job=eval_v0" / "seed=0").mkdir(parents=True)
+    (tmp_path / "elsewhere").mkdir()
+    header = "variant,study,seed,axis,budget,path\n"
+
+    def table(*rows: str) -> None:
+        (study / "runs.csv").write_text(header + "".join(f"{row}\n" for row in rows))
+
+    table("adam,0,0,iteration,30,/anywhere/eval/+compare_job=eval_v0/seed=0/results.h5")
+    found = read_study(study)
+    assert found.paths == {
+        "adam": {0: str(study / "eval" / "+compare_job=eval_v0" / "seed=0" / "results.h5")}
+    }
+    (study / "eval" / "out").symlink_to(tmp_path / "elsewhere")
+    for row, why in (
+        ("adam,0,abc,iteration,30,eval/x/results.h5", "not a run of this study"),
+        ("adam,0,0,iteration,30,/etc/passwd", "not a run of this study"),
+        ("adam,0,0,iteration,30,eval/../../elsewhere/results.h5", "leaves"),
+        ("adam,0,0,iteration,30,eval/out/results.h5", "leaves"),
+        ("adam,0,0,iteration,x,eval/x/results.h5", "is not a number"),
+    ):
+        table(row)
+        with pytest.raises(UserError, match=why):
+            read_study(study)
+    # repeated tuning studies: each study's runs, and a bad row named by its line in the table
+    table(
+        "adam,0,0,iteration,30,eval/+compare_job=eval_v0/seed=0/results.h5",
+        "adam,1,0,iteration,30,eval/+compare_job=eval_st1_v0/seed=0/results.h5",
+        "adam,1,1,iteration,30,eval/../../elsewhere/results.h5",
+    )
+    with pytest.raises(UserError, match="line 4: its path leaves"):
+        read_study(study)
+    table(
+        "adam,0,0,iteration,30,eval/+compare_job=eval_v0/seed=0/results.h5",
+        "adam,1,0,iteration,30,eval/+compare_job=eval_st1_v0/seed=0/results.h5",
+        "adam,2,0,iteration,30,eval/+compare_job=eval_st2_v0/seed=0/results.h5",
+    )
+    found = read_study(study)
+    assert len(found.tuning) == 3 and found.paths == found.tuning[0].paths
+    assert found.tuning[2].paths["adam"][0].endswith("eval_st2_v0/seed=0/results.h5")
+
+
+def tuned(name: str, a_over_b: list[float]) -> FakeStudy:
+    """A study of three tuning studies; in study k, a's loss is a_over_b[k] times b's (every
+    seed, with the seeds' spread); 1.0: the two within noise of each other."""
+    rng = np.random.default_rng(7)
+    studies = []
+    for k, factor in enumerate(a_over_b):
+        noise = rng.normal(0, 0.3, 10) if factor == 1.0 else np.zeros(10)
+        studies.append(
+            FakeStudy(
+                f"{name}-{k}",
+                {
+                    "a": {s: falling(factor * base(s) * np.exp(noise[s])) for s in TEN},
+                    "b": {s: falling(base(s)) for s in TEN},
+                },
+            )
+        )
+    first = studies[0]
+    first.tuning = tuple(studies)
+    return first
+
+
+@pytest.mark.parametrize(
+    "factors, verdict",
+    [
+        ([0.5, 0.5, 1.0], HOLDS),  # 2 of 3 studies, none against
+        ([0.5, 0.5, 0.5], HOLDS),
+        ([0.5, 1.0, 1.0], OPEN),  # 1 of 3
+        ([0.5, 2.0, 0.5], OPEN),  # the studies disagree
+        ([2.0, 2.0, 1.0], FAILS),
+    ],
+)
+def test_a_lower_part_is_decided_over_the_tuning_studies(tmp_path, studies, factors, verdict):
+    """With repeated tuning studies a Lower part holds where A is better in a majority of the
+    studies and in none is it worse, by the package's rule (physgrad.verdict.across_studies)."""
+    studies["s"] = tuned("s", factors)
+    found, ((_, decision),) = claims.decide_claim(claim_of(claims.Lower("s", "a", "b")), tmp_path)
+    assert found == verdict, decision
+    assert "over 3 tuning studies" in decision.measured
+
+
+def test_a_turn_that_comes_with_the_gpu_profile_is_told_apart(tmp_path, studies):
+    """Poisson does not hold on 2 cores and holds in claims-gpu: the machine changed with the
+    budget, so the row says so, not "reverses with the budget"."""
+    studies["poisson_continue"] = FakeStudy(
+        "poisson_continue",
+        {
+            "hig": {s: falling(2.0 * base(s)) for s in TEN},
+            "adam": {s: falling(base(s)) for s in TEN},
+        },
+    )
+    studies[str(tmp_path / "claims-gpu" / "poisson_continue")] = FakeStudy(
+        "poisson_continue",
+        {
+            "hig": {s: falling(0.5 * base(s)) for s in TEN},
+            "adam": {s: falling(base(s)) for s in TEN},
+        },
+    )
+    further = ((tmp_path / "claims-long", claims.LONG), (tmp_path / "claims-gpu", claims.GPU))
+    table = claims.headline_table(tmp_path, claims.PROFILES["claims"], further)
+    row = next(line for line in table.splitlines() if "Poisson" in line)
+    assert row.startswith("| **turns with a GPU's budget**: Poisson"), row
+    assert "**does not hold**" in row and "claims-gpu" in row and "**holds**" in row
+
+
+def test_the_headline_states_what_a_study_ran_from_its_own_tables(tmp_path):
+    """Trials per variant and tuning study from trials.csv, the tuning studies and seeds from
+    runs.csv: what ran, not what the profile asked for."""
+    study = tmp_path / "cart_4"
+    rows = ["variant,study,seed,axis,budget,path"]
+    trials = ["variant,study,trial,learning_rate,validation_loss,state"]
+    for k in range(3):
+        for variant in ("a", "b"):
+            for seed in range(10):
+                job = f"eval_st{k}_{variant}"
+                (study / "eval" / job).mkdir(parents=True, exist_ok=True)
+                rows.append(f"{variant},{k},{seed},iteration,1500,eval/{job}/results.h5")
+            trials += [f"{variant},{k},{t},0.001,0.5,COMPLETE" for t in range(8)]
+    (study / "runs.csv").write_text("\n".join(rows) + "\n")
+    (study / "trials.csv").write_text("\n".join(trials) + "\n")
+    assert claims.study_protocol(study) == (8, 3, 10)
+    assert claims.study_protocol(tmp_path / "nothing") is None
+    cart = next(c for c in claims.CLAIMS if c.name.startswith("cart"))
+    runs = claims.read_study(study)
+    assert claims._share_text(cart, runs) == (
+        "1500 iterations: 4.7% of the paper's 32,000 iterations"
+    )
+    oscillators = next(c for c in claims.CLAIMS if c.name.startswith("oscillators"))
+    timed = replace(runs, axis="calibrated_time", budget=15.0)
+    assert claims._share_text(oscillators, timed) == (
+        "15 s (calibrated clock): 0.42% of the paper's about an hour (a GPU)"
+    )
+
+
+def three_studies(name: str, per_study: list[dict]) -> FakeStudy:
+    """A study of len(per_study) tuning studies, study k's runs per_study[k]."""
+    found = [FakeStudy(f"{name}-{k}", by) for k, by in enumerate(per_study)]
+    found[0].tuning = tuple(found)
+    return found[0]
+
+
+@pytest.mark.parametrize(
+    "hard_ratios, verdict, why",
+    [
+        ([0.3, 0.3, 0.3], HOLDS, "3 of 3 tuning studies"),
+        ([0.3, 0.3, 0.9 / 1.1], HOLDS, "2 of 3 tuning studies"),  # the third undecided
+        ([0.3, 0.3, 1.2], OPEN, "disagree"),  # the third against: does not grow
+        ([0.3, 0.9 / 1.1, 0.9 / 1.1], OPEN, "1 of 3 tuning studies decided"),
+        ([1.2, 1.2, 1.2], FAILS, "3 of 3 tuning studies"),
+    ],
+)
+def test_a_trend_is_decided_in_each_tuning_study_and_then_over_them(
+    tmp_path, studies, hard_ratios, verdict, why
+):
+    """C/R 0.9 at the easy end in every study; at the hard end 0.3 (grows), 0.9/1.1 (lower by the
+    margin itself: undecided) or 1.2 (higher: does not grow) per study. Over three studies
+    by the package's rule: a majority, none against."""
+    spread = np.linspace(-0.05, 0.05, 10)  # the seeds' scatter, the same in every study
+
+    def runs(ratio):
+        return {
+            "C": {s: falling(ratio * base(s) * math.exp(spread[(3 * s) % 10])) for s in TEN},
+            "R": {s: falling(base(s)) for s in TEN},
+        }
+
+    studies["easy"] = three_studies("easy", [runs(0.9) for _ in hard_ratios])
+    studies["hard"] = three_studies("hard", [runs(r) for r in hard_ratios])
+    found, ((_, d),) = claims.decide_claim(
+        claim_of(claims.Grows("easy", "hard", "C", "R")), tmp_path
+    )
+    assert found == verdict and why in d.why, d
+    assert "in 3 tuning studies" in d.measured
+
+
+@pytest.mark.parametrize(
+    "slopes, verdict",
+    [
+        (["stalled", "stalled", "stalled"], HOLDS),
+        (["stalled", "stalled", "slow"], OPEN),  # one study still falling: against the majority
+        (["slow", "slow", "slow"], FAILS),
+    ],
+)
+def test_a_stall_is_decided_in_each_tuning_study_and_then_over_them(
+    tmp_path, studies, slopes, verdict
+):
+    rng = np.random.default_rng(12)
+    noise = lambda: math.exp(rng.normal(0, 0.01))  # noqa: E731
+    shapes = {"stalled": (0.5, 0.5), "slow": (0.1, 0.3)}
+
+    def runs(kind):
+        final, half = shapes[kind]
+        return {
+            "adam": {s: falling(final * base(s) * noise(), base(s), half * base(s)) for s in TEN}
+        }
+
+    studies["toy"] = three_studies("toy", [runs(k) for k in slopes])
+    found, ((_, d),) = claims.decide_claim(claim_of(claims.Stalls("toy", "adam")), tmp_path)
+    assert found == verdict, d
+    assert "in 3 tuning studies" in d.measured
+
+
+def test_a_continuing_study_gets_a_start_network_for_every_tuning_seed(tmp_path):
+    """A study that continues networks (init_from) tunes each tuning study on its own seed
+    (compare's tune_seed + k): the profile makes a start network for each, and for the evaluation
+    seeds, and plans their cost once over the slices."""
+    import reproduce
+
+    from physgrad.comparison import split_overrides, study_settings
+
+    study = next(s for s in claims.STUDIES if s.name == "poisson_continue")
+    given, *_ = split_overrides(study.command(tmp_path))
+    settings = study_settings(given)
+    tuning_seeds = [settings.tune_seed + k for k in range(settings.studies)]
+    wanted = reproduce.start_seeds(study.seeds, study.studies)
+    assert set(tuning_seeds) | set(settings.evaluation_seeds) == set(wanted)
+    slices = claims.slices(study, 0)
+    assert [reproduce.start_seeds(s.seeds, s.studies)[-1] for s in slices] == tuning_seeds
+    starts = study.start.job_seconds * len(wanted)
+    whole_without_start = replace(study, start=None).seconds()
+    assert study.seconds() - whole_without_start == pytest.approx(starts)

@@ -1,0 +1,60 @@
+"""Unit layer of the command line: mistakes refused before anything runs, one line each, through
+physgrad.cli.main called in-process (their rendering by the console script:
+tests/e2e/test_cli.py)."""
+
+import pytest
+
+from physgrad.cli import main
+
+
+@pytest.mark.parametrize(
+    "override, fragment",
+    [
+        (
+            "+trainer.iteratons=5",
+            "unknown key 'trainer.iteratons': did you mean trainer.iterations?",
+        ),
+        ("++trainer.iteratons=5", "did you mean trainer.iterations?"),
+        ("+foo=1", "unknown key 'foo' (the top level has: "),
+        ("init_from=a/optim=adam,seed=0/results.h5", "must be quoted, e.g. init_from='"),
+    ],
+)
+def test_added_keys_nothing_reads_and_unquoted_paths_are_one_line_errors(override, fragment):
+    from physgrad.configs import check_overrides
+    from physgrad.errors import UserError
+
+    with pytest.raises(UserError) as caught:
+        check_overrides(["task=toy", override], multirun=False)
+    assert fragment in str(caught.value) and "\n" not in str(caught.value)
+    # a keyword for the factory
+    check_overrides(["task=toy", "+optim.weight_decay=0.1"], multirun=False)
+
+
+@pytest.mark.parametrize(
+    "args, fragment",
+    [
+        (
+            ["task=nope"],
+            "unknown task 'nope' (choose one of guidance, ks, multicart, oscillator, poisson, "
+            "quantum, ",
+        ),
+        (
+            ["optim=hgi"],
+            "unknown optim 'hgi': did you mean hig? (choose one of adam, bptt, gauss_newton, gd, "
+            "hig, ",
+        ),
+        (["trainer.iteratons=5"], "did you mean trainer.iterations?"),
+        (["optim.lr=0.1"], "did you mean optim.learning_rate?"),
+        (["seed=0,1"], "add -m"),
+        (
+            ["-m", "optim.learning_rate=interval(0.001,0.1)"],
+            "basic sweeper cannot sample: tune with 'physgrad compare'",
+        ),
+    ],
+)
+def test_user_mistakes_are_one_line_errors(args, fragment, tmp_path, capsys):
+    """Refused before a job starts, by physgrad.cli.main as the console script calls it: exit code
+    2 and one line (its rendering on the console: tests/e2e/test_cli.py)."""
+    assert main(["run", *args, f"hydra.run.dir={tmp_path}"]) == 2
+    lines = capsys.readouterr().err.strip().splitlines()
+    assert len(lines) == 1 and fragment in lines[0], lines

@@ -1,0 +1,185 @@
+"""Unit layer (pure functions, no scene compiled) of the tests of:
+`physgrad compare`: the command line split into variants, jobs as config files that compose to
+the intended run, equal tuning budgets on disjoint seeds, validation data, and a study on a user's
+own scene end to end."""
+
+import pytest
+
+from physgrad.comparison import (
+    build_variants,
+    evaluation_jobs,
+    job_yaml,
+    split_overrides,
+    study_settings,
+)
+from physgrad.configs import compose
+from physgrad.errors import UserError
+
+
+@pytest.mark.parametrize(
+    "args, fragment",
+    [
+        (["task=toy", "optim=adam"], "list two or more variants"),
+        (["task=toy", "optim=adam,hig", "compare.trails=3"], "unknown setting compare.trails"),
+        (["task=toy", "optim=adam,hig", "compare.tune_seed=3"], "must differ"),
+        (["task=toy", "optim.learning_rate=interval(0.1,1)"], "list the variants"),
+        (["task=toy", "optim=adam,hig", "compare.search.tau=[1,0.1]"], "0 < low < high"),
+        (["task=toy", "optim=adam,hgi"], "did you mean hig?"),
+        (["task=toy", "optim=adam,hig", "compare.seeds=0"], "compare.seeds"),
+        (["task=toy", "optim=adam,hig", "seed=3"], "compare sets the seeds itself"),
+        (["task=toy", "optim=adam,hig", "compare.seeds=2000"], "compare.seeds"),
+        (["task=toy", "optim=adam,hig", "hydra.sweep.dir=x"], "give compare.dir=DIR instead"),
+        (["task=toy", "optim=adam,hig", "compare.dir=a,b"], "takes one value"),
+        (["task=toy", "optim=adam,hig", "hydra.run.dir=x"], "give compare.dir=DIR instead"),
+        # tuning seeds 2, 3, 4 of three studies reach the evaluation seeds 3 ..
+        (["task=toy", "optim=adam,hig", "compare.tune_seed=2", "compare.seed=3"], "must differ"),
+    ],
+)
+def test_bad_studies_are_one_line_errors(args, fragment):
+    with pytest.raises(UserError, match=fragment.replace("?", r"\?").replace("[", r"\[")):
+        settings, axes, common, _ = split_overrides(args)
+        build_variants(axes, common, study_settings(settings), [])
+
+
+def test_a_job_file_composes_to_the_variant_with_its_trial_settings(tmp_path):
+    """The trial's learning rate wins over the scene's preset (tuning/oscillator_hig.yaml: lr 1),
+    which keeps its batch size; common and variant overrides land as given."""
+    folder = tmp_path / "compare_job"
+    folder.mkdir()
+    groups = {"task", "optim", "tuning"}
+    text = job_yaml(
+        ["task=oscillator", "trainer.iterations=50", "optim=hig", "optim.clip=norm"],
+        groups,
+        {"optim.learning_rate": 0.3, "seed": 1_000_000, "trainer.validation": True},
+    )
+    (folder / "tune_v0_t000.yaml").write_text(text)
+    cfg = compose(["+compare_job=tune_v0_t000"], config_dirs=[str(tmp_path)])
+    assert (cfg.task.name, cfg.optim.name, cfg.optim.clip) == ("oscillator", "hig", "norm")
+    assert cfg.optim.learning_rate == 0.3 and cfg.task.batch_size == 128 and cfg.optim.tau == 1e-6
+    assert (cfg.seed, cfg.trainer.iterations, cfg.trainer.validation) == (1_000_000, 50, True)
+
+
+def test_a_scene_whose_data_ignore_the_key_has_no_default_validation_set():
+    import jax
+
+    from physgrad.experiment import validation_set
+    from physgrad.tasks import Scene
+
+    def build(**_):
+        return Scene(
+            init_params=lambda k: {"w": jax.numpy.zeros(2)},
+            sample_loss=lambda y, s: (y**2).sum(),
+            test_set={"x": jax.numpy.ones((4, 2))},
+            train_set={"x": jax.numpy.ones((4, 2))},
+            sample_output=lambda p, s: p["w"] * s["x"],
+        )
+
+    cfg = compose(["task=toy"])
+    with pytest.MonkeyPatch.context() as patch:
+        patch.setattr("physgrad.experiment.build_scene", lambda *a, **k: build())
+        with pytest.raises(UserError, match="give its Scene a validation_set"):
+            validation_set(cfg, build(), jax.random.PRNGKey(0))
+
+
+def test_continuing_networks_evaluates_one_job_per_seed():
+    settings, axes, common, _ = split_overrides(
+        [
+            "task=toy",
+            "optim=adam,gd",
+            "trainer.iterations=30",
+            "init_from='start/seed=${seed}/results.h5'",
+        ]
+    )
+    s = study_settings({**settings, "seeds": 3})
+    variants = build_variants(axes, common, s, [])
+    jobs = evaluation_jobs(
+        variants, [{v.name: {} for v in variants}], s, common, {"task", "optim"}, "iteration", 30.0
+    )
+    assert list(jobs) == [f"eval_v{v}_s{seed}" for v in (0, 1) for seed in range(3)]
+    assert "seed=${seed}" in jobs["eval_v0_s2"] and "seeds: 1" in jobs["eval_v0_s2"]
+
+
+def test_a_tuning_journal_cut_short_is_repaired_and_a_foreign_one_refused(tmp_path):
+    """The last line cut short (a kill during an append): moved aside with a one-line note, and
+    Optuna reads the rest, the trial it would have told still waiting; a line that is no record in
+    the middle: one line."""
+    import optuna
+
+    from physgrad.comparison.tuning import set_aside_damage
+
+    path = tmp_path / "tuning.journal"
+    storage = optuna.storages.JournalStorage(optuna.storages.journal.JournalFileBackend(str(path)))
+    study = optuna.create_study(study_name="adam", storage=storage)
+    for value in (0.1, 0.2):
+        trial = study.ask({"learning_rate": optuna.distributions.FloatDistribution(1e-5, 1)})
+        study.tell(trial, value)
+    whole = path.read_bytes()
+    for cut in (5, len(whole.splitlines()[-1]) // 2):
+        path.write_bytes(whole[:-cut])
+        notes = []
+        set_aside_damage(path, notes.append)
+        assert len(notes) == 1 and "cut short" in notes[0]
+        reread = optuna.load_study(
+            study_name="adam",
+            storage=optuna.storages.JournalStorage(
+                optuna.storages.journal.JournalFileBackend(str(path))
+            ),
+        )
+        assert [t.value for t in reread.trials][0] == 0.1
+        assert len(list(tmp_path.glob("tuning.journal.damaged-*"))) >= 1
+    path.write_bytes(whole)
+    notes = []
+    set_aside_damage(path, notes.append)  # a whole journal is left alone
+    assert notes == [] and path.read_bytes() == whole
+    lines = whole.split(b"\n")
+    path.write_bytes(b"\n".join([lines[0], b"\x00\xffgarbage", *lines[1:]]))
+    with pytest.raises(UserError, match="line 2 is not a record of Optuna's journal"):
+        set_aside_damage(path, notes.append)
+
+
+def _journal(path, studies):
+    """A tuning journal by hand: {study name: (readout attr or None, told values, asked only)}."""
+    import optuna
+
+    storage = optuna.storages.JournalStorage(optuna.storages.journal.JournalFileBackend(str(path)))
+    rate = {"learning_rate": optuna.distributions.FloatDistribution(1e-5, 1, log=True)}
+    for name, (version, told, asked) in studies.items():
+        study = optuna.create_study(study_name=name, storage=storage)
+        if version is not None:
+            study.set_user_attr("readout", version)
+        for value in told:
+            study.tell(study.ask(rate), value)
+        for _ in range(asked):
+            study.ask(rate)
+
+
+@pytest.mark.parametrize(
+    "studies, stale",
+    [
+        ({"adam": (None, [0.1], 0)}, "unrecorded"),
+        ({"adam": (1, [0.1, 0.2], 0), "gd": (None, [], 2)}, "1"),
+        ({"adam": (2, [0.1], 0), "gd": (1, [0.3], 1), "hig": (None, [0.2], 0)}, "1-unrecorded"),
+        ({"adam": (2, [0.1], 1), "gd": (None, [], 1)}, None),
+    ],
+)
+def test_a_tuning_journal_scored_by_another_read_out_is_set_aside(tmp_path, studies, stale):
+    """A study with a told trial and another read-out's version (or none: before it was recorded)
+    sends the whole journal aside under a name that says which, with a one-line note; trials only
+    asked, or told under this version, keep it."""
+    from physgrad.comparison.tuning import set_aside_stale
+    from physgrad.readout import READOUT_VERSION
+
+    path = tmp_path / "tuning.journal"
+    _journal(path, studies)
+    whole = path.read_bytes()
+    notes = []
+    set_aside_stale(path, notes.append)
+    if stale is None:
+        assert notes == [] and path.read_bytes() == whole
+        return
+    assert not path.exists() and len(notes) == 1
+    (aside,) = tmp_path.glob(f"tuning.journal.read-out-{stale}-*")
+    assert aside.read_bytes() == whole
+    assert f"version {stale}" in notes[0] and f"version {READOUT_VERSION}" in notes[0]
+    set_aside_stale(path, notes.append)  # nothing left to set aside
+    assert len(notes) == 1

@@ -1,0 +1,129 @@
+"""Unit layer (pure functions, no scene compiled) of the tests of:
+Results files, report inputs and sweep folders from somebody else are data: crafted files of
+every kind are refused with a one-line reason (or their text cleaned) and the rest of the report
+goes on; nothing they name is followed, resolved or expanded. Bombs run under a time and memory cap
+in a child process."""
+
+import os
+from pathlib import Path
+
+import h5py
+import numpy as np
+import pytest
+from omegaconf import OmegaConf
+
+from physgrad.files import read_small_yaml
+from physgrad.results import ResultsWriter, parse_config, read_final, read_params, read_run
+from physgrad.resume import finished_before
+from physgrad.runs import collect
+from tests.helpers import SECRET
+
+CONFIG = {
+    "seed": 0,
+    "seeds": 1,
+    "task": {"name": "toy", "batch_size": 4},
+    "optim": {"name": "adam"},
+    "trainer": {"iterations": 3},
+}
+
+
+def good_run(folder: Path, seed: int = 0, **attrs) -> Path:
+    """A small valid results file, as physgrad writes it."""
+    path = folder / "results.h5"
+    writer = ResultsWriter(
+        path,
+        {
+            "task": "toy",
+            "optim": "adam",
+            "variant": "adam",
+            "seed": seed,
+            "config": OmegaConf.to_yaml(OmegaConf.create({**CONFIG, "seed": seed})),
+            **attrs,
+        },
+    )
+    for i in range(3):
+        writer.append(
+            "train",
+            {"iteration": i, "wall_time": 0.1 * (i + 1), "loss": 1.0 / (i + 1), "grad_norm": 1.0},
+        )
+        writer.append("eval", {"iteration": i, "wall_time": 0.1 * (i + 1), "loss": 1.0 / (i + 1)})
+    writer.save_params(np.ones(5))
+    writer.finish("completed", stopped_by="iterations", iterations=3, train_seconds=0.3)
+    return path
+
+
+def rewrite(path: Path, edit) -> Path:
+    """A crafted copy: edit(h5py.File) applied to a good file in place."""
+    with h5py.File(path, "a") as f:
+        edit(f)
+    return path
+
+
+def set_attr(key, value):
+    def edit(f):
+        f.attrs[key] = value
+
+    return edit
+
+
+def test_params_stored_elsewhere_are_refused(tmp_path, secret_file):
+    path = good_run(tmp_path / "run")
+
+    def edit(f):
+        del f["params"]
+        f.create_dataset("params", shape=(3,), dtype="f8", external=[(str(secret_file), 0, 24)])
+
+    rewrite(path, edit)
+    with pytest.raises(ValueError, match="params"):
+        read_params(path)
+
+
+def test_escapes_in_the_stored_config_are_cleaned_too(tmp_path):
+    path = good_run(tmp_path / "run")
+    rewrite(path, set_attr("config", 'task: {name: "toy\\e[31m"}\nseed: 0\n'))
+    assert read_run(path).config["task"]["name"] == "toy\ufffd[31m"
+
+
+def test_a_fifo_named_results_h5_is_refused_without_blocking(tmp_path):
+    good_run(tmp_path / "good")
+    (tmp_path / "fifo").mkdir()
+    os.mkfifo(tmp_path / "fifo" / "results.h5")
+    runs, unreadable, _ = collect([tmp_path])  # a blocking open would hang here
+    assert len(runs) == 1 and "FIFO" in unreadable[0][1]
+    with pytest.raises(ValueError, match="FIFO"):
+        read_small_yaml(tmp_path / "fifo" / "results.h5")
+
+
+def test_resume_compares_the_stored_config_as_data_and_resolves_nothing(tmp_path, monkeypatch):
+    monkeypatch.setenv("PHYSGRAD_TEST_SECRET", SECRET)
+    cfg = OmegaConf.create({**CONFIG, "overwrite": False})
+    path = good_run(tmp_path / "run")
+    assert finished_before(path, cfg) is not None  # its own config: skipped as completed
+    rewrite(
+        path,
+        set_attr(
+            "config",
+            "seed: ${oc.env:PHYSGRAD_TEST_SECRET}\ntask: ${${oc.env:PHYSGRAD_TEST_SECRET}}\n",
+        ),
+    )
+    assert finished_before(path, cfg) is None  # a different config: runs again
+    assert parse_config(read_run(path).attrs["config"])["seed"] == "${oc.env:PHYSGRAD_TEST_SECRET}"
+    for text in ("[1, 2]", "7", "{bad", "a: &x [1]\nb: *x"):
+        rewrite(path, set_attr("config", text))
+        assert finished_before(path, cfg) is None
+
+
+def test_physgrad_files_read_back_unchanged(tmp_path):
+    path = good_run(tmp_path / "run", unroll=8, contended=0, load_start=0.5, step_seconds_p50=0.01)
+    run = read_run(path)
+    assert (
+        run.attrs["seed"] == 0 and run.attrs["unroll"] == 8 and run.attrs["status"] == "completed"
+    )
+    assert run.config["trainer"] == {"iterations": 3} and run.eval["loss"].tolist() == [
+        1.0,
+        0.5,
+        1 / 3,
+    ]
+    assert read_params(path).tolist() == [1.0] * 5 and read_final(path)[1]["loss"] == pytest.approx(
+        1 / 3
+    )

@@ -1,0 +1,60 @@
+"""Unit layer (pure functions, no scene compiled) of the tests of:
+The training loop: stopping rules, divergence, comparability across variants, precision, results
+files."""
+
+import numpy as np
+import pytest
+
+from physgrad.results import ResultsWriter, read_run
+
+
+def test_writer_appends_in_flushes_and_checks_columns(tmp_path):
+    writer = ResultsWriter(tmp_path / "results.h5", {"task": "poisson", "optim": "adam", "seed": 0})
+    for i in range(5):
+        writer.append(
+            "train", {"iteration": i, "wall_time": 0.1 * i, "loss": 1.0 / (i + 1), "grad_norm": 1.0}
+        )
+        if i == 2:
+            writer.flush()
+            assert read_run(tmp_path / "results.h5").train["iteration"].tolist() == [0, 1, 2]
+    with pytest.raises(ValueError, match="columns"):
+        writer.append("train", {"iteration": 5, "loss": 0.0})
+    writer.finish("interrupted", "SIGINT after 5 iterations")
+    run = read_run(tmp_path / "results.h5")
+    assert run.train["iteration"].tolist() == list(range(5))
+    assert (run.attrs["status"], run.attrs["reason"]) == (
+        "interrupted",
+        "SIGINT after 5 iterations",
+    )
+
+
+def test_rows_are_whole_and_columns_fixed(tmp_path):
+    writer = ResultsWriter(tmp_path / "results.h5", {"task": "poisson", "optim": "adam", "seed": 0})
+    writer.set_columns("train", ("iteration", "loss"))
+    writer.append_row("train", (0, 1.0))
+    writer.append("train", {"loss": 0.5, "iteration": 1})  # by name, in any order
+    with pytest.raises(ValueError, match="columns"):
+        writer.set_columns("train", ("iteration", "grad_norm"))
+    writer.finish("interrupted", "SIGINT after 2 iterations")
+    run = read_run(tmp_path / "results.h5")
+    assert run.train["iteration"].tolist() == [0, 1] and run.train["loss"].tolist() == [1.0, 0.5]
+
+
+def test_first_signal_asks_to_stop_second_ends_a_step_still_computing():
+    import signal
+    import threading
+    import time
+
+    from physgrad.interrupts import StopRequest
+
+    request = StopRequest()
+    assert request.call(lambda x: x + 1, np.float32(1)) == 2  # no signal: the step's result
+    request(signal.SIGINT, None)
+    assert request.signal_name == "SIGINT" and not request.at_once
+    release = threading.Event()
+    threading.Timer(0.2, request, (signal.SIGTERM, None)).start()  # the handler never raises
+    start = time.perf_counter()
+    with pytest.raises(KeyboardInterrupt, match="SIGINT"):
+        request.call(lambda: release.wait(30))  # a step that would take 30 s
+    assert time.perf_counter() - start < 5
+    release.set()
