@@ -45,7 +45,10 @@ def started_pids(sweep: Path) -> dict[str, int]:
     return found
 
 
-@pytest.mark.parametrize("signum", [signal.SIGTERM, signal.SIGUSR2])
+# SIGUSR2 (the scheduler's warning) in make test-long: the same path as SIGTERM to the job
+@pytest.mark.parametrize(
+    "signum", [signal.SIGTERM, pytest.param(signal.SIGUSR2, marks=pytest.mark.long)]
+)
 def test_a_signal_to_one_worker_ends_that_job_alone(tmp_path, signum):
     """A joblib worker's job given SIGTERM (scancel, preemption) or SIGUSR2 (a scheduler's warning
     before a time limit) at a random instant of its training ends interrupted with its rows; the
@@ -89,6 +92,8 @@ def test_a_signal_to_one_worker_ends_that_job_alone(tmp_path, signum):
     assert "sweep finished" in out  # not stopped: one job's end is not the sweep's
 
 
+# make test-long (and tests/cluster, under SLURM): SIGKILL of a run is in tests/e2e/test_cli.py
+@pytest.mark.long
 def test_a_killed_study_leaves_no_sweep_running_and_resumes(tmp_path):
     """SIGKILL of `physgrad compare` at random instants of its tuning: its sweep (in a session of
     its own) stops within seconds every time; the rerun finishes the study."""
@@ -126,6 +131,9 @@ def test_a_killed_study_leaves_no_sweep_running_and_resumes(tmp_path):
     assert (folder / "compare.md").is_file()
 
 
+# make test-long: a study's resume is decided by physgrad.comparison.jobs (tests/unit and
+# tests/integration test_compare.py) and checked under SLURM in tests/cluster
+@pytest.mark.long
 def test_a_rerun_launches_only_the_jobs_without_finished_results(tmp_path):
     """A finished study launches nothing again; with one seed's file of one evaluation job removed,
     only that job runs, and the other job's files are untouched."""

@@ -319,6 +319,7 @@ def test_a_finished_study_given_more_trials_tunes_on_from_where_it_stopped(tmp_p
         physgrad.compare(*args[:2], "trainer.iterations=30", *args[3:], "compare.trials=3")
 
 
+@pytest.mark.long
 def test_two_names_for_one_rule_are_tuned_alike_in_either_order_and_equivalent(tmp_path):
     """A copy of adam.yaml under another name, listed second and then first: the same trial points
     and tuned rate in each of the three tuning studies (the default; the points do not depend on a

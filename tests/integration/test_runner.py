@@ -329,7 +329,16 @@ def test_same_seed_same_precision_gives_bitwise_identical_curves(tmp_path):
             np.testing.assert_array_equal(first, second)
 
 
-@pytest.mark.parametrize("optim", ["adam", "gd", "hig", "gauss_newton"])
+# one gradient rule and one Jacobian rule in make test, the others in make test-long
+@pytest.mark.parametrize(
+    "optim",
+    [
+        "adam",
+        "hig",
+        pytest.param("gd", marks=pytest.mark.long),
+        pytest.param("gauss_newton", marks=pytest.mark.long),
+    ],
+)
 def test_trials_trained_together_are_the_runs_of_one_job_per_trial(tmp_path, optim):
     """trial_values trains one member per learning rate on one seed in one vectorised step: each
     member's curves equal the run of that learning rate alone (float32 round-off), and its file

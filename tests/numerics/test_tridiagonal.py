@@ -97,7 +97,15 @@ def scene_quantities(monkeypatch, path: str, overrides: list[str]) -> tuple:
     return value, grad, jacobian
 
 
-@pytest.mark.parametrize("path", [p for p in PATHS if p != "library"])
+# the dense path (a 14 x 14 solve per step, the GPU's fast one) is slow on a CPU: make test-long
+@pytest.mark.parametrize(
+    "path",
+    [
+        pytest.param(p, marks=pytest.mark.long) if p == "dense" else p
+        for p in PATHS
+        if p != "library"
+    ],
+)
 @pytest.mark.parametrize(
     "overrides",
     [
