@@ -8,15 +8,14 @@ os.environ.setdefault("JAX_PLATFORMS", "cpu")
 # starts: the tests build the same steps, evaluations and data generators many times over (every
 # variant of a scene shares its evaluation; each subprocess would compile its eager operations
 # again), and a cached executable is the same code, so results are unchanged. About a third of the
-# suite's time on 2 cores.
+# suite's time on 2 cores. A cache folder given from outside (.ci/run gives make test and make
+# test-long one) is used and kept.
 if "JAX_COMPILATION_CACHE_DIR" not in os.environ:
     _cache = tempfile.mkdtemp(prefix="physgrad-test-jax-cache-")
     atexit.register(shutil.rmtree, _cache, ignore_errors=True)
-    os.environ.update(
-        JAX_COMPILATION_CACHE_DIR=_cache,
-        JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS="0",
-        JAX_PERSISTENT_CACHE_MIN_ENTRY_SIZE_BYTES="0",
-    )
+    os.environ["JAX_COMPILATION_CACHE_DIR"] = _cache
+os.environ.setdefault("JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS", "0")
+os.environ.setdefault("JAX_PERSISTENT_CACHE_MIN_ENTRY_SIZE_BYTES", "0")
 
 # Generated datasets (the Kuramoto-Sivashinsky trajectories) go to a cache of the test session,
 # never the user's

@@ -5,6 +5,7 @@
 #                                  configuration under $STATE, start munged, MariaDB, slurmdbd, slurmctld
 #                                  and slurmd by hand (no systemd) and wait until a job runs
 #   tests/cluster/slurm.sh stop    stop every daemon it started, by the process ids it recorded
+#   tests/cluster/slurm.sh install only install what is missing (.ci/run does it while the tests run)
 # Clients find the cluster through SLURM_CONF=$STATE/slurm.conf (printed by `start`). Exits 3 with one
 # line where it cannot run (not root, not Debian, no apt); nothing outside $STATE, /run/munge,
 # /run/mysqld and the database is changed.
@@ -159,8 +160,16 @@ stop() {
     [ -n "$quiet" ] || say "stopped"
 }
 
+install() {
+    [ "$(id -u)" -eq 0 ] || cannot "not root (the daemons and their packages need root)"
+    [ -f /etc/debian_version ] || cannot "not a Debian machine (the recipe uses Debian's packages)"
+    mkdir -p "$STATE/log"
+    install_missing
+}
+
 case "${1:-}" in
     start) start ;;
     stop) stop ;;
-    *) echo "usage: $0 start|stop" >&2; exit 2 ;;
+    install) install ;;
+    *) echo "usage: $0 start|stop|install" >&2; exit 2 ;;
 esac

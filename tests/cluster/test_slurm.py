@@ -91,11 +91,14 @@ def wait_until(what: str, test: object, seconds: float = 120.0) -> object:
 
 
 def running_task(task: int, seconds: float = 0.0) -> str | None:
-    """The id of array task `task` once it has run for `seconds` (the queue's TIME column)."""
+    """The id of array task `task` once it has run for `seconds` (the queue's TIME column). A sweep
+    of one job (a rerun that sends only what is missing) is sent as a plain job, without an array
+    suffix: it is task 0."""
     for job, elapsed in squeue("-t", "R", "-o", "%i %M"):
         parts = [int(p) for p in elapsed.replace("-", ":").split(":")]
         ran = sum(p * 60**i for i, p in enumerate(reversed(parts)))
-        if job.endswith(f"_{task}") and ran >= seconds:
+        task_of_job = int(job.rsplit("_", 1)[1]) if "_" in job else 0
+        if task_of_job == task and ran >= seconds:
             return job
     return None
 

@@ -255,7 +255,10 @@ def test_seeds_in_one_process_match_separate_runs(tmp_path, task):
     """seeds=3 trains seeds 0, 1, 2 in one vmapped step; every seed's file has the curves of its own
     run."""
     common = [*task, "precision=64", "trainer.iterations=6", "trainer.eval_every=3"]
-    outcome, folder = run_experiment(load(*common, "seeds=3"), tmp_path / "together")
+    # figures on: each seed of a run trained together gets its own
+    outcome, folder = run_experiment(
+        load(*common, "seeds=3", "figures=true"), tmp_path / "together"
+    )
     assert outcome.status == "completed"
     for seed in range(3):
         together = read_run(folder / f"seed={seed}" / "results.h5")
