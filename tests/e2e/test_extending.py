@@ -69,6 +69,8 @@ def test_the_example_scene_trains_with_every_variant_that_applies(tmp_path):
     assert "zeroed_fraction" in runs["stable_bptt"].train and "svd_failures" in runs["hig"].train
 
 
+# make test-long: composing is checked in tests/integration/test_extending.py
+@pytest.mark.long
 def test_a_users_optimiser_composes_with_backprop_modes_and_clipping(tmp_path):
     """An optim YAML in a folder of the user's (adamw with an optax schedule, via hydra.searchpath),
     and lion with optim.backprop=C and clipping: the combined gradient's diagnostics are logged."""
@@ -98,6 +100,8 @@ def test_a_users_optimiser_composes_with_backprop_modes_and_clipping(tmp_path):
         assert 0 <= run.train["zeroed_fraction"].min() and run.train["zeroed_fraction"].max() <= 1
 
 
+# make test-long: the Python API runs in make test through tests/integration/test_compare.py
+@pytest.mark.long
 def test_python_api_runs_one_configuration_and_reads_its_curves(in_example, tmp_path):
     run = physgrad.run(
         "task=pendulum", "optim=stable_bptt", *SHORT, config_dir="conf", out_dir=tmp_path
@@ -133,6 +137,8 @@ def test_python_api_writes_where_physgrad_run_would(tmp_path, monkeypatch):
     assert run.attrs["status"] == "completed" and (run.path.parent / "loss.png").exists()
 
 
+# make test-long: Hydra's own feature, through the console script
+@pytest.mark.long
 def test_tab_completion_through_hydra(tmp_path):
     env = {**os.environ, "PATH": f"{Path(PHYSGRAD).parent}:{os.environ['PATH']}"}
 

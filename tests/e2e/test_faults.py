@@ -359,6 +359,8 @@ def test_a_signal_raised_inside_a_garbage_collector_callback_is_not_lost(tmp_pat
             )
 
 
+# make test-long and make test-faults
+@pytest.mark.long
 def test_an_intruder_is_refused_without_touching_a_live_job(tmp_path):
     """A second process into the folder of a job a sweep is running: refused (exit 2) before
     anything is written, so the live job's provenance (.hydra/) and recorded state stay as they

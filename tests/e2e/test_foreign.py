@@ -46,6 +46,8 @@ def run_capped(code: str, seconds: int = 60, memory: int = 2 << 30) -> subproces
     )
 
 
+# make test-long and make test-faults: each bomb under a time and memory cap
+@pytest.mark.long
 @pytest.mark.parametrize("bomb", ["alias", "interpolation"])
 def test_config_bombs_are_refused_in_bounded_time_and_memory(tmp_path, bomb):
     good_run(tmp_path / "good", seed=1)

@@ -5,6 +5,8 @@ go on when a job fails."""
 import sys
 from pathlib import Path
 
+import pytest
+
 from physgrad.results import read_run
 from tests.helpers import REPO
 
@@ -86,6 +88,8 @@ def test_a_failed_job_of_several_seeds_records_the_failure_in_every_seed_file(
         )
 
 
+# make test-long: a launcher of its own (the basic one and joblib run in make test)
+@pytest.mark.long
 def test_submitit_local_sweep_and_resume(tmp_path):
     """The SLURM path through Hydra's submitit launcher, with its local executor; a second call
     skips both jobs."""

@@ -185,7 +185,7 @@ def build(key, *, test_size, wrong):
 """
 
 
-@pytest.mark.parametrize("wrong", [False, True])
+@pytest.mark.parametrize("wrong", [pytest.param(False, marks=pytest.mark.long), True])
 def test_check_finds_a_scene_s_wrong_gradient(tmp_path, monkeypatch, capsys, wrong):
     from physgrad.check import main
 

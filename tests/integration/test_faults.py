@@ -310,6 +310,8 @@ def two_runs(tmp_path_factory):
     return folder
 
 
+# make test-long and make test-faults: ENOSPC at every write of a report
+@pytest.mark.long
 def test_a_full_disk_is_one_line_at_every_write_of_a_report(two_runs, tmp_path, capsys):
     """ENOSPC injected at the k-th file a report opens for writing (tables, figures), k = 0..N:
     every time exit 1 and one line that says what to do; the runs read are untouched."""

@@ -329,11 +329,11 @@ def test_same_seed_same_precision_gives_bitwise_identical_curves(tmp_path):
             np.testing.assert_array_equal(first, second)
 
 
-# one gradient rule and one Jacobian rule in make test, the others in make test-long
+# a Jacobian rule in make test, the others in make test-long
 @pytest.mark.parametrize(
     "optim",
     [
-        "adam",
+        pytest.param("adam", marks=pytest.mark.long),
         "hig",
         pytest.param("gd", marks=pytest.mark.long),
         pytest.param("gauss_newton", marks=pytest.mark.long),

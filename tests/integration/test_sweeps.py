@@ -81,6 +81,7 @@ def test_every_job_of_a_named_sweep_is_valid(experiment):
     assert len({frozenset(s) for s in seeds.values()}) == 1
 
 
+@pytest.mark.long
 @pytest.mark.parametrize(
     "figure", [f for f in reproduce.FIGURES if f.quick is not None], ids=lambda f: f.name
 )

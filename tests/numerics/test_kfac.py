@@ -79,7 +79,11 @@ def kfac_update(rule_damping, jac, g, learning_rate=1.0):
     return np.asarray(update), state
 
 
-@pytest.mark.parametrize("damping", [1e-6, 1e-2, 1.0])
+# one damping in make test, both ends in make test-long
+@pytest.mark.parametrize(
+    "damping",
+    [pytest.param(1e-6, marks=pytest.mark.long), 1e-2, pytest.param(1.0, marks=pytest.mark.long)],
+)
 def test_the_step_is_the_kronecker_factored_gauss_newton_step(x64, damping):
     _, jac, g, _ = network_problem()
     update, state = kfac_update(damping, jac, g, learning_rate=0.5)

@@ -98,7 +98,11 @@ def test_a_step_that_raises_the_loss_is_rejected_and_the_damping_grows(x64):
     )
 
 
-@pytest.mark.parametrize("optim, batch", [("levenberg_marquardt", 64), ("lbfgs", 1024)])
+# L-BFGS through the runner in make test-long (its rule is in test_rule_contract.py)
+@pytest.mark.parametrize(
+    "optim, batch",
+    [("levenberg_marquardt", 64), pytest.param("lbfgs", 1024, marks=pytest.mark.long)],
+)
 def test_the_rules_train_a_scene_through_the_runner(optim, batch, tmp_path):
     """The toy's loss at least halves in 40 steps (Adam: 0.232 -> 0.227 at either batch size).
     L-BFGS gets a large batch: at 64 fresh samples per step its line search and curvature pairs

@@ -75,7 +75,11 @@ def test_reference_network_starts_with_zero_force():
     assert 1.7 < float(scene.evaluate(params, scene.test_set)["loss"]) <= 2.0
 
 
-@pytest.mark.parametrize("mode", ["R", "M", "S"])
+# the regular gradient in make test, the stopped modes M and S in make test-long
+@pytest.mark.parametrize(
+    "mode",
+    ["R", pytest.param("M", marks=pytest.mark.long), pytest.param("S", marks=pytest.mark.long)],
+)
 def test_bptt_gradients_match_finite_differences_of_stopped_functions(x64, mode):
     steps, poles = 30, 2
     scene = build_scene(

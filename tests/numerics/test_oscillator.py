@@ -95,7 +95,11 @@ def test_unroll_sets_the_time_steps_and_the_open_loop_output_size():
     )
 
 
-@pytest.mark.parametrize("mode", ["R", "M", "S"])
+# the regular gradient in make test, the stopped modes M and S in make test-long
+@pytest.mark.parametrize(
+    "mode",
+    ["R", pytest.param("M", marks=pytest.mark.long), pytest.param("S", marks=pytest.mark.long)],
+)
 @pytest.mark.parametrize("closed_loop", [False, True], ids=["open", "closed"])
 def test_scan_matches_loop_and_finite_differences(x64, closed_loop, mode):
     steps = 12
