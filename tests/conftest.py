@@ -39,6 +39,14 @@ import pytest  # noqa: E402
 absl.logging.get_absl_handler().python_handler.stream = sys.__stderr__
 
 
+@pytest.fixture(autouse=True)
+def default_precision():
+    """Every test starts in JAX's default precision (float32), whatever the test before it in the
+    same worker left set (a run with precision=64 sets float64 for its process, as it must)."""
+    jax.config.update("jax_enable_x64", False)
+    yield
+
+
 @pytest.fixture
 def x64():
     """float64 for the duration of one test (finite differences and closed forms need it)."""
