@@ -149,9 +149,10 @@ class Study:
             self.trials * self.variants() * self.tune_seconds + self.eval_jobs() * self.eval_seconds
         )
         total += self.eval_jobs(preset=True) * self.eval_seconds if self.preset else 0.0
-        # the start networks: the evaluation seeds, then one per tuning study this command adds
+        # the start networks: each tuning study this command adds needs its evaluation seeds and
+        # its tuning seed
         if self.start:
-            total += ((self.seeds if first else 0) + new) * self.start.job_seconds
+            total += (self.seeds + 1) * new * self.start.job_seconds
         return total + (30.0 * self.variants() if self.timed and first else 0.0)
 
 

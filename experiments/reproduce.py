@@ -288,11 +288,12 @@ def print_claims_plan(profile: str, root: Path) -> None:
 
 
 def start_seeds(seeds: int, tuning_studies: int) -> list[int]:
-    """The seeds a study that continues networks needs a start network for: its evaluation seeds
-    and the tuning seed of each tuning study (compare's tune_seed + k)."""
+    """The seeds a study that continues networks needs a start network for: each tuning study's
+    evaluation seeds (study k: k * seeds .. (k + 1) * seeds - 1) and its tuning seed (compare's
+    tune_seed + k)."""
     from claims import TUNE_SEED
 
-    return [*range(seeds), *(TUNE_SEED + k for k in range(tuning_studies))]
+    return [*range(seeds * tuning_studies), *(TUNE_SEED + k for k in range(tuning_studies))]
 
 
 def run_start(start, seeds: int, tuning_studies: int, root: Path) -> int:

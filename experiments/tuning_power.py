@@ -1,25 +1,47 @@
-"""How often the tuning in front of the verdict fakes one, and how often it finds a real effect:
-simulated studies of a model of tuning (docs/protocol.md, "Repeated tuning studies").
+"""How often repeated tuning studies fake a verdict, and how often they find a real effect.
 
-Model: a variant's loss at learning rate lr is best * 2 ** ((log10(lr / lr_best) / 0.5) ** 2)
-(it doubles half a decade from its best rate), times a seed effect that both runs of a paired seed
-share, times run noise exp(N(0, noise)) of its own, in tuning and in evaluation alike. lr_best is
-drawn per simulated study, log-uniformly in the middle half of the range, the same for both
-variants; a true effect multiplies B's loss by `effect` at every rate. The tuning is physgrad's:
-compare.trials scrambled Halton points (physgrad.comparison.tuning.halton_points) over Adam's
-learning-rate range, each study's best trial evaluated on the paired seeds, the verdicts by
-physgrad.verdict (compare_variants per study, across_studies over them). `same_points=False` gives
-each variant its own scramble (seed + variant index), as physgrad did before its trial points were
-common.
+Simulated `physgrad compare` studies decided by physgrad's own verdict functions (docs/protocol.md,
+"Independent tuning studies").
 
-    python -m experiments.tuning_power [--sims 400]
+Model of one run: its log loss at log10 learning rate x is log(2) * ((x - best) / 0.5)^2 (the loss
+doubles half a decade from the best rate, drawn per simulated study in the middle half of Adam's
+range, the same for every variant), plus log(effect) for a variant that is worse by `effect`, plus
+run noise from one of four null models:
+
+    gaussian   N(0, 0.3)
+    bimodal    a plateau: 10x higher with probability 0.3, and N(0, 0.1) (the toy's plateaus)
+    heavy      0.3 x Student t with 2 degrees of freedom
+    divergent  N(0, 0.3), and the run diverges with probability 1 / (1 + exp(-(x - best - 0.5) /
+               0.1)): rates half a decade above the best diverge, so tuned rates near the edge do
+
+Tuning: each variant tries compare.trials points of each tuning study (the same points for every
+variant of a study) on its tuning seed (its own run noise per trial), and the lowest validation loss
+wins. Evaluation: the tuned rate on compare.seeds paired seeds (a seed effect shared by the pair,
+which cancels, and run noise of each run's own).
+
+Two designs:
+    independent  physgrad's: each study its own evaluation seeds (fresh run noise) and points
+                 shifted by its own random vector (physgrad.comparison.tuning.halton_points)
+    shared       the design before it: every study on the same evaluation seeds (each variant's run
+                 noise at a seed drawn once, whatever the tuned rate) and points scrambled per study
+                 (scipy's scrambled Halton sequence)
+
+Two rules over the studies, on the same simulated data:
+    majority  physgrad.verdict.across_studies: the verdict of more than half of the studies (each
+              decided by compare_variants with Holm over its comparisons), none against
+    pooled    one compare_variants over every study's pairs together (30 pairs at 3 x 10)
+
+    python -m experiments.tuning_power [--sims 1600] [--out docs/evidence/tuning_power.csv]
+    python -m experiments.tuning_power --table docs/evidence/tuning_power.csv
 """
 
 from __future__ import annotations
 
 import argparse
+import csv
 import math
-from collections import Counter
+from dataclasses import asdict, dataclass
+from pathlib import Path
 
 import numpy as np
 
@@ -30,90 +52,226 @@ from physgrad.verdict import A_BETTER, B_BETTER, across_studies, compare_variant
 
 RANGE = ADAPTIVE.search_range
 BUDGET = 1.0
+NULLS = ("gaussian", "bimodal", "heavy", "divergent")
+RULES = ("majority", "pooled")
 
 
-def loss_curve(x: float) -> float:
-    """The model's loss relative to its best: doubles half a decade from the best rate."""
-    return 2.0 ** ((x / 0.5) ** 2)
+@dataclass(frozen=True)
+class Cell:
+    """One row of the table: a design of `variants` variants, all equal but the last, whose loss is
+    `effect` times the others' (1: the null)."""
+
+    null: str
+    design: str  # independent or shared
+    variants: int
+    trials: int
+    studies: int
+    seeds: int
+    effect: float
+    sims: int
+
+    @property
+    def key(self) -> tuple:
+        return (self.null, self.design, self.variants, self.trials, self.studies, self.effect)
 
 
-def one_study(
-    rng: np.random.Generator,
-    effect: float,
-    trials: int,
-    studies: int,
-    seeds: int,
-    noise: float,
-    same_points: bool,
-) -> str:
-    """The verdict at the budget of one simulated `physgrad compare` of A against B."""
+def run_noise(rng: np.random.Generator, null: str, size: int) -> tuple[np.ndarray, np.ndarray]:
+    """(log-loss noise, uniform draws that decide divergence) of `size` runs."""
+    if null == "bimodal":
+        noise = rng.normal(0.0, 0.1, size) + math.log(10.0) * (rng.random(size) < 0.3)
+    elif null == "heavy":
+        noise = 0.3 * rng.standard_t(2.0, size)
+    else:
+        noise = rng.normal(0.0, 0.3, size)
+    return noise, rng.random(size)
+
+
+def log_loss(x: np.ndarray, best: float, effect: float, null: str, noise, uniform) -> np.ndarray:
+    """The model's log loss at log10 rates x (inf: diverged)."""
+    value = math.log(2.0) * ((np.asarray(x) - best) / 0.5) ** 2 + math.log(effect) + noise
+    if null == "divergent":
+        diverges = uniform < 1.0 / (1.0 + np.exp(-(np.asarray(x) - best - 0.5) / 0.1))
+        value = np.where(diverges, np.inf, value)
+    return value
+
+
+def scrambled_points(count: int, seed: int) -> np.ndarray:
+    """The points of the shared design: scipy's scrambled Halton sequence, a scramble per study."""
+    from scipy.stats import qmc
+
+    return qmc.Halton(d=1, scramble=True, seed=seed).random(count)[:, 0]
+
+
+def one_study(rng: np.random.Generator, cell: Cell) -> dict[str, list[str]]:
+    """Each rule's verdicts (one per pair, compare_variants' order) of one simulated study."""
     low, high = (math.log10(v) for v in RANGE)
-    best_rate = rng.uniform(low + (high - low) / 4, high - (high - low) / 4)
-    scale = {"A": 1.0, "B": effect}
-    seed_effect = np.exp(rng.normal(0.0, 1.0, seeds))  # shared by the pair: cancels in the ratio
-    per_study = []
-    for k in range(studies):
+    best = rng.uniform(low + (high - low) / 4, high - (high - low) / 4)
+    names = [f"v{i}" for i in range(cell.variants)]
+    effects = [1.0] * (cell.variants - 1) + [cell.effect]
+    tune_seed = int(rng.integers(2**31))
+    # the shared design: each variant's evaluation noise per seed, drawn once for all studies
+    shared = [run_noise(rng, cell.null, cell.seeds) for _ in names]
+    per_study, pooled = [], {name: {} for name in names}
+    for k in range(cell.studies):
+        if cell.design == "independent":
+            points = halton_points({"learning_rate": RANGE}, cell.trials, tune_seed + k)
+            unit = np.array([(math.log10(p["learning_rate"]) - low) / (high - low) for p in points])
+        else:
+            unit = scrambled_points(cell.trials, tune_seed + k)
+        rates = low + unit * (high - low)
         curves = {}
-        for index, name in enumerate("AB"):
-            points = halton_points(
-                {"lr": RANGE}, trials, 1_000_000 + k + (0 if same_points else index)
+        for index, name in enumerate(names):
+            scores = log_loss(
+                rates, best, effects[index], cell.null, *run_noise(rng, cell.null, cell.trials)
             )
-            rates = np.log10([p["lr"] for p in points])
-            tuned = rates[
-                np.argmin(
-                    [loss_curve(r - best_rate) * np.exp(rng.normal(0.0, noise)) for r in rates]
-                )
-            ]
-            final = (
-                scale[name]
-                * loss_curve(tuned - best_rate)
-                * seed_effect
-                * np.exp(rng.normal(0.0, noise, seeds))
+            tuned = rates[int(np.argmin(scores))] if np.isfinite(scores).any() else rates[0]
+            noise = (
+                shared[index] if cell.design == "shared" else run_noise(rng, cell.null, cell.seeds)
+            )
+            final = np.exp(
+                log_loss(np.full(cell.seeds, tuned), best, effects[index], cell.null, *noise)
             )
             curves[name] = {
-                s: Curve(np.array([BUDGET]), np.array([final[s]]), math.inf) for s in range(seeds)
+                s: Curve(np.array([BUDGET]), np.array([final[s]]), math.inf)
+                for s in range(cell.seeds)
             }
+            pooled[name].update({k * cell.seeds + s: c for s, c in curves[name].items()})
         per_study.append(compare_variants(curves, BUDGET, fractions=(1.0,)))
-    return across_studies(per_study)[0].verdicts[1.0][0]
+    return {
+        "majority": [v.verdicts[1.0][0] for v in across_studies(per_study)],
+        "pooled": [v.verdicts[1.0][0] for v in compare_variants(pooled, BUDGET, fractions=(1.0,))],
+    }
 
 
-def simulate(
-    effect: float = 1.0,
-    trials: int = 16,
-    studies: int = 3,
-    seeds: int = 10,
-    noise: float = 0.3,
-    sims: int = 400,
-    same_points: bool = True,
-    seed: int = 0,
-) -> Counter:
-    """The verdicts of `sims` simulated studies, counted."""
-    rng = np.random.default_rng(seed)
-    return Counter(
-        one_study(rng, effect, trials, studies, seeds, noise, same_points) for _ in range(sims)
-    )
+def simulate(cell: Cell, seed: int = 0) -> dict[str, dict[str, int]]:
+    """Per rule: studies with a false "better" on some pair (family-wise), false "better" verdicts
+    over all pairs (per pair), and, where the last variant is worse, studies that found it worse
+    than the first (power)."""
+    rng = np.random.default_rng([seed, *(ord(c) for c in cell.null + cell.design), cell.trials])
+    counts = {rule: {"family": 0, "pairs": 0, "found": 0} for rule in RULES}
+    pairs = [(i, j) for i in range(cell.variants) for j in range(i + 1, cell.variants)]
+    last = cell.variants - 1
+    for _ in range(cell.sims):
+        verdicts = one_study(rng, cell)
+        for rule in RULES:
+            false = 0
+            for (i, j), verdict in zip(pairs, verdicts[rule]):
+                equal = cell.effect == 1.0 or j != last
+                if verdict in (A_BETTER, B_BETTER) and (equal or verdict == B_BETTER):
+                    false += 1
+                if not equal and i == 0 and verdict == A_BETTER:
+                    counts[rule]["found"] += 1
+            counts[rule]["pairs"] += false
+            counts[rule]["family"] += false > 0
+    return counts
 
 
-def rate(counts: Counter, verdicts: tuple[str, ...]) -> float:
-    return sum(counts[v] for v in verdicts) / sum(counts.values())
+def cells(sims: int) -> list[Cell]:
+    """The table: per null model, false "better" per pair at the claims' 8 x 3 x 10 in both designs;
+    family-wise over three equal rules at `make run`'s 4 x 3 x 10; power at 20% and 2x."""
+    rows = []
+    for null in NULLS:
+        for design in ("shared", "independent"):
+            rows.append(Cell(null, design, 2, 8, 3, 10, 1.0, sims))
+            rows.append(Cell(null, design, 3, 4, 3, 10, 1.0, sims))
+        for effect in (1.2, 2.0):
+            rows.append(Cell(null, "independent", 2, 8, 3, 10, effect, sims))
+    return rows
+
+
+FIELDS = [*Cell.__dataclass_fields__, "rule", "family", "pairs", "found"]
+
+
+def write_cells(path: Path, sims: int) -> None:
+    """Every cell not yet in the CSV at path, appended row by row (a stopped run resumes)."""
+    done = set()
+    if path.exists():
+        with open(path) as file:
+            done = {
+                (
+                    r["null"],
+                    r["design"],
+                    int(r["variants"]),
+                    int(r["trials"]),
+                    int(r["studies"]),
+                    float(r["effect"]),
+                )
+                for r in csv.DictReader(file)
+            }
+    path.parent.mkdir(parents=True, exist_ok=True)
+    for cell in cells(sims):
+        if cell.key in done:
+            continue
+        counts = simulate(cell)
+        new = not path.exists()
+        with open(path, "a", newline="") as file:
+            writer = csv.DictWriter(file, FIELDS)
+            if new:
+                writer.writeheader()
+            for rule in RULES:
+                writer.writerow({**asdict(cell), "rule": rule, **counts[rule]})
+        print(cell, counts, flush=True)
+
+
+def rate_text(count: int, total: int) -> str:
+    """count / total as a percentage with its 95% Wilson interval."""
+    from scipy.stats import binomtest
+
+    ci = binomtest(count, total).proportion_ci(method="wilson")
+    return f"{100 * count / total:.2f}% [{100 * ci.low:.1f}, {100 * ci.high:.1f}]"
+
+
+def table(path: Path) -> str:
+    """The markdown table of docs/protocol.md from the CSV at path."""
+    with open(path) as file:
+        rows = list(csv.DictReader(file))
+    lines = [
+        "| noise | design | rule | false better per pair, 8 x 3 x 10 | family-wise, 3 equal rules "
+        "at 4 x 3 x 10 | found at 1.2x | found at 2x |",
+        "|---|---|---|---|---|---|---|",
+    ]
+    for null in NULLS:
+        for design in ("shared", "independent"):
+            for rule in RULES:
+                mine = [
+                    r for r in rows if (r["null"], r["design"], r["rule"]) == (null, design, rule)
+                ]
+                if not mine:
+                    continue
+
+                def of(variants, effect, what):
+                    row = next(
+                        (
+                            r
+                            for r in mine
+                            if int(r["variants"]) == variants and float(r["effect"]) == effect
+                        ),
+                        None,
+                    )
+                    if row is None:
+                        return "-"
+                    sims = int(row["sims"])
+                    total = sims * (variants * (variants - 1) // 2) if what == "pairs" else sims
+                    return rate_text(int(row[what]), total)
+
+                lines.append(
+                    f"| {null} | {design} | {rule} | {of(2, 1.0, 'pairs')} | "
+                    f"{of(3, 1.0, 'family')} | {of(2, 1.2, 'found')} | {of(2, 2.0, 'found')} |"
+                )
+    return "\n".join(lines)
 
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--sims", type=int, default=400)
+    parser.add_argument("--sims", type=int, default=1600)
+    parser.add_argument("--out", type=Path, default=Path("docs/evidence/tuning_power.csv"))
+    parser.add_argument("--table", type=Path, help="print the table of a finished CSV")
     args = parser.parse_args()
-    print("| trials | studies | points | twins called better | true 2x effect found |")
-    print("|---|---|---|---|---|")
-    for trials in (2, 4, 8, 16):
-        for studies, same in ((1, False), (1, True), (3, True)):
-            twins = simulate(1.0, trials, studies, sims=args.sims, same_points=same)
-            found = simulate(2.0, trials, studies, sims=args.sims, same_points=same)
-            print(
-                f"| {trials} | {studies} | {'common' if same else 'per variant'} | "
-                f"{100 * rate(twins, (A_BETTER, B_BETTER)):.1f}% | "
-                f"{100 * rate(found, (A_BETTER,)):.1f}% |",
-                flush=True,
-            )
+    if args.table:
+        print(table(args.table))
+        return
+    write_cells(args.out, args.sims)
+    print(table(args.out))
 
 
 if __name__ == "__main__":

@@ -1,6 +1,7 @@
 """Phase 2 of a study: each variant at each tuning study's best settings on compare.seeds paired
-seeds, the same seeds for every study (trained together in one vectorised step when the budget is
-in iterations; one job per seed, variants interleaved, for time budgets)."""
+seeds, each study on its own block of seeds (StudySettings.study_seeds), so that the studies'
+evaluations are independent (trained together in one vectorised step when the budget is in
+iterations; one job per seed, variants interleaved, for time budgets)."""
 
 from __future__ import annotations
 
@@ -30,8 +31,7 @@ def evaluation_jobs(
     where init_from starts each seed from its own network, e.g.
     init_from='start/seed=${seed}/results.h5'); for time budgets one job per seed,
     variants and studies interleaved (A, B, C of each study for the first seed, then the next), so
-    that a drift in the machine's load does not line up with a variant."""
-    seeds = settings.evaluation_seeds
+    that a drift in the machine's load does not line up with a variant or a study."""
     jobs = {}
 
     def spec(study: int, variant: Variant, seed: int, count: int) -> str:
@@ -49,6 +49,7 @@ def evaluation_jobs(
 
     if axis == "iteration":
         for study in range(len(best)):
+            seeds = settings.study_seeds(study)
             for index, variant in enumerate(variants):
                 # init_from starts one network per job
                 if variant.config.get("init_from") and len(seeds) > 1:
@@ -57,8 +58,9 @@ def evaluation_jobs(
                 else:
                     jobs[evaluation_job(study, index)] = spec(study, variant, seeds[0], len(seeds))
     else:
-        for seed in seeds:
+        for turn in range(settings.seeds):
             for study in range(len(best)):
+                seed = settings.study_seeds(study)[turn]
                 for index, variant in enumerate(variants):
                     jobs[evaluation_job(study, index, seed)] = spec(study, variant, seed, 1)
     return jobs
@@ -97,13 +99,15 @@ def evaluation(
                         raise UserError(
                             f"variant {variant.name} is refused: {run.attrs.get('reason')}"
                         )
-                    why = _not_asked_for(run, best[study][variant.name], plan.settings)
+                    why = _not_asked_for(
+                        run, best[study][variant.name], plan.settings.study_seeds(study)
+                    )
                     if why is not None:
                         problems.append(f"{name}: {why}")
                         continue
                     curves[study][variant.name][run.attrs["seed"]] = run_curve(run, axis)
                     statuses[study][variant.name][run.attrs["seed"]] = run
-            missing = set(plan.settings.evaluation_seeds) - set(curves[study][variant.name])
+            missing = set(plan.settings.study_seeds(study)) - set(curves[study][variant.name])
             if missing and not any(p.startswith(whole) for p in problems):
                 problems.append(f"{whole}: no results for seed {min(missing)}")
     if problems:
@@ -115,16 +119,16 @@ def evaluation(
     return curves, statuses
 
 
-def _not_asked_for(run: Run, tuned: dict, settings: StudySettings) -> str | None:
-    """Why an evaluation run is not one the study asked for (its seed, its tuned values, run to its
-    end), or None."""
+def _not_asked_for(run: Run, tuned: dict, seeds: list[int]) -> str | None:
+    """Why an evaluation run is not one its tuning study asked for (one of the study's seeds, its
+    tuned values, run to its end), or None."""
     status = run.attrs.get("status")
     if status not in ("completed", "diverged"):
         reason = run.attrs.get("reason")
         return f"{status}" + (f" ({reason})" if reason else "")
     seed = run.attrs.get("seed")
-    if not isinstance(seed, int) or seed not in settings.evaluation_seeds:
-        return f"seed {seed!r} is not an evaluation seed"
+    if not isinstance(seed, int) or seed not in seeds:
+        return f"seed {seed!r} is not one of the study's evaluation seeds {seeds[0]}..{seeds[-1]}"
     optim = run.config.get("optim", {}) if isinstance(run.config, dict) else {}
     for key, value in tuned.items():
         stored = optim

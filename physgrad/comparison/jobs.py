@@ -29,6 +29,10 @@ if TYPE_CHECKING:
 # tuning studies (a finished study given more trials tunes on from where it stopped: the Halton
 # points of n trials begin with those of fewer; given more studies, it adds them)
 NOT_THE_STUDY = ("compare.dir", "compare.trials", "compare.studies", "hydra")
+# how a study draws its trial points and seeds; a folder of another protocol is another study.
+# 2: each tuning study its own evaluation seeds and randomly shifted trial points (1, unrecorded:
+# the studies shared their evaluation seeds and scrambled the points within their cells)
+PROTOCOL = 2
 
 
 # --- the study folder
@@ -45,6 +49,7 @@ def same_study(record: dict | None) -> tuple[list | None, object] | None:
         if isinstance(overrides, list)
         else None,
         record.get("config_dir"),
+        record.get("protocol", 1),
     )
 
 
@@ -53,6 +58,7 @@ def default_folder(overrides: list[str], config_dir: str | None, task: str) -> P
         [
             sorted(o for o in overrides if not o.startswith(NOT_THE_STUDY)),
             os.path.abspath(config_dir) if config_dir else None,
+            PROTOCOL,  # a study of another protocol gets another folder
         ]
     )
     return Path("outputs") / "compare" / f"{task}-{hashlib.sha1(text.encode()).hexdigest()[:8]}"
@@ -64,6 +70,7 @@ def record_study(folder: Path, overrides: list[str], config_dir: str | None) -> 
     record = {
         "overrides": [o for o in overrides if not o.startswith(("compare.dir", "hydra"))],
         "config_dir": os.path.abspath(config_dir) if config_dir else None,
+        "protocol": PROTOCOL,
     }
     stored = folder / "study.json"
     if stored.exists():
@@ -71,7 +78,14 @@ def record_study(folder: Path, overrides: list[str], config_dir: str | None) -> 
             before = json.loads(stored.read_text())
         except (OSError, ValueError):
             before = None
-        if same_study(before) != same_study(record):
+        stored_study, this_study = same_study(before), same_study(record)
+        if stored_study and stored_study[:2] == this_study[:2] and stored_study != this_study:
+            raise UserError(
+                f"{folder} holds this study run by an earlier physgrad, whose tuning studies "
+                "shared their evaluation seeds: give another compare.dir (or move the folder "
+                "away) to run it with independent studies"
+            )
+        if stored_study != this_study:
             raise UserError(
                 f"{folder} holds another study "
                 f"({' '.join((before or {}).get('overrides', ['?']))}): give another compare.dir"

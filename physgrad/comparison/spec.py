@@ -23,11 +23,16 @@ SETTINGS = {  # compare.<key>: default, meaning
     ),
     "studies": (
         3,
-        "repeated tuning studies, each with its own tuning seed (tune_seed + k) and trial points; "
-        "a verdict must hold in every one (docs/protocol.md)",
+        "independent tuning studies, each with its own tuning seed (tune_seed + k), trial points "
+        "and evaluation seeds; a verdict must hold in a majority of them with none against "
+        "(docs/protocol.md)",
     ),
-    "seeds": (10, "paired evaluation seeds"),
-    "seed": (0, "the first evaluation seed (seed .. seed + seeds - 1)"),
+    "seeds": (10, "paired evaluation seeds per tuning study"),
+    "seed": (
+        0,
+        "the first evaluation seed (study k evaluates on seed + k * seeds .. seed + (k + 1) * "
+        "seeds - 1)",
+    ),
     "tune_seed": (
         1_000_000,
         "the seed of the first study's tuning trials (data, network, batches; study k: "
@@ -79,9 +84,16 @@ class StudySettings:
             raise KeyError(key)
         return getattr(self, key)
 
+    def study_seeds(self, study: int) -> list[int]:
+        """The paired evaluation seeds of tuning study k: a block of its own, so that the studies'
+        evaluations are independent draws (three studies of 10 seeds are 30 distinct seeds)."""
+        first = self.seed + study * self.seeds
+        return list(range(first, first + self.seeds))
+
     @property
     def evaluation_seeds(self) -> list[int]:
-        return list(range(self.seed, self.seed + self.seeds))
+        """Every study's evaluation seeds, study 0's first."""
+        return list(range(self.seed, self.seed + self.study_count * self.seeds))
 
     @property
     def study_count(self) -> int:
@@ -276,11 +288,19 @@ def study_settings(given: dict) -> StudySettings:
     if not isinstance(settings.tune, bool):
         raise UserError(f"compare.tune={settings.tune!r}: use true or false")
     last_tuning = settings.tune_seed + settings.studies - 1
-    if settings.tune_seed < settings.seed + settings.seeds and settings.seed <= last_tuning:
+    last_evaluation = settings.evaluation_seeds[-1]
+    if settings.tune_seed <= last_evaluation and settings.seed <= last_tuning:
         raise UserError(
             f"the tuning seeds {settings.tune_seed}..{last_tuning} (compare.tune_seed, one per "
-            f"study) overlap the evaluation seeds {settings.seed}.."
-            f"{settings.seed + settings.seeds - 1}: tuning and evaluation seeds must differ"
+            f"study) overlap the evaluation seeds {settings.seed}..{last_evaluation} "
+            f"(compare.seeds={settings.seeds} per study): tuning and evaluation seeds must differ"
+        )
+    from physgrad.refusals import SEED_LIMIT
+
+    if max(last_evaluation, last_tuning) >= SEED_LIMIT:
+        raise UserError(
+            f"the study's seeds reach {max(last_evaluation, last_tuning)}: seeds must stay below "
+            f"{SEED_LIMIT} (2^32); lower compare.seed or compare.tune_seed"
         )
     return settings
 

@@ -201,9 +201,7 @@ def verdict_lines(
         f"{', '.join(v.name for v in variants)}",
         "",
         f"Budget: {budget_text} per run. {_tuning_text(settings)}{_batching_text(variants)} "
-        "Evaluation: seeds "
-        f"{settings.seed}..{settings.seed + settings.seeds - 1}, paired (same data and initial "
-        "network), "
+        f"Evaluation: {_seeds_text(settings)}, paired (same data and initial network), "
         f"verdicts on the test loss. Rule: docs/protocol.md (margin {settings.margin:g}, alpha "
         f"{settings.alpha:g}, Holm over {len(verdicts)} "
         f"comparison{'s' if len(verdicts) > 1 else ''}"
@@ -236,6 +234,16 @@ def verdict_lines(
     return lines + unanimity_lines(settings.seeds, settings.alpha, len(verdicts))
 
 
+def _seeds_text(settings: StudySettings) -> str:
+    """The evaluation seeds: one block, or each tuning study's own."""
+    blocks = [settings.study_seeds(k) for k in range(settings.study_count)]
+    if len(blocks) == 1:
+        return f"seeds {blocks[0][0]}..{blocks[0][-1]}"
+    return (
+        "each tuning study on its own seeds (" + ", ".join(f"{b[0]}..{b[-1]}" for b in blocks) + ")"
+    )
+
+
 def _tuning_text(settings: StudySettings) -> str:
     if not settings.tune:
         return "Not tuned: every variant at its configured settings."
@@ -247,9 +255,9 @@ def _tuning_text(settings: StudySettings) -> str:
     last = settings.tune_seed + settings.study_count - 1
     return (
         f"Tuning: {settings.study_count} independent tuning studies of {settings.trials} trials "
-        f"per variant (seeds {settings.tune_seed}..{last}, each study its own trial points, the "
-        "same for every variant), scored by the validation loss at the budget; each study's best "
-        "is evaluated."
+        f"per variant (seeds {settings.tune_seed}..{last}, each study its own randomly shifted "
+        "trial points, the same for every variant), scored by the validation loss at the budget; "
+        "each study's best is evaluated on the study's own seeds."
     )
 
 

@@ -1,8 +1,8 @@
 """Phase 1 of a study: compare.studies tuning studies, each of compare.trials trials per variant on
-its own tuning seed, at the study's budget, over the variant's search space (log-uniform; scrambled
-Halton points, the same for every variant of a study and another scramble per study, as AlgoPerf's
-repeated studies; an Optuna study per variant and tuning study in tuning.journal), each trial scored
-by its VALIDATION loss at the budget."""
+its own tuning seed, at the study's budget, over the variant's search space (log-uniform; Halton
+points shifted by a random vector of the study's own, the same for every variant of a study, as
+AlgoPerf's independent repeated studies; an Optuna study per variant and tuning study in
+tuning.journal), each trial scored by its VALIDATION loss at the budget."""
 
 from __future__ import annotations
 
@@ -10,6 +10,8 @@ import math
 from collections.abc import Callable
 from pathlib import Path
 from typing import TYPE_CHECKING
+
+import numpy as np
 
 from physgrad.comparison.jobs import Launcher, cadence, job_runs, job_yaml
 from physgrad.comparison.spec import StudyPlan, StudySettings, Variant, study_prefix, variant_index
@@ -20,22 +22,52 @@ if TYPE_CHECKING:
     from optuna.storages import JournalStorage
 
 
-def halton_points(space: dict, count: int, seed: int) -> list[dict]:
-    """count scrambled Halton points mapped log-uniformly onto the space (one dimension per key,
-    sorted)."""
+def is_rate_key(key: str) -> bool:
+    """learning_rate or learning_rate.init_value (spec.learning_rate_key): the key every variant
+    tunes, whatever its rule family."""
+    return key.split(".")[0] == "learning_rate"
+
+
+def point_dimensions(spaces: list[dict]) -> list[str]:
+    """The coordinates of a study's trial points: the learning rate first (whichever key holds it),
+    then every other search key of any variant, sorted. A variant's key keeps its coordinate
+    whatever keys the others have, so a search key cannot move another key's points."""
+    others = sorted({key for space in spaces for key in space if not is_rate_key(key)})
+    return ["learning_rate", *others]
+
+
+def unit_points(count: int, dimensions: int, seed: int) -> np.ndarray:
+    """The first `count` points of the Halton sequence in [0, 1)^dimensions, shifted modulo 1 by a
+    uniform random vector (a Cranley-Patterson rotation): coordinate d's shift drawn from
+    (seed, d) alone, so it does not depend on how many coordinates there are. Shifted, the points
+    keep their spacing (n points of n + m begin with those of n) and every point is uniform on
+    [0, 1): two seeds give two independent draws of the whole set, as repeated tuning studies
+    must (a scramble moves 2^k points only within their 2^-k cells)."""
     from scipy.stats import qmc
 
-    keys = sorted(space)
-    unit = qmc.Halton(d=len(keys), scramble=True, seed=seed).random(count)
+    base = qmc.Halton(d=dimensions, scramble=False).random(count)
+    shift = np.array([np.random.default_rng([seed, d]).random() for d in range(dimensions)])
+    return np.mod(base + shift, 1.0)
+
+
+def halton_points(
+    space: dict, count: int, seed: int, dimensions: list[str] | None = None
+) -> list[dict]:
+    """count shifted Halton points (unit_points) mapped log-uniformly onto the space. dimensions:
+    the study's coordinates (point_dimensions of every variant's space; default: this space's), so
+    that every variant of a study is tried at the same points of its own ranges."""
+    dimensions = dimensions or point_dimensions([space])
+    column = {key: dimensions.index("learning_rate" if is_rate_key(key) else key) for key in space}
+    unit = unit_points(count, len(dimensions), seed)
     return [
         {
             key: float(
                 math.exp(
                     math.log(space[key][0])
-                    + u * (math.log(space[key][1]) - math.log(space[key][0]))
+                    + row[column[key]] * (math.log(space[key][1]) - math.log(space[key][0]))
                 )
             )
-            for key, u in zip(keys, row)
+            for key in sorted(space)
         }
         for row in unit
     ]
@@ -170,11 +202,11 @@ def _open_studies(
     reread = set_aside_stale(folder / "tuning.journal", say)
     storage = journal_storage(folder / "tuning.journal")
     studies, pending = {}, {}
+    dimensions = point_dimensions([variant.space for variant in variants])
     for study_index in range(settings.study_count):
-        # the same scrambled points for every variant of one study (one seed per study): a
-        # variant's position or name never changes where it is tried, so two names for one rule
-        # are tuned alike; each study has its own scramble, so the studies sample the tuning's
-        # variance
+        # the same points for every variant of one study (one seed per study): a variant's
+        # position or name never changes where it is tried, so two names for one rule are tuned
+        # alike; each study shifts the points anew, so the studies sample the tuning's variance
         seed = settings.tune_seed + study_index
         for index, variant in enumerate(variants):
             study = optuna.create_study(
@@ -186,7 +218,7 @@ def _open_studies(
             if "readout" not in study.user_attrs:
                 study.set_user_attr("readout", READOUT_VERSION)
             studies[study_index, variant.name] = study
-            points = halton_points(variant.space, settings.trials, seed)
+            points = halton_points(variant.space, settings.trials, seed, dimensions)
             for point in points[len(study.trials) :]:
                 study.enqueue_trial(point)
             while any(t.state == TrialState.WAITING for t in study.get_trials(deepcopy=False)):

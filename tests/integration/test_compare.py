@@ -62,31 +62,26 @@ def test_a_variant_the_scene_refuses_stops_the_study_before_anything_trains(tmp_
     assert not (tmp_path / "tune").exists()
 
 
-def test_halton_points_cover_the_log_range_and_repeat():
-    points = halton_points({"learning_rate": (1e-5, 1e-1), "tau": (1e-8, 1e-4)}, 16, 7)
-    assert points == halton_points({"learning_rate": (1e-5, 1e-1), "tau": (1e-8, 1e-4)}, 16, 7)
-    logs = np.log10([p["learning_rate"] for p in points])
-    # every decade is tried
-    assert logs.min() >= -5 and logs.max() <= -1 and len(set(np.floor(logs))) == 4
-    assert all(1e-8 <= p["tau"] <= 1e-4 for p in points)
-
-
 def test_equal_time_evaluations_interleave_the_variants_and_equal_iterations_train_seeds_together():
     settings, axes, common, _ = split_overrides(
         ["task=toy", "optim=adam,gd", "trainer.time_budget=5"]
     )
     s = study_settings({**settings, "seeds": 3})
     variants = build_variants(axes, common, s, [])
-    # two tuning studies: each study's own tuned rate, the same seeds
+    # two tuning studies: each study's own tuned rate and its own seeds (0..2 and 3..5)
     best = [{v.name: {"learning_rate": rate} for v in variants} for rate in (0.01, 0.02)]
     timed = evaluation_jobs(variants, best, s, common, {"task", "optim"}, "wall_time", 5.0)
     assert list(timed) == [
-        f"eval_{study}v{v}_s{seed}" for seed in range(3) for study in ("", "st1_") for v in (0, 1)
+        f"eval_{study}v{v}_s{seed + offset}"
+        for seed in range(3)
+        for study, offset in (("", 0), ("st1_", 3))
+        for v in (0, 1)
     ]
-    assert "learning_rate: 0.02" in timed["eval_st1_v0_s2"] and "seed: 2" in timed["eval_st1_v0_s2"]
+    assert "learning_rate: 0.02" in timed["eval_st1_v0_s5"] and "seed: 5" in timed["eval_st1_v0_s5"]
     counted = evaluation_jobs(variants, best, s, common, {"task", "optim"}, "iteration", 300.0)
     assert list(counted) == ["eval_v0", "eval_v1", "eval_st1_v0", "eval_st1_v1"]
     assert "seeds: 3" in counted["eval_v0"] and "seeds: 3" in counted["eval_st1_v1"]
+    assert "seed: 0" in counted["eval_v1"] and "seed: 3" in counted["eval_st1_v1"]
     assert "learning_rate: 0.01" in counted["eval_v1"] and "eval_every: 15" in counted["eval_v1"]
     assert "learning_rate: 0.02" in counted["eval_st1_v1"]
 
@@ -183,11 +178,11 @@ def test_the_python_call_returns_the_tables(tmp_path):
         physgrad.read_run(p).attrs["seed"] for p in (study.folder / "tune").rglob("results.h5")
     }
     assert tuned == {1_000_000, 1_000_001}
-    # each study's best evaluated on the same six seeds
+    # each study's best evaluated on six seeds of its own, paired between the variants
     assert len(study.runs) == 24 and set(study.runs.study) == {0, 1}
-    assert all(
-        sorted(g) == list(range(6)) for _, g in study.runs.groupby(["study", "variant"]).seed
-    )
+    seeds = study.runs.groupby(["study", "variant"]).seed.apply(sorted)
+    assert seeds[0, "adam"] == seeds[0, "gd"] == list(range(6))
+    assert seeds[1, "adam"] == seeds[1, "gd"] == list(range(6, 12))
     # the verdicts over both studies first, then each study's own
     assert list(study.comparisons.study) == ["all"] * 3 + [0] * 3 + [1] * 3
     assert len(study.verdicts) == 1 and len(study.verdicts[0].studies) == 2
@@ -596,7 +591,7 @@ def test_only_the_runs_an_evaluation_asked_for_make_a_verdict():
     from physgrad.comparison.evaluation import _not_asked_for
     from physgrad.results import Run
 
-    settings = study_settings({"seeds": 6})
+    settings = study_settings({"seeds": 6}).study_seeds(0)
     tuned = {"learning_rate": 0.00165}
 
     def run(status="completed", seed=2, rate=0.00165, reason=None):
@@ -607,6 +602,10 @@ def test_only_the_runs_an_evaluation_asked_for_make_a_verdict():
     assert _not_asked_for(run("diverged"), tuned, settings) is None
     assert _not_asked_for(run("failed", reason="boom"), tuned, settings) == "failed (boom)"
     assert _not_asked_for(run("running"), tuned, settings) == "running"
-    assert "not an evaluation seed" in _not_asked_for(run(seed=1_000_000), tuned, settings)
+    assert "not one of the study's evaluation seeds 0..5" in _not_asked_for(
+        run(seed=1_000_000), tuned, settings
+    )
+    # another study's seed (study 1 evaluates on 6..11)
+    assert "not one of the study's" in _not_asked_for(run(seed=6), tuned, settings)
     assert "not the tuned 0.00165" in _not_asked_for(run(rate=1.65e-5), tuned, settings)
     assert _not_asked_for(run(rate=1.65e-5), {}, settings) is None  # untuned: as configured
