@@ -1247,11 +1247,12 @@ class Cell:
 def map_cell(root: Path, study: Study) -> Cell | None:
     """One cell: the time each variant's seeds take to reach the cell's target, as per-seed ratios
     HIG / Adam with the verdict rule's median and interval (a seed that never reaches it counts as
-    infinite, as a divergence does; a pair where neither does is a tie). The target is the higher of
+    infinite, as a divergence does; a pair where neither does is left out and counted, as a pair
+    where both diverged). The target is the higher of
     the two variants' median test loss at the budget (readout.highest_median): what the slower
     variant typically gets to, which the faster one reaches in most seeds. compare's target (the
     lower median) is reached by only about half the better variant's seeds, so with 6 seeds most
-    pairs are ties of two misses and no cell can be decided."""
+    pairs are two misses and no cell can be decided."""
     runs = read_study(root / study.name)
     if runs is None or not {"hig", "adam"} <= set(runs.paths):
         return None

@@ -26,9 +26,13 @@ Two designs:
                  noise at a seed drawn once, whatever the tuned rate) and points scrambled per study
                  (scipy's scrambled Halton sequence)
 
-Two rules over the studies, on the same simulated data:
-    majority  physgrad.verdict.across_studies: the verdict of more than half of the studies (each
-              decided by compare_variants with Holm over its comparisons), none against
+Three rules over the studies, on the same simulated data:
+    majority  physgrad.verdict.across_studies with need = more than half: the verdict of more than
+              half of the studies (each decided by compare_variants with Holm over its
+              comparisons), none against
+    consistent the majority, and every study's median ratio on the verdict's side (a study
+              undecided the other way goes against it)
+    unanimous every study reaches the verdict
     pooled    one compare_variants over every study's pairs together (30 pairs at 3 x 10)
 
     python -m experiments.tuning_power [--sims 1600] [--out docs/evidence/tuning_power.csv]
@@ -48,12 +52,12 @@ import numpy as np
 from physgrad.comparison.tuning import halton_points
 from physgrad.optim.capabilities import ADAPTIVE
 from physgrad.readout import Curve
-from physgrad.verdict import A_BETTER, B_BETTER, across_studies, compare_variants
+from physgrad.verdict import A_BETTER, B_BETTER, across_studies, compare_variants, majority
 
 RANGE = ADAPTIVE.search_range
 BUDGET = 1.0
 NULLS = ("gaussian", "bimodal", "heavy", "divergent")
-RULES = ("majority", "pooled")
+RULES = ("majority", "consistent", "unanimous", "pooled")
 
 
 @dataclass(frozen=True)
@@ -138,7 +142,18 @@ def one_study(rng: np.random.Generator, cell: Cell) -> dict[str, list[str]]:
             pooled[name].update({k * cell.seeds + s: c for s, c in curves[name].items()})
         per_study.append(compare_variants(curves, BUDGET, fractions=(1.0,)))
     return {
-        "majority": [v.verdicts[1.0][0] for v in across_studies(per_study)],
+        "majority": [
+            v.verdicts[1.0][0]
+            for v in across_studies(per_study, need=majority(cell.studies), same_side=False)
+        ],
+        "consistent": [
+            v.verdicts[1.0][0]
+            for v in across_studies(per_study, need=majority(cell.studies), same_side=True)
+        ],
+        "unanimous": [
+            v.verdicts[1.0][0]
+            for v in across_studies(per_study, need=cell.studies, same_side=False)
+        ],
         "pooled": [v.verdicts[1.0][0] for v in compare_variants(pooled, BUDGET, fractions=(1.0,))],
     }
 
@@ -167,15 +182,18 @@ def simulate(cell: Cell, seed: int = 0) -> dict[str, dict[str, int]]:
 
 
 def cells(sims: int) -> list[Cell]:
-    """The table: per null model, false "better" per pair at the claims' 8 x 3 x 10 in both designs;
-    family-wise over three equal rules at `make run`'s 4 x 3 x 10; power at 20% and 2x."""
+    """The table: per null model, false "better" per pair at the claims' 8 x 3 x 10 in both designs
+    and power at 20% and 2x; then family-wise over three equal rules at `make run`'s 4 x 3 x 10."""
     rows = []
     for null in NULLS:
         for design in ("shared", "independent"):
             rows.append(Cell(null, design, 2, 8, 3, 10, 1.0, sims))
-            rows.append(Cell(null, design, 3, 4, 3, 10, 1.0, sims))
         for effect in (1.2, 2.0):
-            rows.append(Cell(null, "independent", 2, 8, 3, 10, effect, sims))
+            rows.append(Cell(null, "independent", 2, 8, 3, 10, effect, sims // 2))
+    # three variants cost three times two: half the simulated studies
+    for null in NULLS:
+        for design in ("shared", "independent"):
+            rows.append(Cell(null, design, 3, 4, 3, 10, 1.0, sims // 2))
     return rows
 
 

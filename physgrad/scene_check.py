@@ -4,17 +4,18 @@ package).
 
 Every check runs in float64 on the scene as configured (a few samples of its training data and its
 initial network):
-  builds          the scene builds and its loss and data pass the runner's checks;
-  finite          the physical output, the loss and the held-out evaluation are finite at
-  initialisation; deterministic   the same seed gives the same data, network, batch and loss;
-  rollout         (temporal scenes) the lax.scan rollout equals a plain Python loop of the same step
-  and policy; gradient <mode> the gradient of each backprop mode that applies (R; M and S for a
-  closed loop) equals the
-                  plain loop's (the mode's stopped inputs there are the forward states as constants)
-                  and central finite differences of that loop along random directions;
-  jacobian        (where Gauss-Newton / HIG apply) J v and J^T u of the Jacobian pass against
-  jax.jvp and
-                  jax.vjp of the batch output, and its gradient J^T g against jax.grad.
+
+- builds: the scene builds and its loss and data pass the runner's checks;
+- finite: the physical output, the loss and the held-out evaluation are finite at initialisation,
+  and the losses are not negative (physgrad compare decides by ratios of losses);
+- deterministic: the same seed gives the same data, network, batch and loss;
+- rollout (temporal scenes): the lax.scan rollout equals a plain Python loop of the same step and
+  policy;
+- gradient <mode>: the gradient of each backprop mode that applies (R; M and S for a closed loop)
+  equals the plain loop's (the mode's stopped inputs there are the forward states as constants)
+  and central finite differences of that loop along random directions;
+- jacobian (where Gauss-Newton / HIG apply): J v and J^T u of the Jacobian pass against jax.jvp
+  and jax.vjp of the batch output, and its gradient J^T g against jax.grad.
 """
 
 from __future__ import annotations
@@ -228,14 +229,24 @@ def _finite_check(
         for what, value in (("output", y), ("loss", loss), *evaluation.items())
         if not bool(jnp.all(jnp.isfinite(value)))
     ]
-    return Check(
-        "finite",
-        not bad,
-        f"not finite at initialisation: {', '.join(bad)}"
-        if bad
-        else f"output {tuple(y.shape)}, loss {float(loss):.6g}, held-out loss "
-        f"{float(evaluation['loss']):.6g}",
-    )
+    negative = [
+        f"{what} {float(value):.6g}"
+        for what, value in (("loss", loss), ("held-out loss", evaluation["loss"]))
+        if not bad and float(value) < 0
+    ]
+    if bad:
+        found = f"not finite at initialisation: {', '.join(bad)}"
+    elif negative:
+        found = (
+            f"negative at initialisation: {', '.join(negative)}; physgrad compare decides by "
+            "ratios of losses, so give the scene a loss of at least 0 (subtract its lower bound)"
+        )
+    else:
+        found = (
+            f"output {tuple(y.shape)}, loss {float(loss):.6g}, held-out loss "
+            f"{float(evaluation['loss']):.6g}"
+        )
+    return Check("finite", not bad and not negative, found)
 
 
 def _deterministic_check(

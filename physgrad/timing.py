@@ -6,7 +6,7 @@ from __future__ import annotations
 
 import math
 import time
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -86,6 +86,44 @@ MIN_SECONDS = 3.0  # ... and this many seconds of steps in all ...
 MAX_SECONDS = 60.0  # ... but no more than this (slow steps: fewer rounds)
 
 
+def program_fingerprint(lowered_step: object, name: str) -> str:
+    """A digest of a training step's program as lowered (jax.stages.Lowered.as_text, before XLA
+    compiles it: a compiled step read from JAX's compilation cache prints otherwise than one
+    compiled anew): two variants with one digest run the same program and get one step cost; a
+    step without its text is its own program (its name)."""
+    import hashlib
+
+    try:
+        text = lowered_step.as_text()
+    except Exception:  # noqa: BLE001 - a callable that is not an AOT-compiled jax program
+        text = None
+    if not isinstance(text, str) or not text:
+        return f"variant {name}"
+    return hashlib.sha256(text.encode()).hexdigest()[:16]
+
+
+def cost_interval(samples: Sequence[float], quantile: float, seed: int = 0) -> tuple[float, float]:
+    """How uncertain a step cost (the `quantile` of per-round samples) is: the widest of the
+    percentile bootstrap 95% interval over rounds (2,000 resamples) and the costs of the first and
+    second half of the rounds alone (a drift in the machine's load during the calibration)."""
+    import numpy as np
+
+    samples = np.asarray(samples, float)
+    if samples.size < 4:
+        return float(samples.min()), float(samples.max())
+    rng = np.random.default_rng(seed)
+    resampled = np.quantile(
+        samples[rng.integers(0, samples.size, (2000, samples.size))], quantile, axis=1
+    )
+    low, high = np.quantile(resampled, [0.025, 0.975])
+    half = samples.size // 2
+    halves = [
+        float(np.quantile(samples[:half], quantile)),
+        float(np.quantile(samples[half:], quantile)),
+    ]
+    return float(min(low, *halves)), float(max(high, *halves))
+
+
 def calibrate(
     configs: dict,
     seed: int,
@@ -93,18 +131,23 @@ def calibrate(
     min_seconds: float = MIN_SECONDS,
     max_seconds: float = MAX_SECONDS,
 ) -> dict:
-    """{name: step cost in seconds} for every composed config (a variant each; refused ones raise
-    UserError), from their compiled training steps (as `physgrad run` builds them, one seed) timed
-    in turn, one step each per round, after one untimed step each; plus the machine and the samples'
-    spread. Each step advances its own state, so a rule whose state changes its cost (damping, line
-    searches) is timed along its trajectory."""
+    """{name: step cost in seconds, with its interval} for every composed config (a variant each;
+    refused ones raise UserError), from their compiled training steps (as `physgrad run` builds
+    them, one seed) timed in turn, one burst each per round, after one untimed step each; plus the
+    machine and the samples' spread. Variants whose compiled steps are one program (the same
+    program_fingerprint: a copy of a rule under another name) are timed once and get one cost, so
+    the calibration cannot split them. Each step advances its own state, so a rule whose state
+    changes its cost (damping, line searches) is timed along its trajectory."""
     import numpy as np
 
     from physgrad.machine import load_average, machine_attributes
 
-    steps = {}
+    programs: dict[str, str] = {}  # name -> fingerprint
+    steps: dict[str, Callable[[], None]] = {}  # fingerprint -> one step of its first variant
     for name, cfg in configs.items():
-        steps[name] = compiled_step(cfg, [seed])[-1]
+        *_, compiled, _, one_step = compiled_step(cfg, [seed])
+        programs[name] = program_fingerprint(getattr(compiled, "lowered_step", None), name)
+        steps.setdefault(programs[name], one_step)
     load_start = load_average()
     probe = interleaved_times(
         list(steps.values()), 3, 0.0, warmup=True, max_seconds=max_seconds / 4
@@ -120,15 +163,20 @@ def calibrate(
 
     bursts = [burst(step, length) for step, length in zip(steps.values(), lengths)]
     times = interleaved_times(bursts, rounds, min_seconds, warmup=False, max_seconds=max_seconds)
-    costs = {}
-    for name, samples, length in zip(steps, times, lengths):
+    measured = {}
+    for program, samples, length in zip(steps, times, lengths):
         samples = np.asarray(samples) / length
-        costs[name] = {
+        low, high = cost_interval(samples, CALIBRATION_QUANTILE)
+        measured[program] = {
             "step_seconds": float(np.quantile(samples, CALIBRATION_QUANTILE)),
+            "low_seconds": low,
+            "high_seconds": high,
             "median_seconds": float(np.median(samples)),
             "rounds": int(samples.size),
             "burst_steps": length,
+            "program": program,
         }
+    costs = {name: dict(measured[programs[name]]) for name in configs}
     return {
         "quantile": CALIBRATION_QUANTILE,
         "costs": costs,

@@ -129,6 +129,9 @@ class CompiledTraining:
     log_names: list
     # the held-out loss compiled for the validation sets (the loss only, no metrics)
     validate: Any = None
+    # the step as lowered before compiling: its text is the program (a compiled step read from
+    # JAX's compilation cache prints otherwise than one compiled anew)
+    lowered_step: Any = None
 
 
 def compile_training(
@@ -149,11 +152,10 @@ def compile_training(
         opt_state = set_member_values(opt_state, rule.member_values)
     log_names: list[str] = []
     one_step = packed_logs(make_step(flat_scene, rule, batch_size), log_names)
-    step = (
-        jax.jit(over_seeds(one_step, count, (0, 0, None, 0, 0)))
-        .lower(params, opt_state, np.int32(0), seeds.train_keys, seeds.train_sets)
-        .compile()
+    lowered_step = jax.jit(over_seeds(one_step, count, (0, 0, None, 0, 0))).lower(
+        params, opt_state, np.int32(0), seeds.train_keys, seeds.train_sets
     )
+    step = lowered_step.compile()
     evaluating = jax.jit(over_seeds(flat_scene.evaluate, count, (0, 0))).lower(
         params, seeds.test_sets
     )
@@ -179,4 +181,4 @@ def compile_training(
                 .lower(params, seeds.validation_sets)
                 .compile()
             )
-    return CompiledTraining(step, evaluate, params, opt_state, log_names, validate)
+    return CompiledTraining(step, evaluate, params, opt_state, log_names, validate, lowered_step)

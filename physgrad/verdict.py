@@ -46,18 +46,24 @@ FRACTIONS = (0.25, 0.5, 1.0)
 A_BETTER, B_BETTER, EQUIVALENT, UNDECIDED = "A better", "B better", "equivalent", "undecided"
 
 
+# a loss of exactly 0 (an exact fit) counts as the smallest normal float64: it beats every positive
+# loss by a finite ratio, which reads as a ratio (1e-30 against 0: 2.2e-278), not as a divergence
+LOSS_FLOOR = float(np.finfo(np.float64).tiny)
+
+
 def log_ratio(a: float, b: float) -> float:
-    """log(a / b) for two losses at a budget (inf: diverged; NaN: missing): NaN if either is
-    missing; 0 if both diverged or both are 0; +-LOG_CAP if one side diverged or is 0."""
-    if math.isnan(a) or math.isnan(b):
+    """log(a / b) for two losses at a budget (inf: diverged; NaN: missing or negative): NaN if
+    either is missing or below 0 (a signed loss has no ratio); 0 if both diverged; +-LOG_CAP if one
+    side diverged; a loss of 0 counts as LOSS_FLOOR."""
+    if math.isnan(a) or math.isnan(b) or a < 0 or b < 0:
         return math.nan
-    if math.isinf(a) and math.isinf(b) or (a == 0 and b == 0):
+    if math.isinf(a) and math.isinf(b):
         return 0.0
-    if math.isinf(a) or b == 0:
+    if math.isinf(a):
         return LOG_CAP
-    if math.isinf(b) or a == 0:
+    if math.isinf(b):
         return -LOG_CAP
-    return float(np.clip(math.log(a / b), -LOG_CAP, LOG_CAP))
+    return float(np.clip(math.log(max(a, LOSS_FLOOR) / max(b, LOSS_FLOOR)), -LOG_CAP, LOG_CAP))
 
 
 def snap(log_value: float, log_ratios: np.ndarray) -> float:
@@ -163,11 +169,13 @@ class Paired:
     diverged_b: int
     missing: int  # pairs left out (a run without a loss at this budget)
     both_diverged: int = 0  # pairs left out because both runs diverged
+    negative: int = 0  # pairs left out because a loss is below 0 (no ratio)
 
     @property
     def seeds(self) -> int:
-        """Every seed of the comparison: pairs, missing ones and those where both diverged."""
-        return self.pairs + self.missing + self.both_diverged
+        """Every seed of the comparison: pairs, missing ones, those where both diverged and those
+        with a negative loss."""
+        return self.pairs + self.missing + self.both_diverged + self.negative
 
     @property
     def pairs(self) -> int:
@@ -190,6 +198,7 @@ def paired(a: list[float], b: list[float], margin: float = MARGIN, seed: int = 0
     """Paired statistics of the losses a[i], b[i] of seed i at one budget (inf: diverged, NaN:
     missing)."""
     a, b = np.asarray(a, float), np.asarray(b, float)
+    below = (a < 0) | (b < 0)
     both = np.isinf(a) & np.isinf(b)
     r_all = np.array([math.nan if gone else log_ratio(x, y) for x, y, gone in zip(a, b, both)])
     r = r_all[~np.isnan(r_all)]
@@ -207,8 +216,9 @@ def paired(a: list[float], b: list[float], margin: float = MARGIN, seed: int = 0
         else 1.0,
         diverged_a=int(np.sum(np.isinf(a))),
         diverged_b=int(np.sum(np.isinf(b))),
-        missing=int(np.sum(np.isnan(r_all) & ~both)),
+        missing=int(np.sum(np.isnan(r_all) & ~both & ~below)),
         both_diverged=int(np.sum(both)),
+        negative=int(np.sum(below)),
     )
 
 
@@ -252,28 +262,48 @@ def decide(
     alpha: float = ALPHA,
     comparisons: int = 1,
 ) -> tuple[str, str]:
-    """The verdict and why, from the paired statistics and the Holm-corrected p-values."""
+    """The verdict and why, from the paired statistics and the Holm-corrected p-values. Equivalence
+    also needs as many divergences on each side: a variant that diverged on more seeds than the
+    other does not train alike, however close the rest."""
     delta = math.log(margin)
-    needed = seeds_needed(alpha, comparisons)
-    if p.pairs < needed:
-        both = f"; both diverged on {p.both_diverged} of {p.seeds} seeds" if p.both_diverged else ""
+    if p.negative:
         return UNDECIDED, (
-            f"{p.pairs} paired seeds cannot reach p < {alpha:g} over {comparisons} comparisons "
-            f"(at least {needed} needed){both}"
+            f"a loss below 0 on {p.negative} of {p.seeds} seeds: losses are compared by their "
+            "ratios, so give the scene a loss of at least 0"
         )
+    if p.pairs < MIN_PAIRS:
+        return UNDECIDED, _too_few(p, alpha, comparisons)
     if p.high < -delta and p_difference < alpha:
         return A_BETTER, f"interval below 1/{margin:g}, p = {p_difference:.2g}"
     if p.low > delta and p_difference < alpha:
         return B_BETTER, f"interval above {margin:g}, p = {p_difference:.2g}"
-    if p_equivalent < alpha:
+    if p_equivalent < alpha and p.diverged_a == p.diverged_b:
         return EQUIVALENT, f"within {100 * (margin - 1):.0f}%, p = {p_equivalent:.2g}"
+    if p_equivalent < alpha:
+        return UNDECIDED, (
+            f"within {100 * (margin - 1):.0f}% where both trained (p = {p_equivalent:.2g}), but "
+            f"A diverged on {p.diverged_a} and B on {p.diverged_b} of {p.seeds} seeds"
+        )
     if p_difference < alpha:
         return (
             UNDECIDED,
             f"different (p = {p_difference:.2g}), but not by {100 * (margin - 1):.0f}% with "
             "confidence",
         )
+    if p.pairs < seeds_needed(alpha, comparisons):
+        return UNDECIDED, _too_few(p, alpha, comparisons)
     return UNDECIDED, f"p = {p_difference:.2g} (difference), {p_equivalent:.2g} (equivalence)"
+
+
+def _too_few(p: Paired, alpha: float, comparisons: int) -> str:
+    """Why a comparison of few pairs is undecided: how many it would take at Holm's strictest
+    step."""
+    needed = seeds_needed(alpha, comparisons)
+    both = f"; both diverged on {p.both_diverged} of {p.seeds} seeds" if p.both_diverged else ""
+    return (
+        f"{p.pairs} paired seeds cannot reach p < {alpha:g} over {comparisons} comparisons "
+        f"(at least {needed} needed){both}"
+    )
 
 
 @dataclass
@@ -329,10 +359,12 @@ def compare_variants(
     margin: float = MARGIN,
     alpha: float = ALPHA,
     fractions: Sequence[float] = FRACTIONS,
+    cost_spread: dict[str, tuple[float, float]] | None = None,
 ) -> list[PairVerdict]:
     """Every pair (A, B) of variants (default: all pairs, in the given order) decided at each
     fraction of the budget; Holm's correction runs over the pairs at each fraction. curves: variant
-    -> seed -> Curve."""
+    -> seed -> Curve. cost_spread (calibrated-time budgets): each variant's step-cost interval as
+    factors of its cost; a "better" is then checked against the clock (clock_check)."""
     names = list(curves)
     pairs = (
         pairs
@@ -354,7 +386,61 @@ def compare_variants(
             result.verdicts[fraction] = decide(
                 result.at[fraction], pd, pe, margin, alpha, len(results)
             )
+            if cost_spread:
+                result.verdicts[fraction] = clock_check(
+                    result, fraction, curves, cost_spread, margin, alpha, len(results)
+                )
     return results
+
+
+UNDECIDED_BY_THE_CLOCK = "undecided by the clock"
+
+
+def clock_check(
+    result: PairVerdict,
+    fraction: float,
+    curves: dict[str, dict[int, Curve]],
+    cost_spread: dict[str, tuple[float, float]],
+    margin: float,
+    alpha: float,
+    comparisons: int,
+) -> tuple[str, str]:
+    """A "better" at a calibrated time budget x, decided again with the winner's step cost at the
+    top of its interval and the loser's at the bottom: the winner then trains for a share rho =
+    (loser's low / cost) / (winner's high / cost) of the loser's time, so its losses are read at
+    rho x (Holm replaced by Bonferroni over the comparisons, the stricter). Where that is not the
+    same verdict the direction rests on a step-cost difference the calibration could not resolve:
+    undecided, and why says so (two copies of one rule measured apart on a busy machine)."""
+    verdict, why = result.verdicts[fraction]
+    if verdict not in (A_BETTER, B_BETTER):
+        return verdict, why
+    winner, loser = (result.a, result.b) if verdict == A_BETTER else (result.b, result.a)
+    rho = cost_spread[loser][0] / cost_spread[winner][1]
+    if rho >= 1.0:
+        return verdict, why
+    x = result.budget * fraction
+    seeds = sorted(set(curves[result.a]) | set(curves[result.b]))
+    at = {winner: rho * x, loser: x}
+    shifted = paired(
+        losses_at(curves[result.a], seeds, at[result.a]),
+        losses_at(curves[result.b], seeds, at[result.b]),
+        margin,
+    )
+    again, _ = decide(
+        shifted,
+        min(1.0, comparisons * shifted.p_difference),
+        min(1.0, comparisons * shifted.p_equivalent),
+        margin,
+        alpha,
+        comparisons,
+    )
+    if again == verdict:
+        return verdict, why
+    return UNDECIDED, (
+        f"{UNDECIDED_BY_THE_CLOCK}: {verdict} ({why}), but {again} with {winner}'s step cost at "
+        f"the top of its calibrated interval and {loser}'s at the bottom ({winner} trains "
+        f"{100 * (1 - rho):.0f}% less)"
+    )
 
 
 def majority(studies: int) -> int:
@@ -362,7 +448,9 @@ def majority(studies: int) -> int:
     return studies // 2 + 1
 
 
-def across_studies(per_study: Sequence[Sequence[PairVerdict]]) -> list[PairVerdict]:
+def across_studies(
+    per_study: Sequence[Sequence[PairVerdict]], need: int | None = None, same_side: bool = True
+) -> list[PairVerdict]:
     """Every pair decided over repeated tuning studies (per_study[k]: study k's compare_variants,
     the same pairs in the same order). A verdict holds at a fraction of the budget where more than
     half of the studies reached it there and no study reached another (A better against B better,
@@ -376,7 +464,7 @@ def across_studies(per_study: Sequence[Sequence[PairVerdict]]) -> list[PairVerdi
     high), descriptive, as a study's pairs share one tuning."""
     if len(per_study) == 1:
         return list(per_study[0])
-    need = majority(len(per_study))
+    need = need or majority(len(per_study))
     combined = []
     for pair in zip(*per_study):
         first = pair[0]
@@ -400,22 +488,39 @@ def across_studies(per_study: Sequence[Sequence[PairVerdict]]) -> list[PairVerdi
             )
             result.p_difference[fraction] = sorted(v.p_difference[fraction] for v in pair)[need - 1]
             result.p_equivalent[fraction] = sorted(v.p_equivalent[fraction] for v in pair)[need - 1]
-            result.verdicts[fraction] = over_studies([v.verdicts[fraction][0] for v in pair])
+            result.verdicts[fraction] = over_studies(
+                [v.verdicts[fraction][0] for v in pair],
+                need=need,
+                medians=[p.median for p in at] if same_side else (),
+            )
         combined.append(result)
     return combined
 
 
 def over_studies(
-    found: Sequence[str], undecided: str = UNDECIDED, labels: Sequence[str] = ()
+    found: Sequence[str],
+    undecided: str = UNDECIDED,
+    labels: Sequence[str] = (),
+    need: int | None = None,
+    medians: Sequence[float] = (),
 ) -> tuple[str, str]:
     """One verdict from each repeated tuning study's (found[k]) by across_studies' rule: the
-    verdict more than half of the studies reached when no study reached another; `undecided`
+    verdict more than half (need) of the studies reached when no study reached another and, given
+    each study's median log ratio A/B (medians[k]), a "better" whose every study's median lies on
+    its side (a study undecided with its median the other way goes against it); `undecided`
     otherwise, with why naming each study's verdict (or its label, labels[k])."""
-    need = majority(len(found))
+    need = need or majority(len(found))
     decided = set(found) - {undecided}
     listed = ", ".join(labels or found)
     if len(decided) == 1 and found.count(next(iter(decided))) >= need:
         verdict = next(iter(decided))
+        side = {A_BETTER: -1.0, B_BETTER: 1.0}.get(verdict)
+        against = [k for k, m in enumerate(medians) if side and not m * side > 0]
+        if against:
+            return undecided, (
+                f"{found.count(verdict)} of {len(found)} tuning studies: {listed}; but study "
+                f"{against[0]}'s median ratio is not on that side"
+            )
         return verdict, f"{found.count(verdict)} of {len(found)} tuning studies: {listed}"
     if len(decided) > 1:
         return undecided, f"the tuning studies disagree: {listed}"
@@ -424,6 +529,82 @@ def over_studies(
         f"{len(found) - found.count(undecided)} of {len(found)} tuning studies decided, "
         f"{need} needed: {listed}",
     )
+
+
+POWER = 0.8  # the chance of finding an effect that "detectable" promises
+
+
+def spread(p: Paired) -> float:
+    """The spread of a comparison's per-seed log ratios: 1.4826 x their median absolute deviation
+    (the standard deviation where they are normal, robust to a few wild seeds), over the pairs
+    where neither side diverged; NaN with fewer than 3 such pairs."""
+    finite = np.array([r for r in p.log_ratios if not math.isnan(r) and abs(r) < LOG_CAP])
+    if finite.size < 3:
+        return math.nan
+    return float(1.4826 * np.median(np.abs(finite - np.median(finite))))
+
+
+def study_power_needed(studies: int, need: int, power: float = POWER) -> float:
+    """The power each of `studies` independent tuning studies must have for `need` of them to reach
+    a verdict with probability `power` (the binomial tail, solved by bisection)."""
+    from scipy.stats import binom
+
+    low, high = 0.0, 1.0
+    for _ in range(60):
+        middle = (low + high) / 2
+        if binom.sf(need - 1, studies, middle) < power:
+            low = middle
+        else:
+            high = middle
+    return high
+
+
+def detectable_ratio(
+    sd: float,
+    seeds: int,
+    comparisons: int = 1,
+    studies: int = 1,
+    need: int | None = None,
+    margin: float = MARGIN,
+    alpha: float = ALPHA,
+    power: float = POWER,
+) -> float:
+    """The smallest loss ratio (above 1) a study finds with probability `power`, for log ratios
+    of spread sd on `seeds` paired seeds per study, `comparisons` comparisons (Holm's strictest
+    step, alpha / comparisons, two-sided) and `need` of `studies` tuning studies agreeing. A normal
+    approximation of both halves of "better": the signed-rank test (asymptotic efficiency 3 / pi
+    of the t test: sd x sqrt(pi / 3) / sqrt(n)) and the bootstrap interval of the median beyond
+    the margin (the median's standard error, sd x sqrt(pi / 2) / sqrt(n)); the larger of the two.
+    Infinite where the seeds are too few for any verdict (seeds_needed), NaN without a spread. The
+    tuning's own spread between studies is not in it: the simulated table of docs/protocol.md is
+    what the whole procedure finds."""
+    from scipy.stats import norm
+
+    if math.isnan(sd):
+        return math.nan
+    if seeds < seeds_needed(alpha, comparisons):
+        return math.inf
+    need = need or majority(studies)
+    z_power = norm.ppf(study_power_needed(studies, need, power))
+    root = math.sqrt(seeds)
+    test = (norm.ppf(1 - alpha / (2 * comparisons)) + z_power) * sd * math.sqrt(math.pi / 3) / root
+    interval = (
+        math.log(margin)
+        + (norm.ppf(1 - (1 - CONFIDENCE) / 2) + z_power) * sd * math.sqrt(math.pi / 2) / root
+    )
+    return math.exp(max(test, interval))
+
+
+def seeds_for_ratio(ratio: float, sd: float, comparisons: int = 1, studies: int = 1, **rule) -> int:
+    """The fewest paired seeds per study with which detectable_ratio reaches `ratio` (at most
+    10,000; 0 where a ratio within the margin can never be "better")."""
+    margin = rule.get("margin", MARGIN)
+    if ratio <= margin:
+        return 0
+    for seeds in range(1, 10_001):
+        if detectable_ratio(sd, seeds, comparisons, studies, **rule) <= ratio:
+            return seeds
+    return 0
 
 
 def divergence_test(diverged_a: int, n_a: int, diverged_b: int, n_b: int) -> float:

@@ -68,12 +68,36 @@ def read_calibration(path: Path, names: list[str]) -> dict | None:
                 and seconds(stored["costs"][name].get("step_seconds"))
                 and seconds(stored["costs"][name].get("median_seconds"))
                 and isinstance(stored["costs"][name].get("rounds"), int)
+                and _interval_whole(stored["costs"][name], seconds)
                 for name in names
             )
         )
     except (OSError, ValueError):
         return None
     return stored if whole else None
+
+
+def _interval_whole(cost: dict, seconds: object) -> bool:
+    """A cost's interval (low_seconds, high_seconds), where recorded (calibrations written before
+    it was are read without one), holds the cost."""
+    if "low_seconds" not in cost and "high_seconds" not in cost:
+        return True
+    low, high = cost.get("low_seconds"), cost.get("high_seconds")
+    return seconds(low) and seconds(high) and low <= cost["step_seconds"] <= high
+
+
+def cost_spread(calibration: dict, names: list[str]) -> dict[str, tuple[float, float]]:
+    """Each variant's step-cost interval as factors of its cost, (low / cost, high / cost); (1, 1)
+    where the calibration recorded none."""
+    spread = {}
+    for name in names:
+        cost = calibration["costs"][name]
+        step = float(cost["step_seconds"])
+        spread[name] = (
+            float(cost.get("low_seconds", step)) / step,
+            float(cost.get("high_seconds", step)) / step,
+        )
+    return spread
 
 
 def write_calibration(path: Path, calibration: dict) -> None:

@@ -91,8 +91,8 @@ def _calibration_lines(variants: list[Variant], runs: pd.DataFrame, calibration:
         "iterations times its variant's cost, so the machine's load cannot change how far a "
         "variant gets. The measured clock: compare.clock=measured.",
         "",
-        "| variant | calibrated step cost | median in the calibration | rounds | measured p50 "
-        "in the runs | contended runs |",
+        "| variant | calibrated step cost [interval] | median in the calibration | rounds | "
+        "measured p50 in the runs | contended runs |",
         "|---|---|---|---|---|---|",
     ]
     for variant in variants:
@@ -104,11 +104,27 @@ def _calibration_lines(variants: list[Variant], runs: pd.DataFrame, calibration:
             else math.nan
         )
         lines.append(
-            f"| {variant.name} | {fmt(cost['step_seconds'])} s | {fmt(cost['median_seconds'])} s | "
+            f"| {variant.name} | {fmt(cost['step_seconds'])} s{_interval_text(cost)} | "
+            f"{fmt(cost['median_seconds'])} s | "
             f"{cost['rounds']} | {fmt(p50)} s | "
             f"{int(sub['contended'].sum()) if len(sub) else 0} of {len(sub)} |"
         )
-    from physgrad.machine import contention, machine_label
+    shared = _shared_programs(variants, calibration)
+    if shared:
+        lines += [
+            "",
+            "One compiled program, timed once and given one cost: "
+            + "; ".join(", ".join(group) for group in shared)
+            + ".",
+        ]
+    lines += [
+        "",
+        "The interval of a cost is the widest of its bootstrap 95% interval over the rounds and "
+        "the costs of each half of the rounds; a verdict of better that does not hold with the "
+        "winner's cost at the top of its interval and the loser's at the bottom is "
+        '"undecided by the clock".',
+    ]
+    from physgrad.machine import machine_label
 
     measured_on = machine_label(calibration["machine"])
     elsewhere = sorted(set(runs["machine"]) - {measured_on}) if len(runs) else []
@@ -121,13 +137,7 @@ def _calibration_lines(variants: list[Variant], runs: pd.DataFrame, calibration:
             "time their steps took there. Calibrate where the jobs run (the calibration is a job "
             "of the study, sent with the same launcher: delete calibration.json and run again).",
         ]
-    busy = contention(
-        {},
-        0,
-        calibration["load_start"],
-        calibration["load_end"],
-        int(calibration["machine"].get("cpu_count", 1)),
-    )
+    busy = busy_calibration(calibration)
     if busy:
         lines += [
             "",
@@ -136,3 +146,32 @@ def _calibration_lines(variants: list[Variant], runs: pd.DataFrame, calibration:
             "or give one with compare.calibration.",
         ]
     return lines
+
+
+def busy_calibration(calibration: dict) -> str:
+    """Why the calibration's machine was busy (its load average against its cores), or ""."""
+    from physgrad.machine import contention
+
+    return contention(
+        {},
+        0,
+        calibration["load_start"],
+        calibration["load_end"],
+        int(calibration["machine"].get("cpu_count", 1)),
+    )
+
+
+def _interval_text(cost: dict) -> str:
+    if "low_seconds" not in cost:
+        return " [not recorded]"
+    return f" [{fmt(cost['low_seconds'])}, {fmt(cost['high_seconds'])}]"
+
+
+def _shared_programs(variants: list[Variant], calibration: dict) -> list[list[str]]:
+    """Groups of two or more variants whose compiled steps are one program."""
+    groups: dict[str, list[str]] = {}
+    for variant in variants:
+        program = calibration["costs"][variant.name].get("program")
+        if program:
+            groups.setdefault(program, []).append(variant.name)
+    return [names for names in groups.values() if len(names) > 1]

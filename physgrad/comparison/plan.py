@@ -111,6 +111,7 @@ def plan_text(plan: StudyPlan) -> str:
             f"{c.tuning_runs}, {_duration(c.tuning_seconds)} | {c.evaluation_jobs}, "
             f"{_duration(c.evaluation_seconds)} | {_duration(c.seconds)} |"
         )
+    lines += power_lines(plan)
     lines += [
         "",
         f"Total: about {_duration(total)}"
@@ -129,3 +130,39 @@ def _duration(seconds: float) -> str:
     if seconds < 7200:
         return f"{seconds / 60:.0f} min"
     return f"{seconds / 3600:.1f} h"
+
+
+NOISES = (0.1, 0.3, 1.0)  # spreads of the per-seed log loss ratio the plan shows
+
+
+def power_lines(plan: StudyPlan) -> list[str]:
+    """What the design can detect with verdict.POWER, before anything runs: for a few spreads of
+    the per-seed log ratio (the run noise, unknown until the study has run), the smallest
+    detectable ratio at these settings and the seeds per study that 1.5x and 2x would need."""
+    from physgrad.verdict import POWER, detectable_ratio, seeds_for_ratio
+
+    settings = plan.settings
+    count = len(plan.variants)
+    comparisons = count * (count - 1) // 2
+    rule = {"margin": settings.margin, "alpha": settings.alpha}
+    lines = [
+        "",
+        f"Power ({100 * POWER:.0f}%, {comparisons} comparison{'s' if comparisons > 1 else ''}, "
+        f"{settings.study_count} tuning stud{'ies' if settings.study_count > 1 else 'y'}; "
+        'docs/protocol.md, "Power"): the spread of the per-seed log loss ratio is known only '
+        "once the study has run (its verdict table says what it could detect), so here for three:",
+        "",
+        "| spread of log ratio | detectable ratio | seeds per study for 1.5x | for 2x |",
+        "|---|---|---|---|",
+    ]
+    for sd in NOISES:
+        ratio = detectable_ratio(sd, settings.seeds, comparisons, settings.study_count, **rule)
+        needs = [
+            seeds_for_ratio(r, sd, comparisons, settings.study_count, **rule) or "-"
+            for r in (1.5, 2.0)
+        ]
+        lines.append(
+            f"| {sd:g} | {fmt(ratio) + 'x' if ratio < float('inf') else 'none'} | "
+            f"{needs[0]} | {needs[1]} |"
+        )
+    return lines

@@ -9,17 +9,21 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from physgrad.comparison.clock_text import timing_lines
+from physgrad.comparison.calibration import cost_spread
+from physgrad.comparison.clock_text import busy_calibration, timing_lines
 from physgrad.comparison.spec import StudySettings, Variant
 from physgrad.readout import fmt, loss_at, target_loss, time_to_target
 from physgrad.verdict import (
     FRACTIONS,
+    POWER,
     across_studies,
     compare_variants,
+    detectable_ratio,
     divergence_test,
     majority,
     ratio_of,
     seeds_for_one_against,
+    spread,
 )
 
 if TYPE_CHECKING:
@@ -57,8 +61,15 @@ def analyse(
     import pandas as pd
 
     unit = _unit(axis)
+    spread = (
+        cost_spread(calibration, [v.name for v in variants])
+        if axis == "calibrated_time" and calibration
+        else None
+    )
     per_study = [
-        compare_variants(by_variant, budget, margin=settings.margin, alpha=settings.alpha)
+        compare_variants(
+            by_variant, budget, margin=settings.margin, alpha=settings.alpha, cost_spread=spread
+        )
         for by_variant in curves
     ]
     verdicts = across_studies(per_study)
@@ -75,13 +86,13 @@ def analyse(
             for row in run_rows(variants, curves[k], statuses[k], axis, budget, target, k)
         ]
     )
-    comparisons = pd.DataFrame(comparison_rows(verdicts, budget, per_study))
+    comparisons = pd.DataFrame(comparison_rows(verdicts, budget, per_study, settings))
     trials = pd.DataFrame(trials_rows)
     trials.to_csv(folder / "trials.csv", index=False)
     runs.to_csv(folder / "runs.csv", index=False)
     comparisons.to_csv(folder / "comparisons.csv", index=False)
 
-    lines = verdict_lines(variants, runs, verdicts, settings, axis, budget)
+    lines = verdict_lines(variants, runs, verdicts, settings, axis, budget, calibration)
     lines += variant_lines(variants, runs, best, unit, target_variant, target)
     lines += timing_lines(variants, runs, axis, calibration)
     text = "\n".join(lines) + "\n"
@@ -138,16 +149,22 @@ def run_rows(
 
 
 def comparison_rows(
-    verdicts: list[PairVerdict], budget: float, per_study: list[list[PairVerdict]] | None = None
+    verdicts: list[PairVerdict],
+    budget: float,
+    per_study: list[list[PairVerdict]] | None = None,
+    settings: StudySettings | None = None,
 ) -> list[dict]:
     """comparisons.csv: every pair at every fraction of the budget; with repeated tuning studies the
-    verdicts over all studies (study "all") and then each study's own."""
+    verdicts over all studies (study "all") and then each study's own; with the settings, the
+    ratio the design could detect (over all studies: detectable)."""
     per_study = per_study or [verdicts]
     labelled = [(0, verdicts)] if len(per_study) == 1 else [("all", verdicts)]
     if len(per_study) > 1:
         labelled += list(enumerate(per_study))
     rows = []
     for study, v in ((study, v) for study, vs in labelled for v in vs):
+        # the ratio the whole design could detect: on the rows over all studies
+        overall = settings is not None and (study == "all" or len(per_study) == 1)
         for fraction in FRACTIONS:
             p = v.at[fraction]
             rows.append(
@@ -171,6 +188,9 @@ def comparison_rows(
                     "p_divergence_fisher": divergence_test(
                         p.diverged_a, p.seeds, p.diverged_b, p.seeds
                     ),
+                    "detectable_ratio": detectable(v, settings, len(verdicts), fraction)
+                    if overall
+                    else math.nan,
                     "verdict": v.verdicts[fraction][0],
                     "why": v.verdicts[fraction][1],
                 }
@@ -185,8 +205,11 @@ def verdict_lines(
     settings: StudySettings,
     axis: str,
     budget: float,
+    calibration: dict | None = None,
 ) -> list[str]:
-    """compare.md's title, the study's budget and rule, and its verdicts table."""
+    """compare.md's title, the study's budget and rule, and its verdicts table; a verdict that reads
+    a clock the machine's load may have moved (a contended run on the measured clock, a calibration
+    on a busy machine) says so in its cell."""
     budget_text = {
         "wall_time": f"{budget:g} s of training (measured clock)",
         "calibrated_time": f"{budget:g} s of training on the calibrated clock (iterations x the "
@@ -210,10 +233,11 @@ def verdict_lines(
         "## Verdicts",
         "",
         f"| A vs B | verdict at the budget | median A/B [95% interval]"
-        f"{', per tuning study' if settings.study_count > 1 else ''} | A lower in | verdict at "
-        "1/4, 1/2 | stable | trend 1/2 -> 1 | diverged A, B | contended runs A, B |",
-        "|---|---|---|---|---|---|---|---|---|",
+        f"{', per tuning study' if settings.study_count > 1 else ''} | A lower in | detectable "
+        "| verdict at 1/4, 1/2 | stable | trend 1/2 -> 1 | diverged A, B | contended runs A, B |",
+        "|---|---|---|---|---|---|---|---|---|---|",
     ]
+    busy = busy_calibration(calibration) if axis == "calibrated_time" and calibration else ""
     for v in verdicts:
         p = v.at[1.0]
         flag = (
@@ -221,6 +245,8 @@ def verdict_lines(
             if axis == "wall_time" and (contended[v.a] or contended[v.b])
             else ""
         )
+        if busy:
+            flag += f" (clock calibrated on a busy machine: {busy})"
         if v.reversed:
             flag += f" (reversed: {v.verdicts[0.25][0]}, {v.verdicts[0.5][0]} at 1/4, 1/2)"
         lines.append(
@@ -228,10 +254,47 @@ def verdict_lines(
             f"{'; '.join(_ratio_text(s.at[1.0]) for s in v.studies) or _ratio_text(p)} | "
             f"{p.wins_a} of {p.pairs}{f' ({p.missing} missing)' if p.missing else ''}"
             f"{f' ({p.both_diverged} both diverged)' if p.both_diverged else ''} | "
+            f"{_detectable_text(detectable(v, settings, len(verdicts)))} | "
             f"{v.verdicts[0.25][0]}, {v.verdicts[0.5][0]} | {'yes' if v.stable else 'no'} | "
             f"{v.trend} | {p.diverged_a}, {p.diverged_b} | {contended[v.a]}, {contended[v.b]} |"
         )
+    lines += [
+        "",
+        f"Detectable: the smallest loss ratio this design finds with {100 * POWER:.0f}% power, "
+        "from the spread of the pairs' log ratios it measured (their median over the tuning "
+        'studies; docs/protocol.md, "Power"): an undecided verdict with a detectable ratio of 3 '
+        "says little; one of 1.2 says any difference is small.",
+    ]
     return lines + unanimity_lines(settings.seeds, settings.alpha, len(verdicts))
+
+
+def detectable(
+    verdict: PairVerdict, settings: StudySettings, comparisons: int, fraction: float = 1.0
+) -> float:
+    """The smallest ratio a pair's study could detect with POWER (verdict.detectable_ratio), from
+    the median over its tuning studies of the spread of their log ratios at the budget (or the
+    fraction of it)."""
+    studies = verdict.studies or [verdict]
+    spreads = [spread(s.at[fraction]) for s in studies]
+    spreads = [x for x in spreads if not math.isnan(x)]
+    if not spreads:
+        return math.nan
+    return detectable_ratio(
+        float(np.median(spreads)),
+        settings.seeds,
+        comparisons,
+        settings.study_count,
+        margin=settings.margin,
+        alpha=settings.alpha,
+    )
+
+
+def _detectable_text(ratio: float) -> str:
+    if math.isnan(ratio):
+        return "-"
+    if math.isinf(ratio):
+        return "none (too few seeds)"
+    return f"{fmt(ratio)}x"
 
 
 def _seeds_text(settings: StudySettings) -> str:

@@ -347,6 +347,69 @@ def test_two_names_for_one_rule_are_tuned_alike_in_either_order_and_equivalent(t
     )
 
 
+@pytest.fixture
+def busy_machine():
+    """Two processes that spin for the length of a test: the machine's load the calibration and
+    the runs share (injected, not hoped for)."""
+    import subprocess
+    import sys
+
+    spinners = [subprocess.Popen([sys.executable, "-c", "while True: pass"]) for _ in range(2)]
+    yield
+    for spinner in spinners:
+        spinner.kill()
+        spinner.wait()
+
+
+@pytest.mark.long
+@pytest.mark.parametrize(
+    "budget, repeats, studies",
+    # a time budget is calibrated anew in each folder: twice per order, one tuning study each
+    [("trainer.iterations=30", 1, 2), ("trainer.time_budget=0.4", 2, 1)],
+    ids=["iterations", "calibrated-time"],
+)
+def test_twins_are_never_better_under_load_in_either_order(
+    tmp_path, busy_machine, budget, repeats, studies
+):
+    """A copy of adam.yaml under another name against adam, on a machine loaded by two spinning
+    processes, listed in both orders, the time budget calibrated anew each time: the copies are
+    one compiled program, so they get one step cost by construction, train as far, tune alike and
+    are never "better"; their runs are identical."""
+    import json
+
+    from physgrad.configs import CONF_DIR
+    from physgrad.verdict import A_BETTER, B_BETTER
+
+    optim = tmp_path / "conf" / "optim"
+    optim.mkdir(parents=True)
+    (optim / "adam_copy.yaml").write_text(
+        (CONF_DIR / "optim" / "adam.yaml").read_text().replace("name: adam", "name: adam_copy")
+    )
+    common = ["task=toy", budget, "compare.trials=2", f"compare.studies={studies}"]
+    common.append("compare.seeds=6")
+    for k in range(repeats):
+        for order in ("adam,adam_copy", "adam_copy,adam"):
+            folder = tmp_path / f"{order.replace(',', '-')}-{k}"
+            study = physgrad.compare(
+                *common, f"optim={order}", f"compare.dir={folder}", config_dir=optim.parent
+            )
+            verdicts = [v.verdicts[f][0] for v in study.verdicts for f in v.verdicts] + [
+                s.verdicts[f][0] for v in study.verdicts for s in v.studies for f in s.verdicts
+            ]
+            assert A_BETTER not in verdicts and B_BETTER not in verdicts, (order, k)
+            losses = study.runs.pivot(
+                index=["study", "seed"], columns="variant", values="test_loss_at_1"
+            )
+            assert (losses["adam"] == losses["adam_copy"]).all()
+            if "time_budget" in budget:
+                costs = json.loads((folder / "calibration.json").read_text())["costs"]
+                assert costs["adam"] == costs["adam_copy"]
+                iterations = study.runs.pivot(
+                    index=["study", "seed"], columns="variant", values="iterations"
+                )
+                assert (iterations["adam"] == iterations["adam_copy"]).all()
+
+
 def test_a_tuned_value_at_the_edge_of_its_range_is_warned_about():
     """The outer tenth of the log range on either side is the edge (1.6e-05 and 0.08 of
     [1e-05, 0.1]), the middle is not (0.001); a variant evaluated as configured has nothing

@@ -74,7 +74,11 @@ def test_no_median_or_interval_end_is_a_blend_of_a_divergence_and_a_finite_ratio
         for value in (p.median, p.low, p.high):
             assert within(value, ratios), (case, value, ratios)
             shown = ratio_of(value)
-            assert math.isnan(shown) or shown in (0.0, math.inf) or 1e-13 < shown < 1e13
+            # a finite loss against another spans at most 12 decades; a loss of 0 counts as
+            # LOSS_FLOOR (2.2e-308), so a pair with one reaches its ratio, never 0 or inf
+            assert math.isnan(shown) or shown in (0.0, math.inf) or 1e-320 < shown < 1e320
+            if abs(value) == LOG_CAP:
+                assert shown in (0.0, math.inf)
     # the regime map's case: HIG missed the target in 2 of 6 seeds; the interval's upper end had
     # read e^498.8 (3.2e216), the average of a missed seed's LOG_CAP and a finite ratio
     p = paired([0.1] * 3 + [math.inf] * 2 + [0.2], [1.0] * 6)
@@ -113,10 +117,18 @@ def test_the_lowest_and_highest_median_targets():
         assert name == "" and math.isnan(value)
 
 
-def test_log_ratios_of_diverged_and_zero_losses():
+def test_log_ratios_of_diverged_zero_and_negative_losses():
+    """Diverged: +-LOG_CAP (both: 0); a loss of 0 counts as the smallest normal float64, so 0
+    against 1e-30 is a ratio of 2.2e-278 (not 0, which reads as a divergence) and two zeros tie;
+    a negative loss has no ratio (NaN, the pair is left out and counted)."""
+    from physgrad.verdict import LOSS_FLOOR
+
     assert log_ratio(math.inf, math.inf) == 0.0 and log_ratio(0.0, 0.0) == 0.0
     assert log_ratio(math.inf, 1.0) == LOG_CAP and log_ratio(1.0, math.inf) == -LOG_CAP
-    assert log_ratio(0.0, 1.0) == -LOG_CAP and math.isnan(log_ratio(math.nan, 1.0))
+    assert log_ratio(0.0, 1e-30) == pytest.approx(math.log(LOSS_FLOOR / 1e-30))
+    assert 1e-279 < math.exp(log_ratio(0.0, 1e-30)) < 1e-277
+    assert log_ratio(0.0, math.inf) == -LOG_CAP and math.isnan(log_ratio(math.nan, 1.0))
+    assert math.isnan(log_ratio(-0.5, 1.0)) and math.isnan(log_ratio(1.0, -2.0))
     assert log_ratio(2.0, 1.0) == pytest.approx(math.log(2.0))
 
 
@@ -212,32 +224,6 @@ def test_the_trend_rule_under_the_null_calls_growth_rarely_and_finds_a_known_one
     assert found / 200 >= 0.7
 
 
-@pytest.mark.long
-@pytest.mark.parametrize("trials", [2, 4, 8, 16])
-def test_twins_tuned_by_repeated_studies_are_rarely_called_better(trials):
-    """The simulated twin model (experiments/tuning_power.py): two variants with one loss landscape,
-    tuned with independent noise. With common trial points and the default three studies they are
-    called better (either way) in at most 5% of 200 simulated studies; with each variant's own
-    scramble and one study, as physgrad tuned before, in far more (the test can fail)."""
-    from experiments.tuning_power import rate, simulate
-
-    common = simulate(1.0, trials, 3, sims=200)
-    assert rate(common, (A_BETTER, B_BETTER)) <= 0.05
-    if trials == 2:
-        old = simulate(1.0, trials, 1, sims=200, same_points=False)
-        assert rate(old, (A_BETTER, B_BETTER)) >= 0.5
-
-
-@pytest.mark.long
-def test_a_true_2x_effect_is_found_by_the_default_study():
-    """A true 2x effect at run noise 0.3 with the defaults (16 trials, 3 studies, 10 seeds): A
-    better in at least 80% of 200 simulated studies, B better in none."""
-    from experiments.tuning_power import simulate
-
-    found = simulate(2.0, 16, 3, sims=200)
-    assert found[A_BETTER] >= 160 and found[B_BETTER] == 0
-
-
 @pytest.mark.parametrize(
     "found, verdict, why",
     [
@@ -257,3 +243,36 @@ def test_one_verdict_over_tuning_studies_needs_a_majority_and_none_against(found
 
     got, reason = over_studies(found)
     assert got == verdict and why in reason, reason
+
+
+@pytest.mark.parametrize("sd", [0.1, 0.3, 1.0])
+def test_a_difference_of_the_detectable_ratio_is_found_about_four_times_in_five(sd):
+    """verdict.detectable_ratio against simulation: a true ratio at the detectable one, Gaussian
+    log ratios of spread sd on 10 seeds, is called A better in 65-93% of 200 simulated comparisons
+    (the promise is 80%; a normal approximation at 10 seeds); at half its log ratio, in fewer than
+    half. And spread() reads sd back from normal log ratios."""
+    from physgrad.verdict import detectable_ratio, spread
+
+    rng = np.random.default_rng(3)
+    ratio = detectable_ratio(sd, 10)
+
+    def found(log_effect):
+        hits, spreads = 0, []
+        for _ in range(200):
+            r = rng.normal(-log_effect, sd, 10)
+            curves = {
+                "A": {
+                    s: Curve(np.array([1.0]), np.array([math.exp(r[s])]), math.inf) for s in SEEDS
+                },
+                "B": {s: Curve(np.array([1.0]), np.array([1.0]), math.inf) for s in SEEDS},
+            }
+            (result,) = compare_variants(curves, 1.0, fractions=(1.0,))
+            hits += result.verdict == A_BETTER
+            spreads.append(spread(result.at[1.0]))
+        return hits / 200, float(np.median(spreads))
+
+    rate, measured = found(math.log(ratio))
+    assert 0.65 <= rate <= 0.93, (ratio, rate)
+    assert measured == pytest.approx(sd, rel=0.25)
+    assert found(math.log(ratio) / 2)[0] < 0.5
+    assert detectable_ratio(sd, 5) == math.inf  # too few seeds for any verdict

@@ -53,8 +53,8 @@ INNER = {
     "comparison": [
         {"__init__"},
         {"study"},
-        {"summary", "plan", "figure", "calibration", "evaluation"},
-        {"tuning", "clock_text"},
+        {"summary", "plan", "figure", "evaluation"},
+        {"tuning", "clock_text", "calibration"},
         {"jobs"},
         {"spec"},
     ],

@@ -108,3 +108,28 @@ def test_a_folder_of_this_study_under_the_earlier_protocol_is_refused_in_one_lin
     (tmp_path / "new").mkdir()
     record_study(tmp_path / "new", overrides, None)
     assert json.loads((tmp_path / "new" / "study.json").read_text())["protocol"] == PROTOCOL
+
+
+@pytest.mark.parametrize(
+    "loss, held_out, passed, fragment",
+    [
+        (0.5, 0.4, True, "loss 0.5, held-out loss 0.4"),
+        (0.0, 0.0, True, "loss 0"),  # an exact fit is a loss
+        (-0.3, 0.4, False, "negative at initialisation: loss -0.3"),
+        (0.3, -2.0, False, "held-out loss -2"),
+        (float("nan"), -2.0, False, "not finite at initialisation: loss"),
+    ],
+)
+def test_physgrad_check_refuses_a_negative_loss_in_one_line(loss, held_out, passed, fragment):
+    """The scene check's 'finite' row: a signed objective has no loss ratio, so physgrad check
+    refuses it before anything trains, in one line that says what to change."""
+    import types
+
+    import jax.numpy as jnp
+
+    from physgrad.scene_check import _finite_check
+
+    scene = types.SimpleNamespace(evaluate=lambda params, test_set: {"loss": jnp.array(held_out)})
+    seeds = types.SimpleNamespace(test_sets=jnp.zeros((1, 3)))
+    check = _finite_check(scene, seeds, None, jnp.zeros(3), jnp.array(loss))
+    assert check.passed == passed and fragment in check.detail and "\n" not in check.detail

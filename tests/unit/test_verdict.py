@@ -358,3 +358,34 @@ def test_a_verdict_over_tuning_studies_needs_a_majority_and_none_against(kinds, 
 def test_one_tuning_study_is_its_own_verdict():
     (study,) = one_tuning_study("A", 0)
     assert across_studies([[study]]) == [study]
+
+
+def test_a_lead_that_rests_on_an_unresolved_step_cost_is_undecided_by_the_clock():
+    """Two copies of one rule on the calibrated clock, their costs measured 20% apart (0.8 and 1 ms
+    a step): in the same calibrated time A takes 25% more steps and reaches a lower loss in every
+    seed. With cost intervals of +-25% the lead does not hold with A's cost at the top of its
+    interval and B's at the bottom: undecided by the clock, in either order. With intervals of
+    +-1% the costs are resolved, and A's lead, on the clock as measured, stands."""
+    from physgrad.verdict import UNDECIDED_BY_THE_CLOCK
+
+    budget, cost = 1.0, {"A": 0.8e-3, "B": 1.0e-3}
+    rng = np.random.default_rng(2)
+    level = np.exp(rng.normal(0, 0.3, 10))
+    times = np.linspace(0, budget, 21)
+
+    def curves(name):
+        # the loss halves every 200 iterations: iterations = calibrated time / the step's cost
+        return {
+            s: Curve(times, level[s] * 0.5 ** (times / cost[name] / 200), budget) for s in SEEDS
+        }
+
+    wide = {"A": (0.75, 1.25), "B": (0.75, 1.25)}
+    (plain,) = compare_variants({"A": curves("A"), "B": curves("B")}, budget)
+    assert plain.verdict == A_BETTER
+    for order in (("A", "B"), ("B", "A")):
+        (result,) = compare_variants({n: curves(n) for n in order}, budget, cost_spread=wide)
+        assert result.verdict == UNDECIDED, order
+        assert result.verdicts[1.0][1].startswith(UNDECIDED_BY_THE_CLOCK)
+    tight = {"A": (0.99, 1.01), "B": (0.99, 1.01)}
+    (result,) = compare_variants({"A": curves("A"), "B": curves("B")}, budget, cost_spread=tight)
+    assert result.verdict == A_BETTER
