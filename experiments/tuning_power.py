@@ -181,19 +181,25 @@ def simulate(cell: Cell, seed: int = 0) -> dict[str, dict[str, int]]:
     return counts
 
 
+DESIGNS = (("shared", 3), ("independent", 3), ("independent", 4))  # (design, tuning studies)
+
+
 def cells(sims: int) -> list[Cell]:
-    """The table: per null model, false "better" per pair at the claims' 8 x 3 x 10 in both designs
-    and power at 20% and 2x; then family-wise over three equal rules at `make run`'s 4 x 3 x 10."""
+    """The table: per null model, false "better" per pair at 8 trials x 10 seeds and power at 20%
+    and 2x, for the design before independent studies (3 shared) and for 3 and 4 independent
+    studies; then family-wise over three equal rules at `make run`'s 4 trials, before (3 shared
+    studies) and now (4 independent)."""
     rows = []
     for null in NULLS:
-        for design in ("shared", "independent"):
-            rows.append(Cell(null, design, 2, 8, 3, 10, 1.0, sims))
-        for effect in (1.2, 2.0):
-            rows.append(Cell(null, "independent", 2, 8, 3, 10, effect, sims // 2))
-    # three variants cost three times two: half the simulated studies
+        for design, studies in DESIGNS:
+            rows.append(Cell(null, design, 2, 8, studies, 10, 1.0, sims))
+            if design == "independent":
+                for effect in (1.2, 2.0):
+                    rows.append(Cell(null, design, 2, 8, studies, 10, effect, sims // 2))
+    # three variants cost three times two: fewer simulated studies
     for null in NULLS:
-        for design in ("shared", "independent"):
-            rows.append(Cell(null, design, 3, 4, 3, 10, 1.0, sims // 2))
+        for design, studies in (("shared", 3), ("independent", 4)):
+            rows.append(Cell(null, design, 3, 4, studies, 10, 1.0, 3 * sims // 8))
     return rows
 
 
@@ -240,24 +246,28 @@ def rate_text(count: int, total: int) -> str:
 
 
 def table(path: Path) -> str:
-    """The markdown table of docs/protocol.md from the CSV at path."""
+    """The markdown table of docs/protocol.md from the CSV at path: a row per null model, design
+    and rule."""
     with open(path) as file:
         rows = list(csv.DictReader(file))
     lines = [
-        "| noise | design | rule | false better per pair, 8 x 3 x 10 | family-wise, 3 equal rules "
-        "at 4 x 3 x 10 | found at 1.2x | found at 2x |",
+        "| noise | studies | rule | false better per pair | family-wise, 3 equal rules, 4 trials | "
+        "found at 1.2x | found at 2x |",
         "|---|---|---|---|---|---|---|",
     ]
     for null in NULLS:
-        for design in ("shared", "independent"):
+        for design, studies in DESIGNS:
             for rule in RULES:
                 mine = [
-                    r for r in rows if (r["null"], r["design"], r["rule"]) == (null, design, rule)
+                    r
+                    for r in rows
+                    if (r["null"], r["design"], int(r["studies"]), r["rule"])
+                    == (null, design, studies, rule)
                 ]
                 if not mine:
                     continue
 
-                def of(variants, effect, what):
+                def of(variants, effect, what, mine=mine):
                     row = next(
                         (
                             r
@@ -273,7 +283,7 @@ def table(path: Path) -> str:
                     return rate_text(int(row[what]), total)
 
                 lines.append(
-                    f"| {null} | {design} | {rule} | {of(2, 1.0, 'pairs')} | "
+                    f"| {null} | {studies} {design} | {rule} | {of(2, 1.0, 'pairs')} | "
                     f"{of(3, 1.0, 'family')} | {of(2, 1.2, 'found')} | {of(2, 2.0, 'found')} |"
                 )
     return "\n".join(lines)

@@ -9,15 +9,19 @@ x:
   left out and counted;
 - per seed r = log(loss_A / loss_B); a pair where both diverged is left out and counted (it is
   no evidence of a difference nor of equivalence), one diverged is +-LOG_CAP (beyond any finite
-  ratio: it only enters through ranks and the median);
+  ratio: it only enters through ranks and the median); a negative loss leaves its pair out and the
+  verdict undecided (losses are compared by ratios); a loss of 0 counts as LOSS_FLOOR;
 - the median of r with a percentile bootstrap 95% interval (scipy.stats.bootstrap, 10,000 resamples,
   fixed seed); one-sided Wilcoxon signed-rank tests for "A lower" and "B lower" (zeros split), whose
   smaller p, doubled, is the comparison's p of a difference; two one-sided Wilcoxon tests of |r| <
   log(MARGIN) for equivalence; both p-values Holm-corrected over the comparisons of one study;
 - verdict: A better when the interval lies below -log(MARGIN) and the corrected p of a difference is
   below ALPHA; B better when it lies above log(MARGIN) and p < ALPHA; equivalent (within 10%) when
-  the corrected equivalence p is below ALPHA; undecided otherwise (also with fewer than MIN_PAIRS
-  pairs);
+  the corrected equivalence p is below ALPHA and both diverged on as many seeds; undecided
+  otherwise (also with fewer than MIN_PAIRS pairs); at a calibrated time budget a "better" must
+  survive the step costs' intervals (clock_check);
+- over independent tuning studies (across_studies): a majority, none against, every median on the
+  side of a "better"; each verdict states the ratio it could detect (detectable_ratio);
 - decided at x = X/4, X/2 and X (X the budget), and called stable where the verdicts at X/2 and X
   agree; the median ratio's movement from X/2 to X is reported in both directions (the gap widens or
   narrows).
@@ -292,7 +296,15 @@ def decide(
         )
     if p.pairs < seeds_needed(alpha, comparisons):
         return UNDECIDED, _too_few(p, alpha, comparisons)
-    return UNDECIDED, f"p = {p_difference:.2g} (difference), {p_equivalent:.2g} (equivalence)"
+    unequal = (
+        f"; A diverged on {p.diverged_a} and B on {p.diverged_b} of {p.seeds} seeds"
+        if p.diverged_a != p.diverged_b
+        else ""
+    )
+    return (
+        UNDECIDED,
+        f"p = {p_difference:.2g} (difference), {p_equivalent:.2g} (equivalence){unequal}",
+    )
 
 
 def _too_few(p: Paired, alpha: float, comparisons: int) -> str:
@@ -453,11 +465,13 @@ def across_studies(
 ) -> list[PairVerdict]:
     """Every pair decided over repeated tuning studies (per_study[k]: study k's compare_variants,
     the same pairs in the same order). A verdict holds at a fraction of the budget where more than
-    half of the studies reached it there and no study reached another (A better against B better,
-    or either against equivalent); otherwise the pair is undecided there, and why names each
-    study's verdict. Each study tunes anew (its own seed and trial points), so a difference that
-    one tuning draw produces, two names for one rule tuned to different rates, must recur in
-    another draw to count; docs/protocol.md gives the rule's error rates on simulated studies. The
+    half of the studies (need) reached it there, no study reached another (A better against B
+    better, or either against equivalent) and, with same_side, every study's median log ratio lies
+    on the side of a "better"; otherwise the pair is undecided there, and why names each study's
+    verdict. Each study tunes anew and evaluates on its own seeds (its own tuning seed, trial points
+    and evaluation seeds), so a difference that one tuning draw produces, two equally good rules
+    tuned to settings of different quality, must recur in other draws to count;
+    docs/protocol.md gives the rule's error rates and power on simulated studies. The
     corrected p-values are those of the weakest study of the majority (the majority-th smallest).
     at[fraction] pools the pairs of all studies: counts, divergences and the median of the pooled
     log ratios; its interval spans the studies' intervals (from the lowest low to the highest

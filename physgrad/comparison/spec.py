@@ -22,10 +22,10 @@ SETTINGS = {  # compare.<key>: default, meaning
         "tuning trials per variant (more on a finished study tunes on from where it stopped)",
     ),
     "studies": (
-        3,
+        4,
         "independent tuning studies, each with its own tuning seed (tune_seed + k), trial points "
-        "and evaluation seeds; a verdict must hold in a majority of them with none against "
-        "(docs/protocol.md)",
+        "and evaluation seeds; a verdict must hold in more than half of them (3 of 4) with none "
+        "against and every study's median ratio on its side (docs/protocol.md)",
     ),
     "seeds": (10, "paired evaluation seeds per tuning study"),
     "seed": (
@@ -50,7 +50,8 @@ SETTINGS = {  # compare.<key>: default, meaning
     "clock": (
         "calibrated",
         "time budgets: calibrated (iterations x each variant's step cost measured in one "
-        "interleaved calibration, immune to the machine's load) or measured (training seconds)",
+        "interleaved calibration: the load during the runs does not move how far a variant gets; "
+        "calibrate on a quiet machine) or measured (training seconds)",
     ),
     "calibration": (
         None,

@@ -4,23 +4,22 @@ paired seeds.
     physgrad compare [-cd DIR] [--plan] task=<scene> optim=adam,gauss_newton,hig
     [trainer.time_budget=60] [compare.KEY=V]
 
---plan estimates the study's cost from each variant's measured compile time and step cost, and
-trains nothing.
+--plan estimates the study's cost from each variant's measured compile time and step cost, and what
+it can detect, and trains nothing.
 
 Every comma list on the command line is an axis of variants (their product, as in a Hydra multirun);
-every other override is common to all jobs. A study runs in three phases, each a Hydra multirun of
-`physgrad run` (so `hydra/launcher=...` applies) into the study folder, and resumes where it stopped
-when the same command runs again:
-1. tuning: compare.trials trials per variant, on the tuning seed, at the study's budget, over its
-  search space
-   (log-uniform; scrambled Halton points, as AlgoPerf; an Optuna study per variant in
-   tuning.journal); each trial is scored by its VALIDATION loss at the budget;
-2. evaluation: each variant at its best trial's settings on compare.seeds paired seeds (trained
-  together in one
-   vectorised step when the budget is in iterations; one job per seed, variants interleaved, for
-   time budgets);
-3. the verdicts (physgrad.verdict) from the TEST loss: compare.md, trials.csv, runs.csv,
-  comparisons.csv,
+every other override is common to all jobs. A study runs compare.studies independent tuning studies
+in three phases, each a Hydra multirun of `physgrad run` (so `hydra/launcher=...` applies) into the
+study folder, and resumes where it stopped when the same command runs again:
+1. tuning: in each tuning study compare.trials trials per variant, on the study's tuning seed, at
+   the study's budget, over the variant's search space (log-uniform; Halton points shifted by a
+   random vector of the study's own, the same for every variant; an Optuna study per variant and
+   study in tuning.journal); each trial is scored by its VALIDATION loss at the budget;
+2. evaluation: each variant at its best trial's settings on compare.seeds paired seeds of the
+   study's own (trained together in one vectorised step when the budget is in iterations; one job
+   per seed, variants interleaved, for time budgets);
+3. the verdicts (physgrad.verdict) from the TEST loss, each holding where 3 of 4 studies (more
+   than half) reach it with none against: compare.md, trials.csv, runs.csv, comparisons.csv,
    sensitivity.png and the sweep's report (figures of the curves) under report/.
 docs/protocol.md gives the protocol and its reasons.
 """

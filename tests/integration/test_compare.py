@@ -317,7 +317,7 @@ def test_a_finished_study_given_more_trials_tunes_on_from_where_it_stopped(tmp_p
 @pytest.mark.long
 def test_two_names_for_one_rule_are_tuned_alike_in_either_order_and_equivalent(tmp_path):
     """A copy of adam.yaml under another name, listed second and then first: the same trial points
-    and tuned rate in each of the three tuning studies (the default; the points do not depend on a
+    and tuned rate in each of the four tuning studies (the default; the points do not depend on a
     variant's position or name), identical paired runs, and the verdict "equivalent"."""
     from physgrad.configs import CONF_DIR
 
@@ -335,7 +335,7 @@ def test_two_names_for_one_rule_are_tuned_alike_in_either_order_and_equivalent(t
     ]
     for study in studies:
         tried = study.trials.groupby("variant")["learning_rate"].apply(list)
-        assert len(tried["adam"]) == 6  # two trials in each of three tuning studies
+        assert len(tried["adam"]) == 8  # two trials in each of four tuning studies
         assert tried["adam"] == tried["adam_copy"]
         losses = study.runs.pivot(
             index=["study", "seed"], columns="variant", values="test_loss_at_1"

@@ -389,3 +389,60 @@ def test_a_lead_that_rests_on_an_unresolved_step_cost_is_undecided_by_the_clock(
     tight = {"A": (0.99, 1.01), "B": (0.99, 1.01)}
     (result,) = compare_variants({"A": curves("A"), "B": curves("B")}, budget, cost_spread=tight)
     assert result.verdict == A_BETTER
+
+
+def test_few_seeds_are_decided_where_holms_correction_allows_them():
+    """Two comparisons: A against B on 10 seeds (every seed A's: p = 2^-9, first in Holm's order)
+    and A against C on only 6 (p = 2^-5 = 0.031, compared with alpha / 1 at Holm's second step):
+    both A better. A rule that asked every pair for the seeds of Holm's strictest step (7 for two
+    comparisons) had refused the second."""
+    a = flat_curves({s: 0.5 for s in SEEDS})
+    b = flat_curves({s: 1.0 for s in SEEDS})
+    c = flat_curves({s: 1.0 for s in range(6)})
+    results = compare_variants({"A": a, "B": b, "C": c}, 100.0, pairs=[("A", "B"), ("A", "C")])
+    assert [r.at[1.0].pairs for r in results] == [10, 6]
+    assert [r.verdict for r in results] == [A_BETTER, A_BETTER]
+    assert results[1].p_difference[1.0] == pytest.approx(2.0**-5)
+
+
+def test_a_variant_that_diverges_on_more_seeds_is_not_equivalent():
+    """Identical losses on the seeds where both trained, and B diverged on 1 (then 3) of 10: the
+    pairs that trained are alike, but B is not "equivalent" to A; the reason names the counts.
+    Diverging alike on both sides still allows equivalence on the rest."""
+    for diverged in (1, 3):
+        a = flat_curves({s: 0.5 for s in SEEDS})
+        b = flat_curves({s: 0.5 for s in range(diverged, 10)})
+        b.update(diverged_curves(range(diverged)))
+        (result,) = compare_variants({"A": a, "B": b}, 100.0)
+        assert result.verdict == UNDECIDED, diverged
+        assert f"A diverged on 0 and B on {diverged} of 10 seeds" in result.verdicts[1.0][1]
+    alike_a = flat_curves({s: 0.5 for s in range(1, 10)})
+    alike_a.update(diverged_curves([0]))
+    alike_b = flat_curves({s: 0.5 for s in range(2, 10)})
+    alike_b.update(diverged_curves([1]))
+    alike_b.update(flat_curves({0: 0.5}))
+    (result,) = compare_variants({"A": alike_a, "B": alike_b}, 100.0)
+    assert result.at[1.0].diverged_a == result.at[1.0].diverged_b == 1
+
+
+def test_a_negative_loss_leaves_its_pair_out_and_says_why():
+    """A signed objective (a loss below 0 on some seeds) has no loss ratio: no crash after the
+    study trained, the pairs are counted as negative, and the verdict says what to change."""
+    a = flat_curves({s: (-0.5 if s < 3 else 0.5) for s in SEEDS})
+    b = flat_curves({s: 1.0 for s in SEEDS})
+    (result,) = compare_variants({"A": a, "B": b}, 100.0)
+    p = result.at[1.0]
+    assert p.negative == 3 and p.pairs == 7 and p.seeds == 10
+    assert result.verdict == UNDECIDED
+    assert "a loss below 0 on 3 of 10 seeds" in result.verdicts[1.0][1]
+
+
+def test_a_loss_of_zero_against_a_tiny_one_reads_as_a_ratio_not_a_divergence():
+    """Exact fits (0) against 1e-30 on every seed: A better with a finite ratio (about 2e-278),
+    nothing counted as diverged."""
+    a = {s: Curve(np.array([100.0]), np.array([0.0]), 100.0) for s in SEEDS}
+    b = {s: Curve(np.array([100.0]), np.array([1e-30]), 100.0) for s in SEEDS}
+    (result,) = compare_variants({"A": a, "B": b}, 100.0)
+    p = result.at[1.0]
+    assert result.verdict == A_BETTER and p.diverged_a == p.diverged_b == 0
+    assert 0 < p.ratio < 1e-270
