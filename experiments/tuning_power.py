@@ -36,7 +36,8 @@ Three rules over the studies, on the same simulated data:
     pooled    one compare_variants over every study's pairs together (30 pairs at 3 x 10)
 
     python -m experiments.tuning_power [--sims 1600] [--out docs/evidence/tuning_power.csv]
-    python -m experiments.tuning_power --table docs/evidence/tuning_power.csv
+    python -m experiments.tuning_power --table docs/evidence/tuning_power.csv \
+        [--docs docs/protocol.md]
 """
 
 from __future__ import annotations
@@ -182,6 +183,10 @@ def simulate(cell: Cell, seed: int = 0) -> dict[str, dict[str, int]]:
 
 
 DESIGNS = (("shared", 3), ("independent", 3), ("independent", 4))  # (design, tuning studies)
+# what physgrad compare does: compare.studies=4, verdict.across_studies' defaults
+PHYSGRAD = ("independent", 4, "consistent")
+# what it did before independent studies: three studies on shared seeds, the plain majority
+BEFORE = ("shared", 3, "majority")
 
 
 def cells(sims: int) -> list[Cell]:
@@ -193,9 +198,8 @@ def cells(sims: int) -> list[Cell]:
     for null in NULLS:
         for design, studies in DESIGNS:
             rows.append(Cell(null, design, 2, 8, studies, 10, 1.0, sims))
-            if design == "independent":
-                for effect in (1.2, 2.0):
-                    rows.append(Cell(null, design, 2, 8, studies, 10, effect, sims // 2))
+            for effect in (1.2, 2.0):
+                rows.append(Cell(null, design, 2, 8, studies, 10, effect, sims // 2))
     # three variants cost three times two: fewer simulated studies
     for null in NULLS:
         for design, studies in (("shared", 3), ("independent", 4)):
@@ -282,11 +286,24 @@ def table(path: Path) -> str:
                     total = sims * (variants * (variants - 1) // 2) if what == "pairs" else sims
                     return rate_text(int(row[what]), total)
 
+                label = {PHYSGRAD: f"**{rule}: physgrad**", BEFORE: f"{rule}: before"}.get(
+                    (design, studies, rule), rule
+                )
                 lines.append(
-                    f"| {null} | {studies} {design} | {rule} | {of(2, 1.0, 'pairs')} | "
+                    f"| {null} | {studies} {design} | {label} | {of(2, 1.0, 'pairs')} | "
                     f"{of(3, 1.0, 'family')} | {of(2, 1.2, 'found')} | {of(2, 2.0, 'found')} |"
                 )
     return "\n".join(lines)
+
+
+BEGIN, END = "<!-- generated: python -m experiments.tuning_power", "<!-- end of generated table -->"
+
+
+def write_docs(path: Path, text: str) -> None:
+    """The table between the BEGIN line and END of a markdown file, replaced by text."""
+    doc = path.read_text()
+    start = doc.index("\n", doc.index(BEGIN)) + 1
+    path.write_text(doc[:start] + text + "\n" + doc[doc.index(END) :])
 
 
 def main() -> None:
@@ -294,7 +311,11 @@ def main() -> None:
     parser.add_argument("--sims", type=int, default=1600)
     parser.add_argument("--out", type=Path, default=Path("docs/evidence/tuning_power.csv"))
     parser.add_argument("--table", type=Path, help="print the table of a finished CSV")
+    parser.add_argument("--docs", type=Path, help="with --table: write it into this markdown file")
     args = parser.parse_args()
+    if args.table and args.docs:
+        write_docs(args.docs, table(args.table))
+        return
     if args.table:
         print(table(args.table))
         return
