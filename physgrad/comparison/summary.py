@@ -343,8 +343,9 @@ def _studies_rule(settings: StudySettings) -> str:
         return ""
     return (
         f"; a verdict must hold in {majority(settings.study_count)} of the "
-        f"{settings.study_count} tuning studies with none against it; the table gives each "
-        "study's median ratio and interval in turn"
+        f"{settings.study_count} tuning studies with none against it, and a better with every "
+        "study's median ratio on its side; the table gives each study's median ratio and interval "
+        "in turn"
     )
 
 
