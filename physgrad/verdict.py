@@ -29,6 +29,7 @@ x:
 
 from __future__ import annotations
 
+import functools
 import math
 import warnings
 from collections.abc import Sequence
@@ -558,6 +559,7 @@ def spread(p: Paired) -> float:
     return float(1.4826 * np.median(np.abs(finite - np.median(finite))))
 
 
+@functools.lru_cache(maxsize=256)
 def study_power_needed(studies: int, need: int, power: float = POWER) -> float:
     """The power each of `studies` independent tuning studies must have for `need` of them to reach
     a verdict with probability `power` (the binomial tail, solved by bisection)."""
