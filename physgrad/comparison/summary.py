@@ -473,7 +473,7 @@ def trial_rows(folder: Path, variants: list[Variant], studies: int = 1) -> list[
     study."""
     import optuna
 
-    from physgrad.comparison.tuning import journal_storage, optuna_study_name
+    from physgrad.comparison.tuning import journal_storage, optuna_study_name, trial_params
 
     path = folder / "tuning.journal"
     if not path.exists():
@@ -483,14 +483,18 @@ def trial_rows(folder: Path, variants: list[Variant], studies: int = 1) -> list[
     for k, variant in ((k, v) for k in range(studies) for v in variants):
         study = optuna.load_study(study_name=optuna_study_name(variant, k), storage=storage)
         for t in study.trials:
+            # a trial set aside (params that are not the variant's search space) is listed without
+            # them: they are data of unknown origin
+            params = trial_params(t, variant.space)
+            value = t.value if isinstance(t.value, (int, float)) else math.nan
             rows.append(
                 {
                     "variant": variant.name,
                     "study": k,
                     "trial": t.number,
-                    **t.params,
-                    "validation_loss": t.value if t.value is not None else math.nan,
-                    "state": t.state.name,
+                    **(params or {}),
+                    "validation_loss": value,
+                    "state": t.state.name if params is not None else "SET_ASIDE",
                 }
             )
     return rows

@@ -73,6 +73,39 @@ def halton_points(
     ]
 
 
+def trial_params(trial: object, space: dict) -> dict[str, float] | None:
+    """A trial's params as data: exactly the variant's search keys, each a finite number inside its
+    log-uniform range (a relative 1e-9 of slack for round-off); None for anything else. The journal
+    lies in the study folder, which someone else may have written: a param named
+    `learning_rate._target_` or a value `${oc.env:...}` would otherwise become a config node of a
+    job that physgrad instantiates."""
+    params = getattr(trial, "params", None)
+    if not isinstance(params, dict) or set(params) != set(space):
+        return None
+    checked = {}
+    for key, (low, high) in space.items():
+        value = params[key]
+        if (
+            isinstance(value, bool)
+            or not isinstance(value, (int, float))
+            or not math.isfinite(value)
+            or not low * (1 - 1e-9) <= value <= high * (1 + 1e-9)
+        ):
+            return None
+        checked[key] = float(value)
+    return checked
+
+
+def _set_aside_line(variant: Variant, study: int, trial: object) -> str:
+    """The one line that says a trial of the journal was set aside."""
+    shown = repr(getattr(trial, "params", None))[:120]
+    return (
+        f"note: trial {getattr(trial, 'number', '?')} of {variant.name} (tuning study {study}) in "
+        f"tuning.journal is set aside: its params {shown} are not {sorted(variant.space)} inside "
+        "their ranges (a journal changed by hand or by someone else)"
+    )
+
+
 def tuning(plan: StudyPlan, launcher: Launcher) -> list[dict[str, dict]]:
     """Phase 1: trials per variant (equal numbers) in each of the settings' tuning studies, scored
     by validation loss at the budget; returns per study the best settings per variant (its
@@ -135,15 +168,22 @@ def tuning(plan: StudyPlan, launcher: Launcher) -> list[dict[str, dict]]:
         _score_trials(folder, variants, studies, pending, batches, axis, budget)
     for study in range(count):
         for variant in variants:
-            trials = studies[study, variant.name].trials
+            trials = [
+                t
+                for t in studies[study, variant.name].trials
+                if trial_params(t, variant.space) is not None
+            ]
             if any(t.value is None for t in trials):
                 raise UserError(
                     f"tuning of {variant.name} did not finish (see {folder / 'tune.log'}): run the "
                     "same command again to resume"
                 )
-            done = [t for t in trials if math.isfinite(t.value)]
+            done = [
+                t for t in trials if isinstance(t.value, (int, float)) and math.isfinite(t.value)
+            ]
             if done:
-                best[study][variant.name] = dict(min(done, key=lambda t: t.value).params)
+                chosen = min(done, key=lambda t: t.value)
+                best[study][variant.name] = trial_params(chosen, variant.space)
     return best
 
 
@@ -223,10 +263,18 @@ def _open_studies(
                 study.enqueue_trial(point)
             while any(t.state == TrialState.WAITING for t in study.get_trials(deepcopy=False)):
                 trial = study.ask()
-                for key, (low, high) in sorted(variant.space.items()):
-                    trial.suggest_float(key, low, high, log=True)
-            for trial in study.get_trials(deepcopy=False, states=(TrialState.RUNNING,)):
-                pending[study_index, index, trial.number] = trial
+                try:
+                    for key, (low, high) in sorted(variant.space.items()):
+                        trial.suggest_float(key, low, high, log=True)
+                except (ValueError, TypeError, OverflowError):
+                    # a point enqueued in the journal by someone else that is no number of the
+                    # range: failed in the journal, set aside below
+                    study.tell(trial, state=TrialState.FAIL)
+            for trial in study.get_trials(deepcopy=False):
+                if trial_params(trial, variant.space) is None:
+                    say(_set_aside_line(variant, study_index, trial))
+                elif trial.state == TrialState.RUNNING:
+                    pending[study_index, index, trial.number] = trial
     return studies, pending, reread
 
 

@@ -672,3 +672,67 @@ def test_only_the_runs_an_evaluation_asked_for_make_a_verdict():
     assert "not one of the study's" in _not_asked_for(run(seed=6), tuned, settings)
     assert "not the tuned 0.00165" in _not_asked_for(run(rate=1.65e-5), tuned, settings)
     assert _not_asked_for(run(rate=1.65e-5), {}, settings) is None  # untuned: as configured
+
+
+def test_a_crafted_tuning_journal_runs_no_code_and_its_trials_are_set_aside(tmp_path):
+    """A finished study whose tuning.journal someone else extended: a best trial whose params would
+    build a `_target_` that runs a shell command (as a resumed evaluation would have instantiated
+    it), one without the learning rate, one with a rate outside its range, and a point enqueued as
+    an interpolation string. On resume nothing runs, each is set aside with one line, the verdict
+    comes from the study's own trials, and trials.csv lists them without their params."""
+    import optuna
+
+    from physgrad.comparison import run_study
+    from physgrad.comparison.tuning import journal_storage
+
+    marker = tmp_path / "ran"
+    args = [
+        "task=toy",
+        "optim=adam,gd",
+        "trainer.iterations=20",
+        "compare.trials=1",
+        "compare.studies=1",
+        "compare.seeds=6",
+        f"compare.dir={tmp_path / 's'}",
+    ]
+    first = physgrad.compare(*args)
+    storage = journal_storage(tmp_path / "s" / "tuning.journal")
+    adam = optuna.load_study(study_name="adam", storage=storage)
+    text = optuna.distributions.CategoricalDistribution
+    crafted = {
+        "learning_rate._target_": "asyncio.run",
+        "learning_rate.main._target_": "asyncio.create_subprocess_shell",
+        "learning_rate.main.cmd": f"touch {marker}",
+    }
+    adam.add_trial(
+        optuna.trial.create_trial(
+            params=crafted,
+            distributions={key: text([value]) for key, value in crafted.items()},
+            value=-3.0,  # the lowest: without the check it would be the tuned setting
+        )
+    )
+    adam.add_trial(
+        optuna.trial.create_trial(
+            params={"beta": 0.5},
+            distributions={"beta": optuna.distributions.FloatDistribution(0.1, 1.0)},
+            value=-2.0,
+        )
+    )
+    adam.add_trial(
+        optuna.trial.create_trial(
+            params={"learning_rate": 50.0},
+            distributions={"learning_rate": optuna.distributions.FloatDistribution(1.0, 100.0)},
+            value=-1.0,
+        )
+    )
+    adam.enqueue_trial({"learning_rate": "${oc.env:HOME}"})
+    notes = []
+    again = run_study(args, config_dir=None, say=notes.append)
+    assert not marker.exists()
+    set_aside = [n for n in notes if "is set aside" in n]
+    assert len(set_aside) >= 4 and all("\n" not in n for n in set_aside)
+    assert again.runs.test_loss_at_1.tolist() == first.runs.test_loss_at_1.tolist()
+    assert [v.verdict for v in again.verdicts] == [v.verdict for v in first.verdicts]
+    listed = again.trials[again.trials.variant == "adam"]
+    assert (listed.state == "SET_ASIDE").sum() == 4
+    assert not any("_target_" in column for column in again.trials.columns)
