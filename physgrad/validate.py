@@ -12,6 +12,7 @@ import difflib
 import inspect
 import math
 import numbers
+import os
 from collections.abc import Callable, Collection, Sequence
 from typing import Any
 
@@ -115,40 +116,81 @@ def finite_numbers(tree: Any, prefix: str = "") -> None:
         finite_numbers(value, name)
 
 
-# Modules whose functions are never a scene, an update rule, a schedule or a tracker, but run
-# commands, code or I/O as they are called: a `_target_` in them is refused wherever it stands (a
-# config is composed from the package, the user's -cd folder and the command line only; this
-# catches a hostile file that reaches them anyway).
-DENIED_TARGET_MODULES = (
-    "builtins",
-    "os",
-    "posix",
-    "subprocess",
-    "shutil",
-    "sys",
-    "importlib",
-    "runpy",
-    "code",
-    "pty",
-    "socket",
-    "ctypes",
-    "pickle",
-    "marshal",
-    "webbrowser",
-    "multiprocessing",
-    "signal",
-)
+# The `_target_`s physgrad calls are an allow list: a scene, an update rule, a schedule or a
+# tracker is physgrad's own (its scenes, rules and trackers), optax's, or the user's: a module whose
+# file lies outside the Python installation (the working folder, a config folder, an editable
+# install), or one named in PHYSGRAD_TARGET_MODULES (comma-separated top-level names, for a scene
+# package installed into site-packages). Everything else, a system module's function above all, is
+# refused.
+ALLOWED_TARGET_PREFIXES = ("physgrad.tasks.", "physgrad.optim.", "physgrad.trackers.", "optax.")
+TARGET_MODULES_ENV = "PHYSGRAD_TARGET_MODULES"
 
 
-def allowed_target(section: str, target: str) -> None:
-    """physgrad's one policy for every `_target_` it calls (call_target, nested ones included):
-    UserError (one line) for a target in DENIED_TARGET_MODULES or a private name."""
+def _installation_folders() -> list[str]:
+    """The folders of the Python installation: the standard library and site-packages."""
+    import sysconfig
+
+    paths = sysconfig.get_paths()
+    folders = {paths[key] for key in ("stdlib", "platstdlib", "purelib", "platlib") if key in paths}
+    import site
+
+    folders.update(getattr(site, "getsitepackages", lambda: [])())
+    return sorted(os.path.realpath(f) for f in folders)
+
+
+def _users_file(path: object) -> bool:
+    """Whether a module's file lies outside the Python installation (the user's code); physgrad's
+    own modules are not the user's (only its scenes, rules and trackers are targets)."""
+    if not isinstance(path, str) or not os.path.isfile(path):
+        return False  # a built-in or frozen module
+    real = os.path.realpath(path)
+    package = os.path.dirname(os.path.realpath(__file__))
+    if real.startswith(package + os.sep):
+        return False
+    return not any(real.startswith(folder + os.sep) for folder in _installation_folders())
+
+
+def _named_by_user(name: str) -> bool:
+    extra = {m.strip() for m in os.environ.get(TARGET_MODULES_ENV, "").split(",") if m.strip()}
+    return name.split(".")[0] in extra
+
+
+def allowed_target(section: str, target: str, function: object = None) -> None:
+    """physgrad's one policy for every `_target_` it calls (call_target, nested ones included), an
+    allow list: the name must start with one of ALLOWED_TARGET_PREFIXES or name a module of the
+    user's (its top-level module's file outside the Python installation, found without importing
+    it, or named in PHYSGRAD_TARGET_MODULES), with no private part; and the function it resolves to
+    (function, where the caller has resolved it) must be defined there too, so that a user's module
+    cannot hand on os.system. UserError (one line) otherwise."""
+    import importlib.util
+    import sys
+
+    refused = UserError(
+        f"{section}._target_={target} is not allowed: a target is one of physgrad's scenes, rules "
+        "or trackers, an optax function, or a function of your own module (in the working or "
+        f"config folder, an editable install, or named in {TARGET_MODULES_ENV})"
+    )
     parts = target.split(".")
-    if parts[0] in DENIED_TARGET_MODULES or any(p.startswith("__") for p in parts):
-        raise UserError(
-            f"{section}._target_={target} is not allowed: a target builds a scene, an update "
-            "rule, a schedule or a tracker, not a function of a system module"
-        )
+    if len(parts) < 2 or any(not p or p.startswith("_") for p in parts):
+        raise refused
+    if not target.startswith(ALLOWED_TARGET_PREFIXES) and not _named_by_user(target):
+        try:  # where the top-level module lives, without running it
+            spec = importlib.util.find_spec(parts[0])
+        except (ImportError, ValueError):
+            spec = None
+        if spec is None:
+            return  # not importable: call_target says so in one line
+        if not _users_file(spec.origin):
+            raise refused
+    if function is None:
+        return
+    defined_in = getattr(function, "__module__", None)
+    if not isinstance(defined_in, str):
+        raise refused
+    if (defined_in + ".").startswith(ALLOWED_TARGET_PREFIXES) or _named_by_user(defined_in):
+        return
+    if not _users_file(getattr(sys.modules.get(defined_in), "__file__", None)):
+        raise refused
 
 
 def _nested_targets(section: str, node: Any) -> None:
@@ -158,7 +200,16 @@ def _nested_targets(section: str, node: Any) -> None:
         where, value = pending.pop()
         if isinstance(value, dict):
             if isinstance(value.get("_target_"), str):
-                allowed_target(where, value["_target_"])
+                target = value["_target_"]
+                allowed_target(where, target)  # by its name, before anything is imported
+                from hydra.utils import get_object
+
+                try:
+                    resolved = get_object(target)
+                except Exception:  # noqa: BLE001 - instantiate says why it cannot import it
+                    resolved = None
+                if resolved is not None:
+                    allowed_target(where, target, resolved)
             pending.extend((f"{where}.{k}", v) for k, v in value.items())
         elif isinstance(value, list):
             pending.extend((f"{where}[{i}]", v) for i, v in enumerate(value))
@@ -185,7 +236,7 @@ def call_target(
             f"the {section} config has no _target_: name the function that builds it "
             f"(e.g. _target_: mylab.pendulum.build)"
         )
-    allowed_target(section, target)
+    allowed_target(section, target)  # by its name, before anything is imported
     _nested_targets(section, {k: v for k, v in node.items() if k != "_target_"})
     try:
         function = get_object(target)
@@ -196,6 +247,7 @@ def call_target(
             f"{str(cause).splitlines()[0]}): check the name, and run from the folder that holds "
             f"the module or install it"
         ) from None
+    allowed_target(section, target, function)
     if not callable(function):
         raise UserError(f"{section}._target_={target} is not a function")
     settings = {k: v for k, v in node.items() if k != "_target_" and k not in reserved}

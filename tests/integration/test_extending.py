@@ -30,6 +30,11 @@ def test_options_from_a_users_folder_are_valid_and_misspellings_suggest(in_examp
         check_overrides(["task=pendulum"], multirun=False)
 
 
+def not_a_scene(key: object = None) -> dict:
+    """A function of the user's (a test module) that builds no scene."""
+    return {}
+
+
 @pytest.mark.parametrize(
     "node, fragment",
     [
@@ -58,10 +63,12 @@ def test_options_from_a_users_folder_are_valid_and_misspellings_suggest(in_examp
             "task._target_=nomodule.build cannot be imported (ModuleNotFoundError",
         ),
         (
-            {"_target_": "collections.OrderedDict"},
-            "returned OrderedDict, not a physgrad.tasks.Scene",
+            {"_target_": "tests.integration.test_extending.not_a_scene"},
+            "returned dict, not a physgrad.tasks.Scene",
         ),
         ({"_target_": "builtins.dict"}, "task._target_=builtins.dict is not allowed"),
+        # a function of the standard library is no scene of the user's: refused by name
+        ({"_target_": "collections.OrderedDict"}, "collections.OrderedDict is not allowed"),
         ({}, "the task config has no _target_"),
     ],
 )

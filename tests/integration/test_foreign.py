@@ -215,3 +215,58 @@ def test_every_target_physgrad_calls_passes_one_policy(tmp_path, override, monke
     with pytest.raises(UserError, match="logger.evil._target_=os.system is not allowed"):
         build_trackers(OmegaConf.create(evil))
     assert not (tmp_path / "MARK").exists()
+
+
+HOSTILE_TARGETS = [
+    # each ran a command, read a pickle or wrote a file under the deny list it replaces
+    "glob.os.system",
+    "pathlib.os.system",
+    "tempfile._os.system",
+    "pydoc.pipepager",
+    "timeit.timeit",
+    "cProfile.run",
+    "asyncio.run",
+    "asyncio.create_subprocess_shell",
+    "numpy.load",
+    "pandas.read_pickle",
+    "yaml.unsafe_load",
+    "io.open",
+    "pathlib.Path.write_text",
+    "os.system",
+    "builtins.exec",
+    "hydra.utils.get_object",
+    "physgrad.files.replace_file",  # physgrad's own, but no scene, rule or tracker
+    "antigravity.fly",  # importing it opens a browser: refused before any import
+]
+
+
+@pytest.mark.parametrize("target", HOSTILE_TARGETS)
+def test_the_target_policy_is_an_allow_list(target, tmp_path, monkeypatch):
+    """Every target that is not one of physgrad's scenes, rules or trackers, an optax function or
+    the user's own module is refused in one line, at the top and nested (a schedule), before it is
+    called; a module of the user's that hands on a system function is refused by what it resolves
+    to; a package the user names in PHYSGRAD_TARGET_MODULES is allowed."""
+    import sys
+
+    from physgrad.errors import UserError
+    from physgrad.validate import TARGET_MODULES_ENV, allowed_target, call_target
+
+    monkeypatch.chdir(tmp_path)
+    before = set(sys.modules)
+    with pytest.raises(UserError, match="is not allowed") as caught:
+        call_target("task", {"_target_": target, "path": str(tmp_path / "MARK")})
+    assert "\n" not in str(caught.value) and f"task._target_={target}" in str(caught.value)
+    nested = {"_target_": "optax.sgd", "learning_rate": {"_target_": target}}
+    with pytest.raises(UserError, match="learning_rate._target_=.* is not allowed"):
+        call_target("optim", nested)
+    assert not (tmp_path / "MARK").exists()
+    assert "antigravity" not in set(sys.modules) - before
+    # the user's own module: allowed; one that hands on os.system: refused by what it resolves to
+    (tmp_path / "mylab.py").write_text("import os\n\ndef build(**kw):\n    return kw\n")
+    monkeypatch.syspath_prepend(str(tmp_path))
+    allowed_target("task", "mylab.build")
+    with pytest.raises(UserError, match="mylab.os.system is not allowed"):
+        call_target("task", {"_target_": "mylab.os.system", "command": "touch MARK"})
+    assert not (tmp_path / "MARK").exists()
+    monkeypatch.setenv(TARGET_MODULES_ENV, "pandas")
+    allowed_target("task", "pandas.DataFrame")
