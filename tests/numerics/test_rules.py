@@ -41,6 +41,11 @@ def test_each_rule_gets_its_gradient_route(overrides, route):
     assert rule.gradient == route and rule.uses_jacobian == isinstance(route, JacobianPass)
 
 
+def not_a_rule(**settings: object) -> dict:
+    """A function of the user's (a test module) that builds no update rule."""
+    return {}
+
+
 @pytest.mark.parametrize(
     "overrides, fragment",
     [
@@ -60,8 +65,12 @@ def test_each_rule_gets_its_gradient_route(overrides, route):
             "optim._target_=optax.adamm cannot be imported",
         ),
         (
+            ["optim=adam", "optim._target_=tests.numerics.test_rules.not_a_rule"],
+            "returned dict, not an optax GradientTransformation",
+        ),
+        (
             ["optim=adam", "optim._target_=collections.OrderedDict"],
-            "returned OrderedDict, not an optax GradientTransformation",
+            "optim._target_=collections.OrderedDict is not allowed",
         ),
         (
             ["optim=adam", "optim._target_=builtins.dict"],
