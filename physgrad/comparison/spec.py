@@ -251,12 +251,15 @@ def _compare_setting(override: Override, name: str, settings: dict) -> None:
         if name == "search" or not (
             isinstance(value, list)
             and len(value) == 2
-            and all(isinstance(v, (int, float)) and v > 0 for v in value)
+            and all(
+                isinstance(v, (int, float)) and not isinstance(v, bool) and 0 < v < float("inf")
+                for v in value
+            )
             and value[0] < value[1]
         ):
             raise UserError(
                 f"{override.input_line}: give compare.search.<optim key>=[low,high] with "
-                "0 < low < high (a log-uniform range)"
+                "0 < low < high, both finite (a log-uniform range)"
             )
         settings.setdefault("search", {})[name[len("search.") :]] = (
             float(value[0]),

@@ -24,6 +24,9 @@ from physgrad.errors import UserError
         (["task=toy", "optim=adam,hig", "compare.tune_seed=3"], "must differ"),
         (["task=toy", "optim.learning_rate=interval(0.1,1)"], "list the variants"),
         (["task=toy", "optim=adam,hig", "compare.search.tau=[1,0.1]"], "0 < low < high"),
+        # an infinite end had been accepted, then every tuning job refused, for ever
+        (["task=toy", "optim=adam,hig", "compare.search.learning_rate=[1e-3,inf]"], "finite"),
+        (["task=toy", "optim=adam,hig", "compare.search.tau=[nan,1]"], "finite"),
         (["task=toy", "optim=adam,hgi"], "did you mean hig?"),
         (["task=toy", "optim=adam,hig", "compare.seeds=0"], "compare.seeds"),
         (["task=toy", "optim=adam,hig", "seed=3"], "compare sets the seeds itself"),
