@@ -21,6 +21,16 @@ from physgrad.comparison import (
 from physgrad.errors import UserError
 from physgrad.optim.capabilities import ADAPTIVE, JACOBIAN
 
+# the smallest study with a verdict: two variants, one trial, one tuning study, six seeds
+TINY_STUDY = [
+    "task=toy",
+    "optim=adam,gd",
+    "trainer.iterations=20",
+    "compare.trials=1",
+    "compare.studies=1",
+    "compare.seeds=6",
+]
+
 
 def test_comma_lists_are_variants_and_everything_else_is_common():
     settings, axes, common, hydra_args = split_overrides(
@@ -496,15 +506,7 @@ def test_a_study_folder_from_someone_else_runs_no_code_and_its_links_are_not_fol
     (study / "configs" / "compare_job").mkdir()
     outside.write_text("theirs\n")
     (study / "configs" / "compare_job" / "eval_v0.yaml").symlink_to(outside)
-    args = [
-        "task=toy",
-        "optim=adam,gd",
-        "trainer.iterations=20",
-        "compare.trials=1",
-        "compare.studies=1",
-        "compare.seeds=6",
-        f"compare.dir={study}",
-    ]
+    args = [*TINY_STUDY, f"compare.dir={study}"]
     result = physgrad.compare(*args)
     assert not marker.exists() and outside.read_text() == "theirs\n"
     assert set(result.runs.iterations) == {20}
@@ -686,15 +688,7 @@ def test_a_crafted_tuning_journal_runs_no_code_and_its_trials_are_set_aside(tmp_
     from physgrad.comparison.tuning import journal_storage
 
     marker = tmp_path / "ran"
-    args = [
-        "task=toy",
-        "optim=adam,gd",
-        "trainer.iterations=20",
-        "compare.trials=1",
-        "compare.studies=1",
-        "compare.seeds=6",
-        f"compare.dir={tmp_path / 's'}",
-    ]
+    args = [*TINY_STUDY, f"compare.dir={tmp_path / 's'}"]
     first = physgrad.compare(*args)
     storage = journal_storage(tmp_path / "s" / "tuning.journal")
     adam = optuna.load_study(study_name="adam", storage=storage)
