@@ -7,7 +7,7 @@ import itertools
 from dataclasses import dataclass, field, fields
 from typing import TYPE_CHECKING, Any
 
-from physgrad.errors import UserError
+from physgrad.errors import UserError, innermost_cause
 from physgrad.optim.capabilities import capabilities
 from physgrad.readout import budget_of as budget_of_config
 from physgrad.verdict import ALPHA, MARGIN
@@ -388,6 +388,11 @@ def check_variants_build(variants: list[Variant], seed: int) -> None:
             prepare(cfg, [seed], check_config(cfg))
         except UserError as error:
             raise UserError(f"variant {variant.name}: {error}") from None
+        except Exception as error:  # noqa: BLE001 - the scene's or rule's own code: one line
+            raise UserError(
+                f"variant {variant.name}: building its scene and rule failed "
+                f"({innermost_cause(error)}); `physgrad run` with its overrides shows the traceback"
+            ) from None
 
 
 def budget_of(cfg: DictConfig) -> tuple[str, float]:

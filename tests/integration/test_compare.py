@@ -72,6 +72,27 @@ def test_a_variant_the_scene_refuses_stops_the_study_before_anything_trains(tmp_
     assert not (tmp_path / "tune").exists()
 
 
+def build_that_raises(key: object = None, **settings: object) -> None:
+    """A user's scene whose own code fails while it builds."""
+    raise RuntimeError("the mesh file is missing")
+
+
+def test_a_scene_whose_build_raises_stops_the_study_in_one_line(tmp_path):
+    """The pre-build check of every variant turns an exception of the scene's own code into one line
+    that names the variant and the cause (it was a 41-line traceback), before anything trains."""
+    from physgrad.comparison import run_study
+
+    target = "task._target_=tests.integration.test_compare.build_that_raises"
+    with pytest.raises(UserError) as caught:
+        run_study(
+            ["task=toy", target, "optim=adam,gd", f"compare.dir={tmp_path}"], say=lambda line: None
+        )
+    message = str(caught.value)
+    assert "\n" not in message and "variant adam" in message
+    assert "RuntimeError: the mesh file is missing" in message
+    assert not (tmp_path / "tune").exists()
+
+
 def test_equal_time_evaluations_interleave_the_variants_and_equal_iterations_train_seeds_together():
     settings, axes, common, _ = split_overrides(
         ["task=toy", "optim=adam,gd", "trainer.time_budget=5"]
