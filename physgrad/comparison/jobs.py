@@ -379,10 +379,20 @@ def multirun_command(
         "-m",
         *(["-cd", config_dir] if config_dir else []),
         f"hydra.searchpath=[{','.join(search)}]",
-        f"hydra.sweep.dir={folder / phase}",
+        f"hydra.sweep.dir={hydra_quoted(str(folder / phase))}",
         *extra,
         "+compare_job=" + ",".join(jobs),
     ]
+
+
+def hydra_quoted(value: str) -> str:
+    """value as one quoted string of Hydra's override grammar, so that a folder name with a comma,
+    a space, brackets or any letter stays one value: a quote is escaped, and so are the backslashes
+    before a quote or at the end (Hydra reads other backslashes as they are)."""
+    import re
+
+    doubled = re.sub(r"(\\+)(?='|$)", lambda m: m.group(1) * 2, value)
+    return "'" + doubled.replace("'", "\\'") + "'"
 
 
 def _member_order(path: Path) -> tuple[str, int, str]:

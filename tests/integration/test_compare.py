@@ -751,3 +751,15 @@ def test_a_crafted_tuning_journal_runs_no_code_and_its_trials_are_set_aside(tmp_
     listed = again.trials[again.trials.variant == "adam"]
     assert (listed.state == "SET_ASIDE").sum() == 4
     assert not any("_target_" in column for column in again.trials.columns)
+
+
+def test_a_study_folder_of_any_name_runs(tmp_path):
+    """A compare.dir with a comma, a space, a quote and letters beyond ASCII (quoted as Hydra needs
+    on the command line) reaches the phases' multiruns as one value: every phase runs there. It
+    was passed unquoted, and every phase failed."""
+    from physgrad.comparison.jobs import hydra_quoted
+
+    folder = tmp_path / "a,b ü's [x]"
+    study = physgrad.compare(*TINY_STUDY, f"compare.dir={hydra_quoted(str(folder))}")
+    assert study.folder == folder and (folder / "compare.md").is_file()
+    assert all(folder / "eval" in Path(p).parents for p in study.runs.path)
