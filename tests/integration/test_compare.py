@@ -21,16 +21,6 @@ from physgrad.comparison import (
 from physgrad.errors import UserError
 from physgrad.optim.capabilities import ADAPTIVE, JACOBIAN
 
-# the smallest study with a verdict: two variants, one trial, one tuning study, six seeds
-TINY_STUDY = [
-    "task=toy",
-    "optim=adam,gd",
-    "trainer.iterations=20",
-    "compare.trials=1",
-    "compare.studies=1",
-    "compare.seeds=6",
-]
-
 
 def test_comma_lists_are_variants_and_everything_else_is_common():
     settings, axes, common, hydra_args = split_overrides(
@@ -187,18 +177,41 @@ def test_a_loss_that_blows_up_without_nan_ends_the_run_diverged(tmp_path):
     )
 
 
-def test_the_python_call_returns_the_tables(tmp_path):
-    import physgrad.comparison  # noqa: F401 - importing the module leaves the function physgrad.compare in place
+# a small finished study that several tests read or copy (built once per test process; the tests
+# that use it run in one process, the group below): two variants, two trials in each of two tuning
+# studies, six seeds each, in a folder whose name holds a comma, a space, a quote and letters
+# beyond ASCII (quoted as Hydra needs on the command line)
+SMALL_STUDY = [
+    "task=toy",
+    "optim=adam,gd",
+    "trainer.iterations=30",
+    "compare.trials=2",
+    "compare.studies=2",
+    "compare.seeds=6",
+]
+USES_SMALL_STUDY = pytest.mark.xdist_group("small_study")
 
-    study = physgrad.compare(
-        "task=toy",
-        "optim=adam,gd",
-        "trainer.iterations=30",
-        "compare.trials=2",
-        "compare.studies=2",
-        "compare.seeds=6",
-        f"compare.dir={tmp_path / 'study'}",
-    )
+
+@pytest.fixture(scope="session")
+def small_study(tmp_path_factory):
+    import physgrad.comparison  # noqa: F401 - importing the module leaves the function physgrad.compare in place
+    from physgrad.comparison.jobs import hydra_quoted
+
+    folder = tmp_path_factory.mktemp("studies") / "a,b ü's [x]"
+    return physgrad.compare(*SMALL_STUDY, f"compare.dir={hydra_quoted(str(folder))}")
+
+
+def copy_of(study, destination: Path) -> list[str]:
+    """A copy of a finished study's folder, and the arguments that resume it there."""
+    import shutil
+
+    shutil.copytree(study.folder, destination, symlinks=True)
+    return [*SMALL_STUDY, f"compare.dir={destination}"]
+
+
+@USES_SMALL_STUDY
+def test_the_python_call_returns_the_tables(small_study):
+    study = small_study
     # two tuning studies of two trials per variant, each on its own seed and points
     assert list(zip(study.trials.study, study.trials.variant)) == [
         (k, v) for k in (0, 1) for v in ("adam", "adam", "gd", "gd")
@@ -511,32 +524,37 @@ def test_a_studys_jobs_share_a_compilation_cache_in_the_users_cache_unless_they_
     assert "JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS" not in env
 
 
-def test_a_study_folder_from_someone_else_runs_no_code_and_its_links_are_not_followed(tmp_path):
+@USES_SMALL_STUDY
+def test_a_study_folder_from_someone_else_runs_no_code_and_its_links_are_not_followed(
+    tmp_path, small_study
+):
     """A study folder holds configs of the jobs as a record only: a tuning option planted in its
     configs/ (here one that would change the budget and build a logger whose _target_ runs a shell
     command) is never on the jobs' config search path, a link planted where a job's record is
     written is replaced, not written through, and a phase log that is a link is refused in one
-    line."""
+    line. The folder is a finished study's whose evaluation must run again."""
     study, outside, marker = tmp_path / "study", tmp_path / "outside.yaml", tmp_path / "ran"
-    planted = study / "configs" / "tuning"
-    planted.mkdir(parents=True)
-    (planted / "toy_gd.yaml").write_text(
-        "# @package _global_\ntrainer:\n  iterations: 7\nlogger:\n  evil:\n"
-        f"    _target_: os.system\n    command: touch {marker}\n"
-    )
-    (study / "configs" / "compare_job").mkdir()
+    args = copy_of(small_study, study)
+    (study / "eval").rename(tmp_path / "old_eval")  # the evaluation runs again, in the folder
+    (study / "configs" / "tuning").mkdir(exist_ok=True)
+    for planted in ("tuning/toy_gd.yaml", "tuning/toy_adam.yaml"):
+        (study / "configs" / planted).write_text(
+            "# @package _global_\ntrainer:\n  iterations: 7\nlogger:\n  evil:\n"
+            f"    _target_: os.system\n    command: touch {marker}\n"
+        )
     outside.write_text("theirs\n")
-    (study / "configs" / "compare_job" / "eval_v0.yaml").symlink_to(outside)
-    args = [*TINY_STUDY, f"compare.dir={study}"]
+    record = study / "configs" / "compare_job" / "eval_v0.yaml"
+    record.unlink()
+    record.symlink_to(outside)
     result = physgrad.compare(*args)
     assert not marker.exists() and outside.read_text() == "theirs\n"
-    assert set(result.runs.iterations) == {20}
-    record = study / "configs" / "compare_job" / "eval_v0.yaml"
+    assert set(result.runs.iterations) == {30}
+    assert result.runs.test_loss_at_1.tolist() == small_study.runs.test_loss_at_1.tolist()
     assert not record.is_symlink() and "seeds: 6" in record.read_text()
 
     (study / "eval.log").unlink()
     (study / "eval.log").symlink_to(outside)
-    (study / "eval").rename(tmp_path / "old_eval")  # the evaluation must run again
+    (study / "eval").rename(tmp_path / "older_eval")  # the evaluation must run again
     with pytest.raises(UserError, match="eval.log: a link: refused"):
         physgrad.compare(*args)
     assert outside.read_text() == "theirs\n"
@@ -697,7 +715,8 @@ def test_only_the_runs_an_evaluation_asked_for_make_a_verdict():
     assert _not_asked_for(run(rate=1.65e-5), {}, settings) is None  # untuned: as configured
 
 
-def test_a_crafted_tuning_journal_runs_no_code_and_its_trials_are_set_aside(tmp_path):
+@USES_SMALL_STUDY
+def test_a_crafted_tuning_journal_runs_no_code_and_its_trials_are_set_aside(tmp_path, small_study):
     """A finished study whose tuning.journal someone else extended: a best trial whose params would
     build a `_target_` that runs a shell command (as a resumed evaluation would have instantiated
     it), one without the learning rate, one with a rate outside its range, and a point enqueued as
@@ -708,9 +727,8 @@ def test_a_crafted_tuning_journal_runs_no_code_and_its_trials_are_set_aside(tmp_
     from physgrad.comparison import run_study
     from physgrad.comparison.tuning import journal_storage
 
-    marker = tmp_path / "ran"
-    args = [*TINY_STUDY, f"compare.dir={tmp_path / 's'}"]
-    first = physgrad.compare(*args)
+    marker, first = tmp_path / "ran", small_study
+    args = copy_of(small_study, tmp_path / "s")
     storage = journal_storage(tmp_path / "s" / "tuning.journal")
     adam = optuna.load_study(study_name="adam", storage=storage)
     text = optuna.distributions.CategoricalDistribution
@@ -753,13 +771,12 @@ def test_a_crafted_tuning_journal_runs_no_code_and_its_trials_are_set_aside(tmp_
     assert not any("_target_" in column for column in again.trials.columns)
 
 
-def test_a_study_folder_of_any_name_runs(tmp_path):
+@USES_SMALL_STUDY
+def test_a_study_folder_of_any_name_runs(small_study):
     """A compare.dir with a comma, a space, a quote and letters beyond ASCII (quoted as Hydra needs
     on the command line) reaches the phases' multiruns as one value: every phase runs there. It
     was passed unquoted, and every phase failed."""
-    from physgrad.comparison.jobs import hydra_quoted
-
-    folder = tmp_path / "a,b ü's [x]"
-    study = physgrad.compare(*TINY_STUDY, f"compare.dir={hydra_quoted(str(folder))}")
-    assert study.folder == folder and (folder / "compare.md").is_file()
-    assert all(folder / "eval" in Path(p).parents for p in study.runs.path)
+    folder = small_study.folder
+    assert folder.name == "a,b ü's [x]" and (folder / "compare.md").is_file()
+    assert all(folder / "eval" in Path(p).parents for p in small_study.runs.path)
+    assert any((folder / "tune").rglob("results.h5"))

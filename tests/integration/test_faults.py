@@ -175,7 +175,9 @@ def test_a_scene_figure_that_raises_costs_a_warning_not_the_run(tmp_path, monkey
     assert outcome.status == "completed" and read_run(path).attrs["status"] == "completed"
 
 
-def test_an_interrupted_report_leaves_the_previous_tables(tmp_path, monkeypatch):
+def test_an_interrupted_report_leaves_the_previous_tables(
+    tmp_path, monkeypatch, report_figures_skipped
+):
     import physgrad.report as report
     import physgrad.tables as tables
 

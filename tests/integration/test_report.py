@@ -59,7 +59,7 @@ def test_report_groups_by_setting_and_times_the_threshold(tmp_path):
     ).exists()
 
 
-def test_unreadable_files_are_listed_not_fatal(tmp_path):
+def test_unreadable_files_are_listed_not_fatal(tmp_path, report_figures_skipped):
     fake_run(tmp_path / "ok", "adam", 0, 1, [1.0, 0.5], [0.0, 1.0])
     (tmp_path / "bad").mkdir()
     (tmp_path / "bad" / "results.h5").write_bytes(b"garbage")
@@ -141,7 +141,9 @@ def test_report_without_an_unroll_axis_draws_no_unroll_figure(tmp_path):
     assert (tmp_path / "tradeoff.png").stat().st_size > 1000
 
 
-def test_a_learning_rate_sweep_is_two_groups_named_by_what_differs(tmp_path):
+def test_a_learning_rate_sweep_is_two_groups_named_by_what_differs(
+    tmp_path, report_figures_skipped
+):
     for lr, losses in ((1e-3, ([1.0, 0.5], [1.0, 0.4])), (1e-2, ([1.0, 0.1], [1.0, 0.2]))):
         for seed, loss in enumerate(losses):
             # a setting that does not change the computation
@@ -179,7 +181,7 @@ def test_a_learning_rate_sweep_is_two_groups_named_by_what_differs(tmp_path):
     assert "| multicart | hig | 1 | 1 completed | 0.3 |" in text
 
 
-def test_the_same_run_found_twice_or_rerun_counts_once(tmp_path):
+def test_the_same_run_found_twice_or_rerun_counts_once(tmp_path, report_figures_skipped):
     fake_run(tmp_path / "a", "adam", 0, 1, [1.0, 0.5], [0.0, 1.0])
     fake_run(tmp_path / "b", "adam", 1, 1, [1.0, 0.4], [0.0, 1.0])
     # a cadence does not make it another run
@@ -213,7 +215,7 @@ def test_the_same_run_found_twice_or_rerun_counts_once(tmp_path):
     assert "| multicart | adam | 2 | 2 completed |" in text
 
 
-def test_labelled_sets_are_kept_apart(tmp_path):
+def test_labelled_sets_are_kept_apart(tmp_path, report_figures_skipped):
     fake_run(tmp_path / "monday" / "x", "adam", 0, 1, [1.0, 0.5], [0.0, 1.0])
     fake_run(tmp_path / "friday" / "x", "adam", 0, 1, [1.0, 0.2], [0.0, 1.0])
     text = write_report(
@@ -228,7 +230,7 @@ def test_labelled_sets_are_kept_apart(tmp_path):
     ]
 
 
-def test_scene_metrics_and_csv_export(tmp_path):
+def test_scene_metrics_and_csv_export(tmp_path, report_figures_skipped):
     fake_run(
         tmp_path / "a",
         "bptt",
@@ -341,7 +343,7 @@ def test_read_runs_gives_every_setting_a_column_and_curves_that_plot_without_a_m
     assert sorted(on_disk["optim.learning_rate"].dropna()) == sorted([*rates, 1.0])
 
 
-def test_long_runs_are_thinned_in_csv_and_whole_in_parquet(tmp_path):
+def test_long_runs_are_thinned_in_csv_and_whole_in_parquet(tmp_path, report_figures_skipped):
     from physgrad.tables import CSV_TRAIN_ROWS
 
     count = 3 * CSV_TRAIN_ROWS + 7

@@ -92,9 +92,14 @@ def scene_quantities(monkeypatch, path: str, overrides: list[str]) -> tuple:
     def loss(p):
         return scene.batch_loss(scene.batch_output(p, batch), batch)
 
-    value, grad = jax.value_and_grad(loss)(params)
-    jacobian = jax.vmap(jax.jacrev(scene.sample_output), in_axes=(None, 0))(params, batch)
+    # compiled whole: op by op, each of the rollout's operations would be a compile of its own
+    value, grad = jax.jit(jax.value_and_grad(loss))(params)
+    jacobian = jax.jit(jax.vmap(jax.jacrev(scene.sample_output), in_axes=(None, 0)))(params, batch)
     return value, grad, jacobian
+
+
+# the data sets' sizes do not change what one minibatch computes
+SMALL_DATA = ["task.train_size=8", "task.test_size=8", "task.batch_size=4"]
 
 
 # the dense path (a 14 x 14 solve per step, the GPU's fast one) is slow on a CPU: make test-long
@@ -109,8 +114,8 @@ def scene_quantities(monkeypatch, path: str, overrides: list[str]) -> tuple:
 @pytest.mark.parametrize(
     "overrides",
     [
-        ["task=quantum", "task.unroll=24", "precision=64"],
-        ["task=quantum_control", "task.unroll=12", "precision=64"],
+        ["task=quantum", "task.unroll=24", "precision=64", *SMALL_DATA],
+        ["task=quantum_control", "task.unroll=12", "precision=64", *SMALL_DATA],
     ],
 )
 def test_the_scene_gives_the_same_loss_gradient_and_jacobian_on_every_path(
