@@ -28,7 +28,7 @@ run: setup
 # its wall and CPU time (user + sys of every process it started)
 LAYERS := tests/unit tests/numerics tests/integration tests/e2e
 PYTEST_WORKERS ?= auto
-XDIST := $(if $(filter 0,$(PYTEST_WORKERS)),-p no:xdist,-n $(PYTEST_WORKERS) --maxprocesses=4 --dist loadgroup)
+XDIST := $(if $(filter 0,$(PYTEST_WORKERS)),-p no:xdist,-n $(PYTEST_WORKERS) --maxprocesses=4)
 SHELL := /bin/bash
 TIMED = TIMEFORMAT="$@: %R s wall, %U s user + %S s sys CPU"; time
 # ruff first (100 columns; pyproject.toml): a lint or layout finding fails the tests in seconds

@@ -177,9 +177,8 @@ def test_a_loss_that_blows_up_without_nan_ends_the_run_diverged(tmp_path):
     )
 
 
-# a small finished study that several tests read or copy (built once per test process; the tests
-# that use it run in one process, the group below): two variants, two trials in each of two tuning
-# studies, six seeds each, in a folder whose name holds a comma, a space, a quote and letters
+# a small finished study that several tests read or copy: two variants, two trials in each of two
+# tuning studies, six seeds each, in a folder whose name holds a comma, a space, a quote and letters
 # beyond ASCII (quoted as Hydra needs on the command line)
 SMALL_STUDY = [
     "task=toy",
@@ -189,16 +188,26 @@ SMALL_STUDY = [
     "compare.studies=2",
     "compare.seeds=6",
 ]
-USES_SMALL_STUDY = pytest.mark.xdist_group("small_study")
 
 
 @pytest.fixture(scope="session")
 def small_study(tmp_path_factory):
+    """SMALL_STUDY, run once for the whole test session: the first process of the session to ask
+    runs it (under a lock), every other one resumes the finished study, which reads it."""
+    import fcntl
+    import os
+
     import physgrad.comparison  # noqa: F401 - importing the module leaves the function physgrad.compare in place
     from physgrad.comparison.jobs import hydra_quoted
 
-    folder = tmp_path_factory.mktemp("studies") / "a,b ü's [x]"
-    return physgrad.compare(*SMALL_STUDY, f"compare.dir={hydra_quoted(str(folder))}")
+    root = tmp_path_factory.getbasetemp()
+    if "PYTEST_XDIST_WORKER" in os.environ:
+        root = root.parent  # the session's folder, above each worker's own
+    folder = root / "small study" / "a,b ü's [x]"
+    folder.parent.mkdir(exist_ok=True)
+    with open(root / "small study.lock", "w") as lock:
+        fcntl.flock(lock, fcntl.LOCK_EX)
+        return physgrad.compare(*SMALL_STUDY, f"compare.dir={hydra_quoted(str(folder))}")
 
 
 def copy_of(study, destination: Path) -> list[str]:
@@ -209,7 +218,6 @@ def copy_of(study, destination: Path) -> list[str]:
     return [*SMALL_STUDY, f"compare.dir={destination}"]
 
 
-@USES_SMALL_STUDY
 def test_the_python_call_returns_the_tables(small_study):
     study = small_study
     # two tuning studies of two trials per variant, each on its own seed and points
@@ -524,7 +532,6 @@ def test_a_studys_jobs_share_a_compilation_cache_in_the_users_cache_unless_they_
     assert "JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS" not in env
 
 
-@USES_SMALL_STUDY
 def test_a_study_folder_from_someone_else_runs_no_code_and_its_links_are_not_followed(
     tmp_path, small_study
 ):
@@ -532,10 +539,11 @@ def test_a_study_folder_from_someone_else_runs_no_code_and_its_links_are_not_fol
     configs/ (here one that would change the budget and build a logger whose _target_ runs a shell
     command) is never on the jobs' config search path, a link planted where a job's record is
     written is replaced, not written through, and a phase log that is a link is refused in one
-    line. The folder is a finished study's whose evaluation must run again."""
+    line. The folder is a finished study's, one of whose evaluation jobs must run again."""
     study, outside, marker = tmp_path / "study", tmp_path / "outside.yaml", tmp_path / "ran"
     args = copy_of(small_study, study)
-    (study / "eval").rename(tmp_path / "old_eval")  # the evaluation runs again, in the folder
+    for job in (study / "eval").glob("+compare_job=eval_st1_*"):  # tuning study 1's runs again
+        job.rename(tmp_path / job.name)
     (study / "configs" / "tuning").mkdir(exist_ok=True)
     for planted in ("tuning/toy_gd.yaml", "tuning/toy_adam.yaml"):
         (study / "configs" / planted).write_text(
@@ -543,7 +551,7 @@ def test_a_study_folder_from_someone_else_runs_no_code_and_its_links_are_not_fol
             f"    _target_: os.system\n    command: touch {marker}\n"
         )
     outside.write_text("theirs\n")
-    record = study / "configs" / "compare_job" / "eval_v0.yaml"
+    record = study / "configs" / "compare_job" / "eval_st1_v0.yaml"
     record.unlink()
     record.symlink_to(outside)
     result = physgrad.compare(*args)
@@ -715,7 +723,6 @@ def test_only_the_runs_an_evaluation_asked_for_make_a_verdict():
     assert _not_asked_for(run(rate=1.65e-5), {}, settings) is None  # untuned: as configured
 
 
-@USES_SMALL_STUDY
 def test_a_crafted_tuning_journal_runs_no_code_and_its_trials_are_set_aside(tmp_path, small_study):
     """A finished study whose tuning.journal someone else extended: a best trial whose params would
     build a `_target_` that runs a shell command (as a resumed evaluation would have instantiated
@@ -771,7 +778,6 @@ def test_a_crafted_tuning_journal_runs_no_code_and_its_trials_are_set_aside(tmp_
     assert not any("_target_" in column for column in again.trials.columns)
 
 
-@USES_SMALL_STUDY
 def test_a_study_folder_of_any_name_runs(small_study):
     """A compare.dir with a comma, a space, a quote and letters beyond ASCII (quoted as Hydra needs
     on the command line) reaches the phases' multiruns as one value: every phase runs there. It
