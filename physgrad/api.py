@@ -85,8 +85,9 @@ def read_runs(
     list) as two pandas DataFrames: ``runs, curves =
     physgrad.read_runs("outputs/multirun/...")``. runs: one row per run, every setting in a
     column of its own (optim.learning_rate, task.poles, trainer.iterations, ..., seed, status,
-    the machine) and the report's numbers (test_loss, time_to_threshold, ...); curves: one row
-    per run, split and iteration with the run's id and label, variant, seed, ..., so that e.g.
+    the machine) and the run's record at its budget (test_loss_at_1, time_to_target, ...:
+    readout.run_record); curves: one row per run, split and iteration with the run's id and
+    label, variant, seed, ..., so that e.g.
     ``seaborn.lineplot(curves.query("split == 'eval'"), x="wall_time", y="loss", hue="label")``
     needs no merge. See docs/results.md."""
     from physgrad.report import read_runs as read

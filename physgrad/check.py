@@ -300,7 +300,7 @@ def bptt_gradient_growth(small: bool) -> list[dict]:
         rows.append(
             {
                 "case": "multicart 4 poles: gradient norm against unroll",
-                "variant": f"bptt[{mode}]",
+                "variant": f"bptt backprop={mode}",
                 "precision": "64",
                 "outcome": "finite" if all(map(math.isfinite, norms)) else "non-finite",
                 "final loss": math.nan,

@@ -66,13 +66,14 @@ PRESET_BACKPROP = {"bptt": "R", "stable_bptt": "C"}
 
 def variant_label(optim_cfg: DictConfig) -> str:
     """The optim name, plus the backprop mode and clipping where they differ from what the name
-    implies (so that a report keeps `bptt` with mode M apart from plain `bptt`): e.g. bptt[M],
-    stable_bptt[clip=norm], lion[C]."""
+    implies (so that a report keeps `bptt` with mode M apart from plain `bptt`), spelled as
+    `physgrad compare` names a variant by its overrides: e.g. `bptt backprop=M`,
+    `stable_bptt clip=norm`, `lion backprop=C`."""
     name = str(optim_cfg.get("name", "?"))
     backprop, clip = optim_cfg.get("backprop"), optim_cfg.get("clip", "none")
-    marks = [] if backprop == PRESET_BACKPROP.get(name) else [str(backprop)]
+    marks = [] if backprop == PRESET_BACKPROP.get(name) else [f"backprop={backprop}"]
     marks += [] if clip == "none" else [f"clip={clip}"]
-    return f"{name}[{','.join(marks)}]" if marks else name
+    return " ".join([name, *marks])
 
 
 def run_attributes(cfg: DictConfig, unroll: int | None = None) -> dict:

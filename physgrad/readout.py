@@ -13,8 +13,11 @@ cannot disagree about one run.
   when the run diverged by x: stopped as diverged, a non-finite held-out loss, or a loss above
   DIVERGENCE_FACTOR times its first (a blow-up without NaN). It is NaN (no loss) when the run ended
   before x without diverging (interrupted, failed, crashed) or has no evaluation by x.
-- The time to a target is the x of the first evaluation at or below it by the budget; infinite if
-  never, or if the run diverged first.
+- The time to a target is the training time (seconds; calibrated seconds on the calibrated clock) of
+  the first evaluation at or below it by the budget; infinite if never, or if the run diverged
+  first.
+- A run at a budget is one row (run_record), the same in compare's runs.csv, the report's and
+  read_runs'.
 - The target is the median loss at the budget of the group with the lowest median (diverged runs
   counting as infinite, missing ones left out): the best group's typical result (highest_median: the
   worst group's, which the claims' timed comparisons use).
@@ -43,6 +46,8 @@ DIVERGENCE_FACTOR = 1e4
 # shared axis; 2: every run read on its own training.
 READOUT_VERSION = 2
 AXES = ("iteration", "wall_time", "calibrated_time")
+# the fractions of the budget every table reads a run at (and the verdicts decide at)
+FRACTIONS = (0.25, 0.5, 1.0)
 
 
 @dataclass(frozen=True)
@@ -156,17 +161,82 @@ def loss_at(
 
 
 def time_to_target(
-    run: Run, target: float, budget: float | None = None, axis: str = "wall_time"
+    run: Run, target: float, budget: float | None = None, axis: str | None = None
 ) -> float:
-    """The run's x (training seconds by default) at its first held-out evaluation at or below target
-    by the budget (Curve.reaches; by default the run's own budget where it is on this axis, else no
-    limit); inf if never or diverged first, NaN if there is no target."""
+    """The run's training seconds (calibrated seconds where the budget is on the calibrated clock)
+    at its first held-out evaluation at or below target by the budget on the axis (Curve.reaches;
+    by default the run's own budget); inf if never or diverged first, NaN if there is no target.
+    On an iteration budget the evaluation is found by its iteration and timed in seconds, so that
+    every table's time to target is a time."""
     if not math.isfinite(target):
         return math.nan
-    if budget is None:
+    if axis is None or budget is None:
         own_axis, own_budget = run_budget(run)
-        budget = own_budget if own_axis == axis else math.inf
-    return run_curve(run, axis).reaches(target, budget)
+        if budget is None:
+            budget = own_budget if axis in (None, own_axis) else math.inf
+        axis = axis or own_axis
+    reached = run_curve(run, axis).reaches(target, budget)
+    if axis != "iteration" or not math.isfinite(reached):
+        return reached
+    iterations = np.asarray(run.eval.get("iteration", np.empty(0)), float)
+    seconds = np.asarray(run.eval.get("wall_time", np.full(iterations.shape, np.nan)), float)
+    return float(seconds[np.flatnonzero(iterations == reached)[0]])
+
+
+def number_attr(run: Run, key: str) -> float:
+    """A numeric attribute of the run's file (NaN where it is missing or not a number)."""
+    value = run.attrs.get(key)
+    return (
+        float(value)
+        if isinstance(value, (int, float)) and not isinstance(value, bool)
+        else math.nan
+    )
+
+
+def run_record(
+    run: Run, target: float, axis: str | None = None, budget: float | None = None
+) -> dict:
+    """One run at a budget as a row, the same in every runs table (compare's runs.csv, the
+    report's runs.csv and read_runs, the claims): the run (path, its variant as its file names it,
+    seed), how it ended (status, stopped_by, reason), the budget (axis, budget: by default the
+    run's own), its held-out loss at 1/4, 1/2 and all of the budget (test_loss_at_0.25, _0.5, _1:
+    inf if it had diverged by then, NaN if it ended before without a loss), diverged_by_budget, the
+    target and its time_to_target (seconds, time_to_target), what it cost (iterations,
+    train_seconds, calibrated_seconds, compile_seconds, first_step_overhead_seconds,
+    step_seconds_p50/p90), whether its timing was contended and where it ran (machine)."""
+    from physgrad.machine import machine_label
+
+    own_axis, own_budget = run_budget(run)
+    axis = axis or own_axis
+    budget = (own_budget if axis == own_axis else math.inf) if budget is None else budget
+    row = {
+        "path": str(run.path),
+        "variant": run.variant,
+        "seed": run.attrs.get("seed"),
+        "status": run.attrs.get("status"),
+        "stopped_by": run.attrs.get("stopped_by", "") or "",
+        "axis": axis,
+        "budget": budget,
+        **{f"test_loss_at_{f:g}": loss_at(run, budget * f, axis) for f in FRACTIONS},
+    }
+    last = run.final("train", "iteration")
+    row.update(
+        diverged_by_budget=math.isinf(row["test_loss_at_1"]),
+        target=target,
+        time_to_target=time_to_target(run, target, budget, axis),
+        iterations=int(last) + 1 if math.isfinite(last) else 0,
+        train_seconds=run.final("train", "wall_time"),
+        calibrated_seconds=run.final("train", "calibrated_time"),
+        compile_seconds=number_attr(run, "compile_seconds"),
+        first_step_overhead_seconds=number_attr(run, "first_step_overhead_seconds"),
+        step_seconds_p50=number_attr(run, "step_seconds_p50"),
+        step_seconds_p90=number_attr(run, "step_seconds_p90"),
+        contended=bool(run.attrs.get("contended", 0)),
+        contention=str(run.attrs.get("contention", "") or ""),
+        machine=machine_label(run.attrs),
+        reason=str(run.attrs.get("reason", "") or ""),
+    )
+    return row
 
 
 def _finite_medians(losses: dict[str, list[float]]) -> dict[str, float]:

@@ -17,8 +17,7 @@ import numpy as np
 
 from physgrad.errors import UserError
 from physgrad.files import clean_text, read_small_yaml, replaced_text
-from physgrad.machine import machine_label
-from physgrad.readout import fmt, loss_at, targets, time_to_target
+from physgrad.readout import fmt, loss_at, run_record, targets
 from physgrad.results import Run, natural_key
 from physgrad.runs import Dropped, collect, label_runs, parse_sources, setting_text
 from physgrad.sweeps import unfinished_jobs
@@ -46,7 +45,10 @@ def metric_names(runs: list[Run]) -> list[str]:
 
 
 def run_rows(runs: list[Run], threshold: float | None = None) -> list[dict]:
-    """One row per run (the per-seed table and runs.csv)."""
+    """One row per run (the per-seed table and runs.csv): where it stands in the report (set,
+    task, scene, setting, label), its record at its own budget with the scene's target
+    (readout.run_record), its last minibatch losses, its loss at the scene's common time, its
+    step time and its scene metrics."""
     limits, common = targets(runs), common_times(runs)
     names = metric_names(runs)
     rows = []
@@ -55,57 +57,34 @@ def run_rows(runs: list[Run], threshold: float | None = None) -> list[dict]:
         return natural_key(r.scene), natural_key(r.label), natural_key(str(r.attrs.get("seed")))
 
     for run in sorted(runs, key=order):
-        limit = threshold if threshold is not None else limits.get(run.scene, math.nan)
         at = common.get(run.scene, math.nan)
         train_loss = run.train.get("loss", np.empty(0))
+        record = run_record(
+            run, threshold if threshold is not None else limits.get(run.scene, math.nan)
+        )
+        reason = record.pop("reason")
         rows.append(
             {
-                "path": str(run.path),
+                "path": record.pop("path"),
                 "set": run.collection,
                 "task": run.attrs.get("task"),
                 "scene": run.scene,
                 "setting": run.setting,
-                "variant": run.variant,
+                "variant": record.pop("variant"),
                 "label": run.label,
-                "seed": run.attrs.get("seed"),
-                "status": run.attrs.get("status"),
-                "stopped_by": run.attrs.get("stopped_by", ""),
-                "iterations": int(train_loss.size),
+                **record,
                 "train_loss": float(np.median(train_loss[-10:])) if train_loss.size else math.nan,
-                "test_loss": loss_at(run),
                 "common_time": at,
                 # the common time is on the shared axis; a continued run's own clock starts later
                 "loss_at_common_time": loss_at(run, at - run.offset("wall_time"), "wall_time")
                 if math.isfinite(at)
                 else math.nan,
-                "threshold": limit,
-                "time_to_threshold": time_to_target(run, limit),
                 "s_per_iter": run.seconds_per_iteration,
-                "train_seconds": run.final("train", "wall_time"),
-                "compile_seconds": float(run.attrs.get("compile_seconds", math.nan)),
-                "first_step_overhead_seconds": float(
-                    run.attrs.get("first_step_overhead_seconds", math.nan)
-                ),
-                "calibrated_seconds": run.final("train", "calibrated_time"),
-                "step_seconds_p50": _float_attr(run, "step_seconds_p50"),
-                "step_seconds_p90": _float_attr(run, "step_seconds_p90"),
-                "contended": int(bool(run.attrs.get("contended", 0))),
-                "contention": str(run.attrs.get("contention", "") or ""),
-                "machine": machine_label(run.attrs),
                 **{name: run.final("eval", name) for name in names},
-                "reason": run.attrs.get("reason", "") or "",
+                "reason": reason,
             }
         )
     return rows
-
-
-def _float_attr(run: Run, key: str) -> float:
-    value = run.attrs.get(key)
-    return (
-        float(value)
-        if isinstance(value, (int, float)) and not isinstance(value, bool)
-        else math.nan
-    )
 
 
 def _spread(values: Iterable[object]) -> str:
@@ -128,7 +107,7 @@ def _counts(values: Iterable[str], plain_if_one: bool = False) -> str:
 
 def group_rows(rows: list[dict], names: list[str]) -> list[dict]:
     """One row per (scene, group): seeds, status counts, spread of the final test loss (completed
-    runs) and of the loss at the common time (every run that got there), time to the threshold
+    runs) and of the loss at the common time (every run that got there), time to the target
     (median over the seeds that reached it, and how many did), iterations, s/iter, what stopped the
     runs, and the scene's metrics."""
     groups = defaultdict(list)
@@ -138,7 +117,7 @@ def group_rows(rows: list[dict], names: list[str]) -> list[dict]:
     for (scene, label), members in groups.items():
         # a diverged run's last loss says nothing
         completed = [r for r in members if r["status"] == "completed"]
-        reached = [r["time_to_threshold"] for r in members if math.isfinite(r["time_to_threshold"])]
+        reached = [r["time_to_target"] for r in members if math.isfinite(r["time_to_target"])]
         time_to = (
             "-"
             if not reached
@@ -151,9 +130,9 @@ def group_rows(rows: list[dict], names: list[str]) -> list[dict]:
                 "group": label,
                 "seeds": len(members),
                 "status": _counts(r["status"] for r in members),
-                "final test loss": _spread(r["test_loss"] for r in completed),
+                "final test loss": _spread(r["test_loss_at_1"] for r in completed),
                 "loss at common time": _spread(r["loss_at_common_time"] for r in members),
-                "time to threshold s": time_to,
+                "time to target s": time_to,
                 "iterations": str(round(float(np.median([r["iterations"] for r in members])))),
                 "s/iter": _spread(r["s_per_iter"] for r in members),
                 "stopped by": _counts((r["stopped_by"] for r in members), plain_if_one=True),
@@ -197,9 +176,9 @@ PER_SEED = (
     "status",
     "stopped_by",
     "iterations",
-    "test_loss",
+    "test_loss_at_1",
     "loss_at_common_time",
-    "time_to_threshold",
+    "time_to_target",
     "s_per_iter",
     "train_seconds",
     "compile_seconds",
@@ -312,7 +291,7 @@ def summary_lines(
         "status",
         "final test loss",
         "loss at common time",
-        "time to threshold s",
+        "time to target s",
         "iterations",
         "s/iter",
         "stopped by",
@@ -329,7 +308,7 @@ def summary_lines(
             "compare sets it (--threshold sets one)"
         )
     per_scene = "; ".join(
-        f"{scene}: common time {fmt(common.get(scene, math.nan))} s, threshold "
+        f"{scene}: common time {fmt(common.get(scene, math.nan))} s, target "
         f"{fmt(threshold if threshold is not None else limits.get(scene, math.nan))}"
         for scene in scenes
     )
@@ -344,7 +323,7 @@ def summary_lines(
         "loss at common time: the last evaluation at or before the shortest training time of the "
         "scene's "
         "completed runs (as physgrad compare reads a budget: physgrad.readout), so every variant "
-        "is compared at equal training time; time to threshold: "
+        "is compared at equal training time; time to target: "
         f"median training seconds until the test loss first reached {threshold_text}, over the "
         f"seeds that did (n/N when not all). {per_scene}.",
         "",

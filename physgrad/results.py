@@ -223,7 +223,14 @@ class Run:
 
     @property
     def variant(self) -> str:
-        return str(self.attrs.get("variant", self.attrs.get("optim", "?")))
+        """The variant as its file names it, in today's spelling (`bptt backprop=M clip=norm`;
+        files written before it spelled the marks `bptt[M,clip=norm]`)."""
+        return _OLD_MARKS.sub(
+            lambda m: " ".join(
+                [m[1], *(mark if "=" in mark else f"backprop={mark}" for mark in m[2].split(","))]
+            ),
+            str(self.attrs.get("variant", self.attrs.get("optim", "?"))),
+        )
 
     @property
     def seconds_per_iteration(self) -> float:
@@ -240,6 +247,9 @@ class Run:
         values = getattr(self, group).get(column, np.empty(0))
         return float(values[-1]) if values.size else math.nan
 
+
+# the marks of a variant label as older files spelled them: name[mode,clip=...] (Run.variant)
+_OLD_MARKS = re.compile(r"(\w+)\[([\w=,]+)\]")
 
 CONFIG_KEYS_LIMIT = 10_000  # settings in a stored config; a physgrad config holds about a hundred
 

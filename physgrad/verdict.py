@@ -37,7 +37,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from physgrad.readout import Curve
+from physgrad.readout import FRACTIONS, Curve
 
 MARGIN = 1.1  # "better" means at least 10% lower; "equivalent" means within 10%
 ALPHA = 0.05
@@ -47,7 +47,6 @@ MIN_PAIRS = 5  # below this no test can reach ALPHA after correction; the verdic
 # |log ratio| standing for "one side diverged": beyond every finite log ratio of float64 losses
 # (< 1500), and far enough that its average with any of them (a median of an even count) is too
 LOG_CAP = 1e4
-FRACTIONS = (0.25, 0.5, 1.0)
 A_BETTER, B_BETTER, EQUIVALENT, UNDECIDED = "A better", "B better", "equivalent", "undecided"
 
 

@@ -12,7 +12,7 @@ import numpy as np
 from physgrad.comparison.calibration import cost_spread
 from physgrad.comparison.clock_text import busy_calibration, timing_lines
 from physgrad.comparison.spec import StudySettings, Variant
-from physgrad.readout import fmt, loss_at, target_loss, time_to_target
+from physgrad.readout import fmt, run_record, target_loss
 from physgrad.verdict import (
     FRACTIONS,
     POWER,
@@ -32,10 +32,6 @@ if TYPE_CHECKING:
     from physgrad.readout import Curve
     from physgrad.results import Run
     from physgrad.verdict import Paired, PairVerdict
-
-
-def _unit(axis: str) -> str:
-    return "iterations" if axis == "iteration" else "s"
 
 
 def _ratio_text(p: Paired) -> str:
@@ -60,7 +56,6 @@ def analyse(
     text)."""
     import pandas as pd
 
-    unit = _unit(axis)
     spread = (
         cost_spread(calibration, [v.name for v in variants])
         if axis == "calibrated_time" and calibration
@@ -93,7 +88,7 @@ def analyse(
     comparisons.to_csv(folder / "comparisons.csv", index=False)
 
     lines = verdict_lines(variants, runs, verdicts, settings, axis, budget, calibration)
-    lines += variant_lines(variants, runs, best, unit, target_variant, target)
+    lines += variant_lines(variants, runs, best, target_variant, target)
     lines += timing_lines(variants, runs, axis, calibration)
     text = "\n".join(lines) + "\n"
     (folder / "compare.md").write_text(text)
@@ -109,43 +104,17 @@ def run_rows(
     target: float,
     study: int = 0,
 ) -> list[dict]:
-    """runs.csv: one row per evaluation run (of tuning study `study`), with its test loss at each
-    fraction of the budget and its time to the target."""
-    from physgrad.machine import machine_label
-
-    unit = _unit(axis)
-    rows = []
-    for variant in variants:
-        for seed in sorted(curves[variant.name]):
-            run = statuses[variant.name][seed]
-            row = {
-                "variant": variant.name,
-                "study": study,
-                "seed": seed,
-                "axis": axis,
-                "budget": budget,
-                "status": run.attrs.get("status"),
-                "stopped_by": run.attrs.get("stopped_by"),
-                "iterations": run.final("train", "iteration") + 1,
-                "train_seconds": run.final("train", "wall_time"),
-                "calibrated_seconds": (
-                    run.final("train", "calibrated_time")
-                    if "calibrated_time" in run.train
-                    else math.nan
-                ),
-                "contended": bool(run.attrs.get("contended", 0)),
-                "contention": run.attrs.get("contention", ""),
-                "step_seconds_p50": run.attrs.get("step_seconds_p50", math.nan),
-                "step_seconds_p90": run.attrs.get("step_seconds_p90", math.nan),
-                "machine": machine_label(run.attrs),
-                "path": str(run.path),
-            }
-            for fraction in FRACTIONS:
-                row[f"test_loss_at_{fraction:g}"] = loss_at(run, budget * fraction, axis)
-            row["diverged_by_budget"] = math.isinf(row["test_loss_at_1"])
-            row[f"to_target_{unit}"] = time_to_target(run, target, budget, axis)
-            rows.append(row)
-    return rows
+    """runs.csv: one row per evaluation run (of tuning study `study`): the study's variant and the
+    run's record at the study's budget (readout.run_record)."""
+    return [
+        {
+            **run_record(statuses[variant.name][seed], target, axis, budget),
+            "variant": variant.name,
+            "study": study,
+        }
+        for variant in variants
+        for seed in sorted(curves[variant.name])
+    ]
 
 
 def comparison_rows(
@@ -367,7 +336,6 @@ def variant_lines(
     variants: list[Variant],
     runs: pd.DataFrame,
     best: list[dict[str, dict]],
-    unit: str,
     target_variant: str,
     target: float,
 ) -> list[str]:
@@ -377,15 +345,15 @@ def variant_lines(
         "",
         "## Variants",
         "",
-        f"| variant | tuned | preset | test loss at the budget: median [min, max] | diverged | "
-        f"to target ({unit}): median, reached |",
+        "| variant | tuned | preset | test loss at the budget: median [min, max] | diverged | "
+        "to target (s): median, reached |",
         "|---|---|---|---|---|---|",
     ]
     for variant in variants:
         sub = runs[runs.variant == variant.name] if len(runs) else runs
         losses = sub["test_loss_at_1"].to_numpy(float) if len(sub) else np.empty(0)
         present = losses[~np.isnan(losses)]
-        reach = sub[f"to_target_{unit}"].to_numpy(float) if len(sub) else np.empty(0)
+        reach = sub["time_to_target"].to_numpy(float) if len(sub) else np.empty(0)
         tuned = tuned_text([study[variant.name] for study in best])
         preset = (
             ", ".join(

@@ -96,7 +96,7 @@ def test_a_users_optimiser_composes_with_backprop_modes_and_clipping(tmp_path):
     runs = {read_run(p).attrs["optim"]: read_run(p) for p in (tmp_path / "out").rglob("results.h5")}
     assert sorted(runs) == ["adamw_cosine", "lion"]
     for run in runs.values():
-        assert run.attrs["status"] == "completed" and run.variant.endswith("[C,clip=norm]")
+        assert run.attrs["status"] == "completed" and run.variant.endswith(" backprop=C clip=norm")
         assert 0 <= run.train["zeroed_fraction"].min() and run.train["zeroed_fraction"].max() <= 1
 
 

@@ -72,11 +72,11 @@ def test_schroedinger_norm_drift_is_round_off(small_check):
 @pytest.mark.long
 def test_bptt_gradient_growth_is_measured(small_check):
     rows = {row["variant"]: row for row in rows_of(small_check, "multicart 4 poles: gradient norm")}
-    assert set(rows) == {"bptt[R]", "bptt[M]"} and all(
+    assert set(rows) == {"bptt backprop=R", "bptt backprop=M"} and all(
         row["outcome"] == "finite" for row in rows.values()
     )
     # the modes differ (with the zero output layer of the initial network they would coincide)
-    assert rows["bptt[R]"]["detail"] != rows["bptt[M]"]["detail"]
+    assert rows["bptt backprop=R"]["detail"] != rows["bptt backprop=M"]["detail"]
 
 
 @pytest.mark.parametrize(

@@ -254,9 +254,10 @@ def test_scene_metrics_and_csv_export(tmp_path, report_figures_skipped):
         "stopped_by",
         "iterations",
         "train_seconds",
-        "test_loss",
+        "test_loss_at_1",
         "loss_at_common_time",
-        "time_to_threshold",
+        "target",
+        "time_to_target",
         "upright",
     } <= set(rows[0])
     assert sorted(float(r["upright"]) for r in rows) == [0.25, 1.0]

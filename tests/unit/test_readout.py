@@ -4,12 +4,13 @@ give the same number for the same run at the same budget, a diverged run and a n
 among them."""
 
 import math
+from pathlib import Path
 
 import numpy as np
 import yaml
 
-from physgrad.readout import Curve, loss_at, run_curve, time_to_target
-from physgrad.results import ResultsWriter, read_run
+from physgrad.readout import Curve, loss_at, run_curve, run_record, time_to_target
+from physgrad.results import ResultsWriter, Run, read_run
 
 
 def write_run(path, variant, seed, x, loss, status="completed", trainer=None, step=1.0, attrs=None):
@@ -100,3 +101,41 @@ def test_a_continued_run_is_read_on_its_own_training_and_placed_after_its_start(
     assert rows[0]["common_time"] == rows[1]["common_time"] == 530.0
     assert rows[0]["loss_at_common_time"] == 0.5  # its own 30 s: the evaluation at 25 s
     assert rows[1]["loss_at_common_time"] == 0.9
+
+
+def test_the_time_to_a_target_is_a_time_on_every_axis():
+    """On an iteration budget the evaluation that first reaches the target is found by its
+    iteration, within the budget, and timed in training seconds; on a time budget it is its
+    seconds; never reached: inf; no target: NaN."""
+    run = Run(
+        Path("r"),
+        {"status": "completed", "seed": 0},
+        {"iteration": np.arange(40.0), "wall_time": 0.5 * np.arange(1, 41.0)},
+        {
+            "iteration": np.array([0.0, 10, 20, 30]),
+            "wall_time": np.array([0.0, 5.5, 10.5, 15.5]),
+            "loss": np.array([1.0, 0.5, 0.2, 0.1]),
+        },
+    )
+    assert time_to_target(run, 0.2, 40, "iteration") == 10.5
+    assert time_to_target(run, 0.1, 25, "iteration") == math.inf  # reached after the budget
+    assert time_to_target(run, 0.5, 20.0, "wall_time") == 5.5
+    assert math.isnan(time_to_target(run, math.nan, 40, "iteration"))
+    record = run_record(run, 0.2, "iteration", 40)
+    assert record["time_to_target"] == 10.5 and record["test_loss_at_0.5"] == 0.2
+    assert record["iterations"] == 40 and not record["diverged_by_budget"]
+
+
+def test_an_older_file_s_variant_reads_in_today_s_spelling(tmp_path):
+    """Files written before the variant's marks were spelled as compare names variants
+    (`bptt[C,clip=norm]`, `stable_bptt[clip=norm]`, `bptt[M]`) read as `bptt backprop=C
+    clip=norm`, ...; a name with a bracket of its own is left as it is."""
+    x, loss = np.array([0, 10]), np.array([1.0, 0.5])
+    for old, today in (
+        ("bptt[C,clip=norm]", "bptt backprop=C clip=norm"),
+        ("stable_bptt[clip=norm]", "stable_bptt clip=norm"),
+        ("adam (from bptt[M])", "adam (from bptt backprop=M)"),
+        ("bptt backprop=M", "bptt backprop=M"),
+        ("my[rule", "my[rule"),
+    ):
+        assert read_run(write_run(tmp_path / f"{len(old)}.h5", old, 0, x, loss)).variant == today

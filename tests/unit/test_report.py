@@ -76,7 +76,7 @@ def label_settings(runs):
 
 def table_rows(runs, threshold=None):
     return [
-        {**row, "t(thr) s": row["time_to_threshold"], "s/iter": row["s_per_iter"]}
+        {**row, "t(thr) s": row["time_to_target"], "s/iter": row["s_per_iter"]}
         for row in run_rows(runs, threshold)
     ]
 
