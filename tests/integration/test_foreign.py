@@ -182,11 +182,12 @@ def test_columns_that_unpack_far_beyond_the_file_are_refused(tmp_path):
 
 
 def test_a_config_with_more_settings_than_any_physgrad_run_is_refused_in_one_line():
-    """A stored config of 100,000 keys (under the byte limit) would make a table of as many
-    columns: refused before it is flattened."""
+    """A stored config of one key more than the limit (10,000, under the byte limit) would make a
+    table of as many columns: refused before it is flattened."""
     from physgrad.results import CONFIG_KEYS_LIMIT
 
-    text = "\n".join(f"k{i}: 0" for i in range(100_000))  # under the byte limit
+    text = "\n".join(f"k{i}: 0" for i in range(CONFIG_KEYS_LIMIT + 1))
+    assert parse_config(text.rsplit("\n", 1)[0])  # the limit itself is read
     with pytest.raises(ValueError, match=f"more than {CONFIG_KEYS_LIMIT} settings") as caught:
         parse_config(text)
     assert "\n" not in str(caught.value)
