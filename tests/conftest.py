@@ -15,13 +15,6 @@ if "JAX_COMPILATION_CACHE_DIR" not in os.environ:
     atexit.register(shutil.rmtree, _cache, ignore_errors=True)
     os.environ["JAX_COMPILATION_CACHE_DIR"] = _cache
 os.environ.setdefault("JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS", "0")
-# The tests' programs are compiled without LLVM's optimisation passes (XLA's backend optimisation
-# level 0), in this process and every one it starts: the same operations in the same order (no
-# fast-math either way), compiled in about 30% less time, which is most of a test of a scene at
-# tiny sizes. What runs faster or slower is measured by make bench, at the default level.
-_FAST_COMPILE = "--xla_backend_optimization_level=0 --xla_llvm_disable_expensive_passes=true"
-if "xla_backend_optimization_level" not in os.environ.get("XLA_FLAGS", ""):
-    os.environ["XLA_FLAGS"] = f"{os.environ.get('XLA_FLAGS', '')} {_FAST_COMPILE}".strip()
 os.environ.setdefault("JAX_PERSISTENT_CACHE_MIN_ENTRY_SIZE_BYTES", "0")
 
 # Generated datasets (the Kuramoto-Sivashinsky trajectories) go to a cache of the test session,
