@@ -723,6 +723,8 @@ def _study_runs(folder: Path, table: Path, runs: object) -> StudyRuns | None:
 
     if not len(runs) or not {"variant", "seed", "axis", "budget", "path"} <= set(runs.columns):
         return None
+    if (folder / "eval").is_symlink():  # resolving it would make anywhere "inside"
+        raise UserError(f"{folder / 'eval'}: a link: refused (a study may come from someone else)")
     inside = (folder / "eval").resolve()
     paths = {}
     for row in runs.itertuples():

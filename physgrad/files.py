@@ -90,8 +90,8 @@ def own_folder(folder: str | os.PathLike, what: str = "job") -> Iterator[None]:
     operating system releases when the process ends however it ends, so a dead owner never blocks a
     new one. FolderOwned (one line naming the owner's pid, host and start time) if a live process
     holds it; LockingUnsupported (one line) where the file system has no locks; OSError if the
-    folder cannot be written or the lock file is a link. The lock file must stay: a second process
-    that finds it deleted creates its own (see docs/results.md)."""
+    folder cannot be written or the lock file is a link or has another name (a hard link). The lock
+    file must stay: a second process that finds it deleted creates its own (see docs/results.md)."""
     folder = Path(folder)
     folder.mkdir(parents=True, exist_ok=True)
     lock_path = folder / f".physgrad-{what}"
@@ -104,6 +104,12 @@ def own_folder(folder: str | os.PathLike, what: str = "job") -> Iterator[None]:
             if error.errno == errno.ELOOP:
                 raise OSError(errno.ELOOP, f"{lock_path.name} is a link: refused") from None
             raise
+        if os.fstat(fd).st_nlink > 1:
+            # a hard link: the owner line below would overwrite the file's other name
+            os.close(fd)
+            raise OSError(
+                errno.EMLINK, f"{lock_path} has another name (a hard link): refused; remove it"
+            )
         try:
             taken = _lock(fd, lock_path)
         except BaseException:
@@ -160,6 +166,24 @@ def open_append(path: Path) -> IO[str]:
     except BaseException:
         os.close(fd)
         raise
+
+
+def own_file(path: Path) -> Path:
+    """path, checked before a study writes or appends to the file of that name in a folder that may
+    come from someone else: absent, or a regular file with no other name. ValueError (one
+    line) for a link (dangling or not), anything that is not a file, or a file with a second name
+    (a hard link), which writing would change too."""
+    try:
+        found = os.lstat(path)
+    except FileNotFoundError:
+        return path
+    if stat.S_ISLNK(found.st_mode):
+        raise ValueError(f"{path}: a link: refused (a folder may come from someone else)")
+    if not stat.S_ISREG(found.st_mode):
+        raise ValueError(f"{path}: {file_kind(found.st_mode)}, not a file: refused")
+    if found.st_nlink > 1:
+        raise ValueError(f"{path}: has another name (a hard link), which writing would change too")
+    return path
 
 
 def replace_file(path: Path, content: bytes, sync: bool = False) -> None:

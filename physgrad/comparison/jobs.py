@@ -72,7 +72,13 @@ def record_study(folder: Path, overrides: list[str], config_dir: str | None) -> 
         "config_dir": os.path.abspath(config_dir) if config_dir else None,
         "protocol": PROTOCOL,
     }
+    from physgrad.files import own_file, replace_file
+
     stored = folder / "study.json"
+    try:
+        own_file(stored)
+    except ValueError as error:
+        raise UserError(f"{error}; remove it or give another compare.dir") from None
     if stored.exists():
         try:
             before = json.loads(stored.read_text())
@@ -91,7 +97,7 @@ def record_study(folder: Path, overrides: list[str], config_dir: str | None) -> 
                 f"({' '.join((before or {}).get('overrides', ['?']))}): give another compare.dir"
             )
     if not stored.exists() or before != record:  # new, or the same study given more trials
-        stored.write_text(json.dumps(record, indent=1) + "\n")
+        replace_file(stored, (json.dumps(record, indent=1) + "\n").encode())
 
 
 # --- jobs as config files
@@ -160,6 +166,14 @@ class Launcher:
         scancel, a time limit, preemption; never started; crashed), naming them, their scheduler
         ids and why."""
         sweep = self.folder / phase
+        # a phase or job folder that is a link is someone else's: its runs would be read into the
+        # verdicts, and the jobs would write through it
+        for where in (sweep, *(sweep / f"+compare_job={name}" for name in jobs)):
+            if where.is_symlink():
+                raise UserError(
+                    f"{where}: a link: refused (a study folder may come from someone else); "
+                    "remove it or give another compare.dir"
+                )
         todo = {
             name: text
             for name, text in jobs.items()
@@ -403,7 +417,7 @@ def _member_order(path: Path) -> tuple[str, int, str]:
 
 def job_runs(sweep: Path, name: str) -> list[Run]:
     """The readable runs of a job: its results.h5, or its members' (seed=<s>/ or trial=<i>/, in
-    numeric order)."""
+    numeric order); a member folder or a file that is a link is not read (someone else's)."""
     from physgrad.results import read_run
 
     folder = sweep / f"+compare_job={name}"
@@ -413,6 +427,8 @@ def job_runs(sweep: Path, name: str) -> list[Run]:
         key=_member_order,
     )
     for path in sorted(folder.glob("results.h5")) + members:
+        if path.is_symlink() or path.parent.is_symlink() or folder.is_symlink():
+            continue
         try:
             runs.append(read_run(path))
         except ValueError:

@@ -12,6 +12,7 @@ import numpy as np
 from physgrad.comparison.calibration import cost_spread
 from physgrad.comparison.clock_text import busy_calibration, timing_lines
 from physgrad.comparison.spec import StudySettings, Variant
+from physgrad.files import replaced_text
 from physgrad.readout import fmt, run_record, target_loss
 from physgrad.verdict import (
     FRACTIONS,
@@ -83,15 +84,17 @@ def analyse(
     )
     comparisons = pd.DataFrame(comparison_rows(verdicts, budget, per_study, settings))
     trials = pd.DataFrame(trials_rows)
-    trials.to_csv(folder / "trials.csv", index=False)
-    runs.to_csv(folder / "runs.csv", index=False)
-    comparisons.to_csv(folder / "comparisons.csv", index=False)
+    # written beside and renamed: a link planted at a table's name is replaced, not written through
+    for name, table in (("trials", trials), ("runs", runs), ("comparisons", comparisons)):
+        with replaced_text(folder / f"{name}.csv") as f:
+            table.to_csv(f, index=False)
 
     lines = verdict_lines(variants, runs, verdicts, settings, axis, budget, calibration)
     lines += variant_lines(variants, runs, best, target_variant, target)
     lines += timing_lines(variants, runs, axis, calibration)
     text = "\n".join(lines) + "\n"
-    (folder / "compare.md").write_text(text)
+    with replaced_text(folder / "compare.md") as f:
+        f.write(text)
     return runs, comparisons, trials, verdicts, text
 
 

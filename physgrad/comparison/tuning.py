@@ -279,8 +279,17 @@ def _open_studies(
 
 
 def journal_storage(path: Path) -> JournalStorage:
-    """Optuna's storage over the journal file at path (one JSON record per line, appended)."""
+    """Optuna's storage over the journal file at path (one JSON record per line, appended); a
+    journal that is a link, not a file, or a file with another name (a hard link) is a UserError
+    (one line): Optuna would append through it."""
     import optuna
+
+    from physgrad.files import own_file
+
+    try:
+        own_file(path)
+    except ValueError as error:
+        raise UserError(f"{error}; remove it or give another compare.dir") from None
 
     return optuna.storages.JournalStorage(optuna.storages.journal.JournalFileBackend(str(path)))
 

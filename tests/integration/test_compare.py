@@ -786,3 +786,87 @@ def test_a_study_folder_of_any_name_runs(small_study):
     assert folder.name == "a,b ü's [x]" and (folder / "compare.md").is_file()
     assert all(folder / "eval" in Path(p).parents for p in small_study.runs.path)
     assert any((folder / "tune").rglob("results.h5"))
+
+
+def test_a_study_writes_its_files_itself_and_never_through_a_link(tmp_path, small_study):
+    """A study folder from someone else: compare's tables and compare.md planted as links to files
+    elsewhere are replaced, not written through; a study.json or a tuning.journal that is a link
+    (dangling too: it would create the file it names) or has a second name (a hard link), and a
+    lock file with a second name, are refused in one line; nothing elsewhere is created or
+    changed."""
+    import os
+
+    study, outside = tmp_path / "study", tmp_path / "outside"
+    args = copy_of(small_study, study)
+    outside.mkdir()
+    tables = ("compare.md", "trials.csv", "runs.csv", "comparisons.csv")
+    for name in tables:
+        (outside / name).write_text("theirs\n")
+        (study / name).unlink()
+        (study / name).symlink_to(outside / name)
+    result = physgrad.compare(*args)
+    assert all((outside / name).read_text() == "theirs\n" for name in tables)
+    assert not any((study / name).is_symlink() for name in tables)
+    assert (study / "compare.md").read_text() == result.text
+
+    def planted(name, how):
+        """The study with `name` replaced by a link to, or a second name of, a file elsewhere."""
+        own, theirs = study / name, outside / f"their {name}"
+        kept = own.with_name(f"{name}.kept")
+        own.rename(kept)
+        if how == "hard link":
+            theirs.write_bytes(kept.read_bytes())
+            os.link(theirs, own)
+        else:  # a link to nothing: writing through it would create their file
+            theirs.unlink(missing_ok=True)
+            own.symlink_to(theirs)
+        return kept, theirs
+
+    for name, how in (
+        ("study.json", "link"),
+        ("tuning.journal", "link"),
+        ("tuning.journal", "hard link"),
+        (".physgrad-study", "hard link"),
+    ):
+        kept, theirs = planted(name, how)
+        before = theirs.read_bytes() if theirs.exists() else None
+        with pytest.raises((UserError, OSError), match="a link|another name") as refused:
+            physgrad.compare(*args)
+        assert "\n" not in str(refused.value) and name in str(refused.value), (name, how)
+        assert (theirs.read_bytes() if theirs.exists() else None) == before, (name, how)
+        (study / name).unlink()
+        kept.rename(study / name)
+
+
+def test_a_job_folder_that_is_a_link_is_neither_read_nor_written_through(tmp_path, small_study):
+    """A study folder from someone else in which an evaluation job's folder, or the whole eval/,
+    is a link to runs elsewhere: their runs never enter the verdicts and no job writes through
+    the link; the study is refused in one line naming it. A member folder that is a link is not
+    read."""
+    import shutil
+
+    from physgrad.comparison.jobs import job_runs
+
+    study = tmp_path / "study"
+    args = copy_of(small_study, study)
+    job = study / "eval" / "+compare_job=eval_st1_v0"
+    shutil.move(job, tmp_path / "theirs")
+    job.symlink_to(tmp_path / "theirs")
+    with pytest.raises(UserError, match="eval_st1_v0: a link: refused") as refused:
+        physgrad.compare(*args)
+    assert "\n" not in str(refused.value)
+    assert job_runs(study / "eval", "eval_st1_v0") == []
+    job.unlink()
+    shutil.move(tmp_path / "theirs", job)
+    members = sorted(p.parent.name for p in job.glob("*/results.h5"))
+    member = sorted(job.glob("*/results.h5"))[0].parent
+    shutil.move(member, tmp_path / "their member")
+    member.symlink_to(tmp_path / "their member")
+    assert len(members) == 6
+    assert [Path(r.path).parent.name for r in job_runs(study / "eval", "eval_st1_v0")] == [
+        m for m in sorted(members, key=lambda m: int(m.split("=")[1])) if m != member.name
+    ]
+    shutil.move(study / "eval", tmp_path / "their eval")
+    (study / "eval").symlink_to(tmp_path / "their eval")
+    with pytest.raises(UserError, match="eval: a link: refused"):
+        physgrad.compare(*args)

@@ -370,6 +370,11 @@ def test_a_studys_runs_table_is_data_its_paths_stay_in_the_study_folder(tmp_path
     found = read_study(study)
     assert len(found.tuning) == 3 and found.paths == found.tuning[0].paths
     assert found.tuning[2].paths["adam"][0].endswith("eval_st2_v0/seed=0/results.h5")
+    # an eval/ that is itself a link: every path through it would resolve "inside" it
+    (study / "eval").rename(tmp_path / "their eval")
+    (study / "eval").symlink_to(tmp_path / "their eval")
+    with pytest.raises(UserError, match="eval: a link: refused"):
+        read_study(study)
 
 
 def tuned(name: str, a_over_b: list[float]) -> FakeStudy:
