@@ -186,6 +186,37 @@ def own_file(path: Path) -> Path:
     return path
 
 
+def read_own_file(path: Path, limit: int, follow: bool = False) -> bytes:
+    """The first `limit` bytes of the regular file at path, opened without following a link (unless
+    follow: a path the user gave) and without waiting on a FIFO: ValueError (one line) for a link,
+    a FIFO, a device or a folder; OSError where it cannot be read."""
+    flags = os.O_RDONLY | os.O_NONBLOCK | (0 if follow else os.O_NOFOLLOW)
+    try:
+        fd = os.open(path, flags)
+    except OSError as error:
+        if error.errno == errno.ELOOP:
+            raise ValueError(
+                f"{path}: a link: refused (a folder may come from someone else)"
+            ) from None
+        raise
+    with os.fdopen(fd, "rb") as file:
+        mode = os.fstat(fd).st_mode
+        if not stat.S_ISREG(mode):
+            raise ValueError(f"{path}: {file_kind(mode)}, not a file: refused")
+        return file.read(limit)
+
+
+def load_json(data: bytes) -> object:
+    """JSON text as data; ValueError (one line) for text that is not JSON or nests deeper than the
+    parser's recursion allows (a crafted file of 200,000 brackets)."""
+    import json
+
+    try:
+        return json.loads(data.decode())
+    except RecursionError:
+        raise ValueError("nested too deep to be a physgrad file") from None
+
+
 def replace_file(path: Path, content: bytes, sync: bool = False) -> None:
     """Write content beside path (.NAME.<pid>.tmp) and rename it onto path: a reader, or a process
     killed at any instant, sees the old file or the new one, never a part (sync: onto the disk

@@ -33,11 +33,12 @@ from physgrad.errors import UserError
 CALIBRATION_FILE = "calibration.json"
 
 
-def read_calibration(path: Path, names: list[str]) -> dict | None:
+def read_calibration(path: Path, names: list[str], given: bool = False) -> dict | None:
     """The stored calibration if it is whole: a quantile in (0, 1), load averages, the machine, and
     for every one of names a step cost of at least MIN_STEP_COST (a microsecond) and below an hour,
     its median and rounds; else None (calibrate again). A file that may come from someone else is
-    read as data, at most 1 MB."""
+    read as data, at most 1 MB, never through a link (given: a path the user named, which may be
+    one) and never from a FIFO, a device or a folder."""
     from physgrad.runner import MIN_STEP_COST
 
     def seconds(value: object) -> bool:
@@ -52,9 +53,10 @@ def read_calibration(path: Path, names: list[str]) -> dict | None:
             isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
         )
 
+    from physgrad.files import load_json, read_own_file
+
     try:
-        with open(path, "rb") as file:
-            stored = json.loads(file.read(1 << 20).decode())
+        stored = load_json(read_own_file(Path(path), 1 << 20, follow=given))
         whole = (
             isinstance(stored, dict)
             and finite(stored.get("quantile"))
@@ -62,6 +64,7 @@ def read_calibration(path: Path, names: list[str]) -> dict | None:
             and finite(stored.get("load_start"))
             and finite(stored.get("load_end"))
             and isinstance(stored.get("machine"), dict)
+            and isinstance(stored["machine"].get("cpu_count", 1), int)
             and isinstance(stored.get("costs"), dict)
             and all(
                 isinstance(stored["costs"].get(name), dict)
@@ -120,7 +123,7 @@ def calibrated_clock(plan: StudyPlan, launcher: Launcher, given: str | None) -> 
     path = folder / CALIBRATION_FILE
     names = [v.name for v in variants]
     if given is not None:
-        calibration = read_calibration(Path(given), names)
+        calibration = read_calibration(Path(given), names, given=True)
         if calibration is None:
             raise UserError(
                 f"compare.calibration={given}: not a calibration.json with a step cost for every "

@@ -72,7 +72,7 @@ def record_study(folder: Path, overrides: list[str], config_dir: str | None) -> 
         "config_dir": os.path.abspath(config_dir) if config_dir else None,
         "protocol": PROTOCOL,
     }
-    from physgrad.files import own_file, replace_file
+    from physgrad.files import load_json, own_file, read_own_file, replace_file
 
     stored = folder / "study.json"
     try:
@@ -81,7 +81,7 @@ def record_study(folder: Path, overrides: list[str], config_dir: str | None) -> 
         raise UserError(f"{error}; remove it or give another compare.dir") from None
     if stored.exists():
         try:
-            before = json.loads(stored.read_text())
+            before = load_json(read_own_file(stored, 1 << 20))
         except (OSError, ValueError):
             before = None
         stored_study, this_study = same_study(before), same_study(record)

@@ -596,6 +596,7 @@ def test_a_calibration_is_used_only_whole_and_within_a_physical_step_cost(tmp_pa
     field, a step faster than a microsecond or slower than an hour, a non-number: not used
     (compare calibrates again, or refuses a given one in one line)."""
     import json
+    import os
 
     from physgrad.comparison.calibration import read_calibration
 
@@ -613,6 +614,7 @@ def test_a_calibration_is_used_only_whole_and_within_a_physical_step_cost(tmp_pa
     for broken in (
         {k: v for k, v in whole.items() if k != "quantile"},
         {**whole, "machine": "x"},
+        {**whole, "machine": {"cpu_count": "many"}},
         {**whole, "load_start": "high"},
         {**whole, "costs": {"adam": {**whole["costs"]["adam"], "step_seconds": 1e-300}}},
         {**whole, "costs": {"adam": {**whole["costs"]["adam"], "step_seconds": 1e9}}},
@@ -623,6 +625,18 @@ def test_a_calibration_is_used_only_whole_and_within_a_physical_step_cost(tmp_pa
         assert read_calibration(path, ["adam"]) is None, broken
     path.write_text('{"quantile": 0.2, "costs": ')  # cut short
     assert read_calibration(path, ["adam"]) is None
+    path.write_text("[" * 200_000 + "]" * 200_000)  # deeper than the parser recurses
+    assert read_calibration(path, ["adam"]) is None
+    # never read through a link or from a FIFO (which would block), unless a user's path links
+    path.unlink()
+    (tmp_path / "elsewhere.json").write_text(json.dumps(whole))
+    path.symlink_to(tmp_path / "elsewhere.json")
+    assert read_calibration(path, ["adam"]) is None
+    assert read_calibration(path, ["adam"], given=True) == whole
+    path.unlink()
+    os.mkfifo(path)
+    assert read_calibration(path, ["adam"]) is None
+    assert read_calibration(path, ["adam"], given=True) is None
 
 
 def test_a_step_cost_faster_than_a_microsecond_is_refused(tmp_path):
@@ -791,9 +805,9 @@ def test_a_study_folder_of_any_name_runs(small_study):
 def test_a_study_writes_its_files_itself_and_never_through_a_link(tmp_path, small_study):
     """A study folder from someone else: compare's tables and compare.md planted as links to files
     elsewhere are replaced, not written through; a study.json or a tuning.journal that is a link
-    (dangling too: it would create the file it names) or has a second name (a hard link), and a
-    lock file with a second name, are refused in one line; nothing elsewhere is created or
-    changed."""
+    (dangling too: it would create the file it names), has a second name (a hard link) or is a
+    FIFO (a read would wait for ever), and a lock file with a second name, are refused in one
+    line; nothing elsewhere is created or changed."""
     import os
 
     study, outside = tmp_path / "study", tmp_path / "outside"
@@ -817,6 +831,8 @@ def test_a_study_writes_its_files_itself_and_never_through_a_link(tmp_path, smal
         if how == "hard link":
             theirs.write_bytes(kept.read_bytes())
             os.link(theirs, own)
+        elif how == "FIFO":  # reading it would wait for a writer for ever
+            os.mkfifo(own)
         else:  # a link to nothing: writing through it would create their file
             theirs.unlink(missing_ok=True)
             own.symlink_to(theirs)
@@ -827,10 +843,12 @@ def test_a_study_writes_its_files_itself_and_never_through_a_link(tmp_path, smal
         ("tuning.journal", "link"),
         ("tuning.journal", "hard link"),
         (".physgrad-study", "hard link"),
+        ("study.json", "FIFO"),
+        ("tuning.journal", "FIFO"),
     ):
         kept, theirs = planted(name, how)
         before = theirs.read_bytes() if theirs.exists() else None
-        with pytest.raises((UserError, OSError), match="a link|another name") as refused:
+        with pytest.raises((UserError, OSError), match="a link|another name|not a file") as refused:
             physgrad.compare(*args)
         assert "\n" not in str(refused.value) and name in str(refused.value), (name, how)
         assert (theirs.read_bytes() if theirs.exists() else None) == before, (name, how)
