@@ -23,6 +23,7 @@ import fcntl
 import logging
 import os
 import shutil
+import stat
 import subprocess
 import tempfile
 from pathlib import Path
@@ -59,12 +60,37 @@ def visible_gpus(environ: dict[str, str] | None = None) -> list[str]:
     return [str(i) for i, line in enumerate(listing.splitlines()) if line.startswith("GPU ")]
 
 
-def lock_folder() -> Path:
-    """The user's folder of GPU locks on this machine (a runtime folder, never shared)."""
+def lock_folder() -> Path | None:
+    """The user's folder of GPU locks on this machine (in the runtime folder, else the temporary
+    folder, which others can write to); None, with a warning, where it cannot be the user's own: it
+    cannot be made, it is a link or no folder, another user owns it, or others may write in it (a
+    mode beyond 0700). Another user's folder would let them hold or read the claims."""
     base = os.environ.get("XDG_RUNTIME_DIR") or tempfile.gettempdir()
     folder = Path(base) / f"physgrad-gpus-{os.getuid()}"
-    folder.mkdir(mode=0o700, exist_ok=True)
-    return folder
+    try:
+        try:
+            folder.mkdir(mode=0o700)
+        except FileExistsError:
+            pass  # the folder from before, or something else in its place: told below
+        found = os.lstat(folder)
+    except OSError as error:
+        why = f"not usable ({error.strerror or error})"
+    else:
+        why = (
+            "a link"
+            if stat.S_ISLNK(found.st_mode)
+            else "not a folder"
+            if not stat.S_ISDIR(found.st_mode)
+            else f"owned by user {found.st_uid}"
+            if found.st_uid != os.getuid()
+            else f"open to other users (mode {stat.S_IMODE(found.st_mode):o}, not 700)"
+            if found.st_mode & 0o077
+            else None
+        )
+    if why is None:
+        return folder
+    log.warning("GPU locks: %s is %s: this job is not pinned to one GPU", folder, why)
+    return None
 
 
 def _try_lock(path: Path) -> int | None:
@@ -79,13 +105,26 @@ def _try_lock(path: Path) -> int | None:
 
 def claim_gpu(job_number: int = 0) -> str | None:
     """Give this process one GPU of several (module docstring) by setting CUDA_VISIBLE_DEVICES;
-    returns the GPU, or None where nothing was changed. Call before jax starts its backend."""
+    returns the GPU, or None where nothing was changed (one GPU or none, or a lock folder or file
+    that cannot be used: a warning, and the job runs unpinned). Call before jax starts its
+    backend."""
     gpus = visible_gpus()
     if len(gpus) <= 1 or _held:
         return None
     folder = lock_folder()
+    if folder is None:
+        return None
     for gpu in gpus:
-        fd = _try_lock(folder / f"{gpu.replace('/', '_')}.lock")
+        lock = folder / f"{gpu.replace('/', '_')}.lock"
+        try:
+            fd = _try_lock(lock)
+        except OSError as error:  # a link, a name too long, a read-only file system: not pinned
+            log.warning(
+                "GPU locks: %s cannot be used (%s): this job is not pinned to one GPU",
+                lock,
+                error.strerror or error,
+            )
+            return None
         if fd is not None:
             _held.append(fd)
             os.environ["CUDA_VISIBLE_DEVICES"] = gpu

@@ -71,3 +71,56 @@ def test_without_the_joblib_plugin_the_jobs_run_in_turn_with_a_warning(monkeypat
     with caplog.at_level(logging.WARNING, logger="physgrad.gpus"):
         assert gpus.local_launcher_args([], 4) == []
     assert "physgrad[launchers]" in caplog.text
+
+
+def test_a_lock_folder_or_file_that_is_not_the_users_own_leaves_the_job_unpinned(
+    tmp_path, monkeypatch, caplog
+):
+    """Without a runtime folder the GPU locks live in the temporary folder, which others can write
+    to: a lock folder that is a link, no folder, another user's or open to others, a lock file that
+    is a link, or a folder that cannot be made, is a warning and an unpinned job (nothing written
+    through a link), never a traceback before the job's own error handling; the user's own folder
+    gives a GPU."""
+    import shutil
+
+    monkeypatch.setenv("CUDA_VISIBLE_DEVICES", "0,1")
+    monkeypatch.setenv("XDG_RUNTIME_DIR", str(tmp_path))
+    folder, elsewhere = tmp_path / f"physgrad-gpus-{os.getuid()}", tmp_path / "elsewhere"
+    elsewhere.mkdir()
+
+    def unpinned(why: str) -> None:
+        monkeypatch.setattr(gpus, "_held", [])
+        caplog.clear()
+        assert gpus.claim_gpu() is None, why
+        assert os.environ["CUDA_VISIBLE_DEVICES"] == "0,1", why
+        assert why in caplog.text and "not pinned" in caplog.text, caplog.text
+        assert not list(elsewhere.iterdir())
+
+    folder.symlink_to(elsewhere)
+    unpinned("a link")
+    folder.unlink()
+    folder.write_text("")
+    unpinned("not a folder")
+    folder.unlink()
+    folder.mkdir(mode=0o700)
+    folder.chmod(0o777)
+    unpinned("open to other users (mode 777")
+    folder.chmod(0o700)
+    if os.getuid() == 0:  # root can give the folder to another user, as another user's would be
+        os.chown(folder, 12345, 12345)
+        unpinned("owned by user 12345")
+        os.chown(folder, 0, 0)
+    (folder / "0.lock").symlink_to(elsewhere / "0.lock")
+    unpinned("cannot be used")
+    shutil.rmtree(folder)
+    monkeypatch.setenv("XDG_RUNTIME_DIR", str(tmp_path / "no such folder"))
+    unpinned("No such file or directory")
+
+    monkeypatch.setenv("XDG_RUNTIME_DIR", str(tmp_path))
+    held = []
+    monkeypatch.setattr(gpus, "_held", held)
+    try:
+        assert gpus.claim_gpu() == "0" and os.environ["CUDA_VISIBLE_DEVICES"] == "0"
+    finally:
+        for fd in held:
+            os.close(fd)
