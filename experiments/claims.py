@@ -700,10 +700,16 @@ def read_study(folder: Path) -> StudyRuns | None:
     line)."""
     import pandas as pd
 
+    from physgrad.errors import UserError
+
     table = folder / "runs.csv"
     if not table.is_file():
         return None
-    table_runs = pd.read_csv(table)
+    try:
+        table_runs = pd.read_csv(table, dtype=str)
+    except ValueError as error:  # pandas' parse errors, an empty file, bytes that are no text
+        why = (str(error).splitlines() or [type(error).__name__])[0][:200]
+        raise UserError(f"{table}: not a table of runs ({why})") from None
     if "study" not in table_runs:  # written before repeated tuning studies: one study
         return _study_runs(folder, table, table_runs)
     found = [
@@ -731,7 +737,8 @@ def _study_runs(folder: Path, table: Path, runs: object) -> StudyRuns | None:
         number = int(row.Index) + 2  # the table's line (a header, then rows from 0)
         parts = Path(str(row.path)).parts
         seed = str(row.seed)
-        if "eval" not in parts or not seed.isdigit():
+        # a seed as physgrad writes one: ASCII digits below 2^32 ("²" is a digit to str.isdigit)
+        if "eval" not in parts or not (seed.isascii() and seed.isdecimal() and len(seed) <= 10):
             raise UserError(f"{table} line {number}: not a run of this study (seed {seed!r})")
         path = folder.joinpath(*parts[len(parts) - 1 - parts[::-1].index("eval") :])
         if ".." in path.relative_to(folder).parts or not path.resolve().is_relative_to(inside):

@@ -350,6 +350,8 @@ def test_a_studys_runs_table_is_data_its_paths_stay_in_the_study_folder(tmp_path
         ("adam,0,0,iteration,30,eval/../../elsewhere/results.h5", "leaves"),
         ("adam,0,0,iteration,30,eval/out/results.h5", "leaves"),
         ("adam,0,0,iteration,x,eval/x/results.h5", "is not a number"),
+        ("adam,0,²,iteration,30,eval/x/results.h5", "not a run of this study"),
+        (f"adam,0,{'9' * 5000},iteration,30,eval/x/results.h5", "not a run of this study"),
     ):
         table(row)
         with pytest.raises(UserError, match=why):
@@ -370,7 +372,14 @@ def test_a_studys_runs_table_is_data_its_paths_stay_in_the_study_folder(tmp_path
     found = read_study(study)
     assert len(found.tuning) == 3 and found.paths == found.tuning[0].paths
     assert found.tuning[2].paths["adam"][0].endswith("eval_st2_v0/seed=0/results.h5")
+    # a runs.csv that is no table: one line
+    for content in (b"", b"\x00\xff\xfe" * 100, b'"unclosed\n'):
+        (study / "runs.csv").write_bytes(content)
+        with pytest.raises(UserError, match="not a table of runs") as refused:
+            read_study(study)
+        assert "\n" not in str(refused.value)
     # an eval/ that is itself a link: every path through it would resolve "inside" it
+    table("adam,0,0,iteration,30,eval/+compare_job=eval_v0/seed=0/results.h5")
     (study / "eval").rename(tmp_path / "their eval")
     (study / "eval").symlink_to(tmp_path / "their eval")
     with pytest.raises(UserError, match="eval: a link: refused"):
