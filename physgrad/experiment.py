@@ -388,9 +388,9 @@ def finished_earlier(
     if cfg.get("overwrite", False):
         return None
     previous = []
-    for (_, path), member in zip(paths, member_configs(cfg, len(paths))):
+    for (seed, path), member in zip(paths, member_configs(cfg, len(paths))):
         stop.raise_if_stopped()
-        previous.append(finished_before(path, member))
+        previous.append(finished_before(path, member, seed))
     return job_outcome(previous) if all(previous) else None
 
 

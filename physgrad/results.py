@@ -327,17 +327,43 @@ def read_final(path: str | os.PathLike) -> tuple[dict, dict]:
     """The attributes and the last /eval row of a results file, without reading the curves (a
     resumed sweep checks every job this way), with the checks of read_run; ValueError (one line) as
     read_run."""
+    return read_end(path)[:2]
+
+
+def read_end(path: str | os.PathLike) -> tuple[dict, dict, float]:
+    """read_final, and the iteration of the last /train row (NaN without one)."""
     path = Path(path)
     with open_results(path) as f:
         attrs = checked_attrs(path, f)
-        checked_columns(path, f, "train")
+        train = checked_columns(path, f, "train")
         columns = checked_columns(path, f, "eval")
         _config_of(path, attrs)
         last = read_columns(
             path,
             lambda: {key: column[-1].item() for key, column in columns.items() if column.shape[0]},
         )
-    return attrs, last
+        iterations = train.get("iteration")
+        last_train = read_columns(
+            path,
+            lambda: (
+                float(iterations[-1])
+                if iterations is not None and iterations.shape[0]
+                else math.nan
+            ),
+        )
+    return attrs, last, last_train
+
+
+def cut_short(attrs: dict, last_train_iteration: float) -> str | None:
+    """Why a results file that says its run ended (completed or diverged after `iterations`) does
+    not hold that run whole: its training rows end before its last iteration (a file cut short or
+    copied from a shorter run); None if they reach it."""
+    iterations = attrs.get("iterations")
+    if not isinstance(iterations, (int, np.integer)) or isinstance(iterations, bool):
+        return None  # written before the record held it: nothing to hold the rows to
+    if iterations > 0 and not last_train_iteration + 1 >= iterations:
+        return f"its rows end at iteration {last_train_iteration:g} of {iterations}: cut short"
+    return None
 
 
 def read_params(path: str | os.PathLike) -> np.ndarray:

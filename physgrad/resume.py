@@ -11,7 +11,7 @@ from jax.flatten_util import ravel_pytree
 from omegaconf import DictConfig, OmegaConf
 
 from physgrad.errors import UserError
-from physgrad.results import Run, parse_config, read_final, read_params
+from physgrad.results import Run, cut_short, parse_config, read_end, read_final, read_params
 from physgrad.runner import Outcome
 
 # keys that do not change what a run computes (a run stored without them is the same run)
@@ -28,17 +28,21 @@ def comparable_config(cfg: DictConfig) -> dict:
     return parse_config(OmegaConf.to_yaml(plain))
 
 
-def finished_before(path: Path, cfg: DictConfig) -> Outcome | None:
+def finished_before(path: Path, cfg: DictConfig, seed: int | None = None) -> Outcome | None:
     """The outcome recorded at path if that run completed or diverged with this same config (a sweep
-    being re-run): both are results the same config gives again; interrupted, failed and refused
-    runs run again. The stored config is compared as data: nothing in it is resolved (a file from
-    elsewhere may hold anything)."""
+    being re-run) and, given the member's seed, on that seed, with its rows whole
+    (results.cut_short): both are results the same config gives again; interrupted, failed and
+    refused runs run again, as do a file copied from another seed or cut short (the checks a
+    study's evaluation makes, so that the two never disagree). The stored config is compared as
+    data: nothing in it is resolved (a file from elsewhere may hold anything)."""
     if not path.exists():
         return None
     try:
-        attrs, last_eval = read_final(path)
+        attrs, last_eval, last_train = read_end(path)
         stored = parse_config(attrs.get("config", ""))
     except ValueError:
+        return None
+    if (seed is not None and attrs.get("seed") != seed) or cut_short(attrs, last_train):
         return None
     for key in NOT_RESULT_KEYS:
         stored.pop(key, None)

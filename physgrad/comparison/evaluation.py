@@ -121,11 +121,16 @@ def evaluation(
 
 def _not_asked_for(run: Run, tuned: dict, seeds: list[int]) -> str | None:
     """Why an evaluation run is not one its tuning study asked for (one of the study's seeds, its
-    tuned values, run to its end), or None."""
+    tuned values, run to its end with its rows whole), or None."""
     status = run.attrs.get("status")
     if status not in ("completed", "diverged"):
         reason = run.attrs.get("reason")
         return f"{status}" + (f" ({reason})" if reason else "")
+    from physgrad.results import cut_short
+
+    short = cut_short(run.attrs, run.final("train", "iteration"))
+    if short is not None:
+        return short
     seed = run.attrs.get("seed")
     if not isinstance(seed, int) or seed not in seeds:
         return f"seed {seed!r} is not one of the study's evaluation seeds {seeds[0]}..{seeds[-1]}"

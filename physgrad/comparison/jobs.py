@@ -211,8 +211,8 @@ def job_finished(sweep: Path, name: str, text: str, variant_config: DictConfig) 
         return False
     paths = seed_paths(cfg, sweep / f"+compare_job={name}")
     return all(
-        finished_before(path, member) is not None
-        for (_, path), member in zip(paths, member_configs(cfg, len(paths)))
+        finished_before(path, member, seed) is not None
+        for (seed, path), member in zip(paths, member_configs(cfg, len(paths)))
     )
 
 

@@ -888,3 +888,36 @@ def test_a_job_folder_that_is_a_link_is_neither_read_nor_written_through(tmp_pat
     (study / "eval").symlink_to(tmp_path / "their eval")
     with pytest.raises(UserError, match="eval: a link: refused"):
         physgrad.compare(*args)
+
+
+def test_a_results_file_copied_from_another_seed_or_cut_short_is_trained_again(
+    tmp_path, small_study
+):
+    """Resume and the evaluation check a run alike: a member's file copied from another seed of its
+    job (the stored config is the job's, the same for every seed), or cut to two rows while still
+    marked completed, is not a finished run: the job trains again and the verdicts and losses are
+    the study's own. (The copy made resume skip the job and the evaluation ask for it again, for
+    ever; the cut file was used, changing 3 of 12 median ratios.)"""
+    import shutil
+
+    import h5py
+
+    from physgrad.results import read_run
+
+    study = tmp_path / "study"
+    args = copy_of(small_study, study)
+    copied = study / "eval" / "+compare_job=eval_st1_v0"
+    shutil.copy(copied / "seed=7" / "results.h5", copied / "seed=6" / "results.h5")
+    cut = study / "eval" / "+compare_job=eval_st1_v1" / "seed=9" / "results.h5"
+    with h5py.File(cut, "r+") as f:
+        for group in ("train", "eval"):
+            for key in list(f[group]):
+                kept = f[group][key][:2]
+                del f[group][key]
+                f[group].create_dataset(key, data=kept)
+    assert read_run(cut).attrs["status"] == "completed"
+    again = physgrad.compare(*args)
+    assert read_run(copied / "seed=6" / "results.h5").attrs["seed"] == 6
+    assert read_run(cut).train["loss"].size == 30
+    assert again.runs.test_loss_at_1.tolist() == small_study.runs.test_loss_at_1.tolist()
+    assert [v.verdict for v in again.verdicts] == [v.verdict for v in small_study.verdicts]
