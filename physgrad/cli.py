@@ -15,7 +15,7 @@ import sys
 from collections.abc import Iterable
 from pathlib import Path
 
-from physgrad.errors import UserError
+from physgrad.errors import LauncherRefused, UserError
 from physgrad.interrupts import (
     ABANDONED,
     SignalInterrupt,
@@ -87,6 +87,13 @@ def _main(argv: list[str] | None) -> int:
         )
         print(f"physgrad: stopped by {name}", file=sys.stderr)
         code = 130
+        if argv is not None:
+            return code
+    except LauncherRefused as refused:
+        from physgrad.files import clean_text
+
+        print(f"physgrad: error: {clean_text(str(refused), None)}", file=sys.stderr)
+        code = 2
         if argv is not None:
             return code
     except SystemExit as leaving:

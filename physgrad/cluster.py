@@ -33,18 +33,10 @@ def launch_array(launcher: Any, job_overrides: Sequence[Sequence[str]], first: i
     from hydra.core.utils import JobReturn, JobStatus, filter_overrides
     from hydra_plugins.hydra_submitit_launcher.config import BaseQueueConf
 
+    from physgrad.errors import LauncherRefused
+    from physgrad.files import clean_text
     from physgrad.sweeps import ON_STOP
 
-    params = dict(launcher.params)
-    executor = submitit.AutoExecutor(
-        cluster="slurm",
-        folder=params.pop("submitit_folder"),
-        slurm_max_num_timeout=params.pop("max_num_timeout", 0),
-    )
-    shared = {field.name for field in dataclasses.fields(BaseQueueConf)}
-    executor.update_parameters(
-        **{key if key in shared else f"slurm_{key}": value for key, value in params.items()}
-    )
     sweep = Path(str(launcher.config.hydra.sweep.dir))
     sweep.mkdir(parents=True, exist_ok=True)
     calls = []
@@ -59,7 +51,32 @@ def launch_array(launcher: Any, job_overrides: Sequence[Sequence[str]], first: i
                 Singleton.get_state(),
             )
         )
-    jobs = executor.map_array(launcher, *zip(*calls))
+    try:
+        params = dict(launcher.params)
+        executor = submitit.AutoExecutor(
+            cluster="slurm",
+            folder=params.pop("submitit_folder"),
+            slurm_max_num_timeout=params.pop("max_num_timeout", 0),
+        )
+        shared = {field.name for field in dataclasses.fields(BaseQueueConf)}
+        executor.update_parameters(
+            **{key if key in shared else f"slurm_{key}": value for key, value in params.items()}
+        )
+        jobs = executor.map_array(launcher, *zip(*calls))
+    except (
+        RuntimeError,  # submitit finding no srun
+        OSError,
+        subprocess.SubprocessError,
+        submitit.core.utils.FailedJobError,
+        submitit.core.utils.FailedSubmissionError,
+    ) as error:
+        # no srun or sbatch, sbatch refusing the array, or an answer naming no job: their words
+        lines = [line.strip() for line in str(error).splitlines() if line.strip()]
+        why = lines[0] if lines else type(error).__name__
+        raise LauncherRefused(
+            f"SLURM did not take the sweep's {len(calls)} jobs: {clean_text(why, 300)} (check "
+            "hydra.launcher's partition, account and limits, and that sbatch runs here)"
+        ) from None
     if jobs:
         log.info("SLURM job array %s: %d jobs", array_id(jobs[0].job_id), len(jobs))
         ON_STOP.append(lambda: cancel_waiting(jobs))

@@ -31,6 +31,13 @@ class UserError(Exception):
     """A mistake in what the user asked for; reported as one line, never as a traceback."""
 
 
+class LauncherRefused(BaseException):
+    """A sweep's launcher could not start its jobs (sbatch missing or refusing the array): the
+    message in one line. A BaseException, as KeyboardInterrupt is, so that Hydra's multirun, which
+    prints any Exception from its launcher with a traceback, lets it through to the command line
+    (physgrad.cli: `physgrad: error: ...`, exit code 2)."""
+
+
 class ResultsWriteError(OSError):
     """results.h5 could not be written (disk full, quota, permissions): one line that names the
     file."""

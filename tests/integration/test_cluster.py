@@ -46,3 +46,46 @@ def test_submitits_slurm_launcher_is_run_as_physgrads():
     other = OmegaConf.create({"hydra": {"launcher": {"_target_": "x.JoblibLauncher"}}})
     use_physgrad_launcher(other)
     assert other.hydra.launcher._target_ == "x.JoblibLauncher"
+
+
+@pytest.mark.parametrize(
+    "sbatch, said",
+    [
+        (None, 'Could not detect "srun"'),  # no SLURM on the PATH
+        (
+            "echo 'sbatch: error: Batch job submission failed: Invalid partition name' >&2; exit 1",
+            "sbatch: error: Batch job submission failed: Invalid partition name",
+        ),
+        ("echo 'garbage here'", "Could not make sense of sbatch output"),
+    ],
+)
+def test_a_slurm_sweep_that_cannot_start_is_one_line(tmp_path, monkeypatch, capsys, sbatch, said):
+    """SLURM start-up failures (no SLURM client, sbatch refusing the array with its own message,
+    an answer that names no job) end the command in one line that says sbatch's own words, exit code
+    2; it was a traceback of 28 to 39 lines with the useful line buried. (sbatch hanging is not
+    covered: submitit waits for it.)"""
+    import os
+
+    from physgrad.cli import main
+
+    bin_dir = tmp_path / "bin"
+    bin_dir.mkdir()
+    if sbatch is not None:  # a SLURM client whose sbatch answers so
+        for name, body in (("sbatch", sbatch), ("srun", "exit 0")):
+            (bin_dir / name).write_text(f"#!/bin/sh\n{body}\n")
+            (bin_dir / name).chmod(0o755)
+    python_dir = os.path.dirname(os.path.realpath(os.sys.executable))
+    monkeypatch.setenv("PATH", f"{bin_dir}:{python_dir}")  # no other sbatch
+    code = main(
+        [
+            "run",
+            "-m",
+            "task=toy",
+            "trainer.iterations=2",
+            "hydra/launcher=submitit_slurm",
+            f"hydra.sweep.dir={tmp_path / 'sweep'}",
+        ]
+    )
+    error = [line for line in capsys.readouterr().err.splitlines() if "physgrad: error" in line]
+    assert code == 2 and len(error) == 1, error
+    assert "SLURM did not take the sweep's 1 jobs" in error[0] and said in error[0], error
