@@ -143,7 +143,7 @@ def test_pair_runs_two_iterations_or_is_refused(task, settings, optim, tmp_path,
         assert (tmp_path / "loss.png").exists() == figures
         # a scene with a per-run figure (Scene.figure) draws it beside loss.png; the others draw
         # none
-        assert (tmp_path / "scene.png").exists() == (task in ("guidance", "ks"))
+        assert (tmp_path / "scene.png").exists() == (figures and task in ("guidance", "ks"))
         assert ("unroll" in run.attrs) == (task not in ("poisson", "toy"))
         if optim == "stable_bptt":  # the combined gradient's diagnostics are logged per iteration
             assert (
