@@ -31,6 +31,7 @@ import signal
 import sys
 import warnings
 from collections.abc import Callable
+from contextlib import ExitStack
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -96,33 +97,40 @@ def run_study(
     )
     folder.mkdir(parents=True, exist_ok=True)
     record_study(folder, overrides, config_dir)
+    held = ExitStack()
     try:
-        with own_folder(folder, "study"):
-            say(
-                f"study {folder}: {len(variants)} variants "
-                f"({', '.join(v.name for v in variants)}), budget "
-                f"{budget:g} {'iterations' if axis == 'iteration' else 's'}; the same command "
-                "resumes it"
-            )
-            if gpus > 1:
-                say(f"{gpus} GPUs: each phase runs {gpus} jobs side by side, one per GPU")
-            calibration = None
-            launcher = Launcher(folder, config_dir, hydra_args, say)
-            if axis == "wall_time" and settings.clock == "calibrated":
-                calibration = calibrated_clock(plan, launcher, settings.calibration)
-                axis = "calibrated_time"
-            plan = StudyPlan(variants, settings, common, groups, axis, budget)
-            best = tuning(plan, launcher)
-            rows = trial_rows(folder, variants, settings.study_count)
-            if rows:
-                plot_sensitivity(folder / "sensitivity", variants, rows, best)
-            curves, statuses = evaluation(plan, best, launcher)
-            runs, comparisons, trials, verdicts, text = analyse(
-                folder, variants, best, curves, statuses, settings, axis, budget, rows, calibration
-            )
-            write_curves_report(folder, say)
+        held.enter_context(own_folder(folder, "study"))
     except FolderOwned as error:
         raise UserError(str(error)) from None
+    except OSError as error:  # the lock file is a link, a second name, a folder, or unwritable
+        raise UserError(
+            f"{folder}: the study's lock cannot be taken ({error.strerror or error}): remove "
+            f"{folder / '.physgrad-study'} or give another compare.dir"
+        ) from None
+    with held:
+        say(
+            f"study {folder}: {len(variants)} variants "
+            f"({', '.join(v.name for v in variants)}), budget "
+            f"{budget:g} {'iterations' if axis == 'iteration' else 's'}; the same command "
+            "resumes it"
+        )
+        if gpus > 1:
+            say(f"{gpus} GPUs: each phase runs {gpus} jobs side by side, one per GPU")
+        calibration = None
+        launcher = Launcher(folder, config_dir, hydra_args, say)
+        if axis == "wall_time" and settings.clock == "calibrated":
+            calibration = calibrated_clock(plan, launcher, settings.calibration)
+            axis = "calibrated_time"
+        plan = StudyPlan(variants, settings, common, groups, axis, budget)
+        best = tuning(plan, launcher)
+        rows = trial_rows(folder, variants, settings.study_count)
+        if rows:
+            plot_sensitivity(folder / "sensitivity", variants, rows, best)
+        curves, statuses = evaluation(plan, best, launcher)
+        runs, comparisons, trials, verdicts, text = analyse(
+            folder, variants, best, curves, statuses, settings, axis, budget, rows, calibration
+        )
+        write_curves_report(folder, say)
     return Study(folder, trials, runs, comparisons, verdicts, text)
 
 

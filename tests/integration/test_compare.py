@@ -806,8 +806,8 @@ def test_a_study_writes_its_files_itself_and_never_through_a_link(tmp_path, smal
     """A study folder from someone else: compare's tables and compare.md planted as links to files
     elsewhere are replaced, not written through; a study.json or a tuning.journal that is a link
     (dangling too: it would create the file it names), has a second name (a hard link) or is a
-    FIFO (a read would wait for ever), and a lock file with a second name, are refused in one
-    line; nothing elsewhere is created or changed."""
+    FIFO (a read would wait for ever) or a folder, and a lock file that is a link, a second name
+    or a folder, are refused in one line; nothing elsewhere is created or changed."""
     import os
 
     study, outside = tmp_path / "study", tmp_path / "outside"
@@ -833,6 +833,8 @@ def test_a_study_writes_its_files_itself_and_never_through_a_link(tmp_path, smal
             os.link(theirs, own)
         elif how == "FIFO":  # reading it would wait for a writer for ever
             os.mkfifo(own)
+        elif how == "folder":
+            own.mkdir()
         else:  # a link to nothing: writing through it would create their file
             theirs.unlink(missing_ok=True)
             own.symlink_to(theirs)
@@ -843,16 +845,22 @@ def test_a_study_writes_its_files_itself_and_never_through_a_link(tmp_path, smal
         ("tuning.journal", "link"),
         ("tuning.journal", "hard link"),
         (".physgrad-study", "hard link"),
+        (".physgrad-study", "link"),
+        (".physgrad-study", "folder"),
+        ("tuning.journal", "folder"),
         ("study.json", "FIFO"),
         ("tuning.journal", "FIFO"),
     ):
         kept, theirs = planted(name, how)
         before = theirs.read_bytes() if theirs.exists() else None
-        with pytest.raises((UserError, OSError), match="a link|another name|not a file") as refused:
+        with pytest.raises(UserError, match="a link|another name|not a file|lock") as refused:
             physgrad.compare(*args)
         assert "\n" not in str(refused.value) and name in str(refused.value), (name, how)
         assert (theirs.read_bytes() if theirs.exists() else None) == before, (name, how)
-        (study / name).unlink()
+        if how == "folder":
+            (study / name).rmdir()
+        else:
+            (study / name).unlink()
         kept.rename(study / name)
 
 
