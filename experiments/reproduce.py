@@ -68,6 +68,12 @@ def ks_study(folders: list[Path], out: Path, note: str) -> tuple[list[str], str]
     return write(folders, out, note)
 
 
+def toy_study(folders: list[Path], out: Path, note: str) -> tuple[list[str], str]:
+    from toy_figure import write  # experiments/ is this script's folder
+
+    return write(folders, out, note)
+
+
 QUICK_POISSON = ["seed=0", "trainer.time_budget=45"]
 FIGURES = (
     Figure(
@@ -156,10 +162,12 @@ FIGURES = (
     ),
     Figure(
         "toy_scaling",
-        "Badly scaled toy (lambda = 0.01): Adam, Gauss-Newton and HIG against training wall-clock",
+        "The PBDL book's badly scaled toy (lambda = 1 and 0.01): Adam, Gauss-Newton and HIG, loss, "
+        "hidden activations and one sample's path",
         ("toy_scaling",),
         ("loss_vs_time.png",),
-        None,
+        {"toy_scaling": ["seed=0,1", "trainer.time_budget=15"]},
+        study=toy_study,
     ),
     Figure(
         "hig_payoff",

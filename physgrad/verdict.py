@@ -545,6 +545,30 @@ def over_studies(
     )
 
 
+BELOW, ABOVE = "below", "above"
+
+
+def against_level(values: Sequence[float], level: float, alpha: float = ALPHA) -> tuple[str, str]:
+    """Whether a variant's losses at a budget, one per seed, lie below an absolute level (a paper's
+    "reaches 1e-2", "still solves the task"): the two-sided sign test of the seeds below the level
+    against half of them (scipy.stats.binomtest). BELOW where more than half are below and p <
+    alpha, ABOVE where more than half are at or above and p < alpha, UNDECIDED otherwise (with 10
+    seeds: 9 or 10 of 10 on one side). A diverged seed (inf) is above; a missing one (NaN) is left
+    out and counted."""
+    from scipy.stats import binomtest
+
+    known = [v for v in values if not math.isnan(v)]
+    missing = len(values) - len(known)
+    below = sum(v < level for v in known)
+    n = len(known)
+    p = binomtest(below, n, 0.5).pvalue if n else 1.0
+    verdict = UNDECIDED if p >= alpha else BELOW if 2 * below > n else ABOVE
+    why = f"{below} of {n} seeds below {level:g} (sign test p = {p:.2g})" + (
+        f", {missing} missing" if missing else ""
+    )
+    return verdict, why
+
+
 POWER = 0.8  # the chance of finding an effect that "detectable" promises
 
 

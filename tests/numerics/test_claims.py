@@ -75,7 +75,11 @@ def test_every_claim_part_names_a_study_of_the_profile_and_variants_it_makes():
                     if len(claims._values(o)) > 1
                 ]
                 names = {variant_name(list(combo)) for combo in itertools.product(*axes)}
-                wanted = [part.variant] if isinstance(part, claims.Stalls) else [part.a, part.b]
+                wanted = (
+                    [part.variant]
+                    if isinstance(part, (claims.Stalls, claims.Reaches))
+                    else [part.a, part.b]
+                )
                 assert set(wanted) <= names, (claim.name, name, wanted, names)
 
 

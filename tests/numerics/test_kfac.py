@@ -184,9 +184,11 @@ def test_a_dense_jacobian_is_refused():
 def test_kfac_trains_the_toy_and_is_refused_where_the_network_is_not_layer_factorised(tmp_path):
     run = physgrad.run(
         "task=toy",
+        "task.scale=1",  # the book's well-conditioned case, with three 20-neuron layers
+        "task.hidden=[20,20,20]",
         "optim=kfac",
-        "trainer.iterations=40",
-        "trainer.eval_every=20",
+        "trainer.iterations=100",
+        "trainer.eval_every=50",
         "trainer.batch_size=64",
         out_dir=tmp_path / "toy",
     )

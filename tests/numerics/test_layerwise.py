@@ -17,7 +17,8 @@ from physgrad.runner import TrainerSettings, compile_training
 
 
 def toy(optim: str, *extra):
-    cfg = compose(["task=toy", f"optim={optim}", *extra])
+    # two 20 x 20 hidden kernels: matrices a layer-wise rule factors or orthogonalises
+    cfg = compose(["task=toy", "task.hidden=[20,20]", f"optim={optim}", *extra])
     settings = TrainerSettings.from_config(cfg.trainer)
     scene, rule, seeds = prepare(cfg, [0], settings)
     return scene, rule, seeds, settings

@@ -565,3 +565,30 @@ def test_a_continuing_study_gets_a_start_network_for_every_tuning_seed(tmp_path)
     starts = study.start.job_seconds * len(wanted)
     whole_without_start = replace(study, start=None).seconds()
     assert study.seconds() - whole_without_start == pytest.approx(starts)
+
+
+@pytest.mark.parametrize(
+    "finals, verdict",
+    [
+        ([[1e-3] * 10] * 3, HOLDS),
+        # one study undecided (7 of 10): a majority of 2, none against
+        ([[1e-3] * 10, [1e-3] * 10, [1e-3] * 7 + [1.0] * 3], HOLDS),
+        ([[1e-3] * 10, [1e-3] * 7 + [1.0] * 3, [1e-3] * 7 + [1.0] * 3], OPEN),
+        ([[0.2] * 10] * 3, FAILS),
+        ([[1e-3] * 10, [1e-3] * 10, [0.2] * 10], OPEN),  # one study against
+    ],
+)
+def test_a_level_is_reached_by_the_sign_test_in_each_tuning_study(
+    tmp_path, studies, finals, verdict
+):
+    """ "All three reach 1e-2" (the book's toy at lambda = 1): the seeds below the level by the
+    package's sign test, in each of three tuning studies, then the majority with none against."""
+    studies["toy_1"] = three_studies(
+        "toy_1",
+        [{"hig": {s: falling(v, 1.0, 2 * v) for s, v in zip(TEN, values)}} for values in finals],
+    )
+    found, ((_, d),) = claims.decide_claim(claim_of(claims.Reaches("toy_1", "hig", 1e-2)), tmp_path)
+    assert found == verdict, d
+    assert "in 3 tuning studies" in d.measured and "below 0.01 in" in d.measured
+    missing = claims.decide_claim(claim_of(claims.Reaches("toy_1", "adam", 1e-2)), tmp_path)
+    assert missing[1][0][1].verdict == claims.NOT_RUN

@@ -446,3 +446,21 @@ def test_a_loss_of_zero_against_a_tiny_one_reads_as_a_ratio_not_a_divergence():
     p = result.at[1.0]
     assert result.verdict == A_BETTER and p.diverged_a == p.diverged_b == 0
     assert 0 < p.ratio < 1e-270
+
+
+def test_a_level_is_reached_when_the_sign_test_says_so():
+    from physgrad.verdict import ABOVE, BELOW, UNDECIDED, against_level
+
+    assert against_level([1e-3] * 10, 1e-2)[0] == BELOW
+    assert against_level([1e-3] * 9 + [1.0], 1e-2)[0] == BELOW  # 9 of 10: p = 0.021
+    assert against_level([1e-3] * 8 + [1.0] * 2, 1e-2)[0] == UNDECIDED  # 8 of 10: p = 0.11
+    assert against_level([1.0] * 9 + [1e-3], 1e-2)[0] == ABOVE
+    # a diverged seed is above; a missing one is left out and counted
+    verdict, why = against_level([math.inf] * 10, 1e-2)
+    assert verdict == ABOVE and "0 of 10" in why
+    verdict, why = against_level([1e-3] * 9 + [math.nan], 1e-2)
+    assert verdict == BELOW and "9 of 9" in why and "1 missing" in why
+    # at the level is not below it (a tie), and nothing known decides nothing
+    assert against_level([1e-2] * 10, 1e-2)[0] == ABOVE
+    assert against_level([math.nan] * 4, 1e-2)[0] == UNDECIDED
+    assert against_level([1e-3] * 4, 1e-2)[0] == UNDECIDED  # 4 of 4: p = 0.125
