@@ -4,10 +4,12 @@ claim is read from them, claims.md with tuned and preset verdicts side by side, 
 
 Usage: python experiments/claims.py STUDIES_FOLDER [OUT_FOLDER]
 (STUDIES_FOLDER holds the profile's study folders: outputs/experiments/claims, or .../claims-long
-or .../claims-gpu for that profile's markdown.)
+or .../claims-gpu for that profile's markdown; or their kept evidence, docs/evidence/claims.)
+python experiments/claims.py --keep STUDIES_FOLDER docs/evidence/claims keeps the finished studies'
+evidence (experiments/evidence.py).
 
 Every study is a `physgrad compare` (docs/protocol.md): each variant tuned with the same trial
-points (8 per variant) in each of 3 independent tuning studies, scored by its validation loss on
+points (8 per variant) in each of 4 independent tuning studies, scored by its validation loss on
 the tuning seed, then evaluated at its best trial on 10 paired seeds, the verdicts from the test
 loss; its untuned twin (`<study>-preset`, compare.tune=false) evaluates the presets on the same
 seeds and clock. Time budgets run on the calibrated clock (iterations x each variant's calibrated
@@ -40,6 +42,7 @@ from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
+from evidence import commit, kept_row, kept_table, read_kept, write_kept  # experiments/
 
 from physgrad.readout import highest_median
 from physgrad.trend import GROWS, interaction
@@ -198,7 +201,7 @@ POISSON_START = Start("poisson_start", ("task=poisson", "optim=adam", "trainer.t
 # points in each of CLAIM_STUDIES independent tuning studies, evaluated on CLAIM_SEEDS paired seeds:
 # enough for a verdict with one seed against it for up to 6 comparisons of a study (verdict.
 # seeds_for_one_against: 9), so neither iteration nor equal-time claims need every seed on one side
-CLAIM_TRIALS, CLAIM_STUDIES, CLAIM_SEEDS = 8, 3, 10
+CLAIM_TRIALS, CLAIM_STUDIES, CLAIM_SEEDS = 8, 4, 10
 
 
 def _claim_study(study: Study) -> Study:
@@ -705,10 +708,16 @@ class StudyRuns:
     machine: str = ""
     # with repeated tuning studies: every study's runs, the first (this one's paths) included
     tuning: tuple = ()
+    # read from kept evidence (experiments/evidence.py): {(variant, column): {seed: KeptCurve}}
+    kept: dict | None = None
+    protocol: tuple | None = None  # kept evidence: (trials, tuning studies, seeds)
 
     def curves(self, variant: str, column: str = "loss") -> dict:
         from physgrad.readout import run_curve
         from physgrad.results import read_run
+
+        if self.kept is not None:
+            return dict(self.kept.get((variant, column), {}))
 
         found, unreadable = {}, []
         for seed, path in self.paths.get(variant, {}).items():
@@ -741,7 +750,8 @@ def read_study(folder: Path) -> StudyRuns | None:
 
     table = folder / "runs.csv"
     if not table.is_file():
-        return None
+        kept = kept_table(folder)
+        return _kept_runs(read_kept(kept)) if kept is not None else None
     try:
         table_runs = pd.read_csv(table, dtype=str)
     except ValueError as error:  # pandas' parse errors, an empty file, bytes that are no text
@@ -758,6 +768,70 @@ def read_study(folder: Path) -> StudyRuns | None:
     if len(found) == 1:
         return found[0]
     return replace(found[0], tuning=tuple(found))
+
+
+def _kept_runs(kept) -> StudyRuns | None:
+    """Kept evidence (experiments/evidence.py) as StudyRuns: every tuning study's, the first's
+    with the others in `tuning`."""
+    found = [
+        StudyRuns(
+            kept.path,
+            kept.axis,
+            kept.budget,
+            {variant: {seed: str(kept.path) for seed in by} for (variant, _), by in curves.items()},
+            kept.machine,
+            kept=curves,
+            protocol=kept.protocol,
+        )
+        for curves in kept.studies
+    ]
+    if not found:
+        return None
+    if len(found) > 1:
+        found[0].tuning = tuple(found)
+    return found[0]
+
+
+def keep_evidence(root: Path, dest: Path) -> list[str]:
+    """Every finished study of the claims under root, and its presets' twin, as evidence tables in
+    dest (experiments/evidence.py): the columns the claims read of it, at the kept fractions of its
+    budget, for every tuning study, variant and seed. Returns the studies kept."""
+    columns: dict[str, set] = {}
+    for claim in CLAIMS:
+        for part in claim.parts:
+            for name in studies_of(claim_of_part(part)):
+                columns.setdefault(name, {"loss"}).add(getattr(part, "column", "loss"))
+    kept = []
+    for name in sorted(columns):
+        for folder in (root / name, root / f"{name}-preset"):
+            runs = read_study(folder) if (folder / "runs.csv").is_file() else None
+            if runs is None:
+                continue
+            rows = [
+                kept_row(k, variant, seed, column, curve, runs.budget)
+                for k, study in enumerate(_tuning_studies(runs))
+                for variant in sorted(study.paths)
+                for column in sorted(columns[name])
+                for seed, curve in sorted(study.curves(variant, column).items())
+            ]
+            trials, studies, seeds = study_protocol(folder)
+            overrides = []
+            if (folder / "study.json").is_file():
+                overrides = json.loads((folder / "study.json").read_text()).get("overrides", [])
+            about = {
+                "study": folder.name,
+                "axis": runs.axis,
+                "budget": runs.budget,
+                "trials": trials,
+                "studies": studies,
+                "seeds": seeds,
+                "machine": runs.machine,
+                "commit": commit(),
+                "overrides": overrides,
+            }
+            write_kept(dest, folder.name, rows, about)
+            kept.append(folder.name)
+    return kept
 
 
 def _study_runs(folder: Path, table: Path, runs: object) -> StudyRuns | None:
@@ -1160,9 +1234,9 @@ def studies_of(claim: Claim) -> set[str]:
     }
 
 
-def claims_table(root: Path, studies=None) -> str:
+def claims_table(root: Path, studies=None, only_run: bool = False) -> str:
     """One row per part of every claim whose studies are all among `studies` (default: every
-    claim)."""
+    claim); with only_run, of the claims one of whose studies has finished."""
     names = {s.name for s in studies} if studies is not None else None
     lines = [
         "| claim (paper, where) | part | study, budget | tuned: measured | tuned: verdict | "
@@ -1171,6 +1245,8 @@ def claims_table(root: Path, studies=None) -> str:
     ]
     for claim in CLAIMS:
         if names is not None and not studies_of(claim) <= names:
+            continue
+        if only_run and all(read_study(root / name) is None for name in studies_of(claim)):
             continue
         profile = tuple(studies) if studies is not None else ()
         verdict, rows = decide_claim(claim, root, profile=profile)
@@ -1208,6 +1284,8 @@ def study_protocol(folder: Path) -> tuple[int, int, int] | None:
     runs = read_study(folder)
     if runs is None:
         return None
+    if runs.protocol is not None:  # kept evidence says what the study ran
+        return runs.protocol
     studies = len(runs.tuning) or 1
     seeds = max((len(by) for by in runs.paths.values()), default=0)
     trials = 0
@@ -1523,6 +1601,56 @@ def write(root: Path, out: Path, note: str = "", profile: str = "claims") -> str
     return text
 
 
+GENERATED = (
+    "<!-- generated from docs/evidence/claims by `python experiments/claims.py "
+    "docs/evidence/claims --doc docs/claims.md`: edit the evidence or experiments/claims.py, "
+    "not this block -->",
+    "<!-- end of the generated block -->",
+)
+
+
+def evidence_block(root: Path) -> str:
+    """The verdicts of every claim of the claims profile from its kept evidence under root: the
+    headline table, then every part with its numbers."""
+    studies = PROFILES["claims"]
+    further = tuple(
+        (root.parent / name, PROFILES[name])
+        for name in ("claims-long", "claims-gpu")
+        if (root.parent / name).is_dir()
+    )
+    machines = sorted(
+        {
+            runs.machine
+            for s in studies
+            for suffix in ("", "-preset")
+            if (runs := read_study(root / f"{s.name}{suffix}")) is not None and runs.machine
+        }
+    )
+    return (
+        f"Decided from the per-seed tables in `{root}` (one per study and per presets' twin, with "
+        "the command, commit and machine that produced it beside it); machines: "
+        f"{'; '.join(machines) or '-'}. A claim whose studies have no kept evidence says "
+        '"not run yet". X is a study\'s budget; bold, the verdict at X.\n\n'
+        + headline_table(root, studies, further)
+        + "\nEvery part of the claims run so far (tuned and with the presets):\n\n"
+        + claims_table(root, studies, only_run=True)
+    )
+
+
+def write_doc(root: Path, doc: Path) -> str:
+    """Replace the generated block of doc (between the GENERATED markers) with evidence_block."""
+    from physgrad.errors import UserError
+
+    text = doc.read_text()
+    start, end = (text.find(marker) for marker in GENERATED)
+    if start < 0 or end < start:
+        raise UserError(f"{doc}: no generated block (the two markers {GENERATED[0][:40]}...)")
+    block = evidence_block(root)
+    text = text[: start + len(GENERATED[0])] + "\n\n" + block + "\n" + text[end:]
+    doc.write_text(text)
+    return block
+
+
 def main(argv: list[str] | None = None) -> int:
     """Writes OUT_FOLDER/<profile>.md (claims.md, claims-long.md, claims-gpu.md) from STUDIES."""
     parser = argparse.ArgumentParser(
@@ -1532,6 +1660,16 @@ def main(argv: list[str] | None = None) -> int:
         "studies", type=Path, help="the profile's study folders (outputs/experiments/claims)"
     )
     parser.add_argument("out", type=Path, nargs="?", help="where claims.md goes (default: STUDIES)")
+    parser.add_argument(
+        "--doc",
+        type=Path,
+        help="write the verdicts into this markdown file's generated block (docs/claims.md)",
+    )
+    parser.add_argument(
+        "--keep",
+        action="store_true",
+        help="keep the finished studies' evidence tables in OUT (docs/evidence/claims) instead",
+    )
     args = parser.parse_args(argv)
     from physgrad.errors import UserError
 
@@ -1545,6 +1683,16 @@ def main(argv: list[str] | None = None) -> int:
     # outputs/experiments/claims-long: that profile's
     profile = args.studies.name if args.studies.name in PROFILES else "claims"
     try:
+        if args.keep:
+            if args.out is None:
+                print("claims: error: --keep needs OUT (docs/evidence/claims)", file=sys.stderr)
+                return 2
+            kept = keep_evidence(args.studies, args.out)
+            print(f"kept {len(kept)} studies in {args.out}: {', '.join(kept) or 'none finished'}")
+            return 0
+        if args.doc is not None:
+            print(write_doc(args.studies, args.doc))
+            return 0
         print(write(args.studies, args.out or args.studies, profile=profile))
     except UserError as error:  # a study folder that is not what its tables say: one line
         print(f"claims: error: {error}", file=sys.stderr)

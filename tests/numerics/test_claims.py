@@ -315,3 +315,12 @@ def test_the_command_line_checks_its_folder_before_it_writes(tmp_path, capsys):
     error = capsys.readouterr().err.strip()
     assert error.startswith("claims: error: no study folder") and "\n" not in error
     assert list(tmp_path.iterdir()) == []
+
+
+def test_docs_claims_says_what_the_kept_evidence_says(monkeypatch):
+    """docs/claims.md's verdicts are the ones its committed evidence gives, regenerated now."""
+    monkeypatch.chdir(REPO)
+    text = (REPO / "docs" / "claims.md").read_text()
+    start, end = (text.index(marker) for marker in claims.GENERATED)
+    written = text[start + len(claims.GENERATED[0]) : end].strip()
+    assert written == claims.evidence_block(Path("docs/evidence/claims")).strip()

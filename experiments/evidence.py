@@ -1,0 +1,132 @@
+"""The claims' evidence, kept in the repository: each finished claims study as a table of the
+numbers its verdicts are decided from (kilobytes), so that docs/claims.md can be regenerated and
+checked without the study folders (hours of computing, gigabytes of results files).
+
+<name>.csv, one row per (tuning study, variant, seed, column): the run's held-out `column` at its
+first evaluation (`start`) and at 1/8, 1/4, 1/2 and all of the study's budget X (`at_0.125` ...
+`at_1`), as physgrad.readout.Curve.at reads them: inf where the run had diverged by then, NaN where
+it ended before without diverging. <name>.json: the study's budget and its axis, the protocol it
+ran (trials, tuning studies, seeds), the machine, the physgrad commit that kept it and the compare
+overrides that ran it. The verdicts read these values only at those fractions (a value asked for at
+another fraction is missing, NaN), with the same rules as from the study folder.
+
+Usage (from the repository's root):
+  python experiments/claims.py --keep outputs/experiments/claims docs/evidence/claims
+  python experiments/claims.py docs/evidence/claims docs        # docs/claims.md from the evidence
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import subprocess
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+FRACTIONS = (0.125, 0.25, 0.5, 1.0)
+COLUMNS = ("study", "variant", "seed", "column", "start", *(f"at_{f:g}" for f in FRACTIONS))
+
+
+@dataclass(frozen=True)
+class KeptCurve:
+    """A run's held-out values at the kept fractions of the budget; at(x) reads one of them (NaN at
+    any other x), loss[0] is its first evaluation (as physgrad.readout.Curve)."""
+
+    budget: float
+    values: dict = field(default_factory=dict)  # fraction -> value
+    start: float = math.nan
+
+    @property
+    def loss(self) -> np.ndarray:
+        return np.array([self.start])
+
+    def at(self, x: float) -> float:
+        for fraction, value in self.values.items():
+            if math.isclose(fraction * self.budget, x, rel_tol=1e-9):
+                return value
+        return math.nan
+
+
+def kept_row(study: int, variant: str, seed: int, column: str, curve, budget: float) -> dict:
+    """One row of the table from a run's curve (physgrad.readout.Curve)."""
+    start = float(curve.loss[0]) if len(curve.loss) else math.nan
+    return {
+        "study": study,
+        "variant": variant,
+        "seed": seed,
+        "column": column,
+        "start": start,
+        **{f"at_{f:g}": curve.at(budget * f) for f in FRACTIONS},
+    }
+
+
+def commit() -> str:
+    """The commit of the checkout that keeps the evidence (`unknown` outside a git checkout)."""
+    try:
+        found = subprocess.run(
+            ["git", "rev-parse", "--short=12", "HEAD"], capture_output=True, text=True, timeout=30
+        )
+    except OSError:
+        return "unknown"
+    return found.stdout.strip() or "unknown"
+
+
+def write_kept(dest: Path, name: str, rows: list[dict], about: dict) -> None:
+    """dest/<name>.csv and dest/<name>.json."""
+    import pandas as pd
+
+    dest.mkdir(parents=True, exist_ok=True)
+    table = pd.DataFrame(rows, columns=list(COLUMNS)).sort_values(
+        ["column", "variant", "study", "seed"], kind="stable"
+    )
+    table.to_csv(dest / f"{name}.csv", index=False)  # every digit: the verdicts read back exactly
+    (dest / f"{name}.json").write_text(json.dumps(about, indent=1) + "\n")
+
+
+@dataclass
+class Kept:
+    """An evidence table read back: the study's budget, axis, machine and protocol, and per tuning
+    study {(variant, column): {seed: KeptCurve}}."""
+
+    path: Path
+    axis: str
+    budget: float
+    machine: str
+    protocol: tuple  # (trials, tuning studies, seeds)
+    studies: list
+
+
+def kept_table(folder: Path) -> Path | None:
+    """The evidence table of a study folder's name (`<root>/<name>.csv`), if there is one."""
+    path = folder.parent / f"{folder.name}.csv"
+    return path if path.is_file() else None
+
+
+def read_kept(path: Path) -> Kept:
+    """An evidence table and its .json, checked: anything else is a UserError naming the file."""
+    import pandas as pd
+
+    from physgrad.errors import UserError
+
+    about_path = path.with_suffix(".json")
+    try:
+        about = json.loads(about_path.read_text())
+        axis, budget = str(about["axis"]), float(about["budget"])
+        protocol = tuple(int(about[k]) for k in ("trials", "studies", "seeds"))
+        table = pd.read_csv(path, dtype={"variant": str, "column": str})
+    except (OSError, ValueError, KeyError, TypeError) as error:
+        why = f"{type(error).__name__}: {error}".splitlines()[0][:200]
+        raise UserError(f"{path}: not a claims evidence table ({why})") from None
+    if list(table.columns) != list(COLUMNS) or not math.isfinite(budget) or budget <= 0:
+        raise UserError(f"{path}: not a claims evidence table (columns {list(table.columns)})")
+    numbers = table.drop(columns=["variant", "column"])
+    if not all(pd.api.types.is_numeric_dtype(t) for t in numbers.dtypes):
+        raise UserError(f"{path}: a value that is not a number")
+    studies: list = [dict() for _ in range(int(table["study"].max()) + 1 if len(table) else 0)]
+    for row in table.itertuples(index=False):
+        values = {f: float(row[5 + i]) for i, f in enumerate(FRACTIONS)}
+        curve = KeptCurve(budget, values, float(row.start))
+        studies[int(row.study)].setdefault((row.variant, row.column), {})[int(row.seed)] = curve
+    return Kept(path, axis, budget, str(about.get("machine", "")), protocol, studies)

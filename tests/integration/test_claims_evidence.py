@@ -1,0 +1,85 @@
+"""The claims' evidence (experiments/evidence.py): a finished study kept as a table decides every
+kind of claim part exactly as the study folder does."""
+
+import json
+import shutil
+import sys
+
+import pytest
+
+from tests.helpers import REPO
+from tests.integration.test_compare import small_study  # noqa: F401 - the session's finished study
+
+sys.path.insert(0, str(REPO / "experiments"))
+import claims  # noqa: E402
+
+PARTS = (
+    claims.Lower("small", "adam", "gd"),
+    claims.Lower("small", "gd", "adam"),
+    claims.Close("small", "adam", "gd", 1.5),
+    claims.Stalls("small", "gd"),
+    claims.Reaches("small", "adam", 0.5),
+    claims.Reaches("small", "gd", 0.3),
+    claims.Lower("small", "adam", "gd", "error_second"),
+)
+
+
+def test_kept_evidence_decides_every_part_as_the_study_folder(
+    small_study,  # noqa: F811
+    tmp_path,
+    monkeypatch,
+):
+    root, kept = tmp_path / "studies", tmp_path / "evidence"
+    shutil.copytree(small_study.folder, root / "small", symlinks=True)
+    claim = claims.Claim("small", "a paper's claim", PARTS)
+    monkeypatch.setattr(claims, "CLAIMS", (claim,))
+    assert claims.keep_evidence(root, kept) == ["small"]
+    about = json.loads((kept / "small.json").read_text())
+    assert (about["trials"], about["studies"], about["seeds"]) == (2, 2, 6)
+    assert about["axis"] == "iteration" and about["budget"] == 30
+    assert "task=toy" in about["overrides"] and about["commit"]
+    # 2 tuning studies x 2 variants x 6 seeds x 2 columns, kilobytes
+    assert len((kept / "small.csv").read_text().splitlines()) == 1 + 48
+    assert (kept / "small.csv").stat().st_size < 10_000
+    for fraction in (0.25, 0.5, 1.0):
+        from_folder = claims.decide_claim(claim, root, fraction=fraction)
+        from_kept = claims.decide_claim(claim, kept, fraction=fraction)
+        assert from_kept == from_folder, fraction
+    assert claims.study_protocol(kept / "small") == claims.study_protocol(root / "small")
+    # the study folder is not needed to regenerate the markdown
+    shutil.rmtree(root)
+    assert claims.decide_claim(claim, kept) == from_kept
+
+
+@pytest.mark.parametrize(
+    "damage, why",
+    [
+        (lambda csv, about: csv.write_text("study,variant\n0,adam\n"), "columns"),
+        (
+            lambda csv, about: csv.write_text(
+                csv.read_text().replace("\n0,adam,0,", "\n0,adam,zero,", 1)
+            ),
+            "not a number",
+        ),
+        (lambda csv, about: about.unlink(), "FileNotFoundError"),
+        (lambda csv, about: about.write_text('{"axis": "iteration"}'), "KeyError"),
+        (lambda csv, about: csv.write_bytes(b"\x00\xff" * 50), "not a claims evidence table"),
+    ],
+)
+def test_a_damaged_evidence_table_is_one_line(
+    small_study,  # noqa: F811
+    tmp_path,
+    monkeypatch,
+    damage,
+    why,
+):
+    from physgrad.errors import UserError
+
+    root, kept = tmp_path / "studies", tmp_path / "evidence"
+    shutil.copytree(small_study.folder, root / "small", symlinks=True)
+    monkeypatch.setattr(claims, "CLAIMS", (claims.Claim("small", "-", PARTS[:1]),))
+    claims.keep_evidence(root, kept)
+    damage(kept / "small.csv", kept / "small.json")
+    with pytest.raises(UserError, match=why) as refused:
+        claims.read_study(kept / "small")
+    assert "small" in str(refused.value) and "\n" not in str(refused.value)
