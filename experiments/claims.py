@@ -57,7 +57,9 @@ from physgrad.verdict import (
     UNDECIDED,
     across_studies,
     against_level,
+    claim_word,
     compare_variants,
+    left_start,
     over_studies,
     paired,
     ratio_of,
@@ -548,6 +550,9 @@ class Claim:
     paper_budget: float = math.nan
     paper_budget_text: str = "-"
     paper_seconds: bool = False
+    # where physgrad's scene or comparison departs from the paper's in a way that matters: how
+    # (the claim's word is then "different setup", physgrad.verdict.claim_word)
+    departs: str = ""
 
 
 R_VARIANTS = ("none", "value", "norm")
@@ -1316,6 +1321,43 @@ def _share_text(claim: Claim, runs: StudyRuns) -> str:
     return f"{here}: {percent}% of the paper's {claim.paper_budget_text}"
 
 
+def _share(claim: Claim, runs: StudyRuns) -> float:
+    """The budget here over the paper's (NaN where the paper states none in these units)."""
+    seconds = runs.axis in ("wall_time", "calibrated_time")
+    if math.isnan(claim.paper_budget) or seconds != claim.paper_seconds:
+        return math.nan
+    return runs.budget / claim.paper_budget
+
+
+def _claim_variants(claim: Claim, study: str) -> list[str]:
+    names = []
+    for part in claim.parts:
+        if _part_study(part) == study:
+            found = [part.variant] if isinstance(part, (Stalls, Reaches)) else [part.a, part.b]
+            names += [n for n in found if n not in names]
+    return names
+
+
+def _left_start(claim: Claim, runs: StudyRuns) -> tuple[bool, str]:
+    """Whether every variant of the claim's main study has left its start at X (the median over
+    its seeds of loss at X / at its first evaluation, physgrad.verdict.left_start), and each
+    variant's factor."""
+    said, trained = [], True
+    for variant in _claim_variants(claim, _main_study(claim)):
+        if variant not in runs.paths:
+            continue
+        starts, finals = [], []
+        for study in _tuning_studies(runs):
+            for curve in study.curves(variant).values():
+                starts.append(float(curve.loss[0]) if len(curve.loss) else math.nan)
+                finals.append(curve.at(study.budget))
+        trained &= left_start(starts, finals)
+        ratios = [f / s for s, f in zip(starts, finals) if s > 0 and not math.isnan(f)]
+        factor = 1 / float(np.median(ratios)) if ratios else math.nan
+        said.append(f"{variant} {_r(factor)}x")
+    return trained and bool(said), ", ".join(said)
+
+
 def _verdicts_text(verdicts: dict[float, str]) -> list[str]:
     return [f"**{verdicts[f]}**" if f == 1.0 else verdicts[f] for f in FRACTIONS]
 
@@ -1331,9 +1373,9 @@ def headline_table(root: Path, profile: tuple, further: tuple = ()) -> str:
     its X/4, X/2 and X, with what it ran. A claim that holds at one budget and does not at another
     says so first (apart, where one of the two is the GPU profile's: the machine changed too)."""
     lines = [
-        "| claim | trials x tuning studies, seeds | budget here | tuned at X/4 | X/2 | X | "
-        "presets at X | longer budget: X/4, X/2, X |",
-        "|---|---|---|---|---|---|---|---|",
+        "| claim | verdict | trials x tuning studies, seeds | budget here | loss fell from the "
+        "start | tuned at X/4 | X/2 | X | presets at X | longer budget: X/4, X/2, X |",
+        "|---|---|---|---|---|---|---|---|---|---|",
     ]
     names = {s.name for s in profile}
     for claim in CLAIMS:
@@ -1342,7 +1384,7 @@ def headline_table(root: Path, profile: tuple, further: tuple = ()) -> str:
         main = _main_study(claim)
         runs = read_study(root / main)
         if runs is None:
-            lines.append(f"| {claim.name} | {NOT_YET} | | | | | | |")
+            lines.append(f"| {claim.name} | {NOT_YET} | | | | | | | | |")
             continue
         trials, studies, seeds = study_protocol(root / main)
         tuned = claim_verdicts(claim, root, profile=profile)
@@ -1372,8 +1414,18 @@ def headline_table(root: Path, profile: tuple, further: tuple = ()) -> str:
             else ""
         )
         head = f"{turned}{claim.name}"
+        trained, fell = _left_start(claim, runs)
+        word, why = claim_word(
+            tuned[1.0] == HOLDS,
+            tuned[1.0] == FAILS,
+            tuned[0.5] == FAILS,
+            trained,
+            _share(claim, runs),
+            claim.departs,
+        )
         lines.append(
-            f"| {head} | {trials} x {studies}, {seeds} | {_share_text(claim, runs)} | "
+            f"| {head} | **{word}** ({why}) | {trials} x {studies}, {seeds} | "
+            f"{_share_text(claim, runs)} | {fell} | "
             + " | ".join(_verdicts_text(tuned))
             + f" | {preset} | {longer} |"
         )

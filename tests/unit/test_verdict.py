@@ -464,3 +464,37 @@ def test_a_level_is_reached_when_the_sign_test_says_so():
     assert against_level([1e-2] * 10, 1e-2)[0] == ABOVE
     assert against_level([math.nan] * 4, 1e-2)[0] == UNDECIDED
     assert against_level([1e-3] * 4, 1e-2)[0] == UNDECIDED  # 4 of 4: p = 0.125
+
+
+def test_a_claim_is_contradicted_only_where_the_budget_could_test_it():
+    from physgrad.verdict import (
+        CONTRADICTED,
+        DIFFERENT_SETUP,
+        NOT_TESTED,
+        SUPPORTED,
+        claim_word,
+        left_start,
+    )
+
+    nan = math.nan
+    assert claim_word(True, False, False, False, 0.01)[0] == SUPPORTED
+    # fails at X and X/2 with every variant trained: contradicted, whatever the share
+    assert claim_word(False, True, True, True, 0.02)[0] == CONTRADICTED
+    assert claim_word(False, True, True, True, nan)[0] == CONTRADICTED
+    # variants that have not left their start say nothing against the claim
+    word, why = claim_word(False, True, True, False, 0.047)
+    assert word == NOT_TESTED and "less than 2x" in why and "4.7% of the paper's budget" in why
+    # turned between X/2 and X: not tested
+    assert claim_word(False, True, False, True, 0.05)[0] == NOT_TESTED
+    # at the paper's budget a failure is a contradiction, trained or not
+    assert claim_word(False, True, False, False, 1.0)[0] == CONTRADICTED
+    assert claim_word(False, False, False, True, 1.0) == (
+        NOT_TESTED,
+        "not settled at X (100% of the paper's budget)",
+    )
+    assert claim_word(True, False, False, True, 0.1, "another network")[0] == DIFFERENT_SETUP
+    # left its start: the median of final / start at most 1/2; diverged seeds count against
+    assert left_start([1.0, 1.0, 1.0], [0.4, 0.5, 0.9])
+    assert not left_start([1.0, 1.0, 1.0], [0.4, 0.6, 0.9])
+    assert not left_start([1.0, 1.0, 1.0], [0.1, math.inf, math.inf])
+    assert left_start([1.0, 1.0], [0.1, nan]) and not left_start([1.0], [nan])
