@@ -53,24 +53,51 @@ def same_study(record: dict | None) -> tuple[list | None, object] | None:
     )
 
 
-def default_folder(overrides: list[str], config_dir: str | None, task: str) -> Path:
+def configuration_of(configs: list) -> str:
+    """A fingerprint of what the variants' scene and rules are (their composed task, optim and
+    precision settings): the same command given other defaults (physgrad upgraded, a config file
+    edited) is another study, whose earlier tuning and runs must not be resumed."""
+    from omegaconf import OmegaConf
+
+    text = json.dumps(
+        [
+            OmegaConf.to_container(
+                OmegaConf.masked_copy(config, ["task", "optim", "precision"]), resolve=False
+            )
+            for config in configs
+        ],
+        sort_keys=True,
+        default=str,
+    )
+    return hashlib.sha1(text.encode()).hexdigest()[:12]
+
+
+def default_folder(
+    overrides: list[str], config_dir: str | None, task: str, configuration: str = ""
+) -> Path:
     text = json.dumps(
         [
             sorted(o for o in overrides if not o.startswith(NOT_THE_STUDY)),
             os.path.abspath(config_dir) if config_dir else None,
             PROTOCOL,  # a study of another protocol gets another folder
+            *([configuration] if configuration else []),  # so do other defaults
         ]
     )
     return Path("outputs") / "compare" / f"{task}-{hashlib.sha1(text.encode()).hexdigest()[:8]}"
 
 
-def record_study(folder: Path, overrides: list[str], config_dir: str | None) -> None:
+def record_study(
+    folder: Path, overrides: list[str], config_dir: str | None, configuration: str = ""
+) -> None:
     """The study's command in folder/study.json; a folder that holds another study is a UserError
-    (the same study given more trials is the same study: its record is updated)."""
+    (the same study given more trials is the same study: its record is updated), and so is one
+    that holds this command run with another configuration (configuration_of; a record without
+    one, written before it was kept, cannot be checked)."""
     record = {
         "overrides": [o for o in overrides if not o.startswith(("compare.dir", "hydra"))],
         "config_dir": os.path.abspath(config_dir) if config_dir else None,
         "protocol": PROTOCOL,
+        **({"configuration": configuration} if configuration else {}),
     }
     from physgrad.files import load_json, own_file, read_own_file, replace_file
 
@@ -95,6 +122,12 @@ def record_study(folder: Path, overrides: list[str], config_dir: str | None) -> 
             raise UserError(
                 f"{folder} holds another study "
                 f"({' '.join((before or {}).get('overrides', ['?']))}): give another compare.dir"
+            )
+        if before.get("configuration") not in (None, record.get("configuration")):
+            raise UserError(
+                f"{folder} holds this study run with other settings of its scene or rules (a "
+                "changed default: physgrad upgraded, or a config file edited): give another "
+                "compare.dir (or move the folder away) to run it again"
             )
     if not stored.exists() or before != record:  # new, or the same study given more trials
         replace_file(stored, (json.dumps(record, indent=1) + "\n").encode())

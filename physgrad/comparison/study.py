@@ -38,7 +38,7 @@ from pathlib import Path
 from physgrad.comparison.calibration import calibrated_clock
 from physgrad.comparison.evaluation import evaluation
 from physgrad.comparison.figure import plot_sensitivity
-from physgrad.comparison.jobs import Launcher, default_folder, record_study
+from physgrad.comparison.jobs import Launcher, configuration_of, default_folder, record_study
 from physgrad.comparison.spec import (
     SETTINGS,
     StudyPlan,
@@ -90,13 +90,14 @@ def run_study(
     )
     first = variants[0].config
     _warn_if_undecidable(settings, len(variants), say)
+    configuration = configuration_of([v.config for v in variants])
     folder = (
         Path(settings.dir)
         if settings.dir
-        else default_folder(overrides, config_dir, str(first.task.get("name")))
+        else default_folder(overrides, config_dir, str(first.task.get("name")), configuration)
     )
     folder.mkdir(parents=True, exist_ok=True)
-    record_study(folder, overrides, config_dir)
+    record_study(folder, overrides, config_dir, configuration)
     held = ExitStack()
     try:
         held.enter_context(own_folder(folder, "study"))

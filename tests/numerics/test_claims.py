@@ -203,7 +203,7 @@ def test_a_claim_is_decided_at_each_fraction_of_its_budget_and_a_reversal_heads_
     assert row.startswith("| **reverses with the budget**: oscillators")
     assert "| holds |" in row and "**does not hold**" in row
     # the paper's hour is no share of iterations
-    assert "1000 iterations; the paper's: about an hour (a GPU)" in row
+    assert "1000 iterations; the paper's: 3,600 s per method (its run scripts: 60 x 60 s)" in row
     assert "| not run yet |" in row  # the presets' twin has no finished study
     # every variant trained, but the verdict turned between X/2 and X: no evidence against the claim
     assert (

@@ -475,7 +475,8 @@ def test_the_headline_states_what_a_study_ran_from_its_own_tables(tmp_path):
     oscillators = next(c for c in claims.CLAIMS if c.name.startswith("oscillators"))
     timed = replace(runs, axis="calibrated_time", budget=15.0)
     assert claims._share_text(oscillators, timed) == (
-        "15 s (calibrated clock): 0.42% of the paper's about an hour (a GPU)"
+        "15 s (calibrated clock): 0.42% of the paper's 3,600 s per method "
+        "(its run scripts: 60 x 60 s)"
     )
 
 

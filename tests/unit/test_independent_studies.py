@@ -133,3 +133,40 @@ def test_physgrad_check_refuses_a_negative_loss_in_one_line(loss, held_out, pass
     seeds = types.SimpleNamespace(test_sets=jnp.zeros((1, 3)))
     check = _finite_check(scene, seeds, None, jnp.zeros(3), jnp.array(loss))
     assert check.passed == passed and fragment in check.detail and "\n" not in check.detail
+
+
+def test_the_same_command_with_other_defaults_is_another_study(tmp_path):
+    """A changed default of the scene or rule (physgrad upgraded: the book's toy replaced the
+    3 x 20 one) must not resume the earlier study's tuning: the default folder is another, and an
+    explicit folder is refused in one line; a record from before the fingerprint cannot be told."""
+    import json
+
+    from omegaconf import OmegaConf
+
+    from physgrad.comparison.jobs import configuration_of, default_folder, record_study
+
+    def config(hidden):
+        return OmegaConf.create({"task": {"hidden": hidden}, "optim": {"name": "adam"}, "seed": 3})
+
+    overrides = ["task=toy", "optim=adam,gd"]
+    old, new = configuration_of([config([20, 20, 20])]), configuration_of([config([7])])
+    assert old != new and configuration_of([config([7])]) == new
+    # the seed (and anything outside task, optim and precision) is not the scene's
+    seeded = config([7])
+    seeded.seed = 4
+    assert configuration_of([seeded]) == new
+    assert default_folder(overrides, None, "toy", old) != default_folder(
+        overrides, None, "toy", new
+    )
+    record_study(tmp_path, overrides, None, old)
+    record_study(tmp_path, overrides, None, old)  # the same study resumes
+    with pytest.raises(UserError, match="other settings of its scene or rules") as error:
+        record_study(tmp_path, overrides, None, new)
+    assert "\n" not in str(error.value)
+    assert json.loads((tmp_path / "study.json").read_text())["configuration"] == old
+    # written before the fingerprint was kept: cannot be checked, and now records it
+    record = json.loads((tmp_path / "study.json").read_text())
+    del record["configuration"]
+    (tmp_path / "study.json").write_text(json.dumps(record))
+    record_study(tmp_path, overrides, None, new)
+    assert json.loads((tmp_path / "study.json").read_text())["configuration"] == new
