@@ -6,11 +6,13 @@ from __future__ import annotations
 import hashlib
 import json
 import os
+import re
 import signal
 import subprocess
 import sys
+import time
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -320,14 +322,58 @@ def launch(
             replace_file(record / f"{name}.yaml", text.encode())
         command = multirun_command(private, folder, phase, jobs, config_dir, hydra_args)
         say(f"{phase}: {len(jobs)} jobs -> {folder / phase} (log: {folder / (phase + '.log')})")
-        return _run_multirun(command, folder / f"{phase}.log", job_environment())
+        progress = Progress(phase, len(jobs), say)
+        return _run_multirun(command, folder / f"{phase}.log", job_environment(), progress)
     finally:
         shutil.rmtree(private, ignore_errors=True)
 
 
-def _run_multirun(command: list[str], log_path: Path, env: dict[str, str]) -> int:
+# Hydra's line for each job it launches: "[HYDRA] \t#3 : +compare_job=..."
+_LAUNCHED = re.compile(r"\[HYDRA\]\s+#(\d+) : ")
+
+
+@dataclass
+class Progress:
+    """A phase's progress on the console, read from its log as the multirun writes it: a line when
+    more of its jobs have started, at most one every `every` seconds, and one at the end with the
+    jobs it ran (Hydra launches the jobs of a local sweep one after another, so job k started
+    means k - 1 done)."""
+
+    phase: str
+    total: int
+    say: Callable[[str], object]
+    every: float = 30.0
+    started: int = 0
+    said: int = 0
+    begun: float = field(default_factory=time.monotonic)
+    last: float = field(default_factory=time.monotonic)
+
+    def read(self, text: str, final: bool = False) -> None:
+        """Take the log's new text; say where the phase is if it moved on."""
+        found = [int(k) + 1 for k in _LAUNCHED.findall(text)]
+        self.started = max([self.started, *found])
+        now = time.monotonic()
+        moved = self.started > self.said
+        minutes = (now - self.begun) / 60
+        if final and self.started:
+            self.say(
+                f"{self.phase}: {min(self.started, self.total)} of {self.total} jobs run in "
+                f"{minutes:.1f} min"
+            )
+        elif moved and now - self.last >= self.every:
+            self.say(
+                f"{self.phase}: job {min(self.started, self.total)} of {self.total} started, "
+                f"{minutes:.1f} min in"
+            )
+            self.said, self.last = self.started, now
+
+
+def _run_multirun(
+    command: list[str], log_path: Path, env: dict[str, str], progress: Progress | None = None
+) -> int:
     """The multirun as a child process in its own session, its output appended to log_path (opened
-    without following a link: a study folder may come from someone else)."""
+    without following a link: a study folder may come from someone else); its progress read from
+    that output every few seconds (Progress)."""
     import errno
 
     from physgrad.files import open_append
@@ -369,13 +415,46 @@ def _run_multirun(command: list[str], log_path: Path, env: dict[str, str]) -> in
         except ValueError:  # not the main thread: leave signals alone
             previous = {}
         try:
-            code = process.wait()
+            code = _wait_saying(process, log_path, log.tell(), progress)
         finally:
             for sig, handler in previous.items():
                 signal.signal(sig, handler)
         if received:
             raise KeyboardInterrupt(signal.Signals(received[0]).name)
         return code
+
+
+def _wait_saying(
+    process: subprocess.Popen, log_path: Path, offset: int, progress: Progress | None
+) -> int:
+    """process.wait(), reading what it appends to log_path after offset for progress (the log was
+    opened without following a link just before; it is read the same way, and a log that cannot
+    be read only leaves the console quiet)."""
+    if progress is None:
+        return process.wait()
+    try:
+        reader = os.open(log_path, os.O_RDONLY | os.O_NOFOLLOW | os.O_NONBLOCK)
+    except OSError:
+        return process.wait()
+    try:
+        while True:
+            try:
+                code = process.wait(timeout=POLL_SECONDS)
+            except subprocess.TimeoutExpired:
+                code = None
+            try:
+                text = os.pread(reader, 1 << 22, offset)  # a few MB at most per look
+                offset += len(text)
+            except OSError:
+                text = b""
+            progress.read(text.decode("utf-8", "replace"), final=code is not None)
+            if code is not None:
+                return code
+    finally:
+        os.close(reader)
+
+
+POLL_SECONDS = 5.0
 
 
 def job_environment() -> dict[str, str]:

@@ -186,3 +186,45 @@ def test_a_tuning_journal_scored_by_another_read_out_is_set_aside(tmp_path, stud
     assert f"version {stale}" in notes[0] and f"version {READOUT_VERSION}" in notes[0]
     set_aside_stale(path, notes.append)  # nothing left to set aside
     assert len(notes) == 1
+
+
+def test_a_phase_says_its_progress_from_its_log_without_a_line_per_job(tmp_path, monkeypatch):
+    """The console hears where a phase is (Hydra's launch lines in its log): lines along the way at
+    most one per interval, and one at the end with the jobs run; nothing for a phase that never
+    launched a job."""
+    import sys
+
+    import physgrad.comparison.jobs as jobs
+
+    monkeypatch.setattr(jobs, "POLL_SECONDS", 0.1)
+    script = (
+        "import time\n"
+        "for k in range(6):\n"
+        "    print(f'[2026-01-01][HYDRA] \\t#{k} : +compare_job=tune_v{k}', flush=True)\n"
+        "    time.sleep(0.2)\n"
+    )
+
+    def phase(every):
+        said = []
+        log = tmp_path / f"tune-{every}.log"
+        progress = jobs.Progress("tune", 6, said.append, every=every)
+        assert jobs._run_multirun([sys.executable, "-c", script], log, {}, progress) == 0
+        assert log.read_text().count("\t#") == 6  # the log keeps the output whole
+        return said
+
+    # an interval longer than the phase: the end only
+    said = phase(every=600)
+    assert len(said) == 1 and said[0].startswith("tune: 6 of 6 jobs run in ")
+    # no interval: every look that found more jobs started, in order, then the end
+    said = phase(every=0)
+    along = said[:-1]
+    assert along and all(line.startswith("tune: job ") for line in along), said
+    numbers = [int(line.split()[2]) for line in along]
+    assert numbers == sorted(set(numbers)) and numbers[-1] <= 6
+    assert said[-1].startswith("tune: 6 of 6 jobs run in ")
+    quiet = []
+    log = tmp_path / "q.log"
+    jobs._run_multirun(
+        [sys.executable, "-c", "pass"], log, {}, jobs.Progress("eval", 3, quiet.append)
+    )
+    assert quiet == []
