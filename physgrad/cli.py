@@ -73,7 +73,7 @@ def _console_main() -> int:
 
 def _main(argv: list[str] | None) -> int:
     try:
-        if argv is None:
+        if argv is None and not INFO_FLAGS & set(sys.argv[2:]):  # help needs no JAX
             import_holding_signals(HEAVY_IMPORTS.get(sys.argv[1] if len(sys.argv) > 1 else "", ()))
         code = dispatch(sys.argv[1:] if argv is None else argv)
         lost = take_lost()

@@ -196,3 +196,16 @@ def test_without_a_terminal_progress_is_logged_and_the_run_ends_with_one_line(tm
         "completed after" in lines[-1]
         and "(stopped by time budget), 3.0 s of training" in lines[-1]
     )
+
+
+@pytest.mark.parametrize("command", ["report", "check"])
+def test_help_starts_no_jax(command, tmp_path):
+    """Help is text: a command's --help must not wait for JAX to import (about 1.5 s). A jax that
+    cannot be imported proves it."""
+    fake = tmp_path / "jax"
+    fake.mkdir()
+    (fake / "__init__.py").write_text("raise ImportError('help imported jax')\n")
+    env = {**os.environ, "PYTHONPATH": str(tmp_path)}
+    done = subprocess.run([PHYSGRAD, command, "--help"], capture_output=True, text=True, env=env)
+    assert done.returncode == 0, done.stderr[-500:]
+    assert "usage" in done.stdout.lower() and "help imported jax" not in done.stderr
