@@ -292,6 +292,9 @@ def test_an_equal_time_study_calibrates_where_its_jobs_run(tmp_path: Path) -> No
 
 STUDY = [
     "task=toy",
+    # three 20-neuron layers: a HIG job of 8000 iterations runs long enough (tens of seconds) to be
+    # cancelled and killed while it runs; the book's 7-neuron toy finishes it in a few seconds
+    "task.hidden=[20,20,20]",
     "optim=adam,hig",
     "trainer.iterations=8000",
     "compare.trials=2",
