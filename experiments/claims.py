@@ -881,6 +881,8 @@ def keep_evidence(root: Path, dest: Path) -> list[str]:
     """Every finished study of the claims under root, and its presets' twin, as evidence tables in
     dest (experiments/evidence.py): the columns the claims read of it, at the kept fractions of its
     budget, for every tuning study, variant and seed. Returns the studies kept."""
+    from physgrad.results import read_final
+
     columns: dict[str, set] = {}
     for claim in CLAIMS:
         for part in claim.parts:
@@ -900,6 +902,14 @@ def keep_evidence(root: Path, dest: Path) -> list[str]:
                 for seed, curve in sorted(study.curves(variant, column).items())
             ]
             trials, studies, seeds = study_protocol(folder)
+            ran = set()
+            for study in _tuning_studies(runs):
+                for by_seed in study.paths.values():
+                    for path in by_seed.values():
+                        try:
+                            ran.add(str(read_final(Path(path))[0].get("git_commit", "unknown")))
+                        except (OSError, ValueError):
+                            ran.add("unreadable")
             overrides = []
             if (folder / "study.json").is_file():
                 overrides = json.loads((folder / "study.json").read_text()).get("overrides", [])
@@ -911,7 +921,8 @@ def keep_evidence(root: Path, dest: Path) -> list[str]:
                 "studies": studies,
                 "seeds": seeds,
                 "machine": runs.machine,
-                "commit": commit(),
+                "commits": sorted(ran),  # of physgrad, as the runs recorded it
+                "kept_by": commit(),
                 "overrides": overrides,
             }
             write_kept(dest, folder.name, rows, about)
@@ -1376,7 +1387,10 @@ def study_protocol(folder: Path) -> tuple[int, int, int] | None:
     trials = 0
     table = folder / "trials.csv"
     if table.is_file():
-        rows = pd.read_csv(table)
+        try:
+            rows = pd.read_csv(table)
+        except ValueError:  # empty: an untuned study (the presets' twin) tried no trials
+            rows = pd.DataFrame()
         if {"variant", "trial"} <= set(rows.columns) and len(rows):
             keys = ["variant", "study"] if "study" in rows.columns else ["variant"]
             trials = int(rows.groupby(keys)["trial"].nunique().max())

@@ -6,9 +6,10 @@ checked without the study folders (hours of computing, gigabytes of results file
 first evaluation (`start`) and at 1/8, 1/4, 1/2 and all of the study's budget X (`at_0.125` ...
 `at_1`), as physgrad.readout.Curve.at reads them: inf where the run had diverged by then, NaN where
 it ended before without diverging. <name>.json: the study's budget and its axis, the protocol it
-ran (trials, tuning studies, seeds), the machine, the physgrad commit that kept it and the compare
-overrides that ran it. The verdicts read these values only at those fractions (a value asked for at
-another fraction is missing, NaN), with the same rules as from the study folder.
+ran (trials, tuning studies, seeds), the machine, the physgrad commits its runs recorded and the one
+that kept it, and the compare overrides that ran it. The verdicts read these values only at those
+fractions (a value asked for at another fraction is missing, NaN), with the same rules as from the
+study folder.
 
 Usage (from the repository's root):
   python experiments/claims.py --keep outputs/experiments/claims docs/evidence/claims
