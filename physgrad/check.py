@@ -178,7 +178,9 @@ def run_row(case: RunCase, out_dir: Path) -> dict:
     from physgrad.experiment import run_experiment, variant_label
     from physgrad.results import read_run
 
-    cfg = compose([*case.overrides, "overwrite=true"])
+    # the table is the check's output: no per-case figures (their curves stay in the results
+    # files, for physgrad report)
+    cfg = compose([*case.overrides, "overwrite=true", "figures=false"])
     try:
         outcome, path = run_experiment(cfg, out_dir / case.slug)
     except Exception as error:  # noqa: BLE001 - a failure is a row of the table, not the end of the suite

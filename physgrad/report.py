@@ -242,12 +242,13 @@ def write_report(
     threshold: float | None = None,
     note: str = "",
     logx: str = "auto",
+    figures: bool = True,
 ) -> str:
     """Print-ready text; also writes into out_dir (default: the first path's folder) report.md,
-    runs.csv, curves.csv and the figures (PNG and PDF): loss_vs_time, loss_vs_iteration, tradeoff
-    (final test loss against seconds per iteration and total time) and, where runs differ in unroll
-    length, unroll. ``note`` is printed on every figure; ``logx`` is auto (log where the curves'
-    ends span a decade or more), on or off."""
+    runs.csv, curves.csv and, with ``figures``, the figures (PNG and PDF): loss_vs_time,
+    loss_vs_iteration, tradeoff (final test loss against seconds per iteration and total time) and,
+    where runs differ in unroll length, unroll. ``note`` is printed on every figure; ``logx`` is
+    auto (log where the curves' ends span a decade or more), on or off."""
     runs, unreadable, dropped = collect(paths)
     if not runs:
         raise UserError(
@@ -265,14 +266,14 @@ def write_report(
     write_tables(tables(runs, rows), out)
     with replaced_text(out / "report.md") as f:  # last: a report.md beside complete tables only
         f.write(body)
+    written = f"wrote {out / 'report.md'}, runs.csv, curves.csv (and .parquet)"
+    if not figures:
+        return body + written + "\n"
     chosen = {scene: threshold for scene in limits} if threshold is not None else limits
     from physgrad.report_figures import write_figures  # matplotlib only once it draws
 
-    figures = write_figures(runs, out, note, logx, chosen)
-    return body + (
-        f"wrote {out / 'report.md'}, runs.csv, curves.csv (and .parquet) and {', '.join(figures)} "
-        "(and .pdf)\n"
-    )
+    drawn = write_figures(runs, out, note, logx, chosen)
+    return body + f"{written} and {', '.join(drawn)} (and .pdf)\n"
 
 
 def summary_lines(

@@ -20,7 +20,8 @@ study folder, and resumes where it stopped when the same command runs again:
    per seed, variants interleaved, for time budgets);
 3. the verdicts (physgrad.verdict) from the TEST loss, each holding where 3 of 4 studies (more
    than half) reach it with none against: compare.md, trials.csv, runs.csv, comparisons.csv,
-   sensitivity.png and the sweep's report (figures of the curves) under report/.
+   sensitivity.png and the sweep's report (figures of the curves) under report/ (figures=false:
+   the tables without the figures).
 docs/protocol.md gives the protocol and its reasons.
 """
 
@@ -125,13 +126,16 @@ def run_study(
         plan = StudyPlan(variants, settings, common, groups, axis, budget)
         best = tuning(plan, launcher)
         rows = trial_rows(folder, variants, settings.study_count)
-        if rows:
+        # figures=false, as for a run: the tables only (matplotlib's layout is most of a small
+        # study's resume)
+        figures = bool(first.get("figures", True))
+        if rows and figures:
             plot_sensitivity(folder / "sensitivity", variants, rows, best)
         curves, statuses = evaluation(plan, best, launcher)
         runs, comparisons, trials, verdicts, text = analyse(
             folder, variants, best, curves, statuses, settings, axis, budget, rows, calibration
         )
-        write_curves_report(folder, say)
+        write_curves_report(folder, say, figures)
     return Study(folder, trials, runs, comparisons, verdicts, text)
 
 
@@ -163,15 +167,15 @@ def _warn_if_undecidable(settings: StudySettings, count: int, say: Callable[[str
         )
 
 
-def write_curves_report(folder: Path, say: Callable[[str], object]) -> None:
-    """The sweep's report (figures of the evaluation curves) under folder/report; a failure is said,
-    not raised."""
+def write_curves_report(folder: Path, say: Callable[[str], object], figures: bool = True) -> None:
+    """The sweep's report (its tables and, with figures, the evaluation curves) under
+    folder/report; a failure is said, not raised."""
     try:
         from physgrad.report import write_report
 
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
-            write_report([folder / "eval"], out_dir=folder / "report")
+            write_report([folder / "eval"], out_dir=folder / "report", figures=figures)
     except (UserError, OSError, ValueError) as error:
         say(f"report of the curves not written: {error}")
 
@@ -202,8 +206,9 @@ def main(args: list[str]) -> int:
     finally:
         signal.signal(signal.SIGTERM, previous)
     print(study.text)
+    drawn = ", sensitivity.png" if (study.folder / "sensitivity.png").is_file() else ""
     print(
-        f"wrote {study.folder / 'compare.md'}, trials.csv, runs.csv, comparisons.csv, "
-        "sensitivity.png, report/"
+        f"wrote {study.folder / 'compare.md'}, trials.csv, runs.csv, comparisons.csv{drawn}, "
+        "report/"
     )
     return 0

@@ -106,6 +106,7 @@ def test_a_killed_study_leaves_no_sweep_running_and_resumes(tmp_path):
         "compare.seeds=6",
         "compare.studies=1",
         f"compare.dir={folder}",
+        "figures=false",  # the tables only: what is checked
     ]
     for _ in range(2):
         process = subprocess.Popen(
@@ -146,6 +147,7 @@ def test_a_rerun_launches_only_the_jobs_without_finished_results(tmp_path):
         "compare.seeds=6",
         "compare.studies=1",
         f"compare.dir={folder}",
+        "figures=false",  # the tables only: what is checked
     ]
     first = subprocess.run([*PHYSGRAD, "compare", *study], capture_output=True, text=True)
     assert first.returncode == 0, first.stdout + first.stderr

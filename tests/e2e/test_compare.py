@@ -114,6 +114,7 @@ def test_a_study_stopped_at_random_instants_resumes_to_the_same_trials(tmp_path)
             "compare.studies=1",
             "compare.seeds=6",
             f"compare.dir={study}",
+            "figures=false",  # the tables only: what is checked
         ]
         process = subprocess.Popen(
             args, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True
@@ -157,6 +158,7 @@ def test_a_study_that_continues_networks_pairs_each_seed_with_its_own_start(tmp_
         "-m",
         "task=toy",
         "trainer.iterations=20",
+        "figures=false",
         "seed=0,1,1000000",
         f"hydra.sweep.dir={start}",
         "hydra.sweep.subdir='seed=${seed}'",
@@ -170,6 +172,7 @@ def test_a_study_that_continues_networks_pairs_each_seed_with_its_own_start(tmp_
         "compare.seeds=2",
         f"init_from='{start}/seed=${{seed}}/results.h5'",
         f"compare.dir={tmp_path / 'study'}",
+        "figures=false",
     )
     assert len(study.runs) == 4
     for path in [*study.runs.path, *(tmp_path / "study" / "tune").glob("*/results.h5")]:

@@ -187,6 +187,9 @@ SMALL_STUDY = [
     "compare.trials=2",
     "compare.studies=2",
     "compare.seeds=6",
+    # the tables without the figures (matplotlib's layout was half of a resume of this study);
+    # tests/e2e/test_compare.py draws them
+    "figures=false",
 ]
 
 
@@ -243,6 +246,9 @@ def test_the_python_call_returns_the_tables(small_study):
         s.at[1.0].pairs for s in study.verdicts[0].studies
     )
     assert (study.folder / "compare.md").read_text() == study.text
+    # figures=false: the report's tables, no figure anywhere in the study
+    assert (study.folder / "report" / "runs.csv").is_file()
+    assert not [p for p in study.folder.rglob("*") if p.suffix in (".png", ".pdf")]
     assert "must hold in 2 of the 2 tuning studies" in study.text
     # what the design could detect, from the spread it measured: in the table and the CSV
     assert "| A lower in | detectable |" in study.text
@@ -268,6 +274,7 @@ def test_an_equal_time_study_runs_on_the_calibrated_clock_and_can_reuse_a_calibr
         "compare.studies=1",
         "compare.seeds=6",
         "trainer.batch_size=16",
+        "figures=false",
     ]
     study = physgrad.compare(*common, f"compare.dir={tmp_path / 'first'}")
     calibration = json.loads((study.folder / "calibration.json").read_text())
@@ -350,6 +357,7 @@ def test_a_finished_study_given_more_trials_tunes_on_from_where_it_stopped(tmp_p
         "trainer.iterations=20",
         "compare.seeds=6",
         f"compare.dir={tmp_path / 's'}",
+        "figures=false",
     ]
     physgrad.compare(*args, "compare.trials=1", "compare.studies=1")
     # adam's trials train together: trial 0 is member 0 of the first job
@@ -386,7 +394,13 @@ def test_two_names_for_one_rule_are_tuned_alike_in_either_order_and_equivalent(
     (optim / "adam_copy.yaml").write_text(
         (CONF_DIR / "optim" / "adam.yaml").read_text().replace("name: adam", "name: adam_copy")
     )
-    common = ["task=toy", "trainer.iterations=30", "compare.trials=2", "compare.seeds=6"]
+    common = [
+        "task=toy",
+        "trainer.iterations=30",
+        "compare.trials=2",
+        "compare.seeds=6",
+        "figures=false",
+    ]
     studies = [
         physgrad.compare(
             *common, f"optim={order}", f"compare.dir={tmp_path / str(k)}", config_dir=optim.parent
@@ -439,7 +453,7 @@ def test_twins_at_equal_time_are_never_better_under_load_in_either_order(tmp_pat
         (CONF_DIR / "optim" / "adam.yaml").read_text().replace("name: adam", "name: adam_copy")
     )
     common = ["task=toy", "trainer.time_budget=0.4", "compare.trials=2", "compare.studies=1"]
-    common.append("compare.seeds=6")
+    common += ["compare.seeds=6", "figures=false"]
     for k in range(2):
         for order in ("adam,adam_copy", "adam_copy,adam"):
             folder = tmp_path / f"{order.replace(',', '-')}-{k}"
@@ -672,6 +686,7 @@ def test_a_study_tuned_under_another_read_out_is_read_again_without_training(tmp
         "compare.studies=1",
         "compare.seeds=2",
         f"compare.dir={tmp_path / 's'}",
+        "figures=false",
     ]
     physgrad.compare(*args, "compare.trials=1")
     args.append("compare.trials=3")

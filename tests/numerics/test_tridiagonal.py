@@ -115,7 +115,7 @@ SMALL_DATA = ["task.train_size=8", "task.test_size=8", "task.batch_size=4"]
     "overrides",
     [
         ["task=quantum", "task.unroll=24", "precision=64", *SMALL_DATA],
-        ["task=quantum_control", "task.unroll=12", "precision=64", *SMALL_DATA],
+        ["task=quantum_control", "task.unroll=4", "precision=64", *SMALL_DATA],
     ],
 )
 def test_the_scene_gives_the_same_loss_gradient_and_jacobian_on_every_path(
