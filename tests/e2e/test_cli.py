@@ -78,6 +78,7 @@ def test_sweep_then_report(tmp_path):
         "task.test_size=4",
         *SMALL[:1],
         "trainer.batch_size=2",
+        "figures=false",  # the report's figures are checked, not each run's
         f"hydra.sweep.dir={sweep}",
     )
     assert "skipped: optim=bptt needs a closed-loop controller" in result.stderr + result.stdout
