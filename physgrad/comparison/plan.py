@@ -8,6 +8,7 @@ import statistics
 import time
 from dataclasses import dataclass
 
+from physgrad.comparison.coverage import coverage_lines, planned_points
 from physgrad.comparison.spec import StudyPlan, Variant
 from physgrad.readout import fmt
 
@@ -112,6 +113,8 @@ def plan_text(plan: StudyPlan) -> str:
             f"{_duration(c.evaluation_seconds)} | {_duration(c.seconds)} |"
         )
     lines += power_lines(plan)
+    if settings.tune:  # the points are known before anything runs
+        lines += coverage_lines(plan.variants, planned_points(plan), settings.trials)
     lines += [
         "",
         f"Total: about {_duration(total)}"

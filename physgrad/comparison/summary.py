@@ -4,6 +4,7 @@ to: compare.md, trials.csv, runs.csv and comparisons.csv."""
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -11,6 +12,7 @@ import numpy as np
 
 from physgrad.comparison.calibration import cost_spread
 from physgrad.comparison.clock_text import busy_calibration, timing_lines
+from physgrad.comparison.coverage import coverage_lines, tried_values
 from physgrad.comparison.spec import StudySettings, Variant
 from physgrad.files import replaced_text
 from physgrad.readout import fmt, run_record, target_loss
@@ -90,7 +92,12 @@ def analyse(
             table.to_csv(f, index=False)
 
     lines = verdict_lines(variants, runs, verdicts, settings, axis, budget, calibration)
-    lines += variant_lines(variants, runs, best, target_variant, target)
+    searched = (
+        coverage_lines(variants, tried_values(trials_rows), settings.trials)
+        if settings.tune
+        else []
+    )
+    lines += variant_lines(variants, runs, best, target_variant, target, searched)
     lines += timing_lines(variants, runs, axis, calibration)
     text = "\n".join(lines) + "\n"
     with replaced_text(folder / "compare.md") as f:
@@ -341,9 +348,11 @@ def variant_lines(
     best: list[dict[str, dict]],
     target_variant: str,
     target: float,
+    searched: Sequence[str] = (),
 ) -> list[str]:
     """compare.md's variants table (tuned settings, one value per tuning study, and the preset;
-    test loss at the budget over every study's runs; time to target) and the target."""
+    test loss at the budget over every study's runs; time to target), the warnings on the tuned
+    values and on what the search covered (searched: coverage_lines), and the target."""
     lines = [
         "",
         "## Variants",
@@ -377,6 +386,7 @@ def variant_lines(
             f"{int(np.isfinite(reach).sum())} of {reach.size} |"
         )
     lines += edge_lines(variants, best)
+    lines += list(searched)
     lines += [
         "",
         f"Target: {fmt(target)}, the median test loss of {target_variant or '-'} (the lowest) at "

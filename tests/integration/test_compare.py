@@ -250,6 +250,9 @@ def test_the_python_call_returns_the_tables(small_study):
     assert (study.folder / "report" / "runs.csv").is_file()
     assert not [p for p in study.folder.rglob("*") if p.suffix in (".png", ".pdf")]
     assert "must hold in 2 of the 2 tuning studies" in study.text
+    # two trials per study: said under the variants (physgrad.comparison.coverage)
+    variants_part = study.text.split("## Variants")[1]
+    assert "warning: 2 trials per tuning study" in variants_part.split("Target:")[0]
     # what the design could detect, from the spread it measured: in the table and the CSV
     assert "| A lower in | detectable |" in study.text
     overall = study.comparisons[study.comparisons.study == "all"]

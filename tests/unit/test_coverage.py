@@ -1,0 +1,129 @@
+"""Unit layer (pure functions) of the tests of: what a study's search could have found (warnings on
+presets outside every trial, untried decades of a range, too few trials per study)."""
+
+import math
+
+from omegaconf import OmegaConf
+
+from physgrad.comparison import Variant, halton_points, study_settings
+from physgrad.comparison.coverage import (
+    MIN_TRIALS,
+    coverage_lines,
+    planned_points,
+    tried_values,
+)
+from physgrad.comparison.spec import StudyPlan
+from physgrad.comparison.tuning import point_dimensions
+
+RANGE = (1e-3, 1.0)
+
+
+def variant(name="gauss_newton", preset=1.0, space=None):
+    config = OmegaConf.create({"optim": {"learning_rate": preset}})
+    return Variant(
+        name, [f"optim={name}"], config, {"learning_rate": RANGE} if space is None else space
+    )
+
+
+def warnings_of(lines):
+    return [line for line in lines if line]
+
+
+def test_a_preset_above_every_trial_is_named_with_the_highest_tried():
+    """The newcomer's case: Gauss-Newton ships learning_rate=1, two trials never went above
+    0.165."""
+    (line,) = [
+        x
+        for x in coverage_lines([variant()], {"gauss_newton": {"learning_rate": [0.01, 0.165]}}, 8)
+        if "preset" in x
+    ]
+    assert "gauss_newton's preset learning_rate=1 lies above every trial" in line
+    assert "the highest tried: 0.165" in line and "compare.search.learning_rate" in line
+    (below,) = [
+        x
+        for x in coverage_lines(
+            [variant(preset=1e-3)], {"gauss_newton": {"learning_rate": [0.01, 0.165]}}, 8
+        )
+        if "preset" in x
+    ]
+    assert "lies below every trial (the lowest tried: 0.01)" in below
+
+
+def test_a_preset_among_the_trials_or_not_a_number_is_not_warned_about():
+    tried = {"gauss_newton": {"learning_rate": [0.01, 0.1, 2.0]}}
+    assert not [x for x in coverage_lines([variant()], tried, 8) if "preset" in x]
+    for preset in (None, "auto", True):
+        assert not [x for x in coverage_lines([variant(preset=preset)], tried, 8) if "preset" in x]
+
+
+def test_a_preset_outside_the_range_says_so():
+    tried = {"gauss_newton": {"learning_rate": [0.01, 0.1]}}
+    (line,) = [x for x in coverage_lines([variant(preset=5.0)], tried, 8) if "preset" in x]
+    assert "outside the range [0.001, 1] searched" in line
+
+
+def test_the_widest_untried_stretch_of_a_decade_or_more_is_named():
+    # trials at 0.002 and 0.004 in [1e-3, 1]: 0.004 .. 1 untried, 2.4 decades
+    (line,) = [
+        x
+        for x in coverage_lines(
+            [variant(preset=0.003)], {"gauss_newton": {"learning_rate": [0.002, 0.004]}}, 8
+        )
+        if "no trial" in x
+    ]
+    assert "between 0.004 and 1 (2.4 decades of its range [0.001, 1] untried)" in line
+    # one trial every half decade: nothing to say
+    even = [10 ** (-3 + 0.5 * k) for k in range(7)]
+    assert (
+        coverage_lines([variant(preset=0.01)], {"gauss_newton": {"learning_rate": even}}, 8) == []
+    )
+    # the ends of the range count: a gap from the lowest end to the first trial
+    (line,) = [
+        x
+        for x in coverage_lines(
+            [variant(preset=0.5)], {"gauss_newton": {"learning_rate": [0.05, 0.2, 0.5, 1.0]}}, 8
+        )
+        if "no trial" in x
+    ]
+    assert "between 0.001 and 0.05" in line
+
+
+def test_too_few_trials_per_study_is_said_once_and_enough_is_not():
+    tried = {"gauss_newton": {"learning_rate": [0.01, 0.1, 0.5]}}
+    few = warnings_of(coverage_lines([variant(), variant("hig")], tried, 2))
+    assert sum("trials per tuning study" in x for x in few) == 1
+    assert "one of 2 points" in few[0] and f"compare.trials={MIN_TRIALS}" in few[0]
+    assert not any("per tuning study" in x for x in coverage_lines([variant()], tried, MIN_TRIALS))
+
+
+def test_a_variant_with_nothing_tuned_gets_no_warning():
+    assert coverage_lines([variant(space={})], {}, 1) == []
+
+
+def test_the_values_tried_are_read_from_the_trial_rows_without_set_aside_ones():
+    rows = [
+        {"variant": "adam", "study": 0, "trial": 0, "learning_rate": 0.01, "state": "COMPLETE"},
+        {"variant": "adam", "study": 1, "trial": 0, "learning_rate": 0.2, "validation_loss": 1.0},
+        {"variant": "adam", "study": 0, "trial": 1, "state": "SET_ASIDE"},
+        {"variant": "adam", "study": 0, "trial": 2, "learning_rate": math.nan},
+        {"variant": "gd", "study": 0, "trial": 0, "learning_rate": 0.5, "state": "FAIL"},
+    ]
+    assert tried_values(rows) == {
+        "adam": {"learning_rate": [0.01, 0.2]},
+        "gd": {"learning_rate": [0.5]},
+    }
+
+
+def test_the_planned_points_are_the_points_each_tuning_study_will_try():
+    settings = study_settings({"trials": 3, "studies": 2})
+    variants = [variant("adam", 1e-3, {"learning_rate": (1e-5, 0.1)}), variant()]
+    plan = StudyPlan(variants, settings, [], set(), "iteration", 100)
+    planned = planned_points(plan)
+    dimensions = point_dimensions([v.space for v in variants])
+    for v in variants:
+        expected = [
+            p["learning_rate"]
+            for k in range(2)
+            for p in halton_points(v.space, 3, settings.tune_seed + k, dimensions)
+        ]
+        assert planned[v.name]["learning_rate"] == expected
