@@ -6,12 +6,16 @@ file system did (a results file that could not be written, a folder another proc
 without locks).
 """
 
+import re
+
 
 def innermost_cause(error: BaseException) -> str:
     """An error in one line: its first line, or, where its text carries a Python traceback (an
     exception raised in a host callback of a compiled step: a solver's step limit, an equinox or
-    checkify error, as XLA reports it), the exception line that ends it."""
+    checkify error, as XLA reports it), the exception line that ends it. Equinox ends its runtime
+    errors with advice between lines of dashes: the cause is the text above them."""
     text = str(error).strip()
+    text = re.split(r"^\s*-{4,}\s*$", text, maxsplit=1, flags=re.MULTILINE)[0].strip() or text
     lines = [line.strip() for line in text.splitlines() if line.strip()]
     if "Traceback (most recent call last)" in text and lines:
         return lines[-1]

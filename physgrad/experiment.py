@@ -16,7 +16,7 @@ import jax
 import jax.numpy as jnp
 from omegaconf import DictConfig, OmegaConf, open_dict
 
-from physgrad.errors import FolderOwned, UserError
+from physgrad.errors import FolderOwned, UserError, innermost_cause
 from physgrad.files import own_folder
 from physgrad.gradients import JacobianPass
 from physgrad.interrupts import StopRequest, stop_on_signals
@@ -38,7 +38,7 @@ from physgrad.refusals import (
 from physgrad.results import ResultsWriter, read_final, record_outcome
 from physgrad.resume import finished_before, start_from
 from physgrad.run_figures import draw_run_figures
-from physgrad.runner import Outcome, TrainerSettings, train
+from physgrad.runner import Outcome, TrainerSettings, quiet_callback_failures, train
 from physgrad.sweeps import in_launcher, mark_stopped, watching
 from physgrad.tasks import Scene, build_scene
 from physgrad.training import Seeds, stack
@@ -214,6 +214,7 @@ def prepare(
     (UserError): everything a run (and `make bench`) does before compiling."""
     set_precision(cfg.precision)
     logging.getLogger("jax").setLevel(logging.WARNING)
+    quiet_callback_failures()  # building a scene's data can run its solver too
     rule = build_rule(cfg.optim, cfg.get("trial_values"))
     scene, seeds = build_seeds(cfg, seed_list, settings.batch_size, checkpoint)
     check_scene_values(scene, seeds, cfg.task.name)
@@ -350,9 +351,7 @@ def set_up_and_train(cfg: DictConfig, paths: list[tuple[int, Path]], stop: StopR
         return refused(str(error))
     except Exception as error:  # before training: the files say failed, with the reason
         stop.raising = False
-        record_before_training(
-            cfg, paths, "failed", f"{type(error).__name__}: {error}".splitlines()[0]
-        )
+        record_before_training(cfg, paths, "failed", innermost_cause(error))
         raise
     attrs = [
         job_attributes(member, scene, rule, origin, len(paths))

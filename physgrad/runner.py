@@ -52,6 +52,23 @@ FLUSH_COST_FACTOR = 20
 MIN_STEP_COST = 1e-6  # seconds: the calibrated clock's floor (trainer.step_cost, calibration.json)
 
 
+class CallbackFailureFilter(logging.Filter):
+    """Drops JAX's log of a host callback that raised ("jax.pure_callback failed", with its
+    traceback, before XLA re-raises the exception): the run records that failure itself, in one
+    line (solver_failed; a failure elsewhere keeps its traceback in the job's error.txt)."""
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        message = record.getMessage()
+        return not (message.startswith("jax.") and message.endswith("callback failed"))
+
+
+def quiet_callback_failures() -> None:
+    """CallbackFailureFilter on JAX's callback logger, once."""
+    logger = logging.getLogger("jax._src.callback")
+    if not any(isinstance(f, CallbackFailureFilter) for f in logger.filters):
+        logger.addFilter(CallbackFailureFilter())
+
+
 @dataclass(frozen=True)
 class TrainerSettings:
     """The `trainer` config section: when to stop, evaluate, write and log. iterations is None for
@@ -434,14 +451,15 @@ def train(
     if stop is None:
         with stop_on_signals() as own:
             return train(scene, rule, seeds, writers, settings, label, own)
+    quiet_callback_failures()
     progress = Progress(settings, label, clock)
     loop = TrainingLoop(rule, seeds, writers, settings, stop, progress)
     load_start = load_average()
     try:
         # compiling can take minutes: inside the guard, so a failure or an interrupt there is
         # recorded too
-        loop.start(scene)
         try:
+            loop.start(scene)  # compiling, and the evaluation at iteration 0
             loop.iterate()
             loop.end()
         except Exception as error:  # the scene's own code gave up in a step or an evaluation
