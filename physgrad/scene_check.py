@@ -20,6 +20,7 @@ initial network):
 
 from __future__ import annotations
 
+import functools
 from collections.abc import Callable
 from dataclasses import dataclass
 from typing import TYPE_CHECKING
@@ -40,6 +41,10 @@ if TYPE_CHECKING:
 BATCH = 3  # training samples the checks use
 DIRECTIONS = 3  # random directions of the finite differences
 FD_RTOL = 1e-5  # the fourth-order stencil in float64 agrees to about 1e-8 on smooth losses
+# a scene's solver tolerances (its settings task.rtol and task.atol, where it has them) divided by
+# TIGHTER tell an adaptive solver's error floor from a wrong derivative
+TOLERANCES = ("rtol", "atol")
+TIGHTER = 100.0
 EXACT_RTOL = 1e-9  # two exact computations of the same value (scan against loop, J v against jvp)
 
 
@@ -199,8 +204,9 @@ def _check_scene(cfg: DictConfig) -> list[Check]:
     checks.append(_deterministic_check(cfg, scene, seeds, params, batch, loss))
     if scene.dynamics is not None:
         checks.append(_rollout_check(scene, params, batch, y))
+    tighter = functools.cache(lambda: _tighter_scene(cfg))
     for mode in ["R", "M", "S"] if scene.closed_loop else ["R"]:
-        checks.append(_gradient_check(scene, params, batch, mode))
+        checks.append(_gradient_check(scene, params, batch, mode, tighter))
     if not scene.closed_loop:
         try:
             checks.append(_jacobian_check(scene, params, batch))
@@ -290,9 +296,36 @@ def _rollout_check(scene: Scene, params: Params, batch: Pytree, y: jax.Array) ->
     )
 
 
-def _gradient_check(scene: Scene, params: Params, batch: Pytree, mode: str) -> Check:
+def _tighter_scene(cfg: DictConfig) -> Scene | None:
+    """The scene rebuilt with its solver's tolerances 100 times tighter, where its settings name
+    them task.rtol and task.atol (diffrax's names; docs/extending.md); None where they do not."""
+    from omegaconf import open_dict
+
+    from physgrad.experiment import build_seeds
+
+    task = cfg.task
+    if not all(_positive_number(task.get(key)) for key in TOLERANCES):
+        return None
+    tight = cfg.copy()
+    with open_dict(tight):
+        for key in TOLERANCES:
+            tight.task[key] = float(task[key]) / TIGHTER
+    return build_seeds(tight, [int(cfg.seed)], 1)[0]
+
+
+def _positive_number(value: object) -> bool:
+    return isinstance(value, (int, float)) and not isinstance(value, bool) and value > 0
+
+
+def _gradient_check(
+    scene: Scene,
+    params: Params,
+    batch: Pytree,
+    mode: str,
+    tighter: Callable[[], Scene | None] = lambda: None,
+) -> Check:
     """The gradient of one backprop mode against the plain loop's (temporal scenes) and against
-    finite differences."""
+    finite differences; where they disagree, why (_step_hint, _tolerance_hint)."""
     backprop = MODES[mode]
     scan_loss = _batch_loss(scene, scene.backprop_output(backprop), batch)
     gradient = jax.grad(scan_loss)(params)
@@ -323,15 +356,20 @@ def _gradient_check(scene: Scene, params: Params, batch: Pytree, mode: str) -> C
         passed,
         f"{loop_text}against finite differences {worst:.1e} "
         f"(at most {tolerance:.0e}) along {DIRECTIONS} random directions"
-        + ("" if worst <= tolerance else _step_hint(reference, params, gradient, worst)),
+        + (
+            ""
+            if worst <= tolerance
+            else _step_hint(reference, params, gradient, worst)
+            or _tolerance_hint(tighter(), params, batch, mode, worst)
+        ),
     )
 
 
 def _step_hint(reference: Callable, params: Params, gradient: Params, worst: float) -> str:
-    """Why finite differences may disagree: the error again at a 10x smaller step. A wrong
-    derivative stays off by the same amount; a loss that is not smooth in the parameters (an
-    adaptive solver accepting other steps, a step count or a branch that changes) does not
-    settle."""
+    """Why finite differences may disagree: the error again at a 10x smaller step. A loss that is
+    not smooth in the parameters (an adaptive solver accepting other steps, a step count or a
+    branch that changes) does not settle: said here. An error that settles (a wrong derivative,
+    or an adaptive solver's error floor): "" (_tolerance_hint tells them apart)."""
     smaller, _ = finite_difference_check(reference, params, gradient, step_scale=0.1)
     if smaller < 0.5 * worst or smaller > 2 * worst:
         return (
@@ -339,7 +377,33 @@ def _step_hint(reference: Callable, params: Params, gradient: Params, worst: flo
             "is not smooth in the parameters (an adaptive solver changes its accepted steps): "
             "tighten the solver's tolerances (rtol, atol near 1e-10) or check with a fixed step"
         )
-    return f"; {smaller:.1e} at a 10x smaller step: the derivative itself is off"
+    return ""
+
+
+def _tolerance_hint(
+    tighter: Scene | None, params: Params, batch: Pytree, mode: str, worst: float
+) -> str:
+    """Where the error settled: whether it follows the solver's tolerances. An adaptive solver's
+    accepted steps move with the parameters but are not differentiated (diffrax's controllers), so
+    the exact derivative of its discrete solution differs from the loss's own by about its
+    tolerances, at any finite-difference step; a wrong derivative does not shrink with them."""
+    settled = "; the same at a 10x smaller step"
+    if tighter is None:
+        return f"{settled}: the derivative itself is off"
+    loss = _batch_loss(tighter, tighter.backprop_output(MODES[mode]), batch)
+    tight, _ = finite_difference_check(loss, params, jax.jit(jax.grad(loss))(params))
+    if tight > worst / 3:
+        return (
+            f"{settled}, {tight:.1e} with the solver's tolerances {TIGHTER:g}x tighter: the "
+            "derivative itself is off"
+        )
+    return (
+        f"{settled}, {tight:.1e} with the solver's tolerances {TIGHTER:g}x tighter (task.rtol, "
+        "task.atol): "
+        "the error follows the tolerances, so it is the adaptive solver's own error floor (its "
+        "accepted steps are not differentiated), not a wrong derivative; train at tolerances "
+        "that put it below what the study needs, or with a fixed step"
+    )
 
 
 def _jacobian_check(scene: Scene, params: Params, batch: Pytree) -> Check:

@@ -169,7 +169,7 @@ def squash_jvp(primals, tangents):  # the author's derivative is off by a factor
     return jnp.tanh(z), 2.0 * (1.0 - jnp.tanh(z) ** 2) * dz
 
 
-def build(key, *, test_size, wrong):
+def build(key, *, test_size, wrong, rtol=None, atol=None):
     dtype = jnp.zeros(()).dtype
     physics = squash if wrong else jnp.tanh
 
@@ -268,9 +268,15 @@ def stepped(z):  # an adaptive solver's accepted steps: jumps that autodiff does
     return jnp.tanh(z) + 1e-3 * jax.lax.stop_gradient(jnp.floor(z / 3e-3))
 
 
-def build(key, *, test_size, kind):
+def floor(z, rtol):  # an adaptive solver's error floor: its accepted steps move smoothly with z,
+    # undifferentiated (diffrax's controllers), leaving an error of the order of its tolerance
+    return jnp.tanh(z) + rtol * jax.lax.stop_gradient(jnp.sin(40.0 * z))
+
+
+def build(key, *, test_size, kind, rtol=1e-5, atol=1e-5):
     dtype = jnp.zeros(()).dtype
-    physics = {"reverse_only": solve, "stepped": stepped}[kind]
+    physics = {"reverse_only": solve, "stepped": stepped,
+               "floor": lambda z: floor(z, rtol)}[kind]
 
     def draw(k, count, train_set=None):
         x = jax.random.uniform(k, (count, 1), dtype, -1.0, 1.0)
@@ -284,23 +290,26 @@ def build(key, *, test_size, kind):
 """
 
 
-@pytest.mark.parametrize("kind", ["reverse_only", "stepped", "wrong"])
+@pytest.mark.parametrize("kind", ["reverse_only", "stepped", "floor", "wrong", "wrong tolerances"])
 def test_check_explains_reverse_only_scenes_and_gradients_that_do_not_settle(
     tmp_path, monkeypatch, capsys, kind
 ):
     """A scene with no forward mode (a custom_vjp) passes, its Jacobian check built in reverse
     mode and saying so; a loss with jumps autodiff does not see (an adaptive solver) fails with the
-    differences at two step sizes and what to do; a wrong derivative is called off."""
+    differences at two step sizes and what to do; an error that settles but follows the scene's
+    solver tolerances (task.rtol, task.atol) is the solver's error floor, not a wrong derivative;
+    a wrong derivative is called off, with tolerances or without."""
     from physgrad.check import main
 
     (tmp_path / "conf" / "task").mkdir(parents=True)
     module = f"scene_{kind}"  # a module name of its own: the others may be imported already
-    if kind == "wrong":
+    module = module.replace(" ", "_")
+    if kind.startswith("wrong"):
         (tmp_path / f"{module}.py").write_text(BROKEN_SCENE)
-        setting = "wrong: true"
+        setting = "wrong: true" + ("\nrtol: 1.0e-5\natol: 1.0e-5" if "tolerances" in kind else "")
     else:
         (tmp_path / f"{module}.py").write_text(LIBRARY_LIKE_SCENE)
-        setting = f"kind: {kind}"
+        setting = f"kind: {kind}" + ("\nrtol: 1.0e-5\natol: 1.0e-5" if kind == "floor" else "")
     (tmp_path / "conf" / "task" / "heat.yaml").write_text(
         f"_target_: {module}.build\nbatch_size: 4\ntest_size: 8\n{setting}\n"
     )
@@ -316,5 +325,10 @@ def test_check_explains_reverse_only_scenes_and_gradients_that_do_not_settle(
     elif kind == "stepped":
         assert code == 1 and gradient.startswith("FAIL") and "do not settle" in gradient
         assert "tolerances" in gradient
+    elif kind == "floor":
+        assert code == 1 and gradient.startswith("FAIL") and "the same at a 10x smaller" in gradient
+        assert "100x tighter" in gradient and "error floor" in gradient, gradient
+        assert "derivative itself is off" not in gradient
     else:
         assert code == 1 and "the derivative itself is off" in gradient
+        assert ("100x tighter" in gradient) == ("tolerances" in kind), gradient
