@@ -21,6 +21,7 @@ initial network):
 from __future__ import annotations
 
 import functools
+import math
 from collections.abc import Callable
 from dataclasses import dataclass
 from typing import TYPE_CHECKING
@@ -44,6 +45,8 @@ FD_RTOL = 1e-5  # the fourth-order stencil in float64 agrees to about 1e-8 on sm
 # a scene's solver tolerances (its settings task.rtol and task.atol, where it has them) divided by
 # TIGHTER tell an adaptive solver's error floor from a wrong derivative
 TOLERANCES = ("rtol", "atol")
+PRECISION_STEPS = 3  # plain gradient steps the precision check takes in the runs' precision
+PRECISION_RATE = 1e-3  # their rate: small, so that the steps test the arithmetic, not the rate
 TIGHTER = 100.0
 EXACT_RTOL = 1e-9  # two exact computations of the same value (scan against loop, J v against jvp)
 
@@ -214,7 +217,51 @@ def _check_scene(cfg: DictConfig) -> list[Check]:
             checks.append(
                 Check("jacobian", False, f"{type(error).__name__}: {str(error).splitlines()[0]}")
             )
-    return checks
+    return [*checks, _precision_check(cfg)]
+
+
+def _precision_check(cfg: DictConfig) -> Check:
+    """The scene in the precision its runs use (`precision`, float32 by default; the checks above
+    run in float64): built, its data generated, PRECISION_STEPS plain gradient steps taken on a
+    minibatch, and the held-out evaluation, each finite. A scene that works in float64 only (a
+    solver's save times past its end in float32 round-off, a tolerance float32 cannot meet) fails
+    here in one line that names precision=64, not in a study's first job."""
+    from physgrad.errors import innermost_cause
+    from physgrad.experiment import build_seeds, set_precision
+
+    bits = int(cfg.get("precision", 32))
+    if bits == 64:
+        return Check("precision", True, "the runs use float64, as the checks above")
+    set_precision(bits)
+    try:
+        scene, seeds = build_seeds(cfg, [int(cfg.seed)], 1)
+        params = seeds.network()
+        batch = scene.sample_train(jax.random.PRNGKey(1), min(BATCH, scene.train_size or BATCH))
+        value_and_grad = jax.jit(jax.value_and_grad(_batch_loss(scene, scene.sample_output, batch)))
+        losses = []
+        for _ in range(PRECISION_STEPS):
+            loss, gradient = value_and_grad(params)
+            losses.append(float(loss))
+            params = jax.tree_util.tree_map(lambda p, g: p - PRECISION_RATE * g, params, gradient)
+        test_set = jax.tree_util.tree_map(lambda leaf: leaf[0], seeds.test_sets)
+        held_out = float(scene.evaluate(params, test_set)["loss"])
+    except Exception as error:  # noqa: BLE001 - the scene's code failing in this precision is the finding
+        return Check(
+            "precision",
+            False,
+            f"float{bits}: {innermost_cause(error)}; the checks above passed in float64: run "
+            "with precision=64, or make the scene work in float32",
+        )
+    finally:
+        set_precision(64)
+    finite = all(math.isfinite(v) for v in [*losses, held_out])
+    found = (
+        f"float{bits}: built, {PRECISION_STEPS} gradient steps (loss {losses[0]:.6g} -> "
+        f"{losses[-1]:.6g}) and the held-out loss {held_out:.6g}"
+    )
+    if not finite:
+        found += " not all finite: run with precision=64, or make the scene work in float32"
+    return Check("precision", finite, found)
 
 
 def _batch_loss(

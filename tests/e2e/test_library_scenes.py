@@ -49,7 +49,7 @@ def test_the_library_scenes_pass_physgrad_check(scene, settings, jacobian):
     per-sample Jacobian with its reason."""
     result = run_cli("check", "-cd", "conf", f"task={scene}", *settings, cwd=EXAMPLE)
     assert result.returncode == 0, result.stdout + result.stderr
-    assert f"task={scene}: 5 of 5 checks passed" in result.stdout
+    assert f"task={scene}: 6 of 6 checks passed" in result.stdout
     line = next(x for x in result.stdout.splitlines() if x.startswith("ok    jacobian"))
     assert jacobian in line, line
     assert ("J v by reverse mode: the scene has no forward mode" in line) == (

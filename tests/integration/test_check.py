@@ -236,8 +236,63 @@ def test_check_of_the_example_scene_passes_and_mistakes_are_one_line(monkeypatch
         and "gradient S" in out
         and "rollout" in out
     )
+    # the precision its runs use, float32: built and stepped there too
+    assert "ok    precision: float32: built, 3 gradient steps" in out
     assert main(["-cd", "conf", "task.unroll=12"]) == 2
     assert "name the scene to check" in capsys.readouterr().err
+
+
+FLOAT64_ONLY_SCENE = """
+import jax.numpy as jnp
+
+from physgrad.nets import apply_mlp, init_mlp
+from physgrad.tasks import Scene
+
+
+def build(key, *, test_size):
+    dtype = jnp.zeros(()).dtype
+    # the data's solve to a tolerance of 1e-12, as a stiff solver's: float32 cannot meet it
+    x = jnp.asarray(1.0, dtype)
+    for _ in range(60):
+        x = 0.5 * (x + 2.0 / x)
+    if abs(float(x * x - 2.0)) > 1e-12:
+        raise ValueError("the data's solve did not reach its tolerance 1e-12")
+
+    def draw(k, count, train_set=None):
+        z = jnp.linspace(-1.0, 1.0, count, dtype=dtype)[:, None] * x
+        return {"x": z, "target": jnp.sin(z)}
+
+    return Scene(init_params=lambda k: init_mlp(k, [1, 8, 1], dtype), draw_batch=draw,
+                 test_set=draw(key, test_size),
+                 sample_output=lambda params, sample: apply_mlp(params, sample["x"], hidden="tanh"),
+                 sample_loss=lambda y, sample: 0.5 * jnp.sum((y - sample["target"]) ** 2))
+"""
+
+
+def test_a_scene_that_works_in_float64_only_fails_the_precision_check_in_one_line(
+    tmp_path, monkeypatch, capsys
+):
+    """check's other checks run in float64; the scene is also built and stepped in the precision
+    its runs use (float32 by default): a scene that cannot work there fails in one line naming
+    precision=64, and passes when its runs are asked for in float64."""
+    from physgrad.check import main
+
+    (tmp_path / "conf" / "task").mkdir(parents=True)
+    (tmp_path / "f64only.py").write_text(FLOAT64_ONLY_SCENE)
+    (tmp_path / "conf" / "task" / "f64only.yaml").write_text(
+        "_target_: f64only.build\nbatch_size: 4\ntest_size: 8\n"
+    )
+    monkeypatch.chdir(tmp_path)
+    monkeypatch.syspath_prepend(str(tmp_path))
+    assert main(["-cd", "conf", "task=f64only"]) == 1
+    lines = capsys.readouterr().out.splitlines()
+    (precision,) = [line for line in lines if line.split(":")[0].endswith("precision")]
+    assert precision.startswith("FAIL") and "float32: ValueError: the data's solve" in precision
+    assert "precision=64" in precision
+    assert all(line.startswith("ok") for line in lines[:-1] if line is not precision)
+    assert lines[-1].endswith("5 of 6 checks passed; failed: precision")
+    assert main(["-cd", "conf", "task=f64only", "precision=64"]) == 0
+    assert "ok    precision: the runs use float64" in capsys.readouterr().out
 
 
 LIBRARY_LIKE_SCENE = """
