@@ -289,6 +289,13 @@ def study_settings(given: dict) -> StudySettings:
 
     choice("compare.clock", values["clock"], CLOCKS)
     settings = StudySettings(**values)
+    if settings.dir is not None and "${" in str(settings.dir):
+        # the folder reaches the phases' jobs as a config value, where OmegaConf would resolve it
+        # to another folder: the jobs would write where the study never looks
+        raise UserError(
+            f"compare.dir={settings.dir}: '${{' would be resolved as an interpolation in the "
+            "study's jobs, which would then write into another folder; give the folder itself"
+        )
     if not isinstance(settings.tune, bool):
         raise UserError(f"compare.tune={settings.tune!r}: use true or false")
     last_tuning = settings.tune_seed + settings.studies - 1

@@ -67,6 +67,43 @@ def test_unreadable_files_are_listed_not_fatal(tmp_path, report_figures_skipped)
     assert "1 runs under" in text and "unreadable:" in text and "bad/results.h5" in text
 
 
+def test_a_results_file_that_vanishes_while_the_report_reads_is_listed_not_fatal(
+    tmp_path, monkeypatch, report_figures_skipped
+):
+    """A sweep still being written or cleaned up: a results file listed, then gone (or made
+    unreadable) before it is opened, at each of the runs in turn, is a line of the report's
+    unreadable files; the other runs are reported."""
+    import physgrad.runs
+
+    for seed in range(3):
+        fake_run(tmp_path / f"s{seed}", "adam", seed, 1, [1.0, 0.5], [0.0, 1.0])
+    real = physgrad.runs.read_run
+    for gone in range(3):
+        victim = tmp_path / f"s{gone}" / "results.h5"
+        kept = victim.read_bytes()
+
+        def vanishing(path, victim=victim):
+            if Path(path) == victim:
+                victim.unlink()
+            return real(path)
+
+        monkeypatch.setattr(physgrad.runs, "read_run", vanishing)
+        text = write_report([tmp_path])
+        assert "2 runs under" in text and f"s{gone}/results.h5" in text.split("unreadable:")[1]
+        victim.write_bytes(kept)
+
+        # gone just after it was read: what was read is reported
+        def read_then_vanish(path, victim=victim):
+            run = real(path)
+            if Path(path) == victim:
+                victim.unlink()
+            return run
+
+        monkeypatch.setattr(physgrad.runs, "read_run", read_then_vanish)
+        assert "3 runs under" in write_report([tmp_path])
+        victim.write_bytes(kept)
+
+
 def test_median_band_interpolates_in_log_loss():
     curves = [
         (np.array([0.0, 2.0]), np.array([1.0, 1e-2])),

@@ -33,6 +33,8 @@ from physgrad.errors import UserError
         (["task=toy", "optim=adam,hig", "compare.seeds=2000"], "compare.seeds"),
         (["task=toy", "optim=adam,hig", "hydra.sweep.dir=x"], "give compare.dir=DIR instead"),
         (["task=toy", "optim=adam,hig", "compare.dir=a,b"], "takes one value"),
+        # resolved in the jobs to another folder: the study would wait for runs that went elsewhere
+        (["task=toy", "optim=adam,hig", "compare.dir=/tmp/s${oc.env:HOME}"], "interpolation"),
         (["task=toy", "optim=adam,hig", "hydra.run.dir=x"], "give compare.dir=DIR instead"),
         # tuning seeds 2, 3, 4 of three studies reach the evaluation seeds 3 ..
         (["task=toy", "optim=adam,hig", "compare.tune_seed=2", "compare.seed=3"], "must differ"),
