@@ -328,16 +328,23 @@ def launch(
         shutil.rmtree(private, ignore_errors=True)
 
 
-# Hydra's line for each job it launches: "[HYDRA] \t#3 : +compare_job=..."
-_LAUNCHED = re.compile(r"\[HYDRA\]\s+#(\d+) : ")
+# Hydra's line for each job it launches: "[HYDRA] \t#3 : +compare_job=..."; a job's training
+# progress as the runner logs it without a terminal (physgrad.progress): "toy/hig seed 1000000
+# (+1) iteration 6214, loss 0.007778, 28.5 s of training"
+_EVENT = re.compile(
+    r"\[HYDRA\]\s+#(?P<job>\d+) : "
+    r"|\] - (?P<label>\S+ seed \d+(?: \(\+\d+\))?) "
+    r"iteration (?P<iteration>\d+), loss (?P<loss>\S+),"
+)
 
 
 @dataclass
 class Progress:
     """A phase's progress on the console, read from its log as the multirun writes it: a line when
-    more of its jobs have started, at most one every `every` seconds, and one at the end with the
-    jobs it ran (Hydra launches the jobs of a local sweep one after another, so job k started
-    means k - 1 done)."""
+    more of its jobs have started, at most one every `every` seconds, with the running job's loss
+    so far and the time left at the pace of the jobs done; and one at the end with the jobs it ran
+    (Hydra launches the jobs of a local sweep one after another, so job k started means k - 1
+    done)."""
 
     phase: str
     total: int
@@ -347,12 +354,20 @@ class Progress:
     said: int = 0
     begun: float = field(default_factory=time.monotonic)
     last: float = field(default_factory=time.monotonic)
+    launched_at: float = 0.0  # when the latest job was seen to start
+    training: str = ""  # the running job's last progress: its label, loss and iteration
+    training_said: str = ""
 
     def read(self, text: str, final: bool = False) -> None:
         """Take the log's new text; say where the phase is if it moved on."""
-        found = [int(k) + 1 for k in _LAUNCHED.findall(text)]
-        self.started = max([self.started, *found])
         now = time.monotonic()
+        for event in _EVENT.finditer(text):
+            if event["job"] is not None and int(event["job"]) + 1 > self.started:
+                self.started, self.launched_at, self.training = int(event["job"]) + 1, now, ""
+            elif event["label"] is not None:
+                self.training = (
+                    f"{event['label']}: loss {event['loss']} at iteration {event['iteration']}"
+                )
         moved = self.started > self.said
         minutes = (now - self.begun) / 60
         if final and self.started:
@@ -360,12 +375,24 @@ class Progress:
                 f"{self.phase}: {min(self.started, self.total)} of {self.total} jobs run in "
                 f"{minutes:.1f} min"
             )
-        elif moved and now - self.last >= self.every:
+        elif (moved or self.training != self.training_said) and now - self.last >= self.every:
             self.say(
                 f"{self.phase}: job {min(self.started, self.total)} of {self.total} started, "
                 f"{minutes:.1f} min in"
+                + (f"; {self.training}" if self.training else "")
+                + self._left(now)
             )
-            self.said, self.last = self.started, now
+            self.said, self.last, self.training_said = self.started, now, self.training
+
+    def _left(self, now: float) -> str:
+        """The time left at the pace of the jobs done (none before one is done): their mean time
+        for each job not done, less what the running one has had."""
+        done = self.started - 1
+        if done < 1:
+            return ""
+        mean = (self.launched_at - self.begun) / done
+        left = max(0.0, mean * (self.total - done) - (now - self.launched_at))
+        return f"; about {left / 60:.1f} min left"
 
 
 def _run_multirun(

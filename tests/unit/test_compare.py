@@ -203,6 +203,8 @@ def test_a_phase_says_its_progress_from_its_log_without_a_line_per_job(tmp_path,
         "import time\n"
         "for k in range(6):\n"
         "    print(f'[2026-01-01][HYDRA] \\t#{k} : +compare_job=tune_v{k}', flush=True)\n"
+        "    print(f'[2026-01-01][physgrad][INFO] - toy/hig seed 1000000 (+1) '\n"
+        "          f'iteration {10 * k}, loss {k}.5, 1.0 s of training', flush=True)\n"
         "    time.sleep(0.2)\n"
     )
 
@@ -217,12 +219,17 @@ def test_a_phase_says_its_progress_from_its_log_without_a_line_per_job(tmp_path,
     # an interval longer than the phase: the end only
     said = phase(every=600)
     assert len(said) == 1 and said[0].startswith("tune: 6 of 6 jobs run in ")
-    # no interval: every look that found more jobs started, in order, then the end
+    # no interval: every look that found more jobs started or a job's loss moved, in order, then
+    # the end
     said = phase(every=0)
     along = said[:-1]
     assert along and all(line.startswith("tune: job ") for line in along), said
     numbers = [int(line.split()[2]) for line in along]
-    assert numbers == sorted(set(numbers)) and numbers[-1] <= 6
+    assert numbers == sorted(numbers) and numbers[-1] <= 6
+    # the running job's loss so far, and from the second job on the time left at the jobs' pace
+    for line, k in zip(along, numbers):
+        assert f"; toy/hig seed 1000000 (+1): loss {k - 1}.5 at iteration {10 * (k - 1)}" in line
+        assert ("min left" in line) == (k > 1), line
     assert said[-1].startswith("tune: 6 of 6 jobs run in ")
     quiet = []
     log = tmp_path / "q.log"
