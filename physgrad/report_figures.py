@@ -206,9 +206,11 @@ def _draw_medians(ax: Axes, groups: dict, styles: dict) -> tuple[list[float], li
 
 
 def _draw_diverged(ax: Axes, groups: dict, styles: dict) -> None:
-    """Each diverged run dashed, ending in a cross labelled with the reason, or in a triangle at the
-    top edge where it left the axis."""
-    top, notes = ax.get_ylim()[1], 0
+    """Each diverged run dashed, ending in a cross (or a triangle at the top edge where it left the
+    axis) numbered beside it, and the numbered reasons listed under the axes: notes drawn among
+    the curves overprinted each other, the curves and the tick labels once there were many
+    groups."""
+    top, notes = ax.get_ylim()[1], []
     for label, kinds in _by_label(groups):
         color = styles.get(label, {}).get("color")
         for x, y, reason in kinds["diverged"]:
@@ -222,22 +224,40 @@ def _draw_diverged(ax: Axes, groups: dict, styles: dict) -> None:
                 color=color,
                 clip_on=False,
             )
-            # runs that diverge early end at nearly the same point: stack their notes instead of
-            # overprinting; a note for a run that ends in the right half of the axes runs leftwards,
-            # so that it stays inside the axes instead of running into the legend
-            ending = ax.transData.transform((x[-1], min(y[-1], top)))
-            leftwards = ax.transAxes.inverted().transform(ending)[0] > 0.5
+            # runs that diverge early end at nearly the same point: their numbers stack
+            same_end = sum(1 for end, _ in notes if end == (x[-1], min(y[-1], top)))
             ax.annotate(
-                literal(_short_reason(reason) + (f" (loss {y[-1]:.3g})" if above else "")),
+                str(len(notes) + 1),
                 (x[-1], min(y[-1], top)),
-                xytext=(-4 if leftwards else 4, -10 - 9 * notes),
+                xytext=(4, 2 - 8 * same_end),
                 textcoords="offset points",
-                horizontalalignment="right" if leftwards else "left",
                 fontsize=7,
                 color=color,
                 annotation_clip=False,
             )
-            notes += 1
+            note = f"{len(notes) + 1}: {label}: {_short_reason(reason)}"
+            notes.append(
+                ((x[-1], min(y[-1], top)), note + (f" (loss {y[-1]:.3g})" if above else ""))
+            )
+    if notes:
+        shown = [note for _, note in notes[:MAX_DIVERGED_NOTES]]
+        if len(notes) > MAX_DIVERGED_NOTES:
+            shown.append(f"and {len(notes) - MAX_DIVERGED_NOTES} more (report.md lists every run)")
+        # under the x axis's label (the figure is saved with its whole extent)
+        ax.annotate(
+            literal("diverged:\n" + "\n".join(shown)),
+            (0, 0),
+            xycoords="axes fraction",
+            xytext=(0, -34),
+            textcoords="offset points",
+            va="top",
+            fontsize=7,
+            color="dimgray",
+            annotation_clip=False,
+        )
+
+
+MAX_DIVERGED_NOTES = 8  # reasons listed under a panel; the rest are counted
 
 
 def plot_tradeoff(

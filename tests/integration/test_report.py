@@ -417,14 +417,20 @@ def test_notes_of_runs_that_diverged_at_the_same_point_do_not_overprint(tmp_path
         )
     runs, _, _ = collect([tmp_path])
     label_runs(runs)
-    offsets, annotate = [], Axes.annotate
+    calls, annotate = [], Axes.annotate
     monkeypatch.setattr(
         Axes,
         "annotate",
-        lambda self, text, xy, **kw: offsets.append(kw["xytext"]) or annotate(self, text, xy, **kw),
+        lambda self, text, xy, **kw: (
+            calls.append((text, kw["xytext"])) or annotate(self, text, xy, **kw)
+        ),
     )
     plot_comparison(runs, tmp_path / "loss.png")
-    assert len(offsets) == 3 and len(set(offsets)) == 3
+    numbers = [(text, offset) for text, offset in calls if text.isdigit()]
+    assert sorted(text for text, _ in numbers) == ["1", "2", "3"]
+    assert len({offset for _, offset in numbers}) == 3  # stacked, not overprinted
+    (notes,) = [text for text, _ in calls if not text.isdigit()]
+    assert notes.startswith("diverged:") and notes.count("\n") == 3
 
 
 @pytest.fixture
@@ -488,6 +494,42 @@ def test_every_group_keeps_its_style_in_every_figure_and_twelve_groups_stay_apar
     fig.canvas.draw()
     legend = ax.get_legend().get_window_extent()
     assert legend.x0 >= ax.get_window_extent().x1  # beside the data, not on it
+
+
+@pytest.mark.parametrize("groups", [9, 20])
+def test_many_groups_with_diverged_runs_keep_notes_legend_and_ticks_apart(
+    tmp_path, figures, groups
+):
+    """9 and 20 groups, a third of them with a diverged seed: the divergence notes sit under the
+    axes (below the tick labels and the axis label), the legend beside them, nothing drawn over
+    another; every diverged run is numbered."""
+    for g in range(groups):
+        for seed in range(2):
+            diverged = g % 3 == 0 and seed == 0
+            fake_run(
+                tmp_path / f"v{g}s{seed}",
+                f"variant_{g}",
+                seed,
+                1,
+                [1.0, 0.5 / (g + 1), 0.1 / (g + 1)],
+                [0.0, 1.0, 2.0],
+                status="diverged" if diverged else "completed",
+            )
+    write_report([tmp_path], out_dir=tmp_path / "out")
+    for name in ("loss_vs_time", "loss_vs_iteration"):
+        fig = figures[name]
+        ax = fig.axes[0]
+        fig.canvas.draw()  # the tick labels placed as saved
+        renderer = fig.canvas.get_renderer()
+        notes = [t for t in ax.texts if t.get_text().startswith("diverged:")]
+        assert len(notes) == 1 and notes[0].get_text().count("\n") == len(range(0, groups, 3))
+        below = notes[0].get_window_extent(renderer)
+        axis_parts = [ax.xaxis.label, *(t for t in ax.get_xticklabels() if t.get_text())]
+        assert all(below.y1 <= part.get_window_extent(renderer).y0 + 0.5 for part in axis_parts)
+        legend = ax.get_legend().get_window_extent(renderer)
+        assert legend.x0 >= ax.get_window_extent(renderer).x1 and not legend.overlaps(below)
+        numbers = sorted(int(t.get_text()) for t in ax.texts if t.get_text().isdigit())
+        assert numbers == list(range(1, len(range(0, groups, 3)) + 1))
 
 
 def test_a_diverged_run_does_not_stretch_the_axis(tmp_path, figures):
