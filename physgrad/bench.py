@@ -42,6 +42,7 @@ OPTIMS = (
     "kfac",
     "lbfgs",
     "muon",
+    "soap",
     "bptt",
     "stable_bptt",
 )

@@ -50,6 +50,8 @@ RULES: dict[str, Capabilities] = {
         "lbfgs", (1e-2, 1e1), elementwise=True
     ),  # scales the direction before its line search
     "optax.contrib.muon": Capabilities("adaptive", ADAPTIVE.search_range, needs_matrices=True),
+    # Adam in Shampoo's eigenbasis per weight matrix: given the layers, not one flat vector
+    "physgrad.optim.soap.soap": Capabilities("adaptive", ADAPTIVE.search_range),
     **{
         f"optax.{name}": ADAPTIVE_ELEMENTWISE
         for name in (

@@ -83,6 +83,7 @@ def test_every_task_and_optim_has_a_config():
         "lbfgs",
         "muon",
         "kfac",
+        "soap",
     }
 
 

@@ -54,6 +54,7 @@ INNER = {
         {"__init__"},
         {"study"},
         {"summary", "plan", "figure", "evaluation"},
+        {"coverage"},
         {"tuning", "clock_text", "calibration"},
         {"jobs"},
         {"spec"},
