@@ -102,6 +102,7 @@ def test_a_study_stopped_at_random_instants_resumes_to_the_same_trials(tmp_path)
     # a study per kill: 5 at make test-faults
     repeats = max(1, int(os.environ.get("PHYSGRAD_FAULT_REPEATS", "1")) // 4)
     rng = random.Random(0)
+    stopped = 0
     for attempt in range(repeats):
         study = tmp_path / f"study{attempt}"
         args = [
@@ -119,14 +120,17 @@ def test_a_study_stopped_at_random_instants_resumes_to_the_same_trials(tmp_path)
         process = subprocess.Popen(
             args, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True
         )
+        # a tuning job's first file (trials trained together write one per member, a level down)
         deadline = time.time() + 120
-        while not list(study.glob("*/+compare_job=*/results.h5")) and time.time() < deadline:
+        while not any((study / "tune").rglob("results.h5")) and time.time() < deadline:
             time.sleep(0.1)
+        assert time.time() < deadline, "no tuning job wrote a results file in 120 s"
         time.sleep(rng.uniform(0.0, 3.0))
         process.send_signal(signal.SIGTERM)
         output, _ = process.communicate(timeout=120)
         if process.returncode == 0:  # finished before the signal: nothing to resume
             continue
+        stopped += 1
         assert process.returncode == 130 and "run the same command again to resume" in output, (
             output
         )
@@ -142,6 +146,7 @@ def test_a_study_stopped_at_random_instants_resumes_to_the_same_trials(tmp_path)
         assert [t["variant"] for t in trials] == ["adam"] * 3 + ["gd"] * 3
         assert all(t["state"] == "COMPLETE" for t in trials)
         assert len(list(csv.DictReader(open(study / "runs.csv")))) == 12
+    assert stopped, "every study finished before its signal: nothing was resumed"
 
 
 @pytest.mark.long
