@@ -47,8 +47,8 @@ test: lint
 	$(TIMED) $(FAST_COMPILE) $(BIN)/python -m pytest -q $(XDIST) -m "not long and not cluster" $(LAYERS)
 
 # the long checks (numerics through whole solvers, end-to-end studies, the full scene x optim matrix, the small
-# stability suite); CI runs them after make test, in parallel processes as make test (about 24 minutes with 2
-# on a 2-core machine). The scene x optim matrix trains two iterations a pair: compiling is all of it, so it
+# stability suite); CI runs them after make test, in parallel processes as make test (about 17 minutes with 2
+# on a 2-core machine; docs/testing.md). The scene x optim matrix trains two iterations a pair: compiling is all of it, so it
 # compiles as make test does; the rest trains for longer, at XLA's default
 MATRIX := tests/integration/test_configs.py::test_pair_runs_two_iterations_or_is_refused
 test-long: setup
