@@ -248,16 +248,21 @@ def test_a_stopped_sweep_cancels_its_waiting_jobs(tmp_path: Path) -> None:
     assert process.returncode == 130, out
     wait_until("the queue to empty", no_sweep_left, 60)
 
+    array, task = waiting.split("_")
+
     def accounted() -> str:
-        """The waiting job's accounting record, once slurmdbd has it (it lags the queue)."""
-        return subprocess.run(
-            ["sacct", "-n", "-X", "-P", "-o", "JobID,State,Start", "-j", waiting],
+        """The waiting task's accounting record, once slurmdbd has it (it lags the queue): its own
+        (`123_2`), or, where the array was cancelled whole, the record of the array's tasks that
+        were still waiting (`123_[1-2%3]`)."""
+        lines = subprocess.run(
+            ["sacct", "-n", "-X", "-P", "-o", "JobID,State,Start", "-j", array],
             check=True,
             capture_output=True,
             text=True,
-        ).stdout.strip()
+        ).stdout.split()
+        return next((line for line in lines if int(task) in tasks_of(line.split("|")[0])), "")
 
-    accounting = wait_until("the cancelled job's accounting record", accounted, 60)
+    accounting = wait_until("the cancelled task's accounting record", accounted, 60)
     job, state, start = accounting.split("|")
     assert state.startswith("CANCELLED") and start in ("None", "Unknown"), accounting  # never ran
     recorded = {key.split("optim=")[1].split(",")[0]: r for key, r in states(sweep).items()}
@@ -372,6 +377,18 @@ def test_a_study_survives_scancel_and_a_killed_launcher(tmp_path: Path) -> None:
     assert here.returncode == 0, out
     assert verdicts(folder) == verdicts(local)
     assert final_losses(folder) == pytest.approx(final_losses(local), rel=1e-6)
+
+
+def tasks_of(job: str) -> set[int]:
+    """The array tasks an accounting record's JobID stands for: `12_3` is task 3, `12_[0-2,5%3]`
+    tasks 0, 1, 2 and 5 (the `%3` is the array's limit of tasks running at once)."""
+    _, _, part = job.partition("_")
+    found = set()
+    for piece in part.strip("[]").split("%")[0].split(","):
+        low, _, high = piece.partition("-")
+        if low.isdigit() and (high.isdigit() or not high):
+            found |= set(range(int(low), int(high or low) + 1))
+    return found
 
 
 def trained_rows(sweep: Path, optim: str) -> int:
