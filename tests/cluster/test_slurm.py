@@ -259,7 +259,7 @@ def test_a_stopped_sweep_cancels_its_waiting_jobs(tmp_path: Path) -> None:
             check=True,
             capture_output=True,
             text=True,
-        ).stdout.split()
+        ).stdout.splitlines()  # a state may hold spaces: "CANCELLED by 0"
         return next((line for line in lines if int(task) in tasks_of(line.split("|")[0])), "")
 
     accounting = wait_until("the cancelled task's accounting record", accounted, 60)
