@@ -41,6 +41,8 @@ OPTIMS = (
     "levenberg_marquardt",
     "kfac",
     "lbfgs",
+    "ssbfgs",
+    "ssbroyden",
     "muon",
     "soap",
     "bptt",

@@ -102,9 +102,12 @@ def save_figure(fig: Figure, path: str | Path, note: str) -> None:
         # the note's lines, in inches
         top -= (0.2 + 0.17 * (note.count("\n") + 1)) / fig.get_figheight()
     fig.tight_layout(rect=(0, 0, 1, top))
+    # legends sit outside: the box around everything drawn, found once for both formats (where
+    # bbox_inches="tight" lays the figure out and measures it again for each)
+    fig.draw_without_rendering()
+    box = fig.get_tightbbox().padded(plt.rcParams["savefig.pad_inches"])
     for suffix in (".png", ".pdf"):
-        # legends sit outside
-        write_figure(fig, Path(path).with_suffix(suffix), dpi=110, bbox_inches="tight")
+        write_figure(fig, Path(path).with_suffix(suffix), dpi=110, bbox_inches=box)
     plt.close(fig)
 
 

@@ -49,6 +49,10 @@ RULES: dict[str, Capabilities] = {
     "optax.lbfgs": Capabilities(
         "lbfgs", (1e-2, 1e1), elementwise=True
     ),  # scales the direction before its line search
+    # a dense inverse Hessian over the flat vector, then the same zoom line search as L-BFGS
+    "physgrad.optim.quasi_newton.self_scaled_broyden": Capabilities(
+        "lbfgs", (1e-2, 1e1), elementwise=True
+    ),
     "optax.contrib.muon": Capabilities("adaptive", ADAPTIVE.search_range, needs_matrices=True),
     # Adam in Shampoo's eigenbasis per weight matrix: given the layers, not one flat vector
     "physgrad.optim.soap.soap": Capabilities("adaptive", ADAPTIVE.search_range),

@@ -84,6 +84,8 @@ def test_every_task_and_optim_has_a_config():
         "muon",
         "kfac",
         "soap",
+        "ssbfgs",
+        "ssbroyden",
     }
 
 
@@ -139,6 +141,12 @@ def test_pair_runs_two_iterations_or_is_refused(task, settings, optim, tmp_path,
         # sample: no layer factors for K-FAC's Kronecker products
         assert outcome.status == "refused" and "layer factors" in outcome.reason, outcome.reason
         assert f"task={task}" in outcome.reason and "\n" not in outcome.reason
+    elif optim in ("ssbfgs", "ssbroyden") and outcome.status == "refused":
+        # a dense n x n inverse Hessian: refused above optim.max_parameters (multicart, guidance,
+        # quantum control at these sizes), in one line that names the count and the key
+        count = int(outcome.reason.split(" parameters")[0].rsplit(" ", 1)[1])
+        assert count > 4096 and "optim.max_parameters=4096" in outcome.reason, outcome.reason
+        assert "\n" not in outcome.reason
     else:
         assert outcome.status == "completed", outcome.reason
         assert list(run.train["iteration"]) == [0, 1]
