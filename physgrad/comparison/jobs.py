@@ -27,10 +27,11 @@ if TYPE_CHECKING:
 
     from physgrad.results import Run
 
-# what does not make a study another: its folder, Hydra's settings, and the number of trials and of
-# tuning studies (a finished study given more trials tunes on from where it stopped: the Halton
-# points of n trials begin with those of fewer; given more studies, it adds them)
-NOT_THE_STUDY = ("compare.dir", "compare.trials", "compare.studies", "hydra")
+# what does not make a study another: its folder, Hydra's settings, the variant the others are
+# compared with (the same runs, read again), and the number of trials and of tuning studies (a
+# finished study given more trials tunes on from where it stopped: the Halton points of n trials
+# begin with those of fewer; given more studies, it adds them)
+NOT_THE_STUDY = ("compare.dir", "compare.trials", "compare.studies", "compare.baseline", "hydra")
 # how a study draws its trial points and seeds; a folder of another protocol is another study.
 # 2: each tuning study its own evaluation seeds and randomly shifted trial points (1, unrecorded:
 # the studies shared their evaluation seeds and scrambled the points within their cells)

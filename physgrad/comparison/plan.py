@@ -146,7 +146,7 @@ def power_lines(plan: StudyPlan) -> list[str]:
 
     settings = plan.settings
     count = len(plan.variants)
-    comparisons = count * (count - 1) // 2
+    comparisons = settings.comparisons(count)
     rule = {"margin": settings.margin, "alpha": settings.alpha}
     lines = [
         "",

@@ -57,6 +57,11 @@ SETTINGS = {  # compare.<key>: default, meaning
         None,
         "a calibration.json to use instead of calibrating (e.g. one measured on a quiet machine)",
     ),
+    "baseline": (
+        None,
+        "a variant's name (e.g. adam): compare every other variant with it alone (k - 1 "
+        "comparisons, Holm's correction over those) instead of every pair of the k variants",
+    ),
 }
 PHASES = ("tune", "eval")
 
@@ -78,6 +83,7 @@ class StudySettings:
     tune: bool
     clock: str
     calibration: str | None
+    baseline: str | None = None
 
     def __getitem__(self, key: str) -> Any:
         """settings["seeds"] as settings.seeds, for callers of the dict these settings were."""
@@ -90,6 +96,18 @@ class StudySettings:
         evaluations are independent draws (three studies of 10 seeds are 30 distinct seeds)."""
         first = self.seed + study * self.seeds
         return list(range(first, first + self.seeds))
+
+    def pairs(self, names: list[str]) -> list[tuple[str, str]] | None:
+        """The comparisons (A, B) among the variants named: each other variant against the
+        baseline; None (every pair, in order) without one."""
+        if self.baseline is None:
+            return None
+        return [(name, self.baseline) for name in names if name != self.baseline]
+
+    def comparisons(self, count: int) -> int:
+        """How many comparisons a study of count variants makes (Holm's correction runs over
+        them)."""
+        return count - 1 if self.baseline is not None else count * (count - 1) // 2
 
     @property
     def evaluation_seeds(self) -> list[int]:
@@ -357,6 +375,11 @@ def build_variants(
     if len(set(names)) < len(names):
         raise UserError(
             f"two variants have the same name ({', '.join(names)}): give distinct values"
+        )
+    if settings.baseline is not None and settings.baseline not in names:
+        raise UserError(
+            f"compare.baseline={settings.baseline} is not one of the variants "
+            f"({', '.join(names)}): name one of them"
         )
     return variants
 

@@ -158,7 +158,7 @@ def compose_study(overrides: list[str], config_dir: str | None) -> tuple[StudyPl
 
 def _warn_if_undecidable(settings: StudySettings, count: int, say: Callable[[str], object]) -> None:
     """A warning where the study's seeds are too few for any verdict among count variants."""
-    comparisons = count * (count - 1) // 2
+    comparisons = settings.comparisons(count)
     needed = seeds_needed(settings.alpha, comparisons)
     if settings.seeds < needed:
         say(

@@ -66,7 +66,12 @@ def analyse(
     )
     per_study = [
         compare_variants(
-            by_variant, budget, margin=settings.margin, alpha=settings.alpha, cost_spread=spread
+            by_variant,
+            budget,
+            pairs=settings.pairs([v.name for v in variants]),
+            margin=settings.margin,
+            alpha=settings.alpha,
+            cost_spread=spread,
         )
         for by_variant in curves
     ]

@@ -12,6 +12,7 @@ from physgrad.readout import Curve, target_loss
 from physgrad.verdict import (
     A_BETTER,
     B_BETTER,
+    EQUIVALENT,
     LOG_CAP,
     across_studies,
     compare_variants,
@@ -276,3 +277,34 @@ def test_a_difference_of_the_detectable_ratio_is_found_about_four_times_in_five(
     assert measured == pytest.approx(sd, rel=0.25)
     assert found(math.log(ratio) / 2)[0] < 0.5
     assert detectable_ratio(sd, 5) == math.inf  # too few seeds for any verdict
+
+
+def test_a_baseline_compares_each_variant_with_it_alone_and_holm_runs_over_those():
+    """compare.baseline=B: the pairs (A, B) and (C, B), not (A, C); Holm's factor is 2, not 3.
+    A is 10x lower than B on every seed, C equal to B: A better, C equivalent."""
+    from physgrad.comparison.spec import study_settings
+
+    seeds = range(10)
+    rng = np.random.default_rng(0)
+    noise = {s: math.exp(0.05 * rng.normal()) for s in seeds}
+    level = {"A": 0.1, "B": 1.0, "C": 1.0}
+    curves = {
+        name: {
+            s: Curve(np.array([1.0]), np.array([v * (noise[s] if name != "B" else 1.0)]), 1.0)
+            for s in seeds
+        }
+        for name, v in level.items()
+    }
+    settings = study_settings({"baseline": "B"})
+    assert settings.comparisons(3) == 2 and study_settings({}).comparisons(3) == 3
+    results = compare_variants(curves, 1.0, pairs=settings.pairs(list(curves)), fractions=(1.0,))
+    assert [(r.a, r.b) for r in results] == [("A", "B"), ("C", "B")]
+    a, c = results
+    assert a.verdict == A_BETTER and c.verdict == EQUIVALENT
+    # A's is the smallest raw p-value: Holm's first step multiplies it by the comparisons, 2
+    assert a.at[1.0].p_difference < c.at[1.0].p_difference
+    assert a.p_difference[1.0] == pytest.approx(min(1.0, 2 * a.at[1.0].p_difference))
+    # without a baseline, every pair: three comparisons, and A's p-value times 3
+    every = compare_variants(curves, 1.0, fractions=(1.0,))
+    assert [(r.a, r.b) for r in every] == [("A", "B"), ("A", "C"), ("B", "C")]
+    assert every[0].p_difference[1.0] == pytest.approx(min(1.0, 3 * a.at[1.0].p_difference))

@@ -28,6 +28,7 @@ from physgrad.errors import UserError
         (["task=toy", "optim=adam,hig", "compare.search.learning_rate=[1e-3,inf]"], "finite"),
         (["task=toy", "optim=adam,hig", "compare.search.tau=[nan,1]"], "finite"),
         (["task=toy", "optim=adam,hgi"], "did you mean hig?"),
+        (["task=toy", "optim=adam,hig", "compare.baseline=sgd"], "not one of the variants"),
         (["task=toy", "optim=adam,hig", "compare.seeds=0"], "compare.seeds"),
         (["task=toy", "optim=adam,hig", "seed=3"], "compare sets the seeds itself"),
         (["task=toy", "optim=adam,hig", "compare.seeds=2000"], "compare.seeds"),
