@@ -241,7 +241,10 @@ NOTES = {
     "four times as long (experiments/claims.py)",
     "claims-gpu": "CLAIMS-GPU PROFILE: the claims that need budgets a 2-core machine cannot give, "
     "for one GPU (experiments/claims.py)",
+    "leaderboard": "LEADERBOARD PROFILE: every rule against Adam, physgrad compare studies at "
+    "equal calibrated time (experiments/leaderboard.py)",
 }
+STUDY_PROFILES = ("claims", "claims-long", "claims-gpu", "leaderboard")
 
 
 # --- the claims profiles: physgrad compare studies
@@ -251,6 +254,10 @@ NOTES = {
 def claims_parts(profile: str) -> list:
     from claims import PROFILES, chunks  # experiments/ is this script's folder
 
+    if profile == "leaderboard":
+        from leaderboard import LEADERBOARD
+
+        return chunks(LEADERBOARD)
     return chunks(PROFILES[profile])
 
 
@@ -323,6 +330,16 @@ def run_start(start, seeds: int, tuning_studies: int, root: Path) -> int:
     return subprocess.run(command).returncode
 
 
+def study_environment(profile: str, study) -> dict | None:
+    """The environment of a study's command: the leaderboard's scenes from examples/ import their
+    modules from beside their conf/ folder; None (this one) otherwise."""
+    if profile != "leaderboard":
+        return None
+    from leaderboard import environment
+
+    return environment(study)
+
+
 def run_claims(profile: str, parts: list[int], root: Path, out: Path) -> int:
     """The studies of the chosen parts (all: every part), each tuned and untuned; then claims.md
     from every study that has finished."""
@@ -348,7 +365,7 @@ def run_claims(profile: str, parts: list[int], root: Path, out: Path) -> int:
                     *study.command(root, preset),
                 ]
                 print("reproduce:", " ".join(command[2:]), flush=True)
-                code = subprocess.run(command).returncode
+                code = subprocess.run(command, env=study_environment(profile, study)).returncode
                 if code == 130:
                     return 130
                 if code != 0:
@@ -356,7 +373,12 @@ def run_claims(profile: str, parts: list[int], root: Path, out: Path) -> int:
     from physgrad.errors import UserError
 
     try:
-        write(root, out, NOTES[profile], profile)
+        if profile == "leaderboard":
+            from leaderboard import write as write_leaderboard
+
+            write_leaderboard(root, out)
+        else:
+            write(root, out, NOTES[profile], profile)
     except UserError as error:  # a study folder that is not what its tables say: one line
         print(f"reproduce: error: {error}", file=sys.stderr)
         return 2
@@ -386,7 +408,7 @@ def main(argv: list[str] | None = None) -> int:
     )
     parser.add_argument("--out", default="outputs/figures")
     options = parser.parse_args(argv)
-    if options.profile.startswith("claims"):
+    if options.profile in STUDY_PROFILES:
         root = Path("outputs/experiments") / options.profile
         count = len(claims_parts(options.profile))
         try:

@@ -110,7 +110,7 @@ def updated_inverse_hessian(
 
 
 def scale_by_self_scaled_broyden(
-    variant: str = "ssbfgs", max_parameters: int = 4096
+    variant: str = "ssbfgs", max_parameters: int = 8192
 ) -> optax.GradientTransformation:
     """Multiplies the gradient by the variant's inverse-Hessian approximation H_k (module
     docstring), updated from the step and the change of gradient since the last call. The output
@@ -180,7 +180,7 @@ def scale_by_self_scaled_broyden(
 def self_scaled_broyden(
     learning_rate: float = 1.0,
     variant: str = "ssbfgs",
-    max_parameters: int = 4096,
+    max_parameters: int = 8192,
     max_linesearch_steps: int = 20,
 ) -> optax.GradientTransformationExtraArgs:
     """The variant's direction -H_k g_k, scaled by learning_rate, then optax's zoom line search

@@ -145,7 +145,7 @@ def test_pair_runs_two_iterations_or_is_refused(task, settings, optim, tmp_path,
         # a dense n x n inverse Hessian: refused above optim.max_parameters (multicart, guidance,
         # quantum control at these sizes), in one line that names the count and the key
         count = int(outcome.reason.split(" parameters")[0].rsplit(" ", 1)[1])
-        assert count > 4096 and "optim.max_parameters=4096" in outcome.reason, outcome.reason
+        assert count > 8192 and "optim.max_parameters=8192" in outcome.reason, outcome.reason
         assert "\n" not in outcome.reason
     else:
         assert outcome.status == "completed", outcome.reason

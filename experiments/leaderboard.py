@@ -1,0 +1,452 @@
+"""The leaderboard: every update rule of physgrad against Adam on the same physics-in-the-loop
+scenes, at equal calibrated time, decided by `physgrad compare`'s own protocol
+(docs/leaderboard.md).
+
+Each scene is one `physgrad compare` of Adam and every rule that applies to it, with
+compare.baseline=adam (each rule compared with Adam alone: Holm's correction over those
+comparisons): every rule tuned on the same trial points in each of LEADERBOARD_STUDIES independent
+tuning studies, evaluated on LEADERBOARD_SEEDS paired seeds per study, the budget the same number of
+calibrated seconds for every rule (its iterations: budget / the rule's calibrated step cost). A
+cell is the package's verdict over the tuning studies (physgrad.verdict.across_studies) and the
+median ratio rule / Adam of the test loss at the budget with its interval.
+
+Usage (from the repository's root):
+  make reproduce-figures PROFILE=leaderboard ARGS=--plan     # the parts and their expected time
+  make reproduce-figures PROFILE=leaderboard ARGS="--part 1" # one part (resumable)
+  python experiments/leaderboard.py --keep outputs/experiments/leaderboard docs/evidence/leaderboard
+  python experiments/leaderboard.py docs/evidence/leaderboard docs  # docs/leaderboard.md and .png
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import sys
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+from claims import Study, read_study  # experiments/
+from evidence import commit, kept_row, write_kept
+
+from physgrad.verdict import (
+    A_BETTER,
+    B_BETTER,
+    EQUIVALENT,
+    FRACTIONS,
+    MARGIN,
+    across_studies,
+    compare_variants,
+    ratio_of,
+)
+
+BASELINE = "adam"
+LEADERBOARD_TRIALS, LEADERBOARD_STUDIES, LEADERBOARD_SEEDS = 8, 3, 10
+# every rule of conf/optim that is not a backprop mode of Adam, in the table's order
+RULES = (
+    "gd",
+    "gauss_newton",
+    "hig",
+    "levenberg_marquardt",
+    "kfac",
+    "lbfgs",
+    "ssbfgs",
+    "ssbroyden",
+    "muon",
+    "soap",
+)
+NO_FACTORS = "no layer factors (the controller or convolution runs many times per sample)"
+
+
+@dataclass(frozen=True)
+class Entry:
+    """One scene of the leaderboard: its compare overrides, the rules that apply (the others with
+    why not), its budget in calibrated seconds and what a job costs besides (start-up,
+    compiling)."""
+
+    name: str
+    title: str
+    overrides: tuple[str, ...]
+    budget: float
+    overhead: float
+    refused: dict = field(default_factory=dict)  # rule -> why it does not apply
+    config_dir: str | None = None  # a scene from examples/: its conf folder (modules beside it)
+
+    @property
+    def rules(self) -> tuple[str, ...]:
+        return tuple(r for r in RULES if r not in self.refused)
+
+    @property
+    def study(self) -> Study:
+        overrides = (
+            *(("-cd", self.config_dir) if self.config_dir else ()),
+            *self.overrides,
+            f"optim={','.join((BASELINE, *self.rules))}",
+            f"trainer.time_budget={self.budget:g}",
+            f"compare.baseline={BASELINE}",
+        )
+        job = self.budget + self.overhead
+        return Study(
+            self.name,
+            overrides,
+            LEADERBOARD_TRIALS,
+            LEADERBOARD_SEEDS,
+            job,
+            job,
+            preset=False,
+            studies=LEADERBOARD_STUDIES,
+        )
+
+
+DENSE = "a dense inverse Hessian of {n} parameters, above max_parameters=8192"
+SCENES = (
+    Entry(
+        "toy",
+        "toy, lambda 0.01",
+        ("task=toy", "task.scale=0.01"),
+        10,
+        6,
+    ),
+    Entry("oscillator", "oscillators", ("task=oscillator",), 15, 10),
+    Entry(
+        "ks",
+        "KS correction (small)",
+        ("task=ks", "task.zero_output=true", "task.channels=8", "task.blocks=2"),
+        20,
+        15,
+        refused={"kfac": NO_FACTORS},
+    ),
+    Entry(
+        "guidance",
+        "guidance, regular gradient",
+        ("task=guidance",),
+        20,
+        15,
+        refused={
+            "kfac": NO_FACTORS,
+            "ssbfgs": DENSE.format(n="13,004"),
+            "ssbroyden": DENSE.format(n="13,004"),
+        },
+    ),
+    Entry(
+        "ode_control",
+        "pendulum control (diffrax)",
+        ("task=ode_control",),
+        10,
+        8,
+        config_dir="examples/library_scenes/conf",
+    ),
+    Entry(
+        "burgers_inverse",
+        "Burgers inverse (exponax)",
+        ("task=burgers_inverse",),
+        10,
+        8,
+        config_dir="examples/library_scenes/conf",
+    ),
+)
+LEADERBOARD = tuple(entry.study for entry in SCENES)
+
+
+def environment(study: Study) -> dict | None:
+    """The environment a study's command runs in: a scene from examples/ imports its modules from
+    the folder above its conf/ (as from that folder: examples/library_scenes/README.md)."""
+    import os
+
+    entry = next((e for e in SCENES if e.name == study.name), None)
+    if entry is None or entry.config_dir is None:
+        return None
+    modules = str(Path(entry.config_dir).resolve().parent)
+    path = os.environ.get("PYTHONPATH", "")
+    return {**os.environ, "PYTHONPATH": modules + (os.pathsep + path if path else "")}
+
+
+# --- the evidence
+# ----------------------------------------------------------------------------------------
+
+
+def keep(root: Path, dest: Path) -> list[str]:
+    """Every finished (or partly finished) study of the leaderboard under root as an evidence table
+    in dest (experiments/evidence.py): every run's test loss at the kept fractions of the budget,
+    with each rule's median iterations at the budget in its .json. Returns the studies kept."""
+    import pandas as pd
+
+    kept = []
+    for entry in SCENES:
+        folder = root / entry.name
+        runs = read_study(folder) if (folder / "runs.csv").is_file() else None
+        if runs is None:
+            continue
+        studies = runs.tuning or (runs,)
+        rows = [
+            kept_row(k, variant, seed, "loss", curve, runs.budget)
+            for k, study in enumerate(studies)
+            for variant in sorted(study.paths)
+            for seed, curve in sorted(study.curves(variant).items())
+        ]
+        table = pd.read_csv(folder / "runs.csv")
+        iterations = {
+            str(v): float(np.median(group["iterations"])) for v, group in table.groupby("variant")
+        }
+        record = json.loads((folder / "study.json").read_text())
+        about = {
+            "study": entry.name,
+            "axis": runs.axis,
+            "budget": runs.budget,
+            "trials": LEADERBOARD_TRIALS,
+            "studies": len(studies),
+            "seeds": LEADERBOARD_SEEDS,
+            "machine": runs.machine,
+            "kept_by": commit(),
+            "overrides": record.get("overrides", []),
+            "iterations": iterations,
+        }
+        write_kept(dest, entry.name, rows, about)
+        kept.append(entry.name)
+    return kept
+
+
+# --- the cells
+# -------------------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class Cell:
+    """A rule against Adam on one scene: the verdict over the tuning studies, the median ratio rule
+    / Adam at the budget with its interval, seeds where the rule was lower, and each study's own
+    verdict."""
+
+    verdict: str
+    ratio: float
+    low: float
+    high: float
+    wins: int
+    pairs: int
+    studies: tuple[str, ...]
+    iterations: float = math.nan
+
+
+def cells(runs, iterations: dict | None = None) -> dict[str, Cell]:
+    """rule -> Cell for every rule the study ran, by the package's rule: each tuning study decided
+    with Holm's correction over the rules' comparisons with Adam (compare.baseline), then over the
+    studies (physgrad.verdict.across_studies)."""
+    studies = runs.tuning or (runs,)
+    rules = [r for r in sorted(runs.paths) if r != BASELINE]
+    if BASELINE not in runs.paths or not rules:
+        return {}
+    per_study = [
+        compare_variants(
+            {name: study.curves(name) for name in (*rules, BASELINE)},
+            runs.budget,
+            pairs=[(rule, BASELINE) for rule in rules],
+            fractions=FRACTIONS,
+        )
+        for study in studies
+    ]
+    found = {}
+    for rule, result in zip(rules, across_studies(per_study)):
+        p = result.at[1.0]
+        found[rule] = Cell(
+            result.verdict,
+            p.ratio,
+            ratio_of(p.low),
+            ratio_of(p.high),
+            p.wins_a,
+            p.pairs,
+            tuple(s.verdicts[1.0][0] for s in (result.studies or [result])),
+            (iterations or {}).get(rule, math.nan),
+        )
+    return found
+
+
+def board(root: Path) -> dict[str, tuple[dict[str, Cell], object, dict]]:
+    """scene -> (its cells, its runs, its kept record) for every scene with runs under root (study
+    folders or their kept evidence)."""
+    found = {}
+    for entry in SCENES:
+        runs = read_study(root / entry.name)
+        if runs is None:
+            continue
+        about_path = root / f"{entry.name}.json"
+        about = json.loads(about_path.read_text()) if about_path.is_file() else {}
+        found[entry.name] = (cells(runs, about.get("iterations")), runs, about)
+    return found
+
+
+# --- the page
+# --------------------------------------------------------------------------------------------
+
+MARKS = {A_BETTER: "better", B_BETTER: "worse", EQUIVALENT: "equivalent"}
+
+
+def _r(x: float) -> str:
+    if not math.isfinite(x):
+        return "inf" if x == math.inf else "-"
+    return f"{x:.3g}"
+
+
+def cell_text(cell: Cell) -> str:
+    mark = MARKS.get(cell.verdict, "undecided")
+    return (
+        f"**{mark}** {_r(cell.ratio)}x [{_r(cell.low)}, {_r(cell.high)}], {cell.wins}/{cell.pairs}"
+    )
+
+
+def plot(found: dict, path: Path) -> None:
+    """The heat map: log10 of the median ratio rule / Adam (blue: the rule lower), a verdict in
+    every decided cell, undecided cells hatched, rules that do not apply grey."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from physgrad.plots import save_figure
+
+    scenes = [e for e in SCENES if e.name in found]
+    grid = np.full((len(RULES), len(scenes)), np.nan)
+    fig, ax = plt.subplots(figsize=(1.6 + 1.45 * len(scenes), 0.9 + 0.48 * len(RULES)))
+    for j, entry in enumerate(scenes):
+        for i, rule in enumerate(RULES):
+            cell = found[entry.name][0].get(rule)
+            if cell is not None and math.isfinite(cell.ratio) and cell.ratio > 0:
+                grid[i, j] = math.log10(cell.ratio)
+    limit = max(1.0, float(np.nanmax(np.abs(grid))) if np.isfinite(grid).any() else 1.0)
+    image = ax.imshow(grid, cmap="RdBu_r", vmin=-limit, vmax=limit, aspect="auto")
+    for j, entry in enumerate(scenes):
+        for i, rule in enumerate(RULES):
+            cell = found[entry.name][0].get(rule)
+            if rule in entry.refused:
+                ax.add_patch(plt.Rectangle((j - 0.5, i - 0.5), 1, 1, color="0.85"))
+                ax.text(j, i, "n/a", ha="center", va="center", fontsize=7, color="0.4")
+            elif cell is None:
+                ax.text(j, i, "not run", ha="center", va="center", fontsize=7, color="0.4")
+            else:
+                decided = cell.verdict in MARKS
+                if not decided:
+                    ax.add_patch(
+                        plt.Rectangle(
+                            (j - 0.5, i - 0.5), 1, 1, fill=False, hatch="///", color="0.6", lw=0
+                        )
+                    )
+                symbol = {A_BETTER: "\u25bc ", B_BETTER: "\u25b2 ", EQUIVALENT: "= "}.get(
+                    cell.verdict, "? "
+                )
+                strong = abs(grid[i, j]) > 0.6 * limit if np.isfinite(grid[i, j]) else False
+                ax.text(
+                    j,
+                    i,
+                    f"{symbol}{_r(cell.ratio)}x",
+                    ha="center",
+                    va="center",
+                    fontsize=8,
+                    color="white" if strong else "black",
+                    fontweight="bold" if decided else "normal",
+                )
+    ax.set_xticks(range(len(scenes)), [e.title for e in scenes], rotation=25, ha="right")
+    ax.set_yticks(range(len(RULES)), RULES)
+    bar = fig.colorbar(image, ax=ax, fraction=0.04, pad=0.02)
+    bar.set_label("log10 (test loss of the rule / Adam's), median over seeds")
+    ax.set_title(
+        "Each rule against Adam at equal calibrated time\n"
+        f"\u25bc lower than Adam, \u25b2 higher (beyond {MARGIN:g}x), = within {MARGIN:g}x, "
+        "? undecided (hatched), n/a: does not apply",
+        fontsize=9,
+    )
+    save_figure(fig, path, "")
+
+
+def page(found: dict, image: str) -> str:
+    """docs/leaderboard.md's text."""
+    lines = [
+        "# Leaderboard: which update rule, for which physics",
+        "",
+        "<!-- generated by experiments/leaderboard.py from docs/evidence/leaderboard: do not "
+        "edit -->",
+        "",
+        "Every rule against Adam on the same scenes, each tuned and evaluated by `physgrad "
+        "compare`'s protocol (docs/protocol.md) at the same calibrated training time: "
+        f"{LEADERBOARD_TRIALS} trial points of the learning rate per rule in each of "
+        f"{LEADERBOARD_STUDIES} independent tuning studies, {LEADERBOARD_SEEDS} paired evaluation "
+        "seeds per study, the verdict over the studies by the package's rule with Holm's "
+        "correction over each scene's comparisons with Adam (`compare.baseline=adam`). A cell: the "
+        "verdict, the median ratio of the rule's test loss to Adam's at the budget with its "
+        "interval, and the seeds where the rule was lower. Below 1: the rule reached a lower loss; "
+        f"better and worse mean beyond a factor {MARGIN:g}, equivalent within it "
+        "(docs/protocol.md).",
+        "",
+        f"![leaderboard]({image})",
+        "",
+    ]
+    scenes = [e for e in SCENES if e.name in found]
+    missing = [e for e in SCENES if e.name not in found]
+    if scenes:
+        lines += [
+            "| rule | " + " | ".join(e.title for e in scenes) + " |",
+            "|---|" + "---|" * len(scenes),
+        ]
+        for rule in RULES:
+            row = []
+            for entry in scenes:
+                cell = found[entry.name][0].get(rule)
+                if rule in entry.refused:
+                    row.append(f"n/a: {entry.refused[rule]}")
+                else:
+                    row.append(cell_text(cell) if cell else "not run")
+            lines.append(f"| {rule} | " + " | ".join(row) + " |")
+        lines += ["", "## The scenes and their budgets", ""]
+        for entry in scenes:
+            cells_, runs, about = found[entry.name]
+            studies = len(runs.tuning or (runs,))
+            its = about.get("iterations") or {}
+            clock = "calibrated clock" if runs.axis == "calibrated_time" else runs.axis
+            budget = f"{runs.budget:g} s ({clock})"
+            lines.append(
+                f"- **{entry.title}** (`{' '.join(entry.overrides)}`): {budget}; "
+                f"{studies} of {LEADERBOARD_STUDIES} tuning studies finished"
+                + (f"; on {runs.machine}" if runs.machine else "")
+                + "."
+            )
+            if its:
+                lines.append(
+                    "  Iterations in the budget (median over the runs): "
+                    + ", ".join(f"{v} {its[v]:.0f}" for v in (BASELINE, *entry.rules) if v in its)
+                    + "."
+                )
+    if missing:
+        lines += [
+            "",
+            "Not run yet: " + ", ".join(f"{e.title} (`{e.name}`)" for e in missing) + ".",
+        ]
+    return "\n".join(lines) + "\n"
+
+
+def write(root: Path, out: Path) -> str:
+    """leaderboard.md and leaderboard.png (and .pdf) in out, from the study folders or kept evidence
+    under root; returns the markdown."""
+    found = board(root)
+    out.mkdir(parents=True, exist_ok=True)
+    if found:
+        plot(found, out / "leaderboard")
+    text = page(found, "leaderboard.png")
+    (out / "leaderboard.md").write_text(text)
+    return text
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(prog="python experiments/leaderboard.py")
+    parser.add_argument("root", help="the study folders, or their kept evidence")
+    parser.add_argument("out", nargs="?", default="docs")
+    parser.add_argument("--keep", action="store_true", help="keep root's evidence in OUT")
+    options = parser.parse_args(argv)
+    if options.keep:
+        kept = keep(Path(options.root), Path(options.out))
+        print(f"leaderboard: kept {', '.join(kept) or 'nothing (no finished study)'}")
+        return 0
+    write(Path(options.root), Path(options.out))
+    print(f"leaderboard: wrote {Path(options.out) / 'leaderboard.md'}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,119 @@
+"""The leaderboard (experiments/leaderboard.py) from kept evidence with known answers: a rule ten
+times lower than Adam on every seed of every tuning study is better, one at Adam's level within
+noise equivalent, one ten times higher worse, one lower in one study and higher in the others
+undecided or worse, never better; rules that do not apply are marked, scenes not run are named."""
+
+import json
+import math
+import sys
+
+import numpy as np
+
+from tests.helpers import REPO
+
+sys.path.insert(0, str(REPO / "experiments"))
+import leaderboard  # noqa: E402
+from evidence import write_kept  # noqa: E402
+
+from physgrad.verdict import A_BETTER, B_BETTER, EQUIVALENT  # noqa: E402
+
+
+def kept_scene(folder, name, levels, studies=3, seeds=10, budget=10.0):
+    """Evidence of one scene: variant -> (loss at the budget per tuning study), times a small
+    per-seed noise shared by every variant (paired seeds)."""
+    rng = np.random.default_rng(1)
+    noise = np.exp(0.05 * rng.normal(size=(studies, seeds)))
+    rows = []
+    for variant, by_study in levels.items():
+        for k in range(studies):
+            for seed in range(seeds):
+                value = by_study[k] * noise[k, seed] * (1.0 if variant == "adam" else 1.0)
+                rows.append(
+                    {
+                        "study": k,
+                        "variant": variant,
+                        "seed": k * seeds + seed,
+                        "column": "loss",
+                        "start": 1.0,
+                        **{f"at_{f:g}": value for f in (0.125, 0.25, 0.5, 1.0)},
+                    }
+                )
+    about = {
+        "study": name,
+        "axis": "calibrated_time",
+        "budget": budget,
+        "trials": 8,
+        "studies": studies,
+        "seeds": seeds,
+        "machine": "test machine",
+        "iterations": {v: 100.0 * (i + 1) for i, v in enumerate(levels)},
+    }
+    write_kept(folder, name, rows, about)
+
+
+def test_cells_verdicts_and_page_from_kept_evidence(tmp_path):
+    evidence = tmp_path / "evidence"
+    kept_scene(
+        evidence,
+        "toy",
+        {
+            "adam": [1.0, 1.0, 1.0],
+            "hig": [0.1, 0.1, 0.1],
+            "gd": [1.0, 1.0, 1.0],
+            "soap": [10.0, 10.0, 10.0],
+            "muon": [0.1, 10.0, 10.0],
+        },
+    )
+    found = leaderboard.board(evidence)
+    assert set(found) == {"toy"}
+    cells = found["toy"][0]
+    assert set(cells) == {"hig", "gd", "soap", "muon"}
+    assert cells["hig"].verdict == A_BETTER and math.isclose(cells["hig"].ratio, 0.1, rel_tol=0.2)
+    assert cells["hig"].wins == cells["hig"].pairs == 30
+    assert cells["hig"].studies == (A_BETTER,) * 3
+    assert cells["gd"].verdict == EQUIVALENT
+    assert cells["soap"].verdict == B_BETTER and cells["soap"].wins == 0
+    assert cells["muon"].verdict != A_BETTER and cells["muon"].studies[0] == A_BETTER
+    assert cells["hig"].iterations == 200.0
+
+    text = leaderboard.write(evidence, tmp_path / "docs")
+    table = [line for line in text.splitlines() if line.startswith("| ")]
+    rows = {line.split(" | ")[0][2:]: line for line in table[1:]}
+    assert "**better** 0.1" in rows["hig"] and "30/30" in rows["hig"]
+    assert "**worse**" in rows["soap"] and "**equivalent**" in rows["gd"]
+    assert "not run" in rows["kfac"]  # a rule that applies but has no runs in the evidence
+    assert "Not run yet:" in text and "`guidance`" in text
+    assert "3 of 3 tuning studies finished" in text and "hig 200" in text
+    assert (tmp_path / "docs" / "leaderboard.png").stat().st_size > 10_000
+    assert (tmp_path / "docs" / "leaderboard.pdf").is_file()
+
+
+def test_rules_that_do_not_apply_are_marked_with_why(tmp_path):
+    evidence = tmp_path / "evidence"
+    kept_scene(evidence, "guidance", {"adam": [1.0] * 3, "hig": [0.5] * 3})
+    text = leaderboard.write(evidence, tmp_path / "docs")
+    kfac = next(line for line in text.splitlines() if line.startswith("| kfac |"))
+    assert "n/a: no layer factors" in kfac
+    ssbfgs = next(line for line in text.splitlines() if line.startswith("| ssbfgs |"))
+    assert "n/a: a dense inverse Hessian of 13,004 parameters" in ssbfgs
+    about = json.loads((evidence / "guidance.json").read_text())
+    assert about["budget"] == 10.0
+
+
+def test_every_scene_is_a_compare_with_adam_as_baseline_and_parts_stay_near_80_minutes():
+    sys.path.insert(0, str(REPO / "experiments"))
+    from claims import chunks
+
+    for entry in leaderboard.SCENES:
+        overrides = entry.study.overrides
+        assert "compare.baseline=adam" in overrides
+        optims = next(o for o in overrides if o.startswith("optim=")).split("=")[1].split(",")
+        assert optims[0] == "adam" and set(optims[1:]) | set(entry.refused) == set(
+            leaderboard.RULES
+        )
+        assert any(o.startswith("trainer.time_budget=") for o in overrides)
+    parts = chunks(leaderboard.LEADERBOARD)
+    # a part is one tuning study of one scene at most (the plan's figure is an upper bound: one
+    # job per trial)
+    assert all(len({s.name for s in part}) == 1 or len(part) > 1 for part in parts)
+    assert all(s.studies <= leaderboard.LEADERBOARD_STUDIES for part in parts for s in part)
