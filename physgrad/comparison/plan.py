@@ -34,17 +34,51 @@ class VariantCost:
         return self.tuning_seconds + self.evaluation_seconds
 
 
-def measure(variant: Variant, seed: int) -> tuple[float, float]:
-    """(compile seconds, median step seconds) of the variant's training step on one seed, after
-    one untimed step."""
-    from omegaconf import open_dict
+@dataclass(frozen=True)
+class Measured:
+    """One variant's costs as `physgrad run` meets them, in seconds: compiling its step, one step,
+    its first held-out evaluation (compiling it included) and each later one."""
 
-    from physgrad.timing import compiled_step
+    compile_seconds: float
+    step_seconds: float
+    first_evaluation_seconds: float
+    evaluation_seconds: float
+
+
+def use_job_cache() -> None:
+    """JAX's persistent compilation cache of the study's jobs (jobs.job_environment) in this process
+    too: a second plan reads what the first compiled, and a job what the plan compiled alike."""
+    import jax
+
+    from physgrad.comparison.jobs import job_environment
+
+    env = job_environment()
+    jax.config.update("jax_compilation_cache_dir", env["JAX_COMPILATION_CACHE_DIR"])
+    jax.config.update(
+        "jax_persistent_cache_min_compile_time_secs",
+        float(env.get("JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS", 0)),
+    )
+
+
+def run_config(variant: Variant) -> object:
+    """The variant's config as `physgrad run` gets it (without Hydra's own node)."""
+    from omegaconf import open_dict
 
     cfg = variant.config.copy()
     with open_dict(cfg):
         del cfg["hydra"]
-    compile_seconds, one_step = compiled_step(cfg, [seed])[-2:]
+    return cfg
+
+
+def measure(variant: Variant, seed: int) -> Measured:
+    """The variant's costs on one seed: the step's median after one untimed step, and its held-out
+    evaluation on the test set, first (with its compile) and again."""
+    import jax
+
+    from physgrad.timing import compiled_step
+
+    cfg = run_config(variant)
+    _, _, _, stacked, compiled, compile_seconds, one_step = compiled_step(cfg, [seed])
     one_step()
     times, start = [], time.perf_counter()
     while len(times) < MIN_STEPS or (
@@ -53,27 +87,67 @@ def measure(variant: Variant, seed: int) -> tuple[float, float]:
         begin = time.perf_counter()
         one_step()
         times.append(time.perf_counter() - begin)
-    return compile_seconds, statistics.median(times)
+    evaluations = []
+    for _ in range(2):
+        begin = time.perf_counter()
+        jax.block_until_ready(compiled.evaluate(compiled.params, stacked.test_sets))
+        evaluations.append(time.perf_counter() - begin)
+    return Measured(compile_seconds, statistics.median(times), *evaluations)
 
 
-def variant_cost(plan: StudyPlan, variant: Variant, compile_s: float, step_s: float) -> VariantCost:
-    """The study's jobs of one variant, costed: each run compiles once and trains to the budget
-    (iterations x step cost, or the time budget); the evaluation of an iteration budget trains its
-    seeds in one job, counted as seeds x the one-seed step (an upper bound where vmap makes seeds
+def evaluations_per_run(variant: Variant, axis: str, budget: float, step_seconds: float) -> float:
+    """The held-out evaluations of one run: at the start, every trainer.eval_every iterations, and
+    with a time budget also every trainer.eval_seconds (budget / 20 unless set) of training."""
+    from physgrad.refusals import check_config
+    from physgrad.runner import EVALUATIONS_PER_BUDGET
+
+    settings = check_config(run_config(variant))
+    if axis == "iteration":
+        return 1 + budget / settings.eval_every
+    by_time = budget / (settings.eval_seconds or budget / EVALUATIONS_PER_BUDGET)
+    return 1 + budget / max(step_seconds, 1e-9) / settings.eval_every + by_time
+
+
+def start_up_seconds() -> float:
+    """What a job costs before it builds anything: a Python interpreter importing physgrad's runner
+    (its console script, JAX and Hydra), measured once here."""
+    import subprocess
+    import sys
+
+    begin = time.perf_counter()
+    subprocess.run(
+        [sys.executable, "-c", "import physgrad.experiment, physgrad.app"],
+        capture_output=True,
+        timeout=300,
+    )
+    return time.perf_counter() - begin
+
+
+def variant_cost(
+    plan: StudyPlan, variant: Variant, measured: Measured, start_up: float = 0.0
+) -> VariantCost:
+    """The study's jobs of one variant, costed: each job starts (start_up), compiles once, trains
+    to the budget (iterations x step cost, or the time budget) and evaluates the test set as the
+    runner does (evaluations_per_run); the evaluation of an iteration budget trains its seeds in one
+    job, counted as seeds x the one-seed step and evaluation (an upper bound where vmap makes seeds
     cheaper)."""
     settings = plan.settings
     studies, seeds = settings.study_count, settings.seeds
+    step_s = measured.step_seconds
     train = plan.budget * step_s if plan.axis == "iteration" else plan.budget
+    count = evaluations_per_run(variant, plan.axis, plan.budget, step_s)
+    held_out = measured.first_evaluation_seconds + (count - 1) * measured.evaluation_seconds
+    per_job = start_up + measured.compile_seconds
     tuning_runs = settings.trials * studies if settings.tune else 0
     together = plan.axis == "iteration" and not variant.config.get("init_from")
     jobs = studies if together else studies * seeds
-    evaluation = jobs * compile_s + studies * seeds * train
+    evaluation = jobs * per_job + studies * seeds * (train + held_out)
     return VariantCost(
         variant.name,
-        compile_s,
+        measured.compile_seconds,
         step_s,
         tuning_runs,
-        tuning_runs * (compile_s + train),
+        tuning_runs * (per_job + train + held_out),
         jobs,
         evaluation,
     )
@@ -83,10 +157,12 @@ def plan_text(plan: StudyPlan) -> str:
     """The estimate as text: a row per variant and the total."""
     from physgrad.machine import machine_attributes, machine_label
 
-    costs = []
-    for variant in plan.variants:
-        compile_s, step_s = measure(variant, plan.settings.tune_seed)
-        costs.append(variant_cost(plan, variant, compile_s, step_s))
+    use_job_cache()
+    start_up = start_up_seconds()
+    costs = [
+        variant_cost(plan, variant, measure(variant, plan.settings.tune_seed), start_up)
+        for variant in plan.variants
+    ]
     settings = plan.settings
     unit = "iterations" if plan.axis == "iteration" else "s of training"
     calibration = (
@@ -119,9 +195,10 @@ def plan_text(plan: StudyPlan) -> str:
         "",
         f"Total: about {_duration(total)}"
         + (" (with the calibration of the step costs)" if calibration else "")
-        + ". Compiling and training only: start-up, the held-out evaluations and writing files add "
-        "to it, a study resumed skips what it finished, and JAX's compilation cache (in the user's "
-        "physgrad cache) can make later jobs compile faster. Measured on "
+        + f". Each job's start-up ({start_up:.1f} s here), compiling, training and the held-out "
+        "evaluations; writing files adds to it, a study resumed skips what it finished, and JAX's "
+        "compilation cache (in the user's physgrad cache, which this plan filled) makes later jobs "
+        "compile faster. Measured on "
         f"{machine_label(machine_attributes())}, one seed, now; nothing was trained or written.",
     ]
     return "\n".join(lines)
