@@ -159,11 +159,7 @@ def build_seeds(
         built[seed] = build_scene(cfg.task, key[0], effective_unroll(cfg))
     scenes = [built[seed] for seed in seeds]
     scene = scenes[0]  # the physics and the network; only the data differ between seeds
-    if scene.train_size is not None and batch_size > scene.train_size:
-        raise UserError(
-            f"trainer.batch_size={batch_size} is larger than the training set: use at most "
-            f"{scene.train_size} (task.train_size)"
-        )
+    check_batch_size(scene, batch_size)
     validation = None
     if cfg.trainer.get("validation", False):
         validation = stack([validation_set(cfg, s, key[0]) for s, key in zip(scenes, keys)])
@@ -173,6 +169,35 @@ def build_seeds(
         train_sets=stack([s.train_set for s in scenes]),
         test_sets=stack([s.test_set for s in scenes]),
         validation_sets=validation,
+    )
+
+
+def check_batch_size(scene: Scene, batch_size: int) -> None:
+    """UserError if the batch does not fit the scene's training set."""
+    if scene.train_size is not None and batch_size > scene.train_size:
+        raise UserError(
+            f"trainer.batch_size={batch_size} is larger than the training set: use at most "
+            f"{scene.train_size} (task.train_size)"
+        )
+
+
+def scene_key(cfg: DictConfig, seed_list: list[int]) -> str:
+    """What build_seeds builds from, as text: two configs with one key build the same scene and
+    seeds."""
+    import json
+
+    from omegaconf import OmegaConf
+
+    return json.dumps(
+        [
+            OmegaConf.to_container(cfg.task, resolve=True),
+            cfg.get("precision"),
+            effective_unroll(cfg),
+            bool(cfg.trainer.get("validation", False)),
+            list(seed_list),
+        ],
+        sort_keys=True,
+        default=str,
     )
 
 
@@ -209,14 +234,21 @@ def prepare(
     seed_list: list[int],
     settings: TrainerSettings,
     checkpoint: Callable[[], None] | None = None,
+    built: tuple[Scene, Seeds] | None = None,
 ) -> tuple[Scene, UpdateRule, Seeds]:
     """Precision set, the update rule and the seeds' scenes built, and what does not apply refused
-    (UserError): everything a run (and `make bench`) does before compiling."""
+    (UserError): everything a run (and `make bench`) does before compiling. built: the scene and
+    seeds of another config with the same task, precision, unroll, validation and seeds (what
+    build_seeds reads), used instead of building them again."""
     set_precision(cfg.precision)
     logging.getLogger("jax").setLevel(logging.WARNING)
     quiet_callback_failures()  # building a scene's data can run its solver too
     rule = build_rule(cfg.optim, cfg.get("trial_values"))
-    scene, seeds = build_seeds(cfg, seed_list, settings.batch_size, checkpoint)
+    if built is None:
+        scene, seeds = build_seeds(cfg, seed_list, settings.batch_size, checkpoint)
+    else:
+        scene, seeds = built
+        check_batch_size(scene, settings.batch_size)
     check_scene_values(scene, seeds, cfg.task.name)
     check_applies(scene, cfg)
     kind = capabilities(cfg.optim)

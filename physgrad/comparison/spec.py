@@ -407,15 +407,18 @@ def check_variants_build(variants: list[Variant], seed: int) -> None:
     bad setting) stops the study in one line before anything trains."""
     from omegaconf import open_dict
 
-    from physgrad.experiment import prepare
+    from physgrad.experiment import prepare, scene_key
     from physgrad.refusals import check_config
 
+    built = {}  # variants that differ in their rule alone share one scene: built once
     for variant in variants:
         cfg = variant.config.copy()
         with open_dict(cfg):
             del cfg["hydra"]
         try:
-            prepare(cfg, [seed], check_config(cfg))
+            key = scene_key(cfg, [seed])
+            scene, _, seeds = prepare(cfg, [seed], check_config(cfg), built=built.get(key))
+            built[key] = (scene, seeds)
         except UserError as error:
             raise UserError(f"variant {variant.name}: {error}") from None
         except Exception as error:  # noqa: BLE001 - the scene's or rule's own code: one line

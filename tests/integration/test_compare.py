@@ -963,3 +963,29 @@ def test_a_results_file_copied_from_another_seed_or_cut_short_is_trained_again(
     assert read_run(cut).train["loss"].size == 30
     assert again.runs.test_loss_at_1.tolist() == small_study.runs.test_loss_at_1.tolist()
     assert [v.verdict for v in again.verdicts] == [v.verdict for v in small_study.verdicts]
+
+
+def test_variants_that_differ_in_their_rule_alone_build_their_scene_once(monkeypatch):
+    """compare's check before anything trains builds each distinct scene once: three rules on the
+    toy, one scene; a variant with another task setting, a second; a batch larger than the
+    training set is still refused for the variant that asks for it."""
+    import physgrad.experiment
+    from physgrad.comparison.spec import check_variants_build
+
+    built = []
+    real = physgrad.experiment.build_scene
+    monkeypatch.setattr(
+        physgrad.experiment, "build_scene", lambda *a, **k: built.append(1) or real(*a, **k)
+    )
+    settings, axes, common, _ = split_overrides(["task=toy", "optim=adam,gd,hig"])
+    check_variants_build(build_variants(axes, common, study_settings(settings), []), 1_000_000)
+    assert len(built) == 1
+    settings, axes, common, _ = split_overrides(["task=toy", "optim=adam,gd", "task.scale=1,0.01"])
+    check_variants_build(build_variants(axes, common, study_settings(settings), []), 1_000_000)
+    assert len(built) == 1 + 2
+    settings, axes, common, _ = split_overrides(
+        ["task=oscillator", "task.train_size=16", "task.test_size=8", "optim=adam,gd"]
+        + ["trainer.batch_size=8,32"]
+    )
+    with pytest.raises(UserError, match="trainer.batch_size=32 is larger than the training set"):
+        check_variants_build(build_variants(axes, common, study_settings(settings), []), 1_000_000)
