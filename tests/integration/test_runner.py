@@ -15,7 +15,7 @@ from physgrad.results import read_run
 from physgrad.tasks import build_scene
 from tests.helpers import SimulatedClock, load
 
-SMALL = ["task.grid=4", "task.test_size=8", "trainer.batch_size=4"]
+SMALL = ["task=toy", "task.test_size=8", "trainer.batch_size=4"]
 
 
 def test_divergence_is_an_outcome_with_the_curve_kept(tmp_path):
