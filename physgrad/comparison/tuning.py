@@ -279,19 +279,18 @@ def _open_studies(
 
 
 def journal_storage(path: Path) -> JournalStorage:
-    """Optuna's storage over the journal file at path (one JSON record per line, appended); a
-    journal that is a link, not a file, or a file with another name (a hard link) is a UserError
-    (one line): Optuna would append through it."""
+    """Optuna's storage over the journal file at path (one JSON record per line, appended), through
+    a file physgrad opened itself (OwnJournal); a journal that is a link, not a file, or a file
+    with another name (a hard link) is a UserError (one line)."""
     import optuna
 
-    from physgrad.files import own_file
+    from physgrad.comparison.journal import OwnJournal
 
     try:
-        own_file(path)
+        backend = OwnJournal(path)
     except ValueError as error:
         raise UserError(f"{error}; remove it or give another compare.dir") from None
-
-    return optuna.storages.JournalStorage(optuna.storages.journal.JournalFileBackend(str(path)))
+    return optuna.storages.JournalStorage(backend)
 
 
 def set_aside_damage(path: Path, say: Callable[[str], object]) -> None:

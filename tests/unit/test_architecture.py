@@ -56,6 +56,7 @@ INNER = {
         {"summary", "plan", "figure", "evaluation"},
         {"coverage"},
         {"tuning", "clock_text", "calibration"},
+        {"journal"},
         {"jobs"},
         {"spec"},
     ],
