@@ -418,7 +418,51 @@ def page(found: dict, image: str) -> str:
             "",
             "Not run yet: " + ", ".join(f"{e.title} (`{e.name}`)" for e in missing) + ".",
         ]
-    return "\n".join(lines) + "\n"
+    return "\n".join(lines + literature_lines(found)) + "\n"
+
+
+# what the rules' papers report on problems the leaderboard has, and the cells that answer them
+LITERATURE = (
+    (
+        "Self-scaled BFGS and Broyden (Kiyani et al. 2025, arXiv 2501.16371; Jnini et al. 2026, "
+        "arXiv 2604.05230) report errors orders of magnitude below Adam's and L-BFGS's on "
+        "Kuramoto-Sivashinsky and Burgers problems, among others.",
+        (
+            ("ks", "ssbfgs"),
+            ("ks", "ssbroyden"),
+            ("burgers_inverse", "ssbfgs"),
+            ("burgers_inverse", "ssbroyden"),
+        ),
+    ),
+    (
+        "SOAP (Vyas et al. 2024, arXiv 2409.11321) is reported strong on physics-informed losses "
+        "by the gradient-alignment studies of 2025.",
+        (("ks", "soap"), ("burgers_inverse", "soap")),
+    ),
+)
+WHY_IT_MAY_DIFFER = (
+    "Their losses are physics-informed residuals over collocation points, trained full-batch for "
+    "tens of thousands of iterations on networks of a few thousand parameters; here the physics is "
+    "in the loop (a solver between the network and the loss), the budget is seconds of calibrated "
+    "time, and the toy draws a fresh batch every iteration, where a quasi-Newton rule's curvature "
+    "pairs and line search see another batch at every step."
+)
+
+
+def literature_lines(found: dict) -> list[str]:
+    """What the rules' papers report on the leaderboard's problems, beside the cells measured
+    here."""
+    titles = {e.name: e.title for e in SCENES}
+    lines = ["", "## What the literature reports, checked here", ""]
+    for claim, where in LITERATURE:
+        measured = []
+        for scene, rule in where:
+            cell = found.get(scene, ({},))[0].get(rule)
+            measured.append(
+                f"{rule} on {titles[scene]}: " + (cell_text(cell) if cell else "not run yet")
+            )
+        lines.append(f"- {claim} Here: " + "; ".join(measured) + ".")
+    return lines + ["", WHY_IT_MAY_DIFFER]
 
 
 def write(root: Path, out: Path) -> str:

@@ -84,6 +84,8 @@ def test_cells_verdicts_and_page_from_kept_evidence(tmp_path):
     assert "not run" in rows["kfac"]  # a rule that applies but has no runs in the evidence
     assert "Not run yet:" in text and "`guidance`" in text
     assert "3 of 3 tuning studies finished" in text and "hig 200" in text
+    # the literature's claims beside the cells that answer them (none run here)
+    assert "ssbfgs on KS correction (small): not run yet" in text
     assert (tmp_path / "docs" / "leaderboard.png").stat().st_size > 10_000
     assert (tmp_path / "docs" / "leaderboard.pdf").is_file()
 
