@@ -404,6 +404,11 @@ def page(found: dict, image: str) -> str:
             lines.append(
                 f"- **{entry.title}** (`{' '.join(entry.overrides)}`): {budget}; "
                 f"{studies} of {LEADERBOARD_STUDIES} tuning studies finished"
+                + (
+                    " (its verdicts are those of the studies run so far: preliminary)"
+                    if studies < LEADERBOARD_STUDIES
+                    else ""
+                )
                 + (f"; on {runs.machine}" if runs.machine else "")
                 + "."
             )
