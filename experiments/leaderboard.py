@@ -303,19 +303,19 @@ def plot(found: dict, path: Path) -> None:
 
     from physgrad.plots import save_figure
 
-    scenes = [e for e in SCENES if e.name in found]
+    scenes = list(SCENES)  # every column, so that what is still to run shows
     grid = np.full((len(RULES), len(scenes)), np.nan)
     fig, ax = plt.subplots(figsize=(1.6 + 1.45 * len(scenes), 0.9 + 0.48 * len(RULES)))
     for j, entry in enumerate(scenes):
         for i, rule in enumerate(RULES):
-            cell = found[entry.name][0].get(rule)
+            cell = found.get(entry.name, ({},))[0].get(rule)
             if cell is not None and math.isfinite(cell.ratio) and cell.ratio > 0:
                 grid[i, j] = math.log10(cell.ratio)
     limit = max(1.0, float(np.nanmax(np.abs(grid))) if np.isfinite(grid).any() else 1.0)
     image = ax.imshow(grid, cmap="RdBu_r", vmin=-limit, vmax=limit, aspect="auto")
     for j, entry in enumerate(scenes):
         for i, rule in enumerate(RULES):
-            cell = found[entry.name][0].get(rule)
+            cell = found.get(entry.name, ({},))[0].get(rule)
             if rule in entry.refused:
                 ax.add_patch(plt.Rectangle((j - 0.5, i - 0.5), 1, 1, color="0.85"))
                 ax.text(j, i, "n/a", ha="center", va="center", fontsize=7, color="0.4")

@@ -123,3 +123,13 @@ def test_every_scene_is_a_compare_with_adam_as_baseline_and_parts_stay_near_80_m
     # job per trial)
     assert all(len({s.name for s in part}) == 1 or len(part) > 1 for part in parts)
     assert all(s.studies <= leaderboard.LEADERBOARD_STUDIES for part in parts for s in part)
+
+
+def test_the_committed_page_is_what_the_committed_evidence_gives(tmp_path):
+    """docs/leaderboard.md regenerated from docs/evidence/leaderboard, unchanged: nothing in it is
+    copied by hand."""
+    evidence = REPO / "docs" / "evidence" / "leaderboard"
+    assert sorted(p.stem for p in evidence.glob("*.csv")), "no kept evidence"
+    text = leaderboard.write(evidence, tmp_path)
+    assert text == (REPO / "docs" / "leaderboard.md").read_text()
+    assert (tmp_path / "leaderboard.png").stat().st_size > 10_000
