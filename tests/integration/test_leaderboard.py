@@ -103,7 +103,7 @@ def test_rules_that_do_not_apply_are_marked_with_why(tmp_path):
     # a scene with one of its three tuning studies run: its verdicts said to be preliminary
     kept_scene(evidence, "oscillator", {"adam": [1.0], "hig": [0.5]}, studies=1)
     text = leaderboard.write(evidence, tmp_path / "docs")
-    assert "1 of 3 tuning studies finished (its verdicts are those of the studies run so far" in text
+    assert "1 of 3 tuning studies finished (its verdicts are those of the studies run" in text
 
 
 def test_every_scene_is_a_compare_with_adam_as_baseline_and_parts_stay_near_80_minutes():
