@@ -90,9 +90,13 @@ def measure_variant(overrides: list[str], repeats: int, min_seconds: float) -> d
         result.update(
             jac_shape=list(shape),
             jacobian=rule.gradient.name,
-            route=resolve_route(cfg.optim.route, float(cfg.optim.tau), shape),
+            # K-FAC takes its step from the layers' factors, not from a route through J
+            route=resolve_route(cfg.optim.route, float(cfg.optim.tau), shape)
+            if "route" in cfg.optim
+            else "factors",
         )
-        if rule.gradient.plan is not None:
+        # the per-sample Jacobian against the layer-factorised one (K-FAC needs the factors)
+        if rule.gradient.plan is not None and "route" in cfg.optim:
             per_sample = compile_training(
                 scene,
                 rule._replace(gradient=dataclasses.replace(rule.gradient, plan=None)),

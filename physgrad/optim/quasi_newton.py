@@ -99,14 +99,17 @@ def updated_inverse_hessian(
     theta, tau = broyden_parameters(variant, a, b, h, first, step.shape[0])
     phi = (1.0 - theta) / (1.0 + a * theta)
     v = step / curvature - hy / yhy
-    new = (
-        inverse_hessian - jnp.outer(hy, hy) / yhy + phi * yhy * jnp.outer(v, v)
-    ) / tau + jnp.outer(step, step) / curvature
-    new = 0.5 * (new + new.T)  # symmetric to round-off, kept so
-    # y^T s > 0 relative to |s| |y|: a curvature lost in round-off would blow H up
+    # y^T s > 0 relative to |s| |y| (a curvature lost in round-off would blow H up), and every
+    # scalar of the update finite: then so is the update of a finite H
     scale = jnp.sqrt((step @ step) * (grad_change @ grad_change))
-    ok = (curvature > jnp.finfo(step.dtype).eps * scale) & jnp.all(jnp.isfinite(new))
-    return jnp.where(ok, new, inverse_hessian), ok
+    scalars = jnp.stack([curvature, yhy, tau, phi, phi * yhy])
+    ok = (curvature > jnp.finfo(step.dtype).eps * scale) & (yhy > 0) & (tau != 0)
+    ok = ok & jnp.all(jnp.isfinite(scalars)) & jnp.all(jnp.isfinite(v))
+    # one pass over the n x n matrix: a rank-3 change of H / tau, zero where it is skipped
+    columns = jnp.where(ok, jnp.stack([hy, v, step], axis=1), 0.0)  # no NaN times a zero weight
+    weights = jnp.where(ok, jnp.stack([-1.0 / yhy, phi * yhy, tau / curvature]) / tau, 0.0)
+    change = (columns * weights) @ columns.T
+    return jnp.where(ok, inverse_hessian / tau, inverse_hessian) + change, ok
 
 
 def scale_by_self_scaled_broyden(
@@ -150,17 +153,18 @@ def scale_by_self_scaled_broyden(
         step_size = -(step @ state.direction) / jnp.maximum(
             state.direction @ state.direction, jnp.finfo(flat.dtype).tiny
         )
+        # before the first step there is no step to learn from: s = x_0, y = g_0 are masked out by
+        # a zero step
+        first_call = state.steps == 0
         inverse_hessian, ok = updated_inverse_hessian(
             variant,
             state.inverse_hessian,
-            step,
+            jnp.where(first_call, 0.0, step),
             grad_change,
             state.grad,
             step_size,
             state.count == 0,
         )
-        ok = ok & (state.steps > 0)
-        inverse_hessian = jnp.where(ok, inverse_hessian, state.inverse_hessian)
         direction = inverse_hessian @ grad
         # the first direction is the gradient, at most of unit length (optax.lbfgs's choice)
         scale = jnp.where(state.steps == 0, jnp.minimum(1.0, 1.0 / jnp.linalg.norm(grad)), 1.0)

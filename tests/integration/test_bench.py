@@ -51,6 +51,16 @@ def test_bench_measures_steps_floors_and_overhead():
     assert math.isfinite(ratio)
 
 
+@pytest.mark.long
+def test_kfac_is_measured_from_its_factors_without_a_per_sample_baseline():
+    """K-FAC takes the Jacobian in layer factors: no route through J and no per-sample Jacobian to
+    compare with (that baseline would refuse it), its step and floors measured as any other."""
+    small = ["task=poisson", "task.grid=4", "task.test_size=8", "trainer.batch_size=4"]
+    kfac = measure_variant([*small, "optim=kfac"], repeats=2, min_seconds=0)
+    assert kfac["route"] == "factors" and "per_sample_step_s" not in kfac
+    assert kfac["step_s"] > 0 and kfac["eigh_s"] > 0
+
+
 def test_a_refused_variant_is_left_out():
     assert "refused" in measure_variant(["task=poisson", "optim=bptt"], repeats=1, min_seconds=0)
 
