@@ -30,6 +30,7 @@ import numpy as np
 from claims import Study, read_study  # experiments/
 from evidence import commit, kept_row, write_kept
 
+from physgrad.bench import OPTIMS as BENCH_OPTIMS
 from physgrad.verdict import (
     A_BETTER,
     B_BETTER,
@@ -43,19 +44,8 @@ from physgrad.verdict import (
 
 BASELINE = "adam"
 LEADERBOARD_TRIALS, LEADERBOARD_STUDIES, LEADERBOARD_SEEDS = 8, 3, 10
-# every rule of conf/optim that is not a backprop mode of Adam, in the table's order
-RULES = (
-    "gd",
-    "gauss_newton",
-    "hig",
-    "levenberg_marquardt",
-    "kfac",
-    "lbfgs",
-    "ssbfgs",
-    "ssbroyden",
-    "muon",
-    "soap",
-)
+# every rule of make bench's list (conf/optim) but Adam and its backprop modes, in that order
+RULES = tuple(o for o in BENCH_OPTIMS if o not in (BASELINE, "bptt", "stable_bptt"))
 NO_FACTORS = "no layer factors (the controller or convolution runs many times per sample)"
 
 
