@@ -27,7 +27,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
-from claims import Study, read_study  # experiments/
+from claims import TUNE_SEED, Study, read_study  # experiments/
 from evidence import commit, kept_row, write_kept
 
 from physgrad.bench import OPTIMS as BENCH_OPTIMS
@@ -43,6 +43,7 @@ from physgrad.verdict import (
 )
 
 BASELINE = "adam"
+STUDY_FOLDER = "study-{k}"  # tuning study k of a scene: <root>/<scene>/study-k
 LEADERBOARD_TRIALS, LEADERBOARD_STUDIES, LEADERBOARD_SEEDS = 8, 3, 10
 # every rule of make bench's list (conf/optim) but Adam and its backprop modes, in that order
 RULES = tuple(o for o in BENCH_OPTIMS if o not in (BASELINE, "bptt", "stable_bptt"))
@@ -67,25 +68,31 @@ class Entry:
     def rules(self) -> tuple[str, ...]:
         return tuple(r for r in RULES if r not in self.refused)
 
-    @property
-    def study(self) -> Study:
+    def study(self, k: int, calibration: Path | None = None) -> Study:
+        """Tuning study k (1, 2, ...) of the scene as a compare of its own, in
+        <root>/<scene>/study-k: the tuning seed, trial points and evaluation seeds that study has
+        in one compare of LEADERBOARD_STUDIES (compare.tune_seed + k - 1, compare.seed + (k - 1) *
+        seeds), so that each part keeps its evidence whatever machine ran the others; on the
+        scene's kept clock (calibration) where one was kept."""
         overrides = (
             *(("-cd", self.config_dir) if self.config_dir else ()),
             *self.overrides,
             f"optim={','.join((BASELINE, *self.rules))}",
             f"trainer.time_budget={self.budget:g}",
             f"compare.baseline={BASELINE}",
+            f"compare.seed={(k - 1) * LEADERBOARD_SEEDS}",
+            f"compare.tune_seed={TUNE_SEED + k - 1}",
+            *((f"compare.calibration={calibration}",) if calibration else ()),
         )
         job = self.budget + self.overhead
         return Study(
-            self.name,
+            f"{self.name}/{STUDY_FOLDER.format(k=k)}",
             overrides,
             LEADERBOARD_TRIALS,
             LEADERBOARD_SEEDS,
             job,
             job,
             preset=False,
-            studies=LEADERBOARD_STUDIES,
         )
 
 
@@ -136,7 +143,22 @@ SCENES = (
         config_dir="examples/library_scenes/conf",
     ),
 )
-LEADERBOARD = tuple(entry.study for entry in SCENES)
+EVIDENCE = Path(__file__).resolve().parent.parent / "docs" / "evidence" / "leaderboard"
+CLOCK = "{name}.calibration.json"  # a scene's kept calibration, beside its evidence
+
+
+def kept_clock(name: str, evidence: Path = EVIDENCE) -> Path | None:
+    """The scene's kept calibration (its step costs, measured once on a quiet machine), if kept."""
+    path = evidence / CLOCK.format(name=name)
+    return path if path.is_file() else None
+
+
+# the profile's studies: every tuning study of every scene, each a compare of its own
+LEADERBOARD = tuple(
+    entry.study(k, kept_clock(entry.name))
+    for entry in SCENES
+    for k in range(1, LEADERBOARD_STUDIES + 1)
+)
 
 
 def environment(study: Study) -> dict | None:
@@ -144,7 +166,7 @@ def environment(study: Study) -> dict | None:
     the folder above its conf/ (as from that folder: examples/library_scenes/README.md)."""
     import os
 
-    entry = next((e for e in SCENES if e.name == study.name), None)
+    entry = next((e for e in SCENES if e.name == study.name.split("/")[0]), None)
     if entry is None or entry.config_dir is None:
         return None
     modules = str(Path(entry.config_dir).resolve().parent)
@@ -157,43 +179,91 @@ def environment(study: Study) -> dict | None:
 
 
 def keep(root: Path, dest: Path) -> list[str]:
-    """Every finished (or partly finished) study of the leaderboard under root as an evidence table
-    in dest (experiments/evidence.py): every run's test loss at the kept fractions of the budget,
-    with each rule's median iterations at the budget in its .json. Returns the studies kept."""
+    """Every finished tuning study of the leaderboard under root (<root>/<scene>/study-k) added to
+    the scene's evidence table in dest (experiments/evidence.py), replacing that study's rows if
+    it was kept before and keeping the others' (each study is kept whatever machine ran it): every
+    run's test loss at the kept fractions of the budget; in the .json each study's machine, commit
+    and each rule's median iterations at the budget, and the scene's calibration (its clock, for
+    the studies still to run) beside it. Returns the studies kept, as scene/study-k."""
     import pandas as pd
+
+    from physgrad.errors import UserError
 
     kept = []
     for entry in SCENES:
-        folder = root / entry.name
-        runs = read_study(folder) if (folder / "runs.csv").is_file() else None
-        if runs is None:
+        finished = {}
+        for k in range(1, LEADERBOARD_STUDIES + 1):
+            folder = root / entry.name / STUDY_FOLDER.format(k=k)
+            runs = read_study(folder) if (folder / "runs.csv").is_file() else None
+            if runs is not None:
+                finished[k] = (folder, runs)
+        if not finished:
             continue
-        studies = runs.tuning or (runs,)
-        rows = [
-            kept_row(k, variant, seed, "loss", curve, runs.budget)
-            for k, study in enumerate(studies)
-            for variant in sorted(study.paths)
-            for seed, curve in sorted(study.curves(variant).items())
-        ]
-        table = pd.read_csv(folder / "runs.csv")
-        iterations = {
-            str(v): float(np.median(group["iterations"])) for v, group in table.groupby("variant")
+        table_path, about_path = dest / f"{entry.name}.csv", dest / f"{entry.name}.json"
+        rows, about = [], {}
+        if table_path.is_file():
+            about = json.loads(about_path.read_text())
+            old = pd.read_csv(table_path, dtype={"variant": str, "column": str})
+            rows = old[~old["study"].isin([k - 1 for k in finished])].to_dict("records")
+        by_study = about.get("tuning_studies") or {
+            # evidence kept before each study was recorded on its own: its one study
+            str(int(k) + 1): {
+                key: about.get(key) for key in ("machine", "kept_by", "iterations", "overrides")
+            }
+            for k in sorted({row["study"] for row in rows})
         }
-        record = json.loads((folder / "study.json").read_text())
+        for k, (folder, runs) in finished.items():
+            if runs.tuning:
+                raise UserError(
+                    f"{folder}: {len(runs.tuning)} tuning studies, where a leaderboard study "
+                    "folder holds one (compare.studies=1)"
+                )
+            if about and not math.isclose(float(about["budget"]), runs.budget, rel_tol=1e-9):
+                raise UserError(
+                    f"{folder}: a budget of {runs.budget:g}, where {table_path} keeps "
+                    f"{float(about['budget']):g}; keep it in another folder"
+                )
+            rows += [
+                kept_row(k - 1, variant, seed, "loss", curve, runs.budget)
+                for variant in sorted(runs.paths)
+                for seed, curve in sorted(runs.curves(variant).items())
+            ]
+            table = pd.read_csv(folder / "runs.csv")
+            by_study[str(k)] = {
+                "machine": runs.machine,
+                "kept_by": commit(),
+                "iterations": {
+                    str(v): float(np.median(group["iterations"]))
+                    for v, group in table.groupby("variant")
+                },
+                "overrides": json.loads((folder / "study.json").read_text()).get("overrides", []),
+            }
+            clock = dest / CLOCK.format(name=entry.name)
+            if not clock.exists() and (folder / "calibration.json").is_file():
+                dest.mkdir(parents=True, exist_ok=True)
+                clock.write_bytes((folder / "calibration.json").read_bytes())
+            kept.append(f"{entry.name}/{STUDY_FOLDER.format(k=k)}")
+        by_study = dict(sorted(by_study.items(), key=lambda item: int(item[0])))
+        machines = sorted({str(s.get("machine") or "") for s in by_study.values()} - {""})
+        per_study = [s.get("iterations") or {} for s in by_study.values()]
+        first = next(iter(finished.values()))[1]
         about = {
             "study": entry.name,
-            "axis": runs.axis,
-            "budget": runs.budget,
+            "axis": first.axis,
+            "budget": first.budget,
             "trials": LEADERBOARD_TRIALS,
-            "studies": len(studies),
+            "studies": len(by_study),
             "seeds": LEADERBOARD_SEEDS,
-            "machine": runs.machine,
+            "machine": "; ".join(machines),
             "kept_by": commit(),
-            "overrides": record.get("overrides", []),
-            "iterations": iterations,
+            # each rule's iterations at the budget: the median of the studies' medians
+            "iterations": {
+                rule: float(np.median([its[rule] for its in per_study if rule in its]))
+                for rule in sorted(set().union(*per_study))
+            },
+            "tuning_studies": by_study,
         }
         write_kept(dest, entry.name, rows, about)
-        kept.append(entry.name)
     return kept
 
 
@@ -461,8 +531,14 @@ def literature_lines(found: dict) -> list[str]:
 
 
 def write(root: Path, out: Path) -> str:
-    """leaderboard.md and leaderboard.png (and .pdf) in out, from the study folders or kept evidence
-    under root; returns the markdown."""
+    """leaderboard.md and leaderboard.png (and .pdf) in out, from kept evidence under root or from
+    the study folders under root (kept first, into a temporary folder); returns the markdown."""
+    if any((root / entry.name).is_dir() for entry in SCENES):
+        import tempfile
+
+        with tempfile.TemporaryDirectory() as evidence:
+            keep(root, Path(evidence))
+            return write(Path(evidence), out)
     found = board(root)
     out.mkdir(parents=True, exist_ok=True)
     if found:

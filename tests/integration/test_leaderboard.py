@@ -6,8 +6,10 @@ undecided or worse, never better; rules that do not apply are marked, scenes not
 import json
 import math
 import sys
+from dataclasses import replace
 
 import numpy as np
+import pytest
 
 from tests.helpers import REPO
 
@@ -18,7 +20,7 @@ from evidence import write_kept  # noqa: E402
 from physgrad.verdict import A_BETTER, B_BETTER, EQUIVALENT  # noqa: E402
 
 
-def kept_scene(folder, name, levels, studies=3, seeds=10, budget=10.0):
+def kept_scene(folder, name, levels, studies=3, seeds=10, budget=10.0, first_seed=0):
     """Evidence of one scene: variant -> (loss at the budget per tuning study), times a small
     per-seed noise shared by every variant (paired seeds)."""
     rng = np.random.default_rng(1)
@@ -32,7 +34,7 @@ def kept_scene(folder, name, levels, studies=3, seeds=10, budget=10.0):
                     {
                         "study": k,
                         "variant": variant,
-                        "seed": k * seeds + seed,
+                        "seed": first_seed + k * seeds + seed,
                         "column": "loss",
                         "start": 1.0,
                         **{f"at_{f:g}": value for f in (0.125, 0.25, 0.5, 1.0)},
@@ -108,21 +110,82 @@ def test_rules_that_do_not_apply_are_marked_with_why(tmp_path):
 
 def test_every_scene_is_a_compare_with_adam_as_baseline_and_parts_stay_near_80_minutes():
     sys.path.insert(0, str(REPO / "experiments"))
-    from claims import chunks
+    from claims import TUNE_SEED, chunks
 
     for entry in leaderboard.SCENES:
-        overrides = entry.study.overrides
-        assert "compare.baseline=adam" in overrides
-        optims = next(o for o in overrides if o.startswith("optim=")).split("=")[1].split(",")
-        assert optims[0] == "adam" and set(optims[1:]) | set(entry.refused) == set(
-            leaderboard.RULES
-        )
-        assert any(o.startswith("trainer.time_budget=") for o in overrides)
+        for k in range(1, leaderboard.LEADERBOARD_STUDIES + 1):
+            overrides = entry.study(k).overrides
+            assert "compare.baseline=adam" in overrides
+            optims = next(o for o in overrides if o.startswith("optim=")).split("=")[1].split(",")
+            assert optims[0] == "adam" and set(optims[1:]) | set(entry.refused) == set(
+                leaderboard.RULES
+            )
+            assert any(o.startswith("trainer.time_budget=") for o in overrides)
+            # tuning study k of one compare of three: its tuning seed and evaluation seeds
+            assert f"compare.tune_seed={TUNE_SEED + k - 1}" in overrides
+            assert f"compare.seed={(k - 1) * leaderboard.LEADERBOARD_SEEDS}" in overrides
+            assert "compare.studies=1" in entry.study(k).command(REPO)
     parts = chunks(leaderboard.LEADERBOARD)
-    # a part is one tuning study of one scene at most (the plan's figure is an upper bound: one
-    # job per trial)
-    assert all(len({s.name for s in part}) == 1 or len(part) > 1 for part in parts)
-    assert all(s.studies <= leaderboard.LEADERBOARD_STUDIES for part in parts for s in part)
+    # every part is one tuning study of one scene (the plan's figure is an upper bound: one job
+    # per trial), each in a folder of its own
+    assert len(parts) == len(leaderboard.SCENES) * leaderboard.LEADERBOARD_STUDIES
+    assert all(len(part) == 1 for part in parts)
+    assert len({part[0].name for part in parts}) == len(parts)
+
+
+def test_a_study_run_elsewhere_is_added_to_the_kept_evidence(tmp_path, monkeypatch):
+    """Tuning study 2 of a scene, run on another machine than study 1 (whose evidence is kept in the
+    old one-study format), is added beside it: both decide the cells, the calibration is kept for
+    the studies still to run, keeping it again replaces its rows, and a study at another budget is
+    refused in one line."""
+    from physgrad.errors import UserError
+
+    levels = {"adam": [1.0], "hig": [0.1]}
+    evidence, root = tmp_path / "evidence", tmp_path / "studies"
+    kept_scene(evidence, "toy", levels, studies=1)  # study 1, kept before
+    about = json.loads((evidence / "toy.json").read_text())
+    assert "tuning_studies" not in about
+    kept_scene(tmp_path / "elsewhere", "toy", levels, studies=1, first_seed=10)
+    study_2 = leaderboard.read_study(tmp_path / "elsewhere" / "toy")
+    folder = root / "toy" / "study-2"
+    folder.mkdir(parents=True)
+    (folder / "runs.csv").write_text("variant,iterations\nadam,300\nhig,100\nhig,140\n")
+    (folder / "study.json").write_text(json.dumps({"overrides": ["task=toy", "compare.seed=10"]}))
+    (folder / "calibration.json").write_text('{"costs": {}}')
+    read_study = leaderboard.read_study
+
+    def keep(study):  # keep root's one study folder, read as `study`
+        monkeypatch.setattr(
+            leaderboard, "read_study", lambda path: study if path == folder else None
+        )
+        try:
+            return leaderboard.keep(root, evidence)
+        finally:
+            monkeypatch.setattr(leaderboard, "read_study", read_study)
+
+    assert keep(study_2) == ["toy/study-2"]
+    table = (evidence / "toy.csv").read_text().splitlines()
+    assert len(table) == 1 + 2 * 2 * 10  # 2 studies x 2 variants x 10 seeds
+    about = json.loads((evidence / "toy.json").read_text())
+    assert about["studies"] == 2 and list(about["tuning_studies"]) == ["1", "2"]
+    assert about["tuning_studies"]["2"]["iterations"] == {"adam": 300.0, "hig": 120.0}
+    assert about["tuning_studies"]["1"]["iterations"] == {"adam": 100.0, "hig": 200.0}
+    assert about["iterations"] == {"adam": 200.0, "hig": 160.0}  # medians of the studies'
+    assert (evidence / "toy.calibration.json").read_text() == '{"costs": {}}'
+    assert leaderboard.kept_clock("toy", evidence) == evidence / "toy.calibration.json"
+    assert any(
+        o == f"compare.calibration={evidence / 'toy.calibration.json'}"
+        for o in leaderboard.SCENES[0].study(3, leaderboard.kept_clock("toy", evidence)).overrides
+    )
+    cells = leaderboard.board(evidence)["toy"][0]
+    assert cells["hig"].studies == (A_BETTER, A_BETTER) and cells["hig"].pairs == 20
+
+    # kept again: its rows replaced, not added
+    assert keep(study_2) == ["toy/study-2"]
+    assert (evidence / "toy.csv").read_text().splitlines() == table
+
+    with pytest.raises(UserError, match="a budget of 20, where .* keeps 10; keep it in another"):
+        keep(replace(study_2, budget=20.0))
 
 
 def test_the_committed_page_is_what_the_committed_evidence_gives(tmp_path):
