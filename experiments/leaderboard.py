@@ -147,17 +147,25 @@ EVIDENCE = Path(__file__).resolve().parent.parent / "docs" / "evidence" / "leade
 CLOCK = "{name}.calibration.json"  # a scene's kept calibration, beside its evidence
 
 
-def kept_clock(name: str, evidence: Path = EVIDENCE) -> Path | None:
-    """The scene's kept calibration (its step costs, measured once on a quiet machine), if kept."""
-    path = evidence / CLOCK.format(name=name)
-    return path if path.is_file() else None
+def clock_rules(path: Path) -> set[str]:
+    """The variants a calibration.json has a step cost for (none if it cannot be read)."""
+    try:
+        costs = json.loads(path.read_text()).get("costs")
+    except (OSError, ValueError, AttributeError):
+        return set()
+    return set(costs) if isinstance(costs, dict) else set()
+
+
+def kept_clock(entry: Entry, evidence: Path = EVIDENCE) -> Path | None:
+    """The scene's kept calibration (its step costs, measured once on a quiet machine) if it has a
+    cost for every rule the scene runs now (a rule added since calibrates the study again)."""
+    path = evidence / CLOCK.format(name=entry.name)
+    return path if path.is_file() and {BASELINE, *entry.rules} <= clock_rules(path) else None
 
 
 # the profile's studies: every tuning study of every scene, each a compare of its own
 LEADERBOARD = tuple(
-    entry.study(k, kept_clock(entry.name))
-    for entry in SCENES
-    for k in range(1, LEADERBOARD_STUDIES + 1)
+    entry.study(k, kept_clock(entry)) for entry in SCENES for k in range(1, LEADERBOARD_STUDIES + 1)
 )
 
 
@@ -238,10 +246,11 @@ def keep(root: Path, dest: Path) -> list[str]:
                 },
                 "overrides": json.loads((folder / "study.json").read_text()).get("overrides", []),
             }
-            clock = dest / CLOCK.format(name=entry.name)
-            if not clock.exists() and (folder / "calibration.json").is_file():
+            # the scene's clock: the first kept, or one with a rule the kept one lacks
+            clock, measured = dest / CLOCK.format(name=entry.name), folder / "calibration.json"
+            if measured.is_file() and not clock_rules(measured) <= clock_rules(clock):
                 dest.mkdir(parents=True, exist_ok=True)
-                clock.write_bytes((folder / "calibration.json").read_bytes())
+                clock.write_bytes(measured.read_bytes())
             kept.append(f"{entry.name}/{STUDY_FOLDER.format(k=k)}")
         by_study = dict(sorted(by_study.items(), key=lambda item: int(item[0])))
         machines = sorted({str(s.get("machine") or "") for s in by_study.values()} - {""})

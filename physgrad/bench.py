@@ -45,6 +45,7 @@ OPTIMS = (
     "ssbroyden",
     "muon",
     "soap",
+    "psgd_kron",
     "bptt",
     "stable_bptt",
 )

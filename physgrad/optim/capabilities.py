@@ -56,6 +56,8 @@ RULES: dict[str, Capabilities] = {
     "optax.contrib.muon": Capabilities("adaptive", ADAPTIVE.search_range, needs_matrices=True),
     # Adam in Shampoo's eigenbasis per weight matrix: given the layers, not one flat vector
     "physgrad.optim.soap.soap": Capabilities("adaptive", ADAPTIVE.search_range),
+    # a Kronecker-factored preconditioner per weight matrix: given the layers, not one flat vector
+    "physgrad.optim.psgd.psgd_kron": Capabilities("adaptive", ADAPTIVE.search_range),
     **{
         f"optax.{name}": ADAPTIVE_ELEMENTWISE
         for name in (

@@ -84,6 +84,7 @@ def test_every_task_and_optim_has_a_config():
         "muon",
         "kfac",
         "soap",
+        "psgd_kron",
         "ssbfgs",
         "ssbroyden",
     }

@@ -151,7 +151,8 @@ def test_a_study_run_elsewhere_is_added_to_the_kept_evidence(tmp_path, monkeypat
     folder.mkdir(parents=True)
     (folder / "runs.csv").write_text("variant,iterations\nadam,300\nhig,100\nhig,140\n")
     (folder / "study.json").write_text(json.dumps({"overrides": ["task=toy", "compare.seed=10"]}))
-    (folder / "calibration.json").write_text('{"costs": {}}')
+    clock = {"costs": {rule: {} for rule in ("adam", *leaderboard.SCENES[0].rules)}}
+    (folder / "calibration.json").write_text(json.dumps(clock))
     read_study = leaderboard.read_study
 
     def keep(study):  # keep root's one study folder, read as `study`
@@ -171,18 +172,25 @@ def test_a_study_run_elsewhere_is_added_to_the_kept_evidence(tmp_path, monkeypat
     assert about["tuning_studies"]["2"]["iterations"] == {"adam": 300.0, "hig": 120.0}
     assert about["tuning_studies"]["1"]["iterations"] == {"adam": 100.0, "hig": 200.0}
     assert about["iterations"] == {"adam": 200.0, "hig": 160.0}  # medians of the studies'
-    assert (evidence / "toy.calibration.json").read_text() == '{"costs": {}}'
-    assert leaderboard.kept_clock("toy", evidence) == evidence / "toy.calibration.json"
-    assert any(
-        o == f"compare.calibration={evidence / 'toy.calibration.json'}"
-        for o in leaderboard.SCENES[0].study(3, leaderboard.kept_clock("toy", evidence)).overrides
+    toy = leaderboard.SCENES[0]
+    assert json.loads((evidence / "toy.calibration.json").read_text()) == clock
+    assert leaderboard.kept_clock(toy, evidence) == evidence / "toy.calibration.json"
+    assert (
+        f"compare.calibration={evidence / 'toy.calibration.json'}"
+        in toy.study(3, leaderboard.kept_clock(toy, evidence)).overrides
     )
+    # a clock without a rule the scene runs now is not used (the study calibrates again)
+    del clock["costs"]["soap"]
+    (evidence / "toy.calibration.json").write_text(json.dumps(clock))
+    assert leaderboard.kept_clock(toy, evidence) is None
     cells = leaderboard.board(evidence)["toy"][0]
     assert cells["hig"].studies == (A_BETTER, A_BETTER) and cells["hig"].pairs == 20
 
     # kept again: its rows replaced, not added
     assert keep(study_2) == ["toy/study-2"]
     assert (evidence / "toy.csv").read_text().splitlines() == table
+    # and the clock replaced by one with every rule
+    assert leaderboard.kept_clock(toy, evidence) == evidence / "toy.calibration.json"
 
     with pytest.raises(UserError, match="a budget of 20, where .* keeps 10; keep it in another"):
         keep(replace(study_2, budget=20.0))
