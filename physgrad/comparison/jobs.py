@@ -341,11 +341,12 @@ _EVENT = re.compile(
 
 @dataclass
 class Progress:
-    """A phase's progress on the console, read from its log as the multirun writes it: a line when
-    more of its jobs have started, at most one every `every` seconds, with the running job's loss
-    so far and the time left at the pace of the jobs done; and one at the end with the jobs it ran
-    (Hydra launches the jobs of a local sweep one after another, so job k started means k - 1
-    done)."""
+    """A phase's progress on the console, read from its log as the multirun writes it. On a terminal
+    (stream, default stderr), a bar over the phase's jobs with the running job's loss so far and
+    the time left, redrawn at every look; without one (a log, nohup, a batch job), a line when
+    more of its jobs have started, at most one every `every` seconds, with the same news, so that
+    logs stay readable. Either way one line at the end with the jobs it ran (Hydra launches the
+    jobs of a local sweep one after another, so job k started means k - 1 done)."""
 
     phase: str
     total: int
@@ -358,6 +359,25 @@ class Progress:
     launched_at: float = 0.0  # when the latest job was seen to start
     training: str = ""  # the running job's last progress: its label, loss and iteration
     training_said: str = ""
+    stream: object = None  # where the bar is drawn (None: stderr); no bar unless it is a terminal
+    bar: object = field(default=None, init=False)  # the terminal's bar (tqdm), if there is one
+
+    def __post_init__(self) -> None:
+        import sys
+
+        from tqdm import tqdm
+
+        bar = tqdm(
+            total=self.total,
+            desc=self.phase,
+            unit="job",
+            file=self.stream if self.stream is not None else sys.stderr,
+            disable=None,  # a bar only on a terminal
+            leave=False,
+            dynamic_ncols=True,
+            bar_format="{desc}: {n}/{total} jobs done |{bar}| {elapsed}{postfix}",
+        )
+        self.bar = None if bar.disable else bar
 
     def read(self, text: str, final: bool = False) -> None:
         """Take the log's new text; say where the phase is if it moved on."""
@@ -371,12 +391,26 @@ class Progress:
                 )
         moved = self.started > self.said
         minutes = (now - self.begun) / 60
+        if self.bar is not None:
+            self.bar.n = max(0, min(self.started - (0 if final else 1), self.total))
+            news = [
+                f"job {self.started}: {self.training}" if self.training else "",
+                self._left(now),
+            ]
+            self.bar.set_postfix_str("; ".join(n.removeprefix("; ") for n in news if n), False)
+            self.bar.refresh()
+            if final:
+                self.bar.close()
         if final and self.started:
             self.say(
                 f"{self.phase}: {min(self.started, self.total)} of {self.total} jobs run in "
                 f"{minutes:.1f} min"
             )
-        elif (moved or self.training != self.training_said) and now - self.last >= self.every:
+        elif (
+            self.bar is None
+            and (moved or self.training != self.training_said)
+            and now - self.last >= self.every
+        ):
             self.say(
                 f"{self.phase}: job {min(self.started, self.total)} of {self.total} started, "
                 f"{minutes:.1f} min in"

@@ -191,6 +191,36 @@ def test_a_tuning_journal_scored_by_another_read_out_is_set_aside(tmp_path, stud
     assert len(notes) == 1
 
 
+def test_on_a_terminal_a_phase_draws_a_bar_of_its_jobs_and_ends_with_one_line():
+    """A terminal gets a bar over the phase's jobs (done of total, the running job and its loss,
+    the time left) instead of lines along the way; the end is the same one line as in a log."""
+    import io
+
+    import physgrad.comparison.jobs as jobs
+
+    class Terminal(io.StringIO):
+        def isatty(self):
+            return True
+
+    terminal, said = Terminal(), []
+    progress = jobs.Progress("tune", 6, said.append, every=0, stream=terminal)
+    assert progress.bar is not None
+    for k in range(4):
+        progress.read(
+            f"[HYDRA] \t#{k} : +compare_job=tune_v{k}\n"
+            f"[physgrad][INFO] - toy/hig seed 1000000 (+1) iteration {10 * k}, loss {k}.5, 1.0 s "
+            "of training\n"
+        )
+    drawn = terminal.getvalue().split("\r")[-1]
+    assert "tune: 3/6 jobs done" in drawn, drawn
+    assert "job 4: toy/hig seed 1000000 (+1): loss 3.5 at iteration 30" in drawn, drawn
+    assert "min left" in drawn and said == []  # no lines along the way on a terminal
+    progress.read("", final=True)
+    assert len(said) == 1 and said[0].startswith("tune: 4 of 6 jobs run in ")
+    # without a terminal: no bar
+    assert jobs.Progress("tune", 6, said.append, stream=io.StringIO()).bar is None
+
+
 def test_a_phase_says_its_progress_from_its_log_without_a_line_per_job(tmp_path, monkeypatch):
     """The console hears where a phase is (Hydra's launch lines in its log): lines along the way at
     most one per interval, and one at the end with the jobs run; nothing for a phase that never
