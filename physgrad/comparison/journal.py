@@ -70,8 +70,10 @@ class OwnJournal(BaseJournalBackend):
             data = data[os.write(self._fd, data) :]
         os.fsync(self._fd)
 
-    def __del__(self) -> None:
+    # os.close bound here: at the interpreter's exit a module's globals may be gone (None) before
+    # the storage is collected
+    def __del__(self, _close: object = os.close) -> None:
         fd = getattr(self, "_fd", None)
         if fd is not None:
-            os.close(fd)
+            _close(fd)
             self._fd = None

@@ -401,16 +401,19 @@ def search_space(optim_cfg: DictConfig, settings: StudySettings) -> dict:
     return space
 
 
-def check_variants_build(variants: list[Variant], seed: int) -> None:
+def check_variants_build(variants: list[Variant], seed: int, built: dict | None = None) -> None:
     """Every variant's run config checked and its scene and rule built as its jobs will (on the
     tuning seed), so that a variant the scene refuses (a backprop mode on a scene without time, a
-    bad setting) stops the study in one line before anything trains."""
+    bad setting) stops the study in one line before anything trains. built: the scenes built so
+    far, by physgrad.experiment.scene_key (filled in; a caller checking several studies passes one
+    to build each distinct scene once)."""
     from omegaconf import open_dict
 
     from physgrad.experiment import prepare, scene_key
     from physgrad.refusals import check_config
 
-    built = {}  # variants that differ in their rule alone share one scene: built once
+    # variants that differ in their rule alone share one scene: built once
+    built = {} if built is None else built
     for variant in variants:
         cfg = variant.config.copy()
         with open_dict(cfg):

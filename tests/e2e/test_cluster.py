@@ -62,7 +62,7 @@ def test_a_signal_to_one_worker_ends_that_job_alone(tmp_path, signum):
             "task=toy",
             "optim=adam,gd",
             "trainer.iterations=100000000",
-            "trainer.time_budget=6",
+            "trainer.time_budget=4",
             "hydra/launcher=joblib",
             "hydra.launcher.n_jobs=2",
             f"hydra.sweep.dir={sweep}",
@@ -76,7 +76,7 @@ def test_a_signal_to_one_worker_ends_that_job_alone(tmp_path, signum):
             "both jobs started", lambda: (p := started_pids(sweep)).__len__() == 2 and p
         )
         wait_for("adam training", lambda: list(sweep.glob("*optim=adam*/results.h5")))
-        time.sleep(random.uniform(0.2, 3.0))
+        time.sleep(random.uniform(0.2, 2.0))
         subprocess.run(["kill", f"-{signal.Signals(signum).name[3:]}", str(pids["optim=adam"])])
         out, _ = process.communicate(timeout=180)
     finally:

@@ -155,13 +155,14 @@ def test_every_study_composes_and_its_variants_apply():
         study_settings,
     )
 
+    built = {}  # each distinct scene built once over all the studies (the same tuning seed)
     for study in claims.STUDIES + claims.MAP + claims.LONG + claims.GPU:
         overrides = [o for o in study.command(Path("/nowhere")) if not o.startswith("init_from")]
         given, axes, common, _ = split_overrides(overrides)
         s = study_settings(given)
         variants = build_variants(axes, common, s, [])
         assert len(variants) == study.variants()
-        check_variants_build(variants, s["tune_seed"])
+        check_variants_build(variants, s["tune_seed"], built)
 
 
 def test_the_ks_study_table_says_when_a_claim_has_nothing_to_compare():

@@ -88,17 +88,23 @@ def test_bptt_gradients_match_finite_differences_of_stopped_functions(x64, mode)
         steps,
     )
     # a non-zero last layer, so that every parameter influences the force
+    # (drawn by NumPy: JAX's sampler would compile once per leaf shape)
     params = jax.tree_util.tree_map(
-        lambda a: a + 0.1 * jax.random.normal(jax.random.PRNGKey(a.size), a.shape),
+        lambda a: a + 0.1 * np.random.default_rng(a.size).normal(size=a.shape),
         scene.init_params(jax.random.PRNGKey(3)),
     )
     sample = {"state": scene.test_set["state"][0]}
 
+    # one compiled Euler step, called by the plain Python loop step after step (no lax.scan):
+    # eagerly, each step's dozens of small operations were compiled one by one
+    @jax.jit
     def step(s, f):
         return euler_step(s, f, 0.01, 0.5)
 
+    controller = jax.jit(lambda p, s: apply_mlp(p, s, hidden="tanh")[0])
+
     def policy_of(p):
-        return lambda s, k: apply_mlp(p, s, hidden="tanh")[0]
+        return lambda s, k: controller(p, s)
 
     frozen = forward_states(step, policy_of(params), sample["state"], steps)
 

@@ -114,12 +114,14 @@ def test_scan_matches_loop_and_finite_differences(x64, closed_loop, mode):
     sample = {"x0": jax.random.uniform(jax.random.PRNGKey(5), (4,))}
     x0 = sample["x0"]
 
-    def step(x, u):
-        return rk4_step(x, u, 0.125, 1.0, 3.0)
+    # one compiled RK4 step and controller, called by the plain Python loop step after step (no
+    # lax.scan): eagerly, each step's small operations were compiled one by one
+    step = jax.jit(lambda x, u: rk4_step(x, u, 0.125, 1.0, 3.0))
+    controller = jax.jit(lambda p, x: apply_mlp(p, jnp.concatenate([x, x0]), hidden="relu")[0])
 
     def policy_of(p):
         if closed_loop:
-            return lambda x, k: apply_mlp(p, jnp.concatenate([x, x0]), hidden="relu")[0]
+            return lambda x, k: controller(p, x)
         controls = apply_mlp(p, x0, hidden="relu")
         return lambda x, k: controls[k]
 
