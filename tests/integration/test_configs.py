@@ -141,9 +141,10 @@ def test_pair_runs_two_iterations_or_is_refused(task, settings, optim, tmp_path,
     # what runs is checked here, not stability: at these small sizes Gauss-Newton's second guidance
     # step raises the loss 1e5-fold, which the blow-up bound (tested in test_compare) would rightly
     # end as diverged. The figures of a run are drawn where the scene draws one of its own (they
-    # cost more than the two iterations) and for poisson, once per scene: in the short set
+    # cost more than the two iterations) and for poisson, once per scene: in the short set, with
+    # the scene's default settings
     short = request.node.get_closest_marker("long") is None
-    figures = short and task in ("guidance", "ks", "poisson")
+    figures = short and not settings and task in ("guidance", "ks", "poisson")
     cfg = load(
         f"figures={str(figures).lower()}",
         f"task={task}",

@@ -206,11 +206,11 @@ def test_unrolled_gradients_against_loops_and_finite_differences(x64):
         params = scene.init_params(jax.random.PRNGKey(3))
         batch = scene.sample_train(jax.random.PRNGKey(4), 2)
         dyn = scene.dynamics
+        # one compiled solver step, called by the plain loops step after step (no lax.scan)
+        step = jax.jit(dyn.step)
         samples = [jax.tree_util.tree_map(lambda leaf: leaf[i], batch) for i in range(2)]
         # the forward states at these parameters: the constants a mode's stopped inputs see
-        frozen = [
-            forward_states(dyn.step, dyn.policy(params, s), dyn.initial(s), 3) for s in samples
-        ]
+        frozen = [forward_states(step, dyn.policy(params, s), dyn.initial(s), 3) for s in samples]
         # (predict has no solver in the step: its M is S, checked below)
         for mode in ("R", "M", "S") if stepper == "correct" else ("R", "S"):
 
@@ -218,7 +218,7 @@ def test_unrolled_gradients_against_loops_and_finite_differences(x64):
                 losses = []
                 for i, sample in enumerate(samples):
                     states = loop_states(
-                        dyn.step,
+                        step,
                         dyn.policy(p, sample),
                         dyn.initial(sample),
                         3,
