@@ -183,9 +183,20 @@ def write_curves_report(folder: Path, say: Callable[[str], object], figures: boo
 def main(args: list[str]) -> int:
     if any(a in ("-h", "--help") for a in args):
         print(__doc__.strip())
+        import textwrap
+
         print("\nSettings (compare.KEY=VALUE):")
         for key, (default, meaning) in SETTINGS.items():
-            print(f"  compare.{key:<10} {meaning} (default {default})")
+            # wrapped by words at 100 columns, each setting's text in a column of its own
+            print(
+                textwrap.fill(
+                    meaning if "(default" in meaning else f"{meaning} (default {default})",
+                    width=100,
+                    initial_indent=f"  compare.{key:<12}",
+                    subsequent_indent=" " * 22,
+                    break_on_hyphens=False,
+                )
+            )
         return 0
     overrides, config_dir, plan_only = parse_arguments(args)
     if plan_only:

@@ -268,3 +268,20 @@ def test_a_phase_says_its_progress_from_its_log_without_a_line_per_job(tmp_path,
         [sys.executable, "-c", "pass"], log, {}, jobs.Progress("eval", 3, quiet.append)
     )
     assert quiet == []
+
+
+def test_compare_help_is_wrapped_by_words_and_states_the_protocol_as_the_code_applies_it(capsys):
+    """`physgrad compare --help`: every line within 100 columns (wrapped between words, not
+    mid-word by the terminal), every setting named, and the majority rule of the studies as the
+    verdicts apply it (more than half, none against)."""
+    from physgrad.comparison.spec import SETTINGS
+    from physgrad.comparison.study import main
+
+    assert main(["--help"]) == 0
+    text = capsys.readouterr().out
+    assert all(len(line) <= 100 for line in text.splitlines()), max(text.splitlines(), key=len)
+    for key in SETTINGS:
+        assert f"  compare.{key} " in text
+    assert (
+        "each holding where 3 of 4 studies (more\n   than half) reach it with none against" in text
+    )
