@@ -37,12 +37,14 @@ class VariantCost:
 @dataclass(frozen=True)
 class Measured:
     """One variant's costs as `physgrad run` meets them, in seconds: compiling its step, one step,
-    its first held-out evaluation (compiling it included) and each later one."""
+    its first held-out evaluation (compiling it included), each later one, and building its scene,
+    data and rule (each job builds its own)."""
 
     compile_seconds: float
     step_seconds: float
     first_evaluation_seconds: float
     evaluation_seconds: float
+    build_seconds: float = 0.0
 
 
 def use_job_cache() -> None:
@@ -78,7 +80,9 @@ def measure(variant: Variant, seed: int) -> Measured:
     from physgrad.timing import compiled_step
 
     cfg = run_config(variant)
+    begin = time.perf_counter()
     _, _, _, stacked, compiled, compile_seconds, one_step = compiled_step(cfg, [seed])
+    build_seconds = max(0.0, time.perf_counter() - begin - compile_seconds)
     one_step()
     times, start = [], time.perf_counter()
     while len(times) < MIN_STEPS or (
@@ -92,7 +96,7 @@ def measure(variant: Variant, seed: int) -> Measured:
         begin = time.perf_counter()
         jax.block_until_ready(compiled.evaluate(compiled.params, stacked.test_sets))
         evaluations.append(time.perf_counter() - begin)
-    return Measured(compile_seconds, statistics.median(times), *evaluations)
+    return Measured(compile_seconds, statistics.median(times), *evaluations, build_seconds)
 
 
 def evaluations_per_run(variant: Variant, axis: str, budget: float, step_seconds: float) -> float:
@@ -126,7 +130,8 @@ def start_up_seconds() -> float:
 def variant_cost(
     plan: StudyPlan, variant: Variant, measured: Measured, start_up: float = 0.0
 ) -> VariantCost:
-    """The study's jobs of one variant, costed: each job starts (start_up), compiles once, trains
+    """The study's jobs of one variant, costed: each job starts (start_up), builds its scene and
+    data (measured.build_seconds), compiles once, trains
     to the budget (iterations x step cost, or the time budget) and evaluates the test set as the
     runner does (evaluations_per_run); the evaluation of an iteration budget trains its seeds in one
     job, counted as seeds x the one-seed step and evaluation (an upper bound where vmap makes seeds
@@ -137,7 +142,7 @@ def variant_cost(
     train = plan.budget * step_s if plan.axis == "iteration" else plan.budget
     count = evaluations_per_run(variant, plan.axis, plan.budget, step_s)
     held_out = measured.first_evaluation_seconds + (count - 1) * measured.evaluation_seconds
-    per_job = start_up + measured.compile_seconds
+    per_job = start_up + measured.build_seconds + measured.compile_seconds
     tuning_runs = settings.trials * studies if settings.tune else 0
     together = plan.axis == "iteration" and not variant.config.get("init_from")
     jobs = studies if together else studies * seeds
@@ -195,7 +200,8 @@ def plan_text(plan: StudyPlan) -> str:
         "",
         f"Total: about {_duration(total)}"
         + (" (with the calibration of the step costs)" if calibration else "")
-        + f". Each job's start-up ({start_up:.1f} s here), compiling, training and the held-out "
+        + f". Each job's start-up ({start_up:.1f} s here), building its scene and data, compiling, "
+        "training and the held-out "
         "evaluations; writing files adds to it, a study resumed skips what it finished, and JAX's "
         "compilation cache (in the user's physgrad cache, which this plan filled) makes later jobs "
         "compile faster. Measured on "

@@ -544,6 +544,9 @@ def test_the_plan_costs_every_job_of_a_study_from_compile_and_step_times():
     # without start-up and evaluations, what the plan counted before: compile and training alone
     bare = variant_cost(timed, adam, Measured(2.0, 0.01, 0.0, 0.0))
     assert bare.seconds == pytest.approx(8 * 7.0 + 12 * 7.0)
+    # building the scene and data: once per job, like the compile
+    built = variant_cost(timed, adam, Measured(2.0, 0.01, 0.0, 0.0, build_seconds=1.5))
+    assert built.seconds == pytest.approx(bare.seconds + (8 + 12) * 1.5)
 
 
 def test_a_studys_jobs_share_a_compilation_cache_in_the_users_cache_unless_they_name_one(
