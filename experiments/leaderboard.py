@@ -298,23 +298,33 @@ class Cell:
 
 def cells(runs, iterations: dict | None = None) -> dict[str, Cell]:
     """rule -> Cell for every rule the study ran, by the package's rule: each tuning study decided
-    with Holm's correction over the rules' comparisons with Adam (compare.baseline), then over the
-    studies (physgrad.verdict.across_studies)."""
+    with Holm's correction over the comparisons with Adam of the rules it ran (compare.baseline),
+    then each rule over the studies that ran it (physgrad.verdict.across_studies; a rule added to
+    the leaderboard after a scene's first studies is decided over the later ones)."""
     studies = runs.tuning or (runs,)
-    rules = [r for r in sorted(runs.paths) if r != BASELINE]
-    if BASELINE not in runs.paths or not rules:
-        return {}
+    ran = [sorted(r for r in study.paths if r != BASELINE) for study in studies]
     per_study = [
-        compare_variants(
-            {name: study.curves(name) for name in (*rules, BASELINE)},
-            runs.budget,
-            pairs=[(rule, BASELINE) for rule in rules],
-            fractions=FRACTIONS,
+        dict(
+            zip(
+                rules,
+                compare_variants(
+                    {name: study.curves(name) for name in (*rules, BASELINE)},
+                    runs.budget,
+                    pairs=[(rule, BASELINE) for rule in rules],
+                    fractions=FRACTIONS,
+                ),
+            )
         )
-        for study in studies
+        if rules and BASELINE in study.paths
+        else {}
+        for study, rules in zip(studies, ran)
     ]
     found = {}
-    for rule, result in zip(rules, across_studies(per_study)):
+    for rule in sorted({r for rules in ran for r in rules}):
+        verdicts = [by_rule[rule] for by_rule in per_study if rule in by_rule]
+        if not verdicts:
+            continue
+        result = across_studies([[v] for v in verdicts])[0]
         p = result.at[1.0]
         found[rule] = Cell(
             result.verdict,
@@ -355,10 +365,14 @@ def _r(x: float) -> str:
     return f"{x:.3g}"
 
 
-def cell_text(cell: Cell) -> str:
+def cell_text(cell: Cell, scene_studies: int = 0) -> str:
+    """A cell as the table prints it; with the tuning studies that ran the rule where they are
+    fewer than the scene's (scene_studies)."""
     mark = MARKS.get(cell.verdict, "undecided")
+    fewer = len(cell.studies) < scene_studies
     return (
         f"**{mark}** {_r(cell.ratio)}x [{_r(cell.low)}, {_r(cell.high)}], {cell.wins}/{cell.pairs}"
+        + (f" ({len(cell.studies)} of {scene_studies} studies ran it)" if fewer else "")
     )
 
 
@@ -457,11 +471,12 @@ def page(found: dict, image: str) -> str:
         for rule in RULES:
             row = []
             for entry in scenes:
-                cell = found[entry.name][0].get(rule)
+                cell, runs = found[entry.name][0].get(rule), found[entry.name][1]
                 if rule in entry.refused:
                     row.append(f"n/a: {entry.refused[rule]}")
                 else:
-                    row.append(cell_text(cell) if cell else "not run")
+                    ran = len(runs.tuning or (runs,))
+                    row.append(cell_text(cell, ran) if cell else "not run")
             lines.append(f"| {rule} | " + " | ".join(row) + " |")
         lines += ["", "## The scenes and their budgets", ""]
         for entry in scenes:

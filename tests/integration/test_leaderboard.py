@@ -196,6 +196,31 @@ def test_a_study_run_elsewhere_is_added_to_the_kept_evidence(tmp_path, monkeypat
         keep(replace(study_2, budget=20.0))
 
 
+def test_a_rule_added_after_a_scenes_first_studies_is_decided_over_the_studies_that_ran_it(
+    tmp_path,
+):
+    """A rule in the last of three tuning studies only (added to the leaderboard later): its cell
+    is that study's verdict, said to rest on 1 of 3 studies; the rules of every study keep theirs
+    over all three."""
+    import pandas as pd
+
+    evidence = tmp_path / "evidence"
+    levels = {"adam": [1.0] * 3, "hig": [0.1] * 3, "psgd_kron": [0.5] * 3}
+    kept_scene(evidence, "toy", levels)
+    table = pd.read_csv(evidence / "toy.csv")
+    table[~((table.variant == "psgd_kron") & (table.study < 2))].to_csv(
+        evidence / "toy.csv", index=False
+    )
+    cells = leaderboard.board(evidence)["toy"][0]
+    assert cells["psgd_kron"].studies == (A_BETTER,) and cells["psgd_kron"].pairs == 10
+    assert cells["hig"].studies == (A_BETTER,) * 3 and cells["hig"].pairs == 30
+    text = leaderboard.write(evidence, tmp_path / "docs")
+    row = next(line for line in text.splitlines() if line.startswith("| psgd_kron |"))
+    assert "(1 of 3 studies ran it)" in row and "**better** 0.5x" in row
+    hig = next(line for line in text.splitlines() if line.startswith("| hig |"))
+    assert "studies ran it" not in hig
+
+
 def test_the_committed_page_is_what_the_committed_evidence_gives(tmp_path):
     """docs/leaderboard.md regenerated from docs/evidence/leaderboard, unchanged: nothing in it is
     copied by hand."""
