@@ -186,9 +186,12 @@ def save_traceback(folder: Path) -> Path | None:
     either)."""
     import traceback
 
+    from physgrad.files import replace_file
+
     try:
         folder.mkdir(parents=True, exist_ok=True)
-        (folder / "error.txt").write_text(traceback.format_exc())
+        # beside and renamed: a link planted at error.txt is replaced, not written through
+        replace_file(folder / "error.txt", traceback.format_exc().encode())
         return folder / "error.txt"
     except OSError:
         return None

@@ -220,11 +220,16 @@ def load_json(data: bytes) -> object:
 def replace_file(path: Path, content: bytes, sync: bool = False) -> None:
     """Write content beside path (.NAME.<pid>.tmp) and rename it onto path: a reader, or a process
     killed at any instant, sees the old file or the new one, never a part (sync: onto the disk
-    itself before the rename, which a power cut could otherwise undo). The temporary file is removed
-    on any error."""
+    itself before the rename, which a power cut could otherwise undo). A link at path is replaced,
+    never written through; the temporary file is created exclusively, without following a link,
+    and removed on any error."""
     temporary = path.with_name(f".{path.name}.{os.getpid()}.tmp")
+    # a temporary file left by a process killed before (or a link planted at its name, in a folder
+    # that may come from someone else) is removed, not written through; created anew, exclusively
+    temporary.unlink(missing_ok=True)
     try:
-        with open(temporary, "wb") as out:
+        flags = os.O_WRONLY | os.O_CREAT | os.O_EXCL | getattr(os, "O_NOFOLLOW", 0)
+        with os.fdopen(os.open(temporary, flags, 0o666), "wb") as out:
             out.write(content)
             if sync:
                 out.flush()

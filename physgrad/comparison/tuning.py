@@ -321,7 +321,7 @@ def set_aside_damage(path: Path, say: Callable[[str], object]) -> None:
                 "away to tune again (its trials will run again)"
             )
         damaged = path.with_name(f"{path.name}.damaged-{timestamp()}")
-        damaged.write_bytes(data[kept:])
+        replace_file(damaged, data[kept:])
         replace_file(path, data[:kept])
         say(
             f"note: the last line of {path} was cut short (a stop or a full disk while it was "

@@ -322,24 +322,32 @@ def test_a_full_disk_is_one_line_at_every_write_of_a_report(two_runs, tmp_path, 
     from physgrad.cli import main
 
     before = {p: p.read_bytes() for p in two_runs.rglob("results.h5")}
-    real_open = builtins.open
+    real_open, real_os_open = builtins.open, os.open
     opened = [0]
     outcomes = []
     for fail_at in range(12):
         opened[0] = 0
 
-        def full_disk(file, mode="r", *args, fail_at=fail_at, **kwargs):
+        def writing(file, fail_at=fail_at):
+            opened[0] += 1
+            if opened[0] > fail_at:
+                raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC), str(file))
+
+        def full_disk(file, mode="r", *args, **kwargs):
             if any(c in str(mode) for c in "wax+"):
-                opened[0] += 1
-                if opened[0] > fail_at:
-                    raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC), str(file))
+                writing(file)
             return real_open(file, mode, *args, **kwargs)
 
-        builtins.open = full_disk
+        def full_disk_os(file, flags, *args, **kwargs):  # files opened for writing by os.open
+            if flags & (os.O_WRONLY | os.O_RDWR):
+                writing(file)
+            return real_os_open(file, flags, *args, **kwargs)
+
+        builtins.open, os.open = full_disk, full_disk_os
         try:
             code = main(["report", str(two_runs), "--out", str(tmp_path / f"out{fail_at}")])
         finally:
-            builtins.open = real_open
+            builtins.open, os.open = real_open, real_os_open
         err = capsys.readouterr().err.strip()
         outcomes.append(code)
         if code != 0:

@@ -127,3 +127,29 @@ def test_physgrad_files_read_back_unchanged(tmp_path):
     assert read_params(path).tolist() == [1.0] * 5 and read_final(path)[1]["loss"] == pytest.approx(
         1 / 3
     )
+
+
+@pytest.mark.parametrize("planted", ["destination", "temporary"])
+def test_a_file_written_into_a_folder_never_writes_through_a_planted_link(tmp_path, planted):
+    """physgrad's one way of writing a file into a folder (physgrad.files.replace_file, which
+    error.txt, the tables and the journal's set-aside part go through): a link planted at the file's
+    name, or at the name of the temporary file it writes first, is replaced or removed, and the file
+    it pointed at is left as it was."""
+    from physgrad.app import save_traceback
+    from physgrad.files import replace_file
+
+    outside = tmp_path / "outside.txt"
+    outside.write_text("theirs\n")
+    folder = tmp_path / "job"
+    folder.mkdir()
+    name = "error.txt" if planted == "destination" else f".error.txt.{os.getpid()}.tmp"
+    (folder / name).symlink_to(outside)
+    try:
+        raise ValueError("the scene failed")
+    except ValueError:
+        written = save_traceback(folder)
+    assert written == folder / "error.txt" and not written.is_symlink()
+    assert "the scene failed" in written.read_text() and outside.read_text() == "theirs\n"
+    assert not (folder / f".error.txt.{os.getpid()}.tmp").exists()
+    replace_file(folder / "table.csv", b"a,b\n")
+    assert (folder / "table.csv").read_bytes() == b"a,b\n"
