@@ -9,6 +9,7 @@ as plain YAML without aliases or tags.
 
 from __future__ import annotations
 
+import contextlib
 import errno
 import fcntl
 import os
@@ -217,20 +218,23 @@ def load_json(data: bytes) -> object:
         raise ValueError("nested too deep to be a physgrad file") from None
 
 
-def replace_file(path: Path, content: bytes, sync: bool = False) -> None:
-    """Write content beside path (.NAME.<pid>.tmp) and rename it onto path: a reader, or a process
-    killed at any instant, sees the old file or the new one, never a part (sync: onto the disk
-    itself before the rename, which a power cut could otherwise undo). A link at path is replaced,
-    never written through; the temporary file is created exclusively, without following a link,
-    and removed on any error."""
+@contextmanager
+def replaced(path: Path, text: bool = False, sync: bool = False) -> Iterator[IO]:
+    """The one way physgrad writes a file into a folder (a study's, a sweep's, a job's: folders that
+    may come from someone else): a file object on .NAME.<pid>.tmp beside path, renamed onto path
+    when the block ends without error (else removed), so that a reader, or a process killed at any
+    instant, sees the old file or the new one, never a part (sync: onto the disk itself before the
+    rename, which a power cut could otherwise undo). A link at path is replaced, never written
+    through; the temporary file is created exclusively and without following a link (one left by a
+    process killed before, or a link planted at its name, is removed first). text: a text file
+    (no newline translation), else bytes."""
     temporary = path.with_name(f".{path.name}.{os.getpid()}.tmp")
-    # a temporary file left by a process killed before (or a link planted at its name, in a folder
-    # that may come from someone else) is removed, not written through; created anew, exclusively
     temporary.unlink(missing_ok=True)
     try:
         flags = os.O_WRONLY | os.O_CREAT | os.O_EXCL | getattr(os, "O_NOFOLLOW", 0)
-        with os.fdopen(os.open(temporary, flags, 0o666), "wb") as out:
-            out.write(content)
+        fd = os.open(temporary, flags, 0o666)
+        with os.fdopen(fd, "w", newline="") if text else os.fdopen(fd, "wb") as out:
+            yield out
             if sync:
                 out.flush()
                 os.fsync(out.fileno())
@@ -238,6 +242,12 @@ def replace_file(path: Path, content: bytes, sync: bool = False) -> None:
     except BaseException:
         temporary.unlink(missing_ok=True)
         raise
+
+
+def replace_file(path: Path, content: bytes, sync: bool = False) -> None:
+    """content written into path through `replaced`."""
+    with replaced(path, sync=sync) as out:
+        out.write(content)
 
 
 def write_figure(fig: Any, path: str | os.PathLike, **options: Any) -> None:
@@ -313,18 +323,9 @@ def read_small_yaml(path: Path, limit: int = CONFIG_LIMIT) -> Any:
         raise ValueError(f"{path}: {error}") from None
 
 
-@contextmanager
-def replaced_text(path: Path) -> Iterator[IO[str]]:
-    """A text file written beside path and renamed onto it when the block ends without error (else
-    removed): an interrupted writer leaves the previous file or none, never a truncated one."""
-    temporary = path.with_name(f".{path.name}.{os.getpid()}.tmp")
-    try:
-        with open(temporary, "w", newline="") as out:
-            yield out
-        os.replace(temporary, path)
-    except BaseException:
-        temporary.unlink(missing_ok=True)
-        raise
+def replaced_text(path: Path) -> contextlib.AbstractContextManager[IO[str]]:
+    """A text file written into path through `replaced`."""
+    return replaced(path, text=True)
 
 
 def file_kind(mode: int) -> str:

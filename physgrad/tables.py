@@ -5,14 +5,13 @@ writes."""
 from __future__ import annotations
 
 import math
-import os
 from pathlib import Path
 from typing import NamedTuple
 
 import numpy as np
 import pandas as pd
 
-from physgrad.files import replaced_text
+from physgrad.files import replaced, replaced_text
 from physgrad.readout import config_row
 from physgrad.results import Run
 
@@ -94,13 +93,8 @@ def write_tables(frames: Tables, out: Path) -> None:
     with replaced_text(out / "curves.csv") as f:
         _thinned(frames.curves).to_csv(f, index=False)
     for name, frame in (("runs", frames.runs), ("curves", frames.curves)):
-        temporary = out / f".{name}.parquet.{os.getpid()}.tmp"
-        try:
-            frame.to_parquet(temporary, index=False)
-            os.replace(temporary, out / f"{name}.parquet")
-        except BaseException:
-            temporary.unlink(missing_ok=True)
-            raise
+        with replaced(out / f"{name}.parquet") as f:
+            frame.to_parquet(f, index=False)
 
 
 def _thinned(curves: pd.DataFrame) -> pd.DataFrame:

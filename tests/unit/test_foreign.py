@@ -136,7 +136,7 @@ def test_a_file_written_into_a_folder_never_writes_through_a_planted_link(tmp_pa
     name, or at the name of the temporary file it writes first, is replaced or removed, and the file
     it pointed at is left as it was."""
     from physgrad.app import save_traceback
-    from physgrad.files import replace_file
+    from physgrad.files import replace_file, replaced_text
 
     outside = tmp_path / "outside.txt"
     outside.write_text("theirs\n")
@@ -153,3 +153,9 @@ def test_a_file_written_into_a_folder_never_writes_through_a_planted_link(tmp_pa
     assert not (folder / f".error.txt.{os.getpid()}.tmp").exists()
     replace_file(folder / "table.csv", b"a,b\n")
     assert (folder / "table.csv").read_bytes() == b"a,b\n"
+    # a table written as text, through the same door
+    (folder / "runs.csv").symlink_to(outside)
+    with replaced_text(folder / "runs.csv") as table:
+        table.write("variant\r\nadam\n")  # as written: no newline translation
+    assert (folder / "runs.csv").read_bytes() == b"variant\r\nadam\n"
+    assert outside.read_text() == "theirs\n"
