@@ -131,7 +131,8 @@ def variant_cost(
     plan: StudyPlan, variant: Variant, measured: Measured, start_up: float = 0.0
 ) -> VariantCost:
     """The study's jobs of one variant, costed: each job starts (start_up), builds its scene and
-    data (measured.build_seconds), compiles once, trains
+    data (measured.build_seconds), compiles once (a study's trials trained together: one job),
+    trains
     to the budget (iterations x step cost, or the time budget) and evaluates the test set as the
     runner does (evaluations_per_run); the evaluation of an iteration budget trains its seeds in one
     job, counted as seeds x the one-seed step and evaluation (an upper bound where vmap makes seeds
@@ -144,6 +145,15 @@ def variant_cost(
     held_out = measured.first_evaluation_seconds + (count - 1) * measured.evaluation_seconds
     per_job = start_up + measured.build_seconds + measured.compile_seconds
     tuning_runs = settings.trials * studies if settings.tune else 0
+    from physgrad.comparison.tuning import trials_together
+
+    # a study's trials of a variant in one vectorised job where the tuning trains them together
+    # (a time budget on the calibrated clock counts as calibrated time there)
+    if plan.axis == "iteration" or settings.clock != "calibrated":
+        tuning_axis = plan.axis
+    else:
+        tuning_axis = "calibrated_time"
+    tuning_jobs = studies if tuning_runs and trials_together(variant, tuning_axis) else tuning_runs
     together = plan.axis == "iteration" and not variant.config.get("init_from")
     jobs = studies if together else studies * seeds
     evaluation = jobs * per_job + studies * seeds * (train + held_out)
@@ -152,7 +162,7 @@ def variant_cost(
         measured.compile_seconds,
         step_s,
         tuning_runs,
-        tuning_runs * (per_job + train + held_out),
+        tuning_jobs * per_job + tuning_runs * (train + held_out),
         jobs,
         evaluation,
     )

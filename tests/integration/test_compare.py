@@ -505,8 +505,9 @@ def test_a_tuned_value_at_the_edge_of_its_range_is_warned_about():
 
 
 def test_the_plan_costs_every_job_of_a_study_from_compile_and_step_times():
-    """variant_cost's arithmetic on given costs: tuning = trials x studies runs of (start-up +
-    compile + budget x step + the held-out evaluations); an iteration budget evaluates a vectorised
+    """variant_cost's arithmetic on given costs: tuning = trials x studies runs of (budget x step +
+    the held-out evaluations) and a start-up and compile per job (one per study where the trials
+    train together, one per trial otherwise); an iteration budget evaluates a vectorised
     variant in one job per study (seeds x budget x step of training and seeds x evaluations; the
     Jacobian rules too, their float64 retry batching), a time budget in one job per seed. The
     evaluations: at the start and every eval_every iterations (100 here), and with a time budget
@@ -524,8 +525,9 @@ def test_the_plan_costs_every_job_of_a_study_from_compile_and_step_times():
     # compile 2 s, step 0.01 s, first evaluation 0.5 s (its compile), later ones 0.1 s; start-up 3 s
     measured = Measured(2.0, 0.01, 0.5, 0.1)
     cost = variant_cost(plan, adam, measured, start_up=3.0)
-    # 2 evaluations a run (start, iteration 100): 0.5 + 0.1
-    assert (cost.tuning_runs, cost.tuning_seconds) == (8, pytest.approx(8 * (5.0 + 1.0 + 0.6)))
+    # 2 evaluations a run (start, iteration 100): 0.5 + 0.1; a study's 4 trials train together in
+    # one job (start-up and compile once per study), each trial's training and evaluations counted
+    assert (cost.tuning_runs, cost.tuning_seconds) == (8, pytest.approx(2 * 5.0 + 8 * (1.0 + 0.6)))
     assert (cost.evaluation_jobs, cost.evaluation_seconds) == (
         2,
         pytest.approx(2 * 5.0 + 12 * (1.0 + 0.6)),
@@ -537,16 +539,23 @@ def test_the_plan_costs_every_job_of_a_study_from_compile_and_step_times():
     )
     timed = StudyPlan([adam, gauss_newton], s, common, {"task", "optim"}, "wall_time", 5.0)
     cost = variant_cost(timed, adam, measured, start_up=3.0)
-    # 1 + 500 iterations / 100 + 20 (every 5 / 20 s) = 26 evaluations: 0.5 + 25 x 0.1 = 3 s
-    assert cost.tuning_seconds == pytest.approx(8 * (5.0 + 5.0 + 3.0))
+    # 1 + 500 iterations / 100 + 20 (every 5 / 20 s) = 26 evaluations: 0.5 + 25 x 0.1 = 3 s; the
+    # trials train together on the calibrated clock
+    assert cost.tuning_seconds == pytest.approx(2 * 5.0 + 8 * (5.0 + 3.0))
     assert cost.evaluation_jobs == 12
-    assert cost.seconds == pytest.approx(8 * 13.0 + 12 * 5.0 + 12 * (5.0 + 3.0))
-    # without start-up and evaluations, what the plan counted before: compile and training alone
+    assert cost.seconds == pytest.approx(2 * 5.0 + 8 * 8.0 + 12 * 5.0 + 12 * (5.0 + 3.0))
+    # on the measured clock each trial is a job of its own
+    measured_clock = study_settings({**settings, "seeds": 6, "clock": "measured"})
+    alone = StudyPlan([adam], measured_clock, common, {"task", "optim"}, "wall_time", 5.0)
+    assert variant_cost(alone, adam, measured, start_up=3.0).tuning_seconds == pytest.approx(
+        8 * (5.0 + 5.0 + 3.0)
+    )
+    # without start-up and evaluations: compile and training alone
     bare = variant_cost(timed, adam, Measured(2.0, 0.01, 0.0, 0.0))
-    assert bare.seconds == pytest.approx(8 * 7.0 + 12 * 7.0)
+    assert bare.seconds == pytest.approx(2 * 2.0 + 8 * 5.0 + 12 * 7.0)
     # building the scene and data: once per job, like the compile
     built = variant_cost(timed, adam, Measured(2.0, 0.01, 0.0, 0.0, build_seconds=1.5))
-    assert built.seconds == pytest.approx(bare.seconds + (8 + 12) * 1.5)
+    assert built.seconds == pytest.approx(bare.seconds + (2 + 12) * 1.5)
 
 
 def test_a_studys_jobs_share_a_compilation_cache_in_the_users_cache_unless_they_name_one(
