@@ -254,8 +254,14 @@ def check_writable(overrides: list[str], multirun: bool) -> None:
     import os
     import tempfile
 
+    from physgrad.configs import _parse_overrides
+
     key = "hydra.sweep.dir" if multirun else "hydra.run.dir"
-    target = next((o.split("=", 1)[1] for o in overrides if o.startswith(key + "=")), "outputs")
+    # the value as Hydra reads it: a quoted folder (as compare writes it) without its quotes
+    target = next(
+        (str(o.value()) for o in _parse_overrides(overrides) if o.get_key_element() == key),
+        "outputs",
+    )
     fixed = Path(target.split("${", 1)[0] or ".")
     try:
         fixed.mkdir(parents=True, exist_ok=True)

@@ -58,3 +58,22 @@ def test_user_mistakes_are_one_line_errors(args, fragment, tmp_path, capsys):
     assert main(["run", *args, f"hydra.run.dir={tmp_path}"]) == 2
     lines = capsys.readouterr().err.strip().splitlines()
     assert len(lines) == 1 and fragment in lines[0], lines
+
+
+@pytest.mark.parametrize("multirun", [True, False])
+def test_the_output_folder_checked_is_the_one_hydra_reads(tmp_path, monkeypatch, multirun):
+    """A quoted folder (compare writes every sweep folder quoted) is created without its quotes,
+    and nothing is created in the working folder under the quoted name."""
+    from physgrad.cli import check_writable
+    from physgrad.comparison.jobs import hydra_quoted
+
+    key = "hydra.sweep.dir" if multirun else "hydra.run.dir"
+    work = tmp_path / "work"
+    work.mkdir()
+    monkeypatch.chdir(work)
+    target = tmp_path / "a study, with [odd] 'names'" / "eval"
+    check_writable([f"{key}={hydra_quoted(str(target))}"], multirun=multirun)
+    assert target.is_dir() and list(work.iterdir()) == []
+    # only the fixed part of an interpolated folder
+    check_writable([f"{key}=runs/fixed/${{now:%H-%M-%S}}"], multirun=multirun)
+    assert [p.relative_to(work).as_posix() for p in work.rglob("*")] == ["runs", "runs/fixed"]
