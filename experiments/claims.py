@@ -42,7 +42,17 @@ from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
-from evidence import commit, kept_row, kept_table, read_kept, write_kept  # experiments/
+from evidence import (  # experiments/
+    CLOCK,
+    STUDY_FOLDER,
+    commit,
+    keep_clock,
+    kept_row,
+    kept_table,
+    merged_rows,
+    read_kept,
+    write_kept,
+)
 
 from physgrad.readout import highest_median
 from physgrad.trend import GROWS, interaction
@@ -60,6 +70,7 @@ from physgrad.verdict import (
     claim_word,
     compare_variants,
     left_start,
+    majority,
     over_studies,
     paired,
     ratio_of,
@@ -71,6 +82,7 @@ NOT_RUN = "not run"
 TUNE_SEED = (
     1_000_000  # compare's default tuning seed: a study that continues networks needs one for it too
 )
+EVIDENCE = Path(__file__).resolve().parent.parent / "docs" / "evidence" / "claims"
 
 
 # --- the studies
@@ -104,15 +116,21 @@ class Study:
         True  # also evaluate the presets untuned (a key=value: with that override replaced)
     )
     studies: int = 1  # independent tuning studies (compare.studies); CLAIM_STUDIES for the claims
-    # a slice of a longer study (chunks): it adds tuning study `studies` of `slice_of` (compare
-    # given more studies adds them); 0: the whole study
-    slice_of: int = 0
+    # tuning study k of the `studies` as a compare of its own in <name>/study-k (slices); 0: all
+    # of them in one compare in <name>
+    tuning_study: int = 0
 
     @property
     def label(self) -> str:
         return self.name + (
-            f" (tuning study {self.studies} of {self.slice_of})" if self.slice_of else ""
+            f" (tuning study {self.tuning_study} of {self.studies})" if self.tuning_study else ""
         )
+
+    @property
+    def folder(self) -> str:
+        """The study's folder under the profile's: <name>/study-k for tuning study k."""
+        k = self.tuning_study
+        return f"{self.name}/{STUDY_FOLDER.format(k=k)}" if k else self.name
 
     def variants(self, preset: bool = False) -> int:
         return math.prod(
@@ -133,35 +151,66 @@ class Study:
         per_seed = self.timed or self.start is not None
         return self.variants(preset) * (self.seeds if per_seed else 1)
 
+    def clock(self, root: Path) -> Path | None:
+        """The calibration a tuning study after the first and the presets' twin run on: the
+        study's kept clock (whatever machine ran its first study), else the first study's own in
+        root; None (the study calibrates itself) if there is neither."""
+        for path in (EVIDENCE / CLOCK.format(name=self.name), root / self.name / "study-1"):
+            path = path / "calibration.json" if path.suffix != ".json" else path
+            if path.is_file():
+                return path
+        return None
+
     def command(self, root: Path, preset: bool = False) -> list[str]:
         overrides = [o.replace("{root}", str(root)) for o in self.preset_overrides(preset)]
+        k = self.tuning_study
+        folder = f"{self.name}-preset" if preset else self.folder
         settings = [
-            f"compare.dir={root / (self.name + ('-preset' if preset else ''))}",
+            f"compare.dir={root / folder}",
             f"compare.seeds={self.seeds}",
             f"compare.trials={self.trials}",
-            # repeated tuning studies (docs/protocol.md); the untuned presets are one study
-            f"compare.studies={1 if preset else self.studies}",
+            # repeated tuning studies (docs/protocol.md), each a compare of its own with the
+            # tuning seed and evaluation seeds study k has in one compare of all of them; the
+            # untuned presets are one study (the first's seeds)
+            f"compare.studies={1 if preset or k else self.studies}",
+            *(
+                (f"compare.seed={(k - 1) * self.seeds}", f"compare.tune_seed={TUNE_SEED + k - 1}")
+                if k and not preset
+                else ()
+            ),
         ]
         if preset:
             settings.append("compare.tune=false")
-            if self.timed:  # the presets run on the tuned study's clock
-                settings.append(f"compare.calibration={root / self.name / 'calibration.json'}")
+        clock = self.clock(root) if self.timed and (preset or k > 1) else None
+        if clock is not None:  # on the first tuning study's clock
+            settings.append(f"compare.calibration={clock}")
         return [*overrides, *settings]
+
+    def start_seeds(self, preset: bool = False) -> list[int]:
+        """The seeds a study that continues networks needs a start network for: the evaluation
+        seeds and tuning seed of each tuning study it runs (study k: (k - 1) * seeds .. k * seeds
+        - 1 and compare's tune_seed + k - 1); the presets' twin, the first study's."""
+        ks = [self.tuning_study] if self.tuning_study else range(1, self.studies + 1)
+        ks = [1] if preset else ks
+        return [
+            *(s for k in ks for s in range((k - 1) * self.seeds, k * self.seeds)),
+            *(TUNE_SEED + k - 1 for k in ks),
+        ]
 
     def seconds(self) -> float:
         """The expected wall time: tuning, evaluation, the presets' evaluation, the start networks,
         calibration."""
-        new = 1 if self.slice_of else self.studies  # the tuning studies this command adds
-        first = self.slice_of == 0 or self.studies == 1
+        new = 1 if self.tuning_study else self.studies  # the tuning studies this command runs
         total = new * (
             self.trials * self.variants() * self.tune_seconds + self.eval_jobs() * self.eval_seconds
         )
         total += self.eval_jobs(preset=True) * self.eval_seconds if self.preset else 0.0
-        # the start networks: each tuning study this command adds needs its evaluation seeds and
-        # its tuning seed
         if self.start:
-            total += (self.seeds + 1) * new * self.start.job_seconds
-        return total + (30.0 * self.variants() if self.timed and first else 0.0)
+            seeds = set(self.start_seeds()) | set(self.start_seeds(True) if self.preset else ())
+            total += len(seeds) * self.start.job_seconds
+        kept_clock = (EVIDENCE / CLOCK.format(name=self.name)).is_file()
+        calibrates = self.tuning_study <= 1 or not kept_clock
+        return total + (30.0 * self.variants() if self.timed and calibrates else 0.0)
 
 
 def _values(override: str) -> list[str]:
@@ -464,29 +513,24 @@ def starts(studies) -> list[Start]:
     return found
 
 
-def slices(study: Study, limit_seconds: float) -> list[Study]:
-    """A study longer than limit_seconds with repeated tuning studies as one slice per tuning study
-    (the k-th runs compare with compare.studies=k: the same study given one more tuning study adds
-    it); the untuned presets with the last slice. Otherwise the study itself."""
-    if study.seconds() <= limit_seconds or study.studies == 1:
+def slices(study: Study) -> list[Study]:
+    """A study with repeated tuning studies as one compare per tuning study, each in a folder of
+    its own (<name>/study-k), so that each is kept whatever machine ran the others; the untuned
+    presets with the last. A study of one tuning study is itself."""
+    if study.studies == 1:
         return [study]
     return [
-        replace(
-            study,
-            studies=k,
-            slice_of=study.studies,
-            preset=study.preset if k == study.studies else False,
-        )
+        replace(study, tuning_study=k, preset=study.preset if k == study.studies else False)
         for k in range(1, study.studies + 1)
     ]
 
 
 def chunks(studies, limit_seconds: float = 80 * 60) -> list[list[Study]]:
-    """The studies in order, grouped into parts of at most limit_seconds expected; a longer study
-    is cut into its tuning studies (slices); a slice still longer is a part of its own (it resumes
-    job by job)."""
+    """The studies in order, each cut into its tuning studies (slices), grouped into parts of at
+    most limit_seconds expected; a slice longer than that is a part of its own (it resumes job by
+    job)."""
     parts, current, used = [], [], 0.0
-    for study in (piece for whole in studies for piece in slices(whole, limit_seconds)):
+    for study in (piece for whole in studies for piece in slices(whole)):
         if current and used + study.seconds() > limit_seconds:
             parts.append(current)
             current, used = [], 0.0
@@ -796,6 +840,9 @@ class StudyRuns:
     # read from kept evidence (experiments/evidence.py): {(variant, column): {seed: KeptCurve}}
     kept: dict | None = None
     protocol: tuple | None = None  # kept evidence: (trials, tuning studies, seeds)
+    # the tuning studies the study is to have (0: those it has); a part is decided by a majority
+    # of them, so that two of four run cannot decide it alone
+    planned: int = 0
 
     def curves(self, variant: str, column: str = "loss") -> dict:
         from physgrad.readout import run_curve
@@ -836,7 +883,9 @@ def read_study(folder: Path) -> StudyRuns | None:
     table = folder / "runs.csv"
     if not table.is_file():
         kept = kept_table(folder)
-        return _kept_runs(read_kept(kept)) if kept is not None else None
+        if kept is not None:
+            return _kept_runs(read_kept(kept))
+        return _tuning_study_runs(folder)
     try:
         table_runs = pd.read_csv(table, dtype=str)
     except ValueError as error:  # pandas' parse errors, an empty file, bytes that are no text
@@ -855,6 +904,37 @@ def read_study(folder: Path) -> StudyRuns | None:
     return replace(found[0], tuning=tuple(found))
 
 
+def _planned(name: str) -> int:
+    """The tuning studies a study of the profiles is to have (0: not one of theirs)."""
+    return max((s.studies for p in PROFILES.values() for s in p if s.name == name), default=0)
+
+
+def _tuning_study_runs(folder: Path) -> StudyRuns | None:
+    """A study run one compare per tuning study (<folder>/study-k, slices) as StudyRuns: the
+    first finished study's, with every finished one in `tuning`, in the order of k; None if none
+    has finished. A study folder that is a link is not read (someone else's)."""
+    from physgrad.errors import UserError
+
+    subs = list(folder.iterdir()) if folder.is_dir() and not folder.is_symlink() else []
+    found = {}
+    numbered = (re.fullmatch(STUDY_FOLDER.format(k=r"([1-9][0-9]{0,5})"), p.name) for p in subs)
+    for k in sorted(int(m[1]) for m in numbered if m):
+        sub = folder / STUDY_FOLDER.format(k=k)
+        if sub.is_symlink():
+            raise UserError(f"{sub}: a link: refused (a study may come from someone else)")
+        runs = read_study(sub) if (sub / "runs.csv").is_file() else None
+        if runs is not None:
+            if runs.tuning:
+                raise UserError(
+                    f"{sub}: {len(runs.tuning)} tuning studies, where a study-k folder holds one"
+                )
+            found[k] = runs
+    if not found:
+        return None
+    studies = [replace(runs, planned=_planned(folder.name)) for runs in found.values()]
+    return replace(studies[0], tuning=tuple(studies) if len(studies) > 1 else ())
+
+
 def _kept_runs(kept) -> StudyRuns | None:
     """Kept evidence (experiments/evidence.py) as StudyRuns: every tuning study's, the first's
     with the others in `tuning`."""
@@ -867,8 +947,10 @@ def _kept_runs(kept) -> StudyRuns | None:
             kept.machine,
             kept=curves,
             protocol=kept.protocol,
+            planned=kept.planned,
         )
         for curves in kept.studies
+        if curves  # a tuning study not kept (yet)
     ]
     if not found:
         return None
@@ -880,9 +962,11 @@ def _kept_runs(kept) -> StudyRuns | None:
 def keep_evidence(root: Path, dest: Path) -> list[str]:
     """Every finished study of the claims under root, and its presets' twin, as evidence tables in
     dest (experiments/evidence.py): the columns the claims read of it, at the kept fractions of its
-    budget, for every tuning study, variant and seed. Returns the studies kept."""
-    from physgrad.results import read_final
-
+    budget, for every tuning study, variant and seed. A study run one compare per tuning study
+    (<name>/study-k) adds each finished one to the kept table, replacing its rows if it was kept
+    before and keeping the others' (each is kept whatever machine ran it), and keeps the first's
+    calibration as the study's clock; a study run in one compare replaces every study it has.
+    Returns the studies kept (<name>, or <name>/study-k)."""
     columns: dict[str, set] = {}
     for claim in CLAIMS:
         for part in claim.parts:
@@ -891,43 +975,75 @@ def keep_evidence(root: Path, dest: Path) -> list[str]:
     kept = []
     for name in sorted(columns):
         for folder in (root / name, root / f"{name}-preset"):
-            runs = read_study(folder) if (folder / "runs.csv").is_file() else None
-            if runs is None:
+            runs = read_study(folder) if folder.is_dir() and not folder.is_symlink() else None
+            if runs is None or runs.kept is not None:
                 continue
-            rows = [
-                kept_row(k, variant, seed, column, curve, runs.budget)
-                for k, study in enumerate(_tuning_studies(runs))
-                for variant in sorted(study.paths)
-                for column in sorted(columns[name])
-                for seed, curve in sorted(study.curves(variant, column).items())
-            ]
-            trials, studies, seeds = study_protocol(folder)
-            ran = set()
-            for study in _tuning_studies(runs):
-                for by_seed in study.paths.values():
-                    for path in by_seed.values():
-                        try:
-                            ran.add(str(read_final(Path(path))[0].get("git_commit", "unknown")))
-                        except (OSError, ValueError):
-                            ran.add("unreadable")
-            overrides = []
-            if (folder / "study.json").is_file():
-                overrides = json.loads((folder / "study.json").read_text()).get("overrides", [])
+            split = not (folder / "runs.csv").is_file()  # one compare per tuning study
+            finished = {}
+            for k, study in enumerate(_tuning_studies(runs), 1):
+                where = study.folder if split else folder
+                k = int(where.name.partition("-")[2]) if split else k
+                finished[k] = (
+                    [
+                        kept_row(k - 1, variant, seed, column, curve, runs.budget)
+                        for variant in sorted(study.paths)
+                        for column in sorted(columns[name])
+                        for seed, curve in sorted(study.curves(variant, column).items())
+                    ],
+                    _study_record(where, study),
+                )
+                kept.append(f"{folder.name}/{where.name}" if split else folder.name)
+            kept = list(dict.fromkeys(kept))  # a study run in one compare: its name once
+            if split:
+                rows, by_study = merged_rows(dest, folder.name, finished, runs.budget)
+            else:  # one compare: it replaces what was kept
+                rows = [row for found, _ in finished.values() for row in found]
+                by_study = {str(k): record for k, (_, record) in finished.items()}
+            trials, _, seeds = study_protocol(folder)
             about = {
                 "study": folder.name,
                 "axis": runs.axis,
                 "budget": runs.budget,
                 "trials": trials,
-                "studies": studies,
+                "studies": len(by_study),
+                "planned": max(_planned(name) if folder.name == name else 1, len(by_study)),
                 "seeds": seeds,
-                "machine": runs.machine,
-                "commits": sorted(ran),  # of physgrad, as the runs recorded it
+                "machine": "; ".join(
+                    sorted({str(r.get("machine") or "") for r in by_study.values()} - {""})
+                ),
+                # of physgrad, as the runs recorded it
+                "commits": sorted({c for r in by_study.values() for c in r.get("commits", [])}),
                 "kept_by": commit(),
-                "overrides": overrides,
+                "overrides": by_study[min(by_study, key=int)].get("overrides", []),
+                "tuning_studies": by_study,
             }
             write_kept(dest, folder.name, rows, about)
-            kept.append(folder.name)
+            if split:
+                keep_clock(folder / "study-1" / "calibration.json", dest / CLOCK.format(name=name))
     return kept
+
+
+def _study_record(folder: Path, runs: StudyRuns) -> dict:
+    """What a kept tuning study records of itself: its machine, the physgrad commits its runs
+    recorded, the commit that kept it and the compare overrides that ran it."""
+    from physgrad.results import read_final
+
+    ran = set()
+    for by_seed in runs.paths.values():
+        for path in by_seed.values():
+            try:
+                ran.add(str(read_final(Path(path))[0].get("git_commit", "unknown")))
+            except (OSError, ValueError):
+                ran.add("unreadable")
+    overrides = []
+    if (folder / "study.json").is_file():
+        overrides = json.loads((folder / "study.json").read_text()).get("overrides", [])
+    return {
+        "machine": runs.machine,
+        "commits": sorted(ran),
+        "kept_by": commit(),
+        "overrides": overrides,
+    }
 
 
 def _study_runs(folder: Path, table: Path, runs: object) -> StudyRuns | None:
@@ -1029,6 +1145,7 @@ def decide_pairs(runs: StudyRuns, parts: list, fraction: float = 1.0) -> list[De
             [_pair_outcome(part, verdict) for verdict, _ in found],
             [f"{verdict}: {why}" for verdict, why in found],
             [verdict for verdict, _ in found],
+            runs.planned,
         )
         diverged = "".join(
             f"; {name} diverged in {k} of {p.seeds}"
@@ -1073,15 +1190,23 @@ def _tuning_studies(runs: StudyRuns) -> tuple:
     return runs.tuning or (runs,)
 
 
-def _over_studies(outcomes: list[str], whys: list[str], verdicts: list[str]) -> tuple[str, str]:
+def _over_studies(
+    outcomes: list[str], whys: list[str], verdicts: list[str], planned: int = 0
+) -> tuple[str, str]:
     """A part's outcome (holds, does not hold, not settled) from each tuning study's, with why:
     one study's as it is; several by the package's rule over tuning studies
     (physgrad.verdict.over_studies: a majority, none against) applied to what each study's verdict
     says of the part, so that two verdicts that both support it (A better and equivalent, for "A
-    close to B") do not count as a disagreement; why lists each study's verdict."""
-    if len(outcomes) == 1:
+    close to B") do not count as a disagreement; why lists each study's verdict. Of a study with
+    `planned` tuning studies of which fewer have run, the majority is of those planned."""
+    if len(outcomes) == 1 and planned <= 1:
         return outcomes[0], whys[0]
-    return over_studies(outcomes, undecided=OPEN, labels=verdicts)
+    found, why = over_studies(
+        outcomes, undecided=OPEN, labels=verdicts, need=majority(max(planned, len(outcomes)))
+    )
+    if planned > len(outcomes):
+        why += f" ({len(outcomes)} of {planned} tuning studies run)"
+    return found, why
 
 
 def decide_grows(easy: StudyRuns, hard: StudyRuns, part: Grows, fraction: float = 1.0) -> Decision:
@@ -1111,6 +1236,7 @@ def decide_grows(easy: StudyRuns, hard: StudyRuns, part: Grows, fraction: float 
         [trend.get(r.verdict, FAILS) for r in results],
         [f"{r.verdict}: {r.why}" for r in results],
         [r.verdict for r in results],
+        max(easy.planned, hard.planned),
     )
     finite = lambda r: [v for v in r if not math.isnan(v)]  # noqa: E731
     pooled_easy = finite([v for r, _ in ratios for v in r])
@@ -1158,6 +1284,7 @@ def decide_stall(runs: StudyRuns, part: Stalls, fraction: float = 1.0) -> Decisi
         [{EQUIVALENT: HOLDS, A_BETTER: FAILS, B_BETTER: FAILS}.get(t[3], OPEN) for t in tests],
         [f"{t[3]}{f': {says[t[3]]}' if t[3] in says else ''} ({t[4]})" for t in tests],
         [says.get(t[3], t[3]) for t in tests],
+        runs.planned,
     )
     full = [v for t in tests for v in t[1]]
     first = [v for t in tests for v in t[2]]
@@ -1188,6 +1315,7 @@ def decide_reach(runs: StudyRuns, part: Reaches, fraction: float = 1.0) -> Decis
         [{BELOW: HOLDS, ABOVE: FAILS}.get(verdict, OPEN) for verdict, _ in tests],
         [f"{verdict}: {why}" for verdict, why in tests],
         [verdict for verdict, _ in tests],
+        runs.planned,
     )
     pooled = [v for values in found for v in values]
     diverged = sum(math.isinf(v) for v in pooled)
@@ -1385,16 +1513,24 @@ def study_protocol(folder: Path) -> tuple[int, int, int] | None:
     studies = len(runs.tuning) or 1
     seeds = max((len(by) for by in runs.paths.values()), default=0)
     trials = 0
-    table = folder / "trials.csv"
-    if table.is_file():
+    # one compare, or one per tuning study (<folder>/study-k)
+    for table in [folder / "trials.csv", *(s.folder / "trials.csv" for s in _tuning_studies(runs))]:
+        if not table.is_file():
+            continue
         try:
             rows = pd.read_csv(table)
         except ValueError:  # empty: an untuned study (the presets' twin) tried no trials
             rows = pd.DataFrame()
         if {"variant", "trial"} <= set(rows.columns) and len(rows):
             keys = ["variant", "study"] if "study" in rows.columns else ["variant"]
-            trials = int(rows.groupby(keys)["trial"].nunique().max())
+            trials = max(trials, int(rows.groupby(keys)["trial"].nunique().max()))
     return trials, studies, seeds
+
+
+def _of_planned(runs: StudyRuns) -> str:
+    """ " of N" where fewer of a study's N tuning studies have run (the majority is of N)."""
+    ran = len(runs.tuning) or 1
+    return f" of {runs.planned}" if runs.planned > ran else ""
 
 
 def _main_study(claim: Claim) -> str:
@@ -1497,7 +1633,8 @@ def headline_table(root: Path, profile: tuple, further: tuple = ()) -> str:
             # the GPU's profile changes the machine with the budget: its turns are told apart
             (elsewhere if studies_there == GPU else seen).extend(found.values())
             t, k, n = study_protocol(folder / main)
-            longer = f"{folder.name}, {_budget_text(long_runs)} ({t} x {k}, {n}): " + ", ".join(
+            ran = f"{t} x {k}{_of_planned(long_runs)}, {n}"
+            longer = f"{folder.name}, {_budget_text(long_runs)} ({ran}): " + ", ".join(
                 _verdicts_text(found)
             )
         turned = (
@@ -1518,7 +1655,7 @@ def headline_table(root: Path, profile: tuple, further: tuple = ()) -> str:
             claim.departs,
         )
         lines.append(
-            f"| {head} | **{word}** ({why}) | {trials} x {studies}, {seeds} | "
+            f"| {head} | **{word}** ({why}) | {trials} x {studies}{_of_planned(runs)}, {seeds} | "
             f"{_share_text(claim, runs)} | {fell} | "
             + " | ".join(_verdicts_text(tuned))
             + f" | {preset} | {longer} |"

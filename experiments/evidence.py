@@ -86,6 +86,62 @@ def write_kept(dest: Path, name: str, rows: list[dict], about: dict) -> None:
     (dest / f"{name}.json").write_text(json.dumps(about, indent=1) + "\n")
 
 
+STUDY_FOLDER = "study-{k}"  # tuning study k (1, 2, ...) of a study run one compare per tuning study
+CLOCK = "{name}.calibration.json"  # a study's kept calibration, beside its evidence
+
+
+def merged_rows(dest: Path, name: str, finished: dict, budget: float) -> tuple[list, dict]:
+    """The rows and the per-study record (`tuning_studies`: "k" -> its machine, commit, ...) of
+    dest/<name> once the finished tuning studies are added: finished[k] = (its rows, with study
+    k - 1, and its record); a study kept before is replaced, the others kept (each tuning study
+    is kept whatever machine ran it). Evidence kept before studies were recorded on their own
+    gets a record per study from its one. A budget other than the kept one is a UserError."""
+    import pandas as pd
+
+    from physgrad.errors import UserError
+
+    table_path, about_path = dest / f"{name}.csv", dest / f"{name}.json"
+    rows, about = [], {}
+    if table_path.is_file():
+        about = json.loads(about_path.read_text())
+        if not math.isclose(float(about["budget"]), budget, rel_tol=1e-9):
+            raise UserError(
+                f"{name}: a budget of {budget:g}, where {table_path} keeps "
+                f"{float(about['budget']):g}; keep it in another folder"
+            )
+        old = pd.read_csv(table_path, dtype={"variant": str, "column": str})
+        rows = old[~old["study"].isin([k - 1 for k in finished])].to_dict("records")
+    by_study = about.get("tuning_studies") or {
+        str(int(k) + 1): {
+            key: about[key]
+            for key in ("machine", "kept_by", "commits", "iterations", "overrides")
+            if key in about
+        }
+        for k in sorted({row["study"] for row in rows})
+    }
+    for k, (new_rows, record) in finished.items():
+        rows += new_rows
+        by_study[str(k)] = record
+    return rows, dict(sorted(by_study.items(), key=lambda item: int(item[0])))
+
+
+def clock_rules(path: Path) -> set[str]:
+    """The variants a calibration.json has a step cost for (none if it cannot be read)."""
+    try:
+        costs = json.loads(path.read_text()).get("costs")
+    except (OSError, ValueError, AttributeError):
+        return set()
+    return set(costs) if isinstance(costs, dict) else set()
+
+
+def keep_clock(measured: Path, clock: Path) -> None:
+    """A study's calibration kept as its clock (for its tuning studies still to run, on any
+    machine): the first kept, or one with a variant the kept one lacks."""
+    if measured.is_file() and not clock_rules(measured) <= clock_rules(clock):
+        clock.parent.mkdir(parents=True, exist_ok=True)
+        clock.write_bytes(measured.read_bytes())
+
+
 @dataclass
 class Kept:
     """An evidence table read back: the study's budget, axis, machine and protocol, and per tuning
@@ -97,6 +153,7 @@ class Kept:
     machine: str
     protocol: tuple  # (trials, tuning studies, seeds)
     studies: list
+    planned: int = 0  # the tuning studies the study is to have (0: those kept)
 
 
 def kept_table(folder: Path) -> Path | None:
@@ -130,4 +187,6 @@ def read_kept(path: Path) -> Kept:
         values = {f: float(row[5 + i]) for i, f in enumerate(FRACTIONS)}
         curve = KeptCurve(budget, values, float(row.start))
         studies[int(row.study)].setdefault((row.variant, row.column), {})[int(row.seed)] = curve
-    return Kept(path, axis, budget, str(about.get("machine", "")), protocol, studies)
+    planned = about.get("planned", 0)
+    planned = planned if isinstance(planned, int) and 0 <= planned <= 1000 else 0
+    return Kept(path, axis, budget, str(about.get("machine", "")), protocol, studies, planned)

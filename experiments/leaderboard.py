@@ -28,7 +28,16 @@ from pathlib import Path
 
 import numpy as np
 from claims import TUNE_SEED, Study, read_study  # experiments/
-from evidence import commit, kept_row, write_kept
+from evidence import (
+    CLOCK,
+    STUDY_FOLDER,
+    clock_rules,
+    commit,
+    keep_clock,
+    kept_row,
+    merged_rows,
+    write_kept,
+)
 
 from physgrad.bench import OPTIMS as BENCH_OPTIMS
 from physgrad.verdict import (
@@ -43,7 +52,6 @@ from physgrad.verdict import (
 )
 
 BASELINE = "adam"
-STUDY_FOLDER = "study-{k}"  # tuning study k of a scene: <root>/<scene>/study-k
 LEADERBOARD_TRIALS, LEADERBOARD_STUDIES, LEADERBOARD_SEEDS = 8, 3, 10
 # every rule of make bench's list (conf/optim) but Adam and its backprop modes, in that order
 RULES = tuple(o for o in BENCH_OPTIMS if o not in (BASELINE, "bptt", "stable_bptt"))
@@ -144,16 +152,6 @@ SCENES = (
     ),
 )
 EVIDENCE = Path(__file__).resolve().parent.parent / "docs" / "evidence" / "leaderboard"
-CLOCK = "{name}.calibration.json"  # a scene's kept calibration, beside its evidence
-
-
-def clock_rules(path: Path) -> set[str]:
-    """The variants a calibration.json has a step cost for (none if it cannot be read)."""
-    try:
-        costs = json.loads(path.read_text()).get("costs")
-    except (OSError, ValueError, AttributeError):
-        return set()
-    return set(costs) if isinstance(costs, dict) else set()
 
 
 def kept_clock(entry: Entry, evidence: Path = EVIDENCE) -> Path | None:
@@ -207,61 +205,47 @@ def keep(root: Path, dest: Path) -> list[str]:
                 finished[k] = (folder, runs)
         if not finished:
             continue
-        table_path, about_path = dest / f"{entry.name}.csv", dest / f"{entry.name}.json"
-        rows, about = [], {}
-        if table_path.is_file():
-            about = json.loads(about_path.read_text())
-            old = pd.read_csv(table_path, dtype={"variant": str, "column": str})
-            rows = old[~old["study"].isin([k - 1 for k in finished])].to_dict("records")
-        by_study = about.get("tuning_studies") or {
-            # evidence kept before each study was recorded on its own: its one study
-            str(int(k) + 1): {
-                key: about.get(key) for key in ("machine", "kept_by", "iterations", "overrides")
-            }
-            for k in sorted({row["study"] for row in rows})
-        }
+        records = {}
         for k, (folder, runs) in finished.items():
             if runs.tuning:
                 raise UserError(
                     f"{folder}: {len(runs.tuning)} tuning studies, where a leaderboard study "
                     "folder holds one (compare.studies=1)"
                 )
-            if about and not math.isclose(float(about["budget"]), runs.budget, rel_tol=1e-9):
-                raise UserError(
-                    f"{folder}: a budget of {runs.budget:g}, where {table_path} keeps "
-                    f"{float(about['budget']):g}; keep it in another folder"
-                )
-            rows += [
+            rows = [
                 kept_row(k - 1, variant, seed, "loss", curve, runs.budget)
                 for variant in sorted(runs.paths)
                 for seed, curve in sorted(runs.curves(variant).items())
             ]
             table = pd.read_csv(folder / "runs.csv")
-            by_study[str(k)] = {
-                "machine": runs.machine,
-                "kept_by": commit(),
-                "iterations": {
-                    str(v): float(np.median(group["iterations"]))
-                    for v, group in table.groupby("variant")
+            records[k] = (
+                rows,
+                {
+                    "machine": runs.machine,
+                    "kept_by": commit(),
+                    "iterations": {
+                        str(v): float(np.median(group["iterations"]))
+                        for v, group in table.groupby("variant")
+                    },
+                    "overrides": json.loads((folder / "study.json").read_text()).get(
+                        "overrides", []
+                    ),
                 },
-                "overrides": json.loads((folder / "study.json").read_text()).get("overrides", []),
-            }
-            # the scene's clock: the first kept, or one with a rule the kept one lacks
-            clock, measured = dest / CLOCK.format(name=entry.name), folder / "calibration.json"
-            if measured.is_file() and not clock_rules(measured) <= clock_rules(clock):
-                dest.mkdir(parents=True, exist_ok=True)
-                clock.write_bytes(measured.read_bytes())
+            )
+        first = next(iter(finished.values()))[1]
+        rows, by_study = merged_rows(dest, entry.name, records, first.budget)
+        for k, (folder, _) in finished.items():
+            keep_clock(folder / "calibration.json", dest / CLOCK.format(name=entry.name))
             kept.append(f"{entry.name}/{STUDY_FOLDER.format(k=k)}")
-        by_study = dict(sorted(by_study.items(), key=lambda item: int(item[0])))
         machines = sorted({str(s.get("machine") or "") for s in by_study.values()} - {""})
         per_study = [s.get("iterations") or {} for s in by_study.values()]
-        first = next(iter(finished.values()))[1]
         about = {
             "study": entry.name,
             "axis": first.axis,
             "budget": first.budget,
             "trials": LEADERBOARD_TRIALS,
             "studies": len(by_study),
+            "planned": LEADERBOARD_STUDIES,
             "seeds": LEADERBOARD_SEEDS,
             "machine": "; ".join(machines),
             "kept_by": commit(),

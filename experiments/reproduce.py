@@ -12,11 +12,12 @@ is `physgrad report` of its runs: the same table and figures that command writes
 
 The claims profile runs the studies of experiments/claims.py (STUDIES and the regime map MAP), each
 a `physgrad compare` (tuned, paired seeds, calibrated clock) and its untuned twin, into
-outputs/experiments/claims/<study>; claims-long runs the claims whose verdict turned with the
-budget four times as long, claims-gpu the claims that need budgets for one GPU. Each resumes
-study by study and job by job; `--plan` prints the studies, their expected time and the parts of
-at most about 80 minutes that `--part K` runs one at a time; the markdown is written from
-whatever studies have finished.
+outputs/experiments/claims/<study> (each tuning study a compare of its own, in <study>/study-k, so
+that any part can run on any machine and be kept on its own); claims-long runs the claims whose
+verdict turned with the budget four times as long, claims-gpu the claims that need budgets for one
+GPU. Each resumes study by study and job by job; `--plan` prints the studies, their expected time
+and the parts of at most about 80 minutes that `--part K` runs one at a time; the markdown is
+written from whatever studies have finished.
 """
 
 from __future__ import annotations
@@ -285,7 +286,7 @@ def print_claims_plan(profile: str, root: Path) -> None:
                 "(one job per seed)"
             )
         for study in part:
-            new = 1 if study.slice_of else study.studies
+            new = 1 if study.tuning_study else study.studies
             tuning = new * study.trials * study.variants()
             print(
                 f"    {study.label}: {study.variants()} variants, {study.trials} trials each in "
@@ -302,19 +303,9 @@ def print_claims_plan(profile: str, root: Path) -> None:
     )
 
 
-def start_seeds(seeds: int, tuning_studies: int) -> list[int]:
-    """The seeds a study that continues networks needs a start network for: each tuning study's
-    evaluation seeds (study k: k * seeds .. (k + 1) * seeds - 1) and its tuning seed (compare's
-    tune_seed + k)."""
-    from claims import TUNE_SEED
-
-    return [*range(seeds * tuning_studies), *(TUNE_SEED + k for k in range(tuning_studies))]
-
-
-def run_start(start, seeds: int, tuning_studies: int, root: Path) -> int:
-    """The networks a study continues from: one job per start seed (start_seeds), in
-    <root>/<name>/seed=S; those that finished before are skipped."""
-    seed_list = ",".join(str(s) for s in start_seeds(seeds, tuning_studies))
+def run_start(start, seeds: list[int], root: Path) -> int:
+    """The networks a study continues from: one job per seed, in <root>/<name>/seed=S; those that
+    finished before are skipped."""
     command = [
         sys.executable,
         "-m",
@@ -322,7 +313,7 @@ def run_start(start, seeds: int, tuning_studies: int, root: Path) -> int:
         "run",
         "-m",
         *start.overrides,
-        f"seed={seed_list}",
+        f"seed={','.join(str(s) for s in seeds)}",
         f"hydra.sweep.dir={root / start.name}",
         "hydra.sweep.subdir='seed=${seed}'",
     ]
@@ -350,10 +341,16 @@ def run_claims(profile: str, parts: list[int], root: Path, out: Path) -> int:
     for index in parts or range(1, len(all_parts) + 1):
         part = all_parts[index - 1]
         for start in starts(part):
-            seeds = max(s.seeds for s in part if s.start == start)
-            # a slice k of a study adds tuning study k: the start networks of studies 1..k
-            tuning_studies = max(s.studies for s in part if s.start == start)
-            if run_start(start, seeds, tuning_studies, root) != 0:
+            # each tuning study's evaluation and tuning seeds, the presets' twin's
+            seeds = {
+                seed
+                for s in part
+                if s.start == start
+                for preset in (False, True)
+                if s.preset or not preset
+                for seed in s.start_seeds(preset)
+            }
+            if run_start(start, sorted(seeds), root) != 0:
                 failed.append(start.name)
         for study in part:
             for preset in (False, True) if study.preset else (False,):

@@ -83,3 +83,50 @@ def test_a_damaged_evidence_table_is_one_line(
     with pytest.raises(UserError, match=why) as refused:
         claims.read_study(kept / "small")
     assert "small" in str(refused.value) and "\n" not in str(refused.value)
+
+
+def test_tuning_studies_run_as_compares_of_their_own_are_kept_and_decided_as_one(
+    small_study,  # noqa: F811
+    tmp_path,
+    monkeypatch,
+):
+    """Each tuning study of a claims study run as a compare of its own (<name>/study-k), on two
+    machines, kept one after the other (the later first): one table, the same as the one compare
+    that ran both keeps, deciding every part as it does, from the folders and from the table;
+    keeping a study again replaces its rows."""
+    import pandas as pd
+
+    whole = tmp_path / "whole"
+    shutil.copytree(small_study.folder, whole / "small", symlinks=True)
+    runs = pd.read_csv(whole / "small" / "runs.csv", dtype=str)
+    machines, both = {}, tmp_path / "both" / "small"
+    for k in (1, 2):
+        machines[k] = tmp_path / f"machine-{k}"
+        folder = machines[k] / "small" / f"study-{k}"
+        shutil.copytree(small_study.folder, folder, symlinks=True)
+        runs[runs["study"] == str(k - 1)].to_csv(folder / "runs.csv", index=False)
+        shutil.copytree(folder, both / f"study-{k}", symlinks=True)
+    claim = claims.Claim("small", "a paper's claim", PARTS)
+    monkeypatch.setattr(claims, "CLAIMS", (claim,))
+    kept, kept_whole = tmp_path / "evidence", tmp_path / "evidence-whole"
+    assert claims.keep_evidence(machines[2], kept) == ["small/study-2"]
+    assert json.loads((kept / "small.json").read_text())["studies"] == 1
+    assert claims.keep_evidence(machines[1], kept) == ["small/study-1"]
+    assert claims.keep_evidence(whole, kept_whole) == ["small"]
+    assert (kept / "small.csv").read_text() == (kept_whole / "small.csv").read_text()
+    about = json.loads((kept / "small.json").read_text())
+    assert about["studies"] == 2 and sorted(about["tuning_studies"]) == ["1", "2"]
+    for fraction in (0.25, 1.0):
+        expected = claims.decide_claim(claim, whole, fraction=fraction)
+        assert claims.decide_claim(claim, both.parent, fraction=fraction) == expected
+        assert claims.decide_claim(claim, kept, fraction=fraction) == expected
+    claims.keep_evidence(machines[2], kept)
+    assert (kept / "small.csv").read_text() == (kept_whole / "small.csv").read_text()
+    # a study of the profiles is to have more: kept with its plan, decided by a majority of it
+    monkeypatch.setattr(claims, "_planned", lambda name: 4)
+    claims.keep_evidence(machines[1], kept)
+    for root in (both.parent, kept):
+        runs = claims.read_study(root / "small")
+        assert runs.planned == 4 and claims._of_planned(runs) == " of 4"
+        _, decisions = claims.decide_claim(claim, root)
+        assert all("(2 of 4 tuning studies run)" in d.why for _, d in decisions[:1])

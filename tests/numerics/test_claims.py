@@ -97,18 +97,40 @@ def test_paired_seeds_suffice_for_every_comparison_a_claim_makes():
     assert all(s.seeds >= 5 for s in claims.PROFILES["claims"] if s.timed)  # equal time: at least 5
 
 
-def test_a_study_command_names_its_folder_seeds_trials_and_the_presets_clock(tmp_path):
+def test_a_study_command_names_its_folder_seeds_trials_and_the_presets_clock(tmp_path, monkeypatch):
+    """Tuning study k of a study is a compare of its own in <name>/study-k with the tuning seed and
+    evaluation seeds study k has in one compare of all of them; the later studies and the presets'
+    twin run on the first study's clock, the kept one first."""
+    from physgrad.comparison import split_overrides, study_settings
+
+    monkeypatch.setattr(claims, "EVIDENCE", tmp_path / "evidence")
     study = next(s for s in claims.STUDIES if s.name == "oscillator")
     assert study.variants() == 3 and study.timed and study.eval_jobs() == 3 * study.seeds
-    tuned_cmd, preset = study.command(tmp_path), study.command(tmp_path, preset=True)
-    assert (
-        f"compare.dir={tmp_path / 'oscillator'}" in tuned_cmd
-        and "compare.tune=false" not in tuned_cmd
-    )
-    assert (
-        f"compare.dir={tmp_path / 'oscillator-preset'}" in preset and "compare.tune=false" in preset
-    )
-    assert f"compare.calibration={tmp_path / 'oscillator' / 'calibration.json'}" in preset
+    whole = study_settings(split_overrides(study.command(tmp_path))[0])
+    assert f"compare.dir={tmp_path / 'oscillator'}" in study.command(tmp_path)
+    first, second, *_, last = claims.slices(study)
+    clock = tmp_path / "oscillator" / "study-1" / "calibration.json"
+    for k, piece in enumerate(claims.slices(study)):
+        command = piece.command(tmp_path)
+        assert f"compare.dir={tmp_path / 'oscillator' / f'study-{k + 1}'}" in command
+        assert "compare.tune=false" not in command and "compare.studies=1" in command
+        settings = study_settings(split_overrides(command)[0])
+        assert settings.evaluation_seeds == whole.study_seeds(k)
+        assert settings.tune_seed == whole.tune_seed + k
+        assert not any(o.startswith("compare.calibration=") for o in command)  # no clock yet
+    preset = last.command(tmp_path, preset=True)
+    assert f"compare.dir={tmp_path / 'oscillator-preset'}" in preset
+    assert "compare.tune=false" in preset
+    assert study_settings(split_overrides(preset)[0]).evaluation_seeds == whole.study_seeds(0)
+    clock.parent.mkdir(parents=True)
+    clock.write_text("{}")
+    assert f"compare.calibration={clock}" in second.command(tmp_path)
+    assert f"compare.calibration={clock}" in last.command(tmp_path, preset=True)
+    assert not any(o.startswith("compare.calibration=") for o in first.command(tmp_path))
+    kept = tmp_path / "evidence" / "oscillator.calibration.json"
+    kept.parent.mkdir()
+    kept.write_text("{}")
+    assert f"compare.calibration={kept}" in second.command(tmp_path)
     cart = next(s for s in claims.STUDIES if s.name == "cart_4")
     # seeds trained together, one job per variant
     assert cart.variants() == 6 and cart.eval_jobs() == 6
@@ -120,26 +142,32 @@ def test_a_study_command_names_its_folder_seeds_trials_and_the_presets_clock(tmp
     )
 
 
-def test_parts_stay_under_the_limit_and_keep_the_order():
-    """Every study in order; one longer than a part cut into its tuning studies 1, 2, 3 (each a
-    compare of one more study), the slices costing what the whole does, the presets with the
-    last."""
+def test_parts_stay_under_the_limit_and_keep_the_order(tmp_path, monkeypatch):
+    """Every study in order, one with repeated tuning studies cut into them (1, 2, ..., each a
+    compare of its own), costing what the whole does (with its clock kept; the presets' twin needs
+    the first study's start networks again), the presets with the last."""
+    monkeypatch.setattr(claims, "EVIDENCE", tmp_path)
     for profile in claims.PROFILES.values():
+        for study in profile:
+            (tmp_path / f"{study.name}.calibration.json").write_text("{}")
         parts = claims.chunks(profile)
         pieces = iter(s for part in parts for s in part)
         for study in profile:
             piece = next(pieces)
-            if piece == study:
+            if study.studies == 1:
+                assert piece == study
                 continue
             cut = [piece] + [next(pieces) for _ in range(study.studies - 1)]
-            assert [(s.name, s.studies, s.slice_of) for s in cut] == [
-                (study.name, k, study.studies) for k in range(1, study.studies + 1)
+            assert [(s.name, s.studies, s.tuning_study, s.folder) for s in cut] == [
+                (study.name, study.studies, k, f"{study.name}/study-{k}")
+                for k in range(1, study.studies + 1)
             ]
-            assert sum(s.seconds() for s in cut) == pytest.approx(study.seconds())
+            again = len(study.start_seeds(preset=True)) if study.start and study.preset else 0
+            again *= study.start.job_seconds if study.start else 0
+            assert sum(s.seconds() for s in cut) == pytest.approx(study.seconds() + again)
             assert [bool(s.preset) for s in cut] == [False] * (study.studies - 1) + [
                 bool(study.preset)
             ]
-            assert f"compare.studies={study.studies - 1}" in cut[-2].command(Path("r"))
         assert next(pieces, None) is None
         assert all(sum(s.seconds() for s in part) <= 80 * 60 or len(part) == 1 for part in parts)
 

@@ -426,6 +426,32 @@ def test_a_lower_part_is_decided_over_the_tuning_studies(tmp_path, studies, fact
     assert "over 3 tuning studies" in decision.measured
 
 
+@pytest.mark.parametrize(
+    "factors, planned, verdict",
+    [
+        ([0.5, 0.5], 0, HOLDS),  # two studies, the two it has: both
+        ([0.5, 0.5], 4, OPEN),  # two of four run: a majority of four is three
+        ([0.5, 0.5, 0.5], 4, HOLDS),
+        ([0.5], 4, OPEN),
+        ([2.0, 2.0, 2.0], 4, FAILS),
+    ],
+)
+def test_a_study_with_tuning_studies_still_to_run_needs_a_majority_of_those_planned(
+    tmp_path, studies, factors, planned, verdict
+):
+    """A study whose tuning studies run one compare each (on any machine) is decided over the
+    studies kept so far, by a majority of all it is to have: two of four agreeing do not settle a
+    part, and the why says how many ran."""
+    first = tuned("s", factors)
+    for study in first.tuning or (first,):
+        study.planned = planned
+    studies["s"] = first
+    found, ((_, decision),) = claims.decide_claim(claim_of(claims.Lower("s", "a", "b")), tmp_path)
+    assert found == verdict, decision
+    if planned > len(factors):
+        assert f"({len(factors)} of {planned} tuning studies run)" in decision.why
+
+
 def test_a_turn_that_comes_with_the_gpu_profile_is_told_apart(tmp_path, studies):
     """Poisson does not hold on 2 cores and holds in claims-gpu: the machine changed with the
     budget, so the row says so, not "reverses with the budget"."""
@@ -549,21 +575,24 @@ def test_a_stall_is_decided_in_each_tuning_study_and_then_over_them(
 
 def test_a_continuing_study_gets_a_start_network_for_every_tuning_seed(tmp_path):
     """A study that continues networks (init_from) tunes each tuning study on its own seed
-    (compare's tune_seed + k): the profile makes a start network for each, and for the evaluation
-    seeds, and plans their cost once over the slices."""
-    import reproduce
-
+    (compare's tune_seed + k): each tuning study (a compare of its own) gets a start network for
+    its tuning seed and its evaluation seeds, the presets' twin for its, and the plan costs
+    them."""
     from physgrad.comparison import split_overrides, study_settings
 
     study = next(s for s in claims.STUDIES if s.name == "poisson_continue")
-    given, *_ = split_overrides(study.command(tmp_path))
-    settings = study_settings(given)
-    tuning_seeds = [settings.tune_seed + k for k in range(settings.studies)]
-    wanted = reproduce.start_seeds(study.seeds, study.studies)
-    assert set(tuning_seeds) | set(settings.evaluation_seeds) == set(wanted)
-    slices = claims.slices(study, 0)
-    assert [reproduce.start_seeds(s.seeds, s.studies)[-1] for s in slices] == tuning_seeds
-    starts = study.start.job_seconds * len(wanted)
+
+    def needs(command):
+        settings = study_settings(split_overrides(command)[0])
+        tuning = {settings.tune_seed + k for k in range(settings.study_count)}
+        return tuning | set(settings.evaluation_seeds)
+
+    assert set(study.start_seeds()) == needs(study.command(tmp_path))
+    for piece in claims.slices(study):
+        assert set(piece.start_seeds()) == needs(piece.command(tmp_path))
+        assert len(piece.start_seeds()) == study.seeds + 1
+    assert set(study.start_seeds(preset=True)) == needs(study.command(tmp_path, preset=True))
+    starts = study.start.job_seconds * len(study.start_seeds())
     whole_without_start = replace(study, start=None).seconds()
     assert study.seconds() - whole_without_start == pytest.approx(starts)
 
