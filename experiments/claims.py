@@ -14,21 +14,8 @@ the tuning seed, then evaluated at its best trial on 10 paired seeds, the verdic
 loss; its untuned twin (`<study>-preset`, compare.tune=false) evaluates the presets on the same
 seeds and clock. Time budgets run on the calibrated clock (iterations x each variant's calibrated
 step cost). A claim is read from the studies' evaluation runs with physgrad's own rules
-(physgrad.verdict), over the comparisons the paper makes, at X/4, X/2 and X of the budget X (the
-same runs, tuned for X, read earlier):
-- "A lower than B": the paired verdict (Holm over the claim's comparisons in that study), in each
-  tuning study, then over the studies by what each study's verdict says of the part
-  (physgrad.verdict.over_studies: a majority of them, none against; "equivalent" goes against "A
-  lower than B" and supports "A close to B");
-- "A close to B": holds when A is better or equivalent within the stated margin, fails when B is
-  better;
-- "A's advantage over B grows from the easy setting to the hard one": physgrad.trend.interaction
-  on the two studies' per-seed log ratios (the ratio at the hard end below the one at the easy end,
-  with an interval), in each tuning study and then over them as above;
-- "A stalls": the variant's own loss at the budget against its loss at half the budget, paired by
-  seed: stalled when the two are equivalent within the margin (neither still falling nor rising),
-  in each tuning study and then over them.
-A claim holds if every part holds, does not hold if one does not, and is not settled otherwise.
+(physgrad.claim: its parts and how each is decided), at X/4, X/2 and X of the budget X (the same
+runs, tuned for X, read earlier).
 """
 
 from __future__ import annotations
@@ -54,31 +41,37 @@ from evidence import (  # experiments/
     write_kept,
 )
 
+from physgrad.claim import (
+    FAILS,
+    HOLDS,
+    NOT_RUN,
+    OPEN,
+    Claim,
+    Close,
+    Decision,
+    Grows,
+    Lower,
+    Reaches,
+    Stalls,
+    claim_of_part,
+    claim_verdict,
+    decide_parts,
+    short,
+    studies_of,
+    tuning_studies,
+)
 from physgrad.readout import highest_median
-from physgrad.trend import GROWS, interaction
 from physgrad.verdict import (
     A_BETTER,
-    ABOVE,
     B_BETTER,
-    BELOW,
     EQUIVALENT,
     FRACTIONS,
-    MARGIN,
-    UNDECIDED,
-    across_studies,
-    against_level,
     claim_word,
     compare_variants,
     left_start,
-    majority,
-    over_studies,
-    paired,
     ratio_of,
 )
 
-HOLDS, FAILS, OPEN = "holds", "does not hold", "not settled"
-# a part whose variants the study does not have (the presets' twin of a clipping sweep)
-NOT_RUN = "not run"
 TUNE_SEED = (
     1_000_000  # compare's default tuning seed: a study that continues networks needs one for it too
 )
@@ -543,88 +536,6 @@ def chunks(studies, limit_seconds: float = 80 * 60) -> list[list[Study]]:
 # -------------------------------------------------------------------------------------------
 
 
-@dataclass(frozen=True)
-class Lower:
-    """A reaches a lower held-out `column` than B at the budget of `study` (variant names as compare
-    gives them)."""
-
-    study: str
-    a: str
-    b: str
-    column: str = "loss"
-
-    def text(self) -> str:
-        return f"{self.a} below {self.b}" + (f" ({self.column})" if self.column != "loss" else "")
-
-
-@dataclass(frozen=True)
-class Close:
-    """A is better than B or within `margin` of it (equivalence at that margin)."""
-
-    study: str
-    a: str
-    b: str
-    margin: float
-
-    def text(self) -> str:
-        return f"{self.a} within {100 * (self.margin - 1):.0f}% of {self.b} (or below)"
-
-
-@dataclass(frozen=True)
-class Grows:
-    """A's advantage over B (loss A / B) is larger in study `hard` than in study `easy`."""
-
-    easy: str
-    hard: str
-    a: str
-    b: str
-
-    def text(self) -> str:
-        return f"{self.a} / {self.b} lower at {self.hard} than at {self.easy}"
-
-
-@dataclass(frozen=True)
-class Stalls:
-    """The variant's `column` at the budget is within the margin of its value at half the budget."""
-
-    study: str
-    variant: str
-    column: str = "loss"
-
-    def text(self) -> str:
-        return f"{self.variant} stalls ({self.column}: budget vs half of it)"
-
-
-@dataclass(frozen=True)
-class Reaches:
-    """The variant's `column` at the budget lies below an absolute level (the seeds below it, by
-    the package's sign test, physgrad.verdict.against_level)."""
-
-    study: str
-    variant: str
-    level: float
-    column: str = "loss"
-
-    def text(self) -> str:
-        return f"{self.variant} reaches {self.column} below {self.level:g}"
-
-
-@dataclass(frozen=True)
-class Claim:
-    name: str
-    paper: str  # the claim as the paper states it, and where
-    parts: tuple
-    note: str = ""  # how the comparison is made, where it departs from the paper's
-    # the paper's training: iterations, or seconds of training time on the paper's hardware
-    # (paper_seconds); nan: not stated as a number
-    paper_budget: float = math.nan
-    paper_budget_text: str = "-"
-    paper_seconds: bool = False
-    # where physgrad's scene or comparison departs from the paper's in a way that matters: how
-    # (the claim's word is then "different setup", physgrad.verdict.claim_word)
-    departs: str = ""
-
-
 R_VARIANTS = ("none", "value", "norm")
 # the unrolling study's training: about 42,500 updates for WIG and NOG (docs/decisions.md)
 KS_UPDATES = 42_500
@@ -980,7 +891,7 @@ def keep_evidence(root: Path, dest: Path) -> list[str]:
                 continue
             split = not (folder / "runs.csv").is_file()  # one compare per tuning study
             finished = {}
-            for k, study in enumerate(_tuning_studies(runs), 1):
+            for k, study in enumerate(tuning_studies(runs), 1):
                 where = study.folder if split else folder
                 k = int(where.name.partition("-")[2]) if split else k
                 finished[k] = (
@@ -1075,29 +986,6 @@ def _study_runs(folder: Path, table: Path, runs: object) -> StudyRuns | None:
     return StudyRuns(folder, str(runs["axis"].iloc[0]), budget, paths, "; ".join(machines))
 
 
-@dataclass(frozen=True)
-class Decision:
-    verdict: str  # HOLDS, FAILS, OPEN
-    measured: str  # the numbers: median ratio [interval], k of n, ...
-    why: str
-
-
-def _r(x: float) -> str:
-    if math.isnan(x):
-        return "-"
-    if math.isinf(x) or x == 0:
-        return {0.0: "0", math.inf: "inf"}.get(x, str(x))
-    return f"{x:.3g}"
-
-
-def _fraction_text(fraction: float) -> str:
-    """1/4 of the budget: "X/4"; the budget: "X"."""
-    if fraction == 1.0:
-        return "X"
-    whole = round(1 / fraction)
-    return f"X/{whole}" if math.isclose(whole * fraction, 1.0) else f"{fraction:g} X"
-
-
 def _budget_text(runs: StudyRuns) -> str:
     return {
         "iteration": f"{runs.budget:g} iterations",
@@ -1106,308 +994,21 @@ def _budget_text(runs: StudyRuns) -> str:
     }.get(runs.axis, f"{runs.budget:g}")
 
 
-def decide_pairs(runs: StudyRuns, parts: list, fraction: float = 1.0) -> list[Decision]:
-    """The Lower and Close parts of one study at `fraction` of its budget, with Holm's correction
-    over them."""
-    fractions = tuple(sorted({*FRACTIONS, fraction}))
-    decisions = []
-    present = [p for p in parts if p.a in runs.paths and p.b in runs.paths]
-    for part in parts:
-        if part not in present:
-            missing = [n for n in (part.a, part.b) if n not in runs.paths]
-            decisions.append(
-                Decision(NOT_RUN, "-", f"no runs of {' and '.join(missing)} in {runs.folder}")
-            )
-            continue
-        column = getattr(part, "column", "loss")
-        margin = getattr(part, "margin", MARGIN)
-        others = [
-            p
-            for p in present
-            if getattr(p, "column", "loss") == column and getattr(p, "margin", MARGIN) == margin
-        ]
-        names = {v for p in others for v in (p.a, p.b)}
-        # each tuning study decided alone, then over the studies by the package's rule
-        per_study = [
-            compare_variants(
-                {n: study.curves(n, column) for n in names},
-                runs.budget,
-                pairs=[(p.a, p.b) for p in others],
-                margin=margin,
-                fractions=fractions,
-            )
-            for study in (runs.tuning or (runs,))
-        ]
-        result = across_studies(per_study)[others.index(part)]
-        p = result.at[fraction]
-        found = [v.verdicts[fraction] for v in (result.studies or [result])]
-        claim, why = _over_studies(
-            [_pair_outcome(part, verdict) for verdict, _ in found],
-            [f"{verdict}: {why}" for verdict, why in found],
-            [verdict for verdict, _ in found],
-            runs.planned,
-        )
-        diverged = "".join(
-            f"; {name} diverged in {k} of {p.seeds}"
-            for name, k in ((part.a, p.diverged_a), (part.b, p.diverged_b))
-            if k
-        )
-        earlier = "; ".join(
-            f"at {_fraction_text(f)} {_r(result.at[f].ratio)} ({result.verdicts[f][0]})"
-            for f in fractions
-            if f < fraction
-        )
-        measured = (
-            f"{part.a} / {part.b} = {_r(p.ratio)} [{_r(ratio_of(p.low))}, {_r(ratio_of(p.high))}], "
-            f"{part.a} lower in {p.wins_a} of {p.pairs}{diverged}"
-            + (f"; {earlier}" if earlier else "")
-            + (f"; over {len(runs.tuning)} tuning studies" if runs.tuning else "")
-        )
-        decisions.append(Decision(claim, measured, why))
-    return decisions
-
-
-def _pair_outcome(part, verdict: str) -> str:
-    """What a pair's verdict says of a Lower part (A better: holds; B better or equivalent: does
-    not hold) or a Close part (A better or equivalent: holds; B better: does not hold)."""
-    if isinstance(part, Close):
-        return {A_BETTER: HOLDS, EQUIVALENT: HOLDS, B_BETTER: FAILS}.get(verdict, OPEN)
-    return {A_BETTER: HOLDS, EQUIVALENT: FAILS, B_BETTER: FAILS}.get(verdict, OPEN)
-
-
-def log_ratios_at_budget(runs: StudyRuns, a: str, b: str, fraction: float = 1.0) -> list[float]:
-    ca, cb = runs.curves(a), runs.curves(b)
-    seeds = sorted(set(ca) | set(cb))
-    x = runs.budget * fraction
-    p = paired(
-        [ca[s].at(x) if s in ca else math.nan for s in seeds],
-        [cb[s].at(x) if s in cb else math.nan for s in seeds],
-    )
-    return list(p.log_ratios)
-
-
-def _tuning_studies(runs: StudyRuns) -> tuple:
-    return runs.tuning or (runs,)
-
-
-def _over_studies(
-    outcomes: list[str], whys: list[str], verdicts: list[str], planned: int = 0
-) -> tuple[str, str]:
-    """A part's outcome (holds, does not hold, not settled) from each tuning study's, with why:
-    one study's as it is; several by the package's rule over tuning studies
-    (physgrad.verdict.over_studies: a majority, none against) applied to what each study's verdict
-    says of the part, so that two verdicts that both support it (A better and equivalent, for "A
-    close to B") do not count as a disagreement; why lists each study's verdict. Of a study with
-    `planned` tuning studies of which fewer have run, the majority is of those planned."""
-    if len(outcomes) == 1 and planned <= 1:
-        return outcomes[0], whys[0]
-    found, why = over_studies(
-        outcomes, undecided=OPEN, labels=verdicts, need=majority(max(planned, len(outcomes)))
-    )
-    if planned > len(outcomes):
-        why += f" ({len(outcomes)} of {planned} tuning studies run)"
-    return found, why
-
-
-def decide_grows(easy: StudyRuns, hard: StudyRuns, part: Grows, fraction: float = 1.0) -> Decision:
-    """The trend in each tuning study (its easy and its hard setting's runs), then over the
-    studies."""
-    for runs in (easy, hard):
-        if not {part.a, part.b} <= set(runs.paths):
-            return Decision(NOT_RUN, "-", f"no runs of {part.a} and {part.b} in {runs.folder}")
-    if len(_tuning_studies(easy)) != len(_tuning_studies(hard)):
-        return Decision(
-            OPEN,
-            "-",
-            f"{part.easy} has {len(_tuning_studies(easy))} tuning studies and {part.hard} "
-            f"{len(_tuning_studies(hard))}: decided when both have finished the same number",
-        )
-    pairs = list(zip(_tuning_studies(easy), _tuning_studies(hard)))
-    ratios = [
-        (
-            log_ratios_at_budget(e, part.a, part.b, fraction),
-            log_ratios_at_budget(h, part.a, part.b, fraction),
-        )
-        for e, h in pairs
-    ]
-    results = [interaction(r_easy, r_hard) for r_easy, r_hard in ratios]
-    trend = {GROWS: HOLDS, UNDECIDED: OPEN}
-    verdict, why = _over_studies(
-        [trend.get(r.verdict, FAILS) for r in results],
-        [f"{r.verdict}: {r.why}" for r in results],
-        [r.verdict for r in results],
-        max(easy.planned, hard.planned),
-    )
-    finite = lambda r: [v for v in r if not math.isnan(v)]  # noqa: E731
-    pooled_easy = finite([v for r, _ in ratios for v in r])
-    pooled_hard = finite([v for _, r in ratios for v in r])
-    median = lambda r: _r(ratio_of(float(np.median(r)))) if r else "-"  # noqa: E731
-    measured = (
-        f"{part.a} / {part.b}: {median(pooled_easy)} at {part.easy}, {median(pooled_hard)} at "
-        f"{part.hard}; hard / easy = "
-        + ", ".join(
-            f"{_r(r.factor)} [{_r(ratio_of(r.low))}, {_r(ratio_of(r.high))}]" for r in results
-        )
-        + (f" in {len(results)} tuning studies" if len(results) > 1 else "")
-    )
-    return Decision(verdict, measured, why)
-
-
-def _stall_in(runs: StudyRuns, part: Stalls, fraction: float) -> tuple:
-    """One tuning study's stall test: (paired loss at the fraction / at half of it, losses there,
-    losses at the start, verdict, why)."""
-    from physgrad.verdict import decide
-
-    curves = runs.curves(part.variant, part.column)
-    seeds = sorted(curves)
-    full = [curves[s].at(runs.budget * fraction) for s in seeds]
-    half = [curves[s].at(runs.budget * fraction / 2) for s in seeds]
-    first = [float(curves[s].loss[0]) if len(curves[s].loss) else math.nan for s in seeds]
-    # a run that diverged by half the budget has no level there: it counts as rising from its start
-    # (a tie of two infinities would read as "stalled")
-    half = [h if not math.isinf(h) else f for h, f in zip(half, first)]
-    p = paired(full, half)
-    verdict, why = decide(p, p.p_difference, p.p_equivalent)
-    return p, full, first, verdict, why
-
-
-def decide_stall(runs: StudyRuns, part: Stalls, fraction: float = 1.0) -> Decision:
-    """Stalled by `fraction` of the budget: the loss there against the loss at half of it, paired
-    by seed, in each tuning study, then over the studies."""
-    if part.variant not in runs.paths:
-        return Decision(NOT_RUN, "-", f"no runs of {part.variant} in {runs.folder}")
-    tests = [_stall_in(study, part, fraction) for study in _tuning_studies(runs)]
-    # falling (A better: the loss at the budget lower) is slow, rising (B better) unstable: neither
-    # is stalled
-    says = {EQUIVALENT: "stalled", A_BETTER: "still falling", B_BETTER: "rising, not stalled"}
-    claim, why = _over_studies(
-        [{EQUIVALENT: HOLDS, A_BETTER: FAILS, B_BETTER: FAILS}.get(t[3], OPEN) for t in tests],
-        [f"{t[3]}{f': {says[t[3]]}' if t[3] in says else ''} ({t[4]})" for t in tests],
-        [says.get(t[3], t[3]) for t in tests],
-        runs.planned,
-    )
-    full = [v for t in tests for v in t[1]]
-    first = [v for t in tests for v in t[2]]
-    diverged = sum(math.isinf(v) for v in full)
-    measured = (
-        f"{part.column} at the budget / at half of it = "
-        + ", ".join(
-            f"{_r(p.ratio)} [{_r(ratio_of(p.low))}, {_r(ratio_of(p.high))}]" for p, *_ in tests
-        )
-        + (f" in {len(tests)} tuning studies" if len(tests) > 1 else "")
-        + f"; at the budget / at the start: {_r(float(np.nanmedian(np.divide(full, first))))}"
-        + (f"; diverged in {diverged} of {len(full)}" if diverged else "")
-    )
-    return Decision(claim, measured, why)
-
-
-def decide_reach(runs: StudyRuns, part: Reaches, fraction: float = 1.0) -> Decision:
-    """Below the level at `fraction` of the budget, by the package's sign test over the seeds, in
-    each tuning study, then over the studies."""
-    if part.variant not in runs.paths:
-        return Decision(NOT_RUN, "-", f"no runs of {part.variant} in {runs.folder}")
-    found = []
-    for study in _tuning_studies(runs):
-        curves = study.curves(part.variant, part.column)
-        found.append([curves[s].at(study.budget * fraction) for s in sorted(curves)])
-    tests = [against_level(values, part.level) for values in found]
-    claim, why = _over_studies(
-        [{BELOW: HOLDS, ABOVE: FAILS}.get(verdict, OPEN) for verdict, _ in tests],
-        [f"{verdict}: {why}" for verdict, why in tests],
-        [verdict for verdict, _ in tests],
-        runs.planned,
-    )
-    pooled = [v for values in found for v in values]
-    diverged = sum(math.isinf(v) for v in pooled)
-    measured = (
-        f"{part.column} at the budget: median "
-        + ", ".join(_r(float(np.nanmedian(values))) for values in found)
-        + (f" in {len(found)} tuning studies" if len(found) > 1 else "")
-        + f"; below {part.level:g} in {sum(v < part.level for v in pooled)} of {len(pooled)}"
-        + (f"; diverged in {diverged}" if diverged else "")
-    )
-    return Decision(claim, measured, why)
-
-
 def decide_claim(
     claim: Claim, root: Path, suffix: str = "", fraction: float = 1.0, profile: tuple = ()
 ) -> tuple[str, list[tuple[object, Decision]]]:
     """The claim's verdict at `fraction` of its budget from the studies under root (suffix
-    "-preset": the untuned twins) and its parts'. profile: the studies of the profile that ran
-    them (default: the claims profile's)."""
-    cache = {}
-
+    "-preset": the untuned twins) and its parts' (physgrad.claim). profile: the studies of the
+    profile that ran them (default: the claims profile's)."""
     specs = {s.name: s for s in (profile or STUDIES + MAP)}
+    cache: dict[str, object] = {}
 
-    def study(name):
+    def study(name: str) -> object:
         if name not in cache:
-            cache[name] = read_study(root / (name + suffix))
-            spec = specs.get(name)
-            if (
-                cache[name] is not None
-                and suffix
-                and spec is not None
-                and isinstance(spec.preset, str)
-            ):
-                # the presets' study fixes one value of an axis (optim.clip=none): its variants are
-                # also known by the tuned study's names, which carry that value ("backprop=C" is
-                # "backprop=C clip=none")
-                key, _, value = spec.preset.partition("=")
-                token = f"{key.rsplit('.', 1)[-1]}={value}"
-                paths = cache[name].paths
-                paths.update({f"{v} {token}": by for v, by in list(paths.items())})
+            cache[name] = _twin_runs(root, name, suffix, specs.get(name))
         return cache[name]
 
-    rows = []
-    by_study = {}
-    for part in claim.parts:
-        if isinstance(part, (Lower, Close)):
-            by_study.setdefault(part.study, []).append(part)
-    decided = {}
-
-    def untwinned(names) -> bool:  # a study the profile runs without a presets' twin
-        return bool(suffix) and any(
-            specs.get(n) is not None and specs[n].preset is False for n in names
-        )
-
-    for name, parts in by_study.items():
-        runs = study(name)
-        found = (
-            decide_pairs(runs, parts, fraction)
-            if runs is not None
-            else [Decision(NOT_RUN, "-", f"{name} has no presets' twin (cut for time)")]
-            * len(parts)
-            if untwinned([name])
-            else [Decision(OPEN, "-", f"{root / (name + suffix)} has no finished study")]
-            * len(parts)
-        )
-        decided.update(zip(parts, found))
-    for part in claim.parts:
-        if part not in decided and untwinned(studies_of(claim_of_part(part))):
-            rows.append((part, Decision(NOT_RUN, "-", "no presets' twin (cut for time)")))
-        elif part in decided:
-            rows.append((part, decided[part]))
-        elif isinstance(part, Grows):
-            easy, hard = study(part.easy), study(part.hard)
-            rows.append(
-                (
-                    part,
-                    decide_grows(easy, hard, part, fraction)
-                    if easy and hard
-                    else Decision(OPEN, "-", "a study of the trend has not finished"),
-                )
-            )
-        else:
-            runs = study(part.study)
-            decide_part = decide_reach if isinstance(part, Reaches) else decide_stall
-            rows.append(
-                (
-                    part,
-                    decide_part(runs, part, fraction)
-                    if runs
-                    else Decision(OPEN, "-", "the study has not finished"),
-                )
-            )
+    rows = decide_parts(claim, study, fraction)
     if suffix:  # a presets' twin that fixes an axis runs only the papers' value of it: say so
         fixed = {n: specs[n].preset for n in specs if isinstance(specs[n].preset, str)}
         rows = [
@@ -1419,19 +1020,25 @@ def decide_claim(
             )
             for part, d in rows
         ]
-    # a part whose variants a study does not run (the presets' study fixes the clipping) is left out
-    # of the claim's verdict, which then speaks for the parts that were run
-    verdicts = [d.verdict for _, d in rows if d.verdict != NOT_RUN]
-    verdict = (
-        HOLDS
-        if verdicts and all(v == HOLDS for v in verdicts)
-        else FAILS
-        if FAILS in verdicts
-        else OPEN
-    )
-    if rows and not verdicts and suffix:
-        verdict = NOT_RUN  # the presets' twin of none of the claim's parts was run
-    return verdict, rows
+    return claim_verdict(rows, twin=bool(suffix)), rows
+
+
+def _twin_runs(root: Path, name: str, suffix: str, spec: Study | None) -> object:
+    """The runs of study `name` (suffix "-preset": its presets' twin), or the Decision that says
+    why there are none."""
+    runs = read_study(root / (name + suffix))
+    if runs is None:
+        if suffix and spec is not None and spec.preset is False:
+            return Decision(NOT_RUN, "-", f"{name} has no presets' twin (cut for time)")
+        return Decision(OPEN, "-", f"{root / (name + suffix)} has no finished study")
+    if suffix and spec is not None and isinstance(spec.preset, str):
+        # the presets' study fixes one value of an axis (optim.clip=none): its variants are also
+        # known by the tuned study's names, which carry that value ("backprop=C" is "backprop=C
+        # clip=none")
+        key, _, value = spec.preset.partition("=")
+        token = f"{key.rsplit('.', 1)[-1]}={value}"
+        runs.paths.update({f"{v} {token}": by for v, by in list(runs.paths.items())})
+    return runs
 
 
 def _fixed_by_twin(decision: Decision, fixed: list[str]) -> Decision:
@@ -1444,18 +1051,6 @@ def _fixed_by_twin(decision: Decision, fixed: list[str]) -> Decision:
 
 def _part_study(part) -> str:
     return getattr(part, "study", None) or f"{part.easy} -> {part.hard}"
-
-
-def claim_of_part(part) -> Claim:
-    return Claim("", "", (part,))
-
-
-def studies_of(claim: Claim) -> set[str]:
-    return {
-        name
-        for part in claim.parts
-        for name in ([part.easy, part.hard] if isinstance(part, Grows) else [part.study])
-    }
 
 
 def claims_table(root: Path, studies=None, only_run: bool = False) -> str:
@@ -1514,7 +1109,7 @@ def study_protocol(folder: Path) -> tuple[int, int, int] | None:
     seeds = max((len(by) for by in runs.paths.values()), default=0)
     trials = 0
     # one compare, or one per tuning study (<folder>/study-k)
-    for table in [folder / "trials.csv", *(s.folder / "trials.csv" for s in _tuning_studies(runs))]:
+    for table in [folder / "trials.csv", *(s.folder / "trials.csv" for s in tuning_studies(runs))]:
         if not table.is_file():
             continue
         try:
@@ -1577,14 +1172,14 @@ def _left_start(claim: Claim, runs: StudyRuns) -> tuple[bool, str]:
         if variant not in runs.paths:
             continue
         starts, finals = [], []
-        for study in _tuning_studies(runs):
+        for study in tuning_studies(runs):
             for curve in study.curves(variant).values():
                 starts.append(float(curve.loss[0]) if len(curve.loss) else math.nan)
                 finals.append(curve.at(study.budget))
         trained &= left_start(starts, finals)
         ratios = [f / s for s, f in zip(starts, finals) if s > 0 and not math.isnan(f)]
         factor = 1 / float(np.median(ratios)) if ratios else math.nan
-        said.append(f"{variant} {_r(factor)}x")
+        said.append(f"{variant} {short(factor)}x")
     return trained and bool(said), ", ".join(said)
 
 
@@ -1777,8 +1372,8 @@ def plot_map(cells: dict[str, list[Cell]], path: Path, machine: str, note: str =
             ax.text(
                 j,
                 i,
-                f"{MAP_VERDICTS.get(c.verdict, c.verdict)}\n{_r(c.ratio)} [{_r(c.low)}, "
-                f"{_r(c.high)}]\n"
+                f"{MAP_VERDICTS.get(c.verdict, c.verdict)}\n{short(c.ratio)} [{short(c.low)}, "
+                f"{short(c.high)}]\n"
                 f"reached: HIG {c.reached[0]}, Adam {c.reached[1]} of {c.reached[2]}",
                 ha="center",
                 va="center",
@@ -1798,7 +1393,7 @@ def plot_map(cells: dict[str, list[Cell]], path: Path, machine: str, note: str =
             for r in rows
         }
         labels = [
-            (f"batch {r}\n" if r else "") + f"HIG step\n= {_r(costs[r])} x Adam's" for r in rows
+            (f"batch {r}\n" if r else "") + f"HIG step\n= {short(costs[r])} x Adam's" for r in rows
         ]
         ax.set_yticks(range(len(rows)), labels, fontsize=8)
         ax.set_xticks(range(len(xs)), [f"{x:g}" for x in xs])
@@ -1849,8 +1444,9 @@ def regime_map(root: Path, out: Path, note: str = "") -> str:
     for found in cells.values():
         for c in found:
             lines.append(
-                f"| {c.study} | {c.conditioning:g} | {_r(c.cost_ratio)} | {_r(c.ratio)} "
-                f"[{_r(c.low)}, {_r(c.high)}] | {c.reached[0]}, {c.reached[1]} of {c.reached[2]} | "
+                f"| {c.study} | {c.conditioning:g} | {short(c.cost_ratio)} | {short(c.ratio)} "
+                f"[{short(c.low)}, {short(c.high)}] | "
+                f"{c.reached[0]}, {c.reached[1]} of {c.reached[2]} | "
                 f"{MAP_VERDICTS.get(c.verdict, c.verdict)} |"
             )
     return "\n".join(lines) + "\n"

@@ -23,7 +23,17 @@ LAYERS = [
     ("training", {"runner", "guard", "writers", "training", "progress", "trackers"}),
     (
         "reading",
-        {"report", "report_figures", "runs", "tables", "plots", "verdict", "trend", "readout"},
+        {
+            "report",
+            "report_figures",
+            "runs",
+            "tables",
+            "plots",
+            "verdict",
+            "trend",
+            "readout",
+            "claim",
+        },
     ),
     # what a sweep knows of its jobs, the launchers and the GPUs they claim: above the JAX core,
     # which knows nothing of jobs

@@ -117,7 +117,7 @@ def test_a_trend_holds_only_where_the_advantage_grows(tmp_path, studies):
     verdict, ((_, d),) = claims.decide_claim(
         claim_of(claims.Grows("missing", "hard", "C", "R")), tmp_path
     )
-    assert verdict == OPEN and "not finished" in d.why
+    assert verdict == OPEN and "missing has no finished study" in d.why
 
 
 def test_stall_tells_a_stalled_variant_from_a_slow_and_an_unstable_one(tmp_path, studies):

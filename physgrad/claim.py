@@ -1,0 +1,468 @@
+"""A paper's claim decided by physgrad's rules: its parts (A lower than B, A close to B, A's
+advantage grows from an easy setting to a hard one, A stalls, A reaches a level), each decided from
+a study's evaluation runs at a fraction of its budget, in each tuning study and then over them
+(physgrad.verdict.over_studies: a majority of the studies planned, none against).
+
+- "A lower than B": the paired verdict (Holm over the study's comparisons), A better holds it,
+  B better or equivalent goes against it;
+- "A close to B": A better or equivalent within the stated margin holds it, B better goes against;
+- "A's advantage over B grows": physgrad.trend.interaction on the two settings' per-seed log
+  ratios;
+- "A stalls": its loss at the budget against its loss at half the budget, paired by seed,
+  equivalent within the margin (neither still falling nor rising);
+- "A reaches a level": the seeds below it, by the sign test (physgrad.verdict.against_level).
+A claim holds if every part holds, does not hold if one does not, and is not settled otherwise.
+
+The runs a part is read from are any object with the study's `budget`, `axis`, `folder`, `paths`
+(variant -> seed -> where), `curves(variant, column)` (seed -> physgrad.readout.Curve), its
+repeated tuning studies in `tuning` and the number it is to have in `planned`.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Callable, Protocol
+
+import numpy as np
+
+from physgrad.trend import GROWS, interaction
+from physgrad.verdict import (
+    A_BETTER,
+    ABOVE,
+    B_BETTER,
+    BELOW,
+    EQUIVALENT,
+    FRACTIONS,
+    MARGIN,
+    UNDECIDED,
+    across_studies,
+    against_level,
+    compare_variants,
+    majority,
+    over_studies,
+    paired,
+    ratio_of,
+)
+
+HOLDS, FAILS, OPEN = "holds", "does not hold", "not settled"
+# a part whose variants the study does not have (the presets' twin of a clipping sweep)
+NOT_RUN = "not run"
+
+
+class Runs(Protocol):
+    """A study's evaluation runs, as the parts read them."""
+
+    folder: Path
+    axis: str
+    budget: float
+    paths: dict  # variant -> seed -> where its run is
+    tuning: tuple  # with repeated tuning studies: each one's runs, the first included
+    planned: int  # the tuning studies the study is to have (0: those it has)
+
+    def curves(self, variant: str, column: str = "loss") -> dict: ...
+
+
+# --- the parts
+# --------------------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class Lower:
+    """A reaches a lower held-out `column` than B at the budget of `study` (variant names as compare
+    gives them)."""
+
+    study: str
+    a: str
+    b: str
+    column: str = "loss"
+
+    def text(self) -> str:
+        return f"{self.a} below {self.b}" + (f" ({self.column})" if self.column != "loss" else "")
+
+
+@dataclass(frozen=True)
+class Close:
+    """A is better than B or within `margin` of it (equivalence at that margin)."""
+
+    study: str
+    a: str
+    b: str
+    margin: float
+
+    def text(self) -> str:
+        return f"{self.a} within {100 * (self.margin - 1):.0f}% of {self.b} (or below)"
+
+
+@dataclass(frozen=True)
+class Grows:
+    """A's advantage over B (loss A / B) is larger in study `hard` than in study `easy`."""
+
+    easy: str
+    hard: str
+    a: str
+    b: str
+
+    def text(self) -> str:
+        return f"{self.a} / {self.b} lower at {self.hard} than at {self.easy}"
+
+
+@dataclass(frozen=True)
+class Stalls:
+    """The variant's `column` at the budget is within the margin of its value at half the budget."""
+
+    study: str
+    variant: str
+    column: str = "loss"
+
+    def text(self) -> str:
+        return f"{self.variant} stalls ({self.column}: budget vs half of it)"
+
+
+@dataclass(frozen=True)
+class Reaches:
+    """The variant's `column` at the budget lies below an absolute level (the seeds below it, by
+    the package's sign test, physgrad.verdict.against_level)."""
+
+    study: str
+    variant: str
+    level: float
+    column: str = "loss"
+
+    def text(self) -> str:
+        return f"{self.variant} reaches {self.column} below {self.level:g}"
+
+
+Part = Lower | Close | Grows | Stalls | Reaches
+
+
+@dataclass(frozen=True)
+class Claim:
+    name: str
+    paper: str  # the claim as the paper states it, and where
+    parts: tuple
+    note: str = ""  # how the comparison is made, where it departs from the paper's
+    # the paper's training: iterations, or seconds of training time on the paper's hardware
+    # (paper_seconds); nan: not stated as a number
+    paper_budget: float = math.nan
+    paper_budget_text: str = "-"
+    paper_seconds: bool = False
+    # where physgrad's scene or comparison departs from the paper's in a way that matters: how
+    # (the claim's word is then "different setup", physgrad.verdict.claim_word)
+    departs: str = ""
+
+
+@dataclass(frozen=True)
+class Decision:
+    verdict: str  # HOLDS, FAILS, OPEN
+    measured: str  # the numbers: median ratio [interval], k of n, ...
+    why: str
+
+
+def short(x: float) -> str:
+    """x in three significant figures; "-" for NaN."""
+    if math.isnan(x):
+        return "-"
+    if math.isinf(x) or x == 0:
+        return {0.0: "0", math.inf: "inf"}.get(x, str(x))
+    return f"{x:.3g}"
+
+
+def fraction_text(fraction: float) -> str:
+    """1/4 of the budget: "X/4"; the budget: "X"."""
+    if fraction == 1.0:
+        return "X"
+    whole = round(1 / fraction)
+    return f"X/{whole}" if math.isclose(whole * fraction, 1.0) else f"{fraction:g} X"
+
+
+def decide_pairs(runs: Runs, parts: list, fraction: float = 1.0) -> list[Decision]:
+    """The Lower and Close parts of one study at `fraction` of its budget, with Holm's correction
+    over them."""
+    fractions = tuple(sorted({*FRACTIONS, fraction}))
+    decisions = []
+    present = [p for p in parts if p.a in runs.paths and p.b in runs.paths]
+    for part in parts:
+        if part not in present:
+            missing = [n for n in (part.a, part.b) if n not in runs.paths]
+            decisions.append(
+                Decision(NOT_RUN, "-", f"no runs of {' and '.join(missing)} in {runs.folder}")
+            )
+            continue
+        column = getattr(part, "column", "loss")
+        margin = getattr(part, "margin", MARGIN)
+        others = [
+            p
+            for p in present
+            if getattr(p, "column", "loss") == column and getattr(p, "margin", MARGIN) == margin
+        ]
+        names = {v for p in others for v in (p.a, p.b)}
+        # each tuning study decided alone, then over the studies by the package's rule
+        per_study = [
+            compare_variants(
+                {n: study.curves(n, column) for n in names},
+                runs.budget,
+                pairs=[(p.a, p.b) for p in others],
+                margin=margin,
+                fractions=fractions,
+            )
+            for study in (runs.tuning or (runs,))
+        ]
+        result = across_studies(per_study)[others.index(part)]
+        p = result.at[fraction]
+        found = [v.verdicts[fraction] for v in (result.studies or [result])]
+        claim, why = _over_studies(
+            [_pair_outcome(part, verdict) for verdict, _ in found],
+            [f"{verdict}: {why}" for verdict, why in found],
+            [verdict for verdict, _ in found],
+            runs.planned,
+        )
+        diverged = "".join(
+            f"; {name} diverged in {k} of {p.seeds}"
+            for name, k in ((part.a, p.diverged_a), (part.b, p.diverged_b))
+            if k
+        )
+        earlier = "; ".join(
+            f"at {fraction_text(f)} {short(result.at[f].ratio)} ({result.verdicts[f][0]})"
+            for f in fractions
+            if f < fraction
+        )
+        measured = (
+            f"{part.a} / {part.b} = {short(p.ratio)} "
+            f"[{short(ratio_of(p.low))}, {short(ratio_of(p.high))}], "
+            f"{part.a} lower in {p.wins_a} of {p.pairs}{diverged}"
+            + (f"; {earlier}" if earlier else "")
+            + (f"; over {len(runs.tuning)} tuning studies" if runs.tuning else "")
+        )
+        decisions.append(Decision(claim, measured, why))
+    return decisions
+
+
+def _pair_outcome(part: Lower | Close, verdict: str) -> str:
+    """What a pair's verdict says of a Lower part (A better: holds; B better or equivalent: does
+    not hold) or a Close part (A better or equivalent: holds; B better: does not hold)."""
+    if isinstance(part, Close):
+        return {A_BETTER: HOLDS, EQUIVALENT: HOLDS, B_BETTER: FAILS}.get(verdict, OPEN)
+    return {A_BETTER: HOLDS, EQUIVALENT: FAILS, B_BETTER: FAILS}.get(verdict, OPEN)
+
+
+def log_ratios_at_budget(runs: Runs, a: str, b: str, fraction: float = 1.0) -> list[float]:
+    ca, cb = runs.curves(a), runs.curves(b)
+    seeds = sorted(set(ca) | set(cb))
+    x = runs.budget * fraction
+    p = paired(
+        [ca[s].at(x) if s in ca else math.nan for s in seeds],
+        [cb[s].at(x) if s in cb else math.nan for s in seeds],
+    )
+    return list(p.log_ratios)
+
+
+def tuning_studies(runs: Runs) -> tuple:
+    """Each tuning study's runs (the study itself where it has one)."""
+    return runs.tuning or (runs,)
+
+
+def _over_studies(
+    outcomes: list[str], whys: list[str], verdicts: list[str], planned: int = 0
+) -> tuple[str, str]:
+    """A part's outcome (holds, does not hold, not settled) from each tuning study's, with why:
+    one study's as it is; several by the package's rule over tuning studies
+    (physgrad.verdict.over_studies: a majority, none against) applied to what each study's verdict
+    says of the part, so that two verdicts that both support it (A better and equivalent, for "A
+    close to B") do not count as a disagreement; why lists each study's verdict. Of a study with
+    `planned` tuning studies of which fewer have run, the majority is of those planned."""
+    if len(outcomes) == 1 and planned <= 1:
+        return outcomes[0], whys[0]
+    found, why = over_studies(
+        outcomes, undecided=OPEN, labels=verdicts, need=majority(max(planned, len(outcomes)))
+    )
+    if planned > len(outcomes):
+        why += f" ({len(outcomes)} of {planned} tuning studies run)"
+    return found, why
+
+
+def decide_grows(easy: Runs, hard: Runs, part: Grows, fraction: float = 1.0) -> Decision:
+    """The trend in each tuning study (its easy and its hard setting's runs), then over the
+    studies."""
+    for runs in (easy, hard):
+        if not {part.a, part.b} <= set(runs.paths):
+            return Decision(NOT_RUN, "-", f"no runs of {part.a} and {part.b} in {runs.folder}")
+    if len(tuning_studies(easy)) != len(tuning_studies(hard)):
+        return Decision(
+            OPEN,
+            "-",
+            f"{part.easy} has {len(tuning_studies(easy))} tuning studies and {part.hard} "
+            f"{len(tuning_studies(hard))}: decided when both have finished the same number",
+        )
+    pairs = list(zip(tuning_studies(easy), tuning_studies(hard)))
+    ratios = [
+        (
+            log_ratios_at_budget(e, part.a, part.b, fraction),
+            log_ratios_at_budget(h, part.a, part.b, fraction),
+        )
+        for e, h in pairs
+    ]
+    results = [interaction(r_easy, r_hard) for r_easy, r_hard in ratios]
+    trend = {GROWS: HOLDS, UNDECIDED: OPEN}
+    verdict, why = _over_studies(
+        [trend.get(r.verdict, FAILS) for r in results],
+        [f"{r.verdict}: {r.why}" for r in results],
+        [r.verdict for r in results],
+        max(easy.planned, hard.planned),
+    )
+    finite = lambda r: [v for v in r if not math.isnan(v)]  # noqa: E731
+    pooled_easy = finite([v for r, _ in ratios for v in r])
+    pooled_hard = finite([v for _, r in ratios for v in r])
+    median = lambda r: short(ratio_of(float(np.median(r)))) if r else "-"  # noqa: E731
+    measured = (
+        f"{part.a} / {part.b}: {median(pooled_easy)} at {part.easy}, {median(pooled_hard)} at "
+        f"{part.hard}; hard / easy = "
+        + ", ".join(
+            f"{short(r.factor)} [{short(ratio_of(r.low))}, {short(ratio_of(r.high))}]"
+            for r in results
+        )
+        + (f" in {len(results)} tuning studies" if len(results) > 1 else "")
+    )
+    return Decision(verdict, measured, why)
+
+
+def _stall_in(runs: Runs, part: Stalls, fraction: float) -> tuple:
+    """One tuning study's stall test: (paired loss at the fraction / at half of it, losses there,
+    losses at the start, verdict, why)."""
+    from physgrad.verdict import decide
+
+    curves = runs.curves(part.variant, part.column)
+    seeds = sorted(curves)
+    full = [curves[s].at(runs.budget * fraction) for s in seeds]
+    half = [curves[s].at(runs.budget * fraction / 2) for s in seeds]
+    first = [float(curves[s].loss[0]) if len(curves[s].loss) else math.nan for s in seeds]
+    # a run that diverged by half the budget has no level there: it counts as rising from its start
+    # (a tie of two infinities would read as "stalled")
+    half = [h if not math.isinf(h) else f for h, f in zip(half, first)]
+    p = paired(full, half)
+    verdict, why = decide(p, p.p_difference, p.p_equivalent)
+    return p, full, first, verdict, why
+
+
+def decide_stall(runs: Runs, part: Stalls, fraction: float = 1.0) -> Decision:
+    """Stalled by `fraction` of the budget: the loss there against the loss at half of it, paired
+    by seed, in each tuning study, then over the studies."""
+    if part.variant not in runs.paths:
+        return Decision(NOT_RUN, "-", f"no runs of {part.variant} in {runs.folder}")
+    tests = [_stall_in(study, part, fraction) for study in tuning_studies(runs)]
+    # falling (A better: the loss at the budget lower) is slow, rising (B better) unstable: neither
+    # is stalled
+    says = {EQUIVALENT: "stalled", A_BETTER: "still falling", B_BETTER: "rising, not stalled"}
+    claim, why = _over_studies(
+        [{EQUIVALENT: HOLDS, A_BETTER: FAILS, B_BETTER: FAILS}.get(t[3], OPEN) for t in tests],
+        [f"{t[3]}{f': {says[t[3]]}' if t[3] in says else ''} ({t[4]})" for t in tests],
+        [says.get(t[3], t[3]) for t in tests],
+        runs.planned,
+    )
+    full = [v for t in tests for v in t[1]]
+    first = [v for t in tests for v in t[2]]
+    diverged = sum(math.isinf(v) for v in full)
+    measured = (
+        f"{part.column} at the budget / at half of it = "
+        + ", ".join(
+            f"{short(p.ratio)} [{short(ratio_of(p.low))}, {short(ratio_of(p.high))}]"
+            for p, *_ in tests
+        )
+        + (f" in {len(tests)} tuning studies" if len(tests) > 1 else "")
+        + f"; at the budget / at the start: {short(float(np.nanmedian(np.divide(full, first))))}"
+        + (f"; diverged in {diverged} of {len(full)}" if diverged else "")
+    )
+    return Decision(claim, measured, why)
+
+
+def decide_reach(runs: Runs, part: Reaches, fraction: float = 1.0) -> Decision:
+    """Below the level at `fraction` of the budget, by the package's sign test over the seeds, in
+    each tuning study, then over the studies."""
+    if part.variant not in runs.paths:
+        return Decision(NOT_RUN, "-", f"no runs of {part.variant} in {runs.folder}")
+    found = []
+    for study in tuning_studies(runs):
+        curves = study.curves(part.variant, part.column)
+        found.append([curves[s].at(study.budget * fraction) for s in sorted(curves)])
+    tests = [against_level(values, part.level) for values in found]
+    claim, why = _over_studies(
+        [{BELOW: HOLDS, ABOVE: FAILS}.get(verdict, OPEN) for verdict, _ in tests],
+        [f"{verdict}: {why}" for verdict, why in tests],
+        [verdict for verdict, _ in tests],
+        runs.planned,
+    )
+    pooled = [v for values in found for v in values]
+    diverged = sum(math.isinf(v) for v in pooled)
+    measured = (
+        f"{part.column} at the budget: median "
+        + ", ".join(short(float(np.nanmedian(values))) for values in found)
+        + (f" in {len(found)} tuning studies" if len(found) > 1 else "")
+        + f"; below {part.level:g} in {sum(v < part.level for v in pooled)} of {len(pooled)}"
+        + (f"; diverged in {diverged}" if diverged else "")
+    )
+    return Decision(claim, measured, why)
+
+
+def studies_of(claim: Claim) -> set[str]:
+    """The studies a claim's parts are read from."""
+    return {
+        name
+        for part in claim.parts
+        for name in ([part.easy, part.hard] if isinstance(part, Grows) else [part.study])
+    }
+
+
+def claim_of_part(part: Part) -> Claim:
+    """The claim of one part (to decide it alone)."""
+    return Claim("", "", (part,))
+
+
+def decide_parts(
+    claim: Claim, study: Callable[[str], object], fraction: float = 1.0
+) -> list[tuple[object, Decision]]:
+    """Each part of the claim at `fraction` of its budget, from study(name): a study's runs, or a
+    Decision (why it cannot be decided: not finished, not run) where there are none. The Lower and
+    Close parts of one study are decided together (Holm's correction over them)."""
+    by_study: dict[str, list] = {}
+    for part in claim.parts:
+        if isinstance(part, (Lower, Close)):
+            by_study.setdefault(part.study, []).append(part)
+    decided = {}
+    for name, parts in by_study.items():
+        runs = study(name)
+        found = (
+            [runs] * len(parts)
+            if isinstance(runs, Decision)
+            else decide_pairs(runs, parts, fraction)
+        )
+        decided.update(zip(parts, found))
+    rows = []
+    for part in claim.parts:
+        if part in decided:
+            rows.append((part, decided[part]))
+            continue
+        names = [part.easy, part.hard] if isinstance(part, Grows) else [part.study]
+        found = [study(n) for n in names]
+        missing = next((r for r in found if isinstance(r, Decision)), None)
+        if missing is not None:
+            rows.append((part, missing))
+        elif isinstance(part, Grows):
+            rows.append((part, decide_grows(*found, part, fraction)))
+        else:
+            decide_part = decide_reach if isinstance(part, Reaches) else decide_stall
+            rows.append((part, decide_part(found[0], part, fraction)))
+    return rows
+
+
+def claim_verdict(rows: list[tuple[object, Decision]], twin: bool = False) -> str:
+    """A claim holds if every part that was run holds, does not hold if one does not, is not
+    settled otherwise. A part whose variants a study does not run (a presets' twin that fixes the
+    clipping) is left out: the verdict speaks for the parts that were run; of a presets' twin
+    (twin) that ran none of them, NOT_RUN."""
+    verdicts = [d.verdict for _, d in rows if d.verdict != NOT_RUN]
+    if rows and not verdicts and twin:
+        return NOT_RUN
+    if verdicts and all(v == HOLDS for v in verdicts):
+        return HOLDS
+    return FAILS if FAILS in verdicts else OPEN
