@@ -29,6 +29,7 @@ from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
+import yaml
 from evidence import (  # experiments/
     CLOCK,
     STUDY_FOLDER,
@@ -40,6 +41,7 @@ from evidence import (  # experiments/
     read_kept,
     write_kept,
 )
+from studies import CONF, GPU, MAP, PROFILES, STUDIES, Study  # experiments/
 
 from physgrad.claim import (
     FAILS,
@@ -60,6 +62,7 @@ from physgrad.claim import (
     studies_of,
     tuning_studies,
 )
+from physgrad.errors import UserError
 from physgrad.readout import highest_median
 from physgrad.verdict import (
     A_BETTER,
@@ -72,665 +75,40 @@ from physgrad.verdict import (
     ratio_of,
 )
 
-TUNE_SEED = (
-    1_000_000  # compare's default tuning seed: a study that continues networks needs one for it too
-)
-EVIDENCE = Path(__file__).resolve().parent.parent / "docs" / "evidence" / "claims"
-
-
 # --- the studies
 # ------------------------------------------------------------------------------------------
-
-
-@dataclass(frozen=True)
-class Start:
-    """Networks a study continues from (init_from): one `physgrad run` job per seed, evaluation and
-    tuning seeds."""
-
-    name: str
-    overrides: tuple[str, ...]
-    job_seconds: float  # one job on the 2-core machine, start-up and compilation included
-
-
-@dataclass(frozen=True)
-class Study:
-    """One `physgrad compare` of the profile, into <profile folder>/<name> (and <name>-preset,
-    untuned)."""
-
-    name: str
-    # compare's overrides: variant axes (comma lists) and common settings
-    overrides: tuple[str, ...]
-    trials: int
-    seeds: int
-    tune_seconds: float  # one tuning job on the 2-core machine (start-up and compilation included)
-    eval_seconds: float  # one evaluation job (all seeds of a variant when they train together)
-    start: Start | None = None
-    preset: bool | str = (
-        True  # also evaluate the presets untuned (a key=value: with that override replaced)
-    )
-    studies: int = 1  # independent tuning studies (compare.studies); CLAIM_STUDIES for the claims
-    # tuning study k of the `studies` as a compare of its own in <name>/study-k (slices); 0: all
-    # of them in one compare in <name>
-    tuning_study: int = 0
-
-    @property
-    def label(self) -> str:
-        return self.name + (
-            f" (tuning study {self.tuning_study} of {self.studies})" if self.tuning_study else ""
-        )
-
-    @property
-    def folder(self) -> str:
-        """The study's folder under the profile's: <name>/study-k for tuning study k."""
-        k = self.tuning_study
-        return f"{self.name}/{STUDY_FOLDER.format(k=k)}" if k else self.name
-
-    def variants(self, preset: bool = False) -> int:
-        return math.prod(
-            len(_values(o)) for o in self.preset_overrides(preset) if len(_values(o)) > 1
-        )
-
-    def preset_overrides(self, preset: bool = True) -> list[str]:
-        if not preset or not isinstance(self.preset, str):
-            return list(self.overrides)
-        key = self.preset.partition("=")[0]
-        return [self.preset if o.partition("=")[0] == key else o for o in self.overrides]
-
-    @property
-    def timed(self) -> bool:
-        return any(o.startswith("trainer.time_budget=") for o in self.overrides)
-
-    def eval_jobs(self, preset: bool = False) -> int:
-        per_seed = self.timed or self.start is not None
-        return self.variants(preset) * (self.seeds if per_seed else 1)
-
-    def clock(self, root: Path) -> Path | None:
-        """The calibration a tuning study after the first and the presets' twin run on: the
-        study's kept clock (whatever machine ran its first study), else the first study's own in
-        root; None (the study calibrates itself) if there is neither."""
-        for path in (EVIDENCE / CLOCK.format(name=self.name), root / self.name / "study-1"):
-            path = path / "calibration.json" if path.suffix != ".json" else path
-            if path.is_file():
-                return path
-        return None
-
-    def command(self, root: Path, preset: bool = False) -> list[str]:
-        overrides = [o.replace("{root}", str(root)) for o in self.preset_overrides(preset)]
-        k = self.tuning_study
-        folder = f"{self.name}-preset" if preset else self.folder
-        settings = [
-            f"compare.dir={root / folder}",
-            f"compare.seeds={self.seeds}",
-            f"compare.trials={self.trials}",
-            # repeated tuning studies (docs/protocol.md), each a compare of its own with the
-            # tuning seed and evaluation seeds study k has in one compare of all of them; the
-            # untuned presets are one study (the first's seeds)
-            f"compare.studies={1 if preset or k else self.studies}",
-            *(
-                (f"compare.seed={(k - 1) * self.seeds}", f"compare.tune_seed={TUNE_SEED + k - 1}")
-                if k and not preset
-                else ()
-            ),
-        ]
-        if preset:
-            settings.append("compare.tune=false")
-        clock = self.clock(root) if self.timed and (preset or k > 1) else None
-        if clock is not None:  # on the first tuning study's clock
-            settings.append(f"compare.calibration={clock}")
-        return [*overrides, *settings]
-
-    def start_seeds(self, preset: bool = False) -> list[int]:
-        """The seeds a study that continues networks needs a start network for: the evaluation
-        seeds and tuning seed of each tuning study it runs (study k: (k - 1) * seeds .. k * seeds
-        - 1 and compare's tune_seed + k - 1); the presets' twin, the first study's."""
-        ks = [self.tuning_study] if self.tuning_study else range(1, self.studies + 1)
-        ks = [1] if preset else ks
-        return [
-            *(s for k in ks for s in range((k - 1) * self.seeds, k * self.seeds)),
-            *(TUNE_SEED + k - 1 for k in ks),
-        ]
-
-    def seconds(self) -> float:
-        """The expected wall time: tuning, evaluation, the presets' evaluation, the start networks,
-        calibration."""
-        new = 1 if self.tuning_study else self.studies  # the tuning studies this command runs
-        total = new * (
-            self.trials * self.variants() * self.tune_seconds + self.eval_jobs() * self.eval_seconds
-        )
-        total += self.eval_jobs(preset=True) * self.eval_seconds if self.preset else 0.0
-        if self.start:
-            seeds = set(self.start_seeds()) | set(self.start_seeds(True) if self.preset else ())
-            total += len(seeds) * self.start.job_seconds
-        kept_clock = (EVIDENCE / CLOCK.format(name=self.name)).is_file()
-        calibrates = self.tuning_study <= 1 or not kept_clock
-        return total + (30.0 * self.variants() if self.timed and calibrates else 0.0)
-
-
-def _values(override: str) -> list[str]:
-    """The values of a comma-list override (a variant axis); one value otherwise. Quoted values are
-    one value."""
-    value = override.partition("=")[2]
-    if value.startswith(("'", '"', "[")):
-        return [value]
-    return value.split(",")
-
-
-def _study(name, overrides, trials, seeds, tune_seconds, eval_seconds, **more) -> Study:
-    return Study(name, tuple(overrides.split()), trials, seeds, tune_seconds, eval_seconds, **more)
-
-
-CART = (
-    "task=multicart optim=bptt optim.backprop=R,C optim.clip=none,value,norm "
-    "trainer.iterations=1500"
-)
-GUIDANCE = (
-    "task=guidance optim=bptt optim.backprop=R,C optim.clip=none,value,norm trainer.iterations=1500"
-)
-QUANTUM_CONTROL = "task=quantum_control optim=bptt optim.backprop=R,C trainer.iterations=150"
-KS = "task=ks task.zero_output=true trainer.iterations=1000"
-KS_START = Start(
-    "ks_start",
-    (
-        "task=ks",
-        "task.zero_output=true",
-        "task.training=ONE",
-        "unroll=1",
-        "trainer.iterations=1000",
-    ),
-    50,
-)
-POISSON_START = Start("poisson_start", ("task=poisson", "optim=adam", "trainer.time_budget=20"), 30)
-
-# the claims' protocol (docs/protocol.md): every variant tuned with CLAIM_TRIALS trials on the same
-# points in each of CLAIM_STUDIES independent tuning studies, evaluated on CLAIM_SEEDS paired seeds:
-# enough for a verdict with one seed against it for up to 6 comparisons of a study (verdict.
-# seeds_for_one_against: 9), so neither iteration nor equal-time claims need every seed on one side
-CLAIM_TRIALS, CLAIM_STUDIES, CLAIM_SEEDS = 8, 4, 10
-
-
-def _claim_study(study: Study) -> Study:
-    """The study under the claims' protocol (its own trials and seeds, the numbers of the earlier
-    one-study profile, are replaced; its per-job costs stay)."""
-    return replace(study, trials=CLAIM_TRIALS, seeds=CLAIM_SEEDS, studies=CLAIM_STUDIES)
-
-
-STUDIES = tuple(
-    map(
-        _claim_study,
-        (
-            _study(
-                "oscillator",
-                "task=oscillator optim=adam,gauss_newton,hig trainer.time_budget=15",
-                3,
-                7,
-                25,
-                25,
-            ),
-            _study(
-                "quantum",
-                "task=quantum optim=adam,hig trainer.time_budget=20",
-                2,
-                6,
-                32,
-                32,
-            ),
-            Study(
-                "poisson_continue",
-                (
-                    "task=poisson",
-                    "optim=adam,hig",
-                    "trainer.time_budget=30",
-                    "init_from='{root}/poisson_start/seed=${seed}/results.h5'",
-                ),
-                2,
-                6,
-                43,
-                43,
-                start=POISSON_START,
-            ),
-            *(
-                _study(
-                    f"toy_{scale}",
-                    f"task=toy task.scale={scale} optim=adam,gauss_newton,hig "
-                    "trainer.time_budget=8",
-                    3,
-                    7,
-                    18,
-                    18,
-                )
-                for scale in ("1", "0.01")
-            ),
-            _study("cart_2", f"{CART} task.poles=2", 2, 10, 17, 100, preset="optim.clip=none"),
-            _study("cart_4", f"{CART} task.poles=4", 2, 10, 17, 120, preset="optim.clip=none"),
-            _study("quantum_control_3", f"{QUANTUM_CONTROL} task.target_level=3", 2, 6, 43, 220),
-            _study("quantum_control_5", f"{QUANTUM_CONTROL} task.target_level=5", 2, 6, 43, 220),
-            _study(
-                "guidance_1",
-                f"{GUIDANCE} task.control_cost=1",
-                2,
-                10,
-                20,
-                115,
-                preset="optim.clip=none",
-            ),
-            _study(
-                "guidance_0.001",
-                f"{GUIDANCE} task.control_cost=0.001",
-                2,
-                10,
-                20,
-                115,
-                preset="optim.clip=none",
-            ),
-            _study(
-                "ks_training",
-                f"{KS} task.stepper=correct task.training=WIG,NOG,ONE unroll=3",
-                3,
-                10,
-                50,
-                270,
-            ),
-            _study(
-                "ks_stepper",
-                # the abstract's pair (NOG correcting, WIG predicting) and WIG against WIG
-                f"{KS} task.training=NOG,WIG task.stepper=correct,predict unroll=3",
-                3,
-                10,
-                50,
-                270,
-            ),
-            Study(
-                "ks_unroll",
-                (
-                    *KS.split(),
-                    "task.stepper=correct",
-                    "task.training=WIG",
-                    "unroll=1,3,8",
-                    "init_from='{root}/ks_start/seed=${seed}/results.h5'",
-                ),
-                2,
-                8,
-                50,
-                50,
-                start=KS_START,
-            ),
-            # the papers' own central comparisons (their ablations)
-            _study(
-                "cart_4_modes",
-                "task=multicart task.poles=4 optim=bptt optim.backprop=R,M,S,C optim.clip=none "
-                "trainer.iterations=1500",
-                2,
-                10,
-                17,
-                120,
-            ),
-            _study(
-                "poisson_scratch",
-                "task=poisson optim=adam,hig trainer.time_budget=30",
-                2,
-                6,
-                43,
-                43,
-            ),
-            _study(
-                "oscillator_kappa",
-                "task=oscillator optim=hig optim.kappa=0.5,1,0 trainer.time_budget=15",
-                3,
-                7,
-                25,
-                25,
-            ),
-        ),
-    )
-)
-
-# The regime map: HIG against Adam per cell, both tuned in the cell with the claims' trials on
-# shared points (one tuning study: a map is no claim) and evaluated on 6 paired seeds; the
-# conditioning of the physics across, HIG's step cost relative to Adam's (the Jacobian's rows: the
-# batch) down. With 2 trials HIG was tried at 1.6e-3 and 0.16 of [0.001, 10] on the oscillators,
-# about 30 times below the rate 8 trials find.
-MAP_TOY = tuple(
-    _study(
-        f"map_toy_{scale}_b{batch}",
-        f"task=toy optim=adam,hig task.scale={scale} task.batch_size={batch} trainer.time_budget=5",
-        CLAIM_TRIALS,
-        6,
-        15,
-        15,
-        preset=False,
-    )
-    for batch in (16, 256)
-    for scale in ("1", "0.01", "0.0001")
-)
-MAP_OSCILLATOR = tuple(
-    _study(
-        f"map_oscillator_{alpha}",
-        f"task=oscillator optim=adam,hig task.alpha={alpha} trainer.time_budget=10",
-        CLAIM_TRIALS,
-        6,
-        20,
-        20,
-        preset=False,
-    )
-    for alpha in ("0.25", "1", "4")
-)
-MAP = MAP_TOY + MAP_OSCILLATOR
-
-# claims-long: the claims whose verdict turned with the budget, run four times as long under the
-# same protocol (their own folders): a quarter of the budget is the claims profile's
-LONG = tuple(
-    map(
-        _claim_study,
-        (
-            _study(
-                "oscillator",
-                "task=oscillator optim=adam,gauss_newton,hig trainer.time_budget=60",
-                2,
-                7,
-                70,
-                70,
-                preset=False,
-            ),
-            _study(
-                "quantum_control_3",
-                f"{QUANTUM_CONTROL.replace('=150', '=600')} task.target_level=3",
-                2,
-                6,
-                150,
-                800,
-                preset=False,
-            ),
-            _study(
-                "quantum_control_5",
-                f"{QUANTUM_CONTROL.replace('=150', '=600')} task.target_level=5",
-                2,
-                6,
-                150,
-                800,
-                preset=False,
-            ),
-        ),
-    )
-)
-
-# claims-gpu: the claims that need budgets a 2-core machine cannot give, for one GPU. Poisson's
-# HIG step (the SVD of a 4,096-row Jacobian) costs about 13 s on 2 CPU cores and about 128 ms on
-# an H100: 300 s of continuation are about 2,300 HIG steps there (23 here). A job on the
-# calibrated clock costs its budget plus start-up whatever the step costs; the
-# Kuramoto-Sivashinsky jobs are costed at the 2-core machine's update (0.21 s for ten networks),
-# which was not measured on a GPU.
-GPU_POISSON_START = Start(
-    "poisson_start", ("task=poisson", "optim=adam", "trainer.time_budget=300"), 330
-)
-GPU = tuple(
-    map(
-        _claim_study,
-        (
-            Study(
-                "poisson_continue",
-                (
-                    "task=poisson",
-                    "optim=adam,hig",
-                    "trainer.time_budget=300",
-                    "init_from='{root}/poisson_start/seed=${seed}/results.h5'",
-                ),
-                2,
-                6,
-                330,
-                330,
-                start=GPU_POISSON_START,
-                preset=False,
-            ),
-            _study(
-                "ks_training",
-                f"{KS.replace('=1000', '=42500')} task.stepper=correct "
-                "task.training=WIG,NOG,ONE unroll=3",
-                3,
-                10,
-                1400,
-                9500,
-                preset=False,
-            ),
-        ),
-    )
-)
-
-PROFILES = {"claims": STUDIES + MAP, "claims-long": LONG, "claims-gpu": GPU}
-
-
-def starts(studies) -> list[Start]:
-    found = []
-    for study in studies:
-        if study.start is not None and study.start not in found:
-            found.append(study.start)
-    return found
-
-
-def slices(study: Study) -> list[Study]:
-    """A study with repeated tuning studies as one compare per tuning study, each in a folder of
-    its own (<name>/study-k), so that each is kept whatever machine ran the others; the untuned
-    presets with the last. A study of one tuning study is itself."""
-    if study.studies == 1:
-        return [study]
-    return [
-        replace(study, tuning_study=k, preset=study.preset if k == study.studies else False)
-        for k in range(1, study.studies + 1)
-    ]
-
-
-def chunks(studies, limit_seconds: float = 80 * 60) -> list[list[Study]]:
-    """The studies in order, each cut into its tuning studies (slices), grouped into parts of at
-    most limit_seconds expected; a slice longer than that is a part of its own (it resumes job by
-    job)."""
-    parts, current, used = [], [], 0.0
-    for study in (piece for whole in studies for piece in slices(whole)):
-        if current and used + study.seconds() > limit_seconds:
-            parts.append(current)
-            current, used = [], 0.0
-        current.append(study)
-        used += study.seconds()
-    return parts + ([current] if current else [])
 
 
 # --- the claims
 # -------------------------------------------------------------------------------------------
 
 
-R_VARIANTS = ("none", "value", "norm")
-# the unrolling study's training: about 42,500 updates for WIG and NOG (docs/decisions.md)
-KS_UPDATES = 42_500
+PART_KINDS = {"lower": Lower, "close": Close, "grows": Grows, "stalls": Stalls, "reaches": Reaches}
 
 
-def _bptt(clip: str, mode: str) -> str:
-    return f"backprop={mode} clip={clip}"
+def _part(entry: dict) -> object:
+    """A claim's part from its entry: its kind as the key of its study (grows: [easy, hard]), then
+    its own fields (physgrad.claim)."""
+    (kind,) = set(entry) & set(PART_KINDS)
+    rest = {k: v for k, v in entry.items() if k != kind}
+    if kind == "grows":
+        return Grows(*entry[kind], **rest)
+    return PART_KINDS[kind](entry[kind], **rest)
 
 
-# the StableBPTT paper trains 32,000 iterations (guidance: 1,000 epochs of 32 batches of 8)
-STABLE_BPTT_ITERATIONS = 32_000
+def load_claims(path: Path = CONF / "claims.yaml") -> tuple[Claim, ...]:
+    """The claims from their YAML file: each claim's name, the paper's statement and where, its
+    parts, how the comparison departs, and the paper's budget; anything else is a UserError."""
+    try:
+        return tuple(
+            Claim(**{**entry, "parts": tuple(_part(p) for p in entry["parts"])})
+            for entry in yaml.safe_load(path.read_text())["claims"]
+        )
+    except (KeyError, TypeError, ValueError) as error:
+        raise UserError(f"{path}: {type(error).__name__}: {error}") from None
 
 
-def _stable_bptt(
-    name: str,
-    paper: str,
-    easy: str,
-    hard: str,
-    note: str,
-    budget: str,
-    iterations: float = STABLE_BPTT_ITERATIONS,
-) -> Claim:
-    parts = [Lower(hard, _bptt(c, "C"), _bptt(c, "R")) for c in R_VARIANTS]
-    parts += [Grows(easy, hard, _bptt(c, "C"), _bptt(c, "R")) for c in R_VARIANTS]
-    return Claim(name, paper, tuple(parts), note, iterations, budget)
-
-
-CLAIMS = (
-    Claim(
-        "oscillators: HIG below Adam and Gauss-Newton",
-        "HIG paper (Schnell, Holl and Thuerey, ICLR 2022), figure 2b (by the reference "
-        "repository's README): on the coupled oscillators HIG reaches a lower test loss than Adam "
-        "and Gauss-Newton in the same wall-clock time",
-        (Lower("oscillator", "hig", "adam"), Lower("oscillator", "hig", "gauss_newton")),
-        paper_budget=3600.0,
-        paper_budget_text="3,600 s per method (its run scripts: 60 x 60 s)",
-        paper_seconds=True,
-    ),
-    Claim(
-        "quantum dipole: HIG below Adam",
-        "HIG paper (figure number unverified): on quantum dipole control HIG beats Adam in "
-        "wall-clock time",
-        (Lower("quantum", "hig", "adam"),),
-        paper_budget=5400.0,
-        paper_budget_text="5,400 s per method (its run scripts: 60 x 90 s)",
-        paper_seconds=True,
-    ),
-    Claim(
-        "Poisson: HIG after Adam improves further than Adam",
-        "HIG paper, Poisson problem (figure number unverified): continuing an Adam-trained network "
-        "with HIG lowers the loss further than continuing with Adam",
-        (Lower("poisson_continue", "hig", "adam"),),
-        "each seed continues its own Adam network (poisson_start: Adam on the measured clock, 20 s "
-        "in the claims profile, 300 s in claims-gpu)",
-        paper_budget_text="not stated in the run scripts (unverified)",
-    ),
-    _stable_bptt(
-        "cart: C keeps solving as poles are added, R degrades",
-        "StableBPTT paper (Schnell and Thuerey, ICLR 2024), Figure 4: on the multi-pole cart the "
-        "combined "
-        "gradient C keeps its performance as poles are added while regular BPTT (R) degrades",
-        "cart_2",
-        "cart_4",
-        "C against R under each clipping of the reference's sweep (none, value, norm), at 4 poles "
-        "and as a trend from 2 to 4 poles",
-        "32,000 iterations",
-    ),
-    Claim(
-        "quantum control: C below R at higher target levels",
-        "StableBPTT paper, Figure 5: on quantum control C is better than R for the higher target "
-        "levels",
-        (
-            Lower("quantum_control_5", "backprop=C", "backprop=R"),
-            Grows("quantum_control_3", "quantum_control_5", "backprop=C", "backprop=R"),
-        ),
-        "without clipping only (the clipping variants triple a scene whose step costs 0.2 s)",
-        STABLE_BPTT_ITERATIONS,
-        "32,000 iterations",
-    ),
-    _stable_bptt(
-        "guidance: C below R at small control cost",
-        "StableBPTT paper, Figure 8: on guidance by repulsion C is better than R for small "
-        "regularisation coefficients rc",
-        "guidance_1",
-        "guidance_0.001",
-        "C against R under each clipping, at rc = 0.001 and as a trend from rc = 1",
-        "unverified: 1,000 epochs (32,000 iterations) assumed; the reference's committed run "
-        "script trains 10 epochs",
-        math.nan,
-    ),
-    Claim(
-        "KS: correction beats prediction",
-        "Unrolling study (List et al. 2025), Kuramoto-Sivashinsky: correcting a coarse solver "
-        "gives a lower error than predicting the whole step with the network, the correction "
-        "trained without gradients through the unroll (NOG), the prediction with them (WIG), as "
-        "the abstract compares them (the 4.5x of the study's first version is over all its "
-        "systems, not a Kuramoto-Sivashinsky figure: no factor is claimed here)",
-        (
-            Lower("ks_stepper", "training=NOG stepper=correct", "training=WIG stepper=predict"),
-            Lower("ks_stepper", "training=WIG stepper=correct", "training=WIG stepper=predict"),
-        ),
-        "m = 3; first the abstract's pair (NOG correcting, WIG predicting), then WIG against WIG "
-        "(labelled: the pair physgrad measured before); the factor is the median ratio "
-        "predict / correct",
-        KS_UPDATES,
-        "about 42,500 updates",
-    ),
-    Claim(
-        "KS: WIG best, NOG close, ONE worse",
-        "Unrolling study, Kuramoto-Sivashinsky: training with gradients through the unroll (WIG) "
-        "gives the lowest error, without them (NOG) comes close, one-step training (ONE) is worse",
-        (
-            Lower("ks_training", "training=WIG", "training=ONE"),
-            Lower("ks_training", "training=NOG", "training=ONE"),
-            Close("ks_training", "training=NOG", "training=WIG", 1.25),
-        ),
-        "correction stepper, m = 3; close: NOG within 25% of WIG",
-        KS_UPDATES,
-        "about 42,500 updates (ONE about 40,700)",
-        departs="the study reports average improvements over ONE across its configurations "
-        "(about 38% for WIG, 23% for NOG); physgrad tests one configuration and reads 'close' as "
-        "NOG within 25% of WIG",
-    ),
-    Claim(
-        "KS: a best unroll length",
-        "Not the study's claim: it trains at m = 3 and reports no optimum; physgrad asks whether "
-        "m = 3 beats m = 1 and m = 8 on Kuramoto-Sivashinsky",
-        (Lower("ks_unroll", "3", "1"), Lower("ks_unroll", "3", "8")),
-        "every m continues the same one-step (ONE) network of its seed, as the study starts "
-        "longer unrolls",
-        KS_UPDATES,
-        "about 42,500 updates",
-        departs="a question physgrad asks, not a claim of the study (m = 3 is its setting)",
-    ),
-    Claim(
-        "cart (4 poles): C below M and S",
-        "StableBPTT paper's ablation: the combined gradient C beats gradient stopping without the "
-        "sign combination (M) and the stopped gradient without long-range backpropagation (S)",
-        (
-            Lower("cart_4_modes", "backprop=C", "backprop=M"),
-            Lower("cart_4_modes", "backprop=C", "backprop=S"),
-        ),
-        "4 poles (the hard end), without clipping (the papers' setting); figure number unverified",
-        STABLE_BPTT_ITERATIONS,
-        "32,000 iterations",
-    ),
-    Claim(
-        "Poisson: HIG below Adam from the same initial network",
-        "HIG paper, Poisson problem (the first half of its figure; number unverified): trained "
-        "from the same initial network, HIG reaches a lower loss than Adam",
-        (Lower("poisson_scratch", "hig", "adam"),),
-        "HIG's step costs 5.9 s calibrated on 2 cores: 30 s are about 5 HIG steps, a test of "
-        "the step's cost more than of the claim",
-        paper_budget_text="not stated in the run scripts (unverified)",
-    ),
-    Claim(
-        "oscillators: the half inversion beats the full inversion and none",
-        "HIG paper, the exponent of the inversion (ablation; figure number unverified): the half "
-        "inversion (kappa = 1/2) trains better than the full inversion (kappa = 1, Gauss-Newton's "
-        "exponent) and no inversion (kappa = 0)",
-        (
-            Lower("oscillator_kappa", "kappa=0.5", "kappa=1"),
-            Lower("oscillator_kappa", "kappa=0.5", "kappa=0"),
-        ),
-        "every variant is physgrad's HIG step with another exponent, tuned like the rest",
-        paper_budget=3600.0,
-        paper_budget_text="3,600 s per method (its run scripts: 60 x 60 s)",
-        paper_seconds=True,
-    ),
-    Claim(
-        "toy (lambda = 1): Adam, Gauss-Newton and HIG all converge",
-        "PBDL book, HIG chapter, the toy's well-conditioned case: with lambda = 1 all three "
-        "methods fare okay, the loss decreasing to around 1e-2 and 1e-3",
-        tuple(Reaches("toy_1", variant, 1e-2) for variant in ("adam", "gauss_newton", "hig")),
-        "the book's toy (1 -> 7 tanh -> 2, the target not scaled); reaching: the held-out loss "
-        "below 1e-2, the upper end of the book's range; the book states no budget, batch or rates",
-        paper_budget_text="not stated (the book's figure)",
-    ),
-    Claim(
-        "toy (lambda = 0.01): HIG converges where Adam and Gauss-Newton stall",
-        "PBDL book, HIG chapter, the toy's ill-conditioned case: with lambda = 0.01 Adam and "
-        "Gauss-Newton do not decrease the loss beyond about 0.2 (Gauss-Newton's neurons "
-        "saturated), while HIG converges",
-        (
-            Lower("toy_0.01", "hig", "adam"),
-            Lower("toy_0.01", "hig", "gauss_newton"),
-            Stalls("toy_0.01", "adam"),
-            Stalls("toy_0.01", "gauss_newton"),
-        ),
-        "the book's toy (1 -> 7 tanh -> 2, the target not scaled) on the held-out loss: HIG lower, "
-        "and Adam's and Gauss-Newton's loss no longer falling from half the budget to the budget; "
-        "the book states no budget, batch or rates",
-        paper_budget_text="not stated (the book's figure)",
-    ),
-)
+CLAIMS = load_claims()
 
 
 # --- reading a study
@@ -1416,8 +794,8 @@ def plot_map(cells: dict[str, list[Cell]], path: Path, machine: str, note: str =
 
 def regime_map(root: Path, out: Path, note: str = "") -> str:
     cells = {
-        "toy": [c for s in MAP_TOY if (c := map_cell(root, s))],
-        "oscillators": [c for s in MAP_OSCILLATOR if (c := map_cell(root, s))],
+        title: [c for s in MAP if task in s.overrides and (c := map_cell(root, s))]
+        for title, task in (("toy", "task=toy"), ("oscillators", "task=oscillator"))
     }
     if not any(cells.values()):
         return ""
@@ -1482,8 +860,8 @@ def write(root: Path, out: Path, note: str = "", profile: str = "claims") -> str
 
 GENERATED = (
     "<!-- generated from docs/evidence/claims by `python experiments/claims.py "
-    "docs/evidence/claims --doc docs/claims.md`: edit the evidence or experiments/claims.py, "
-    "not this block -->",
+    "docs/evidence/claims --doc docs/claims.md`: edit the evidence, experiments/conf/claims.yaml "
+    "or experiments/claims.py, not this block -->",
     "<!-- end of the generated block -->",
 )
 

@@ -27,7 +27,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
-from claims import TUNE_SEED, Study, read_study  # experiments/
+from claims import read_study  # experiments/
 from evidence import (
     CLOCK,
     STUDY_FOLDER,
@@ -38,6 +38,7 @@ from evidence import (
     merged_rows,
     write_kept,
 )
+from studies import TUNE_SEED, Study
 
 from physgrad.bench import OPTIMS as BENCH_OPTIMS
 from physgrad.verdict import (

@@ -10,7 +10,7 @@ outputs/experiments/<profile>/<experiment>/<overrides>/results.h5; a second call
 that completed or diverged (so an interrupted reproduction resumes), unless OVERWRITE=1. Each figure
 is `physgrad report` of its runs: the same table and figures that command writes for any runs.
 
-The claims profile runs the studies of experiments/claims.py (STUDIES and the regime map MAP), each
+The claims profile runs the studies of experiments/conf/studies.yaml (the claims and the regime map), each
 a `physgrad compare` (tuned, paired seeds, calibrated clock) and its untuned twin, into
 outputs/experiments/claims/<study> (each tuning study a compare of its own, in <study>/study-k, so
 that any part can run on any machine and be kept on its own); claims-long runs the claims whose
@@ -237,11 +237,11 @@ NOTES = {
     "quick": "QUICK PROFILE: budgets scaled down from the papers' (see experiments/reproduce.py)",
     "paper": "paper profile: the papers' budgets",
     "claims": "CLAIMS PROFILE: physgrad compare studies (tuned, paired seeds, calibrated clock), "
-    "budgets sized for a 2-core machine (experiments/claims.py)",
+    "budgets sized for a 2-core machine (experiments/conf/studies.yaml)",
     "claims-long": "CLAIMS-LONG PROFILE: the claims whose verdict turned with the budget, run "
-    "four times as long (experiments/claims.py)",
+    "four times as long (experiments/conf/studies.yaml)",
     "claims-gpu": "CLAIMS-GPU PROFILE: the claims that need budgets a 2-core machine cannot give, "
-    "for one GPU (experiments/claims.py)",
+    "for one GPU (experiments/conf/studies.yaml)",
     "leaderboard": "LEADERBOARD PROFILE: every rule against Adam, physgrad compare studies at "
     "equal calibrated time (experiments/leaderboard.py)",
 }
@@ -253,7 +253,7 @@ STUDY_PROFILES = ("claims", "claims-long", "claims-gpu", "leaderboard")
 
 
 def claims_parts(profile: str) -> list:
-    from claims import PROFILES, chunks  # experiments/ is this script's folder
+    from studies import PROFILES, chunks  # experiments/ is this script's folder
 
     if profile == "leaderboard":
         from leaderboard import LEADERBOARD
@@ -273,7 +273,7 @@ PLAN_MACHINE = {
 def print_claims_plan(profile: str, root: Path) -> None:
     """The studies of a claims profile part by part, with their jobs and expected time on the 2-core
     machine."""
-    from claims import starts
+    from studies import starts
 
     total = 0.0
     for index, part in enumerate(claims_parts(profile), 1):
@@ -334,7 +334,8 @@ def study_environment(profile: str, study) -> dict | None:
 def run_claims(profile: str, parts: list[int], root: Path, out: Path) -> int:
     """The studies of the chosen parts (all: every part), each tuned and untuned; then claims.md
     from every study that has finished."""
-    from claims import starts, write
+    from claims import write
+    from studies import starts
 
     failed = []
     all_parts = claims_parts(profile)

@@ -110,7 +110,7 @@ def test_rules_that_do_not_apply_are_marked_with_why(tmp_path):
 
 def test_every_scene_is_a_compare_with_adam_as_baseline_and_parts_stay_near_80_minutes():
     sys.path.insert(0, str(REPO / "experiments"))
-    from claims import TUNE_SEED, chunks
+    from studies import TUNE_SEED, chunks
 
     for entry in leaderboard.SCENES:
         for k in range(1, leaderboard.LEADERBOARD_STUDIES + 1):

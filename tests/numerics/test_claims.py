@@ -15,6 +15,7 @@ from tests.helpers import REPO
 sys.path.insert(0, str(REPO / "experiments"))
 
 import claims  # noqa: E402
+import studies as study_lists  # noqa: E402
 from claims import FAILS, HOLDS, OPEN  # noqa: E402
 
 from physgrad.readout import Curve  # noqa: E402
@@ -64,15 +65,15 @@ def test_every_claim_part_names_a_study_of_the_profile_and_variants_it_makes():
 
     from physgrad.comparison import variant_name
 
-    studies = {s.name: s for s in claims.STUDIES}
+    studies = {s.name: s for s in study_lists.STUDIES}
     for claim in claims.CLAIMS:
         for part in claim.parts:
             for name in [part.easy, part.hard] if isinstance(part, claims.Grows) else [part.study]:
                 study = studies[name]
                 axes = [
-                    [f"{o.partition('=')[0]}={v}" for v in claims._values(o)]
+                    [f"{o.partition('=')[0]}={v}" for v in study_lists._values(o)]
                     for o in study.overrides
-                    if len(claims._values(o)) > 1
+                    if len(study_lists._values(o)) > 1
                 ]
                 names = {variant_name(list(combo)) for combo in itertools.product(*axes)}
                 wanted = (
@@ -86,7 +87,7 @@ def test_every_claim_part_names_a_study_of_the_profile_and_variants_it_makes():
 def test_paired_seeds_suffice_for_every_comparison_a_claim_makes():
     from physgrad.verdict import seeds_needed
 
-    studies = {s.name: s for s in claims.PROFILES["claims"]}
+    studies = {s.name: s for s in study_lists.PROFILES["claims"]}
     for claim in claims.CLAIMS:
         per_study = {}
         for part in claim.parts:
@@ -94,7 +95,9 @@ def test_paired_seeds_suffice_for_every_comparison_a_claim_makes():
                 per_study[part.study] = per_study.get(part.study, 0) + 1
         for name, count in per_study.items():
             assert studies[name].seeds >= seeds_needed(comparisons=count), (claim.name, name)
-    assert all(s.seeds >= 5 for s in claims.PROFILES["claims"] if s.timed)  # equal time: at least 5
+    assert all(
+        s.seeds >= 5 for s in study_lists.PROFILES["claims"] if s.timed
+    )  # equal time: at least 5
 
 
 def test_a_study_command_names_its_folder_seeds_trials_and_the_presets_clock(tmp_path, monkeypatch):
@@ -103,14 +106,14 @@ def test_a_study_command_names_its_folder_seeds_trials_and_the_presets_clock(tmp
     twin run on the first study's clock, the kept one first."""
     from physgrad.comparison import split_overrides, study_settings
 
-    monkeypatch.setattr(claims, "EVIDENCE", tmp_path / "evidence")
-    study = next(s for s in claims.STUDIES if s.name == "oscillator")
+    monkeypatch.setattr(study_lists, "EVIDENCE", tmp_path / "evidence")
+    study = next(s for s in study_lists.STUDIES if s.name == "oscillator")
     assert study.variants() == 3 and study.timed and study.eval_jobs() == 3 * study.seeds
     whole = study_settings(split_overrides(study.command(tmp_path))[0])
     assert f"compare.dir={tmp_path / 'oscillator'}" in study.command(tmp_path)
-    first, second, *_, last = claims.slices(study)
+    first, second, *_ = study_lists.slices(study)
     clock = tmp_path / "oscillator" / "study-1" / "calibration.json"
-    for k, piece in enumerate(claims.slices(study)):
+    for k, piece in enumerate(study_lists.slices(study)):
         command = piece.command(tmp_path)
         assert f"compare.dir={tmp_path / 'oscillator' / f'study-{k + 1}'}" in command
         assert "compare.tune=false" not in command and "compare.studies=1" in command
@@ -118,23 +121,23 @@ def test_a_study_command_names_its_folder_seeds_trials_and_the_presets_clock(tmp
         assert settings.evaluation_seeds == whole.study_seeds(k)
         assert settings.tune_seed == whole.tune_seed + k
         assert not any(o.startswith("compare.calibration=") for o in command)  # no clock yet
-    preset = last.command(tmp_path, preset=True)
+    preset = first.command(tmp_path, preset=True)
     assert f"compare.dir={tmp_path / 'oscillator-preset'}" in preset
     assert "compare.tune=false" in preset
     assert study_settings(split_overrides(preset)[0]).evaluation_seeds == whole.study_seeds(0)
     clock.parent.mkdir(parents=True)
     clock.write_text("{}")
     assert f"compare.calibration={clock}" in second.command(tmp_path)
-    assert f"compare.calibration={clock}" in last.command(tmp_path, preset=True)
+    assert f"compare.calibration={clock}" in first.command(tmp_path, preset=True)
     assert not any(o.startswith("compare.calibration=") for o in first.command(tmp_path))
     kept = tmp_path / "evidence" / "oscillator.calibration.json"
     kept.parent.mkdir()
     kept.write_text("{}")
     assert f"compare.calibration={kept}" in second.command(tmp_path)
-    cart = next(s for s in claims.STUDIES if s.name == "cart_4")
+    cart = next(s for s in study_lists.STUDIES if s.name == "cart_4")
     # seeds trained together, one job per variant
     assert cart.variants() == 6 and cart.eval_jobs() == 6
-    unroll = next(s for s in claims.STUDIES if s.name == "ks_unroll")
+    unroll = next(s for s in study_lists.STUDIES if s.name == "ks_unroll")
     assert unroll.eval_jobs() == 3 * unroll.seeds  # init_from: one network per job
     assert any(
         f"init_from='{tmp_path}/ks_start/seed=${{seed}}/results.h5'" == o
@@ -142,15 +145,12 @@ def test_a_study_command_names_its_folder_seeds_trials_and_the_presets_clock(tmp
     )
 
 
-def test_parts_stay_under_the_limit_and_keep_the_order(tmp_path, monkeypatch):
+def test_parts_stay_under_the_limit_and_keep_the_order():
     """Every study in order, one with repeated tuning studies cut into them (1, 2, ..., each a
-    compare of its own), costing what the whole does (with its clock kept; the presets' twin needs
-    the first study's start networks again), the presets with the last."""
-    monkeypatch.setattr(claims, "EVIDENCE", tmp_path)
-    for profile in claims.PROFILES.values():
-        for study in profile:
-            (tmp_path / f"{study.name}.calibration.json").write_text("{}")
-        parts = claims.chunks(profile)
+    compare of its own in <name>/study-k), costing what the whole does, the presets with the
+    first (on its seeds, start networks and clock)."""
+    for profile in study_lists.PROFILES.values():
+        parts = study_lists.chunks(profile)
         pieces = iter(s for part in parts for s in part)
         for study in profile:
             piece = next(pieces)
@@ -162,12 +162,8 @@ def test_parts_stay_under_the_limit_and_keep_the_order(tmp_path, monkeypatch):
                 (study.name, study.studies, k, f"{study.name}/study-{k}")
                 for k in range(1, study.studies + 1)
             ]
-            again = len(study.start_seeds(preset=True)) if study.start and study.preset else 0
-            again *= study.start.job_seconds if study.start else 0
-            assert sum(s.seconds() for s in cut) == pytest.approx(study.seconds() + again)
-            assert [bool(s.preset) for s in cut] == [False] * (study.studies - 1) + [
-                bool(study.preset)
-            ]
+            assert sum(s.seconds() for s in cut) == pytest.approx(study.seconds())
+            assert [s.preset for s in cut] == [study.preset] + [False] * (study.studies - 1)
         assert next(pieces, None) is None
         assert all(sum(s.seconds() for s in part) <= 80 * 60 or len(part) == 1 for part in parts)
 
@@ -184,7 +180,7 @@ def test_every_study_composes_and_its_variants_apply():
     )
 
     built = {}  # each distinct scene built once over all the studies (the same tuning seed)
-    for study in claims.STUDIES + claims.MAP + claims.LONG + claims.GPU:
+    for study in study_lists.STUDIES + study_lists.MAP + study_lists.LONG + study_lists.GPU:
         overrides = [o for o in study.command(Path("/nowhere")) if not o.startswith("init_from")]
         given, axes, common, _ = split_overrides(overrides)
         s = study_settings(given)
@@ -227,7 +223,7 @@ def test_a_claim_is_decided_at_each_fraction_of_its_budget_and_a_reversal_heads_
     assert verdicts[0.25] == HOLDS and verdicts[1.0] == FAILS, verdicts
     _, rows = claims.decide_claim(claim, tmp_path, fraction=1.0)
     assert "at X/4" in rows[0][1].measured and "(A better)" in rows[0][1].measured
-    table = claims.headline_table(tmp_path, claims.PROFILES["claims"])
+    table = claims.headline_table(tmp_path, study_lists.PROFILES["claims"])
     row = next(line for line in table.splitlines() if "oscillators" in line)
     assert row.startswith("| **reverses with the budget**: oscillators")
     assert "| holds |" in row and "**does not hold**" in row
@@ -245,7 +241,7 @@ def test_a_claim_is_decided_at_each_fraction_of_its_budget_and_a_reversal_heads_
     )
     row = next(
         line
-        for line in claims.headline_table(tmp_path, claims.PROFILES["claims"]).splitlines()
+        for line in claims.headline_table(tmp_path, study_lists.PROFILES["claims"]).splitlines()
         if "oscillators" in line
     )
     assert "reverses" not in row and "| holds | holds | **holds** |" in row
@@ -259,8 +255,8 @@ def test_a_claim_is_decided_at_each_fraction_of_its_budget_and_a_reversal_heads_
         "oscillator",
         {"hig": {s: crossing(3.0, s) for s in TEN}, "adam": slow, "gauss_newton": slow},
     )
-    further = ((longer, claims.LONG), (tmp_path / "claims-gpu", claims.GPU))
-    table = claims.headline_table(tmp_path, claims.PROFILES["claims"], further)
+    further = ((longer, study_lists.LONG), (tmp_path / "claims-gpu", study_lists.GPU))
+    table = claims.headline_table(tmp_path, study_lists.PROFILES["claims"], further)
     row = next(line for line in table.splitlines() if "oscillators" in line)
     assert row.startswith("| **reverses with the budget**: oscillators"), row
     assert "claims-long, 1000 iterations (8 x 3, 10): holds" in row and "**does not hold**" in row
@@ -268,7 +264,7 @@ def test_a_claim_is_decided_at_each_fraction_of_its_budget_and_a_reversal_heads_
     studies["quantum"] = FakeStudy("quantum", {"hig": slow, "adam": slow})
     studies["ks_training"] = FakeStudy("ks_training", {})
     studies[str(tmp_path / "claims-gpu" / "ks_training")] = None  # not finished there
-    table = claims.headline_table(tmp_path, claims.PROFILES["claims"], further)
+    table = claims.headline_table(tmp_path, study_lists.PROFILES["claims"], further)
     row = next(line for line in table.splitlines() if line.startswith("| quantum dipole"))
     assert "not in a longer profile" in row
     row = next(line for line in table.splitlines() if "WIG best" in line)
@@ -281,7 +277,7 @@ def test_the_presets_verdict_reads_the_profile_that_ran_the_study(tmp_path, stud
     claim = next(c for c in claims.CLAIMS if c.name.startswith("oscillators"))
     verdict, rows = claims.decide_claim(claim, tmp_path, "-preset")
     assert verdict == OPEN and "has no finished study" in rows[0][1].why
-    verdict, rows = claims.decide_claim(claim, tmp_path, "-preset", profile=claims.LONG)
+    verdict, rows = claims.decide_claim(claim, tmp_path, "-preset", profile=study_lists.LONG)
     assert verdict == claims.NOT_RUN and "no presets' twin" in rows[0][1].why
 
 

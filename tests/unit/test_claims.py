@@ -16,6 +16,7 @@ from tests.helpers import REPO
 sys.path.insert(0, str(REPO / "experiments"))
 
 import claims  # noqa: E402
+import studies as study_lists  # noqa: E402
 from claims import FAILS, HOLDS, OPEN  # noqa: E402
 
 from physgrad.readout import Curve  # noqa: E402
@@ -182,7 +183,7 @@ def test_a_claim_without_its_study_is_open_and_says_why(tmp_path, studies):
 def test_a_presets_twin_that_fixes_the_clipping_says_why_it_leaves_a_part_out(tmp_path, studies):
     """The StableBPTT twins run the papers' setting (no clipping) only: the clipped parts say so,
     and the claim's presets' verdict speaks for the unclipped part."""
-    study = claims.Study(
+    study = study_lists.Study(
         "cartx",
         ("task=multicart", "optim.backprop=R,C", "optim.clip=none,value"),
         8,
@@ -215,7 +216,7 @@ def test_the_regime_map_cell_is_the_time_to_target_ratio(tmp_path, studies, monk
     def reaching(at, final):
         return Curve(x, np.where(x < at, 1.0, final), x[-1])
 
-    study = claims.Study(
+    study = study_lists.Study(
         "map_toy_0.01_b16",
         ("task=toy", "optim=adam,hig", "task.scale=0.01"),
         2,
@@ -242,8 +243,6 @@ def test_the_regime_map_cell_is_the_time_to_target_ratio(tmp_path, studies, monk
         and cell.verdict == "A better"
     )
     assert cell.cost_ratio == pytest.approx(3.0) and cell.conditioning == 0.01
-    monkeypatch.setattr(claims, "MAP_TOY", (study,))
-    monkeypatch.setattr(claims, "MAP_OSCILLATOR", ())
     monkeypatch.setattr(claims, "MAP", (study,))
     text = claims.regime_map(tmp_path, tmp_path)
     assert "| map_toy_0.01_b16 | 0.01 | 3 | 0.25 [" in text
@@ -256,7 +255,7 @@ def test_the_regime_map_target_is_what_the_slower_variant_typically_reaches(tmp_
     Adam only at 1000 in the 5 seeds that end below it. The lower median (HIG's, compare's target)
     would leave 5 pairs ties of two misses; here every pair is a HIG win: ratio 0.5 in 5 seeds and 0
     (Adam never there) in 5, median 0, HIG first."""
-    study = claims.Study(
+    study = study_lists.Study(
         "map_oscillator_1",
         ("task=oscillator", "optim=adam,hig", "task.alpha=1"),
         2,
@@ -315,10 +314,10 @@ def test_a_study_without_a_presets_twin_says_so_for_the_presets(tmp_path, studie
         },
     )
     claim = claim_of(claims.Lower("quantum_control_5", "backprop=C", "backprop=R"))
-    assert all(s.preset for s in claims.STUDIES)
-    assert not any(s.preset for s in claims.LONG + claims.GPU)
-    assert claims.decide_claim(claim, tmp_path, profile=claims.LONG)[0] == HOLDS
-    verdict, ((_, d),) = claims.decide_claim(claim, tmp_path, "-preset", profile=claims.LONG)
+    assert all(s.preset for s in study_lists.STUDIES)
+    assert not any(s.preset for s in study_lists.LONG + study_lists.GPU)
+    assert claims.decide_claim(claim, tmp_path, profile=study_lists.LONG)[0] == HOLDS
+    verdict, ((_, d),) = claims.decide_claim(claim, tmp_path, "-preset", profile=study_lists.LONG)
     assert verdict == claims.NOT_RUN and "no presets' twin" in d.why
 
 
@@ -469,8 +468,11 @@ def test_a_turn_that_comes_with_the_gpu_profile_is_told_apart(tmp_path, studies)
             "adam": {s: falling(base(s)) for s in TEN},
         },
     )
-    further = ((tmp_path / "claims-long", claims.LONG), (tmp_path / "claims-gpu", claims.GPU))
-    table = claims.headline_table(tmp_path, claims.PROFILES["claims"], further)
+    further = (
+        (tmp_path / "claims-long", study_lists.LONG),
+        (tmp_path / "claims-gpu", study_lists.GPU),
+    )
+    table = claims.headline_table(tmp_path, study_lists.PROFILES["claims"], further)
     row = next(line for line in table.splitlines() if "Poisson" in line)
     assert row.startswith("| **turns with a GPU's budget**: Poisson"), row
     assert "**does not hold**" in row and "claims-gpu" in row and "**holds**" in row
@@ -580,7 +582,7 @@ def test_a_continuing_study_gets_a_start_network_for_every_tuning_seed(tmp_path)
     them."""
     from physgrad.comparison import split_overrides, study_settings
 
-    study = next(s for s in claims.STUDIES if s.name == "poisson_continue")
+    study = next(s for s in study_lists.STUDIES if s.name == "poisson_continue")
 
     def needs(command):
         settings = study_settings(split_overrides(command)[0])
@@ -588,7 +590,7 @@ def test_a_continuing_study_gets_a_start_network_for_every_tuning_seed(tmp_path)
         return tuning | set(settings.evaluation_seeds)
 
     assert set(study.start_seeds()) == needs(study.command(tmp_path))
-    for piece in claims.slices(study):
+    for piece in study_lists.slices(study):
         assert set(piece.start_seeds()) == needs(piece.command(tmp_path))
         assert len(piece.start_seeds()) == study.seeds + 1
     assert set(study.start_seeds(preset=True)) == needs(study.command(tmp_path, preset=True))

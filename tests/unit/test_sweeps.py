@@ -17,13 +17,14 @@ import reproduce  # noqa: E402
 
 
 def test_the_claims_plan_lists_every_study_in_parts_of_at_most_80_minutes(capsys, monkeypatch):
-    import claims
+    import studies as study_lists
 
     monkeypatch.setattr(reproduce, "run_claims", lambda *a: pytest.fail("--plan ran a study"))
     assert reproduce.main(["--profile", "claims", "--plan"]) == 0
     text = capsys.readouterr().out
-    for study in claims.PROFILES["claims"]:
-        assert f"compare.dir=outputs/experiments/claims/{study.name} " in text
+    for study in study_lists.PROFILES["claims"]:
+        for piece in study_lists.slices(study):
+            assert f"compare.dir=outputs/experiments/claims/{piece.folder} " in text
     parts = [
         int(line.split("about ")[1].split(" min")[0])
         for line in text.splitlines()
@@ -31,7 +32,7 @@ def test_the_claims_plan_lists_every_study_in_parts_of_at_most_80_minutes(capsys
     ]
     assert max(parts) <= 80  # every part resumable within a 90-minute run
     hours = float(text.rsplit("expected total: about ", 1)[1].split(" h")[0])
-    expected = sum(study.seconds() for study in claims.PROFILES["claims"]) / 3600
+    expected = sum(study.seconds() for study in study_lists.PROFILES["claims"]) / 3600
     # parts cover every study
     assert abs(hours - expected) <= 0.05 and abs(sum(parts) / 60 - expected) <= 0.1
     assert reproduce.main(["--profile", "claims-long", "--plan"]) == 0

@@ -1,0 +1,237 @@
+"""The studies of the claims profiles (experiments/conf/studies.yaml) as `physgrad compare`
+commands: each study's variants, seeds, trials and tuning studies, its presets' twin, the networks
+it continues from, its expected cost on the 2-core machine, and the parts of at most about 80
+minutes `make reproduce-figures PROFILE=... ARGS="--part K"` runs one at a time.
+
+Every study is a `physgrad compare` (docs/protocol.md): each variant tuned with the same trial
+points in each of its independent tuning studies, evaluated at its best trial on paired seeds; its
+untuned twin (`<study>-preset`, compare.tune=false) evaluates the presets on the first study's
+seeds and clock. A study with repeated tuning studies runs one compare per tuning study, in
+<study>/study-k, with the tuning seed, trial points and evaluation seeds study k has in one compare
+of all of them, so that each part can run on any machine and be kept on its own.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, replace
+from pathlib import Path
+
+import yaml
+from evidence import CLOCK, STUDY_FOLDER  # experiments/
+
+from physgrad.errors import UserError
+
+CONF = Path(__file__).resolve().parent / "conf"
+EVIDENCE = Path(__file__).resolve().parent.parent / "docs" / "evidence" / "claims"
+TUNE_SEED = (
+    1_000_000  # compare's default tuning seed: a study that continues networks needs one too
+)
+
+
+@dataclass(frozen=True)
+class Start:
+    """Networks a study continues from (init_from): one `physgrad run` job per seed, evaluation and
+    tuning seeds."""
+
+    name: str
+    overrides: tuple[str, ...]
+    job_seconds: float  # one job on the 2-core machine, start-up and compilation included
+
+
+@dataclass(frozen=True)
+class Study:
+    """One `physgrad compare` of the profile, into <profile folder>/<name> (and <name>-preset,
+    untuned)."""
+
+    name: str
+    # compare's overrides: variant axes (comma lists) and common settings
+    overrides: tuple[str, ...]
+    trials: int
+    seeds: int
+    tune_seconds: float  # one tuning job on the 2-core machine (start-up and compilation included)
+    eval_seconds: float  # one evaluation job (all seeds of a variant when they train together)
+    start: Start | None = None
+    preset: bool | str = (
+        True  # also evaluate the presets untuned (a key=value: with that override replaced)
+    )
+    studies: int = 1  # independent tuning studies (compare.studies); CLAIM_STUDIES for the claims
+    # tuning study k of the `studies` as a compare of its own in <name>/study-k (slices); 0: all
+    # of them in one compare in <name>
+    tuning_study: int = 0
+
+    @property
+    def label(self) -> str:
+        return self.name + (
+            f" (tuning study {self.tuning_study} of {self.studies})" if self.tuning_study else ""
+        )
+
+    @property
+    def folder(self) -> str:
+        """The study's folder under the profile's: <name>/study-k for tuning study k."""
+        k = self.tuning_study
+        return f"{self.name}/{STUDY_FOLDER.format(k=k)}" if k else self.name
+
+    def variants(self, preset: bool = False) -> int:
+        return math.prod(
+            len(_values(o)) for o in self.preset_overrides(preset) if len(_values(o)) > 1
+        )
+
+    def preset_overrides(self, preset: bool = True) -> list[str]:
+        if not preset or not isinstance(self.preset, str):
+            return list(self.overrides)
+        key = self.preset.partition("=")[0]
+        return [self.preset if o.partition("=")[0] == key else o for o in self.overrides]
+
+    @property
+    def timed(self) -> bool:
+        return any(o.startswith("trainer.time_budget=") for o in self.overrides)
+
+    def eval_jobs(self, preset: bool = False) -> int:
+        per_seed = self.timed or self.start is not None
+        return self.variants(preset) * (self.seeds if per_seed else 1)
+
+    def clock(self, root: Path) -> Path | None:
+        """The calibration a tuning study after the first and the presets' twin run on: the
+        study's kept clock (whatever machine ran its first study), else the first study's own in
+        root; None (the study calibrates itself) if there is neither."""
+        for path in (EVIDENCE / CLOCK.format(name=self.name), root / self.name / "study-1"):
+            path = path / "calibration.json" if path.suffix != ".json" else path
+            if path.is_file():
+                return path
+        return None
+
+    def command(self, root: Path, preset: bool = False) -> list[str]:
+        overrides = [o.replace("{root}", str(root)) for o in self.preset_overrides(preset)]
+        k = self.tuning_study
+        folder = f"{self.name}-preset" if preset else self.folder
+        settings = [
+            f"compare.dir={root / folder}",
+            f"compare.seeds={self.seeds}",
+            f"compare.trials={self.trials}",
+            # repeated tuning studies (docs/protocol.md), each a compare of its own with the
+            # tuning seed and evaluation seeds study k has in one compare of all of them; the
+            # untuned presets are one study (the first's seeds)
+            f"compare.studies={1 if preset or k else self.studies}",
+            *(
+                (f"compare.seed={(k - 1) * self.seeds}", f"compare.tune_seed={TUNE_SEED + k - 1}")
+                if k and not preset
+                else ()
+            ),
+        ]
+        if preset:
+            settings.append("compare.tune=false")
+        clock = self.clock(root) if self.timed and (preset or k > 1) else None
+        if clock is not None:  # on the first tuning study's clock
+            settings.append(f"compare.calibration={clock}")
+        return [*overrides, *settings]
+
+    def start_seeds(self, preset: bool = False) -> list[int]:
+        """The seeds a study that continues networks needs a start network for: the evaluation
+        seeds and tuning seed of each tuning study it runs (study k: (k - 1) * seeds .. k * seeds
+        - 1 and compare's tune_seed + k - 1); the presets' twin, the first study's."""
+        ks = [self.tuning_study] if self.tuning_study else range(1, self.studies + 1)
+        ks = [1] if preset else ks
+        return [
+            *(s for k in ks for s in range((k - 1) * self.seeds, k * self.seeds)),
+            *(TUNE_SEED + k - 1 for k in ks),
+        ]
+
+    def seconds(self) -> float:
+        """The expected wall time: tuning, evaluation, the presets' evaluation, the start networks,
+        calibration."""
+        new = 1 if self.tuning_study else self.studies  # the tuning studies this command runs
+        total = new * (
+            self.trials * self.variants() * self.tune_seconds + self.eval_jobs() * self.eval_seconds
+        )
+        total += self.eval_jobs(preset=True) * self.eval_seconds if self.preset else 0.0
+        if self.start:
+            seeds = set(self.start_seeds()) | set(self.start_seeds(True) if self.preset else ())
+            total += len(seeds) * self.start.job_seconds
+        # the first tuning study calibrates the clock; the later ones run on it (kept or in root)
+        calibrates = self.timed and self.tuning_study <= 1
+        return total + (30.0 * self.variants() if calibrates else 0.0)
+
+
+def _values(override: str) -> list[str]:
+    """The values of a comma-list override (a variant axis); one value otherwise. Quoted values are
+    one value."""
+    value = override.partition("=")[2]
+    if value.startswith(("'", '"', "[")):
+        return [value]
+    return value.split(",")
+
+
+def _start(entry: dict) -> Start:
+    return Start(
+        str(entry["folder"]), tuple(str(entry["overrides"]).split()), float(entry["job_seconds"])
+    )
+
+
+OWN = ("overrides", "start")  # the keys of a study's entry that are read, not passed on
+
+
+def load_profiles(path: Path = CONF / "studies.yaml") -> dict[str, tuple[Study, ...]]:
+    """The profiles' studies from their YAML file: each study's name and compare overrides (a
+    string: variant axes as comma lists, `{root}` for the profile's folder), its per-job costs on
+    the 2-core machine, the networks it continues from (a key of `starts`), its presets' twin
+    (false: none; a key=value: the twin fixes that axis) and, where it departs from the file's
+    protocol, its trials, seeds or tuning studies. A key the file does not define is a UserError."""
+    config = yaml.safe_load(path.read_text())
+    try:
+        protocol = {k: int(v) for k, v in config["protocol"].items()}
+        starts = {name: _start(entry) for name, entry in config["starts"].items()}
+        return {
+            profile: tuple(
+                Study(
+                    **{**protocol, **{k: v for k, v in entry.items() if k not in OWN}},
+                    overrides=tuple(str(entry["overrides"]).split()),
+                    start=starts[entry["start"]] if "start" in entry else None,
+                )
+                for entry in studies
+            )
+            for profile, studies in config["profiles"].items()
+        }
+    except (KeyError, TypeError, ValueError, AttributeError) as error:
+        raise UserError(f"{path}: {type(error).__name__}: {error}") from None
+
+
+PROFILES = load_profiles()
+STUDIES = tuple(s for s in PROFILES["claims"] if s.studies > 1)  # the claims' studies
+MAP = tuple(s for s in PROFILES["claims"] if s.studies == 1)  # the regime map's cells
+LONG, GPU = PROFILES["claims-long"], PROFILES["claims-gpu"]
+
+
+def starts(studies) -> list[Start]:
+    found = []
+    for study in studies:
+        if study.start is not None and study.start not in found:
+            found.append(study.start)
+    return found
+
+
+def slices(study: Study) -> list[Study]:
+    """A study with repeated tuning studies as one compare per tuning study, each in a folder of
+    its own (<name>/study-k), so that each is kept whatever machine ran the others; the untuned
+    presets with the first (on its seeds, its start networks and its clock). A study of one tuning
+    study is itself."""
+    if study.studies == 1:
+        return [study]
+    return [
+        replace(study, tuning_study=k, preset=study.preset if k == 1 else False)
+        for k in range(1, study.studies + 1)
+    ]
+
+
+def chunks(studies, limit_seconds: float = 80 * 60) -> list[list[Study]]:
+    """The studies in order, each cut into its tuning studies (slices), grouped into parts of at
+    most limit_seconds expected; a slice longer than that is a part of its own (it resumes job by
+    job)."""
+    parts, current, used = [], [], 0.0
+    for study in (piece for whole in studies for piece in slices(whole)):
+        if current and used + study.seconds() > limit_seconds:
+            parts.append(current)
+            current, used = [], 0.0
+        current.append(study)
+        used += study.seconds()
+    return parts + ([current] if current else [])
