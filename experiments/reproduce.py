@@ -10,8 +10,8 @@ outputs/experiments/<profile>/<experiment>/<overrides>/results.h5; a second call
 that completed or diverged (so an interrupted reproduction resumes), unless OVERWRITE=1. Each figure
 is `physgrad report` of its runs: the same table and figures that command writes for any runs.
 
-The claims profile runs the studies of experiments/conf/studies.yaml (the claims and the regime map), each
-a `physgrad compare` (tuned, paired seeds, calibrated clock) and its untuned twin, into
+The claims profile runs the studies of experiments/conf/studies.yaml (the claims and the regime
+map), each a `physgrad compare` (tuned, paired seeds, calibrated clock) and its untuned twin, into
 outputs/experiments/claims/<study> (each tuning study a compare of its own, in <study>/study-k, so
 that any part can run on any machine and be kept on its own); claims-long runs the claims whose
 verdict turned with the budget four times as long, claims-gpu the claims that need budgets for one
