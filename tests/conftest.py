@@ -98,18 +98,22 @@ def secret_file(tmp_path):
 
 @pytest.fixture
 def studies(monkeypatch):
-    """experiments/claims.py reading fake studies: by folder name, or by the whole folder path where
-    one is given (two profiles' folders of one study name)."""
+    """experiments/claims.py and regime_map.py reading fake studies: by folder name, or by the
+    whole folder path where one is given (two profiles' folders of one study name)."""
     from pathlib import Path
 
     from tests.helpers import REPO
 
     sys.path.insert(0, str(REPO / "experiments"))
     import claims
+    import regime_map
 
     found = {}
-    monkeypatch.setattr(
-        claims, "read_study", lambda folder: found.get(str(folder), found.get(Path(folder).name))
-    )
+
+    def read_study(folder):
+        return found.get(str(folder), found.get(Path(folder).name))
+
+    for module in (claims, regime_map):
+        monkeypatch.setattr(module, "read_study", read_study)
     monkeypatch.setattr(claims, "study_protocol", lambda folder: (8, 3, 10))
     return found

@@ -12,6 +12,7 @@ from tests.integration.test_compare import small_study  # noqa: F401 - the sessi
 
 sys.path.insert(0, str(REPO / "experiments"))
 import claims  # noqa: E402
+import study_runs  # noqa: E402
 
 PARTS = (
     claims.Lower("small", "adam", "gd"),
@@ -123,7 +124,7 @@ def test_tuning_studies_run_as_compares_of_their_own_are_kept_and_decided_as_one
     claims.keep_evidence(machines[2], kept)
     assert (kept / "small.csv").read_text() == (kept_whole / "small.csv").read_text()
     # a study of the profiles is to have more: kept with its plan, decided by a majority of it
-    monkeypatch.setattr(claims, "_planned", lambda name: 4)
+    monkeypatch.setattr(study_runs, "_planned", lambda name: 4)
     claims.keep_evidence(machines[1], kept)
     for root in (both.parent, kept):
         runs = claims.read_study(root / "small")

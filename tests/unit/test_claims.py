@@ -16,6 +16,7 @@ from tests.helpers import REPO
 sys.path.insert(0, str(REPO / "experiments"))
 
 import claims  # noqa: E402
+import regime_map  # noqa: E402
 import studies as study_lists  # noqa: E402
 from claims import FAILS, HOLDS, OPEN  # noqa: E402
 
@@ -236,15 +237,15 @@ def test_the_regime_map_cell_is_the_time_to_target_ratio(tmp_path, studies, monk
     (tmp_path / study.name / "calibration.json").write_text(
         '{"costs": {"hig": {"step_seconds": 0.03}, "adam": {"step_seconds": 0.01}}}'
     )
-    cell = claims.map_cell(tmp_path, study)
+    cell = regime_map.map_cell(tmp_path, study)
     assert (
         cell.ratio == pytest.approx(0.25)
         and cell.reached == (10, 9, 10)
         and cell.verdict == "A better"
     )
     assert cell.cost_ratio == pytest.approx(3.0) and cell.conditioning == 0.01
-    monkeypatch.setattr(claims, "MAP", (study,))
-    text = claims.regime_map(tmp_path, tmp_path)
+    monkeypatch.setattr(regime_map, "MAP", (study,))
+    text = regime_map.regime_map(tmp_path, tmp_path)
     assert "| map_toy_0.01_b16 | 0.01 | 3 | 0.25 [" in text
     assert (tmp_path / "payoff.png").stat().st_size > 10_000
 
@@ -271,9 +272,9 @@ def test_the_regime_map_target_is_what_the_slower_variant_typically_reaches(tmp_
             "adam": {s: falling(0.2 * (1 + 0.05 * s)) for s in TEN},
         },
     )
-    cell = claims.map_cell(tmp_path, study)
+    cell = regime_map.map_cell(tmp_path, study)
     assert cell.reached == (10, 5, 10) and cell.ratio == 0.0 and cell.high == pytest.approx(0.5)
-    assert cell.verdict == "A better" and claims.MAP_VERDICTS[cell.verdict] == "HIG first"
+    assert cell.verdict == "A better" and regime_map.MAP_VERDICTS[cell.verdict] == "HIG first"
     # no calibration file: no cost, no crash
     assert math.isnan(cell.cost_ratio) and cell.conditioning == 1.0
     # Adam diverged in most seeds: its median is not finite, the target is HIG's own median, reached
@@ -285,7 +286,7 @@ def test_the_regime_map_target_is_what_the_slower_variant_typically_reaches(tmp_
             "adam": {s: Curve(X, np.where(X < 300, 1.0, np.inf), X[-1], True, None) for s in TEN},
         },
     )
-    cell = claims.map_cell(tmp_path, study)
+    cell = regime_map.map_cell(tmp_path, study)
     assert cell.reached[:2] == (5, 0) and cell.verdict == "undecided"
     # both diverged everywhere: no target, nobody reaches it, all ties
     studies[study.name] = FakeStudy(
@@ -295,12 +296,14 @@ def test_the_regime_map_target_is_what_the_slower_variant_typically_reaches(tmp_
             for v in ("hig", "adam")
         },
     )
-    cell = claims.map_cell(tmp_path, study)
+    cell = regime_map.map_cell(tmp_path, study)
     assert (
-        cell.reached == (0, 0, 10) and cell.verdict == claims.NO_TARGET and math.isnan(cell.ratio)
+        cell.reached == (0, 0, 10)
+        and cell.verdict == regime_map.NO_TARGET
+        and math.isnan(cell.ratio)
     )
     # a blank cell, drawn
-    claims.plot_map({"oscillators": [cell]}, tmp_path / "payoff.png", "a machine")
+    regime_map.plot_map({"oscillators": [cell]}, tmp_path / "payoff.png", "a machine")
     assert (tmp_path / "payoff.png").stat().st_size > 10_000
 
 
