@@ -106,11 +106,20 @@ def main(argv=None) -> int:
         for hog in hogs:
             hog.terminate()
             hog.join()
+    text, agree = report(args.overrides, args.hogs, out, quiet, loaded, under_load)
+    (out / "timing_check.md").write_text(text)
+    print(text)
+    return 0 if agree else 1
+
+
+def report(overrides, hogs: int, out: Path, quiet, loaded, under_load: dict) -> tuple[str, bool]:
+    """timing_check.md's text, and whether the verdicts agree and the loaded medians lie within
+    the quiet seed ranges."""
     q, loaded_summary = summary(quiet), summary(loaded)
     lines = [
-        f"# Timing check: {' '.join(args.overrides)}",
+        f"# Timing check: {' '.join(overrides)}",
         "",
-        f"Quiet study: {out / 'quiet'}; loaded study (beside {args.hogs} CPU-bound processes): "
+        f"Quiet study: {out / 'quiet'}; loaded study (beside {hogs} CPU-bound processes): "
         f"{out / 'loaded'}.",
         "",
         "| A vs B | verdict, quiet | verdict, loaded | same |",
@@ -165,10 +174,7 @@ def main(argv=None) -> int:
         f"Verdicts {'agree' if same else 'DIFFER'}; loaded medians "
         f"{'within' if within else 'OUTSIDE'} the quiet seed ranges.",
     ]
-    text = "\n".join(lines) + "\n"
-    (out / "timing_check.md").write_text(text)
-    print(text)
-    return 0 if same and within else 1
+    return "\n".join(lines) + "\n", same and within
 
 
 if __name__ == "__main__":

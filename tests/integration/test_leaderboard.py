@@ -15,6 +15,7 @@ from tests.helpers import REPO
 
 sys.path.insert(0, str(REPO / "experiments"))
 import leaderboard  # noqa: E402
+import leaderboard_scenes  # noqa: E402
 from evidence import write_kept  # noqa: E402
 
 from physgrad.verdict import A_BETTER, B_BETTER, EQUIVALENT  # noqa: E402
@@ -112,23 +113,23 @@ def test_every_scene_is_a_compare_with_adam_as_baseline_and_parts_stay_near_80_m
     sys.path.insert(0, str(REPO / "experiments"))
     from studies import TUNE_SEED, chunks
 
-    for entry in leaderboard.SCENES:
-        for k in range(1, leaderboard.LEADERBOARD_STUDIES + 1):
+    for entry in leaderboard_scenes.SCENES:
+        for k in range(1, leaderboard_scenes.LEADERBOARD_STUDIES + 1):
             overrides = entry.study(k).overrides
             assert "compare.baseline=adam" in overrides
             optims = next(o for o in overrides if o.startswith("optim=")).split("=")[1].split(",")
             assert optims[0] == "adam" and set(optims[1:]) | set(entry.refused) == set(
-                leaderboard.RULES
+                leaderboard_scenes.RULES
             )
             assert any(o.startswith("trainer.time_budget=") for o in overrides)
             # tuning study k of one compare of three: its tuning seed and evaluation seeds
             assert f"compare.tune_seed={TUNE_SEED + k - 1}" in overrides
-            assert f"compare.seed={(k - 1) * leaderboard.LEADERBOARD_SEEDS}" in overrides
+            assert f"compare.seed={(k - 1) * leaderboard_scenes.LEADERBOARD_SEEDS}" in overrides
             assert "compare.studies=1" in entry.study(k).command(REPO)
-    parts = chunks(leaderboard.LEADERBOARD)
+    parts = chunks(leaderboard_scenes.LEADERBOARD)
     # every part is one tuning study of one scene (the plan's figure is an upper bound: one job
     # per trial), each in a folder of its own
-    assert len(parts) == len(leaderboard.SCENES) * leaderboard.LEADERBOARD_STUDIES
+    assert len(parts) == len(leaderboard_scenes.SCENES) * leaderboard_scenes.LEADERBOARD_STUDIES
     assert all(len(part) == 1 for part in parts)
     assert len({part[0].name for part in parts}) == len(parts)
 
@@ -151,7 +152,7 @@ def test_a_study_run_elsewhere_is_added_to_the_kept_evidence(tmp_path, monkeypat
     folder.mkdir(parents=True)
     (folder / "runs.csv").write_text("variant,iterations\nadam,300\nhig,100\nhig,140\n")
     (folder / "study.json").write_text(json.dumps({"overrides": ["task=toy", "compare.seed=10"]}))
-    clock = {"costs": {rule: {} for rule in ("adam", *leaderboard.SCENES[0].rules)}}
+    clock = {"costs": {rule: {} for rule in ("adam", *leaderboard_scenes.SCENES[0].rules)}}
     (folder / "calibration.json").write_text(json.dumps(clock))
     read_study = leaderboard.read_study
 
@@ -172,17 +173,17 @@ def test_a_study_run_elsewhere_is_added_to_the_kept_evidence(tmp_path, monkeypat
     assert about["tuning_studies"]["2"]["iterations"] == {"adam": 300.0, "hig": 120.0}
     assert about["tuning_studies"]["1"]["iterations"] == {"adam": 100.0, "hig": 200.0}
     assert about["iterations"] == {"adam": 200.0, "hig": 160.0}  # medians of the studies'
-    toy = leaderboard.SCENES[0]
+    toy = leaderboard_scenes.SCENES[0]
     assert json.loads((evidence / "toy.calibration.json").read_text()) == clock
-    assert leaderboard.kept_clock(toy, evidence) == evidence / "toy.calibration.json"
+    assert leaderboard_scenes.kept_clock(toy, evidence) == evidence / "toy.calibration.json"
     assert (
         f"compare.calibration={evidence / 'toy.calibration.json'}"
-        in toy.study(3, leaderboard.kept_clock(toy, evidence)).overrides
+        in toy.study(3, leaderboard_scenes.kept_clock(toy, evidence)).overrides
     )
     # a clock without a rule the scene runs now is not used (the study calibrates again)
     del clock["costs"]["soap"]
     (evidence / "toy.calibration.json").write_text(json.dumps(clock))
-    assert leaderboard.kept_clock(toy, evidence) is None
+    assert leaderboard_scenes.kept_clock(toy, evidence) is None
     cells = leaderboard.board(evidence)["toy"][0]
     assert cells["hig"].studies == (A_BETTER, A_BETTER) and cells["hig"].pairs == 20
 
@@ -190,7 +191,7 @@ def test_a_study_run_elsewhere_is_added_to_the_kept_evidence(tmp_path, monkeypat
     assert keep(study_2) == ["toy/study-2"]
     assert (evidence / "toy.csv").read_text().splitlines() == table
     # and the clock replaced by one with every rule
-    assert leaderboard.kept_clock(toy, evidence) == evidence / "toy.calibration.json"
+    assert leaderboard_scenes.kept_clock(toy, evidence) == evidence / "toy.calibration.json"
 
     with pytest.raises(UserError, match="a budget of 20, where .* keeps 10; keep it in another"):
         keep(replace(study_2, budget=20.0))

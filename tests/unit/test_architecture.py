@@ -226,3 +226,21 @@ def test_relative_function_local_and_type_checking_imports_are_read():
     assert {"physgrad.comparison.jobs", "physgrad.report", "physgrad.app"} <= names
     assert "physgrad.comparison.spec" in names
     assert {room_of_name(n) for n in names} >= {"comparison", "report", "app"}
+
+
+# experiments/ in rooms: a script that grows past these is doing several jobs
+EXPERIMENT_MODULE_LINES, FUNCTION_LINES = 500, 80
+
+
+@pytest.mark.parametrize("path", sorted((REPO / "experiments").glob("*.py")), ids=lambda p: p.name)
+def test_an_experiment_script_is_a_room_of_its_own_size(path):
+    """No script in experiments/ over about 450 lines, no function in it over 80."""
+    text = path.read_text()
+    assert len(text.splitlines()) <= EXPERIMENT_MODULE_LINES, path.name
+    long = [
+        f"{node.name} ({node.end_lineno - node.lineno + 1} lines)"
+        for node in ast.walk(ast.parse(text))
+        if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef))
+        and node.end_lineno - node.lineno + 1 > FUNCTION_LINES
+    ]
+    assert not long, f"{path.name}: {', '.join(long)}"

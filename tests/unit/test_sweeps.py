@@ -14,12 +14,13 @@ from tests.helpers import REPO
 sys.path.insert(0, str(REPO / "experiments"))
 
 import reproduce  # noqa: E402
+import study_profiles  # noqa: E402
 
 
 def test_the_claims_plan_lists_every_study_in_parts_of_at_most_80_minutes(capsys, monkeypatch):
     import studies as study_lists
 
-    monkeypatch.setattr(reproduce, "run_claims", lambda *a: pytest.fail("--plan ran a study"))
+    monkeypatch.setattr(study_profiles, "run_claims", lambda *a: pytest.fail("--plan ran a study"))
     assert reproduce.main(["--profile", "claims", "--plan"]) == 0
     text = capsys.readouterr().out
     for study in study_lists.PROFILES["claims"]:

@@ -1,0 +1,142 @@
+"""The leaderboard's scenes (docs/leaderboard.md): each scene's compare overrides, the rules that
+apply to it (the others with why not), its budget in calibrated seconds, and each of its tuning
+studies as a compare of its own in <scene>/study-k, on the scene's kept clock.
+"""
+
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from evidence import CLOCK, clock_rules  # experiments/
+from studies import STUDY_FOLDER, TUNE_SEED, Study
+
+from physgrad.bench import OPTIMS as BENCH_OPTIMS
+
+BASELINE = "adam"
+LEADERBOARD_TRIALS, LEADERBOARD_STUDIES, LEADERBOARD_SEEDS = 8, 3, 10
+# every rule of make bench's list (conf/optim) but Adam and its backprop modes, in that order
+RULES = tuple(o for o in BENCH_OPTIMS if o not in (BASELINE, "bptt", "stable_bptt"))
+NO_FACTORS = "no layer factors (the controller or convolution runs many times per sample)"
+
+
+@dataclass(frozen=True)
+class Entry:
+    """One scene of the leaderboard: its compare overrides, the rules that apply (the others with
+    why not), its budget in calibrated seconds and what a job costs besides (start-up,
+    compiling)."""
+
+    name: str
+    title: str
+    overrides: tuple[str, ...]
+    budget: float
+    overhead: float
+    refused: dict = field(default_factory=dict)  # rule -> why it does not apply
+    config_dir: str | None = None  # a scene from examples/: its conf folder (modules beside it)
+
+    @property
+    def rules(self) -> tuple[str, ...]:
+        return tuple(r for r in RULES if r not in self.refused)
+
+    def study(self, k: int, calibration: Path | None = None) -> Study:
+        """Tuning study k (1, 2, ...) of the scene as a compare of its own, in
+        <root>/<scene>/study-k: the tuning seed, trial points and evaluation seeds that study has
+        in one compare of LEADERBOARD_STUDIES (compare.tune_seed + k - 1, compare.seed + (k - 1) *
+        seeds), so that each part keeps its evidence whatever machine ran the others; on the
+        scene's kept clock (calibration) where one was kept."""
+        overrides = (
+            *(("-cd", self.config_dir) if self.config_dir else ()),
+            *self.overrides,
+            f"optim={','.join((BASELINE, *self.rules))}",
+            f"trainer.time_budget={self.budget:g}",
+            f"compare.baseline={BASELINE}",
+            f"compare.seed={(k - 1) * LEADERBOARD_SEEDS}",
+            f"compare.tune_seed={TUNE_SEED + k - 1}",
+            *((f"compare.calibration={calibration}",) if calibration else ()),
+        )
+        job = self.budget + self.overhead
+        return Study(
+            f"{self.name}/{STUDY_FOLDER.format(k=k)}",
+            overrides,
+            LEADERBOARD_TRIALS,
+            LEADERBOARD_SEEDS,
+            job,
+            job,
+            preset=False,
+        )
+
+
+DENSE = "a dense inverse Hessian of {n} parameters, above max_parameters=8192"
+SCENES = (
+    Entry(
+        "toy",
+        "toy, lambda 0.01",
+        ("task=toy", "task.scale=0.01"),
+        10,
+        6,
+    ),
+    Entry("oscillator", "oscillators", ("task=oscillator",), 15, 10),
+    Entry(
+        "ks",
+        "KS correction (small)",
+        ("task=ks", "task.zero_output=true", "task.channels=8", "task.blocks=2"),
+        20,
+        15,
+        refused={"kfac": NO_FACTORS},
+    ),
+    Entry(
+        "guidance",
+        "guidance, regular gradient",
+        ("task=guidance",),
+        20,
+        15,
+        refused={
+            "kfac": NO_FACTORS,
+            "ssbfgs": DENSE.format(n="13,004"),
+            "ssbroyden": DENSE.format(n="13,004"),
+        },
+    ),
+    Entry(
+        "ode_control",
+        "pendulum control (diffrax)",
+        ("task=ode_control",),
+        10,
+        8,
+        config_dir="examples/library_scenes/conf",
+    ),
+    Entry(
+        "burgers_inverse",
+        "Burgers inverse (exponax)",
+        ("task=burgers_inverse",),
+        10,
+        8,
+        config_dir="examples/library_scenes/conf",
+    ),
+)
+EVIDENCE = Path(__file__).resolve().parent.parent / "docs" / "evidence" / "leaderboard"
+
+
+def kept_clock(entry: Entry, evidence: Path = EVIDENCE) -> Path | None:
+    """The scene's kept calibration (its step costs, measured once on a quiet machine) if it has a
+    cost for every rule the scene runs now (a rule added since calibrates the study again)."""
+    path = evidence / CLOCK.format(name=entry.name)
+    return path if path.is_file() and {BASELINE, *entry.rules} <= clock_rules(path) else None
+
+
+# the profile's studies: every tuning study of every scene, each a compare of its own
+LEADERBOARD = tuple(
+    entry.study(k, kept_clock(entry)) for entry in SCENES for k in range(1, LEADERBOARD_STUDIES + 1)
+)
+
+
+def environment(study: Study) -> dict | None:
+    """The environment a study's command runs in: a scene from examples/ imports its modules from
+    the folder above its conf/ (as from that folder: examples/library_scenes/README.md)."""
+
+    entry = next((e for e in SCENES if e.name == study.name.split("/")[0]), None)
+    if entry is None or entry.config_dir is None:
+        return None
+    modules = str(Path(entry.config_dir).resolve().parent)
+    path = os.environ.get("PYTHONPATH", "")
+    return {**os.environ, "PYTHONPATH": modules + (os.pathsep + path if path else "")}

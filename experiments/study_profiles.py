@@ -1,0 +1,172 @@
+"""The study profiles of `make reproduce-figures`: the claims (claims, claims-long, claims-gpu:
+experiments/conf/studies.yaml) and the leaderboard (experiments/leaderboard_scenes.py), each a list
+of `physgrad compare` studies run in parts of at most about 80 minutes (`--plan` lists them with
+their expected time on the 2-core machine, `--part K` runs one), then their markdown.
+"""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+from pathlib import Path
+
+STUDY_PROFILES = ("claims", "claims-long", "claims-gpu", "leaderboard")
+
+
+# --- the claims profiles: physgrad compare studies
+# ----------------------------------------------------------
+
+
+def claims_parts(profile: str) -> list:
+    from studies import PROFILES, chunks  # experiments/ is this script's folder
+
+    if profile == "leaderboard":
+        from leaderboard_scenes import LEADERBOARD
+
+        return chunks(LEADERBOARD)
+    return chunks(PROFILES[profile])
+
+
+ON_2_CORES = "on a 2-core machine"
+PLAN_MACHINE = {
+    "claims-gpu": "on one GPU (Poisson's jobs cost their calibrated budget whatever the step "
+    "costs; the Kuramoto-Sivashinsky jobs are costed at the 2-core machine's update, which was "
+    "not measured on a GPU)"
+}
+
+
+def print_claims_plan(profile: str, root: Path) -> None:
+    """The studies of a claims profile part by part, with their jobs and expected time on the 2-core
+    machine."""
+    from studies import starts
+
+    total = 0.0
+    for index, part in enumerate(claims_parts(profile), 1):
+        seconds = sum(study.seconds() for study in part)
+        total += seconds
+        print(f"part {index} (--part {index}): about {seconds / 60:.0f} min")
+        for start in starts(part):
+            print(
+                f"    start networks {start.name}: physgrad run -m {' '.join(start.overrides)} "
+                "(one job per seed)"
+            )
+        for study in part:
+            new = 1 if study.tuning_study else study.studies
+            tuning = new * study.trials * study.variants()
+            print(
+                f"    {study.label}: {study.variants()} variants, {study.trials} trials each in "
+                f"{new} tuning stud{'y' if new == 1 else 'ies'} (at most "
+                f"{tuning} tuning jobs: the trials of an optax rule train together), "
+                f"{study.seeds} seeds ({new * study.eval_jobs()} evaluation jobs"
+                f"{f', {study.eval_jobs(preset=True)} untuned' if study.preset else ''}), about "
+                f"{study.seconds() / 60:.0f} min (an upper bound: one job per trial)"
+            )
+            print(f"        physgrad compare {' '.join(study.command(root))}")
+    print(
+        f"expected total: about {total / 3600:.1f} h {PLAN_MACHINE.get(profile, ON_2_CORES)}, in "
+        "parts run one after another (each resumes where it stopped; finished jobs are skipped)"
+    )
+
+
+def run_start(start, seeds: list[int], root: Path) -> int:
+    """The networks a study continues from: one job per seed, in <root>/<name>/seed=S; those that
+    finished before are skipped."""
+    command = [
+        sys.executable,
+        "-m",
+        "physgrad.cli",
+        "run",
+        "-m",
+        *start.overrides,
+        f"seed={','.join(str(s) for s in seeds)}",
+        f"hydra.sweep.dir={root / start.name}",
+        "hydra.sweep.subdir='seed=${seed}'",
+    ]
+    print("reproduce:", " ".join(command[2:]), flush=True)
+    return subprocess.run(command).returncode
+
+
+def study_environment(profile: str, study) -> dict | None:
+    """The environment of a study's command: the leaderboard's scenes from examples/ import their
+    modules from beside their conf/ folder; None (this one) otherwise."""
+    if profile != "leaderboard":
+        return None
+    from leaderboard_scenes import environment
+
+    return environment(study)
+
+
+def run_claims(profile: str, parts: list[int], root: Path, out: Path, note: str) -> int:
+    """The studies of the chosen parts (all: every part), each tuned and untuned; then claims.md
+    from every study that has finished."""
+    from claims import write
+    from studies import starts
+
+    failed = []
+    all_parts = claims_parts(profile)
+    for index in parts or range(1, len(all_parts) + 1):
+        part = all_parts[index - 1]
+        for start in starts(part):
+            # each tuning study's evaluation and tuning seeds, the presets' twin's
+            seeds = {
+                seed
+                for s in part
+                if s.start == start
+                for preset in (False, True)
+                if s.preset or not preset
+                for seed in s.start_seeds(preset)
+            }
+            if run_start(start, sorted(seeds), root) != 0:
+                failed.append(start.name)
+        for study in part:
+            for preset in (False, True) if study.preset else (False,):
+                command = [
+                    sys.executable,
+                    "-m",
+                    "physgrad.cli",
+                    "compare",
+                    *study.command(root, preset),
+                ]
+                print("reproduce:", " ".join(command[2:]), flush=True)
+                code = subprocess.run(command, env=study_environment(profile, study)).returncode
+                if code == 130:
+                    return 130
+                if code != 0:
+                    failed.append(f"{study.name}{'-preset' if preset else ''} (exit {code})")
+    from physgrad.errors import UserError
+
+    try:
+        if profile == "leaderboard":
+            from leaderboard import write as write_leaderboard
+
+            write_leaderboard(root, out)
+        else:
+            write(root, out, note, profile)
+    except UserError as error:  # a study folder that is not what its tables say: one line
+        print(f"reproduce: error: {error}", file=sys.stderr)
+        return 2
+    print(
+        f"reproduce: wrote {out / (profile + '.md')}"
+        + (f"; did not finish: {', '.join(failed)}" if failed else "")
+    )
+    return 1 if failed else 0
+
+
+def study_profile(profile: str, part: str, plan: bool, out: Path, note: str) -> int:
+    """A claims profile or the leaderboard: its plan, or the parts asked for (all: every part)."""
+    root = Path("outputs/experiments") / profile
+    count = len(claims_parts(profile))
+    try:
+        parts = [int(k) for k in part.split(",")] if part else []
+    except ValueError:
+        parts = [0]
+    if any(not 1 <= k <= count for k in parts):
+        print(
+            f"reproduce: error: --part takes numbers from 1 to {count} (--plan lists the parts)",
+            file=sys.stderr,
+        )
+        return 2
+    if plan:
+        print_claims_plan(profile, root)
+        return 0
+    return run_claims(profile, parts, root, out, note)
