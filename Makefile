@@ -94,7 +94,8 @@ check-stability: setup
 # every figure sweep of conf/experiment/, then outputs/figures/summary.md; PROFILE=paper for the papers' budgets;
 # PROFILE=claims: the papers' claims as physgrad compare studies (outputs/figures/claims.md), in parts
 # (ARGS=--plan lists them and the expected time, ARGS="--part K" runs one); PROFILE=claims-long runs the claims
-# that turned with the budget four times as long; PROFILE=claims-gpu the claims that need a GPU's budgets
+# that turned with the budget four times as long; PROFILE=claims-gpu the claims that need a GPU's budgets;
+# PROFILE=claims-paper the papers' own settings, untuned, at the papers' budgets
 PROFILE ?= quick
 reproduce-figures: setup
 	$(BIN)/python experiments/reproduce.py --profile $(PROFILE) $(if $(OVERWRITE),--overwrite,) $(ARGS)

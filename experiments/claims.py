@@ -132,7 +132,8 @@ def decide_claim(
         return cache[name]
 
     rows = decide_parts(claim, study, fraction)
-    if suffix:  # a presets' twin that fixes an axis runs only the papers' value of it: say so
+    presets = bool(suffix) or any(not s.tune for s in specs.values())
+    if presets:  # presets that fix an axis run only the papers' value of it: say so
         fixed = {n: specs[n].preset for n in specs if isinstance(specs[n].preset, str)}
         rows = [
             (
@@ -143,7 +144,7 @@ def decide_claim(
             )
             for part, d in rows
         ]
-    return claim_verdict(rows, twin=bool(suffix)), rows
+    return claim_verdict(rows, twin=presets), rows
 
 
 def _twin_runs(root: Path, name: str, suffix: str, spec: Study | None) -> object:
@@ -154,7 +155,7 @@ def _twin_runs(root: Path, name: str, suffix: str, spec: Study | None) -> object
         if suffix and spec is not None and spec.preset is False:
             return Decision(NOT_RUN, "-", f"{name} has no presets' twin (cut for time)")
         return Decision(OPEN, "-", f"{root / (name + suffix)} has no finished study")
-    if suffix and spec is not None and isinstance(spec.preset, str):
+    if (suffix or (spec is not None and not spec.tune)) and isinstance(spec.preset, str):
         # the presets' study fixes one value of an axis (optim.clip=none): its variants are also
         # known by the tuned study's names, which carry that value ("backprop=C" is "backprop=C
         # clip=none")
@@ -284,14 +285,16 @@ def _verdicts_text(verdicts: dict[float, str]) -> list[str]:
 
 
 NOT_YET = "not run yet"
+# the profiles of longer budgets a claim's headline row reads beside the claims profile's
+FURTHER = ("claims-long", "claims-gpu", "claims-paper")
 
 
 def headline_table(root: Path, profile: tuple, further: tuple = ()) -> str:
     """One row per claim: what its studies ran (trials per variant in each tuning study, tuning
     studies, paired seeds), the budget and its share of the paper's, the tuned verdict at X/4, X/2
     and X, the presets' at X, and, where a profile of longer budgets ran the claim (further:
-    (folder, that profile's studies) pairs: claims-long, claims-gpu), its budget and verdicts at
-    its X/4, X/2 and X, with what it ran. A claim that holds at one budget and does not at another
+    (folder, that profile's studies) pairs: claims-long, claims-gpu, claims-paper), its budget and
+    verdicts at its X/4, X/2 and X, with what it ran. A claim that holds at one budget and does not at another
     says so first (apart, where one of the two is the GPU profile's: the machine changed too)."""
     lines = [
         "| claim | verdict | trials x tuning studies, seeds | budget here | loss fell from the "
@@ -312,21 +315,22 @@ def headline_table(root: Path, profile: tuple, further: tuple = ()) -> str:
         preset, _ = decide_claim(claim, root, "-preset", 1.0, profile)
         if preset == OPEN and read_study(root / f"{main}-preset") is None:
             preset = NOT_YET  # the twin's study has not finished
-        longer, seen, elsewhere = "not in a longer profile", list(tuned.values()), []
+        longer, seen, elsewhere = [], list(tuned.values()), []
         for folder, studies_there in further:
             if not studies_of(claim) <= {s.name for s in studies_there}:
                 continue
             long_runs = read_study(folder / main)
             if long_runs is None:
-                longer = f"{NOT_YET} ({folder.name})"
+                longer.append(f"{NOT_YET} ({folder.name})")
                 continue
             found = claim_verdicts(claim, folder, profile=studies_there)
             # the GPU's profile changes the machine with the budget: its turns are told apart
             (elsewhere if studies_there == GPU else seen).extend(found.values())
             t, k, n = study_protocol(folder / main)
             ran = f"{t} x {k}{_of_planned(long_runs)}, {n}"
-            longer = f"{folder.name}, {_budget_text(long_runs)} ({ran}): " + ", ".join(
-                _verdicts_text(found)
+            longer.append(
+                f"{folder.name}, {_budget_text(long_runs)} ({ran}): "
+                + ", ".join(_verdicts_text(found))
             )
         turned = (
             "**reverses with the budget**: "
@@ -349,7 +353,7 @@ def headline_table(root: Path, profile: tuple, further: tuple = ()) -> str:
             f"| {head} | **{word}** ({why}) | {trials} x {studies}{_of_planned(runs)}, {seeds} | "
             f"{_share_text(claim, runs)} | {fell} | "
             + " | ".join(_verdicts_text(tuned))
-            + f" | {preset} | {longer} |"
+            + f" | {preset} | {'; '.join(longer) or 'not in a longer profile'} |"
         )
     return "\n".join(lines) + "\n"
 
@@ -366,7 +370,7 @@ def write(root: Path, out: Path, note: str = "", profile: str = "claims") -> str
     studies = PROFILES[profile]
     # the claims profile's headline also reads the profiles of longer budgets beside its folder
     further = (
-        tuple((root.parent / name, PROFILES[name]) for name in ("claims-long", "claims-gpu"))
+        tuple((root.parent / name, PROFILES[name]) for name in FURTHER)
         if profile == "claims"
         else ()
     )
@@ -399,9 +403,7 @@ def evidence_block(root: Path) -> str:
     headline table, then every part with its numbers."""
     studies = PROFILES["claims"]
     further = tuple(
-        (root.parent / name, PROFILES[name])
-        for name in ("claims-long", "claims-gpu")
-        if (root.parent / name).is_dir()
+        (root.parent / name, PROFILES[name]) for name in FURTHER if (root.parent / name).is_dir()
     )
     machines = sorted(
         {

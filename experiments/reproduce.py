@@ -1,7 +1,7 @@
-"""`make reproduce-figures [PROFILE=quick|paper|claims|claims-long|claims-gpu]`: run the figure
-sweeps of conf/experiment/ and write the figures and one markdown summary into outputs/figures/;
-or, for the claims profiles, the papers' claims as `physgrad compare` studies and
-outputs/figures/<profile>.md.
+"""`make reproduce-figures [PROFILE=quick|paper|claims|claims-long|claims-gpu|claims-paper|
+leaderboard]`: run the figure sweeps of conf/experiment/ and write the figures and one markdown
+summary into outputs/figures/; or, for the study profiles, the papers' claims (or the leaderboard)
+as `physgrad compare` studies and outputs/figures/<profile>.md.
 
 The experiment configs hold the papers' budgets (PROFILE=paper). The quick profile (the default)
 runs the same sweeps with the budgets below, so that everything finishes in about 45 minutes on a
@@ -243,6 +243,8 @@ NOTES = {
     "four times as long (experiments/conf/studies.yaml)",
     "claims-gpu": "CLAIMS-GPU PROFILE: the claims that need budgets a 2-core machine cannot give, "
     "for one GPU (experiments/conf/studies.yaml)",
+    "claims-paper": "CLAIMS-PAPER PROFILE: the papers' own settings, untuned, at the papers' "
+    "budgets (experiments/conf/studies.yaml)",
     "leaderboard": "LEADERBOARD PROFILE: every rule against Adam, physgrad compare studies at "
     "equal calibrated time (experiments/leaderboard.py)",
 }

@@ -24,6 +24,7 @@ from physgrad.errors import UserError
 
 CONF = Path(__file__).resolve().parent / "conf"
 EVIDENCE = Path(__file__).resolve().parent.parent / "docs" / "evidence" / "claims"
+PART_SECONDS = 80 * 60  # a part of a profile: it resumes within a 90-minute window
 TUNE_SEED = (
     1_000_000  # compare's default tuning seed: a study that continues networks needs one too
 )
@@ -59,6 +60,9 @@ class Study:
     # tuning study k of the `studies` as a compare of its own in <name>/study-k (slices); 0: all
     # of them in one compare in <name>
     tuning_study: int = 0
+    # false: the presets evaluated untuned in <name> (compare.tune=false), the study itself; its
+    # preset (a key=value) then names the axis it fixes
+    tune: bool = True
 
     @property
     def label(self) -> str:
@@ -71,6 +75,12 @@ class Study:
         """The study's folder under the profile's: <name>/study-k for tuning study k."""
         k = self.tuning_study
         return f"{self.name}/{STUDY_FOLDER.format(k=k)}" if k else self.name
+
+    @property
+    def twin(self) -> bool:
+        """Whether the study has a presets' twin (<name>-preset): a tuned study whose presets are
+        also evaluated untuned."""
+        return self.tune and self.preset is not False
 
     def variants(self, preset: bool = False) -> int:
         return math.prod(
@@ -119,7 +129,7 @@ class Study:
                 else ()
             ),
         ]
-        if preset:
+        if preset or not self.tune:
             settings.append("compare.tune=false")
         clock = self.clock(root) if self.timed and (preset or k > 1) else None
         if clock is not None:  # on the first tuning study's clock
@@ -141,12 +151,13 @@ class Study:
         """The expected wall time: tuning, evaluation, the presets' evaluation, the start networks,
         calibration."""
         new = 1 if self.tuning_study else self.studies  # the tuning studies this command runs
+        trials = self.trials if self.tune else 0
         total = new * (
-            self.trials * self.variants() * self.tune_seconds + self.eval_jobs() * self.eval_seconds
+            trials * self.variants() * self.tune_seconds + self.eval_jobs() * self.eval_seconds
         )
-        total += self.eval_jobs(preset=True) * self.eval_seconds if self.preset else 0.0
+        total += self.eval_jobs(preset=True) * self.eval_seconds if self.twin else 0.0
         if self.start:
-            seeds = set(self.start_seeds()) | set(self.start_seeds(True) if self.preset else ())
+            seeds = set(self.start_seeds()) | set(self.start_seeds(True) if self.twin else ())
             total += len(seeds) * self.start.job_seconds
         # the first tuning study calibrates the clock; the later ones run on it (kept or in root)
         calibrates = self.timed and self.tuning_study <= 1
@@ -223,7 +234,7 @@ def slices(study: Study) -> list[Study]:
     ]
 
 
-def chunks(studies, limit_seconds: float = 80 * 60) -> list[list[Study]]:
+def chunks(studies, limit_seconds: float = PART_SECONDS) -> list[list[Study]]:
     """The studies in order, each cut into its tuning studies (slices), grouped into parts of at
     most limit_seconds expected; a slice longer than that is a part of its own (it resumes job by
     job)."""

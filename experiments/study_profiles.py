@@ -10,7 +10,7 @@ import subprocess
 import sys
 from pathlib import Path
 
-STUDY_PROFILES = ("claims", "claims-long", "claims-gpu", "leaderboard")
+STUDY_PROFILES = ("claims", "claims-long", "claims-gpu", "claims-paper", "leaderboard")
 
 
 # --- the claims profiles: physgrad compare studies
@@ -38,33 +38,49 @@ PLAN_MACHINE = {
 def print_claims_plan(profile: str, root: Path) -> None:
     """The studies of a claims profile part by part, with their jobs and expected time on the 2-core
     machine."""
-    from studies import starts
+    from studies import PART_SECONDS, starts
 
-    total = 0.0
+    total, longest = 0.0, 0.0
     for index, part in enumerate(claims_parts(profile), 1):
         seconds = sum(study.seconds() for study in part)
         total += seconds
-        print(f"part {index} (--part {index}): about {seconds / 60:.0f} min")
+        longer = " (longer than a part: a machine that keeps its outputs, or a GPU)"
+        print(
+            f"part {index} (--part {index}): about {seconds / 60:.0f} min"
+            + (longer if seconds > PART_SECONDS else "")
+        )
         for start in starts(part):
             print(
                 f"    start networks {start.name}: physgrad run -m {' '.join(start.overrides)} "
                 "(one job per seed)"
             )
         for study in part:
-            new = 1 if study.tuning_study else study.studies
-            tuning = new * study.trials * study.variants()
-            print(
-                f"    {study.label}: {study.variants()} variants, {study.trials} trials each in "
-                f"{new} tuning stud{'y' if new == 1 else 'ies'} (at most "
-                f"{tuning} tuning jobs: the trials of an optax rule train together), "
-                f"{study.seeds} seeds ({new * study.eval_jobs()} evaluation jobs"
-                f"{f', {study.eval_jobs(preset=True)} untuned' if study.preset else ''}), about "
-                f"{study.seconds() / 60:.0f} min (an upper bound: one job per trial)"
-            )
+            longest = max(longest, study.eval_seconds)
+            print(f"    {study.label}: {_study_plan(study)}")
             print(f"        physgrad compare {' '.join(study.command(root))}")
     print(
         f"expected total: about {total / 3600:.1f} h {PLAN_MACHINE.get(profile, ON_2_CORES)}, in "
         "parts run one after another (each resumes where it stopped; finished jobs are skipped)"
+        + (f"; its longest job about {longest / 60:.0f} min" if longest > PART_SECONDS else "")
+    )
+
+
+def _study_plan(study) -> str:
+    """A study's jobs and expected time, as the plan lists them."""
+    new = 1 if study.tuning_study else study.studies
+    evaluation = f"{study.seeds} seeds ({new * study.eval_jobs()} evaluation jobs"
+    if not study.tune:
+        return (
+            f"{study.variants()} variants, the presets untuned, {evaluation}), about "
+            f"{study.seconds() / 60:.0f} min"
+        )
+    return (
+        f"{study.variants()} variants, {study.trials} trials each in "
+        f"{new} tuning stud{'y' if new == 1 else 'ies'} (at most "
+        f"{new * study.trials * study.variants()} tuning jobs: the trials of an optax rule train "
+        f"together), {evaluation}"
+        f"{f', {study.eval_jobs(preset=True)} untuned' if study.twin else ''}), about "
+        f"{study.seconds() / 60:.0f} min (an upper bound: one job per trial)"
     )
 
 
@@ -113,13 +129,13 @@ def run_claims(profile: str, parts: list[int], root: Path, out: Path, note: str)
                 for s in part
                 if s.start == start
                 for preset in (False, True)
-                if s.preset or not preset
+                if s.twin or not preset
                 for seed in s.start_seeds(preset)
             }
             if run_start(start, sorted(seeds), root) != 0:
                 failed.append(start.name)
         for study in part:
-            for preset in (False, True) if study.preset else (False,):
+            for preset in (False, True) if study.twin else (False,):
                 command = [
                     sys.executable,
                     "-m",

@@ -47,7 +47,10 @@ class FakeStudy(claims.StudyRuns):
         self.by_variant, self.columns = by_variant, columns or {}
 
     def curves(self, variant, column="loss"):
-        return (self.columns.get(column) or self.by_variant)[variant]
+        table = self.columns.get(column) or self.by_variant
+        if variant not in table:  # another name of a variant (its runs under the same paths)
+            variant = next(v for v in table if self.paths.get(v) is self.paths.get(variant))
+        return table[variant]
 
 
 def seeds_of(fn) -> dict:
@@ -207,6 +210,33 @@ def test_a_presets_twin_that_fixes_the_clipping_says_why_it_leaves_a_part_out(tm
     verdict, rows = claims.decide_claim(claim, tmp_path, "-preset", profile=(study,))
     assert verdict == HOLDS and [d.verdict for _, d in rows] == [HOLDS, claims.NOT_RUN]
     assert rows[1][1].why == "the presets' twin runs optim.clip=none only (the papers' setting)"
+
+
+def test_a_presets_only_study_at_the_papers_budget_decides_the_claim_alone(tmp_path, studies):
+    """A study of the claims-paper profile evaluates the presets untuned in its own folder, with
+    no twin, costs its evaluation only, and decides the claim's unclipped part under the tuned
+    study's variant names; the clipped part says the presets run optim.clip=none only."""
+    study = next(s for s in study_lists.PROFILES["claims-paper"] if s.name == "cart_4")
+    command = study.command(tmp_path)
+    assert not study.twin and study_lists.slices(study) == [study]
+    assert "compare.tune=false" in command and f"compare.dir={tmp_path / 'cart_4'}" in command
+    assert "compare.studies=1" in command and "trainer.iterations=32000" in command
+    assert study.seconds() == pytest.approx(study.eval_jobs() * study.eval_seconds)
+    studies["cart_4"] = FakeStudy(
+        "cart_4",
+        {
+            "backprop=C": {s: falling(0.5 * base(s)) for s in TEN},
+            "backprop=R": {s: falling(base(s)) for s in TEN},
+        },
+    )
+    claim = claim_of(
+        claims.Lower("cart_4", "backprop=C clip=none", "backprop=R clip=none"),
+        claims.Lower("cart_4", "backprop=C clip=value", "backprop=R clip=value"),
+    )
+    paper = study_lists.PROFILES["claims-paper"]
+    verdict, rows = claims.decide_claim(claim, tmp_path, profile=paper)
+    assert verdict == HOLDS and [d.verdict for _, d in rows] == [HOLDS, claims.NOT_RUN]
+    assert "runs optim.clip=none only" in rows[1][1].why
 
 
 def test_the_regime_map_cell_is_the_time_to_target_ratio(tmp_path, studies, monkeypatch):
