@@ -294,8 +294,9 @@ def headline_table(root: Path, profile: tuple, further: tuple = ()) -> str:
     studies, paired seeds), the budget and its share of the paper's, the tuned verdict at X/4, X/2
     and X, the presets' at X, and, where a profile of longer budgets ran the claim (further:
     (folder, that profile's studies) pairs: claims-long, claims-gpu, claims-paper), its budget and
-    verdicts at its X/4, X/2 and X, with what it ran. A claim that holds at one budget and does not at another
-    says so first (apart, where one of the two is the GPU profile's: the machine changed too)."""
+    verdicts at its X/4, X/2 and X, with what it ran. A claim that holds at one budget and does not
+    at another says so first (apart, where one of the two is the GPU profile's: the machine changed
+    too)."""
     lines = [
         "| claim | verdict | trials x tuning studies, seeds | budget here | loss fell from the "
         "start | tuned at X/4 | X/2 | X | presets at X | longer budget: X/4, X/2, X |",

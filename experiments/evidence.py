@@ -74,16 +74,44 @@ def commit() -> str:
     return found.stdout.strip() or "unknown"
 
 
+# --- the doors: every file read from a study folder or evidence folder (someone else's, maybe) is
+# opened without following a link, a regular file only and bounded (physgrad.files.read_own_file);
+# every file written into one replaces its target by a rename (physgrad.files.replace_file)
+FILE_LIMIT = 64 << 20  # a study's tables are kilobytes to megabytes
+
+
+def read_table(path: Path, **options: object) -> object:
+    """A CSV file as a pandas DataFrame, through the reading door; ValueError (one line) for a link,
+    a FIFO, a folder or text that is not a table, OSError where it cannot be read."""
+    import io
+
+    import pandas as pd
+
+    from physgrad.files import read_own_file
+
+    return pd.read_csv(io.BytesIO(read_own_file(path, FILE_LIMIT)), **options)
+
+
+def read_json(path: Path) -> object:
+    """A JSON file as data, through the reading door (ValueError, OSError as read_table)."""
+    from physgrad.files import load_json, read_own_file
+
+    return load_json(read_own_file(path, FILE_LIMIT))
+
+
 def write_kept(dest: Path, name: str, rows: list[dict], about: dict) -> None:
     """dest/<name>.csv and dest/<name>.json."""
     import pandas as pd
+
+    from physgrad.files import replace_file
 
     dest.mkdir(parents=True, exist_ok=True)
     table = pd.DataFrame(rows, columns=list(COLUMNS)).sort_values(
         ["column", "variant", "study", "seed"], kind="stable"
     )
-    table.to_csv(dest / f"{name}.csv", index=False)  # every digit: the verdicts read back exactly
-    (dest / f"{name}.json").write_text(json.dumps(about, indent=1) + "\n")
+    # every digit: the verdicts read back exactly
+    replace_file(dest / f"{name}.csv", table.to_csv(index=False).encode())
+    replace_file(dest / f"{name}.json", (json.dumps(about, indent=1) + "\n").encode())
 
 
 STUDY_FOLDER = "study-{k}"  # tuning study k (1, 2, ...) of a study run one compare per tuning study
@@ -96,20 +124,19 @@ def merged_rows(dest: Path, name: str, finished: dict, budget: float) -> tuple[l
     k - 1, and its record); a study kept before is replaced, the others kept (each tuning study
     is kept whatever machine ran it). Evidence kept before studies were recorded on their own
     gets a record per study from its one. A budget other than the kept one is a UserError."""
-    import pandas as pd
 
     from physgrad.errors import UserError
 
     table_path, about_path = dest / f"{name}.csv", dest / f"{name}.json"
     rows, about = [], {}
     if table_path.is_file():
-        about = json.loads(about_path.read_text())
+        about = read_json(about_path)
         if not math.isclose(float(about["budget"]), budget, rel_tol=1e-9):
             raise UserError(
                 f"{name}: a budget of {budget:g}, where {table_path} keeps "
                 f"{float(about['budget']):g}; keep it in another folder"
             )
-        old = pd.read_csv(table_path, dtype={"variant": str, "column": str})
+        old = read_table(table_path, dtype={"variant": str, "column": str})
         rows = old[~old["study"].isin([k - 1 for k in finished])].to_dict("records")
     by_study = about.get("tuning_studies") or {
         str(int(k) + 1): {
@@ -128,7 +155,7 @@ def merged_rows(dest: Path, name: str, finished: dict, budget: float) -> tuple[l
 def clock_rules(path: Path) -> set[str]:
     """The variants a calibration.json has a step cost for (none if it cannot be read)."""
     try:
-        costs = json.loads(path.read_text()).get("costs")
+        costs = read_json(path).get("costs")
     except (OSError, ValueError, AttributeError):
         return set()
     return set(costs) if isinstance(costs, dict) else set()
@@ -137,9 +164,11 @@ def clock_rules(path: Path) -> set[str]:
 def keep_clock(measured: Path, clock: Path) -> None:
     """A study's calibration kept as its clock (for its tuning studies still to run, on any
     machine): the first kept, or one with a variant the kept one lacks."""
+    from physgrad.files import read_own_file, replace_file
+
     if measured.is_file() and not clock_rules(measured) <= clock_rules(clock):
         clock.parent.mkdir(parents=True, exist_ok=True)
-        clock.write_bytes(measured.read_bytes())
+        replace_file(clock, read_own_file(measured, FILE_LIMIT))
 
 
 @dataclass
@@ -170,10 +199,10 @@ def read_kept(path: Path) -> Kept:
 
     about_path = path.with_suffix(".json")
     try:
-        about = json.loads(about_path.read_text())
+        about = read_json(about_path)
         axis, budget = str(about["axis"]), float(about["budget"])
         protocol = tuple(int(about[k]) for k in ("trials", "studies", "seeds"))
-        table = pd.read_csv(path, dtype={"variant": str, "column": str})
+        table = read_table(path, dtype={"variant": str, "column": str})
     except (OSError, ValueError, KeyError, TypeError) as error:
         why = f"{type(error).__name__}: {error}".splitlines()[0][:200]
         raise UserError(f"{path}: not a claims evidence table ({why})") from None

@@ -20,7 +20,6 @@ Usage (from the repository's root):
 from __future__ import annotations
 
 import argparse
-import json
 import math
 import sys
 from dataclasses import dataclass
@@ -33,6 +32,8 @@ from evidence import (  # experiments/
     keep_clock,
     kept_row,
     merged_rows,
+    read_json,
+    read_table,
     write_kept,
 )
 from leaderboard_scenes import (
@@ -44,7 +45,7 @@ from leaderboard_scenes import (
     SCENES,
 )
 from studies import STUDY_FOLDER
-from study_runs import read_study
+from study_runs import read_study, study_overrides
 
 from physgrad.verdict import (
     A_BETTER,
@@ -68,7 +69,6 @@ def keep(root: Path, dest: Path) -> list[str]:
     run's test loss at the kept fractions of the budget; in the .json each study's machine, commit
     and each rule's median iterations at the budget, and the scene's calibration (its clock, for
     the studies still to run) beside it. Returns the studies kept, as scene/study-k."""
-    import pandas as pd
 
     from physgrad.errors import UserError
 
@@ -94,7 +94,7 @@ def keep(root: Path, dest: Path) -> list[str]:
                 for variant in sorted(runs.paths)
                 for seed, curve in sorted(runs.curves(variant).items())
             ]
-            table = pd.read_csv(folder / "runs.csv")
+            table = read_table(folder / "runs.csv")
             records[k] = (
                 rows,
                 {
@@ -104,9 +104,7 @@ def keep(root: Path, dest: Path) -> list[str]:
                         str(v): float(np.median(group["iterations"]))
                         for v, group in table.groupby("variant")
                     },
-                    "overrides": json.loads((folder / "study.json").read_text()).get(
-                        "overrides", []
-                    ),
+                    "overrides": study_overrides(folder),
                 },
             )
         first = next(iter(finished.values()))[1]
@@ -209,7 +207,7 @@ def board(root: Path) -> dict[str, tuple[dict[str, Cell], object, dict]]:
         if runs is None:
             continue
         about_path = root / f"{entry.name}.json"
-        about = json.loads(about_path.read_text()) if about_path.is_file() else {}
+        about = read_json(about_path) if about_path.is_file() else {}
         found[entry.name] = (cells(runs, about.get("iterations")), runs, about)
     return found
 

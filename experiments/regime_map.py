@@ -7,15 +7,15 @@ with the median's interval (docs/decisions.md, "The regime map").
 
 from __future__ import annotations
 
-import json
 import math
 import re
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+from evidence import read_json  # experiments/
 from studies import MAP, Study
-from study_runs import read_study  # experiments/
+from study_runs import read_study
 
 from physgrad.claim import short
 from physgrad.readout import highest_median
@@ -68,7 +68,7 @@ def map_cell(root: Path, study: Study) -> Cell | None:
     calibration = root / study.name / "calibration.json"
     if calibration.is_file():
         try:
-            costs = json.loads(calibration.read_text())["costs"]
+            costs = read_json(calibration)["costs"]
             cost = float(costs["hig"]["step_seconds"]) / float(costs["adam"]["step_seconds"])
         except (OSError, ValueError, KeyError, TypeError, ZeroDivisionError):
             pass

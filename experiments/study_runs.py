@@ -8,7 +8,7 @@ never at the path its table records, and a linked folder is not read.
 
 from __future__ import annotations
 
-import json
+import os
 import re
 import sys
 from dataclasses import dataclass, replace
@@ -20,7 +20,9 @@ from evidence import (  # experiments/
     kept_row,
     kept_table,
     merged_rows,
+    read_json,
     read_kept,
+    read_table,
     write_kept,
 )
 from studies import CLOCK, PROFILES, STUDY_FOLDER
@@ -79,7 +81,6 @@ def read_study(folder: Path) -> StudyRuns | None:
     part of its recorded path from "eval" on), never at the path as written (an absolute path or
     "..": anywhere); a row whose seed, budget or path cannot be read so is a UserError (one
     line)."""
-    import pandas as pd
 
     table = folder / "runs.csv"
     if not table.is_file():
@@ -88,7 +89,7 @@ def read_study(folder: Path) -> StudyRuns | None:
             return _kept_runs(read_kept(kept))
         return _tuning_study_runs(folder)
     try:
-        table_runs = pd.read_csv(table, dtype=str)
+        table_runs = read_table(table, dtype=str)
     except ValueError as error:  # pandas' parse errors, an empty file, bytes that are no text
         why = (str(error).splitlines() or [type(error).__name__])[0][:200]
         raise UserError(f"{table}: not a table of runs ({why})") from None
@@ -205,7 +206,7 @@ def study_protocol(folder: Path) -> tuple[int, int, int] | None:
         if not table.is_file():
             continue
         try:
-            rows = pd.read_csv(table)
+            rows = read_table(table)
         except ValueError:  # empty: an untuned study (the presets' twin) tried no trials
             rows = pd.DataFrame()
         if {"variant", "trial"} <= set(rows.columns) and len(rows):
@@ -226,15 +227,27 @@ def _study_record(folder: Path, runs: StudyRuns) -> dict:
                 ran.add(str(read_final(Path(path))[0].get("git_commit", "unknown")))
             except (OSError, ValueError):
                 ran.add("unreadable")
-    overrides = []
-    if (folder / "study.json").is_file():
-        overrides = json.loads((folder / "study.json").read_text()).get("overrides", [])
     return {
         "machine": runs.machine,
         "commits": sorted(ran),
         "kept_by": commit(),
-        "overrides": overrides,
+        "overrides": study_overrides(folder),
     }
+
+
+def study_overrides(folder: Path) -> list[str]:
+    """The compare overrides a study folder's study.json records ([] without one); UserError (one
+    line) for a study.json that is a link, no regular file, not JSON or not a record of them."""
+    path = folder / "study.json"
+    if not os.path.lexists(path):
+        return []
+    try:
+        overrides = read_json(path).get("overrides", [])
+    except (OSError, ValueError, AttributeError) as error:
+        raise UserError(f"{path}: not a study record ({type(error).__name__}: {error})") from None
+    if not isinstance(overrides, list) or not all(isinstance(o, str) for o in overrides):
+        raise UserError(f"{path}: its overrides are not a list of text")
+    return overrides
 
 
 def keep_studies(root: Path, dest: Path, columns: dict[str, set]) -> list[str]:

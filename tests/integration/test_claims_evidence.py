@@ -131,3 +131,79 @@ def test_tuning_studies_run_as_compares_of_their_own_are_kept_and_decided_as_one
         assert runs.planned == 4 and claims._of_planned(runs) == " of 4"
         _, decisions = claims.decide_claim(claim, root)
         assert all("(2 of 4 tuning studies run)" in d.why for _, d in decisions[:1])
+
+
+def _plant(path, kind, elsewhere):
+    """A link to a file elsewhere, or a FIFO, where a study's file is expected."""
+    import os
+
+    path.unlink(missing_ok=True)
+    if kind == "link":
+        path.symlink_to(elsewhere)
+    else:
+        os.mkfifo(path)
+
+
+@pytest.mark.parametrize("kind", ["link", "fifo"])
+@pytest.mark.parametrize("name", ["runs.csv", "study.json", "trials.csv"])
+def test_a_planted_file_in_a_study_folder_is_refused_or_left_out_never_followed_or_waited_on(
+    small_study,  # noqa: F811
+    tmp_path,
+    monkeypatch,
+    kind,
+    name,
+):
+    """A study folder from someone else with a link (to a file elsewhere) or a FIFO where runs.csv,
+    study.json or trials.csv should be: reading and keeping it refuses in one line or leaves the
+    file out; nothing waits on the FIFO and nothing is read through the link."""
+    import signal
+
+    from physgrad.errors import UserError
+
+    root, kept = tmp_path / "studies", tmp_path / "evidence"
+    shutil.copytree(small_study.folder, root / "small", symlinks=True)
+    secret = tmp_path / "elsewhere.csv"
+    shutil.copy(root / "small" / "runs.csv", secret)  # a table that would read as the study's
+    _plant(root / "small" / name, kind, secret)
+    monkeypatch.setattr(claims, "CLAIMS", (claims.Claim("small", "-", PARTS[:1]),))
+    signal.signal(signal.SIGALRM, lambda *_: pytest.fail("waited on a FIFO"))
+    signal.alarm(60)
+    try:
+        try:
+            runs = claims.read_study(root / "small")
+            claims.keep_evidence(root, kept)
+        except UserError as refused:
+            assert "\n" not in str(refused) and name in str(refused)
+            assert kind == "link" or name == "study.json", refused
+        else:
+            assert name == "trials.csv" or (name == "runs.csv" and runs is None)
+    finally:
+        signal.alarm(0)
+
+
+def test_kept_evidence_is_written_by_replacing_never_through_a_planted_link(
+    small_study,  # noqa: F811
+    tmp_path,
+    monkeypatch,
+):
+    """An evidence folder whose table is a link to a file elsewhere: keeping replaces the link with
+    the table and leaves the file it pointed to as it was; a linked table is refused when read."""
+    from physgrad.errors import UserError
+
+    root, kept = tmp_path / "studies", tmp_path / "evidence"
+    shutil.copytree(small_study.folder, root / "small", symlinks=True)
+    monkeypatch.setattr(claims, "CLAIMS", (claims.Claim("small", "-", PARTS[:1]),))
+    kept.mkdir()
+    victim = tmp_path / "victim.txt"
+    victim.write_text("untouched")
+    (kept / "small.csv").symlink_to(victim)
+    (kept / "small.json").symlink_to(victim)
+    with pytest.raises(UserError, match="a link") as refused:
+        claims.read_study(kept / "small")
+    assert "\n" not in str(refused.value)
+    (kept / "small.csv").unlink(), (kept / "small.json").unlink()
+    claims.keep_evidence(root, kept)
+    (kept / "small.json").rename(kept / "kept.json")
+    (kept / "small.json").symlink_to(victim)
+    claims.keep_evidence(root, kept)
+    assert victim.read_text() == "untouched" and not (kept / "small.json").is_symlink()
