@@ -117,20 +117,23 @@ def test_tuning_studies_run_as_compares_of_their_own_are_kept_and_decided_as_one
     assert (kept / "small.csv").read_text() == (kept_whole / "small.csv").read_text()
     about = json.loads((kept / "small.json").read_text())
     assert about["studies"] == 2 and sorted(about["tuning_studies"]) == ["1", "2"]
-    for fraction in (0.25, 1.0):
-        expected = claims.decide_claim(claim, whole, fraction=fraction)
-        assert claims.decide_claim(claim, both.parent, fraction=fraction) == expected
-        assert claims.decide_claim(claim, kept, fraction=fraction) == expected
+    # every kind of part, from the folders and from the table (each fraction reads the same runs:
+    # test_kept_evidence_decides_every_part_as_the_study_folder)
+    expected = claims.decide_claim(claim, whole)
+    assert claims.decide_claim(claim, both.parent) == expected
+    assert claims.decide_claim(claim, kept) == expected
     claims.keep_evidence(machines[2], kept)
     assert (kept / "small.csv").read_text() == (kept_whole / "small.csv").read_text()
     # a study of the profiles is to have more: kept with its plan, decided by a majority of it
     monkeypatch.setattr(study_runs, "_planned", lambda name: 4)
+    lower = claims.Claim("small", "-", PARTS[:1])
+    monkeypatch.setattr(claims, "CLAIMS", (lower,))
     claims.keep_evidence(machines[1], kept)
     for root in (both.parent, kept):
         runs = claims.read_study(root / "small")
         assert runs.planned == 4 and claims._of_planned(runs) == " of 4"
-        _, decisions = claims.decide_claim(claim, root)
-        assert all("(2 of 4 tuning studies run)" in d.why for _, d in decisions[:1])
+        _, ((_, decision),) = claims.decide_claim(lower, root)
+        assert "(2 of 4 tuning studies run)" in decision.why
 
 
 def _plant(path, kind, elsewhere):
