@@ -9,6 +9,7 @@ from typing import TYPE_CHECKING
 
 from physgrad.comparison.jobs import Launcher, cadence, job_runs, job_yaml
 from physgrad.comparison.spec import StudyPlan, StudySettings, Variant, study_prefix, variant_index
+from physgrad.comparison.tuning import seeds_together
 from physgrad.errors import UserError
 from physgrad.readout import run_curve
 
@@ -29,9 +30,10 @@ def evaluation_jobs(
     """The evaluation's jobs in launch order, for each tuning study's best settings (best[k]): per
     variant one job of all seeds trained together when the budget is in iterations (one per seed
     where init_from starts each seed from its own network, e.g.
-    init_from='start/seed=${seed}/results.h5'); for time budgets one job per seed,
-    variants and studies interleaved (A, B, C of each study for the first seed, then the next), so
-    that a drift in the machine's load does not line up with a variant or a study."""
+    init_from='start/seed=${seed}/results.h5', and for a rule that searches a line); for time
+    budgets one job per seed, variants and studies interleaved (A, B, C of each study for the
+    first seed, then the next), so that a drift in the machine's load does not line up with a
+    variant or a study."""
     jobs = {}
 
     def spec(study: int, variant: Variant, seed: int, count: int) -> str:
@@ -51,8 +53,7 @@ def evaluation_jobs(
         for study in range(len(best)):
             seeds = settings.study_seeds(study)
             for index, variant in enumerate(variants):
-                # init_from starts one network per job
-                if variant.config.get("init_from") and len(seeds) > 1:
+                if not seeds_together(variant) and len(seeds) > 1:
                     for seed in seeds:
                         jobs[evaluation_job(study, index, seed)] = spec(study, variant, seed, 1)
                 else:

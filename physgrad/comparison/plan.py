@@ -145,7 +145,7 @@ def variant_cost(
     held_out = measured.first_evaluation_seconds + (count - 1) * measured.evaluation_seconds
     per_job = start_up + measured.build_seconds + measured.compile_seconds
     tuning_runs = settings.trials * studies if settings.tune else 0
-    from physgrad.comparison.tuning import trials_together
+    from physgrad.comparison.tuning import seeds_together, trials_together
 
     # a study's trials of a variant in one vectorised job where the tuning trains them together
     # (a time budget on the calibrated clock counts as calibrated time there)
@@ -154,7 +154,7 @@ def variant_cost(
     else:
         tuning_axis = "calibrated_time"
     tuning_jobs = studies if tuning_runs and trials_together(variant, tuning_axis) else tuning_runs
-    together = plan.axis == "iteration" and not variant.config.get("init_from")
+    together = plan.axis == "iteration" and seeds_together(variant)
     jobs = studies if together else studies * seeds
     evaluation = jobs * per_job + studies * seeds * (train + held_out)
     return VariantCost(

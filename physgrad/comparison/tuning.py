@@ -191,12 +191,14 @@ def trials_together(variant: Variant, axis: str) -> bool:
     """Whether a variant's trials of one study train in one vectorised job (trial_values): the
     budget in iterations or on the calibrated clock (members then stop together), a rule that
     takes its tuned values as inputs of its optax transformation (not Levenberg-Marquardt or
-    K-FAC), top-level keys, no init_from."""
+    K-FAC) and searches no line (capabilities.line_search), top-level keys, no init_from."""
     from physgrad.optim import build_rule
+    from physgrad.optim.capabilities import capabilities
 
     optim = variant.config.optim
     if (
         axis not in ("iteration", "calibrated_time")
+        or capabilities(optim).line_search
         or not variant.space
         or any("." in key for key in variant.space)
         or variant.config.get("init_from")
@@ -207,6 +209,17 @@ def trials_together(variant: Variant, axis: str) -> bool:
     except UserError:
         return False
     return True
+
+
+def seeds_together(variant: Variant) -> bool:
+    """Whether a variant's evaluation seeds (with a budget in iterations) train together in one
+    vectorised job: not where init_from starts each from its own network, nor for a rule that
+    searches a line (trained together, every seed would wait for the slowest one's evaluations at
+    every step: capabilities.line_search)."""
+    from physgrad.optim.capabilities import capabilities
+
+    searches = capabilities(variant.config.optim).line_search
+    return not variant.config.get("init_from") and not searches
 
 
 def batch_job(study: int, index: int, numbers: list[int]) -> str:

@@ -12,6 +12,10 @@ adam.yaml is Adam. Capabilities:
 - needs_matrices: the rule has nothing to do without 2-D weight matrices (Muon);
 - needs_layer_factors: the rule takes the Jacobian in layer factors (K-FAC's Kronecker factors),
   which a scene whose Jacobian is only available per sample cannot give;
+- line_search: the step searches along its direction with a number of loss evaluations that varies
+  from step to step (a zoom line search); trained together in one vectorised step, every member
+  waits for the slowest member's evaluations (a vmapped while loop runs until all are done), so
+  `physgrad compare` trains such a rule's trials and seeds one job each;
 - search_range: the log-uniform learning-rate range `physgrad compare` tunes over, per family, each
   spanning the papers' presets by two decades or more on either side (docs/protocol.md).
 """
@@ -31,6 +35,7 @@ class Capabilities:
     elementwise: bool = False
     needs_matrices: bool = False
     needs_layer_factors: bool = False
+    line_search: bool = False
 
 
 # mean-over-samples loss; presets 0.5 to 1
@@ -47,11 +52,11 @@ RULES: dict[str, Capabilities] = {
     ),
     "optax.sgd": Capabilities("sgd", (1e-4, 1e1), elementwise=True),  # plain gradient descent
     "optax.lbfgs": Capabilities(
-        "lbfgs", (1e-2, 1e1), elementwise=True
+        "lbfgs", (1e-2, 1e1), elementwise=True, line_search=True
     ),  # scales the direction before its line search
     # a dense inverse Hessian over the flat vector, then the same zoom line search as L-BFGS
     "physgrad.optim.quasi_newton.self_scaled_broyden": Capabilities(
-        "lbfgs", (1e-2, 1e1), elementwise=True
+        "lbfgs", (1e-2, 1e1), elementwise=True, line_search=True
     ),
     "optax.contrib.muon": Capabilities("adaptive", ADAPTIVE.search_range, needs_matrices=True),
     # Adam in Shampoo's eigenbasis per weight matrix: given the layers, not one flat vector

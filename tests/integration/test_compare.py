@@ -105,6 +105,15 @@ def test_equal_time_evaluations_interleave_the_variants_and_equal_iterations_tra
     assert "seed: 0" in counted["eval_v1"] and "seed: 3" in counted["eval_st1_v1"]
     assert "learning_rate: 0.01" in counted["eval_v1"] and "eval_every: 15" in counted["eval_v1"]
     assert "learning_rate: 0.02" in counted["eval_st1_v1"]
+    # a rule that searches a line: one job per seed, each of one seed
+    settings, axes, common, _ = split_overrides(
+        ["task=toy", "optim=adam,lbfgs", "trainer.iterations=300"]
+    )
+    variants = build_variants(axes, common, s, [])
+    best = [{v.name: {"learning_rate": 0.1} for v in variants}]
+    counted = evaluation_jobs(variants, best, s, common, {"task", "optim"}, "iteration", 300.0)
+    assert list(counted) == ["eval_v0", "eval_v1_s0", "eval_v1_s1", "eval_v1_s2"]
+    assert "seeds: 1" in counted["eval_v1_s2"] and "seed: 2" in counted["eval_v1_s2"]
 
 
 def test_validation_data_are_held_out_and_evaluated_beside_the_test_set(tmp_path):
@@ -617,11 +626,14 @@ def test_which_variants_train_their_trials_together():
     """One vectorised job per study where the tuned learning rate can be an input of the rule's
     optax transformation (Gauss-Newton and HIG too, their float64 retry included) and members stop
     together (iterations, calibrated clock); one job per trial for Levenberg-Marquardt (its gain
-    ratio takes the loss function) and on the measured clock."""
-    from physgrad.comparison.tuning import trials_together
+    ratio takes the loss function), for the rules that search a line (trained together, every
+    member would wait for the slowest one's evaluations at every step; their evaluation seeds too)
+    and on the measured clock."""
+    from physgrad.comparison.tuning import seeds_together, trials_together
 
+    rules = "adam,gd,gauss_newton,hig,levenberg_marquardt,lbfgs,ssbfgs"
     settings, axes, common, _ = split_overrides(
-        ["task=toy", "optim=adam,gd,gauss_newton,hig,levenberg_marquardt", "trainer.iterations=30"]
+        ["task=toy", f"optim={rules}", "trainer.iterations=30"]
     )
     variants = build_variants(axes, common, study_settings(settings), [])
     together = {v.name: trials_together(v, "iteration") for v in variants}
@@ -631,7 +643,10 @@ def test_which_variants_train_their_trials_together():
         "gauss_newton": True,
         "hig": True,
         "levenberg_marquardt": False,
+        "lbfgs": False,
+        "ssbfgs": False,
     }
+    assert {v.name for v in variants if not seeds_together(v)} == {"lbfgs", "ssbfgs"}
     assert trials_together(variants[0], "calibrated_time")
     assert not trials_together(variants[0], "wall_time")
 
