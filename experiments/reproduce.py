@@ -24,7 +24,6 @@ from __future__ import annotations
 
 import argparse
 import shutil
-import subprocess
 import sys
 import time
 from dataclasses import dataclass, field
@@ -32,7 +31,7 @@ from pathlib import Path
 from typing import Callable
 
 import yaml
-from study_profiles import STUDY_PROFILES, study_profile  # experiments/
+from study_profiles import INTERRUPTED, STUDY_PROFILES, run_child, study_profile  # experiments/
 
 from physgrad.report import write_report
 from physgrad.sweeps import sweep_jobs
@@ -231,7 +230,7 @@ def run_sweep(sweep: Sweep, profile: str, overwrite: bool) -> tuple[Path, int]:
         *(["overwrite=true"] if overwrite else []),
     ]
     print("reproduce:", " ".join(command[2:]), flush=True)
-    return folder, subprocess.run(command).returncode
+    return folder, run_child(command)
 
 
 NOTES = {
@@ -304,6 +303,9 @@ def run_figures(wanted: list[Figure], profile: str, overwrite: bool, out: Path) 
         folders = []
         for sweep in profile_sweeps(figure, profile):
             folder, code = run_sweep(sweep, profile, overwrite)
+            if code == 130:
+                print(INTERRUPTED, file=sys.stderr)
+                return 130
             if code != 0:
                 failed.append(f"{sweep.folder or sweep.experiment} (exit {code})")
             if folder.exists():

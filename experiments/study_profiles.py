@@ -99,7 +99,21 @@ def run_start(start, seeds: list[int], root: Path) -> int:
         "hydra.sweep.subdir='seed=${seed}'",
     ]
     print("reproduce:", " ".join(command[2:]), flush=True)
-    return subprocess.run(command).returncode
+    return run_child(command)
+
+
+def run_child(command: list[str], env: dict | None = None) -> int:
+    """A child's exit code; 130 after Ctrl-C, once the child (in this process group, so it has the
+    signal too) has left its files as a resumable state (subprocess.run would kill it at once)."""
+    child = subprocess.Popen(command, env=env)
+    try:
+        return child.wait()
+    except KeyboardInterrupt:
+        child.wait()
+        return 130
+
+
+INTERRUPTED = "reproduce: interrupted; the same command resumes where it stopped"
 
 
 def study_environment(profile: str, study) -> dict | None:
@@ -132,7 +146,11 @@ def run_claims(profile: str, parts: list[int], root: Path, out: Path, note: str)
                 if s.twin or not preset
                 for seed in s.start_seeds(preset)
             }
-            if run_start(start, sorted(seeds), root) != 0:
+            code = run_start(start, sorted(seeds), root)
+            if code == 130:
+                print(INTERRUPTED, file=sys.stderr)
+                return 130
+            if code != 0:
                 failed.append(start.name)
         for study in part:
             for preset in (False, True) if study.twin else (False,):
@@ -144,8 +162,9 @@ def run_claims(profile: str, parts: list[int], root: Path, out: Path, note: str)
                     *study.command(root, preset),
                 ]
                 print("reproduce:", " ".join(command[2:]), flush=True)
-                code = subprocess.run(command, env=study_environment(profile, study)).returncode
+                code = run_child(command, env=study_environment(profile, study))
                 if code == 130:
+                    print(INTERRUPTED, file=sys.stderr)
                     return 130
                 if code != 0:
                     failed.append(f"{study.name}{'-preset' if preset else ''} (exit {code})")

@@ -356,3 +356,47 @@ def test_every_seed_of_a_job_is_logged(tmp_path):
     lines = seed_lines(tmp_path)
     assert [line.split(":")[0].strip() for line in lines] == ["seed 0", "seed 1", "seed 2"]
     assert all("completed, test loss " in line for line in lines)
+
+
+@pytest.mark.parametrize("instant", [0.3, 0.6, 1.2])
+def test_ctrl_c_lets_a_profile_s_child_leave_its_files_then_ends_in_one_line(tmp_path, instant):
+    """Ctrl-C reaches the profile's process group: the child (a study, a sweep) takes a while to
+    leave its files resumable, and the profile waits for it (subprocess.run would kill it after a
+    quarter of a second), then says in one line how to resume, exit 130."""
+    import os
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    child = tmp_path / "child.py"
+    child.write_text(
+        "import pathlib, signal, sys, time\n"
+        "def leave(*_):\n"
+        "    time.sleep(0.8)  # writing its resumable state\n"
+        f"    pathlib.Path({str(tmp_path / 'left')!r}).write_text('resumable')\n"
+        "    sys.exit(130)\n"
+        "signal.signal(signal.SIGINT, leave)\n"
+        f"pathlib.Path({str(tmp_path / 'started')!r}).touch()\n"
+        "time.sleep(60)\n"
+    )
+    parent = (
+        f"import sys; sys.path.insert(0, {str(REPO / 'experiments')!r})\n"
+        "from study_profiles import INTERRUPTED, run_child\n"
+        f"code = run_child([sys.executable, {str(child)!r}])\n"
+        "if code == 130: print(INTERRUPTED, file=sys.stderr)\n"
+        "sys.exit(code)\n"
+    )
+    profile = subprocess.Popen(
+        [sys.executable, "-c", parent], start_new_session=True, stderr=subprocess.PIPE, text=True
+    )
+    deadline = time.monotonic() + 30
+    while not (tmp_path / "started").exists() and time.monotonic() < deadline:
+        time.sleep(0.05)
+    time.sleep(instant)
+    os.killpg(profile.pid, signal.SIGINT)  # as a terminal's Ctrl-C: the whole group
+    _, stderr = profile.communicate(timeout=30)
+    assert profile.returncode == 130 and (tmp_path / "left").read_text() == "resumable"
+    assert stderr.strip().splitlines() == [
+        "reproduce: interrupted; the same command resumes where it stopped"
+    ]
