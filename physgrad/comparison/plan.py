@@ -168,8 +168,10 @@ def variant_cost(
     )
 
 
-def plan_text(plan: StudyPlan) -> str:
-    """The estimate as text: a row per variant and the total."""
+def plan_text(plan: StudyPlan, composed_seconds: float = 0.0) -> str:
+    """The estimate as text: a row per variant and the total, with the time the study spends
+    composing and checking its variants before its phases (composed_seconds, as measured where the
+    plan composed them)."""
     from physgrad.machine import machine_attributes, machine_label
 
     use_job_cache()
@@ -184,7 +186,7 @@ def plan_text(plan: StudyPlan) -> str:
         plan.axis == "wall_time" and settings.clock == "calibrated" and not settings.calibration
     )
     extra = sum(c.compile_seconds for c in costs) + 10.0 if calibration else 0.0
-    total = sum(c.seconds for c in costs) + extra
+    total = sum(c.seconds for c in costs) + extra + composed_seconds
     lines = [
         f"# Plan: {plan.variants[0].config.task.get('name')}, "
         f"{', '.join(v.name for v in plan.variants)}",
@@ -210,9 +212,16 @@ def plan_text(plan: StudyPlan) -> str:
         "",
         f"Total: about {_duration(total)}"
         + (" (with the calibration of the step costs)" if calibration else "")
+        + (
+            f", composing and checking the variants ({composed_seconds:.0f} s, measured here) "
+            "included"
+            if composed_seconds
+            else ""
+        )
         + f". Each job's start-up ({start_up:.1f} s here), building its scene and data, compiling, "
         "training and the held-out "
-        "evaluations; writing files adds to it, a study resumed skips what it finished, and JAX's "
+        "evaluations; writing the tables and figures adds to it, a study resumed skips what it "
+        "finished, and JAX's "
         "compilation cache (in the user's physgrad cache, which this plan filled) makes later jobs "
         "compile faster. Measured on "
         f"{machine_label(machine_attributes())}, one seed, now; nothing was trained or written.",

@@ -5,6 +5,7 @@ own scene end to end."""
 
 import csv
 import math
+import re
 import shutil
 from pathlib import Path
 
@@ -199,4 +200,6 @@ def test_plan_prints_the_estimate_and_trains_nothing(tmp_path):
         f"compare.dir={tmp_path / 'study'}",
     )
     assert "| adam |" in out.stdout and "| gd |" in out.stdout and "Total: about" in out.stdout
+    composed = r"composing and checking the variants \(\d+ s, measured here\) included"
+    assert re.search(composed, out.stdout)
     assert not (tmp_path / "study").exists()
