@@ -187,10 +187,11 @@ def own_file(path: Path) -> Path:
     return path
 
 
-def read_own_file(path: Path, limit: int, follow: bool = False) -> bytes:
-    """The first `limit` bytes of the regular file at path, opened without following a link (unless
-    follow: a path the user gave) and without waiting on a FIFO: ValueError (one line) for a link,
-    a FIFO, a device or a folder; OSError where it cannot be read."""
+def read_own_file(path: Path, limit: int, follow: bool = False, tail: bool = False) -> bytes:
+    """The first `limit` bytes of the regular file at path (tail: its last), opened without
+    following a link (unless follow: a path the user gave) and without waiting on a FIFO:
+    ValueError (one line) for a link, a FIFO, a device or a folder; OSError where it cannot be
+    read."""
     flags = os.O_RDONLY | os.O_NONBLOCK | (0 if follow else os.O_NOFOLLOW)
     try:
         fd = os.open(path, flags)
@@ -200,10 +201,13 @@ def read_own_file(path: Path, limit: int, follow: bool = False) -> bytes:
                 f"{path}: a link: refused (a folder may come from someone else)"
             ) from None
         raise
+    found = os.fstat(fd)
+    if not stat.S_ISREG(found.st_mode):  # before fdopen, which refuses a folder by its number
+        os.close(fd)
+        raise ValueError(f"{path}: {file_kind(found.st_mode)}, not a file: refused")
     with os.fdopen(fd, "rb") as file:
-        mode = os.fstat(fd).st_mode
-        if not stat.S_ISREG(mode):
-            raise ValueError(f"{path}: {file_kind(mode)}, not a file: refused")
+        if tail:
+            file.seek(max(0, found.st_size - limit))
         return file.read(limit)
 
 

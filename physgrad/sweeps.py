@@ -218,8 +218,10 @@ def unfinished_jobs(folder: Path, interrupted: bool = False) -> list[tuple[str, 
 
 def stop_count(sweep: Path) -> tuple[str, int] | None:
     """(signal name, how many) if the sweep was asked to stop."""
-    try:
-        name, count = (sweep / STOP_MARK).read_text().split()
+    from physgrad.files import read_own_file
+
+    try:  # a mark in a folder from someone else: no link followed, no FIFO waited on
+        name, count = read_own_file(sweep / STOP_MARK, 64).decode().split()
         return name, int(count)
     except (OSError, ValueError):
         return None

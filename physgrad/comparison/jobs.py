@@ -278,13 +278,11 @@ def _raise_unfinished(sweep: Path, phase: str, jobs: dict[str, str], log_path: P
 
 def _last_error(log_path: Path) -> str | None:
     """The last `physgrad: error:` line the multirun wrote to its log (read as data, its tail)."""
-    from physgrad.files import clean_text
+    from physgrad.files import clean_text, read_own_file
 
-    try:
-        with open(log_path, "rb") as file:
-            file.seek(max(0, file.seek(0, 2) - (1 << 16)))
-            tail = file.read().decode(errors="replace")
-    except OSError:
+    try:  # the log as data: no link followed, no FIFO waited on; its last 64 KiB
+        tail = read_own_file(log_path, 1 << 16, tail=True).decode(errors="replace")
+    except (OSError, ValueError):
         return None
     tail = tail.rpartition("\n$ ")[2]  # this launch's part
     lines = [line for line in tail.splitlines() if line.startswith("physgrad: error: ")]

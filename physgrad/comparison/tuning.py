@@ -306,24 +306,30 @@ def journal_storage(path: Path) -> JournalStorage:
     return optuna.storages.JournalStorage(backend)
 
 
+JOURNAL_LIMIT = 1 << 30  # bytes: a study's journal is kilobytes; a larger one is not physgrad's
+
+
 def set_aside_damage(path: Path, say: Callable[[str], object]) -> None:
     """Optuna's journal is one JSON object per line, appended. A kill or a full disk during an
     append leaves the last line cut short: it is moved to <journal>.damaged-<time> with a one-line
     note, and the trials it would have told run again. Any other line that is not a JSON object is a
     UserError (one line): the journal is not Optuna's, or was changed by hand."""
-    import json
+    import os
 
-    from physgrad.files import replace_file, timestamp
+    from physgrad.files import load_json, read_own_file, replace_file, timestamp
 
-    if not path.is_file():
+    if not os.path.lexists(path):
         return
-    data = path.read_bytes()
+    try:  # a journal is data from the study folder: no link followed, no FIFO waited on
+        data = read_own_file(path, JOURNAL_LIMIT)
+    except (OSError, ValueError) as error:
+        raise UserError(f"{error}; remove it or give another compare.dir") from None
     lines = data.split(b"\n")
     kept = 0  # bytes of whole records
     for number, line in enumerate(lines):
         try:
-            whole = isinstance(json.loads(line), dict) if line.strip() else True
-        except ValueError:
+            whole = isinstance(load_json(line), dict) if line.strip() else True
+        except ValueError:  # no JSON (nested too deep included)
             whole = False
         if whole:
             kept += len(line) + 1

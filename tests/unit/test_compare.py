@@ -143,6 +143,69 @@ def test_a_tuning_journal_cut_short_is_repaired_and_a_foreign_one_refused(tmp_pa
         set_aside_damage(path, notes.append)
 
 
+@pytest.mark.parametrize("planted", ["link", "fifo", "folder", "deep"])
+def test_a_planted_tuning_journal_is_refused_in_one_line_never_followed_or_waited_on(
+    tmp_path, planted
+):
+    """A study folder from someone else with a link (to a file elsewhere), a FIFO or a folder at
+    tuning.journal, or a record nested 200,000 deep: one line, nothing read through the link, no
+    wait on the FIFO, no RecursionError."""
+    import os
+    import signal
+
+    from physgrad.comparison.tuning import set_aside_damage
+
+    path, elsewhere = tmp_path / "tuning.journal", tmp_path / "elsewhere"
+    elsewhere.write_text('{"op_code": 0}\nsecret, cut')
+    if planted == "link":
+        path.symlink_to(elsewhere)
+    elif planted == "fifo":
+        os.mkfifo(path)
+    elif planted == "folder":
+        path.mkdir()
+    else:
+        path.write_text('{"op_code": 0}\n' + "[" * 200_000 + "\n{}\n")
+    signal.signal(signal.SIGALRM, lambda *_: pytest.fail("waited on a FIFO"))
+    signal.alarm(20)
+    try:
+        with pytest.raises(UserError) as refused:
+            set_aside_damage(path, print)
+    finally:
+        signal.alarm(0)
+    assert "\n" not in str(refused.value) and "tuning.journal" in str(refused.value)
+    assert not list(tmp_path.glob("*.damaged-*"))  # nothing of elsewhere copied in
+
+
+def test_a_planted_stop_mark_or_log_is_data_never_followed_or_waited_on(tmp_path):
+    """A sweep's stop mark and a phase's log read from a folder someone else may have written: a
+    FIFO or a link there reads as no mark and no error line, at once."""
+    import os
+    import signal
+
+    from physgrad.comparison.jobs import _last_error
+    from physgrad.sweeps import STOP_MARK, mark_stopped, stop_count
+
+    elsewhere = tmp_path / "elsewhere"
+    elsewhere.write_text("SIGTERM 3\nphysgrad: error: not yours\n")
+    signal.signal(signal.SIGALRM, lambda *_: pytest.fail("waited on a FIFO"))
+    signal.alarm(20)
+    try:
+        for kind in ("link", "fifo"):
+            sweep = tmp_path / kind
+            sweep.mkdir()
+            for path in (sweep / STOP_MARK, sweep / "tune.log"):
+                path.symlink_to(elsewhere) if kind == "link" else os.mkfifo(path)
+            assert stop_count(sweep) is None and _last_error(sweep / "tune.log") is None
+    finally:
+        signal.alarm(0)
+    own = tmp_path / "own"
+    own.mkdir()
+    mark_stopped(own, "SIGTERM", 2)
+    assert stop_count(own) == ("SIGTERM", 2)
+    (own / "tune.log").write_text("x" * 100_000 + "\n$ run\nphysgrad: error: the last one\n")
+    assert _last_error(own / "tune.log") == "the last one"
+
+
 def _journal(path, studies):
     """A tuning journal by hand: {study name: (readout attr or None, told values, asked only)}."""
     import optuna
