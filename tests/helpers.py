@@ -82,3 +82,23 @@ def float32_factorisation_fails(monkeypatch):
         return (result * jnp.nan if jac.dtype == jnp.float32 else result), kept
 
     monkeypatch.setattr(spectral, "_direction", flaky)
+
+
+def plant(path: Path, kind: str, other: Path) -> None:
+    """What someone else may leave where physgrad expects a file of its own: a "link" to other (made
+    empty where it does not exist), a "dangling link", a "fifo", a "folder" or a "hard link" to
+    other (made empty where it does not exist)."""
+    import os
+
+    if kind in ("link", "hard link") and not other.exists():
+        other.write_text("")
+    if kind in ("link", "dangling link"):
+        path.symlink_to(other)
+    elif kind == "fifo":
+        os.mkfifo(path)
+    elif kind == "folder":
+        path.mkdir()
+    elif kind == "hard link":
+        os.link(other, path)
+    else:
+        raise ValueError(f"nothing to plant of kind {kind!r}")

@@ -7,7 +7,7 @@ import sys
 
 import pytest
 
-from tests.helpers import REPO
+from tests.helpers import REPO, plant
 from tests.integration.test_compare import small_study  # noqa: F401 - the session's finished study
 
 sys.path.insert(0, str(REPO / "experiments"))
@@ -136,17 +136,6 @@ def test_tuning_studies_run_as_compares_of_their_own_are_kept_and_decided_as_one
         assert "(2 of 4 tuning studies run)" in decision.why
 
 
-def _plant(path, kind, elsewhere):
-    """A link to a file elsewhere, or a FIFO, where a study's file is expected."""
-    import os
-
-    path.unlink(missing_ok=True)
-    if kind == "link":
-        path.symlink_to(elsewhere)
-    else:
-        os.mkfifo(path)
-
-
 @pytest.mark.parametrize("kind", ["link", "fifo"])
 @pytest.mark.parametrize("name", ["runs.csv", "study.json", "trials.csv"])
 def test_a_planted_file_in_a_study_folder_is_refused_or_left_out_never_followed_or_waited_on(
@@ -167,7 +156,8 @@ def test_a_planted_file_in_a_study_folder_is_refused_or_left_out_never_followed_
     shutil.copytree(small_study.folder, root / "small", symlinks=True)
     secret = tmp_path / "elsewhere.csv"
     shutil.copy(root / "small" / "runs.csv", secret)  # a table that would read as the study's
-    _plant(root / "small" / name, kind, secret)
+    (root / "small" / name).unlink(missing_ok=True)
+    plant(root / "small" / name, kind, secret)
     monkeypatch.setattr(claims, "CLAIMS", (claims.Claim("small", "-", PARTS[:1]),))
     signal.signal(signal.SIGALRM, lambda *_: pytest.fail("waited on a FIFO"))
     signal.alarm(60)

@@ -14,6 +14,7 @@ from physgrad.comparison import (
 )
 from physgrad.configs import compose
 from physgrad.errors import UserError
+from tests.helpers import plant
 
 
 @pytest.mark.parametrize(
@@ -150,21 +151,16 @@ def test_a_planted_tuning_journal_is_refused_in_one_line_never_followed_or_waite
     """A study folder from someone else with a link (to a file elsewhere), a FIFO or a folder at
     tuning.journal, or a record nested 200,000 deep: one line, nothing read through the link, no
     wait on the FIFO, no RecursionError."""
-    import os
     import signal
 
     from physgrad.comparison.tuning import set_aside_damage
 
     path, elsewhere = tmp_path / "tuning.journal", tmp_path / "elsewhere"
     elsewhere.write_text('{"op_code": 0}\nsecret, cut')
-    if planted == "link":
-        path.symlink_to(elsewhere)
-    elif planted == "fifo":
-        os.mkfifo(path)
-    elif planted == "folder":
-        path.mkdir()
-    else:
+    if planted == "deep":
         path.write_text('{"op_code": 0}\n' + "[" * 200_000 + "\n{}\n")
+    else:
+        plant(path, planted, elsewhere)
     signal.signal(signal.SIGALRM, lambda *_: pytest.fail("waited on a FIFO"))
     signal.alarm(20)
     try:
@@ -179,7 +175,6 @@ def test_a_planted_tuning_journal_is_refused_in_one_line_never_followed_or_waite
 def test_a_planted_stop_mark_or_log_is_data_never_followed_or_waited_on(tmp_path):
     """A sweep's stop mark and a phase's log read from a folder someone else may have written: a
     FIFO or a link there reads as no mark and no error line, at once."""
-    import os
     import signal
 
     from physgrad.comparison.jobs import _last_error
@@ -194,7 +189,7 @@ def test_a_planted_stop_mark_or_log_is_data_never_followed_or_waited_on(tmp_path
             sweep = tmp_path / kind
             sweep.mkdir()
             for path in (sweep / STOP_MARK, sweep / "tune.log"):
-                path.symlink_to(elsewhere) if kind == "link" else os.mkfifo(path)
+                plant(path, kind, elsewhere)
             assert stop_count(sweep) is None and _last_error(sweep / "tune.log") is None
     finally:
         signal.alarm(0)

@@ -8,6 +8,7 @@ import os
 import pytest
 
 from physgrad.comparison.journal import OwnJournal
+from tests.helpers import plant
 
 
 def test_a_link_put_at_the_name_later_is_not_written_through(tmp_path):
@@ -28,18 +29,7 @@ def test_a_link_put_at_the_name_later_is_not_written_through(tmp_path):
 @pytest.mark.parametrize("kind", ["link", "dangling link", "fifo", "folder", "hard link"])
 def test_what_is_not_a_file_of_one_name_is_refused_in_one_line(tmp_path, kind):
     path, other = tmp_path / "tuning.journal", tmp_path / "other"
-    if kind == "link":
-        other.write_text("")
-        path.symlink_to(other)
-    elif kind == "dangling link":
-        path.symlink_to(other)
-    elif kind == "fifo":
-        os.mkfifo(path)
-    elif kind == "folder":
-        path.mkdir()
-    else:
-        other.write_text("")
-        os.link(other, path)
+    plant(path, kind, other)
     with pytest.raises(ValueError) as refused:
         OwnJournal(path)  # a FIFO must not block
     assert "\n" not in str(refused.value) and str(path) in str(refused.value)
