@@ -27,6 +27,7 @@ import os
 import signal
 import sys
 import threading
+import time
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from types import FrameType
@@ -57,6 +58,19 @@ WAKE_SECONDS = 0.05  # how often a thread waiting for a step looks at signals
 # alive, since a daemon thread that returns from XLA into a finalising interpreter aborts the
 # process
 ABANDONED: list[threading.Thread] = []
+# a step whose process has used less than STALL_CPU_SECONDS of CPU in STALL_SECONDS has stalled,
+# not computed: XLA's CPU client can wedge on a vmapped graph (its worker threads all idle, the
+# step's result never ready; XLA_FLAGS=--xla_cpu_multi_thread_eigen=false avoids it)
+STALL_SECONDS = 300.0
+STALL_CPU_SECONDS = 1.0
+STALL_HINT = (
+    "XLA's CPU thread pool stalled (a fault of its multi-threaded Eigen, seen with steps of "
+    "members trained together); run again with XLA_FLAGS=--xla_cpu_multi_thread_eigen=false"
+)
+
+
+class StepStalled(RuntimeError):
+    """A step that stopped computing without returning (StopRequest.call)."""
 
 
 class SignalInterrupt(KeyboardInterrupt):
@@ -159,11 +173,18 @@ class StopRequest:
             if waiting is not None:
                 waiting.set()
 
-    def call(self, fn: Callable[..., Any], *args: Any) -> Any:
+    def call(
+        self,
+        fn: Callable[..., Any],
+        *args: Any,
+        stall_seconds: float = STALL_SECONDS,
+        stall_cpu_seconds: float = STALL_CPU_SECONDS,
+    ) -> Any:
         """fn(*args), computed in a helper thread (XLA's CPU client runs a computation in the thread
         that calls it; fn returns once its results are ready), while this thread waits in slices so
-        that the signal handler runs; raises KeyboardInterrupt if a second signal came first (the
-        computation is left to finish unseen)."""
+        that the signal handler runs; raises KeyboardInterrupt if a second signal came first, and
+        StepStalled if the process used less than stall_cpu_seconds of CPU in stall_seconds without
+        fn returning (either way the computation is left unseen)."""
         ready, result = threading.Event(), []
 
         def compute() -> None:
@@ -176,15 +197,27 @@ class StopRequest:
         self._waiting = ready
         thread = threading.Thread(target=compute, daemon=True, name="physgrad-step")
         thread.start()
+        # the process's CPU time since the last look that found it computing
+        since, cpu = time.monotonic(), time.process_time()
+        stalled = False
         try:
             # a signal delivered to another thread (XLA's) wakes nobody: its handler runs when this
             # thread is back in Python, which the slices ensure
             while not self.at_once and not ready.wait(WAKE_SECONDS):
-                pass
+                if time.process_time() - cpu >= stall_cpu_seconds:
+                    since, cpu = time.monotonic(), time.process_time()
+                elif time.monotonic() - since > stall_seconds:
+                    stalled = True
+                    break
         finally:
             self._waiting = None
-        if not result:  # woken by the second signal
+        if not result:  # woken by the second signal, or stalled
             ABANDONED.append(thread)
+            if stalled:
+                raise StepStalled(
+                    f"the step used no CPU for {stall_seconds:.0f} s without returning: "
+                    + STALL_HINT
+                )
             raise KeyboardInterrupt(self.signal_name)
         if isinstance(result[0], BaseException):
             raise result[0]

@@ -17,6 +17,7 @@ physgrad.interrupts.
 from __future__ import annotations
 
 import logging
+import math
 import time
 from collections.abc import Mapping
 from dataclasses import dataclass
@@ -26,7 +27,7 @@ import numpy as np
 
 from physgrad.errors import ResultsWriteError, UserError, innermost_cause, scene_failed
 from physgrad.guard import RowGuard
-from physgrad.interrupts import StopRequest, stop_on_signals
+from physgrad.interrupts import STALL_CPU_SECONDS, STALL_SECONDS, StopRequest, stop_on_signals
 from physgrad.machine import load_average, timing_attributes
 from physgrad.optim import UpdateRule
 from physgrad.progress import Progress
@@ -256,7 +257,14 @@ class TrainingLoop:
             self.seeds.train_sets,
         )
         if iteration == 0 or previous_seconds >= SLOW_STEP_SECONDS:
-            params, self.opt_state, logs = self.stop.call(ready(compiled.step), *arguments)
+            # a stall is told by the CPU left unused: on an accelerator the host waits idle
+            stall = STALL_SECONDS if jax.default_backend() == "cpu" else math.inf
+            params, self.opt_state, logs = self.stop.call(
+                ready(compiled.step),
+                *arguments,
+                stall_seconds=stall,
+                stall_cpu_seconds=STALL_CPU_SECONDS,
+            )
         else:
             params, self.opt_state, logs = compiled.step(*arguments)
         logs = np.asarray(logs).tolist()  # one transfer for every logged scalar of every seed

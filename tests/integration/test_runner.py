@@ -37,6 +37,30 @@ def test_divergence_is_an_outcome_with_the_curve_kept(tmp_path):
     assert np.isfinite(run.train["loss"][0])
 
 
+def test_a_run_whose_step_stalls_ends_failed_in_one_line_with_the_way_round(tmp_path, monkeypatch):
+    """XLA's CPU pool wedged at the first step (every thread idle, the result never ready): the run
+    ends failed, its reason one line that names XLA_FLAGS=--xla_cpu_multi_thread_eigen=false,
+    instead of waiting for ever (the job ends as on any failure: the traceback in error.txt)."""
+    import threading
+
+    import physgrad.runner as runner
+
+    release = threading.Event()
+    monkeypatch.setattr(runner, "STALL_SECONDS", 1.0)
+    monkeypatch.setattr(runner, "STALL_CPU_SECONDS", 0.05)
+    monkeypatch.setattr(runner, "ready", lambda step: lambda *args: release.wait(60))
+    from physgrad.interrupts import StepStalled
+
+    try:
+        with pytest.raises(StepStalled):  # the job's error.txt keeps its traceback
+            run_experiment(load("optim=adam", "trainer.iterations=5", *SMALL), tmp_path)
+    finally:
+        release.set()
+    run = read_run(tmp_path / "results.h5")
+    assert run.attrs["status"] == "failed" and "\n" not in run.attrs["reason"]
+    assert "XLA_FLAGS=--xla_cpu_multi_thread_eigen=false" in run.attrs["reason"]
+
+
 @pytest.mark.long
 def test_a_failed_factorisation_is_named_in_the_divergence_reason(tmp_path, monkeypatch):
     from tests.helpers import float32_factorisation_fails

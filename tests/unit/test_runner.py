@@ -40,6 +40,34 @@ def test_rows_are_whole_and_columns_fixed(tmp_path):
     assert run.train["iteration"].tolist() == [0, 1] and run.train["loss"].tolist() == [1.0, 0.5]
 
 
+def test_a_step_that_stops_computing_without_returning_ends_in_one_line_one_that_computes_not():
+    """XLA's CPU pool can wedge: every thread idle, the step never ready. A step whose process uses
+    no CPU for the stall window is abandoned with StepStalled, whose message names the way round;
+    a step that keeps the CPU busy for longer than the window returns its result."""
+    import threading
+    import time
+
+    from physgrad.interrupts import ABANDONED, StepStalled, StopRequest
+
+    request, release = StopRequest(), threading.Event()
+    start = time.perf_counter()
+    with pytest.raises(StepStalled) as stalled:
+        request.call(lambda: release.wait(30), stall_seconds=0.5, stall_cpu_seconds=0.05)
+    assert 0.5 <= time.perf_counter() - start < 5
+    assert "\n" not in str(stalled.value)
+    assert "XLA_FLAGS=--xla_cpu_multi_thread_eigen=false" in str(stalled.value)
+    release.set()
+    ABANDONED[-1].join(5)
+
+    def busy(seconds):  # computing, in Python: the process's CPU time grows
+        end, total = time.perf_counter() + seconds, 0
+        while time.perf_counter() < end:
+            total += 1
+        return total
+
+    assert request.call(busy, 1.5, stall_seconds=0.5, stall_cpu_seconds=0.05) > 0
+
+
 def test_first_signal_asks_to_stop_second_ends_a_step_still_computing():
     import signal
     import threading
