@@ -207,6 +207,10 @@ def run_command(args: list[str]) -> int:
             config_dirs=[parsed.config_dir] if parsed.config_dir else [],
         )
         check_writable(parsed.overrides, multirun=parsed.multirun)
+        if members_asked(parsed.overrides):  # before JAX starts its CPU client
+            from physgrad.machine import members_environment
+
+            os.environ.update(members_environment(os.environ))
     from physgrad.app import FAILED_JOBS, INTERRUPTED_BY_SIGNAL, job
 
     sys.argv = ["physgrad run", *args]
@@ -245,6 +249,23 @@ def shell_completion(args: list[str]) -> int:
     sys.argv = ["physgrad", *args]
     job()
     return 0
+
+
+def members_asked(overrides: list[str]) -> bool:
+    """Whether the command line trains members together: seeds above 1 (in any value of a sweep)
+    or trial_values (physgrad.machine.MEMBERS_XLA_FLAG)."""
+    from physgrad.configs import _parse_overrides
+
+    for override in _parse_overrides(overrides):
+        key = override.get_key_element().lstrip("+~")
+        if key == "trial_values" and not override.is_delete():
+            return True
+        if key == "seeds":
+            values = override.sweep_string_iterator() if override.is_sweep_override() else None
+            found = list(values) if values is not None else [override.value()]
+            if any(str(v).isdigit() and int(v) > 1 for v in found):
+                return True
+    return False
 
 
 def check_writable(overrides: list[str], multirun: bool) -> None:

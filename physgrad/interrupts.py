@@ -59,13 +59,13 @@ WAKE_SECONDS = 0.05  # how often a thread waiting for a step looks at signals
 # process
 ABANDONED: list[threading.Thread] = []
 # a step whose process has used less than STALL_CPU_SECONDS of CPU in STALL_SECONDS has stalled,
-# not computed: XLA's CPU client can wedge on a vmapped graph (its worker threads all idle, the
-# step's result never ready; XLA_FLAGS=--xla_cpu_multi_thread_eigen=false avoids it)
+# not computed: XLA's CPU client can wedge on a step of members trained together (its worker
+# threads all idle, the step's result never ready; physgrad.machine.MEMBERS_XLA_FLAG avoids it)
 STALL_SECONDS = 300.0
 STALL_CPU_SECONDS = 1.0
 STALL_HINT = (
-    "XLA's CPU thread pool stalled (a fault of its multi-threaded Eigen, seen with steps of "
-    "members trained together); run again with XLA_FLAGS=--xla_cpu_multi_thread_eigen=false"
+    "XLA's CPU scheduler wedged (seen with steps of several members trained together); run again "
+    "with XLA_FLAGS=--xla_cpu_enable_concurrency_optimized_scheduler=false"
 )
 
 

@@ -322,7 +322,12 @@ def launch(
         command = multirun_command(private, folder, phase, jobs, config_dir, hydra_args)
         say(f"{phase}: {len(jobs)} jobs -> {folder / phase} (log: {folder / (phase + '.log')})")
         progress = Progress(phase, len(jobs), say)
-        return _run_multirun(command, folder / f"{phase}.log", job_environment(), progress)
+        env = job_environment()
+        if any(members_together(text) for text in jobs.values()):
+            from physgrad.machine import members_environment
+
+            env = members_environment(env)
+        return _run_multirun(command, folder / f"{phase}.log", env, progress)
     finally:
         shutil.rmtree(private, ignore_errors=True)
 
@@ -515,6 +520,15 @@ def _wait_saying(
 
 
 POLL_SECONDS = 5.0
+
+
+def members_together(job_text: str) -> bool:
+    """Whether a job (its config file's text) trains several members in one step: seeds > 1 or
+    trial_values."""
+    import yaml
+
+    keys = yaml.safe_load(job_text) or {}
+    return bool(keys.get("trial_values")) or int(keys.get("seeds") or 1) > 1
 
 
 def job_environment() -> dict[str, str]:

@@ -211,3 +211,22 @@ def test_help_starts_no_jax(command, tmp_path):
     done = subprocess.run([PHYSGRAD, command, "--help"], capture_output=True, text=True, env=env)
     assert done.returncode == 0, done.stderr[-500:]
     assert "usage" in done.stdout.lower() and "help imported jax" not in done.stderr
+
+
+@pytest.mark.long
+def test_eight_soap_trials_trained_together_on_the_oscillators_step_instead_of_wedging(tmp_path):
+    """The case that wedged XLA's CPU client (SOAP, 8 members trained together on the oscillators:
+    every thread idle after the compile, for ever): the console script trains it with the
+    scheduler that does not wedge, in seconds; each member recorded with the flag."""
+    physgrad(
+        "run",
+        "task=oscillator",
+        "optim=soap",
+        "+trial_values={learning_rate:[0.001,0.002,0.003,0.004,0.005,0.006,0.007,0.008]}",
+        "trainer.iterations=5",
+        "figures=false",
+        f"hydra.run.dir={tmp_path}",
+    )
+    run = read_run(tmp_path / "trial=7" / "results.h5")
+    assert run.attrs["status"] == "completed"
+    assert "xla_cpu_enable_concurrency_optimized_scheduler=false" in run.attrs["thread_settings"]

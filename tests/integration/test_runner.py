@@ -39,8 +39,8 @@ def test_divergence_is_an_outcome_with_the_curve_kept(tmp_path):
 
 def test_a_run_whose_step_stalls_ends_failed_in_one_line_with_the_way_round(tmp_path, monkeypatch):
     """XLA's CPU pool wedged at the first step (every thread idle, the result never ready): the run
-    ends failed, its reason one line that names XLA_FLAGS=--xla_cpu_multi_thread_eigen=false,
-    instead of waiting for ever (the job ends as on any failure: the traceback in error.txt)."""
+    ends failed, its reason one line that names the XLA option that avoids it, instead of waiting
+    for ever (the job ends as on any failure: the traceback in error.txt)."""
     import threading
 
     import physgrad.runner as runner
@@ -58,7 +58,7 @@ def test_a_run_whose_step_stalls_ends_failed_in_one_line_with_the_way_round(tmp_
         release.set()
     run = read_run(tmp_path / "results.h5")
     assert run.attrs["status"] == "failed" and "\n" not in run.attrs["reason"]
-    assert "XLA_FLAGS=--xla_cpu_multi_thread_eigen=false" in run.attrs["reason"]
+    assert "XLA_FLAGS=--xla_cpu_enable_concurrency_optimized_scheduler=false" in run.attrs["reason"]
 
 
 @pytest.mark.long

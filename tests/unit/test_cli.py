@@ -77,3 +77,25 @@ def test_the_output_folder_checked_is_the_one_hydra_reads(tmp_path, monkeypatch,
     # only the fixed part of an interpolated folder
     check_writable([f"{key}=runs/fixed/${{now:%H-%M-%S}}"], multirun=multirun)
     assert [p.relative_to(work).as_posix() for p in work.rglob("*")] == ["runs", "runs/fixed"]
+
+
+def test_members_trained_together_get_the_scheduler_that_does_not_wedge_and_alone_do_not():
+    """XLA's concurrency-optimized CPU scheduler wedged steps of 6 or more members trained together
+    (physgrad.machine.MEMBERS_XLA_FLAG): a command line or a study's job that trains members
+    together runs with it off; one member alone keeps XLA's default (40% faster on a cheap step);
+    a user's own setting of the option is kept."""
+    from physgrad.cli import members_asked
+    from physgrad.comparison.jobs import job_yaml, members_together
+    from physgrad.machine import MEMBERS_XLA_FLAG, members_environment
+
+    assert members_asked(["task=toy", "seeds=8"]) and members_asked(["seeds=1,4"])
+    assert members_asked(["+trial_values={learning_rate:[0.1,0.2]}"])
+    assert not members_asked(["task=toy", "seeds=1"]) and not members_asked(["task=toy"])
+    job = lambda **values: job_yaml(["task=toy", "optim=adam"], {"task", "optim"}, values)  # noqa: E731
+    assert members_together(job(seed=0, seeds=3))
+    assert members_together(job(seed=0, seeds=1, trial_values={"learning_rate": [0.1, 0.2]}))
+    assert not members_together(job(seed=0, seeds=1))
+    assert members_environment({"XLA_FLAGS": "--a=1"})["XLA_FLAGS"] == f"--a=1 {MEMBERS_XLA_FLAG}"
+    assert members_environment({})["XLA_FLAGS"] == MEMBERS_XLA_FLAG
+    own = {"XLA_FLAGS": "--xla_cpu_enable_concurrency_optimized_scheduler=true"}
+    assert members_environment(own) == own

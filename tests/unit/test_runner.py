@@ -55,7 +55,7 @@ def test_a_step_that_stops_computing_without_returning_ends_in_one_line_one_that
         request.call(lambda: release.wait(30), stall_seconds=0.5, stall_cpu_seconds=0.05)
     assert 0.5 <= time.perf_counter() - start < 5
     assert "\n" not in str(stalled.value)
-    assert "XLA_FLAGS=--xla_cpu_multi_thread_eigen=false" in str(stalled.value)
+    assert "XLA_FLAGS=--xla_cpu_enable_concurrency_optimized_scheduler=false" in str(stalled.value)
     release.set()
     ABANDONED[-1].join(5)
 
