@@ -180,7 +180,7 @@ def test_every_study_composes_and_its_variants_apply():
     )
 
     built = {}  # each distinct scene built once over all the studies (the same tuning seed)
-    for study in study_lists.STUDIES + study_lists.MAP + study_lists.LONG + study_lists.GPU:
+    for study in (s for profile in study_lists.PROFILES.values() for s in profile):
         overrides = [o for o in study.command(Path("/nowhere")) if not o.startswith("init_from")]
         given, axes, common, _ = split_overrides(overrides)
         s = study_settings(given)
