@@ -23,7 +23,6 @@ written from whatever studies have finished.
 from __future__ import annotations
 
 import argparse
-import shutil
 import sys
 import time
 from dataclasses import dataclass, field
@@ -33,6 +32,7 @@ from typing import Callable
 import yaml
 from study_profiles import INTERRUPTED, STUDY_PROFILES, run_child, study_profile  # experiments/
 
+from physgrad.files import read_own_file, replace_file
 from physgrad.report import write_report
 from physgrad.sweeps import sweep_jobs
 
@@ -326,7 +326,8 @@ def run_figures(wanted: list[Figure], profile: str, overwrite: bool, out: Path) 
             )
             for job, folder in found[:1]:
                 name = f"scene_{'_'.join(job.relative_to(folder).parts)}.png"
-                shutil.copy(job / "scene.png", out / figure.name / name)
+                # through the reading door: a sweep's scene.png may be a link to anything
+                replace_file(out / figure.name / name, read_own_file(job / "scene.png", 1 << 26))
                 shown.append(name)
         table = (out / figure.name / "report.md").read_text()
         if figure.study is not None:

@@ -29,6 +29,7 @@ from studies import CLOCK, PROFILES, STUDY_FOLDER
 
 from physgrad.claim import tuning_studies
 from physgrad.errors import UserError
+from physgrad.files import inside
 
 
 @dataclass
@@ -167,7 +168,6 @@ def _study_runs(folder: Path, table: Path, runs: object) -> StudyRuns | None:
         return None
     if (folder / "eval").is_symlink():  # resolving it would make anywhere "inside"
         raise UserError(f"{folder / 'eval'}: a link: refused (a study may come from someone else)")
-    inside = (folder / "eval").resolve()
     paths = {}
     for row in runs.itertuples():
         number = int(row.Index) + 2  # the table's line (a header, then rows from 0)
@@ -177,7 +177,7 @@ def _study_runs(folder: Path, table: Path, runs: object) -> StudyRuns | None:
         if "eval" not in parts or not (seed.isascii() and seed.isdecimal() and len(seed) <= 10):
             raise UserError(f"{table} line {number}: not a run of this study (seed {seed!r})")
         path = folder.joinpath(*parts[len(parts) - 1 - parts[::-1].index("eval") :])
-        if ".." in path.relative_to(folder).parts or not path.resolve().is_relative_to(inside):
+        if ".." in path.relative_to(folder).parts or not inside(path, folder / "eval"):
             raise UserError(f"{table} line {number}: its path leaves {folder / 'eval'}")
         paths.setdefault(str(row.variant), {})[int(seed)] = str(path)
     try:

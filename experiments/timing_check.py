@@ -17,7 +17,6 @@ run's seed range (docs/decisions.md, "Timing").
 from __future__ import annotations
 
 import argparse
-import json
 import multiprocessing
 import os
 import sys
@@ -155,7 +154,9 @@ def report(overrides, hogs: int, out: Path, quiet, loaded, under_load: dict) -> 
             f"{b['iterations']:.0f} | {a['contended']} of {a['runs']}, {b['contended']} of "
             f"{b['runs']} |"
         )
-    quiet_costs = json.loads((out / "quiet" / "calibration.json").read_text())
+    from physgrad.files import load_json, read_own_file
+
+    quiet_costs = load_json(read_own_file(out / "quiet" / "calibration.json", 1 << 20))
     lines += [
         "",
         "| variant | step cost, quiet calibration | under load | ratio | load average quiet, "

@@ -44,7 +44,7 @@ def run(
     from physgrad.configs import check_overrides, compose
     from physgrad.errors import UserError
     from physgrad.experiment import run_experiment
-    from physgrad.results import read_run
+    from physgrad.results import member_order, read_run
 
     config_dirs = [config_dir] if config_dir else []
     check_overrides(list(overrides), multirun=False, config_dirs=config_dirs)
@@ -58,10 +58,7 @@ def run(
     if outcome.status == "refused":
         raise UserError(outcome.reason)
     if path.is_dir():  # seeds=N: one file per seed
-        return [
-            read_run(p)
-            for p in sorted(path.glob("seed=*/results.h5"), key=lambda p: int(p.parent.name[5:]))
-        ]
+        return [read_run(p) for p in sorted(path.glob("seed=*/results.h5"), key=member_order)]
     return read_run(path)
 
 

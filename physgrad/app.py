@@ -87,11 +87,11 @@ class JobLogFile(logging.FileHandler):
             return
         try:
             super().emit(record)
-        except OSError as error:
+        except (OSError, ValueError) as error:  # ValueError: the door's (a link, a FIFO)
             self.unwritable = True
             print(
                 f"physgrad: warning: the job log {self.baseFilename} cannot be written "
-                f"({error.strerror or error}): logging to the terminal only",
+                f"({getattr(error, 'strerror', None) or error}): logging to the terminal only",
                 file=sys.stderr,
             )
 
@@ -136,7 +136,7 @@ class SweepSummary(Callback):
             write_manifest(folder, jobs)
         self.held.enter_context(launcher_signals(folder))
         # what was there before: a file counts as this sweep's if it is new or was written since
-        self.before = {path: path.stat().st_mtime_ns for path in find_results([folder])}
+        self.before = {path: _changed(path) for path in find_results([folder])}
         FAILED_JOBS.clear()
         INTERRUPTED_BY_SIGNAL.clear()
 
@@ -151,7 +151,7 @@ class SweepSummary(Callback):
                 status = read_final(path)[0].get("status", "?")
             except ValueError:
                 status = "unreadable"
-            if getattr(self, "before", {}).get(path) != path.stat().st_mtime_ns:
+            if getattr(self, "before", {}).get(path) != _changed(path):
                 written[status] += 1
             else:
                 # untouched by this sweep: completed or diverged before with the same config, or
@@ -214,16 +214,24 @@ def write_provenance(out_dir: Path, cfg: DictConfig, hydra_cfg: DictConfig) -> N
         replace_file(folder / name, OmegaConf.to_yaml(node).encode())
 
 
+def _changed(path: Path) -> int | None:
+    """When the entry at path last changed (a link's own time, not its target's); None if gone."""
+    try:
+        return os.lstat(path).st_mtime_ns
+    except OSError:
+        return None
+
+
 SEED_LINES = 8
 
 
 def seed_lines(folder: Path) -> list[str]:
     """For a job of several seeds (folder/seed=<s>/results.h5): each seed's status and test loss,
     the first SEED_LINES of them, then the median [min, max] over all that completed."""
-    from physgrad.results import read_final
+    from physgrad.results import member_order, read_final
 
     rows = []
-    for path in sorted(folder.glob("seed=*/results.h5"), key=lambda p: int(p.parent.name[5:])):
+    for path in sorted(folder.glob("seed=*/results.h5"), key=member_order):
         try:
             attrs, last = read_final(path)
         except ValueError as error:

@@ -23,6 +23,38 @@ from typing import Any
 log = logging.getLogger("physgrad")
 
 
+def own_submitit_folder(template: str) -> str:
+    """submitit's folder for this launch. submitit unpickles each job's result from it, so a pickle
+    planted there by whoever wrote a sweep folder would run as code: the template's folder (before
+    its %j, `<sweep>/.submitit` by default) must be the user's own and not a link, and the jobs'
+    files go into a folder created in it for this launch alone (mode 0700; %j below it).
+    LauncherRefused (one line) otherwise."""
+    import os
+    import time
+
+    from physgrad.errors import LauncherRefused
+
+    base, jobs, rest = template.partition("%j")
+    parent = Path(base)
+    parent.mkdir(parents=True, exist_ok=True)
+    found = os.lstat(parent)
+    if parent.is_symlink() or found.st_uid != os.getuid():
+        raise LauncherRefused(
+            f"{parent}: submitit's folder is {'a link' if parent.is_symlink() else 'not yours'}"
+            ": refused (a sweep folder may come from someone else); remove it or set "
+            "hydra.launcher.submitit_folder"
+        )
+    stamp, number = time.strftime("%Y%m%dT%H%M%S"), 0
+    while True:
+        own = parent / (f"{stamp}-{os.getpid()}" + (f"-{number}" if number else ""))
+        try:
+            own.mkdir(mode=0o700)  # exclusively: a folder left there is someone's, not ours
+            break
+        except FileExistsError:
+            number += 1
+    return str(own / f"{jobs}{rest}") if jobs else str(own)
+
+
 def launch_array(launcher: Any, job_overrides: Sequence[Sequence[str]], first: int) -> list:
     """The jobs as one SLURM job array (submitit), each job's result in turn: the job's return
     value, or, for a job that ended without one, infinity with the job recorded in the sweep as

@@ -151,64 +151,79 @@ def cache_dir() -> Path:
     return Path(os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache") / "physgrad"
 
 
-def open_append(path: Path) -> IO[str]:
-    """path opened for appending text, created if absent, without following a link (a folder that
-    may come from someone else could hold one pointing anywhere); OSError (ELOOP) for a link, and a
-    ValueError (one line) for anything that is not a regular file."""
-    fd = os.open(
-        path, os.O_WRONLY | os.O_APPEND | os.O_CREAT | os.O_NOFOLLOW | os.O_NONBLOCK, 0o644
-    )
+def open_foreign(path: Path, write: bool = False, follow: bool = False) -> int:
+    """The one way physgrad opens a file in a folder that may come from someone else: a descriptor
+    of the regular file at path, opened without following a link (unless follow: a path the user
+    gave) and without waiting on a FIFO; write: for appending, created if absent, and refused if
+    the file has another name (a hard link), which writing would change too. ValueError (one
+    line) for a link, a FIFO, a device, a folder or a second name; OSError where it cannot be
+    opened."""
+    flags = os.O_NONBLOCK | os.O_NOCTTY | (0 if follow else os.O_NOFOLLOW)
+    flags |= os.O_RDWR | os.O_APPEND | os.O_CREAT if write else os.O_RDONLY
     try:
-        mode = os.fstat(fd).st_mode
-        if not stat.S_ISREG(mode):
-            raise ValueError(f"{path}: {file_kind(mode)}, not a file: refused")
-        os.set_blocking(fd, True)
-        return os.fdopen(fd, "a")
-    except BaseException:
-        os.close(fd)
+        fd = os.open(path, flags, 0o644)
+    except OSError as error:
+        if error.errno in (errno.ELOOP, errno.EISDIR):
+            why = "a link" if error.errno == errno.ELOOP else "a folder, not a file"
+            why += ": refused (a folder may come from someone else)"
+            raise ValueError(f"{path}: {why}") from None
         raise
+    found = os.fstat(fd)
+    why = (
+        f"{file_kind(found.st_mode)}, not a file: refused"
+        if not stat.S_ISREG(found.st_mode)
+        else "has another name (a hard link), which writing would change too"
+        if write and found.st_nlink > 1
+        else None
+    )
+    if why:
+        os.close(fd)
+        raise ValueError(f"{path}: {why}")
+    os.set_blocking(fd, True)
+    return fd
 
 
-def own_file(path: Path) -> Path:
-    """path, checked before a study writes or appends to the file of that name in a folder that may
-    come from someone else: absent, or a regular file with no other name. ValueError (one
-    line) for a link (dangling or not), anything that is not a file, or a file with a second name
-    (a hard link), which writing would change too."""
-    try:
-        found = os.lstat(path)
-    except FileNotFoundError:
-        return path
-    if stat.S_ISLNK(found.st_mode):
-        raise ValueError(f"{path}: a link: refused (a folder may come from someone else)")
-    if not stat.S_ISREG(found.st_mode):
-        raise ValueError(f"{path}: {file_kind(found.st_mode)}, not a file: refused")
-    if found.st_nlink > 1:
-        raise ValueError(f"{path}: has another name (a hard link), which writing would change too")
-    return path
+def open_append(path: Path) -> IO[str]:
+    """path opened for appending text through open_foreign (write)."""
+    return os.fdopen(open_foreign(path, write=True), "a")
 
 
 def read_own_file(path: Path, limit: int, follow: bool = False, tail: bool = False) -> bytes:
-    """The first `limit` bytes of the regular file at path (tail: its last), opened without
-    following a link (unless follow: a path the user gave) and without waiting on a FIFO:
-    ValueError (one line) for a link, a FIFO, a device or a folder; OSError where it cannot be
-    read."""
-    flags = os.O_RDONLY | os.O_NONBLOCK | (0 if follow else os.O_NOFOLLOW)
-    try:
-        fd = os.open(path, flags)
-    except OSError as error:
-        if error.errno == errno.ELOOP:
-            raise ValueError(
-                f"{path}: a link: refused (a folder may come from someone else)"
-            ) from None
-        raise
-    found = os.fstat(fd)
-    if not stat.S_ISREG(found.st_mode):  # before fdopen, which refuses a folder by its number
-        os.close(fd)
-        raise ValueError(f"{path}: {file_kind(found.st_mode)}, not a file: refused")
-    with os.fdopen(fd, "rb") as file:
+    """The regular file at path, opened through open_foreign; ValueError (one line) if it is longer
+    than limit bytes (tail: its last limit bytes instead); OSError where it cannot be read."""
+    with os.fdopen(open_foreign(path, follow=follow), "rb") as file:
+        size = os.fstat(file.fileno()).st_size
         if tail:
-            file.seek(max(0, found.st_size - limit))
-        return file.read(limit)
+            file.seek(max(0, size - limit))
+        data = file.read(limit + 1)
+    if len(data) > limit and not tail:
+        raise ValueError(f"{path}: longer than {limit} bytes: not a file physgrad wrote")
+    return data[:limit]
+
+
+def walk_files(top: Path, name: str) -> Iterator[Path]:
+    """Every entry called name under top (whatever it is: a link, a FIFO...; the reader refuses what
+    is not a regular file), the folders walked with an explicit stack, never through a link (a
+    folder from someone else could point one at / or at itself) and without recursion however deep
+    they go; a folder that cannot be read or vanishes holds nothing."""
+    stack = [top]
+    while stack:
+        try:
+            entries = list(os.scandir(stack.pop()))
+        except OSError:
+            continue
+        for entry in entries:
+            folder = entry.is_dir(follow_symlinks=False)
+            if entry.name == name and not folder:
+                yield Path(entry.path)
+            elif folder:
+                stack.append(Path(entry.path))
+
+
+def inside(path: Path, folder: Path) -> bool:
+    """Whether path is folder or lies under it, links resolved (a link loop is not resolved, and
+    is not inside)."""
+    return Path(os.path.realpath(path)).is_relative_to(os.path.realpath(folder))
 
 
 def load_json(data: bytes) -> object:
@@ -307,24 +322,13 @@ def load_yaml(text: str) -> Any:
 
 
 def read_small_yaml(path: Path, limit: int = CONFIG_LIMIT) -> Any:
-    """load_yaml of a regular file of at most limit bytes (a sweep's jobs.yaml, overrides.yaml,
+    """load_yaml of a file read through read_own_file (a sweep's jobs.yaml, overrides.yaml,
     Optuna's optimization_results.yaml: other people's folders too); ValueError (one line)
     otherwise."""
-    # OSError if absent
-    fd = os.open(path, os.O_RDONLY | os.O_NONBLOCK | getattr(os, "O_NOCTTY", 0))
     try:
-        mode = os.fstat(fd).st_mode
-        if not stat.S_ISREG(mode):
-            raise ValueError(f"{path}: {file_kind(mode)}, not a file: refused")
-        content = os.read(fd, limit + 1)
-    finally:
-        os.close(fd)
-    if len(content) > limit:
-        raise ValueError(f"{path}: longer than {limit} bytes")
-    try:
-        return load_yaml(content.decode(errors="replace"))
-    except ValueError as error:
-        raise ValueError(f"{path}: {error}") from None
+        return load_yaml(read_own_file(path, limit).decode(errors="replace"))
+    except ValueError as error:  # the door's errors name the path already
+        raise ValueError(error if str(path) in str(error) else f"{path}: {error}") from None
 
 
 def replaced_text(path: Path) -> contextlib.AbstractContextManager[IO[str]]:

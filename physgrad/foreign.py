@@ -7,7 +7,6 @@ with one line (ValueError) naming the check. physgrad.results reads through thes
 from __future__ import annotations
 
 import os
-import stat
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from pathlib import Path
@@ -16,7 +15,7 @@ from typing import Any
 import h5py
 import numpy as np
 
-from physgrad.files import CONFIG_LIMIT, clean_text, file_kind, with_live_status
+from physgrad.files import CONFIG_LIMIT, clean_text, open_foreign, with_live_status
 
 STATUSES = ("running", "completed", "diverged", "interrupted", "failed", "refused")
 COLUMN_LIMIT = 1 << 26  # elements of one /train or /eval column (512 MiB of float64) ...
@@ -85,18 +84,16 @@ TEXT_ATTRS = frozenset(
 
 
 @contextmanager
-def open_results(path: Path) -> Iterator[h5py.File]:
-    """The HDF5 file at path, opened from a descriptor of a regular file (a FIFO, device or socket
-    named results.h5 is refused without blocking on it); ValueError (one line) if it cannot be
+def open_results(path: Path, follow: bool = False) -> Iterator[h5py.File]:
+    """The HDF5 file at path, opened from a descriptor of a regular file through
+    physgrad.files.open_foreign (no link followed unless follow: a path the user gave; a FIFO,
+    device or socket refused without blocking on it); ValueError (one line) if it cannot be
     opened."""
     try:
-        fd = os.open(path, os.O_RDONLY | os.O_NONBLOCK | getattr(os, "O_NOCTTY", 0))
+        fd = open_foreign(path, follow=follow)
     except OSError as error:
         raise ValueError(f"{path}: cannot be opened ({error.strerror or error})") from None
     try:
-        mode = os.fstat(fd).st_mode
-        if not stat.S_ISREG(mode):
-            raise ValueError(f"{path}: not a regular file ({file_kind(mode)}): refused")
         with os.fdopen(fd, "rb", closefd=False) as stream:
             try:
                 f = h5py.File(stream, "r")
@@ -266,7 +263,7 @@ def checked_tables(path: Path, f: h5py.File, groups: tuple[str, ...]) -> dict[st
         raise ValueError(
             f"{path}: more than {FILE_COLUMNS_LIMIT} values in /train and /eval together"
         )
-    unpacked, stored = sum(c.size * c.dtype.itemsize for c in every), os.stat(path).st_size
+    unpacked, stored = sum(c.size * c.dtype.itemsize for c in every), _stored_size(f)
     if unpacked > EXPANSION_LIMIT * stored + (1 << 20):
         raise ValueError(
             f"{path}: its columns unpack to {unpacked >> 20} MiB from a file of "
@@ -305,3 +302,8 @@ def read_columns(path: Path, read: Callable[[], Any]) -> Any:
         raise ValueError(
             f"{path}: a column cannot be read ({clean_text(str(error).splitlines()[0], 200)})"
         ) from None
+
+
+def _stored_size(f: h5py.File) -> int:
+    """The bytes of the open file (not of whatever its name points to by now)."""
+    return f.id.get_filesize()

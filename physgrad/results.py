@@ -19,7 +19,7 @@ from __future__ import annotations
 import math
 import os
 import re
-from collections.abc import Iterable, Iterator
+from collections.abc import Iterable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -28,7 +28,15 @@ import h5py
 import numpy as np
 
 from physgrad.errors import ResultsWriteError
-from physgrad.files import CONFIG_LIMIT, clean_text, load_yaml, owner_tag, replace_file, timestamp
+from physgrad.files import (
+    CONFIG_LIMIT,
+    clean_text,
+    load_yaml,
+    owner_tag,
+    replace_file,
+    timestamp,
+    walk_files,
+)
 from physgrad.foreign import (
     STATUSES,
     checked_attrs,
@@ -158,8 +166,9 @@ class ResultsWriter:
     def mark_failed_in_place(self, reason: str) -> bool:
         """Last resort when a full write fails (disk full): set status failed and the reason on the
         file as it is, a few bytes of attributes. True if that worked."""
-        try:
-            with h5py.File(self.live, "a", locking=False) as f:
+        try:  # never through a link put at the file's name (its folder may be someone else's)
+            stream = os.fdopen(os.open(self.live, os.O_RDWR | os.O_NOFOLLOW), "r+b")
+            with stream, h5py.File(stream, "r+", locking=False) as f:
                 f.attrs["status"], f.attrs["reason"], f.attrs["finished"] = (
                     "failed",
                     reason,
@@ -304,12 +313,12 @@ def _config_of(path: Path, attrs: dict) -> dict:
         raise ValueError(f"{path}: {error}") from None
 
 
-def read_run(path: str | os.PathLike) -> Run:
-    """Read one results file with every check of physgrad.foreign; ValueError with a one-line
-    reason if it is not a physgrad results file, cannot be read, fails a check or is
-    inconsistent."""
+def read_run(path: str | os.PathLike, follow: bool = False) -> Run:
+    """Read one results file with every check of physgrad.foreign (follow: a link at path is
+    followed, for a path the user gave); ValueError with a one-line reason if it is not a physgrad
+    results file, cannot be read, fails a check or is inconsistent."""
     path = Path(path)
-    with open_results(path) as f:
+    with open_results(path, follow) as f:
         attrs = checked_attrs(path, f)
         columns = checked_tables(path, f, GROUPS)
         config = _config_of(path, attrs)
@@ -323,17 +332,17 @@ def read_run(path: str | os.PathLike) -> Run:
     return Run(path, attrs, data["train"], data["eval"], config=config)
 
 
-def read_final(path: str | os.PathLike) -> tuple[dict, dict]:
+def read_final(path: str | os.PathLike, follow: bool = False) -> tuple[dict, dict]:
     """The attributes and the last /eval row of a results file, without reading the curves (a
     resumed sweep checks every job this way), with the checks of read_run; ValueError (one line) as
     read_run."""
-    return read_end(path)[:2]
+    return read_end(path, follow)[:2]
 
 
-def read_end(path: str | os.PathLike) -> tuple[dict, dict, float]:
+def read_end(path: str | os.PathLike, follow: bool = False) -> tuple[dict, dict, float]:
     """read_final, and the iteration of the last /train row (NaN without one)."""
     path = Path(path)
-    with open_results(path) as f:
+    with open_results(path, follow) as f:
         attrs = checked_attrs(path, f)
         train = checked_columns(path, f, "train")
         columns = checked_columns(path, f, "eval")
@@ -366,11 +375,11 @@ def cut_short(attrs: dict, last_train_iteration: float) -> str | None:
     return None
 
 
-def read_params(path: str | os.PathLike) -> np.ndarray:
+def read_params(path: str | os.PathLike, follow: bool = False) -> np.ndarray:
     """The flat final parameters a run saved, checked as read_run's columns; ValueError (one line)
     if the file has none or is not readable."""
     path = Path(path)
-    with open_results(path) as f:
+    with open_results(path, follow) as f:
         attrs = checked_attrs(path, f)
         return checked_params(path, f, attrs["status"])[()]
 
@@ -384,6 +393,13 @@ def natural_key(text: str) -> list:
     ]
 
 
+def member_order(path: Path) -> tuple[str, int, str]:
+    """The sort key of a member's results file (<kind>=<n>/results.h5): seed=2 before seed=10; a
+    folder name that is no number (someone else's) last."""
+    kind, _, number = path.parent.name.partition("=")
+    return (kind, int(number) if number.isascii() and number.isdigit() else 2**63, number)
+
+
 def find_results(paths: Iterable[str | os.PathLike]) -> list[Path]:
     """Every results.h5 at or under the given files and folders, in sorted order. Under a folder the
     walk does not follow links to folders (a folder from someone else could point one at / or at
@@ -394,24 +410,7 @@ def find_results(paths: Iterable[str | os.PathLike]) -> list[Path]:
         if path.is_file():
             found.append(path)
         elif path.is_dir():
-            found.extend(sorted(_walk_results(path)))
+            found.extend(sorted(walk_files(path, "results.h5")))
         else:
             raise FileNotFoundError(f"{path}: no such file or folder")
     return found
-
-
-def _walk_results(top: Path) -> Iterator[Path]:
-    """results.h5 entries under top (whatever they are: the reader refuses what is not a regular
-    file), folders walked with an explicit stack and never through a link."""
-    stack = [top]
-    while stack:
-        folder = stack.pop()
-        try:
-            entries = list(os.scandir(folder))
-        except OSError:
-            continue  # unreadable or vanished: nothing found there
-        for entry in entries:
-            if entry.name == "results.h5" and not entry.is_dir(follow_symlinks=False):
-                yield Path(entry.path)  # a file, a link, a FIFO...: the reader says which
-            elif entry.is_dir(follow_symlinks=False):
-                stack.append(Path(entry.path))

@@ -67,8 +67,9 @@ def start_from(path: str, params: Any, task_name: str) -> tuple[Any, dict]:
     if not Path(path).is_file():
         raise UserError(f"init_from={path}: no such file: give the results.h5 of an earlier run")
     try:
-        flat = read_params(path)
-        source = Run(Path(path), read_final(path)[0], {}, {})  # attributes only, not the curves
+        flat = read_params(path, follow=True)  # the user's own path
+        # attributes only, not the curves
+        source = Run(Path(path), read_final(path, follow=True)[0], {}, {})
     except ValueError as error:
         raise UserError(f"init_from={error}") from None
     own, unravel = ravel_pytree(params)

@@ -13,6 +13,7 @@ from different days can be compared.
 
 from __future__ import annotations
 
+import os
 from collections import defaultdict
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass
@@ -77,19 +78,15 @@ def collect(
         if not found:
             raise UserError(f"{path}: no results.h5 under it: give the folder of a run or a sweep")
         for file in found:
-            key = (label, file.resolve())
+            key = (label, os.path.realpath(file))  # a link loop is the reader's to refuse
             if key in seen:  # a folder and its parent both given: the same file once
                 if seen[key] is not None:
                     repeated.append(Dropped(file, seen[key], "the same file, found twice"))
                     seen[key] = None  # said once
                 continue
             seen[key] = file
-            if file.is_symlink() and file != Path(path):
-                # found under a folder: a link could point anywhere (another run, /proc/...)
-                unreadable.append((file, "a link: not followed (give the file it points to)"))
-                continue
-            try:
-                run = read_run(file)
+            try:  # a link found under a folder is refused: it could point anywhere
+                run = read_run(file, follow=file == Path(path))
             except ValueError as error:
                 unreadable.append((file, str(error)))
                 continue

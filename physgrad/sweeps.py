@@ -26,7 +26,15 @@ from types import FrameType
 import yaml
 from omegaconf import DictConfig, OmegaConf
 
-from physgrad.files import clean_text, owner_alive, owner_tag, read_small_yaml, replace_file
+from physgrad.files import (
+    clean_text,
+    inside,
+    owner_alive,
+    owner_tag,
+    read_small_yaml,
+    replace_file,
+    walk_files,
+)
 from physgrad.interrupts import StopRequest, handling_signals
 
 log = logging.getLogger("physgrad")
@@ -95,7 +103,9 @@ def job_folders(folder: Path) -> dict[frozenset, Path]:
     """Job folder by its set of overrides, from the `.hydra/overrides.yaml` Hydra writes when a job
     starts."""
     found = {}
-    for overrides in folder.rglob(".hydra/overrides.yaml"):
+    for overrides in walk_files(folder, "overrides.yaml"):
+        if overrides.parent.name != ".hydra":
+            continue
         try:
             listed = read_small_yaml(overrides, 1 << 16) or []
         except (OSError, ValueError):
@@ -184,13 +194,13 @@ def unfinished_jobs(folder: Path, interrupted: bool = False) -> list[tuple[str, 
     folders = job_folders(folder)
     for job in [*jobs, *[sorted(key) for key in states if sorted(key) not in map(sorted, jobs)]]:
         state, where = states.get(frozenset(job)), folders.get(frozenset(job))
-        if state is not None:
-            where = Path(state["folder"]) if state["folder"] else where
+        if state is not None and inside(Path(state["folder"] or "/"), folder):
+            where = Path(state["folder"])  # a record saying /usr is someone else's: not walked
         # a job's file: its results, or the step costs of a study's calibration job
         ended = (
             where is not None
             and where.is_dir()
-            and (any(where.rglob("results.h5")) or (where / "calibration.json").is_file())
+            and (any(walk_files(where, "results.h5")) or (where / "calibration.json").is_file())
         )
         if ended and not (interrupted and state is not None and state["state"] == "interrupted"):
             continue

@@ -37,8 +37,15 @@ class SlurmLauncher(SubmititSlurmLauncher or object):
 
 def use_physgrad_launcher(config: DictConfig) -> None:
     """Before the sweep's launcher is built (Hydra's on_multirun_start): submitit's SLURM launcher
-    replaced by physgrad's, its settings kept."""
+    replaced by physgrad's, its settings kept; any submitit launcher's folder made this launch's
+    own (physgrad.cluster.own_submitit_folder)."""
     launcher = config.hydra.get("launcher")
+    if launcher is not None and launcher.get("submitit_folder") is not None:
+        from physgrad.cluster import own_submitit_folder
+
+        folder = own_submitit_folder(str(launcher.submitit_folder))
+        with read_write(launcher), open_dict(launcher):
+            launcher.submitit_folder = folder
     if launcher is not None and launcher.get("_target_") == SUBMITIT_SLURM:
         from hydra.core.plugins import Plugins
 

@@ -102,17 +102,17 @@ def record_study(
         "protocol": PROTOCOL,
         **({"configuration": configuration} if configuration else {}),
     }
-    from physgrad.files import load_json, own_file, read_own_file, replace_file
+    from physgrad.files import load_json, read_own_file, replace_file
 
     stored = folder / "study.json"
-    try:
-        own_file(stored)
-    except ValueError as error:
-        raise UserError(f"{error}; remove it or give another compare.dir") from None
-    if stored.exists():
+    if os.path.lexists(stored):
         try:
-            before = load_json(read_own_file(stored, 1 << 20))
-        except (OSError, ValueError):
+            data = read_own_file(stored, 1 << 20)
+        except (OSError, ValueError) as error:
+            raise UserError(f"{error}; remove it or give another compare.dir") from None
+        try:
+            before = load_json(data)
+        except ValueError:
             before = None
         stored_study, this_study = same_study(before), same_study(record)
         if stored_study and stored_study[:2] == this_study[:2] and stored_study != this_study:
@@ -439,18 +439,14 @@ def _run_multirun(
     """The multirun as a child process in its own session, its output appended to log_path (opened
     without following a link: a study folder may come from someone else); its progress read from
     that output every few seconds (Progress)."""
-    import errno
-
     from physgrad.files import open_append
 
     try:
         log = open_append(log_path)
-    except (OSError, ValueError) as error:
-        why = (
-            "a link: refused (a study folder may come from someone else)"
-            if getattr(error, "errno", None) == errno.ELOOP
-            else str(getattr(error, "strerror", None) or error)
-        )
+    except ValueError as error:  # the door's own line: a link, a FIFO, a second name
+        raise UserError(f"{error}; remove it or give another compare.dir") from None
+    except OSError as error:
+        why = error.strerror or error
         raise UserError(f"{log_path}: {why}; remove it or give another compare.dir") from None
     with log:
         log.write(f"\n$ {' '.join(command)}\n")
@@ -497,9 +493,11 @@ def _wait_saying(
     be read only leaves the console quiet)."""
     if progress is None:
         return process.wait()
+    from physgrad.files import open_foreign
+
     try:
-        reader = os.open(log_path, os.O_RDONLY | os.O_NOFOLLOW | os.O_NONBLOCK)
-    except OSError:
+        reader = open_foreign(log_path)
+    except (OSError, ValueError):
         return process.wait()
     try:
         while True:
@@ -595,25 +593,19 @@ def hydra_quoted(value: str) -> str:
     return "'" + doubled.replace("'", "\\'") + "'"
 
 
-def _member_order(path: Path) -> tuple[str, int, str]:
-    """seed=2 before seed=10; a folder name that is no number (someone else's) last."""
-    kind, _, number = path.parent.name.partition("=")
-    return (kind, int(number) if number.isdigit() else 2**63, number)
-
-
 def job_runs(sweep: Path, name: str) -> list[Run]:
     """The readable runs of a job: its results.h5, or its members' (seed=<s>/ or trial=<i>/, in
     numeric order); a member folder or a file that is a link is not read (someone else's)."""
-    from physgrad.results import read_run
+    from physgrad.results import member_order, read_run
 
     folder = sweep / f"+compare_job={name}"
     runs = []
     members = sorted(
         [*folder.glob("seed=*/results.h5"), *folder.glob("trial=*/results.h5")],
-        key=_member_order,
+        key=member_order,
     )
     for path in sorted(folder.glob("results.h5")) + members:
-        if path.is_symlink() or path.parent.is_symlink() or folder.is_symlink():
+        if path.parent.is_symlink() or folder.is_symlink():  # a linked file: the reader refuses
             continue
         try:
             runs.append(read_run(path))

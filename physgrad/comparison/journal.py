@@ -3,16 +3,16 @@ itself (physgrad.comparison.tuning.journal_storage builds the storage over it)."
 
 from __future__ import annotations
 
-import errno
 import json
 import os
-import stat
 from collections.abc import Iterator
 from pathlib import Path
 
 from optuna.storages.journal import BaseJournalBackend
 
-from physgrad.files import file_kind
+from physgrad.files import load_json, open_foreign
+
+JOURNAL_LIMIT = 1 << 30  # bytes: a study's journal is kilobytes; a larger one is not physgrad's
 
 
 class OwnJournal(BaseJournalBackend):
@@ -21,31 +21,12 @@ class OwnJournal(BaseJournalBackend):
     name, and never opened by its name again, so that a link or another file put at that name
     later (the folder may come from someone else) is neither read nor written through. Writers
     are kept apart by the study's own lock (.physgrad-study), not by lock files beside the
-    journal. A last line without its newline (an append cut short) is not read."""
+    journal. A last line without its newline (an append cut short) is not read; a journal over
+    JOURNAL_LIMIT bytes or a line that is not a JSON object is a ValueError (one line)."""
 
     def __init__(self, path: Path) -> None:
-        flags = os.O_RDWR | os.O_APPEND | os.O_CREAT | os.O_NOFOLLOW | os.O_NONBLOCK
-        try:
-            fd = os.open(path, flags, 0o644)
-        except OSError as error:
-            if error.errno == errno.ELOOP:
-                raise ValueError(
-                    f"{path}: a link: refused (a folder may come from someone else)"
-                ) from None
-            if error.errno == errno.EISDIR:
-                raise ValueError(f"{path}: a folder, not a file: refused") from None
-            raise
-        found = os.fstat(fd)
-        if not stat.S_ISREG(found.st_mode) or found.st_nlink > 1:
-            os.close(fd)
-            why = (
-                f"{file_kind(found.st_mode)}, not a file: refused"
-                if not stat.S_ISREG(found.st_mode)
-                else "has another name (a hard link), which writing would change too"
-            )
-            raise ValueError(f"{path}: {why}")
-        os.set_blocking(fd, True)
-        self._fd = fd
+        self._fd = open_foreign(path, write=True)
+        self._path = path
         self._offsets = {0: 0}  # record number -> byte offset of its line
 
     def read_logs(self, log_number_from: int) -> Iterator[dict]:
@@ -54,6 +35,8 @@ class OwnJournal(BaseJournalBackend):
         data = b""
         while chunk := os.pread(self._fd, 1 << 20, offset + len(data)):
             data += chunk
+            if offset + len(data) > JOURNAL_LIMIT:
+                raise ValueError(f"{self._path}: longer than {JOURNAL_LIMIT} bytes: not a journal")
         position = offset
         for number, line in enumerate(data.splitlines(keepends=True), start=start):
             if not line.endswith(b"\n"):
@@ -61,7 +44,16 @@ class OwnJournal(BaseJournalBackend):
             position += len(line)
             self._offsets.setdefault(number + 1, position)
             if number >= log_number_from:
-                yield json.loads(line)
+                try:
+                    record = load_json(line)
+                except ValueError:
+                    record = None
+                if not isinstance(record, dict):
+                    raise ValueError(
+                        f"{self._path}: line {number + 1} is not a record of Optuna's journal: "
+                        "move the file away to tune again (its trials will run again)"
+                    )
+                yield record
 
     def append_logs(self, logs: list[dict]) -> None:
         text = "".join(json.dumps(log, separators=(",", ":")) + "\n" for log in logs)

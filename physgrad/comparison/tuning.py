@@ -300,13 +300,9 @@ def journal_storage(path: Path) -> JournalStorage:
     from physgrad.comparison.journal import OwnJournal
 
     try:
-        backend = OwnJournal(path)
+        return optuna.storages.JournalStorage(OwnJournal(path))
     except ValueError as error:
         raise UserError(f"{error}; remove it or give another compare.dir") from None
-    return optuna.storages.JournalStorage(backend)
-
-
-JOURNAL_LIMIT = 1 << 30  # bytes: a study's journal is kilobytes; a larger one is not physgrad's
 
 
 def set_aside_damage(path: Path, say: Callable[[str], object]) -> None:
@@ -316,6 +312,7 @@ def set_aside_damage(path: Path, say: Callable[[str], object]) -> None:
     UserError (one line): the journal is not Optuna's, or was changed by hand."""
     import os
 
+    from physgrad.comparison.journal import JOURNAL_LIMIT
     from physgrad.files import load_json, read_own_file, replace_file, timestamp
 
     if not os.path.lexists(path):

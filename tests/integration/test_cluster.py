@@ -8,6 +8,8 @@ study whose runs ran elsewhere is flagged."""
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import pytest
 
 from physgrad.errors import UserError
@@ -89,3 +91,40 @@ def test_a_slurm_sweep_that_cannot_start_is_one_line(tmp_path, monkeypatch, caps
     error = [line for line in capsys.readouterr().err.splitlines() if "physgrad: error" in line]
     assert code == 2 and len(error) == 1, error
     assert "SLURM did not take the sweep's 1 jobs" in error[0] and said in error[0], error
+
+
+def test_submitits_folder_is_this_launchs_own(tmp_path):
+    """submitit unpickles each job's result from its folder: a sweep folder from someone else with
+    pickles planted under `.submitit`, or `.submitit` a link, must not be where this launch's
+    results are read from. Each launch gets a new folder of its own (0700); a linked `.submitit`
+    is refused in one line."""
+    pytest.importorskip("hydra_plugins.hydra_submitit_launcher")
+    from omegaconf import OmegaConf
+
+    from hydra_plugins.physgrad_launchers.slurm import SUBMITIT_SLURM, use_physgrad_launcher
+    from physgrad.cluster import own_submitit_folder
+    from physgrad.errors import LauncherRefused
+
+    sweep = tmp_path / "sweep"
+    planted = sweep / ".submitit" / "4711"
+    planted.mkdir(parents=True)
+    (planted / "4711_0_result.pkl").write_bytes(b"planted")
+    first, second = (own_submitit_folder(f"{sweep}/.submitit/%j") for _ in range(2))
+    assert first != second and all(Path(f).name == "%j" for f in (first, second))
+    for folder in (first, second):
+        own = Path(folder).parent
+        assert own.parent == sweep / ".submitit" and (own.stat().st_mode & 0o777) == 0o700
+        assert not any(own.iterdir())
+    config = OmegaConf.create(
+        {"hydra": {"launcher": {"_target_": SUBMITIT_SLURM, "submitit_folder": f"{sweep}/%j"}}}
+    )
+    use_physgrad_launcher(config)
+    assert Path(config.hydra.launcher.submitit_folder).parent.parent == sweep
+    elsewhere = tmp_path / "elsewhere"
+    elsewhere.mkdir()
+    linked = tmp_path / "linked"
+    linked.mkdir()
+    (linked / ".submitit").symlink_to(elsewhere)
+    with pytest.raises(LauncherRefused, match=r"\.submitit: submitit's folder is a link: refused"):
+        own_submitit_folder(f"{linked}/.submitit/%j")
+    assert not any(elsewhere.iterdir())

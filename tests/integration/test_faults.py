@@ -361,10 +361,10 @@ def test_a_file_too_large_for_memory_is_left_out_and_the_rest_is_read(two_runs, 
 
     real = runs.read_run
 
-    def huge(path):
+    def huge(path, **options):
         if "gd" in str(path):
             raise MemoryError
-        return real(path)
+        return real(path, **options)
 
     monkeypatch.setattr(runs, "read_run", huge)
     found, unreadable, _ = runs.collect([str(two_runs)])

@@ -159,3 +159,17 @@ def test_a_file_written_into_a_folder_never_writes_through_a_planted_link(tmp_pa
         table.write("variant\r\nadam\n")  # as written: no newline translation
     assert (folder / "runs.csv").read_bytes() == b"variant\r\nadam\n"
     assert outside.read_text() == "theirs\n"
+
+
+def test_the_last_resort_mark_of_a_failed_run_never_writes_through_a_link(tmp_path):
+    """ResultsWriter.mark_failed_in_place (a full disk's last resort) sets the status on the file
+    itself; with a link put at the file's name it writes nothing and says so."""
+    path = good_run(tmp_path / "run")
+    writer = ResultsWriter(path, {"task": "toy", "optim": "adam", "seed": 0}, write=False)
+    writer.live = path
+    assert writer.mark_failed_in_place("disk full") and read_final(path)[0]["status"] == "failed"
+    outside = good_run(tmp_path / "outside")
+    before = outside.read_bytes()
+    path.unlink()
+    path.symlink_to(outside)
+    assert not writer.mark_failed_in_place("disk full") and outside.read_bytes() == before
