@@ -12,7 +12,7 @@ from physgrad.comparison.coverage import coverage_lines, planned_points
 from physgrad.comparison.spec import StudyPlan, Variant
 from physgrad.readout import fmt
 
-MIN_STEPS = 5  # steps timed per variant, at least ...
+MIN_STEPS = 8  # steps timed per variant, at least ...
 STEP_SECONDS = 1.0  # ... and for about this long, at most MAX_STEPS
 MAX_STEPS = 200
 
@@ -72,16 +72,21 @@ def run_config(variant: Variant) -> object:
     return cfg
 
 
-def measure(variant: Variant, seed: int) -> Measured:
-    """The variant's costs on one seed: the step's median after one untimed step, and its held-out
-    evaluation on the test set, first (with its compile) and again."""
+def measure(variant: Variant, seed: int, members: int = 1) -> Measured:
+    """The variant's costs per run on `members` seeds trained together (vectorised, as the study's
+    jobs train them), from seed on: the step's mean along its trajectory after one untimed step
+    (the mean, not the median: a study pays every step, and a step's cost may depend on its state,
+    e.g. Gauss-Newton's on the exponax Burgers scene took 0.03 s or 0.8 s along one trajectory), and
+    its held-out evaluation on the test set, first (with its compile) and again; each divided by
+    members."""
     import jax
 
     from physgrad.timing import compiled_step
 
     cfg = run_config(variant)
     begin = time.perf_counter()
-    _, _, _, stacked, compiled, compile_seconds, one_step = compiled_step(cfg, [seed])
+    seeds = [seed + i for i in range(members)]
+    _, _, _, stacked, compiled, compile_seconds, one_step = compiled_step(cfg, seeds)
     build_seconds = max(0.0, time.perf_counter() - begin - compile_seconds)
     one_step()
     times, start = [], time.perf_counter()
@@ -95,8 +100,29 @@ def measure(variant: Variant, seed: int) -> Measured:
     for _ in range(2):
         begin = time.perf_counter()
         jax.block_until_ready(compiled.evaluate(compiled.params, stacked.test_sets))
-        evaluations.append(time.perf_counter() - begin)
-    return Measured(compile_seconds, statistics.median(times), *evaluations, build_seconds)
+        evaluations.append((time.perf_counter() - begin) / members)
+    step = statistics.fmean(times) / members
+    return Measured(compile_seconds, step, *evaluations, build_seconds)
+
+
+def tuning_axis(plan: StudyPlan) -> str:
+    """The axis the tuning's trials train on: a time budget on the calibrated clock counts as
+    calibrated time there."""
+    if plan.axis == "iteration" or plan.settings.clock != "calibrated":
+        return plan.axis
+    return "calibrated_time"
+
+
+def members(plan: StudyPlan, variant: Variant) -> int:
+    """How many runs a job of the variant trains together: a study's seeds (about its trials' number
+    too) where its trials or its seeds train in one vectorised job, else one."""
+    from physgrad.comparison.tuning import seeds_together, trials_together
+
+    settings = plan.settings
+    together = (settings.tune and trials_together(variant, tuning_axis(plan))) or (
+        plan.axis == "iteration" and seeds_together(variant)
+    )
+    return settings.seeds if together else 1
 
 
 def evaluations_per_run(variant: Variant, axis: str, budget: float, step_seconds: float) -> float:
@@ -112,9 +138,78 @@ def evaluations_per_run(variant: Variant, axis: str, budget: float, step_seconds
     return 1 + budget / max(step_seconds, 1e-9) / settings.eval_every + by_time
 
 
+@dataclass(frozen=True)
+class PhaseCosts:
+    """What a phase of the study costs besides its jobs' building, compiling, training and held-out
+    evaluations, in seconds, measured by running one as the study does: `start` before its first
+    job (a fresh interpreter importing physgrad, the scene's modules and Hydra, composing the
+    sweep) and the first job's extra time over a later one's (JAX's start in the process), once
+    per phase; `job`, each job's own (Hydra's job folder and logging, the results file and its
+    reading back)."""
+
+    start: float
+    job: float
+
+
+def phase_costs(
+    plan: StudyPlan, config_dir: str | None, measured: Measured, search_path: list[str]
+) -> PhaseCosts:
+    """Two jobs of the first variant (one and two iterations, the tuning seed, no figures) run as
+    a phase of the study runs them: a multirun of `physgrad run` in a fresh process over job files
+    as compare writes them, in a temporary folder removed after; the times read from the launch
+    lines Hydra logs. `job` is the later job's time less what the plan measured of it (measured:
+    building, compiling, two steps, two held-out evaluations); a phase that fails costs what an
+    interpreter importing physgrad's runner does, once per job."""
+    import re
+    import shutil
+    import tempfile
+    from datetime import datetime
+    from pathlib import Path
+
+    from physgrad.comparison.jobs import _run_multirun, job_environment, job_yaml, multirun_command
+
+    first = plan.variants[0]
+    values = {"seed": plan.settings.tune_seed, "figures": False, **first.job_values}
+    values["trainer.time_budget"] = None
+    jobs = {
+        f"plan_{n}": job_yaml(
+            [*plan.common, *first.overrides], plan.groups, {**values, "trainer.iterations": n}
+        )
+        for n in (1, 2)
+    }
+    folder = Path(tempfile.mkdtemp(prefix="physgrad-plan-"))
+    try:
+        (folder / "files" / "compare_job").mkdir(parents=True)
+        for name, text in jobs.items():
+            (folder / "files" / "compare_job" / f"{name}.yaml").write_text(text)
+        command = multirun_command(folder / "files", folder, "plan", jobs, config_dir, search_path)
+        begin = time.time()
+        code = _run_multirun(command, folder / "plan.log", job_environment())
+        end = time.time()
+        log = (folder / "plan.log").read_text(errors="replace")
+    finally:
+        shutil.rmtree(folder, ignore_errors=True)
+    launched = [
+        datetime.strptime(stamp, "%Y-%m-%d %H:%M:%S,%f").timestamp()
+        for stamp in re.findall(r"^\[([^\]]+)\]\[HYDRA\]\s+#\d+ : ", log, re.MULTILINE)
+    ]
+    if code != 0 or len(launched) != 2:
+        return PhaseCosts(0.0, start_up_seconds())
+    later = end - launched[1]
+    own = (
+        measured.build_seconds
+        + measured.compile_seconds
+        + 2 * measured.step_seconds
+        + measured.first_evaluation_seconds
+        + measured.evaluation_seconds
+    )
+    start = launched[0] - begin + max(0.0, launched[1] - launched[0] - later)
+    return PhaseCosts(start, max(0.0, later - own))
+
+
 def start_up_seconds() -> float:
-    """What a job costs before it builds anything: a Python interpreter importing physgrad's runner
-    (its console script, JAX and Hydra), measured once here."""
+    """What an interpreter importing physgrad's runner (its console script, JAX and Hydra) costs,
+    measured once here."""
     import subprocess
     import sys
 
@@ -127,16 +222,21 @@ def start_up_seconds() -> float:
     return time.perf_counter() - begin
 
 
+def phase_count(plan: StudyPlan, calibration: bool) -> int:
+    """The multiruns a study launches: its tuning (if it tunes), its evaluation and its calibration
+    (where it calibrates)."""
+    return int(plan.settings.tune) + 1 + int(calibration)
+
+
 def variant_cost(
     plan: StudyPlan, variant: Variant, measured: Measured, start_up: float = 0.0
 ) -> VariantCost:
-    """The study's jobs of one variant, costed: each job starts (start_up), builds its scene and
-    data (measured.build_seconds), compiles once (a study's trials trained together: one job),
-    trains
-    to the budget (iterations x step cost, or the time budget) and evaluates the test set as the
-    runner does (evaluations_per_run); the evaluation of an iteration budget trains its seeds in one
-    job, counted as seeds x the one-seed step and evaluation (an upper bound where vmap makes seeds
-    cheaper)."""
+    """The study's jobs of one variant, costed: each job's own cost (start_up), building its scene
+    and data (measured.build_seconds), compiling once (a study's trials trained together: one
+    job), training to the budget (iterations x step cost, or the time budget) and evaluating the
+    test set as the runner does (evaluations_per_run); the evaluation of an iteration budget trains
+    its seeds in one job, counted as seeds x the step and evaluation per run (measured: per run of
+    a vectorised job where the runs train together, members)."""
     settings = plan.settings
     studies, seeds = settings.study_count, settings.seeds
     step_s = measured.step_seconds
@@ -148,12 +248,8 @@ def variant_cost(
     from physgrad.comparison.tuning import seeds_together, trials_together
 
     # a study's trials of a variant in one vectorised job where the tuning trains them together
-    # (a time budget on the calibrated clock counts as calibrated time there)
-    if plan.axis == "iteration" or settings.clock != "calibrated":
-        tuning_axis = plan.axis
-    else:
-        tuning_axis = "calibrated_time"
-    tuning_jobs = studies if tuning_runs and trials_together(variant, tuning_axis) else tuning_runs
+    together = tuning_runs and trials_together(variant, tuning_axis(plan))
+    tuning_jobs = studies if together else tuning_runs
     together = plan.axis == "iteration" and seeds_together(variant)
     jobs = studies if together else studies * seeds
     evaluation = jobs * per_job + studies * seeds * (train + held_out)
@@ -168,25 +264,31 @@ def variant_cost(
     )
 
 
-def plan_text(plan: StudyPlan, composed_seconds: float = 0.0) -> str:
+def plan_text(
+    plan: StudyPlan,
+    composed_seconds: float = 0.0,
+    config_dir: str | None = None,
+    search_path: list[str] | None = None,
+) -> str:
     """The estimate as text: a row per variant and the total, with the time the study spends
     composing and checking its variants before its phases (composed_seconds, as measured where the
-    plan composed them)."""
+    plan composed them) and the phases' own costs (phase_costs, run from config_dir with the
+    study's hydra.searchpath, never its launcher: a plan runs here)."""
     from physgrad.machine import machine_attributes, machine_label
 
     use_job_cache()
-    start_up = start_up_seconds()
-    costs = [
-        variant_cost(plan, variant, measure(variant, plan.settings.tune_seed), start_up)
-        for variant in plan.variants
-    ]
+    seed = plan.settings.tune_seed
+    measured = [measure(v, seed, members(plan, v)) for v in plan.variants]
+    phase = phase_costs(plan, config_dir, measured[0], search_path or [])
+    costs = [variant_cost(plan, v, m, phase.job) for v, m in zip(plan.variants, measured)]
     settings = plan.settings
     unit = "iterations" if plan.axis == "iteration" else "s of training"
     calibration = (
         plan.axis == "wall_time" and settings.clock == "calibrated" and not settings.calibration
     )
     extra = sum(c.compile_seconds for c in costs) + 10.0 if calibration else 0.0
-    total = sum(c.seconds for c in costs) + extra + composed_seconds
+    phases = phase_count(plan, calibration)
+    total = sum(c.seconds for c in costs) + extra + composed_seconds + phases * phase.start
     lines = [
         f"# Plan: {plan.variants[0].config.task.get('name')}, "
         f"{', '.join(v.name for v in plan.variants)}",
@@ -218,13 +320,14 @@ def plan_text(plan: StudyPlan, composed_seconds: float = 0.0) -> str:
             if composed_seconds
             else ""
         )
-        + f". Each job's start-up ({start_up:.1f} s here), building its scene and data, compiling, "
-        "training and the held-out "
-        "evaluations; writing the tables and figures adds to it, a study resumed skips what it "
-        "finished, and JAX's "
-        "compilation cache (in the user's physgrad cache, which this plan filled) makes later jobs "
-        "compile faster. Measured on "
-        f"{machine_label(machine_attributes())}, one seed, now; nothing was trained or written.",
+        + f". Each of its {phases} phases' start ({phase.start:.1f} s here: a fresh process, its "
+        f"imports and its first job's start), each job's own ({phase.job:.1f} s), building its "
+        "scene and data, compiling, training and the held-out evaluations, measured by running "
+        "two jobs of the first variant as a phase runs them; writing the tables and figures adds "
+        "to it, a study resumed skips what it finished, and JAX's compilation cache (in the "
+        "user's physgrad cache, which this plan filled) makes later jobs compile faster. "
+        "Measured on "
+        f"{machine_label(machine_attributes())}, one seed, now; nothing was kept.",
     ]
     return "\n".join(lines)
 

@@ -204,8 +204,9 @@ def main(args: list[str]) -> int:
         from physgrad.comparison.plan import plan_text
 
         begin = time.perf_counter()  # composing and checking: the study does them again, as here
-        plan, _ = compose_study(overrides, config_dir)
-        print(plan_text(plan, composed_seconds=time.perf_counter() - begin))
+        plan, hydra_args = compose_study(overrides, config_dir)
+        search = [a for a in hydra_args if a.startswith("hydra.searchpath=")]
+        print(plan_text(plan, time.perf_counter() - begin, config_dir, search))
         return 0
 
     # SIGTERM as Ctrl-C: the study's files are left as a resumable state

@@ -202,4 +202,10 @@ def test_plan_prints_the_estimate_and_trains_nothing(tmp_path):
     assert "| adam |" in out.stdout and "| gd |" in out.stdout and "Total: about" in out.stdout
     composed = r"composing and checking the variants \(\d+ s, measured here\) included"
     assert re.search(composed, out.stdout)
+    # the phases' own costs, from two jobs run as a phase runs them (its launch lines read: a
+    # phase that could not be read costs nothing to start)
+    phases = re.search(
+        r"Each of its 2 phases' start \((\d+\.\d) s here.*own \((\d+\.\d) s\)", out.stdout
+    )
+    assert phases and float(phases[1]) > 0
     assert not (tmp_path / "study").exists()
