@@ -4,6 +4,7 @@ tuning seed)."""
 
 from __future__ import annotations
 
+import os
 import statistics
 import time
 from dataclasses import dataclass
@@ -274,9 +275,10 @@ def plan_text(
     composing and checking its variants before its phases (composed_seconds, as measured where the
     plan composed them) and the phases' own costs (phase_costs, run from config_dir with the
     study's hydra.searchpath, never its launcher: a plan runs here)."""
-    from physgrad.machine import machine_attributes, machine_label
+    from physgrad.machine import load_average, machine_attributes, machine_label
 
     use_job_cache()
+    load_before = load_average()
     seed = plan.settings.tune_seed
     measured = [measure(v, seed, members(plan, v)) for v in plan.variants]
     phase = phase_costs(plan, config_dir, measured[0], search_path or [])
@@ -288,6 +290,13 @@ def plan_text(
     )
     extra = sum(c.compile_seconds for c in costs) + 10.0 if calibration else 0.0
     phases = phase_count(plan, calibration)
+    load, cpu_count = max(load_before, load_average()), os.cpu_count() or 1
+    # this plan's own measuring loads one core; more than that is someone else's work
+    busy = (
+        "other work was running: the study will take longer where it goes on"
+        if load > cpu_count / 2 + 1
+        else "quiet enough"
+    )
     total = sum(c.seconds for c in costs) + extra + composed_seconds + phases * phase.start
     lines = [
         f"# Plan: {plan.variants[0].config.task.get('name')}, "
@@ -326,8 +335,8 @@ def plan_text(
         "two jobs of the first variant as a phase runs them; writing the tables and figures adds "
         "to it, a study resumed skips what it finished, and JAX's compilation cache (in the "
         "user's physgrad cache, which this plan filled) makes later jobs compile faster. "
-        "Measured on "
-        f"{machine_label(machine_attributes())}, one seed, now; nothing was kept.",
+        f"Measured on {machine_label(machine_attributes())}, now, at a load average of "
+        f"{load:.1f} on {cpu_count} cores ({busy}); nothing was kept.",
     ]
     return "\n".join(lines)
 
