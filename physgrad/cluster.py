@@ -30,6 +30,7 @@ def own_submitit_folder(template: str) -> str:
     files go into a folder created in it for this launch alone (mode 0700; %j below it).
     LauncherRefused (one line) otherwise."""
     import os
+    import stat
     import time
 
     from physgrad.errors import LauncherRefused
@@ -38,9 +39,10 @@ def own_submitit_folder(template: str) -> str:
     parent = Path(base)
     parent.mkdir(parents=True, exist_ok=True)
     found = os.lstat(parent)
-    if parent.is_symlink() or found.st_uid != os.getuid():
+    link = stat.S_ISLNK(found.st_mode)
+    if link or found.st_uid != os.getuid():
         raise LauncherRefused(
-            f"{parent}: submitit's folder is {'a link' if parent.is_symlink() else 'not yours'}"
+            f"{parent}: submitit's folder is {'a link' if link else 'not yours'}"
             ": refused (a sweep folder may come from someone else); remove it or set "
             "hydra.launcher.submitit_folder"
         )
