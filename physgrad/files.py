@@ -9,7 +9,6 @@ as plain YAML without aliases or tags.
 
 from __future__ import annotations
 
-import contextlib
 import errno
 import fcntl
 import os
@@ -33,12 +32,7 @@ def owner_tag() -> str:
 
 
 # what "locks unsupported" looks like
-NO_LOCKS = {
-    errno.ENOLCK,
-    errno.ENOSYS,
-    errno.EOPNOTSUPP,
-    errno.EINVAL,
-}
+NO_LOCKS = {errno.ENOLCK, errno.ENOSYS, errno.EOPNOTSUPP, errno.EINVAL}
 HELD = {errno.EWOULDBLOCK, errno.EAGAIN, errno.EACCES}  # what "another process holds it" looks like
 
 
@@ -47,12 +41,9 @@ def _lock(fd: int, lock_path: Path) -> bool:
     POSIX lock. True if taken, False if another process holds it; LockingUnsupported where neither
     kind works."""
     reasons = []
-    for take in (
-        lambda: fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB),
-        lambda: fcntl.lockf(fd, fcntl.LOCK_EX | fcntl.LOCK_NB),
-    ):
+    for take in (fcntl.flock, fcntl.lockf):
         try:
-            take()
+            take(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
             return True
         except OSError as error:
             if error.errno in HELD:
@@ -91,26 +82,17 @@ def own_folder(folder: str | os.PathLike, what: str = "job") -> Iterator[None]:
     operating system releases when the process ends however it ends, so a dead owner never blocks a
     new one. FolderOwned (one line naming the owner's pid, host and start time) if a live process
     holds it; LockingUnsupported (one line) where the file system has no locks; OSError if the
-    folder cannot be written or the lock file is a link or has another name (a hard link). The lock
-    file must stay: a second process that finds it deleted creates its own (see docs/results.md)."""
+    folder cannot be written or open_foreign refuses the lock file (a link, a second name, not a
+    file). The lock file must stay: a second process that finds it deleted creates its own (see
+    docs/results.md)."""
     folder = Path(folder)
     folder.mkdir(parents=True, exist_ok=True)
     lock_path = folder / f".physgrad-{what}"
     while True:
-        # never through a link: a folder from someone else could point it at any file, which the
-        # owner line below would overwrite (OSError ELOOP)
-        try:
-            fd = os.open(lock_path, os.O_RDWR | os.O_CREAT | os.O_NOFOLLOW, 0o644)
-        except OSError as error:
-            if error.errno == errno.ELOOP:
-                raise OSError(errno.ELOOP, f"{lock_path.name} is a link: refused") from None
-            raise
-        if os.fstat(fd).st_nlink > 1:
-            # a hard link: the owner line below would overwrite the file's other name
-            os.close(fd)
-            raise OSError(
-                errno.EMLINK, f"{lock_path} has another name (a hard link): refused; remove it"
-            )
+        try:  # never through a link or a second name: the owner line below would overwrite it
+            fd = open_foreign(lock_path, write=True)
+        except ValueError as error:
+            raise OSError(errno.EPERM, str(error)) from None
         try:
             taken = _lock(fd, lock_path)
         except BaseException:
@@ -129,11 +111,10 @@ def own_folder(folder: str | os.PathLike, what: str = "job") -> Iterator[None]:
                 "it, or write somewhere else"
             )
         try:
-            same = os.stat(lock_path).st_ino == os.fstat(fd).st_ino
+            if os.path.samestat(os.stat(lock_path), os.fstat(fd)):
+                break
         except FileNotFoundError:
-            same = False
-        if same:
-            break
+            pass
         os.close(fd)  # the file was replaced between open and lock: lock the one that is there now
     try:
         os.ftruncate(fd, 0)
@@ -325,28 +306,16 @@ def read_small_yaml(path: Path, limit: int = CONFIG_LIMIT) -> Any:
     """load_yaml of a file read through read_own_file (a sweep's jobs.yaml, overrides.yaml,
     Optuna's optimization_results.yaml: other people's folders too); ValueError (one line)
     otherwise."""
+    text = read_own_file(path, limit).decode(errors="replace")  # its errors name the path
     try:
-        return load_yaml(read_own_file(path, limit).decode(errors="replace"))
-    except ValueError as error:  # the door's errors name the path already
-        raise ValueError(error if str(path) in str(error) else f"{path}: {error}") from None
-
-
-def replaced_text(path: Path) -> contextlib.AbstractContextManager[IO[str]]:
-    """A text file written into path through `replaced`."""
-    return replaced(path, text=True)
+        return load_yaml(text)
+    except ValueError as error:
+        raise ValueError(f"{path}: {error}") from None
 
 
 def file_kind(mode: int) -> str:
-    for test, kind in (
-        (stat.S_ISFIFO, "a FIFO"),
-        (stat.S_ISCHR, "a character device"),
-        (stat.S_ISBLK, "a block device"),
-        (stat.S_ISSOCK, "a socket"),
-        (stat.S_ISDIR, "a folder"),
-    ):
-        if test(mode):
-            return kind
-    return "not a plain file"
+    kinds = {"p": "a FIFO", "c": "a character device", "b": "a block device", "s": "a socket"}
+    return {**kinds, "d": "a folder"}.get(stat.filemode(mode)[0], "not a plain file")
 
 
 # A writer's liveness: the `owner` (pid N on HOST) and `heartbeat` (its latest write) it records.

@@ -24,63 +24,32 @@ FILE_COLUMNS_LIMIT = 1 << 28  # ... and of all of a file's columns together
 # uncompressed, and a few MB of compressed zeros would otherwise unpack into gigabytes
 EXPANSION_LIMIT = 8
 REQUIRED_TEXT = ("status", "task", "optim")
-INTEGER_ATTRS = frozenset(
-    {
-        "seed",
-        "unroll",
-        "iterations",
-        "batch_size",
-        "n_params",
-        "wall_time_shared_by",
-        "init_iterations",
-        "cpu_count",
-        "contended",
-    }
-)
-NUMBER_ATTRS = frozenset(
-    {
-        "compile_seconds",
-        "train_seconds",
-        "first_step_overhead_seconds",
-        "init_train_seconds",
-        "step_cost",
-        "load_start",
-        "load_end",
-        "step_seconds_p10",
-        "step_seconds_p50",
-        "step_seconds_p90",
-        "step_seconds_p99",
-    }
-)
-TEXT_ATTRS = frozenset(
-    {
-        "task",
-        "optim",
-        "variant",
-        "status",
-        "reason",
-        "stopped_by",
-        "config",
-        "precision",
-        "physgrad_version",
-        "jax_version",
-        "jaxlib_version",
-        "git_commit",
-        "cpu_model",
-        "device",
-        "thread_settings",
-        "hostname",
-        "created",
-        "finished",
-        "owner",
-        "heartbeat",
-        "jacobian",
-        "clock",
-        "contention",
-        "init_from",
-        "init_variant",
-    }
-)
+# what each attribute physgrad computes with must be; any other attribute may be any scalar
+KINDS = {
+    **dict.fromkeys(
+        "seed unroll iterations batch_size n_params wall_time_shared_by init_iterations cpu_count "
+        "contended".split(),
+        "an integer",
+    ),
+    **dict.fromkeys(
+        "compile_seconds train_seconds first_step_overhead_seconds init_train_seconds step_cost "
+        "load_start load_end step_seconds_p10 step_seconds_p50 step_seconds_p90 "
+        "step_seconds_p99".split(),
+        "a number",
+    ),
+    **dict.fromkeys(
+        "task optim variant status reason stopped_by config precision physgrad_version "
+        "jax_version jaxlib_version git_commit cpu_model device thread_settings hostname created "
+        "finished owner heartbeat jacobian clock contention init_from init_variant".split(),
+        "text",
+    ),
+}
+FITS = {  # whether a value is of a kind (None: an attribute physgrad does not read)
+    "text": lambda value: isinstance(value, str),
+    "an integer": lambda value: isinstance(value, int) and not isinstance(value, bool),
+    "a number": lambda value: isinstance(value, (int, float)) and not isinstance(value, bool),
+    None: lambda value: isinstance(value, (str, int, float, bool)),
+}
 
 
 @contextmanager
@@ -93,19 +62,15 @@ def open_results(path: Path, follow: bool = False) -> Iterator[h5py.File]:
         fd = open_foreign(path, follow=follow)
     except OSError as error:
         raise ValueError(f"{path}: cannot be opened ({error.strerror or error})") from None
-    try:
-        with os.fdopen(fd, "rb", closefd=False) as stream:
-            try:
-                f = h5py.File(stream, "r")
-            except (OSError, RuntimeError, ValueError) as error:
-                raise ValueError(
-                    f"{path}: cannot be read as HDF5 "
-                    f"({clean_text(str(error).splitlines()[0], 200)})"
-                ) from None
-            with f:
-                yield f
-    finally:
-        os.close(fd)
+    with os.fdopen(fd, "rb") as stream:
+        try:
+            f = h5py.File(stream, "r")
+        except (OSError, RuntimeError, ValueError) as error:
+            raise ValueError(
+                f"{path}: cannot be read as HDF5 ({clean_text(str(error).splitlines()[0], 200)})"
+            ) from None
+        with f:
+            yield f
 
 
 def checked_attrs(path: Path, f: h5py.File) -> dict:
@@ -116,9 +81,9 @@ def checked_attrs(path: Path, f: h5py.File) -> dict:
     for key in f.attrs:
         name = clean_text(key, 200)
         value = _attribute(path, f, key, name)
-        expected = _expected(key)
+        expected = KINDS.get(key)
         # a text seed is allowed for a refused job only (the invalid value it was refused for)
-        if not _fits(value, expected) and not (key == "seed" and isinstance(value, str)):
+        if not FITS[expected](value) and not (key == "seed" and isinstance(value, str)):
             if expected is None:
                 continue  # an unknown attribute physgrad does not read: dropped
             raise ValueError(
@@ -156,27 +121,6 @@ def _attribute(path: Path, f: h5py.File, key: str, name: str) -> Any:
     return value
 
 
-def _expected(key: str) -> str | None:
-    """What an attribute physgrad reads must be; None for one it does not read."""
-    if key in INTEGER_ATTRS:
-        return "an integer"
-    if key in NUMBER_ATTRS:
-        return "a number"
-    return "text" if key in TEXT_ATTRS else None
-
-
-def _fits(value: Any, expected: str | None) -> bool:
-    """Whether value is what _expected asks for (any scalar for an attribute physgrad does not
-    read)."""
-    if expected == "text":
-        return isinstance(value, str)
-    if expected == "an integer":
-        return isinstance(value, int) and not isinstance(value, bool)
-    if expected == "a number":
-        return isinstance(value, (int, float)) and not isinstance(value, bool)
-    return isinstance(value, (str, int, float, bool))
-
-
 def _check_required(path: Path, attrs: dict) -> None:
     """The attributes every results file has: status (one of STATUSES), task, optim and seed (an
     integer unless the job was refused)."""
@@ -198,25 +142,28 @@ def _describe(value: Any) -> str:
     return f"{kind} {clean_text(repr(value), 40)}"
 
 
-def _checked_group(path: Path, f: h5py.File, group: str) -> h5py.Group:
-    link = f.get(group, getlink=True)
+def _hard(path: Path, parent: h5py.Group, key: str, kind: type, where: str) -> Any:
+    """parent[key] if it is a hard link to an object of kind (stored in this file: no soft or
+    external link followed, where `in` or indexing would follow one); ValueError (one line) naming
+    where otherwise."""
+    link = parent.get(key, getlink=True)
     if link is None:
-        raise ValueError(f"{path}: not a physgrad results file (no /{group})")
-    if not isinstance(link, h5py.HardLink) or not isinstance(f[group], h5py.Group):
+        raise ValueError(f"{path}: not a physgrad results file (no {where})")
+    if not isinstance(link, h5py.HardLink) or not isinstance(parent[key], kind):
         raise ValueError(
-            f"{path}: /{group} is a {type(link).__name__}, not a group: links are not followed"
+            f"{path}: {where} is a {type(link).__name__}, not a {kind.__name__.lower()}: links "
+            "are not followed"
         )
-    return f[group]
+    return parent[key]
 
 
 def checked_columns(path: Path, f: h5py.File, group: str) -> dict[str, h5py.Dataset]:
-    """The datasets of /group after the checks (not read yet): hard links to 1-D numeric datasets
-    stored in this file, of equal length, holding iteration and loss (and in /eval wall_time) when
-    there are any."""
-    g, columns = _checked_group(path, f, group), {}
+    """The datasets of /group after the checks (not read yet): each a _checked_column, of equal
+    length, holding iteration and loss (and in /eval wall_time) when there are any."""
+    g, columns = _hard(path, f, group, h5py.Group, f"/{group}"), {}
     for key in g:
         name = clean_text(key, 200)
-        columns[name] = _checked_column(path, g, group, key, name)
+        columns[name] = _checked_column(path, g, key, f"/{group}/{name}")
     lengths = {key: column.shape[0] for key, column in columns.items()}
     if len(set(lengths.values())) > 1:
         raise ValueError(
@@ -228,30 +175,23 @@ def checked_columns(path: Path, f: h5py.File, group: str) -> dict[str, h5py.Data
     return columns
 
 
-def _checked_column(path: Path, g: h5py.Group, group: str, key: str, name: str) -> h5py.Dataset:
-    """One dataset of /group: a hard link to a 1-D numeric dataset stored in this file, of at most
-    COLUMN_LIMIT rows."""
-    link = g.get(key, getlink=True)
-    if not isinstance(link, h5py.HardLink) or not isinstance(g[key], h5py.Dataset):
-        raise ValueError(
-            f"{path}: /{group}/{name} is a {type(link).__name__}, not a dataset: links are not "
-            "followed"
-        )
-    column = g[key]
+def _checked_column(
+    path: Path, g: h5py.Group, key: str, where: str, kinds: str = "fiub"
+) -> h5py.Dataset:
+    """g[key]: a hard link to a 1-D dataset of a numeric dtype kind in kinds, stored in this file
+    (no external or virtual storage), of at most COLUMN_LIMIT values."""
+    column = _hard(path, g, key, h5py.Dataset, where)
     if column.external or column.is_virtual:
         raise ValueError(
-            f"{path}: /{group}/{name} keeps its data in other files (external or virtual "
-            "storage): refused"
+            f"{path}: {where} keeps its data in other files (external or virtual storage): refused"
         )
-    if column.ndim != 1 or column.dtype.kind not in "fiub":
+    if column.ndim != 1 or column.dtype.kind not in kinds:
         raise ValueError(
-            f"{path}: /{group}/{name} is {column.ndim}-D of {column.dtype}, expected a 1-D "
-            "numeric column"
+            f"{path}: {where} is {column.ndim}-D of {column.dtype}, expected a 1-D column of "
+            f"dtype kind {kinds}"
         )
     if column.size > COLUMN_LIMIT:
-        raise ValueError(
-            f"{path}: /{group}/{name} has {column.size} rows, more than {COLUMN_LIMIT}"
-        )
+        raise ValueError(f"{path}: {where} has {column.size} values, more than {COLUMN_LIMIT}")
     return column
 
 
@@ -263,7 +203,8 @@ def checked_tables(path: Path, f: h5py.File, groups: tuple[str, ...]) -> dict[st
         raise ValueError(
             f"{path}: more than {FILE_COLUMNS_LIMIT} values in /train and /eval together"
         )
-    unpacked, stored = sum(c.size * c.dtype.itemsize for c in every), _stored_size(f)
+    # the bytes of the open file (not of whatever its name points to by now)
+    unpacked, stored = sum(c.size * c.dtype.itemsize for c in every), f.id.get_filesize()
     if unpacked > EXPANSION_LIMIT * stored + (1 << 20):
         raise ValueError(
             f"{path}: its columns unpack to {unpacked >> 20} MiB from a file of "
@@ -274,24 +215,13 @@ def checked_tables(path: Path, f: h5py.File, groups: tuple[str, ...]) -> dict[st
 
 
 def checked_params(path: Path, f: h5py.File, status: str) -> h5py.Dataset:
-    """/params after the checks (not read yet): a hard link to a 1-D float dataset stored in this
-    file, of at most COLUMN_LIMIT values; ValueError (one line) if the file has none."""
-    if "params" not in f:
+    """/params after the checks (not read yet): a _checked_column of floats; ValueError (one line)
+    if the file has none."""
+    if f.get("params", getlink=True) is None:
         raise ValueError(
             f"{path} holds no final network (status {status}): use a run that finished"
         )
-    link = f.get("params", getlink=True)
-    params = f["params"] if isinstance(link, h5py.HardLink) else None
-    if (
-        not isinstance(params, h5py.Dataset)
-        or params.external
-        or params.is_virtual
-        or params.ndim != 1
-        or params.dtype.kind != "f"
-        or params.size > COLUMN_LIMIT
-    ):
-        raise ValueError(f"{path}: /params is not a 1-D float vector stored in the file: refused")
-    return params
+    return _checked_column(path, f, "params", "/params", kinds="f")
 
 
 def read_columns(path: Path, read: Callable[[], Any]) -> Any:
@@ -302,8 +232,3 @@ def read_columns(path: Path, read: Callable[[], Any]) -> Any:
         raise ValueError(
             f"{path}: a column cannot be read ({clean_text(str(error).splitlines()[0], 200)})"
         ) from None
-
-
-def _stored_size(f: h5py.File) -> int:
-    """The bytes of the open file (not of whatever its name points to by now)."""
-    return f.id.get_filesize()

@@ -16,7 +16,7 @@ from pathlib import Path
 import numpy as np
 
 from physgrad.errors import UserError
-from physgrad.files import clean_text, read_small_yaml, replaced_text
+from physgrad.files import clean_text, read_small_yaml, replaced
 from physgrad.readout import fmt, loss_at, run_record, targets
 from physgrad.results import Run, natural_key
 from physgrad.runs import Dropped, collect, label_runs, parse_sources, setting_text
@@ -264,7 +264,8 @@ def write_report(
     text += file_notes(paths, unreadable, dropped)
     body = "\n".join(text) + "\n"
     write_tables(tables(runs, rows), out)
-    with replaced_text(out / "report.md") as f:  # last: a report.md beside complete tables only
+    # last: a report.md beside complete tables only
+    with replaced(out / "report.md", text=True) as f:
         f.write(body)
     written = f"wrote {out / 'report.md'}, runs.csv, curves.csv (and .parquet)"
     if not figures:

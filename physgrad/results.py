@@ -29,7 +29,6 @@ import numpy as np
 
 from physgrad.errors import ResultsWriteError
 from physgrad.files import (
-    CONFIG_LIMIT,
     clean_text,
     load_yaml,
     owner_tag,
@@ -77,24 +76,14 @@ class ResultsWriter:
             if holds_completed(self.path)
             else self.path
         )
-        self.attrs = {
-            key: value
-            for key, value in {
-                **attrs,
-                "status": "running",
-                "created": timestamp(),
-                "owner": owner_tag(),
-            }.items()
-            if value is not None
-        }
+        attrs = {**attrs, "status": "running", "created": timestamp(), "owner": owner_tag()}
+        self.attrs = {key: value for key, value in attrs.items() if value is not None}
         self._columns: dict[str, tuple[str, ...] | None] = {group: None for group in GROUPS}
         self._rows: dict[str, list[tuple]] = {group: [] for group in GROUPS}  # not yet flushed
         # flushed chunks
         self._data: dict[str, dict[str, list[np.ndarray]]] = {group: {} for group in GROUPS}
         self._params: np.ndarray | None = None
-        for stale in self.live.parent.glob(
-            f".{self.live.name}.*.tmp"
-        ):  # left by a writer killed mid-write
+        for stale in self.live.parent.glob(f".{self.live.name}.*.tmp"):  # a killed writer's
             stale.unlink(missing_ok=True)
         if write:  # (not for a file that is finished at once: see record_outcome)
             self._write()
@@ -169,11 +158,7 @@ class ResultsWriter:
         try:  # never through a link put at the file's name (its folder may be someone else's)
             stream = os.fdopen(os.open(self.live, os.O_RDWR | os.O_NOFOLLOW), "r+b")
             with stream, h5py.File(stream, "r+", locking=False) as f:
-                f.attrs["status"], f.attrs["reason"], f.attrs["finished"] = (
-                    "failed",
-                    reason,
-                    timestamp(),
-                )
+                f.attrs.update(status="failed", reason=reason, finished=timestamp())
             return True
         except (OSError, ValueError):
             return False
@@ -263,46 +248,33 @@ _OLD_MARKS = re.compile(r"(\w+)\[([\w=,]+)\]")
 CONFIG_KEYS_LIMIT = 10_000  # settings in a stored config; a physgrad config holds about a hundred
 
 
-def _settings(tree: Any) -> int:
-    """The mappings' keys and the lists' items of a parsed config, counted without recursion."""
-    count, pending = 0, [tree]
-    while pending:
-        node = pending.pop()
-        if isinstance(node, dict):
-            count += len(node)
-            pending.extend(node.values())
-        elif isinstance(node, list):
-            count += len(node)
-            pending.extend(node)
-    return count
-
-
 def parse_config(text: str) -> dict:
-    """The stored config as plain data (nested dicts, lists, scalars), text cleaned as clean_text;
-    ValueError (one line) if it is too long, not YAML, holds an alias, is not a mapping or holds
-    more than CONFIG_KEYS_LIMIT settings (a table would get a column for each). Interpolations such
-    as ${...} stay the text they are."""
-    if len(text.encode(errors="replace")) > CONFIG_LIMIT:
-        raise ValueError(f"the config attribute is longer than {CONFIG_LIMIT} bytes")
+    """The stored config (its length bounded by the reader, physgrad.foreign) as plain data (nested
+    dicts, lists, scalars), text cleaned as clean_text; ValueError (one line) if it is not YAML,
+    holds an alias, is not a mapping or holds more than CONFIG_KEYS_LIMIT settings (a table would
+    get a column for each). Interpolations such as ${...} stay the text they are."""
     try:
         tree = load_yaml(text) if text.strip() else {}
     except ValueError as error:
         raise ValueError(f"the config attribute is {error}") from None
     if not isinstance(tree, dict):
         raise ValueError(f"the config attribute is a {type(tree).__name__}, not a mapping")
-    if _settings(tree) > CONFIG_KEYS_LIMIT:
-        raise ValueError(
-            f"the config attribute holds more than {CONFIG_KEYS_LIMIT} settings (a physgrad config "
-            "holds about a hundred)"
-        )
-    return _clean_tree(tree)
+    return _clean_tree(tree, [0])
 
 
-def _clean_tree(tree: Any) -> Any:
+def _clean_tree(tree: Any, settings: list[int]) -> Any:
+    """tree with its text cleaned, counting its mappings' keys and lists' items in settings[0]."""
+    if isinstance(tree, (dict, list)):
+        settings[0] += len(tree)
+        if settings[0] > CONFIG_KEYS_LIMIT:
+            raise ValueError(
+                f"the config attribute holds more than {CONFIG_KEYS_LIMIT} settings (a physgrad "
+                "config holds about a hundred)"
+            )
     if isinstance(tree, dict):
-        return {clean_text(str(key)): _clean_tree(value) for key, value in tree.items()}
+        return {clean_text(str(key)): _clean_tree(value, settings) for key, value in tree.items()}
     if isinstance(tree, list):
-        return [_clean_tree(value) for value in tree]
+        return [_clean_tree(value, settings) for value in tree]
     return clean_text(tree) if isinstance(tree, str) else tree
 
 
@@ -347,17 +319,14 @@ def read_end(path: str | os.PathLike, follow: bool = False) -> tuple[dict, dict,
         train = checked_columns(path, f, "train")
         columns = checked_columns(path, f, "eval")
         _config_of(path, attrs)
-        last = read_columns(
-            path,
-            lambda: {key: column[-1].item() for key, column in columns.items() if column.shape[0]},
-        )
         iterations = train.get("iteration")
-        last_train = read_columns(
+        last, last_train = read_columns(
             path,
             lambda: (
+                {key: column[-1].item() for key, column in columns.items() if column.shape[0]},
                 float(iterations[-1])
                 if iterations is not None and iterations.shape[0]
-                else math.nan
+                else math.nan,
             ),
         )
     return attrs, last, last_train

@@ -15,9 +15,9 @@ import hashlib
 import logging
 import os
 import signal
+import socket
 import sys
 import threading
-import time
 from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
@@ -31,8 +31,10 @@ from physgrad.files import (
     inside,
     owner_alive,
     owner_tag,
+    read_own_file,
     read_small_yaml,
     replace_file,
+    timestamp,
     walk_files,
 )
 from physgrad.interrupts import StopRequest, handling_signals
@@ -87,16 +89,20 @@ def write_manifest(folder: Path, jobs: list[list[str]]) -> None:
     )
 
 
+def _overrides(listed: object) -> list[str] | None:
+    """A list of overrides read from a file (each a scalar), as text; None if it is not one."""
+    plain = isinstance(listed, list) and all(
+        isinstance(item, (str, int, float, bool)) for item in listed
+    )
+    return list(map(str, listed)) if plain else None
+
+
 def read_manifest(folder: Path) -> list[list[str]] | None:
     try:
-        jobs = read_small_yaml(folder / MANIFEST)["jobs"]
+        jobs = [_overrides(job) for job in read_small_yaml(folder / MANIFEST)["jobs"]]
     except (OSError, ValueError, KeyError, TypeError):
         return None
-    plain = isinstance(jobs, list) and all(
-        isinstance(job, list) and all(isinstance(item, (str, int, float, bool)) for item in job)
-        for job in jobs
-    )
-    return [list(map(str, job)) for job in jobs] if plain else None
+    return None if None in jobs else jobs
 
 
 def job_folders(folder: Path) -> dict[frozenset, Path]:
@@ -107,13 +113,11 @@ def job_folders(folder: Path) -> dict[frozenset, Path]:
         if overrides.parent.name != ".hydra":
             continue
         try:
-            listed = read_small_yaml(overrides, 1 << 16) or []
+            listed = _overrides(read_small_yaml(overrides, 1 << 16) or [])
         except (OSError, ValueError):
             continue
-        if isinstance(listed, list) and all(
-            isinstance(item, (str, int, float, bool)) for item in listed
-        ):
-            found[frozenset(map(str, listed))] = overrides.parent.parent
+        if listed is not None:
+            found[frozenset(listed)] = overrides.parent.parent
     return found
 
 
@@ -148,7 +152,7 @@ def record_job(
         "reason": reason,
         "owner": owner_tag(),
         "scheduler": scheduler or scheduler_job(),
-        "time": time.strftime("%Y-%m-%dT%H:%M:%S%z"),
+        "time": timestamp(),
     }
     try:
         (sweep / JOB_STATES).mkdir(parents=True, exist_ok=True)
@@ -168,13 +172,9 @@ def job_states(sweep: Path) -> dict[frozenset, dict]:
             record = read_small_yaml(path, 1 << 16)
         except (OSError, ValueError):
             continue
-        if (
-            isinstance(record, dict)
-            and isinstance(record.get("overrides"), list)
-            and all(isinstance(o, str) for o in record["overrides"])
-            and isinstance(record.get("state"), str)
-        ):
-            found[frozenset(record["overrides"])] = {
+        overrides = _overrides(record.get("overrides")) if isinstance(record, dict) else None
+        if overrides is not None and isinstance(record.get("state"), str):
+            found[frozenset(overrides)] = {
                 "state": clean_text(record["state"], 40),
                 "reason": clean_text(str(record.get("reason") or ""), 300),
                 "folder": clean_text(str(record.get("folder", "")), 500),
@@ -204,32 +204,20 @@ def unfinished_jobs(folder: Path, interrupted: bool = False) -> list[tuple[str, 
         )
         if ended and not (interrupted and state is not None and state["state"] == "interrupted"):
             continue
-        at = f" (SLURM job {state['scheduler']})" if state and state.get("scheduler") else ""
         if state is None:
-            missing.append((",".join(job), "never started" if where is None else "no results file"))
+            why = "never started" if where is None else "no results file"
         elif state["state"] == "started":
             gone = owner_alive(state["owner"]) is False
-            missing.append(
-                (
-                    ",".join(job),
-                    ("crashed before writing results" if gone else "started, no results yet") + at,
-                )
-            )
+            why = "crashed before writing results" if gone else "started, no results yet"
         else:
-            missing.append(
-                (
-                    ",".join(job),
-                    (f"{state['state']}: {state['reason']}" if state["reason"] else state["state"])
-                    + at,
-                )
-            )
+            why = ": ".join(filter(None, (state["state"], state["reason"])))
+        at = f" (SLURM job {state['scheduler']})" if state and state.get("scheduler") else ""
+        missing.append((",".join(job), why + at))
     return missing
 
 
 def stop_count(sweep: Path) -> tuple[str, int] | None:
     """(signal name, how many) if the sweep was asked to stop."""
-    from physgrad.files import read_own_file
-
     try:  # a mark in a folder from someone else: no link followed, no FIFO waited on
         name, count = read_own_file(sweep / STOP_MARK, 64).decode().split()
         return name, int(count)
@@ -252,8 +240,6 @@ def mark_stopped(sweep: Path, name: str, count: int = 1) -> None:
 
 def launcher_pid() -> int | None:
     """The pid of the process that launched this sweep, where it runs on this host; else None."""
-    import socket
-
     pid, _, host = os.environ.get(LAUNCHER_ENV, "").partition(" ")
     return int(pid) if pid.isdigit() and host == socket.gethostname() else None
 
@@ -324,8 +310,6 @@ def launcher_signals(sweep: Path) -> Iterator[None]:
         if not installed:  # not the main thread
             yield
             return
-        import socket
-
         os.environ[LAUNCHER_ENV] = f"{os.getpid()} {socket.gethostname()}"
         end_with_study()
         try:

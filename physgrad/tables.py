@@ -11,7 +11,7 @@ from typing import NamedTuple
 import numpy as np
 import pandas as pd
 
-from physgrad.files import replaced, replaced_text
+from physgrad.files import replaced
 from physgrad.readout import config_row
 from physgrad.results import Run
 
@@ -88,9 +88,9 @@ def write_tables(frames: Tables, out: Path) -> None:
     """runs.csv and runs.parquet; curves.parquet (every row) and curves.csv (every evaluation, and
     the training rows thinned to CSV_TRAIN_ROWS per run, evenly in iteration with the first and the
     last: a long run's CSV would be tens of MB). Each written beside and renamed into place."""
-    with replaced_text(out / "runs.csv") as f:
+    with replaced(out / "runs.csv", text=True) as f:
         frames.runs.to_csv(f, index=False)
-    with replaced_text(out / "curves.csv") as f:
+    with replaced(out / "curves.csv", text=True) as f:
         _thinned(frames.curves).to_csv(f, index=False)
     for name, frame in (("runs", frames.runs), ("curves", frames.curves)):
         with replaced(out / f"{name}.parquet") as f:

@@ -14,7 +14,7 @@ from physgrad.comparison.calibration import cost_spread
 from physgrad.comparison.clock_text import busy_calibration, timing_lines
 from physgrad.comparison.coverage import coverage_lines, tried_values
 from physgrad.comparison.spec import StudySettings, Variant
-from physgrad.files import replaced_text
+from physgrad.files import replaced
 from physgrad.readout import fmt, run_record, target_loss
 from physgrad.verdict import (
     FRACTIONS,
@@ -93,7 +93,7 @@ def analyse(
     trials = pd.DataFrame(trials_rows)
     # written beside and renamed: a link planted at a table's name is replaced, not written through
     for name, table in (("trials", trials), ("runs", runs), ("comparisons", comparisons)):
-        with replaced_text(folder / f"{name}.csv") as f:
+        with replaced(folder / f"{name}.csv", text=True) as f:
             table.to_csv(f, index=False)
 
     lines = verdict_lines(variants, runs, verdicts, settings, axis, budget, calibration)
@@ -105,7 +105,7 @@ def analyse(
     lines += variant_lines(variants, runs, best, target_variant, target, searched)
     lines += timing_lines(variants, runs, axis, calibration)
     text = "\n".join(lines) + "\n"
-    with replaced_text(folder / "compare.md") as f:
+    with replaced(folder / "compare.md", text=True) as f:
         f.write(text)
     return runs, comparisons, trials, verdicts, text
 

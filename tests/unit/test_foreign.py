@@ -78,6 +78,21 @@ def test_params_stored_elsewhere_are_refused(tmp_path, secret_file):
         read_params(path)
 
 
+def test_a_config_longer_than_its_bound_is_refused_in_one_line(tmp_path):
+    """The stored config is bounded where it is read (CONFIG_LIMIT characters): one more is
+    refused before it is parsed; the bound itself is read."""
+    from physgrad.files import CONFIG_LIMIT
+
+    path = good_run(tmp_path / "run")
+    padded = "seed: 0\n#" + "x" * (CONFIG_LIMIT - 9)
+    rewrite(path, set_attr("config", padded))
+    assert len(padded) == CONFIG_LIMIT and read_run(path).config == {"seed": 0}
+    rewrite(path, set_attr("config", padded + "x"))
+    with pytest.raises(ValueError, match=f"'config' is longer than {CONFIG_LIMIT}") as caught:
+        read_run(path)
+    assert "\n" not in str(caught.value)
+
+
 def test_escapes_in_the_stored_config_are_cleaned_too(tmp_path):
     path = good_run(tmp_path / "run")
     rewrite(path, set_attr("config", 'task: {name: "toy\\e[31m"}\nseed: 0\n'))
@@ -136,7 +151,7 @@ def test_a_file_written_into_a_folder_never_writes_through_a_planted_link(tmp_pa
     name, or at the name of the temporary file it writes first, is replaced or removed, and the file
     it pointed at is left as it was."""
     from physgrad.app import save_traceback
-    from physgrad.files import replace_file, replaced_text
+    from physgrad.files import replace_file, replaced
 
     outside = tmp_path / "outside.txt"
     outside.write_text("theirs\n")
@@ -155,7 +170,7 @@ def test_a_file_written_into_a_folder_never_writes_through_a_planted_link(tmp_pa
     assert (folder / "table.csv").read_bytes() == b"a,b\n"
     # a table written as text, through the same door
     (folder / "runs.csv").symlink_to(outside)
-    with replaced_text(folder / "runs.csv") as table:
+    with replaced(folder / "runs.csv", text=True) as table:
         table.write("variant\r\nadam\n")  # as written: no newline translation
     assert (folder / "runs.csv").read_bytes() == b"variant\r\nadam\n"
     assert outside.read_text() == "theirs\n"
