@@ -424,13 +424,19 @@ class Progress:
 
     def _left(self, now: float) -> str:
         """The time left at the pace of the jobs done (none before one is done): their mean time
-        for each job not done, less what the running one has had."""
+        for each job not done, less what the running one has had; once the running one has had
+        more than that mean (a slower variant), the time left after it, and how long it has run."""
         done = self.started - 1
         if done < 1:
             return ""
-        mean = (self.launched_at - self.begun) / done
-        left = max(0.0, mean * (self.total - done) - (now - self.launched_at))
-        return f"; about {left / 60:.1f} min left"
+        mean, running = (self.launched_at - self.begun) / done, now - self.launched_at
+        after = mean * (self.total - done - 1) / 60
+        if running <= mean:
+            return f"; about {(mean - running) / 60 + after:.1f} min left"
+        return (
+            f"; about {after:.1f} min left after the running job ({running / 60:.1f} min so far; "
+            f"the jobs before it took {mean / 60:.1f} min each)"
+        )
 
 
 def _run_multirun(

@@ -279,6 +279,28 @@ def test_on_a_terminal_a_phase_draws_a_bar_of_its_jobs_and_ends_with_one_line():
     assert jobs.Progress("tune", 6, said.append, stream=io.StringIO()).bar is None
 
 
+def test_the_time_left_never_says_none_while_a_slower_job_runs():
+    """The time left is the jobs' mean pace for each job not done, less what the running one has
+    had; a running job slower than that mean (another variant) makes it the time after that job,
+    with how long the job has run, instead of "about 0.0 min left" for as long as it runs."""
+    import io
+
+    import physgrad.comparison.jobs as jobs
+
+    progress = jobs.Progress("tune", 3, [].append, stream=io.StringIO())
+    assert progress._left(progress.begun + 10) == ""  # no job done: no pace yet
+    progress.started, progress.launched_at = 2, progress.begun + 60  # job 1 took a minute
+    assert progress._left(progress.begun + 90) == "; about 1.5 min left"
+    assert progress._left(progress.begun + 120) == "; about 1.0 min left"
+    slow = progress._left(progress.begun + 600)
+    assert slow == (
+        "; about 1.0 min left after the running job (9.0 min so far; the jobs before it took "
+        "1.0 min each)"
+    ), slow
+    progress.started = 3  # the last job: nothing after it
+    assert progress._left(progress.launched_at + 600).startswith("; about 0.0 min left after")
+
+
 def test_a_phase_says_its_progress_from_its_log_without_a_line_per_job(tmp_path, monkeypatch):
     """The console hears where a phase is (Hydra's launch lines in its log): lines along the way at
     most one per interval, and one at the end with the jobs run; nothing for a phase that never
