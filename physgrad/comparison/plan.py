@@ -73,20 +73,30 @@ def run_config(variant: Variant) -> object:
     return cfg
 
 
-def measure(variant: Variant, seed: int, members: int = 1) -> Measured:
+def measure(
+    variant: Variant, seed: int, members: int = 1, trial_values: dict | None = None
+) -> Measured:
     """The variant's costs per run on `members` seeds trained together (vectorised, as the study's
-    jobs train them), from seed on: the step's mean along its trajectory after one untimed step
-    (the mean, not the median: a study pays every step, and a step's cost may depend on its state,
-    e.g. Gauss-Newton's on the exponax Burgers scene took 0.03 s or 0.8 s along one trajectory), and
+    jobs train them), from seed on, or on the trials trial_values holds (key -> one value per
+    trial, all on seed, as a tuning job trains them: a step's cost may depend on the rate it
+    trains at); the step's mean along its trajectory after one untimed step (the mean, not the
+    median: a study pays every step, and a step's cost may depend on its state, e.g.
+    Gauss-Newton's on the exponax Burgers scene took 0.03 s or 0.8 s along one trajectory), and
     its held-out evaluation on the test set, first (with its compile) and again; each divided by
-    members."""
+    the runs trained together."""
     import jax
 
     from physgrad.timing import compiled_step
 
     cfg = run_config(variant)
+    if trial_values:
+        from omegaconf import open_dict
+
+        with open_dict(cfg):
+            cfg.trial_values = trial_values
+        members = len(next(iter(trial_values.values())))
     begin = time.perf_counter()
-    seeds = [seed + i for i in range(members)]
+    seeds = [seed] * members if trial_values else [seed + i for i in range(members)]
     _, _, _, stacked, compiled, compile_seconds, one_step = compiled_step(cfg, seeds)
     build_seconds = max(0.0, time.perf_counter() - begin - compile_seconds)
     one_step()
@@ -114,16 +124,18 @@ def tuning_axis(plan: StudyPlan) -> str:
     return "calibrated_time"
 
 
-def members(plan: StudyPlan, variant: Variant) -> int:
-    """How many runs a job of the variant trains together: a study's seeds (about its trials' number
-    too) where its trials or its seeds train in one vectorised job, else one."""
+def members(plan: StudyPlan, variant: Variant) -> tuple[int, dict | None]:
+    """How a job of the variant trains its runs, as the plan times it: (1, the first tuning
+    study's trial points, key by key) where its trials train in one vectorised job, as that job
+    takes them; else (a study's seeds, None) where its seeds train in one, else (1, None)."""
     from physgrad.comparison.tuning import seeds_together, trials_together
 
     settings = plan.settings
-    together = (settings.tune and trials_together(variant, tuning_axis(plan))) or (
-        plan.axis == "iteration" and seeds_together(variant)
-    )
-    return settings.seeds if together else 1
+    if settings.tune and trials_together(variant, tuning_axis(plan)):
+        points = planned_points(plan)[variant.name]  # the first tuning study's come first
+        return 1, {key: points[key][: settings.trials] for key in sorted(points)}
+    together = plan.axis == "iteration" and seeds_together(variant)
+    return (settings.seeds if together else 1), None
 
 
 def evaluations_per_run(variant: Variant, axis: str, budget: float, step_seconds: float) -> float:
@@ -280,7 +292,7 @@ def plan_text(
     use_job_cache()
     load_before = load_average()
     seed = plan.settings.tune_seed
-    measured = [measure(v, seed, members(plan, v)) for v in plan.variants]
+    measured = [measure(v, seed, *members(plan, v)) for v in plan.variants]
     phase = phase_costs(plan, config_dir, measured[0], search_path or [])
     costs = [variant_cost(plan, v, m, phase.job) for v, m in zip(plan.variants, measured)]
     settings = plan.settings

@@ -567,6 +567,41 @@ def test_the_plan_costs_every_job_of_a_study_from_compile_and_step_times():
     assert built.seconds == pytest.approx(bare.seconds + (2 + 12) * 1.5)
 
 
+def test_the_plan_times_a_tuning_job_at_the_trial_points_it_will_train(monkeypatch):
+    """A variant whose trials train together is timed as its tuning job trains them: the first
+    tuning study's trial points (those the tuning will try, key by key) as the job's trial_values,
+    all on the tuning seed, the step divided among them; without tuning, a variant whose seeds
+    train together is timed on the study's seeds."""
+    from omegaconf import OmegaConf
+
+    import physgrad.timing
+    from physgrad.comparison import plan as planning
+    from physgrad.comparison.spec import StudyPlan
+    from physgrad.comparison.tuning import halton_points, point_dimensions
+
+    settings, axes, common, _ = split_overrides(["task=toy", "optim=adam,gd", "compare.trials=4"])
+    s = study_settings({**settings, "seeds": 6})
+    adam, gd = build_variants(axes, common, s, [])
+    study = StudyPlan([adam, gd], s, common, {"task", "optim"}, "iteration", 100.0)
+    points = halton_points(adam.space, 4, s.tune_seed, point_dimensions([adam.space, gd.space]))
+    count, values = planning.members(study, adam)
+    assert count == 1 and values == {k: [p[k] for p in points] for k in sorted(adam.space)}
+    assert len(set(values["learning_rate"])) == 4
+    seen = {}
+
+    def compiled_step(cfg, seeds):
+        seen.update(values=OmegaConf.to_container(cfg.trial_values), seeds=seeds)
+        raise StopIteration  # what it was asked to build is all this test reads
+
+    monkeypatch.setattr(physgrad.timing, "compiled_step", compiled_step)
+    with pytest.raises(StopIteration):
+        planning.measure(adam, 7, *planning.members(study, adam))
+    assert seen == {"values": values, "seeds": [7] * 4}
+    untuned = study_settings({**settings, "seeds": 6, "tune": False})
+    plain = StudyPlan([adam, gd], untuned, common, {"task", "optim"}, "iteration", 100.0)
+    assert planning.members(plain, adam) == (6, None)
+
+
 def test_a_studys_jobs_share_a_compilation_cache_in_the_users_cache_unless_they_name_one(
     tmp_path, monkeypatch
 ):
