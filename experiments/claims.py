@@ -308,31 +308,18 @@ def headline_table(root: Path, profile: tuple, further: tuple = ()) -> str:
             continue
         main = _main_study(claim)
         runs = read_study(root / main)
-        if runs is None:
-            lines.append(f"| {claim.name} | {NOT_YET} | | | | | | | | |")
+        longer, seen, elsewhere = _longer_budgets(claim, main, further)
+        longer_text = "; ".join(longer)
+        if runs is None:  # a longer profile's verdicts stand on their own
+            tail = f" {longer_text} |" if longer_text else " |"
+            lines.append(f"| {claim.name} | {NOT_YET} | | | | | | | |{tail}")
             continue
         trials, studies, seeds = study_protocol(root / main)
         tuned = claim_verdicts(claim, root, profile=profile)
         preset, _ = decide_claim(claim, root, "-preset", 1.0, profile)
         if preset == OPEN and read_study(root / f"{main}-preset") is None:
             preset = NOT_YET  # the twin's study has not finished
-        longer, seen, elsewhere = [], list(tuned.values()), []
-        for folder, studies_there in further:
-            if not studies_of(claim) <= {s.name for s in studies_there}:
-                continue
-            long_runs = read_study(folder / main)
-            if long_runs is None:
-                longer.append(f"{NOT_YET} ({folder.name})")
-                continue
-            found = claim_verdicts(claim, folder, profile=studies_there)
-            # the GPU's profile changes the machine with the budget: its turns are told apart
-            (elsewhere if studies_there == GPU else seen).extend(found.values())
-            t, k, n = study_protocol(folder / main)
-            ran = f"{t} x {k}{_of_planned(long_runs)}, {n}"
-            longer.append(
-                f"{folder.name}, {_budget_text(long_runs)} ({ran}): "
-                + ", ".join(_verdicts_text(found))
-            )
+        seen = [*tuned.values(), *seen]
         turned = (
             "**reverses with the budget**: "
             if HOLDS in seen and FAILS in seen
@@ -354,9 +341,31 @@ def headline_table(root: Path, profile: tuple, further: tuple = ()) -> str:
             f"| {head} | **{word}** ({why}) | {trials} x {studies}{_of_planned(runs)}, {seeds} | "
             f"{_share_text(claim, runs)} | {fell} | "
             + " | ".join(_verdicts_text(tuned))
-            + f" | {preset} | {'; '.join(longer) or 'not in a longer profile'} |"
+            + f" | {preset} | {longer_text or 'not in a longer profile'} |"
         )
     return "\n".join(lines) + "\n"
+
+
+def _longer_budgets(claim: Claim, main: str, further: tuple) -> tuple[list, list, list]:
+    """Where profiles of longer budgets ran the claim (further: (folder, that profile's studies)
+    pairs): a text per profile (its budget, what it ran, its verdicts at X/4, X/2 and X), and the
+    verdicts found, those of the GPU's profile apart (its turns change the machine too)."""
+    longer, seen, elsewhere = [], [], []
+    for folder, studies_there in further:
+        if not studies_of(claim) <= {s.name for s in studies_there}:
+            continue
+        long_runs = read_study(folder / main)
+        if long_runs is None:
+            longer.append(f"{NOT_YET} ({folder.name})")
+            continue
+        found = claim_verdicts(claim, folder, profile=studies_there)
+        (elsewhere if studies_there == GPU else seen).extend(found.values())
+        t, k, n = study_protocol(folder / main)
+        ran = f"{t} x {k}{_of_planned(long_runs)}, {n}"
+        longer.append(
+            f"{folder.name}, {_budget_text(long_runs)} ({ran}): " + ", ".join(_verdicts_text(found))
+        )
+    return longer, seen, elsewhere
 
 
 # --- the regime map

@@ -511,6 +511,29 @@ def test_a_turn_that_comes_with_the_gpu_profile_is_told_apart(tmp_path, studies)
     assert "**does not hold**" in row and "claims-gpu" in row and "**holds**" in row
 
 
+def test_a_claim_run_only_at_a_longer_budget_shows_that_budget_s_verdicts(tmp_path, studies):
+    """A claim whose study of the claims profile has not run, but which a profile of longer budgets
+    ran (here Poisson on the GPU), is "not run yet" for the claims profile and gives the longer
+    budget's verdicts beside it, not nothing."""
+    studies[str(tmp_path / "claims-gpu" / "poisson_continue")] = FakeStudy(
+        "poisson_continue",
+        {
+            "hig": {s: falling(0.5 * base(s)) for s in TEN},
+            "adam": {s: falling(base(s)) for s in TEN},
+        },
+    )
+    further = (
+        (tmp_path / "claims-long", study_lists.LONG),
+        (tmp_path / "claims-gpu", study_lists.GPU),
+    )
+    table = claims.headline_table(tmp_path, study_lists.PROFILES["claims"], further)
+    row = next(line for line in table.splitlines() if "Poisson" in line)
+    assert row.startswith("| Poisson") and f"| {claims.NOT_YET} |" in row, row
+    assert "claims-gpu" in row and "**holds**" in row, row
+    alone = claims.headline_table(tmp_path, study_lists.PROFILES["claims"])
+    assert next(x for x in alone.splitlines() if "Poisson" in x).endswith("| |")
+
+
 def test_the_headline_states_what_a_study_ran_from_its_own_tables(tmp_path):
     """Trials per variant and tuning study from trials.csv, the tuning studies and seeds from
     runs.csv: what ran, not what the profile asked for."""
