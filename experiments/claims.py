@@ -347,9 +347,8 @@ def headline_table(root: Path, profile: tuple, further: tuple = ()) -> str:
 
 
 def _longer_budgets(claim: Claim, main: str, further: tuple) -> tuple[list, list, list]:
-    """Where profiles of longer budgets ran the claim (further: (folder, that profile's studies)
-    pairs): a text per profile (its budget, what it ran, its verdicts at X/4, X/2 and X), and the
-    verdicts found, those of the GPU's profile apart (its turns change the machine too)."""
+    """Per longer profile that ran the claim (further: (folder, studies) pairs), its budget, what
+    it ran and its verdicts at X/4, X/2, X; and the verdicts, the GPU profile's apart."""
     longer, seen, elsewhere = [], [], []
     for folder, studies_there in further:
         if not studies_of(claim) <= {s.name for s in studies_there}:
