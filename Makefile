@@ -44,7 +44,7 @@ lint: setup
 # default, as users' runs and make bench do
 FAST_COMPILE := XLA_FLAGS="$(XLA_FLAGS) --xla_backend_optimization_level=0 --xla_llvm_disable_expensive_passes=true"
 test: lint
-	$(TIMED) $(FAST_COMPILE) $(BIN)/python -m pytest -q $(XDIST) -m "not long and not cluster" $(LAYERS)
+	$(TIMED) $(FAST_COMPILE) $(BIN)/python -m pytest -q $(XDIST) --durations=12 -m "not long and not cluster" $(LAYERS)
 
 # the long checks (numerics through whole solvers, end-to-end studies, the full scene x optim matrix, the small
 # stability suite); CI runs them after make test, in parallel processes as make test (about 17 minutes with 2

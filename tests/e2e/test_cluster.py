@@ -46,9 +46,8 @@ def started_pids(sweep: Path) -> dict[str, int]:
 
 
 # SIGUSR2 (the scheduler's warning) in make test-long: the same path as SIGTERM to the job
-@pytest.mark.parametrize(
-    "signum", [signal.SIGTERM, pytest.param(signal.SIGUSR2, marks=pytest.mark.long)]
-)
+@pytest.mark.long  # a fault at a random instant (make test-cluster sends scancel to one job)
+@pytest.mark.parametrize("signum", [signal.SIGTERM, signal.SIGUSR2])
 def test_a_signal_to_one_worker_ends_that_job_alone(tmp_path, signum):
     """A joblib worker's job given SIGTERM (scancel, preemption) or SIGUSR2 (a scheduler's warning
     before a time limit) at a random instant of its training ends interrupted with its rows; the

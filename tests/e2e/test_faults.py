@@ -3,8 +3,9 @@ Faults injected many times and at many instants: writers killed mid-write, a sec
 readers with HDF5's default file locking, full disks, signals in bursts, damaged files, stopped
 sweeps.
 
-The short form runs in `make test`; `make test-faults` repeats every randomised fault many more
-times (PHYSGRAD_FAULT_REPEATS, see docs/results.md)."""
+The faults at random instants run in `make test-long` (CI) and, repeated many more times, in
+`make test-faults` (PHYSGRAD_FAULT_REPEATS, see docs/results.md); `make test` keeps the faults at
+fixed instants."""
 
 import errno
 import os
@@ -64,6 +65,7 @@ def assert_consistent(path: Path) -> None:
     assert np.all(np.diff(run.eval.get("iteration", np.empty(0))) > 0)
 
 
+@pytest.mark.long
 def test_a_writer_killed_at_random_instants_leaves_a_consistent_file(tmp_path):
     rng = random.Random(0)
     kills = 60 * REPEATS
@@ -93,6 +95,7 @@ def test_a_writer_killed_at_random_instants_leaves_a_consistent_file(tmp_path):
     assert len(rows_seen) > kills // 3
 
 
+@pytest.mark.long
 def test_sigkill_at_random_instants_leaves_readable_files(tmp_path):
     rng = random.Random(1)
     for trial in range(8 * REPEATS):
@@ -246,7 +249,8 @@ def finished(process: subprocess.Popen, seconds: float) -> tuple[str, str]:
         raise AssertionError(f"still running {seconds} s after the signal") from None
 
 
-@pytest.mark.parametrize("seeds", [1, pytest.param(300, marks=pytest.mark.long)])
+@pytest.mark.long
+@pytest.mark.parametrize("seeds", [1, 300])
 def test_a_signal_at_any_instant_of_a_run_ends_it_in_one_line(tmp_path, seeds):
     """SIGINT or SIGTERM at random instants from the console script's first line to its last:
     imports (jaxlib's
@@ -319,6 +323,7 @@ INJECT_IN_COLLECTOR = textwrap.dedent("""
 """)
 
 
+@pytest.mark.long
 def test_a_signal_raised_inside_a_garbage_collector_callback_is_not_lost(tmp_path):
     """A signal whose KeyboardInterrupt lands in a garbage-collector callback (the interpreter
     prints "Exception ignored" and drops it) at many instants of the start-up (composing) and of a

@@ -3,8 +3,9 @@ Faults injected many times and at many instants: writers killed mid-write, a sec
 readers with HDF5's default file locking, full disks, signals in bursts, damaged files, stopped
 sweeps.
 
-The short form runs in `make test`; `make test-faults` repeats every randomised fault many more
-times (PHYSGRAD_FAULT_REPEATS, see docs/results.md)."""
+The faults at random instants run in `make test-long` (CI) and, repeated many more times, in
+`make test-faults` (PHYSGRAD_FAULT_REPEATS, see docs/results.md); `make test` keeps the faults at
+fixed instants."""
 
 import dataclasses
 import errno
@@ -33,6 +34,7 @@ def run_experiment_in(folder, *overrides):
     return run_experiment(load("task=toy", "trainer.iterations=3", *overrides), folder)
 
 
+@pytest.mark.long
 def test_signals_in_bursts_at_random_instants_always_end_interrupted(tmp_path):
     """Two to four signals a few milliseconds apart, at random instants of a run (compile, steps,
     flushes); the process stays alive, the file is final and consistent."""
