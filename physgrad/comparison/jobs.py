@@ -398,7 +398,7 @@ class Progress:
             self.bar.n = max(0, min(self.started - (0 if final else 1), self.total))
             news = [
                 f"job {self.started}: {self.training}" if self.training else "",
-                self._left(now),
+                "" if final else self._left(now),
             ]
             self.bar.set_postfix_str("; ".join(n.removeprefix("; ") for n in news if n), False)
             self.bar.refresh()
@@ -423,20 +423,26 @@ class Progress:
             self.said, self.last, self.training_said = self.started, now, self.training
 
     def _left(self, now: float) -> str:
-        """The time left at the pace of the jobs done (none before one is done): their mean time
-        for each job not done, less what the running one has had; once the running one has had
-        more than that mean (a slower variant), the time left after it, and how long it has run."""
+        """The time left at the pace of the jobs done (none before one is done, or once all are):
+        their mean time for each job not done, less what the running one has had; once the running
+        one has had more than that mean (a slower variant), the time left after it, and how long it
+        has run."""
         done = self.started - 1
-        if done < 1:
+        if done < 1 or done >= self.total:
             return ""
         mean, running = (self.launched_at - self.begun) / done, now - self.launched_at
-        after = mean * (self.total - done - 1) / 60
+        after = mean * (self.total - done - 1)
         if running <= mean:
-            return f"; about {(mean - running) / 60 + after:.1f} min left"
+            return f"; about {_span(mean - running + after)} left"
         return (
-            f"; about {after:.1f} min left after the running job ({running / 60:.1f} min so far; "
-            f"the jobs before it took {mean / 60:.1f} min each)"
+            f"; about {_span(after)} left after the running job ({_span(running)} so far; the "
+            f"jobs before it took {_span(mean)} each)"
         )
+
+
+def _span(seconds: float) -> str:
+    """A duration as the console says it: seconds up to a minute and a half, then minutes."""
+    return f"{seconds:.0f} s" if seconds < 90 else f"{seconds / 60:.1f} min"
 
 
 def _run_multirun(

@@ -272,7 +272,7 @@ def test_on_a_terminal_a_phase_draws_a_bar_of_its_jobs_and_ends_with_one_line():
     drawn = terminal.getvalue().split("\r")[-1]
     assert "tune: 3/6 jobs done" in drawn, drawn
     assert "job 4: toy/hig seed 1000000 (+1): loss 3.5 at iteration 30" in drawn, drawn
-    assert "min left" in drawn and said == []  # no lines along the way on a terminal
+    assert " left" in drawn and said == []  # no lines along the way on a terminal
     progress.read("", final=True)
     assert len(said) == 1 and said[0].startswith("tune: 4 of 6 jobs run in ")
     # without a terminal: no bar
@@ -289,16 +289,22 @@ def test_the_time_left_never_says_none_while_a_slower_job_runs():
 
     progress = jobs.Progress("tune", 3, [].append, stream=io.StringIO())
     assert progress._left(progress.begun + 10) == ""  # no job done: no pace yet
-    progress.started, progress.launched_at = 2, progress.begun + 60  # job 1 took a minute
-    assert progress._left(progress.begun + 90) == "; about 1.5 min left"
-    assert progress._left(progress.begun + 120) == "; about 1.0 min left"
-    slow = progress._left(progress.begun + 600)
+    progress.started, progress.launched_at = 2, progress.begun + 120  # job 1 took two minutes
+    assert progress._left(progress.begun + 150) == "; about 3.5 min left"
+    assert progress._left(progress.begun + 220) == "; about 2.3 min left"
+    assert progress._left(progress.begun + 235) == "; about 2.1 min left"
+    slow = progress._left(progress.begun + 720)
     assert slow == (
-        "; about 1.0 min left after the running job (9.0 min so far; the jobs before it took "
-        "1.0 min each)"
+        "; about 2.0 min left after the running job (10.0 min so far; the jobs before it took "
+        "2.0 min each)"
     ), slow
-    progress.started = 3  # the last job: nothing after it
-    assert progress._left(progress.launched_at + 600).startswith("; about 0.0 min left after")
+    progress.started = 3  # the last job: nothing after it, and under a minute and a half in seconds
+    assert progress._left(progress.launched_at + 600) == (
+        "; about 0 s left after the running job (10.0 min so far; the jobs before it took 60 s "
+        "each)"
+    )
+    progress.started = 4  # every job done: nothing left to tell
+    assert progress._left(progress.launched_at + 600) == ""
 
 
 def test_a_phase_says_its_progress_from_its_log_without_a_line_per_job(tmp_path, monkeypatch):
@@ -340,7 +346,7 @@ def test_a_phase_says_its_progress_from_its_log_without_a_line_per_job(tmp_path,
     # the running job's loss so far, and from the second job on the time left at the jobs' pace
     for line, k in zip(along, numbers):
         assert f"; toy/hig seed 1000000 (+1): loss {k - 1}.5 at iteration {10 * (k - 1)}" in line
-        assert ("min left" in line) == (k > 1), line
+        assert (" left" in line) == (k > 1), line
     assert said[-1].startswith("tune: 6 of 6 jobs run in ")
     quiet = []
     log = tmp_path / "q.log"
