@@ -321,7 +321,7 @@ def launch(
             replace_file(record / f"{name}.yaml", text.encode())
         command = multirun_command(private, folder, phase, jobs, config_dir, hydra_args)
         say(f"{phase}: {len(jobs)} jobs -> {folder / phase} (log: {folder / (phase + '.log')})")
-        progress = Progress(phase, len(jobs), say)
+        progress = Progress(phase, len(jobs), say, names=tuple(jobs))
         env = job_environment()
         if any(members_together(text) for text in jobs.values()):
             from physgrad.machine import members_environment
@@ -349,11 +349,14 @@ class Progress:
     the time left, redrawn at every look; without one (a log, nohup, a batch job), a line when
     more of its jobs have started, at most one every `every` seconds, with the same news, so that
     logs stay readable. Either way one line at the end with the jobs it ran (Hydra launches the
-    jobs of a local sweep one after another, so job k started means k - 1 done)."""
+    jobs of a local sweep one after another, so job k started means k - 1 done). names: the jobs
+    in launch order, where known, so that the time left counts each job at its own variant's pace
+    (a Gauss-Newton job may take ten of Adam's)."""
 
     phase: str
     total: int
     say: Callable[[str], object]
+    names: tuple[str, ...] = ()
     every: float = 30.0
     started: int = 0
     said: int = 0
@@ -364,6 +367,7 @@ class Progress:
     training_said: str = ""
     stream: object = None  # where the bar is drawn (None: stderr); no bar unless it is a terminal
     bar: object = field(default=None, init=False)  # the terminal's bar (tqdm), if there is one
+    took: dict = field(default_factory=dict, init=False)  # a job's kind -> seconds of each done
 
     def __post_init__(self) -> None:
         import sys
@@ -387,6 +391,9 @@ class Progress:
         now = time.monotonic()
         for event in _EVENT.finditer(text):
             if event["job"] is not None and int(event["job"]) + 1 > self.started:
+                if self.started:
+                    kind = self._kind(self.started - 1)
+                    self.took.setdefault(kind, []).append(now - self.launched_at)
                 self.started, self.launched_at, self.training = int(event["job"]) + 1, now, ""
             elif event["label"] is not None:
                 self.training = (
@@ -422,21 +429,36 @@ class Progress:
             )
             self.said, self.last, self.training_said = self.started, now, self.training
 
+    def _kind(self, index: int) -> int | None:
+        """Job index's variant (None where its name does not say, or is not known)."""
+        from physgrad.comparison.spec import variant_index
+
+        try:
+            return variant_index(self.names[index])
+        except (IndexError, AttributeError):  # no name, or one without a variant (calibration)
+            return None
+
     def _left(self, now: float) -> str:
         """The time left at the pace of the jobs done (none before one is done, or once all are):
-        their mean time for each job not done, less what the running one has had; once the running
-        one has had more than that mean (a slower variant), the time left after it, and how long it
-        has run."""
+        each job not done at the mean time of the done jobs of its variant (of all done jobs where
+        none of its variant is), less what the running one has had; once the running one has had
+        more than that, the time left after it, and how long it has run."""
         done = self.started - 1
         if done < 1 or done >= self.total:
             return ""
-        mean, running = (self.launched_at - self.begun) / done, now - self.launched_at
-        after = mean * (self.total - done - 1)
-        if running <= mean:
-            return f"; about {_span(mean - running + after)} left"
+        every = (self.launched_at - self.begun) / done
+
+        def pace(index: int) -> float:
+            times = self.took.get(self._kind(index))
+            return sum(times) / len(times) if times else every
+
+        running, expected = now - self.launched_at, pace(done)
+        after = sum(pace(index) for index in range(self.started, self.total))
+        if running <= expected:
+            return f"; about {_span(expected - running + after)} left"
         return (
-            f"; about {_span(after)} left after the running job ({_span(running)} so far; the "
-            f"jobs before it took {_span(mean)} each)"
+            f"; about {_span(after)} left after the running job ({_span(running)} so far, about "
+            f"{_span(expected)} expected)"
         )
 
 

@@ -279,32 +279,47 @@ def test_on_a_terminal_a_phase_draws_a_bar_of_its_jobs_and_ends_with_one_line():
     assert jobs.Progress("tune", 6, said.append, stream=io.StringIO()).bar is None
 
 
-def test_the_time_left_never_says_none_while_a_slower_job_runs():
-    """The time left is the jobs' mean pace for each job not done, less what the running one has
-    had; a running job slower than that mean (another variant) makes it the time after that job,
-    with how long the job has run, instead of "about 0.0 min left" for as long as it runs."""
+def test_the_time_left_counts_each_job_at_its_variants_pace(monkeypatch):
+    """The time left counts each job not done at the mean time of the done jobs of its variant (all
+    done jobs' where none of its variant is done), less what the running one has had; a running
+    job slower than that says the time after it and how long it has run, instead of "about 0 s
+    left" for as long as it runs; nothing before a job is done or once all are."""
     import io
 
     import physgrad.comparison.jobs as jobs
 
-    progress = jobs.Progress("tune", 3, [].append, stream=io.StringIO())
-    assert progress._left(progress.begun + 10) == ""  # no job done: no pace yet
-    progress.started, progress.launched_at = 2, progress.begun + 120  # job 1 took two minutes
-    assert progress._left(progress.begun + 150) == "; about 3.5 min left"
-    assert progress._left(progress.begun + 220) == "; about 2.3 min left"
-    assert progress._left(progress.begun + 235) == "; about 2.1 min left"
-    slow = progress._left(progress.begun + 720)
-    assert slow == (
-        "; about 2.0 min left after the running job (10.0 min so far; the jobs before it took "
-        "2.0 min each)"
-    ), slow
-    progress.started = 3  # the last job: nothing after it, and under a minute and a half in seconds
-    assert progress._left(progress.launched_at + 600) == (
-        "; about 0 s left after the running job (10.0 min so far; the jobs before it took 60 s "
-        "each)"
+    clock = [1000.0]
+    monkeypatch.setattr(jobs.time, "monotonic", lambda: clock[0])
+    # two tuning studies of a fast variant (v0) and a slow one (v1), in launch order
+    names = ("tune_st0_v0_t000-007", "tune_st0_v1_t000-007", "tune_st1_v0_t000-007",
+             "tune_st1_v1_t000-007")  # fmt: skip
+    progress = jobs.Progress("tune", 4, [].append, names=names, stream=io.StringIO())
+    progress.begun = 1000.0
+
+    def launch(job, at):
+        clock[0] = 1000.0 + at
+        progress.read(f"[HYDRA] \t#{job} : +compare_job={names[job]}\n")
+
+    launch(0, 0)
+    assert progress._left(1010.0) == ""  # no job done: no pace yet
+    launch(1, 60)  # v0's job took a minute
+    # v1's running job and v1's later one at the only pace known (60 s), v0's at its own
+    assert progress._left(1090.0) == "; about 2.5 min left"
+    assert progress._left(1300.0) == (
+        "; about 2.0 min left after the running job (4.0 min so far, about 60 s expected)"
     )
-    progress.started = 4  # every job done: nothing left to tell
-    assert progress._left(progress.launched_at + 600) == ""
+    launch(2, 660)  # v1's job took ten minutes
+    # v0's running job at 60 s, v1's last at 600 s
+    assert progress._left(1680.0) == "; about 10.7 min left"
+    launch(3, 720)
+    assert progress._left(1780.0) == "; about 9.0 min left"
+    progress.read("", final=True)
+    progress.started = 5  # every job done: nothing left to tell
+    assert progress._left(2000.0) == ""
+    # without names every job is of one kind: the mean of the jobs done
+    plain = jobs.Progress("eval", 3, [].append, stream=io.StringIO())
+    plain.started, plain.launched_at, plain.begun = 2, 120.0, 0.0
+    assert plain._left(150.0) == "; about 3.5 min left"
 
 
 def test_a_phase_says_its_progress_from_its_log_without_a_line_per_job(tmp_path, monkeypatch):
