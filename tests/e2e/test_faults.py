@@ -108,6 +108,7 @@ def test_sigkill_at_random_instants_leaves_readable_files(tmp_path):
         assert [p.name for p in path.parent.glob("*.h5")] == ["results.h5"]
 
 
+@pytest.mark.long  # repeated reads for seconds: make test-faults repeats it further
 def test_readers_with_default_locking_never_disturb_a_writer(tmp_path):
     path = tmp_path / "results.h5"
     process = start_writer(path)

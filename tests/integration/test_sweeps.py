@@ -358,7 +358,11 @@ def test_every_seed_of_a_job_is_logged(tmp_path):
     assert all("completed, test loss " in line for line in lines)
 
 
-@pytest.mark.parametrize("instant", [0.3, 0.6, 1.2])
+# one instant in make test, the others with the faults at many instants in make test-long
+@pytest.mark.parametrize(
+    "instant",
+    [pytest.param(0.3, marks=pytest.mark.long), 0.6, pytest.param(1.2, marks=pytest.mark.long)],
+)
 def test_ctrl_c_lets_a_profile_s_child_leave_its_files_then_ends_in_one_line(tmp_path, instant):
     """Ctrl-C reaches the profile's process group: the child (a study, a sweep) takes a while to
     leave its files resumable, and the profile waits for it (subprocess.run would kill it after a
