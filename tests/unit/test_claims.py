@@ -484,6 +484,23 @@ def test_a_study_with_tuning_studies_still_to_run_needs_a_majority_of_those_plan
         assert f"({len(factors)} of {planned} tuning studies run)" in decision.why
 
 
+def poisson_row_with_the_gpu_holding(tmp_path, studies) -> str:
+    """The headline's Poisson row where claims-gpu's study has HIG at half Adam's loss."""
+    studies[str(tmp_path / "claims-gpu" / "poisson_continue")] = FakeStudy(
+        "poisson_continue",
+        {
+            "hig": {s: falling(0.5 * base(s)) for s in TEN},
+            "adam": {s: falling(base(s)) for s in TEN},
+        },
+    )
+    further = (
+        (tmp_path / "claims-long", study_lists.LONG),
+        (tmp_path / "claims-gpu", study_lists.GPU),
+    )
+    table = claims.headline_table(tmp_path, study_lists.PROFILES["claims"], further)
+    return next(line for line in table.splitlines() if "Poisson" in line)
+
+
 def test_a_turn_that_comes_with_the_gpu_profile_is_told_apart(tmp_path, studies):
     """Poisson does not hold on 2 cores and holds in claims-gpu: the machine changed with the
     budget, so the row says so, not "reverses with the budget"."""
@@ -494,19 +511,7 @@ def test_a_turn_that_comes_with_the_gpu_profile_is_told_apart(tmp_path, studies)
             "adam": {s: falling(base(s)) for s in TEN},
         },
     )
-    studies[str(tmp_path / "claims-gpu" / "poisson_continue")] = FakeStudy(
-        "poisson_continue",
-        {
-            "hig": {s: falling(0.5 * base(s)) for s in TEN},
-            "adam": {s: falling(base(s)) for s in TEN},
-        },
-    )
-    further = (
-        (tmp_path / "claims-long", study_lists.LONG),
-        (tmp_path / "claims-gpu", study_lists.GPU),
-    )
-    table = claims.headline_table(tmp_path, study_lists.PROFILES["claims"], further)
-    row = next(line for line in table.splitlines() if "Poisson" in line)
+    row = poisson_row_with_the_gpu_holding(tmp_path, studies)
     assert row.startswith("| **turns with a GPU's budget**: Poisson"), row
     assert "**does not hold**" in row and "claims-gpu" in row and "**holds**" in row
 
@@ -515,19 +520,7 @@ def test_a_claim_run_only_at_a_longer_budget_shows_that_budget_s_verdicts(tmp_pa
     """A claim whose study of the claims profile has not run, but which a profile of longer budgets
     ran (here Poisson on the GPU), is "not run yet" for the claims profile and gives the longer
     budget's verdicts beside it, not nothing."""
-    studies[str(tmp_path / "claims-gpu" / "poisson_continue")] = FakeStudy(
-        "poisson_continue",
-        {
-            "hig": {s: falling(0.5 * base(s)) for s in TEN},
-            "adam": {s: falling(base(s)) for s in TEN},
-        },
-    )
-    further = (
-        (tmp_path / "claims-long", study_lists.LONG),
-        (tmp_path / "claims-gpu", study_lists.GPU),
-    )
-    table = claims.headline_table(tmp_path, study_lists.PROFILES["claims"], further)
-    row = next(line for line in table.splitlines() if "Poisson" in line)
+    row = poisson_row_with_the_gpu_holding(tmp_path, studies)
     assert row.startswith("| Poisson") and f"| {claims.NOT_YET} |" in row, row
     assert "claims-gpu" in row and "**holds**" in row, row
     alone = claims.headline_table(tmp_path, study_lists.PROFILES["claims"])
