@@ -442,7 +442,8 @@ class Progress:
         """The time left at the pace of the jobs done (none before one is done, or once all are):
         each job not done at the mean time of the done jobs of its variant (of all done jobs where
         none of its variant is), less what the running one has had; once the running one has had
-        more than that, the time left after it, and how long it has run."""
+        more than that, the time left after it, how long it has run and, where its variant has a
+        done job, how long those took (none has: no pace of its own to expect)."""
         done = self.started - 1
         if done < 1 or done >= self.total:
             return ""
@@ -456,9 +457,9 @@ class Progress:
         after = sum(pace(index) for index in range(self.started, self.total))
         if running <= expected:
             return f"; about {_span(expected - running + after)} left"
-        return (
-            f"; about {_span(after)} left after the running job ({_span(running)} so far, about "
-            f"{_span(expected)} expected)"
+        own = self.took.get(self._kind(done))
+        return f"; about {_span(after)} left after the running job ({_span(running)} so far, " + (
+            f"about {_span(expected)} expected)" if own else "the first of its variant)"
         )
 
 

@@ -282,8 +282,9 @@ def test_on_a_terminal_a_phase_draws_a_bar_of_its_jobs_and_ends_with_one_line():
 def test_the_time_left_counts_each_job_at_its_variants_pace(monkeypatch):
     """The time left counts each job not done at the mean time of the done jobs of its variant (all
     done jobs' where none of its variant is done), less what the running one has had; a running
-    job slower than that says the time after it and how long it has run, instead of "about 0 s
-    left" for as long as it runs; nothing before a job is done or once all are."""
+    job slower than that says the time after it and how long it has run (and what its variant's
+    done jobs took, where it has any), instead of "about 0 s left" for as long as it runs; nothing
+    before a job is done or once all are."""
     import io
 
     import physgrad.comparison.jobs as jobs
@@ -306,13 +307,17 @@ def test_the_time_left_counts_each_job_at_its_variants_pace(monkeypatch):
     # v1's running job and v1's later one at the only pace known (60 s), v0's at its own
     assert progress._left(1090.0) == "; about 2.5 min left"
     assert progress._left(1300.0) == (
-        "; about 2.0 min left after the running job (4.0 min so far, about 60 s expected)"
+        "; about 2.0 min left after the running job (4.0 min so far, the first of its variant)"
     )
     launch(2, 660)  # v1's job took ten minutes
     # v0's running job at 60 s, v1's last at 600 s
     assert progress._left(1680.0) == "; about 10.7 min left"
     launch(3, 720)
     assert progress._left(1780.0) == "; about 9.0 min left"
+    # v1's last job, slower than v1's first: the time v1's done job took is what was expected
+    assert progress._left(2400.0) == (
+        "; about 0 s left after the running job (11.3 min so far, about 10.0 min expected)"
+    )
     progress.read("", final=True)
     progress.started = 5  # every job done: nothing left to tell
     assert progress._left(2000.0) == ""
