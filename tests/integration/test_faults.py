@@ -249,6 +249,9 @@ def test_a_full_disk_while_writing_hydra_fails_that_job_alone_in_one_line(
     assert not list(tmp_path.rglob("*.tmp")) and not list(tmp_path.glob("optim=gd*/results.h5"))
 
 
+# pytest takes over sys.unraisablehook and turns what reaches it into a warning: an error here, so
+# that an interrupt the hook below it did not drop fails the test instead of passing as a warning
+@pytest.mark.filterwarnings("error::pytest.PytestUnraisableExceptionWarning")
 def test_a_signal_inside_a_garbage_collector_callback_is_kept_not_printed(capfd):
     """During set-up a signal raises at once, but raised inside code the interpreter runs on its own
     (jax's gc callback, injected here at every collection) it cannot propagate: no 'Exception
@@ -268,7 +271,9 @@ def test_a_signal_inside_a_garbage_collector_callback_is_kept_not_printed(capfd)
             stop.raising = True
             gc.callbacks.append(callback)
             try:
-                gc.collect()
+                # the youngest generation: its callbacks run as a full collection's do, without
+                # a full collection's walk of every object of the test process (most of a second)
+                gc.collect(0)
             except KeyboardInterrupt:
                 pytest.fail("raised out of the garbage collector")
             finally:
