@@ -188,3 +188,33 @@ def test_the_last_resort_mark_of_a_failed_run_never_writes_through_a_link(tmp_pa
     path.unlink()
     path.symlink_to(outside)
     assert not writer.mark_failed_in_place("disk full") and outside.read_bytes() == before
+
+
+@pytest.mark.parametrize("parser", ["libyaml", "pure Python"])
+def test_yaml_with_an_alias_anywhere_is_refused_by_either_parser(parser, monkeypatch):
+    """load_yaml refuses every alias (of a mapping, a list, a scalar, nested a billion times) with
+    libyaml's parser and with PyYAML's own (where PyYAML was built without libyaml), and reads
+    plain YAML alike with both."""
+    import yaml
+
+    import physgrad.files as files
+
+    if parser == "pure Python":  # (where PyYAML has no libyaml, both cases are this one)
+        monkeypatch.setattr(files, "_Loader", yaml.SafeLoader)
+    laughs = "a0: &a0 [x, x]\n" + "".join(
+        f"a{i}: &a{i} [*a{i - 1}, *a{i - 1}]\n" for i in range(1, 40)
+    )
+    for text in ("a: &x {b: 1}\nc: *x\n", "a: &x [1]\nb: *x\n", "a: &x 1\nb: *x\n", laughs):
+        with pytest.raises(
+            ValueError, match=r"^not plain YAML \(aliases \(\*name\) are not allowed\)$"
+        ):
+            files.load_yaml(text)
+    plain = "optim:\n  name: hig\n  learning_rate: 0.64\nseeds: [0, 1]\nnote: '&x *y'\n"
+    assert files.load_yaml(plain) == {
+        "optim": {"name": "hig", "learning_rate": 0.64},
+        "seeds": [0, 1],
+        "note": "&x *y",
+    }
+    assert files.load_yaml("") is None
+    with pytest.raises(ValueError, match="not plain YAML"):
+        files.load_yaml("a: !!python/object:os.system x\n")
