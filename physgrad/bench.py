@@ -129,18 +129,22 @@ def run_bench(
     min_seconds: float,
     timeout: float,
     on_row: Callable[[list[dict]], object] = lambda rows: None,
+    optims: Iterable[str] = OPTIMS,
 ) -> list[dict]:
-    """Every scene x variant measured in its own subprocess; on_row(rows so far) after each."""
+    """Every scene x variant (of optims) measured in its own subprocess; a variant the scene refuses
+    at its reference size is a row with the reason; on_row(rows so far) after each."""
     rows: list[dict] = []
+    optims = tuple(optims)
     for task in scenes:
         jobs = [
             (optim, [f"task={task}", f"optim={optim}"])
-            for optim in OPTIMS
+            for optim in optims
             if (task, optim) not in SKIP
         ]
         jobs += [
             (optim, [f"task={task}", f"optim={optim}", *extra])
             for optim, extra in EXTRA.get(task, [])
+            if optim in optims
         ]
         for optim, overrides in jobs:
             print(f"bench: {' '.join(overrides)}", file=sys.stderr, flush=True)
@@ -150,6 +154,8 @@ def run_bench(
                 timeout,
             )
             if "refused" in result:
+                rows.append({"task": task, "variant": optim, "refused": result["refused"]})
+                on_row(rows)
                 continue
             precision = 64 if "precision=64" in overrides else 32
             if "jac_shape" in result:
@@ -177,6 +183,9 @@ def _parser() -> argparse.ArgumentParser:
         "--out", default="outputs/bench/benchmarks.md", help="markdown table (and a .json beside)"
     )
     parser.add_argument("--scenes", default=",".join(SCENES), help="comma-separated tasks")
+    parser.add_argument(
+        "--optims", default=",".join(OPTIMS), help="comma-separated update rules (conf/optim)"
+    )
     parser.add_argument(
         "--repeats", type=int, default=5, help="timed steps at least (median), after a warm-up"
     )
@@ -217,14 +226,16 @@ def main(argv: list[str] | None = None) -> int:
         print(json.dumps(measured))
         return 0
     scenes = [s for s in options.scenes.split(",") if s]
-    unknown = sorted(set(scenes) - set(SCENES))
-    if unknown:
-        print(
-            f"physgrad bench: error: unknown scene {', '.join(unknown)}: choose from "
-            f"{', '.join(SCENES)}",
-            file=sys.stderr,
-        )
-        return 2
+    optims = [o for o in options.optims.split(",") if o]
+    for kind, asked, known in (("scene", scenes, SCENES), ("optim", optims, OPTIMS)):
+        unknown = sorted(set(asked) - set(known))
+        if unknown:
+            print(
+                f"physgrad bench: error: unknown {kind} {', '.join(unknown)}: choose from "
+                f"{', '.join(known)}",
+                file=sys.stderr,
+            )
+            return 2
     start = time.perf_counter()
     out = Path(options.out)
     out.parent.mkdir(parents=True, exist_ok=True)
@@ -253,6 +264,7 @@ def main(argv: list[str] | None = None) -> int:
         options.min_seconds,
         options.timeout,
         on_row=lambda so_far: write(so_far, []),
+        optims=optims,
     )
     seed_rows = run_seeds(
         scenes,

@@ -20,6 +20,8 @@ def table(rows: list[dict]) -> str:
         "|---|---|---|---|---|---|---|",
     ]
     for row in rows:
+        if "refused" in row:  # refused_table
+            continue
         if "error" in row:
             lines.append(f"| {row['task']} | {row['variant']} | {row['error']} |  |  |  |  |")
             continue
@@ -35,6 +37,20 @@ def table(rows: list[dict]) -> str:
             f"{duration(row['compile_s'])} | "
             f"{row['peak_rss_gb']:.2f} GB | {ratio_bare} | {overhead} |"
         )
+    return "\n".join(lines) + "\n"
+
+
+def refused_table(rows: list[dict]) -> str:
+    """The variants a scene refuses at its reference size, with the reason each gave ("" if
+    none)."""
+    refused = [row for row in rows if "refused" in row]
+    if not refused:
+        return ""
+    lines = ["| scene | variant | why |", "|---|---|---|"]
+    lines += [
+        f"| {row['task']} | {row['variant']} | {row['refused'].replace('|', '/')} |"
+        for row in refused
+    ]
     return "\n".join(lines) + "\n"
 
 
@@ -143,9 +159,13 @@ def page(
         if seed_rows
         else ""
     )
+    refused = refused_table(rows)
     return (
         header
         + table(rows)
         + "\nJacobian variants (the step above against the per-sample Jacobian and the "
-        "floor):\n\n" + jacobian_table(rows) + seeds_text
+        "floor):\n\n"
+        + jacobian_table(rows)
+        + (f"\nRefused at the reference sizes:\n\n{refused}" if refused else "")
+        + seeds_text
     )

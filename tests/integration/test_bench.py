@@ -61,7 +61,7 @@ def test_kfac_is_measured_from_its_factors_without_a_per_sample_baseline():
     assert kfac["step_s"] > 0 and kfac["eigh_s"] > 0
 
 
-def test_a_refused_variant_is_left_out():
+def test_a_refused_variant_gives_its_reason():
     assert "refused" in measure_variant(["task=poisson", "optim=bptt"], repeats=1, min_seconds=0)
 
 
@@ -110,3 +110,41 @@ def test_a_bench_cut_short_keeps_every_row_it_finished(tmp_path, monkeypatch):
     for overrides in measured:
         assert f"| poisson | {overrides[1].removeprefix('optim=')} |" in text
     assert len(measured) == 2
+
+
+def test_optims_choose_the_rules_and_a_refusal_is_a_row_with_its_reason(
+    tmp_path, monkeypatch, capsys
+):
+    """--optims measures those rules only (the scene's extra variants of them too); a rule the scene
+    refuses at its reference size is listed with the reason under the tables, not dropped; an
+    unknown rule is one line naming the known ones."""
+    from physgrad import bench
+
+    asked = []
+
+    def fake_subprocess(kind, payload, timeout):
+        asked.append(payload["overrides"])
+        if "optim=ssbfgs" in payload["overrides"]:
+            return {"refused": "24896 parameters | more than optim.max_parameters=8192"}
+        return {"step_s": 0.001, "compile_s": 1.0, "peak_rss_gb": 0.1}
+
+    monkeypatch.setattr(bench, "_subprocess", fake_subprocess)
+    out = tmp_path / "bench.md"
+    argv = ["--scenes", "poisson,ks", "--optims", "adam,ssbfgs", "--out", str(out)]
+    assert bench.main(argv) == 0
+    optims = {o.removeprefix("optim=") for overrides in asked for o in overrides if "optim=" in o}
+    assert optims == {"adam", "ssbfgs"}
+    # ks's extra variants are Adam's: measured; poisson's extra is HIG's: not asked for
+    assert ["task=ks", "optim=adam", "task.training=ONE"] in asked
+    assert not any("precision=64" in overrides for overrides in asked)
+    text = out.read_text()
+    assert (
+        "| poisson | adam | 1 ms |" in text
+        and "| poisson | ssbfgs | 24896" not in text.split("Refused at the reference sizes:")[0]
+    )
+    assert "| poisson | ssbfgs | 24896 parameters / more than optim.max_parameters=8192 |" in text
+    capsys.readouterr()
+    assert bench.main(["--optims", "adam,sgd", "--out", str(out)]) == 2
+    error = capsys.readouterr().err.strip()
+    assert error.startswith("physgrad bench: error: unknown optim sgd: choose from adam, gd,")
+    assert "\n" not in error
