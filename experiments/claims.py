@@ -160,8 +160,7 @@ def _twin_runs(root: Path, name: str, suffix: str, spec: Study | None) -> object
         # known by the tuned study's names, which carry that value ("backprop=C" is "backprop=C
         # clip=none")
         key, _, value = spec.preset.partition("=")
-        token = f"{key.rsplit('.', 1)[-1]}={value}"
-        runs.paths.update({f"{v} {token}": by for v, by in list(runs.paths.items())})
+        runs.also_known_as(f"{key.rsplit('.', 1)[-1]}={value}")
     return runs
 
 

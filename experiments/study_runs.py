@@ -50,6 +50,16 @@ class StudyRuns:
     # of them, so that two of four run cannot decide it alone
     planned: int = 0
 
+    def also_known_as(self, token: str) -> None:
+        """Every variant, in every tuning study, also known by its name with token appended
+        ("backprop=C" as "backprop=C clip=none"); kept evidence's curves too."""
+        for study in (self, *self.tuning[1:]):
+            study.paths.update({f"{v} {token}": by for v, by in list(study.paths.items())})
+            if study.kept is not None:
+                study.kept.update(
+                    {(f"{v} {token}", c): by for (v, c), by in list(study.kept.items())}
+                )
+
     def curves(self, variant: str, column: str = "loss") -> dict:
         from physgrad.readout import run_curve
         from physgrad.results import read_run
@@ -149,7 +159,8 @@ def _kept_runs(kept) -> StudyRuns | None:
             kept.machine,
             kept=curves,
             protocol=kept.protocol,
-            planned=kept.planned,
+            # an untuned evaluation (no trials) has no tuning studies to be a majority of
+            planned=kept.planned if kept.protocol[0] else len(kept.studies),
         )
         for curves in kept.studies
         if curves  # a tuning study not kept (yet)
@@ -292,7 +303,9 @@ def keep_studies(root: Path, dest: Path, columns: dict[str, set]) -> list[str]:
                 "budget": runs.budget,
                 "trials": trials,
                 "studies": len(by_study),
-                "planned": max(_planned(name) if folder.name == name else 1, len(by_study)),
+                "planned": max(
+                    _planned(name) if folder.name == name and trials else 1, len(by_study)
+                ),
                 "seeds": seeds,
                 "machine": "; ".join(
                     sorted({str(r.get("machine") or "") for r in by_study.values()} - {""})

@@ -673,3 +673,27 @@ def test_a_level_is_reached_by_the_sign_test_in_each_tuning_study(
     assert "in 3 tuning studies" in d.measured and "below 0.01 in" in d.measured
     missing = claims.decide_claim(claim_of(claims.Reaches("toy_1", "adam", 1e-2)), tmp_path)
     assert missing[1][0][1].verdict == claims.NOT_RUN
+
+
+def test_a_presets_only_study_decides_from_its_kept_evidence_alone_under_the_tuned_names(
+    tmp_path,
+):
+    """Kept evidence of an untuned study of the claims-paper profile (one evaluation, no trials):
+    its one study decides (no majority of tuning studies to wait for, though the claims profile's
+    study of that name plans four), and its variants are found under the tuned study's names,
+    which carry the fixed axis ("backprop=C" as "backprop=C clip=none")."""
+    from evidence import kept_row, write_kept
+
+    rows = [
+        kept_row(0, variant, s, "loss", falling(factor * base(s)), 1000.0)
+        for variant, factor in (("backprop=C", 0.5), ("backprop=R", 1.0))
+        for s in TEN
+    ]
+    # "planned" as an earlier keep wrote it: the claims profile's four
+    about = {"axis": "iteration", "budget": 1000.0, "trials": 0, "studies": 1, "seeds": 10}
+    write_kept(tmp_path, "cart_4", rows, {**about, "planned": 4})
+    claim = claim_of(claims.Lower("cart_4", "backprop=C clip=none", "backprop=R clip=none"))
+    paper = study_lists.PROFILES["claims-paper"]
+    verdict, decided = claims.decide_claim(claim, tmp_path, profile=paper)
+    assert verdict == HOLDS, decided[0][1]
+    assert "lower in 10 of 10" in decided[0][1].measured
