@@ -197,7 +197,10 @@ def _parser() -> argparse.ArgumentParser:
     parser.add_argument("--floors", help=argparse.SUPPRESS)
     parser.add_argument("--seeds", help=argparse.SUPPRESS)
     parser.add_argument(
-        "--vectorised-seeds", type=int, default=8, help="N of the seeds=N throughput table"
+        "--vectorised-seeds",
+        type=int,
+        default=8,
+        help="N of the seeds=N throughput table (0: no such table)",
     )
     return parser
 
@@ -266,13 +269,17 @@ def main(argv: list[str] | None = None) -> int:
         on_row=lambda so_far: write(so_far, []),
         optims=optims,
     )
-    seed_rows = run_seeds(
-        scenes,
-        options.vectorised_seeds,
-        options.repeats,
-        options.min_seconds,
-        options.timeout,
-        on_row=lambda so_far: write(rows, so_far),
+    seed_rows = (
+        run_seeds(
+            scenes,
+            options.vectorised_seeds,
+            options.repeats,
+            options.min_seconds,
+            options.timeout,
+            on_row=lambda so_far: write(rows, so_far),
+        )
+        if options.vectorised_seeds > 0
+        else []
     )
     text = write(rows, seed_rows)
     print(text, end="")

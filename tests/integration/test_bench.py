@@ -130,10 +130,11 @@ def test_optims_choose_the_rules_and_a_refusal_is_a_row_with_its_reason(
 
     monkeypatch.setattr(bench, "_subprocess", fake_subprocess)
     out = tmp_path / "bench.md"
-    argv = ["--scenes", "poisson,ks", "--optims", "adam,ssbfgs", "--out", str(out)]
-    assert bench.main(argv) == 0
+    argv = ["--scenes", "poisson,ks,quantum", "--optims", "adam,ssbfgs", "--out", str(out)]
+    assert bench.main([*argv, "--vectorised-seeds", "0"]) == 0  # no seeds table: quantum has one
     optims = {o.removeprefix("optim=") for overrides in asked for o in overrides if "optim=" in o}
     assert optims == {"adam", "ssbfgs"}
+    assert "Seeds in one process" not in out.read_text()
     # ks's extra variants are Adam's: measured; poisson's extra is HIG's: not asked for
     assert ["task=ks", "optim=adam", "task.training=ONE"] in asked
     assert not any("precision=64" in overrides for overrides in asked)
