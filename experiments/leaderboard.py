@@ -212,6 +212,51 @@ def board(root: Path) -> dict[str, tuple[dict[str, Cell], object, dict]]:
     return found
 
 
+def clock_groups(by_study: dict, tolerance: float = 0.01) -> list[list[str]]:
+    """The kept tuning studies of a scene grouped by the clock they ran on, each group in order.
+
+    On the calibrated clock a run's iterations are its rule's budget / step cost, the same for
+    every seed that reaches the budget, so studies on one clock have the same median iterations
+    per rule; two studies whose medians differ beyond `tolerance` (relative) for a rule both ran
+    are on different clocks (a calibration of its own, or a clock replaced when a rule was
+    added)."""
+
+    def same(a: dict, b: dict) -> bool:
+        common = set(a) & set(b)
+        return all(abs(a[r] - b[r]) <= tolerance * max(abs(a[r]), abs(b[r])) for r in common)
+
+    groups: list[list[str]] = []
+    for key, record in by_study.items():
+        its = record.get("iterations") or {}
+        for group in groups:
+            if same(by_study[group[0]].get("iterations") or {}, its):
+                group.append(key)
+                break
+        else:
+            groups.append([key])
+    return groups
+
+
+def clock_note(about: dict) -> str:
+    """A sentence for a scene whose kept tuning studies ran on different clocks (empty if one)."""
+    by_study = about.get("tuning_studies") or {}
+    groups = clock_groups(by_study)
+    if len(groups) < 2:
+        return ""
+    per_study = ", ".join(
+        f"{(by_study[k].get('iterations') or {}).get(BASELINE, math.nan):.0f} (study {k})"
+        for k in by_study
+    )
+    which = "; ".join(
+        ("studies " + " and ".join(g)) if len(g) > 1 else f"study {g[0]}" for g in groups
+    )
+    return (
+        f"  Its tuning studies ran on {len(groups)} clocks ({which}): {BASELINE}'s iterations in "
+        f"the budget are {per_study}. Each study compares its rules at equal time, but the "
+        "scene's verdicts pool studies at different budgets in iterations."
+    )
+
+
 # --- the page
 # --------------------------------------------------------------------------------------------
 
@@ -361,6 +406,9 @@ def page(found: dict, image: str) -> str:
                     + ", ".join(f"{v} {its[v]:.0f}" for v in (BASELINE, *entry.rules) if v in its)
                     + "."
                 )
+            note = clock_note(about)
+            if note:
+                lines.append(note)
     if missing:
         lines += [
             "",

@@ -230,3 +230,31 @@ def test_the_committed_page_is_what_the_committed_evidence_gives(tmp_path):
     text = leaderboard.write(evidence, tmp_path)
     assert text == (REPO / "docs" / "leaderboard.md").read_text()
     assert (tmp_path / "leaderboard.png").stat().st_size > 10_000
+
+
+def test_studies_on_different_clocks_are_said_to_be(tmp_path):
+    """Tuning studies whose rules got other iterations for the budget (each calibrated itself, or
+    the clock was replaced when a rule was added) are grouped by clock and the page says so; a
+    rule one study ran alone, or a 1% difference, splits nothing."""
+    same = {"adam": 100.0, "hig": 50.0}
+    by_study = {
+        "1": {"iterations": same},
+        "2": {"iterations": {"adam": 100.5, "hig": 50.0, "psgd_kron": 7.0}},
+        "3": {"iterations": {"adam": 130.0, "hig": 50.0}},
+    }
+    assert leaderboard.clock_groups(by_study) == [["1", "2"], ["3"]]
+    assert leaderboard.clock_groups({"1": by_study["1"], "2": by_study["2"]}) == [["1", "2"]]
+    assert leaderboard.clock_note({"tuning_studies": {"1": by_study["1"]}}) == ""
+
+    evidence = tmp_path / "evidence"
+    kept_scene(evidence, "toy", {"adam": [1.0] * 3, "hig": [0.1] * 3})
+    about = json.loads((evidence / "toy.json").read_text())
+    (evidence / "toy.json").write_text(json.dumps({**about, "tuning_studies": by_study}))
+    text = leaderboard.write(evidence, tmp_path / "docs")
+    assert (
+        "Its tuning studies ran on 2 clocks (studies 1 and 2; study 3): adam's iterations in the "
+        "budget are 100 (study 1), 100 (study 2), 130 (study 3)."
+    ) in text
+    by_study["3"]["iterations"]["adam"] = 100.0
+    (evidence / "toy.json").write_text(json.dumps({**about, "tuning_studies": by_study}))
+    assert "iterations in the budget are" not in leaderboard.write(evidence, tmp_path / "docs")
