@@ -41,8 +41,10 @@ from leaderboard_scenes import (
     LEADERBOARD_SEEDS,
     LEADERBOARD_STUDIES,
     LEADERBOARD_TRIALS,
+    LITERATURE,
     RULES,
     SCENES,
+    WHY_IT_MAY_DIFFER,
 )
 from studies import STUDY_FOLDER
 from study_runs import read_study, study_overrides
@@ -330,7 +332,17 @@ def plot(found: dict, path: Path) -> None:
                     color="white" if strong else "black",
                     fontweight="bold" if decided else "normal",
                 )
-    ax.set_xticks(range(len(scenes)), [e.title for e in scenes], rotation=25, ha="right")
+    ran = {name: len(runs.tuning or (runs,)) for name, (_, runs, _) in found.items()}
+    labels = [
+        e.title
+        + (
+            f"\n({ran[e.name]} of {LEADERBOARD_STUDIES} studies)"
+            if 0 < ran.get(e.name, 0) < LEADERBOARD_STUDIES
+            else ""
+        )
+        for e in scenes
+    ]
+    ax.set_xticks(range(len(scenes)), labels, rotation=25, ha="right")
     ax.set_yticks(range(len(RULES)), RULES)
     bar = fig.colorbar(image, ax=ax, fraction=0.04, pad=0.02)
     bar.set_label("log10 (test loss of the rule / Adam's), median over seeds")
@@ -415,34 +427,6 @@ def page(found: dict, image: str) -> str:
             "Not run yet: " + ", ".join(f"{e.title} (`{e.name}`)" for e in missing) + ".",
         ]
     return "\n".join(lines + literature_lines(found)) + "\n"
-
-
-# what the rules' papers report on problems the leaderboard has, and the cells that answer them
-LITERATURE = (
-    (
-        "Self-scaled BFGS and Broyden (Kiyani et al. 2025, arXiv 2501.16371; Jnini et al. 2026, "
-        "arXiv 2604.05230) report errors orders of magnitude below Adam's and L-BFGS's on "
-        "Kuramoto-Sivashinsky and Burgers problems, among others.",
-        (
-            ("ks", "ssbfgs"),
-            ("ks", "ssbroyden"),
-            ("burgers_inverse", "ssbfgs"),
-            ("burgers_inverse", "ssbroyden"),
-        ),
-    ),
-    (
-        "SOAP (Vyas et al. 2024, arXiv 2409.11321) is reported strong on physics-informed losses "
-        "by the gradient-alignment studies of 2025.",
-        (("ks", "soap"), ("burgers_inverse", "soap")),
-    ),
-)
-WHY_IT_MAY_DIFFER = (
-    "Their losses are physics-informed residuals over collocation points, trained full-batch for "
-    "tens of thousands of iterations on networks of a few thousand parameters; here the physics is "
-    "in the loop (a solver between the network and the loss), the budget is seconds of calibrated "
-    "time, and the toy draws a fresh batch every iteration, where a quasi-Newton rule's curvature "
-    "pairs and line search see another batch at every step."
-)
 
 
 def literature_lines(found: dict) -> list[str]:

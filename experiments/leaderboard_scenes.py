@@ -116,6 +116,33 @@ SCENES = (
 )
 EVIDENCE = Path(__file__).resolve().parent.parent / "docs" / "evidence" / "leaderboard"
 
+# what the rules' papers report on problems the leaderboard has, and the cells that answer them
+LITERATURE = (
+    (
+        "Self-scaled BFGS and Broyden (Kiyani et al. 2025, arXiv 2501.16371; Jnini et al. 2026, "
+        "arXiv 2604.05230) report errors orders of magnitude below Adam's and L-BFGS's on "
+        "Kuramoto-Sivashinsky and Burgers problems, among others.",
+        (
+            ("ks", "ssbfgs"),
+            ("ks", "ssbroyden"),
+            ("burgers_inverse", "ssbfgs"),
+            ("burgers_inverse", "ssbroyden"),
+        ),
+    ),
+    (
+        "SOAP (Vyas et al. 2024, arXiv 2409.11321) is reported strong on physics-informed losses "
+        "by the gradient-alignment studies of 2025.",
+        (("ks", "soap"), ("burgers_inverse", "soap")),
+    ),
+)
+WHY_IT_MAY_DIFFER = (
+    "Their losses are physics-informed residuals over collocation points, trained full-batch for "
+    "tens of thousands of iterations on networks of a few thousand parameters; here the physics is "
+    "in the loop (a solver between the network and the loss), the budget is seconds of calibrated "
+    "time, and the toy draws a fresh batch every iteration, where a quasi-Newton rule's curvature "
+    "pairs and line search see another batch at every step."
+)
+
 
 def kept_clock(entry: Entry, evidence: Path = EVIDENCE) -> Path | None:
     """The scene's kept calibration (its step costs, measured once on a quiet machine) if it has a
