@@ -359,7 +359,7 @@ def _longer_budgets(claim: Claim, main: str, further: tuple) -> tuple[list, list
         found = claim_verdicts(claim, folder, profile=studies_there)
         (elsewhere if studies_there == GPU else seen).extend(found.values())
         t, k, n = study_protocol(folder / main)
-        ran = f"{t} x {k}{_of_planned(long_runs)}, {n}"
+        ran = f"{t} x {k}{_of_planned(long_runs)}, {n}" if t else f"presets untuned, {n} seeds"
         longer.append(
             f"{folder.name}, {_budget_text(long_runs)} ({ran}): " + ", ".join(_verdicts_text(found))
         )

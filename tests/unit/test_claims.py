@@ -697,3 +697,6 @@ def test_a_presets_only_study_decides_from_its_kept_evidence_alone_under_the_tun
     verdict, decided = claims.decide_claim(claim, tmp_path, profile=paper)
     assert verdict == HOLDS, decided[0][1]
     assert "lower in 10 of 10" in decided[0][1].measured
+    # the longer-budget column says what ran: the presets untuned, not "0 x 1" trials
+    longer, _, _ = claims._longer_budgets(claim, "cart_4", ((tmp_path, paper),))
+    assert "(presets untuned, 10 seeds)" in longer[0], longer
