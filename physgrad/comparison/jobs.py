@@ -440,26 +440,42 @@ class Progress:
 
     def _left(self, now: float) -> str:
         """The time left at the pace of the jobs done (none before one is done, or once all are):
-        each job not done at the mean time of the done jobs of its variant (of all done jobs where
-        none of its variant is), less what the running one has had; once the running one has had
-        more than that, the time left after it, how long it has run and, where its variant has a
-        done job, how long those took (none has: no pace of its own to expect)."""
+        each job not done at the mean time of the done jobs of its variant, less what the running
+        one has had; once the running one has had more than that, the time left after it, how
+        long it has run and, where its variant has a done job, how long those took. Jobs of a
+        variant none of whose jobs is done have no pace to count them at: the time is then "at
+        least" and says how many such jobs are left (another variant's pace can be ten times
+        off: a Gauss-Newton job beside Adam's)."""
         done = self.started - 1
         if done < 1 or done >= self.total:
             return ""
-        every = (self.launched_at - self.begun) / done
 
-        def pace(index: int) -> float:
+        def pace(index: int) -> float | None:
             times = self.took.get(self._kind(index))
-            return sum(times) / len(times) if times else every
+            return sum(times) / len(times) if times else None
 
+        later = [pace(index) for index in range(self.started, self.total)]
+        after = sum(p for p in later if p is not None)
+        untimed = sum(p is None for p in later)
         running, expected = now - self.launched_at, pace(done)
-        after = sum(pace(index) for index in range(self.started, self.total))
-        if running <= expected:
-            return f"; about {_span(expected - running + after)} left"
-        own = self.took.get(self._kind(done))
-        return f"; about {_span(after)} left after the running job ({_span(running)} so far, " + (
-            f"about {_span(expected)} expected)" if own else "the first of its variant)"
+        bound = "at least" if untimed or expected is None else "about"
+        besides = (
+            ""
+            if not untimed
+            else ", and 1 job of a variant not timed yet"
+            if untimed == 1
+            else f", and {untimed} jobs of variants not timed yet"
+        )
+        if expected is not None and running <= expected:
+            return f"; {bound} {_span(expected - running + after)} left{besides}"
+        return (
+            f"; {bound} {_span(after)} left after the running job ({_span(running)} so far, "
+            + (
+                f"about {_span(expected)} expected)"
+                if expected is not None
+                else "the first of its variant)"
+            )
+            + besides
         )
 
 

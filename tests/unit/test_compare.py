@@ -280,8 +280,9 @@ def test_on_a_terminal_a_phase_draws_a_bar_of_its_jobs_and_ends_with_one_line():
 
 
 def test_the_time_left_counts_each_job_at_its_variants_pace(monkeypatch):
-    """The time left counts each job not done at the mean time of the done jobs of its variant (all
-    done jobs' where none of its variant is done), less what the running one has had; a running
+    """The time left counts each job not done at the mean time of the done jobs of its variant (a
+    job of a variant with none done is not counted but said, the time "at least"), less what the
+    running one has had; a running
     job slower than that says the time after it and how long it has run (and what its variant's
     done jobs took, where it has any), instead of "about 0 s left" for as long as it runs; nothing
     before a job is done or once all are."""
@@ -304,11 +305,12 @@ def test_the_time_left_counts_each_job_at_its_variants_pace(monkeypatch):
     launch(0, 0)
     assert progress._left(1010.0) == ""  # no job done: no pace yet
     launch(1, 60)  # v0's job took a minute
-    # v1's running job and v1's later one at the only pace known (60 s), v0's at its own
-    assert progress._left(1090.0) == "; about 2.5 min left"
-    assert progress._left(1300.0) == (
-        "; about 2.0 min left after the running job (4.0 min so far, the first of its variant)"
+    # v1's running job and v1's later one have no pace yet (v0's is not theirs): at least v0's
+    assert progress._left(1090.0) == (
+        "; at least 60 s left after the running job (30 s so far, the first of its variant), and "
+        "1 job of a variant not timed yet"
     )
+    assert progress._left(1300.0).startswith("; at least 60 s left after the running job (4.0 min")
     launch(2, 660)  # v1's job took ten minutes
     # v0's running job at 60 s, v1's last at 600 s
     assert progress._left(1680.0) == "; about 10.7 min left"
@@ -324,6 +326,7 @@ def test_the_time_left_counts_each_job_at_its_variants_pace(monkeypatch):
     # without names every job is of one kind: the mean of the jobs done
     plain = jobs.Progress("eval", 3, [].append, stream=io.StringIO())
     plain.started, plain.launched_at, plain.begun = 2, 120.0, 0.0
+    plain.took = {None: [120.0]}  # as reading the first job's launch after it leaves it
     assert plain._left(150.0) == "; about 3.5 min left"
 
 
