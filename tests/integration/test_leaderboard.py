@@ -235,7 +235,7 @@ def test_the_committed_page_is_what_the_committed_evidence_gives(tmp_path):
 def test_studies_on_different_clocks_are_said_to_be(tmp_path):
     """Tuning studies whose rules got other iterations for the budget (each calibrated itself, or
     the clock was replaced when a rule was added) are grouped by clock and the page says so; a
-    rule one study ran alone, or a 1% difference, splits nothing."""
+    rule one study ran alone, a 1% difference or one rule's divergences split nothing."""
     same = {"adam": 100.0, "hig": 50.0}
     by_study = {
         "1": {"iterations": same},
@@ -244,6 +244,12 @@ def test_studies_on_different_clocks_are_said_to_be(tmp_path):
     }
     assert leaderboard.clock_groups(by_study) == [["1", "2"], ["3"]]
     assert leaderboard.clock_groups({"1": by_study["1"], "2": by_study["2"]}) == [["1", "2"]]
+    # a rule that diverged in most seeds of one study (its median stops early) moves no clock
+    diverged = {
+        "1": {"iterations": {**same, "gd": 70.0}},
+        "2": {"iterations": {**same, "gd": 20.0}},
+    }
+    assert leaderboard.clock_groups(diverged) == [["1", "2"]]
     assert leaderboard.clock_note({"tuning_studies": {"1": by_study["1"]}}) == ""
 
     evidence = tmp_path / "evidence"
