@@ -219,3 +219,51 @@ def read_kept(path: Path) -> Kept:
     planned = about.get("planned", 0)
     planned = planned if isinstance(planned, int) and 0 <= planned <= 1000 else 0
     return Kept(path, axis, budget, str(about.get("machine", "")), protocol, studies, planned)
+
+
+def undecided_by_the_clock(folder: Path) -> dict[str, list[float]]:
+    """ "A vs B" -> the fractions of the budget where the study's compare (its comparisons.csv)
+    found A's or B's "better" undecided by the clock (physgrad.verdict.clock_check). The check
+    reads each run's loss at a shifted time, which the kept fractions do not hold, so a study's
+    record keeps its outcome."""
+    from physgrad.errors import UserError
+    from physgrad.verdict import UNDECIDED_BY_THE_CLOCK
+
+    path = folder / "comparisons.csv"
+    if not path.is_file():
+        return {}
+    try:
+        table = read_table(path, dtype=str)
+        rows = table[table["why"].fillna("").str.startswith(UNDECIDED_BY_THE_CLOCK)]
+        found: dict[str, list[float]] = {}
+        for a, b, fraction in zip(rows["a"], rows["b"], rows["fraction"].astype(float)):
+            found.setdefault(f"{a} vs {b}", []).append(fraction)
+    except (KeyError, ValueError, AttributeError) as error:
+        raise UserError(f"{path}: not a table of comparisons ({error})") from None
+    return found
+
+
+def keep_clock_verdicts(per_study: list, records: dict) -> None:
+    """Each tuning study's verdicts (per_study[k]: its PairVerdicts, a list or a dict of them)
+    with the "better" its compare found undecided by the clock made undecided again, from its
+    kept record (records: the .json's tuning_studies, "1", "2", ... -> a record whose
+    undecided_by_the_clock is "A vs B" -> fractions; nothing where they are not one per study,
+    as in the one-study format)."""
+    from physgrad.errors import UserError
+    from physgrad.verdict import A_BETTER, B_BETTER, UNDECIDED, UNDECIDED_BY_THE_CLOCK
+
+    if len(records) != len(per_study):
+        return
+    for results, key in zip(per_study, sorted(records, key=int)):
+        record = records[key]
+        flagged = record.get("undecided_by_the_clock") or {}
+        if not isinstance(flagged, dict) or not all(
+            isinstance(f, list) and all(isinstance(x, (int, float)) for x in f)
+            for f in flagged.values()
+        ):
+            raise UserError("undecided_by_the_clock: not pairs and fractions; keep the study again")
+        for result in results.values() if isinstance(results, dict) else results:
+            for fraction in flagged.get(f"{result.a} vs {result.b}", ()):
+                if result.verdicts.get(fraction, ("",))[0] in (A_BETTER, B_BETTER):
+                    why = f"{UNDECIDED_BY_THE_CLOCK} (in the study's compare)"
+                    result.verdicts[fraction] = (UNDECIDED, why)

@@ -30,10 +30,12 @@ from evidence import (  # experiments/
     CLOCK,
     commit,
     keep_clock,
+    keep_clock_verdicts,
     kept_row,
     merged_rows,
     read_json,
     read_table,
+    undecided_by_the_clock,
     write_kept,
 )
 from leaderboard_scenes import (
@@ -107,6 +109,7 @@ def keep(root: Path, dest: Path) -> list[str]:
                         for v, group in table.groupby("variant")
                     },
                     "overrides": study_overrides(folder),
+                    "undecided_by_the_clock": undecided_by_the_clock(folder),
                 },
             )
         first = next(iter(finished.values()))[1]
@@ -157,11 +160,15 @@ class Cell:
     iterations: float = math.nan
 
 
-def cells(runs, iterations: dict | None = None) -> dict[str, Cell]:
+def cells(runs, about: dict | None = None) -> dict[str, Cell]:
     """rule -> Cell for every rule the study ran, by the package's rule: each tuning study decided
     with Holm's correction over the comparisons with Adam of the rules it ran (compare.baseline),
-    then each rule over the studies that ran it (physgrad.verdict.across_studies; a rule added to
-    the leaderboard after a scene's first studies is decided over the later ones)."""
+    a "better" its compare found undecided by the clock kept so (the kept record's
+    undecided_by_the_clock), then each rule over the studies that ran it
+    (physgrad.verdict.across_studies; a rule added to the leaderboard after a scene's first
+    studies is decided over the later ones)."""
+    about = about or {}
+    iterations = about.get("iterations")
     studies = runs.tuning or (runs,)
     ran = [sorted(r for r in study.paths if r != BASELINE) for study in studies]
     per_study = [
@@ -180,6 +187,7 @@ def cells(runs, iterations: dict | None = None) -> dict[str, Cell]:
         else {}
         for study, rules in zip(studies, ran)
     ]
+    keep_clock_verdicts(per_study, about.get("tuning_studies") or {})
     found = {}
     for rule in sorted({r for rules in ran for r in rules}):
         verdicts = [by_rule[rule] for by_rule in per_study if rule in by_rule]
@@ -210,7 +218,7 @@ def board(root: Path) -> dict[str, tuple[dict[str, Cell], object, dict]]:
             continue
         about_path = root / f"{entry.name}.json"
         about = read_json(about_path) if about_path.is_file() else {}
-        found[entry.name] = (cells(runs, about.get("iterations")), runs, about)
+        found[entry.name] = (cells(runs, about), runs, about)
     return found
 
 
@@ -422,6 +430,14 @@ def page(found: dict, image: str) -> str:
             note = clock_note(about)
             if note:
                 lines.append(note)
+            unchecked = [k for k, r in (about.get("tuning_studies") or {}).items()
+                         if "undecided_by_the_clock" not in r]  # fmt: skip
+            if unchecked:
+                lines.append(
+                    f"  Stud{'ies' if unchecked[1:] else 'y'} {' and '.join(unchecked)}: kept "
+                    "before the clock check's outcome: a better its compare found undecided by "
+                    "the clock may count as better here."
+                )
     if missing:
         lines += [
             "",

@@ -264,3 +264,41 @@ def test_studies_on_different_clocks_are_said_to_be(tmp_path):
     by_study["3"]["iterations"]["adam"] = 100.0
     (evidence / "toy.json").write_text(json.dumps({**about, "tuning_studies": by_study}))
     assert "iterations in the budget are" not in leaderboard.write(evidence, tmp_path / "docs")
+
+
+def test_a_better_its_compare_found_undecided_by_the_clock_stays_undecided(tmp_path):
+    """A study's "better" that its compare made undecided by the clock (the check reads losses at
+    shifted times, which kept evidence does not hold) is kept as such from comparisons.csv and
+    stays undecided in the leaderboard's cell; in two of three studies the cell is undecided."""
+    from evidence import undecided_by_the_clock
+
+    from physgrad.errors import UserError
+    from physgrad.verdict import UNDECIDED
+
+    folder = tmp_path / "study"
+    folder.mkdir()
+    assert undecided_by_the_clock(folder) == {}  # no comparisons.csv: nothing kept
+    (folder / "comparisons.csv").write_text(
+        "study,a,b,fraction,verdict,why\n"
+        '0,hig,adam,1.0,undecided,"undecided by the clock: A better (p = 0.02), but undecided"\n'
+        '0,hig,adam,0.5,A better,"interval below 1/1.1, p = 0.02"\n'
+        '0,gd,adam,1.0,B better,"interval above 1.1, p = 0.04"\n'
+    )
+    assert undecided_by_the_clock(folder) == {"hig vs adam": [1.0]}
+
+    evidence = tmp_path / "evidence"
+    kept_scene(evidence, "toy", {"adam": [1.0] * 3, "hig": [0.1] * 3})
+    about = json.loads((evidence / "toy.json").read_text())
+    flagged = {"undecided_by_the_clock": undecided_by_the_clock(folder)}
+    records = {"1": {}, "2": flagged, "3": {}}
+    (evidence / "toy.json").write_text(json.dumps({**about, "tuning_studies": records}))
+    hig = leaderboard.board(evidence)["toy"][0]["hig"]
+    assert hig.studies == (A_BETTER, UNDECIDED, A_BETTER) and hig.verdict == A_BETTER
+    records["3"] = flagged
+    (evidence / "toy.json").write_text(json.dumps({**about, "tuning_studies": records}))
+    hig = leaderboard.board(evidence)["toy"][0]["hig"]
+    assert hig.studies == (A_BETTER, UNDECIDED, UNDECIDED) and hig.verdict == UNDECIDED
+    records["3"] = {"undecided_by_the_clock": {"hig vs adam": "1.0"}}  # not fractions
+    (evidence / "toy.json").write_text(json.dumps({**about, "tuning_studies": records}))
+    with pytest.raises(UserError, match="undecided_by_the_clock: not pairs and fractions"):
+        leaderboard.board(evidence)
