@@ -38,6 +38,7 @@ from evidence import (  # experiments/
     undecided_by_the_clock,
     write_kept,
 )
+from leaderboard_detail import FOLDER, MARKS, link, scene_notes, scene_page
 from leaderboard_scenes import (
     BASELINE,
     LEADERBOARD_SEEDS,
@@ -158,6 +159,7 @@ class Cell:
     pairs: int
     studies: tuple[str, ...]
     iterations: float = math.nan
+    detail: tuple = ()  # (k, the rule's PairVerdict in tuning study k) for the studies that ran it
 
 
 def cells(runs, about: dict | None = None) -> dict[str, Cell]:
@@ -204,6 +206,7 @@ def cells(runs, about: dict | None = None) -> dict[str, Cell]:
             p.pairs,
             tuple(s.verdicts[1.0][0] for s in (result.studies or [result])),
             (iterations or {}).get(rule, math.nan),
+            tuple((k, by_rule[rule]) for k, by_rule in enumerate(per_study) if rule in by_rule),
         )
     return found
 
@@ -222,56 +225,8 @@ def board(root: Path) -> dict[str, tuple[dict[str, Cell], object, dict]]:
     return found
 
 
-def clock_groups(by_study: dict, tolerance: float = 0.01) -> list[list[str]]:
-    """The kept tuning studies of a scene grouped by the clock they ran on, each group in order.
-
-    On the calibrated clock a run's iterations are its rule's budget / step cost, the same for
-    every seed that reaches the budget, so studies on one clock have the same median iterations
-    per rule, except a rule that diverged in half its seeds (its runs stop early). Two studies are
-    on one clock where most rules both ran agree within `tolerance` (relative); another clock (a
-    calibration of its own, or a clock replaced when a rule was added) moves every rule's."""
-
-    def same(a: dict, b: dict) -> bool:
-        common = set(a) & set(b)
-        agree = sum(abs(a[r] - b[r]) <= tolerance * max(abs(a[r]), abs(b[r])) for r in common)
-        return 2 * agree > len(common) or not common
-
-    groups: list[list[str]] = []
-    for key, record in by_study.items():
-        its = record.get("iterations") or {}
-        for group in groups:
-            if same(by_study[group[0]].get("iterations") or {}, its):
-                group.append(key)
-                break
-        else:
-            groups.append([key])
-    return groups
-
-
-def clock_note(about: dict) -> str:
-    """A sentence for a scene whose kept tuning studies ran on different clocks (empty if one)."""
-    by_study = about.get("tuning_studies") or {}
-    groups = clock_groups(by_study)
-    if len(groups) < 2:
-        return ""
-    per_study = ", ".join(
-        f"{(by_study[k].get('iterations') or {}).get(BASELINE, math.nan):.0f} (study {k})"
-        for k in by_study
-    )
-    which = "; ".join(
-        ("studies " + " and ".join(g)) if len(g) > 1 else f"study {g[0]}" for g in groups
-    )
-    return (
-        f"  Its tuning studies ran on {len(groups)} clocks ({which}): {BASELINE}'s iterations in "
-        f"the budget are {per_study}. Each study compares its rules at equal time, but the "
-        "scene's verdicts pool studies at different budgets in iterations."
-    )
-
-
 # --- the page
 # --------------------------------------------------------------------------------------------
-
-MARKS = {A_BETTER: "better", B_BETTER: "worse", EQUIVALENT: "equivalent"}
 
 
 def _r(x: float) -> str:
@@ -280,13 +235,14 @@ def _r(x: float) -> str:
     return f"{x:.3g}"
 
 
-def cell_text(cell: Cell, scene_studies: int = 0) -> str:
-    """A cell as the table prints it; with the tuning studies that ran the rule where they are
-    fewer than the scene's (scene_studies)."""
+def cell_text(cell: Cell, scene_studies: int = 0, to: str = "") -> str:
+    """A cell as the table prints it, its verdict a link to its scene's page (to) where given;
+    with the tuning studies that ran the rule where they are fewer than the scene's."""
     mark = MARKS.get(cell.verdict, "undecided")
     fewer = len(cell.studies) < scene_studies
     return (
-        f"**{mark}** {_r(cell.ratio)}x [{_r(cell.low)}, {_r(cell.high)}], {cell.wins}/{cell.pairs}"
+        (f"[**{mark}**]({to})" if to else f"**{mark}**")
+        + f" {_r(cell.ratio)}x [{_r(cell.low)}, {_r(cell.high)}], {cell.wins}/{cell.pairs}"
         + (f" ({len(cell.studies)} of {scene_studies} studies ran it)" if fewer else "")
     )
 
@@ -378,7 +334,7 @@ def page(found: dict, image: str) -> str:
         f"{LEADERBOARD_STUDIES} independent tuning studies, {LEADERBOARD_SEEDS} paired evaluation "
         "seeds per study, the verdict over the studies by the package's rule with Holm's "
         "correction over each scene's comparisons with Adam (`compare.baseline=adam`). A cell: the "
-        "verdict, the median ratio of the rule's test loss to Adam's at the budget with its "
+        "verdict (a link to the scene's tuning studies one by one), the median ratio of the rule's test loss to Adam's at the budget with its "
         "interval, and the seeds where the rule was lower. Below 1: the rule reached a lower loss; "
         f"better and worse mean beyond a factor {MARGIN:g}, equivalent within it "
         "(docs/protocol.md).",
@@ -401,7 +357,7 @@ def page(found: dict, image: str) -> str:
                     row.append(f"n/a: {entry.refused[rule]}")
                 else:
                     ran = len(runs.tuning or (runs,))
-                    row.append(cell_text(cell, ran) if cell else "not run")
+                    row.append(cell_text(cell, ran, link(entry.name, rule)) if cell else "not run")
             lines.append(f"| {rule} | " + " | ".join(row) + " |")
         lines += ["", "## The scenes and their budgets", ""]
         for entry in scenes:
@@ -427,17 +383,7 @@ def page(found: dict, image: str) -> str:
                     + ", ".join(f"{v} {its[v]:.0f}" for v in (BASELINE, *entry.rules) if v in its)
                     + "."
                 )
-            note = clock_note(about)
-            if note:
-                lines.append(note)
-            unchecked = [k for k, r in (about.get("tuning_studies") or {}).items()
-                         if "undecided_by_the_clock" not in r]  # fmt: skip
-            if unchecked:
-                lines.append(
-                    f"  Stud{'ies' if unchecked[1:] else 'y'} {' and '.join(unchecked)}: kept "
-                    "before the clock check's outcome: a better its compare found undecided by "
-                    "the clock may count as better here."
-                )
+            lines += [f"  {note}" for note in scene_notes(about)]
     if missing:
         lines += [
             "",
@@ -477,6 +423,9 @@ def write(root: Path, out: Path) -> str:
         plot(found, out / "leaderboard")
     text = page(found, "leaderboard.png")
     (out / "leaderboard.md").write_text(text)
+    (out / FOLDER).mkdir(exist_ok=True)
+    for entry in (e for e in SCENES if e.name in found):
+        (out / FOLDER / f"{entry.name}.md").write_text(scene_page(entry, *found[entry.name]))
     return text
 
 

@@ -15,6 +15,7 @@ from tests.helpers import REPO
 
 sys.path.insert(0, str(REPO / "experiments"))
 import leaderboard  # noqa: E402
+import leaderboard_detail  # noqa: E402
 import leaderboard_scenes  # noqa: E402
 from evidence import write_kept  # noqa: E402
 
@@ -82,13 +83,23 @@ def test_cells_verdicts_and_page_from_kept_evidence(tmp_path):
     text = leaderboard.write(evidence, tmp_path / "docs")
     table = [line for line in text.splitlines() if line.startswith("| ")]
     rows = {line.split(" | ")[0][2:]: line for line in table[1:]}
-    assert "**better** 0.1" in rows["hig"] and "30/30" in rows["hig"]
+    assert "[**better**](leaderboard/toy.md#hig) 0.1" in rows["hig"] and "30/30" in rows["hig"]
     assert "**worse**" in rows["soap"] and "**equivalent**" in rows["gd"]
     assert "not run" in rows["kfac"]  # a rule that applies but has no runs in the evidence
     assert "Not run yet:" in text and "`guidance`" in text
     assert "3 of 3 tuning studies finished" in text and "hig 200" in text
     # the literature's claims beside the cells that answer them (none run here)
     assert "ssbfgs on KS correction (small): not run yet" in text
+    # each cell's link: its rule's section of the scene's page, a row per tuning study and the cell
+    detail = (tmp_path / "docs" / "leaderboard" / "toy.md").read_text()
+    hig = detail.split("## hig\n")[1].split("\n## ")[0]
+    studies = [line for line in hig.splitlines() if line.startswith("| ")][1:]
+    assert [row.split(" | ")[0] for row in studies] == ["| 1", "| 2", "| 3", "| over the studies"]
+    assert all("| better (interval below 1/1.1" in row for row in studies[:3])
+    assert "10 of 10" in studies[0] and "hig 200, adam 100" in studies[0]
+    assert "**better**" in studies[3] and "30 of 30" in studies[3]
+    muon = detail.split("## muon\n")[1].split("\n## ")[0]
+    assert "| 1 | better" in muon and "| 2 | worse" in muon and "**undecided**" in muon
     assert (tmp_path / "docs" / "leaderboard.png").stat().st_size > 10_000
     assert (tmp_path / "docs" / "leaderboard.pdf").is_file()
 
@@ -217,7 +228,9 @@ def test_a_rule_added_after_a_scenes_first_studies_is_decided_over_the_studies_t
     assert cells["hig"].studies == (A_BETTER,) * 3 and cells["hig"].pairs == 30
     text = leaderboard.write(evidence, tmp_path / "docs")
     row = next(line for line in text.splitlines() if line.startswith("| psgd_kron |"))
-    assert "(1 of 3 studies ran it)" in row and "**better** 0.5x" in row
+    assert "(1 of 3 studies ran it)" in row and "**](leaderboard/toy.md#psgd_kron) 0.5x" in row
+    psgd = (tmp_path / "docs" / "leaderboard" / "toy.md").read_text().split("## psgd_kron\n")[1]
+    assert "| 3 | better" in psgd and "| 1 |" not in psgd  # the study that ran it, by number
     hig = next(line for line in text.splitlines() if line.startswith("| hig |"))
     assert "studies ran it" not in hig
 
@@ -229,6 +242,12 @@ def test_the_committed_page_is_what_the_committed_evidence_gives(tmp_path):
     assert sorted(p.stem for p in evidence.glob("*.csv")), "no kept evidence"
     text = leaderboard.write(evidence, tmp_path)
     assert text == (REPO / "docs" / "leaderboard.md").read_text()
+    pages = sorted(p.name for p in (REPO / "docs" / "leaderboard").glob("*.md"))
+    assert pages == sorted(p.name for p in (tmp_path / "leaderboard").glob("*.md"))
+    for name in pages:
+        assert (tmp_path / "leaderboard" / name).read_text() == (
+            REPO / "docs" / "leaderboard" / name
+        ).read_text()
     assert (tmp_path / "leaderboard.png").stat().st_size > 10_000
 
 
@@ -237,20 +256,24 @@ def test_studies_on_different_clocks_are_said_to_be(tmp_path):
     the clock was replaced when a rule was added) are grouped by clock and the page says so; a
     rule one study ran alone, a 1% difference or one rule's divergences split nothing."""
     same = {"adam": 100.0, "hig": 50.0}
+    checked = {"undecided_by_the_clock": {}}  # kept with its clock check: no note for that
     by_study = {
         "1": {"iterations": same},
         "2": {"iterations": {"adam": 100.5, "hig": 50.0, "psgd_kron": 7.0}},
         "3": {"iterations": {"adam": 130.0, "hig": 50.0}},
     }
-    assert leaderboard.clock_groups(by_study) == [["1", "2"], ["3"]]
-    assert leaderboard.clock_groups({"1": by_study["1"], "2": by_study["2"]}) == [["1", "2"]]
+    assert leaderboard_detail.clock_groups(by_study) == [["1", "2"], ["3"]]
+    assert leaderboard_detail.clock_groups({"1": by_study["1"], "2": by_study["2"]}) == [["1", "2"]]
     # a rule that diverged in most seeds of one study (its median stops early) moves no clock
     diverged = {
         "1": {"iterations": {**same, "gd": 70.0}},
         "2": {"iterations": {**same, "gd": 20.0}},
     }
-    assert leaderboard.clock_groups(diverged) == [["1", "2"]]
-    assert leaderboard.clock_note({"tuning_studies": {"1": by_study["1"]}}) == ""
+    assert leaderboard_detail.clock_groups(diverged) == [["1", "2"]]
+    assert (
+        leaderboard_detail.scene_notes({"tuning_studies": {"1": {**by_study["1"], **checked}}})
+        == []
+    )
 
     evidence = tmp_path / "evidence"
     kept_scene(evidence, "toy", {"adam": [1.0] * 3, "hig": [0.1] * 3})
