@@ -334,8 +334,9 @@ def page(found: dict, image: str) -> str:
         f"{LEADERBOARD_STUDIES} independent tuning studies, {LEADERBOARD_SEEDS} paired evaluation "
         "seeds per study, the verdict over the studies by the package's rule with Holm's "
         "correction over each scene's comparisons with Adam (`compare.baseline=adam`). A cell: the "
-        "verdict (a link to the scene's tuning studies one by one), the median ratio of the rule's test loss to Adam's at the budget with its "
-        "interval, and the seeds where the rule was lower. Below 1: the rule reached a lower loss; "
+        "verdict (a link to the scene's tuning studies one by one), the median ratio of the "
+        "rule's test loss to Adam's at the budget with its interval, and the seeds where the rule "
+        "was lower. Below 1: the rule reached a lower loss; "
         f"better and worse mean beyond a factor {MARGIN:g}, equivalent within it "
         "(docs/protocol.md).",
         "",
