@@ -468,15 +468,12 @@ class Progress:
         )
         if expected is not None and running <= expected:
             return f"; {bound} {_span(expected - running + after)} left{besides}"
-        return (
-            f"; {bound} {_span(after)} left after the running job ({_span(running)} so far, "
-            + (
-                f"about {_span(expected)} expected)"
-                if expected is not None
-                else "the first of its variant)"
-            )
-            + besides
-        )
+        ran, why = f"{_span(running)} so far", "the first of its variant"
+        if expected is not None:
+            why = f"about {_span(expected)} expected"
+        if untimed and not after:  # "at least 0 s left" would say nothing
+            return f"; the running job {ran} ({why}){besides}"
+        return f"; {bound} {_span(after)} left after the running job ({ran}, {why}){besides}"
 
 
 def _span(seconds: float) -> str:

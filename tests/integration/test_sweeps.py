@@ -358,6 +358,32 @@ def test_every_seed_of_a_job_is_logged(tmp_path):
     assert all("completed, test loss " in line for line in lines)
 
 
+def _profile_and_child(tmp_path) -> str:
+    """A profile's code (run_child, then the one line) around a child that takes 0.8 s to leave
+    its files resumable after SIGINT: the parent's Python source."""
+    child = tmp_path / "child.py"
+    child.write_text(
+        "import pathlib, signal, sys, time\n"
+        "def leave(*_):\n"
+        "    time.sleep(0.8)  # writing its resumable state\n"
+        f"    pathlib.Path({str(tmp_path / 'left')!r}).write_text('resumable')\n"
+        "    sys.exit(130)\n"
+        "signal.signal(signal.SIGINT, leave)\n"
+        f"pathlib.Path({str(tmp_path / 'started')!r}).touch()\n"
+        "time.sleep(60)\n"
+    )
+    return (
+        f"import sys; sys.path.insert(0, {str(REPO / 'experiments')!r})\n"
+        "from study_profiles import INTERRUPTED, run_child\n"
+        f"code = run_child([sys.executable, {str(child)!r}])\n"
+        "if code == 130: print(INTERRUPTED, file=sys.stderr)\n"
+        "sys.exit(code)\n"
+    )
+
+
+INTERRUPTED_LINE = ["reproduce: interrupted; the same command resumes where it stopped"]
+
+
 # one instant in make test, the others with the faults at many instants in make test-long
 @pytest.mark.parametrize(
     "instant",
@@ -373,24 +399,7 @@ def test_ctrl_c_lets_a_profile_s_child_leave_its_files_then_ends_in_one_line(tmp
     import sys
     import time
 
-    child = tmp_path / "child.py"
-    child.write_text(
-        "import pathlib, signal, sys, time\n"
-        "def leave(*_):\n"
-        "    time.sleep(0.8)  # writing its resumable state\n"
-        f"    pathlib.Path({str(tmp_path / 'left')!r}).write_text('resumable')\n"
-        "    sys.exit(130)\n"
-        "signal.signal(signal.SIGINT, leave)\n"
-        f"pathlib.Path({str(tmp_path / 'started')!r}).touch()\n"
-        "time.sleep(60)\n"
-    )
-    parent = (
-        f"import sys; sys.path.insert(0, {str(REPO / 'experiments')!r})\n"
-        "from study_profiles import INTERRUPTED, run_child\n"
-        f"code = run_child([sys.executable, {str(child)!r}])\n"
-        "if code == 130: print(INTERRUPTED, file=sys.stderr)\n"
-        "sys.exit(code)\n"
-    )
+    parent = _profile_and_child(tmp_path)
     profile = subprocess.Popen(
         [sys.executable, "-c", parent], start_new_session=True, stderr=subprocess.PIPE, text=True
     )
@@ -401,6 +410,21 @@ def test_ctrl_c_lets_a_profile_s_child_leave_its_files_then_ends_in_one_line(tmp
     os.killpg(profile.pid, signal.SIGINT)  # as a terminal's Ctrl-C: the whole group
     _, stderr = profile.communicate(timeout=30)
     assert profile.returncode == 130 and (tmp_path / "left").read_text() == "resumable"
-    assert stderr.strip().splitlines() == [
-        "reproduce: interrupted; the same command resumes where it stopped"
-    ]
+    assert stderr.strip().splitlines() == INTERRUPTED_LINE
+
+
+@pytest.mark.long
+def test_a_time_box_of_coreutils_timeout_stops_a_profile_as_ctrl_c_does(tmp_path):
+    """`timeout -s INT <limit> <profile>` (docs/evidence/leaderboard/README.md: a part in slices
+    on a machine lent for minutes) signals its whole process group, as Ctrl-C does: the child
+    leaves its files resumable and the profile ends in its one line; timeout says 124."""
+    import subprocess
+    import sys
+
+    limit = 3  # the child has its handler well before: it starts in about 0.1 s
+    ended = subprocess.run(
+        ["timeout", "-s", "INT", str(limit), sys.executable, "-c", _profile_and_child(tmp_path)],
+        capture_output=True, text=True, timeout=30,
+    )  # fmt: skip
+    assert ended.returncode == 124 and (tmp_path / "left").read_text() == "resumable"
+    assert ended.stderr.strip().splitlines() == INTERRUPTED_LINE
