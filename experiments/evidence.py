@@ -265,5 +265,5 @@ def keep_clock_verdicts(per_study: list, records: dict) -> None:
         for result in results.values() if isinstance(results, dict) else results:
             for fraction in flagged.get(f"{result.a} vs {result.b}", ()):
                 if result.verdicts.get(fraction, ("",))[0] in (A_BETTER, B_BETTER):
-                    why = f"{UNDECIDED_BY_THE_CLOCK} (in the study's compare)"
+                    why = f"the study's compare: {UNDECIDED_BY_THE_CLOCK}"
                     result.verdicts[fraction] = (UNDECIDED, why)
