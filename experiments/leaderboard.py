@@ -395,15 +395,23 @@ def page(found: dict, image: str) -> str:
 
 def literature_lines(found: dict) -> list[str]:
     """What the rules' papers report on the leaderboard's problems, beside the cells measured
-    here."""
+    here and the iterations the budget gave the rule and Adam (the papers compare at equal
+    iterations)."""
     titles = {e.name: e.title for e in SCENES}
     lines = ["", "## What the literature reports, checked here", ""]
     for claim, where in LITERATURE:
         measured = []
         for scene, rule in where:
-            cell = found.get(scene, ({},))[0].get(rule)
+            cell, _, about = found.get(scene, ({}, None, {}))
+            cell = cell.get(rule)
+            adam = (about.get("iterations") or {}).get(BASELINE, math.nan)
+            its = (
+                f" ({cell.iterations:,.0f} iterations in the budget, Adam {adam:,.0f})"
+                if cell and math.isfinite(cell.iterations) and math.isfinite(adam)
+                else ""
+            )
             measured.append(
-                f"{rule} on {titles[scene]}: " + (cell_text(cell) if cell else "not run yet")
+                f"{rule} on {titles[scene]}: " + (cell_text(cell) + its if cell else "not run yet")
             )
         lines.append(f"- {claim} Here: " + "; ".join(measured) + ".")
     return lines + ["", WHY_IT_MAY_DIFFER]

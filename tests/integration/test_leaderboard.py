@@ -104,6 +104,18 @@ def test_cells_verdicts_and_page_from_kept_evidence(tmp_path):
     assert (tmp_path / "docs" / "leaderboard.pdf").is_file()
 
 
+def test_the_literature_s_cells_say_the_iterations_the_budget_gave_the_rule_and_adam(tmp_path):
+    """The papers compare at equal iterations, the leaderboard at equal time: beside each cell
+    that answers a paper's claim, the rule's iterations in the budget and Adam's."""
+    evidence = tmp_path / "evidence"
+    kept_scene(evidence, "burgers_inverse", {"adam": [1.0] * 3, "soap": [10.0] * 3})
+    text = leaderboard.write(evidence, tmp_path / "docs")
+    line = next(x for x in text.splitlines() if x.startswith("- SOAP"))
+    assert "soap on Burgers inverse (exponax): **worse** 10" in line
+    assert "(200 iterations in the budget, Adam 100)" in line
+    assert "soap on KS correction (small): not run yet;" in line
+
+
 def test_rules_that_do_not_apply_are_marked_with_why(tmp_path):
     evidence = tmp_path / "evidence"
     kept_scene(evidence, "guidance", {"adam": [1.0] * 3, "hig": [0.5] * 3})
