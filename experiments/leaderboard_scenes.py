@@ -138,9 +138,12 @@ LITERATURE = (
 WHY_IT_MAY_DIFFER = (
     "Their losses are physics-informed residuals over collocation points, trained full-batch for "
     "tens of thousands of iterations on networks of a few thousand parameters; here the physics is "
-    "in the loop (a solver between the network and the loss), the budget is seconds of calibrated "
-    "time, and the toy draws a fresh batch every iteration, where a quasi-Newton rule's curvature "
-    "pairs and line search see another batch at every step."
+    "in the loop (a solver between the network and the loss: the Burgers scene's network proposes "
+    "the start that exponax's stepper carries to an observed field), the budget is seconds of "
+    "calibrated time (a quasi-Newton step and its line search cost several of Adam's: the "
+    "iterations above), and "
+    "the toy draws a fresh batch every iteration, where a quasi-Newton rule's curvature pairs and "
+    "line search see another batch at every step."
 )
 
 
