@@ -337,6 +337,7 @@ def launch(
 # (+1) iteration 6214, loss 0.007778, 28.5 s of training"
 _EVENT = re.compile(
     r"\[HYDRA\]\s+#(?P<job>\d+) : "
+    r"|\[HYDRA\] job \S+: (?P<stopped>never started|interrupted)"
     r"|\] - (?P<label>\S+ seed \d+(?: \(\+\d+\))?) "
     r"iteration (?P<iteration>\d+), loss (?P<loss>\S+),"
 )
@@ -368,6 +369,9 @@ class Progress:
     stream: object = None  # where the bar is drawn (None: stderr); no bar unless it is a terminal
     bar: object = field(default=None, init=False)  # the terminal's bar (tqdm), if there is one
     took: dict = field(default_factory=dict, init=False)  # a job's kind -> seconds of each done
+    # jobs a stopped sweep names as interrupted or never started (its launcher still logs a
+    # launch line for each, so the launches alone would count them as run)
+    stopped: dict = field(default_factory=dict, init=False)
 
     def __post_init__(self) -> None:
         import sys
@@ -395,6 +399,8 @@ class Progress:
                     kind = self._kind(self.started - 1)
                     self.took.setdefault(kind, []).append(now - self.launched_at)
                 self.started, self.launched_at, self.training = int(event["job"]) + 1, now, ""
+            elif event["stopped"] is not None:
+                self.stopped[event["stopped"]] = self.stopped.get(event["stopped"], 0) + 1
             elif event["label"] is not None:
                 self.training = (
                     f"{event['label']}: loss {event['loss']} at iteration {event['iteration']}"
@@ -402,7 +408,8 @@ class Progress:
         moved = self.started > self.said
         minutes = (now - self.begun) / 60
         if self.bar is not None:
-            self.bar.n = max(0, min(self.started - (0 if final else 1), self.total))
+            ran = min(self.started - (0 if final else 1), self.total) - sum(self.stopped.values())
+            self.bar.n = max(0, ran)
             news = [
                 f"job {self.started}: {self.training}" if self.training else "",
                 "" if final else self._left(now),
@@ -412,9 +419,16 @@ class Progress:
             if final:
                 self.bar.close()
         if final and self.started:
+            ran = min(self.started, self.total) - sum(self.stopped.values())
             self.say(
-                f"{self.phase}: {min(self.started, self.total)} of {self.total} jobs run in "
-                f"{minutes:.1f} min"
+                f"{self.phase}: {ran} of {self.total} jobs run in {minutes:.1f} min"
+                + (
+                    ", then stopped ("
+                    + ", ".join(f"{n} {why}" for why, n in sorted(self.stopped.items()))
+                    + ")"
+                    if self.stopped
+                    else ""
+                )
             )
         elif (
             self.bar is None

@@ -279,6 +279,23 @@ def test_on_a_terminal_a_phase_draws_a_bar_of_its_jobs_and_ends_with_one_line():
     assert jobs.Progress("tune", 6, said.append, stream=io.StringIO()).bar is None
 
 
+def test_a_stopped_phase_says_the_jobs_it_ran_not_the_ones_its_launcher_skipped():
+    """A sweep stopped by a signal still logs a launch line for each job left (each then "never
+    started"), and names the running one "interrupted": the last line counts neither as run."""
+    import io
+
+    import physgrad.comparison.jobs as jobs
+
+    said = []
+    progress = jobs.Progress("tune", 6, said.append, stream=io.StringIO())
+    log = "".join(f"[HYDRA] \t#{k} : +compare_job=tune_v{k}\n" for k in range(6))
+    log += "[HYDRA] job +compare_job=tune_v3: interrupted: seed #0: SIGINT after 9 iterations\n"
+    log += "".join(f"[HYDRA] job +compare_job=tune_v{k}: never started\n" for k in (4, 5))
+    progress.read(log, final=True)
+    assert said[-1].startswith("tune: 3 of 6 jobs run in ")
+    assert said[-1].endswith(" min, then stopped (1 interrupted, 2 never started)")
+
+
 def test_the_time_left_counts_each_job_at_its_variants_pace(monkeypatch):
     """The time left counts each job not done at the mean time of the done jobs of its variant (a
     job of a variant with none done is not counted but said, the time "at least"), less what the
