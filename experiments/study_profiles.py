@@ -44,7 +44,11 @@ def print_claims_plan(profile: str, root: Path) -> None:
     for index, part in enumerate(claims_parts(profile), 1):
         seconds = sum(study.seconds() for study in part)
         total += seconds
-        longer = " (longer than a part: a machine that keeps its outputs, or a GPU)"
+        # a part resumes job by job, so a longer one still runs in boxes of a part's length
+        longer = (
+            f" (longer than a part: run it in boxes, `timeout -s INT {PART_SECONDS // 60:.0f}m` "
+            "before the command, until it exits 0)"
+        )
         print(
             f"part {index} (--part {index}): about {seconds / 60:.0f} min"
             + (longer if seconds > PART_SECONDS else "")
