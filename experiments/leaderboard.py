@@ -385,6 +385,13 @@ def page(found: dict, image: str) -> str:
                     + "."
                 )
             lines += [f"  {note}" for note in scene_notes(about)]
+        lines += [
+            "",
+            "A verdict holds for the machine its scene was calibrated on: the budget is a time, and each "
+            "rule's iterations in it follow from its step cost there. On a GPU the Jacobian and dense "
+            "quasi-Newton rules' steps cost several times fewer of Adam's than on 2 cores "
+            '(docs/benchmarks.md, "On a GPU"); to answer for a GPU, run the profile there.',
+        ]
     if missing:
         lines += [
             "",

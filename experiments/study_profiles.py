@@ -30,8 +30,7 @@ def claims_parts(profile: str) -> list:
 ON_2_CORES = "on a 2-core machine"
 PLAN_MACHINE = {
     "claims-gpu": "on one GPU (Poisson's jobs cost their calibrated budget whatever the step "
-    "costs; the Kuramoto-Sivashinsky jobs are costed at the 2-core machine's update, which was "
-    "not measured on a GPU)"
+    "costs; the Kuramoto-Sivashinsky jobs at one H200's update, 4.7 ms for ten networks)"
 }
 
 
