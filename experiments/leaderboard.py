@@ -105,10 +105,7 @@ def keep(root: Path, dest: Path) -> list[str]:
                 {
                     "machine": runs.machine,
                     "kept_by": commit(),
-                    "iterations": {
-                        str(v): float(np.median(group["iterations"]))
-                        for v, group in table.groupby("variant")
-                    },
+                    "iterations": iterations_in_budget(table),
                     "overrides": study_overrides(folder),
                     "undecided_by_the_clock": undecided_by_the_clock(folder),
                 },
@@ -380,7 +377,7 @@ def page(found: dict, image: str) -> str:
             )
             if its:
                 lines.append(
-                    "  Iterations in the budget (median over the runs): "
+                    "  Iterations in the budget (median over the runs that reached it): "
                     + ", ".join(f"{v} {its[v]:.0f}" for v in (BASELINE, *entry.rules) if v in its)
                     + "."
                 )
@@ -399,6 +396,15 @@ def page(found: dict, image: str) -> str:
             "Not run yet: " + ", ".join(f"{e.title} (`{e.name}`)" for e in missing) + ".",
         ]
     return "\n".join(lines + literature_lines(found)) + "\n"
+
+
+def iterations_in_budget(table) -> dict[str, float]:
+    """Each rule's median iterations over its runs that reached the budget: a run that diverged
+    stopped early, and its iterations say when, not how many the budget gives (a rule none of whose
+    runs reached the budget has none)."""
+    if "status" in table.columns:
+        table = table[table["status"] == "completed"]
+    return {str(v): float(np.median(group["iterations"])) for v, group in table.groupby("variant")}
 
 
 def literature_lines(found: dict) -> list[str]:

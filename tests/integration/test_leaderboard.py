@@ -337,3 +337,21 @@ def test_a_better_its_compare_found_undecided_by_the_clock_stays_undecided(tmp_p
     (evidence / "toy.json").write_text(json.dumps({**about, "tuning_studies": records}))
     with pytest.raises(UserError, match="undecided_by_the_clock: not pairs and fractions"):
         leaderboard.board(evidence)
+
+
+def test_the_iterations_in_the_budget_are_those_of_the_runs_that_reached_it():
+    """A diverged run stops early: its iterations say when, not what the budget gives. Seven of
+    SSBroyden's ten runs diverged after 110 to 585 iterations, three reached the budget at 1688:
+    1688, not the median of all ten (530). A rule none of whose runs reached the budget has no
+    figure; a table without statuses counts every run."""
+    import pandas as pd
+
+    table = pd.DataFrame(
+        {
+            "variant": ["ssbroyden"] * 10 + ["adam"] * 2 + ["gd"] * 2,
+            "status": ["completed"] * 3 + ["diverged"] * 7 + ["completed"] * 2 + ["diverged"] * 2,
+            "iterations": [1688] * 3 + [110, 300, 438, 482, 500, 560, 585] + [4270, 4270, 12, 40],
+        }
+    )
+    assert leaderboard.iterations_in_budget(table) == {"ssbroyden": 1688.0, "adam": 4270.0}
+    assert leaderboard.iterations_in_budget(table.drop(columns="status"))["gd"] == 26.0
