@@ -384,11 +384,11 @@ def page(found: dict, image: str) -> str:
             lines += [f"  {note}" for note in scene_notes(about)]
         lines += [
             "",
-            "A verdict holds for the machine its scene was calibrated on: the budget is a time, and each "
-            "rule's iterations in it follow from its step cost there. A GPU changes those costs against "
-            "Adam's (on one H200 a Jacobian or dense quasi-Newton step on the oscillators costs 4 to 5 "
-            'times fewer of Adam\'s than on 2 cores: docs/benchmarks.md, "On a GPU"); to answer for a GPU, '
-            "run the profile there.",
+            "A verdict holds for the machine its scene was calibrated on: the budget is a time, "
+            "and each rule's iterations in it follow from its step cost there. A GPU changes those "
+            "costs against Adam's (on one H200 a Jacobian or dense quasi-Newton step on the "
+            "oscillators costs 4 to 5 times fewer of Adam's than on 2 cores: docs/benchmarks.md, "
+            '"On a GPU"); to answer for a GPU, run the profile there.',
         ]
     if missing:
         lines += [
