@@ -38,7 +38,7 @@ from evidence import (  # experiments/
     undecided_by_the_clock,
     write_kept,
 )
-from leaderboard_detail import FOLDER, MARKS, link, scene_notes, scene_page
+from leaderboard_detail import FOLDER, MARKS, link, preset_line, scene_notes, scene_page
 from leaderboard_scenes import (
     BASELINE,
     LEADERBOARD_SEEDS,
@@ -359,29 +359,7 @@ def page(found: dict, image: str) -> str:
             lines.append(f"| {rule} | " + " | ".join(row) + " |")
         lines += ["", "## The scenes and their budgets", ""]
         for entry in scenes:
-            cells_, runs, about = found[entry.name]
-            studies = len(runs.tuning or (runs,))
-            its = about.get("iterations") or {}
-            clock = "calibrated clock" if runs.axis == "calibrated_time" else runs.axis
-            budget = f"{runs.budget:g} s ({clock})"
-            lines.append(
-                f"- **{entry.title}** (`{' '.join(entry.overrides)}`): {budget}; "
-                f"{studies} of {LEADERBOARD_STUDIES} tuning studies finished"
-                + (
-                    " (its verdicts are those of the studies run so far: preliminary)"
-                    if studies < LEADERBOARD_STUDIES
-                    else ""
-                )
-                + (f"; on {runs.machine}" if runs.machine else "")
-                + "."
-            )
-            if its:
-                lines.append(
-                    "  Iterations in the budget (median over the runs that reached it): "
-                    + ", ".join(f"{v} {its[v]:.0f}" for v in (BASELINE, *entry.rules) if v in its)
-                    + "."
-                )
-            lines += [f"  {note}" for note in scene_notes(about)]
+            lines += scene_budget_lines(entry, *found[entry.name][1:])
         lines += [
             "",
             "A verdict holds for the machine its scene was calibrated on: the budget is a time, "
@@ -396,6 +374,37 @@ def page(found: dict, image: str) -> str:
             "Not run yet: " + ", ".join(f"{e.title} (`{e.name}`)" for e in missing) + ".",
         ]
     return "\n".join(lines + literature_lines(found)) + "\n"
+
+
+def scene_budget_lines(entry, runs, about: dict) -> list[str]:
+    """A scene's item under "The scenes and their budgets": its overrides, budget, studies run and
+    machine; each rule's iterations in the budget; its per-rule presets; its clocks' notes."""
+    lines = []
+    studies = len(runs.tuning or (runs,))
+    its = about.get("iterations") or {}
+    clock = "calibrated clock" if runs.axis == "calibrated_time" else runs.axis
+    budget = f"{runs.budget:g} s ({clock})"
+    lines.append(
+        f"- **{entry.title}** (`{' '.join(entry.overrides)}`): {budget}; "
+        f"{studies} of {LEADERBOARD_STUDIES} tuning studies finished"
+        + (
+            " (its verdicts are those of the studies run so far: preliminary)"
+            if studies < LEADERBOARD_STUDIES
+            else ""
+        )
+        + (f"; on {runs.machine}" if runs.machine else "")
+        + "."
+    )
+    if its:
+        lines.append(
+            "  Iterations in the budget (median over the runs that reached it): "
+            + ", ".join(f"{v} {its[v]:.0f}" for v in (BASELINE, *entry.rules) if v in its)
+            + "."
+        )
+    presets = preset_line(entry)
+    lines += [f"  {presets}"] if presets else []
+    lines += [f"  {note}" for note in scene_notes(about)]
+    return lines
 
 
 def iterations_in_budget(table) -> dict[str, float]:

@@ -9,6 +9,7 @@ leaderboard is: the study folders' compare.md are not kept, this is what stands 
 from __future__ import annotations
 
 import math
+from pathlib import Path
 
 from leaderboard_scenes import BASELINE, LEADERBOARD_STUDIES, RULES
 
@@ -58,6 +59,64 @@ def clock_groups(by_study: dict, tolerance: float = 0.01) -> list[list[str]]:
         else:
             groups.append([key])
     return groups
+
+
+ROOT = Path(__file__).resolve().parent.parent
+
+
+def _value(value) -> str:
+    return str(value).lower() if isinstance(value, bool) else str(value)
+
+
+def _setting(key: str, value) -> str:
+    """One preset setting as key=value; a schedule (a dict with _target_) as its optax function
+    with its arguments, its init_value left out (that is what compare tunes)."""
+    if isinstance(value, dict) and "_target_" in value:
+        args = ", ".join(
+            f"{k}={_value(v)}" for k, v in value.items() if k not in ("_target_", "init_value")
+        )
+        return f"{key}={str(value['_target_']).rsplit('.', 1)[-1]}({args})"
+    return f"{key}={_value(value)}"
+
+
+def preset_settings(entry) -> dict[str, list[str]]:
+    """Per rule of a scene, the settings its per-scene preset (conf/tuning/<task>_<rule>.yaml,
+    composed by physgrad's config for that task and optim: batch sizes, damping, a schedule's shape
+    from the papers) gives it, the learning rate left out (compare tunes it); rules without one
+    run at their conf/optim preset and the scene's settings."""
+    from omegaconf import OmegaConf
+
+    folders = [ROOT / "conf" / "tuning"]
+    if entry.config_dir:
+        folders.insert(0, ROOT / entry.config_dir / "tuning")
+    found = {}
+    for rule in (BASELINE, *entry.rules):
+        paths = [f / f"{entry.name}_{rule}.yaml" for f in folders]
+        path = next((p for p in paths if p.is_file()), None)
+        if path is None:
+            continue
+        settings = []
+        for group, values in (OmegaConf.to_container(OmegaConf.load(path)) or {}).items():
+            for key, value in (values or {}).items():
+                if group == "optim" and key == "learning_rate" and not isinstance(value, dict):
+                    continue
+                settings.append(_setting(f"{group}.{key}", value))
+        if settings:
+            found[rule] = settings
+    return found
+
+
+def preset_line(entry) -> str | None:
+    """The sentence that names a scene's per-rule presets (none where no rule has one)."""
+    found = preset_settings(entry)
+    if not found:
+        return None
+    return (
+        f"Per-rule settings from the papers (conf/tuning/{entry.name}_<rule>.yaml; the learning "
+        "rate, or a schedule's init_value, is tuned): "
+        + "; ".join(f"{rule} {', '.join(settings)}" for rule, settings in found.items())
+        + ". The other rules run at their presets (conf/optim) with the scene's settings."
+    )
 
 
 def _studies(keys: list[str]) -> str:

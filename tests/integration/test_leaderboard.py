@@ -355,3 +355,36 @@ def test_the_iterations_in_the_budget_are_those_of_the_runs_that_reached_it():
     )
     assert leaderboard.iterations_in_budget(table) == {"ssbroyden": 1688.0, "adam": 4270.0}
     assert leaderboard.iterations_in_budget(table.drop(columns="status"))["gd"] == 26.0
+
+
+@pytest.mark.parametrize("scene", ["oscillator", "ks"])
+def test_the_per_rule_presets_said_are_those_a_run_of_the_scene_composes(scene):
+    """The scene notes name each rule's per-scene preset (conf/tuning); every setting named is the
+    one Hydra composes for a run of that scene and rule (a schedule by its optax function and
+    arguments), and a rule not named composes the scene's and its optim's own values."""
+    from omegaconf import OmegaConf
+
+    from physgrad.configs import compose
+
+    entry = next(e for e in leaderboard_scenes.SCENES if e.name == scene)
+    presets = leaderboard_detail.preset_settings(entry)
+    assert presets and set(presets) <= {"adam", *entry.rules}
+    plain = compose(entry.overrides)
+    for rule, settings in presets.items():
+        cfg = compose([*entry.overrides, f"optim={rule}"])
+        for setting in settings:
+            key, said = setting.split("=", 1)
+            value = OmegaConf.select(cfg, key)
+            if OmegaConf.is_dict(value):
+                target = value._target_.rsplit(".", 1)[-1]
+                assert said.startswith(f"{target}(") and "init_value" not in said
+                for arg in said[len(target) + 1 : -1].split(", "):
+                    name, text = arg.split("=")
+                    assert str(value[name]).lower() == text.lower(), (rule, setting)
+            else:
+                assert str(value).lower() == said.lower(), (rule, setting)
+    unnamed = next(r for r in entry.rules if r not in presets)
+    cfg = compose([*entry.overrides, f"optim={unnamed}"])
+    assert cfg.task.batch_size == plain.task.batch_size
+    line = leaderboard_detail.preset_line(entry)
+    assert all(rule in line for rule in presets) and f"{unnamed} " not in line
