@@ -38,7 +38,16 @@ from evidence import (  # experiments/
     undecided_by_the_clock,
     write_kept,
 )
-from leaderboard_detail import FOLDER, MARKS, link, preset_line, scene_notes, scene_page
+from leaderboard_detail import (
+    FOLDER,
+    MARKS,
+    link,
+    preset_line,
+    scene_notes,
+    scene_page,
+    wall_line,
+    wall_seconds_in_budget,
+)
 from leaderboard_scenes import (
     BASELINE,
     LEADERBOARD_SEEDS,
@@ -106,6 +115,7 @@ def keep(root: Path, dest: Path) -> list[str]:
                     "machine": runs.machine,
                     "kept_by": commit(),
                     "iterations": iterations_in_budget(table),
+                    "wall_seconds": wall_seconds_in_budget(table),
                     "overrides": study_overrides(folder),
                     "undecided_by_the_clock": undecided_by_the_clock(folder),
                 },
@@ -401,8 +411,9 @@ def scene_budget_lines(entry, runs, about: dict) -> list[str]:
             + ", ".join(f"{v} {its[v]:.0f}" for v in (BASELINE, *entry.rules) if v in its)
             + "."
         )
-    presets = preset_line(entry)
+    presets, wall = preset_line(entry), wall_line(about)
     lines += [f"  {presets}"] if presets else []
+    lines += [f"  {wall}"] if wall else []
     lines += [f"  {note}" for note in scene_notes(about)]
     return lines
 

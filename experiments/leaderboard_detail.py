@@ -9,6 +9,7 @@ leaderboard is: the study folders' compare.md are not kept, this is what stands 
 from __future__ import annotations
 
 import math
+import statistics
 from pathlib import Path
 
 from leaderboard_scenes import BASELINE, LEADERBOARD_STUDIES, RULES
@@ -116,6 +117,62 @@ def preset_line(entry) -> str | None:
         "rate, or a schedule's init_value, is tuned): "
         + "; ".join(f"{rule} {', '.join(settings)}" for rule, settings in found.items())
         + ". The other rules run at their presets (conf/optim) with the scene's settings."
+    )
+
+
+def wall_seconds_in_budget(table) -> dict[str, float]:
+    """Each rule's median wall-clock training seconds over its runs that reached the budget (not
+    compiling): what the calibrated budget cost it on the machine that ran it (none from a runs.csv
+    without train_seconds)."""
+    if "train_seconds" not in table.columns:
+        return {}
+    if "status" in table.columns:
+        table = table[table["status"] == "completed"]
+    return {
+        str(v): float(statistics.median(group["train_seconds"]))
+        for v, group in table.groupby("variant")
+    }
+
+
+def wall_ratios(about: dict) -> dict[str, float]:
+    """Per rule, its median wall-clock seconds of training in a run over Adam's in the same tuning
+    study, the median over the studies that recorded both (a study's load slows its rules alike,
+    so the ratio within a study is what the rule's steps cost)."""
+    ratios: dict[str, list[float]] = {}
+    for record in (about.get("tuning_studies") or {}).values():
+        wall = record.get("wall_seconds") or {}
+        adam = wall.get(BASELINE, math.nan)
+        for rule, seconds in wall.items():
+            if rule != BASELINE and adam > 0 and math.isfinite(seconds / adam):
+                ratios.setdefault(rule, []).append(seconds / adam)
+    return {rule: statistics.median(values) for rule, values in ratios.items()}
+
+
+WALL_FACTOR = 1.5  # a rule whose runs took this factor longer (or shorter) than Adam's is named
+
+
+def wall_line(about: dict) -> str | None:
+    """The sentence that names the rules whose runs took a different wall-clock time from Adam's
+    at the same calibrated budget (none where every rule's is within WALL_FACTOR)."""
+    ratios = wall_ratios(about)
+    far = {r: x for r, x in ratios.items() if x >= WALL_FACTOR or x <= 1 / WALL_FACTOR}
+    if not ratios:
+        return None
+    counted = sum(bool(s.get("wall_seconds")) for s in (about.get("tuning_studies") or {}).values())
+    if not far:
+        return (
+            f"Wall-clock time of a run: every rule's within {WALL_FACTOR:g}x of {BASELINE}'s "
+            f"(median over {counted} tuning {'study' if counted == 1 else 'studies'})."
+        )
+    return (
+        f"Wall-clock time of a run against {BASELINE}'s at the same calibrated budget (median "
+        f"over {counted} tuning {'study' if counted == 1 else 'studies'}): "
+        + ", ".join(f"{r} {x:.2g}x" for r, x in sorted(far.items(), key=lambda i: -i[1]))
+        + f"; the others within {WALL_FACTOR:g}x. The clock counts each step at its calibrated "
+        "cost, and a step whose cost varies along a run (a line search's evaluations; PSGD "
+        "Kron's preconditioner update, at every step for the first 500 and rarer after) can cost "
+        "more or less in the runs than in the calibration, which times the first steps: above 1x "
+        f"the rule had more time than {BASELINE}, below 1x less."
     )
 
 

@@ -388,3 +388,34 @@ def test_the_per_rule_presets_said_are_those_a_run_of_the_scene_composes(scene):
     assert cfg.task.batch_size == plain.task.batch_size
     line = leaderboard_detail.preset_line(entry)
     assert all(rule in line for rule in presets) and f"{unnamed} " not in line
+
+
+def test_the_wall_clock_ratios_are_within_a_study_then_the_median_over_studies():
+    """Known answers: a rule's wall-clock seconds over Adam's in the same study (a loaded study
+    slows both), the median over the studies that recorded both; only the rules beyond 1.5x
+    either way are named; a study kept before wall seconds were recorded does not count."""
+    import pandas as pd
+
+    table = pd.DataFrame(
+        {
+            "variant": ["adam", "adam", "ssbroyden", "ssbroyden", "ssbroyden"],
+            "status": ["completed", "completed", "completed", "completed", "diverged"],
+            "train_seconds": [20.0, 24.0, 100.0, 120.0, 3.0],
+        }
+    )
+    assert leaderboard_detail.wall_seconds_in_budget(table) == {"adam": 22.0, "ssbroyden": 110.0}
+    studies = {
+        "1": {"wall_seconds": {"adam": 20.0, "lbfgs": 60.0, "psgd_kron": 10.0, "soap": 21.0}},
+        "2": {"wall_seconds": {"adam": 40.0, "lbfgs": 80.0, "psgd_kron": 28.0, "soap": 40.0}},
+        "3": {"wall_seconds": {"adam": 10.0, "lbfgs": 40.0, "psgd_kron": 6.0, "soap": 9.0}},
+        "4": {"iterations": {"adam": 100.0}},
+    }
+    ratios = leaderboard_detail.wall_ratios({"tuning_studies": studies})
+    assert ratios == pytest.approx({"lbfgs": 3.0, "psgd_kron": 0.6, "soap": 1.0})
+    line = leaderboard_detail.wall_line({"tuning_studies": studies})
+    assert "median over 3 tuning studies" in line
+    assert "lbfgs 3x" in line and "psgd_kron 0.6x" in line and "soap" not in line
+    even = {"1": {"wall_seconds": {"adam": 20.0, "soap": 21.0}}}
+    assert "within 1.5x" in leaderboard_detail.wall_line({"tuning_studies": even})
+    assert leaderboard_detail.wall_line({"tuning_studies": {"1": {}}}) is None
+    assert leaderboard_detail.wall_seconds_in_budget(table.drop(columns="train_seconds")) == {}
