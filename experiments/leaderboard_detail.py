@@ -123,14 +123,17 @@ def preset_line(entry) -> str | None:
 def wall_seconds_in_budget(table) -> dict[str, float]:
     """Each rule's median wall-clock training seconds over its runs that reached the budget (not
     compiling): what the calibrated budget cost it on the machine that ran it (none from a runs.csv
-    without train_seconds)."""
+    without train_seconds). A run of a job whose N seeds trained together counts 1/N of the job's
+    time (wall_time_shared_by): on a CPU a vectorised step of N members costs about N of one."""
     if "train_seconds" not in table.columns:
         return {}
     if "status" in table.columns:
         table = table[table["status"] == "completed"]
+    seconds = table["train_seconds"]
+    if "wall_time_shared_by" in table.columns:
+        seconds = seconds / table["wall_time_shared_by"].fillna(1).clip(lower=1)
     return {
-        str(v): float(statistics.median(group["train_seconds"]))
-        for v, group in table.groupby("variant")
+        str(v): float(statistics.median(group)) for v, group in seconds.groupby(table["variant"])
     }
 
 

@@ -97,9 +97,42 @@ class Study:
     def timed(self) -> bool:
         return any(o.startswith("trainer.time_budget=") for o in self.overrides)
 
+    def searching(self, preset: bool = False) -> int:
+        """How many of the study's variants are of a rule that searches a line (L-BFGS, SSBFGS,
+        SSBroyden: capabilities.line_search), whose evaluation seeds train one job each."""
+        overrides = self.preset_overrides(preset)
+        optims = next((_values(o) for o in overrides if o.startswith("optim=")), ["adam"])
+        searching = sum(_searches(name) for name in optims)
+        return searching * (self.variants(preset) // len(optims))
+
+    @property
+    def measured_clock(self) -> bool:
+        return self.timed and "compare.clock=measured" in self.overrides
+
     def eval_jobs(self, preset: bool = False) -> int:
-        per_seed = self.timed or self.start is not None
-        return self.variants(preset) * (self.seeds if per_seed else 1)
+        """A tuning study's evaluation jobs as compare launches them (tuning.seeds_together): a
+        variant's seeds in one job, but one job per seed on the measured clock, for networks
+        continued from their own start (init_from) and for a rule that searches a line."""
+        if self.measured_clock or self.start is not None:
+            return self.variants(preset) * self.seeds
+        alone = self.searching(preset)
+        return self.variants(preset) - alone + alone * self.seeds
+
+    def eval_job_seconds(self, preset: bool = False) -> float:
+        """The evaluation's expected time in one tuning study: eval_seconds a job, plus, for a
+        time budget, each further seed's budget in a job whose seeds train together."""
+        together = self.eval_jobs(preset) - self.searching(preset) * self.seeds
+        if not self.timed or self.measured_clock or self.start is not None:
+            together = 0
+        return self.eval_jobs(preset) * self.eval_seconds + together * (self.seeds - 1) * (
+            self.time_budget
+        )
+
+    @property
+    def time_budget(self) -> float:
+        """The time budget in seconds (0 for a budget in iterations)."""
+        given = [o for o in self.overrides if o.startswith("trainer.time_budget=")]
+        return float(given[0].partition("=")[2]) if given else 0.0
 
     def clock(self, root: Path) -> Path | None:
         """The calibration a tuning study after the first and the presets' twin run on: the
@@ -152,16 +185,23 @@ class Study:
         calibration."""
         new = 1 if self.tuning_study else self.studies  # the tuning studies this command runs
         trials = self.trials if self.tune else 0
-        total = new * (
-            trials * self.variants() * self.tune_seconds + self.eval_jobs() * self.eval_seconds
-        )
-        total += self.eval_jobs(preset=True) * self.eval_seconds if self.twin else 0.0
+        total = new * (trials * self.variants() * self.tune_seconds + self.eval_job_seconds())
+        total += self.eval_job_seconds(preset=True) if self.twin else 0.0
         if self.start:
             seeds = set(self.start_seeds()) | set(self.start_seeds(True) if self.twin else ())
             total += len(seeds) * self.start.job_seconds
         # the first tuning study calibrates the clock; the later ones run on it (kept or in root)
         calibrates = self.timed and self.tuning_study <= 1
         return total + (30.0 * self.variants() if calibrates else 0.0)
+
+
+def _searches(optim: str) -> bool:
+    """Whether the rule of conf/optim/<optim>.yaml searches a line (capabilities.line_search)."""
+    from physgrad.configs import CONF_DIR
+    from physgrad.optim.capabilities import capabilities
+
+    path = CONF_DIR / "optim" / f"{optim}.yaml"
+    return path.is_file() and capabilities(yaml.safe_load(path.read_text())).line_search
 
 
 def _values(override: str) -> list[str]:

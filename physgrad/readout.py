@@ -193,6 +193,13 @@ def number_attr(run: Run, key: str) -> float:
     )
 
 
+def _shared_by(run: Run) -> int:
+    """How many members trained together in the run's job (1 for a run alone, or a file that does
+    not say)."""
+    shared = number_attr(run, "wall_time_shared_by")
+    return int(shared) if math.isfinite(shared) and shared >= 1 else 1
+
+
 def run_record(
     run: Run, target: float, axis: str | None = None, budget: float | None = None
 ) -> dict:
@@ -203,7 +210,9 @@ def run_record(
     inf if it had diverged by then, NaN if it ended before without a loss), diverged_by_budget, the
     target and its time_to_target (seconds, time_to_target), what it cost (iterations,
     train_seconds, calibrated_seconds, compile_seconds, first_step_overhead_seconds,
-    step_seconds_p50/p90), whether its timing was contended and where it ran (machine)."""
+    step_seconds_p50/p90; wall_time_shared_by: how many seeds or trials trained together in its
+    job, whose train_seconds they share), whether its timing was contended and where it ran
+    (machine)."""
     from physgrad.machine import machine_label
 
     own_axis, own_budget = run_budget(run)
@@ -226,6 +235,7 @@ def run_record(
         time_to_target=time_to_target(run, target, budget, axis),
         iterations=int(last) + 1 if math.isfinite(last) else 0,
         train_seconds=run.final("train", "wall_time"),
+        wall_time_shared_by=_shared_by(run),
         calibrated_seconds=run.final("train", "calibrated_time"),
         compile_seconds=number_attr(run, "compile_seconds"),
         first_step_overhead_seconds=number_attr(run, "first_step_overhead_seconds"),

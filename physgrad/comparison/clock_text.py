@@ -92,17 +92,15 @@ def _calibration_lines(variants: list[Variant], runs: pd.DataFrame, calibration:
         "variant gets. The measured clock: compare.clock=measured.",
         "",
         "| variant | calibrated step cost [interval] | median in the calibration | rounds | "
-        "measured p50 in the runs | contended runs |",
+        "measured p50 in the runs, per seed | contended runs |",
         "|---|---|---|---|---|---|",
     ]
     for variant in variants:
         cost = calibration["costs"][variant.name]
         sub = runs[runs.variant == variant.name] if len(runs) else runs
-        p50 = (
-            float(np.nanmedian(sub["step_seconds_p50"]))
-            if len(sub) and sub["step_seconds_p50"].notna().any()
-            else math.nan
-        )
+        # a step of seeds trained together is theirs: its share per seed is what one run's costs
+        step = sub["step_seconds_p50"] / sub.get("wall_time_shared_by", 1) if len(sub) else None
+        p50 = float(np.nanmedian(step)) if step is not None and step.notna().any() else math.nan
         lines.append(
             f"| {variant.name} | {fmt(cost['step_seconds'])} s{_interval_text(cost)} | "
             f"{fmt(cost['median_seconds'])} s | "

@@ -1,7 +1,8 @@
 """Phase 2 of a study: each variant at each tuning study's best settings on compare.seeds paired
 seeds, each study on its own block of seeds (StudySettings.study_seeds), so that the studies'
 evaluations are independent (trained together in one vectorised step when the budget is in
-iterations; one job per seed, variants interleaved, for time budgets)."""
+iterations or on the calibrated clock; one job per seed, variants interleaved, on the measured
+clock)."""
 
 from __future__ import annotations
 
@@ -28,12 +29,13 @@ def evaluation_jobs(
     budget: float,
 ) -> dict[str, str]:
     """The evaluation's jobs in launch order, for each tuning study's best settings (best[k]): per
-    variant one job of all seeds trained together when the budget is in iterations (one per seed
+    variant one job of all seeds trained together when the budget is in iterations or on the
+    calibrated clock (axis "iteration" or "calibrated_time": tuning.seeds_together; one per seed
     where init_from starts each seed from its own network, e.g.
-    init_from='start/seed=${seed}/results.h5', and for a rule that searches a line); for time
-    budgets one job per seed, variants and studies interleaved (A, B, C of each study for the
-    first seed, then the next), so that a drift in the machine's load does not line up with a
-    variant or a study."""
+    init_from='start/seed=${seed}/results.h5', and for a rule that searches a line); on the
+    measured clock ("wall_time") one job per seed, variants and studies interleaved (A, B, C of
+    each study for the first seed, then the next), so that a drift in the machine's load does not
+    line up with a variant or a study."""
     jobs = {}
 
     def spec(study: int, variant: Variant, seed: int, count: int) -> str:
@@ -49,11 +51,11 @@ def evaluation_jobs(
         )
         return job_yaml([*common, *variant.overrides], groups, values)
 
-    if axis == "iteration":
+    if axis in ("iteration", "calibrated_time"):
         for study in range(len(best)):
             seeds = settings.study_seeds(study)
             for index, variant in enumerate(variants):
-                if not seeds_together(variant) and len(seeds) > 1:
+                if not seeds_together(variant, axis) and len(seeds) > 1:
                     for seed in seeds:
                         jobs[evaluation_job(study, index, seed)] = spec(study, variant, seed, 1)
                 else:
@@ -82,7 +84,7 @@ def evaluation(
     (one line, the first such job and how many), never a verdict from other runs."""
     variants, folder, axis = plan.variants, launcher.folder, plan.axis
     jobs = evaluation_jobs(
-        variants, best, plan.settings, plan.common, plan.groups, axis, plan.budget
+        variants, best, plan.settings, plan.common, plan.groups, plan.members_axis, plan.budget
     )
     launcher.run("eval", jobs, {name: variants[variant_index(name)].config for name in jobs})
     curves, statuses, problems = [], [], []

@@ -116,14 +116,6 @@ def measure(
     return Measured(compile_seconds, step, *evaluations, build_seconds)
 
 
-def tuning_axis(plan: StudyPlan) -> str:
-    """The axis the tuning's trials train on: a time budget on the calibrated clock counts as
-    calibrated time there."""
-    if plan.axis == "iteration" or plan.settings.clock != "calibrated":
-        return plan.axis
-    return "calibrated_time"
-
-
 def members(plan: StudyPlan, variant: Variant) -> tuple[int, dict | None]:
     """How a job of the variant trains its runs, as the plan times it: (1, the first tuning
     study's trial points, key by key) where its trials train in one vectorised job, as that job
@@ -131,10 +123,10 @@ def members(plan: StudyPlan, variant: Variant) -> tuple[int, dict | None]:
     from physgrad.comparison.tuning import seeds_together, trials_together
 
     settings = plan.settings
-    if settings.tune and trials_together(variant, tuning_axis(plan)):
+    if settings.tune and trials_together(variant, plan.members_axis):
         points = planned_points(plan)[variant.name]  # the first tuning study's come first
         return 1, {key: points[key][: settings.trials] for key in sorted(points)}
-    together = plan.axis == "iteration" and seeds_together(variant)
+    together = seeds_together(variant, plan.members_axis)
     return (settings.seeds if together else 1), None
 
 
@@ -247,9 +239,10 @@ def variant_cost(
     """The study's jobs of one variant, costed: each job's own cost (start_up), building its scene
     and data (measured.build_seconds), compiling once (a study's trials trained together: one
     job), training to the budget (iterations x step cost, or the time budget) and evaluating the
-    test set as the runner does (evaluations_per_run); the evaluation of an iteration budget trains
-    its seeds in one job, counted as seeds x the step and evaluation per run (measured: per run of
-    a vectorised job where the runs train together, members)."""
+    test set as the runner does (evaluations_per_run); the evaluation of a budget in iterations or
+    on the calibrated clock trains its seeds in one job (tuning.seeds_together), counted as seeds x
+    the step and evaluation per run (measured: per run of a vectorised job where the runs train
+    together, members)."""
     settings = plan.settings
     studies, seeds = settings.study_count, settings.seeds
     step_s = measured.step_seconds
@@ -261,9 +254,9 @@ def variant_cost(
     from physgrad.comparison.tuning import seeds_together, trials_together
 
     # a study's trials of a variant in one vectorised job where the tuning trains them together
-    together = tuning_runs and trials_together(variant, tuning_axis(plan))
+    together = tuning_runs and trials_together(variant, plan.members_axis)
     tuning_jobs = studies if together else tuning_runs
-    together = plan.axis == "iteration" and seeds_together(variant)
+    together = seeds_together(variant, plan.members_axis)
     jobs = studies if together else studies * seeds
     evaluation = jobs * per_job + studies * seeds * (train + held_out)
     return VariantCost(

@@ -170,6 +170,15 @@ class StudyPlan:
     axis: str
     budget: float
 
+    @property
+    def members_axis(self) -> str:
+        """The axis a job's members (trials, seeds) train and stop on together: the budget's, but
+        calibrated_time for a time budget on the calibrated clock, where every member runs the
+        iterations its variant's calibrated cost allows, whatever the machine's load."""
+        if self.axis == "iteration" or self.settings.clock != "calibrated":
+            return self.axis
+        return "calibrated_time"
+
 
 def learning_rate_key(optim_cfg: DictConfig) -> str | None:
     """The optim key compare tunes: learning_rate, or learning_rate.init_value where the rate is a

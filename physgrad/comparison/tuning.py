@@ -211,15 +211,21 @@ def trials_together(variant: Variant, axis: str) -> bool:
     return True
 
 
-def seeds_together(variant: Variant) -> bool:
-    """Whether a variant's evaluation seeds (with a budget in iterations) train together in one
-    vectorised job: not where init_from starts each from its own network, nor for a rule that
-    searches a line (trained together, every seed would wait for the slowest one's evaluations at
-    every step: capabilities.line_search)."""
+def seeds_together(variant: Variant, axis: str) -> bool:
+    """Whether a variant's evaluation seeds train together in one vectorised job: with a budget in
+    iterations or on the calibrated clock (axis "iteration" or "calibrated_time": every seed runs
+    the same number of steps, whatever the machine's load), not on the measured clock (one job per
+    seed, interleaved: load must hit every variant alike); not where init_from starts each from its
+    own network, nor for a rule that searches a line (trained together, every seed would wait for
+    the slowest one's evaluations at every step: capabilities.line_search)."""
     from physgrad.optim.capabilities import capabilities
 
     searches = capabilities(variant.config.optim).line_search
-    return not variant.config.get("init_from") and not searches
+    return (
+        axis in ("iteration", "calibrated_time")
+        and not variant.config.get("init_from")
+        and not searches
+    )
 
 
 def batch_job(study: int, index: int, numbers: list[int]) -> str:

@@ -105,6 +105,12 @@ def test_equal_time_evaluations_interleave_the_variants_and_equal_iterations_tra
     assert "seed: 0" in counted["eval_v1"] and "seed: 3" in counted["eval_st1_v1"]
     assert "learning_rate: 0.01" in counted["eval_v1"] and "eval_every: 15" in counted["eval_v1"]
     assert "learning_rate: 0.02" in counted["eval_st1_v1"]
+    # on the calibrated clock every seed runs the same steps whatever the load: together, as counted
+    calibrated = evaluation_jobs(
+        variants, best, s, common, {"task", "optim"}, "calibrated_time", 5.0
+    )
+    assert list(calibrated) == list(counted)
+    assert "seeds: 3" in calibrated["eval_st1_v0"] and "seed: 3" in calibrated["eval_st1_v0"]
     # a rule that searches a line: one job per seed, each of one seed
     settings, axes, common, _ = split_overrides(
         ["task=toy", "optim=adam,lbfgs", "trainer.iterations=300"]
@@ -301,6 +307,10 @@ def test_an_equal_time_study_runs_on_the_calibrated_clock_and_can_reuse_a_calibr
         assert row.iterations == math.ceil(0.4 / cost - 1e-9) or row.status != "completed", row
         assert row.calibrated_seconds == pytest.approx(row.iterations * cost)
     assert "Clock: calibrated" in study.text and "contended runs A, B" in study.text
+    # each variant's 6 evaluation seeds trained together in one job, which their files record
+    jobs = sorted(p.name for p in (study.folder / "eval").glob("+compare_job=*"))
+    assert jobs == ["+compare_job=eval_v0", "+compare_job=eval_v1"]
+    assert set(study.runs.wall_time_shared_by) == {6}
     again = physgrad.compare(
         *common,
         f"compare.calibration={study.folder / 'calibration.json'}",
@@ -549,22 +559,23 @@ def test_the_plan_costs_every_job_of_a_study_from_compile_and_step_times():
     timed = StudyPlan([adam, gauss_newton], s, common, {"task", "optim"}, "wall_time", 5.0)
     cost = variant_cost(timed, adam, measured, start_up=3.0)
     # 1 + 500 iterations / 100 + 20 (every 5 / 20 s) = 26 evaluations: 0.5 + 25 x 0.1 = 3 s; the
-    # trials train together on the calibrated clock
+    # trials, and each study's seeds, train together on the calibrated clock
     assert cost.tuning_seconds == pytest.approx(2 * 5.0 + 8 * (5.0 + 3.0))
-    assert cost.evaluation_jobs == 12
-    assert cost.seconds == pytest.approx(2 * 5.0 + 8 * 8.0 + 12 * 5.0 + 12 * (5.0 + 3.0))
+    assert cost.evaluation_jobs == 2
+    assert cost.seconds == pytest.approx(2 * 5.0 + 8 * 8.0 + 2 * 5.0 + 12 * (5.0 + 3.0))
     # on the measured clock each trial is a job of its own
     measured_clock = study_settings({**settings, "seeds": 6, "clock": "measured"})
     alone = StudyPlan([adam], measured_clock, common, {"task", "optim"}, "wall_time", 5.0)
-    assert variant_cost(alone, adam, measured, start_up=3.0).tuning_seconds == pytest.approx(
-        8 * (5.0 + 5.0 + 3.0)
-    )
+    alone_cost = variant_cost(alone, adam, measured, start_up=3.0)
+    assert alone_cost.tuning_seconds == pytest.approx(8 * (5.0 + 5.0 + 3.0))
+    # and each evaluation seed too
+    assert alone_cost.evaluation_jobs == 12
     # without start-up and evaluations: compile and training alone
     bare = variant_cost(timed, adam, Measured(2.0, 0.01, 0.0, 0.0))
-    assert bare.seconds == pytest.approx(2 * 2.0 + 8 * 5.0 + 12 * 7.0)
+    assert bare.seconds == pytest.approx(2 * 2.0 + 8 * 5.0 + 2 * 2.0 + 12 * 5.0)
     # building the scene and data: once per job, like the compile
     built = variant_cost(timed, adam, Measured(2.0, 0.01, 0.0, 0.0, build_seconds=1.5))
-    assert built.seconds == pytest.approx(bare.seconds + (2 + 12) * 1.5)
+    assert built.seconds == pytest.approx(bare.seconds + (2 + 2) * 1.5)
 
 
 def test_the_plan_times_a_tuning_job_at_the_trial_points_it_will_train(monkeypatch):
@@ -681,7 +692,12 @@ def test_which_variants_train_their_trials_together():
         "lbfgs": False,
         "ssbfgs": False,
     }
-    assert {v.name for v in variants if not seeds_together(v)} == {"lbfgs", "ssbfgs"}
+    assert {v.name for v in variants if not seeds_together(v, "iteration")} == {"lbfgs", "ssbfgs"}
+    assert {v.name for v in variants if not seeds_together(v, "calibrated_time")} == {
+        "lbfgs",
+        "ssbfgs",
+    }
+    assert not any(seeds_together(v, "wall_time") for v in variants)
     assert trials_together(variants[0], "calibrated_time")
     assert not trials_together(variants[0], "wall_time")
 

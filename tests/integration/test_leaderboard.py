@@ -149,6 +149,9 @@ def test_every_scene_is_a_compare_with_adam_as_baseline_and_parts_stay_near_80_m
             assert f"compare.tune_seed={TUNE_SEED + k - 1}" in overrides
             assert f"compare.seed={(k - 1) * leaderboard_scenes.LEADERBOARD_SEEDS}" in overrides
             assert "compare.studies=1" in entry.study(k).command(REPO)
+    ks = next(e for e in leaderboard_scenes.SCENES if e.name == "ks").study(2)
+    # on the calibrated clock a rule's seeds train in one job, but for the three that search a line
+    assert ks.searching() == 3 and ks.eval_jobs() == 8 + 3 * ks.seeds
     parts = chunks(leaderboard_scenes.LEADERBOARD)
     # every part is one tuning study of one scene (the plan's figure is an upper bound: one job
     # per trial), each in a folder of its own
@@ -404,6 +407,13 @@ def test_the_wall_clock_ratios_are_within_a_study_then_the_median_over_studies()
         }
     )
     assert leaderboard_detail.wall_seconds_in_budget(table) == {"adam": 22.0, "ssbroyden": 110.0}
+    # Adam's seeds trained together, 10 to a job: each run counts a tenth of its job's time
+    together = table.assign(wall_time_shared_by=[10, 10, 1, 1, 1])
+    together["train_seconds"] = [200.0, 240.0, 100.0, 120.0, 3.0]
+    assert leaderboard_detail.wall_seconds_in_budget(together) == {
+        "adam": 22.0,
+        "ssbroyden": 110.0,
+    }
     studies = {
         "1": {"wall_seconds": {"adam": 20.0, "lbfgs": 60.0, "psgd_kron": 10.0, "soap": 21.0}},
         "2": {"wall_seconds": {"adam": 40.0, "lbfgs": 80.0, "psgd_kron": 28.0, "soap": 40.0}},

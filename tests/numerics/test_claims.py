@@ -5,6 +5,7 @@ target) decided by physgrad's rules on synthetic curves with known answers."""
 
 import math
 import sys
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -108,7 +109,14 @@ def test_a_study_command_names_its_folder_seeds_trials_and_the_presets_clock(tmp
 
     monkeypatch.setattr(study_lists, "EVIDENCE", tmp_path / "evidence")
     study = next(s for s in study_lists.STUDIES if s.name == "oscillator")
-    assert study.variants() == 3 and study.timed and study.eval_jobs() == 3 * study.seeds
+    # on the calibrated clock a variant's seeds train together: one job each, seeds x the budget
+    assert study.variants() == 3 and study.timed and study.eval_jobs() == 3
+    assert study.eval_job_seconds() == pytest.approx(
+        3 * study.eval_seconds + 3 * (study.seeds - 1) * study.time_budget
+    )
+    measured = replace(study, overrides=(*study.overrides, "compare.clock=measured"))
+    assert measured.eval_jobs() == 3 * study.seeds
+    assert measured.eval_job_seconds() == pytest.approx(3 * study.seeds * study.eval_seconds)
     whole = study_settings(split_overrides(study.command(tmp_path))[0])
     assert f"compare.dir={tmp_path / 'oscillator'}" in study.command(tmp_path)
     first, second, *_ = study_lists.slices(study)

@@ -75,3 +75,7 @@ def test_runs_on_another_machine_than_the_calibration_are_flagged():
     )
     same = runs.assign(machine=["AMD EPYC (2 cores)"])
     assert "host login1" not in "\n".join(_calibration_lines([variant], same, calibration))
+    # the measured step per seed: a step of 10 seeds trained together is a tenth of each
+    assert "| 0.0001 s |" in text
+    together = runs.assign(step_seconds_p50=[1e-3], wall_time_shared_by=[10])
+    assert "| 0.0001 s |" in "\n".join(_calibration_lines([variant], together, calibration))
