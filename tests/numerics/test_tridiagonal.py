@@ -102,15 +102,10 @@ def scene_quantities(monkeypatch, path: str, overrides: list[str]) -> tuple:
 SMALL_DATA = ["task.train_size=8", "task.test_size=8", "task.batch_size=4"]
 
 
-# the dense path (a 14 x 14 solve per step, the GPU's fast one) is slow on a CPU: make test-long
-@pytest.mark.parametrize(
-    "path",
-    [
-        pytest.param(p, marks=pytest.mark.long) if p == "dense" else p
-        for p in PATHS
-        if p != "library"
-    ],
-)
+# whole float64 rollouts of both quantum scenes through every path, against the library's solve
+# (6 to 7 s each on 2 cores): make test-long; make test checks each path's solve and gradients above
+@pytest.mark.long
+@pytest.mark.parametrize("path", [p for p in PATHS if p != "library"])
 @pytest.mark.parametrize(
     "overrides",
     [
