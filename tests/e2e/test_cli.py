@@ -148,7 +148,12 @@ def wait_for_rows(path: Path, rows: int, process, deadline=120.0):
 
 @pytest.mark.parametrize(
     "sig, status",
-    [(signal.SIGKILL, "crashed"), (signal.SIGINT, "interrupted"), (signal.SIGTERM, "interrupted")],
+    [
+        (signal.SIGKILL, "crashed"),
+        (signal.SIGINT, "interrupted"),
+        # the same handler as SIGINT: make test-long
+        pytest.param(signal.SIGTERM, "interrupted", marks=pytest.mark.long),
+    ],
 )
 def test_killed_or_interrupted_run_leaves_a_readable_file(sig, status, tmp_path):
     process = subprocess.Popen(

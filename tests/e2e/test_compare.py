@@ -190,6 +190,9 @@ def test_a_study_that_continues_networks_pairs_each_seed_with_its_own_start(tmp_
     assert study.trials.validation_loss.nunique() == 2  # adam's and gd's trial
 
 
+# two jobs run to cost the phases (10 s): make test-long; the plan's costs are checked in-process in
+# tests/integration/test_compare.py
+@pytest.mark.long
 def test_plan_prints_the_estimate_and_trains_nothing(tmp_path):
     out = console(
         "compare",

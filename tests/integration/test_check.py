@@ -211,6 +211,9 @@ def test_check_finds_a_scene_s_wrong_gradient(tmp_path, monkeypatch, capsys, wro
     assert lines[-1].startswith("task=heat: ") and ("failed: gradient R" in lines[-1]) == wrong
 
 
+# every check of check_scene on the example scene (14 s): make test-long; make test checks the
+# checks on the heat scene, right and wrong (above)
+@pytest.mark.long
 def test_check_of_the_example_scene_passes_and_mistakes_are_one_line(monkeypatch, capsys):
     from physgrad.check import main
 

@@ -86,6 +86,8 @@ def test_a_damaged_evidence_table_is_one_line(
     assert "small" in str(refused.value) and "\n" not in str(refused.value)
 
 
+# a second study run and kept beside the shared one (7 s): make test-long
+@pytest.mark.long
 def test_tuning_studies_run_as_compares_of_their_own_are_kept_and_decided_as_one(
     small_study,  # noqa: F811
     tmp_path,

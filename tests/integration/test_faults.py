@@ -209,7 +209,15 @@ def test_an_interrupted_report_leaves_the_previous_tables(
         assert after == before and not list((tmp_path / "report").glob(".*.tmp"))
 
 
-@pytest.mark.parametrize("name", ["config.yaml", "hydra.yaml", "overrides.yaml"])
+# the first file in make test, the other two in make test-long
+@pytest.mark.parametrize(
+    "name",
+    [
+        "config.yaml",
+        pytest.param("hydra.yaml", marks=pytest.mark.long),
+        pytest.param("overrides.yaml", marks=pytest.mark.long),
+    ],
+)
 def test_a_full_disk_while_writing_hydra_fails_that_job_alone_in_one_line(
     tmp_path, monkeypatch, name
 ):

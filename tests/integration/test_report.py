@@ -496,7 +496,7 @@ def test_every_group_keeps_its_style_in_every_figure_and_twelve_groups_stay_apar
     assert legend.x0 >= ax.get_window_extent().x1  # beside the data, not on it
 
 
-@pytest.mark.parametrize("groups", [9, 20])
+@pytest.mark.parametrize("groups", [9, pytest.param(20, marks=pytest.mark.long)])
 def test_many_groups_with_diverged_runs_keep_notes_legend_and_ticks_apart(
     tmp_path, figures, groups
 ):

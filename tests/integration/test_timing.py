@@ -54,7 +54,10 @@ def run_toy(tmp_path, *overrides):
     return outcome, read_run(path)
 
 
-@pytest.mark.parametrize("instants", range(6))
+# one draw of the instants in make test, five more in make test-long
+@pytest.mark.parametrize(
+    "instants", [0, *(pytest.param(k, marks=pytest.mark.long) for k in range(1, 6))]
+)
 def test_slow_steps_flag_the_run_and_leave_the_calibrated_time_unchanged(
     tmp_path, monkeypatch, quiet_load, instants
 ):

@@ -144,6 +144,8 @@ def test_a_failing_tracker_is_a_warning_and_the_run_stands(job, caplog):
     assert all(read_run(path).attrs["status"] == "completed" for path in paths)
 
 
+# a sweep with every tracker (8 s): make test-long; each tracker has its own test here
+@pytest.mark.long
 def test_the_logger_group_runs_every_tracker_once_per_job_of_a_sweep(tmp_path, monkeypatch):
     from mlflow.tracking import MlflowClient
 

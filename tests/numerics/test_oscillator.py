@@ -95,12 +95,17 @@ def test_unroll_sets_the_time_steps_and_the_open_loop_output_size():
     )
 
 
-# the regular gradient in make test, the stopped modes M and S in make test-long
+# the regular gradient of the closed loop in make test; the open loop and the stopped modes M and S
+# in make test-long
 @pytest.mark.parametrize(
     "mode",
     ["R", pytest.param("M", marks=pytest.mark.long), pytest.param("S", marks=pytest.mark.long)],
 )
-@pytest.mark.parametrize("closed_loop", [False, True], ids=["open", "closed"])
+@pytest.mark.parametrize(
+    "closed_loop",
+    [pytest.param(False, marks=pytest.mark.long), True],
+    ids=["open", "closed"],
+)
 def test_scan_matches_loop_and_finite_differences(x64, closed_loop, mode):
     steps = 12
     cfg = load(
