@@ -6,7 +6,10 @@ import subprocess
 import pytest
 
 
-@pytest.mark.parametrize("make_target", ["under_a_file", "proc"])
+# a folder under a file in make test, one in /proc in make test-long
+@pytest.mark.parametrize(
+    "make_target", ["under_a_file", pytest.param("proc", marks=pytest.mark.long)]
+)
 def test_an_unwritable_output_folder_is_a_one_line_error(tmp_path, make_target):
     from tests.helpers import console as physgrad
 

@@ -98,7 +98,8 @@ def test_phi_functions_at_round_off_near_zero(x64):
     np.testing.assert_allclose(at, near, atol=1e-9)
 
 
-@pytest.mark.parametrize("order", [1, 2])
+# the scene's ETD2RK in make test, ETD1 in make test-long
+@pytest.mark.parametrize("order", [pytest.param(1, marks=pytest.mark.long), 2])
 def test_order_of_convergence(order, x64):
     """Error at t = 2 of a smooth state against ETD2RK with 1024 steps: it falls by 2^order per
     halving of h."""

@@ -246,7 +246,11 @@ def test_one_verdict_over_tuning_studies_needs_a_majority_and_none_against(found
     assert got == verdict and why in reason, reason
 
 
-@pytest.mark.parametrize("sd", [0.1, 0.3, 1.0])
+# one spread in make test, a narrow and a wide one in make test-long
+@pytest.mark.parametrize(
+    "sd",
+    [pytest.param(0.1, marks=pytest.mark.long), 0.3, pytest.param(1.0, marks=pytest.mark.long)],
+)
 def test_a_difference_of_the_detectable_ratio_is_found_about_four_times_in_five(sd):
     """verdict.detectable_ratio against simulation: a true ratio at the detectable one, Gaussian
     log ratios of spread sd on 10 seeds, is called A better in 65-93% of 200 simulated comparisons
