@@ -177,12 +177,31 @@ def fraction_text(fraction: float) -> str:
     return f"X/{whole}" if math.isclose(whole * fraction, 1.0) else f"{fraction:g} X"
 
 
+def _compare_group(runs: Runs, group: list, column: str, margin: float, fractions: tuple) -> list:
+    """The parts of one study that read one column at one margin, compared together (Holm's
+    correction over them): each tuning study decided alone, then over the studies by the package's
+    rule (verdict.across_studies); one result per part, in the group's order."""
+    names = {v for p in group for v in (p.a, p.b)}
+    per_study = [
+        compare_variants(
+            {n: study.curves(n, column) for n in names},
+            runs.budget,
+            pairs=[(p.a, p.b) for p in group],
+            margin=margin,
+            fractions=fractions,
+        )
+        for study in (runs.tuning or (runs,))
+    ]
+    return across_studies(per_study)
+
+
 def decide_pairs(runs: Runs, parts: list, fraction: float = 1.0) -> list[Decision]:
     """The Lower and Close parts of one study at `fraction` of its budget, with Holm's correction
     over them."""
     fractions = tuple(sorted({*FRACTIONS, fraction}))
     decisions = []
     present = [p for p in parts if p.a in runs.paths and p.b in runs.paths]
+    compared: dict[tuple, list] = {}  # (column, margin) -> the group's results, Holm over it
     for part in parts:
         if part not in present:
             missing = [n for n in (part.a, part.b) if n not in runs.paths]
@@ -190,26 +209,15 @@ def decide_pairs(runs: Runs, parts: list, fraction: float = 1.0) -> list[Decisio
                 Decision(NOT_RUN, "-", f"no runs of {' and '.join(missing)} in {runs.folder}")
             )
             continue
-        column = getattr(part, "column", "loss")
-        margin = getattr(part, "margin", MARGIN)
+        group = (getattr(part, "column", "loss"), getattr(part, "margin", MARGIN))
         others = [
             p
             for p in present
-            if getattr(p, "column", "loss") == column and getattr(p, "margin", MARGIN) == margin
+            if (getattr(p, "column", "loss"), getattr(p, "margin", MARGIN)) == group
         ]
-        names = {v for p in others for v in (p.a, p.b)}
-        # each tuning study decided alone, then over the studies by the package's rule
-        per_study = [
-            compare_variants(
-                {n: study.curves(n, column) for n in names},
-                runs.budget,
-                pairs=[(p.a, p.b) for p in others],
-                margin=margin,
-                fractions=fractions,
-            )
-            for study in (runs.tuning or (runs,))
-        ]
-        result = across_studies(per_study)[others.index(part)]
+        if group not in compared:  # the group's comparisons once: every part of it reads them
+            compared[group] = _compare_group(runs, others, *group, fractions)
+        result = compared[group][others.index(part)]
         p = result.at[fraction]
         found = [v.verdicts[fraction] for v in (result.studies or [result])]
         claim, why = _over_studies(
