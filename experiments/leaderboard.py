@@ -45,6 +45,7 @@ from leaderboard_detail import (
     preset_line,
     scene_notes,
     scene_page,
+    scheduled_cost_line,
     wall_line,
     wall_seconds_in_budget,
 )
@@ -370,7 +371,11 @@ def page(found: dict, image: str) -> str:
         lines += ["", "## The scenes and their budgets", ""]
         for entry in scenes:
             lines += scene_budget_lines(entry, *found[entry.name][1:])
+        scheduled = scheduled_cost_line(
+            {e.name: found[e.name][2] for e in scenes}, {e.name: e.title for e in scenes}
+        )
         lines += [
+            *(("", scheduled) if scheduled else ()),
             "",
             "A verdict holds for the machine its scene was calibrated on: the budget is a time, "
             "and each rule's iterations in it follow from its step cost there. A GPU changes those "

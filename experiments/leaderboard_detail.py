@@ -181,6 +181,40 @@ def wall_line(about: dict) -> str | None:
     )
 
 
+SCHEDULED_COST = "psgd_kron"  # a rule whose step cost falls along a run by its own schedule
+FIXED_COST = ("gd", "muon", "soap")  # element-wise rules whose every step costs the same
+
+
+def scheduled_cost_line(abouts: dict[str, dict], titles: dict[str, str]) -> str | None:
+    """The sentence on PSGD Kron and the clock: per scene, its runs' wall-clock time over Adam's at
+    the same calibrated budget (wall_ratios), beside the range of the fixed-cost element-wise
+    rules' as the noise of such a ratio; none where no scene recorded the rule's."""
+    measured = []
+    for scene, about in abouts.items():
+        ratios = wall_ratios(about)
+        if SCHEDULED_COST not in ratios:
+            continue
+        fixed = [ratios[r] for r in FIXED_COST if r in ratios]
+        span = sorted({f"{min(fixed):.2g}", f"{max(fixed):.2g}"}, key=float) if fixed else []
+        beside = f" (gd, Muon, SOAP: {'-'.join(span)}x)" if fixed else ""
+        measured.append(f"{titles.get(scene, scene)}: {ratios[SCHEDULED_COST]:.2g}x{beside}")
+    if not measured:
+        return None
+    return (
+        "PSGD Kron is charged more than its steps cost. It updates its preconditioner at every "
+        "step for its first 500 and at a falling rate after (to 3% of its steps by step 4,000), "
+        "and a calibration times its first steps (on most scenes a few hundred, nearly all of them "
+        "updating): the clock charges every step about an updating step's cost. Its runs took "
+        f"this much of {BASELINE}'s wall-clock time at the same "
+        "calibrated budget (median over the tuning studies that recorded runs trained alone): "
+        + "; ".join(measured)
+        + ". Where that is below the fixed-cost rules' ratios, PSGD Kron had less time than "
+        f"{BASELINE} by about that factor, and its cells understate it "
+        '(docs/benchmarks.md, "PSGD Kron on the calibrated clock", measures what its update '
+        "costs on each scene)."
+    )
+
+
 def _studies(keys: list[str]) -> str:
     return ("studies " if keys[1:] else "study ") + " and ".join(keys)
 

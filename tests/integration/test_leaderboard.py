@@ -425,3 +425,25 @@ def test_the_wall_clock_ratios_are_within_a_study_then_the_median_over_studies()
     assert "within 1.5x" in leaderboard_detail.wall_line({"tuning_studies": even})
     assert leaderboard_detail.wall_line({"tuning_studies": {"1": {}}}) is None
     assert leaderboard_detail.wall_seconds_in_budget(table.drop(columns="train_seconds")) == {}
+
+
+def test_psgd_krons_time_is_said_per_scene_beside_the_fixed_cost_rules():
+    """Known answers: PSGD Kron's wall-clock ratio to Adam per scene that recorded it, beside the
+    range of gd's, Muon's and SOAP's there; a scene without it is left out; no scene, no line."""
+    one = {"1": {"wall_seconds": {"adam": 20.0, "psgd_kron": 13.0, "gd": 19.0, "soap": 21.0}}}
+    two = {
+        "1": {"wall_seconds": {"adam": 10.0, "psgd_kron": 7.0, "muon": 10.0}},
+        "2": {"wall_seconds": {"adam": 10.0, "psgd_kron": 9.0, "muon": 12.0}},
+    }
+    without = {"1": {"wall_seconds": {"adam": 10.0, "soap": 10.0}}}
+    line = leaderboard_detail.scheduled_cost_line(
+        {
+            "a": {"tuning_studies": one},
+            "b": {"tuning_studies": two},
+            "c": {"tuning_studies": without},
+        },
+        {"a": "Scene A"},
+    )
+    assert "Scene A: 0.65x (gd, Muon, SOAP: 0.95-1.1x); b: 0.8x (gd, Muon, SOAP: 1.1x)" in line
+    assert "c:" not in line and "\n" not in line
+    assert leaderboard_detail.scheduled_cost_line({"c": {"tuning_studies": without}}, {}) is None
