@@ -139,6 +139,16 @@ def wall_seconds_in_budget(table) -> dict[str, float]:
     }
 
 
+def charged_by_schedule(calibration: Path) -> list[str]:
+    """The rules a study's calibration charged a scheduled update at its expected cost (those with
+    update_seconds: trainer.update_cost), none where it has none or cannot be read."""
+    from physgrad.comparison.calibration import read_calibration
+
+    stored = read_calibration(calibration, [])
+    costs = (stored or {}).get("costs") or {}
+    return sorted(name for name, cost in costs.items() if "update_seconds" in cost)
+
+
 def wall_ratios(about: dict) -> dict[str, float]:
     """Per rule, its median wall-clock seconds of training in a run over Adam's in the same tuning
     study, the median over the studies that recorded both (a study's load slows its rules alike,
@@ -191,7 +201,12 @@ def scheduled_cost_line(abouts: dict[str, dict], titles: dict[str, str]) -> str 
     rules' as the noise of such a ratio; none where no scene recorded the rule's."""
     measured = []
     for scene, about in abouts.items():
-        ratios = wall_ratios(about)
+        charged_alike = {  # the studies whose clock charged PSGD Kron's steps alike
+            k: study
+            for k, study in (about.get("tuning_studies") or {}).items()
+            if SCHEDULED_COST not in (study.get("charged_by_schedule") or [])
+        }
+        ratios = wall_ratios({"tuning_studies": charged_alike})
         if SCHEDULED_COST not in ratios:
             continue
         fixed = [ratios[r] for r in FIXED_COST if r in ratios]
@@ -211,7 +226,9 @@ def scheduled_cost_line(abouts: dict[str, dict], titles: dict[str, str]) -> str 
         + ". Where that is below the fixed-cost rules' ratios, PSGD Kron had less time than "
         f"{BASELINE} by about that factor, and its cells understate it "
         '(docs/benchmarks.md, "PSGD Kron on the calibrated clock", measures what its update '
-        "costs on each scene)."
+        "costs on each scene). A study whose calibration also timed PSGD Kron's step where its "
+        "schedule is at its floor charges each step its expected cost instead "
+        '(docs/decisions.md, "Timing") and is not counted here.'
     )
 
 

@@ -1,11 +1,13 @@
 """What PSGD Kron's steps cost along a run, against what the calibrated clock charges them.
 
 PSGD Kron updates its preconditioner at step t with probability p_t (psgdax's schedule: 1 for the
-first 500 steps, then exp(-0.001 (t - 500)), at least 0.03). A calibration times the rule's first
-steps, where p_t = 1 (it takes fewer than 500 of them on every leaderboard scene but the toy), and
-the clock charges every step that cost. Later steps update less often: with a step costing c + p u
-at update probability p, a run of N steps costs N (c + mean_{t<N} p_t u) against the N (c + u)
-charged, so it takes (c + mean p u) / (c + u) of the wall-clock time its budget assumes.
+first 500 steps, then exp(-0.001 (t - 500)), at least 0.03). A calibration without the update's
+cost (the leaderboard's kept clocks) times the rule's first steps, where p_t = 1 (it takes fewer
+than 500 of them on every leaderboard scene but the toy), and the clock charges every step that
+cost (a calibration with it charges the expected cost: docs/decisions.md). Later steps update less
+often: with a step costing c + p u at update probability p, a run of N steps costs
+N (c + mean_{t<N} p_t u) against the N (c + u) charged, so it takes (c + mean p u) / (c + u) of
+the wall-clock time its budget assumes.
 
 This script compiles the rule's step as `physgrad run` does (one seed: a real branch, where several
 seeds trained together compute both branches at every step) on each leaderboard scene twice, runs

@@ -6,6 +6,7 @@ checked by the code that reads them (the scene's build function, the update rule
 
 from __future__ import annotations
 
+import dataclasses
 from pathlib import Path
 
 import jax
@@ -15,7 +16,7 @@ from omegaconf import DictConfig, OmegaConf
 from physgrad.errors import UserError
 from physgrad.gradients import JacobianPass
 from physgrad.optim import matrix_leaves
-from physgrad.optim.capabilities import Capabilities
+from physgrad.optim.capabilities import Capabilities, scheduled_update
 from physgrad.runner import TrainerSettings
 from physgrad.tasks import Scene
 from physgrad.training import Seeds
@@ -52,7 +53,22 @@ def check_config(cfg: DictConfig) -> TrainerSettings:
                 f"the {section} config has no name: add one (e.g. name: mine), it labels results"
             )
     check_unroll(cfg)
-    return TrainerSettings.from_config(cfg.trainer)
+    return with_scheduled_update(TrainerSettings.from_config(cfg.trainer), cfg.optim)
+
+
+def with_scheduled_update(settings: TrainerSettings, optim_cfg: DictConfig) -> TrainerSettings:
+    """settings with the rule's update schedule attached where trainer.update_cost charges one; a
+    cost given for a rule without one is refused (its calibration was another rule's)."""
+    if settings.update_cost is None:
+        return settings
+    schedule = scheduled_update(optim_cfg)
+    if schedule is None:
+        raise UserError(
+            f"trainer.update_cost={settings.update_cost:g} charges a scheduled update, and "
+            f"optim={optim_cfg.get('name')} has none (only psgd_kron with "
+            "preconditioner_update_probability=null does): leave it out (null)"
+        )
+    return dataclasses.replace(settings, scheduled_update=schedule)
 
 
 def check_seeds(cfg: DictConfig) -> None:

@@ -20,7 +20,7 @@ import logging
 import math
 import time
 from collections.abc import Mapping
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import jax
 import numpy as np
@@ -30,6 +30,7 @@ from physgrad.guard import RowGuard
 from physgrad.interrupts import STALL_CPU_SECONDS, STALL_SECONDS, StopRequest, stop_on_signals
 from physgrad.machine import load_average, timing_attributes
 from physgrad.optim import UpdateRule
+from physgrad.optim.capabilities import ScheduledUpdate
 from physgrad.progress import Progress
 from physgrad.readout import DIVERGENCE_FACTOR
 from physgrad.results import ResultsWriter
@@ -88,6 +89,10 @@ class TrainerSettings:
     step_cost: float | None = None
     # which clock the time budget and eval_seconds read: measured | calibrated
     clock: str = "measured"
+    # the part of step_cost a scheduled update costs (physgrad.optim.capabilities.ScheduledUpdate),
+    # and that schedule (set by physgrad.refusals.check_config from the optim config), or None
+    update_cost: float | None = None
+    scheduled_update: ScheduledUpdate | None = field(default=None, compare=False)
 
     @classmethod
     def from_config(cls, trainer_cfg: Mapping) -> TrainerSettings:
@@ -114,6 +119,14 @@ class TrainerSettings:
                 "trainer.clock=calibrated needs trainer.step_cost (seconds per step from a "
                 "calibration: physgrad compare measures it) or trainer.clock=measured"
             )
+        update_cost = number(
+            "trainer.update_cost", trainer_cfg.get("update_cost"), 0, 3600.0, optional=True
+        )
+        if update_cost is not None and (step_cost is None or update_cost > step_cost):
+            raise UserError(
+                f"trainer.update_cost={update_cost:g} is the part of trainer.step_cost a scheduled "
+                "update costs: give it with a step_cost at least as large, or leave it out (null)"
+            )
         if iterations is None and budget is None:
             iterations = DEFAULT_ITERATIONS
         if eval_seconds is None and budget is not None:
@@ -139,7 +152,18 @@ class TrainerSettings:
             ),
             step_cost=step_cost,
             clock=clock,
+            update_cost=update_cost,
         )
+
+    def charged_seconds(self, iterations: int) -> float:
+        """The calibrated clock's time after `iterations` steps: iterations x step_cost, or with a
+        scheduled update of cost u, what the steps cost on average (ScheduledUpdate.charged_seconds:
+        the steps that skip the update are charged step_cost - u)."""
+        if self.update_cost is None:
+            return iterations * self.step_cost
+        if self.scheduled_update is None:  # check_config attaches it, or refuses the run
+            raise ValueError("trainer.update_cost without the rule's schedule")
+        return self.scheduled_update.charged_seconds(iterations, self.step_cost, self.update_cost)
 
 
 @dataclass(frozen=True)
@@ -187,14 +211,14 @@ class TrainingLoop:
         step cost)."""
         times = {"wall_time": self.train_seconds}
         if self.settings.step_cost is not None:
-            times["calibrated_time"] = iteration * self.settings.step_cost
+            times["calibrated_time"] = self.settings.charged_seconds(iteration)
         return times
 
     def budget_seconds(self, iteration: int) -> float:
         """The time the budget and eval_seconds read: the measured or the calibrated clock
         (trainer.clock)."""
         return (
-            iteration * self.settings.step_cost
+            self.settings.charged_seconds(iteration)
             if self.settings.clock == "calibrated"
             else self.train_seconds
         )
@@ -217,6 +241,8 @@ class TrainingLoop:
         self.writers.set_columns("train", ("iteration", *clock_columns, *compiled.log_names))
         if settings.step_cost is not None:
             self.writers.set_attrs(step_cost=settings.step_cost, clock=settings.clock)
+        if settings.update_cost is not None:
+            self.writers.set_attrs(update_cost=settings.update_cost)
         self.guard = RowGuard(compiled.log_names, settings.divergence_factor)
         self.stop.raise_if_stopped()
         self.record_eval(0)

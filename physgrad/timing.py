@@ -49,14 +49,29 @@ def interleaved_times(
     return times
 
 
+class Stepper:
+    """one_step(): one training step of a compiled training (blocking until its results are
+    ready), from the parameters and optimiser state the previous call left."""
+
+    def __init__(self, compiled: CompiledTraining, seeds: Seeds) -> None:
+        self.compiled, self.seeds = compiled, seeds
+        self.params, self.opt_state = compiled.params, compiled.opt_state
+
+    def __call__(self) -> None:
+        import jax
+        import numpy as np
+
+        self.params, self.opt_state, _ = self.compiled.step(
+            self.params, self.opt_state, np.int32(0), self.seeds.train_keys, self.seeds.train_sets
+        )
+        jax.block_until_ready(self.params)
+
+
 def compiled_step(
     cfg: DictConfig, seeds: list[int]
-) -> tuple[TrainerSettings, Scene, UpdateRule, Seeds, CompiledTraining, float, Callable[[], None]]:
+) -> tuple[TrainerSettings, Scene, UpdateRule, Seeds, CompiledTraining, float, Stepper]:
     """The scene, rule, seeds and compiled training exactly as `physgrad run` builds them, the
-    compile time and one_step() (one training step, blocking)."""
-    import jax
-    import numpy as np
-
+    compile time and one_step() (one training step, blocking: a Stepper)."""
     from physgrad.experiment import prepare
     from physgrad.refusals import check_config
     from physgrad.runner import compile_training
@@ -66,16 +81,7 @@ def compiled_step(
     start = time.perf_counter()
     compiled = compile_training(scene, rule, stacked, settings.batch_size)
     compile_s = time.perf_counter() - start
-
-    state = [compiled.params, compiled.opt_state]
-
-    def one_step() -> None:
-        state[0], state[1], _ = compiled.step(
-            state[0], state[1], np.int32(0), stacked.train_keys, stacked.train_sets
-        )
-        jax.block_until_ready(state[0])
-
-    return settings, scene, rule, stacked, compiled, compile_s, one_step
+    return settings, scene, rule, stacked, compiled, compile_s, Stepper(compiled, stacked)
 
 
 # the calibrated clock (physgrad.comparison.calibration): its rule and measurement
@@ -137,45 +143,88 @@ def calibrate(
     machine and the samples' spread. Variants whose compiled steps are one program (the same
     program_fingerprint: a copy of a rule under another name) are timed once and get one cost, so
     the calibration cannot split them. Each step advances its own state, so a rule whose state
-    changes its cost (damping, line searches) is timed along its trajectory."""
+    changes its cost (damping, line searches) is timed along its trajectory.
+
+    A rule whose step updates on a schedule (physgrad.optim.capabilities.ScheduledUpdate: PSGD
+    Kron's preconditioner, at every step first, then rarer) is timed twice in the same rounds: its
+    step counter set back before every burst to the start (step_seconds: s, a step that updates)
+    and to where the schedule reaches its floor p (advanced_seconds: a); its update's cost is
+
+        update_seconds u = (s - a) / (1 - p), kept within [0, s],
+
+    which the runner charges as expected (trainer.update_cost: step t costs s - u + p_t u)."""
     import numpy as np
 
     from physgrad.machine import load_average, machine_attributes
+    from physgrad.optim.capabilities import scheduled_update
 
     programs: dict[str, str] = {}  # name -> fingerprint
-    steps: dict[str, Callable[[], None]] = {}  # fingerprint -> one step of its first variant
+    # timed copies: (fingerprint, "step" | "advanced") -> (one step, its counter before a burst)
+    timed: dict[tuple[str, str], tuple[Callable[[], None], int | None]] = {}
+    schedules: dict[str, object] = {}  # fingerprint -> its ScheduledUpdate, where it has one
     for name, cfg in configs.items():
-        *_, compiled, _, one_step = compiled_step(cfg, [seed])
-        programs[name] = program_fingerprint(getattr(compiled, "lowered_step", None), name)
-        steps.setdefault(programs[name], one_step)
-    load_start = load_average()
-    probe = interleaved_times(
-        list(steps.values()), 3, 0.0, warmup=True, max_seconds=max_seconds / 4
-    )
-    lengths = [max(1, math.ceil(BURST_SECONDS / max(float(np.median(t)), 1e-9))) for t in probe]
+        *_, stacked, compiled, _, one_step = compiled_step(cfg, [seed])
+        program = programs[name] = program_fingerprint(
+            getattr(compiled, "lowered_step", None), name
+        )
+        if (program, "step") in timed:
+            continue
+        schedule = scheduled_update(cfg["optim"]) if isinstance(cfg, Mapping) else None
+        if schedule is None:
+            timed[program, "step"] = (one_step, None)
+        else:
+            schedules[program] = schedule
+            timed[program, "step"] = (one_step, 0)
+            timed[program, "advanced"] = (Stepper(compiled, stacked), schedule.floor_step)
 
-    def burst(step: Callable[[], None], length: int) -> Callable[[], None]:
+    def burst(key: tuple[str, str], length: int) -> Callable[[], None]:
+        step, counter = timed[key]
+        schedule = schedules.get(key[0])
+
         def run() -> None:
+            if counter is not None:
+                step.opt_state = schedule.at_step(step.opt_state, counter)
             for _ in range(length):
                 step()
 
         return run
 
-    bursts = [burst(step, length) for step, length in zip(steps.values(), lengths)]
+    load_start = load_average()
+    probe = interleaved_times(
+        [burst(key, 1) for key in timed], 3, 0.0, warmup=True, max_seconds=max_seconds / 4
+    )
+    lengths = {
+        key: max(1, math.ceil(BURST_SECONDS / max(float(np.median(t)), 1e-9)))
+        for key, t in zip(timed, probe)
+    }
+    if schedules:  # an updating step's burst stays within the steps that all update
+        lengths |= {
+            (program, "step"): min(lengths[program, "step"], schedule.full_steps)
+            for program, schedule in schedules.items()
+        }
+    bursts = [burst(key, lengths[key]) for key in timed]
     times = interleaved_times(bursts, rounds, min_seconds, warmup=False, max_seconds=max_seconds)
+    samples = {key: np.asarray(t) / lengths[key] for key, t in zip(timed, times)}
     measured = {}
-    for program, samples, length in zip(steps, times, lengths):
-        samples = np.asarray(samples) / length
-        low, high = cost_interval(samples, CALIBRATION_QUANTILE)
+    for (program, kind), per_step in samples.items():
+        if kind != "step":
+            continue
+        low, high = cost_interval(per_step, CALIBRATION_QUANTILE)
         measured[program] = {
-            "step_seconds": float(np.quantile(samples, CALIBRATION_QUANTILE)),
+            "step_seconds": float(np.quantile(per_step, CALIBRATION_QUANTILE)),
             "low_seconds": low,
             "high_seconds": high,
-            "median_seconds": float(np.median(samples)),
-            "rounds": int(samples.size),
-            "burst_steps": length,
+            "median_seconds": float(np.median(per_step)),
+            "rounds": int(per_step.size),
+            "burst_steps": lengths[program, kind],
             "program": program,
         }
+        if program in schedules:
+            measured[program] |= update_cost(
+                measured[program]["step_seconds"],
+                float(np.quantile(samples[program, "advanced"], CALIBRATION_QUANTILE)),
+                schedules[program],
+            )
     costs = {name: dict(measured[programs[name]]) for name in configs}
     return {
         "quantile": CALIBRATION_QUANTILE,
@@ -183,6 +232,19 @@ def calibrate(
         "load_start": load_start,
         "load_end": load_average(),
         "machine": machine_attributes(),
+    }
+
+
+def update_cost(step_seconds: float, advanced_seconds: float, schedule: object) -> dict:
+    """A scheduled update's cost u = (s - a) / (1 - p) within [0, s] (calibrate's docstring), with
+    the measurements it comes from."""
+    floor = schedule.floor
+    update = (step_seconds - advanced_seconds) / (1 - floor) if floor < 1 else 0.0
+    return {
+        "update_seconds": float(min(max(update, 0.0), step_seconds)),
+        "advanced_seconds": float(advanced_seconds),
+        "advanced_step": int(schedule.floor_step),
+        "floor_probability": float(floor),
     }
 
 

@@ -68,6 +68,20 @@ class SimulatedClock:
         return self.now
 
 
+def scheduled_calibration() -> dict:
+    """A whole calibration.json of adam (2 ms a step) and psgd_kron (2 ms, 1 ms of it its scheduled
+    update, 1.03 ms a step at its floor p = 0.03)."""
+    cost = {"step_seconds": 2e-3, "median_seconds": 2.1e-3, "rounds": 30}
+    scheduled = {"update_seconds": 1e-3, "advanced_seconds": 1.03e-3, "floor_probability": 0.03}
+    return {
+        "quantile": 0.2,
+        "load_start": 0.5,
+        "load_end": 0.6,
+        "machine": {"cpu_count": 2},
+        "costs": {"adam": cost, "psgd_kron": {**cost, **scheduled}},
+    }
+
+
 def float32_factorisation_fails(monkeypatch):
     """A stand-in for LAPACK not converging: the kernel returns NaN for float32 input, the true
     result for float64."""

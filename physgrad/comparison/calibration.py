@@ -5,7 +5,13 @@ flip an equal-time comparison.
     cost(v) = the CALIBRATION_QUANTILE quantile, over rounds in which every variant runs one burst
     of its steps,
               of v's burst time divided by its burst's length k_v,
-    calibrated_time(run) = iterations(run) x cost(variant of run).
+    calibrated_time(run) = iterations(run) x cost(variant of run),
+
+except for a rule whose step updates on a schedule (PSGD Kron's preconditioner: at every step first,
+then rarer), timed both where every step updates (its cost s) and where the schedule has fallen to
+its floor, which gives its update's cost u: a run of n steps is charged n (s - u) + u sum_{t<=n} p_t
+(physgrad.optim.capabilities.ScheduledUpdate), what its steps cost on average; a calibration without
+u (written before it was measured) charges n s.
 
 A burst is k_v consecutive steps, k_v chosen so that a burst takes about BURST_SECONDS: a single
 step of a sub-millisecond variant timed between other variants' steps runs with caches the others
@@ -72,6 +78,7 @@ def read_calibration(path: Path, names: list[str], given: bool = False) -> dict 
                 and seconds(stored["costs"][name].get("median_seconds"))
                 and isinstance(stored["costs"][name].get("rounds"), int)
                 and _interval_whole(stored["costs"][name], seconds)
+                and _update_whole(stored["costs"][name], finite)
                 for name in names
             )
         )
@@ -87,6 +94,26 @@ def _interval_whole(cost: dict, seconds: object) -> bool:
         return True
     low, high = cost.get("low_seconds"), cost.get("high_seconds")
     return seconds(low) and seconds(high) and low <= cost["step_seconds"] <= high
+
+
+def _update_whole(cost: dict, finite: object) -> bool:
+    """A scheduled update's cost, where recorded: within [0, step_seconds], with its advanced
+    step's cost and its floor probability in [0, 1)."""
+    if "update_seconds" not in cost:
+        return True
+    update, advanced, floor = (
+        cost.get("update_seconds"),
+        cost.get("advanced_seconds"),
+        cost.get("floor_probability"),
+    )
+    return (
+        finite(update)
+        and 0 <= update <= cost["step_seconds"]
+        and finite(advanced)
+        and advanced > 0
+        and finite(floor)
+        and 0 <= floor < 1
+    )
 
 
 def cost_spread(calibration: dict, names: list[str]) -> dict[str, tuple[float, float]]:
@@ -156,6 +183,11 @@ def calibrated_clock(plan: StudyPlan, launcher: Launcher, given: str | None) -> 
             )
         write_calibration(path, calibration)
     for variant in variants:
-        cost = float(calibration["costs"][variant.name]["step_seconds"])
-        variant.job_values = {"trainer.step_cost": cost, "trainer.clock": "calibrated"}
+        cost = calibration["costs"][variant.name]
+        variant.job_values = {
+            "trainer.step_cost": float(cost["step_seconds"]),
+            "trainer.clock": "calibrated",
+        }
+        if "update_seconds" in cost:
+            variant.job_values["trainer.update_cost"] = float(cost["update_seconds"])
     return calibration

@@ -107,6 +107,9 @@ def _calibration_lines(variants: list[Variant], runs: pd.DataFrame, calibration:
             f"{cost['rounds']} | {fmt(p50)} s | "
             f"{int(sub['contended'].sum()) if len(sub) else 0} of {len(sub)} |"
         )
+    scheduled = [v.name for v in variants if "update_seconds" in calibration["costs"][v.name]]
+    if scheduled:
+        lines += ["", scheduled_update_text(scheduled, calibration)]
     shared = _shared_programs(variants, calibration)
     if shared:
         lines += [
@@ -144,6 +147,24 @@ def _calibration_lines(variants: list[Variant], runs: pd.DataFrame, calibration:
             "or give one with compare.calibration.",
         ]
     return lines
+
+
+def scheduled_update_text(names: list[str], calibration: dict) -> str:
+    """The sentence on the variants whose step updates on a schedule: the cost of their update and
+    of a step at the schedule's floor, and how their runs are charged."""
+    each = "; ".join(
+        f"{name}: {fmt(cost['update_seconds'])} s of its {fmt(cost['step_seconds'])} s, "
+        f"{fmt(cost['advanced_seconds'])} s a step from step {cost.get('advanced_step', '?')} on "
+        f"(p = {cost['floor_probability']:g})"
+        for name in names
+        for cost in [calibration["costs"][name]]
+    )
+    return (
+        "A scheduled update (a part of the step done with a probability p_t that falls along the "
+        "run) was timed where every step does it (the cost above) and where p_t is at its floor, "
+        f"which gives the update's cost u ({each}); a run of n steps is charged "
+        "n (cost - u) + u sum_{t<=n} p_t, what its steps cost on average."
+    )
 
 
 def busy_calibration(calibration: dict) -> str:

@@ -194,10 +194,15 @@ def verdict_lines(
     """compare.md's title, the study's budget and rule, and its verdicts table; a verdict that reads
     a clock the machine's load may have moved (a contended run on the measured clock, a calibration
     on a busy machine) says so in its cell."""
+    scheduled = (
+        ", a scheduled update at its expected cost"
+        if calibration and any("update_seconds" in c for c in calibration["costs"].values())
+        else ""
+    )
     budget_text = {
         "wall_time": f"{budget:g} s of training (measured clock)",
         "calibrated_time": f"{budget:g} s of training on the calibrated clock (iterations x the "
-        "variant's calibrated step cost; the measured seconds are in runs.csv)",
+        f"variant's calibrated step cost{scheduled}; the measured seconds are in runs.csv)",
     }.get(axis, f"{budget:g} iterations")
     contended = {
         v.name: int(runs[runs.variant == v.name]["contended"].sum()) if len(runs) else 0

@@ -16,15 +16,23 @@ adam.yaml is Adam. Capabilities:
   from step to step (a zoom line search); trained together in one vectorised step, every member
   waits for the slowest member's evaluations (a vmapped while loop runs until all are done), so
   `physgrad compare` trains such a rule's trials and seeds one job each;
+- scheduled_update: the factory (a dotted path) of the rule's ScheduledUpdate: a step that does an
+  expensive part (PSGD Kron's preconditioner fit) with a probability p_t falling along the run, so
+  that the calibrated clock charges step t its expected cost c + p_t u (ScheduledUpdate) rather
+  than the cost of the first steps, where p_t = 1;
 - search_range: the log-uniform learning-rate range `physgrad compare` tunes over, per family, each
   spanning the papers' presets by two decades or more on either side (docs/protocol.md).
 """
 
 from __future__ import annotations
 
-from collections.abc import Mapping
-from dataclasses import dataclass
-from typing import Any
+import importlib
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass, field
+from typing import TYPE_CHECKING, Any
+
+if TYPE_CHECKING:
+    import numpy as np
 
 
 @dataclass(frozen=True)
@@ -36,6 +44,7 @@ class Capabilities:
     needs_matrices: bool = False
     needs_layer_factors: bool = False
     line_search: bool = False
+    scheduled_update: str | None = None
 
 
 # mean-over-samples loss; presets 0.5 to 1
@@ -62,7 +71,9 @@ RULES: dict[str, Capabilities] = {
     # Adam in Shampoo's eigenbasis per weight matrix: given the layers, not one flat vector
     "physgrad.optim.soap.soap": Capabilities("adaptive", ADAPTIVE.search_range),
     # a Kronecker-factored preconditioner per weight matrix: given the layers, not one flat vector
-    "physgrad.optim.psgd.psgd_kron": Capabilities("adaptive", ADAPTIVE.search_range),
+    "physgrad.optim.psgd.psgd_kron": Capabilities(
+        "adaptive", ADAPTIVE.search_range, scheduled_update="physgrad.optim.psgd.scheduled_update"
+    ),
     **{
         f"optax.{name}": ADAPTIVE_ELEMENTWISE
         for name in (
@@ -93,3 +104,56 @@ def capabilities(optim_cfg: Mapping[str, Any]) -> Capabilities:
     """The capabilities of the rule an optim config builds (by its `_target_`); a factory not listed
     here is an adaptive rule given the network's layers."""
     return RULES.get(str(optim_cfg.get("_target_", "")), ADAPTIVE)
+
+
+@dataclass(eq=False)  # one schedule is itself (its cumulative sum is a cache)
+class ScheduledUpdate:
+    """A step whose expensive part runs with probability p_t at step t (t = 1, 2, ...), so that
+    step t costs c + p_t u on average and n steps cost
+
+        charged(n) = n c + u sum_{t <= n} p_t = n (s - u) + u expected_updates(n),
+
+    with s = c + u the cost of a step that updates (the first steps, p_t = 1). probability(t) gives
+    p_t for an array of steps; full_steps: the steps from the first on with p_t = 1 (a calibration
+    times the updating step there); floor_step: a step from which p_t stays at its lowest value
+    (where it times the other); at_step(opt_state, t): the state as if t steps had been taken (the
+    step counter set, nothing else), so that the next step draws with p_{t+1}."""
+
+    probability: Callable[[np.ndarray], np.ndarray]
+    full_steps: int
+    floor_step: int
+    at_step: Callable[[Any, int], Any]
+    _cumulative: Any = field(default=None, repr=False)  # sum_{t <= n} p_t for n = 0, 1, ...
+
+    @property
+    def floor(self) -> float:
+        """p_t from floor_step on."""
+        import numpy as np
+
+        return float(self.probability(np.array([self.floor_step + 1]))[0])
+
+    def expected_updates(self, steps: int) -> float:
+        """sum_{t <= steps} p_t, from a cumulative sum kept and doubled as runs grow (the clock
+        reads it at every step)."""
+        import numpy as np
+
+        known = 0 if self._cumulative is None else self._cumulative.size
+        if steps >= known:
+            size = max(2 * known, steps + 1, 1024)
+            p = np.asarray(self.probability(np.arange(1, size, dtype=np.int64)), np.float64)
+            self._cumulative = np.concatenate([[0.0], np.cumsum(p)])
+        return float(self._cumulative[steps])
+
+    def charged_seconds(self, steps: int, step_cost: float, update_cost: float) -> float:
+        """charged(steps) above: step_cost is s, an updating step's cost, and update_cost is u."""
+        return steps * (step_cost - update_cost) + update_cost * self.expected_updates(steps)
+
+
+def scheduled_update(optim_cfg: Mapping[str, Any]) -> ScheduledUpdate | None:
+    """The ScheduledUpdate of the rule an optim config builds with its arguments, or None for a step
+    of one cost (every rule but PSGD Kron with its annealed schedule)."""
+    factory = capabilities(optim_cfg).scheduled_update
+    if factory is None:
+        return None
+    module, name = factory.rsplit(".", 1)
+    return getattr(importlib.import_module(module), name)(optim_cfg)

@@ -33,10 +33,64 @@ from __future__ import annotations
 
 import contextlib
 import io
+import math
+from collections.abc import Mapping
+from typing import TYPE_CHECKING, Any
 
 import jax
 import jax.numpy as jnp
 import optax
+
+if TYPE_CHECKING:
+    import numpy as np
+
+    from physgrad.optim.capabilities import ScheduledUpdate
+
+# psgdax's annealed schedule (precond_update_prob_schedule's defaults): p_t at step t = 1, 2, ...
+ANNEALED = {"max_prob": 1.0, "min_prob": 0.03, "decay": 0.001, "flat_start": 500}
+
+
+def annealed_probability(steps: np.ndarray) -> np.ndarray:
+    """p_t = clip(exp(-decay (t - flat_start)), min_prob, max_prob), psgdax's schedule, in float64
+    (psgdax evaluates it at the step counter after the increment: t = 1 at the first step)."""
+    import numpy as np
+
+    t = np.asarray(steps, np.float64)
+    decayed = ANNEALED["max_prob"] * np.exp(-ANNEALED["decay"] * (t - ANNEALED["flat_start"]))
+    return np.clip(decayed, ANNEALED["min_prob"], ANNEALED["max_prob"])
+
+
+def at_step(opt_state: Any, steps: int) -> Any:
+    """opt_state with PSGD Kron's step counter set to `steps` (its preconditioners, momentum and
+    key unchanged), in whatever tree holds it (a state per seed: the counter's shape is kept)."""
+    import psgdax
+
+    def pin(part: Any) -> Any:
+        if isinstance(part, psgdax.psgd.KronState):
+            return part._replace(count=jnp.full_like(part.count, steps))
+        return part
+
+    return jax.tree.map(pin, opt_state, is_leaf=lambda x: isinstance(x, psgdax.psgd.KronState))
+
+
+def scheduled_update(optim_cfg: Mapping[str, Any]) -> ScheduledUpdate | None:
+    """The ScheduledUpdate (physgrad.optim.capabilities) of a psgd_kron config: psgdax's annealed
+    schedule (1 for the first flat_start steps, at min_prob from floor_step on), or None where it
+    fixes preconditioner_update_probability (every step then costs the same on average)."""
+    from physgrad.optim.capabilities import ScheduledUpdate
+
+    if optim_cfg.get("preconditioner_update_probability") is not None:
+        return None
+    floor_step = (
+        ANNEALED["flat_start"]
+        + math.log(ANNEALED["max_prob"] / ANNEALED["min_prob"]) / (ANNEALED["decay"])
+    )
+    return ScheduledUpdate(
+        probability=annealed_probability,
+        full_steps=ANNEALED["flat_start"],
+        floor_step=math.ceil(floor_step),
+        at_step=at_step,
+    )
 
 
 def psgd_kron(

@@ -328,6 +328,44 @@ def test_an_equal_time_study_runs_on_the_calibrated_clock_and_can_reuse_a_calibr
         )
 
 
+@pytest.mark.long
+def test_psgd_krons_runs_are_charged_the_expected_cost_its_calibration_measured(tmp_path):
+    """Adam and PSGD Kron at an equal calibrated time on the toy: the calibration measures PSGD
+    Kron's update (within its step cost, with the step at its floor, step 4,007), not Adam's; each
+    PSGD Kron run is charged the plain-loop sum of s - u + p_t u over its steps and stops at the
+    first step where that reaches the budget, past the 500 steps that all update; compare.md gives
+    the update's cost. Adam's runs stop at ceil(budget / its cost) as ever."""
+    import json
+
+    from physgrad.optim.psgd import annealed_probability
+
+    budget = 0.5
+    study = physgrad.compare(
+        "task=toy",
+        "optim=adam,psgd_kron",
+        f"trainer.time_budget={budget}",
+        "compare.trials=1",
+        "compare.studies=1",
+        "compare.seeds=2",
+        "figures=false",
+        f"compare.dir={tmp_path}",
+    )
+    costs = json.loads((study.folder / "calibration.json").read_text())["costs"]
+    assert "update_seconds" not in costs["adam"]
+    psgd = costs["psgd_kron"]
+    step, update = psgd["step_seconds"], psgd["update_seconds"]
+    assert 0 <= update <= step and psgd["advanced_step"] == 4007
+    charged = np.cumsum(step - update + annealed_probability(np.arange(1, 200_001)) * update)
+    for _, row in study.runs.iterrows():
+        assert row.status == "completed", row
+        if row.variant == "adam":
+            assert row.iterations == math.ceil(budget / costs["adam"]["step_seconds"] - 1e-9)
+            continue
+        assert row.iterations == int(np.argmax(charged >= budget - 1e-12)) + 1 > 500
+        assert row.calibrated_seconds == pytest.approx(charged[row.iterations - 1], rel=1e-9)
+    assert "A scheduled update" in study.text and "psgd_kron: " in study.text
+
+
 def test_a_learning_rate_schedule_is_tuned_by_its_init_value_and_keeps_its_shape():
     """ks with Adam has the study's staircase decay (conf/tuning/ks_adam.yaml): compare tunes its
     init_value; a tuned job's config keeps the decay, whose Adam step after 2,000 updates is 0.9
@@ -722,6 +760,10 @@ def test_a_calibration_is_used_only_whole_and_within_a_physical_step_cost(tmp_pa
     path.write_text(json.dumps(whole))
     assert read_calibration(path, ["adam"]) == whole
     assert read_calibration(path, ["adam", "hig"]) is None
+    scheduled = {"update_seconds": 5e-5, "advanced_seconds": 5.2e-5, "floor_probability": 0.03}
+    with_update = {**whole, "costs": {"adam": {**whole["costs"]["adam"], **scheduled}}}
+    path.write_text(json.dumps(with_update))
+    assert read_calibration(path, ["adam"]) == with_update
     for broken in (
         {k: v for k, v in whole.items() if k != "quantile"},
         {**whole, "machine": "x"},
@@ -730,6 +772,20 @@ def test_a_calibration_is_used_only_whole_and_within_a_physical_step_cost(tmp_pa
         {**whole, "costs": {"adam": {**whole["costs"]["adam"], "step_seconds": 1e-300}}},
         {**whole, "costs": {"adam": {**whole["costs"]["adam"], "step_seconds": 1e9}}},
         {**whole, "costs": {"adam": {"step_seconds": 1e-4}}},
+        # a scheduled update dearer than the step it is part of, or without its measurements
+        {
+            **whole,
+            "costs": {"adam": {**whole["costs"]["adam"], **scheduled, "update_seconds": 2e-4}},
+        },
+        {
+            **whole,
+            "costs": {"adam": {**whole["costs"]["adam"], **scheduled, "update_seconds": -1e-6}},
+        },
+        {**whole, "costs": {"adam": {**whole["costs"]["adam"], "update_seconds": 5e-5}}},
+        {
+            **whole,
+            "costs": {"adam": {**whole["costs"]["adam"], **scheduled, "floor_probability": 1}},
+        },
         [1, 2],
     ):
         path.write_text(json.dumps(broken))

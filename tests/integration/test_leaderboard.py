@@ -447,3 +447,33 @@ def test_psgd_krons_time_is_said_per_scene_beside_the_fixed_cost_rules():
     assert "Scene A: 0.65x (gd, Muon, SOAP: 0.95-1.1x); b: 0.8x (gd, Muon, SOAP: 1.1x)" in line
     assert "c:" not in line and "\n" not in line
     assert leaderboard_detail.scheduled_cost_line({"c": {"tuning_studies": without}}, {}) is None
+    # a study whose clock charged PSGD Kron its expected cost is not counted: scene b's second
+    # study alone is left (0.9x), and a scene with only such studies says nothing
+    charged = {**two["1"], "charged_by_schedule": ["psgd_kron"]}
+    line = leaderboard_detail.scheduled_cost_line(
+        {"b": {"tuning_studies": {"1": charged, "2": two["2"]}}}, {}
+    )
+    assert "b: 0.9x (gd, Muon, SOAP: 1.2x)" in line
+    assert (
+        leaderboard_detail.scheduled_cost_line({"b": {"tuning_studies": {"1": charged}}}, {})
+        is None
+    )
+
+
+def test_the_rules_a_studys_calibration_charged_by_their_schedule_are_read_from_it(tmp_path):
+    """charged_by_schedule: the variants with update_seconds in a calibration.json; none from one
+    without, from a broken one or from none."""
+    import json
+
+    from tests.helpers import scheduled_calibration
+
+    calibration = scheduled_calibration()
+    path = tmp_path / "calibration.json"
+    path.write_text(json.dumps(calibration))
+    assert leaderboard_detail.charged_by_schedule(path) == ["psgd_kron"]
+    calibration["costs"]["psgd_kron"] = calibration["costs"]["adam"]
+    path.write_text(json.dumps(calibration))
+    assert leaderboard_detail.charged_by_schedule(path) == []
+    path.write_text("{")
+    assert leaderboard_detail.charged_by_schedule(path) == []
+    assert leaderboard_detail.charged_by_schedule(tmp_path / "none.json") == []

@@ -173,6 +173,39 @@ def test_the_calibrated_clock_needs_a_step_cost(tmp_path):
     assert outcome.status == "refused" and "trainer.clock" in outcome.reason
 
 
+def test_a_scheduled_update_is_charged_its_expected_cost_and_only_for_a_rule_with_one(tmp_path):
+    """PSGD Kron on the toy with step_cost s = 2 ms of which update_cost u = 1.5 ms: the
+    calibrated time after n steps is the plain-loop sum of s - u + p_t u (p_t psgdax's schedule),
+    s a step for the first 500, and the run stops at the first n where that reaches the 1.2 s
+    budget (n s would stop it at 600). An update cost for Adam, one above the step cost, or one
+    without a step cost is refused in one line that names it."""
+    from physgrad.optim.psgd import annealed_probability
+
+    step, update, budget = 2e-3, 1.5e-3, 1.2
+    charged = np.cumsum(step - update + annealed_probability(np.arange(1, 2000)) * update)
+    expected = int(np.argmax(charged >= budget - 1e-12)) + 1
+    outcome, run = run_toy(
+        tmp_path / "psgd",
+        "optim=psgd_kron",
+        f"trainer.time_budget={budget}",
+        f"trainer.step_cost={step}",
+        f"trainer.update_cost={update}",
+        "trainer.clock=calibrated",
+    )
+    assert outcome.status == "completed" and run.attrs["stopped_by"] == "time_budget"
+    assert outcome.iterations == expected > 600
+    np.testing.assert_allclose(run.train["calibrated_time"], charged[:expected], rtol=1e-12)
+    assert run.attrs["update_cost"] == update and run.attrs["step_cost"] == step
+    for refused, key in (
+        (["optim=adam", "trainer.step_cost=0.002", "trainer.update_cost=0.001"], "optim=adam"),
+        (["optim=psgd_kron", "trainer.step_cost=0.002", "trainer.update_cost=0.003"], "0.003"),
+        (["optim=psgd_kron", "trainer.update_cost=0.001"], "trainer.update_cost"),
+    ):
+        outcome, _ = run_experiment(load("task=toy", *refused), tmp_path / key)
+        assert outcome.status == "refused" and "trainer.update_cost" in outcome.reason, refused
+        assert key in outcome.reason and "\n" not in outcome.reason
+
+
 def test_the_calibration_ranks_real_steps_by_their_cost():
     """Two configurations interleaved in one process: a Jacobian rule's step costs more than Adam's
     on the same scene (about 9 to 26 times on the 2-core machine, quiet or beside a 2-core job),

@@ -144,3 +144,56 @@ def test_the_fitted_preconditioner_whitens_kronecker_structured_gradients(
 def test_settings_out_of_range_are_refused_with_the_key(settings, why):
     with pytest.raises(ValueError, match=why.replace("[", r"\[").replace("]", r"\]")):
         psgd_kron(1e-3, **settings)
+
+
+def test_the_schedule_is_psgdax_s_and_the_counter_set_by_at_step_sets_the_update_probability():
+    """annealed_probability is psgdax's precond_update_prob_schedule (in float32 there) at steps 1
+    to 20,000; at_step sets the step counter of a psgd_kron state and nothing else; from a state set
+    to the start every one of 400 steps (one key each) updates the preconditioner, from one set to
+    floor_step (p = 0.03) a binomial share: 12 expected, and fewer than 2 or more than 30 has
+    probability below 1e-4."""
+    from psgdax.psgd import KronState, precond_update_prob_schedule
+
+    from physgrad.optim.psgd import annealed_probability, scheduled_update
+
+    steps = np.arange(1, 20_001)
+    np.testing.assert_allclose(
+        annealed_probability(steps),
+        np.asarray(precond_update_prob_schedule()(steps)),
+        rtol=1e-6,
+    )
+    schedule = scheduled_update({"preconditioner_update_probability": None})
+    assert scheduled_update({"preconditioner_update_probability": 0.5}) is None
+    rule = psgd_kron(1e-3)
+    params = {"w": jnp.ones((4, 3)), "b": jnp.ones(3)}
+    gradient = jax.tree.map(lambda p: 0.1 * p, params)
+    _, state = updates_of(rule, [gradient] * 3, params)
+    pinned = schedule.at_step(state, schedule.floor_step)
+    kron = [i for i, part in enumerate(state) if isinstance(part, KronState)]
+    assert len(kron) == 1 and int(pinned[kron[0]].count) == schedule.floor_step
+    unchanged = jax.tree.leaves(jax.tree.map(lambda a, b: bool(jnp.all(a == b)), state, pinned))
+    assert unchanged.count(False) == 1  # the counter alone
+
+    def updated(start: int) -> int:
+        """Of 400 steps from the state set to `start`, each with its own key: how many changed the
+        preconditioner."""
+        base, at = schedule.at_step(state, start), kron[0]
+
+        def one(key):
+            keyed = tuple(
+                part._replace(key=key) if i == at else part for i, part in enumerate(base)
+            )
+            _, after = rule.update(gradient, keyed, params)
+            changed = jax.tree.map(
+                lambda a, b: jnp.any(a != b),
+                after[at].Qs_preconditioners,
+                base[at].Qs_preconditioners,
+            )
+            return jnp.any(jnp.stack(jax.tree.leaves(changed))), after[at].count
+
+        changed, count = jax.jit(jax.vmap(one))(jax.random.split(jax.random.PRNGKey(0), 400))
+        assert set(np.asarray(count).tolist()) == {start + 1}
+        return int(np.sum(changed))
+
+    assert updated(0) == 400
+    assert 2 <= updated(schedule.floor_step) <= 30

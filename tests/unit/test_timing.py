@@ -122,3 +122,130 @@ def test_the_interval_of_a_cost_widens_with_a_drift_between_the_halves():
     low, high = cost_interval(drifted, CALIBRATION_QUANTILE)
     assert low <= np.quantile(steady[:20], CALIBRATION_QUANTILE)
     assert high >= np.quantile(1.3 * steady[20:], CALIBRATION_QUANTILE)
+
+
+def annealed_schedule(at_step=None):
+    """PSGD Kron's ScheduledUpdate, its step counter pinned in a state {"count": n} by default."""
+    import dataclasses
+
+    from physgrad.optim.psgd import scheduled_update
+
+    schedule = scheduled_update({"preconditioner_update_probability": None})
+    if at_step is None:
+        return dataclasses.replace(schedule, at_step=lambda state, steps: {"count": steps})
+    return schedule
+
+
+def test_the_charge_of_a_scheduled_update_is_what_its_steps_cost_on_average():
+    """ScheduledUpdate.charged_seconds(n) against a plain loop over the steps, each charged
+    s - u + p_t u (p_t psgdax's annealed schedule at t = 1..n): every step charged s while p_t = 1
+    (the first 500), 0.03 u from step 4,007 on; the sums asked for out of order (the cumulative
+    sum grows)."""
+    import numpy as np
+
+    from physgrad.optim.psgd import annealed_probability
+
+    schedule = annealed_schedule()
+    step, update = 2e-3, 1.5e-3
+    assert schedule.full_steps == 500 and schedule.floor_step == 4007
+    assert annealed_probability(np.array([500, 501]))[1] < 1 == annealed_probability([500])[0]
+    assert annealed_probability([4006])[0] > 0.03 == annealed_probability([4007])[0]
+    assert schedule.floor == 0.03
+    for n in (0, 1, 500, 20_000, 501, 4007, 4008, 2500, 1024, 1025):
+        loop = sum(
+            step - update + float(annealed_probability([t])[0]) * update for t in range(1, n + 1)
+        )
+        assert schedule.charged_seconds(n, step, update) == pytest.approx(
+            loop, rel=1e-12, abs=1e-15
+        )
+    assert schedule.charged_seconds(500, step, update) == pytest.approx(500 * step)
+    assert schedule.charged_seconds(10_000, step, update) - schedule.charged_seconds(
+        9_000, step, update
+    ) == pytest.approx(1000 * (step - update + 0.03 * update))
+    assert schedule.charged_seconds(700, step, 0.0) == pytest.approx(700 * step)
+
+
+@pytest.mark.parametrize("update_share", [0.0, 0.3, 0.9])
+def test_a_scheduled_update_is_timed_where_every_step_updates_and_where_it_is_rare(
+    monkeypatch, update_share
+):
+    """On a simulated clock, a step that costs c + p_t u (its counter advancing by one a step) and
+    Adam's of 1 ms: the calibration times the scheduled step with its counter set back to the start
+    before every burst (step_seconds = c + u, although 40 rounds of bursts take it thousands of
+    steps on) and to the schedule's floor (advanced_seconds = c + 0.03 u), whence update_seconds =
+    u; its bursts of updating steps stay within the first 500 steps. Adam's cost is Adam's."""
+    import sys
+    import types
+
+    import numpy as np
+
+    import physgrad.optim.capabilities  # noqa: F401  in sys.modules
+    import physgrad.timing
+    from physgrad.optim.psgd import annealed_probability
+    from physgrad.timing import Stepper, calibrate
+
+    step_seconds = 4e-5  # bursts of 0.05 s would be 1,250 steps: more than the 500 that update
+    plain, update = (1 - update_share) * step_seconds, update_share * step_seconds
+    clock = {"now": 0.0, "counts": []}
+    costs = {"adam": lambda count: 1e-3}
+    probability = annealed_probability(np.arange(1, 30_001)).tolist()  # p_{count + 1}
+    costs["psgd"] = lambda count: plain + probability[count] * update
+
+    def fake_compiled(cfg, seeds):
+        name = cfg["optim"]["name"]
+
+        def step(params, state, iteration, keys, sets):
+            clock["now"] += costs[name](state["count"])
+            clock["counts"].append((name, state["count"]))
+            return params, {"count": state["count"] + 1}, []
+
+        compiled = types.SimpleNamespace(params=None, opt_state={"count": 0}, step=step)
+        stacked = types.SimpleNamespace(train_keys=None, train_sets=None)
+        return None, None, None, stacked, compiled, 0.0, Stepper(compiled, stacked)
+
+    monkeypatch.setattr(physgrad.timing, "compiled_step", fake_compiled)
+    monkeypatch.setattr(
+        physgrad.timing, "time", types.SimpleNamespace(perf_counter=lambda: clock["now"])
+    )
+    monkeypatch.setattr(
+        sys.modules["physgrad.optim.capabilities"],  # (physgrad.optim.capabilities: a function)
+        "scheduled_update",
+        lambda optim: annealed_schedule() if optim["name"] == "psgd" else None,
+    )
+    configs = {name: {"optim": {"name": name}} for name in ("adam", "psgd")}
+    result = calibrate(configs, seed=0, rounds=40, min_seconds=0.5, max_seconds=600)["costs"]
+    assert result["adam"]["step_seconds"] == pytest.approx(1e-3)
+    assert "update_seconds" not in result["adam"]
+    psgd = result["psgd"]
+    assert psgd["step_seconds"] == pytest.approx(step_seconds)
+    assert psgd["advanced_seconds"] == pytest.approx(plain + 0.03 * update)
+    assert psgd["update_seconds"] == pytest.approx(update, abs=1e-12)
+    assert psgd["advanced_step"] == 4007 and psgd["floor_probability"] == 0.03
+    assert psgd["burst_steps"] == 500 and psgd["rounds"] >= 40
+    counts = np.array([count for name, count in clock["counts"] if name == "psgd"])
+    assert len(counts) > 40 * 500  # the scheduled step ran on far past its first 500 steps ...
+    assert set(counts[counts < 4007]) == set(range(500))  # ... never at a count in between
+
+
+def test_a_calibrations_update_cost_goes_to_its_variants_jobs(tmp_path):
+    """calibrated_clock with a given calibration.json: a variant whose cost has update_seconds runs
+    with trainer.update_cost, the others without."""
+    import json
+    import types
+
+    from physgrad.comparison.calibration import calibrated_clock
+    from tests.helpers import scheduled_calibration
+
+    calibration = scheduled_calibration()
+    given = tmp_path / "given.json"
+    given.write_text(json.dumps(calibration))
+    variants = [types.SimpleNamespace(name=name) for name in ("adam", "psgd_kron")]
+    plan = types.SimpleNamespace(variants=variants)
+    launcher = types.SimpleNamespace(folder=tmp_path, say=print)
+    assert calibrated_clock(plan, launcher, str(given)) == calibration
+    assert variants[0].job_values == {"trainer.step_cost": 2e-3, "trainer.clock": "calibrated"}
+    assert variants[1].job_values == {
+        "trainer.step_cost": 2e-3,
+        "trainer.clock": "calibrated",
+        "trainer.update_cost": 1e-3,
+    }
