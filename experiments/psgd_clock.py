@@ -13,7 +13,9 @@ This script compiles the rule's step as `physgrad run` does (one seed: a real br
 seeds trained together compute both branches at every step) on each leaderboard scene twice, runs
 one copy on to step ADVANCED (p = 0.03), and times Adam's step, the fresh copy (p = 1) and the
 advanced one in turn, one burst each per round, as the calibration does; c and u follow from the two
-PSGD costs. PSGD Kron's iterations at the budget come from the kept evidence
+PSGD costs. It then runs the calibration itself (physgrad.timing.calibrate of Adam and PSGD Kron),
+which sets the step counter instead of running a copy on, and sets its share of the update beside
+this one. PSGD Kron's iterations at the budget come from the kept evidence
 (docs/evidence/leaderboard/<scene>.json), the wall-clock ratio its tuning studies recorded (runs
 trained alone, median over the studies, on the machine that ran them) is set beside the prediction.
 
@@ -35,17 +37,12 @@ sys.path.insert(1, str(Path(__file__).resolve().parent.parent))
 
 from leaderboard_scenes import EVIDENCE, SCENES  # noqa: E402  experiments/
 
+from physgrad.optim.psgd import annealed_probability  # noqa: E402
+
 RULE = "psgd_kron"
 ADVANCED = 5000  # steps run before timing: p_t = 0.03 from step 4,007 on
 FRESH_STEPS = 400  # the fresh copy's timed steps in all, so that its p_t stays 1
 ROUNDS = 20
-
-
-def update_probability(steps: np.ndarray) -> np.ndarray:
-    """p_t of the annealed schedule PSGD Kron runs with (psgdax's, as physgrad.optim.psgd uses)."""
-    from psgdax.psgd import precond_update_prob_schedule
-
-    return np.asarray(precond_update_prob_schedule()(np.asarray(steps, dtype=np.float64)))
 
 
 def measure(entry, seed: int) -> dict:
@@ -53,14 +50,15 @@ def measure(entry, seed: int) -> dict:
     advanced on entry's scene."""
     from physgrad.configs import compose
     from physgrad.machine import load_average, machine_attributes
-    from physgrad.timing import CALIBRATION_QUANTILE, compiled_step, interleaved_times
+    from physgrad.timing import CALIBRATION_QUANTILE, calibrate, compiled_step, interleaved_times
 
     dirs = [entry.config_dir] if entry.config_dir else []
     if entry.config_dir:  # a scene from examples/: its module beside its conf folder
         sys.path.append(str(Path(entry.config_dir).resolve().parent))
     common = [*entry.overrides, f"trainer.time_budget={entry.budget:g}"]
+    configs = {optim: compose([*common, f"optim={optim}"], dirs) for optim in ("adam", RULE)}
     steps = {
-        name: compiled_step(compose([*common, f"optim={optim}"], dirs), [seed])[-1]
+        name: compiled_step(configs[optim], [seed])[-1]
         for name, optim in (("adam", "adam"), ("fresh", RULE), ("advanced", RULE))
     }
     for _ in range(ADVANCED):
@@ -80,7 +78,10 @@ def measure(entry, seed: int) -> dict:
         name: float(np.quantile(np.asarray(t[:ROUNDS]) / burst, CALIBRATION_QUANTILE))
         for name, t in zip(steps, times)
     }
+    # the calibration's own measurement: the counter set to the start and to the floor
+    calibrated = calibrate(configs, seed)["costs"][RULE]
     return costs | {
+        "calibration_update_share": calibrated["update_seconds"] / calibrated["step_seconds"],
         "machine": machine_attributes()["cpu_model"],
         "load": [load, load_average()],
     }
@@ -94,16 +95,17 @@ def row(entry, measured: dict) -> dict:
     about = json.loads((EVIDENCE / f"{entry.name}.json").read_text())
     iterations = int(about["iterations"][RULE])
     adam, fresh, advanced = measured["adam"], measured["fresh"], measured["advanced"]
-    floor = float(update_probability(np.array([ADVANCED]))[0])
+    floor = float(annealed_probability(np.array([ADVANCED]))[0])
     update = (fresh - advanced) / (1 - floor)  # u from c + u = fresh, c + floor u = advanced
     plain = fresh - update
-    p_mean = float(np.mean(update_probability(np.arange(max(iterations, 1)))))
+    p_mean = float(np.mean(annealed_probability(np.arange(1, max(iterations, 1) + 1))))
     return {
         "scene": entry.name,
         "iterations": iterations,
         "fresh_over_adam": fresh / adam,
         "advanced_over_adam": advanced / adam,
         "update_share": update / fresh,
+        "calibration_update_share": measured["calibration_update_share"],
         "mean_probability": p_mean,
         "predicted_wall_ratio": (plain + p_mean * update) / fresh,
         "recorded_wall_ratio": wall_ratios(about).get(RULE),
@@ -115,15 +117,17 @@ def row(entry, measured: dict) -> dict:
 def table(rows: list[dict]) -> str:
     lines = [
         "| scene | PSGD Kron's iterations at the budget | its step over Adam's: fresh (p = 1), at "
-        f"step {ADVANCED:,} (p = 0.03) | the update's share of a fresh step | mean p over the run "
-        "| wall-clock time over Adam's: predicted, recorded by the studies |",
+        f"step {ADVANCED:,} (p = 0.03) | the update's share of a fresh step: run on, calibration "
+        "(counter set) | mean p over the run | wall-clock time over Adam's: predicted, recorded by "
+        "the studies |",
         "|---|---|---|---|---|---|",
     ]
     for r in rows:
         recorded = r["recorded_wall_ratio"]
         lines.append(
             f"| {r['scene']} | {r['iterations']:,} | {r['fresh_over_adam']:.2f}, "
-            f"{r['advanced_over_adam']:.2f} | {r['update_share']:.0%} | "
+            f"{r['advanced_over_adam']:.2f} | {r['update_share']:.0%}, "
+            f"{r['calibration_update_share']:.0%} | "
             f"{r['mean_probability']:.2f} | {r['predicted_wall_ratio']:.2f}, "
             f"{'not recorded' if recorded is None else f'{recorded:.2f}'} |"
         )
