@@ -280,13 +280,17 @@ def test_the_python_call_returns_the_tables(small_study):
 @pytest.mark.long
 def test_an_equal_time_study_runs_on_the_calibrated_clock_and_can_reuse_a_calibration(tmp_path):
     """A time budget: the variants are calibrated once (calibration.json), every run stops where
-    iterations x its variant's cost reach the budget, verdicts read the calibrated clock, and a
-    second study given the first's calibration trains exactly as far."""
+    iterations x its variant's cost reach the budget (PSGD Kron's: where the plain-loop sum of
+    s - u + p_t u over its steps does, u its update's cost, which the calibration measures for it
+    alone), verdicts read the calibrated clock, and a second
+    study given the first's calibration trains exactly as far."""
     import json
+
+    from physgrad.optim.psgd import annealed_probability
 
     common = [
         "task=toy",
-        "optim=adam,gauss_newton",
+        "optim=adam,gauss_newton,psgd_kron",
         "trainer.time_budget=0.4",
         "compare.trials=1",
         "compare.studies=1",
@@ -296,20 +300,33 @@ def test_an_equal_time_study_runs_on_the_calibrated_clock_and_can_reuse_a_calibr
     ]
     study = physgrad.compare(*common, f"compare.dir={tmp_path / 'first'}")
     calibration = json.loads((study.folder / "calibration.json").read_text())
-    costs = {name: calibration["costs"][name]["step_seconds"] for name in ("adam", "gauss_newton")}
+    costs = {name: c["step_seconds"] for name, c in calibration["costs"].items()}
     assert costs["gauss_newton"] > costs["adam"] > 0
+    assert [n for n, c in calibration["costs"].items() if "update_seconds" in c] == ["psgd_kron"]
+    psgd = calibration["costs"]["psgd_kron"]
+    assert 0 <= psgd["update_seconds"] <= psgd["step_seconds"] and psgd["advanced_step"] == 4007
+    charged = np.cumsum(
+        psgd["step_seconds"]
+        - psgd["update_seconds"]
+        + annealed_probability(np.arange(1, 100_001)) * psgd["update_seconds"]
+    )
     # measured by a job of the study, launched like the others (on a cluster: where the jobs run)
     measured = study.folder / "calibration" / "+compare_job=calibration" / "calibration.json"
     assert json.loads(measured.read_text()) == calibration
     assert calibration["machine"]["hostname"]
     for _, row in study.runs.iterrows():
+        if row.variant == "psgd_kron":
+            assert row.iterations == int(np.argmax(charged >= 0.4 - 1e-12)) + 1, row
+            assert row.calibrated_seconds == pytest.approx(charged[row.iterations - 1], rel=1e-9)
+            continue
         cost = costs[row.variant]
         assert row.iterations == math.ceil(0.4 / cost - 1e-9) or row.status != "completed", row
         assert row.calibrated_seconds == pytest.approx(row.iterations * cost)
     assert "Clock: calibrated" in study.text and "contended runs A, B" in study.text
+    assert "A scheduled update" in study.text and "psgd_kron: " in study.text
     # each variant's 6 evaluation seeds trained together in one job, which their files record
     jobs = sorted(p.name for p in (study.folder / "eval").glob("+compare_job=*"))
-    assert jobs == ["+compare_job=eval_v0", "+compare_job=eval_v1"]
+    assert jobs == ["+compare_job=eval_v0", "+compare_job=eval_v1", "+compare_job=eval_v2"]
     assert set(study.runs.wall_time_shared_by) == {6}
     again = physgrad.compare(
         *common,
@@ -326,44 +343,6 @@ def test_an_equal_time_study_runs_on_the_calibrated_clock_and_can_reuse_a_calibr
             f"compare.calibration={study.folder / 'calibration.json'}",
             f"compare.dir={tmp_path / 'x'}",
         )
-
-
-@pytest.mark.long
-def test_psgd_krons_runs_are_charged_the_expected_cost_its_calibration_measured(tmp_path):
-    """Adam and PSGD Kron at an equal calibrated time on the toy: the calibration measures PSGD
-    Kron's update (within its step cost, with the step at its floor, step 4,007), not Adam's; each
-    PSGD Kron run is charged the plain-loop sum of s - u + p_t u over its steps and stops at the
-    first step where that reaches the budget, past the 500 steps that all update; compare.md gives
-    the update's cost. Adam's runs stop at ceil(budget / its cost) as ever."""
-    import json
-
-    from physgrad.optim.psgd import annealed_probability
-
-    budget = 0.5
-    study = physgrad.compare(
-        "task=toy",
-        "optim=adam,psgd_kron",
-        f"trainer.time_budget={budget}",
-        "compare.trials=1",
-        "compare.studies=1",
-        "compare.seeds=2",
-        "figures=false",
-        f"compare.dir={tmp_path}",
-    )
-    costs = json.loads((study.folder / "calibration.json").read_text())["costs"]
-    assert "update_seconds" not in costs["adam"]
-    psgd = costs["psgd_kron"]
-    step, update = psgd["step_seconds"], psgd["update_seconds"]
-    assert 0 <= update <= step and psgd["advanced_step"] == 4007
-    charged = np.cumsum(step - update + annealed_probability(np.arange(1, 200_001)) * update)
-    for _, row in study.runs.iterrows():
-        assert row.status == "completed", row
-        if row.variant == "adam":
-            assert row.iterations == math.ceil(budget / costs["adam"]["step_seconds"] - 1e-9)
-            continue
-        assert row.iterations == int(np.argmax(charged >= budget - 1e-12)) + 1 > 500
-        assert row.calibrated_seconds == pytest.approx(charged[row.iterations - 1], rel=1e-9)
-    assert "A scheduled update" in study.text and "psgd_kron: " in study.text
 
 
 def test_a_learning_rate_schedule_is_tuned_by_its_init_value_and_keeps_its_shape():
