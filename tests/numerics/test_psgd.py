@@ -174,24 +174,27 @@ def test_the_schedule_is_psgdax_s_and_the_counter_set_by_at_step_sets_the_update
     unchanged = jax.tree.leaves(jax.tree.map(lambda a, b: bool(jnp.all(a == b)), state, pinned))
     assert unchanged.count(False) == 1  # the counter alone
 
+    at = kron[0]
+
+    def one(base, key):
+        """One step from base with its own key: whether it changed the preconditioner, and the
+        counter after it."""
+        keyed = tuple(part._replace(key=key) if i == at else part for i, part in enumerate(base))
+        _, after = rule.update(gradient, keyed, params)
+        changed = jax.tree.map(
+            lambda a, b: jnp.any(a != b),
+            after[at].Qs_preconditioners,
+            base[at].Qs_preconditioners,
+        )
+        return jnp.any(jnp.stack(jax.tree.leaves(changed))), after[at].count
+
+    steps_from = jax.jit(jax.vmap(one, in_axes=(None, 0)))  # compiled once, for both counters
+
     def updated(start: int) -> int:
         """Of 400 steps from the state set to `start`, each with its own key: how many changed the
         preconditioner."""
-        base, at = schedule.at_step(state, start), kron[0]
-
-        def one(key):
-            keyed = tuple(
-                part._replace(key=key) if i == at else part for i, part in enumerate(base)
-            )
-            _, after = rule.update(gradient, keyed, params)
-            changed = jax.tree.map(
-                lambda a, b: jnp.any(a != b),
-                after[at].Qs_preconditioners,
-                base[at].Qs_preconditioners,
-            )
-            return jnp.any(jnp.stack(jax.tree.leaves(changed))), after[at].count
-
-        changed, count = jax.jit(jax.vmap(one))(jax.random.split(jax.random.PRNGKey(0), 400))
+        keys = jax.random.split(jax.random.PRNGKey(0), 400)
+        changed, count = steps_from(schedule.at_step(state, start), keys)
         assert set(np.asarray(count).tolist()) == {start + 1}
         return int(np.sum(changed))
 
