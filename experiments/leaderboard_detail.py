@@ -146,7 +146,11 @@ def charged_by_schedule(calibration: Path) -> list[str]:
 
     stored = read_calibration(calibration, [])
     costs = (stored or {}).get("costs") or {}
-    return sorted(name for name, cost in costs.items() if "update_seconds" in cost)
+    return sorted(
+        str(name)
+        for name, cost in costs.items()
+        if isinstance(cost, dict) and "update_seconds" in cost
+    )
 
 
 def wall_ratios(about: dict) -> dict[str, float]:
@@ -186,7 +190,8 @@ def wall_line(about: dict) -> str | None:
         + f"; the others within {WALL_FACTOR:g}x. The clock counts each step at its calibrated "
         "cost, and a step whose cost varies along a run (a line search's evaluations; PSGD "
         "Kron's preconditioner update, at every step for the first 500 and rarer after) can cost "
-        "more or less in the runs than in the calibration, which times the first steps: above 1x "
+        "more or less in the runs than in the calibration, which times the first steps (and, "
+        "where it charges PSGD Kron its expected cost, those at its schedule's floor): above 1x "
         f"the rule had more time than {BASELINE}, below 1x less."
     )
 

@@ -58,7 +58,9 @@ def check_config(cfg: DictConfig) -> TrainerSettings:
 
 def with_scheduled_update(settings: TrainerSettings, optim_cfg: DictConfig) -> TrainerSettings:
     """settings with the rule's update schedule attached where trainer.update_cost charges one; a
-    cost given for a rule without one is refused (its calibration was another rule's)."""
+    cost given for a rule without one is refused (its calibration was another rule's). Trials
+    cannot vary the schedule: trial_values sets numbers only, and a number fixes the probability,
+    which leaves no schedule."""
     if settings.update_cost is None:
         return settings
     schedule = scheduled_update(optim_cfg)

@@ -207,8 +207,9 @@ class TrainingLoop:
         self.last_flush, self.flush_interval = 0.0, settings.flush_seconds
 
     def clock_times(self, iteration: int) -> dict:
-        """The measured training seconds and, with a calibration, the calibrated ones (iterations x
-        step cost)."""
+        """The measured training seconds and, with a calibration, the calibrated ones
+        (TrainerSettings.charged_seconds: iterations x step cost, a scheduled update at its expected
+        cost)."""
         times = {"wall_time": self.train_seconds}
         if self.settings.step_cost is not None:
             times["calibrated_time"] = self.settings.charged_seconds(iteration)

@@ -70,9 +70,14 @@ class SimulatedClock:
 
 def scheduled_calibration() -> dict:
     """A whole calibration.json of adam (2 ms a step) and psgd_kron (2 ms, 1 ms of it its scheduled
-    update, 1.03 ms a step at its floor p = 0.03)."""
+    update, 1.03 ms a step at its floor p = 0.03, from step 4,007 on)."""
     cost = {"step_seconds": 2e-3, "median_seconds": 2.1e-3, "rounds": 30}
-    scheduled = {"update_seconds": 1e-3, "advanced_seconds": 1.03e-3, "floor_probability": 0.03}
+    scheduled = {
+        "update_seconds": 1e-3,
+        "advanced_seconds": 1.03e-3,
+        "advanced_step": 4007,
+        "floor_probability": 0.03,
+    }
     return {
         "quantile": 0.2,
         "load_start": 0.5,

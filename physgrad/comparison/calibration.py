@@ -97,17 +97,21 @@ def _interval_whole(cost: dict, seconds: object) -> bool:
 
 
 def _update_whole(cost: dict, finite: object) -> bool:
-    """A scheduled update's cost, where recorded: within [0, step_seconds], with its advanced
-    step's cost and its floor probability in [0, 1)."""
+    """A scheduled update's cost, where recorded: within [0, step_seconds], with the step it was
+    timed from (a positive integer), that step's cost and its floor probability in [0, 1)."""
     if "update_seconds" not in cost:
         return True
-    update, advanced, floor = (
+    update, advanced, floor, step = (
         cost.get("update_seconds"),
         cost.get("advanced_seconds"),
         cost.get("floor_probability"),
+        cost.get("advanced_step"),
     )
     return (
-        finite(update)
+        isinstance(step, int)
+        and not isinstance(step, bool)
+        and step >= 1
+        and finite(update)
         and 0 <= update <= cost["step_seconds"]
         and finite(advanced)
         and advanced > 0
@@ -182,8 +186,17 @@ def calibrated_clock(plan: StudyPlan, launcher: Launcher, given: str | None) -> 
                 "command again to resume"
             )
         write_calibration(path, calibration)
+    from physgrad.optim.capabilities import scheduled_update
+
     for variant in variants:
         cost = calibration["costs"][variant.name]
+        if "update_seconds" in cost and scheduled_update(variant.config.optim) is None:
+            raise UserError(
+                f"{given or path}: {variant.name}'s cost has an update cost (update_seconds), and "
+                "its rule updates on no schedule (only psgd_kron with "
+                "preconditioner_update_probability=null does): give a calibration of this study's "
+                "variants, or leave compare.calibration out to calibrate"
+            )
         variant.job_values = {
             "trainer.step_cost": float(cost["step_seconds"]),
             "trainer.clock": "calibrated",

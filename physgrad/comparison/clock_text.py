@@ -83,12 +83,15 @@ def step_cost_lines(variants: list[Variant], runs: pd.DataFrame) -> list[str]:
 def _calibration_lines(variants: list[Variant], runs: pd.DataFrame, calibration: dict) -> list[str]:
     """The calibrated clock: how the step costs were measured, each variant's cost against its
     runs' measured steps, and a warning where the calibration's machine was busy."""
+    scheduled = [v.name for v in variants if "update_seconds" in calibration["costs"][v.name]]
+    where = " (a scheduled update at its expected cost, below)" if scheduled else ""
     lines = [
         "Clock: calibrated. Step costs measured with every variant's compiled step "
         "interleaved in one "
         f"process (the {calibration['quantile']:g} quantile over rounds; load average "
         f"{calibration['load_start']:.2f} -> {calibration['load_end']:.2f}); a run's time is its "
-        "iterations times its variant's cost, so the machine's load cannot change how far a "
+        f"iterations times its variant's cost{where}, "
+        "so the machine's load cannot change how far a "
         "variant gets. The measured clock: compare.clock=measured.",
         "",
         "| variant | calibrated step cost [interval] | median in the calibration | rounds | "
@@ -107,7 +110,6 @@ def _calibration_lines(variants: list[Variant], runs: pd.DataFrame, calibration:
             f"{cost['rounds']} | {fmt(p50)} s | "
             f"{int(sub['contended'].sum()) if len(sub) else 0} of {len(sub)} |"
         )
-    scheduled = [v.name for v in variants if "update_seconds" in calibration["costs"][v.name]]
     if scheduled:
         lines += ["", scheduled_update_text(scheduled, calibration)]
     shared = _shared_programs(variants, calibration)

@@ -196,7 +196,7 @@ def verdict_lines(
     on a busy machine) says so in its cell."""
     scheduled = (
         ", a scheduled update at its expected cost"
-        if calibration and any("update_seconds" in c for c in calibration["costs"].values())
+        if calibration and any("update_seconds" in calibration["costs"][v.name] for v in variants)
         else ""
     )
     budget_text = {

@@ -130,13 +130,16 @@ class ScheduledUpdate:
         """p_t from floor_step on."""
         import numpy as np
 
-        return float(self.probability(np.array([self.floor_step + 1]))[0])
+        return float(self.probability(np.array([self.floor_step]))[0])
 
     def expected_updates(self, steps: int) -> float:
-        """sum_{t <= steps} p_t, from a cumulative sum kept and doubled as runs grow (the clock
-        reads it at every step)."""
+        """sum_{t <= steps} p_t: up to floor_step from a cumulative sum kept and doubled as runs
+        grow (the clock reads it at every step), beyond it in closed form, p_t being the floor
+        there."""
         import numpy as np
 
+        if steps > self.floor_step:
+            return self.expected_updates(self.floor_step) + (steps - self.floor_step) * self.floor
         known = 0 if self._cumulative is None else self._cumulative.size
         if steps >= known:
             size = max(2 * known, steps + 1, 1024)

@@ -3,6 +3,7 @@ The calibrated clock, the contention flag and the machine a result was measured 
 are injected by replacing the runner's clock, at random instants, and the calibrated time must not
 move."""
 
+import jax
 import numpy as np
 import pytest
 
@@ -178,8 +179,13 @@ def test_a_scheduled_update_is_charged_its_expected_cost_and_only_for_a_rule_wit
     calibrated time after n steps is the plain-loop sum of s - u + p_t u (p_t psgdax's schedule),
     s a step for the first 500, and the run stops at the first n where that reaches the 1.2 s
     budget (n s would stop it at 600). An update cost for Adam, one above the step cost, or one
-    without a step cost is refused in one line that names it."""
-    from physgrad.optim.psgd import annealed_probability
+    without a step cost is refused in one line that names it. at_step reaches the counter in the
+    state of the compiled training the calibration times (one per seed): set to floor_step, one step
+    later it reads floor_step + 1."""
+    import psgdax
+
+    from physgrad.optim.psgd import annealed_probability, scheduled_update
+    from physgrad.timing import compiled_step
 
     step, update, budget = 2e-3, 1.5e-3, 1.2
     charged = np.cumsum(step - update + annealed_probability(np.arange(1, 2000)) * update)
@@ -204,6 +210,19 @@ def test_a_scheduled_update_is_charged_its_expected_cost_and_only_for_a_rule_wit
         outcome, _ = run_experiment(load("task=toy", *refused), tmp_path / key)
         assert outcome.status == "refused" and "trainer.update_cost" in outcome.reason, refused
         assert key in outcome.reason and "\n" not in outcome.reason
+    schedule = scheduled_update({"preconditioner_update_probability": None})
+    *_, one_step = compiled_step(load("task=toy", "optim=psgd_kron"), [0])
+    one_step.opt_state = schedule.at_step(one_step.opt_state, schedule.floor_step)
+    one_step()
+
+    def kron(part) -> bool:
+        return isinstance(part, psgdax.psgd.KronState)
+
+    def counters(state):
+        parts = jax.tree.leaves(state, is_leaf=kron)
+        return [np.asarray(p.count).tolist() for p in parts if kron(p)]
+
+    assert counters(one_step.opt_state) == [[schedule.floor_step + 1]]
 
 
 def test_the_calibration_ranks_real_steps_by_their_cost():

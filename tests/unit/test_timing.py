@@ -229,17 +229,25 @@ def test_a_scheduled_update_is_timed_where_every_step_updates_and_where_it_is_ra
 
 def test_a_calibrations_update_cost_goes_to_its_variants_jobs(tmp_path):
     """calibrated_clock with a given calibration.json: a variant whose cost has update_seconds runs
-    with trainer.update_cost, the others without."""
+    with trainer.update_cost, the others without; an update cost for a rule without a schedule
+    (Adam, or PSGD Kron with a fixed update probability) is refused in one line before any job."""
     import json
     import types
 
     from physgrad.comparison.calibration import calibrated_clock
+    from physgrad.errors import UserError
     from tests.helpers import scheduled_calibration
+
+    psgd_target = "physgrad.optim.psgd.psgd_kron"
 
     calibration = scheduled_calibration()
     given = tmp_path / "given.json"
     given.write_text(json.dumps(calibration))
-    variants = [types.SimpleNamespace(name=name) for name in ("adam", "psgd_kron")]
+    rules = {"adam": {"_target_": "optax.adam"}, "psgd_kron": {"_target_": psgd_target}}
+    variants = [
+        types.SimpleNamespace(name=name, config=types.SimpleNamespace(optim=optim))
+        for name, optim in rules.items()
+    ]
     plan = types.SimpleNamespace(variants=variants)
     launcher = types.SimpleNamespace(folder=tmp_path, say=print)
     assert calibrated_clock(plan, launcher, str(given)) == calibration
@@ -249,3 +257,9 @@ def test_a_calibrations_update_cost_goes_to_its_variants_jobs(tmp_path):
         "trainer.clock": "calibrated",
         "trainer.update_cost": 1e-3,
     }
+    fixed = {"_target_": psgd_target, "preconditioner_update_probability": 0.5}
+    for wrong in ({"_target_": "optax.adam"}, fixed):
+        variants[1].config.optim = wrong
+        with pytest.raises(UserError, match="psgd_kron's cost has an update cost") as error:
+            calibrated_clock(plan, launcher, str(given))
+        assert "\n" not in str(error.value)
