@@ -50,12 +50,9 @@ from physgrad.claim import (
     studies_of,
     tuning_studies,
 )
+from physgrad.claim_words import claim_word, left_start
 from physgrad.errors import UserError
-from physgrad.verdict import (
-    FRACTIONS,
-    claim_word,
-    left_start,
-)
+from physgrad.verdict import FRACTIONS
 
 # --- the studies
 # ------------------------------------------------------------------------------------------
@@ -261,7 +258,7 @@ def _claim_variants(claim: Claim, study: str) -> list[str]:
 
 def _left_start(claim: Claim, runs: StudyRuns) -> tuple[bool, str]:
     """Whether every variant of the claim's main study has left its start at X (the median over
-    its seeds of loss at X / at its first evaluation, physgrad.verdict.left_start), and each
+    its seeds of loss at X / at its first evaluation, physgrad.claim_words.left_start), and each
     variant's factor."""
     said, trained = [], True
     for variant in _claim_variants(claim, _main_study(claim)):

@@ -7,7 +7,7 @@ compare.baseline=adam (each rule compared with Adam alone: Holm's correction ove
 comparisons): every rule tuned on the same trial points in each of LEADERBOARD_STUDIES independent
 tuning studies, evaluated on LEADERBOARD_SEEDS paired seeds per study, the budget the same number of
 calibrated seconds for every rule (its iterations: budget / the rule's calibrated step cost). A
-cell is the package's verdict over the tuning studies (physgrad.verdict.across_studies) and the
+cell is the package's verdict over the tuning studies (physgrad.replication.across_studies) and the
 median ratio rule / Adam of the test loss at the budget with its interval.
 
 Usage (from the repository's root):
@@ -63,13 +63,13 @@ from leaderboard_scenes import (
 from studies import STUDY_FOLDER
 from study_runs import read_study, study_overrides
 
+from physgrad.replication import across_studies
 from physgrad.verdict import (
     A_BETTER,
     B_BETTER,
     EQUIVALENT,
     FRACTIONS,
     MARGIN,
-    across_studies,
     compare_variants,
     ratio_of,
 )
@@ -177,7 +177,7 @@ def cells(runs, about: dict | None = None) -> dict[str, Cell]:
     with Holm's correction over the comparisons with Adam of the rules it ran (compare.baseline),
     a "better" its compare found undecided by the clock kept so (the kept record's
     undecided_by_the_clock), then each rule over the studies that ran it
-    (physgrad.verdict.across_studies; a rule added to the leaderboard after a scene's first
+    (physgrad.replication.across_studies; a rule added to the leaderboard after a scene's first
     studies is decided over the later ones)."""
     about = about or {}
     iterations = about.get("iterations")

@@ -301,7 +301,7 @@ def scene_page(entry, cells: dict, runs, about: dict) -> str:
         f"{BASELINE}), the median ratio rule / {BASELINE} of the test loss with its 95% interval, "
         "the seeds where the rule was lower, the ratios at X/4 and X/2, and each rule's median "
         "iterations in the budget. The last row is the leaderboard's cell: the verdict over the "
-        "studies (physgrad.verdict.across_studies).",
+        "studies (physgrad.replication.across_studies).",
     ]
     keys = sorted(by_study, key=int) if len(by_study) == studies else []
     for rule, cell in sorted(cells.items(), key=lambda item: RULES.index(item[0])):

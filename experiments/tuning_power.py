@@ -27,7 +27,7 @@ Two designs:
                  (scipy's scrambled Halton sequence)
 
 Three rules over the studies, on the same simulated data:
-    majority  physgrad.verdict.across_studies with need = more than half: the verdict of more than
+    majority  physgrad.replication.across_studies with need = more than half: the verdict of more than
               half of the studies (each decided by compare_variants with Holm over its
               comparisons), none against
     consistent the majority, and every study's median ratio on the verdict's side (a study
@@ -53,7 +53,8 @@ import numpy as np
 from physgrad.comparison.tuning import halton_points
 from physgrad.optim.capabilities import ADAPTIVE
 from physgrad.readout import Curve
-from physgrad.verdict import A_BETTER, B_BETTER, across_studies, compare_variants, majority
+from physgrad.replication import across_studies, majority
+from physgrad.verdict import A_BETTER, B_BETTER, compare_variants
 
 RANGE = ADAPTIVE.search_range
 BUDGET = 1.0
@@ -183,7 +184,7 @@ def simulate(cell: Cell, seed: int = 0) -> dict[str, dict[str, int]]:
 
 
 DESIGNS = (("shared", 3), ("independent", 3), ("independent", 4))  # (design, tuning studies)
-# what physgrad compare does: compare.studies=4, verdict.across_studies' defaults
+# what physgrad compare does: compare.studies=4, physgrad.replication.across_studies' defaults
 PHYSGRAD = ("independent", 4, "consistent")
 # what it did before independent studies: three studies on shared seeds, the plain majority
 BEFORE = ("shared", 3, "majority")

@@ -1,7 +1,7 @@
 """A paper's claim decided by physgrad's rules: its parts (A lower than B, A close to B, A's
 advantage grows from an easy setting to a hard one, A stalls, A reaches a level), each decided from
 a study's evaluation runs at a fraction of its budget, in each tuning study and then over them
-(physgrad.verdict.over_studies: a majority of the studies planned, none against).
+(physgrad.replication.over_studies: a majority of the studies planned, none against).
 
 - "A lower than B": the paired verdict (Holm over the study's comparisons), A better holds it,
   B better or equivalent goes against it;
@@ -10,7 +10,7 @@ a study's evaluation runs at a fraction of its budget, in each tuning study and 
   ratios;
 - "A stalls": its loss at the budget against its loss at half the budget, paired by seed,
   equivalent within the margin (neither still falling nor rising);
-- "A reaches a level": the seeds below it, by the sign test (physgrad.verdict.against_level).
+- "A reaches a level": the seeds below it, by the sign test (physgrad.claim_words.against_level).
 A claim holds if every part holds, does not hold if one does not, and is not settled otherwise.
 
 The runs a part is read from are any object with the study's `budget`, `axis`, `folder`, `paths`
@@ -27,21 +27,17 @@ from typing import Callable, Protocol
 
 import numpy as np
 
+from physgrad.claim_words import ABOVE, BELOW, against_level
+from physgrad.replication import across_studies, majority, over_studies
 from physgrad.trend import GROWS, interaction
 from physgrad.verdict import (
     A_BETTER,
-    ABOVE,
     B_BETTER,
-    BELOW,
     EQUIVALENT,
     FRACTIONS,
     MARGIN,
     UNDECIDED,
-    across_studies,
-    against_level,
     compare_variants,
-    majority,
-    over_studies,
     paired,
     ratio_of,
 )
@@ -123,7 +119,7 @@ class Stalls:
 @dataclass(frozen=True)
 class Reaches:
     """The variant's `column` at the budget lies below an absolute level (the seeds below it, by
-    the package's sign test, physgrad.verdict.against_level)."""
+    the package's sign test, physgrad.claim_words.against_level)."""
 
     study: str
     variant: str
@@ -149,7 +145,7 @@ class Claim:
     paper_budget_text: str = "-"
     paper_seconds: bool = False
     # where physgrad's scene or comparison departs from the paper's in a way that matters: how
-    # (the claim's word is then "different setup", physgrad.verdict.claim_word)
+    # (the claim's word is then "different setup", physgrad.claim_words.claim_word)
     departs: str = ""
 
 
@@ -180,7 +176,7 @@ def fraction_text(fraction: float) -> str:
 def _compare_group(runs: Runs, group: list, column: str, margin: float, fractions: tuple) -> list:
     """The parts of one study that read one column at one margin, compared together (Holm's
     correction over them): each tuning study decided alone, then over the studies by the package's
-    rule (verdict.across_studies); one result per part, in the group's order."""
+    rule (physgrad.replication.across_studies); one result per part, in the group's order."""
     names = {v for p in group for v in (p.a, p.b)}
     per_study = [
         compare_variants(
@@ -276,7 +272,7 @@ def _over_studies(
 ) -> tuple[str, str]:
     """A part's outcome (holds, does not hold, not settled) from each tuning study's, with why:
     one study's as it is; several by the package's rule over tuning studies
-    (physgrad.verdict.over_studies: a majority, none against) applied to what each study's verdict
+    (physgrad.replication.over_studies: a majority, none against) applied to what each study's verdict
     says of the part, so that two verdicts that both support it (A better and equivalent, for "A
     close to B") do not count as a disagreement; why lists each study's verdict. Of a study with
     `planned` tuning studies of which fewer have run, the majority is of those planned."""

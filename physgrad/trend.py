@@ -11,15 +11,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from physgrad.verdict import (
-    ALPHA,
-    CONFIDENCE,
-    MARGIN,
-    MIN_PAIRS,
-    RESAMPLES,
-    UNDECIDED,
-    ratio_of,
-)
+from physgrad.verdict import ALPHA, CONFIDENCE, MARGIN, MIN_PAIRS, RESAMPLES, UNDECIDED, ratio_of
 
 
 @dataclass(frozen=True)

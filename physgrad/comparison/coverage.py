@@ -34,8 +34,15 @@ def planned_points(plan: StudyPlan) -> dict[str, dict[str, list[float]]]:
     for variant in plan.variants:
         keys = tried.setdefault(variant.name, {key: [] for key in variant.space})
         for study in range(settings.study_count):
-            seed = settings.tune_seed + study
-            for point in halton_points(variant.space, settings.trials, seed, dimensions):
+            points = halton_points(
+                variant.space,
+                settings.trials,
+                settings.tune_seed,
+                dimensions,
+                study,
+                settings.study_count,
+            )
+            for point in points:
                 for key, value in point.items():
                     keys[key].append(value)
     return tried

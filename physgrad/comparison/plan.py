@@ -361,7 +361,7 @@ def power_lines(plan: StudyPlan) -> list[str]:
     """What the design can detect with verdict.POWER, before anything runs: for a few spreads of
     the per-seed log ratio (the run noise, unknown until the study has run), the smallest
     detectable ratio at these settings and the seeds per study that 1.5x and 2x would need."""
-    from physgrad.verdict import POWER, detectable_ratio, seeds_for_ratio
+    from physgrad.power import POWER, detectable_ratio, seeds_for_ratio
 
     settings = plan.settings
     count = len(plan.variants)

@@ -15,18 +15,15 @@ from physgrad.comparison.clock_text import busy_calibration, timing_lines
 from physgrad.comparison.coverage import coverage_lines, tried_values
 from physgrad.comparison.spec import StudySettings, Variant
 from physgrad.files import replaced
+from physgrad.power import POWER, detectable_ratio, spread
 from physgrad.readout import fmt, run_record, target_loss
+from physgrad.replication import across_studies, majority
 from physgrad.verdict import (
     FRACTIONS,
-    POWER,
-    across_studies,
     compare_variants,
-    detectable_ratio,
     divergence_test,
-    majority,
     ratio_of,
     seeds_for_one_against,
-    spread,
 )
 
 if TYPE_CHECKING:
@@ -260,7 +257,7 @@ def verdict_lines(
 def detectable(
     verdict: PairVerdict, settings: StudySettings, comparisons: int, fraction: float = 1.0
 ) -> float:
-    """The smallest ratio a pair's study could detect with POWER (verdict.detectable_ratio), from
+    """The smallest ratio a pair's study could detect with POWER (physgrad.power.detectable_ratio), from
     the median over its tuning studies of the spread of their log ratios at the budget (or the
     fraction of it)."""
     studies = verdict.studies or [verdict]

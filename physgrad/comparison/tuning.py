@@ -36,29 +36,61 @@ def point_dimensions(spaces: list[dict]) -> list[str]:
     return ["learning_rate", *others]
 
 
-def unit_points(count: int, dimensions: int, seed: int) -> np.ndarray:
-    """The first `count` points of the Halton sequence in [0, 1)^dimensions, shifted modulo 1 by a
-    uniform random vector (a Cranley-Patterson rotation): coordinate d's shift drawn from
-    (seed, d) alone, so it does not depend on how many coordinates there are. Shifted, the points
-    keep their spacing (n points of n + m begin with those of n) and every point is uniform on
-    [0, 1): two seeds give two independent draws of the whole set, as repeated tuning studies
-    must (a scramble moves 2^k points only within their 2^-k cells)."""
+HALTON_BASES = (2, 3, 5, 7, 11, 13, 17, 19, 23, 29, 31, 37)  # scipy's Halton: the d-th prime
+
+
+def halton_cell(count: int, dimension: int) -> float:
+    """The width of the grid the first `count` Halton points lie on in coordinate `dimension`
+    (base b, the dimension's prime): 1 / b^m with b^m the first power of b at or above count."""
+    base = HALTON_BASES[dimension] if dimension < len(HALTON_BASES) else 0
+    if not base:
+        return 0.0  # beyond the listed primes the studies are not interleaved
+    cells = 1
+    while cells < count:
+        cells *= base
+    return 1.0 / cells
+
+
+def unit_points(
+    count: int, dimensions: int, seed: int, study: int = 0, studies: int = 1
+) -> np.ndarray:
+    """The first `count` points of the Halton sequence in [0, 1)^dimensions, shifted modulo 1 (a
+    Cranley-Patterson rotation) by u_d + (study / studies) h_d: u_d uniform, drawn from (seed, d)
+    alone (so it does not depend on how many coordinates there are), and h_d the width of the
+    grid the points lie on in coordinate d (halton_cell). Shifted, the points keep their spacing
+    (n points of n + m begin with those of n) and every point is uniform on [0, 1) over seeds; the
+    `studies` tuning studies of one compare take the same u and rotate by equal fractions of a
+    cell, so their point sets interleave: in every coordinate the sets of two studies lie at least
+    h_d / studies apart (modulo 1), instead of anywhere from 0 up, as independent shifts would put
+    them (two studies' tuning luck then nearly coincides)."""
     from scipy.stats import qmc
 
     base = qmc.Halton(d=dimensions, scramble=False).random(count)
-    shift = np.array([np.random.default_rng([seed, d]).random() for d in range(dimensions)])
+    fraction = (study % studies) / studies if studies > 1 else 0.0
+    shift = np.array(
+        [
+            np.random.default_rng([seed, d]).random() + fraction * halton_cell(count, d)
+            for d in range(dimensions)
+        ]
+    )
     return np.mod(base + shift, 1.0)
 
 
 def halton_points(
-    space: dict, count: int, seed: int, dimensions: list[str] | None = None
+    space: dict,
+    count: int,
+    seed: int,
+    dimensions: list[str] | None = None,
+    study: int = 0,
+    studies: int = 1,
 ) -> list[dict]:
-    """count shifted Halton points (unit_points) mapped log-uniformly onto the space. dimensions:
-    the study's coordinates (point_dimensions of every variant's space; default: this space's), so
-    that every variant of a study is tried at the same points of its own ranges."""
+    """count shifted Halton points (unit_points: tuning study `study` of `studies`, the shift
+    drawn from `seed`) mapped log-uniformly onto the space. dimensions: the study's coordinates
+    (point_dimensions of every variant's space; default: this space's), so that every variant of a
+    study is tried at the same points of its own ranges."""
     dimensions = dimensions or point_dimensions([space])
     column = {key: dimensions.index("learning_rate" if is_rate_key(key) else key) for key in space}
-    unit = unit_points(count, len(dimensions), seed)
+    unit = unit_points(count, len(dimensions), seed, study, studies)
     return [
         {
             key: float(
@@ -266,7 +298,6 @@ def _open_studies(
         # the same points for every variant of one study (one seed per study): a variant's
         # position or name never changes where it is tried, so two names for one rule are tuned
         # alike; each study shifts the points anew, so the studies sample the tuning's variance
-        seed = settings.tune_seed + study_index
         for index, variant in enumerate(variants):
             study = optuna.create_study(
                 study_name=optuna_study_name(variant, study_index),
@@ -277,7 +308,14 @@ def _open_studies(
             if "readout" not in study.user_attrs:
                 study.set_user_attr("readout", READOUT_VERSION)
             studies[study_index, variant.name] = study
-            points = halton_points(variant.space, settings.trials, seed, dimensions)
+            points = halton_points(
+                variant.space,
+                settings.trials,
+                settings.tune_seed,
+                dimensions,
+                study_index,
+                settings.study_count,
+            )
             for point in points[len(study.trials) :]:
                 study.enqueue_trial(point)
             while any(t.state == TrialState.WAITING for t in study.get_trials(deepcopy=False)):

@@ -9,12 +9,12 @@ import numpy as np
 import pytest
 
 from physgrad.readout import Curve, target_loss
+from physgrad.replication import across_studies
 from physgrad.verdict import (
     A_BETTER,
     B_BETTER,
     EQUIVALENT,
     LOG_CAP,
-    across_studies,
     compare_variants,
     decide,
     divergence_test,
@@ -240,7 +240,7 @@ def test_the_trend_rule_under_the_null_calls_growth_rarely_and_finds_a_known_one
     ],
 )
 def test_one_verdict_over_tuning_studies_needs_a_majority_and_none_against(found, verdict, why):
-    from physgrad.verdict import over_studies
+    from physgrad.replication import over_studies
 
     got, reason = over_studies(found)
     assert got == verdict and why in reason, reason
@@ -252,11 +252,11 @@ def test_one_verdict_over_tuning_studies_needs_a_majority_and_none_against(found
     [pytest.param(0.1, marks=pytest.mark.long), 0.3, pytest.param(1.0, marks=pytest.mark.long)],
 )
 def test_a_difference_of_the_detectable_ratio_is_found_about_four_times_in_five(sd):
-    """verdict.detectable_ratio against simulation: a true ratio at the detectable one, Gaussian
+    """physgrad.power.detectable_ratio against simulation: a true ratio at the detectable one, Gaussian
     log ratios of spread sd on 10 seeds, is called A better in 65-93% of 200 simulated comparisons
     (the promise is 80%; a normal approximation at 10 seeds); at half its log ratio, in fewer than
     half. And spread() reads sd back from normal log ratios."""
-    from physgrad.verdict import detectable_ratio, spread
+    from physgrad.power import detectable_ratio, spread
 
     rng = np.random.default_rng(3)
     ratio = detectable_ratio(sd, 10)

@@ -451,7 +451,7 @@ def tuned(name: str, a_over_b: list[float]) -> FakeStudy:
 )
 def test_a_lower_part_is_decided_over_the_tuning_studies(tmp_path, studies, factors, verdict):
     """With repeated tuning studies a Lower part holds where A is better in a majority of the
-    studies and in none is it worse, by the package's rule (physgrad.verdict.across_studies)."""
+    studies and in none is it worse, by the package's rule (physgrad.replication.across_studies)."""
     studies["s"] = tuned("s", factors)
     found, ((_, decision),) = claims.decide_claim(claim_of(claims.Lower("s", "a", "b")), tmp_path)
     assert found == verdict, decision

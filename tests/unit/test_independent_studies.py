@@ -10,7 +10,7 @@ import pytest
 from scipy import stats
 
 from physgrad.comparison import study_settings
-from physgrad.comparison.tuning import halton_points, point_dimensions, unit_points
+from physgrad.comparison.tuning import halton_cell, halton_points, point_dimensions, unit_points
 from physgrad.errors import UserError
 
 RANGE = (1e-5, 1.0)
@@ -170,3 +170,33 @@ def test_the_same_command_with_other_defaults_is_another_study(tmp_path):
     (tmp_path / "study.json").write_text(json.dumps(record))
     record_study(tmp_path, overrides, None, new)
     assert json.loads((tmp_path / "study.json").read_text())["configuration"] == new
+
+
+@pytest.mark.parametrize("studies", [2, 3, 4])
+def test_the_tuning_studies_points_interleave(studies):
+    """The studies of one compare rotate one shifted Halton set by equal fractions of its grid
+    cell: at 2 to 32 trials, in the rate's coordinate (base 2) and the next (base 3), every two
+    studies' point sets lie at least cell / studies apart, for any tuning seed; study 0 keeps the
+    points a single study has, and each study's points keep their spacing."""
+    for count in range(2, 33):
+        for seed in range(12):
+            sets = [unit_points(count, 2, seed, k, studies) for k in range(studies)]
+            assert sets[0] == pytest.approx(unit_points(count, 2, seed))
+            for d in (0, 1):
+                gap = halton_cell(count, d) / studies
+                for i in range(studies):
+                    for j in range(i + 1, studies):
+                        distance = np.abs(sets[i][:, d, None] - sets[j][None, :, d]).min()
+                        assert distance >= gap * (1 - 1e-9), (count, seed, d, i, j)
+    # at 16 trials, 4 studies over Adam's four decades: 1/64 of the range, 0.0625 decade apart
+    assert halton_cell(16, 0) / 4 == 1 / 64
+
+
+def test_independent_shifts_would_let_two_studies_points_coincide():
+    """Why the studies interleave: with a shift per tuning seed (the seeds tune_seed + k drawn
+    apart), two studies' 16 points lie within a hundredth of the cell for some seeds."""
+    closest = min(
+        np.abs(unit_points(16, 1, s)[:, 0, None] - unit_points(16, 1, s + 1)[None, :, 0]).min()
+        for s in range(200)
+    )
+    assert closest < halton_cell(16, 0) / 100

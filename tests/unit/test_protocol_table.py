@@ -35,7 +35,7 @@ def test_the_row_marked_physgrad_is_what_physgrad_compare_does():
 
     from experiments.tuning_power import PHYSGRAD
     from physgrad.comparison.spec import SETTINGS
-    from physgrad.verdict import across_studies
+    from physgrad.replication import across_studies
 
     design, studies, rule = PHYSGRAD
     assert (design, rule) == ("independent", "consistent")

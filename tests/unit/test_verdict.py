@@ -9,13 +9,13 @@ import numpy as np
 import pytest
 
 from physgrad.readout import Curve
+from physgrad.replication import across_studies
 from physgrad.verdict import (
     A_BETTER,
     B_BETTER,
     EQUIVALENT,
     LOG_CAP,
     UNDECIDED,
-    across_studies,
     compare_variants,
     decide,
     holm,
@@ -449,7 +449,8 @@ def test_a_loss_of_zero_against_a_tiny_one_reads_as_a_ratio_not_a_divergence():
 
 
 def test_a_level_is_reached_when_the_sign_test_says_so():
-    from physgrad.verdict import ABOVE, BELOW, UNDECIDED, against_level
+    from physgrad.claim_words import ABOVE, BELOW, against_level
+    from physgrad.verdict import UNDECIDED
 
     assert against_level([1e-3] * 10, 1e-2)[0] == BELOW
     assert against_level([1e-3] * 9 + [1.0], 1e-2)[0] == BELOW  # 9 of 10: p = 0.021
@@ -467,7 +468,7 @@ def test_a_level_is_reached_when_the_sign_test_says_so():
 
 
 def test_a_claim_is_contradicted_only_where_the_budget_could_test_it():
-    from physgrad.verdict import (
+    from physgrad.claim_words import (
         CONTRADICTED,
         DIFFERENT_SETUP,
         NOT_TESTED,

@@ -1,0 +1,94 @@
+"""What a measurement says of a paper's claim: a variant's losses against a level (against_level),
+whether a variant has left its start (left_start), and the claim's word (claim_word)."""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+
+import numpy as np
+
+from physgrad.verdict import ALPHA, UNDECIDED
+
+BELOW, ABOVE = "below", "above"
+
+
+def against_level(values: Sequence[float], level: float, alpha: float = ALPHA) -> tuple[str, str]:
+    """Whether a variant's losses at a budget, one per seed, lie below an absolute level (a paper's
+    "reaches 1e-2", "still solves the task"): the two-sided sign test of the seeds below the level
+    against half of them (scipy.stats.binomtest). BELOW where more than half are below and p <
+    alpha, ABOVE where more than half are at or above and p < alpha, UNDECIDED otherwise (with 10
+    seeds: 9 or 10 of 10 on one side). A diverged seed (inf) is above; a missing one (NaN) is left
+    out and counted."""
+    from scipy.stats import binomtest
+
+    known = [v for v in values if not math.isnan(v)]
+    missing = len(values) - len(known)
+    below = sum(v < level for v in known)
+    n = len(known)
+    p = binomtest(below, n, 0.5).pvalue if n else 1.0
+    verdict = UNDECIDED if p >= alpha else BELOW if 2 * below > n else ABOVE
+    why = f"{below} of {n} seeds below {level:g} (sign test p = {p:.2g})" + (
+        f", {missing} missing" if missing else ""
+    )
+    return verdict, why
+
+
+# what a claim's measurement says of the paper's claim (claim_word)
+SUPPORTED, CONTRADICTED = "supported", "contradicted"
+NOT_TESTED, DIFFERENT_SETUP = "not tested at the paper's budget", "different setup"
+TRAINED_FACTOR = 2.0  # a variant has left its start when its median loss fell by this factor
+
+
+def left_start(starts: Sequence[float], finals: Sequence[float]) -> bool:
+    """Whether a variant has trained: its median over seeds of final / start loss at most
+    1 / TRAINED_FACTOR (a diverged seed counts as not trained; missing seeds are left out)."""
+    ratios = [f / s for s, f in zip(starts, finals) if s > 0 and not math.isnan(f)]
+    return bool(ratios) and float(np.median(ratios)) <= 1.0 / TRAINED_FACTOR
+
+
+def claim_word(
+    holds: bool,
+    fails: bool,
+    fails_at_half: bool,
+    trained: bool,
+    share: float,
+    departs: str = "",
+) -> tuple[str, str]:
+    """What a measurement says of a paper's claim, and why: DIFFERENT_SETUP where the comparison
+    departs from the paper's in a way that matters (departs: how); SUPPORTED where it holds at the
+    budget X; CONTRADICTED where it does not hold at X and either X is the paper's budget or more
+    (share = X / the paper's, NaN where the paper states none) or every variant has left its start
+    (left_start) and the claim did not hold at X/2 either, so that a verdict between variants that
+    have not trained, or that turned between X/2 and X, is no evidence against it; NOT_TESTED
+    otherwise (not settled, or not held at a budget that could not test it)."""
+    if departs:
+        return DIFFERENT_SETUP, departs
+    if holds:
+        return SUPPORTED, "holds at X"
+    at_paper = not math.isnan(share) and share >= 1.0
+    if fails and (at_paper or (trained and fails_at_half)):
+        return CONTRADICTED, (
+            "does not hold at the paper's budget"
+            if at_paper
+            else "does not hold at X/2 and X, every variant having left its start"
+        )
+    if fails:
+        why = (
+            f"does not hold at X, but a variant fell less than {TRAINED_FACTOR:g}x from its start"
+            if not trained
+            else "does not hold at X, but did not fail at X/2 (it turned with the budget)"
+        )
+    else:
+        why = "not settled at X"
+    percent = 100 * share
+    share_text = (
+        (
+            f"{percent:.2g}% of the paper's budget"
+            if percent < 10
+            else f"{percent:.0f}% of the paper's budget"
+        )
+        if not math.isnan(share)
+        else ""
+    )
+    return NOT_TESTED, why + (f" ({share_text})" if share_text else "")
