@@ -14,6 +14,7 @@ from pathlib import Path
 
 import numpy as np
 
+from physgrad.files import write_figure
 from physgrad.readout import config_row
 from physgrad.results import find_results, read_run
 
@@ -175,7 +176,7 @@ def plot(table, path: Path, note: str = "") -> None:
         fontsize=10,
     )
     fig.tight_layout()
-    fig.savefig(path, dpi=100)
+    write_figure(fig, path, dpi=100)
     plt.close(fig)
 
 

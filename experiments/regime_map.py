@@ -18,6 +18,7 @@ from studies import MAP, Study
 from study_runs import read_study
 
 from physgrad.claim import short
+from physgrad.files import write_figure
 from physgrad.readout import highest_median
 from physgrad.verdict import A_BETTER, B_BETTER, EQUIVALENT, compare_variants, ratio_of
 
@@ -172,7 +173,7 @@ def plot_map(cells: dict[str, list[Cell]], path: Path, machine: str, note: str =
         + (f"\n{note}" if note else ""),
         fontsize=8,
     )
-    fig.savefig(path, dpi=110, bbox_inches="tight")
+    write_figure(fig, path, dpi=110, bbox_inches="tight")
     plt.close(fig)
 
 

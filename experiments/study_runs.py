@@ -86,8 +86,8 @@ def read_study(folder: Path) -> StudyRuns | None:
     """The study's runs.csv (written by physgrad compare) as StudyRuns of its first tuning study,
     with every tuning study's in `tuning` where it has several (Lower and Close parts are decided
     over them by the package's rule, physgrad.replication.across_studies; the trend and stall parts
-    are decided in each and over them by the same rule, physgrad.replication.over_studies; the regime map reads
-    the first); None if the study has not finished. The table is data from a folder
+    are decided in each and over them by the same rule, physgrad.replication.over_studies; the
+    regime map reads the first); None if the study has not finished. The table is data from a folder
     that may come from someone else: each run's file is looked for in the folder's own eval/ (the
     part of its recorded path from "eval" on), never at the path as written (an absolute path or
     "..": anywhere); a row whose seed, budget or path cannot be read so is a UserError (one

@@ -19,6 +19,7 @@ from pathlib import Path
 
 import numpy as np
 
+from physgrad.files import write_figure
 from physgrad.readout import config_row
 from physgrad.results import Run, find_results, read_run
 
@@ -102,7 +103,7 @@ def plot(table: dict, path: Path, note: str) -> None:
     if note:
         figure.suptitle(note, fontsize=9)
     figure.tight_layout()
-    figure.savefig(path, dpi=110)
+    write_figure(figure, path, dpi=110)
     plt.close(figure)
 
 

@@ -27,8 +27,8 @@ Two designs:
                  (scipy's scrambled Halton sequence)
 
 Three rules over the studies, on the same simulated data:
-    majority  physgrad.replication.across_studies with need = more than half: the verdict of more than
-              half of the studies (each decided by compare_variants with Holm over its
+    majority  physgrad.replication.across_studies with need = more than half: the verdict of
+              more than half of the studies (each decided by compare_variants with Holm over its
               comparisons), none against
     consistent the majority, and every study's median ratio on the verdict's side (a study
               undecided the other way goes against it)

@@ -222,6 +222,12 @@ def decide_pairs(runs: Runs, parts: list, fraction: float = 1.0) -> list[Decisio
             [verdict for verdict, _ in found],
             runs.planned,
         )
+        if claim == HOLDS and isinstance(part, Lower) and result.studies:
+            # "A lower" is "A better" over the studies, by the whole rule: every median on its
+            # side and the studies taken as draws (physgrad.replication.across_studies)
+            combined, reason = result.verdicts[fraction]
+            if combined != A_BETTER:
+                claim, why = OPEN, reason
         diverged = "".join(
             f"; {name} diverged in {k} of {p.seeds}"
             for name, k in ((part.a, p.diverged_a), (part.b, p.diverged_b))
@@ -272,10 +278,10 @@ def _over_studies(
 ) -> tuple[str, str]:
     """A part's outcome (holds, does not hold, not settled) from each tuning study's, with why:
     one study's as it is; several by the package's rule over tuning studies
-    (physgrad.replication.over_studies: a majority, none against) applied to what each study's verdict
-    says of the part, so that two verdicts that both support it (A better and equivalent, for "A
-    close to B") do not count as a disagreement; why lists each study's verdict. Of a study with
-    `planned` tuning studies of which fewer have run, the majority is of those planned."""
+    (physgrad.replication.over_studies: a majority, none against) applied to what each study's
+    verdict says of the part, so that two verdicts that both support it (A better and equivalent,
+    for "A close to B") do not count as a disagreement; why lists each study's verdict. Of a study
+    with `planned` tuning studies of which fewer have run, the majority is of those planned."""
     if len(outcomes) == 1 and planned <= 1:
         return outcomes[0], whys[0]
     found, why = over_studies(

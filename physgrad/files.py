@@ -253,12 +253,16 @@ def replace_file(path: Path, content: bytes, sync: bool = False) -> None:
 def write_figure(fig: Any, path: str | os.PathLike, **options: Any) -> None:
     """A matplotlib figure saved to path (the format from its suffix), written beside and renamed
     (replace_file): a reader sees the old figure or the new one, and a link at path (a folder that
-    may come from someone else) is replaced, not written through."""
+    may come from someone else) is replaced, not written through. A PDF carries no creation date,
+    so the same figure gives the same bytes (a committed figure regenerates byte for byte)."""
     import io
 
     path = Path(path)
     buffer = io.BytesIO()
-    fig.savefig(buffer, format=path.suffix.lstrip(".") or "png", **options)
+    kind = path.suffix.lstrip(".") or "png"
+    if kind == "pdf":
+        options = {"metadata": {"CreationDate": None, **options.pop("metadata", {})}, **options}
+    fig.savefig(buffer, format=kind, **options)
     replace_file(path, buffer.getvalue())
 
 

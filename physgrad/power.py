@@ -9,7 +9,15 @@ import math
 import numpy as np
 
 from physgrad.replication import majority
-from physgrad.verdict import ALPHA, CONFIDENCE, LOG_CAP, MARGIN, Paired, seeds_needed
+from physgrad.verdict import (
+    ALPHA,
+    CONFIDENCE,
+    LOG_CAP,
+    MARGIN,
+    Paired,
+    PairVerdict,
+    seeds_needed,
+)
 
 POWER = 0.8  # the chance of finding an effect that "detectable" promises
 
@@ -22,6 +30,33 @@ def spread(p: Paired) -> float:
     if finite.size < 3:
         return math.nan
     return float(1.4826 * np.median(np.abs(finite - np.median(finite))))
+
+
+def measured(verdict: PairVerdict, fraction: float = 1.0) -> tuple[float, float, float]:
+    """What a pair's studies measured at `fraction` of the budget, for detectable_ratio: the
+    spread of the seeds' log ratios (1.4826 x the median absolute deviation of every study's finite
+    log ratios about that study's median, so that the studies' offsets do not count as seed noise),
+    the spread between the studies (the standard deviation of their medians less what the seeds'
+    noise gives them, sd x sqrt(pi / 2) / sqrt(n); 0 with one study or none beyond it) and the rate
+    at which runs diverged (both variants' divergences over both variants' runs)."""
+    studies = [s.at[fraction] for s in (verdict.studies or [verdict])]
+    centred, medians, pairs = [], [], []
+    for p in studies:
+        finite = np.array([r for r in p.log_ratios if not math.isnan(r) and abs(r) < LOG_CAP])
+        if finite.size:
+            centred.extend(finite - np.median(finite))
+            medians.append(float(np.median(finite)))
+            pairs.append(finite.size)
+    if len(centred) < 3:
+        return math.nan, math.nan, math.nan
+    sd = float(1.4826 * np.median(np.abs(np.array(centred))))
+    between = 0.0
+    if len(medians) > 1:
+        noise = sd**2 * (math.pi / 2) / float(np.mean(pairs))
+        between = math.sqrt(max(0.0, float(np.var(medians, ddof=1)) - noise))
+    runs = sum(p.seeds for p in studies)
+    divergence = sum(p.diverged_a + p.diverged_b for p in studies) / (2 * runs) if runs else 0.0
+    return sd, between, divergence
 
 
 @functools.lru_cache(maxsize=256)
@@ -40,6 +75,89 @@ def study_power_needed(studies: int, need: int, power: float = POWER) -> float:
     return high
 
 
+@functools.lru_cache(maxsize=1024)
+def wrong_side_allowed(seeds: int, comparisons: int = 1, alpha: float = ALPHA) -> int:
+    """The most pairs of `seeds` on which the better variant diverged (log ratio +-LOG_CAP on the
+    wrong side) that still let a study find it better, at best (every other pair on its side): the
+    signed-rank test's two-sided p with those pairs at the top ranks below alpha / comparisons
+    (Holm's strictest step), and the percentile bootstrap interval of the median finite (fewer than
+    ceil(seeds / 2) of them in a resample with probability above 1 - (1 - CONFIDENCE) / 2); -1
+    where not even none does."""
+    from scipy.stats import binom
+
+    from physgrad.verdict import _wilcoxon
+
+    allowed = -1
+    for wrong in range(seeds + 1):
+        r = np.array([-(k + 1.0) for k in range(seeds - wrong)] + [LOG_CAP] * wrong)
+        p = min(1.0, 2 * _wilcoxon(r, "less"))
+        capped = binom.sf(math.ceil(seeds / 2) - 1, seeds, wrong / seeds) if seeds else 1.0
+        if p >= alpha / comparisons or capped > (1 - CONFIDENCE) / 2:
+            break
+        allowed = wrong
+    return allowed
+
+
+def power_at(
+    ratio: float,
+    sd: float,
+    seeds: int,
+    comparisons: int = 1,
+    studies: int = 1,
+    need: int | None = None,
+    margin: float = MARGIN,
+    alpha: float = ALPHA,
+    divergence: float = 0.0,
+    between: float = 0.0,
+    study_alpha: float | None = None,
+) -> float:
+    """The chance that a design finds a true loss ratio `ratio` (above 1: B worse) "better", by a
+    normal model of the whole rule. Per study: the pairs where neither run diverged, seeds x (1 -
+    divergence)^2, carry log ratios of spread sd around log(ratio) plus the study's offset (the
+    tuning's luck, N(0, between^2)); the signed-rank test at Holm's strictest step (efficiency 3 /
+    pi of the t test) and the median's interval beyond the margin (standard error sd x sqrt(pi /
+    2) / sqrt(n)) must both pass, each a normal probability averaged over the offset; and the
+    better variant may have diverged on at most wrong_side_allowed pairs (each pair one-sided that
+    way with probability divergence x (1 - divergence)). Over the studies: `need` of `studies`
+    pass (binomial) and, with several studies, the studies as draws (replication.between_studies)
+    exclude a ratio of 1 at study_alpha: a noncentral t with studies - 1 degrees of freedom. The
+    two are taken as independent (they are positively correlated), so the chance is on the low
+    side."""
+    from scipy.stats import binom, nct, norm
+    from scipy.stats import t as student
+
+    from physgrad.replication import STUDY_ALPHA
+
+    study_alpha = STUDY_ALPHA if study_alpha is None else study_alpha
+    if ratio <= margin or seeds < seeds_needed(alpha, comparisons):
+        return 0.0
+    need = need or majority(studies)
+    finite = seeds * (1.0 - divergence) ** 2
+    if finite < 1:
+        return 0.0
+    mu, delta = math.log(ratio), math.log(margin)
+    test_error = sd * math.sqrt(math.pi / 3) / math.sqrt(finite)
+    median_error = sd * math.sqrt(math.pi / 2) / math.sqrt(finite)
+    z_test = norm.ppf(1 - alpha / (2 * comparisons))
+    z_interval = norm.ppf(1 - (1 - CONFIDENCE) / 2)
+    # each study's chance, averaged over its offset by Gauss-Hermite quadrature
+    nodes, weights = np.polynomial.hermite_e.hermegauss(24)
+    shifted = mu + between * nodes
+    test = norm.cdf((shifted / max(test_error, 1e-300)) - z_test)
+    interval = norm.cdf(((shifted - delta) / max(median_error, 1e-300)) - z_interval)
+    one = float(np.sum(weights * np.minimum(test, interval)) / np.sum(weights))
+    allowed = wrong_side_allowed(seeds, comparisons, alpha)
+    one *= float(binom.cdf(allowed, seeds, divergence * (1 - divergence))) if allowed >= 0 else 0
+    chance = float(binom.sf(need - 1, studies, one))
+    if studies > 1:
+        spread_of_mean = math.sqrt((median_error**2 + between**2) / studies)
+        critical = float(student.ppf(1 - study_alpha / 2, studies - 1))
+        # a noncentrality past 100 finds it surely (scipy's nct loses its accuracy far out)
+        if spread_of_mean > 0 and mu / spread_of_mean < 100:
+            chance *= float(nct.sf(critical, studies - 1, mu / spread_of_mean))
+    return chance
+
+
 def detectable_ratio(
     sd: float,
     seeds: int,
@@ -49,31 +167,42 @@ def detectable_ratio(
     margin: float = MARGIN,
     alpha: float = ALPHA,
     power: float = POWER,
+    divergence: float = 0.0,
+    between: float = 0.0,
 ) -> float:
-    """The smallest loss ratio (above 1) a study finds with probability `power`, for log ratios
-    of spread sd on `seeds` paired seeds per study, `comparisons` comparisons (Holm's strictest
-    step, alpha / comparisons, two-sided) and `need` of `studies` tuning studies agreeing. A normal
-    approximation of both halves of "better": the signed-rank test (asymptotic efficiency 3 / pi
-    of the t test: sd x sqrt(pi / 3) / sqrt(n)) and the bootstrap interval of the median beyond
-    the margin (the median's standard error, sd x sqrt(pi / 2) / sqrt(n)); the larger of the two.
-    Infinite where the seeds are too few for any verdict (seeds_needed), NaN without a spread. The
-    tuning's own spread between studies is not in it: the simulated table of docs/protocol.md is
-    what the whole procedure finds."""
-    from scipy.stats import norm
-
-    if math.isnan(sd):
+    """The smallest loss ratio (above the margin) that the design finds with probability `power`
+    (power_at, solved by bisection in the log ratio): for log ratios of spread sd on `seeds` paired
+    seeds per study, `comparisons` comparisons, `need` of `studies` tuning studies, runs diverging
+    at the rate `divergence` in both variants and the studies' offsets of spread `between`.
+    Infinite where no ratio reaches it (too few seeds, or divergences too frequent), NaN without a
+    spread; the margin itself where sd and between are 0 (every ratio above it is found, the
+    margin itself never: "better" is strictly beyond it)."""
+    if math.isnan(sd) or math.isnan(between) or math.isnan(divergence):
         return math.nan
-    if seeds < seeds_needed(alpha, comparisons):
-        return math.inf
-    need = need or majority(studies)
-    z_power = norm.ppf(study_power_needed(studies, need, power))
-    root = math.sqrt(seeds)
-    test = (norm.ppf(1 - alpha / (2 * comparisons)) + z_power) * sd * math.sqrt(math.pi / 3) / root
-    interval = (
-        math.log(margin)
-        + (norm.ppf(1 - (1 - CONFIDENCE) / 2) + z_power) * sd * math.sqrt(math.pi / 2) / root
+    rule = dict(
+        seeds=seeds,
+        comparisons=comparisons,
+        studies=studies,
+        need=need,
+        margin=margin,
+        alpha=alpha,
+        divergence=divergence,
+        between=between,
     )
-    return math.exp(max(test, interval))
+    if sd == 0 and between == 0:
+        return margin if power_at(margin * 1.001, 1e-12, **rule) >= power else math.inf
+    low, high = math.log(margin), math.log(margin) + 1.0
+    while power_at(math.exp(high), sd, **rule) < power:
+        high = 2 * high
+        if high > 700:
+            return math.inf
+    for _ in range(50):
+        middle = (low + high) / 2
+        if power_at(math.exp(middle), sd, **rule) < power:
+            low = middle
+        else:
+            high = middle
+    return math.exp(high)
 
 
 def seeds_for_ratio(ratio: float, sd: float, comparisons: int = 1, studies: int = 1, **rule) -> int:

@@ -10,7 +10,8 @@ x:
 - per seed r = log(loss_A / loss_B); a pair where both diverged is left out and counted (it is
   no evidence of a difference nor of equivalence), one diverged is +-LOG_CAP (beyond any finite
   ratio: it only enters through ranks and the median); a negative loss leaves its pair out and the
-  verdict undecided (losses are compared by ratios); a loss of 0 counts as LOSS_FLOOR;
+  verdict undecided (losses are compared by ratios); a loss below LOSS_FLOOR (0 included)
+  counts as LOSS_FLOOR;
 - the median of r with a percentile bootstrap 95% interval (scipy.stats.bootstrap, 10,000 resamples,
   fixed seed); one-sided Wilcoxon signed-rank tests for "A lower" and "B lower" (zeros split), whose
   smaller p, doubled, is the comparison's p of a difference; two one-sided Wilcoxon tests of |r| <
@@ -49,15 +50,17 @@ LOG_CAP = 1e4
 A_BETTER, B_BETTER, EQUIVALENT, UNDECIDED = "A better", "B better", "equivalent", "undecided"
 
 
-# a loss of exactly 0 (an exact fit) counts as the smallest normal float64: it beats every positive
-# loss by a finite ratio, which reads as a ratio (1e-30 against 0: 2.2e-278), not as a divergence
-LOSS_FLOOR = float(np.finfo(np.float64).tiny)
+# one floor for tiny losses: every loss below float32's smallest normal number (1.2e-38, which a
+# float32 run cannot tell from 0) counts as that number, so losses under it tie whatever their
+# precision (1e-320 against 1e-310, or 0 against 1e-39), and a loss of 0 beats a positive one above
+# it by a finite ratio (0 against 1e-30: 1.2e-8), which reads as a ratio, not as a divergence
+LOSS_FLOOR = float(np.finfo(np.float32).tiny)
 
 
 def log_ratio(a: float, b: float) -> float:
     """log(a / b) for two losses at a budget (inf: diverged; NaN: missing or negative): NaN if
     either is missing or below 0 (a signed loss has no ratio); 0 if both diverged; +-LOG_CAP if one
-    side diverged; a loss of 0 counts as LOSS_FLOOR."""
+    side diverged; a loss below LOSS_FLOOR (0 included) counts as LOSS_FLOOR."""
     if math.isnan(a) or math.isnan(b) or a < 0 or b < 0:
         return math.nan
     if math.isinf(a) and math.isinf(b):
@@ -462,4 +465,17 @@ def divergence_test(diverged_a: int, n_a: int, diverged_b: int, n_b: int) -> flo
         return math.nan
     return float(
         fisher_exact([[diverged_a, n_a - diverged_a], [diverged_b, n_b - diverged_b]]).pvalue
+    )
+
+
+def divergence_flag(p: Paired, a: str = "A", b: str = "B", alpha: float = ALPHA) -> str:
+    """Divergence as its own endpoint beside the loss verdict: where the two variants' divergence
+    counts differ by Fisher's exact test at alpha, "a diverged on k of n, b on m of n (Fisher p =
+    ...)", whatever the verdict on the losses; "" otherwise."""
+    p_value = divergence_test(p.diverged_a, p.seeds, p.diverged_b, p.seeds)
+    if math.isnan(p_value) or p_value >= alpha:
+        return ""
+    return (
+        f"{a} diverged on {p.diverged_a} of {p.seeds} seeds, {b} on {p.diverged_b} "
+        f"(Fisher p = {p_value:.2g})"
     )

@@ -15,12 +15,13 @@ from physgrad.comparison.clock_text import busy_calibration, timing_lines
 from physgrad.comparison.coverage import coverage_lines, tried_values
 from physgrad.comparison.spec import StudySettings, Variant
 from physgrad.files import replaced
-from physgrad.power import POWER, detectable_ratio, spread
+from physgrad.power import POWER, detectable_ratio, measured
 from physgrad.readout import fmt, run_record, target_loss
 from physgrad.replication import across_studies, majority
 from physgrad.verdict import (
     FRACTIONS,
     compare_variants,
+    divergence_flag,
     divergence_test,
     ratio_of,
     seeds_for_one_against,
@@ -233,6 +234,9 @@ def verdict_lines(
         )
         if busy:
             flag += f" (clock calibrated on a busy machine: {busy})"
+        diverging = divergence_flag(p, v.a, v.b, settings.alpha)
+        if diverging:
+            flag += f" ({diverging})"
         if v.reversed:
             flag += f" (reversed: {v.verdicts[0.25][0]}, {v.verdicts[0.5][0]} at 1/4, 1/2)"
         lines.append(
@@ -240,16 +244,17 @@ def verdict_lines(
             f"{'; '.join(_ratio_text(s.at[1.0]) for s in v.studies) or _ratio_text(p)} | "
             f"{p.wins_a} of {p.pairs}{f' ({p.missing} missing)' if p.missing else ''}"
             f"{f' ({p.both_diverged} both diverged)' if p.both_diverged else ''} | "
-            f"{_detectable_text(detectable(v, settings, len(verdicts)))} | "
+            f"{_detectable_text(detectable(v, settings, len(verdicts)), settings.margin)} | "
             f"{v.verdicts[0.25][0]}, {v.verdicts[0.5][0]} | {'yes' if v.stable else 'no'} | "
             f"{v.trend} | {p.diverged_a}, {p.diverged_b} | {contended[v.a]}, {contended[v.b]} |"
         )
     lines += [
         "",
         f"Detectable: the smallest loss ratio this design finds with {100 * POWER:.0f}% power, "
-        "from the spread of the pairs' log ratios it measured (their median over the tuning "
-        'studies; docs/protocol.md, "Power"): an undecided verdict with a detectable ratio of 3 '
-        "says little; one of 1.2 says any difference is small.",
+        "from what its studies measured: the spread of the seeds' log ratios, the spread between "
+        'the tuning studies and the divergence rate (docs/protocol.md, "Power"): an undecided '
+        "verdict with a detectable ratio of 3 says little; one of 1.2 says any difference is "
+        "small.",
     ]
     return lines + unanimity_lines(settings.seeds, settings.alpha, len(verdicts))
 
@@ -257,29 +262,31 @@ def verdict_lines(
 def detectable(
     verdict: PairVerdict, settings: StudySettings, comparisons: int, fraction: float = 1.0
 ) -> float:
-    """The smallest ratio a pair's study could detect with POWER (physgrad.power.detectable_ratio), from
-    the median over its tuning studies of the spread of their log ratios at the budget (or the
-    fraction of it)."""
-    studies = verdict.studies or [verdict]
-    spreads = [spread(s.at[fraction]) for s in studies]
-    spreads = [x for x in spreads if not math.isnan(x)]
-    if not spreads:
+    """The smallest ratio a pair's study could detect with POWER (physgrad.power.detectable_ratio),
+    from what its tuning studies measured at the budget (or the fraction of it): the seeds' spread,
+    the spread between the studies and the divergence rate (physgrad.power.measured)."""
+    sd, between, divergence = measured(verdict, fraction)
+    if math.isnan(sd):
         return math.nan
     return detectable_ratio(
-        float(np.median(spreads)),
+        sd,
         settings.seeds,
         comparisons,
         settings.study_count,
         margin=settings.margin,
         alpha=settings.alpha,
+        divergence=divergence,
+        between=between,
     )
 
 
-def _detectable_text(ratio: float) -> str:
+def _detectable_text(ratio: float, margin: float = 1.1) -> str:
     if math.isnan(ratio):
         return "-"
     if math.isinf(ratio):
-        return "none (too few seeds)"
+        return "none (too few seeds, or too many divergences)"
+    if ratio <= margin:
+        return f"any above {fmt(margin)}x (no spread)"
     return f"{fmt(ratio)}x"
 
 

@@ -119,15 +119,17 @@ def test_the_lowest_and_highest_median_targets():
 
 
 def test_log_ratios_of_diverged_zero_and_negative_losses():
-    """Diverged: +-LOG_CAP (both: 0); a loss of 0 counts as the smallest normal float64, so 0
-    against 1e-30 is a ratio of 2.2e-278 (not 0, which reads as a divergence) and two zeros tie;
+    """Diverged: +-LOG_CAP (both: 0); a loss below float32's smallest normal number (0 included)
+    counts as it, so 0 against 1e-30 is a ratio of 1.2e-8 (not 0, which reads as a divergence)
+    and two losses below it tie;
     a negative loss has no ratio (NaN, the pair is left out and counted)."""
     from physgrad.verdict import LOSS_FLOOR
 
     assert log_ratio(math.inf, math.inf) == 0.0 and log_ratio(0.0, 0.0) == 0.0
     assert log_ratio(math.inf, 1.0) == LOG_CAP and log_ratio(1.0, math.inf) == -LOG_CAP
     assert log_ratio(0.0, 1e-30) == pytest.approx(math.log(LOSS_FLOOR / 1e-30))
-    assert 1e-279 < math.exp(log_ratio(0.0, 1e-30)) < 1e-277
+    assert 1e-9 < math.exp(log_ratio(0.0, 1e-30)) < 1e-7
+    assert log_ratio(1e-320, 1e-310) == 0.0 and log_ratio(0.0, 1e-39) == 0.0
     assert log_ratio(0.0, math.inf) == -LOG_CAP and math.isnan(log_ratio(math.nan, 1.0))
     assert math.isnan(log_ratio(-0.5, 1.0)) and math.isnan(log_ratio(1.0, -2.0))
     assert log_ratio(2.0, 1.0) == pytest.approx(math.log(2.0))
@@ -252,10 +254,10 @@ def test_one_verdict_over_tuning_studies_needs_a_majority_and_none_against(found
     [pytest.param(0.1, marks=pytest.mark.long), 0.3, pytest.param(1.0, marks=pytest.mark.long)],
 )
 def test_a_difference_of_the_detectable_ratio_is_found_about_four_times_in_five(sd):
-    """physgrad.power.detectable_ratio against simulation: a true ratio at the detectable one, Gaussian
-    log ratios of spread sd on 10 seeds, is called A better in 65-93% of 200 simulated comparisons
-    (the promise is 80%; a normal approximation at 10 seeds); at half its log ratio, in fewer than
-    half. And spread() reads sd back from normal log ratios."""
+    """physgrad.power.detectable_ratio against simulation: a true ratio at the detectable one,
+    Gaussian log ratios of spread sd on 10 seeds, is called A better in 65-93% of 200 simulated
+    comparisons (the promise is 80%; a normal approximation at 10 seeds); at half its log ratio,
+    in fewer than half. And spread() reads sd back from normal log ratios."""
     from physgrad.power import detectable_ratio, spread
 
     rng = np.random.default_rng(3)

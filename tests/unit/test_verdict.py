@@ -330,7 +330,10 @@ def one_tuning_study(kind: str, seed: int) -> list:
     "kinds, verdict",
     [
         (["A", "A", "A"], A_BETTER),
-        (["A", "undecided", "A"], A_BETTER),  # two of three, none against
+        # two of three, none against, but the third's median near 1: as draws, three studies do
+        # not exclude 1 (t with 2 degrees of freedom at 0.01: 9.9 standard errors)
+        (["A", "undecided", "A"], UNDECIDED),
+        (["A", "A", "undecided"], UNDECIDED),
         (["A", "undecided", "undecided"], UNDECIDED),  # one tuning draw is not enough
         (["A", "B", "A"], UNDECIDED),  # a study against
         (["A", "equivalent", "A"], UNDECIDED),
@@ -346,6 +349,8 @@ def test_a_verdict_over_tuning_studies_needs_a_majority_and_none_against(kinds, 
     assert result.verdict == verdict
     why = result.verdicts[1.0][1]
     assert f"of {len(kinds)} tuning studies" in why or "disagree" in why
+    if kinds.count("A") == 2 and "undecided" in kinds:
+        assert "taken as draws" in why
     # the pooled statistics count every study's pairs
     assert result.at[1.0].pairs == 10 * len(kinds) and len(result.studies) == len(kinds)
     assert result.at[1.0].wins_a == sum(s[0].at[1.0].wins_a for s in per_study)
@@ -438,14 +443,21 @@ def test_a_negative_loss_leaves_its_pair_out_and_says_why():
 
 
 def test_a_loss_of_zero_against_a_tiny_one_reads_as_a_ratio_not_a_divergence():
-    """Exact fits (0) against 1e-30 on every seed: A better with a finite ratio (about 2e-278),
-    nothing counted as diverged."""
+    """Exact fits (0) against 1e-30 on every seed: A better with a finite ratio (the floor,
+    float32's smallest normal 1.2e-38, over 1e-30), nothing counted as diverged; and below the
+    floor losses tie: 1e-320 against 1e-310 and 0 against 1e-39 are both equivalent, one floor
+    for both."""
     a = {s: Curve(np.array([100.0]), np.array([0.0]), 100.0) for s in SEEDS}
     b = {s: Curve(np.array([100.0]), np.array([1e-30]), 100.0) for s in SEEDS}
     (result,) = compare_variants({"A": a, "B": b}, 100.0)
     p = result.at[1.0]
     assert result.verdict == A_BETTER and p.diverged_a == p.diverged_b == 0
-    assert 0 < p.ratio < 1e-270
+    assert 1e-9 < p.ratio < 1e-7
+    for tiny_a, tiny_b in ((1e-320, 1e-310), (0.0, 1e-39)):
+        a = {s: Curve(np.array([100.0]), np.array([tiny_a]), 100.0) for s in SEEDS}
+        b = {s: Curve(np.array([100.0]), np.array([tiny_b]), 100.0) for s in SEEDS}
+        (result,) = compare_variants({"A": a, "B": b}, 100.0)
+        assert result.verdict == EQUIVALENT and result.at[1.0].ratio == 1.0
 
 
 def test_a_level_is_reached_when_the_sign_test_says_so():
