@@ -325,6 +325,8 @@ def headline_table(root: Path, profile: tuple, further: tuple = ()) -> str:
         )
         head = f"{turned}{claim.name}"
         trained, fell = _left_start(claim, runs)
+        _, rows = decide_claim(claim, root, "", 1.0, profile)
+        causes = [d.cause for _, d in rows if d.verdict == OPEN and d.cause[0]]
         word, why = claim_word(
             tuned[1.0] == HOLDS,
             tuned[1.0] == FAILS,
@@ -332,6 +334,7 @@ def headline_table(root: Path, profile: tuple, further: tuple = ()) -> str:
             trained,
             _share(claim, runs),
             claim.departs,
+            causes[0] if causes else ("", ""),
         )
         lines.append(
             f"| {head} | **{word}** ({why}) | {trials} x {studies}{_of_planned(runs)}, {seeds} | "

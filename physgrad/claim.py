@@ -27,7 +27,7 @@ from typing import Callable, Protocol
 
 import numpy as np
 
-from physgrad.claim_words import ABOVE, BELOW, against_level
+from physgrad.claim_words import ABOVE, BELOW, SEEDS_DISAGREE, STUDIES_DISAGREE, against_level
 from physgrad.replication import across_studies, majority, over_studies
 from physgrad.trend import GROWS, interaction
 from physgrad.verdict import (
@@ -37,6 +37,7 @@ from physgrad.verdict import (
     FRACTIONS,
     MARGIN,
     UNDECIDED,
+    PairVerdict,
     compare_variants,
     paired,
     ratio_of,
@@ -154,6 +155,9 @@ class Decision:
     verdict: str  # HOLDS, FAILS, OPEN
     measured: str  # the numbers: median ratio [interval], k of n, ...
     why: str
+    # where OPEN: why it is not settled, if the evidence shows it (claim_words.SEEDS_DISAGREE or
+    # STUDIES_DISAGREE, and what it shows)
+    cause: tuple[str, str] = ("", "")
 
 
 def short(x: float) -> str:
@@ -245,8 +249,38 @@ def decide_pairs(runs: Runs, parts: list, fraction: float = 1.0) -> list[Decisio
             + (f"; {earlier}" if earlier else "")
             + (f"; over {len(runs.tuning)} tuning studies" if runs.tuning else "")
         )
-        decisions.append(Decision(claim, measured, why))
+        cause = _pair_cause(part, result, fraction) if claim == OPEN else ("", "")
+        decisions.append(Decision(claim, measured, why, cause))
     return decisions
+
+
+def _pair_cause(part: Lower | Close, result: PairVerdict, fraction: float) -> tuple[str, str]:
+    """Why a pair part is not settled, where the evidence says: the tuning studies reached
+    opposite outcomes, or their sizes differ beyond what tuning luck explains (STUDIES_DISAGREE);
+    the pooled median on the claim's side with a tenth or more of the seeds against it or the
+    claimed winner diverged on some (SEEDS_DISAGREE, with the counts); else none (the budget or
+    the seeds' number)."""
+    studies = result.studies or [result]
+    outcomes = {_pair_outcome(part, v.verdicts[fraction][0]) for v in studies}
+    reason = result.verdicts[fraction][1]
+    if {HOLDS, FAILS} <= outcomes or "taken as draws" in reason:
+        listed = ", ".join(v.verdicts[fraction][0] for v in studies)
+        return STUDIES_DISAGREE, (
+            f"{part.a} vs {part.b} in {len(studies)} tuning studies: {listed}"
+            + ("; their sizes differ beyond tuning luck" if "taken as draws" in reason else "")
+        )
+    p = result.at[fraction]
+    against = p.pairs - p.wins_a
+    if (
+        not isinstance(part, Close)
+        and p.median < 0
+        and (against >= max(1, p.pairs / 10) or p.diverged_a)
+    ):
+        return SEEDS_DISAGREE, (
+            f"{part.a} lower in {p.wins_a} of {p.pairs} seeds"
+            + (f", diverged in {p.diverged_a}" if p.diverged_a else "")
+        )
+    return "", ""
 
 
 def _pair_outcome(part: Lower | Close, verdict: str) -> str:
@@ -404,6 +438,16 @@ def decide_reach(runs: Runs, part: Reaches, fraction: float = 1.0) -> Decision:
     )
     pooled = [v for values in found for v in values]
     diverged = sum(math.isinf(v) for v in pooled)
+    below = sum(v < part.level for v in pooled)
+    known = sum(not math.isnan(v) for v in pooled)
+    cause = ("", "")
+    if claim == OPEN and 0 < below < known:
+        stuck = known - below - diverged
+        cause = (
+            SEEDS_DISAGREE,
+            f"{part.variant}: {below} of {known} seeds below {part.level:g}, {stuck} stuck at or "
+            "above it" + (f", {diverged} diverged" if diverged else ""),
+        )
     measured = (
         f"{part.column} at the budget: median "
         + ", ".join(short(float(np.nanmedian(values))) for values in found)
@@ -411,7 +455,7 @@ def decide_reach(runs: Runs, part: Reaches, fraction: float = 1.0) -> Decision:
         + f"; below {part.level:g} in {sum(v < part.level for v in pooled)} of {len(pooled)}"
         + (f"; diverged in {diverged}" if diverged else "")
     )
-    return Decision(claim, measured, why)
+    return Decision(claim, measured, why, cause)
 
 
 def studies_of(claim: Claim) -> set[str]:

@@ -37,6 +37,12 @@ def against_level(values: Sequence[float], level: float, alpha: float = ALPHA) -
 # what a claim's measurement says of the paper's claim (claim_word)
 SUPPORTED, CONTRADICTED = "supported", "contradicted"
 NOT_TESTED, DIFFERENT_SETUP = "not tested at the paper's budget", "different setup"
+# "not settled", split by its cause (claim_word)
+SEEDS_DISAGREE, STUDIES_DISAGREE = (
+    "not settled: seeds disagree",
+    "not settled: tuning studies disagree",
+)
+NOT_SETTLED = "not settled"
 TRAINED_FACTOR = 2.0  # a variant has left its start when its median loss fell by this factor
 
 
@@ -47,6 +53,19 @@ def left_start(starts: Sequence[float], finals: Sequence[float]) -> bool:
     return bool(ratios) and float(np.median(ratios)) <= 1.0 / TRAINED_FACTOR
 
 
+def share_text(share: float) -> str:
+    """X / the paper's budget as a percentage ("4.7% of the paper's budget"); "" where the paper
+    states none (NaN)."""
+    if math.isnan(share):
+        return ""
+    percent = 100 * share
+    return (
+        f"{percent:.2g}% of the paper's budget"
+        if percent < 10
+        else f"{percent:.0f}% of the paper's budget"
+    )
+
+
 def claim_word(
     holds: bool,
     fails: bool,
@@ -54,19 +73,36 @@ def claim_word(
     trained: bool,
     share: float,
     departs: str = "",
+    cause: tuple[str, str] = ("", ""),
 ) -> tuple[str, str]:
-    """What a measurement says of a paper's claim, and why: DIFFERENT_SETUP where the comparison
-    departs from the paper's in a way that matters (departs: how); SUPPORTED where it holds at the
-    budget X; CONTRADICTED where it does not hold at X and either X is the paper's budget or more
-    (share = X / the paper's, NaN where the paper states none) or every variant has left its start
-    (left_start) and the claim did not hold at X/2 either, so that a verdict between variants that
-    have not trained, or that turned between X/2 and X, is no evidence against it; NOT_TESTED
-    otherwise (not settled, or not held at a budget that could not test it)."""
+    """What a measurement says of a paper's claim, and why:
+    - DIFFERENT_SETUP where the comparison departs from the paper's in a way that matters;
+    - SUPPORTED where it holds at the budget X, every variant the claim is about has left its start
+      (left_start, `trained`) and it did not fail at X/2; held at X with a variant that has not
+      trained, or turned between X/2 and X, the budget is the cause: NOT_TESTED;
+    - CONTRADICTED where it does not hold at X and either X is the paper's budget or more (share =
+      X / the paper's, NaN where the paper states none) or every variant has left its start and it
+      did not hold at X/2 either; not holding before that is NOT_TESTED;
+    - not settled at X, by its cause: `cause` (SEEDS_DISAGREE or STUDIES_DISAGREE, and what the
+      evidence shows: stuck or diverged seeds with counts, studies that reached opposite verdicts
+      or whose sizes differ beyond what tuning luck explains) where the parts found one; else
+      NOT_TESTED where the budget is below the paper's and a variant has not left its start; else
+      NOT_SETTLED (the seeds could not resolve it at this budget)."""
     if departs:
         return DIFFERENT_SETUP, departs
+    budget = share_text(share)
+    within = f" ({budget})" if budget else ""
+    below_paper = math.isnan(share) or share < 1.0
     if holds:
-        return SUPPORTED, "holds at X"
-    at_paper = not math.isnan(share) and share >= 1.0
+        if trained and not fails_at_half:
+            return SUPPORTED, "holds at X, every variant having left its start"
+        if not trained:
+            return NOT_TESTED, (
+                f"holds at X, but a variant fell less than {TRAINED_FACTOR:g}x from its start"
+                + within
+            )
+        return NOT_TESTED, "holds at X but not at X/2: it turns with the budget" + within
+    at_paper = not below_paper
     if fails and (at_paper or (trained and fails_at_half)):
         return CONTRADICTED, (
             "does not hold at the paper's budget"
@@ -79,16 +115,13 @@ def claim_word(
             if not trained
             else "does not hold at X, but did not fail at X/2 (it turned with the budget)"
         )
-    else:
-        why = "not settled at X"
-    percent = 100 * share
-    share_text = (
-        (
-            f"{percent:.2g}% of the paper's budget"
-            if percent < 10
-            else f"{percent:.0f}% of the paper's budget"
+        return NOT_TESTED, why + within
+    word, shown = cause
+    if word:
+        return word, shown
+    if below_paper and not trained:
+        return NOT_TESTED, (
+            f"not settled at X, and a variant fell less than {TRAINED_FACTOR:g}x from its start"
+            + within
         )
-        if not math.isnan(share)
-        else ""
-    )
-    return NOT_TESTED, why + (f" ({share_text})" if share_text else "")
+    return NOT_SETTLED, "not settled at X: the seeds could not resolve it" + within

@@ -254,7 +254,7 @@ def test_a_claim_is_decided_at_each_fraction_of_its_budget_and_a_reversal_heads_
     )
     assert "reverses" not in row and "| holds | holds | **holds** |" in row
     assert (
-        "| **supported** (holds at X) |" in row
+        "| **supported** (holds at X, every variant having left its start) |" in row
         and "| hig 426x, adam 100x, gauss_newton 100x |" in row
     )
     # ... unless a longer profile's verdict does: read from its own folder, with what it ran

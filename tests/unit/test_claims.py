@@ -704,3 +704,24 @@ def test_a_presets_only_study_decides_from_its_kept_evidence_alone_under_the_tun
     # the longer-budget column says what ran: the presets untuned, not "0 x 1" trials
     longer, _, _ = claims._longer_budgets(claim, "cart_4", ((tmp_path, paper),))
     assert "(presets untuned, 10 seeds)" in longer[0], longer
+
+
+def test_a_part_not_settled_says_its_cause_where_the_evidence_shows_one(tmp_path, studies):
+    """Stuck seeds at the full budget: 8 of 10 below the level in each of three studies, 2 stuck
+    at 0.45 (the toy's Adam at lambda = 1): not settled, because the seeds disagree, with the
+    counts. Tuning studies reaching opposite verdicts: not settled, because they disagree."""
+    from physgrad.claim_words import SEEDS_DISAGREE, STUDIES_DISAGREE
+
+    finals = [1e-3] * 8 + [0.45, 0.45]
+    studies["toy_1"] = three_studies(
+        "toy_1", [{"adam": {s: falling(v, 1.0, 2 * v) for s, v in zip(TEN, finals)}}] * 3
+    )
+    found, ((_, d),) = claims.decide_claim(
+        claim_of(claims.Reaches("toy_1", "adam", 1e-2)), tmp_path
+    )
+    assert found == claims.OPEN
+    assert d.cause == (SEEDS_DISAGREE, "adam: 24 of 30 seeds below 0.01, 6 stuck at or above it")
+    studies["s"] = tuned("s", [0.5, 2.0, 0.5])
+    found, ((_, d),) = claims.decide_claim(claim_of(claims.Lower("s", "a", "b")), tmp_path)
+    assert found == claims.OPEN and d.cause[0] == STUDIES_DISAGREE
+    assert "A better, B better, A better" in d.cause[1]

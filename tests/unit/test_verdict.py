@@ -483,14 +483,26 @@ def test_a_claim_is_contradicted_only_where_the_budget_could_test_it():
     from physgrad.claim_words import (
         CONTRADICTED,
         DIFFERENT_SETUP,
+        NOT_SETTLED,
         NOT_TESTED,
+        SEEDS_DISAGREE,
+        STUDIES_DISAGREE,
         SUPPORTED,
         claim_word,
         left_start,
     )
 
     nan = math.nan
-    assert claim_word(True, False, False, False, 0.01)[0] == SUPPORTED
+    # holds at X with every variant trained and no failure at X/2: supported
+    assert claim_word(True, False, False, True, 0.01)[0] == SUPPORTED
+    # holds at X but a variant never left its start (the cart's M at 1,500 iterations): the
+    # budget could not test it
+    word, why = claim_word(True, False, False, False, 0.047)
+    assert word == NOT_TESTED and "holds at X, but a variant fell less than 2x" in why
+    assert "4.7% of the paper's budget" in why
+    # holds at X but failed at X/2: it turns with the budget
+    word, why = claim_word(True, False, True, True, 0.5)
+    assert word == NOT_TESTED and "turns with the budget" in why
     # fails at X and X/2 with every variant trained: contradicted, whatever the share
     assert claim_word(False, True, True, True, 0.02)[0] == CONTRADICTED
     assert claim_word(False, True, True, True, nan)[0] == CONTRADICTED
@@ -501,9 +513,17 @@ def test_a_claim_is_contradicted_only_where_the_budget_could_test_it():
     assert claim_word(False, True, False, True, 0.05)[0] == NOT_TESTED
     # at the paper's budget a failure is a contradiction, trained or not
     assert claim_word(False, True, False, False, 1.0)[0] == CONTRADICTED
+    # not settled: by its cause where the parts found one, whatever the budget
+    stuck = (SEEDS_DISAGREE, "adam: 32 of 40 seeds below 0.01, 8 stuck at or above it")
+    assert claim_word(False, False, False, True, nan, cause=stuck) == stuck
+    assert claim_word(False, False, False, False, 0.01, cause=stuck) == stuck
+    apart = (STUDIES_DISAGREE, "a vs b in 4 tuning studies: A better, B better, ...")
+    assert claim_word(False, False, False, True, 1.0, cause=apart) == apart
+    # without one: the budget where a variant has not trained below the paper's, else the seeds
+    assert claim_word(False, False, False, False, 0.1)[0] == NOT_TESTED
     assert claim_word(False, False, False, True, 1.0) == (
-        NOT_TESTED,
-        "not settled at X (100% of the paper's budget)",
+        NOT_SETTLED,
+        "not settled at X: the seeds could not resolve it (100% of the paper's budget)",
     )
     assert claim_word(True, False, False, True, 0.1, "another network")[0] == DIFFERENT_SETUP
     # left its start: the median of final / start at most 1/2; diverged seeds count against
