@@ -28,8 +28,8 @@ from pathlib import Path
 import numpy as np
 import yaml
 from regime_map import regime_map  # experiments/
-from studies import CONF, GPU, MAP, PROFILES, STUDIES, Study
-from study_runs import StudyRuns, keep_studies, read_study, study_protocol
+from studies import CONF, GPU, MAP, PROFILES, STUDIES, Study, where_it_runs
+from study_runs import StudyRuns, keep_studies, read_study, study_protocol, uncommitted_note
 
 from physgrad.claim import (
     FAILS,
@@ -307,8 +307,8 @@ def headline_table(root: Path, profile: tuple, further: tuple = ()) -> str:
         longer, seen, elsewhere = _longer_budgets(claim, main, further)
         longer_text = "; ".join(longer)
         if runs is None:  # a longer profile's verdicts stand on their own
-            tail = f" {longer_text} |" if longer_text else " |"
-            lines.append(f"| {claim.name} | {NOT_YET} | | | | | | | |{tail}")
+            tail = f"{' |' * 8} {longer_text} |" if longer_text else f"{' |' * 8} |"
+            lines.append(f"| {claim.name} | {NOT_YET}: {where_it_runs(studies_of(claim))}{tail}")
             continue
         trials, studies, seeds = study_protocol(root / main)
         tuned = claim_verdicts(claim, root, profile=profile)
@@ -325,8 +325,7 @@ def headline_table(root: Path, profile: tuple, further: tuple = ()) -> str:
         )
         head = f"{turned}{claim.name}"
         trained, fell = _left_start(claim, runs)
-        _, rows = decide_claim(claim, root, "", 1.0, profile)
-        causes = [d.cause for _, d in rows if d.verdict == OPEN and d.cause[0]]
+        causes = [d.cause for _, d in decide_claim(claim, root, "", 1.0, profile)[1] if d.cause[0]]
         word, why = claim_word(
             tuned[1.0] == HOLDS,
             tuned[1.0] == FAILS,
@@ -334,7 +333,7 @@ def headline_table(root: Path, profile: tuple, further: tuple = ()) -> str:
             trained,
             _share(claim, runs),
             claim.departs,
-            causes[0] if causes else ("", ""),
+            (causes or [("", "")])[0],
         )
         lines.append(
             f"| {head} | **{word}** ({why}) | {trials} x {studies}{_of_planned(runs)}, {seeds} | "
@@ -424,8 +423,8 @@ def evidence_block(root: Path) -> str:
     return (
         f"Decided from the per-seed tables in `{root}` (one per study and per presets' twin, with "
         "the command, commit and machine that produced it beside it); machines: "
-        f"{'; '.join(machines) or '-'}. A claim whose studies have no kept evidence says "
-        '"not run yet". X is a study\'s budget; bold, the verdict at X.\n\n'
+        f"{'; '.join(machines) or '-'}{uncommitted_note(root)}. A claim without evidence says "
+        '"not run yet" and where it runs. X is a study\'s budget; bold, the verdict at X.\n\n'
         + headline_table(root, studies, further)
         + "\nEvery part of the claims run so far (tuned and with the presets):\n\n"
         + claims_table(root, studies, only_run=True)

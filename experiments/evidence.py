@@ -20,7 +20,6 @@ from __future__ import annotations
 
 import json
 import math
-import subprocess
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -63,15 +62,16 @@ def kept_row(study: int, variant: str, seed: int, column: str, curve, budget: fl
     }
 
 
-def commit() -> str:
-    """The commit of the checkout that keeps the evidence (`unknown` outside a git checkout)."""
-    try:
-        found = subprocess.run(
-            ["git", "rev-parse", "--short=12", "HEAD"], capture_output=True, text=True, timeout=30
-        )
-    except OSError:
-        return "unknown"
-    return found.stdout.strip() or "unknown"
+def commit(root: Path | None = None) -> str:
+    """The commit of the checkout that keeps the evidence (`unknown` outside a git checkout), with
+    '+dirty:<hash>' where it has uncommitted changes (the hash of their diff,
+    physgrad.machine.checkout_commit): the evidence then says so rather than naming a commit whose
+    code did not read it."""
+    from physgrad.machine import checkout_commit
+
+    found = checkout_commit(root or Path(__file__).resolve().parent.parent)
+    head, _, dirty = found.partition("+")
+    return (head[:12] + (f"+{dirty}" if dirty else "")) or "unknown"
 
 
 # --- the doors: every file read from a study folder or evidence folder (someone else's, maybe) is

@@ -78,11 +78,11 @@ def toy_study(folders: list[Path], out: Path, note: str) -> tuple[list[str], str
 QUICK_POISSON = ["seed=0", "trainer.time_budget=45"]
 FIGURES = (
     Figure(
-        "fig1_oscillator",
+        "oscillator_wallclock",
         "Oscillators: Adam, Gauss-Newton and HIG, test loss against training wall-clock",
-        ("fig1_oscillator",),
+        ("oscillator_wallclock",),
         ("loss_vs_time.png",),
-        {"fig1_oscillator": ["seed=0,1", "trainer.time_budget=60"]},
+        {"oscillator_wallclock": ["seed=0,1", "trainer.time_budget=60"]},
     ),
     Figure(
         "fig2_quantum",

@@ -286,3 +286,25 @@ def chunks(studies, limit_seconds: float = PART_SECONDS) -> list[list[Study]]:
         current.append(study)
         used += study.seconds()
     return parts + ([current] if current else [])
+
+
+def where_it_runs(names: set[str]) -> str:
+    """Where a claim whose studies are `names` can be decided, from the profiles' plans: the parts
+    of the claims profile (2 cores) that run them and their expected hours, and the claims-gpu
+    parts where a GPU's budget is planned; "no profile runs it yet" otherwise."""
+    said = []
+    for profile, machine in (("claims", "decidable on 2 cores"), ("claims-gpu", "needs a GPU")):
+        parts = chunks(PROFILES[profile])
+        used = [k for k, part in enumerate(parts, 1) if any(s.name in names for s in part)]
+        if not used or not names <= {s.name for k in used for s in parts[k - 1]}:
+            continue
+        seconds = sum(s.seconds() for k in used for s in parts[k - 1] if s.name in names)
+        which = ("part " if len(used) == 1 else "parts ") + ", ".join(map(str, used))
+        length = (
+            f"about {seconds / 3600:.1f} h" if seconds >= 5400 else f"about {seconds / 60:.0f} min"
+        )
+        said.append(
+            f"{machine}: {profile} {which}, {length}"
+            + (" on one GPU" if profile == "claims-gpu" else "")
+        )
+    return "; ".join(said) or "no profile runs it yet"

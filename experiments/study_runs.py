@@ -320,3 +320,26 @@ def keep_studies(root: Path, dest: Path, columns: dict[str, set]) -> list[str]:
             if split:
                 keep_clock(folder / "study-1" / "calibration.json", dest / CLOCK.format(name=name))
     return kept
+
+
+def uncommitted_note(root: Path) -> str:
+    """ "; runs from uncommitted changes: NAME (COMMIT), ..." for the kept studies under root whose
+    runs recorded a commit with uncommitted changes ('+dirty'), "" where none did."""
+    from evidence import read_json
+
+    found = []
+    for path in sorted(root.glob("*.json")):
+        try:
+            record = read_json(path)
+        except (OSError, ValueError):
+            continue
+        studies = record.get("tuning_studies", {}) if isinstance(record, dict) else {}
+        commits = {
+            str(c)
+            for r in [record, *(studies.values() if isinstance(studies, dict) else [])]
+            if isinstance(r, dict)
+            for c in (r.get("commits") or [])
+            if "+dirty" in str(c)
+        }
+        found += [f"{path.stem} ({c[:12]}{c[c.index('+') :]})" for c in sorted(commits)]
+    return "; runs from uncommitted changes: " + ", ".join(found) if found else ""

@@ -82,24 +82,34 @@ def load_average() -> float:
 
 @functools.lru_cache(maxsize=1)
 def git_commit() -> str:
-    """The commit of the git checkout physgrad runs from, with '+dirty' for uncommitted changes; ''
-    for an installed copy outside a checkout."""
-    root = Path(__file__).resolve().parent.parent
+    """The commit of the git checkout physgrad runs from, with '+dirty:<hash>' for uncommitted
+    changes (the first 12 hex digits of the SHA-256 of `git diff HEAD`: two runs from the same
+    changes record the same hash); '' for an installed copy outside a checkout."""
+    return checkout_commit(Path(__file__).resolve().parent.parent)
+
+
+def checkout_commit(root: Path) -> str:
+    """The commit of the git checkout at root, '+dirty:<hash>' appended for uncommitted changes to
+    tracked files (git_commit); '' outside a checkout or where git cannot tell."""
+    import hashlib
+
     if not (root / ".git").exists():
         return ""
+
+    def git(*args: str) -> str:
+        return subprocess.run(
+            ["git", "-C", str(root), *args], capture_output=True, text=True, timeout=10
+        ).stdout
+
     try:
-        commit = subprocess.run(
-            ["git", "-C", str(root), "rev-parse", "HEAD"], capture_output=True, text=True, timeout=5
-        ).stdout.strip()
-        dirty = subprocess.run(
-            ["git", "-C", str(root), "status", "--porcelain", "--untracked-files=no"],
-            capture_output=True,
-            text=True,
-            timeout=5,
-        ).stdout.strip()
+        commit = git("rev-parse", "HEAD").strip()
+        dirty = git("status", "--porcelain", "--untracked-files=no").strip()
+        diff = git("diff", "HEAD") if commit and dirty else ""
     except (OSError, subprocess.SubprocessError):
         return ""
-    return commit + ("+dirty" if commit and dirty else "")
+    if not (commit and dirty):
+        return commit
+    return f"{commit}+dirty:{hashlib.sha256(diff.encode()).hexdigest()[:12]}"
 
 
 def device_name() -> str:

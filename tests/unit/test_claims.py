@@ -521,10 +521,13 @@ def test_a_turn_that_comes_with_the_gpu_profile_is_told_apart(tmp_path, studies)
 
 def test_a_claim_run_only_at_a_longer_budget_shows_that_budget_s_verdicts(tmp_path, studies):
     """A claim whose study of the claims profile has not run, but which a profile of longer budgets
-    ran (here Poisson on the GPU), is "not run yet" for the claims profile and gives the longer
-    budget's verdicts beside it, not nothing."""
+    ran (here Poisson on the GPU), is "not run yet" for the claims profile, with the parts of the
+    profiles that would run it and their hours, and gives the longer budget's verdicts beside it,
+    not nothing."""
     row = poisson_row_with_the_gpu_holding(tmp_path, studies)
-    assert row.startswith("| Poisson") and f"| {claims.NOT_YET} |" in row, row
+    assert row.startswith("| Poisson") and f"| {claims.NOT_YET}: decidable on 2 cores: " in row
+    assert "needs a GPU: claims-gpu parts 1, 2, 3, 4, about " in row and " h on one GPU" in row
+    assert row.count("|") == 11, row
     assert "claims-gpu" in row and "**holds**" in row, row
     alone = claims.headline_table(tmp_path, study_lists.PROFILES["claims"])
     assert next(x for x in alone.splitlines() if "Poisson" in x).endswith("| |")

@@ -46,7 +46,7 @@ def test_the_claims_plan_lists_every_study_in_parts_of_at_most_80_minutes(capsys
 
 def test_missing_experiment_is_a_one_line_error():
     with pytest.raises(
-        Exception, match=r"unknown experiment 'nosuch' \(choose one of fig1_oscillator"
+        Exception, match=r"unknown experiment 'nosuch' \(choose one of fig2_quantum"
     ):
         check_overrides(["+experiment=nosuch"], multirun=True)
 
