@@ -293,15 +293,15 @@ def headline_table(root: Path, profile: tuple, further: tuple = ()) -> str:
     verdicts at its X/4, X/2 and X, with what it ran. A claim that holds at one budget and does not
     at another says so first (apart, where one of the two is the GPU profile's: the machine changed
     too)."""
-    lines = [
+    header = [
         "| claim | verdict | trials x tuning studies, seeds | budget here | loss fell from the "
         "start | tuned at X/4 | X/2 | X | presets at X | longer budget: X/4, X/2, X |",
         "|---|---|---|---|---|---|---|---|---|---|",
     ]
-    names = {s.name for s in profile}
-    for claim in CLAIMS:
-        if not studies_of(claim) <= names:
-            continue
+    lines, names = list(header), {s.name for s in profile}
+    for claim in sorted((c for c in CLAIMS if studies_of(c) <= names), key=lambda c: c.own):
+        if claim.own and not any("own questions" in line for line in lines):
+            lines += ["", "physgrad's own questions, not claims of the papers:", "", *header]
         main = _main_study(claim)
         runs = read_study(root / main)
         longer, seen, elsewhere = _longer_budgets(claim, main, further)

@@ -148,6 +148,7 @@ class Claim:
     # where physgrad's scene or comparison departs from the paper's in a way that matters: how
     # (the claim's word is then "different setup", physgrad.claim_words.claim_word)
     departs: str = ""
+    own: bool = False  # physgrad's own question, not a claim of the papers: its own table
 
 
 @dataclass(frozen=True)

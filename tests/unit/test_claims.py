@@ -728,3 +728,15 @@ def test_a_part_not_settled_says_its_cause_where_the_evidence_shows_one(tmp_path
     found, ((_, d),) = claims.decide_claim(claim_of(claims.Lower("s", "a", "b")), tmp_path)
     assert found == claims.OPEN and d.cause[0] == STUDIES_DISAGREE
     assert "A better, B better, A better" in d.cause[1]
+
+
+def test_physgrad_s_own_questions_stand_in_their_own_table_below_the_papers_claims(tmp_path):
+    table = claims.headline_table(tmp_path, study_lists.PROFILES["claims"]).splitlines()
+    marker = table.index("physgrad's own questions, not claims of the papers:")
+    own = {c.name for c in claims.CLAIMS if c.own}
+    assert own == {"KS: a best unroll length"}
+    rows = [line.split(" | ")[0].lstrip("| ") for line in table if line.startswith("| ")]
+    below = [
+        r for r in rows if table.index(next(x for x in table if x.startswith(f"| {r} "))) > marker
+    ]
+    assert set(below) - {"claim"} == own
