@@ -26,7 +26,8 @@ Two designs:
                  noise at a seed drawn once, whatever the tuned rate) and points scrambled per study
                  (scipy's scrambled Halton sequence)
 
-Three rules over the studies, on the same simulated data:
+Rules over the studies, on the same simulated data (each without the test between studies,
+study_alpha=None, which experiments/study_luck.py measures on top of "consistent"):
     majority  physgrad.replication.across_studies with need = more than half: the verdict of
               more than half of the studies (each decided by compare_variants with Holm over its
               comparisons), none against
@@ -146,15 +147,19 @@ def one_study(rng: np.random.Generator, cell: Cell) -> dict[str, list[str]]:
     return {
         "majority": [
             v.verdicts[1.0][0]
-            for v in across_studies(per_study, need=majority(cell.studies), same_side=False)
+            for v in across_studies(
+                per_study, need=majority(cell.studies), same_side=False, study_alpha=None
+            )
         ],
         "consistent": [
             v.verdicts[1.0][0]
-            for v in across_studies(per_study, need=majority(cell.studies), same_side=True)
+            for v in across_studies(
+                per_study, need=majority(cell.studies), same_side=True, study_alpha=None
+            )
         ],
         "unanimous": [
             v.verdicts[1.0][0]
-            for v in across_studies(per_study, need=cell.studies, same_side=False)
+            for v in across_studies(per_study, need=cell.studies, same_side=False, study_alpha=None)
         ],
         "pooled": [v.verdicts[1.0][0] for v in compare_variants(pooled, BUDGET, fractions=(1.0,))],
     }
@@ -287,9 +292,10 @@ def table(path: Path) -> str:
                     total = sims * (variants * (variants - 1) // 2) if what == "pairs" else sims
                     return rate_text(int(row[what]), total)
 
-                label = {PHYSGRAD: f"**{rule}: physgrad**", BEFORE: f"{rule}: before"}.get(
-                    (design, studies, rule), rule
-                )
+                label = {
+                    PHYSGRAD: f"**{rule}: physgrad** (before studies as draws)",
+                    BEFORE: f"{rule}: before",
+                }.get((design, studies, rule), rule)
                 lines.append(
                     f"| {null} | {studies} {design} | {label} | {of(2, 1.0, 'pairs')} | "
                     f"{of(3, 1.0, 'family')} | {of(2, 1.2, 'found')} | {of(2, 2.0, 'found')} |"

@@ -42,3 +42,25 @@ def test_the_row_marked_physgrad_is_what_physgrad_compare_does():
     assert SETTINGS["studies"][0] == studies
     defaults = inspect.signature(across_studies).parameters
     assert defaults["need"].default is None and defaults["same_side"].default is True
+
+
+def test_the_study_luck_table_is_generated_from_the_committed_counts():
+    """docs/protocol.md's table of the test between studies is the one experiments/study_luck.py
+    renders from docs/evidence/study_luck.csv, which holds every model of the simulation at every
+    level, physgrad's marked."""
+    import csv
+
+    from experiments.study_luck import BEGIN, END, RULES, models, table
+    from physgrad.replication import STUDY_ALPHA
+    from tests.helpers import REPO
+
+    evidence = REPO / "docs" / "evidence" / "study_luck.csv"
+    text = (REPO / "docs" / "protocol.md").read_text()
+    inside = text[text.index("\n", text.index(BEGIN)) + 1 : text.index(END)]
+    assert inside.strip() == table(evidence).strip()
+    assert f"**{STUDY_ALPHA:g}: physgrad**" in inside
+    with open(evidence) as file:
+        found = {tuple(r.values())[:10] for r in csv.DictReader(file)}
+    for model in models(2000):
+        for rule in RULES:
+            assert (*model.key, rule) in found, (model, rule)
