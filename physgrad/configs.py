@@ -121,6 +121,7 @@ def check_overrides(
     with initialized([*config_dirs, *searchpath_entries(overrides)]) as loader:
         group_values, keys = _group_choices_and_keys(parsed, loader, multirun, sweeper)
         _check_combinations(group_values, keys)
+        _check_hydra_targets(overrides)
 
 
 def _parse_overrides(overrides: list[str]) -> list[Any]:
@@ -224,6 +225,73 @@ def _check_combinations(group_values: dict[str, list[str]], keys: list[str]) -> 
             raise UserError(str(error).strip().splitlines()[0]) from None
         for key in keys:
             _check_key(cfg, key, combo)
+
+
+# what Hydra itself instantiates from the hydra section, by physgrad's own or Hydra's: physgrad's
+# sweep summary and job log, the standard library's logging handlers Hydra's defaults name, and
+# the launchers and sweepers of installed Hydra plugins (site-packages' hydra_plugins namespace)
+HYDRA_OWN_TARGETS = ("physgrad.app.SweepSummary", "physgrad.app.JobLogFile")
+HYDRA_PLUGIN_PREFIXES = ("hydra._internal.core_plugins.", "hydra_plugins.")
+LOGGING_CLASSES = ("logging.StreamHandler", "logging.FileHandler", "logging.NullHandler")
+
+
+def hydra_targets(hydra: dict) -> list[tuple[str, str]]:
+    """Every (where, target) that Hydra instantiates from a composed config's hydra section (as
+    data, unresolved): the callbacks' _target_, the logging handlers' and filters' class and a
+    formatter's or handler's "()" factory in job_logging and hydra_logging, and the launcher's and
+    sweeper's _target_."""
+    found = []
+    for name, node in (hydra.get("callbacks") or {}).items():
+        if isinstance(node, dict) and "_target_" in node:
+            found.append((f"hydra.callbacks.{name}", str(node["_target_"])))
+    for logging_section in ("job_logging", "hydra_logging"):
+        section = hydra.get(logging_section)
+        for kind in ("handlers", "formatters", "filters"):
+            nodes = (section.get(kind) or {}) if isinstance(section, dict) else {}
+            for name, node in nodes.items():
+                for key in ("class", "()"):
+                    if isinstance(node, dict) and key in node:
+                        found.append((f"hydra.{logging_section}.{kind}.{name}", str(node[key])))
+    for plugin in ("launcher", "sweeper"):
+        node = hydra.get(plugin) or {}
+        if isinstance(node, dict) and "_target_" in node:
+            found.append((f"hydra.{plugin}", str(node["_target_"])))
+    return found
+
+
+def _check_hydra_targets(overrides: list[str]) -> None:
+    """The door for what Hydra itself would instantiate before physgrad's job runs: every target
+    of the composed hydra section (hydra_targets) is physgrad's, the standard logging handlers,
+    an installed Hydra plugin's launcher or sweeper, or passes physgrad's one policy for targets
+    (validate.allowed_target: a function of the user's own module); UserError (one line)
+    otherwise, before Hydra runs anything. A user's config folder cannot make Hydra call
+    os.makedirs as a "callback"."""
+    from hydra import compose as hydra_compose
+    from hydra.errors import HydraException
+    from omegaconf import OmegaConf
+
+    from physgrad.validate import allowed_target
+
+    try:
+        cfg = hydra_compose("config", overrides=list(overrides), return_hydra_config=True)
+    except HydraException:
+        return  # the composition's own errors are said where the run composes it
+    hydra = OmegaConf.to_container(cfg.hydra, resolve=False)
+    for where, target in hydra_targets(hydra if isinstance(hydra, dict) else {}):
+        if target in HYDRA_OWN_TARGETS or target in LOGGING_CLASSES:
+            continue
+        if where.startswith(("hydra.launcher", "hydra.sweeper")) and target.startswith(
+            HYDRA_PLUGIN_PREFIXES
+        ):
+            continue
+        allowed_target(where, target)
+        from hydra.utils import get_object
+
+        try:
+            resolved = get_object(target)
+        except Exception:  # noqa: BLE001 - Hydra says why it cannot import it
+            continue
+        allowed_target(where, target, resolved)
 
 
 def _check_key(cfg: DictConfig, key: str, combo: dict) -> None:

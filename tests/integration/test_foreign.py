@@ -277,3 +277,36 @@ def test_the_target_policy_is_an_allow_list(target, tmp_path, monkeypatch):
     assert not (tmp_path / "MARK").exists()
     monkeypatch.setenv(TARGET_MODULES_ENV, "pandas")
     allowed_target("task", "pandas.DataFrame")
+
+
+@pytest.mark.parametrize(
+    "planted",
+    [
+        "callbacks: {{planted: {{_target_: os.makedirs, name: {mark}}}}}",
+        "job_logging: {{handlers: {{planted: {{class: os.makedirs, name: {mark}}}}}}}",
+        "hydra_logging: {{formatters: {{planted: {{(): os.makedirs, name: {mark}}}}}}}",
+    ],
+)
+def test_hydra_s_own_targets_from_a_config_folder_pass_the_same_policy(tmp_path, planted):
+    """A user's config folder whose experiment plants a Hydra callback, a logging handler class or
+    a formatter factory naming os.makedirs: refused in one line at the door, before Hydra
+    instantiates anything, and the folder it names is not made; from the command line too.
+    physgrad's own callback and job log, and Hydra's defaults, pass."""
+    from physgrad.configs import check_overrides
+    from physgrad.errors import UserError
+
+    mark = tmp_path / "MARK"
+    (tmp_path / "conf" / "experiment").mkdir(parents=True)
+    text = "# @package _global_\nhydra:\n  " + planted.format(mark=mark) + "\n"
+    (tmp_path / "conf" / "experiment" / "planted.yaml").write_text(text)
+    with pytest.raises(UserError, match="hydra.* is not allowed") as caught:
+        check_overrides(["task=toy", "+experiment=planted"], False, [tmp_path / "conf"])
+    assert "\n" not in str(caught.value) and not mark.exists()
+    line = [
+        "+hydra.callbacks.planted._target_=os.makedirs",
+        f"+hydra.callbacks.planted.name={mark}",
+    ]
+    with pytest.raises(UserError, match="hydra.callbacks.planted._target_=os.makedirs"):
+        check_overrides(["task=toy", *line], False)
+    assert not mark.exists()
+    check_overrides(["task=toy", "hydra/launcher=basic"], False)  # physgrad's and Hydra's own
