@@ -17,7 +17,7 @@ $(STAMP): pyproject.toml
 # the README's first command: a small comparison with a verdict (the toy scene, Adam / Gauss-Newton / HIG, each
 # tuned with 4 trials in each of 4 tuning studies, 10 paired seeds each; about three minutes on 2 cores, 4 with 8
 # trials); ARGS replaces the study's overrides
-RUN_STUDY := task=toy optim=adam,gauss_newton,hig trainer.iterations=300 compare.trials=4
+RUN_STUDY := task=toy optim=adam,gauss_newton,hig trainer.iterations=300 compare.trials=8
 run: setup
 	$(BIN)/physgrad compare $(if $(ARGS),$(ARGS),$(RUN_STUDY))
 

@@ -32,7 +32,7 @@ def spread(p: Paired) -> float:
     return float(1.4826 * np.median(np.abs(finite - np.median(finite))))
 
 
-def measured(verdict: PairVerdict, fraction: float = 1.0) -> tuple[float, float, float]:
+def measured(verdict: PairVerdict, fraction: float = 1.0) -> tuple[float, float, float, float]:
     """What a pair's studies measured at `fraction` of the budget, for detectable_ratio: the
     spread of the seeds' log ratios (1.4826 x the median absolute deviation of every study's finite
     log ratios about that study's median, so that the studies' offsets do not count as seed noise),
@@ -48,15 +48,18 @@ def measured(verdict: PairVerdict, fraction: float = 1.0) -> tuple[float, float,
             medians.append(float(np.median(finite)))
             pairs.append(finite.size)
     if len(centred) < 3:
-        return math.nan, math.nan, math.nan
+        return math.nan, math.nan, math.nan, math.nan
     sd = float(1.4826 * np.median(np.abs(np.array(centred))))
     between = 0.0
     if len(medians) > 1:
         noise = sd**2 * (math.pi / 2) / float(np.mean(pairs))
         between = math.sqrt(max(0.0, float(np.var(medians, ddof=1)) - noise))
     runs = sum(p.seeds for p in studies)
-    divergence = sum(p.diverged_a + p.diverged_b for p in studies) / (2 * runs) if runs else 0.0
-    return sd, between, divergence
+    rates = sorted(
+        sum(getattr(p, side) for p in studies) / runs if runs else 0.0
+        for side in ("diverged_a", "diverged_b")
+    )
+    return sd, between, rates[0], rates[1]
 
 
 @functools.lru_cache(maxsize=256)
@@ -110,19 +113,21 @@ def power_at(
     divergence: float = 0.0,
     between: float = 0.0,
     study_alpha: float | None = None,
+    divergence_other: float | None = None,
 ) -> float:
     """The chance that a design finds a true loss ratio `ratio` (above 1: B worse) "better", by a
-    normal model of the whole rule. Per study: the pairs where neither run diverged, seeds x (1 -
-    divergence)^2, carry log ratios of spread sd around log(ratio) plus the study's offset (the
-    tuning's luck, N(0, between^2)); the signed-rank test at Holm's strictest step (efficiency 3 /
-    pi of the t test) and the median's interval beyond the margin (standard error sd x sqrt(pi /
-    2) / sqrt(n)) must both pass, each a normal probability averaged over the offset; and the
-    better variant may have diverged on at most wrong_side_allowed pairs (each pair one-sided that
-    way with probability divergence x (1 - divergence)). Over the studies: `need` of `studies`
-    pass (binomial) and, with several studies, the studies as draws (replication.between_studies)
-    exclude a ratio of 1 at study_alpha: a noncentral t with studies - 1 degrees of freedom. The
-    two are taken as independent (they are positively correlated), so the chance is on the low
-    side."""
+    normal model of the whole rule. Per study: the pairs where neither run diverged, seeds x (1
+    - divergence) (1 - divergence_other), carry log ratios of spread sd around log(ratio) plus
+    the study's offset (the tuning's luck, N(0, between^2)); the signed-rank test at Holm's
+    strictest step (efficiency 3 / pi of the t test) and the median's interval beyond the margin
+    (standard error sd x sqrt(pi / 2) / sqrt(n)) must both pass, each a normal probability
+    averaged over the offset; and the better variant (diverging at the rate `divergence`, the
+    other at `divergence_other`, the same where None) may have diverged on at most
+    wrong_side_allowed pairs (each pair one-sided that way with probability divergence x (1 -
+    divergence_other)). Over the studies: `need` of `studies` pass (binomial) and, with several
+    studies, the studies as draws (replication.between_studies) exclude a ratio of 1 at
+    study_alpha: a noncentral t with studies - 1 degrees of freedom. The two are taken as
+    independent (they are positively correlated), so the chance is on the low side."""
     from scipy.stats import binom, nct, norm
     from scipy.stats import t as student
 
@@ -132,7 +137,8 @@ def power_at(
     if ratio <= margin or seeds < seeds_needed(alpha, comparisons):
         return 0.0
     need = need or majority(studies)
-    finite = seeds * (1.0 - divergence) ** 2
+    other = divergence if divergence_other is None else divergence_other
+    finite = seeds * (1.0 - divergence) * (1.0 - other)
     if finite < 1:
         return 0.0
     mu, delta = math.log(ratio), math.log(margin)
@@ -147,7 +153,7 @@ def power_at(
     interval = norm.cdf(((shifted - delta) / max(median_error, 1e-300)) - z_interval)
     one = float(np.sum(weights * np.minimum(test, interval)) / np.sum(weights))
     allowed = wrong_side_allowed(seeds, comparisons, alpha)
-    one *= float(binom.cdf(allowed, seeds, divergence * (1 - divergence))) if allowed >= 0 else 0
+    one *= float(binom.cdf(allowed, seeds, divergence * (1 - other))) if allowed >= 0 else 0
     chance = float(binom.sf(need - 1, studies, one))
     if studies > 1:
         spread_of_mean = math.sqrt((median_error**2 + between**2) / studies)
@@ -169,11 +175,13 @@ def detectable_ratio(
     power: float = POWER,
     divergence: float = 0.0,
     between: float = 0.0,
+    divergence_other: float | None = None,
 ) -> float:
     """The smallest loss ratio (above the margin) that the design finds with probability `power`
     (power_at, solved by bisection in the log ratio): for log ratios of spread sd on `seeds` paired
-    seeds per study, `comparisons` comparisons, `need` of `studies` tuning studies, runs diverging
-    at the rate `divergence` in both variants and the studies' offsets of spread `between`.
+    seeds per study, `comparisons` comparisons, `need` of `studies` tuning studies, the better
+    variant's runs diverging at the rate `divergence` and the other's at `divergence_other` (the
+    same where None), and the studies' offsets of spread `between`.
     Infinite where no ratio reaches it (too few seeds, or divergences too frequent), NaN without a
     spread; the margin itself where sd and between are 0 (every ratio above it is found, the
     margin itself never: "better" is strictly beyond it)."""
@@ -188,6 +196,7 @@ def detectable_ratio(
         alpha=alpha,
         divergence=divergence,
         between=between,
+        divergence_other=divergence_other,
     )
     if sd == 0 and between == 0:
         return margin if power_at(margin * 1.001, 1e-12, **rule) >= power else math.inf

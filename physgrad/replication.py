@@ -180,6 +180,8 @@ def over_studies(
                 f"{_ratio(draws.high)}] over {draws.studies} studies (Hartung-Knapp, "
                 f"p = {draws.p:.2g}): the tuning's luck could make it"
             )
+        if all(abs(e) >= STUDY_CAP for e in draws.estimates):
+            return verdict, f"{held}; every study's median ratio 10x or more"
         return verdict, f"{held}; over the studies {_ratio(draws.mean)} (p = {draws.p:.2g})"
     if len(decided) > 1:
         return undecided, f"the tuning studies disagree: {listed}"

@@ -4,6 +4,7 @@ command line, each composed, with the search space of its tuning) and its budget
 from __future__ import annotations
 
 import itertools
+import math
 from dataclasses import dataclass, field, fields
 from typing import TYPE_CHECKING, Any
 
@@ -374,7 +375,7 @@ def build_variants(
         overrides = list(combo)
         check_overrides([*common, *overrides], multirun=False, config_dirs=config_dirs)
         cfg = compose([*common, *overrides], config_dirs=config_dirs, return_hydra_config=True)
-        space = search_space(cfg.optim, settings) if settings.tune else {}
+        space = search_space(cfg, settings) if settings.tune else {}
         variants.append(Variant(variant_name(overrides), overrides, cfg, space))
     if len(variants) < 2:
         raise UserError(
@@ -393,10 +394,12 @@ def build_variants(
     return variants
 
 
-def search_space(optim_cfg: DictConfig, settings: StudySettings) -> dict:
+def search_space(cfg: DictConfig, settings: StudySettings) -> dict:
     """The tuned optim keys of a variant with their log-uniform ranges: its learning rate over its
-    rule family's range (physgrad.optim.capabilities), and every compare.search key its optim
-    has."""
+    rule family's range (physgrad.optim.capabilities), then every key of the scene's tuning file's
+    `search` (conf/tuning/<task>_<optim>.yaml: the ranges this rule is tuned over on this scene),
+    then every compare.search key, each where the variant's optim has it."""
+    optim_cfg = cfg.optim
     rate = learning_rate_key(optim_cfg)
     if rate is None:
         raise UserError(
@@ -404,6 +407,24 @@ def search_space(optim_cfg: DictConfig, settings: StudySettings) -> dict:
             "with init_value): add one to its YAML, or compare it untuned (compare.tune=false)"
         )
     space = {rate: capabilities(optim_cfg).search_range}
+    from omegaconf import OmegaConf
+
+    declared = cfg.get("search")
+    declared = OmegaConf.to_container(declared) if OmegaConf.is_config(declared) else {}
+    for key, bounds in declared.items():
+        where = (
+            f"search.{key} (the tuning file of task={cfg.task.get('name')}, "
+            f"optim={optim_cfg.get('name')})"
+        )
+        if not (
+            isinstance(bounds, list)
+            and len(bounds) == 2
+            and all(isinstance(b, (int, float)) and not isinstance(b, bool) for b in bounds)
+            and 0 < bounds[0] < bounds[1] < math.inf
+        ):
+            raise UserError(f"{where} must be [low, high] with 0 < low < high, not {bounds}")
+        if key in optim_cfg:
+            space[rate if key == "learning_rate" else key] = (float(bounds[0]), float(bounds[1]))
     for key, bounds in settings.search.items():
         if key in optim_cfg:
             space[rate if key == "learning_rate" else key] = bounds

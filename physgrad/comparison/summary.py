@@ -265,7 +265,7 @@ def detectable(
     """The smallest ratio a pair's study could detect with POWER (physgrad.power.detectable_ratio),
     from what its tuning studies measured at the budget (or the fraction of it): the seeds' spread,
     the spread between the studies and the divergence rate (physgrad.power.measured)."""
-    sd, between, divergence = measured(verdict, fraction)
+    sd, between, divergence, other = measured(verdict, fraction)
     if math.isnan(sd):
         return math.nan
     return detectable_ratio(
@@ -277,6 +277,7 @@ def detectable(
         alpha=settings.alpha,
         divergence=divergence,
         between=between,
+        divergence_other=other,
     )
 
 
@@ -311,9 +312,9 @@ def _tuning_text(settings: StudySettings) -> str:
     last = settings.tune_seed + settings.study_count - 1
     return (
         f"Tuning: {settings.study_count} independent tuning studies of {settings.trials} trials "
-        f"per variant (seeds {settings.tune_seed}..{last}, each study its own randomly shifted "
-        "trial points, the same for every variant), scored by the validation loss at the budget; "
-        "each study's best is evaluated on the study's own seeds."
+        f"per variant (seeds {settings.tune_seed}..{last}, each study its own trial points, "
+        "interleaved with the others' and the same for every variant), scored by the validation "
+        "loss at the budget; each study's best is evaluated on the study's own seeds."
     )
 
 
