@@ -26,12 +26,12 @@ import sys
 from pathlib import Path
 
 import numpy as np
-import yaml
-from regime_map import regime_map  # experiments/
-from studies import CONF, GPU, MAP, PROFILES, STUDIES, Study, where_it_runs
+from claim_list import CLAIMS, load_claims  # noqa: F401 - experiments/; load_claims: tests
+from regime_map import regime_map
+from studies import GPU, MAP, PROFILES, STUDIES, Study, where_it_runs
 from study_runs import StudyRuns, keep_studies, read_study, study_protocol, uncommitted_note
 
-from physgrad.claim import (
+from physgrad.claim import (  # noqa: F401 - Close and Lower: the parts' names, for callers
     FAILS,
     HOLDS,
     NOT_RUN,
@@ -53,42 +53,6 @@ from physgrad.claim import (
 from physgrad.claim_words import claim_word, left_start
 from physgrad.errors import UserError
 from physgrad.verdict import FRACTIONS
-
-# --- the studies
-# ------------------------------------------------------------------------------------------
-
-
-# --- the claims
-# -------------------------------------------------------------------------------------------
-
-
-PART_KINDS = {"lower": Lower, "close": Close, "grows": Grows, "stalls": Stalls, "reaches": Reaches}
-
-
-def _part(entry: dict) -> object:
-    """A claim's part from its entry: its kind as the key of its study (grows: [easy, hard]), then
-    its own fields (physgrad.claim)."""
-    (kind,) = set(entry) & set(PART_KINDS)
-    rest = {k: v for k, v in entry.items() if k != kind}
-    if kind == "grows":
-        return Grows(*entry[kind], **rest)
-    return PART_KINDS[kind](entry[kind], **rest)
-
-
-def load_claims(path: Path = CONF / "claims.yaml") -> tuple[Claim, ...]:
-    """The claims from their YAML file: each claim's name, the paper's statement and where, its
-    parts, how the comparison departs, and the paper's budget; anything else is a UserError."""
-    try:
-        return tuple(
-            Claim(**{**entry, "parts": tuple(_part(p) for p in entry["parts"])})
-            for entry in yaml.safe_load(path.read_text())["claims"]
-        )
-    except (KeyError, TypeError, ValueError) as error:
-        raise UserError(f"{path}: {type(error).__name__}: {error}") from None
-
-
-CLAIMS = load_claims()
-
 
 # --- reading a study
 # --------------------------------------------------------------------------------------
@@ -359,8 +323,14 @@ def _longer_budgets(claim: Claim, main: str, further: tuple) -> tuple[list, list
         (elsewhere if studies_there == GPU else seen).extend(found.values())
         t, k, n = study_protocol(folder / main)
         ran = f"{t} x {k}{_of_planned(long_runs)}, {n}" if t else f"presets untuned, {n} seeds"
+        parts = "; ".join(  # each part at its X: a claim's word hides which part decided it
+            f"{part.text()}: {d.verdict}"
+            + (f" ({d.measured.split(';')[0]})" if d.measured != "-" else "")
+            for part, d in decide_claim(claim, folder, "", 1.0, studies_there)[1]
+        )
+        verdicts = ", ".join(_verdicts_text(found))
         longer.append(
-            f"{folder.name}, {_budget_text(long_runs)} ({ran}): " + ", ".join(_verdicts_text(found))
+            f"{folder.name}, {_budget_text(long_runs)} ({ran}): {verdicts}; at X: {parts}"
         )
     return longer, seen, elsewhere
 
@@ -433,7 +403,6 @@ def evidence_block(root: Path) -> str:
 
 def write_doc(root: Path, doc: Path) -> str:
     """Replace the generated block of doc (between the GENERATED markers) with evidence_block."""
-    from physgrad.errors import UserError
 
     text = doc.read_text()
     start, end = (text.find(marker) for marker in GENERATED)
@@ -465,7 +434,6 @@ def main(argv: list[str] | None = None) -> int:
         help="keep the finished studies' evidence tables in OUT (docs/evidence/claims) instead",
     )
     args = parser.parse_args(argv)
-    from physgrad.errors import UserError
 
     if not args.studies.is_dir():  # before anything is written: a typo must not create folders
         print(
