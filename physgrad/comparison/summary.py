@@ -4,7 +4,7 @@ to: compare.md, trials.csv, runs.csv and comparisons.csv."""
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -100,7 +100,7 @@ def analyse(
         if settings.tune
         else []
     )
-    lines += variant_lines(variants, runs, best, target_variant, target, searched)
+    lines += variant_lines(variants, runs, best, target_variant, target, searched, trials_rows)
     lines += timing_lines(variants, runs, axis, calibration)
     text = "\n".join(lines) + "\n"
     with replaced(folder / "compare.md", text=True) as f:
@@ -364,6 +364,7 @@ def variant_lines(
     target_variant: str,
     target: float,
     searched: Sequence[str] = (),
+    trials: Sequence[Mapping] = (),
 ) -> list[str]:
     """compare.md's variants table (tuned settings, one value per tuning study, and the preset;
     test loss at the budget over every study's runs; time to target), the warnings on the tuned
@@ -400,7 +401,7 @@ def variant_lines(
             f"{present.size} | {fmt(float(np.median(reach))) if reach.size else '-'}, "
             f"{int(np.isfinite(reach).sum())} of {reach.size} |"
         )
-    lines += edge_lines(variants, best)
+    lines += edge_lines(variants, best, trials)
     lines += list(searched)
     lines += [
         "",
@@ -436,10 +437,18 @@ def tuned_text(per_study: list[dict]) -> str:
 EDGE = 0.1  # a tuned value in the outer tenth of its log range is at the range's edge
 
 
-def edge_lines(variants: list[Variant], best: list[dict[str, dict]]) -> list[str]:
+FLAT = 1.25  # trials on the edge's side whose validation losses lie within this factor: a plateau
+
+
+def edge_lines(
+    variants: list[Variant], best: list[dict[str, dict]], trials: Sequence[Mapping] = ()
+) -> list[str]:
     """A warning per tuned value in the outer tenth of its log-uniform range (in any tuning study;
     best: per study): the best trial may lie beyond the range, which should then be widened
-    (compare.search.KEY=[low,high])."""
+    (compare.search.KEY=[low,high]). Where the trials of every study in the outer fifth on that
+    side (three or more) scored within a factor FLAT of each other, the edge is a plateau (the
+    rule barely trains at any value there, so the lowest score falls anywhere on it): a note says
+    so instead, with the scores, since no range would move it."""
     lines = []
     for variant in variants:
         found = {}
@@ -456,12 +465,44 @@ def edge_lines(variants: list[Variant], best: list[dict[str, dict]]) -> list[str
                 continue
             side = "lowest" if where < EDGE else "highest"
             tuned, bounds = fmt(float(value)), f"[{fmt(float(low))}, {fmt(float(high))}]"
+            flat = _plateau(variant, key, trials, low, high, side)
+            if flat:
+                lines.append(
+                    f"note: {variant.name}'s tuned {key}={tuned} lies in the {side} tenth of its "
+                    f"range {bounds}, on a plateau: its trials in the {side} fifth scored "
+                    f"{flat} (within {FLAT:g}x of each other), so it barely trains at any {key} "
+                    "there and a wider range would not move the verdict"
+                )
+                continue
             lines.append(
                 f"warning: {variant.name}'s tuned {key}={tuned} lies in the {side} tenth of its "
                 f"range {bounds}: the best setting may lie beyond it; widen the range "
                 f"(compare.search.{key}=[low,high])"
             )
     return ([""] + lines) if lines else []
+
+
+def _plateau(
+    variant: Variant, key: str, trials: Sequence[Mapping], low: float, high: float, side: str
+) -> str:
+    """The validation losses of the variant's trials in the outer fifth of the range on `side`,
+    as "0.46 to 0.52", where there are three or more, all finite and within FLAT of each other;
+    "" otherwise."""
+    scores = []
+    for row in trials:
+        if str(row.get("variant")) != variant.name:
+            continue
+        value, score = row.get(key), row.get("validation_loss")
+        if not isinstance(value, (int, float)) or not isinstance(score, (int, float)):
+            continue
+        where = (math.log(value) - math.log(low)) / (math.log(high) - math.log(low))
+        if (where < 2 * EDGE) if side == "lowest" else (where > 1 - 2 * EDGE):
+            scores.append(float(score))
+    if len(scores) < 3 or not all(math.isfinite(v) and v > 0 for v in scores):
+        return ""
+    if max(scores) > FLAT * min(scores):
+        return ""
+    return f"{fmt(min(scores))} to {fmt(max(scores))}"
 
 
 def trial_rows(folder: Path, variants: list[Variant], studies: int = 1) -> list[dict]:

@@ -539,6 +539,18 @@ def test_a_tuned_value_at_the_edge_of_its_range_is_warned_about():
     assert lines[1].startswith("warning: c's tuned learning_rate=0.08 lies in the highest tenth")
     assert "compare.search.learning_rate=[low,high]" in lines[1]
     assert edge_lines(variants[1:2] + variants[3:], [best]) == []
+    # a plateau: a's trials in the lowest fifth (below 6.3e-05) scored within 1.25x of each other
+    # (the toy's Gauss-Newton barely moving at any small rate): a note, not the advice to widen
+    flat = [
+        {"variant": "a", "learning_rate": rate, "validation_loss": score}
+        for rate, score in ((1.6e-5, 0.46), (3e-5, 0.52), (5e-5, 0.49), (1e-3, 5.0))
+    ]
+    (line,) = [x for x in edge_lines(variants[:1], [best], flat) if x]
+    assert line.startswith("note: a's tuned learning_rate=1.6e-05 lies in the lowest tenth")
+    assert "on a plateau: its trials in the lowest fifth scored 0.46 to 0.52" in line
+    # two trials, or scores 2x apart, are no plateau
+    for rows in (flat[:2], [{**flat[0], "validation_loss": 0.2}, *flat[1:]]):
+        assert edge_lines(variants[:1], [best], rows)[1].startswith("warning: a's tuned")
 
 
 def test_the_plan_costs_every_job_of_a_study_from_compile_and_step_times():
