@@ -14,9 +14,9 @@ $(STAMP): pyproject.toml
 	$(BIN)/python -m pip install --quiet -e ".[test,launchers,trackers,sims]"
 	touch $(STAMP)
 
-# the README's first command: a small comparison with a verdict (the toy scene, Adam / Gauss-Newton / HIG, each
-# tuned with 4 trials in each of 4 tuning studies, 10 paired seeds each; about three minutes on 2 cores, 4 with 8
-# trials); ARGS replaces the study's overrides
+# the README's first command: a small tuned comparison (the toy scene, Adam / Gauss-Newton / HIG, each
+# tuned with 8 trials in each of 4 tuning studies over the toy's ranges (conf/tuning/toy_*.yaml), 10 paired
+# seeds each; about four minutes on 2 cores); ARGS replaces the study's overrides
 RUN_STUDY := task=toy optim=adam,gauss_newton,hig trainer.iterations=300 compare.trials=8
 run: setup
 	$(BIN)/physgrad compare $(if $(ARGS),$(ARGS),$(RUN_STUDY))
