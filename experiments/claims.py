@@ -27,6 +27,7 @@ from pathlib import Path
 
 import numpy as np
 from claim_list import CLAIMS, load_claims  # noqa: F401 - experiments/; load_claims: tests
+from claims_tuned import tuned_table
 from regime_map import regime_map
 from studies import GPU, MAP, PROFILES, STUDIES, Study, where_it_runs
 from study_runs import StudyRuns, keep_studies, read_study, study_protocol, uncommitted_note
@@ -398,6 +399,7 @@ def evidence_block(root: Path) -> str:
         + headline_table(root, studies, further)
         + "\nEvery part of the claims run so far (tuned and with the presets):\n\n"
         + claims_table(root, studies, only_run=True)
+        + tuned_table(root)
     )
 
 

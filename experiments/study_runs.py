@@ -226,9 +226,10 @@ def study_protocol(folder: Path) -> tuple[int, int, int] | None:
     return trials, studies, seeds
 
 
-def _study_record(folder: Path, runs: StudyRuns) -> dict:
+def _study_record(folder: Path, runs: StudyRuns, study: int = 0) -> dict:
     """What a kept tuning study records of itself: its machine, the physgrad commits its runs
-    recorded, the commit that kept it and the compare overrides that ran it."""
+    recorded, the commit that kept it, the compare overrides that ran it, and its tuning
+    (tuned_trials), so that what the tuning chose can be audited from the evidence."""
     from physgrad.results import read_final
 
     ran = set()
@@ -243,7 +244,51 @@ def _study_record(folder: Path, runs: StudyRuns) -> dict:
         "commits": sorted(ran),
         "kept_by": commit(),
         "overrides": study_overrides(folder),
+        **tuned_trials(folder, study),
     }
+
+
+def tuned_trials(folder: Path, study: int = 0) -> dict:
+    """{"trials": [...], "tuned": {variant: {key: value}}} of tuning study `study` from the folder's
+    trials.csv (each trial's variant, values and validation loss; a variant's tuned setting is its
+    complete trial of lowest validation loss); {} without a readable trials.csv."""
+    import math
+
+    try:
+        table = read_table(folder / "trials.csv")
+    except (OSError, ValueError):
+        return {}
+    if "study" not in table or "validation_loss" not in table:
+        return {}
+    mine = table[table["study"] == study]
+    keys = [
+        c
+        for c in mine.columns
+        if c not in ("variant", "study", "trial", "validation_loss", "state")
+    ]
+    trials, tuned = [], {}
+    for row in mine.to_dict("records"):
+        values = {
+            k: float(row[k])
+            for k in keys
+            if isinstance(row.get(k), (int, float)) and math.isfinite(row[k])
+        }
+        loss = (
+            float(row["validation_loss"])
+            if isinstance(row["validation_loss"], (int, float))
+            else math.nan
+        )
+        trials.append({"variant": str(row["variant"]), **values, "validation_loss": loss})
+    for variant in sorted({t["variant"] for t in trials}):
+        scored = [
+            t for t in trials if t["variant"] == variant and math.isfinite(t["validation_loss"])
+        ]
+        if scored:
+            best = min(scored, key=lambda t: t["validation_loss"])
+            tuned[variant] = {
+                k: v for k, v in best.items() if k not in ("variant", "validation_loss")
+            }
+    return {"trials": trials, "tuned": tuned} if trials else {}
 
 
 def study_overrides(folder: Path) -> list[str]:
@@ -287,7 +332,7 @@ def keep_studies(root: Path, dest: Path, columns: dict[str, set]) -> list[str]:
                         for column in sorted(columns[name])
                         for seed, curve in sorted(study.curves(variant, column).items())
                     ],
-                    _study_record(where, study),
+                    _study_record(where, study, 0 if split else k - 1),
                 )
                 kept.append(f"{folder.name}/{where.name}" if split else folder.name)
             kept = list(dict.fromkeys(kept))  # a study run in one compare: its name once

@@ -47,6 +47,20 @@ def test_kept_evidence_decides_every_part_as_the_study_folder(
         from_kept = claims.decide_claim(claim, kept, fraction=fraction)
         assert from_kept == from_folder, fraction
     assert claims.study_protocol(kept / "small") == claims.study_protocol(root / "small")
+    # each tuning study's tuning is kept: its trials and the setting it chose per variant, the
+    # one its compare evaluated (the study's own table), shown with the trials' span in claims.md
+    import pandas as pd
+
+    trials = pd.read_csv(root / "small" / "trials.csv")
+    for k, record in about["tuning_studies"].items():
+        mine = trials[trials["study"] == int(k) - 1]
+        assert len(record["trials"]) == len(mine) == 4
+        for variant, tuned in record["tuned"].items():
+            rows = mine[mine["variant"] == variant]
+            best = rows.loc[rows["validation_loss"].idxmin()]
+            assert tuned == {"learning_rate": pytest.approx(best["learning_rate"])}
+    table = claims.tuned_table(kept)
+    assert "| small | adam | study 1: learning_rate=" in table and "study 2:" in table
     # the study folder is not needed to regenerate the markdown
     shutil.rmtree(root)
     assert claims.decide_claim(claim, kept) == from_kept

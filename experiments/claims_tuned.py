@@ -1,0 +1,71 @@
+"""The tuned settings behind the claims' verdicts, from the kept evidence (each tuning study's
+`tuned` and `trials`, experiments/study_runs.tuned_trials): what each study's tuning chose per
+variant, and where a choice sits in the outer tenth of the values its trials tried."""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+from evidence import read_json  # experiments/
+
+from physgrad.readout import fmt
+
+EDGE = 0.1  # the outer tenth of the log span the trials tried
+
+
+def tuned_table(root: Path) -> str:
+    """A markdown table: per kept study and variant, each tuning study's tuned values and the span
+    its trials tried, flagged where a tuned value lies in the outer tenth of that span (the best
+    setting may lie beyond it); a line where no kept study recorded its tuning."""
+    rows = []
+    for path in sorted(root.glob("*.json")):
+        if path.name.endswith(".calibration.json"):
+            continue
+        try:
+            record = read_json(path)
+        except (OSError, ValueError):
+            continue
+        studies = record.get("tuning_studies") if isinstance(record, dict) else None
+        if not isinstance(studies, dict):
+            continue
+        by_variant: dict[str, list[str]] = {}
+        for k in sorted(studies, key=lambda key: int(key) if str(key).isdigit() else 0):
+            study = studies[k] if isinstance(studies[k], dict) else {}
+            trials = study.get("trials") if isinstance(study.get("trials"), list) else []
+            tuned = study.get("tuned") if isinstance(study.get("tuned"), dict) else {}
+            for variant, values in sorted(tuned.items()):
+                if not isinstance(values, dict):
+                    continue
+                said = []
+                for key, value in sorted(values.items()):
+                    tried = [
+                        float(t[key])
+                        for t in trials
+                        if isinstance(t, dict) and t.get("variant") == variant and key in t
+                    ]
+                    said.append(f"{key}={fmt(float(value))}{_edge(float(value), tried)}")
+                by_variant.setdefault(str(variant), []).append(f"study {k}: " + ", ".join(said))
+        rows += [f"| {path.stem} | {v} | {'; '.join(t)} |" for v, t in by_variant.items()]
+    if not rows:
+        return (
+            "\nTuned settings: none of these studies' evidence records its tuning (it was kept "
+            "before the evidence did); each study's compare.md lists them.\n"
+        )
+    return (
+        "\nTuned settings, per study, variant and tuning study (the setting of lowest validation "
+        "loss among its trials; the presets are in conf/optim and conf/tuning); *edge*: in the "
+        "outer tenth of the values its trials tried, so the best may lie beyond them:\n\n"
+        "| study | variant | tuned |\n|---|---|---|\n" + "\n".join(rows) + "\n"
+    )
+
+
+def _edge(value: float, tried: list[float]) -> str:
+    """ " *edge*" where value lies in the outer tenth of the log span of tried (three or more
+    positive values), "" otherwise."""
+    tried = [t for t in tried if t > 0 and math.isfinite(t)]
+    if len(tried) < 3 or not value > 0 or min(tried) == max(tried):
+        return ""
+    low, high = math.log(min(tried)), math.log(max(tried))
+    where = (math.log(value) - low) / (high - low)
+    return " *edge*" if where < EDGE or where > 1 - EDGE else ""
