@@ -120,15 +120,18 @@ class Stalls:
 @dataclass(frozen=True)
 class Reaches:
     """The variant's `column` at the budget lies below an absolute level (the seeds below it, by
-    the package's sign test, physgrad.claim_words.against_level)."""
+    the package's sign test, physgrad.claim_words.against_level); with above, at or above it (a
+    loss that stays above a level the book names, hidden units that saturate)."""
 
     study: str
     variant: str
     level: float
     column: str = "loss"
+    above: bool = False
 
     def text(self) -> str:
-        return f"{self.variant} reaches {self.column} below {self.level:g}"
+        side = "stays at or above" if self.above else "reaches"
+        return f"{self.variant} {side} {self.column} {'' if self.above else 'below '}{self.level:g}"
 
 
 Part = Lower | Close | Grows | Stalls | Reaches
@@ -431,8 +434,9 @@ def decide_reach(runs: Runs, part: Reaches, fraction: float = 1.0) -> Decision:
         curves = study.curves(part.variant, part.column)
         found.append([curves[s].at(study.budget * fraction) for s in sorted(curves)])
     tests = [against_level(values, part.level) for values in found]
+    holds, fails = (ABOVE, BELOW) if part.above else (BELOW, ABOVE)
     claim, why = _over_studies(
-        [{BELOW: HOLDS, ABOVE: FAILS}.get(verdict, OPEN) for verdict, _ in tests],
+        [{holds: HOLDS, fails: FAILS}.get(verdict, OPEN) for verdict, _ in tests],
         [f"{verdict}: {why}" for verdict, why in tests],
         [verdict for verdict, _ in tests],
         runs.planned,

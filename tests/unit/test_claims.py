@@ -740,3 +740,16 @@ def test_physgrad_s_own_questions_stand_in_their_own_table_below_the_papers_clai
         r for r in rows if table.index(next(x for x in table if x.startswith(f"| {r} "))) > marker
     ]
     assert set(below) - {"claim"} == own
+
+
+def test_a_level_part_can_ask_that_a_variant_stays_at_or_above_it(tmp_path, studies):
+    """ "Adam stays above the book's 1e-2" (the toy at lambda = 0.01): holds where the sign test
+    puts the seeds at or above the level, does not hold where it puts them below."""
+    for finals, verdict in (([0.2] * 10, claims.HOLDS), ([1e-3] * 10, claims.FAILS)):
+        studies["toy_0.01"] = three_studies(
+            "toy_0.01", [{"adam": {s: falling(v, 1.0, 2 * v) for s, v in zip(TEN, finals)}}] * 3
+        )
+        part = claims.Reaches("toy_0.01", "adam", 1e-2, above=True)
+        assert part.text() == "adam stays at or above loss 0.01"
+        found, ((_, d),) = claims.decide_claim(claim_of(part), tmp_path)
+        assert found == verdict, d
