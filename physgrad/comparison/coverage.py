@@ -35,12 +35,7 @@ def planned_points(plan: StudyPlan) -> dict[str, dict[str, list[float]]]:
         keys = tried.setdefault(variant.name, {key: [] for key in variant.space})
         for study in range(settings.study_count):
             points = halton_points(
-                variant.space,
-                settings.trials,
-                settings.tune_seed,
-                dimensions,
-                study,
-                settings.study_count,
+                variant.space, settings.trials, settings.tune_seed + study, dimensions
             )
             for point in points:
                 for key, value in point.items():

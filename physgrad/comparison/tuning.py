@@ -51,25 +51,29 @@ def halton_cell(count: int, dimension: int) -> float:
     return 1.0 / cells
 
 
-def unit_points(
-    count: int, dimensions: int, seed: int, study: int = 0, studies: int = 1
-) -> np.ndarray:
+ROTATIONS = (
+    4  # tuning seeds in groups of this many share a shift and interleave (compare.studies' default)
+)
+
+
+def unit_points(count: int, dimensions: int, seed: int) -> np.ndarray:
     """The first `count` points of the Halton sequence in [0, 1)^dimensions, shifted modulo 1 (a
-    Cranley-Patterson rotation) by u_d + (study / studies) h_d: u_d uniform, drawn from (seed, d)
-    alone (so it does not depend on how many coordinates there are), and h_d the width of the
-    grid the points lie on in coordinate d (halton_cell). Shifted, the points keep their spacing
-    (n points of n + m begin with those of n) and every point is uniform on [0, 1) over seeds; the
-    `studies` tuning studies of one compare take the same u and rotate by equal fractions of a
-    cell, so their point sets interleave: in every coordinate the sets of two studies lie at least
-    h_d / studies apart (modulo 1), instead of anywhere from 0 up, as independent shifts would put
-    them (two studies' tuning luck then nearly coincides)."""
+    Cranley-Patterson rotation) by u_d + (seed mod ROTATIONS) / ROTATIONS x h_d: u_d uniform, drawn
+    from (seed // ROTATIONS, d) alone (so it does not depend on how many coordinates there are),
+    and h_d the width of the grid the points lie on in coordinate d (halton_cell). Shifted, the
+    points keep their spacing (n points of n + m begin with those of n) and every point is uniform
+    on [0, 1) over seeds; the tuning studies of one design, on consecutive tuning seeds
+    (tune_seed + k, whether one compare runs them or one compare each), take the same u and
+    rotate by equal fractions of a cell, so their point sets interleave: in every coordinate the
+    sets of two studies lie at least h_d / ROTATIONS apart (modulo 1), where independent shifts
+    put them anywhere from 0 up (two studies' tuning luck then nearly coincides)."""
     from scipy.stats import qmc
 
     base = qmc.Halton(d=dimensions, scramble=False).random(count)
-    fraction = (study % studies) / studies if studies > 1 else 0.0
+    group, turn = divmod(seed, ROTATIONS)
     shift = np.array(
         [
-            np.random.default_rng([seed, d]).random() + fraction * halton_cell(count, d)
+            np.random.default_rng([group, d]).random() + turn / ROTATIONS * halton_cell(count, d)
             for d in range(dimensions)
         ]
     )
@@ -77,20 +81,15 @@ def unit_points(
 
 
 def halton_points(
-    space: dict,
-    count: int,
-    seed: int,
-    dimensions: list[str] | None = None,
-    study: int = 0,
-    studies: int = 1,
+    space: dict, count: int, seed: int, dimensions: list[str] | None = None
 ) -> list[dict]:
-    """count shifted Halton points (unit_points: tuning study `study` of `studies`, the shift
-    drawn from `seed`) mapped log-uniformly onto the space. dimensions: the study's coordinates
-    (point_dimensions of every variant's space; default: this space's), so that every variant of a
-    study is tried at the same points of its own ranges."""
+    """count shifted Halton points (unit_points of the tuning seed) mapped log-uniformly onto the
+    space. dimensions: the study's coordinates (point_dimensions of every variant's space;
+    default: this space's), so that every variant of a study is tried at the same points of its
+    own ranges."""
     dimensions = dimensions or point_dimensions([space])
     column = {key: dimensions.index("learning_rate" if is_rate_key(key) else key) for key in space}
-    unit = unit_points(count, len(dimensions), seed, study, studies)
+    unit = unit_points(count, len(dimensions), seed)
     return [
         {
             key: float(
@@ -309,12 +308,7 @@ def _open_studies(
                 study.set_user_attr("readout", READOUT_VERSION)
             studies[study_index, variant.name] = study
             points = halton_points(
-                variant.space,
-                settings.trials,
-                settings.tune_seed,
-                dimensions,
-                study_index,
-                settings.study_count,
+                variant.space, settings.trials, settings.tune_seed + study_index, dimensions
             )
             for point in points[len(study.trials) :]:
                 study.enqueue_trial(point)

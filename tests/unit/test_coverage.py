@@ -124,6 +124,6 @@ def test_the_planned_points_are_the_points_each_tuning_study_will_try():
         expected = [
             p["learning_rate"]
             for k in range(2)
-            for p in halton_points(v.space, 3, settings.tune_seed, dimensions, k, 2)
+            for p in halton_points(v.space, 3, settings.tune_seed + k, dimensions)
         ]
         assert planned[v.name]["learning_rate"] == expected

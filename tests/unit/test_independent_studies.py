@@ -10,7 +10,13 @@ import pytest
 from scipy import stats
 
 from physgrad.comparison import study_settings
-from physgrad.comparison.tuning import halton_cell, halton_points, point_dimensions, unit_points
+from physgrad.comparison.tuning import (
+    ROTATIONS,
+    halton_cell,
+    halton_points,
+    point_dimensions,
+    unit_points,
+)
 from physgrad.errors import UserError
 
 RANGE = (1e-5, 1.0)
@@ -42,21 +48,24 @@ def test_seeds_that_collide_or_overflow_are_one_line_errors(given, fragment):
 
 def test_the_whole_point_set_is_shifted_per_study_and_keeps_its_spacing():
     """A shift moves every point by the same amount modulo 1: the gaps between sorted points stay
-    those of the Halton set (1/8 for 8 points in one coordinate), n points begin the n + m points,
-    and another seed gives another shift."""
+    those of the Halton set (1/8 for 8 points in one coordinate) and another seed gives another
+    shift; the first study of a group (seed a multiple of ROTATIONS) is not rotated, so its n
+    points begin its n + m points (a study given more trials keeps the ones it tried; the others
+    rotate by a fraction of the count's cell, which moves with the count)."""
     for seed in range(20):
         points = unit_points(8, 1, seed)[:, 0]
         gaps = np.diff(np.sort(points))
         assert gaps == pytest.approx(np.full(7, 1 / 8))
-        assert unit_points(12, 1, seed)[:8, 0] == pytest.approx(points)
+        if seed % ROTATIONS == 0:
+            assert unit_points(12, 1, seed)[:8, 0] == pytest.approx(points)
     assert not np.allclose(unit_points(8, 1, 0), unit_points(8, 1, 1))
 
 
 def test_a_studys_first_point_is_uniform_over_the_unit_interval():
-    """The shift, and so any one point, is uniform on [0, 1) over studies (Kolmogorov-Smirnov over
-    2,000 seeds; a scramble of 8 points would keep each in its eighth): the studies are independent
-    draws of where the trials fall."""
-    firsts = [unit_points(8, 2, seed)[0] for seed in range(2000)]
+    """The shift, and so any one point, is uniform on [0, 1) over groups of tuning seeds
+    (Kolmogorov-Smirnov over 2,000 groups; a scramble of 8 points would keep each in its eighth):
+    the groups are independent draws of where the trials fall."""
+    firsts = [unit_points(8, 2, ROTATIONS * group + 1)[0] for group in range(2000)]
     for column in np.array(firsts).T:
         assert stats.kstest(column, "uniform").pvalue > 1e-3
     # a coordinate's shift does not depend on how many coordinates there are
@@ -172,31 +181,31 @@ def test_the_same_command_with_other_defaults_is_another_study(tmp_path):
     assert json.loads((tmp_path / "study.json").read_text())["configuration"] == new
 
 
-@pytest.mark.parametrize("studies", [2, 3, 4])
-def test_the_tuning_studies_points_interleave(studies):
-    """The studies of one compare rotate one shifted Halton set by equal fractions of its grid
-    cell: at 2 to 32 trials, in the rate's coordinate (base 2) and the next (base 3), every two
-    studies' point sets lie at least cell / studies apart, for any tuning seed; study 0 keeps the
-    points a single study has, and each study's points keep their spacing."""
+def test_the_tuning_studies_points_interleave():
+    """The studies of one design, on consecutive tuning seeds (tune_seed + k, one compare or one
+    each), rotate one shifted Halton set by quarters of its grid cell: at 2 to 32 trials, in the
+    rate's coordinate (base 2) and the next (base 3), every two of four studies' point sets lie at
+    least a quarter cell apart, for any group of seeds; each study's points keep their spacing."""
     for count in range(2, 33):
-        for seed in range(12):
-            sets = [unit_points(count, 2, seed, k, studies) for k in range(studies)]
-            assert sets[0] == pytest.approx(unit_points(count, 2, seed))
+        for group in range(12):
+            sets = [unit_points(count, 2, 4 * group + k) for k in range(4)]
             for d in (0, 1):
-                gap = halton_cell(count, d) / studies
-                for i in range(studies):
-                    for j in range(i + 1, studies):
+                gap = halton_cell(count, d) / 4
+                for i in range(4):
+                    for j in range(i + 1, 4):
                         distance = np.abs(sets[i][:, d, None] - sets[j][None, :, d]).min()
-                        assert distance >= gap * (1 - 1e-9), (count, seed, d, i, j)
-    # at 16 trials, 4 studies over Adam's four decades: 1/64 of the range, 0.0625 decade apart
+                        assert distance >= gap * (1 - 1e-9), (count, group, d, i, j)
+    # at 16 trials over Adam's four decades: 1/64 of the range, 0.0625 decade apart
     assert halton_cell(16, 0) / 4 == 1 / 64
 
 
 def test_independent_shifts_would_let_two_studies_points_coincide():
-    """Why the studies interleave: with a shift per tuning seed (the seeds tune_seed + k drawn
-    apart), two studies' 16 points lie within a hundredth of the cell for some seeds."""
+    """Why the studies interleave: with an independent shift per tuning seed (here seeds of two
+    different groups), two studies' 16 points lie within a hundredth of the cell for some seeds."""
     closest = min(
-        np.abs(unit_points(16, 1, s)[:, 0, None] - unit_points(16, 1, s + 1)[None, :, 0]).min()
+        np.abs(
+            unit_points(16, 1, 4 * s)[:, 0, None] - unit_points(16, 1, 4 * s + 4)[None, :, 0]
+        ).min()
         for s in range(200)
     )
     assert closest < halton_cell(16, 0) / 100
