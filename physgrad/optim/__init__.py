@@ -18,7 +18,7 @@ from omegaconf import OmegaConf
 
 from physgrad.errors import UserError
 from physgrad.gradients import gradient_pass
-from physgrad.optim.capabilities import capabilities
+from physgrad.optim.capabilities import capabilities, check_settings
 from physgrad.optim.spectral import JacobianRule, MarquardtRule
 from physgrad.validate import call_target, choice, number
 
@@ -65,6 +65,7 @@ def build_rule(
     if isinstance(node.get("learning_rate"), (int, float)):
         number("optim.learning_rate", node["learning_rate"], 0, open_low=True)
     clip = choice("optim.clip", node.get("clip", "none"), tuple(CLIPPING))
+    check_settings(node)
     through = None
     if member_values:
         static = tuple(

@@ -27,6 +27,7 @@ adam.yaml is Adam. Capabilities:
 from __future__ import annotations
 
 import importlib
+import math
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any
@@ -104,6 +105,65 @@ def capabilities(optim_cfg: Mapping[str, Any]) -> Capabilities:
     """The capabilities of the rule an optim config builds (by its `_target_`); a factory not listed
     here is an adaptive rule given the network's layers."""
     return RULES.get(str(optim_cfg.get("_target_", "")), ADAPTIVE)
+
+
+# each rule's settings and the values they take, checked where the rule is built, before any job
+# (check_settings): a mistake in a config is refused in one line, not reported as a failed run.
+# key: (low, high, what) with what "decay" [0, 1), "positive" (0, inf), "count" an integer >= 1,
+# "probability" (0, 1]; null (None) passes where the rule's default takes over.
+_DECAY, _POSITIVE, _COUNT, _PROBABILITY = "decay", "positive", "count", "probability"
+SETTINGS: dict[str, dict[str, str]] = {
+    "optax.adam": {"b1": _DECAY, "b2": _DECAY, "eps": _POSITIVE},
+    "optax.adamw": {"b1": _DECAY, "b2": _DECAY, "eps": _POSITIVE},
+    "physgrad.optim.soap.soap": {
+        "b1": _DECAY,
+        "b2": _DECAY,
+        "shampoo_b2": _DECAY,
+        "eps": _POSITIVE,
+        "precondition_frequency": _COUNT,
+        "max_precondition_dim": _COUNT,
+    },
+    "physgrad.optim.psgd.psgd_kron": {
+        "b1": _DECAY,
+        "preconditioner_lr": _POSITIVE,
+        "preconditioner_update_probability": _PROBABILITY,
+        "preconditioner_init_scale": _POSITIVE,
+        "max_size_triangular": _COUNT,
+        "grad_clip_max_amp": _POSITIVE,
+    },
+}
+_SAID = {
+    _DECAY: "a number in [0, 1)",
+    _POSITIVE: "a number above 0",
+    _COUNT: "a whole number of 1 or more",
+    _PROBABILITY: "a probability in (0, 1]",
+}
+
+
+def check_settings(optim_cfg: Mapping[str, Any]) -> None:
+    """Every declared setting of the rule (SETTINGS) that the config gives, within its values;
+    UserError (one line) naming the key and what it takes otherwise."""
+    from physgrad.errors import UserError
+
+    for key, kind in SETTINGS.get(str(optim_cfg.get("_target_", "")), {}).items():
+        value = optim_cfg.get(key)
+        if value is None:
+            continue
+        number = isinstance(value, (int, float)) and not isinstance(value, bool)
+        ok = number and math.isfinite(value)
+        if ok and kind == _DECAY:
+            ok = 0 <= value < 1
+        elif ok and kind == _POSITIVE:
+            ok = value > 0
+        elif ok and kind == _COUNT:
+            ok = float(value).is_integer() and value >= 1
+        elif ok and kind == _PROBABILITY:
+            ok = 0 < value <= 1
+        if not ok:
+            raise UserError(
+                f"optim.{key}={value} is not allowed for optim={optim_cfg.get('name')}: give "
+                f"{_SAID[kind]}"
+            )
 
 
 @dataclass(eq=False)  # one schedule is itself (its cumulative sum is a cache)
