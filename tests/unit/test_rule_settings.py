@@ -37,7 +37,7 @@ def test_the_presets_and_null_pass():
     """Every preset of conf/optim passes, every declared setting at a value inside its range and
     null (the rule's default) pass, and a rule without declared settings passes whatever it is
     given."""
-    import yaml
+    from omegaconf import OmegaConf
 
     from tests.helpers import REPO
 
@@ -46,5 +46,5 @@ def test_the_presets_and_null_pass():
         check_settings({"_target_": target, **{k: inside[kind] for k, kind in keys.items()}})
         check_settings({"_target_": target, **dict.fromkeys(keys)})
     for path in sorted((REPO / "conf" / "optim").glob("*.yaml")):
-        check_settings(yaml.safe_load(path.read_text()) or {})
+        check_settings(OmegaConf.to_container(OmegaConf.load(path)))  # read as Hydra reads it
     check_settings({"_target_": "mylab.rule", "b1": 7})
