@@ -381,6 +381,12 @@ def build_variants(
         raise UserError(
             "nothing to compare: list two or more variants, e.g. optim=adam,gauss_newton,hig"
         )
+    unknown = [k for k in settings.search if all(k not in v.config.optim for v in variants)]
+    if settings.tune and unknown:
+        raise UserError(
+            f"compare.search.{unknown[0]} is a setting of none of the variants' rules: name a key "
+            "of their optim config (e.g. compare.search.learning_rate=[1e-4,1e-1])"
+        )
     names = [v.name for v in variants]
     if len(set(names)) < len(names):
         raise UserError(

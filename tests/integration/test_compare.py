@@ -1126,3 +1126,22 @@ def test_variants_that_differ_in_their_rule_alone_build_their_scene_once(monkeyp
     )
     with pytest.raises(UserError, match="trainer.batch_size=32 is larger than the training set"):
         check_variants_build(build_variants(axes, common, study_settings(settings), []), 1_000_000)
+
+
+def test_a_search_key_no_variant_has_is_refused_and_a_scene_s_tuning_file_sets_ranges():
+    """compare.search.<key> that none of the variants' rules has (a misspelt key) is refused in one
+    line; a scene's tuning file (conf/tuning/toy_hig.yaml) sets the range its rule is tuned over
+    there, and compare.search overrides it."""
+    from physgrad.comparison.spec import build_variants, split_overrides, study_settings
+    from physgrad.errors import UserError
+
+    def space(*extra):
+        settings, axes, common, _ = split_overrides(["task=toy", "optim=adam,hig", *extra])
+        return {v.name: v.space for v in build_variants(axes, common, study_settings(settings), [])}
+
+    with pytest.raises(UserError, match="compare.search.learnin_rate is a setting of none"):
+        space("compare.search.learnin_rate=[1e-4,1]")
+    found = space()
+    assert found["hig"] == {"learning_rate": (0.01, 100.0)}
+    assert found["adam"] == {"learning_rate": (1e-4, 10.0)}
+    assert space("compare.search.learning_rate=[1e-3,1]")["hig"] == {"learning_rate": (1e-3, 1.0)}
