@@ -98,6 +98,8 @@ def preset_settings(entry) -> dict[str, list[str]]:
             continue
         settings = []
         for group, values in (OmegaConf.to_container(OmegaConf.load(path)) or {}).items():
+            if group == "search":  # the tuning's ranges, not a preset
+                continue
             for key, value in (values or {}).items():
                 if group == "optim" and key == "learning_rate" and not isinstance(value, dict):
                     continue
@@ -113,7 +115,8 @@ def preset_line(entry) -> str | None:
     if not found:
         return None
     return (
-        f"Per-rule settings from the papers (conf/tuning/{entry.name}_<rule>.yaml; the learning "
+        f"Per-rule settings (conf/tuning/{entry.name}_<rule>.yaml at this commit; a study kept "
+        "before a setting changed ran its own commit's, the evidence's `commits`; the learning "
         "rate, or a schedule's init_value, is tuned): "
         + "; ".join(f"{rule} {', '.join(settings)}" for rule, settings in found.items())
         + ". The other rules run at their presets (conf/optim) with the scene's settings."
