@@ -53,6 +53,7 @@ from physgrad.claim import (  # noqa: F401 - Close and Lower: the parts' names, 
 )
 from physgrad.claim_words import claim_word, left_start
 from physgrad.errors import UserError
+from physgrad.files import replace_file
 from physgrad.verdict import FRACTIONS
 
 # --- reading a study
@@ -364,7 +365,7 @@ def write(root: Path, out: Path, note: str = "", profile: str = "claims") -> str
         + claims_table(root, studies)
         + (regime_map(root, out, note) if set(MAP) <= set(studies) else "")
     )
-    (out / f"{profile}.md").write_text(text)
+    replace_file(out / f"{profile}.md", text.encode())  # the write door: no link followed
     return text
 
 
@@ -412,7 +413,7 @@ def write_doc(root: Path, doc: Path) -> str:
         raise UserError(f"{doc}: no generated block (the two markers {GENERATED[0][:40]}...)")
     block = evidence_block(root)
     text = text[: start + len(GENERATED[0])] + "\n\n" + block + "\n" + text[end:]
-    doc.write_text(text)
+    replace_file(doc, text.encode())
     return block
 
 

@@ -30,6 +30,8 @@ import statistics
 import sys
 from pathlib import Path
 
+from physgrad.files import open_append, write_text
+
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
 
@@ -271,10 +273,10 @@ def main() -> int:
     out = Path(options.out)
     out.mkdir(parents=True, exist_ok=True)
     table = out / f"{options.what}.md"
-    table.write_text(f"{options.what} on {_device()}\n\n")
+    write_text(table, f"{options.what} on {_device()}\n\n")
 
     def emit(rows: list[str]) -> None:  # rows as they are measured: a timeout keeps the first
-        with table.open("a") as f:
+        with open_append(table) as f:
             f.write("\n".join(rows) + "\n")
         print("\n".join(rows), flush=True)
 
@@ -290,7 +292,7 @@ def main() -> int:
     rows, data = measure(options.repeats, options.min_seconds, **kwargs)
     if rows:
         emit(rows)
-    (out / f"{options.what}.json").write_text(json.dumps(data, indent=1))
+    write_text(out / f"{options.what}.json", json.dumps(data, indent=1))
     return 0
 
 

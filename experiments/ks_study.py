@@ -14,7 +14,7 @@ from pathlib import Path
 
 import numpy as np
 
-from physgrad.files import write_figure
+from physgrad.files import write_figure, write_text
 from physgrad.readout import config_row
 from physgrad.results import find_results, read_run
 
@@ -189,10 +189,11 @@ def write(folders: list[Path], out: Path, note: str = "") -> tuple[list[str], st
         return [], "no completed Kuramoto-Sivashinsky runs\n"
     plot(table, out / "ks_unroll.png", note)
     text = claims(table)
-    (out / "ks_claims.md").write_text(
+    write_text(
+        out / "ks_claims.md",
         "# Kuramoto-Sivashinsky: the unrolling study's claims, as measured\n\n"
         + (f"{note}\n\n" if note else "")
-        + text
+        + text,
     )
     return ["ks_unroll.png"], text
 

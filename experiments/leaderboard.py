@@ -64,6 +64,7 @@ from leaderboard_scenes import (
 from studies import STUDY_FOLDER
 from study_runs import read_study, study_overrides
 
+from physgrad.files import make_folder, replace_file
 from physgrad.replication import across_studies
 from physgrad.verdict import (
     FRACTIONS,
@@ -406,10 +407,12 @@ def write(root: Path, out: Path) -> str:
     if found:
         plot(found, out / "leaderboard")
     text = page(found, "leaderboard.png")
-    (out / "leaderboard.md").write_text(text)
-    (out / FOLDER).mkdir(exist_ok=True)
+    # through the write door: a link at a page's name, or at its folder, is not written through
+    replace_file(out / "leaderboard.md", text.encode())
+    make_folder(out / FOLDER)
     for entry in (e for e in SCENES if e.name in found):
-        (out / FOLDER / f"{entry.name}.md").write_text(scene_page(entry, *found[entry.name]))
+        page_text = scene_page(entry, *found[entry.name])
+        replace_file(out / FOLDER / f"{entry.name}.md", page_text.encode())
     return text
 
 

@@ -37,6 +37,7 @@ sys.path.insert(1, str(Path(__file__).resolve().parent.parent))
 
 from leaderboard_scenes import EVIDENCE, SCENES  # noqa: E402  experiments/
 
+from physgrad.files import write_text
 from physgrad.optim.psgd import annealed_probability  # noqa: E402
 
 RULE = "psgd_kron"
@@ -150,7 +151,7 @@ def main() -> None:
         rows.append(row(entry, measure(entry, args.seed)))
         print(f"{entry.name}: {json.dumps(rows[-1])}", file=sys.stderr, flush=True)
     args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.write_text(json.dumps(rows, indent=1))
+    write_text(args.out, json.dumps(rows, indent=1))
     print(table(rows))
 
 

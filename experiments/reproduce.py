@@ -32,7 +32,7 @@ from typing import Callable
 import yaml
 from study_profiles import INTERRUPTED, STUDY_PROFILES, run_child, study_profile  # experiments/
 
-from physgrad.files import read_own_file, replace_file
+from physgrad.files import read_own_file, replace_file, write_text
 from physgrad.report import write_report
 from physgrad.sweeps import sweep_jobs
 
@@ -356,7 +356,7 @@ def run_figures(wanted: list[Figure], profile: str, overwrite: bool, out: Path) 
         *(["", "Sweeps that did not finish cleanly: " + ", ".join(failed)] if failed else []),
         "",
     ]
-    (out / "summary.md").write_text("\n".join(header) + "\n" + "\n".join(sections))
+    write_text(out / "summary.md", "\n".join(header) + "\n" + "\n".join(sections))
     print(f"reproduce: wrote {out / 'summary.md'} in {minutes:.1f} min")
     return 1 if failed else 0
 

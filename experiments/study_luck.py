@@ -32,6 +32,7 @@ from pathlib import Path
 
 import numpy as np
 
+from physgrad.files import open_append, write_text
 from physgrad.readout import Curve
 from physgrad.replication import STUDY_ALPHA, across_studies
 from physgrad.verdict import A_BETTER, B_BETTER, compare_variants
@@ -144,7 +145,7 @@ def write(path: Path, sims: int) -> None:
             continue
         counts = simulate(model)
         new = not path.exists()
-        with open(path, "a", newline="") as file:
+        with open_append(path) as file:
             writer = csv.DictWriter(file, FIELDS)
             if new:
                 writer.writeheader()
@@ -218,7 +219,7 @@ def main() -> None:
         if args.docs:
             doc = args.docs.read_text()
             start = doc.index("\n", doc.index(BEGIN)) + 1
-            args.docs.write_text(doc[:start] + text + "\n" + doc[doc.index(END) :])
+            write_text(args.docs, doc[:start] + text + "\n" + doc[doc.index(END) :])
         else:
             print(text)
         return

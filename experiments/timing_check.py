@@ -24,6 +24,8 @@ from pathlib import Path
 
 import numpy as np
 
+from physgrad.files import write_text
+
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
 
@@ -106,7 +108,7 @@ def main(argv=None) -> int:
             hog.terminate()
             hog.join()
     text, agree = report(args.overrides, args.hogs, out, quiet, loaded, under_load)
-    (out / "timing_check.md").write_text(text)
+    write_text(out / "timing_check.md", text)
     print(text)
     return 0 if agree else 1
 

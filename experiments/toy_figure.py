@@ -19,7 +19,7 @@ from pathlib import Path
 
 import numpy as np
 
-from physgrad.files import write_figure
+from physgrad.files import write_figure, write_text
 from physgrad.readout import config_row
 from physgrad.results import Run, find_results, read_run
 
@@ -142,10 +142,11 @@ def write(folders: list[Path], out: Path, note: str = "") -> tuple[list[str], st
         return [], "no completed runs of the book's toy\n"
     plot(table, out / "toy_book.png", note)
     text = summary(table)
-    (out / "toy_book.md").write_text(
+    write_text(
+        out / "toy_book.md",
         "# The badly scaled toy, as the PBDL book shows it\n\n"
         + (f"{note}\n\n" if note else "")
-        + text
+        + text,
     )
     return ["toy_book.png"], text
 

@@ -52,6 +52,7 @@ from pathlib import Path
 import numpy as np
 
 from physgrad.comparison.tuning import halton_points
+from physgrad.files import open_append, write_text
 from physgrad.optim.capabilities import ADAPTIVE
 from physgrad.readout import Curve
 from physgrad.replication import across_studies, majority
@@ -238,7 +239,7 @@ def write_cells(path: Path, sims: int) -> None:
             continue
         counts = simulate(cell)
         new = not path.exists()
-        with open(path, "a", newline="") as file:
+        with open_append(path) as file:
             writer = csv.DictWriter(file, FIELDS)
             if new:
                 writer.writeheader()
@@ -310,7 +311,7 @@ def write_docs(path: Path, text: str) -> None:
     """The table between the BEGIN line and END of a markdown file, replaced by text."""
     doc = path.read_text()
     start = doc.index("\n", doc.index(BEGIN)) + 1
-    path.write_text(doc[:start] + text + "\n" + doc[doc.index(END) :])
+    write_text(path, doc[:start] + text + "\n" + doc[doc.index(END) :])
 
 
 def main() -> None:

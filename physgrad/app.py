@@ -201,10 +201,9 @@ def write_provenance(out_dir: Path, cfg: DictConfig, hydra_cfg: DictConfig) -> N
     """What Hydra writes into .hydra/ when hydra.output_subdir is set (config.yaml, hydra.yaml,
     overrides.yaml), written here instead, once the job holds its folder: a second process refused
     for that folder must not replace a live job's record of how it was started."""
-    from physgrad.files import replace_file
+    from physgrad.files import make_folder, replace_file
 
-    folder = out_dir / ".hydra"
-    folder.mkdir(parents=True, exist_ok=True)
+    folder = make_folder(out_dir / ".hydra")
     hydra_node = OmegaConf.create({"hydra": OmegaConf.to_container(hydra_cfg, resolve=False)})
     for name, node in (
         ("config.yaml", cfg),

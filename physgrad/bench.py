@@ -31,6 +31,7 @@ from pathlib import Path
 
 from physgrad.bench_measure import measure_floors, measure_seeds, measure_variant
 from physgrad.bench_tables import machine, page
+from physgrad.files import write_text
 
 SCENES = ("oscillator", "quantum", "poisson", "multicart", "quantum_control", "guidance", "ks")
 OPTIMS = (
@@ -255,9 +256,10 @@ def main(argv: list[str] | None = None) -> int:
             time.perf_counter() - start,
             options.vectorised_seeds,
         )
-        out.write_text(text)
-        out.with_suffix(".json").write_text(
-            json.dumps({"variants": rows, "seeds": seed_rows}, indent=1, default=str)
+        write_text(out, text)
+        write_text(
+            out.with_suffix(".json"),
+            json.dumps({"variants": rows, "seeds": seed_rows}, indent=1, default=str),
         )
         return text
 

@@ -27,6 +27,8 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
+from physgrad.files import write_text
+
 if TYPE_CHECKING:
     from physgrad.nets import Params
 
@@ -441,7 +443,7 @@ def main(argv: list[str] | None = None) -> int:
         f"{time.perf_counter() - start:.0f} s; runs in {out}/.\n\n" + markdown(rows)
     )
     out.mkdir(parents=True, exist_ok=True)
-    (out / "check.md").write_text(text)
+    write_text(out / "check.md", text)
     print(text, end="")
     return 1 if any(row["outcome"] == "failed" for row in rows) else 0
 

@@ -244,10 +244,43 @@ def replaced(path: Path, text: bool = False, sync: bool = False) -> Iterator[IO]
         raise
 
 
+def make_folder(path: str | os.PathLike, levels: int = 1) -> Path:
+    """The one way physgrad makes a folder inside a folder that may come from someone else (a
+    study's report/, a run's seed=N/, a job's .hydra/, a sweep's job records): created with its
+    parents, and refused (LinkedFolder, an OSError: one line) where the folder or any of its
+    `levels` - 1 parents below is a link or not a folder, so that nothing is written through a
+    link planted at the name physgrad would create (mkdir on a link to a folder succeeds)."""
+    path = Path(path)
+    chain = [path, *path.parents][:levels]
+    for part in reversed(chain):
+        try:
+            mode = os.lstat(part).st_mode
+        except FileNotFoundError:
+            part.mkdir(parents=True, exist_ok=True)
+            mode = os.lstat(part).st_mode
+        if not stat.S_ISDIR(mode):
+            kind = "a link" if stat.S_ISLNK(mode) else "a file" if stat.S_ISREG(mode) else None
+            raise LinkedFolder(
+                f"{part} is {kind or file_kind(mode)}, not a folder: physgrad writes through no "
+                "link or file planted at a name it creates; remove it and run again"
+            )
+    return path
+
+
+class LinkedFolder(OSError):
+    """A folder physgrad would create is a link or a file (make_folder)."""
+
+
 def replace_file(path: Path, content: bytes, sync: bool = False) -> None:
     """content written into path through `replaced`."""
     with replaced(path, sync=sync) as out:
         out.write(content)
+
+
+def write_text(path: str | os.PathLike, text: str) -> None:
+    """text written into path through `replaced` (the write door: a link at path is replaced,
+    never written through)."""
+    replace_file(Path(path), text.encode())
 
 
 def write_figure(fig: Any, path: str | os.PathLike, **options: Any) -> None:

@@ -31,6 +31,7 @@ from physgrad.errors import ResultsWriteError
 from physgrad.files import (
     clean_text,
     load_yaml,
+    make_folder,
     owner_tag,
     replace_file,
     timestamp,
@@ -70,7 +71,7 @@ class ResultsWriter:
 
     def __init__(self, path: str | os.PathLike, attrs: dict, write: bool = True) -> None:
         self.path = Path(path)
-        self.path.parent.mkdir(parents=True, exist_ok=True)
+        make_folder(self.path.parent)  # a run's seed=N/ or trial=N/: a link there is refused
         self.live = (
             self.path.with_name(self.path.stem + ASIDE_SUFFIX)
             if holds_completed(self.path)

@@ -29,6 +29,7 @@ from omegaconf import DictConfig, OmegaConf
 from physgrad.files import (
     clean_text,
     inside,
+    make_folder,
     owner_alive,
     owner_tag,
     read_own_file,
@@ -155,7 +156,7 @@ def record_job(
         "time": timestamp(),
     }
     try:
-        (sweep / JOB_STATES).mkdir(parents=True, exist_ok=True)
+        make_folder(sweep / JOB_STATES)
         replace_file(
             sweep / JOB_STATES / f"{name}.yaml", yaml.safe_dump(record, width=1000).encode()
         )

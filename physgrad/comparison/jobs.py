@@ -309,10 +309,9 @@ def launch(
     import shutil
     import tempfile
 
-    from physgrad.files import replace_file
+    from physgrad.files import make_folder, replace_file
 
-    record = folder / "configs" / "compare_job"
-    record.mkdir(parents=True, exist_ok=True)
+    record = make_folder(folder / "configs" / "compare_job", levels=2)
     private = Path(tempfile.mkdtemp(prefix="physgrad-jobs-"))
     try:
         (private / "compare_job").mkdir()

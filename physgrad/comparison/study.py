@@ -172,11 +172,13 @@ def write_curves_report(folder: Path, say: Callable[[str], object], figures: boo
     """The sweep's report (its tables and, with figures, the evaluation curves) under
     folder/report; a failure is said, not raised."""
     try:
+        from physgrad.files import make_folder
         from physgrad.report import write_report
 
+        out = make_folder(folder / "report")  # a link planted there is refused, not written into
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
-            write_report([folder / "eval"], out_dir=folder / "report", figures=figures)
+            write_report([folder / "eval"], out_dir=out, figures=figures)
     except (UserError, OSError, ValueError) as error:
         say(f"report of the curves not written: {error}")
 
