@@ -5,7 +5,12 @@ compare.md after, where the trial points leave out what a verdict silently relie
   value tried: the tuning never tried the setting the variant is known to work at;
 - a decade or more of a key's log range holds no trial: a best setting there cannot be found;
 - fewer than MIN_TRIALS trials per tuning study: each tuned value is one of those few points,
-  whatever the verdict then says.
+  whatever the verdict then says;
+- fewer than PER_DECADE points per decade of a key's range over all tuning studies (their points
+  interleave, so together they are one finer grid): a note that each tuned value is a point of a
+  coarse grid, and how coarse;
+- every variant tuned to the same point of its range in every tuning study (compare.md only): the
+  tuned values are the shared grid, not a search that told the rules apart.
 
 A verdict between tuned variants is only as good as their tuning (docs/protocol.md); these say where
 the tuning was too thin to trust it, in the numbers of the study itself.
@@ -21,6 +26,9 @@ from physgrad.readout import fmt
 
 MIN_TRIALS = 4  # below it, a tuned value is one of a handful of points of its range
 DECADE = 1.0  # the widest untried stretch of a log range that passes unremarked (log10 units)
+# points per decade of a range, over all tuning studies, below which the grid is called coarse: a
+# point every 1/6 decade places a tuned value within about 20% of the grid's best
+PER_DECADE = 6
 
 
 def planned_points(plan: StudyPlan) -> dict[str, dict[str, list[float]]]:
@@ -56,11 +64,14 @@ def tried_values(rows: Sequence[Mapping]) -> dict[str, dict[str, list[float]]]:
 
 
 def coverage_lines(
-    variants: Sequence[Variant], tried: Mapping[str, Mapping[str, list[float]]], trials: int
+    variants: Sequence[Variant],
+    tried: Mapping[str, Mapping[str, list[float]]],
+    trials: int,
+    studies: int = 1,
 ) -> list[str]:
     """The warnings of the module docstring, one line each (empty where the search covers what it
     should). tried: the values each variant's trials tried (or will try), by key; trials: the
-    trials per tuning study."""
+    trials per tuning study; studies: the tuning studies."""
     lines = []
     if trials < MIN_TRIALS and any(variant.space for variant in variants):
         lines.append(
@@ -68,6 +79,24 @@ def coverage_lines(
             f"value is one of {trials} point{'s' if trials != 1 else ''} of its range, and a best "
             "setting elsewhere cannot be found, whatever the verdicts say "
             f"(compare.trials={MIN_TRIALS} or more)"
+        )
+    coarse = []
+    for variant in variants:
+        for key, (low, high) in sorted(variant.space.items()):
+            decades = math.log10(high / low)
+            points = trials * studies
+            if decades > 0 and points / decades < PER_DECADE:
+                coarse.append(
+                    f"{variant.name}'s {key} {points} points over {decades:.2g} decades (one every "
+                    f"{decades / points:.2g} decade)"
+                )
+    if coarse:
+        lines.append(
+            "note: the tuning's grid is coarse (fewer than "
+            f"{PER_DECADE} points a decade over all tuning studies): "
+            + "; ".join(coarse)
+            + ": each tuned value is a point of that grid, not a finer search "
+            "(compare.trials, or a narrower compare.search range)"
         )
     for variant in variants:
         preset = variant.preset if variant.config is not None else {}
@@ -114,4 +143,33 @@ def _gap_line(name: str, key: str, values: list[float], low: float, high: float)
         f"warning: no trial of {name}'s {key} between {fmt(10**start)} and "
         f"{fmt(10 ** (start + width))} ({width:.1f} decades of its range [{fmt(low)}, "
         f"{fmt(high)}] untried)"
+    ]
+
+
+def same_point_line(
+    variants: Sequence[Variant], best: Sequence[Mapping[str, Mapping]]
+) -> list[str]:
+    """A note where every variant (two or more, tuned) chose the same point of its learning-rate
+    range in every tuning study (best: per study, variant -> its tuned values): the tuned values
+    are then the shared grid's point, not a search that told the rules apart."""
+    from physgrad.comparison.tuning import is_rate_key
+
+    tuned = [v for v in variants if v.space]
+    if len(tuned) < 2 or not best:
+        return []
+    for study in best:
+        places = set()
+        for variant in tuned:
+            key = next((k for k in variant.space if is_rate_key(k)), None)
+            value = study.get(variant.name, {}).get(key) if key else None
+            if not isinstance(value, (int, float)) or not value > 0:
+                return []
+            low, high = variant.space[key]
+            places.add(round(math.log(value / low) / math.log(high / low), 6))
+        if len(places) > 1:
+            return []
+    return [
+        "note: every variant was tuned to the same point of its learning-rate range in every "
+        "tuning study: the tuned rates are the shared grid's point, not a search that told the "
+        "rules apart (compare.trials: more points)"
     ]

@@ -323,7 +323,9 @@ def plan_text(
         )
     lines += power_lines(plan)
     if settings.tune:  # the points are known before anything runs
-        lines += coverage_lines(plan.variants, planned_points(plan), settings.trials)
+        lines += coverage_lines(
+            plan.variants, planned_points(plan), settings.trials, settings.study_count
+        )
     lines += [
         "",
         f"Total: about {_duration(total)}"

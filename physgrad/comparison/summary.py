@@ -12,7 +12,7 @@ import numpy as np
 
 from physgrad.comparison.calibration import cost_spread
 from physgrad.comparison.clock_text import busy_calibration, timing_lines
-from physgrad.comparison.coverage import coverage_lines, tried_values
+from physgrad.comparison.coverage import coverage_lines, same_point_line, tried_values
 from physgrad.comparison.spec import StudySettings, Variant
 from physgrad.files import replaced
 from physgrad.power import POWER, detectable_ratio, measured
@@ -96,7 +96,8 @@ def analyse(
 
     lines = verdict_lines(variants, runs, verdicts, settings, axis, budget, calibration)
     searched = (
-        coverage_lines(variants, tried_values(trials_rows), settings.trials)
+        coverage_lines(variants, tried_values(trials_rows), settings.trials, settings.study_count)
+        + same_point_line(variants, best)
         if settings.tune
         else []
     )

@@ -75,7 +75,8 @@ def test_the_widest_untried_stretch_of_a_decade_or_more_is_named():
     # one trial every half decade: nothing to say
     even = [10 ** (-3 + 0.5 * k) for k in range(7)]
     assert (
-        coverage_lines([variant(preset=0.01)], {"gauss_newton": {"learning_rate": even}}, 8) == []
+        coverage_lines([variant(preset=0.01)], {"gauss_newton": {"learning_rate": even}}, 8, 4)
+        == []
     )
     # the ends of the range count: a gap from the lowest end to the first trial
     (line,) = [
@@ -127,3 +128,36 @@ def test_the_planned_points_are_the_points_each_tuning_study_will_try():
             for p in halton_points(v.space, 3, settings.tune_seed + k, dimensions)
         ]
         assert planned[v.name]["learning_rate"] == expected
+
+
+def test_a_coarse_grid_is_said_with_how_coarse_and_a_fine_one_is_not():
+    """4 trials in each of 4 tuning studies over 4 decades are 4 points a decade (their points
+    interleave into one grid): below 6, a note with the spacing; 8 x 4 over 4 decades pass."""
+    from physgrad.comparison.coverage import PER_DECADE
+
+    four = {"learning_rate": (1e-5, 1e-1)}
+    coarse = coverage_lines([variant("adam", 1e-3, four)], {}, trials=4, studies=4)
+    (line,) = [x for x in coarse if x.startswith("note: the tuning's grid is coarse")]
+    assert f"fewer than {PER_DECADE} points a decade" in line
+    assert "adam's learning_rate 16 points over 4 decades (one every 0.25 decade)" in line
+    fine = coverage_lines([variant("adam", 1e-3, four)], {}, trials=8, studies=4)
+    assert not any("coarse" in x for x in fine)
+
+
+def test_every_variant_at_the_same_point_in_every_study_is_said():
+    """Three rules each tuned to the same normalised point of its own range in every study (the
+    newcomer's 4-trial study: 0.00439 of adam's range, the same place of soap's and muon's) is a
+    note; one study where they differ, or one variant, is not."""
+    from physgrad.comparison.coverage import same_point_line
+
+    ranges = {"adam": (1e-5, 1e-1), "hig": (1e-3, 1e1), "gd": (1e-4, 1e1)}
+    variants = [variant(n, 1.0, {"learning_rate": r}) for n, r in ranges.items()]
+
+    def at(place):  # each variant's rate at the same fraction of its log range
+        return {n: {"learning_rate": lo * (hi / lo) ** place} for n, (lo, hi) in ranges.items()}
+
+    (note,) = same_point_line(variants, [at(0.3), at(0.7), at(0.1)])
+    assert note.startswith("note: every variant was tuned to the same point")
+    differ = [at(0.3), {**at(0.7), "gd": {"learning_rate": 1.0}}]
+    assert same_point_line(variants, differ) == []
+    assert same_point_line(variants[:1], [at(0.3)]) == []
