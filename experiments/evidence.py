@@ -211,6 +211,7 @@ def read_kept(path: Path) -> Kept:
     numbers = table.drop(columns=["variant", "column"])
     if not all(pd.api.types.is_numeric_dtype(t) for t in numbers.dtypes):
         raise UserError(f"{path}: a value that is not a number")
+    _check_kept(path, table, axis)
     studies: list = [dict() for _ in range(int(table["study"].max()) + 1 if len(table) else 0)]
     for row in table.itertuples(index=False):
         values = {f: float(row[5 + i]) for i, f in enumerate(FRACTIONS)}
@@ -219,6 +220,40 @@ def read_kept(path: Path) -> Kept:
     planned = about.get("planned", 0)
     planned = planned if isinstance(planned, int) and 0 <= planned <= 1000 else 0
     return Kept(path, axis, budget, str(about.get("machine", "")), protocol, studies, planned)
+
+
+# bounds on kept evidence, read as data: a study's table is kilobytes (10 seeds x variants x
+# columns x tuning studies); beyond these it is not one of physgrad's
+KEPT_ROWS, KEPT_STUDIES, KEPT_SEED, KEPT_NAME = 200_000, 100, 2**32, 200
+AXES = ("iteration", "wall_time", "calibrated_time")
+
+
+def _check_kept(path: Path, table: object, axis: str) -> None:
+    """An evidence table's fields within their bounds (rows, the study and seed numbers whole and in
+    range, names short text without control characters, the axis known); UserError (one line)
+    naming the file and the field otherwise."""
+    import numpy as np
+
+    from physgrad.errors import UserError
+    from physgrad.files import clean_text
+
+    def refuse(name: str, why: str) -> None:
+        raise UserError(f"{path}: {name}: {why}; not a claims evidence table")
+
+    if axis not in AXES:
+        refuse("axis", f"{clean_text(axis, 40)!r} is none of {', '.join(AXES)}")
+    if len(table) > KEPT_ROWS:
+        refuse("rows", f"{len(table)}, more than {KEPT_ROWS}")
+    for column, top in (("study", KEPT_STUDIES), ("seed", KEPT_SEED)):
+        values = np.asarray(table[column], float)
+        whole = np.isfinite(values) & (values == np.round(values))
+        if not whole.all() or (values < 0).any() or (values >= top).any():
+            bad = values[~whole | (values < 0) | (values >= top)][0]
+            refuse(column, f"{bad:g} is not a whole number in [0, {top})")
+    for column in ("variant", "column"):
+        for name in table[column]:
+            if not isinstance(name, str) or len(name) > KEPT_NAME or clean_text(name) != name:
+                refuse(column, f"{clean_text(str(name), 40)!r} is not a name")
 
 
 def undecided_by_the_clock(folder: Path) -> dict[str, list[float]]:

@@ -455,12 +455,18 @@ def decide_reach(runs: Runs, part: Reaches, fraction: float = 1.0) -> Decision:
         )
     measured = (
         f"{part.column} at the budget: median "
-        + ", ".join(short(float(np.nanmedian(values))) for values in found)
+        + ", ".join(short(_median(values)) for values in found)
         + (f" in {len(found)} tuning studies" if len(found) > 1 else "")
         + f"; below {part.level:g} in {sum(v < part.level for v in pooled)} of {len(pooled)}"
         + (f"; diverged in {diverged}" if diverged else "")
     )
     return Decision(claim, measured, why, cause)
+
+
+def _median(values: list[float]) -> float:
+    """The median of the values that are not missing; NaN where none is (a column not kept)."""
+    known = [v for v in values if not math.isnan(v)]
+    return float(np.median(known)) if known else math.nan
 
 
 def studies_of(claim: Claim) -> set[str]:

@@ -66,6 +66,12 @@ def test_kept_evidence_decides_every_part_as_the_study_folder(
     assert claims.decide_claim(claim, kept) == from_kept
 
 
+def _replace(path, old, new):
+    text = path.read_text()
+    assert old in text, old
+    path.write_text(text.replace(old, new, 1))
+
+
 @pytest.mark.parametrize(
     "damage, why",
     [
@@ -79,6 +85,13 @@ def test_kept_evidence_decides_every_part_as_the_study_folder(
         (lambda csv, about: about.unlink(), "FileNotFoundError"),
         (lambda csv, about: about.write_text('{"axis": "iteration"}'), "KeyError"),
         (lambda csv, about: csv.write_bytes(b"\x00\xff" * 50), "not a claims evidence table"),
+        # a study number far past any study (it allocated a list of 1e9), a negative one (it
+        # wrapped to the last study), a NaN seed, a name with a terminal escape, an unknown axis
+        (lambda csv, about: _replace(csv, "\n0,adam,", "\n1000000000,adam,"), "study: 1e\\+09"),
+        (lambda csv, about: _replace(csv, "\n0,adam,", "\n-3,adam,"), "study: -3 is not"),
+        (lambda csv, about: _replace(csv, "\n0,adam,0,", "\n0,adam,,"), "seed: nan is not"),
+        (lambda csv, about: _replace(csv, "\n0,adam,", "\n0,ad\x1b]0;x\x07am,"), "variant: "),
+        (lambda csv, about: _replace(about, '"iteration"', '"hours"'), "axis: 'hours'"),
     ],
 )
 def test_a_damaged_evidence_table_is_one_line(
