@@ -87,11 +87,28 @@ def _replace(path, old, new):
         (lambda csv, about: csv.write_bytes(b"\x00\xff" * 50), "not a claims evidence table"),
         # a study number far past any study (it allocated a list of 1e9), a negative one (it
         # wrapped to the last study), a NaN seed, a name with a terminal escape, an unknown axis
-        (lambda csv, about: _replace(csv, "\n0,adam,", "\n1000000000,adam,"), "study: 1e\\+09"),
+        # (make test checks the negative one; make test-long the others)
+        pytest.param(
+            lambda csv, about: _replace(csv, "\n0,adam,", "\n1000000000,adam,"),
+            "study: 1e\\+09",
+            marks=pytest.mark.long,
+        ),
         (lambda csv, about: _replace(csv, "\n0,adam,", "\n-3,adam,"), "study: -3 is not"),
-        (lambda csv, about: _replace(csv, "\n0,adam,0,", "\n0,adam,,"), "seed: nan is not"),
-        (lambda csv, about: _replace(csv, "\n0,adam,", "\n0,ad\x1b]0;x\x07am,"), "variant: "),
-        (lambda csv, about: _replace(about, '"iteration"', '"hours"'), "axis: 'hours'"),
+        pytest.param(
+            lambda csv, about: _replace(csv, "\n0,adam,0,", "\n0,adam,,"),
+            "seed: nan is not",
+            marks=pytest.mark.long,
+        ),
+        pytest.param(
+            lambda csv, about: _replace(csv, "\n0,adam,", "\n0,ad\x1b]0;x\x07am,"),
+            "variant: ",
+            marks=pytest.mark.long,
+        ),
+        pytest.param(
+            lambda csv, about: _replace(about, '"iteration"', '"hours"'),
+            "axis: 'hours'",
+            marks=pytest.mark.long,
+        ),
     ],
 )
 def test_a_damaged_evidence_table_is_one_line(

@@ -283,8 +283,15 @@ def test_the_target_policy_is_an_allow_list(target, tmp_path, monkeypatch):
     "planted",
     [
         "callbacks: {{planted: {{_target_: os.makedirs, name: {mark}}}}}",
-        "job_logging: {{handlers: {{planted: {{class: os.makedirs, name: {mark}}}}}}}",
-        "hydra_logging: {{formatters: {{planted: {{(): os.makedirs, name: {mark}}}}}}}",
+        # make test checks the callback; make test-long the logging handler and formatter
+        pytest.param(
+            "job_logging: {{handlers: {{planted: {{class: os.makedirs, name: {mark}}}}}}}",
+            marks=pytest.mark.long,
+        ),
+        pytest.param(
+            "hydra_logging: {{formatters: {{planted: {{(): os.makedirs, name: {mark}}}}}}}",
+            marks=pytest.mark.long,
+        ),
     ],
 )
 def test_hydra_s_own_targets_from_a_config_folder_pass_the_same_policy(tmp_path, planted):
