@@ -270,6 +270,14 @@ def variant_cost(
     )
 
 
+def say_progress(line: str) -> None:
+    """A progress line on stderr, at once (quiet where PHYSGRAD_QUIET is set)."""
+    import sys
+
+    if not os.environ.get("PHYSGRAD_QUIET"):
+        print(line, file=sys.stderr, flush=True)
+
+
 def plan_text(
     plan: StudyPlan,
     composed_seconds: float = 0.0,
@@ -285,7 +293,13 @@ def plan_text(
     use_job_cache()
     load_before = load_average()
     seed = plan.settings.tune_seed
-    measured = [measure(v, seed, *members(plan, v)) for v in plan.variants]
+    measured = []
+    for index, variant in enumerate(plan.variants, 1):
+        # the plan compiles and times each variant as its jobs would: minutes on a busy machine,
+        # so it says what it is doing as it goes (stderr: the estimate stays the only stdout)
+        say_progress(f"plan: compiling and timing {variant.name} ({index} of {len(plan.variants)})")
+        measured.append(measure(variant, seed, *members(plan, variant)))
+    say_progress("plan: timing a phase's start-up (two jobs of the first variant)")
     phase = phase_costs(plan, config_dir, measured[0], search_path or [])
     costs = [variant_cost(plan, v, m, phase.job) for v, m in zip(plan.variants, measured)]
     settings = plan.settings

@@ -212,3 +212,6 @@ def test_plan_prints_the_estimate_and_trains_nothing(tmp_path):
     )
     assert phases and float(phases[1]) > 0
     assert not (tmp_path / "study").exists()
+    # what it is doing, as it goes: on stderr, a line per variant compiled and timed
+    assert "plan: compiling and timing adam (1 of 2)" in out.stderr
+    assert "plan: compiling and timing gd (2 of 2)" in out.stderr

@@ -161,3 +161,13 @@ def test_every_variant_at_the_same_point_in_every_study_is_said():
     differ = [at(0.3), {**at(0.7), "gd": {"learning_rate": 1.0}}]
     assert same_point_line(variants, differ) == []
     assert same_point_line(variants[:1], [at(0.3)]) == []
+
+
+def test_the_plan_says_what_it_does_on_stderr_unless_quiet(capsys, monkeypatch):
+    from physgrad.comparison.plan import say_progress
+
+    say_progress("plan: compiling and timing adam (1 of 2)")
+    assert capsys.readouterr().err == "plan: compiling and timing adam (1 of 2)\n"
+    monkeypatch.setenv("PHYSGRAD_QUIET", "1")
+    say_progress("plan: compiling and timing gd (2 of 2)")
+    assert capsys.readouterr().err == ""
