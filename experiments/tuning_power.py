@@ -21,7 +21,7 @@ which cancels, and run noise of each run's own).
 
 Two designs:
     independent  physgrad's: each study its own evaluation seeds (fresh run noise) and points
-                 shifted by its own random vector (physgrad.comparison.tuning.halton_points)
+                 shifted by its own random vector (physgrad.comparison.points.halton_points)
     shared       the design before it: every study on the same evaluation seeds (each variant's run
                  noise at a seed drawn once, whatever the tuned rate) and points scrambled per study
                  (scipy's scrambled Halton sequence)
@@ -51,7 +51,7 @@ from pathlib import Path
 
 import numpy as np
 
-from physgrad.comparison.tuning import halton_points
+from physgrad.comparison.points import halton_points
 from physgrad.files import open_append, write_text
 from physgrad.optim.capabilities import ADAPTIVE
 from physgrad.readout import Curve

@@ -6,6 +6,7 @@ compare.md), figure (sensitivity.png) and study (the phases in turn, and the com
 from physgrad.comparison.calibration import calibrated_clock
 from physgrad.comparison.evaluation import evaluation, evaluation_jobs
 from physgrad.comparison.jobs import job_runs, job_yaml, launch
+from physgrad.comparison.points import halton_points
 from physgrad.comparison.spec import (
     PHASES,
     SETTINGS,
@@ -21,7 +22,7 @@ from physgrad.comparison.spec import (
 )
 from physgrad.comparison.study import Study, main, run_study
 from physgrad.comparison.summary import analyse
-from physgrad.comparison.tuning import halton_points, tuning
+from physgrad.comparison.tuning import tuning
 from physgrad.timing import calibrate
 
 __all__ = [

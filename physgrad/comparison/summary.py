@@ -12,7 +12,12 @@ import numpy as np
 
 from physgrad.comparison.calibration import cost_spread
 from physgrad.comparison.clock_text import busy_calibration, timing_lines
-from physgrad.comparison.coverage import coverage_lines, same_point_line, tried_values
+from physgrad.comparison.coverage import (
+    coverage_lines,
+    edge_lines,
+    same_point_line,
+    tried_values,
+)
 from physgrad.comparison.spec import StudySettings, Variant
 from physgrad.files import replaced
 from physgrad.power import POWER, detectable_ratio, measured
@@ -414,14 +419,6 @@ def variant_lines(
     return lines
 
 
-def _outermost(values: list[float], bounds: tuple | None) -> float:
-    """The value nearest either end of its log range."""
-    if bounds is None:
-        return values[0]
-    low, high = (math.log(b) for b in bounds)
-    return max(values, key=lambda v: abs((math.log(v) - low) / (high - low) - 0.5) if v > 0 else 0)
-
-
 def tuned_text(per_study: list[dict]) -> str:
     """A variant's tuned settings, each key with its value in every tuning study in turn
     (learning_rate=0.001, 0.0021, 0.0013): the spread the tuning itself leaves."""
@@ -433,77 +430,6 @@ def tuned_text(per_study: list[dict]) -> str:
         )
         or "as configured"
     )
-
-
-EDGE = 0.1  # a tuned value in the outer tenth of its log range is at the range's edge
-
-
-FLAT = 1.25  # trials on the edge's side whose validation losses lie within this factor: a plateau
-
-
-def edge_lines(
-    variants: list[Variant], best: list[dict[str, dict]], trials: Sequence[Mapping] = ()
-) -> list[str]:
-    """A warning per tuned value in the outer tenth of its log-uniform range (in any tuning study;
-    best: per study): the best trial may lie beyond the range, which should then be widened
-    (compare.search.KEY=[low,high]). Where the trials of every study in the outer fifth on that
-    side (three or more) scored within a factor FLAT of each other, the edge is a plateau (the
-    rule barely trains at any value there, so the lowest score falls anywhere on it): a note says
-    so instead, with the scores, since no range would move it."""
-    lines = []
-    for variant in variants:
-        found = {}
-        for study in best:
-            for key, value in study[variant.name].items():
-                found.setdefault(key, []).append(value)
-        for key, values in found.items():
-            value = _outermost(values, variant.space.get(key))
-            low, high = variant.space.get(key, (None, None))
-            if low is None or not value > 0:
-                continue
-            where = (math.log(value) - math.log(low)) / (math.log(high) - math.log(low))
-            if EDGE <= where <= 1 - EDGE:
-                continue
-            side = "lowest" if where < EDGE else "highest"
-            tuned, bounds = fmt(float(value)), f"[{fmt(float(low))}, {fmt(float(high))}]"
-            flat = _plateau(variant, key, trials, low, high, side)
-            if flat:
-                lines.append(
-                    f"note: {variant.name}'s tuned {key}={tuned} lies in the {side} tenth of its "
-                    f"range {bounds}, on a plateau: its trials in the {side} fifth scored "
-                    f"{flat} (within {FLAT:g}x of each other), so it barely trains at any {key} "
-                    "there and a wider range would not move the verdict"
-                )
-                continue
-            lines.append(
-                f"warning: {variant.name}'s tuned {key}={tuned} lies in the {side} tenth of its "
-                f"range {bounds}: the best setting may lie beyond it; widen the range "
-                f"(compare.search.{key}=[low,high])"
-            )
-    return ([""] + lines) if lines else []
-
-
-def _plateau(
-    variant: Variant, key: str, trials: Sequence[Mapping], low: float, high: float, side: str
-) -> str:
-    """The validation losses of the variant's trials in the outer fifth of the range on `side`,
-    as "0.46 to 0.52", where there are three or more, all finite and within FLAT of each other;
-    "" otherwise."""
-    scores = []
-    for row in trials:
-        if str(row.get("variant")) != variant.name:
-            continue
-        value, score = row.get(key), row.get("validation_loss")
-        if not isinstance(value, (int, float)) or not isinstance(score, (int, float)):
-            continue
-        where = (math.log(value) - math.log(low)) / (math.log(high) - math.log(low))
-        if (where < 2 * EDGE) if side == "lowest" else (where > 1 - 2 * EDGE):
-            scores.append(float(score))
-    if len(scores) < 3 or not all(math.isfinite(v) and v > 0 for v in scores):
-        return ""
-    if max(scores) > FLAT * min(scores):
-        return ""
-    return f"{fmt(min(scores))} to {fmt(max(scores))}"
 
 
 def trial_rows(folder: Path, variants: list[Variant], studies: int = 1) -> list[dict]:

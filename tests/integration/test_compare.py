@@ -523,7 +523,7 @@ def test_a_tuned_value_at_the_edge_of_its_range_is_warned_about():
     [1e-05, 0.1]), the middle is not (0.001); a variant evaluated as configured has nothing
     tuned."""
     from physgrad.comparison import Variant
-    from physgrad.comparison.summary import edge_lines
+    from physgrad.comparison.coverage import edge_lines
 
     space = {"learning_rate": (1e-5, 1e-1)}
     variants = [Variant(name, [f"optim={name}"], None, dict(space)) for name in "abcd"]
@@ -617,8 +617,8 @@ def test_the_plan_times_a_tuning_job_at_the_trial_points_it_will_train(monkeypat
 
     import physgrad.timing
     from physgrad.comparison import plan as planning
+    from physgrad.comparison.points import halton_points, point_dimensions
     from physgrad.comparison.spec import StudyPlan
-    from physgrad.comparison.tuning import halton_points, point_dimensions
 
     settings, axes, common, _ = split_overrides(["task=toy", "optim=adam,gd", "compare.trials=4"])
     s = study_settings({**settings, "seeds": 6})

@@ -72,6 +72,7 @@ INNER = {
         {"journal"},
         {"jobs"},
         {"spec"},
+        {"points"},
     ],
     # a scene never imports another scene; the Kuramoto-Sivashinsky solver sits below its scene
     "tasks": [

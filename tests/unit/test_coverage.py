@@ -12,8 +12,8 @@ from physgrad.comparison.coverage import (
     planned_points,
     tried_values,
 )
+from physgrad.comparison.points import point_dimensions
 from physgrad.comparison.spec import StudyPlan
-from physgrad.comparison.tuning import point_dimensions
 
 RANGE = (1e-3, 1.0)
 

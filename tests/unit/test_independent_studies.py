@@ -10,7 +10,7 @@ import pytest
 from scipy import stats
 
 from physgrad.comparison import study_settings
-from physgrad.comparison.tuning import (
+from physgrad.comparison.points import (
     ROTATIONS,
     halton_cell,
     halton_points,
