@@ -45,12 +45,11 @@ from physgrad.claim import (  # noqa: F401 - Close and Lower: the parts' names, 
     Reaches,
     Stalls,
     claim_of_part,
-    claim_verdict,
-    decide_parts,
     short,
     studies_of,
     tuning_studies,
 )
+from physgrad.claim_parts import claim_verdict, decide_parts
 from physgrad.claim_words import claim_word, left_start
 from physgrad.errors import UserError
 from physgrad.files import replace_file

@@ -33,6 +33,7 @@ LAYERS = [
             "replication",
             "power",
             "claim_words",
+            "claim_parts",
             "trend",
             "readout",
             "claim",
