@@ -14,8 +14,9 @@ initial network):
 - gradient <mode>: the gradient of each backprop mode that applies (R; M and S for a closed loop)
   equals the plain loop's (the mode's stopped inputs there are the forward states as constants)
   and central finite differences of that loop along random directions;
-- jacobian (where Gauss-Newton / HIG apply): J v and J^T u of the Jacobian pass against jax.jvp
-  and jax.vjp of the batch output, and its gradient J^T g against jax.grad.
+- jacobian (every scene, closed loops included: Gauss-Newton and HIG apply there through the
+  regular gradient's Jacobian): J v and J^T u of the Jacobian pass against jax.jvp and jax.vjp of
+  the batch output, and its gradient J^T g against jax.grad.
 """
 
 from __future__ import annotations
@@ -210,13 +211,14 @@ def _check_scene(cfg: DictConfig) -> list[Check]:
     tighter = functools.cache(lambda: _tighter_scene(cfg))
     for mode in ["R", "M", "S"] if scene.closed_loop else ["R"]:
         checks.append(_gradient_check(scene, params, batch, mode, tighter))
-    if not scene.closed_loop:
-        try:
-            checks.append(_jacobian_check(scene, params, batch))
-        except Exception as error:  # noqa: BLE001 - a scene's code failing under jvp/vjp is a finding
-            checks.append(
-                Check("jacobian", False, f"{type(error).__name__}: {str(error).splitlines()[0]}")
-            )
+    # every scene, closed loops included: Gauss-Newton and HIG apply there too (through the
+    # regular gradient's Jacobian), so a check that said nothing of them would be a silent skip
+    try:
+        checks.append(_jacobian_check(scene, params, batch))
+    except Exception as error:  # noqa: BLE001 - a scene's code failing under jvp/vjp is a finding
+        checks.append(
+            Check("jacobian", False, f"{type(error).__name__}: {str(error).splitlines()[0]}")
+        )
     return [*checks, _precision_check(cfg)]
 
 
