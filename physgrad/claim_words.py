@@ -91,7 +91,7 @@ def claim_word(
     if departs:
         return DIFFERENT_SETUP, departs
     budget = share_text(share)
-    within = f" ({budget})" if budget else ""
+    within = f"; {budget}" if budget else ""
     below_paper = math.isnan(share) or share < 1.0
     if holds:
         if trained and not fails_at_half:

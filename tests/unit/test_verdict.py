@@ -523,7 +523,7 @@ def test_a_claim_is_contradicted_only_where_the_budget_could_test_it():
     assert claim_word(False, False, False, False, 0.1)[0] == NOT_TESTED
     assert claim_word(False, False, False, True, 1.0) == (
         NOT_SETTLED,
-        "not settled at X: the seeds could not resolve it (100% of the paper's budget)",
+        "not settled at X: the seeds could not resolve it; 100% of the paper's budget",
     )
     assert claim_word(True, False, False, True, 0.1, "another network")[0] == DIFFERENT_SETUP
     # left its start: the median of final / start at most 1/2; diverged seeds count against
