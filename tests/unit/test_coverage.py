@@ -160,7 +160,8 @@ def test_every_variant_at_the_same_point_in_every_study_is_said():
     assert note.startswith("note: every variant was tuned to the same point")
     differ = [at(0.3), {**at(0.7), "gd": {"learning_rate": 1.0}}]
     assert same_point_line(variants, differ) == []
-    assert same_point_line(variants[:1], [at(0.3)]) == []
+    assert same_point_line(variants[:1], [at(0.3), at(0.7)]) == []
+    assert same_point_line(variants, [at(0.3)]) == []  # one study: a coincidence, not the grid
 
 
 def test_the_plan_says_what_it_does_on_stderr_unless_quiet(capsys, monkeypatch):
