@@ -152,8 +152,8 @@ def same_point_line(
     variants: Sequence[Variant], best: Sequence[Mapping[str, Mapping]]
 ) -> list[str]:
     """A note where every variant (two or more, tuned) chose the same point of its learning-rate
-    range in every tuning study (two or more) (best: per study, variant -> its tuned values): the tuned values
-    are then the shared grid's point, not a search that told the rules apart."""
+    range in every tuning study (two or more; best: per study, variant -> its tuned values): the
+    tuned values are then the shared grid's point, not a search that told the rules apart."""
     from physgrad.comparison.points import is_rate_key
 
     tuned = [v for v in variants if v.space]
