@@ -344,8 +344,8 @@ def _studies_rule(settings: StudySettings) -> str:
     return (
         f"; a verdict must hold in {majority(settings.study_count)} of the "
         f"{settings.study_count} tuning studies with none against it, and a better with every "
-        "study's median ratio on its side; the table gives each study's median ratio and interval "
-        "in turn"
+        "study's median ratio on its side and the studies, taken as one draw each, excluding a "
+        "ratio of 1; the table gives each study's median ratio and interval in turn"
     )
 
 
