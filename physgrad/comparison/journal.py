@@ -9,10 +9,14 @@ from collections.abc import Iterator
 from pathlib import Path
 
 from optuna.storages.journal import BaseJournalBackend
+from optuna.storages.journal._storage import JournalOperation
 
 from physgrad.files import load_json, open_foreign
 
-JOURNAL_LIMIT = 1 << 30  # bytes: a study's journal is kilobytes; a larger one is not physgrad's
+# the operations Optuna's journal records; a record with another op_code made Optuna's replay fail
+# with a 42-line AssertionError
+OP_CODES = frozenset(int(op) for op in JournalOperation)
+JOURNAL_LIMIT = 64 << 20  # bytes: a study's journal is kilobytes; a larger one is not physgrad's
 
 
 class OwnJournal(BaseJournalBackend):
@@ -22,7 +26,8 @@ class OwnJournal(BaseJournalBackend):
     later (the folder may come from someone else) is neither read nor written through. Writers
     are kept apart by the study's own lock (.physgrad-study), not by lock files beside the
     journal. A last line without its newline (an append cut short) is not read; a journal over
-    JOURNAL_LIMIT bytes or a line that is not a JSON object is a ValueError (one line)."""
+    JOURNAL_LIMIT bytes or a line that is not a JSON object with a known op_code is a ValueError
+    (one line)."""
 
     def __init__(self, path: Path) -> None:
         self._fd = open_foreign(path, write=True)
@@ -48,10 +53,11 @@ class OwnJournal(BaseJournalBackend):
                     record = load_json(line)
                 except ValueError:
                     record = None
-                if not isinstance(record, dict):
+                if not isinstance(record, dict) or record.get("op_code") not in OP_CODES:
                     raise ValueError(
-                        f"{self._path}: line {number + 1} is not a record of Optuna's journal: "
-                        "move the file away to tune again (its trials will run again)"
+                        f"{self._path}: line {number + 1} is not a record of Optuna's journal "
+                        "(no known op_code): move the file away to tune again (its trials will "
+                        "run again)"
                     )
                 yield record
 

@@ -267,7 +267,7 @@ def set_aside_damage(path: Path, say: Callable[[str], object]) -> None:
     UserError (one line): the journal is not Optuna's, or was changed by hand."""
     import os
 
-    from physgrad.comparison.journal import JOURNAL_LIMIT
+    from physgrad.comparison.journal import JOURNAL_LIMIT, OP_CODES
     from physgrad.files import load_json, read_own_file, replace_file, timestamp
 
     if not os.path.lexists(path):
@@ -280,7 +280,8 @@ def set_aside_damage(path: Path, say: Callable[[str], object]) -> None:
     kept = 0  # bytes of whole records
     for number, line in enumerate(lines):
         try:
-            whole = isinstance(load_json(line), dict) if line.strip() else True
+            record = load_json(line) if line.strip() else {"op_code": 0}
+            whole = isinstance(record, dict) and record.get("op_code") in OP_CODES
         except ValueError:  # no JSON (nested too deep included)
             whole = False
         if whole:
