@@ -311,6 +311,12 @@ CONFIG_LIMIT = 1 << 20  # bytes of the stored config; a physgrad config is a few
 _UNSAFE = re.compile("[\x00-\x08\x0b-\x1f\x7f-\x9f\u202a-\u202e\u2066-\u2069]")
 
 
+def safe_name(text: str, limit: int = 40) -> str:
+    """text as a part of a file name and of a console line: letters, digits, '.', '_' and '-'
+    kept, anything else (a control character, a path separator) replaced by '_', cut to limit."""
+    return re.sub(r"[^A-Za-z0-9._-]", "_", text)[:limit] or "_"
+
+
 def clean_text(text: str, limit: int | None = TEXT_LIMIT, lines: bool = False) -> str:
     """text safe to print: control characters (an ANSI escape's ESC among them) and bidirectional
     overrides replaced by U+FFFD, newlines and tabs too unless lines, cut to limit characters."""

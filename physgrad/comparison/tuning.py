@@ -311,7 +311,7 @@ def set_aside_stale(path: Path, say: Callable[[str], object]) -> bool:
     import optuna
     from optuna.trial import TrialState
 
-    from physgrad.files import timestamp
+    from physgrad.files import safe_name, timestamp
 
     if not path.is_file():
         return False
@@ -323,7 +323,9 @@ def set_aside_stale(path: Path, say: Callable[[str], object]) -> bool:
         if version != READOUT_VERSION and study.get_trials(
             deepcopy=False, states=(TrialState.COMPLETE,)
         ):
-            versions.add("unrecorded" if version is None else str(version))
+            # the attribute is data from the folder: in a file name and on the console only as
+            # safe characters (a terminal escape there was printed raw and named a file)
+            versions.add("unrecorded" if version is None else safe_name(str(version)))
     if not versions:
         return False
     older = "-".join(sorted(versions))

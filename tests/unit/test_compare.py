@@ -233,6 +233,8 @@ def _journal(path, studies):
         ({"adam": (1, [0.1, 0.2], 0), "gd": (None, [], 2)}, "1"),
         ({"adam": (2, [0.1], 0), "gd": (1, [0.3], 1), "hig": (None, [0.2], 0)}, "1-unrecorded"),
         ({"adam": (2, [0.1], 1), "gd": (None, [], 1)}, None),
+        # a version with a terminal escape and a path: safe characters in the name and the note
+        ({"adam": ("\x1b]0;x\x07/../y", [0.1], 0)}, "__0_x__.._y"),
     ],
 )
 def test_a_tuning_journal_scored_by_another_read_out_is_set_aside(tmp_path, studies, stale):
