@@ -98,8 +98,14 @@ def run_study(
         if settings.dir
         else default_folder(overrides, config_dir, str(first.task.get("name")), configuration)
     )
-    folder.mkdir(parents=True, exist_ok=True)
-    record_study(folder, overrides, config_dir, configuration)
+    try:
+        folder.mkdir(parents=True, exist_ok=True)
+        record_study(folder, overrides, config_dir, configuration)
+    except OSError as error:  # a read-only disk, a full one, a folder of someone else's
+        raise UserError(
+            f"cannot write the study folder {folder} ({error.strerror or error}): give compare.dir "
+            "a folder you can write"
+        ) from None
     held = ExitStack()
     try:
         held.enter_context(own_folder(folder, "study"))

@@ -1145,3 +1145,17 @@ def test_a_search_key_no_variant_has_is_refused_and_a_scene_s_tuning_file_sets_r
     assert found["hig"] == {"learning_rate": (0.01, 100.0)}
     assert found["adam"] == {"learning_rate": (1e-4, 10.0)}
     assert space("compare.search.learning_rate=[1e-3,1]")["hig"] == {"learning_rate": (1e-3, 1.0)}
+
+
+def test_a_study_folder_that_cannot_be_written_is_one_line(tmp_path):
+    """A study whose folder cannot be made (here under a plain file; a read-only or full disk alike)
+    stops in one line that names the folder, before anything trains."""
+    (tmp_path / "plain").write_text("a file")
+    with pytest.raises(UserError, match="cannot write the study folder .*plain/study") as caught:
+        physgrad.compare(
+            "task=toy",
+            "optim=adam,gd",
+            "trainer.iterations=5",
+            f"compare.dir={tmp_path}/plain/study",
+        )
+    assert "\n" not in str(caught.value)
