@@ -329,21 +329,29 @@ def clean_text(text: str, limit: int | None = TEXT_LIMIT, lines: bool = False) -
 _Loader = getattr(yaml, "CSafeLoader", yaml.SafeLoader)
 
 
+# a physgrad config nests a few levels (hydra's section about 6); deeper is no config of physgrad's,
+# and 500 levels made every later reader (OmegaConf, report) fail with a RecursionError
+MAX_DEPTH = 64
+
+
 def _without_aliases(root: yaml.Node | None) -> None:
     """YAMLError if a node of the composed document is reached twice: an alias (*name), which a
-    few bytes of nested ones expand to gigabytes (a 'billion laughs'), and physgrad never writes.
-    The composer hands back the anchored node itself for an alias, so identity finds every one."""
+    few bytes of nested ones expand to gigabytes (a 'billion laughs'), and physgrad never writes;
+    or if it nests deeper than MAX_DEPTH. The composer hands back the anchored node itself for an
+    alias, so identity finds every one."""
     seen: set[int] = set()
-    todo = [] if root is None else [root]
+    todo = [] if root is None else [(root, 1)]
     while todo:
-        node = todo.pop()
+        node, depth = todo.pop()
         if id(node) in seen:
             raise yaml.YAMLError("aliases (*name) are not allowed")
+        if depth > MAX_DEPTH:
+            raise yaml.YAMLError(f"nested deeper than {MAX_DEPTH} levels")
         seen.add(id(node))
         if isinstance(node, yaml.MappingNode):
-            todo.extend(item for pair in node.value for item in pair)
+            todo.extend((item, depth + 1) for pair in node.value for item in pair)
         elif isinstance(node, yaml.SequenceNode):
-            todo.extend(node.value)
+            todo.extend((item, depth + 1) for item in node.value)
 
 
 def load_yaml(text: str) -> Any:

@@ -183,3 +183,17 @@ def test_members_of_any_folder_name_sort_without_error(tmp_path):
     paths = sorted(tmp_path.glob("seed=*/results.h5"), key=member_order)
     assert [p.parent.name for p in paths][:2] == ["seed=2", "seed=10"]
     assert len(seed_lines(tmp_path)) >= 2
+
+
+def test_a_config_nested_past_the_bound_is_one_line_not_a_recursion_error():
+    """A stored config nested 500 deep (a crafted results file's) is refused where it is read, in
+    one line; every later reader (OmegaConf, report, read_runs, resume) failed with a RecursionError
+    thousands of lines long. A physgrad config's depth passes."""
+    from physgrad.files import MAX_DEPTH, load_yaml
+
+    deep = "a: " + "{b: " * 500 + "1" + "}" * 500
+    with pytest.raises(ValueError, match=f"nested deeper than {MAX_DEPTH} levels") as caught:
+        load_yaml(deep)
+    assert "\n" not in str(caught.value)
+    shallow = "a: " + "{b: " * (MAX_DEPTH - 2) + "1" + "}" * (MAX_DEPTH - 2)
+    assert load_yaml(shallow)["a"]["b"]["b"]
