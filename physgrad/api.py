@@ -14,7 +14,7 @@ from __future__ import annotations
 
 import os
 import sys
-from collections.abc import Iterable
+from collections.abc import Callable, Iterable
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -62,17 +62,29 @@ def run(
     return read_run(path)
 
 
-def compare(*overrides: str, config_dir: str | os.PathLike | None = None) -> Study:
+def compare(
+    *overrides: str,
+    config_dir: str | os.PathLike | None = None,
+    progress: Callable[[str], object] | bool = True,
+) -> Study:
     """Which variant trains this scene best, as `physgrad compare` decides it (tuned with equal
     budgets, paired seeds, verdicts with intervals; docs/protocol.md), e.g.
     ``physgrad.compare("task=toy", "optim=adam,hig", "trainer.iterations=300",
     "compare.trials=8")``. Returns physgrad.comparison.Study: .comparisons, .runs and .trials
     (pandas DataFrames), .verdicts, .text (the compare.md table) and .folder. An interrupted study
-    resumes when called again with the same overrides."""
+    resumes when called again with the same overrides. progress: the console's progress lines
+    (each phase, its job and loss so far) go to stderr as `physgrad compare` prints them (True),
+    to a function of one line, or nowhere (False)."""
     from physgrad.comparison import run_study
 
+    if progress is True:
+        say = lambda line: print(line, file=sys.stderr, flush=True)  # noqa: E731
+    elif progress is False:
+        say = lambda line: None  # noqa: E731
+    else:
+        say = progress
     folder = None if config_dir is None else str(config_dir)
-    return run_study(list(overrides), config_dir=folder, say=lambda line: None)
+    return run_study(list(overrides), config_dir=folder, say=say)
 
 
 def read_runs(

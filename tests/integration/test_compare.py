@@ -399,14 +399,18 @@ def test_a_finished_study_given_more_trials_tunes_on_from_where_it_stopped(tmp_p
         f"compare.dir={tmp_path / 's'}",
         "figures=false",
     ]
-    physgrad.compare(*args, "compare.trials=1", "compare.studies=1")
+    said = []
+    physgrad.compare(*args, "compare.trials=1", "compare.studies=1", progress=said.append)
+    # from Python the progress the console shows, here to a function of one line
+    assert any(line.startswith("tune: ") for line in said)
+    assert any(line.startswith("eval: ") for line in said)
     # adam's trials train together: trial 0 is member 0 of the first job
     first = tmp_path / "s" / "tune" / "+compare_job=tune_v0_t000" / "trial=0" / "results.h5"
     stamp = first.stat().st_mtime_ns
     study = physgrad.compare(*args, "compare.trials=3", "compare.studies=1")
     assert first.stat().st_mtime_ns == stamp
     assert list(study.trials.variant) == ["adam"] * 3 + ["gd"] * 3
-    expected = halton_points({"learning_rate": ADAPTIVE.search_range}, 3, 1_000_000)
+    expected = halton_points({"learning_rate": (1e-4, 10.0)}, 3, 1_000_000)  # conf/tuning/toy_adam
     assert list(study.trials[study.trials.variant == "adam"].learning_rate) == pytest.approx(
         [p["learning_rate"] for p in expected]
     )
