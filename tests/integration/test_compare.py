@@ -440,6 +440,11 @@ def test_two_names_for_one_rule_are_tuned_alike_in_either_order_and_equivalent(
     (optim / "adam_copy.yaml").write_text(
         (CONF_DIR / "optim" / "adam.yaml").read_text().replace("name: adam", "name: adam_copy")
     )
+    # and its tuning file on the toy (the ranges it is tuned over there), as a copy would have
+    (optim.parent / "tuning").mkdir()
+    (optim.parent / "tuning" / "toy_adam_copy.yaml").write_text(
+        (CONF_DIR / "tuning" / "toy_adam.yaml").read_text()
+    )
     common = [
         "task=toy",
         "trainer.iterations=30",
@@ -498,6 +503,11 @@ def test_twins_at_equal_time_are_never_better_under_load_in_either_order(tmp_pat
     optim.mkdir(parents=True)
     (optim / "adam_copy.yaml").write_text(
         (CONF_DIR / "optim" / "adam.yaml").read_text().replace("name: adam", "name: adam_copy")
+    )
+    # and its tuning file on the toy (the ranges it is tuned over there), as a copy would have
+    (optim.parent / "tuning").mkdir()
+    (optim.parent / "tuning" / "toy_adam_copy.yaml").write_text(
+        (CONF_DIR / "tuning" / "toy_adam.yaml").read_text()
     )
     common = ["task=toy", "trainer.time_budget=0.4", "compare.trials=2", "compare.studies=1"]
     common += ["compare.seeds=6", "figures=false"]
