@@ -15,11 +15,11 @@ def test_a_link_put_at_the_name_later_is_not_written_through(tmp_path):
     path, elsewhere = tmp_path / "tuning.journal", tmp_path / "elsewhere"
     elsewhere.write_text("untouched\n")
     journal = OwnJournal(path)
-    journal.append_logs([{"op": 0, "n": 1}])
+    journal.append_logs([{"op_code": 0, "n": 1}])
     moved = tmp_path / "moved.journal"
     os.replace(path, moved)
     path.symlink_to(elsewhere)
-    journal.append_logs([{"op": 1, "n": 2}, {"op": 2, "n": 3}])
+    journal.append_logs([{"op_code": 1, "n": 2}, {"op_code": 2, "n": 3}])
     assert elsewhere.read_text() == "untouched\n"
     assert [log["n"] for log in journal.read_logs(0)] == [1, 2, 3]
     assert [log["n"] for log in journal.read_logs(1)] == [2, 3]
@@ -38,10 +38,10 @@ def test_what_is_not_a_file_of_one_name_is_refused_in_one_line(tmp_path, kind):
 
 def test_a_line_cut_short_is_read_once_its_newline_comes(tmp_path):
     path = tmp_path / "tuning.journal"
-    path.write_bytes(b'{"op":0}\n{"op":1')
+    path.write_bytes(b'{"op_code":0}\n{"op_code":1')
     journal = OwnJournal(path)
-    assert list(journal.read_logs(0)) == [{"op": 0}]
+    assert list(journal.read_logs(0)) == [{"op_code": 0}]
     with open(path, "ab") as f:
         f.write(b"}\n")
-    assert list(journal.read_logs(1)) == [{"op": 1}]
-    assert list(journal.read_logs(0)) == [{"op": 0}, {"op": 1}]
+    assert list(journal.read_logs(1)) == [{"op_code": 1}]
+    assert list(journal.read_logs(0)) == [{"op_code": 0}, {"op_code": 1}]
