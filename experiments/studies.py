@@ -13,6 +13,7 @@ of all of them, so that each part can run on any machine and be kept on its own.
 
 from __future__ import annotations
 
+import functools
 import math
 from dataclasses import dataclass, replace
 from pathlib import Path
@@ -294,11 +295,11 @@ def where_it_runs(names: set[str]) -> str:
     parts where a GPU's budget is planned; "no profile runs it yet" otherwise."""
     said = []
     for profile, machine in (("claims", "decidable on 2 cores"), ("claims-gpu", "needs a GPU")):
-        parts = chunks(PROFILES[profile])
-        used = [k for k, part in enumerate(parts, 1) if any(s.name in names for s in part)]
-        if not used or not names <= {s.name for k in used for s in parts[k - 1]}:
+        parts = _parts_and_seconds(profile)
+        used = [k for k, part in enumerate(parts, 1) if any(n in names for n, _ in part)]
+        if not used or not names <= {n for k in used for n, _ in parts[k - 1]}:
             continue
-        seconds = sum(s.seconds() for k in used for s in parts[k - 1] if s.name in names)
+        seconds = sum(t for k in used for n, t in parts[k - 1] if n in names)
         which = ("part " if len(used) == 1 else "parts ") + ", ".join(map(str, used))
         length = (
             f"about {seconds / 3600:.1f} h" if seconds >= 5400 else f"about {seconds / 60:.0f} min"
@@ -308,3 +309,10 @@ def where_it_runs(names: set[str]) -> str:
             + (" on one GPU" if profile == "claims-gpu" else "")
         )
     return "; ".join(said) or "no profile runs it yet"
+
+
+@functools.lru_cache(maxsize=8)
+def _parts_and_seconds(profile: str) -> tuple[tuple[tuple[str, float], ...], ...]:
+    """A profile's parts as (study name, expected seconds) pairs, computed once (where_it_runs asks
+    for every claim)."""
+    return tuple(tuple((s.name, s.seconds()) for s in part) for part in chunks(PROFILES[profile]))
