@@ -68,6 +68,8 @@ def keep_evidence(root: Path, dest: Path) -> list[str]:
         for part in claim.parts:
             for name in studies_of(claim_of_part(part)):
                 columns.setdefault(name, {"loss"}).add(getattr(part, "column", "loss"))
+    for study in (s for studies in PROFILES.values() for s in studies if s.joins in columns):
+        columns[study.name] = columns[study.joins]
     return keep_studies(root, dest, columns)
 
 
@@ -90,7 +92,11 @@ def decide_claim(
 
     def study(name: str) -> object:
         if name not in cache:
-            cache[name] = _twin_runs(root, name, suffix, specs.get(name))
+            cache[name] = runs = _twin_runs(root, name, suffix, specs.get(name))
+            for joining in (s for s in specs.values() if s.joins == name and not suffix):
+                more = _twin_runs(root, joining.name, suffix, joining)
+                if isinstance(more, StudyRuns) and isinstance(runs, StudyRuns):
+                    runs.join(more)
         return cache[name]
 
     rows = decide_parts(claim, study, fraction)

@@ -64,6 +64,10 @@ class Study:
     # false: the presets evaluated untuned in <name> (compare.tune=false), the study itself; its
     # preset (a key=value) then names the axis it fixes
     tune: bool = True
+    # the name of a study this one adds variants to (run as a compare of its own, on the same
+    # budget and seeds, e.g. the clipping modes beside a kept study without clipping): its runs
+    # are kept as its own evidence and read as that study's
+    joins: str = ""
 
     @property
     def label(self) -> str:

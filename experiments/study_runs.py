@@ -60,6 +60,29 @@ class StudyRuns:
                     {(f"{v} {token}", c): by for (v, c), by in list(study.kept.items())}
                 )
 
+    def join(self, other: StudyRuns) -> None:
+        """other's variants as more variants of this study (a study that `joins` this one: the
+        same budget on the same seeds, run as a compare of its own); a variant both have is
+        this one's."""
+        if (other.kept is None) != (self.kept is None):
+            raise UserError(
+                f"{other.folder} joins {self.folder}, but one is kept evidence and the other a "
+                "study folder: keep both (experiments/claims.py --keep) or neither"
+            )
+        if (other.axis, other.budget) != (self.axis, self.budget) or len(other.tuning) != len(
+            self.tuning
+        ):
+            raise UserError(
+                f"{other.folder} joins {self.folder} but runs {other.budget:g} ({other.axis}) in "
+                f"{max(len(other.tuning), 1)} tuning studies where it runs {self.budget:g} "
+                f"({self.axis}) in {max(len(self.tuning), 1)}; run them alike"
+            )
+        pairs = zip(self.tuning or (self,), other.tuning or (other,))
+        for mine, theirs in pairs:
+            mine.paths.update({v: p for v, p in theirs.paths.items() if v not in mine.paths})
+            if mine.kept is not None:
+                mine.kept.update({k: c for k, c in theirs.kept.items() if k not in mine.kept})
+
     def curves(self, variant: str, column: str = "loss") -> dict:
         from physgrad.readout import run_curve
         from physgrad.results import read_run
