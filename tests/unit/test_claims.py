@@ -709,6 +709,37 @@ def test_a_presets_only_study_decides_from_its_kept_evidence_alone_under_the_tun
     assert "(presets untuned, 10 seeds)" in longer[0], longer
 
 
+def test_a_study_that_joins_another_adds_its_variants_under_their_full_names(tmp_path):
+    """The cart's clipping modes run as compares of their own (cart_4_value, cart_4_norm) join the
+    kept study without clipping: a part naming "backprop=C clip=value" is decided from the joining
+    study's runs, the study's own variants stay its own, and a joining study at another budget is
+    one line, not a mixed verdict."""
+    from evidence import kept_row, write_kept
+
+    about = {"axis": "iteration", "budget": 1000.0, "trials": 0, "studies": 1, "seeds": 10}
+
+    def keep(name, factors, budget=1000.0):
+        rows = [
+            kept_row(0, variant, s, "loss", falling(factor * base(s)), budget)
+            for variant, factor in factors
+            for s in TEN
+        ]
+        write_kept(tmp_path, name, rows, {**about, "budget": budget})
+
+    keep("cart_4", (("backprop=C", 0.5), ("backprop=R", 1.0)))
+    keep("cart_4_value", (("backprop=C", 2.0), ("backprop=R", 1.0)))  # C above R with clipping
+    paper = study_lists.PROFILES["claims-paper"]
+    parts = [
+        claims.Lower("cart_4", f"backprop=C clip={mode}", f"backprop=R clip={mode}")
+        for mode in ("none", "value", "norm")
+    ]
+    _, decided = claims.decide_claim(claim_of(*parts), tmp_path, profile=paper)
+    assert [d.verdict for _, d in decided] == [HOLDS, claims.FAILS, claims.NOT_RUN]
+    keep("cart_4_norm", (("backprop=C", 0.5), ("backprop=R", 1.0)), budget=500.0)
+    with pytest.raises(claims.UserError, match="joins .*cart_4.* run them alike"):
+        claims.decide_claim(claim_of(*parts), tmp_path, profile=paper)
+
+
 def test_a_part_not_settled_says_its_cause_where_the_evidence_shows_one(tmp_path, studies):
     """Stuck seeds at the full budget: 8 of 10 below the level in each of three studies, 2 stuck
     at 0.45 (the toy's Adam at lambda = 1): not settled, because the seeds disagree, with the
