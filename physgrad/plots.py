@@ -25,7 +25,8 @@ if TYPE_CHECKING:
 
 COLORS = plt.get_cmap("tab10").colors
 LINESTYLES = ("-", "--", ":", "-.")
-MARKERS = ("o", "s", "^", "D", "v", "P")
+MARKERS = ("o", "s", "D", "v", "P", "X")  # not "^": it marks a diverged run
+DPI = 110  # the PNGs' resolution
 
 
 def literal(text: object) -> str:
@@ -47,6 +48,21 @@ def group_styles(labels: Iterable[str]) -> dict[str, dict]:
             "marker": MARKERS[round_ % len(MARKERS)],
         }
     return styles
+
+
+def design_styles(design: dict[str, tuple[str, int]]) -> dict[str, dict]:
+    """One style per group of a designed study (label -> (variant, tuning study)): the colour by
+    variant and the line style and marker by tuning study, so that a variant reads as one colour
+    across its studies and a study as one line style across its variants."""
+    variants = sorted({variant for variant, _ in design.values()}, key=natural_key)
+    return {
+        label: {
+            "color": COLORS[variants.index(variant) % len(COLORS)],
+            "linestyle": LINESTYLES[(study - 1) % len(LINESTYLES)],
+            "marker": MARKERS[(study - 1) % len(MARKERS)],
+        }
+        for label, (variant, study) in design.items()
+    }
 
 
 def styles_for(runs: list[Run], styles: dict | None) -> dict:
@@ -103,11 +119,14 @@ def save_figure(fig: Figure, path: str | Path, note: str) -> None:
         top -= (0.2 + 0.17 * (note.count("\n") + 1)) / fig.get_figheight()
     fig.tight_layout(rect=(0, 0, 1, top))
     # legends sit outside: the box around everything drawn, found once for both formats (where
-    # bbox_inches="tight" lays the figure out and measures it again for each)
+    # bbox_inches="tight" lays the figure out and measures it again for each); measured at the
+    # resolution it is saved at, since text extents do not scale exactly with it (a long legend
+    # entry measured at 100 dpi was cut at 110)
+    fig.set_dpi(DPI)
     fig.draw_without_rendering()
     box = fig.get_tightbbox().padded(plt.rcParams["savefig.pad_inches"])
     for suffix in (".png", ".pdf"):
-        write_figure(fig, Path(path).with_suffix(suffix), dpi=110, bbox_inches=box)
+        write_figure(fig, Path(path).with_suffix(suffix), dpi=DPI, bbox_inches=box)
     plt.close(fig)
 
 

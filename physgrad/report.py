@@ -10,14 +10,14 @@ from __future__ import annotations
 import math
 import os
 from collections import Counter, defaultdict
-from collections.abc import Iterable, Sequence
+from collections.abc import Callable, Iterable, Sequence
 from pathlib import Path
 
 import numpy as np
 
 from physgrad.errors import UserError
 from physgrad.files import clean_text, read_small_yaml, replaced
-from physgrad.readout import fmt, loss_at, run_record, targets
+from physgrad.readout import fmt, loss_at, run_budget, run_record, targets
 from physgrad.results import Run, natural_key
 from physgrad.runs import Dropped, collect, label_runs, parse_sources, setting_text
 from physgrad.sweeps import unfinished_jobs
@@ -26,17 +26,36 @@ from physgrad.tables import Tables, tables, write_tables
 METADATA = ("iteration", "wall_time", "calibrated_time")
 
 
-def common_times(runs: list[Run]) -> dict[str, float]:
-    """Per scene, the time every completed run covers: the shortest end of training among them (a
-    time budget ends a run at its budget), on the shared time axis (a run started from another's
-    network starts where that one ended). Losses at this time compare variants at equal training
-    time."""
-    shortest = defaultdict(lambda: math.inf)
+def common_clock(runs: list[Run]) -> dict[str, str]:
+    """Per scene, the clock its runs' budgets were on: calibrated_time where every completed run
+    trained to a budget on the calibrated clock (a compare's verdict reads that clock, so its
+    report must too), else wall_time (the measured clock)."""
+    clocks: dict[str, set] = defaultdict(set)
     for run in runs:
-        end = run.final("train", "wall_time") + run.offset("wall_time")
+        if run.attrs.get("status") == "completed":
+            clocks[run.scene].add(run_budget(run)[0])
+    return {
+        scene: "calibrated_time" if found == {"calibrated_time"} else "wall_time"
+        for scene, found in clocks.items()
+    }
+
+
+def common_times(runs: list[Run]) -> dict[str, tuple[str, float]]:
+    """Per scene, (clock, the time every completed run covers): the shortest end of training among
+    them (a time budget ends a run at its budget) on the scene's clock (common_clock), on the shared
+    time axis (a run started from another's network starts where that one ended). Losses at this
+    time compare variants at equal training time, on the clock their budget was."""
+    clocks = common_clock(runs)
+    shortest: dict[str, float] = defaultdict(lambda: math.inf)
+    for run in runs:
+        clock = clocks.get(run.scene, "wall_time")
+        end = run.final("train", clock) + run.offset(clock)
         if run.attrs.get("status") == "completed" and math.isfinite(end):
             shortest[run.scene] = min(shortest[run.scene], end)
-    return dict(shortest)
+    return {scene: (clocks.get(scene, "wall_time"), t) for scene, t in shortest.items()}
+
+
+CLOCK_WORDS = {"wall_time": "measured clock", "calibrated_time": "calibrated clock"}
 
 
 def metric_names(runs: list[Run]) -> list[str]:
@@ -57,7 +76,7 @@ def run_rows(runs: list[Run], threshold: float | None = None) -> list[dict]:
         return natural_key(r.scene), natural_key(r.label), natural_key(str(r.attrs.get("seed")))
 
     for run in sorted(runs, key=order):
-        at = common.get(run.scene, math.nan)
+        clock, at = common.get(run.scene, ("wall_time", math.nan))
         train_loss = run.train.get("loss", np.empty(0))
         record = run_record(
             run, threshold if threshold is not None else limits.get(run.scene, math.nan)
@@ -75,8 +94,9 @@ def run_rows(runs: list[Run], threshold: float | None = None) -> list[dict]:
                 **record,
                 "train_loss": float(np.median(train_loss[-10:])) if train_loss.size else math.nan,
                 "common_time": at,
+                "common_clock": CLOCK_WORDS[clock],
                 # the common time is on the shared axis; a continued run's own clock starts later
-                "loss_at_common_time": loss_at(run, at - run.offset("wall_time"), "wall_time")
+                "loss_at_common_time": loss_at(run, at - run.offset(clock), clock)
                 if math.isfinite(at)
                 else math.nan,
                 "s_per_iter": run.seconds_per_iteration,
@@ -243,12 +263,15 @@ def write_report(
     note: str = "",
     logx: str = "auto",
     figures: bool = True,
+    study_of: Callable[[Run], int] | None = None,
 ) -> str:
     """Print-ready text; also writes into out_dir (default: the first path's folder) report.md,
     runs.csv, curves.csv and, with ``figures``, the figures (PNG and PDF): loss_vs_time,
     loss_vs_iteration, tradeoff (final test loss against seconds per iteration and total time) and,
     where runs differ in unroll length, unroll. ``note`` is printed on every figure; ``logx`` is
-    auto (log where the curves' ends span a decade or more), on or off."""
+    auto (log where the curves' ends span a decade or more), on or off. ``study_of``: a run's
+    tuning study (1, 2, ...) in a compare: each group is then labelled "variant, tuning study k:
+    its tuned settings" and drawn in its variant's colour and its study's line style."""
     runs, unreadable, dropped = collect(paths)
     if not runs:
         raise UserError(
@@ -257,6 +280,7 @@ def write_report(
         )
     out = output_folder(paths, out_dir)
     label_runs(runs)
+    design = _label_studies(runs, study_of) if study_of is not None else {}
     rows = run_rows(runs, threshold)
     limits = targets(runs)
     text = summary_lines(paths, runs, rows, threshold, limits)
@@ -273,8 +297,20 @@ def write_report(
     chosen = {scene: threshold for scene in limits} if threshold is not None else limits
     from physgrad.report_figures import write_figures  # matplotlib only once it draws
 
-    drawn = write_figures(runs, out, note, logx, chosen)
+    drawn = write_figures(runs, out, note, logx, chosen, design)
     return body + f"{written} and {', '.join(drawn)} (and .pdf)\n"
+
+
+def _label_studies(runs: list[Run], study_of: Callable[[Run], int]) -> dict:
+    """Each run's group label with its tuning study ("adam, tuning study 2: learning_rate=0.0044");
+    the labels' (variant, study) for design_styles."""
+    design = {}
+    for run in runs:
+        study = study_of(run)
+        settings = (run.label or run.variant).removeprefix(run.variant).strip()
+        run.label = f"{run.variant}, tuning study {study}" + (f": {settings}" if settings else "")
+        design[run.label] = (run.variant, study)
+    return design
 
 
 def summary_lines(
@@ -310,7 +346,8 @@ def summary_lines(
             "compare sets it (--threshold sets one)"
         )
     per_scene = "; ".join(
-        f"{scene}: common time {fmt(common.get(scene, math.nan))} s, target "
+        f"{scene}: common time {fmt(common.get(scene, ('', math.nan))[1])} s "
+        f"({CLOCK_WORDS.get(common.get(scene, ('wall_time',))[0])}), target "
         f"{fmt(threshold if threshold is not None else limits.get(scene, math.nan))}"
         for scene in scenes
     )
@@ -323,17 +360,18 @@ def summary_lines(
         "over the completed seeds, the loss at the common time over the seeds that got there, "
         "s/iter over all; "
         "loss at common time: the last evaluation at or before the shortest training time of the "
-        "scene's "
-        "completed runs (as physgrad compare reads a budget: physgrad.readout), so every variant "
-        "is compared at equal training time; time to target: "
+        "scene's completed runs (as physgrad compare reads a budget: physgrad.readout), on the "
+        "clock their budgets were on (the calibrated clock where every run's was, as in the "
+        "verdicts; the measured clock otherwise), so every variant is compared at equal training "
+        "time; time to target: "
         f"median training seconds until the test loss first reached {threshold_text}, over the "
         f"seeds that did (n/N when not all). {per_scene}.",
         "",
         "Per seed:",
         "",
         markdown_table(rows, PER_SEED + tuple(names)),
-        "Times are training seconds (steps only: compilation and the first step's one-off cost "
-        "are apart, in "
+        "Times are training seconds (steps only; train_seconds on the measured clock whatever "
+        "the budget's: compilation and the first step's one-off cost are apart, in "
         "compile_seconds and runs.csv); a run started from another's network counts from where "
         "that run ended on the common time axis, and from its own start in train_seconds.",
     ]

@@ -17,6 +17,7 @@ import numpy as np  # noqa: E402
 from matplotlib.ticker import FixedLocator, FuncFormatter, NullLocator  # noqa: E402
 
 from physgrad.plots import (  # noqa: E402
+    design_styles,
     group_styles,
     legend_outside,
     limit_to,
@@ -41,11 +42,19 @@ X_LABELS = {
 
 
 def write_figures(
-    runs: list[Run], out: Path, note: str, logx: str, thresholds: dict[str, float]
+    runs: list[Run],
+    out: Path,
+    note: str,
+    logx: str,
+    thresholds: dict[str, float],
+    design: dict | None = None,
 ) -> list[str]:
-    """The report's figures (PNG and PDF) in one style per group across all of them; the PNG names
-    written."""
-    styles = group_styles(run.label or run.variant for run in runs)
+    """The report's figures (PNG and PDF) in one style per group across all of them: by variant
+    and tuning study where the design (label -> (variant, study)) is given (design_styles), else
+    group_styles; the PNG names written."""
+    styles = (
+        design_styles(design) if design else group_styles(run.label or run.variant for run in runs)
+    )
     plot_comparison(runs, out / "loss_vs_time", "wall_time", note, logx, styles)
     plot_comparison(runs, out / "loss_vs_iteration", "iteration", note, logx, styles)
     figures = [f"{name}.png" for name in FIGURES[:2]]

@@ -42,7 +42,7 @@ def plot_sensitivity(
         ok = np.isfinite(loss)
         for k in range(len(best)):
             mine = ok & (study == k)
-            label = "trial" if len(best) == 1 else f"trial, study {k}"
+            label = "trial" if len(best) == 1 else f"trial, tuning study {k + 1}"
             ax.scatter(lr[mine], loss[mine], s=18, color=f"C{2 * k}", label=label)
         if (~ok).any():
             top = loss[ok].max() * 2 if ok.any() else 1.0

@@ -16,8 +16,10 @@ study folder, and resumes where it stopped when the same command runs again:
    random vector of the study's own, the same for every variant; an Optuna study per variant and
    study in tuning.journal); each trial is scored by its VALIDATION loss at the budget;
 2. evaluation: each variant at its best trial's settings on compare.seeds paired seeds of the
-   study's own (trained together in one vectorised step when the budget is in iterations; one job
-   per seed, variants interleaved, for time budgets);
+   study's own (trained together in one vectorised step when the budget is in iterations or on
+   the calibrated clock; one job per seed, variants interleaved, on the measured clock
+   (compare.clock=measured), for a rule that searches a line and for networks continued with
+   init_from);
 3. the verdicts (physgrad.verdict) from the TEST loss, each holding where 3 of 4 studies (more
    than half) reach it with none against: compare.md, trials.csv, runs.csv, comparisons.csv,
    sensitivity.png and the sweep's report (figures of the curves) under report/ (figures=false:
@@ -28,6 +30,7 @@ docs/protocol.md gives the protocol and its reasons.
 from __future__ import annotations
 
 import os
+import re
 import signal
 import sys
 import time
@@ -36,6 +39,7 @@ from collections.abc import Callable
 from contextlib import ExitStack
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from physgrad.comparison.calibration import calibrated_clock
 from physgrad.comparison.evaluation import evaluation
@@ -57,6 +61,9 @@ from physgrad.comparison.tuning import tuning
 from physgrad.errors import UserError
 from physgrad.interrupts import raise_interrupt
 from physgrad.verdict import seeds_needed
+
+if TYPE_CHECKING:
+    from physgrad.results import Run
 
 
 @dataclass
@@ -142,7 +149,7 @@ def run_study(
         runs, comparisons, trials, verdicts, text = analyse(
             folder, variants, best, curves, statuses, settings, axis, budget, rows, calibration
         )
-        write_curves_report(folder, say, figures)
+        write_curves_report(folder, say, figures, studies=settings.study_count)
     return Study(folder, trials, runs, comparisons, verdicts, text)
 
 
@@ -174,9 +181,26 @@ def _warn_if_undecidable(settings: StudySettings, count: int, say: Callable[[str
         )
 
 
-def write_curves_report(folder: Path, say: Callable[[str], object], figures: bool = True) -> None:
+EVAL_JOB = re.compile(r"eval_(?:st(\d+)_)?v\d+(?:_s\d+)?")
+
+
+def tuning_study(run: Run) -> int:
+    """The tuning study (1, 2, ...) whose evaluation job wrote the run, from its job folder's name
+    (evaluation.evaluation_job: eval_v0 for the first, eval_st1_v0 for the second); 1 where the
+    path names none."""
+    for part in reversed(Path(run.path).parts):
+        found = EVAL_JOB.fullmatch(part.rpartition("=")[2])  # +compare_job=eval_st1_v0
+        if found:
+            return int(found.group(1) or 0) + 1
+    return 1
+
+
+def write_curves_report(
+    folder: Path, say: Callable[[str], object], figures: bool = True, studies: int = 1
+) -> None:
     """The sweep's report (its tables and, with figures, the evaluation curves) under
-    folder/report; a failure is said, not raised."""
+    folder/report, each group labelled with its tuning study where there are several; a failure
+    is said, not raised."""
     try:
         from physgrad.files import make_folder
         from physgrad.report import write_report
@@ -184,7 +208,12 @@ def write_curves_report(folder: Path, say: Callable[[str], object], figures: boo
         out = make_folder(folder / "report")  # a link planted there is refused, not written into
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
-            write_report([folder / "eval"], out_dir=out, figures=figures)
+            write_report(
+                [folder / "eval"],
+                out_dir=out,
+                figures=figures,
+                study_of=tuning_study if studies > 1 else None,
+            )
     except (UserError, OSError, ValueError) as error:
         say(f"report of the curves not written: {error}")
 

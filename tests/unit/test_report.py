@@ -28,6 +28,7 @@ def fake_run(
     trainer=None,
     metrics=None,
     attrs=None,
+    calibrated=None,
 ):
     config = yaml.safe_dump(
         {
@@ -54,7 +55,14 @@ def fake_run(
     )
     for i, t in enumerate(eval_time):
         writer.append(
-            "train", {"iteration": i, "wall_time": t + 0.5, "loss": eval_loss[i], "grad_norm": 1.0}
+            "train",
+            {
+                "iteration": i,
+                "wall_time": t + 0.5,
+                "loss": eval_loss[i],
+                "grad_norm": 1.0,
+                **({"calibrated_time": calibrated[i]} if calibrated else {}),
+            },
         )
         writer.append(
             "eval",
@@ -62,6 +70,7 @@ def fake_run(
                 "iteration": i,
                 "wall_time": t,
                 "loss": eval_loss[i],
+                **({"calibrated_time": calibrated[i]} if calibrated else {}),
                 **{k: v[i] for k, v in (metrics or {}).items()},
             },
         )
@@ -150,6 +159,48 @@ def test_loss_at_common_time_uses_only_evaluations_before_it(tmp_path):
     assert loss_at(run) == 0.01  # at its own budget, trainer.time_budget=6
 
 
+def test_the_common_time_is_on_the_clock_the_budgets_were_on(tmp_path):
+    """A compare on the calibrated clock: its report reads the loss at the common time on that
+    clock, as the verdict does, not on the measured one (where a slow-stepping rule that ended
+    lower reads higher: soap 1.29 against its final 0.000934); a scene with a run on the measured
+    clock stays on the measured clock, and the report says which."""
+    budget = {"time_budget": 2.0, "clock": "calibrated"}
+    # adam: measured and calibrated alike; soap: 3x slower measured than its calibrated cost
+    fake_run(
+        tmp_path / "a",
+        "adam",
+        0,
+        1,
+        [1.0, 0.5, 0.1],
+        [0.0, 1.0, 2.0],
+        trainer=budget,
+        calibrated=[0.0, 1.0, 2.0],
+    )
+    fake_run(
+        tmp_path / "s",
+        "soap",
+        0,
+        1,
+        [1.0, 0.2, 0.01],
+        [0.0, 3.0, 6.0],
+        trainer=budget,
+        calibrated=[0.0, 1.0, 2.0],
+    )
+    runs, _, _ = collect([tmp_path])
+    label_runs(runs)
+    rows = {r["variant"]: r for r in run_rows(runs)}
+    assert rows["soap"]["common_clock"] == "calibrated clock"
+    assert rows["soap"]["common_time"] == 2.0  # both ended at 2 calibrated seconds
+    assert rows["soap"]["loss_at_common_time"] == 0.01 == rows["soap"]["test_loss_at_1"]
+    assert rows["adam"]["loss_at_common_time"] == 0.1
+    fake_run(tmp_path / "m", "gd", 0, 1, [1.0, 0.9], [0.0, 1.0], trainer={"time_budget": 1.0})
+    runs, _, _ = collect([tmp_path])
+    label_runs(runs)
+    rows = {r["variant"]: r for r in run_rows(runs)}
+    assert {r["common_clock"] for r in rows.values()} == {"measured clock"}
+    assert rows["soap"]["loss_at_common_time"] == 1.0  # 1.5 measured s: only its start
+
+
 @pytest.mark.parametrize("make", ["missing", "empty", "unreadable", "unwritable_out"])
 def test_bad_report_input_is_one_line(tmp_path, make, capsys):
     from physgrad.cli import main
@@ -181,3 +232,36 @@ def test_figure_axes_read_well():
     labels = [t.get_text() for t in ax.get_yticklabels() if t.get_text()]
     assert labels and all(len(label) <= 5 and "10^" not in label for label in labels), labels
     plt.close(fig)
+
+
+def test_a_compare_s_groups_name_their_tuning_study_colour_by_variant_and_style_by_study(
+    tmp_path,
+):
+    """3 variants x 2 tuning studies: each group's label says its variant, its tuning study (from
+    the evaluation job's folder) and its tuned value; a variant has one colour in every study and a
+    study one line style and marker in every variant, none of them the diverged mark."""
+    from physgrad.comparison.study import tuning_study
+    from physgrad.plots import design_styles
+    from physgrad.report import _label_studies
+
+    for k, prefix in enumerate(("", "st1_")):
+        for index, variant in enumerate(("adam", "gd", "hig")):
+            folder = tmp_path / f"+compare_job=eval_{prefix}v{index}" / f"seed={k}"
+            rate = 0.01 * (k + 1) * (index + 1)
+            fake_run(folder, variant, k, 1, [1.0, 0.5], [0.0, 1.0], optim={"learning_rate": rate})
+    runs, _, _ = collect([tmp_path])
+    label_runs(runs)
+    design = _label_studies(runs, tuning_study)
+    assert sorted(design) == [
+        f"{v}, tuning study {k}: learning_rate={0.01 * k * (i + 1):g}"
+        for i, v in enumerate(("adam", "gd", "hig"))
+        for k in (1, 2)
+    ]
+    styles = design_styles(design)
+    by = {design[label]: style for label, style in styles.items()}
+    for v in ("adam", "gd", "hig"):
+        assert by[(v, 1)]["color"] == by[(v, 2)]["color"]
+        assert by[(v, 1)]["linestyle"] != by[(v, 2)]["linestyle"]
+    assert len({by[(v, 1)]["color"] for v in ("adam", "gd", "hig")}) == 3
+    assert len({by[("adam", k)]["linestyle"] for k in (1, 2)}) == 2
+    assert all(design_styles({"x": ("a", k)})["x"]["marker"] != "^" for k in range(1, 13))
