@@ -73,6 +73,32 @@ def test_signals_in_bursts_at_random_instants_always_end_interrupted(tmp_path):
         assert run.train.get("iteration", np.empty(0)).tolist() == list(range(outcome.iterations))
 
 
+def test_a_run_stopped_by_one_signal_keeps_the_held_out_loss_it_reached(tmp_path):
+    """Ctrl-C between evaluations (one every 10^6 iterations here): the run ends interrupted with
+    a last evaluation at the iteration it stopped at, so its held-out loss is not the one of its
+    start."""
+    from physgrad.experiment import prepare
+    from physgrad.interrupts import stop_on_signals
+    from physgrad.runner import TrainerSettings, train
+
+    cfg = load("task=toy", "trainer.eval_every=1000000")
+    settings = TrainerSettings.from_config(cfg.trainer)
+    settings = dataclasses.replace(settings, iterations=None, time_budget=60.0)
+    scene, rule, seeds = prepare(cfg, [0], settings)
+    writer = ResultsWriter(tmp_path / "results.h5", {"task": "toy", "optim": "adam", "seed": 0})
+    with stop_on_signals() as stop:
+        timer = threading.Timer(4.0, os.kill, (os.getpid(), signal.SIGINT))
+        timer.start()
+        (outcome,) = train(scene, rule, seeds, [writer], settings, stop=stop)
+        timer.join()
+    run = read_run(writer.path)
+    assert outcome.status == run.attrs["status"] == "interrupted"
+    evaluated = run.eval["iteration"].tolist()
+    assert evaluated[-1] == outcome.iterations == outcome.final_eval["iteration"]
+    assert outcome.iterations > 10 and evaluated == [0, outcome.iterations]
+    assert np.isfinite(run.eval["loss"][-1]) and run.eval["loss"][-1] < run.eval["loss"][0]
+
+
 def test_a_completed_file_is_replaced_only_by_a_completed_one(tmp_path):
     first, path = run_experiment_in(tmp_path)
     kept = read_run(path).attrs["created"]
