@@ -55,11 +55,12 @@ EXACT_RTOL = 1e-9  # two exact computations of the same value (scan against loop
 @dataclass(frozen=True)
 class Check:
     name: str
-    passed: bool
+    passed: bool | None  # None: not checked on this scene (detail says why)
     detail: str
 
     def line(self) -> str:
-        return f"{'ok  ' if self.passed else 'FAIL'}  {self.name}: {self.detail}"
+        mark = "skip" if self.passed is None else "ok  " if self.passed else "FAIL"
+        return f"{mark}  {self.name}: {self.detail}"
 
 
 def relative_error(a: Pytree, b: Pytree) -> float:
@@ -208,9 +209,15 @@ def _check_scene(cfg: DictConfig) -> list[Check]:
     checks.append(_deterministic_check(cfg, scene, seeds, params, batch, loss))
     if scene.dynamics is not None:
         checks.append(_rollout_check(scene, params, batch, y))
+    else:
+        why = "the scene steps no dynamics (Scene.dynamics is None): nothing is unrolled"
+        checks.append(Check("rollout", None, f"not checked: {why}"))
     tighter = functools.cache(lambda: _tighter_scene(cfg))
     for mode in ["R", "M", "S"] if scene.closed_loop else ["R"]:
         checks.append(_gradient_check(scene, params, batch, mode, tighter))
+    if not scene.closed_loop:
+        why = "an open-loop scene: gradient stopping (M, S, C) applies to closed loops only"
+        checks.append(Check("gradient M and S", None, f"not checked: {why}"))
     # every scene, closed loops included: Gauss-Newton and HIG apply there too (through the
     # regular gradient's Jacobian), so a check that said nothing of them would be a silent skip
     try:
@@ -543,9 +550,12 @@ def check_one_scene(overrides: list[str], config_dirs: list[str]) -> int:
     checks = check_scene(cfg)
     for check in checks:
         print(check.line())
-    failed = [check.name for check in checks if not check.passed]
+    failed = [check.name for check in checks if check.passed is False]
+    skipped = [check.name for check in checks if check.passed is None]
+    ran = len(checks) - len(skipped)
     print(
-        f"task={cfg.task.get('name')}: {len(checks) - len(failed)} of {len(checks)} checks passed"
+        f"task={cfg.task.get('name')}: {ran - len(failed)} of {ran} checks passed"
         + (f"; failed: {', '.join(failed)}" if failed else "")
+        + (f"; not checked (see above): {', '.join(skipped)}" if skipped else "")
     )
     return 1 if failed else 0
