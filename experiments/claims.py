@@ -29,6 +29,7 @@ import numpy as np
 from claim_list import CLAIMS, load_claims  # noqa: F401 - experiments/; load_claims: tests
 from claims_tuned import tuned_table
 from regime_map import regime_map
+from scene_kinds import scene_kinds_block
 from studies import GPU, MAP, PROFILES, STUDIES, Study, where_it_runs
 from study_runs import StudyRuns, keep_studies, read_study, study_protocol, uncommitted_note
 
@@ -403,6 +404,7 @@ def evidence_block(root: Path) -> str:
         f"{'; '.join(machines) or '-'}{uncommitted_note(root)}. A claim without evidence says "
         '"not run yet" and where it runs. X is a study\'s budget; bold, the verdict at X.\n\n'
         + headline_table(root, studies, further)
+        + scene_kinds_block(root)
         + "\nEvery part of the claims run so far (tuned and with the presets):\n\n"
         + claims_table(root, studies, only_run=True)
         + tuned_table(root)

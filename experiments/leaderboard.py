@@ -61,6 +61,7 @@ from leaderboard_scenes import (
     SCENES,
     WHY_IT_MAY_DIFFER,
 )
+from scene_kinds import KINDS, both_pages_line, kinds_table, read_kinds
 from studies import STUDY_FOLDER
 from study_runs import read_study, study_overrides
 
@@ -261,8 +262,9 @@ def cell_text(cell: Cell, scene_studies: int = 0, to: str = "") -> str:
     )
 
 
-def page(found: dict, image: str) -> str:
-    """docs/leaderboard.md's text."""
+def page(found: dict, image: str, root: Path | None = None) -> str:
+    """docs/leaderboard.md's text (root: the evidence, whose kept calibrations give the scenes'
+    step costs)."""
     lines = [
         "# Leaderboard: which update rule, for which physics",
         "",
@@ -305,7 +307,7 @@ def page(found: dict, image: str) -> str:
                     ran = len(runs.tuning or (runs,))
                     row.append(cell_text(cell, ran, link(entry.name, rule)) if cell else "not run")
             lines.append(f"| {rule} | " + " | ".join(row) + " |")
-        lines += ["", "## The scenes and their budgets", ""]
+        lines += ["", "## The scenes and their budgets", "", *scene_kind_lines(scenes, root), ""]
         for entry in scenes:
             lines += scene_budget_lines(entry, *found[entry.name][1:])
         scheduled = scheduled_cost_line(
@@ -326,6 +328,25 @@ def page(found: dict, image: str) -> str:
             "Not run yet: " + ", ".join(f"{e.title} (`{e.name}`)" for e in missing) + ".",
         ]
     return "\n".join(lines + literature_lines(found)) + "\n"
+
+
+LEADERBOARD_KINDS = {
+    "ks": "ks_small"
+}  # a scene's name here -> its row in scenes.csv, where it differs
+
+
+def scene_kind_lines(scenes, root: Path | None) -> list[str]:
+    """What kind of problem each scene is (experiments/scene_kinds.py), and why a scene on both
+    this page and the claims' may have other verdicts there."""
+    rows = [
+        (
+            LEADERBOARD_KINDS.get(e.name, e.name),
+            e.title,
+            root / CLOCK.format(name=e.name) if root is not None else None,
+        )
+        for e in scenes
+    ]
+    return [kinds_table(rows, read_kinds(KINDS)), both_pages_line("leaderboard")]
 
 
 def scene_budget_lines(entry, runs, about: dict) -> list[str]:
@@ -406,7 +427,7 @@ def write(root: Path, out: Path) -> str:
     out.mkdir(parents=True, exist_ok=True)
     if found:
         plot(found, out / "leaderboard")
-    text = page(found, "leaderboard.png")
+    text = page(found, "leaderboard.png", root)
     # through the write door: a link at a page's name, or at its folder, is not written through
     replace_file(out / "leaderboard.md", text.encode())
     make_folder(out / FOLDER)

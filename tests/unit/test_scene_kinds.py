@@ -1,0 +1,67 @@
+"""Unit layer of the tests of: the scenes' kinds on the claims and leaderboard pages
+(experiments/scene_kinds.py): the kept table is what building the scenes gives, is read as data,
+and renders each scene's loop, batch, parameters and step costs."""
+
+import json
+import sys
+
+import pytest
+
+from tests.helpers import REPO
+
+sys.path.insert(0, str(REPO / "experiments"))
+import scene_kinds  # noqa: E402
+
+from physgrad.errors import UserError  # noqa: E402
+
+
+@pytest.mark.parametrize("key", ["toy", "oscillator", "cart_4"])
+def test_the_kept_rows_are_what_building_the_scene_gives(key):
+    """Rebuilt (no training), the scene's row is the committed one: nothing in the table is
+    typed by hand. (Three cheap scenes here; `--keep` rebuilds all.)"""
+    kind = next(k for k in scene_kinds.SCENES if k.key == key)
+    kept = scene_kinds.read_kinds(scene_kinds.KINDS)[key]
+    measured = {k: str(v) for k, v in scene_kinds.measure(kind).items()}
+    assert measured == kept
+
+
+@pytest.mark.parametrize(
+    "text, why",
+    [
+        ("scene,loop\ntoy,none\n", "columns"),
+        ("scene,loop,unroll,batch,train_size,parameters\ntoy,x,,64,,1e9\n", "parameters"),
+        ("scene,loop,unroll,batch,train_size,parameters\ntoy,x,,-1,,30\n", "batch"),
+    ],
+)
+def test_a_damaged_kinds_table_is_one_line(tmp_path, text, why):
+    path = tmp_path / "scenes.csv"
+    path.write_text(text)
+    with pytest.raises(UserError, match=why):
+        scene_kinds.read_kinds(path)
+
+
+def test_the_table_gives_step_costs_in_adam_steps_and_says_where_there_are_none(tmp_path):
+    clock = tmp_path / "x.calibration.json"
+    costs = {"adam": 0.002, "gauss_newton": 0.02, "hig": 0.03}
+    clock.write_text(json.dumps({"costs": {r: {"step_seconds": s} for r, s in costs.items()}}))
+    kinds = {
+        "a": {
+            "loop": "closed",
+            "unroll": "5",
+            "batch": "8",
+            "train_size": "256",
+            "parameters": "1200",
+        },
+        "b": {
+            "loop": "one solve",
+            "unroll": "",
+            "batch": "64",
+            "train_size": "",
+            "parameters": "30",
+        },
+    }
+    table = scene_kinds.kinds_table([("a", "A", clock), ("b", "B", None), ("c", "C", None)], kinds)
+    lines = table.splitlines()
+    assert lines[2] == "| A | closed (5) | 8 of 256 | 1,200 | 2 | 10-15 |"
+    assert lines[3] == "| B | one solve | 64 of fresh samples | 30 | - | - |"
+    assert len(lines) == 4  # a scene without a kept row is left out, not invented
