@@ -10,11 +10,8 @@ import numpy as np
 from leaderboard_detail import MARKS, _r  # experiments/
 from leaderboard_scenes import LEADERBOARD_STUDIES, RULES, SCENES
 
+from physgrad.comparison.coverage import FEW_STEPS  # noqa: F401 - a cell on fewer is marked
 from physgrad.verdict import A_BETTER, B_BETTER, EQUIVALENT, MARGIN
-
-# a cell decided on fewer steps than this is marked: in so few steps a rule's step cost on the
-# machine decides it, not what the rule does with a step
-FEW_STEPS = 100
 
 
 def plot(found: dict, path: Path) -> None:

@@ -1,9 +1,9 @@
 """The PBDL book's figure of the badly scaled toy, from the runs of
 conf/experiment/toy_scaling.yaml: toy_book.png, one row per lambda, three panels each (the book's):
 - the held-out loss against training wall-clock (median over seeds, log scale);
-- the hidden neurons' activations over a grid of inputs: their mean magnitude and spread (each
-  neuron's standard deviation over the inputs, averaged over neurons; shaded), against training
-  wall-clock; saturated neurons show as a magnitude near 1 whose spread collapses;
+- the hidden neurons' activations over a grid of inputs: their mean magnitude and the share of
+  them saturated (beyond 0.99 in magnitude), against training time (the calibrated clock where the
+  runs had it, as a study's budget; seeds trained together share one measured clock);
 - the physical output (y1, lambda y2) at the probe input x = 0.3 in y-space, its path over training
   from the initial network (light grey) to the end, and the target yhat (black).
 and toy_book.md: each variant's final loss, spread and share of saturated neurons per lambda.
@@ -41,13 +41,26 @@ def collect(folders: list[Path]) -> dict[float, dict[str, list[Run]]]:
     return table
 
 
-def on_grid(runs: list[Run], values, grid: np.ndarray) -> np.ndarray:
-    """The median over runs of values(run), each interpolated onto a common wall-clock grid (NaN
-    past a run's end)."""
+def clock_of(runs: list[Run]) -> str:
+    """The time axis every run has: the calibrated clock where all ran on it (a study's budget:
+    seeds trained together share the measured clock, so it counts their job, not a run), else
+    the measured one."""
+    return "calibrated_time" if all("calibrated_time" in r.eval for r in runs) else "wall_time"
+
+
+CLOCK_LABELS = {
+    "calibrated_time": "training time, calibrated clock (s)",
+    "wall_time": "training wall-clock (s)",
+}
+
+
+def on_grid(runs: list[Run], values, grid: np.ndarray, clock: str = "wall_time") -> np.ndarray:
+    """The median over runs of values(run), each interpolated onto a common time grid on the
+    clock (NaN past a run's end)."""
     rows = [
-        np.interp(grid, run.eval["wall_time"], values(run), right=np.nan)
+        np.interp(grid, run.eval[clock], values(run), right=np.nan)
         for run in runs
-        if run.eval["wall_time"].size
+        if run.eval[clock].size
     ]
     return np.nanmedian(rows, axis=0) if rows else np.full(grid.shape, np.nan)
 
@@ -62,34 +75,32 @@ def plot(table: dict, path: Path, note: str) -> None:
     figure, axes = plt.subplots(len(scales), 3, figsize=(13, 3.6 * len(scales)), squeeze=False)
     target = np.array([np.sin(6 * PROBE), np.cos(9 * PROBE)])
     for row, scale in zip(axes, scales):
-        end = max(r.eval["wall_time"][-1] for runs in table[scale].values() for r in runs)
+        clock = clock_of([r for runs in table[scale].values() for r in runs])
+        end = max(r.eval[clock][-1] for runs in table[scale].values() for r in runs)
         grid = np.linspace(0.0, end, 200)
         for variant, runs in sorted(table[scale].items()):
             colour = COLOURS.get(variant)
-            loss = on_grid(runs, lambda r: r.eval["loss"], grid)
+            loss = on_grid(runs, lambda r: r.eval["loss"], grid, clock)
             diverged = sum(r.attrs.get("status") == "diverged" for r in runs)
             label = f"{variant} ({len(runs)} seeds" + (
                 f", {diverged} diverged)" if diverged else ")"
             )
             row[0].plot(grid, loss, color=colour, label=label)
-            mean = on_grid(runs, lambda r: r.eval["hidden_magnitude"], grid)
-            width = on_grid(runs, lambda r: r.eval["hidden_spread"], grid)
+            mean = on_grid(runs, lambda r: r.eval["hidden_magnitude"], grid, clock)
+            saturated = on_grid(runs, lambda r: r.eval["hidden_saturated"], grid, clock)
             row[1].plot(grid, mean, color=colour, label=variant)
-            low, high = np.maximum(mean - width, 0.0), np.minimum(mean + width, 1.0)
-            row[1].fill_between(grid, low, high, color=colour, alpha=0.2)
+            row[1].plot(grid, saturated, "--", color=colour)
             first = min(runs, key=lambda r: int(r.attrs.get("seed", 0)))
             row[2].plot(
                 first.eval["probe_y1"], first.eval["probe_y2"], ".-", color=colour, ms=3, lw=0.8
             )
             row[2].plot(first.eval["probe_y1"][0], first.eval["probe_y2"][0], "o", color="0.8")
         row[0].set_yscale("log")
-        row[0].set(xlabel="training wall-clock (s)", ylabel="held-out loss")
-        row[0].set_title(f"lambda = {scale:g}: loss")
+        row[0].set(xlabel=CLOCK_LABELS[clock], ylabel="held-out loss")
+        row[0].set_title(f"lambda = {scale:g}: loss (median over seeds)")
         row[0].legend(fontsize=8)
-        row[1].set(
-            xlabel="training wall-clock (s)", ylabel="|hidden activation|", ylim=(-0.05, 1.05)
-        )
-        row[1].set_title("neuron activations: mean |h| and spread")
+        row[1].set(xlabel=CLOCK_LABELS[clock], ylabel="hidden activations", ylim=(-0.05, 1.05))
+        row[1].set_title("mean |h| (solid), share saturated, |h| > 0.99 (dashed)")
         row[2].plot(*target, "ko", ms=8, label="target")
         # a window around the target: a step that jumps far out shows as a line leaving it
         row[2].set(

@@ -12,7 +12,11 @@ compare.md after, where the trial points leave out what a verdict silently relie
 - every variant tuned to the same point of its range in every tuning study (compare.md only): the
   tuned values are the shared grid, not a search that told the rules apart;
 - a tuned value in the outer tenth of its range (compare.md only): the best may lie beyond it,
-  unless the edge is a plateau, which a note says instead.
+  unless the edge is a plateau, which a note says instead;
+- a variant that gets fewer than FEW_STEPS steps in a time budget (from its measured step in
+  `--plan`, from its runs' iterations in compare.md): its verdict says more about what a step
+  costs on this machine than about where the rule goes; the note gives the budget that would
+  give it that many.
 
 A verdict between tuned variants is only as good as their tuning (docs/protocol.md); these say where
 the tuning was too thin to trust it, in the numbers of the study itself.
@@ -31,6 +35,32 @@ DECADE = 1.0  # the widest untried stretch of a log range that passes unremarked
 # points per decade of a range, over all tuning studies, below which the grid is called coarse: a
 # point every 1/6 decade places a tuned value within about 20% of the grid's best
 PER_DECADE = 6
+# steps of a rule in a time budget below which its verdict is one about its step's cost (a Jacobian
+# rule's step can cost hundreds of Adam's): said in --plan, compare.md and the leaderboard
+FEW_STEPS = 100
+
+
+def few_steps_lines(steps: Mapping[str, float], budget: float) -> list[str]:
+    """A note per variant with fewer than FEW_STEPS steps in a time budget of `budget` seconds
+    (steps: variant -> its steps in it, expected or run), with the budget that gives it that
+    many."""
+    lines = []
+    for name, count in steps.items():
+        if math.isfinite(count) and count < FEW_STEPS:
+            needed = budget * FEW_STEPS / max(count, 1.0)
+            lines.append(
+                f"note: {name} gets about {count:.0f} steps in the budget of {budget:g} s, "
+                f"fewer than {FEW_STEPS}: a verdict on it says more about what its step costs on "
+                "this machine than about where the rule goes (trainer.time_budget="
+                f"{_round_up(needed)} gives it about {FEW_STEPS})"
+            )
+    return [""] + lines if lines else []
+
+
+def _round_up(seconds: float) -> str:
+    """A budget rounded up to two significant figures."""
+    digits = 10 ** max(0, math.floor(math.log10(seconds)) - 1)
+    return f"{math.ceil(seconds / digits) * digits:g}"
 
 
 def planned_points(plan: StudyPlan) -> dict[str, dict[str, list[float]]]:

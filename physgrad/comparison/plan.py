@@ -9,7 +9,7 @@ import statistics
 import time
 from dataclasses import dataclass
 
-from physgrad.comparison.coverage import coverage_lines, planned_points
+from physgrad.comparison.coverage import coverage_lines, few_steps_lines, planned_points
 from physgrad.comparison.spec import StudyPlan, Variant
 from physgrad.readout import fmt
 
@@ -334,6 +334,11 @@ def plan_text(
             f"| {c.name} | {fmt(c.compile_seconds)} s | {fmt(c.step_seconds)} s | "
             f"{c.tuning_runs}, {_duration(c.tuning_seconds)} | {c.evaluation_jobs}, "
             f"{_duration(c.evaluation_seconds)} | {_duration(c.seconds)} |"
+        )
+    if plan.axis != "iteration":
+        lines += few_steps_lines(
+            {c.name: plan.budget / c.step_seconds for c in costs if c.step_seconds > 0},
+            plan.budget,
         )
     lines += power_lines(plan)
     if settings.tune:  # the points are known before anything runs

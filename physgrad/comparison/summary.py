@@ -15,6 +15,7 @@ from physgrad.comparison.clock_text import busy_calibration, timing_lines
 from physgrad.comparison.coverage import (
     coverage_lines,
     edge_lines,
+    few_steps_lines,
     same_point_line,
     tried_values,
 )
@@ -100,6 +101,8 @@ def analyse(
             table.to_csv(f, index=False)
 
     lines = verdict_lines(variants, runs, verdicts, settings, axis, budget, calibration)
+    if axis != "iteration" and len(runs):  # a verdict from a handful of a rule's steps
+        lines += few_steps_lines(runs.groupby("variant")["iterations"].median().to_dict(), budget)
     searched = (
         coverage_lines(variants, tried_values(trials_rows), settings.trials, settings.study_count)
         + same_point_line(variants, best)

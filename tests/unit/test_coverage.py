@@ -172,3 +172,17 @@ def test_the_plan_says_what_it_does_on_stderr_unless_quiet(capsys, monkeypatch):
     monkeypatch.setenv("PHYSGRAD_QUIET", "1")
     say_progress("plan: compiling and timing gd (2 of 2)")
     assert capsys.readouterr().err == ""
+
+
+def test_a_variant_with_fewer_than_100_steps_in_the_budget_is_said_with_the_budget_it_needs():
+    """HIG at 1.46 s a step in a 15 s budget: about 10 steps, and the budget for 100 (146 s,
+    rounded up to 150); Adam's 7,000 steps and a variant with no measured step say nothing."""
+    from physgrad.comparison.coverage import FEW_STEPS, few_steps_lines
+
+    lines = few_steps_lines({"adam": 7000.0, "hig": 15 / 1.46, "gone": math.nan}, 15.0)
+    assert lines[0] == "" and len(lines) == 2
+    assert lines[1].startswith("note: hig gets about 10 steps in the budget of 15 s, fewer than 100")
+    assert "trainer.time_budget=150 gives it about 100" in lines[1]
+    assert few_steps_lines({"hig": FEW_STEPS}, 15.0) == []  # 100 is enough
+    assert "time_budget=1100 " in few_steps_lines({"kfac": 9.5}, 100.0)[1]  # 1052.6 -> 1100
+    assert "time_budget=1000 " in few_steps_lines({"x": 0.2}, 10.0)[1]  # at least one step
