@@ -1,21 +1,20 @@
 """A study's jobs as config files, run as Hydra multiruns of `physgrad run` into the study folder,
-and read back; and the study folder itself (which study it holds)."""
+and read back (the phase's progress on the console: physgrad.comparison.progress; which study the
+folder holds: physgrad.comparison.study_folder)."""
 
 from __future__ import annotations
 
-import hashlib
-import json
 import os
 import re
 import signal
 import subprocess
 import sys
-import time
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING
 
+from physgrad.comparison.progress import Progress
 from physgrad.errors import UserError
 from physgrad.interrupts import SignalInterrupt, take_lost
 from physgrad.sweeps import STUDY_ENV
@@ -26,115 +25,6 @@ if TYPE_CHECKING:
     from omegaconf import DictConfig
 
     from physgrad.results import Run
-
-# what does not make a study another: its folder, Hydra's settings, the variant the others are
-# compared with (the same runs, read again), and the number of trials and of tuning studies (a
-# finished study given more trials tunes on from where it stopped: the Halton points of n trials
-# begin with those of fewer; given more studies, it adds them)
-NOT_THE_STUDY = ("compare.dir", "compare.trials", "compare.studies", "compare.baseline", "hydra")
-# how a study draws its trial points and seeds; a folder of another protocol is another study.
-# 2: each tuning study its own evaluation seeds and randomly shifted trial points (1, unrecorded:
-# the studies shared their evaluation seeds and scrambled the points within their cells)
-PROTOCOL = 2
-
-
-# --- the study folder
-# --------------------------------------------------------------------------------------
-
-
-def same_study(record: dict | None) -> tuple[list | None, object] | None:
-    """The parts of a study.json record that identify the study."""
-    if not isinstance(record, dict):
-        return None
-    overrides = record.get("overrides")
-    return (
-        [o for o in overrides if not str(o).startswith(NOT_THE_STUDY)]
-        if isinstance(overrides, list)
-        else None,
-        record.get("config_dir"),
-        record.get("protocol", 1),
-    )
-
-
-def configuration_of(configs: list) -> str:
-    """A fingerprint of what the variants' scene and rules are (their composed task, optim and
-    precision settings): the same command given other defaults (physgrad upgraded, a config file
-    edited) is another study, whose earlier tuning and runs must not be resumed."""
-    from omegaconf import OmegaConf
-
-    text = json.dumps(
-        [
-            OmegaConf.to_container(
-                OmegaConf.masked_copy(config, ["task", "optim", "precision"]), resolve=False
-            )
-            for config in configs
-        ],
-        sort_keys=True,
-        default=str,
-    )
-    return hashlib.sha1(text.encode()).hexdigest()[:12]
-
-
-def default_folder(
-    overrides: list[str], config_dir: str | None, task: str, configuration: str = ""
-) -> Path:
-    text = json.dumps(
-        [
-            sorted(o for o in overrides if not o.startswith(NOT_THE_STUDY)),
-            os.path.abspath(config_dir) if config_dir else None,
-            PROTOCOL,  # a study of another protocol gets another folder
-            *([configuration] if configuration else []),  # so do other defaults
-        ]
-    )
-    return Path("outputs") / "compare" / f"{task}-{hashlib.sha1(text.encode()).hexdigest()[:8]}"
-
-
-def record_study(
-    folder: Path, overrides: list[str], config_dir: str | None, configuration: str = ""
-) -> None:
-    """The study's command in folder/study.json; a folder that holds another study is a UserError
-    (the same study given more trials is the same study: its record is updated), and so is one
-    that holds this command run with another configuration (configuration_of; a record without
-    one, written before it was kept, cannot be checked)."""
-    record = {
-        "overrides": [o for o in overrides if not o.startswith(("compare.dir", "hydra"))],
-        "config_dir": os.path.abspath(config_dir) if config_dir else None,
-        "protocol": PROTOCOL,
-        **({"configuration": configuration} if configuration else {}),
-    }
-    from physgrad.files import load_json, read_own_file, replace_file
-
-    stored = folder / "study.json"
-    if os.path.lexists(stored):
-        try:
-            data = read_own_file(stored, 1 << 20)
-        except (OSError, ValueError) as error:
-            raise UserError(f"{error}; remove it or give another compare.dir") from None
-        try:
-            before = load_json(data)
-        except ValueError:
-            before = None
-        stored_study, this_study = same_study(before), same_study(record)
-        if stored_study and stored_study[:2] == this_study[:2] and stored_study != this_study:
-            raise UserError(
-                f"{folder} holds this study run by an earlier physgrad, whose tuning studies "
-                "shared their evaluation seeds: give another compare.dir (or move the folder "
-                "away) to run it with independent studies"
-            )
-        if stored_study != this_study:
-            raise UserError(
-                f"{folder} holds another study "
-                f"({' '.join((before or {}).get('overrides', ['?']))}): give another compare.dir"
-            )
-        if before.get("configuration") not in (None, record.get("configuration")):
-            raise UserError(
-                f"{folder} holds this study run with other settings of its scene or rules (a "
-                "changed default: physgrad upgraded, or a config file edited): give another "
-                "compare.dir (or move the folder away) to run it again"
-            )
-    if not stored.exists() or before != record:  # new, or the same study given more trials
-        replace_file(stored, (json.dumps(record, indent=1) + "\n").encode())
-
 
 # --- jobs as config files
 # ---------------------------------------------------------------------------------
@@ -331,169 +221,6 @@ def launch(
         shutil.rmtree(private, ignore_errors=True)
 
 
-# Hydra's line for each job it launches: "[HYDRA] \t#3 : +compare_job=..."; a job's training
-# progress as the runner logs it without a terminal (physgrad.progress): "toy/hig seed 1000000
-# (+1) iteration 6214, loss 0.007778, 28.5 s of training"
-_EVENT = re.compile(
-    r"\[HYDRA\]\s+#(?P<job>\d+) : "
-    r"|\[HYDRA\] job \S+: (?P<stopped>never started|interrupted)"
-    r"|\] - (?P<label>\S+ seed \d+(?: \(\+\d+\))?) "
-    r"iteration (?P<iteration>\d+), loss (?P<loss>\S+),"
-)
-
-
-@dataclass
-class Progress:
-    """A phase's progress on the console, read from its log as the multirun writes it. On a terminal
-    (stream, default stderr), a bar over the phase's jobs with the running job's loss so far and
-    the time left, redrawn at every look; without one (a log, nohup, a batch job), a line when
-    more of its jobs have started, at most one every `every` seconds, with the same news, so that
-    logs stay readable. Either way one line at the end with the jobs it ran (Hydra launches the
-    jobs of a local sweep one after another, so job k started means k - 1 done). names: the jobs
-    in launch order, where known, so that the time left counts each job at its own variant's pace
-    (a Gauss-Newton job may take ten of Adam's)."""
-
-    phase: str
-    total: int
-    say: Callable[[str], object]
-    names: tuple[str, ...] = ()
-    every: float = 30.0
-    started: int = 0
-    said: int = 0
-    begun: float = field(default_factory=time.monotonic)
-    last: float = field(default_factory=time.monotonic)
-    launched_at: float = 0.0  # when the latest job was seen to start
-    training: str = ""  # the running job's last progress: its label, loss and iteration
-    training_said: str = ""
-    stream: object = None  # where the bar is drawn (None: stderr); no bar unless it is a terminal
-    bar: object = field(default=None, init=False)  # the terminal's bar (tqdm), if there is one
-    took: dict = field(default_factory=dict, init=False)  # a job's kind -> seconds of each done
-    # jobs a stopped sweep names as interrupted or never started (its launcher still logs a
-    # launch line for each, so the launches alone would count them as run)
-    stopped: dict = field(default_factory=dict, init=False)
-
-    def __post_init__(self) -> None:
-        import sys
-
-        from tqdm import tqdm
-
-        bar = tqdm(
-            total=self.total,
-            desc=self.phase,
-            unit="job",
-            file=self.stream if self.stream is not None else sys.stderr,
-            disable=None,  # a bar only on a terminal
-            leave=False,
-            dynamic_ncols=True,
-            bar_format="{desc}: {n}/{total} jobs done |{bar}| {elapsed}{postfix}",
-        )
-        self.bar = None if bar.disable else bar
-
-    def read(self, text: str, final: bool = False) -> None:
-        """Take the log's new text; say where the phase is if it moved on."""
-        now = time.monotonic()
-        for event in _EVENT.finditer(text):
-            if event["job"] is not None and int(event["job"]) + 1 > self.started:
-                if self.started:
-                    kind = self._kind(self.started - 1)
-                    self.took.setdefault(kind, []).append(now - self.launched_at)
-                self.started, self.launched_at, self.training = int(event["job"]) + 1, now, ""
-            elif event["stopped"] is not None:
-                self.stopped[event["stopped"]] = self.stopped.get(event["stopped"], 0) + 1
-            elif event["label"] is not None:
-                self.training = (
-                    f"{event['label']}: loss {event['loss']} at iteration {event['iteration']}"
-                )
-        moved = self.started > self.said
-        minutes = (now - self.begun) / 60
-        if self.bar is not None:
-            ran = min(self.started - (0 if final else 1), self.total) - sum(self.stopped.values())
-            self.bar.n = max(0, ran)
-            news = [
-                f"job {self.started}: {self.training}" if self.training else "",
-                "" if final else self._left(now),
-            ]
-            self.bar.set_postfix_str("; ".join(n.removeprefix("; ") for n in news if n), False)
-            self.bar.refresh()
-            if final:
-                self.bar.close()
-        if final and self.started:
-            ran = min(self.started, self.total) - sum(self.stopped.values())
-            self.say(
-                f"{self.phase}: {ran} of {self.total} jobs run in {minutes:.1f} min"
-                + (
-                    ", then stopped ("
-                    + ", ".join(f"{n} {why}" for why, n in sorted(self.stopped.items()))
-                    + ")"
-                    if self.stopped
-                    else ""
-                )
-            )
-        elif (
-            self.bar is None
-            and (moved or self.training != self.training_said)
-            and now - self.last >= self.every
-        ):
-            self.say(
-                f"{self.phase}: job {min(self.started, self.total)} of {self.total} started, "
-                f"{minutes:.1f} min in"
-                + (f"; {self.training}" if self.training else "")
-                + self._left(now)
-            )
-            self.said, self.last, self.training_said = self.started, now, self.training
-
-    def _kind(self, index: int) -> int | None:
-        """Job index's variant (None where its name does not say, or is not known)."""
-        from physgrad.comparison.spec import variant_index
-
-        try:
-            return variant_index(self.names[index])
-        except (IndexError, AttributeError):  # no name, or one without a variant (calibration)
-            return None
-
-    def _left(self, now: float) -> str:
-        """The time left at the pace of the jobs done (none before one is done, or once all are):
-        each job not done at the mean time of the done jobs of its variant, less what the running
-        one has had; once the running one has had more than that, the time left after it, how
-        long it has run and, where its variant has a done job, how long those took. Jobs of a
-        variant none of whose jobs is done have no pace to count them at: the time is then "at
-        least" and says how many such jobs are left (another variant's pace can be ten times
-        off: a Gauss-Newton job beside Adam's)."""
-        done = self.started - 1
-        if done < 1 or done >= self.total:
-            return ""
-
-        def pace(index: int) -> float | None:
-            times = self.took.get(self._kind(index))
-            return sum(times) / len(times) if times else None
-
-        later = [pace(index) for index in range(self.started, self.total)]
-        after = sum(p for p in later if p is not None)
-        untimed = sum(p is None for p in later)
-        running, expected = now - self.launched_at, pace(done)
-        bound = "at least" if untimed or expected is None else "about"
-        besides = (
-            ""
-            if not untimed
-            else ", and 1 job of a variant not timed yet"
-            if untimed == 1
-            else f", and {untimed} jobs of variants not timed yet"
-        )
-        if expected is not None and running <= expected:
-            return f"; {bound} {_span(expected - running + after)} left{besides}"
-        ran, why = f"{_span(running)} so far", "the first of its variant"
-        if expected is not None:
-            why = f"about {_span(expected)} expected"
-        if untimed and not after:  # "at least 0 s left" would say nothing
-            return f"; the running job {ran} ({why}){besides}"
-        return f"; {bound} {_span(after)} left after the running job ({ran}, {why}){besides}"
-
-
-def _span(seconds: float) -> str:
-    """A duration as the console says it: seconds up to a minute and a half, then minutes."""
-    return f"{seconds:.0f} s" if seconds < 90 else f"{seconds / 60:.1f} min"
-
-
 def _run_multirun(
     command: list[str], log_path: Path, env: dict[str, str], progress: Progress | None = None
 ) -> int:
@@ -648,7 +375,6 @@ def hydra_quoted(value: str) -> str:
     """value as one quoted string of Hydra's override grammar, so that a folder name with a comma,
     a space, brackets or any letter stays one value: a quote is escaped, and so are the backslashes
     before a quote or at the end (Hydra reads other backslashes as they are)."""
-    import re
 
     doubled = re.sub(r"(\\+)(?='|$)", lambda m: m.group(1) * 2, value)
     return "'" + doubled.replace("'", "\\'") + "'"

@@ -44,7 +44,7 @@ from typing import TYPE_CHECKING
 from physgrad.comparison.calibration import calibrated_clock
 from physgrad.comparison.evaluation import evaluation
 from physgrad.comparison.figure import plot_sensitivity
-from physgrad.comparison.jobs import Launcher, configuration_of, default_folder, record_study
+from physgrad.comparison.jobs import Launcher
 from physgrad.comparison.spec import (
     SETTINGS,
     StudyPlan,
@@ -56,6 +56,7 @@ from physgrad.comparison.spec import (
     split_overrides,
     study_settings,
 )
+from physgrad.comparison.study_folder import configuration_of, default_folder, record_study
 from physgrad.comparison.summary import analyse, trial_rows
 from physgrad.comparison.tuning import tuning
 from physgrad.errors import UserError

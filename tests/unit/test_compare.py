@@ -265,14 +265,14 @@ def test_on_a_terminal_a_phase_draws_a_bar_of_its_jobs_and_ends_with_one_line():
     the time left) instead of lines along the way; the end is the same one line as in a log."""
     import io
 
-    import physgrad.comparison.jobs as jobs
+    import physgrad.comparison.progress as console
 
     class Terminal(io.StringIO):
         def isatty(self):
             return True
 
     terminal, said = Terminal(), []
-    progress = jobs.Progress("tune", 6, said.append, every=0, stream=terminal)
+    progress = console.Progress("tune", 6, said.append, every=0, stream=terminal)
     assert progress.bar is not None
     for k in range(4):
         progress.read(
@@ -287,7 +287,7 @@ def test_on_a_terminal_a_phase_draws_a_bar_of_its_jobs_and_ends_with_one_line():
     progress.read("", final=True)
     assert len(said) == 1 and said[0].startswith("tune: 4 of 6 jobs run in ")
     # without a terminal: no bar
-    assert jobs.Progress("tune", 6, said.append, stream=io.StringIO()).bar is None
+    assert console.Progress("tune", 6, said.append, stream=io.StringIO()).bar is None
 
 
 def test_a_stopped_phase_says_the_jobs_it_ran_not_the_ones_its_launcher_skipped():
@@ -295,10 +295,10 @@ def test_a_stopped_phase_says_the_jobs_it_ran_not_the_ones_its_launcher_skipped(
     started"), and names the running one "interrupted": the last line counts neither as run."""
     import io
 
-    import physgrad.comparison.jobs as jobs
+    import physgrad.comparison.progress as console
 
     said = []
-    progress = jobs.Progress("tune", 6, said.append, stream=io.StringIO())
+    progress = console.Progress("tune", 6, said.append, stream=io.StringIO())
     log = "".join(f"[HYDRA] \t#{k} : +compare_job=tune_v{k}\n" for k in range(6))
     log += "[HYDRA] job +compare_job=tune_v3: interrupted: seed #0: SIGINT after 9 iterations\n"
     log += "".join(f"[HYDRA] job +compare_job=tune_v{k}: never started\n" for k in (4, 5))
@@ -316,14 +316,14 @@ def test_the_time_left_counts_each_job_at_its_variants_pace(monkeypatch):
     before a job is done or once all are."""
     import io
 
-    import physgrad.comparison.jobs as jobs
+    import physgrad.comparison.progress as console
 
     clock = [1000.0]
-    monkeypatch.setattr(jobs.time, "monotonic", lambda: clock[0])
+    monkeypatch.setattr(console.time, "monotonic", lambda: clock[0])
     # two tuning studies of a fast variant (v0) and a slow one (v1), in launch order
     names = ("tune_st0_v0_t000-007", "tune_st0_v1_t000-007", "tune_st1_v0_t000-007",
              "tune_st1_v1_t000-007")  # fmt: skip
-    progress = jobs.Progress("tune", 4, [].append, names=names, stream=io.StringIO())
+    progress = console.Progress("tune", 4, [].append, names=names, stream=io.StringIO())
     progress.begun = 1000.0
 
     def launch(job, at):
@@ -340,7 +340,7 @@ def test_the_time_left_counts_each_job_at_its_variants_pace(monkeypatch):
     )
     assert progress._left(1300.0).startswith("; at least 60 s left after the running job (4.0 min")
     # only jobs with no pace after the running one: no "at least 0 s left"
-    alone = jobs.Progress("tune", 3, [].append, names=names[:2] + names[1:2], stream=io.StringIO())
+    alone = console.Progress("tune", 3, [].append, names=names[:2] + names[1:2], stream=io.StringIO())
     alone.started, alone.launched_at, alone.took = 2, 1060.0, {0: [60.0]}
     assert alone._left(1090.0) == (
         "; the running job 30 s so far (the first of its variant), and 1 job of a variant not "
@@ -359,7 +359,7 @@ def test_the_time_left_counts_each_job_at_its_variants_pace(monkeypatch):
     progress.started = 5  # every job done: nothing left to tell
     assert progress._left(2000.0) == ""
     # without names every job is of one kind: the mean of the jobs done
-    plain = jobs.Progress("eval", 3, [].append, stream=io.StringIO())
+    plain = console.Progress("eval", 3, [].append, stream=io.StringIO())
     plain.started, plain.launched_at, plain.begun = 2, 120.0, 0.0
     plain.took = {None: [120.0]}  # as reading the first job's launch after it leaves it
     assert plain._left(150.0) == "; about 3.5 min left"
@@ -372,6 +372,7 @@ def test_a_phase_says_its_progress_from_its_log_without_a_line_per_job(tmp_path,
     import sys
 
     import physgrad.comparison.jobs as jobs
+    import physgrad.comparison.progress as console
 
     monkeypatch.setattr(jobs, "POLL_SECONDS", 0.1)
     script = (
@@ -386,7 +387,7 @@ def test_a_phase_says_its_progress_from_its_log_without_a_line_per_job(tmp_path,
     def phase(every):
         said = []
         log = tmp_path / f"tune-{every}.log"
-        progress = jobs.Progress("tune", 6, said.append, every=every)
+        progress = console.Progress("tune", 6, said.append, every=every)
         assert jobs._run_multirun([sys.executable, "-c", script], log, {}, progress) == 0
         assert log.read_text().count("\t#") == 6  # the log keeps the output whole
         return said
@@ -409,7 +410,7 @@ def test_a_phase_says_its_progress_from_its_log_without_a_line_per_job(tmp_path,
     quiet = []
     log = tmp_path / "q.log"
     jobs._run_multirun(
-        [sys.executable, "-c", "pass"], log, {}, jobs.Progress("eval", 3, quiet.append)
+        [sys.executable, "-c", "pass"], log, {}, console.Progress("eval", 3, quiet.append)
     )
     assert quiet == []
 

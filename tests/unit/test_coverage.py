@@ -181,7 +181,9 @@ def test_a_variant_with_fewer_than_100_steps_in_the_budget_is_said_with_the_budg
 
     lines = few_steps_lines({"adam": 7000.0, "hig": 15 / 1.46, "gone": math.nan}, 15.0)
     assert lines[0] == "" and len(lines) == 2
-    assert lines[1].startswith("note: hig gets about 10 steps in the budget of 15 s, fewer than 100")
+    assert lines[1].startswith(
+        "note: hig gets about 10 steps in the budget of 15 s, fewer than 100"
+    )
     assert "trainer.time_budget=150 gives it about 100" in lines[1]
     assert few_steps_lines({"hig": FEW_STEPS}, 15.0) == []  # 100 is enough
     assert "time_budget=1100 " in few_steps_lines({"kfac": 9.5}, 100.0)[1]  # 1052.6 -> 1100

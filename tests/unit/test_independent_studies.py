@@ -106,7 +106,7 @@ def test_a_folder_of_this_study_under_the_earlier_protocol_is_refused_in_one_lin
     without a protocol) is not resumed under the new one: its runs would mix both."""
     import json
 
-    from physgrad.comparison.jobs import PROTOCOL, record_study
+    from physgrad.comparison.study_folder import PROTOCOL, record_study
 
     overrides = ["task=toy", "optim=adam,gd"]
     (tmp_path / "study.json").write_text(json.dumps({"overrides": overrides, "config_dir": None}))
@@ -152,7 +152,7 @@ def test_the_same_command_with_other_defaults_is_another_study(tmp_path):
 
     from omegaconf import OmegaConf
 
-    from physgrad.comparison.jobs import configuration_of, default_folder, record_study
+    from physgrad.comparison.study_folder import configuration_of, default_folder, record_study
 
     def config(hidden):
         return OmegaConf.create({"task": {"hidden": hidden}, "optim": {"name": "adam"}, "seed": 3})
