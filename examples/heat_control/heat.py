@@ -34,14 +34,15 @@ def build(key, *, grid, alpha, dt, unroll, max_power, hidden, train_size, test_s
             f"use task.dt={0.25 * h**2 / alpha:.3g} or less"
         )
     if grid % 4:
-        raise ValueError(f"task.grid={grid}: the controller averages 4 x 4 blocks; use a multiple of 4")
+        raise ValueError(
+            f"task.grid={grid}: the controller averages 4 x 4 blocks; use a multiple of 4"
+        )
     dtype = jnp.zeros(()).dtype
     x = (jnp.arange(grid, dtype=dtype) + 1) * h
     xx, yy = jnp.meshgrid(x, x, indexing="ij")
-    heaters = jnp.stack(
-        [jnp.exp(-((xx - cx) ** 2 + (yy - cy) ** 2) / 0.02) for cx in (0.3, 0.7) for cy in (0.3, 0.7)]
-    )
-    target = 0.5 * jnp.exp(-(((xx - 0.5) ** 2 + (yy - 0.5) ** 2) / 0.08) ** 2)
+    corners = [(cx, cy) for cx in (0.3, 0.7) for cy in (0.3, 0.7)]
+    heaters = jnp.stack([jnp.exp(-((xx - cx) ** 2 + (yy - cy) ** 2) / 0.02) for cx, cy in corners])
+    target = 0.5 * jnp.exp(-((((xx - 0.5) ** 2 + (yy - 0.5) ** 2) / 0.08) ** 2))
 
     def laplace(t):
         padded = jnp.pad(t, 1)  # the cold edges
@@ -87,5 +88,7 @@ def build(key, *, grid, alpha, dt, unroll, max_power, hidden, train_size, test_s
             readout=lambda final, observed, sample: blocks(final, 2),
         ),
         sample_loss=lambda y, sample: jnp.mean((y - sensed_target) ** 2),
-        sample_metrics=lambda params, sample, y: {"peak_error": jnp.max(jnp.abs(y - sensed_target))},
+        sample_metrics=lambda params, sample, y: {
+            "peak_error": jnp.max(jnp.abs(y - sensed_target))
+        },
     )

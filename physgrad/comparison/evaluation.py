@@ -8,8 +8,9 @@ from __future__ import annotations
 
 from typing import TYPE_CHECKING
 
+from physgrad.comparison.job_names import study_prefix, variant_index
 from physgrad.comparison.jobs import Launcher, cadence, job_runs, job_yaml
-from physgrad.comparison.spec import StudyPlan, StudySettings, Variant, study_prefix, variant_index
+from physgrad.comparison.spec import StudyPlan, StudySettings, Variant
 from physgrad.comparison.tuning import seeds_together
 from physgrad.errors import UserError
 from physgrad.readout import run_curve

@@ -16,7 +16,7 @@ from typing import TYPE_CHECKING
 
 from physgrad.comparison.progress import Progress
 from physgrad.errors import UserError
-from physgrad.interrupts import SignalInterrupt, take_lost
+from physgrad.interrupts import SignalInterrupt, handling_signals, take_lost
 from physgrad.sweeps import STUDY_ENV
 
 if TYPE_CHECKING:
@@ -259,15 +259,8 @@ def _run_multirun(
             received.append(signum)
             process.send_signal(signum)
 
-        try:
-            previous = {sig: signal.signal(sig, forward) for sig in (signal.SIGINT, signal.SIGTERM)}
-        except ValueError:  # not the main thread: leave signals alone
-            previous = {}
-        try:
+        with handling_signals(forward):  # not in another thread than the main one
             code = _wait_saying(process, log_path, log.tell(), progress)
-        finally:
-            for sig, handler in previous.items():
-                signal.signal(sig, handler)
         if received:
             raise KeyboardInterrupt(signal.Signals(received[0]).name)
         return code

@@ -326,15 +326,8 @@ def plan_text(
         f"{settings.trials if settings.tune else 0} trials per variant; {settings.seeds} paired "
         "seeds per study.",
         "",
-        "| variant | compile | step | tuning: runs, time | evaluation: jobs, time | total |",
-        "|---|---|---|---|---|---|",
+        *cost_table(costs),
     ]
-    for c in costs:
-        lines.append(
-            f"| {c.name} | {fmt(c.compile_seconds)} s | {fmt(c.step_seconds)} s | "
-            f"{c.tuning_runs}, {_duration(c.tuning_seconds)} | {c.evaluation_jobs}, "
-            f"{_duration(c.evaluation_seconds)} | {_duration(c.seconds)} |"
-        )
     if plan.axis != "iteration":
         lines += few_steps_lines(
             {c.name: plan.budget / c.step_seconds for c in costs if c.step_seconds > 0},
@@ -365,6 +358,21 @@ def plan_text(
         f"{load:.1f} on {cpu_count} cores ({busy}); nothing was kept.",
     ]
     return "\n".join(lines)
+
+
+def cost_table(costs: list) -> list[str]:
+    """The plan's table: a row per variant with its compile, step, phases and total."""
+    lines = [
+        "| variant | compile | step | tuning: runs, time | evaluation: jobs, time | total |",
+        "|---|---|---|---|---|---|",
+    ]
+    for c in costs:
+        lines.append(
+            f"| {c.name} | {fmt(c.compile_seconds)} s | {fmt(c.step_seconds)} s | "
+            f"{c.tuning_runs}, {_duration(c.tuning_seconds)} | {c.evaluation_jobs}, "
+            f"{_duration(c.evaluation_seconds)} | {_duration(c.seconds)} |"
+        )
+    return lines
 
 
 def _duration(seconds: float) -> str:

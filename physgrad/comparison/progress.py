@@ -122,7 +122,7 @@ class Progress:
 
     def _kind(self, index: int) -> int | None:
         """Job index's variant (None where its name does not say, or is not known)."""
-        from physgrad.comparison.spec import variant_index
+        from physgrad.comparison.job_names import variant_index
 
         try:
             return variant_index(self.names[index])

@@ -9,7 +9,6 @@ from dataclasses import dataclass, field, fields
 from typing import TYPE_CHECKING, Any
 
 from physgrad.errors import UserError, innermost_cause
-from physgrad.optim.capabilities import capabilities
 from physgrad.readout import budget_of as budget_of_config
 from physgrad.verdict import ALPHA, MARGIN
 
@@ -120,20 +119,6 @@ class StudySettings:
         """Tuning studies run: compare.studies, or one where nothing is tuned (no tuning variance
         to sample)."""
         return self.studies if self.tune else 1
-
-
-def variant_index(job: str) -> int:
-    """The variant index a job name holds (tune_v2_t003, tune_st1_v0_t000-007, eval_v1_s3: v<index>
-    after the phase and study)."""
-    import re
-
-    return int(re.match(r"^[a-z]+_(?:st\d+_)?v(\d+)", job).group(1))
-
-
-def study_prefix(study: int) -> str:
-    """What a job name of tuning study k starts with after its phase: nothing for the first study
-    (a study folder written before repeated studies reads as its first), st<k>_ for the others."""
-    return "" if study == 0 else f"st{study}_"
 
 
 @dataclass
@@ -412,8 +397,11 @@ def search_space(cfg: DictConfig, settings: StudySettings) -> dict:
             f"optim={optim_cfg.get('name')} has no learning_rate to tune (a number, or a schedule "
             "with init_value): add one to its YAML, or compare it untuned (compare.tune=false)"
         )
-    space = {rate: capabilities(optim_cfg).search_range}
     from omegaconf import OmegaConf
+
+    from physgrad.optim.capabilities import capabilities  # JAX: not for compare --help (2.2 CPU-s)
+
+    space = {rate: capabilities(optim_cfg).search_range}
 
     declared = cfg.get("search")
     declared = OmegaConf.to_container(declared) if OmegaConf.is_config(declared) else {}

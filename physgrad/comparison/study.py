@@ -30,7 +30,6 @@ docs/protocol.md gives the protocol and its reasons.
 from __future__ import annotations
 
 import os
-import re
 import signal
 import sys
 import time
@@ -44,6 +43,7 @@ from typing import TYPE_CHECKING
 from physgrad.comparison.calibration import calibrated_clock
 from physgrad.comparison.evaluation import evaluation
 from physgrad.comparison.figure import plot_sensitivity
+from physgrad.comparison.job_names import tuning_study_of
 from physgrad.comparison.jobs import Launcher
 from physgrad.comparison.spec import (
     SETTINGS,
@@ -60,7 +60,7 @@ from physgrad.comparison.study_folder import configuration_of, default_folder, r
 from physgrad.comparison.summary import analyse, trial_rows
 from physgrad.comparison.tuning import tuning
 from physgrad.errors import UserError
-from physgrad.interrupts import raise_interrupt
+from physgrad.interrupts import handling_signals, raise_interrupt
 from physgrad.verdict import seeds_needed
 
 if TYPE_CHECKING:
@@ -182,18 +182,11 @@ def _warn_if_undecidable(settings: StudySettings, count: int, say: Callable[[str
         )
 
 
-EVAL_JOB = re.compile(r"eval_(?:st(\d+)_)?v\d+(?:_s\d+)?")
-
-
 def tuning_study(run: Run) -> int:
-    """The tuning study (1, 2, ...) whose evaluation job wrote the run, from its job folder's name
-    (evaluation.evaluation_job: eval_v0 for the first, eval_st1_v0 for the second); 1 where the
-    path names none."""
-    for part in reversed(Path(run.path).parts):
-        found = EVAL_JOB.fullmatch(part.rpartition("=")[2])  # +compare_job=eval_st1_v0
-        if found:
-            return int(found.group(1) or 0) + 1
-    return 1
+    """The tuning study (1, 2, ...) whose evaluation job wrote the run, from its job folder's name;
+    1 where the path names none."""
+    found = (tuning_study_of(part) for part in reversed(Path(run.path).parts))
+    return next((k for k in found if k is not None), 1)
 
 
 def write_curves_report(
@@ -248,16 +241,14 @@ def main(args: list[str]) -> int:
         return 0
 
     # SIGTERM as Ctrl-C: the study's files are left as a resumable state
-    previous = signal.signal(signal.SIGTERM, raise_interrupt)
     try:
-        study = run_study(overrides, config_dir)
+        with handling_signals(raise_interrupt, (signal.SIGTERM,)):
+            study = run_study(overrides, config_dir)
     except KeyboardInterrupt:
         print(
             "physgrad compare: interrupted; run the same command again to resume", file=sys.stderr
         )
         return 130
-    finally:
-        signal.signal(signal.SIGTERM, previous)
     print(study.text)
     drawn = ", sensitivity.png" if (study.folder / "sensitivity.png").is_file() else ""
     print(

@@ -11,9 +11,10 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import TYPE_CHECKING
 
+from physgrad.comparison.job_names import study_prefix, variant_index
 from physgrad.comparison.jobs import Launcher, cadence, job_runs, job_yaml
 from physgrad.comparison.points import halton_points, point_dimensions
-from physgrad.comparison.spec import StudyPlan, StudySettings, Variant, study_prefix, variant_index
+from physgrad.comparison.spec import StudyPlan, StudySettings, Variant
 from physgrad.errors import UserError
 from physgrad.readout import READOUT_VERSION, run_curve
 

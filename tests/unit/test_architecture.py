@@ -74,7 +74,7 @@ INNER = {
         {"jobs", "study_folder"},
         {"progress"},
         {"spec"},
-        {"points"},
+        {"points", "job_names"},
     ],
     # a scene never imports another scene; the Kuramoto-Sivashinsky solver sits below its scene
     "tasks": [
@@ -234,19 +234,85 @@ def test_relative_function_local_and_type_checking_imports_are_read():
     assert {room_of_name(n) for n in names} >= {"comparison", "report", "app"}
 
 
-# experiments/ in rooms: a script that grows past these is doing several jobs
-EXPERIMENT_MODULE_LINES, FUNCTION_LINES = 500, 80
+# rooms of their own size: a module that grows past MODULE_LINES, or a function past
+# FUNCTION_LINES, is doing several jobs (docs/architecture.md). Those over it today are listed with
+# their size and may not grow: each is to be cut by concept, and leaves the list when it is
+MODULE_LINES, FUNCTION_LINES = 450, 80
+OVER = {
+    "physgrad/app.py": 454,
+    "physgrad/check.py": 452,
+    "physgrad/comparison/spec.py": 463,
+    "physgrad/comparison/summary.py": 467,
+    "physgrad/experiment.py": 477,
+    "physgrad/report_figures.py": 467,
+    "physgrad/runner.py": 537,
+    "physgrad/scene_check.py": 561,
+    "physgrad/verdict.py": 481,
+    "experiments/claims.py": 476,
+    "experiments/leaderboard.py": 456,
+}
+LONG_FUNCTIONS = {"physgrad/optim/soap.py:soap": 109, "physgrad/timing.py:calibrate": 103}
+HOUSE = sorted(
+    p
+    for base in ("physgrad", "hydra_plugins", "experiments")
+    for p in (REPO / base).rglob("*.py")
+    if "build" not in p.relative_to(REPO).parts
+)
 
 
-@pytest.mark.parametrize("path", sorted((REPO / "experiments").glob("*.py")), ids=lambda p: p.name)
-def test_an_experiment_script_is_a_room_of_its_own_size(path):
-    """No script in experiments/ over about 450 lines, no function in it over 80."""
+@pytest.mark.parametrize("path", HOUSE, ids=lambda p: str(p.relative_to(REPO)))
+def test_a_module_is_a_room_of_its_own_size(path):
+    """No module of physgrad/, hydra_plugins/ or experiments/ over MODULE_LINES lines, no function
+    over FUNCTION_LINES, but those listed, which may not grow."""
+    name = str(path.relative_to(REPO))
     text = path.read_text()
-    assert len(text.splitlines()) <= EXPERIMENT_MODULE_LINES, path.name
+    lines = len(text.splitlines())
+    assert lines <= OVER.get(name, MODULE_LINES), f"{name}: {lines} lines: cut it by concept"
+    if name in OVER:
+        assert lines > MODULE_LINES, f"{name} is within {MODULE_LINES} lines now: drop it from OVER"
     long = [
         f"{node.name} ({node.end_lineno - node.lineno + 1} lines)"
         for node in ast.walk(ast.parse(text))
         if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef))
-        and node.end_lineno - node.lineno + 1 > FUNCTION_LINES
+        and node.end_lineno - node.lineno + 1
+        > LONG_FUNCTIONS.get(f"{name}:{node.name}", FUNCTION_LINES)
     ]
-    assert not long, f"{path.name}: {', '.join(long)}"
+    assert not long, f"{name}: {', '.join(long)}"
+
+
+HEAVY = ("jax", "hydra", "pandas", "matplotlib")
+
+
+@pytest.mark.parametrize(
+    "code",
+    [
+        "import physgrad",
+        "from physgrad.cli import main\ntry:\n    main(['--help'])\nexcept SystemExit:\n    pass",
+        "from physgrad.cli import main\ntry:\n    main(['compare', '--help'])\n"
+        "except SystemExit:\n    pass",
+    ],
+    ids=["import physgrad", "physgrad --help", "physgrad compare --help"],
+)
+def test_importing_physgrad_and_asking_for_help_load_no_heavy_library(code):
+    """docs/architecture.md's promise, held in a fresh interpreter: `import physgrad` and the
+    console's help load no JAX, Hydra, pandas or matplotlib (the console script installs its signal
+    handlers first; help answers at once)."""
+    import subprocess
+    import sys
+
+    probe = f"{code}\nimport sys\nprint(','.join(m for m in {HEAVY!r} if m in sys.modules))"
+    result = subprocess.run(
+        [sys.executable, "-c", probe], capture_output=True, text=True, cwd=REPO, check=True
+    )
+    assert result.stdout.splitlines()[-1] == "", result.stdout.splitlines()[-1]
+
+
+def test_signals_are_installed_in_one_place():
+    """docs/architecture.md: all signal handling in physgrad/interrupts.py (its installer,
+    handling_signals and stop_on_signals): no other module calls signal.signal."""
+    found = [
+        str(path.relative_to(REPO))
+        for path in sorted((REPO / "physgrad").rglob("*.py"))
+        if path.name != "interrupts.py" and "signal.signal(" in path.read_text()
+    ]
+    assert not found, found

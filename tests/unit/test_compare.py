@@ -340,7 +340,9 @@ def test_the_time_left_counts_each_job_at_its_variants_pace(monkeypatch):
     )
     assert progress._left(1300.0).startswith("; at least 60 s left after the running job (4.0 min")
     # only jobs with no pace after the running one: no "at least 0 s left"
-    alone = console.Progress("tune", 3, [].append, names=names[:2] + names[1:2], stream=io.StringIO())
+    alone = console.Progress(
+        "tune", 3, [].append, names=names[:2] + names[1:2], stream=io.StringIO()
+    )
     alone.started, alone.launched_at, alone.took = 2, 1060.0, {0: [60.0]}
     assert alone._left(1090.0) == (
         "; the running job 30 s so far (the first of its variant), and 1 job of a variant not "
