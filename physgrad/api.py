@@ -14,7 +14,8 @@ from __future__ import annotations
 
 import os
 import sys
-from collections.abc import Callable, Iterable
+from collections.abc import Callable, Iterable, Iterator
+from contextlib import contextmanager
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -28,6 +29,7 @@ def run(
     *overrides: str,
     out_dir: str | os.PathLike | None = None,
     config_dir: str | os.PathLike | None = None,
+    progress: Callable[[str], object] | bool = True,
 ) -> Run | list[Run]:
     """Train one configuration, given as the overrides `physgrad run` takes (e.g. "task=poisson",
     "optim=hig", "trainer.iterations=100"), and return its results (physgrad.results.Run: attributes
@@ -38,7 +40,10 @@ def run(
     `physgrad run`); config_dir: a folder of your own configs (like `physgrad run -cd DIR`). A
     configuration that does not apply raises UserError with the reason; a run that diverges or is
     interrupted returns with that status. It goes through the same composition, checks and training
-    as `physgrad run`, without Hydra's launcher, logging or .hydra/ folder."""
+    as `physgrad run`, without Hydra's launcher, logging or .hydra/ folder. progress: what the
+    console shows (a bar on a terminal; else a line when it has compiled and every
+    trainer.log_seconds: iteration, loss, training time) goes to stderr (True), to a function of
+    one line, or nowhere (False); a handler the caller gave the "physgrad" logger gets it instead."""
     from omegaconf import OmegaConf, open_dict
 
     from physgrad.configs import check_overrides, compose
@@ -54,12 +59,43 @@ def run(
         del cfg["hydra"]
     if os.getcwd() not in sys.path:  # a scene or optimiser named by _target_, as for `physgrad run`
         sys.path.append(os.getcwd())
-    outcome, path = run_experiment(cfg, folder)
+    with _progress_lines(progress):
+        outcome, path = run_experiment(cfg, folder)
     if outcome.status == "refused":
         raise UserError(outcome.reason)
     if path.is_dir():  # seeds=N: one file per seed
         return [read_run(p) for p in sorted(path.glob("seed=*/results.h5"), key=member_order)]
     return read_run(path)
+
+
+@contextmanager
+def _progress_lines(progress: Callable[[str], object] | bool) -> Iterator[None]:
+    """The "physgrad" logger's lines (a run's progress without a terminal) to stderr or to a
+    function while inside, unless the caller gave that logger a handler of its own; nothing is
+    added for progress=False."""
+    import logging
+
+    logger = logging.getLogger("physgrad")
+    if progress is False or logger.handlers:
+        yield
+        return
+
+    class Lines(logging.Handler):
+        def emit(self, record: logging.LogRecord) -> None:
+            line = self.format(record)
+            if progress is True:
+                print(line, file=sys.stderr, flush=True)
+            else:
+                progress(line)
+
+    handler, level = Lines(), logger.level
+    logger.addHandler(handler)
+    logger.setLevel(logging.INFO)
+    try:
+        yield
+    finally:
+        logger.removeHandler(handler)
+        logger.setLevel(level)
 
 
 def compare(

@@ -1173,3 +1173,25 @@ def test_a_study_folder_that_cannot_be_written_is_one_line(tmp_path):
             f"compare.dir={tmp_path}/plain/study",
         )
     assert "\n" not in str(caught.value)
+
+
+def test_a_run_from_python_shows_the_console_s_progress_or_none(tmp_path, capsys):
+    """physgrad.run without a terminal or a logging set-up: the lines `physgrad run` logs (its
+    compile, then one every trainer.log_seconds) go to a function, to stderr, or nowhere."""
+    import physgrad
+
+    args = (
+        "task=toy",
+        "trainer.time_budget=1.5",
+        "trainer.flush_seconds=0.1",
+        "trainer.log_seconds=0.001",
+        "figures=false",
+    )
+    said = []
+    physgrad.run(*args, out_dir=tmp_path / "a", progress=said.append)
+    assert any("compiled in" in line for line in said), said
+    assert any("iteration" in line and "loss" in line for line in said), said
+    physgrad.run(*args, out_dir=tmp_path / "b")
+    assert "compiled in" in capsys.readouterr().err
+    physgrad.run(*args, out_dir=tmp_path / "c", progress=False)
+    assert "compiled in" not in capsys.readouterr().err
