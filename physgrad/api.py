@@ -43,7 +43,8 @@ def run(
     as `physgrad run`, without Hydra's launcher, logging or .hydra/ folder. progress: what the
     console shows (a bar on a terminal; else a line when it has compiled and every
     trainer.log_seconds: iteration, loss, training time) goes to stderr (True), to a function of
-    one line, or nowhere (False); a handler the caller gave the "physgrad" logger gets it instead."""
+    one line, or nowhere (False); a handler the caller gave the "physgrad" logger gets it
+    instead."""
     from omegaconf import OmegaConf, open_dict
 
     from physgrad.configs import check_overrides, compose
