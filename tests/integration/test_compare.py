@@ -1182,7 +1182,7 @@ def test_a_run_from_python_shows_the_console_s_progress_or_none(tmp_path, capsys
 
     args = (
         "task=toy",
-        "trainer.time_budget=1.5",
+        "trainer.time_budget=0.6",
         "trainer.flush_seconds=0.1",
         "trainer.log_seconds=0.001",
         "figures=false",

@@ -15,10 +15,12 @@ import scene_kinds  # noqa: E402
 from physgrad.errors import UserError  # noqa: E402
 
 
-@pytest.mark.parametrize("key", ["toy", "oscillator", "cart_4"])
+@pytest.mark.parametrize(
+    "key", ["toy", *(pytest.param(k, marks=pytest.mark.long) for k in ("oscillator", "cart_4"))]
+)
 def test_the_kept_rows_are_what_building_the_scene_gives(key):
     """Rebuilt (no training), the scene's row is the committed one: nothing in the table is
-    typed by hand. (Three cheap scenes here; `--keep` rebuilds all.)"""
+    typed by hand. (The toy here, two more in make test-long; `--keep` rebuilds all.)"""
     kind = next(k for k in scene_kinds.SCENES if k.key == key)
     kept = scene_kinds.read_kinds(scene_kinds.KINDS)[key]
     measured = {k: str(v) for k, v in scene_kinds.measure(kind).items()}
