@@ -20,8 +20,8 @@ if TYPE_CHECKING:
 
     from physgrad.nets import Params
     from physgrad.optim import UpdateRule
-    from physgrad.runner import TrainerSettings
     from physgrad.tasks import Scene
+    from physgrad.trainer_settings import TrainerSettings
     from physgrad.training import Seeds
 
 

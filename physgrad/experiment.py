@@ -6,8 +6,6 @@ from __future__ import annotations
 import contextlib
 import dataclasses
 import logging
-import os
-import time
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
@@ -35,12 +33,13 @@ from physgrad.refusals import (
     too_many_seeds,
     trial_values_refusal,
 )
-from physgrad.results import ResultsWriter, read_final, record_outcome
-from physgrad.resume import finished_before, start_from
+from physgrad.results import ResultsWriter, record_outcome
+from physgrad.resume import finished_before, set_aside_unreadable, start_from
 from physgrad.run_figures import draw_run_figures
-from physgrad.runner import Outcome, TrainerSettings, quiet_callback_failures, train
+from physgrad.runner import Outcome, quiet_callback_failures, train
 from physgrad.sweeps import in_launcher, mark_stopped, watching
 from physgrad.tasks import Scene, build_scene
+from physgrad.trainer_settings import TrainerSettings
 from physgrad.training import Seeds, stack
 from physgrad.version import __version__
 
@@ -267,21 +266,6 @@ def prepare(
         )
         check_layer_factors(cfg, kind, rule.gradient)
     return scene, rule, seeds
-
-
-def set_aside_unreadable(path: Path) -> Path | None:
-    """A results.h5 that cannot be read (damaged, or not a physgrad file) is renamed, never deleted,
-    so the job can run again; returns the new name."""
-    if not path.exists():
-        return None
-    try:
-        read_final(path)
-        return None
-    except ValueError:
-        aside = path.with_name(f"{path.name}.unreadable-{time.strftime('%Y%m%dT%H%M%S')}")
-        os.replace(path, aside)
-        log.warning("%s could not be read: set aside as %s, the job runs again", path, aside.name)
-        return aside
 
 
 def run_experiment(

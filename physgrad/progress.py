@@ -13,7 +13,7 @@ log = logging.getLogger("physgrad")
 
 
 class Budget(Protocol):
-    """What the progress shown reads of a run's settings (physgrad.runner.TrainerSettings)."""
+    """What the progress shown reads of a run's settings (trainer_settings.TrainerSettings)."""
 
     @property
     def iterations(self) -> int | None: ...

@@ -17,8 +17,8 @@ from physgrad.errors import UserError
 from physgrad.gradients import JacobianPass
 from physgrad.optim import matrix_leaves
 from physgrad.optim.capabilities import Capabilities, scheduled_update
-from physgrad.runner import TrainerSettings
 from physgrad.tasks import Scene
+from physgrad.trainer_settings import TrainerSettings
 from physgrad.training import Seeds
 from physgrad.validate import choice, finite_numbers, flag, number
 

@@ -1,8 +1,12 @@
 """Runs that build on earlier ones: a re-run sweep skips what completed or diverged with the same
-config (resume), and a run can start from another run's final network (init_from)."""
+config (resume) and sets aside a file it cannot read, and a run can start from another run's final
+network (init_from)."""
 
 from __future__ import annotations
 
+import logging
+import os
+import time
 from pathlib import Path
 from typing import Any
 
@@ -13,6 +17,8 @@ from omegaconf import DictConfig, OmegaConf
 from physgrad.errors import UserError
 from physgrad.results import Run, cut_short, parse_config, read_end, read_final, read_params
 from physgrad.runner import Outcome
+
+log = logging.getLogger("physgrad")
 
 # keys that do not change what a run computes (a run stored without them is the same run)
 NOT_RESULT_KEYS = ("overwrite", "figures", "calibrate")
@@ -97,3 +103,18 @@ def start_from(path: str, params: Any, task_name: str) -> tuple[Any, dict]:
         "init_train_seconds": float(source.attrs.get("train_seconds", 0.0)),
     }
     return unravel(jnp.asarray(flat, own.dtype)), attrs
+
+
+def set_aside_unreadable(path: Path) -> Path | None:
+    """A results.h5 that cannot be read (damaged, or not a physgrad file) is renamed, never deleted,
+    so the job can run again; returns the new name."""
+    if not path.exists():
+        return None
+    try:
+        read_final(path)
+        return None
+    except ValueError:
+        aside = path.with_name(f"{path.name}.unreadable-{time.strftime('%Y%m%dT%H%M%S')}")
+        os.replace(path, aside)
+        log.warning("%s could not be read: set aside as %s, the job runs again", path, aside.name)
+        return aside

@@ -14,8 +14,8 @@ if TYPE_CHECKING:
     from omegaconf import DictConfig
 
     from physgrad.optim import UpdateRule
-    from physgrad.runner import TrainerSettings
     from physgrad.tasks import Scene
+    from physgrad.trainer_settings import TrainerSettings
     from physgrad.training import CompiledTraining, Seeds
 
 

@@ -45,7 +45,7 @@ def read_calibration(path: Path, names: list[str], given: bool = False) -> dict 
     its median and rounds; else None (calibrate again). A file that may come from someone else is
     read as data, at most 1 MB, never through a link (given: a path the user named, which may be
     one) and never from a FIFO, a device or a folder."""
-    from physgrad.runner import MIN_STEP_COST
+    from physgrad.trainer_settings import MIN_STEP_COST
 
     def seconds(value: object) -> bool:
         return (

@@ -134,7 +134,7 @@ def evaluations_per_run(variant: Variant, axis: str, budget: float, step_seconds
     """The held-out evaluations of one run: at the start, every trainer.eval_every iterations, and
     with a time budget also every trainer.eval_seconds (budget / 20 unless set) of training."""
     from physgrad.refusals import check_config
-    from physgrad.runner import EVALUATIONS_PER_BUDGET
+    from physgrad.trainer_settings import EVALUATIONS_PER_BUDGET
 
     settings = check_config(run_config(variant))
     if axis == "iteration":

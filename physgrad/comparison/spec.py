@@ -297,7 +297,7 @@ def study_settings(given: dict) -> StudySettings:
     number("compare.tune_seed", values["tune_seed"], 0, 2**32, integer=True)
     number("compare.margin", values["margin"], 1, open_low=True)
     number("compare.alpha", values["alpha"], 0, 1, open_low=True)
-    from physgrad.runner import CLOCKS
+    from physgrad.trainer_settings import CLOCKS
     from physgrad.validate import choice
 
     choice("compare.clock", values["clock"], CLOCKS)
@@ -458,6 +458,6 @@ def check_variants_build(variants: list[Variant], seed: int, built: dict | None 
 def budget_of(cfg: DictConfig) -> tuple[str, float]:
     """The study's budget from a variant's config (readout.budget_of, the runner's default
     iterations where trainer.iterations is unset)."""
-    from physgrad.runner import DEFAULT_ITERATIONS
+    from physgrad.trainer_settings import DEFAULT_ITERATIONS
 
     return budget_of_config(cfg, DEFAULT_ITERATIONS)

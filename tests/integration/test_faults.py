@@ -40,7 +40,8 @@ def test_signals_in_bursts_at_random_instants_always_end_interrupted(tmp_path):
     flushes); the process stays alive, the file is final and consistent."""
     from physgrad.experiment import prepare
     from physgrad.interrupts import stop_on_signals
-    from physgrad.runner import TrainerSettings, train
+    from physgrad.runner import train
+    from physgrad.trainer_settings import TrainerSettings
 
     rng = random.Random(2)
     cfg = load("task=toy", "trainer.flush_seconds=0.001")
@@ -79,7 +80,8 @@ def test_a_run_stopped_by_one_signal_keeps_the_held_out_loss_it_reached(tmp_path
     start."""
     from physgrad.experiment import prepare
     from physgrad.interrupts import stop_on_signals
-    from physgrad.runner import TrainerSettings, train
+    from physgrad.runner import train
+    from physgrad.trainer_settings import TrainerSettings
 
     cfg = load("task=toy", "trainer.eval_every=1000000")
     settings = TrainerSettings.from_config(cfg.trainer)

@@ -159,7 +159,7 @@ def test_evaluations_by_training_time_give_a_slow_variant_a_curve(tmp_path, monk
 
 
 def test_trainer_settings_resolve_iterations_and_evaluation_times():
-    from physgrad.runner import DEFAULT_ITERATIONS, TrainerSettings
+    from physgrad.trainer_settings import DEFAULT_ITERATIONS, TrainerSettings
 
     def settings(**trainer):
         return TrainerSettings.from_config(

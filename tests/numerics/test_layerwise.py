@@ -13,7 +13,8 @@ from physgrad.configs import compose
 from physgrad.errors import UserError
 from physgrad.experiment import prepare
 from physgrad.optim import build_rule, on_tree
-from physgrad.runner import TrainerSettings, compile_training
+from physgrad.runner import compile_training
+from physgrad.trainer_settings import TrainerSettings
 
 
 def toy(optim: str, *extra):
