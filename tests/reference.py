@@ -1,21 +1,21 @@
 """Plain Python loops as references for the scan-based rollouts (no lax.scan, no stop_gradient); the
-loops themselves ship in physgrad.scene_check for scene authors."""
+loops themselves ship in physgrad.loop_reference for scene authors."""
 
 import jax
 
-from physgrad import scene_check
+from physgrad import loop_reference
 
 
 def forward_states(step, policy, x0, steps):
     """x_0..x_steps of the forward pass, as constants: the values every mode shares
-    (physgrad.scene_check)."""
-    return scene_check.forward_states(step, policy, x0, steps)
+    (physgrad.loop_reference)."""
+    return loop_reference.forward_states(step, policy, x0, steps)
 
 
 def loop_states(step, policy, x0, steps, backprop, frozen):
     """x_1..x_steps, where a mode's stopped inputs are the constant forward states `frozen`
-    (physgrad.scene_check)."""
-    return scene_check.loop_states(step, policy, x0, steps, backprop, frozen)[0]
+    (physgrad.loop_reference)."""
+    return loop_reference.loop_states(step, policy, x0, steps, backprop, frozen)[0]
 
 
 def check_gradient(loss, scan_loss, params, rtol=1e-9, fd_rtol=1e-5, directions=3):
