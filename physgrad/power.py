@@ -88,7 +88,7 @@ def wrong_side_allowed(seeds: int, comparisons: int = 1, alpha: float = ALPHA) -
     where not even none does."""
     from scipy.stats import binom
 
-    from physgrad.verdict import _wilcoxon
+    from physgrad.paired_stats import _wilcoxon
 
     allowed = -1
     for wrong in range(seeds + 1):

@@ -11,7 +11,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from physgrad.verdict import ALPHA, CONFIDENCE, MARGIN, MIN_PAIRS, RESAMPLES, UNDECIDED, ratio_of
+from physgrad.paired_stats import CONFIDENCE, MARGIN, RESAMPLES, ratio_of
+from physgrad.verdict import ALPHA, MIN_PAIRS, UNDECIDED
 
 
 @dataclass(frozen=True)

@@ -149,7 +149,7 @@ def test_the_signed_rank_p_value_is_scipys_with_ties_zeros_and_divergences():
     2^-n."""
     from scipy.stats import wilcoxon
 
-    from physgrad.verdict import _wilcoxon
+    from physgrad.paired_stats import _wilcoxon
 
     rng = np.random.default_rng(5)
     for trial in range(

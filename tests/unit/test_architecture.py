@@ -33,6 +33,7 @@ LAYERS = [
             "tables",
             "plots",
             "verdict",
+            "paired_stats",
             "replication",
             "power",
             "claim_words",
@@ -258,7 +259,6 @@ OVER = {
     "physgrad/experiment.py": 461,
     "physgrad/report_figures.py": 467,
     "physgrad/scene_check.py": 456,
-    "physgrad/verdict.py": 481,
     "experiments/claims.py": 476,
     "experiments/leaderboard.py": 456,
 }
