@@ -1,7 +1,7 @@
 """Figures: the style every figure shares (one colour, line style and marker per group; legends
 beside the panels; log axes that read well; PNG and PDF through matplotlib's Agg backend) and the
 figure of one run (losses, gradient norm and the scene's metrics). The report's figures, which
-compare runs, are in physgrad.report_figures."""
+compare runs, are in physgrad.report_figures and physgrad.cost_figures."""
 
 from __future__ import annotations
 
@@ -63,6 +63,11 @@ def design_styles(design: dict[str, tuple[str, int]]) -> dict[str, dict]:
         }
         for label, (variant, study) in design.items()
     }
+
+
+def by_label(groups: dict) -> list[tuple[str, dict]]:
+    """A figure's groups (label -> its runs' data) in the labels' natural order."""
+    return sorted(groups.items(), key=lambda item: natural_key(item[0]))
 
 
 def styles_for(runs: list[Run], styles: dict | None) -> dict:

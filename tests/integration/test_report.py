@@ -559,7 +559,7 @@ def test_the_drawn_median_is_the_one_the_table_reports(tmp_path, figures):
 
 
 def test_the_unroll_axis_has_a_tick_at_every_length(tmp_path, figures):
-    from physgrad.report_figures import plot_unroll
+    from physgrad.cost_figures import plot_unroll
 
     for unroll in (4, 16, 64, 256):
         fake_run(

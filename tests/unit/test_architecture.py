@@ -29,6 +29,7 @@ LAYERS = [
         {
             "report",
             "report_figures",
+            "cost_figures",
             "runs",
             "tables",
             "plots",
@@ -257,7 +258,6 @@ OVER = {
     "physgrad/check.py": 452,
     "physgrad/comparison/spec.py": 463,
     "physgrad/experiment.py": 461,
-    "physgrad/report_figures.py": 467,
     "physgrad/scene_check.py": 456,
     "experiments/claims.py": 476,
     "experiments/leaderboard.py": 456,
