@@ -107,8 +107,8 @@ def record_study(
             )
         if stored_study != this_study:
             raise UserError(
-                f"{folder} holds another study "
-                f"({' '.join((before or {}).get('overrides', ['?']))}): give another compare.dir"
+                f"{folder} holds another study ({_stored_command(before)}): give another "
+                "compare.dir"
             )
         if before.get("configuration") not in (None, record.get("configuration")):
             raise UserError(
@@ -118,3 +118,15 @@ def record_study(
             )
     if not stored.exists() or before != record:  # new, or the same study given more trials
         replace_file(stored, (json.dumps(record, indent=1) + "\n").encode())
+
+
+def _stored_command(record: object) -> str:
+    """What a study.json (data from whoever wrote the folder) says its command was, safe to print:
+    its overrides joined, each as text with control characters replaced, cut to 300 characters;
+    "not a study record" for anything else."""
+    from physgrad.files import clean_text
+
+    overrides = record.get("overrides") if isinstance(record, dict) else None
+    if not isinstance(overrides, list):
+        return "its study.json is not a study record"
+    return clean_text(" ".join(str(o) for o in overrides), 300)

@@ -120,6 +120,29 @@ def test_a_folder_of_this_study_under_the_earlier_protocol_is_refused_in_one_lin
 
 
 @pytest.mark.parametrize(
+    "stored, said",
+    [
+        ("[1]", "its study.json is not a study record"),
+        ('"x"', "its study.json is not a study record"),
+        ('{"overrides": "x"}', "its study.json is not a study record"),
+        ('{"overrides": [1, {"a": 2}]}', "1 {'a': 2}"),
+        ('{"overrides": ["task=toy\\u001b]0;pwned\\u0007"]}', "task=toy\ufffd]0;pwned\ufffd"),
+    ],
+)
+def test_a_study_json_from_someone_else_is_one_line_whatever_it_holds(tmp_path, stored, said):
+    """study.json is data from whoever wrote the folder: a list, a string, overrides that are no
+    text, or a terminal escape give one line naming the folder (it was a 25-line traceback), with
+    the stored command's control characters replaced, and the file is left as it was."""
+    from physgrad.comparison.study_folder import record_study
+
+    (tmp_path / "study.json").write_text(stored)
+    with pytest.raises(UserError, match="holds another study") as error:
+        record_study(tmp_path, ["task=toy", "optim=adam,gd"], None)
+    assert f"({said})" in str(error.value) and "\n" not in str(error.value)
+    assert "\x1b" not in str(error.value) and (tmp_path / "study.json").read_text() == stored
+
+
+@pytest.mark.parametrize(
     "loss, held_out, passed, fragment",
     [
         (0.5, 0.4, True, "loss 0.5, held-out loss 0.4"),
