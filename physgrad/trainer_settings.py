@@ -50,8 +50,9 @@ class TrainerSettings:
         """trainer.iterations=null means 2000 without a time budget and no limit with one;
         trainer.eval_seconds= null means time_budget / 20 with a budget (so that a slow variant
         still gets a curve) and none without."""
+        # a budget below the calibrated clock's floor is no step of any rule: a mistake, not a run
         budget = number(
-            "trainer.time_budget", trainer_cfg.get("time_budget"), 0, optional=True, open_low=True
+            "trainer.time_budget", trainer_cfg.get("time_budget"), MIN_STEP_COST, optional=True
         )
         iterations = number(
             "trainer.iterations", trainer_cfg.get("iterations"), 1, integer=True, optional=True

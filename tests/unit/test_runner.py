@@ -86,3 +86,17 @@ def test_first_signal_asks_to_stop_second_ends_a_step_still_computing():
         request.call(lambda: release.wait(30))  # a step that would take 30 s
     assert time.perf_counter() - start < 5
     release.set()
+
+
+@pytest.mark.parametrize("budget", [1e-300, 1e-9, 0.0, -1.0])
+def test_a_time_budget_below_one_step_of_any_rule_is_refused_at_the_door(budget):
+    """A budget shorter than the calibrated clock's floor (a microsecond) trains no step of any
+    rule: a mistake in the config, refused in one line naming the key (1e-300 ran without a
+    word)."""
+    from physgrad.errors import UserError
+    from physgrad.trainer_settings import MIN_STEP_COST, TrainerSettings
+
+    trainer = {"iterations": None, "eval_every": 10, "batch_size": 8, "flush_seconds": 1.0}
+    with pytest.raises(UserError, match=r"trainer.time_budget=.* use a number >= 1e-06"):
+        TrainerSettings.from_config({**trainer, "time_budget": budget})
+    assert TrainerSettings.from_config({**trainer, "time_budget": MIN_STEP_COST}).time_budget > 0
