@@ -101,7 +101,7 @@ def test_bptt_gradient_growth_is_measured(small_check):
         ("trainer.eval_every=0", "trainer.eval_every=0 is not allowed: use a whole number >= 1"),
         (
             "trainer.time_budget=-5",
-            "trainer.time_budget=-5 is not allowed: use a number > 0 or null",
+            "trainer.time_budget=-5 is not allowed: use a number >= 1e-06 or null",
         ),
         ("precision=16", "precision=16 is not allowed: choose one of 32, 64"),
         ("seed=-1", "seed=-1 is not allowed: use a whole number >= 0"),
