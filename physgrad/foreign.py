@@ -33,7 +33,7 @@ KINDS = {
     ),
     **dict.fromkeys(
         "compile_seconds train_seconds first_step_overhead_seconds init_train_seconds step_cost "
-        "update_cost "
+        "update_cost evaluation_cost step_evaluations "
         "load_start load_end step_seconds_p10 step_seconds_p50 step_seconds_p90 "
         "step_seconds_p99".split(),
         "a number",

@@ -16,7 +16,7 @@ from omegaconf import DictConfig, OmegaConf
 from physgrad.errors import UserError
 from physgrad.gradients import JacobianPass
 from physgrad.optim import matrix_leaves
-from physgrad.optim.capabilities import Capabilities, scheduled_update
+from physgrad.optim.capabilities import Capabilities, capabilities, scheduled_update
 from physgrad.tasks import Scene
 from physgrad.trainer_settings import TrainerSettings
 from physgrad.training import Seeds
@@ -58,9 +58,16 @@ def check_config(cfg: DictConfig) -> TrainerSettings:
 
 def with_scheduled_update(settings: TrainerSettings, optim_cfg: DictConfig) -> TrainerSettings:
     """settings with the rule's update schedule attached where trainer.update_cost charges one; a
-    cost given for a rule without one is refused (its calibration was another rule's). Trials
+    cost given for a rule without one (or trainer.evaluation_cost for a rule that searches no
+    line) is refused (its calibration was another rule's). Trials
     cannot vary the schedule: trial_values sets numbers only, and a number fixes the probability,
     which leaves no schedule."""
+    if settings.evaluation_cost is not None and not capabilities(optim_cfg).line_search:
+        raise UserError(
+            f"trainer.evaluation_cost={settings.evaluation_cost:g} charges a line search's "
+            f"evaluations, and optim={optim_cfg.get('name')} searches no line: leave "
+            "trainer.evaluation_cost and trainer.step_evaluations out (null)"
+        )
     if settings.update_cost is None:
         return settings
     schedule = scheduled_update(optim_cfg)

@@ -34,7 +34,7 @@ from physgrad.interrupts import (
     stop_on_signals,
 )
 from physgrad.machine import load_average, timing_attributes
-from physgrad.optim import UpdateRule
+from physgrad.optim import LINE_SEARCH_LOG, UpdateRule
 from physgrad.progress import Progress
 from physgrad.results import ResultsWriter
 from physgrad.tasks import Scene
@@ -99,6 +99,10 @@ class TrainingLoop:
         self.guard: RowGuard | None = None  # both set by start()
         self.params, self.opt_state = None, None
         self.done = 0  # iterations finished
+        # line-search evaluations of the steps done (each step's most over the running seeds: a
+        # vectorised line search runs until every seed's is done), charged by the calibrated clock
+        self.evaluations = 0.0
+        self.evaluations_at: int | None = None  # their column among the logs, where logged
         self.train_seconds = 0.0
         self.first_step_seconds = 0.0
         # every step's time but the first (compiling) call's: contention
@@ -113,14 +117,19 @@ class TrainingLoop:
         cost)."""
         times = {"wall_time": self.train_seconds}
         if self.settings.step_cost is not None:
-            times["calibrated_time"] = self.settings.charged_seconds(iteration)
+            times["calibrated_time"] = self.charged_seconds(iteration)
         return times
+
+    def charged_seconds(self, iteration: int) -> float:
+        """TrainerSettings.charged_seconds after `iteration` steps, with the line-search
+        evaluations the steps so far made (self.evaluations)."""
+        return self.settings.charged_seconds(iteration, self.evaluations)
 
     def budget_seconds(self, iteration: int) -> float:
         """The time the budget and eval_seconds read: the measured or the calibrated clock
         (trainer.clock)."""
         return (
-            self.settings.charged_seconds(iteration)
+            self.charged_seconds(iteration)
             if self.settings.clock == "calibrated"
             else self.train_seconds
         )
@@ -146,6 +155,12 @@ class TrainingLoop:
         if settings.update_cost is not None:
             self.writers.set_attrs(update_cost=settings.update_cost)
         self.guard = RowGuard(compiled.log_names, settings.divergence_factor)
+        if settings.evaluation_cost is not None:  # the door let it through for a line search
+            self.evaluations_at = compiled.log_names.index(LINE_SEARCH_LOG)
+            self.writers.set_attrs(
+                evaluation_cost=settings.evaluation_cost,
+                step_evaluations=settings.step_evaluations,
+            )
         self.stop.raise_if_stopped()
         self.record_eval(0)
         self.writers.flush()
@@ -227,6 +242,8 @@ class TrainingLoop:
         (its status and reason set). Returns the (index, run) pairs still running: the same list
         unless one stopped."""
         diverged = False
+        if self.evaluations_at is not None:
+            self.evaluations += max(logs[index][self.evaluations_at] for index, _ in running)
         times = tuple(self.clock_times(self.done).values())
         for index, run in running:
             row = logs[index]

@@ -51,20 +51,66 @@ def interleaved_times(
 
 class Stepper:
     """one_step(): one training step of a compiled training (blocking until its results are
-    ready), from the parameters and optimiser state the previous call left."""
+    ready), from the parameters and optimiser state the previous call left; for a rule that
+    searches a line, the steps taken and the line-search evaluations they made (each step's most
+    over the seeds, as the runner charges them)."""
 
     def __init__(self, compiled: CompiledTraining, seeds: Seeds) -> None:
+        from physgrad.optim import LINE_SEARCH_LOG
+
         self.compiled, self.seeds = compiled, seeds
         self.params, self.opt_state = compiled.params, compiled.opt_state
+        names = list(getattr(compiled, "log_names", ()))
+        self.evaluations_at = names.index(LINE_SEARCH_LOG) if LINE_SEARCH_LOG in names else None
+        self.steps, self.evaluations = 0, 0.0
 
     def __call__(self) -> None:
         import jax
         import numpy as np
 
-        self.params, self.opt_state, _ = self.compiled.step(
+        self.params, self.opt_state, logs = self.compiled.step(
             self.params, self.opt_state, np.int32(0), self.seeds.train_keys, self.seeds.train_sets
         )
         jax.block_until_ready(self.params)
+        self.steps += 1
+        if self.evaluations_at is not None:
+            self.evaluations += float(np.max(np.asarray(logs)[:, self.evaluations_at]))
+
+
+# a line-search evaluation is timed in compiled loops of this many (a single call's dispatch would
+# be most of a small scene's evaluation)
+EVALUATIONS_PER_CALL = 8
+
+
+def evaluation_call(scene: Scene, seeds: Seeds, batch_size: int) -> Callable[[], None]:
+    """EVALUATIONS_PER_CALL evaluations of what a line search evaluates at a trial point (the value
+    and gradient of the batch loss, physgrad.gradients.batch_loss_fn, over the flat parameters of
+    the first seed, on one of its batches), one after another in one compiled loop; a call blocks
+    until they are done."""
+    import jax
+    from jax.flatten_util import ravel_pytree
+
+    from physgrad.gradients import batch_loss_fn
+
+    params, unravel = ravel_pytree(seeds.network())
+    flat = scene.over_flat_params(unravel)
+    train_set = (
+        None
+        if seeds.train_sets is None
+        else jax.tree_util.tree_map(lambda leaf: leaf[0], seeds.train_sets)
+    )
+    batch = flat.draw_batch(jax.random.fold_in(seeds.train_keys[0], 0), batch_size, train_set)
+    value_and_grad = jax.value_and_grad(batch_loss_fn(flat, batch))
+
+    def evaluations(start: jax.Array) -> jax.Array:
+        def one(_: int, point: jax.Array) -> jax.Array:
+            _, grad = value_and_grad(point)
+            return point - 1e-12 * grad  # each at a new point, as a line search's are
+
+        return jax.lax.fori_loop(0, EVALUATIONS_PER_CALL, one, start)
+
+    compiled = jax.jit(evaluations).lower(params).compile()
+    return lambda: jax.block_until_ready(compiled(params))
 
 
 def compiled_step(
@@ -152,40 +198,26 @@ def calibrate(
 
         update_seconds u = (s - a) / (1 - p), kept within [0, s],
 
-    which the runner charges as expected (trainer.update_cost: step t costs s - u + p_t u)."""
-    import numpy as np
+    which the runner charges as expected (trainer.update_cost: step t costs s - u + p_t u).
 
+    A rule that searches a line (optax's zoom line search: one value and gradient of the batch
+    loss per evaluation, as many as the step needs) has its evaluations counted over the timed
+    steps (step_evaluations: e per step) and one evaluation timed in the same rounds
+    (evaluation_seconds: v, evaluation_call), kept within [0, s / e]; the runner charges step t
+    s - v e + v e_t for the e_t evaluations it made (trainer.evaluation_cost, step_evaluations)."""
     from physgrad.machine import load_average, machine_attributes
-    from physgrad.optim.capabilities import scheduled_update
 
-    programs: dict[str, str] = {}  # name -> fingerprint
-    # timed copies: (fingerprint, "step" | "advanced") -> (one step, its counter before a burst)
-    timed: dict[tuple[str, str], tuple[Callable[[], None], int | None]] = {}
-    schedules: dict[str, object] = {}  # fingerprint -> its ScheduledUpdate, where it has one
-    for name, cfg in configs.items():
-        *_, stacked, compiled, _, one_step = compiled_step(cfg, [seed])
-        program = programs[name] = program_fingerprint(
-            getattr(compiled, "lowered_step", None), name
-        )
-        if (program, "step") in timed:
-            continue
-        schedule = scheduled_update(cfg["optim"]) if isinstance(cfg, Mapping) else None
-        if schedule is None:
-            timed[program, "step"] = (one_step, None)
-        else:
-            schedules[program] = schedule
-            timed[program, "step"] = (one_step, 0)
-            timed[program, "advanced"] = (Stepper(compiled, stacked), schedule.floor_step)
+    programs, timed, schedules = _timed_programs(configs, seed)
 
     def burst(key: tuple[str, str], length: int) -> Callable[[], None]:
-        step, counter = timed[key]
+        call, counter = timed[key]
         schedule = schedules.get(key[0])
 
         def run() -> None:
             if counter is not None:
-                step.opt_state = schedule.at_step(step.opt_state, counter)
+                call.opt_state = schedule.at_step(call.opt_state, counter)
             for _ in range(length):
-                step()
+                call()
 
         return run
 
@@ -194,7 +226,7 @@ def calibrate(
         [burst(key, 1) for key in timed], 3, 0.0, warmup=True, max_seconds=max_seconds / 4
     )
     lengths = {
-        key: max(1, math.ceil(BURST_SECONDS / max(float(np.median(t)), 1e-9)))
+        key: max(1, math.ceil(BURST_SECONDS / max(sorted(t)[len(t) // 2], 1e-9)))
         for key, t in zip(timed, probe)
     }
     if schedules:  # an updating step's burst stays within the steps that all update
@@ -202,16 +234,67 @@ def calibrate(
             (program, "step"): min(lengths[program, "step"], schedule.full_steps)
             for program, schedule in schedules.items()
         }
+    for (_, kind), (call, _) in timed.items():
+        if kind == "step":  # line-search evaluations are counted over the timed steps only
+            call.steps, call.evaluations = 0, 0.0
     bursts = [burst(key, lengths[key]) for key in timed]
     times = interleaved_times(bursts, rounds, min_seconds, warmup=False, max_seconds=max_seconds)
-    samples = {key: np.asarray(t) / lengths[key] for key, t in zip(timed, times)}
+    measured = _measured_costs(
+        {key: [t / lengths[key] for t in samples] for key, samples in zip(timed, times)},
+        {key: lengths[key] for key in timed},
+        timed,
+        schedules,
+    )
+    return {
+        "quantile": CALIBRATION_QUANTILE,
+        "costs": {name: dict(measured[programs[name]]) for name in configs},
+        "load_start": load_start,
+        "load_end": load_average(),
+        "machine": machine_attributes(),
+    }
+
+
+def _timed_programs(configs: dict, seed: int) -> tuple[dict, dict, dict]:
+    """What calibrate times: {name: program fingerprint}, {(program, kind): (call, the step counter
+    set before a burst, or None)} with kind "step", "advanced" (a scheduled update's floor) or
+    "evaluation" (EVALUATIONS_PER_CALL line-search evaluations), and {program: ScheduledUpdate}."""
+    from physgrad.optim.capabilities import capabilities, scheduled_update
+
+    programs: dict[str, str] = {}
+    timed: dict[tuple[str, str], tuple[Callable[[], None], int | None]] = {}
+    schedules: dict[str, object] = {}
+    for name, cfg in configs.items():
+        settings, scene, _, stacked, compiled, _, one_step = compiled_step(cfg, [seed])
+        program = programs[name] = program_fingerprint(
+            getattr(compiled, "lowered_step", None), name
+        )
+        if (program, "step") in timed:
+            continue
+        optim = cfg["optim"] if isinstance(cfg, Mapping) else {}
+        schedule = scheduled_update(optim) if optim else None
+        timed[program, "step"] = (one_step, None if schedule is None else 0)
+        if schedule is not None:
+            schedules[program] = schedule
+            timed[program, "advanced"] = (Stepper(compiled, stacked), schedule.floor_step)
+        if capabilities(optim).line_search and one_step.evaluations_at is not None:
+            call = evaluation_call(scene, stacked, settings.batch_size)
+            timed[program, "evaluation"] = (call, None)
+    return programs, timed, schedules
+
+
+def _measured_costs(samples: dict, lengths: dict, timed: dict, schedules: dict) -> dict:
+    """{program: its cost} from the per-step samples of every timed (program, kind) (calibrate)."""
+    import numpy as np
+
     measured = {}
     for (program, kind), per_step in samples.items():
         if kind != "step":
             continue
+        per_step = np.asarray(per_step)
         low, high = cost_interval(per_step, CALIBRATION_QUANTILE)
+        step_seconds = float(np.quantile(per_step, CALIBRATION_QUANTILE))
         measured[program] = {
-            "step_seconds": float(np.quantile(per_step, CALIBRATION_QUANTILE)),
+            "step_seconds": step_seconds,
             "low_seconds": low,
             "high_seconds": high,
             "median_seconds": float(np.median(per_step)),
@@ -220,18 +303,26 @@ def calibrate(
             "program": program,
         }
         if program in schedules:
-            measured[program] |= update_cost(
-                measured[program]["step_seconds"],
-                float(np.quantile(samples[program, "advanced"], CALIBRATION_QUANTILE)),
-                schedules[program],
+            advanced = float(np.quantile(samples[program, "advanced"], CALIBRATION_QUANTILE))
+            measured[program] |= update_cost(step_seconds, advanced, schedules[program])
+        if (program, "evaluation") in samples:
+            stepper = timed[program, "step"][0]
+            per_evaluation = np.asarray(samples[program, "evaluation"]) / EVALUATIONS_PER_CALL
+            measured[program] |= evaluation_cost(
+                step_seconds,
+                float(np.quantile(per_evaluation, CALIBRATION_QUANTILE)),
+                stepper.evaluations / max(stepper.steps, 1),
             )
-    costs = {name: dict(measured[programs[name]]) for name in configs}
+    return measured
+
+
+def evaluation_cost(step_seconds: float, evaluation_seconds: float, per_step: float) -> dict:
+    """A line search's cost v of one evaluation, kept within [0, s / e] (a step of e evaluations
+    costs at least those), and the e evaluations per step of its calibration (calibrate)."""
+    ceiling = step_seconds / per_step if per_step > 0 else evaluation_seconds
     return {
-        "quantile": CALIBRATION_QUANTILE,
-        "costs": costs,
-        "load_start": load_start,
-        "load_end": load_average(),
-        "machine": machine_attributes(),
+        "evaluation_seconds": float(min(max(evaluation_seconds, 0.0), ceiling)),
+        "step_evaluations": float(per_step),
     }
 
 

@@ -44,6 +44,10 @@ class TrainerSettings:
     # and that schedule (set by physgrad.refusals.check_config from the optim config), or None
     update_cost: float | None = None
     scheduled_update: ScheduledUpdate | None = field(default=None, compare=False)
+    # a line-search rule's cost of one evaluation (a value and gradient of the batch loss) and the
+    # evaluations per step step_cost holds (their mean in the calibration's steps), or None
+    evaluation_cost: float | None = None
+    step_evaluations: float | None = None
 
     @classmethod
     def from_config(cls, trainer_cfg: Mapping) -> TrainerSettings:
@@ -79,6 +83,7 @@ class TrainerSettings:
                 f"trainer.update_cost={update_cost:g} is the part of trainer.step_cost a scheduled "
                 "update costs: give it with a step_cost at least as large, or leave it out (null)"
             )
+        evaluation_cost, step_evaluations = line_search_costs(trainer_cfg, step_cost)
         if iterations is None and budget is None:
             iterations = DEFAULT_ITERATIONS
         if eval_seconds is None and budget is not None:
@@ -105,14 +110,49 @@ class TrainerSettings:
             step_cost=step_cost,
             clock=clock,
             update_cost=update_cost,
+            evaluation_cost=evaluation_cost,
+            step_evaluations=step_evaluations,
         )
 
-    def charged_seconds(self, iterations: int) -> float:
-        """The calibrated clock's time after `iterations` steps: iterations x step_cost, or with a
-        scheduled update of cost u, what the steps cost on average (ScheduledUpdate.charged_seconds:
-        the steps that skip the update are charged step_cost - u)."""
+    def charged_seconds(self, iterations: int, evaluations: float = 0.0) -> float:
+        """The calibrated clock's time after `iterations` steps: iterations x step_cost s; with a
+        line search whose evaluations cost v each, s holding e of them per step on average, the
+        steps' own part and the E = `evaluations` they made,
+
+            charged = iterations (s - v e) + v E;
+
+        with a scheduled update of cost u, what the steps cost on average
+        (ScheduledUpdate.charged_seconds: the steps that skip the update are charged s - u)."""
+        if self.evaluation_cost is not None:
+            own = self.step_cost - self.evaluation_cost * self.step_evaluations
+            return iterations * own + self.evaluation_cost * evaluations
         if self.update_cost is None:
             return iterations * self.step_cost
         if self.scheduled_update is None:  # check_config attaches it, or refuses the run
             raise ValueError("trainer.update_cost without the rule's schedule")
         return self.scheduled_update.charged_seconds(iterations, self.step_cost, self.update_cost)
+
+
+def line_search_costs(trainer_cfg: Mapping, step_cost: float | None) -> tuple:
+    """trainer.evaluation_cost v (seconds of one line-search evaluation) and
+    trainer.step_evaluations e (the evaluations per step within trainer.step_cost), both given or
+    neither, with v e <= step_cost; (None, None) where neither is given."""
+    cost = number(
+        "trainer.evaluation_cost", trainer_cfg.get("evaluation_cost"), 0, 3600.0, optional=True
+    )
+    mean = number(
+        "trainer.step_evaluations", trainer_cfg.get("step_evaluations"), 0, 1e6, optional=True
+    )
+    if cost is None and mean is None:
+        return None, None
+    if cost is None or mean is None or step_cost is None:
+        raise UserError(
+            "trainer.evaluation_cost and trainer.step_evaluations charge a line search's "
+            "evaluations: give both with trainer.step_cost (a calibration does), or neither"
+        )
+    if cost * mean > step_cost * (1 + 1e-9):
+        raise UserError(
+            f"trainer.evaluation_cost={cost:g} x trainer.step_evaluations={mean:g} is more than "
+            f"trainer.step_cost={step_cost:g}, which holds them: give a calibration's values"
+        )
+    return cost, mean

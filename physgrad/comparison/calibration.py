@@ -10,8 +10,12 @@ flip an equal-time comparison.
 except for a rule whose step updates on a schedule (PSGD Kron's preconditioner: at every step first,
 then rarer), timed both where every step updates (its cost s) and where the schedule has fallen to
 its floor, which gives its update's cost u: a run of n steps is charged n (s - u) + u sum_{t<=n} p_t
-(physgrad.optim.capabilities.ScheduledUpdate), what its steps cost on average; a calibration without
-u (written before it was measured) charges n s.
+(physgrad.optim.capabilities.ScheduledUpdate), what its steps cost on average; and except for a rule
+that searches a line (L-BFGS, SSBFGS, SSBroyden: as many evaluations of the batch loss and its
+gradient as each step's line search needs), whose evaluations are counted over the timed steps (e
+per step) and one of them timed in the same rounds (v): a run is charged n (s - v e) + v E for the E
+evaluations its n steps made, what its steps did. A calibration without u or v (written before they
+were measured) charges n s.
 
 A burst is k_v consecutive steps, k_v chosen so that a burst takes about BURST_SECONDS: a single
 step of a sub-millisecond variant timed between other variants' steps runs with caches the others
@@ -20,9 +24,9 @@ toy), which would have given the fast variants fewer iterations than they get wh
 
 A low quantile is the cost on the quietest rounds: a step that another process delays takes longer,
 never shorter, so the low quantile is what the step itself costs (AlgoPerf and `make bench` time
-interleaved for the same reason). docs/decisions.md ("Timing") gives the rule and its limits: step
-costs that depend on the data (L-BFGS's line search, a float64 retry of a failed factorisation) are
-counted at the calibrated cost, and on a GPU the step is timed the same way (dispatch until the
+interleaved for the same reason). docs/decisions.md ("Timing") gives the rule and its limits: other
+step costs that depend on the data (a float64 retry of a failed factorisation) are counted at the
+calibrated cost, and on a GPU the step is timed the same way (dispatch until the
 results are ready).
 """
 
@@ -79,6 +83,7 @@ def read_calibration(path: Path, names: list[str], given: bool = False) -> dict 
                 and isinstance(stored["costs"][name].get("rounds"), int)
                 and _interval_whole(stored["costs"][name], seconds)
                 and _update_whole(stored["costs"][name], finite)
+                and _evaluations_whole(stored["costs"][name], finite)
                 for name in names
             )
         )
@@ -94,6 +99,21 @@ def _interval_whole(cost: dict, seconds: object) -> bool:
         return True
     low, high = cost.get("low_seconds"), cost.get("high_seconds")
     return seconds(low) and seconds(high) and low <= cost["step_seconds"] <= high
+
+
+def _evaluations_whole(cost: dict, finite: object) -> bool:
+    """A line search's evaluation cost v and evaluations per step e, where recorded: both finite,
+    at least 0, with v e at most the step's cost."""
+    if "evaluation_seconds" not in cost and "step_evaluations" not in cost:
+        return True
+    each, per_step = cost.get("evaluation_seconds"), cost.get("step_evaluations")
+    return (
+        finite(each)
+        and finite(per_step)
+        and each >= 0
+        and 0 <= per_step <= 1e6
+        and each * per_step <= cost["step_seconds"] * (1 + 1e-9)
+    )
 
 
 def _update_whole(cost: dict, finite: object) -> bool:
@@ -186,10 +206,16 @@ def calibrated_clock(plan: StudyPlan, launcher: Launcher, given: str | None) -> 
                 "command again to resume"
             )
         write_calibration(path, calibration)
-    from physgrad.optim.capabilities import scheduled_update
+    from physgrad.optim.capabilities import capabilities, scheduled_update
 
     for variant in variants:
         cost = calibration["costs"][variant.name]
+        if "evaluation_seconds" in cost and not capabilities(variant.config.optim).line_search:
+            raise UserError(
+                f"{given or path}: {variant.name}'s cost has a line search's evaluation cost "
+                "(evaluation_seconds), and its rule searches no line: give a calibration of this "
+                "study's variants, or leave compare.calibration out to calibrate"
+            )
         if "update_seconds" in cost and scheduled_update(variant.config.optim) is None:
             raise UserError(
                 f"{given or path}: {variant.name}'s cost has an update cost (update_seconds), and "
@@ -203,4 +229,7 @@ def calibrated_clock(plan: StudyPlan, launcher: Launcher, given: str | None) -> 
         }
         if "update_seconds" in cost:
             variant.job_values["trainer.update_cost"] = float(cost["update_seconds"])
+        if "evaluation_seconds" in cost:
+            variant.job_values["trainer.evaluation_cost"] = float(cost["evaluation_seconds"])
+            variant.job_values["trainer.step_evaluations"] = float(cost["step_evaluations"])
     return calibration

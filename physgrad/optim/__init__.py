@@ -203,11 +203,24 @@ def needs_value_arguments(transform: optax.GradientTransformation, params: optax
     return False
 
 
+# the logged count of a step's line-search evaluations (optax's zoom line search: one value and
+# gradient of the batch loss each), which the calibrated clock charges (TrainerSettings)
+LINE_SEARCH_LOG = "linesearch_evaluations"
+
+
+def _reports(node: Any) -> bool:
+    return hasattr(node, "logs") or isinstance(node, optax.ScaleByZoomLinesearchState)
+
+
 def state_logs(opt_state: Any) -> dict:
     """Scalars an update rule reports about itself: every node of its state with a logs() method
-    (e.g. the spectral rules' svd_failures), merged."""
+    (e.g. the spectral rules' svd_failures), merged, and the evaluations its zoom line searches
+    made in this step (LINE_SEARCH_LOG, summed over line searches)."""
     logs = {}
-    for node in jax.tree_util.tree_leaves(opt_state, is_leaf=lambda x: hasattr(x, "logs")):
-        if hasattr(node, "logs"):
+    for node in jax.tree_util.tree_leaves(opt_state, is_leaf=_reports):
+        if isinstance(node, optax.ScaleByZoomLinesearchState):
+            found = jnp.asarray(node.info.num_linesearch_steps, jnp.float32)
+            logs[LINE_SEARCH_LOG] = logs.get(LINE_SEARCH_LOG, 0.0) + found
+        elif hasattr(node, "logs"):
             logs.update(node.logs())
     return logs

@@ -140,6 +140,17 @@ start() {
     say "SLURM $(sinfo -V | cut -d' ' -f2) is up: partition $PARTITION on $(hostname -s); export SLURM_CONF=$SLURM_CONF"
 }
 
+own_steps() { # the job steps (slurmstepd) of this cluster's slurmd: started with its SLURM_CONF in
+    # their environment, or holding a file of its state folder open (its log, its spool)
+    local pid
+    for pid in $(pgrep -x slurmstepd); do
+        if tr '\0' '\n' <"/proc/$pid/environ" 2>/dev/null | grep -qxF "SLURM_CONF=$STATE/slurm.conf" \
+            || find "/proc/$pid/fd" -maxdepth 1 -lname "$STATE/*" 2>/dev/null | grep -q .; then
+            echo "$pid"
+        fi
+    done
+}
+
 stop() {
     local quiet=${1:-}
     for name in slurmd slurmctld slurmdbd mariadb munged; do
@@ -155,8 +166,10 @@ stop() {
         fi
         rm -f "$pidfile"
     done
-    # slurmd's job steps (slurmstepd) end with their jobs; any left from a killed test are ended here
-    pkill -TERM -x slurmstepd 2>/dev/null || true
+    # slurmd's job steps (slurmstepd) end with their jobs; any left from a killed test are ended here,
+    # and only this cluster's: another cluster's steps on the same machine are not the harness's
+    local step
+    for step in $(own_steps); do kill -TERM "$step" 2>/dev/null || true; done
     [ -n "$quiet" ] || say "stopped"
 }
 

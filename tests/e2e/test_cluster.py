@@ -237,3 +237,40 @@ def test_physgrads_slurm_launcher_waits_for_every_job_and_cancels_the_waiting(
     assert len(ON_STOP) == 1
     cancel_waiting()
     assert ran == [["scancel", "--state=PENDING", "88"]] and not ON_STOP
+
+
+def test_the_cluster_harness_ends_only_its_own_job_steps(tmp_path):
+    """tests/cluster/slurm.sh stop ends the job steps (processes named slurmstepd) of its own
+    cluster only: a stand-in step started with the harness's SLURM_CONF in its environment, and
+    one holding a file of its state folder open, are ended; a third, another cluster's (another
+    SLURM_CONF, no file of the state folder), is left running. Needs no SLURM: the stand-ins are
+    copies of sleep named slurmstepd, and the state folder has no daemon to stop."""
+    import os
+    import shutil
+
+    state = tmp_path / "state"
+    (state / "log").mkdir(parents=True)
+    step = tmp_path / "bin" / "slurmstepd"
+    step.parent.mkdir()
+    shutil.copy(shutil.which("sleep"), step)
+    base = {k: v for k, v in os.environ.items() if k != "SLURM_CONF"}
+    ours = subprocess.Popen([step, "300"], env={**base, "SLURM_CONF": f"{state}/slurm.conf"})
+    with open(state / "log" / "step.out", "w") as log:
+        holding = subprocess.Popen([step, "300"], env=base, stdout=log)
+    other = subprocess.Popen([step, "300"], env={**base, "SLURM_CONF": "/elsewhere/slurm.conf"})
+    try:
+        stopped = subprocess.run(
+            ["bash", str(Path(__file__).parents[1] / "cluster" / "slurm.sh"), "stop"],
+            env={**base, "PHYSGRAD_SLURM_STATE": str(state)},
+            capture_output=True,
+            text=True,
+            timeout=60,
+        )
+        assert stopped.returncode == 0, stopped.stderr
+        assert ours.wait(timeout=10) == -signal.SIGTERM
+        assert holding.wait(timeout=10) == -signal.SIGTERM
+        assert other.poll() is None
+    finally:
+        for process in (ours, holding, other):
+            process.kill()
+            process.wait()

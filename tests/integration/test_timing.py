@@ -225,6 +225,58 @@ def test_a_scheduled_update_is_charged_its_expected_cost_and_only_for_a_rule_wit
     assert counters(one_step.opt_state) == [[schedule.floor_step + 1]]
 
 
+def test_a_line_search_is_charged_the_evaluations_it_made_and_only_a_line_search(tmp_path):
+    """L-BFGS on the toy (fresh minibatches: its line searches take from 1 to 20 evaluations a
+    step) with s = 1 ms a step holding e = 1.5 evaluations of v = 0.2 ms: the calibrated time after
+    n steps is the plain-loop sum of s - v e + v e_t over the evaluations e_t the steps logged, and
+    the run stops at the first n where it reaches the 0.3 s budget; an evaluation cost for Adam is
+    refused in one line that names it."""
+    step, each, mean, budget = 1e-3, 2e-4, 1.5, 0.3
+    outcome, run = run_toy(
+        tmp_path / "lbfgs",
+        "optim=lbfgs",
+        f"trainer.time_budget={budget}",
+        f"trainer.step_cost={step}",
+        f"trainer.evaluation_cost={each}",
+        f"trainer.step_evaluations={mean}",
+        "trainer.clock=calibrated",
+    )
+    assert outcome.status == "completed" and run.attrs["stopped_by"] == "time_budget"
+    made = np.asarray(run.train["linesearch_evaluations"])
+    assert made.min() >= 1 and made.max() > 2
+    charged = np.cumsum([step - each * mean + each * e for e in made])
+    np.testing.assert_allclose(run.train["calibrated_time"], charged, rtol=1e-12)
+    assert charged[-1] >= budget - 1e-12 > charged[-2]
+    assert run.attrs["evaluation_cost"] == each and run.attrs["step_evaluations"] == mean
+    outcome, _ = run_experiment(
+        load(
+            "task=toy",
+            "optim=adam",
+            f"trainer.step_cost={step}",
+            f"trainer.evaluation_cost={each}",
+            f"trainer.step_evaluations={mean}",
+        ),
+        tmp_path / "adam",
+    )
+    assert outcome.status == "refused" and "trainer.evaluation_cost" in outcome.reason
+    assert "optim=adam" in outcome.reason and "\n" not in outcome.reason
+
+
+@pytest.mark.long
+def test_a_real_line_search_is_calibrated_per_evaluation():
+    """L-BFGS and Adam on the toy interleaved in one process: L-BFGS's cost has one evaluation's
+    seconds (more than 0, and v e within its step cost) and the evaluations its timed steps made
+    (at least one a step: the zoom line search evaluates its first trial); Adam's has neither."""
+    from physgrad.timing import calibrate
+
+    configs = {name: load("task=toy", f"optim={name}") for name in ("adam", "lbfgs")}
+    costs = calibrate(configs, seed=0, rounds=20, min_seconds=0.5, max_seconds=600)["costs"]
+    lbfgs = costs["lbfgs"]
+    assert lbfgs["evaluation_seconds"] > 0 and lbfgs["step_evaluations"] >= 1
+    assert lbfgs["evaluation_seconds"] * lbfgs["step_evaluations"] <= lbfgs["step_seconds"]
+    assert "evaluation_seconds" not in costs["adam"]
+
+
 def test_the_calibration_ranks_real_steps_by_their_cost():
     """Two configurations interleaved in one process: a Jacobian rule's step costs more than Adam's
     on the same scene (about 9 to 26 times on the 2-core machine, quiet or beside a 2-core job),

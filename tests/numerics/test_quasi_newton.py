@@ -174,3 +174,42 @@ def test_a_network_larger_than_max_parameters_is_refused_in_one_line():
     assert "optim.max_parameters=10" in message and "optim=lbfgs" in message
     with pytest.raises(UserError, match="optim.variant=dfp"):
         self_scaled_broyden(variant="dfp")
+
+
+@pytest.mark.parametrize("rule", ["lbfgs", "ssbroyden"])
+def test_the_logged_line_search_evaluations_are_the_evaluations_made(rule):
+    """What the calibrated clock charges a line-search step (physgrad.optim.state_logs'
+    linesearch_evaluations) against a count kept outside the rule: every evaluation of the loss the
+    jitted update makes calls back once (jax.debug.callback in the loss), over 25 steps on the
+    Rosenbrock function with the direction scaled by 30 before the line search (what tuning the
+    learning rate of these rules does), where the zoom line search needs from 1 to many
+    evaluations a step."""
+    from physgrad.optim import LINE_SEARCH_LOG, state_logs
+
+    calls = []
+
+    def loss(x):
+        jax.debug.callback(lambda: calls.append(1))
+        return jnp.sum(100.0 * (x[1:] - x[:-1] ** 2) ** 2 + (1 - x[:-1]) ** 2)
+
+    scale = 30.0
+    transform = optax.lbfgs(scale) if rule == "lbfgs" else self_scaled_broyden(scale)
+    params = jnp.array([-1.2, 1.0, -0.5, 0.8])
+    state = transform.init(params)
+
+    @jax.jit
+    def update(params, state):
+        value, grad = jax.value_and_grad(loss)(params)
+        updates, state = transform.update(
+            grad, state, params, value=value, grad=grad, value_fn=loss
+        )
+        return optax.apply_updates(params, updates), state, state_logs(state)[LINE_SEARCH_LOG]
+
+    counts = []
+    for _ in range(25):
+        before = len(calls) + 1  # the step's own evaluation of the loss for its gradient
+        params, state, logged = update(params, state)
+        jax.effects_barrier()
+        counts.append((len(calls) - before, float(logged)))
+    assert [made for made, _ in counts] == [logged for _, logged in counts]
+    assert max(made for made, _ in counts) > 1 and min(made for made, _ in counts) >= 1

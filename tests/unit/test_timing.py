@@ -263,3 +263,147 @@ def test_a_calibrations_update_cost_goes_to_its_variants_jobs(tmp_path):
         with pytest.raises(UserError, match="psgd_kron's cost has an update cost") as error:
             calibrated_clock(plan, launcher, str(given))
         assert "\n" not in str(error.value)
+
+
+def test_a_line_search_is_charged_the_evaluations_its_steps_made():
+    """TrainerSettings.charged_seconds(n, E) for a line search of v = 0.5 ms an evaluation within a
+    step cost s = 2 ms that held e = 1.5 of them: the plain-loop sum of s - v e + v e_t over steps
+    of 1, 20, 3, ... evaluations; without a line search's costs, n s whatever E. Both costs or
+    neither, with v e at most s, each refused in one line that names what to give."""
+    import numpy as np
+
+    from physgrad.errors import UserError
+    from physgrad.trainer_settings import TrainerSettings
+
+    base = {"eval_every": 10, "batch_size": 4, "flush_seconds": 1.0, "clock": "calibrated"}
+    step, each, mean = 2e-3, 5e-4, 1.5
+    settings = TrainerSettings.from_config(
+        {**base, "step_cost": step, "evaluation_cost": each, "step_evaluations": mean}
+    )
+    made = np.random.default_rng(0).integers(1, 21, 300)
+    for n in (0, 1, 7, 300):
+        loop = sum(step - each * mean + each * float(e) for e in made[:n])
+        assert settings.charged_seconds(n, float(made[:n].sum())) == pytest.approx(loop, rel=1e-12)
+    plain = TrainerSettings.from_config({**base, "step_cost": step})
+    assert plain.charged_seconds(300, 9999.0) == pytest.approx(300 * step)
+    for wrong, said in (
+        ({"step_cost": step, "evaluation_cost": each}, "give both"),
+        ({"step_cost": step, "step_evaluations": mean}, "give both"),
+        ({"evaluation_cost": each, "step_evaluations": mean, "clock": "measured"}, "give both"),
+        ({"step_cost": step, "evaluation_cost": 1e-3, "step_evaluations": 3}, "more than"),
+        ({"step_cost": step, "evaluation_cost": -1e-3, "step_evaluations": 1}, "evaluation_cost"),
+    ):
+        with pytest.raises(UserError, match=said) as error:
+            TrainerSettings.from_config({**base, **wrong})
+        assert "\n" not in str(error.value)
+
+
+def test_a_line_search_is_timed_per_evaluation_and_counted_over_the_timed_steps(monkeypatch):
+    """On a simulated clock, a line-search step that costs c + v e_t (e_t cycling 1, 3, 2, 20
+    evaluations, the counts it logs) and one evaluation timed alone at v: the calibration gives
+    evaluation_seconds = v and step_evaluations = the mean count over the timed steps only (the
+    probe's and warm-up's steps left out); Adam, searching no line, gets neither."""
+    import sys
+    import types
+
+    import numpy as np
+
+    import physgrad.optim.capabilities  # noqa: F401  in sys.modules
+    import physgrad.timing
+    from physgrad.optim import LINE_SEARCH_LOG
+    from physgrad.optim.capabilities import Capabilities
+    from physgrad.timing import EVALUATIONS_PER_CALL, Stepper, calibrate
+
+    plain, each, cycle = 2e-4, 5e-5, [1, 3, 2, 20]
+    clock = {"now": 0.0, "made": []}
+
+    def fake_compiled(cfg, seeds):
+        name = cfg["optim"]["name"]
+
+        def step(params, state, iteration, keys, sets):
+            made = cycle[state["count"] % 4] if name == "lbfgs" else 0
+            clock["now"] += (1e-3 if name == "adam" else plain) + each * made
+            if name == "lbfgs":
+                clock["made"].append(made)
+            return params, {"count": state["count"] + 1}, np.array([[made, 0.0]])
+
+        compiled = types.SimpleNamespace(
+            params=None, opt_state={"count": 0}, step=step, log_names=[LINE_SEARCH_LOG, "loss"]
+        )
+        stacked = types.SimpleNamespace(train_keys=None, train_sets=None)
+        settings = types.SimpleNamespace(batch_size=4)
+        return settings, None, None, stacked, compiled, 0.0, Stepper(compiled, stacked)
+
+    def fake_evaluations(scene, seeds, batch_size):
+        def call():
+            clock["now"] += each * EVALUATIONS_PER_CALL
+
+        return call
+
+    searching = Capabilities("lbfgs", (1e-2, 1e1), line_search=True)
+    monkeypatch.setattr(physgrad.timing, "compiled_step", fake_compiled)
+    monkeypatch.setattr(physgrad.timing, "evaluation_call", fake_evaluations)
+    monkeypatch.setattr(
+        physgrad.timing, "time", types.SimpleNamespace(perf_counter=lambda: clock["now"])
+    )
+    module = sys.modules["physgrad.optim.capabilities"]
+    monkeypatch.setattr(module, "scheduled_update", lambda optim: None)
+    monkeypatch.setattr(
+        module,
+        "capabilities",
+        lambda optim: searching if optim["name"] == "lbfgs" else Capabilities("adaptive", (1, 2)),
+    )
+    configs = {name: {"optim": {"name": name}} for name in ("adam", "lbfgs")}
+    result = calibrate(configs, seed=0, rounds=40, min_seconds=0.5, max_seconds=600)["costs"]
+    assert "evaluation_seconds" not in result["adam"] and "step_evaluations" not in result["adam"]
+    lbfgs = result["lbfgs"]
+    assert lbfgs["evaluation_seconds"] == pytest.approx(each, rel=1e-9)
+    timed = clock["made"][-lbfgs["burst_steps"] * lbfgs["rounds"] :]
+    assert lbfgs["step_evaluations"] == pytest.approx(np.mean(timed), rel=1e-12)
+    assert len(clock["made"]) > len(timed)  # the untimed steps were left out
+
+
+def test_a_calibrations_evaluation_cost_goes_to_its_line_search_jobs(tmp_path):
+    """calibrated_clock with a given calibration.json whose L-BFGS cost has a line search's
+    evaluation cost: L-BFGS's jobs run with trainer.evaluation_cost and step_evaluations, Adam's
+    without; the same cost on a rule that searches no line is refused in one line; a calibration
+    whose v e exceeds its step cost, or whose e is not a number, is not a calibration."""
+    import json
+    import types
+
+    from physgrad.comparison.calibration import calibrated_clock, read_calibration
+    from physgrad.errors import UserError
+    from tests.helpers import scheduled_calibration
+
+    calibration = scheduled_calibration()
+    cost = calibration["costs"]["adam"]
+    calibration["costs"] = {
+        "adam": cost,
+        "lbfgs": {**cost, "evaluation_seconds": 5e-4, "step_evaluations": 2.5},
+    }
+    given = tmp_path / "given.json"
+    given.write_text(json.dumps(calibration))
+    rules = {"adam": {"_target_": "optax.adam"}, "lbfgs": {"_target_": "optax.lbfgs"}}
+    variants = [
+        types.SimpleNamespace(name=name, config=types.SimpleNamespace(optim=optim))
+        for name, optim in rules.items()
+    ]
+    plan = types.SimpleNamespace(variants=variants)
+    launcher = types.SimpleNamespace(folder=tmp_path, say=print)
+    assert calibrated_clock(plan, launcher, str(given)) == calibration
+    assert variants[0].job_values == {"trainer.step_cost": 2e-3, "trainer.clock": "calibrated"}
+    assert variants[1].job_values == {
+        "trainer.step_cost": 2e-3,
+        "trainer.clock": "calibrated",
+        "trainer.evaluation_cost": 5e-4,
+        "trainer.step_evaluations": 2.5,
+    }
+    variants[1].config.optim = {"_target_": "optax.adam"}
+    with pytest.raises(UserError, match="lbfgs's cost has a line search's") as error:
+        calibrated_clock(plan, launcher, str(given))
+    assert "\n" not in str(error.value)
+    for wrong in ({"step_evaluations": 5.0}, {"step_evaluations": "2"}, {"evaluation_seconds": -1}):
+        calibration["costs"]["lbfgs"].update(wrong)
+        given.write_text(json.dumps(calibration))
+        assert read_calibration(given, ["adam", "lbfgs"], given=True) is None, wrong
+        calibration["costs"]["lbfgs"].update(evaluation_seconds=5e-4, step_evaluations=2.5)
