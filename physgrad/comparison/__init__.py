@@ -7,6 +7,7 @@ from physgrad.comparison.calibration import calibrated_clock
 from physgrad.comparison.evaluation import evaluation, evaluation_jobs
 from physgrad.comparison.jobs import job_runs, job_yaml, launch
 from physgrad.comparison.points import halton_points
+from physgrad.comparison.search_space import learning_rate_key
 from physgrad.comparison.spec import (
     PHASES,
     SETTINGS,
@@ -14,7 +15,6 @@ from physgrad.comparison.spec import (
     Variant,
     build_variants,
     check_variants_build,
-    learning_rate_key,
     parse_arguments,
     split_overrides,
     study_settings,

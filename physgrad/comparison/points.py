@@ -10,8 +10,8 @@ import numpy as np
 
 
 def is_rate_key(key: str) -> bool:
-    """learning_rate or learning_rate.init_value (spec.learning_rate_key): the key every variant
-    tunes, whatever its rule family."""
+    """learning_rate or learning_rate.init_value (search_space.learning_rate_key): the key every
+    variant tunes, whatever its rule family."""
     return key.split(".")[0] == "learning_rate"
 
 

@@ -4,10 +4,10 @@ command line, each composed, with the search space of its tuning) and its budget
 from __future__ import annotations
 
 import itertools
-import math
 from dataclasses import dataclass, field, fields
 from typing import TYPE_CHECKING, Any
 
+from physgrad.comparison.search_space import search_space
 from physgrad.errors import UserError, innermost_cause
 from physgrad.readout import budget_of as budget_of_config
 from physgrad.verdict import ALPHA, MARGIN
@@ -47,6 +47,12 @@ SETTINGS = {  # compare.<key>: default, meaning
         "with that key",
     ),
     "tune": (True, "false: evaluate the variants at their configured settings without tuning"),
+    "knobs": (
+        False,
+        "true: tune each rule's own settings that its authors tune (Adam's eps, the Jacobian "
+        "rules' tau or damping, PSGD Kron's preconditioner step, Muon's Adam step) beside its "
+        "learning rate, over their declared ranges (docs/protocol.md)",
+    ),
     "clock": (
         "calibrated",
         "time budgets: calibrated (iterations x each variant's step cost measured in one "
@@ -84,6 +90,7 @@ class StudySettings:
     clock: str
     calibration: str | None
     baseline: str | None = None
+    knobs: bool = False
 
     def __getitem__(self, key: str) -> Any:
         """settings["seeds"] as settings.seeds, for callers of the dict these settings were."""
@@ -164,18 +171,6 @@ class StudyPlan:
         if self.axis == "iteration" or self.settings.clock != "calibrated":
             return self.axis
         return "calibrated_time"
-
-
-def learning_rate_key(optim_cfg: DictConfig) -> str | None:
-    """The optim key compare tunes: learning_rate, or learning_rate.init_value where the rate is a
-    schedule (e.g. _target_: optax.exponential_decay with init_value: the schedule's shape is kept,
-    its scale tuned); None if there is neither."""
-    rate = optim_cfg.get("learning_rate")
-    if rate is None:
-        return None
-    if hasattr(rate, "keys"):
-        return "learning_rate.init_value" if "init_value" in rate else None
-    return "learning_rate"
 
 
 # --- parsing the command line
@@ -309,8 +304,9 @@ def study_settings(given: dict) -> StudySettings:
             f"compare.dir={settings.dir}: '${{' would be resolved as an interpolation in the "
             "study's jobs, which would then write into another folder; give the folder itself"
         )
-    if not isinstance(settings.tune, bool):
-        raise UserError(f"compare.tune={settings.tune!r}: use true or false")
+    for flag in ("tune", "knobs"):
+        if not isinstance(settings[flag], bool):
+            raise UserError(f"compare.{flag}={settings[flag]!r}: use true or false")
     last_tuning = settings.tune_seed + settings.studies - 1
     last_evaluation = settings.evaluation_seeds[-1]
     if settings.tune_seed <= last_evaluation and settings.seed <= last_tuning:
@@ -360,7 +356,7 @@ def build_variants(
         overrides = list(combo)
         check_overrides([*common, *overrides], multirun=False, config_dirs=config_dirs)
         cfg = compose([*common, *overrides], config_dirs=config_dirs, return_hydra_config=True)
-        space = search_space(cfg, settings) if settings.tune else {}
+        space = search_space(cfg, settings.search, settings.knobs) if settings.tune else {}
         variants.append(Variant(variant_name(overrides), overrides, cfg, space))
     if len(variants) < 2:
         raise UserError(
@@ -383,46 +379,6 @@ def build_variants(
             f"({', '.join(names)}): name one of them"
         )
     return variants
-
-
-def search_space(cfg: DictConfig, settings: StudySettings) -> dict:
-    """The tuned optim keys of a variant with their log-uniform ranges: its learning rate over its
-    rule family's range (physgrad.optim.capabilities), then every key of the scene's tuning file's
-    `search` (conf/tuning/<task>_<optim>.yaml: the ranges this rule is tuned over on this scene),
-    then every compare.search key, each where the variant's optim has it."""
-    optim_cfg = cfg.optim
-    rate = learning_rate_key(optim_cfg)
-    if rate is None:
-        raise UserError(
-            f"optim={optim_cfg.get('name')} has no learning_rate to tune (a number, or a schedule "
-            "with init_value): add one to its YAML, or compare it untuned (compare.tune=false)"
-        )
-    from omegaconf import OmegaConf
-
-    from physgrad.optim.capabilities import capabilities  # JAX: not for compare --help (2.2 CPU-s)
-
-    space = {rate: capabilities(optim_cfg).search_range}
-
-    declared = cfg.get("search")
-    declared = OmegaConf.to_container(declared) if OmegaConf.is_config(declared) else {}
-    for key, bounds in declared.items():
-        where = (
-            f"search.{key} (the tuning file of task={cfg.task.get('name')}, "
-            f"optim={optim_cfg.get('name')})"
-        )
-        if not (
-            isinstance(bounds, list)
-            and len(bounds) == 2
-            and all(isinstance(b, (int, float)) and not isinstance(b, bool) for b in bounds)
-            and 0 < bounds[0] < bounds[1] < math.inf
-        ):
-            raise UserError(f"{where} must be [low, high] with 0 < low < high, not {bounds}")
-        if key in optim_cfg:
-            space[rate if key == "learning_rate" else key] = (float(bounds[0]), float(bounds[1]))
-    for key, bounds in settings.search.items():
-        if key in optim_cfg:
-            space[rate if key == "learning_rate" else key] = bounds
-    return space
 
 
 def check_variants_build(variants: list[Variant], seed: int, built: dict | None = None) -> None:

@@ -21,7 +21,14 @@ adam.yaml is Adam. Capabilities:
   that the calibrated clock charges step t its expected cost c + p_t u (ScheduledUpdate) rather
   than the cost of the first steps, where p_t = 1;
 - search_range: the log-uniform learning-rate range `physgrad compare` tunes over, per family, each
-  spanning the papers' presets by two decades or more on either side (docs/protocol.md).
+  spanning the papers' presets by two decades or more on either side (docs/protocol.md);
+- knobs: (key, low, high) of the rule's other settings its authors tune, each log-uniform over a
+  range spanning physgrad's preset by two decades or more on either side where the setting allows
+  (a probability step stops at 1), tuned beside the learning rate with compare.knobs=true: Adam's
+  eps, the Jacobian rules' truncation tau (Gauss-Newton, HIG) or damping (Levenberg-Marquardt,
+  K-FAC), PSGD Kron's preconditioner step, Muon's Adam step for the non-matrix parameters. The
+  line-search rules and SOAP have none here: their knobs (memory, the line search's steps, the
+  preconditioning frequency) are whole numbers, which the log-uniform search does not draw.
 """
 
 from __future__ import annotations
@@ -29,7 +36,7 @@ from __future__ import annotations
 import importlib
 import math
 from collections.abc import Callable, Mapping
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import TYPE_CHECKING, Any
 
 if TYPE_CHECKING:
@@ -46,19 +53,26 @@ class Capabilities:
     needs_layer_factors: bool = False
     line_search: bool = False
     scheduled_update: str | None = None
+    knobs: tuple[tuple[str, float, float], ...] = ()
 
 
-# mean-over-samples loss; presets 0.5 to 1
+# mean-over-samples loss; presets 0.5 to 1; the truncation tau around its preset 1e-6, the
+# relative damping around its preset 1e-3
+TRUNCATION, DAMPING = ("tau", 1e-9, 1e-3), ("damping", 1e-6, 1.0)
 JACOBIAN = Capabilities("jacobian", (1e-3, 1e1), needs_jacobian=True)
 # Adam and the other optax rules (presets 1e-4 to 1e-3)
 ADAPTIVE = Capabilities("adaptive", (1e-5, 1e-1))
 ADAPTIVE_ELEMENTWISE = Capabilities("adaptive", ADAPTIVE.search_range, elementwise=True)
 
 RULES: dict[str, Capabilities] = {
-    "physgrad.optim.spectral.spectral_rule": JACOBIAN,
-    "physgrad.optim.spectral.marquardt_rule": JACOBIAN,
+    "physgrad.optim.spectral.spectral_rule": replace(JACOBIAN, knobs=(TRUNCATION,)),
+    "physgrad.optim.spectral.marquardt_rule": replace(JACOBIAN, knobs=(DAMPING,)),
     "physgrad.optim.kfac.kfac": Capabilities(
-        "jacobian", JACOBIAN.search_range, needs_jacobian=True, needs_layer_factors=True
+        "jacobian",
+        JACOBIAN.search_range,
+        needs_jacobian=True,
+        needs_layer_factors=True,
+        knobs=(DAMPING,),
     ),
     "optax.sgd": Capabilities("sgd", (1e-4, 1e1), elementwise=True),  # plain gradient descent
     "optax.lbfgs": Capabilities(
@@ -68,17 +82,26 @@ RULES: dict[str, Capabilities] = {
     "physgrad.optim.quasi_newton.self_scaled_broyden": Capabilities(
         "lbfgs", (1e-2, 1e1), elementwise=True, line_search=True
     ),
-    "optax.contrib.muon": Capabilities("adaptive", ADAPTIVE.search_range, needs_matrices=True),
+    # the biases' and gains' Adam step, over Adam's range
+    "optax.contrib.muon": Capabilities(
+        "adaptive",
+        ADAPTIVE.search_range,
+        needs_matrices=True,
+        knobs=(("adam_learning_rate", *ADAPTIVE.search_range),),
+    ),
     # Adam in Shampoo's eigenbasis per weight matrix: given the layers, not one flat vector
     "physgrad.optim.soap.soap": Capabilities("adaptive", ADAPTIVE.search_range),
     # a Kronecker-factored preconditioner per weight matrix: given the layers, not one flat vector
+    # the preconditioner's step on its Lie group: preset 0.1, at most 1
     "physgrad.optim.psgd.psgd_kron": Capabilities(
-        "adaptive", ADAPTIVE.search_range, scheduled_update="physgrad.optim.psgd.scheduled_update"
+        "adaptive",
+        ADAPTIVE.search_range,
+        scheduled_update="physgrad.optim.psgd.scheduled_update",
+        knobs=(("preconditioner_lr", 1e-3, 1.0),),
     ),
     **{
         f"optax.{name}": ADAPTIVE_ELEMENTWISE
         for name in (
-            "adam",
             "adamw",
             "adamax",
             "adamaxw",
@@ -98,6 +121,8 @@ RULES: dict[str, Capabilities] = {
             "rprop",
         )
     },
+    # eps around physgrad's preset 1e-7 (Keras's; PyTorch's 1e-8)
+    "optax.adam": replace(ADAPTIVE_ELEMENTWISE, knobs=(("eps", 1e-10, 1e-4),)),
 }
 
 

@@ -54,6 +54,46 @@ def test_comma_lists_are_variants_and_everything_else_is_common():
     assert variants[2].preset == {"learning_rate": 1.0, "tau": 1e-6}  # the oscillator's HIG preset
 
 
+def test_with_knobs_each_rule_is_tuned_over_its_own_settings_too():
+    """compare.knobs=true: each variant's space is its learning rate and its rule's declared knobs
+    (Adam's eps, HIG's tau, Levenberg-Marquardt's and K-FAC's damping, PSGD Kron's preconditioner
+    step, Muon's Adam step; L-BFGS and SOAP none), each range spanning the preset by two decades or
+    more on either side; a tuning file's range (the toy's HIG rate) and compare.search (tau) still
+    win; without knobs the learning rate alone; compare.knobs must be true or false."""
+    import math
+
+    from physgrad.comparison.spec import study_settings
+    from physgrad.optim.capabilities import capabilities
+
+    rules = "adam,hig,levenberg_marquardt,kfac,psgd_kron,muon,lbfgs,soap"
+    settings, axes, common, _ = split_overrides(
+        ["task=toy", f"optim={rules}", "compare.knobs=true", "compare.search.damping=[1e-4,1e-2]"]
+    )
+    variants = build_variants(axes, common, study_settings(settings), [])
+    spaces = {v.name: v.space for v in variants}
+    assert {name: sorted(space) for name, space in spaces.items()} == {
+        "adam": ["eps", "learning_rate"],
+        "hig": ["learning_rate", "tau"],
+        "levenberg_marquardt": ["damping", "learning_rate"],
+        "kfac": ["damping", "learning_rate"],
+        "psgd_kron": ["learning_rate", "preconditioner_lr"],
+        "muon": ["adam_learning_rate", "learning_rate"],
+        "lbfgs": ["learning_rate"],
+        "soap": ["learning_rate"],
+    }
+    assert spaces["hig"]["learning_rate"] == (0.01, 100.0)  # conf/tuning/toy_hig.yaml
+    assert spaces["kfac"]["damping"] == spaces["levenberg_marquardt"]["damping"] == (1e-4, 1e-2)
+    for variant in variants:
+        for key, low, high in capabilities(variant.config.optim).knobs:
+            preset = float(variant.config.optim[key])
+            decades = min(math.log10(preset / low), math.log10(high / preset))
+            assert decades >= 2 or high == 1.0, (variant.name, key)
+    plain = build_variants(axes, common, study_settings({}), [])
+    assert all(list(v.space) == ["learning_rate"] for v in plain)
+    with pytest.raises(UserError, match="compare.knobs='yes': use true or false"):
+        study_settings({"knobs": "yes"})
+
+
 def test_a_variant_the_scene_refuses_stops_the_study_before_anything_trains(tmp_path):
     from physgrad.comparison import run_study
 
