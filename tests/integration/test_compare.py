@@ -721,7 +721,9 @@ def test_a_study_folder_from_someone_else_runs_no_code_and_its_links_are_not_fol
 ):
     """A study folder holds configs of the jobs as a record only: a tuning option planted in its
     configs/ (here one that would change the budget and build a logger whose _target_ runs a shell
-    command) is never on the jobs' config search path, a link planted where a job's record is
+    command, or a function of a module in the working folder, which the target policy accepts
+    from the user's own command line or config folder) is never on the jobs' config search path,
+    nor is a finished job's .hydra/config.yaml read back; a link planted where a job's record is
     written is replaced, not written through, and a phase log that is a link is refused in one
     line. The folder is a finished study's, one of whose evaluation jobs must run again."""
     study, outside, marker = tmp_path / "study", tmp_path / "outside.yaml", tmp_path / "ran"
@@ -729,11 +731,21 @@ def test_a_study_folder_from_someone_else_runs_no_code_and_its_links_are_not_fol
     for job in (study / "eval").glob("+compare_job=eval_st1_*"):  # tuning study 1's runs again
         job.rename(tmp_path / job.name)
     (study / "configs" / "tuning").mkdir(exist_ok=True)
-    for planted in ("tuning/toy_gd.yaml", "tuning/toy_adam.yaml"):
+    working_folder = (  # tests.helpers.plant: a FIFO at the marker, were it ever called
+        f"    _target_: tests.helpers.plant\n    path: {marker}\n    kind: fifo\n"
+        f"    other: {marker}\n"
+    )
+    for planted, target in (
+        ("tuning/toy_gd.yaml", f"    _target_: os.system\n    command: touch {marker}\n"),
+        ("tuning/toy_adam.yaml", working_folder),
+    ):
         (study / "configs" / planted).write_text(
-            "# @package _global_\ntrainer:\n  iterations: 7\nlogger:\n  evil:\n"
-            f"    _target_: os.system\n    command: touch {marker}\n"
+            f"# @package _global_\ntrainer:\n  iterations: 7\nlogger:\n  evil:\n{target}"
         )
+    records = list((study / "eval").glob("+compare_job=eval_v*/.hydra/config.yaml"))
+    assert records  # tuning study 0's finished jobs: their records stay
+    for hydra in records:
+        hydra.write_text(f"task:\n  name: toy\n{working_folder}")
     outside.write_text("theirs\n")
     record = study / "configs" / "compare_job" / "eval_st1_v0.yaml"
     record.unlink()
