@@ -192,8 +192,8 @@ def trial_rows(folder: Path, variants: list[Variant], studies: int = 1) -> list[
     storage = journal_storage(path)
     rows = []
     for k, variant in ((k, v) for k in range(studies) for v in variants):
-        study = optuna.load_study(study_name=optuna_study_name(variant, k), storage=storage)
-        for t in study.trials:
+        search = optuna.load_study(study_name=optuna_study_name(variant, k), storage=storage)
+        for t in search.trials:
             # a trial set aside (params that are not the variant's search space) is listed without
             # them: they are data of unknown origin
             params = trial_params(t, variant.space)

@@ -1,7 +1,7 @@
 """Phase 1 of a study: compare.studies tuning studies, each of compare.trials trials per variant on
 its own tuning seed, at the study's budget, over the variant's search space (log-uniform; Halton
 points shifted by a random vector of the study's own, the same for every variant of a study, as
-AlgoPerf's independent repeated studies; an Optuna study per variant and tuning study in
+AlgoPerf's independent repeated studies; a search (an Optuna study) per variant and tuning study in
 tuning.journal), each trial scored by its VALIDATION loss at the budget."""
 
 from __future__ import annotations
@@ -45,13 +45,14 @@ def trial_params(trial: object, space: dict) -> dict[str, float] | None:
     return checked
 
 
-def _set_aside_line(variant: Variant, study: int, trial: object) -> str:
+def _set_aside_line(variant: Variant, tuning_study: int, trial: object) -> str:
     """The one line that says a trial of the journal was set aside."""
     shown = repr(getattr(trial, "params", None))[:120]
     return (
-        f"note: trial {getattr(trial, 'number', '?')} of {variant.name} (tuning study {study}) in "
-        f"tuning.journal is set aside: its params {shown} are not {sorted(variant.space)} inside "
-        "their ranges (a journal changed by hand or by someone else)"
+        f"note: trial {getattr(trial, 'number', '?')} of {variant.name} (tuning study "
+        f"{tuning_study}) in tuning.journal is set aside: its params {shown} are not "
+        f"{sorted(variant.space)} inside their ranges (a journal changed by hand or by someone "
+        "else)"
     )
 
 
@@ -65,16 +66,16 @@ def tuning(plan: StudyPlan, launcher: Launcher) -> list[dict[str, dict]]:
     best = [{v.name: {} for v in variants} for _ in range(count)]
     if not settings.tune:
         return best
-    studies, pending, reread = _open_studies(folder, variants, settings, launcher.say)
+    searches, pending, reread = _open_searches(folder, variants, settings, launcher.say)
     if reread:
-        told = _tell_trained(folder, variants, settings, studies, pending, axis, budget)
+        told = _tell_trained(folder, variants, settings, searches, pending, axis, budget)
         launcher.say(f"tune: {told} trials read again from the runs that trained them")
     for variant in variants:
         variant.trials_together = trials_together(variant, axis)
 
-    def job_values(study: int, variant: Variant) -> dict:
+    def job_values(tuning_study: int, variant: Variant) -> dict:
         values = {
-            "seed": settings.tune_seed + study,
+            "seed": settings.tune_seed + tuning_study,
             "seeds": 1,
             "figures": False,  # the study's report/ draws every run
             "trainer.validation": True,
@@ -84,42 +85,42 @@ def tuning(plan: StudyPlan, launcher: Launcher) -> list[dict[str, dict]]:
 
     jobs, batches = {}, {}
     # one vectorised job per study and variant where the rule takes its tuned values as inputs
-    for study in range(count):
+    for tuning_study in range(count):
         for index, variant in enumerate(variants):
-            waiting = sorted(k for s, i, k in pending if (s, i) == (study, index))
+            waiting = sorted(k for s, i, k in pending if (s, i) == (tuning_study, index))
             if variant.trials_together and waiting:
                 values = {
                     "trial_values": {
-                        key: [pending[study, index, k].params[key] for k in waiting]
+                        key: [pending[tuning_study, index, k].params[key] for k in waiting]
                         for key in sorted(variant.space)
                     },
-                    **job_values(study, variant),
+                    **job_values(tuning_study, variant),
                 }
-                jobs[batch_job(study, index, waiting)] = job_yaml(
+                jobs[batch_job(tuning_study, index, waiting)] = job_yaml(
                     [*common, *variant.overrides], groups, values
                 )
-                batches[study, index] = waiting
+                batches[tuning_study, index] = waiting
     # the others one job per trial, interleaved: trial k of every study and variant, then k + 1,
     # so that a study stopped early has tried every variant alike
     for k in range(settings.trials):
-        for study in range(count):
+        for tuning_study in range(count):
             for index, variant in enumerate(variants):
-                trial = pending.get((study, index, k))
+                trial = pending.get((tuning_study, index, k))
                 if trial is None or variant.trials_together:
                     continue
                 values = {f"optim.{key}": value for key, value in trial.params.items()}
-                values.update(job_values(study, variant))
-                jobs[trial_job(study, index, k)] = job_yaml(
+                values.update(job_values(tuning_study, variant))
+                jobs[trial_job(tuning_study, index, k)] = job_yaml(
                     [*common, *variant.overrides], groups, values
                 )
     if jobs:
         launcher.run("tune", jobs, {name: variants[variant_index(name)].config for name in jobs})
-        _score_trials(folder, variants, studies, pending, batches, axis, budget)
-    for study in range(count):
+        _score_trials(folder, variants, searches, pending, batches, axis, budget)
+    for tuning_study in range(count):
         for variant in variants:
             trials = [
                 t
-                for t in studies[study, variant.name].trials
+                for t in searches[tuning_study, variant.name].trials
                 if trial_params(t, variant.space) is not None
             ]
             if any(t.value is None for t in trials):
@@ -132,7 +133,7 @@ def tuning(plan: StudyPlan, launcher: Launcher) -> list[dict[str, dict]]:
             ]
             if done:
                 chosen = min(done, key=lambda t: t.value)
-                best[study][variant.name] = trial_params(chosen, variant.space)
+                best[tuning_study][variant.name] = trial_params(chosen, variant.space)
     return best
 
 
@@ -177,31 +178,32 @@ def seeds_together(variant: Variant, axis: str) -> bool:
     )
 
 
-def batch_job(study: int, index: int, numbers: list[int]) -> str:
-    """The job name of trials `numbers` of variant index in tuning study `study` trained together:
-    tune_v0_t000-015 (one trial: as its own job's name). Trials added to a finished study get a
-    job of their own, so the files of those told before stay as they are."""
+def batch_job(tuning_study: int, index: int, numbers: list[int]) -> str:
+    """The job name of trials `numbers` of variant index in tuning study `tuning_study` trained
+    together: tune_v0_t000-015 (one trial: as its own job's name). Trials added to a finished study
+    get a job of their own, so the files of those told before stay as they are."""
     last = f"-{numbers[-1]:03d}" if len(numbers) > 1 else ""
-    return f"tune_{study_prefix(study)}v{index}_t{numbers[0]:03d}{last}"
+    return f"tune_{study_prefix(tuning_study)}v{index}_t{numbers[0]:03d}{last}"
 
 
-def trial_job(study: int, index: int, trial: int) -> str:
-    """The job name of trial k of variant index in tuning study `study`."""
-    return f"tune_{study_prefix(study)}v{index}_t{trial:03d}"
+def trial_job(tuning_study: int, index: int, trial: int) -> str:
+    """The job name of trial k of variant index in tuning study `tuning_study`."""
+    return f"tune_{study_prefix(tuning_study)}v{index}_t{trial:03d}"
 
 
-def optuna_study_name(variant: Variant, study: int) -> str:
+def optuna_study_name(variant: Variant, tuning_study: int) -> str:
     """The Optuna study of a variant's tuning study k in tuning.journal (the first keeps the
     variant's name, as a folder written before repeated studies has it)."""
-    return variant.name if study == 0 else f"{variant.name} (study {study})"
+    return variant.name if tuning_study == 0 else f"{variant.name} (study {tuning_study})"
 
 
-def _open_studies(
+def _open_searches(
     folder: Path, variants: list[Variant], settings: StudySettings, say: Callable[[str], object]
 ) -> tuple[dict, dict, bool]:
-    """Each variant's Optuna study per tuning study in folder/tuning.journal, with its Halton points
-    enqueued and asked for; (Optuna studies by (study, variant name), the trials not yet told by
-    (study, variant index, trial number), whether the journal was set aside to be read again)."""
+    """Each variant's search per tuning study (an Optuna study in folder/tuning.journal), with its
+    Halton points enqueued and asked for; (the searches by (tuning study, variant name), the trials
+    not yet told by (tuning study, variant index, trial number), whether the journal was set aside
+    to be read again)."""
     import optuna
     from optuna.trial import TrialState
 
@@ -209,42 +211,42 @@ def _open_studies(
     set_aside_damage(folder / "tuning.journal", say)
     reread = set_aside_stale(folder / "tuning.journal", say)
     storage = journal_storage(folder / "tuning.journal")
-    studies, pending = {}, {}
+    searches, pending = {}, {}
     dimensions = point_dimensions([variant.space for variant in variants])
-    for study_index in range(settings.study_count):
+    for tuning_study in range(settings.study_count):
         # the same points for every variant of one study (one seed per study): a variant's
         # position or name never changes where it is tried, so two names for one rule are tuned
         # alike; each study shifts the points anew, so the studies sample the tuning's variance
         for index, variant in enumerate(variants):
-            study = optuna.create_study(
-                study_name=optuna_study_name(variant, study_index),
+            search = optuna.create_study(
+                study_name=optuna_study_name(variant, tuning_study),
                 storage=storage,
                 direction="minimize",
                 load_if_exists=True,
             )
-            if "readout" not in study.user_attrs:
-                study.set_user_attr("readout", READOUT_VERSION)
-            studies[study_index, variant.name] = study
+            if "readout" not in search.user_attrs:
+                search.set_user_attr("readout", READOUT_VERSION)
+            searches[tuning_study, variant.name] = search
             points = halton_points(
-                variant.space, settings.trials, settings.tune_seed + study_index, dimensions
+                variant.space, settings.trials, settings.tune_seed + tuning_study, dimensions
             )
-            for point in points[len(study.trials) :]:
-                study.enqueue_trial(point)
-            while any(t.state == TrialState.WAITING for t in study.get_trials(deepcopy=False)):
-                trial = study.ask()
+            for point in points[len(search.trials) :]:
+                search.enqueue_trial(point)
+            while any(t.state == TrialState.WAITING for t in search.get_trials(deepcopy=False)):
+                trial = search.ask()
                 try:
                     for key, (low, high) in sorted(variant.space.items()):
                         trial.suggest_float(key, low, high, log=True)
                 except (ValueError, TypeError, OverflowError):
                     # a point enqueued in the journal by someone else that is no number of the
                     # range: failed in the journal, set aside below
-                    study.tell(trial, state=TrialState.FAIL)
-            for trial in study.get_trials(deepcopy=False):
+                    search.tell(trial, state=TrialState.FAIL)
+            for trial in search.get_trials(deepcopy=False):
                 if trial_params(trial, variant.space) is None:
-                    say(_set_aside_line(variant, study_index, trial))
+                    say(_set_aside_line(variant, tuning_study, trial))
                 elif trial.state == TrialState.RUNNING:
-                    pending[study_index, index, trial.number] = trial
-    return studies, pending, reread
+                    pending[tuning_study, index, trial.number] = trial
+    return searches, pending, reread
 
 
 def journal_storage(path: Path) -> JournalStorage:
@@ -319,9 +321,9 @@ def set_aside_stale(path: Path, say: Callable[[str], object]) -> bool:
     storage = journal_storage(path)
     versions = set()
     for name in optuna.get_all_study_names(storage):
-        study = optuna.load_study(study_name=name, storage=storage)
-        version = study.user_attrs.get("readout")
-        if version != READOUT_VERSION and study.get_trials(
+        search = optuna.load_study(study_name=name, storage=storage)
+        version = search.user_attrs.get("readout")
+        if version != READOUT_VERSION and search.get_trials(
             deepcopy=False, states=(TrialState.COMPLETE,)
         ):
             # the attribute is data from the folder: in a file name and on the console only as
@@ -344,7 +346,7 @@ def _tell_trained(
     folder: Path,
     variants: list[Variant],
     settings: StudySettings,
-    studies: dict,
+    searches: dict,
     pending: dict,
     axis: str,
     budget: float,
@@ -365,42 +367,43 @@ def _tell_trained(
         for entry in tune.iterdir()
         if entry.name.startswith("+compare_job=tune_") and not entry.is_symlink() and entry.is_dir()
     )
-    for (study, index), keys in _by_study_variant(pending).items():
-        pattern = re.compile(rf"tune_{study_prefix(study)}v{index}_t\d{{3}}(-\d{{3}})?")
+    for (tuning_study, index), keys in _by_study_variant(pending).items():
+        pattern = re.compile(rf"tune_{study_prefix(tuning_study)}v{index}_t\d{{3}}(-\d{{3}})?")
         runs = [run for name in names if pattern.fullmatch(name) for run in job_runs(tune, name)]
         for k in keys:
-            params = pending[study, index, k].params
+            params = pending[tuning_study, index, k].params
             for run in runs:
                 config = run.config if isinstance(run.config, dict) else {}
                 optim = config.get("optim", {})
                 if (
                     run.attrs.get("status") in ("completed", "diverged")
-                    and config.get("seed") == settings.tune_seed + study
+                    and config.get("seed") == settings.tune_seed + tuning_study
                     and isinstance(optim, dict)
                     and all(optim.get(key) == value for key, value in params.items())
                 ):
                     value = run_curve(run, axis, "validation_loss").at(budget)
-                    studies[study, variants[index].name].tell(
+                    searches[tuning_study, variants[index].name].tell(
                         k, value if not math.isnan(value) else math.inf
                     )
-                    del pending[study, index, k]
+                    del pending[tuning_study, index, k]
                     told += 1
                     break
     return told
 
 
 def _by_study_variant(pending: dict) -> dict[tuple[int, int], list[int]]:
-    """(study, variant index, trial) keys grouped: (study, variant index) -> trial numbers."""
+    """(tuning study, variant index, trial) keys grouped: (tuning study, variant index) -> trial
+    numbers."""
     grouped: dict[tuple[int, int], list[int]] = {}
-    for study, index, k in sorted(pending):
-        grouped.setdefault((study, index), []).append(k)
+    for tuning_study, index, k in sorted(pending):
+        grouped.setdefault((tuning_study, index), []).append(k)
     return grouped
 
 
 def _score_trials(
     folder: Path,
     variants: list[Variant],
-    studies: dict,
+    searches: dict,
     pending: dict,
     batches: dict,
     axis: str,
@@ -408,28 +411,32 @@ def _score_trials(
 ) -> None:
     """Each pending trial whose job ran to its end told its validation loss at the budget (a
     diverged one: infinity); one not run to its end stays pending (run again next time). batches:
-    (study, variant index) -> the trial numbers trained together, in the order of their members."""
+    (tuning study, variant index) -> the trial numbers trained together, in the order of their
+    members."""
     found = {}
-    for (study, index), numbers in batches.items():
-        members = job_runs(folder / "tune", batch_job(study, index, numbers))
+    for (tuning_study, index), numbers in batches.items():
+        members = job_runs(folder / "tune", batch_job(tuning_study, index, numbers))
         if len(members) != len(numbers):
             continue
         for k, run in zip(numbers, members):
             # a member's file says which values it ran: one left from other trials is not theirs
             optim = run.config.get("optim", {}) if isinstance(run.config, dict) else {}
             if all(
-                optim.get(key) == value for key, value in pending[study, index, k].params.items()
+                optim.get(key) == value
+                for key, value in pending[tuning_study, index, k].params.items()
             ):
-                found[study, index, k] = run
-    for study, index, k in pending:
-        if (study, index) in batches:
-            run = found.get((study, index, k))
+                found[tuning_study, index, k] = run
+    for tuning_study, index, k in pending:
+        if (tuning_study, index) in batches:
+            run = found.get((tuning_study, index, k))
         else:
-            runs = job_runs(folder / "tune", trial_job(study, index, k))
+            runs = job_runs(folder / "tune", trial_job(tuning_study, index, k))
             run = runs[0] if runs else None
         if run is None or run.attrs.get("status") in ("running", "interrupted", "crashed"):
             continue  # not run to its end: run again next time
         if run.attrs.get("status") == "refused":
             raise UserError(f"variant {variants[index].name} is refused: {run.attrs.get('reason')}")
         value = run_curve(run, axis, "validation_loss").at(budget)
-        studies[study, variants[index].name].tell(k, value if not math.isnan(value) else math.inf)
+        searches[tuning_study, variants[index].name].tell(
+            k, value if not math.isnan(value) else math.inf
+        )
