@@ -3,24 +3,19 @@ configuration."""
 
 from __future__ import annotations
 
-import hashlib
 import logging
-import os
 import sys
-from collections import Counter
-from collections.abc import Iterable
-from contextlib import ExitStack
 from dataclasses import dataclass
 from pathlib import Path
-from typing import IO, Any
 
 import hydra
 import numpy as np
 from hydra.core.hydra_config import HydraConfig
-from hydra.experimental.callback import Callback
 from hydra.types import RunMode
 from omegaconf import DictConfig, OmegaConf
 
+# the resolver of hydra.sweep.subdir (physgrad_job_folder), registered before Hydra composes a job
+import physgrad.sweep_hooks  # noqa: E402, F401, I001
 from physgrad.configs import CONF_DIR, name_options
 from physgrad.errors import UserError, innermost_cause
 from physgrad.experiment import run_experiment
@@ -30,155 +25,6 @@ from physgrad.sweeps import record_job, stop_count
 from physgrad.trackers import build_trackers, track
 
 log = logging.getLogger("physgrad")
-
-
-# what an experiment can find; anything else is a failure
-OUTCOMES = ("completed", "diverged", "refused")
-# set by SweepSummary at the end of a sweep: `physgrad run -m` exits 1 if non-zero
-FAILED_JOBS: list[int] = []
-INTERRUPTED_BY_SIGNAL: list[str] = []  # ... and 130 if a signal stopped it (the signal's name)
-
-
-def job_folder_name(override_dirname: str, task_overrides: Iterable | None) -> str:
-    """The job folder of a sweep (hydra.sweep.subdir): the job's overrides
-    (hydra.job.override_dirname), plus init_from when the command line sets it, as a short hash of
-    the path (a path's slashes would make folders, and without it two jobs that differ only in
-    init_from would share one folder); names too long for a file system end in a hash of the full
-    name instead."""
-    parts = [override_dirname] if override_dirname else []
-    for override in task_overrides or ():
-        key, _, value = str(override).lstrip("+~").partition("=")
-        if key == "init_from" and value not in ("", "null"):
-            parts.append(f"init_from={hashlib.sha1(value.encode()).hexdigest()[:8]}")
-    name = ",".join(parts)
-    if len(name.encode()) > NAME_LIMIT:
-        digest = hashlib.sha1(name.encode()).hexdigest()[:12]
-        name = name.encode()[: NAME_LIMIT - 16].decode(errors="ignore") + f"...{digest}"
-    return name
-
-
-NAME_LIMIT = 200  # bytes: file systems allow 255 per folder name
-OmegaConf.register_new_resolver("physgrad_job_folder", job_folder_name, replace=True)
-
-
-class JobLogFile(logging.FileHandler):
-    """The job's log file (hydra.job_logging's file handler), opened at its first record: a folder
-    that cannot be written (read-only, full) costs one warning line, not the job or the sweep."""
-
-    def __init__(
-        self,
-        filename: str | os.PathLike,
-        mode: str = "a",
-        encoding: str | None = None,
-        delay: bool = True,
-        errors: str | None = None,
-    ) -> None:
-        super().__init__(filename, mode, encoding, delay=True, errors=errors)
-        self.unwritable = False
-
-    def _open(self) -> IO[str]:
-        # appended without following a link: a rerun sweep's folder may come from someone else
-        from physgrad.files import open_append
-
-        return open_append(Path(self.baseFilename))
-
-    def emit(self, record: logging.LogRecord) -> None:
-        if self.unwritable:
-            return
-        try:
-            super().emit(record)
-        except (OSError, ValueError) as error:  # ValueError: the door's (a link, a FIFO)
-            self.unwritable = True
-            print(
-                f"physgrad: warning: the job log {self.baseFilename} cannot be written "
-                f"({getattr(error, 'strerror', None) or error}): logging to the terminal only",
-                file=sys.stderr,
-            )
-
-
-class SweepSummary(Callback):
-    """Around a sweep, in the process that launched it (whatever the launcher): holds the sweep
-    folder (a second sweep into it is refused while this one runs), writes the manifest of expected
-    jobs, turns SIGINT and SIGTERM into a stop of every job (physgrad.sweeps); at the end, the runs
-    it wrote counted by status, the jobs that never started or left no file, and the report command
-    to run next. A failed, interrupted or missing run makes `physgrad run -m` exit with status 1;
-    refused and diverged runs are outcomes, not failures."""
-
-    def __getstate__(self) -> dict:
-        # a launcher sends the callbacks to its workers with each job: the sweep's state stays here
-        return {}
-
-    def on_multirun_start(self, config: DictConfig, **kwargs: Any) -> None:
-        from hydra_plugins.physgrad_launchers.slurm import use_physgrad_launcher
-        from physgrad.errors import FolderOwned
-        from physgrad.files import own_folder
-        from physgrad.results import find_results
-        from physgrad.sweeps import STOP_MARK, expected_jobs, launcher_signals, write_manifest
-
-        folder = Path(str(config.hydra.sweep.dir))
-        self.held = ExitStack()
-        try:
-            self.held.enter_context(own_folder(folder, "sweep"))
-        except FolderOwned as error:
-            print(f"physgrad: error: {error}", file=sys.stderr)
-            sys.exit(2)
-        except OSError as error:
-            print(
-                f"physgrad: error: cannot write the sweep folder {folder}: "
-                f"{error.strerror or error}",
-                file=sys.stderr,
-            )
-            sys.exit(2)
-        (folder / STOP_MARK).unlink(missing_ok=True)
-        use_physgrad_launcher(config)  # before Hydra builds the launcher (physgrad.cluster)
-        jobs = expected_jobs(config)
-        if jobs is not None:
-            write_manifest(folder, jobs)
-        self.held.enter_context(launcher_signals(folder))
-        # what was there before: a file counts as this sweep's if it is new or was written since
-        self.before = {path: _changed(path) for path in find_results([folder])}
-        FAILED_JOBS.clear()
-        INTERRUPTED_BY_SIGNAL.clear()
-
-    def on_multirun_end(self, config: DictConfig, **kwargs: Any) -> None:
-        from physgrad.results import find_results, read_final
-        from physgrad.sweeps import unfinished_jobs
-
-        folder = Path(str(config.hydra.sweep.dir))
-        written, earlier = Counter(), 0
-        for path in find_results([folder]) if folder.is_dir() else []:
-            try:
-                status = read_final(path)[0].get("status", "?")
-            except ValueError:
-                status = "unreadable"
-            if getattr(self, "before", {}).get(path) != _changed(path):
-                written[status] += 1
-            else:
-                # untouched by this sweep: completed or diverged before with the same config, or
-                # another job's
-                earlier += 1
-        for job_name, why in unfinished_jobs(folder, interrupted=True):
-            log.warning("job %s: %s", job_name, why)
-            if not why.startswith("interrupted"):  # an interrupted run's file is counted above
-                written[why.split(":")[0]] += 1
-        stopped = stop_count(folder)
-        INTERRUPTED_BY_SIGNAL[:] = [stopped[0]] if stopped else []
-        # a run left running or crashed (its worker was killed), interrupted, failed, unreadable or
-        # missing
-        FAILED_JOBS[:] = [sum(n for status, n in written.items() if status not in OUTCOMES)]
-        counts = (
-            ", ".join(f"{n} {status}" for status, n in sorted(written.items())) or "no runs written"
-        )
-        skipped = (
-            f"; {earlier} untouched (completed or diverged before: skipped)" if earlier else ""
-        )
-        how = f"stopped by {stopped[0]}" if stopped else "finished"
-        log.info(
-            "sweep %s: %s%s in %s; next: physgrad report %s", how, counts, skipped, folder, folder
-        )
-        held = getattr(self, "held", None)
-        if held is not None:
-            held.close()
 
 
 def save_traceback(folder: Path) -> Path | None:
@@ -211,14 +57,6 @@ def write_provenance(out_dir: Path, cfg: DictConfig, hydra_cfg: DictConfig) -> N
         ("overrides.yaml", OmegaConf.create(list(hydra_cfg.overrides.task))),
     ):
         replace_file(folder / name, OmegaConf.to_yaml(node).encode())
-
-
-def _changed(path: Path) -> int | None:
-    """When the entry at path last changed (a link's own time, not its target's); None if gone."""
-    try:
-        return os.lstat(path).st_mtime_ns
-    except OSError:
-        return None
 
 
 SEED_LINES = 8

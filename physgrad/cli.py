@@ -211,7 +211,8 @@ def run_command(args: list[str]) -> int:
             from physgrad.machine import members_environment
 
             os.environ.update(members_environment(os.environ))
-    from physgrad.app import FAILED_JOBS, INTERRUPTED_BY_SIGNAL, job
+    from physgrad.app import job
+    from physgrad.sweep_hooks import FAILED_JOBS, INTERRUPTED_BY_SIGNAL
 
     sys.argv = ["physgrad run", *args]
     job()

@@ -230,7 +230,7 @@ def _check_combinations(group_values: dict[str, list[str]], keys: list[str]) -> 
 # what Hydra itself instantiates from the hydra section, by physgrad's own or Hydra's: physgrad's
 # sweep summary and job log, the standard library's logging handlers Hydra's defaults name, and
 # the launchers and sweepers of installed Hydra plugins (site-packages' hydra_plugins namespace)
-HYDRA_OWN_TARGETS = ("physgrad.app.SweepSummary", "physgrad.app.JobLogFile")
+HYDRA_OWN_TARGETS = ("physgrad.sweep_hooks.SweepSummary", "physgrad.sweep_hooks.JobLogFile")
 HYDRA_PLUGIN_PREFIXES = ("hydra._internal.core_plugins.", "hydra_plugins.")
 LOGGING_CLASSES = ("logging.StreamHandler", "logging.FileHandler", "logging.NullHandler")
 

@@ -326,7 +326,7 @@ def test_a_lock_file_or_job_log_that_is_a_link_is_never_written_through(tmp_path
     the run logs to the terminal; the linked file is untouched either way."""
     import logging
 
-    from physgrad.app import JobLogFile
+    from physgrad.sweep_hooks import JobLogFile
 
     outside = tmp_path / "outside"
     outside.write_text("theirs\n")
