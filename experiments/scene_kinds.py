@@ -74,7 +74,7 @@ def measure(kind: SceneKind) -> dict:
     import jax
 
     from physgrad.configs import compose
-    from physgrad.experiment import effective_unroll
+    from physgrad.members import effective_unroll
     from physgrad.tasks import build_scene
 
     dirs = [kind.config_dir] if kind.config_dir else []

@@ -177,11 +177,11 @@ def _too_large_cases(
 
 def run_row(case: RunCase, out_dir: Path) -> dict:
     from physgrad.configs import compose
-    from physgrad.experiment import run_experiment, variant_label
+    from physgrad.experiment import run_experiment
+    from physgrad.members import variant_label
     from physgrad.results import read_run
 
-    # the table is the check's output: no per-case figures (their curves stay in the results
-    # files, for physgrad report)
+    # no per-case figures: the table is the output (the curves stay in the results files)
     cfg = compose([*case.overrides, "overwrite=true", "figures=false"])
     try:
         outcome, path = run_experiment(cfg, out_dir / case.slug)
@@ -224,7 +224,7 @@ def quantum_norm_drift(small: bool) -> list[dict]:
     import jax
     import jax.numpy as jnp
 
-    from physgrad.experiment import set_precision
+    from physgrad.members import set_precision
     from physgrad.tasks.quantum import crank_nicolson_step, eigenstate, grid
 
     unroll = 1024 if small else 4096
@@ -269,7 +269,7 @@ def bptt_gradient_growth(small: bool) -> list[dict]:
     import optax
 
     from physgrad.configs import compose
-    from physgrad.experiment import set_precision
+    from physgrad.members import set_precision
     from physgrad.tasks import build_scene
     from physgrad.unroll import MODES
 
@@ -323,7 +323,7 @@ def rank_deficient_kernels(small: bool) -> list[dict]:
     matrix with the same truncation."""
     import jax.numpy as jnp
 
-    from physgrad.experiment import set_precision
+    from physgrad.members import set_precision
     from physgrad.optim.spectral import truncated_spectral_direction
 
     rng = np.random.default_rng(0)

@@ -31,6 +31,7 @@ import jax
 import jax.numpy as jnp
 from jax.flatten_util import ravel_pytree
 
+from physgrad.experiment import build_seeds
 from physgrad.loop_reference import (
     DIRECTIONS,
     dynamics_forward_states,
@@ -38,6 +39,7 @@ from physgrad.loop_reference import (
     loop_output,
     relative_error,
 )
+from physgrad.members import set_precision
 from physgrad.unroll import MODES
 
 if TYPE_CHECKING:
@@ -85,7 +87,6 @@ def check_scene(cfg: DictConfig) -> list[Check]:
 
 def _check_scene(cfg: DictConfig) -> list[Check]:
     from physgrad.errors import UserError
-    from physgrad.experiment import build_seeds, set_precision
     from physgrad.refusals import check_scene_values
 
     set_precision(64)
@@ -131,7 +132,6 @@ def _precision_check(cfg: DictConfig) -> Check:
     solver's save times past its end in float32 round-off, a tolerance float32 cannot meet) fails
     here in one line that names precision=64, not in a study's first job."""
     from physgrad.errors import innermost_cause
-    from physgrad.experiment import build_seeds, set_precision
 
     bits = int(cfg.get("precision", 32))
     if bits == 64:
@@ -210,7 +210,6 @@ def _deterministic_check(
     cfg: DictConfig, scene: Scene, seeds: Seeds, params: Params, batch: Pytree, loss: jax.Array
 ) -> Check:
     """The scene built again from the same seed gives the same data, network, batch and loss."""
-    from physgrad.experiment import build_seeds
 
     again, seeds_again = build_seeds(cfg, [int(cfg.seed)], 1)
     batch_again = again.sample_train(jax.random.PRNGKey(1), min(BATCH, again.train_size or BATCH))
@@ -251,8 +250,6 @@ def _tighter_scene(cfg: DictConfig) -> Scene | None:
     """The scene rebuilt with its solver's tolerances 100 times tighter, where its settings name
     them task.rtol and task.atol (diffrax's names; docs/extending.md); None where they do not."""
     from omegaconf import open_dict
-
-    from physgrad.experiment import build_seeds
 
     task = cfg.task
     if not all(_positive_number(task.get(key)) for key in TOLERANCES):

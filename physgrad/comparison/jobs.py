@@ -124,7 +124,7 @@ def job_finished(sweep: Path, name: str, text: str, variant_config: DictConfig) 
     import yaml
     from omegaconf import OmegaConf, open_dict
 
-    from physgrad.experiment import member_configs, seed_paths
+    from physgrad.members import member_configs, seed_paths
     from physgrad.resume import finished_before
 
     cfg = variant_config.copy()

@@ -277,7 +277,7 @@ def test_bad_scene_settings_are_refused(tmp_path):
 
 
 def test_variant_labels_keep_bptt_modes_and_clipping_apart():
-    from physgrad.experiment import variant_label
+    from physgrad.members import variant_label
 
     def label(*overrides):
         return variant_label(load("task=multicart", *overrides).optim)

@@ -10,7 +10,8 @@ import numpy as np
 import pytest
 
 from physgrad.errors import UserError
-from physgrad.experiment import run_experiment, set_precision
+from physgrad.experiment import run_experiment
+from physgrad.members import set_precision
 from physgrad.results import read_run
 from physgrad.tasks import build_scene
 from tests.helpers import SimulatedClock, load

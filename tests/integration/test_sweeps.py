@@ -10,7 +10,8 @@ from hydra import compose as hydra_compose
 from omegaconf import OmegaConf
 
 from physgrad.configs import CONF_DIR, check_overrides, initialized
-from physgrad.experiment import effective_unroll, prepare, run_experiment
+from physgrad.experiment import prepare, run_experiment
+from physgrad.members import effective_unroll
 from physgrad.optim import build_rule
 from physgrad.refusals import check_applies, check_config
 from physgrad.results import read_run
