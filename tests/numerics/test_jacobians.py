@@ -93,8 +93,8 @@ def test_direction_from_factors_equals_the_float64_svd_direction_on_rank_deficie
 ):
     """Duplicated samples (and dead units) make J rank deficient: the factorised Gram route must
     keep exactly the singular values the SVD keeps (s > tau max s) and give the same direction to
-    the accuracy stated in docs/decisions.md for the float64 Gram route (1e-10 relative at tau >=
-    1e-6)."""
+    1e-10 relative (a float64 J; docs/decisions.md, "Factorisation route", states 5e-8 for a
+    float32 J)."""
     params, batch, sample_output = problem(*NETWORKS[network], "nonlinear", batch=6, seed=3)
     batch = {"x": batch["x"].at[2].set(batch["x"][1])}  # a second duplicate
     plan = plan_layers(sample_output, params, {"x": batch["x"][0]})
