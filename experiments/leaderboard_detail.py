@@ -333,4 +333,44 @@ def scene_page(entry, cells: dict, runs, about: dict) -> str:
             f"| over the studies | **{mark(cell.verdict)}** | {_r(cell.ratio)} [{_r(cell.low)}, "
             f"{_r(cell.high)}] | {cell.wins} of {cell.pairs} | | | |"
         )
+        lines += ["", detectable_line(cell, len(cells))]
     return "\n".join(lines) + "\n"
+
+
+def detectable_line(cell, comparisons: int) -> str:
+    """The smallest ratio rule / Adam (either way) that a cell's design finds with 80% power
+    (physgrad.power.detectable_ratio, as compare.md states it per pair), from what its tuning
+    studies measured at the budget: the seeds' spread of the log ratios, the spread between the
+    studies and both rules' divergence rates; for its seeds per study, its studies and Holm over
+    the scene's comparisons with Adam."""
+    from types import SimpleNamespace
+
+    from physgrad.power import POWER, detectable_ratio, measured
+
+    results = [result for _, result in cell.detail]
+    sd, between, divergence, other = measured(SimpleNamespace(studies=results))
+    ratio = (
+        detectable_ratio(
+            sd,
+            results[0].at[1.0].seeds,
+            comparisons,
+            len(results),
+            divergence=divergence,
+            between=between,
+            divergence_other=other,
+        )
+        if results
+        else math.nan
+    )
+    if math.isnan(ratio):
+        said = "not measured (fewer than 3 finite log ratios)"
+    elif math.isinf(ratio):
+        said = "none (too few seeds, or too many divergences)"
+    else:
+        said = f"{ratio:.3g}x"
+    return (
+        f"Detectable: {said}: the smallest ratio either way that these {len(results)} tuning "
+        f"{'study finds' if len(results) == 1 else 'studies find'} with {POWER:.0%} power (the "
+        "seeds' spread, the spread between the studies and the divergences they measured); an "
+        "undecided cell with a large detectable ratio says little."
+    )
