@@ -41,7 +41,7 @@ from evidence import (  # experiments/
 from leaderboard_detail import (
     FOLDER,
     MARKS,
-    charged_by_schedule,
+    charged_by_clock,
     link,
     preset_line,
     scene_notes,
@@ -120,7 +120,7 @@ def keep(root: Path, dest: Path) -> list[str]:
                     "wall_seconds": wall_seconds_in_budget(table),
                     "overrides": study_overrides(folder),
                     "undecided_by_the_clock": undecided_by_the_clock(folder),
-                    "charged_by_schedule": charged_by_schedule(folder / "calibration.json"),
+                    **charged_by_clock(folder / "calibration.json"),
                 },
             )
         first = next(iter(finished.values()))[1]

@@ -142,18 +142,26 @@ def wall_seconds_in_budget(table) -> dict[str, float]:
     }
 
 
-def charged_by_schedule(calibration: Path) -> list[str]:
+def charged_by_schedule(calibration: Path, key: str = "update_seconds") -> list[str]:
     """The rules a study's calibration charged a scheduled update at its expected cost (those with
-    update_seconds: trainer.update_cost), none where it has none or cannot be read."""
+    update_seconds: trainer.update_cost; with key "evaluation_seconds", those it charged the
+    evaluations their line searches made), none where it has none or cannot be read."""
     from physgrad.comparison.calibration import read_calibration
 
     stored = read_calibration(calibration, [])
     costs = (stored or {}).get("costs") or {}
     return sorted(
-        str(name)
-        for name, cost in costs.items()
-        if isinstance(cost, dict) and "update_seconds" in cost
+        str(name) for name, cost in costs.items() if isinstance(cost, dict) and key in cost
     )
+
+
+def charged_by_clock(calibration: Path) -> dict[str, list[str]]:
+    """What a study's kept record says its clock charged beyond a step's cost: the rules charged a
+    scheduled update at its expected cost, and those charged their line searches' evaluations."""
+    return {
+        "charged_by_schedule": charged_by_schedule(calibration),
+        "charged_by_evaluations": charged_by_schedule(calibration, "evaluation_seconds"),
+    }
 
 
 def wall_ratios(about: dict) -> dict[str, float]:
@@ -195,7 +203,21 @@ def wall_line(about: dict) -> str | None:
         "Kron's preconditioner update, at every step for the first 500 and rarer after) can cost "
         "more or less in the runs than in the calibration, which times the first steps (and, "
         "where it charges PSGD Kron its expected cost, those at its schedule's floor): above 1x "
-        f"the rule had more time than {BASELINE}, below 1x less."
+        f"the rule had more time than {BASELINE}, below 1x less. " + _evaluations_said(about)
+    )
+
+
+def _evaluations_said(about: dict) -> str:
+    """Whether the scene's studies charged the line searches the evaluations they made."""
+    studies = (about.get("tuning_studies") or {}).values()
+    if any(s.get("charged_by_evaluations") for s in studies):
+        return (
+            "Where a study's clock timed a line search's evaluations, each run was charged those "
+            "it made."
+        )
+    return (
+        "This scene's clock predates the calibration's timing of a line search's evaluations: "
+        "its line-search rules were charged each step at its calibrated cost."
     )
 
 

@@ -1,5 +1,5 @@
-"""End-to-end layer (the console script in subprocesses) of the tests of:
-Stability suite (physgrad check), bad input of every kind, and the output folder check."""
+"""End-to-end layer of `physgrad check` and the output folder check: an output folder the console
+script cannot write is one line on stderr with exit code 2, and `physgrad check --help` answers."""
 
 import subprocess
 

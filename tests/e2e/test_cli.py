@@ -1,5 +1,7 @@
-"""End-to-end layer (the console script in subprocesses) of the tests of:
-End to end through the installed console script and the real HDF5 files."""
+"""End-to-end layer of the command line: the console script writes the results schema, sweeps then
+reports, keeps Hydra's flags, renders a mistake in one line, leaves a killed run's file readable,
+logs progress without a terminal, answers --help without JAX, and trains eight SOAP trials
+together without wedging."""
 
 import os
 import signal

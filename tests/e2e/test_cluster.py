@@ -1,10 +1,7 @@
-"""End-to-end layer (the console script in subprocesses) of the tests of:
-What a cluster does to a study, with the local launchers where the behaviour is the same there
-(the real SLURM cluster: tests/cluster, `make test-cluster`): a signal to one job ends that job
-alone; a killed `physgrad compare` leaves no sweep running; reruns launch only what is missing;
-the study names the jobs that did not finish with their scheduler ids; physgrad's SLURM launcher
-waits for every job and cancels the waiting ones at a stop; the calibration runs as a job and a
-study whose runs ran elsewhere is flagged."""
+"""End-to-end layer of what a cluster does to a study, on the local launchers: a signal to one
+worker ends its job alone, a killed `physgrad compare` leaves no sweep running and resumes, a rerun
+launches only the unfinished jobs, physgrad's SLURM launcher waits for every job and cancels the
+waiting ones, and the cluster harness ends only its own job steps."""
 
 from __future__ import annotations
 

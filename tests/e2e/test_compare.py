@@ -1,7 +1,6 @@
-"""End-to-end layer (the console script in subprocesses) of the tests of:
-`physgrad compare`: the command line split into variants, jobs as config files that compose to
-the intended run, equal tuning budgets on disjoint seeds, validation data, and a study on a user's
-own scene end to end."""
+"""End-to-end layer of `physgrad compare` through the console script: a study on a user's own scene
+tuned, evaluated and resumed, a study stopped by signals at random instants resuming to the same
+trials, continued networks paired with each seed's own start, and --plan training nothing."""
 
 import csv
 import math

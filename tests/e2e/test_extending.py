@@ -1,6 +1,7 @@
-"""End-to-end layer (the console script in subprocesses) of the tests of:
-A researcher's own scene and optimiser (examples/custom_scene/, configs in their own folders),
-the Python API, tab completion, and physgrad installed from its wheel."""
+"""End-to-end layer of extending physgrad: the example scene trained with every variant that
+applies, a user's own optimiser with backprop modes and clipping, the Python API, tab completion,
+the wheel run from an unrelated folder, and a solver that gives up mid-step ending its run
+diverged."""
 
 import os
 import shutil

@@ -1,11 +1,7 @@
-"""End-to-end layer (the console script in subprocesses) of the tests of:
-Faults injected many times and at many instants: writers killed mid-write, a second writer, live
-readers with HDF5's default file locking, full disks, signals in bursts, damaged files, stopped
-sweeps.
-
-The faults at random instants run in `make test-long` (CI) and, repeated many more times, in
-`make test-faults` (PHYSGRAD_FAULT_REPEATS, see docs/results.md); `make test` keeps the faults at
-fixed instants."""
+"""End-to-end layer of faults on the console script: writers killed at random instants, readers with
+HDF5's default locking, a second owner or an intruder refused, a file size limit, stopped sweeps,
+signals at any instant or inside a gc callback, and folder locks without flock (random instants in
+`make test-long`, repeated many more times in `make test-faults`)."""
 
 import errno
 import os

@@ -1,8 +1,6 @@
-"""End-to-end layer (the console script in subprocesses) of the tests of:
-Results files, report inputs and sweep folders from somebody else are data: crafted files of
-every kind are refused with a one-line reason (or their text cleaned) and the rest of the report
-goes on; nothing they name is followed, resolved or expanded. Bombs run under a time and memory cap
-in a child process."""
+"""End-to-end layer of files from somebody else: YAML alias and interpolation bombs in a results
+file, a job's overrides and a sweep manifest are refused or left unresolved, and the report goes
+on, in a child process under a time and memory cap."""
 
 import subprocess
 import sys

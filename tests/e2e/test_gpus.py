@@ -1,7 +1,6 @@
-"""End-to-end layer (the console script in subprocesses) of the tests of:
-One GPU per job on a machine with several (physgrad.gpus), checked on a CPU machine: the GPUs are
-named by CUDA_VISIBLE_DEVICES, each job process claims one, processes side by side never share one
-while one is free, and a claim ends with its process however it ends."""
+"""End-to-end layer of one GPU per job, on a CPU machine: processes side by side claim different
+GPUs (a fourth shares one, with a warning), a claim ends with its process however it ends, and the
+jobs of a local parallel sweep each claim their own."""
 
 import os
 import signal

@@ -1,6 +1,6 @@
-"""End-to-end layer (the console script in subprocesses) of the tests of:
-Named sweeps (conf/experiment/), resuming, continuing from another run's network, and sweeps that
-go on when a job fails."""
+"""End-to-end layer of sweeps through the console script: a failed job neither stops the sweep nor
+goes unrecorded in any of its seeds' files, and a submitit local sweep resumes by skipping its
+finished jobs."""
 
 import sys
 from pathlib import Path

@@ -1,7 +1,5 @@
-"""End-to-end layer (the console script in subprocesses) of the tests of:
-The `logger` group: TensorBoard, MLflow and Weights & Biases (offline) receive each results file
-of a job as one run, read back here with the libraries' own readers (W&B's offline log with a reader
-of its record format); a failing tracker is a warning, never the run."""
+"""End-to-end layer of the trackers' logging set-up: in a pytest run of its own, Hydra setting
+logging up under capsys after absl was imported leaves the later tests' capture open."""
 
 from tests.helpers import REPO
 

@@ -1,5 +1,7 @@
-"""Integration layer (run_experiment and the commands in-process, at tiny sizes) of the tests of:
-Stability suite (physgrad check), bad input of every kind, and the output folder check."""
+"""Integration layer of `physgrad check` and bad input: the small suite names every outcome, large
+learning rates, rank-deficient Jacobians, norm drift and BPTT gradient growth are measured, bad
+values are refused with their key, and wrong gradients, float64-only and reverse-only scenes are
+found and explained."""
 
 import re
 

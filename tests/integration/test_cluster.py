@@ -1,10 +1,6 @@
-"""Integration layer (run_experiment and the commands in-process, at tiny sizes) of the tests of:
-What a cluster does to a study, with the local launchers where the behaviour is the same there
-(the real SLURM cluster: tests/cluster, `make test-cluster`): a signal to one job ends that job
-alone; a killed `physgrad compare` leaves no sweep running; reruns launch only what is missing;
-the study names the jobs that did not finish with their scheduler ids; physgrad's SLURM launcher
-waits for every job and cancels the waiting ones at a stop; the calibration runs as a job and a
-study whose runs ran elsewhere is flagged."""
+"""Integration layer of studies on SLURM: a sweep's own refusal and a SLURM sweep that cannot start
+are one line (sbatch's own words), submitit's SLURM launcher runs as physgrad's, and each launch
+reads results from a submitit folder of its own, a planted or linked `.submitit` never."""
 
 from __future__ import annotations
 

@@ -1,7 +1,6 @@
-"""Integration layer (run_experiment and the commands in-process, at tiny sizes) of the tests of:
-`physgrad compare`: the command line split into variants, jobs as config files that compose to
-the intended run, equal tuning budgets on disjoint seeds, validation data, and a study on a user's
-own scene end to end."""
+"""Integration layer of `physgrad compare` at tiny sizes: variants and knobs from the command line,
+tuning, validation and equal-time evaluation on the calibrated clock, resumed and extended studies,
+the plan's costs, and study folders, journals and calibrations from someone else read as data."""
 
 import math
 from pathlib import Path

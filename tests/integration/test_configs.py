@@ -1,6 +1,6 @@
-"""Integration layer (run_experiment and the commands in-process, at tiny sizes) of the tests of:
-Every task x optim pair composes from the configs and either runs or is refused with its
-reason."""
+"""Integration layer of the configs: every task and optim has one, each pair of the short set runs
+two iterations or is refused with its reason, per-scene settings come from the configs, bad values
+are refused with the key, and variant labels keep BPTT modes and clipping apart."""
 
 import numpy as np
 import pytest

@@ -1,6 +1,6 @@
-"""Integration layer (run_experiment and the commands in-process, at tiny sizes) of the tests of:
-A researcher's own scene and optimiser (examples/custom_scene/, configs in their own folders),
-the Python API, tab completion, and physgrad installed from its wheel."""
+"""Integration layer of a researcher's own scene and options: options from a user's folder are valid
+and misspellings get a suggestion, a scene that cannot be built, has both an output and dynamics,
+or a wrong loss or test set is refused in one line, and an unnamed option takes its file's name."""
 
 import pytest
 

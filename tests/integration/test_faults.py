@@ -1,11 +1,7 @@
-"""Integration layer (run_experiment and the commands in-process, at tiny sizes) of the tests of:
-Faults injected many times and at many instants: writers killed mid-write, a second writer, live
-readers with HDF5's default file locking, full disks, signals in bursts, damaged files, stopped
-sweeps.
-
-The faults at random instants run in `make test-long` (CI) and, repeated many more times, in
-`make test-faults` (PHYSGRAD_FAULT_REPEATS, see docs/results.md); `make test` keeps the faults at
-fixed instants."""
+"""Integration layer of faults in-process: signals in bursts or inside a gc callback, a completed
+file replaced only by a completed one, damaged files set aside, unwritable job folders and full
+disks failing alone in one line, links never written through, and remote writers judged by their
+heartbeat."""
 
 import dataclasses
 import errno

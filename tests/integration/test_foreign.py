@@ -1,8 +1,6 @@
-"""Integration layer (run_experiment and the commands in-process, at tiny sizes) of the tests of:
-Results files, report inputs and sweep folders from somebody else are data: crafted files of
-every kind are refused with a one-line reason (or their text cleaned) and the rest of the report
-goes on; nothing they name is followed, resolved or expanded. Bombs run under a time and memory cap
-in a child process."""
+"""Integration layer of files from somebody else: crafted results files are unreadable with a reason
+while the report goes on, read no other file and have their text cleaned, oversized columns and
+configs are refused, and every `_target_`, Hydra's own included, passes one allow-list policy."""
 
 import h5py
 import numpy as np

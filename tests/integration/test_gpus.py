@@ -1,7 +1,6 @@
-"""Integration layer (run_experiment and the commands in-process, at tiny sizes) of the tests of:
-One GPU per job on a machine with several (physgrad.gpus), checked on a CPU machine: the GPUs are
-named by CUDA_VISIBLE_DEVICES, each job process claims one, processes side by side never share one
-while one is free, and a claim ends with its process however it ends."""
+"""Integration layer of one GPU per job: the GPUs read from CUDA_VISIBLE_DEVICES, one or none
+changing nothing, a comparison pinning itself and running its jobs side by side (in turn, with a
+warning, without joblib), and lock folders or files not the user's own leaving a job unpinned."""
 
 import os
 

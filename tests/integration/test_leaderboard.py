@@ -477,3 +477,28 @@ def test_the_rules_a_studys_calibration_charged_by_their_schedule_are_read_from_
     path.write_text("{")
     assert leaderboard_detail.charged_by_schedule(path) == []
     assert leaderboard_detail.charged_by_schedule(tmp_path / "none.json") == []
+
+
+def test_the_rules_a_studys_clock_charged_their_evaluations_are_read_and_said(tmp_path):
+    """charged_by_clock: with the rules charged by schedule, those whose calibration timed a line
+    search's evaluations (evaluation_seconds); the scene's wall-clock sentence says whether its
+    line-search rules were charged the evaluations they made or each step its calibrated cost."""
+    import json
+
+    from tests.helpers import scheduled_calibration
+
+    calibration = scheduled_calibration()
+    searching = {"evaluation_seconds": 5e-4, "step_evaluations": 2.0}
+    calibration["costs"]["lbfgs"] = {**calibration["costs"]["adam"], **searching}
+    path = tmp_path / "calibration.json"
+    path.write_text(json.dumps(calibration))
+    charged = leaderboard_detail.charged_by_clock(path)
+    assert charged == {"charged_by_schedule": ["psgd_kron"], "charged_by_evaluations": ["lbfgs"]}
+    about = {
+        "tuning_studies": {
+            "1": {"wall_seconds": {"adam": 10.0, "lbfgs": 30.0}, **charged},
+        }
+    }
+    assert "each run was charged those it made" in leaderboard_detail.wall_line(about)
+    about["tuning_studies"]["1"]["charged_by_evaluations"] = []
+    assert "charged each step at its calibrated cost" in leaderboard_detail.wall_line(about)

@@ -1,6 +1,6 @@
-"""Integration layer (run_experiment and the commands in-process, at tiny sizes) of the tests of:
-physgrad report on hand-made results files: scenes and groups, duplicates, labelled sets,
-thresholds, the loss at a common time, CSV export, figures, bad input."""
+"""Integration layer of `physgrad report` on hand-made results files: groups and thresholds,
+duplicates and labelled sets, unreadable or vanishing files listed, CSV and Parquet export, the
+figures' medians, styles, notes and axes, and folders from someone else walked without links."""
 
 import csv
 import math

@@ -1,6 +1,7 @@
-"""Integration layer (run_experiment and the commands in-process, at tiny sizes) of the tests of:
-The training loop: stopping rules, divergence, comparability across variants, precision, results
-files."""
+"""Integration layer of the training loop through run_experiment: divergence kept as an outcome, a
+stalled step and a failed factorisation named, iteration and time budgets, the same seed giving the
+same data and curves, float64, one compilation per run, and trials trained together matching one
+job each."""
 
 import re
 

@@ -1,6 +1,6 @@
-"""Integration layer (run_experiment and the commands in-process, at tiny sizes) of the tests of:
-Named sweeps (conf/experiment/), resuming, continuing from another run's network, and sweeps that
-go on when a job fails."""
+"""Integration layer of sweeps and resuming: named sweeps' jobs valid, completed jobs skipped and
+interrupted ones rerun, init_from continued or refused, seeds in one process, diverged jobs as
+outcomes, the sweeper given the validation loss, and profiles stopped by Ctrl-C or timeout."""
 
 import sys
 

@@ -1,7 +1,7 @@
-"""Integration layer (run_experiment and the commands in-process, at tiny sizes) of the tests of:
-The calibrated clock, the contention flag and the machine a result was measured on: slow steps
-are injected by replacing the runner's clock, at random instants, and the calibrated time must not
-move."""
+"""Integration layer of the calibrated clock, contention and the machine: slow steps injected
+through the runner's clock leave the calibrated time unchanged and flag the run, scheduled updates
+and line searches are charged their costs, real calibrations rank the steps, and every file
+records the machine and the software."""
 
 import jax
 import numpy as np

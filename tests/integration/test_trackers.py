@@ -1,7 +1,6 @@
-"""Integration layer (run_experiment and the commands in-process, at tiny sizes) of the tests of:
-The `logger` group: TensorBoard, MLflow and Weights & Biases (offline) receive each results file
-of a job as one run, read back here with the libraries' own readers (W&B's offline log with a reader
-of its record format); a failing tracker is a warning, never the run."""
+"""Integration layer of the `logger` group: TensorBoard, MLflow and W&B (offline) get each seed's
+run, a failing tracker is a warning, every tracker runs once per job of a sweep, and an MLflow
+database that is no SQLite file or a relative path is checked where it is opened."""
 
 import struct
 from pathlib import Path

@@ -1,7 +1,6 @@
-"""Numerics layer (closed forms, finite differences, synthetic data with known answers) of:
-experiments/claims.py: the claims profile as physgrad compare studies (what it runs, what the
-plan says) and each kind of claim part (lower, close, grows, stalls, the regime map's time to
-target) decided by physgrad's rules on synthetic curves with known answers."""
+"""Numerics layer of the claims (experiments/claims.py): lower parts by the paired rule, the studies
+and variants every claim part names, the studies' commands and parts, decisions at each fraction
+of the budget and over tuning studies, and docs/claims.md regenerated from the kept evidence."""
 
 import math
 import sys

@@ -1,6 +1,6 @@
-"""Numerics layer (closed forms, finite differences, synthetic data with known answers) of:
-Oscillator physics against closed forms and invariants; the unroll combinator against plain loops
-and finite differences; the BPTT modes against hand-derived gradients."""
+"""Numerics layer of the oscillator: the harmonic chain, RK4's order and energy drift, the
+zero-control loss, the unroll against loops and finite differences, the BPTT modes by hand on a
+linear system, the combined gradient and the checkpointed rollout."""
 
 import jax
 import jax.numpy as jnp

@@ -1,7 +1,6 @@
-"""Numerics layer (closed forms, finite differences, synthetic data with known answers) of:
-One read-out for every reader: a study's compare.md / runs.csv and the report/ of the same files
-give the same number for the same run at the same budget, a diverged run and a non-monotone curve
-among them."""
+"""Numerics layer of the one read-out: compare.md / runs.csv and the report of the same study give
+the same number per run at an iteration or time budget (diverged, blown-up, interrupted and
+non-monotone runs among them), and the budget is what the configuration asked for."""
 
 import csv
 import math

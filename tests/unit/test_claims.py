@@ -1,7 +1,6 @@
-"""Unit layer (pure functions, no scene compiled) of the tests of:
-experiments/claims.py: the claims profile as physgrad compare studies (what it runs, what the
-plan says) and each kind of claim part (lower, close, grows, stalls, the regime map's time to
-target) decided by physgrad's rules on synthetic curves with known answers."""
+"""Unit layer of the claims (experiments/claims.py) on synthetic curves: close, trend, stall and
+level parts, the regime map's time-to-target ratio, the presets' twins, decisions over tuning
+studies, joining studies, runs tables read as data, and what a claim not run or not settled says."""
 
 import math
 import sys

@@ -1,10 +1,5 @@
-"""Unit layer (pure functions, no scene compiled) of the tests of:
-What a cluster does to a study, with the local launchers where the behaviour is the same there
-(the real SLURM cluster: tests/cluster, `make test-cluster`): a signal to one job ends that job
-alone; a killed `physgrad compare` leaves no sweep running; reruns launch only what is missing;
-the study names the jobs that did not finish with their scheduler ids; physgrad's SLURM launcher
-waits for every job and cancels the waiting ones at a stop; the calibration runs as a job and a
-study whose runs ran elsewhere is flagged."""
+"""Unit layer of a study on a cluster: the jobs that did not finish are named with their scheduler
+ids, and runs on another machine than the calibration are flagged."""
 
 from __future__ import annotations
 

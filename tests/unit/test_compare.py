@@ -1,7 +1,6 @@
-"""Unit layer (pure functions, no scene compiled) of the tests of:
-`physgrad compare`: the command line split into variants, jobs as config files that compose to
-the intended run, equal tuning budgets on disjoint seeds, validation data, and a study on a user's
-own scene end to end."""
+"""Unit layer of `physgrad compare`: bad studies refused in one line, a job file composing to its
+variant and trial, validation defaults, tuning journals cut short, planted or scored by another
+read-out, planted stop marks and logs, the phases' progress and time left, and --help."""
 
 import pytest
 

@@ -1,6 +1,5 @@
-"""Unit layer (pure functions, no scene compiled) of the tests of:
-Every task x optim pair composes from the configs and either runs or is refused with its
-reason."""
+"""Unit layer of the configs: the bptt and stable_bptt presets compose to their backprop modes (R
+and C)."""
 
 import pytest
 

@@ -1,10 +1,5 @@
-"""Unit layer (pure functions, no scene compiled) of the tests of:
-Faults injected many times and at many instants: writers killed mid-write, a second writer, live
-readers with HDF5's default file locking, full disks, signals in bursts, damaged files, stopped
-sweeps.
-
-The short form runs in `make test`; `make test-faults` repeats every randomised fault many more
-times (PHYSGRAD_FAULT_REPEATS, see docs/results.md)."""
+"""Unit layer of faults in the results writer: a full disk at any of its writes is one line and
+leaves the last good file (repeated PHYSGRAD_FAULT_REPEATS times by `make test-faults`)."""
 
 import errno
 import os

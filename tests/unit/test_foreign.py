@@ -1,8 +1,6 @@
-"""Unit layer (pure functions, no scene compiled) of the tests of:
-Results files, report inputs and sweep folders from somebody else are data: crafted files of
-every kind are refused with a one-line reason (or their text cleaned) and the rest of the report
-goes on; nothing they name is followed, resolved or expanded. Bombs run under a time and memory cap
-in a child process."""
+"""Unit layer of files from somebody else: params stored elsewhere, configs past their bound, FIFOs
+and YAML aliases are refused, stored text is cleaned and compared as data, physgrad's own files read
+back unchanged, and its writes never go through a planted link."""
 
 import os
 from pathlib import Path

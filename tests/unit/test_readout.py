@@ -1,7 +1,6 @@
-"""Unit layer (pure functions, no scene compiled) of the tests of:
-One read-out for every reader: a study's compare.md / runs.csv and the report/ of the same files
-give the same number for the same run at the same budget, a diverged run and a non-monotone curve
-among them."""
+"""Unit layer of the one read-out: the loss at a budget is the last evaluation at or before it, a
+continued run is read on its own training, the time to a target is a time on every axis, and older
+files' variant names read in today's spelling."""
 
 import math
 from pathlib import Path

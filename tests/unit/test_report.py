@@ -1,6 +1,6 @@
-"""Unit layer (pure functions, no scene compiled) of the tests of:
-physgrad report on hand-made results files: scenes and groups, duplicates, labelled sets,
-thresholds, the loss at a common time, CSV export, figures, bad input."""
+"""Unit layer of `physgrad report`: a threshold from completed runs that every run must train to
+reach, the loss at a common time on the budgets' clock, bad input in one line, readable axes, and a
+compare's groups named, coloured and styled by variant and tuning study."""
 
 import math
 

@@ -1,6 +1,6 @@
-"""Unit layer (pure functions, no scene compiled) of the tests of:
-The training loop: stopping rules, divergence, comparability across variants, precision, results
-files."""
+"""Unit layer of the training loop: the results writer's flushes, whole rows and fixed columns, a
+stalled step abandoned in one line, a first signal asking to stop and a second ending the step,
+and a time budget below one step refused."""
 
 import numpy as np
 import pytest

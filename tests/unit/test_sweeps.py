@@ -1,6 +1,6 @@
-"""Unit layer (pure functions, no scene compiled) of the tests of:
-Named sweeps (conf/experiment/), resuming, continuing from another run's network, and sweeps that
-go on when a job fails."""
+"""Unit layer of named sweeps and resuming: the claims plan in parts of at most 80 minutes, an
+unknown experiment in one line, and a manifest that keeps an interpolated override as the job
+folder does."""
 
 import sys
 

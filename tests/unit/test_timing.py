@@ -1,7 +1,6 @@
-"""Unit layer (pure functions, no scene compiled) of the tests of:
-The calibrated clock, the contention flag and the machine a result was measured on: slow steps
-are injected by replacing the runner's clock, at random instants, and the calibrated time must not
-move."""
+"""Unit layer of the calibrated clock: calibrations on a simulated clock (delays, one cost per
+compiled program, cost intervals), the charge of a scheduled update and of a line search's
+evaluations in closed form, and a given calibration's costs reaching its jobs, and its refusals."""
 
 import pytest
 

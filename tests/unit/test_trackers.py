@@ -1,7 +1,5 @@
-"""Unit layer (pure functions, no scene compiled) of the tests of:
-The `logger` group: TensorBoard, MLflow and Weights & Biases (offline) receive each results file
-of a job as one run, read back here with the libraries' own readers (W&B's offline log with a reader
-of its record format); a failing tracker is a warning, never the run."""
+"""Unit layer of the `logger` group: a logger entry that cannot be built is refused in one line
+with exit code 2."""
 
 import pytest
 

@@ -1,7 +1,6 @@
-"""Unit layer (pure functions, no scene compiled) of the tests of:
-The verdict rule (physgrad.verdict) on synthetic data with known answers: clear wins, identical
-variants, non-monotone curves, NaN and blow-ups without NaN, the budget edge, Holm's correction, and
-the error rates of the rule itself under the null and under a known effect."""
+"""Unit layer of the verdict rule (physgrad.verdict) on synthetic seeds: better, equivalent and
+undecided, the loss at the budget, divergences, NaN, zero and negative losses, trends, reversals,
+Holm's correction, verdicts over tuning studies, a lead resting on step costs, and levels."""
 
 import math
 
