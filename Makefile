@@ -55,8 +55,8 @@ test-long: setup
 	$(TIMED) $(FAST_COMPILE) $(BIN)/python -m pytest -q $(XDIST) -m long $(MATRIX)
 	$(TIMED) $(BIN)/python -m pytest -q $(XDIST) -m long $(LAYERS) --deselect $(MATRIX)
 
-# studies on a real one-node SLURM cluster with faults injected (scancel, a time limit, SIGKILL of the
-# launching command): as root on Debian, installs SLURM, munge, slurmdbd and MariaDB from Debian's packages
+# studies on a real two-node SLURM cluster on this machine with faults injected (scancel, a time limit,
+# SIGKILL of the launching command, a node lost): as root on Debian, installs SLURM, munge, slurmdbd and MariaDB from Debian's packages
 # where missing, starts the daemons by hand and stops them at the end (tests/cluster/slurm.sh; docs/cluster.md)
 SLURM_STATE ?= /tmp/physgrad-slurm
 test-cluster: setup

@@ -1,9 +1,11 @@
 #!/usr/bin/env bash
-# A one-node SLURM cluster on this machine, for `make test-cluster` (docs/cluster.md):
+# A two-node SLURM cluster on this machine, for `make test-cluster` (docs/cluster.md):
 #   tests/cluster/slurm.sh start   install what is missing from Debian's packages (slurmctld, slurmd,
 #                                  slurm-client, munge, slurmdbd, mariadb-server), write a private
 #                                  configuration under $STATE, start munged, MariaDB, slurmdbd, slurmctld
-#                                  and slurmd by hand (no systemd) and wait until a job runs
+#                                  and two slurmd (nodes n1 and n2, each half of the machine's cores,
+#                                  one port each: slurmd -N) by hand (no systemd) and wait until a job
+#                                  runs on each
 #   tests/cluster/slurm.sh stop    stop every daemon it started, by the process ids it recorded
 #   tests/cluster/slurm.sh install only install what is missing (.ci/run does it while the tests run)
 # Clients find the cluster through SLURM_CONF=$STATE/slurm.conf (printed by `start`). Exits 3 with one
@@ -53,9 +55,9 @@ install_missing() {
 write_config() {
     local node cpus memory
     node=$(hostname -s)
-    cpus=$(nproc)
-    memory=$(slurmd -C | sed -n 's/.*RealMemory=\([0-9]*\).*/\1/p')
-    mkdir -p "$STATE/spool/ctld" "$STATE/spool/d" "$STATE/log" "$STATE/run"
+    cpus=$(( $(nproc) / 2 > 0 ? $(nproc) / 2 : 1 ))
+    memory=$(( $(slurmd -C | sed -n 's/.*RealMemory=\([0-9]*\).*/\1/p') / 2 ))
+    mkdir -p "$STATE/spool/ctld" "$STATE/spool/d-n1" "$STATE/spool/d-n2" "$STATE/log" "$STATE/run"
     cat >"$STATE/slurm.conf" <<EOF
 ClusterName=$CLUSTER
 SlurmctldHost=$node(127.0.0.1)
@@ -63,11 +65,11 @@ SlurmUser=root
 SlurmdUser=root
 AuthType=auth/munge
 StateSaveLocation=$STATE/spool/ctld
-SlurmdSpoolDir=$STATE/spool/d
+SlurmdSpoolDir=$STATE/spool/d-%n
 SlurmctldPidFile=$STATE/run/slurmctld.pid
-SlurmdPidFile=$STATE/run/slurmd.pid
+SlurmdPidFile=$STATE/run/slurmd-%n.pid
 SlurmctldLogFile=$STATE/log/slurmctld.log
-SlurmdLogFile=$STATE/log/slurmd.log
+SlurmdLogFile=$STATE/log/slurmd-%n.log
 SlurmctldPort=6817
 SlurmdPort=6818
 ProctrackType=proctrack/linuxproc
@@ -78,14 +80,16 @@ SchedulerType=sched/backfill
 SelectType=select/cons_tres
 SelectTypeParameters=CR_Core
 ReturnToService=2
+SlurmdTimeout=15
 KillWait=30
 MinJobAge=300
 SchedulerParameters=sched_interval=2
 AccountingStorageType=accounting_storage/slurmdbd
 AccountingStorageHost=localhost
 JobAcctGatherType=jobacct_gather/none
-NodeName=$node NodeAddr=127.0.0.1 CPUs=$cpus RealMemory=$memory State=UNKNOWN
-PartitionName=$PARTITION Nodes=$node Default=YES MaxTime=INFINITE State=UP
+NodeName=n1 NodeHostname=$node NodeAddr=127.0.0.1 Port=6831 CPUs=$cpus RealMemory=$memory State=UNKNOWN
+NodeName=n2 NodeHostname=$node NodeAddr=127.0.0.1 Port=6832 CPUs=$cpus RealMemory=$memory State=UNKNOWN
+PartitionName=$PARTITION Nodes=n1,n2 Default=YES MaxTime=INFINITE State=UP
 EOF
     cat >"$STATE/slurmdbd.conf" <<EOF
 AuthType=auth/munge
@@ -133,11 +137,17 @@ start() {
     sacctmgr -i add cluster "$CLUSTER" >/dev/null 2>&1 || true
     start_daemon slurmctld "$STATE/run/slurmctld.daemon" /usr/sbin/slurmctld -D -f "$STATE/slurm.conf"
     wait_for 60 slurmctld scontrol ping
-    start_daemon slurmd "$STATE/run/slurmd.daemon" /usr/sbin/slurmd -D -f "$STATE/slurm.conf"
-    wait_for 60 "the node" bash -c "sinfo -h -N -o %t | grep -Eq '^(idle|mix|alloc)'"
-    wait_for 60 "a first job" srun -p "$PARTITION" -t 1 true
+    start_node n1
+    start_node n2
+    wait_for 60 "both nodes" bash -c "[ \$(sinfo -h -N -o %t | grep -Ec '^(idle|mix|alloc)') -eq 2 ]"
+    wait_for 60 "a first job on n1" srun -p "$PARTITION" -w n1 -t 1 true
+    wait_for 60 "a first job on n2" srun -p "$PARTITION" -w n2 -t 1 true
     wait_for 60 "sacct" bash -c "sacct -n -X -o State | grep -q COMPLETED"
-    say "SLURM $(sinfo -V | cut -d' ' -f2) is up: partition $PARTITION on $(hostname -s); export SLURM_CONF=$SLURM_CONF"
+    say "SLURM $(sinfo -V | cut -d' ' -f2) is up: partition $PARTITION, nodes n1 and n2 on $(hostname -s); export SLURM_CONF=$SLURM_CONF"
+}
+
+start_node() { # name: a slurmd of its own for node name (slurmd -N), its pid recorded
+    start_daemon "slurmd-$1" "$STATE/run/slurmd-$1.daemon" /usr/sbin/slurmd -D -N "$1" -f "$STATE/slurm.conf"
 }
 
 own_steps() { # the job steps (slurmstepd) of this cluster's slurmd: started with its SLURM_CONF in
@@ -153,7 +163,7 @@ own_steps() { # the job steps (slurmstepd) of this cluster's slurmd: started wit
 
 stop() {
     local quiet=${1:-}
-    for name in slurmd slurmctld slurmdbd mariadb munged; do
+    for name in slurmd-n1 slurmd-n2 slurmd slurmctld slurmdbd mariadb munged; do
         local pidfile="$STATE/run/$name.daemon"
         [ -f "$pidfile" ] || pidfile="$STATE/run/$name.pid"
         [ -f "$pidfile" ] || continue
@@ -182,7 +192,8 @@ install() {
 
 case "${1:-}" in
     start) start ;;
+    start-node) export SLURM_CONF=$STATE/slurm.conf; start_node "$2" ;;
     stop) stop ;;
     install) install ;;
-    *) echo "usage: $0 start|stop|install" >&2; exit 2 ;;
+    *) echo "usage: $0 start|start-node NAME|stop|install" >&2; exit 2 ;;
 esac
