@@ -74,21 +74,22 @@ def measure(kind: SceneKind) -> dict:
     import jax
 
     from physgrad.configs import compose
-    from physgrad.members import effective_unroll
+    from physgrad.job_spec import checked
     from physgrad.tasks import build_scene
 
     dirs = [kind.config_dir] if kind.config_dir else []
     if kind.config_dir and str(Path(kind.config_dir).parent) not in sys.path:
         sys.path.insert(0, str(Path(kind.config_dir).parent))  # its scenes' modules
     cfg = compose(list(kind.overrides), dirs)
-    scene = build_scene(cfg.task, jax.random.PRNGKey(0), effective_unroll(cfg))
+    spec = checked(cfg)
+    scene = build_scene(spec.task, jax.random.PRNGKey(0), spec.unroll)
     params = scene.init_params(jax.random.PRNGKey(1))
     loop = "one solve" if scene.dynamics is None else "closed" if scene.closed_loop else "open"
     return {
         "scene": kind.key,
         "loop": kind.loop or loop,
         "unroll": scene.unroll or "",
-        "batch": int(cfg.task.batch_size),
+        "batch": int(spec.task["batch_size"]),
         "train_size": scene.train_size or "",
         "parameters": sum(int(leaf.size) for leaf in jax.tree_util.tree_leaves(params)),
     }

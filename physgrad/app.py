@@ -18,8 +18,9 @@ from omegaconf import DictConfig, OmegaConf
 import physgrad.sweep_hooks  # noqa: E402, F401, I001
 from physgrad.configs import CONF_DIR, name_options
 from physgrad.errors import UserError, innermost_cause
-from physgrad.experiment import run_experiment
+from physgrad.experiment import run_job
 from physgrad.gpus import claim_gpu
+from physgrad.job_spec import check
 from physgrad.runner import Outcome
 from physgrad.sweeps import record_job, stop_count
 from physgrad.trackers import build_trackers, track
@@ -146,10 +147,11 @@ def job_of(cfg: DictConfig, hydra_cfg: DictConfig) -> Job:
 
 @hydra.main(version_base="1.3", config_path=str(CONF_DIR), config_name="config")
 def job(cfg: DictConfig) -> float:
-    """One job of `physgrad run`: not started in a stopped sweep, its trackers built, the run
-    (run_experiment), then its record in the sweep, its trackers fed and its end told; returns what
-    a sweeper optimises (objective). A single run exits 2 when refused, 1 when failed, 130 when
-    interrupted."""
+    """One job of `physgrad run`: not started in a stopped sweep, its config checked at the door
+    (physgrad.job_spec.check: below it nothing reads the config), its trackers built, the run
+    (run_job: a refused job's files say why), then its record in the sweep, its trackers fed and its
+    end told; returns what a sweeper optimises (objective). A single run exits 2 when refused, 1
+    when failed, 130 when interrupted."""
     hydra_cfg = HydraConfig.get()
     claim_gpu(int(hydra_cfg.job.get("num") or 0))  # before jax starts: one GPU per job process
     this = job_of(cfg, hydra_cfg)
@@ -159,6 +161,7 @@ def job(cfg: DictConfig) -> float:
         return float("inf")
     if cfg.get("calibrate") is not None:
         return calibration_job(cfg, this)
+    spec = check(cfg)
     trackers = job_trackers(cfg, this)
     if trackers is None:
         return float("inf")
@@ -170,7 +173,7 @@ def job(cfg: DictConfig) -> float:
             record_job(this.sweep, this.out_dir, this.overrides, "started")
 
     try:
-        outcome, path = run_experiment(cfg, this.out_dir, this.sweep, on_owned)
+        outcome, path = run_job(spec, this.out_dir, this.sweep, on_owned)
     except Exception as error:  # noqa: BLE001 - one line, the traceback in the job folder; a sweep goes on
         return job_failed(this, error)
     if this.owned:  # a job refused because another process holds its folder records nothing

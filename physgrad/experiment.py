@@ -1,5 +1,6 @@
-"""From a composed config to a finished run: validate, refuse what does not apply (the checks are
-in physgrad.refusals), build, train, write."""
+"""From a checked job (physgrad.job_spec.JobSpec) to a finished run: hold the job folder, skip what
+finished before, build, refuse what does not apply to the built scene (physgrad.refusals), train,
+write. run_experiment takes a composed config through the door (job_spec.check) first."""
 
 from __future__ import annotations
 
@@ -12,34 +13,25 @@ from typing import Any
 
 import jax
 import jax.numpy as jnp
-from omegaconf import DictConfig, OmegaConf
+from omegaconf import DictConfig
 
 from physgrad.errors import FolderOwned, UserError, innermost_cause
 from physgrad.files import own_folder
 from physgrad.gradients import JacobianPass
 from physgrad.interrupts import StopRequest, stop_on_signals
+from physgrad.job_spec import JobSpec, Member, Refusal, check
 from physgrad.machine import machine_attributes
-from physgrad.members import (
-    effective_unroll,
-    job_outcome,
-    member_configs,
-    run_attributes,
-    seed_paths,
-    set_precision,
-)
+from physgrad.members import job_outcome, set_precision
 from physgrad.nets import count_params
 from physgrad.optim import UpdateRule, build_rule, needs_value_arguments
 from physgrad.optim.capabilities import capabilities
 from physgrad.refusals import (
     check_applies,
-    check_config,
     check_layer_factors,
     check_matrices,
     check_scene_values,
     check_seeds_together,
     starts_from_itself,
-    too_many_seeds,
-    trial_values_refusal,
 )
 from physgrad.results import ResultsWriter, record_outcome
 from physgrad.resume import finished_before, set_aside_unreadable, start_from
@@ -54,7 +46,7 @@ log = logging.getLogger("physgrad")
 
 
 def build_seeds(
-    cfg: DictConfig, seeds: list[int], batch_size: int, checkpoint: Callable[[], None] | None = None
+    spec: JobSpec, seeds: list[int], batch_size: int, checkpoint: Callable[[], None] | None = None
 ) -> tuple[Scene, Seeds]:
     """The scene and, stacked over the given seeds, what differs between them: data (test set, fixed
     training set), initial network and minibatch key, each from its own split of PRNGKey(seed).
@@ -67,13 +59,13 @@ def build_seeds(
             continue
         if checkpoint is not None:  # a pending stop, between seeds: a thousand take a while
             checkpoint()
-        built[seed] = build_scene(cfg.task, key[0], effective_unroll(cfg))
+        built[seed] = build_scene(spec.task, key[0], spec.unroll)
     scenes = [built[seed] for seed in seeds]
     scene = scenes[0]  # the physics and the network; only the data differ between seeds
     check_batch_size(scene, batch_size)
     validation = None
-    if cfg.trainer.get("validation", False):
-        validation = stack([validation_set(cfg, s, key[0]) for s, key in zip(scenes, keys)])
+    if spec.validation:
+        validation = stack([validation_set(spec, s, key[0]) for s, key in zip(scenes, keys)])
     return scene, Seeds(
         params=stack([scene.init_params(key[1]) for key in keys]),
         train_keys=jnp.stack([key[2] for key in keys]),
@@ -92,37 +84,18 @@ def check_batch_size(scene: Scene, batch_size: int) -> None:
         )
 
 
-def scene_key(cfg: DictConfig, seed_list: list[int]) -> str:
-    """What build_seeds builds from, as text: two configs with one key build the same scene and
-    seeds."""
-    import json
-
-    return json.dumps(
-        [
-            OmegaConf.to_container(cfg.task, resolve=True),
-            cfg.get("precision"),
-            effective_unroll(cfg),
-            bool(cfg.trainer.get("validation", False)),
-            list(seed_list),
-        ],
-        sort_keys=True,
-        default=str,
-    )
-
-
 VALIDATION_KEY = 1  # fold_in(data key, 1): the data key of the default validation set
 
 
-def validation_set(cfg: DictConfig, scene: Scene, data_key: jax.Array) -> Any:
+def validation_set(spec: JobSpec, scene: Scene, data_key: jax.Array) -> Any:
     """The scene's validation_set if it has one; else the test set of the same scene built from
     another data key (fold_in(data key, VALIDATION_KEY)): held-out samples of the same distribution,
     disjoint from the test set by construction. UserError if that set equals the test set (a scene
     whose data ignore the key)."""
     if scene.validation_set is not None:
         return scene.validation_set
-    other = build_scene(
-        cfg.task, jax.random.fold_in(data_key, VALIDATION_KEY), effective_unroll(cfg)
-    ).test_set
+    other_key = jax.random.fold_in(data_key, VALIDATION_KEY)
+    other = build_scene(spec.task, other_key, spec.unroll).test_set
     same = jax.tree_util.tree_structure(other) == jax.tree_util.tree_structure(
         scene.test_set
     ) and all(
@@ -131,7 +104,7 @@ def validation_set(cfg: DictConfig, scene: Scene, data_key: jax.Array) -> Any:
     )
     if same:
         raise UserError(
-            f"task={cfg.task.get('name')} builds the same test set from every data key, so it has "
+            f"task={spec.task_name} builds the same test set from every data key, so it has "
             "no validation data: give its Scene a validation_set, or draw its data from `key` "
             "(docs/extending.md)"
         )
@@ -139,29 +112,28 @@ def validation_set(cfg: DictConfig, scene: Scene, data_key: jax.Array) -> Any:
 
 
 def prepare(
-    cfg: DictConfig,
+    spec: JobSpec,
     seed_list: list[int],
-    settings: TrainerSettings,
     checkpoint: Callable[[], None] | None = None,
     built: tuple[Scene, Seeds] | None = None,
 ) -> tuple[Scene, UpdateRule, Seeds]:
     """Precision set, the update rule and the seeds' scenes built, and what does not apply refused
     (UserError): everything a run (and `make bench`) does before compiling. built: the scene and
-    seeds of another config with the same task, precision, unroll, validation and seeds (what
-    build_seeds reads), used instead of building them again."""
-    set_precision(cfg.precision)
+    seeds of another job with the same scene_key, used instead of building them again."""
+    set_precision(spec.precision)
     logging.getLogger("jax").setLevel(logging.WARNING)
     quiet_callback_failures()  # building a scene's data can run its solver too
-    rule = build_rule(cfg.optim, cfg.get("trial_values"))
+    rule = build_rule(spec.optim, spec.trial_values)
+    batch_size = spec.trainer.batch_size
     if built is None:
-        scene, seeds = build_seeds(cfg, seed_list, settings.batch_size, checkpoint)
+        scene, seeds = build_seeds(spec, seed_list, batch_size, checkpoint)
     else:
         scene, seeds = built
-        check_batch_size(scene, settings.batch_size)
-    check_scene_values(scene, seeds, cfg.task.name)
-    check_applies(scene, cfg)
-    kind = capabilities(cfg.optim)
-    check_matrices(cfg, kind, seeds)
+        check_batch_size(scene, batch_size)
+    check_scene_values(scene, seeds, spec.task_name)
+    check_applies(scene, spec)
+    kind = capabilities(spec.optim)
+    check_matrices(spec, kind, seeds)
     if not rule.uses_jacobian and needs_value_arguments(rule.transform, seeds.network()):
         rule = rule._replace(gradient=dataclasses.replace(rule.gradient, with_value=True))
     if rule.uses_jacobian:
@@ -174,7 +146,7 @@ def prepare(
                 scene.sample_output, seeds.network(), sample, with_value=rule.gradient.with_value
             )
         )
-        check_layer_factors(cfg, kind, rule.gradient)
+        check_layer_factors(spec, kind, rule.gradient)
     return scene, rule, seeds
 
 
@@ -184,16 +156,27 @@ def run_experiment(
     sweep: Path | None = None,
     on_owned: Callable[[], None] | None = None,
 ) -> tuple[Outcome, Path]:
+    """run_job of the composed config checked at the door (physgrad.job_spec.check)."""
+    return run_job(check(cfg), out_dir, sweep, on_owned)
+
+
+def run_job(
+    job: JobSpec | Refusal,
+    out_dir: str | Path,
+    sweep: Path | None = None,
+    on_owned: Callable[[], None] | None = None,
+) -> tuple[Outcome, Path]:
     """Run one job into out_dir/results.h5 (seeds > 1: one file per seed under out_dir/seed=<s>/,
-    trained together in one vectorised step); a refused job leaves a file with status refused and
-    the reason. A job that completed before with the same config is not run again unless
-    overwrite=true. The job holds out_dir for its whole duration (another live process writing
-    there: refused, nothing touched) and handles SIGINT and SIGTERM from start-up until its files
-    are final; in a sweep (sweep: its folder) a signal to the job stops the sweep where the job runs
-    in the sweep's launching process (else the job alone), and the sweep's stop reaches the job
-    (physgrad.sweeps). on_owned runs once the folder is held, before anything
-    else is written into it (the command line's provenance, .hydra/). A failure before training
-    leaves files with status failed; ResultsWriteError if they cannot be written."""
+    trained together in one vectorised step); a refused job (a Refusal, or one refused once its
+    scene is built) leaves a file per member with status refused and the reason. A job that
+    completed before with the same config is not run again unless overwrite=true. The job holds
+    out_dir for its whole duration (another live process writing there: refused, nothing touched)
+    and handles SIGINT and SIGTERM from start-up until its files are final; in a sweep (sweep: its
+    folder) a signal to the job stops the sweep where the job runs in the sweep's launching process
+    (else the job alone), and the sweep's stop reaches the job (physgrad.sweeps). on_owned runs
+    once the folder is held, before anything else is written into it (the command line's
+    provenance, .hydra/). A failure before training leaves files with status failed;
+    ResultsWriteError if they cannot be written."""
     try:
         # a signal to the process that launched the sweep is the user's: the sweep stops; one to a
         # worker or a scheduler's job (scancel, a time limit) ends that job alone
@@ -205,20 +188,19 @@ def run_experiment(
         with own_folder(out_dir), stop_on_signals(on_first) as stop, watching(sweep, stop):
             if on_owned is not None:
                 on_owned()
-            # refused before one file per member is named
-            why = too_many_seeds(cfg) or trial_values_refusal(cfg)
-            if why is not None:
-                return refused(why), Path(out_dir)
-            paths = seed_paths(cfg, out_dir)
+            paths = [(member.seed, Path(out_dir) / member.path) for member in job.members]
             where = paths[0][1] if len(paths) == 1 else Path(out_dir)
-            why = starts_from_itself(cfg, paths)  # refused without a results file
+            if isinstance(job, Refusal):
+                for _, path in paths:
+                    set_aside_unreadable(path)
+                record_before_training(job.members, paths, "refused", job.reason)
+                return refused(job.reason), where
+            why = starts_from_itself(job, paths)  # refused without a results file
             if why is not None:
                 return refused(why), where
-            return run_owned(cfg, paths, stop), where
+            return run_owned(job, paths, stop), where
     except FolderOwned as error:
-        return refused(str(error)), Path(out_dir) / (
-            "results.h5" if cfg.get("seeds", 1) == 1 else ""
-        )
+        return refused(str(error)), Path(out_dir) / ("results.h5" if len(job.members) == 1 else "")
 
 
 def refused(reason: str) -> Outcome:
@@ -227,70 +209,63 @@ def refused(reason: str) -> Outcome:
 
 
 def record_before_training(
-    cfg: DictConfig,
+    members: tuple[Member, ...],
     paths: list[tuple[int, Path]],
     status: str,
     reason: str,
     stop: StopRequest | None = None,
 ) -> None:
-    """A results file of attributes only (status and reason) for every seed of a job that ended
+    """A results file of attributes only (status and reason) for every member of a job that ended
     before training; with stop, no more of them once a second signal came (stop.at_once) and a file
     that cannot be written is skipped."""
-    for (seed, path), member in zip(paths, member_configs(cfg, len(paths))):
+    for (_, path), member in zip(paths, members):
         if stop is not None and stop.at_once:  # a second signal: stop writing files too
             break
-        attrs = {**run_attributes(member, effective_unroll(cfg)), "seed": seed}
         with contextlib.suppress(OSError) if stop is not None else contextlib.nullcontext():
-            record_outcome(path, attrs, status, reason)
+            record_outcome(path, member.attributes, status, reason)
 
 
-def run_owned(cfg: DictConfig, paths: list[tuple[int, Path]], stop: StopRequest) -> Outcome:
-    """run_experiment, once the job folder is held and signals are handled. Until training starts a
+def run_owned(spec: JobSpec, paths: list[tuple[int, Path]], stop: StopRequest) -> Outcome:
+    """run_job, once the job folder is held and signals are handled. Until training starts a
     signal ends the job at once (resume checks, building many seeds' data: nothing is half done
     there), its files saying interrupted; from then on the training loop acts on it between
     steps."""
     stop.raising = True
     try:
         stop.raise_if_stopped()  # a signal that came before
-        return set_up_and_train(cfg, paths, stop)
+        return set_up_and_train(spec, paths, stop)
     except KeyboardInterrupt as interrupt:
         stop.raising = False
         why = f"{interrupt.args[0] if interrupt.args else 'SIGINT'} before training"
-        record_before_training(cfg, paths, "interrupted", why, stop)
+        record_before_training(spec.members, paths, "interrupted", why, stop)
         return Outcome("interrupted", why, 0, 0.0, {})
     finally:
         stop.raising = False
 
 
-def set_up_and_train(cfg: DictConfig, paths: list[tuple[int, Path]], stop: StopRequest) -> Outcome:
+def set_up_and_train(spec: JobSpec, paths: list[tuple[int, Path]], stop: StopRequest) -> Outcome:
     """The job's steps once it holds its folder: the outcome of an earlier run with the same config
-    (unless overwrite=true), else the checks and building (refused or failed: files that say so),
-    the results files, training, and the figures."""
-    earlier = finished_earlier(cfg, paths, stop)
+    (unless overwrite=true), else the building and what the built scene refuses (refused or
+    failed: files that say so), the results files, training, and the figures."""
+    earlier = finished_earlier(spec, paths, stop)
     if earlier is not None:
         return earlier
     try:
-        settings, scene, rule, seeds, origin = set_up(cfg, paths, stop)
+        scene, rule, seeds, origin = set_up(spec, paths, stop)
     except UserError as error:
         stop.raising = False
-        record_before_training(cfg, paths, "refused", str(error))
+        record_before_training(spec.members, paths, "refused", str(error))
         return refused(str(error))
     except Exception as error:  # before training: the files say failed, with the reason
         stop.raising = False
-        record_before_training(cfg, paths, "failed", innermost_cause(error))
+        record_before_training(spec.members, paths, "failed", innermost_cause(error))
         raise
-    attrs = [
-        job_attributes(member, scene, rule, origin, len(paths))
-        for member in member_configs(cfg, len(paths))
-    ]
-    writers = open_writers(paths, attrs, settings, seeds)
-    label = f"{cfg.task.name}/{cfg.optim.name} seed {cfg.seed}" + (
-        f" (+{len(paths) - 1})" if len(paths) > 1 else ""
-    )
+    attrs = [job_attributes(member, scene, rule, origin, len(paths)) for member in spec.members]
+    writers = open_writers(paths, attrs, spec.trainer, seeds)
     stop.raising = False  # the training loop acts on signals between steps
-    outcomes = train(scene, rule, seeds, writers, settings, label=label, stop=stop)
+    outcomes = train(scene, rule, seeds, writers, spec.trainer, label=spec.label, stop=stop)
     try:
-        if cfg.get("figures", True):
+        if spec.figures:
             draw_run_figures(scene, seeds, writers, outcomes, stop)
     except Exception as error:  # noqa: BLE001 - the results are final: a figure (a scene's own, too) is no failure
         log.warning(
@@ -303,44 +278,45 @@ def set_up_and_train(cfg: DictConfig, paths: list[tuple[int, Path]], stop: StopR
 
 
 def finished_earlier(
-    cfg: DictConfig, paths: list[tuple[int, Path]], stop: StopRequest
+    spec: JobSpec, paths: list[tuple[int, Path]], stop: StopRequest
 ) -> Outcome | None:
     """Unreadable results files set aside; then, unless overwrite=true, the outcome of the run that
-    finished every seed's file before with the same config, or None if the job is to run."""
+    finished every member's file before with the same config, or None if the job is to run."""
     for _, path in paths:
         stop.raise_if_stopped()
         set_aside_unreadable(path)
-    if cfg.get("overwrite", False):
+    if spec.overwrite:
         return None
     previous = []
-    for (seed, path), member in zip(paths, member_configs(cfg, len(paths))):
+    for (seed, path), member in zip(paths, spec.members):
         stop.raise_if_stopped()
-        previous.append(finished_before(path, member, seed))
+        previous.append(finished_before(path, member.config, seed))
     return job_outcome(previous) if all(previous) else None
 
 
 def set_up(
-    cfg: DictConfig, paths: list[tuple[int, Path]], stop: StopRequest
-) -> tuple[TrainerSettings, Scene, UpdateRule, Seeds, dict]:
-    """The config checked, the scene, rule and seeds built (prepare), and the network init_from
-    names put in place, with the attributes of its origin; UserError for what is refused."""
-    settings = check_config(cfg)
-    check_seeds_together(cfg, len(paths))
-    scene, rule, seeds = prepare(cfg, [seed for seed, _ in paths], settings, stop.raise_if_stopped)
+    spec: JobSpec, paths: list[tuple[int, Path]], stop: StopRequest
+) -> tuple[Scene, UpdateRule, Seeds, dict]:
+    """The scene, rule and seeds built (prepare), and the network init_from names put in place,
+    with the attributes of its origin; UserError for what is refused."""
+    check_seeds_together(spec, len(paths))
+    scene, rule, seeds = prepare(spec, [seed for seed, _ in paths], stop.raise_if_stopped)
     origin = {}
-    if cfg.get("init_from"):
-        first, origin = start_from(cfg.init_from, seeds.network(), cfg.task.name)
+    if spec.init_from:
+        first, origin = start_from(spec.init_from, seeds.network(), spec.task_name)
         seeds = dataclasses.replace(seeds, params=stack([first]))
-    return settings, scene, rule, seeds, origin
+    return scene, rule, seeds, origin
 
 
 def job_attributes(
-    cfg: DictConfig, scene: Scene, rule: UpdateRule, origin: dict, count: int
+    member: Member, scene: Scene, rule: UpdateRule, origin: dict, count: int
 ) -> dict:
-    """The root attributes every seed's file of a job shares: the run's (run_attributes), the form
-    of J a rule uses, the origin of a network started from another run's (init_from), and, for
-    seeds trained together, their number."""
-    attrs = run_attributes(cfg, scene.unroll)
+    """The root attributes of a member's file: the run's (members.run_attributes, with the time
+    steps the scene unrolls), the form of J a rule uses, the origin of a network started from
+    another run's (init_from), and, for members trained together, their number."""
+    attrs = {k: v for k, v in member.attributes.items() if k != "unroll"}
+    if scene.unroll is not None:
+        attrs["unroll"] = scene.unroll
     if rule.uses_jacobian:
         attrs["jacobian"] = rule.gradient.name
     if origin:

@@ -1,7 +1,8 @@
 """A job's members and what their files say they are: the results file of each seed or trial it
 trains (seed_paths), each member's config (member_configs), the attributes its file records
-(run_attributes: task, variant label, seed, precision, the config), the time steps it unrolls, the
-precision it sets and the job's outcome over its members."""
+(run_attributes: task, variant label, seed, precision, the config; comparable_config: the config as
+a re-run compares it), the time steps it unrolls, the precision it sets and the job's outcome over
+its members. The door (physgrad.job_spec) reads the config through these; nothing below it does."""
 
 from __future__ import annotations
 
@@ -10,6 +11,7 @@ from pathlib import Path
 import jax
 from omegaconf import DictConfig, OmegaConf, open_dict
 
+from physgrad.results import parse_config
 from physgrad.runner import Outcome
 from physgrad.version import __version__
 
@@ -59,6 +61,20 @@ def run_attributes(cfg: DictConfig, unroll: int | None = None) -> dict:
     if unroll is not None:
         attrs["unroll"] = unroll
     return attrs
+
+
+# keys that do not change what a run computes (a run stored without them is the same run)
+NOT_RESULT_KEYS = ("overwrite", "figures", "calibrate")
+
+
+def comparable_config(cfg: DictConfig) -> dict:
+    """The resolved config as plain data, as results.h5 stores it, without the keys that do not
+    change what a run computes."""
+    plain = OmegaConf.to_container(cfg, resolve=True)
+    for key in NOT_RESULT_KEYS:
+        plain.pop(key, None)
+    # the stored text's round trip: YAML's types, cleaned text
+    return parse_config(OmegaConf.to_yaml(plain))
 
 
 def seed_paths(cfg: DictConfig, out_dir: str | Path) -> list[tuple[int, Path]]:

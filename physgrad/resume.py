@@ -12,35 +12,23 @@ from typing import Any
 
 import jax.numpy as jnp
 from jax.flatten_util import ravel_pytree
-from omegaconf import DictConfig, OmegaConf
 
 from physgrad.errors import UserError
+from physgrad.members import NOT_RESULT_KEYS
 from physgrad.results import Run, cut_short, parse_config, read_end, read_final, read_params
 from physgrad.runner import Outcome
 
 log = logging.getLogger("physgrad")
 
-# keys that do not change what a run computes (a run stored without them is the same run)
-NOT_RESULT_KEYS = ("overwrite", "figures", "calibrate")
 
-
-def comparable_config(cfg: DictConfig) -> dict:
-    """The resolved config as plain data, as results.h5 stores it, without the keys that do not
-    change what a run computes."""
-    plain = OmegaConf.to_container(cfg, resolve=True)
-    for key in NOT_RESULT_KEYS:
-        plain.pop(key, None)
-    # the stored text's round trip: YAML's types, cleaned text
-    return parse_config(OmegaConf.to_yaml(plain))
-
-
-def finished_before(path: Path, cfg: DictConfig, seed: int | None = None) -> Outcome | None:
-    """The outcome recorded at path if that run completed or diverged with this same config (a sweep
-    being re-run) and, given the member's seed, on that seed, with its rows whole
-    (results.cut_short): both are results the same config gives again; interrupted, failed and
-    refused runs run again, as do a file copied from another seed or cut short (the checks a
-    study's evaluation makes, so that the two never disagree). The stored config is compared as
-    data: nothing in it is resolved (a file from elsewhere may hold anything)."""
+def finished_before(path: Path, config: dict, seed: int | None = None) -> Outcome | None:
+    """The outcome recorded at path if that run completed or diverged with this same config
+    (config: the member's, as members.comparable_config gives it; a sweep being re-run) and, given
+    the member's seed, on that seed, with its rows whole (results.cut_short): both are results the
+    same config gives again; interrupted, failed and refused runs run again, as do a file copied
+    from another seed or cut short (the checks a study's evaluation makes, so that the two never
+    disagree). The stored config is compared as data: nothing in it is resolved (a file from
+    elsewhere may hold anything)."""
     if not path.exists():
         return None
     try:
@@ -53,7 +41,7 @@ def finished_before(path: Path, cfg: DictConfig, seed: int | None = None) -> Out
     for key in NOT_RESULT_KEYS:
         stored.pop(key, None)
     status = attrs.get("status")
-    if status not in ("completed", "diverged") or stored != comparable_config(cfg):
+    if status not in ("completed", "diverged") or stored != config:
         return None
     final = {k: float(v) for k, v in last_eval.items() if k not in ("iteration", "wall_time")}
     why = f" ({attrs['reason']})" if status == "diverged" and attrs.get("reason") else ""

@@ -21,6 +21,7 @@ initial network):
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 import math
 from collections.abc import Callable
@@ -45,6 +46,7 @@ from physgrad.unroll import MODES
 if TYPE_CHECKING:
     from omegaconf import DictConfig
 
+    from physgrad.job_spec import JobSpec
     from physgrad.nets import Params, Pytree
     from physgrad.tasks import Scene
     from physgrad.training import Seeds
@@ -87,12 +89,14 @@ def check_scene(cfg: DictConfig) -> list[Check]:
 
 def _check_scene(cfg: DictConfig) -> list[Check]:
     from physgrad.errors import UserError
+    from physgrad.job_spec import checked
     from physgrad.refusals import check_scene_values
 
     set_precision(64)
     name = str(cfg.task.get("name", "?"))
     try:
-        scene, seeds = build_seeds(cfg, [int(cfg.seed)], 1)
+        spec = checked(cfg)
+        scene, seeds = build_seeds(spec, [spec.seed], 1)
         check_scene_values(scene, seeds, name)
     except UserError as error:
         return [Check("builds", False, str(error))]
@@ -102,13 +106,13 @@ def _check_scene(cfg: DictConfig) -> list[Check]:
     y = scene.batch_output(params, batch)
     loss = _batch_loss(scene, scene.sample_output, batch)(params)
     checks.append(_finite_check(scene, seeds, params, y, loss))
-    checks.append(_deterministic_check(cfg, scene, seeds, params, batch, loss))
+    checks.append(_deterministic_check(spec, scene, seeds, params, batch, loss))
     if scene.dynamics is not None:
         checks.append(_rollout_check(scene, params, batch, y))
     else:
         why = "the scene steps no dynamics (Scene.dynamics is None): nothing is unrolled"
         checks.append(Check("rollout", None, f"not checked: {why}"))
-    tighter = functools.cache(lambda: _tighter_scene(cfg))
+    tighter = functools.cache(lambda: _tighter_scene(spec))
     for mode in ["R", "M", "S"] if scene.closed_loop else ["R"]:
         checks.append(_gradient_check(scene, params, batch, mode, tighter))
     if not scene.closed_loop:
@@ -122,10 +126,10 @@ def _check_scene(cfg: DictConfig) -> list[Check]:
         checks.append(
             Check("jacobian", False, f"{type(error).__name__}: {str(error).splitlines()[0]}")
         )
-    return [*checks, _precision_check(cfg)]
+    return [*checks, _precision_check(spec)]
 
 
-def _precision_check(cfg: DictConfig) -> Check:
+def _precision_check(spec: JobSpec) -> Check:
     """The scene in the precision its runs use (`precision`, float32 by default; the checks above
     run in float64): built, its data generated, PRECISION_STEPS plain gradient steps taken on a
     minibatch, and the held-out evaluation, each finite. A scene that works in float64 only (a
@@ -133,12 +137,12 @@ def _precision_check(cfg: DictConfig) -> Check:
     here in one line that names precision=64, not in a study's first job."""
     from physgrad.errors import innermost_cause
 
-    bits = int(cfg.get("precision", 32))
+    bits = spec.precision
     if bits == 64:
         return Check("precision", True, "the runs use float64, as the checks above")
     set_precision(bits)
     try:
-        scene, seeds = build_seeds(cfg, [int(cfg.seed)], 1)
+        scene, seeds = build_seeds(spec, [spec.seed], 1)
         params = seeds.network()
         batch = scene.sample_train(jax.random.PRNGKey(1), min(BATCH, scene.train_size or BATCH))
         value_and_grad = jax.jit(jax.value_and_grad(_batch_loss(scene, scene.sample_output, batch)))
@@ -207,11 +211,11 @@ def _finite_check(
 
 
 def _deterministic_check(
-    cfg: DictConfig, scene: Scene, seeds: Seeds, params: Params, batch: Pytree, loss: jax.Array
+    spec: JobSpec, scene: Scene, seeds: Seeds, params: Params, batch: Pytree, loss: jax.Array
 ) -> Check:
     """The scene built again from the same seed gives the same data, network, batch and loss."""
 
-    again, seeds_again = build_seeds(cfg, [int(cfg.seed)], 1)
+    again, seeds_again = build_seeds(spec, [spec.seed], 1)
     batch_again = again.sample_train(jax.random.PRNGKey(1), min(BATCH, again.train_size or BATCH))
     differences = {
         what: relative_error(a, b)
@@ -246,19 +250,14 @@ def _rollout_check(scene: Scene, params: Params, batch: Pytree, y: jax.Array) ->
     )
 
 
-def _tighter_scene(cfg: DictConfig) -> Scene | None:
+def _tighter_scene(spec: JobSpec) -> Scene | None:
     """The scene rebuilt with its solver's tolerances 100 times tighter, where its settings name
     them task.rtol and task.atol (diffrax's names; docs/extending.md); None where they do not."""
-    from omegaconf import open_dict
-
-    task = cfg.task
+    task = spec.task
     if not all(_positive_number(task.get(key)) for key in TOLERANCES):
         return None
-    tight = cfg.copy()
-    with open_dict(tight):
-        for key in TOLERANCES:
-            tight.task[key] = float(task[key]) / TIGHTER
-    return build_seeds(tight, [int(cfg.seed)], 1)[0]
+    tight = {**task, **{key: float(task[key]) / TIGHTER for key in TOLERANCES}}
+    return build_seeds(dataclasses.replace(spec, task=tight), [spec.seed], 1)[0]
 
 
 def _positive_number(value: object) -> bool:

@@ -119,11 +119,12 @@ def compiled_step(
     """The scene, rule, seeds and compiled training exactly as `physgrad run` builds them, the
     compile time and one_step() (one training step, blocking: a Stepper)."""
     from physgrad.experiment import prepare
-    from physgrad.refusals import check_config
+    from physgrad.job_spec import checked
     from physgrad.runner import compile_training
 
-    settings = check_config(cfg)
-    scene, rule, stacked = prepare(cfg, seeds, settings)
+    spec = checked(cfg)
+    settings = spec.trainer
+    scene, rule, stacked = prepare(spec, seeds)
     start = time.perf_counter()
     compiled = compile_training(scene, rule, stacked, settings.batch_size)
     compile_s = time.perf_counter() - start

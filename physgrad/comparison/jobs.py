@@ -124,7 +124,7 @@ def job_finished(sweep: Path, name: str, text: str, variant_config: DictConfig) 
     import yaml
     from omegaconf import OmegaConf, open_dict
 
-    from physgrad.members import member_configs, seed_paths
+    from physgrad.job_spec import Refusal, check
     from physgrad.resume import finished_before
 
     cfg = variant_config.copy()
@@ -133,12 +133,13 @@ def job_finished(sweep: Path, name: str, text: str, variant_config: DictConfig) 
     with open_dict(cfg):
         cfg.pop("hydra", None)
         cfg = OmegaConf.merge(cfg, keys)
-    if cfg.get("overwrite", False):
+    job = check(cfg)
+    if isinstance(job, Refusal) or job.overwrite:
         return False
-    paths = seed_paths(cfg, sweep / f"+compare_job={name}")
+    folder = sweep / f"+compare_job={name}"
     return all(
-        finished_before(path, member, seed) is not None
-        for (seed, path), member in zip(paths, member_configs(cfg, len(paths)))
+        finished_before(folder / member.path, member.config, member.seed) is not None
+        for member in job.members
     )
 
 

@@ -133,10 +133,10 @@ def members(plan: StudyPlan, variant: Variant) -> tuple[int, dict | None]:
 def evaluations_per_run(variant: Variant, axis: str, budget: float, step_seconds: float) -> float:
     """The held-out evaluations of one run: at the start, every trainer.eval_every iterations, and
     with a time budget also every trainer.eval_seconds (budget / 20 unless set) of training."""
-    from physgrad.refusals import check_config
+    from physgrad.job_spec import checked
     from physgrad.trainer_settings import EVALUATIONS_PER_BUDGET
 
-    settings = check_config(run_config(variant))
+    settings = checked(run_config(variant)).trainer
     if axis == "iteration":
         return 1 + budget / settings.eval_every
     by_time = budget / (settings.eval_seconds or budget / EVALUATIONS_PER_BUDGET)

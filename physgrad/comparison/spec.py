@@ -284,7 +284,7 @@ def study_settings(given: dict) -> StudySettings:
     values.update(given)
     number("compare.trials", values["trials"], 1, 10_000, integer=True)
     number("compare.studies", values["studies"], 1, 100, integer=True)
-    from physgrad.refusals import SEEDS_LIMIT
+    from physgrad.job_spec import SEEDS_LIMIT
 
     # an evaluation job trains every seed of a variant together, and a job holds at most SEEDS_LIMIT
     number("compare.seeds", values["seeds"], 1, SEEDS_LIMIT + 1, integer=True)
@@ -315,7 +315,7 @@ def study_settings(given: dict) -> StudySettings:
             f"study) overlap the evaluation seeds {settings.seed}..{last_evaluation} "
             f"(compare.seeds={settings.seeds} per study): tuning and evaluation seeds must differ"
         )
-    from physgrad.refusals import SEED_LIMIT
+    from physgrad.job_spec import SEED_LIMIT
 
     if max(last_evaluation, last_tuning) >= SEED_LIMIT:
         raise UserError(
@@ -389,8 +389,8 @@ def check_variants_build(variants: list[Variant], seed: int, built: dict | None 
     to build each distinct scene once)."""
     from omegaconf import open_dict
 
-    from physgrad.experiment import prepare, scene_key
-    from physgrad.refusals import check_config
+    from physgrad.experiment import prepare
+    from physgrad.job_spec import checked
 
     # variants that differ in their rule alone share one scene: built once
     built = {} if built is None else built
@@ -399,8 +399,9 @@ def check_variants_build(variants: list[Variant], seed: int, built: dict | None 
         with open_dict(cfg):
             del cfg["hydra"]
         try:
-            key = scene_key(cfg, [seed])
-            scene, _, seeds = prepare(cfg, [seed], check_config(cfg), built=built.get(key))
+            spec = checked(cfg)
+            key = spec.scene_key([seed])
+            scene, _, seeds = prepare(spec, [seed], built=built.get(key))
             built[key] = (scene, seeds)
         except UserError as error:
             raise UserError(f"variant {variant.name}: {error}") from None

@@ -25,7 +25,7 @@ def test_a_failed_job_does_not_stop_the_sweep(tmp_path, monkeypatch):
     real = physgrad.experiment.build_rule
 
     def broken_for_gd(optim_cfg, member_values=None):
-        if optim_cfg.name == "gd":
+        if optim_cfg["name"] == "gd":
             raise RuntimeError("simulated crash")
         return real(optim_cfg, member_values)
 

@@ -36,6 +36,7 @@ def test_signals_in_bursts_at_random_instants_always_end_interrupted(tmp_path):
     flushes); the process stays alive, the file is final and consistent."""
     from physgrad.experiment import prepare
     from physgrad.interrupts import stop_on_signals
+    from physgrad.job_spec import checked
     from physgrad.runner import train
     from physgrad.trainer_settings import TrainerSettings
 
@@ -44,7 +45,7 @@ def test_signals_in_bursts_at_random_instants_always_end_interrupted(tmp_path):
     settings = TrainerSettings.from_config(cfg.trainer)
     settings = dataclasses.replace(settings, iterations=None, time_budget=30.0)
     for trial in range(4 * REPEATS):
-        scene, rule, seeds = prepare(cfg, [0], settings)
+        scene, rule, seeds = prepare(checked(cfg), [0])
         writer = ResultsWriter(
             tmp_path / f"{trial}" / "results.h5", {"task": "toy", "optim": "adam", "seed": 0}
         )
@@ -76,13 +77,14 @@ def test_a_run_stopped_by_one_signal_keeps_the_held_out_loss_it_reached(tmp_path
     start."""
     from physgrad.experiment import prepare
     from physgrad.interrupts import stop_on_signals
+    from physgrad.job_spec import checked
     from physgrad.runner import train
     from physgrad.trainer_settings import TrainerSettings
 
     cfg = load("task=toy", "trainer.eval_every=1000000")
     settings = TrainerSettings.from_config(cfg.trainer)
     settings = dataclasses.replace(settings, iterations=None, time_budget=60.0)
-    scene, rule, seeds = prepare(cfg, [0], settings)
+    scene, rule, seeds = prepare(checked(cfg), [0])
     writer = ResultsWriter(tmp_path / "results.h5", {"task": "toy", "optim": "adam", "seed": 0})
     with stop_on_signals() as stop:
         timer = threading.Timer(4.0, os.kill, (os.getpid(), signal.SIGINT))

@@ -7,13 +7,12 @@ import sys
 import numpy as np
 import pytest
 from hydra import compose as hydra_compose
-from omegaconf import OmegaConf
 
 from physgrad.configs import CONF_DIR, check_overrides, initialized
 from physgrad.experiment import prepare, run_experiment
-from physgrad.members import effective_unroll
+from physgrad.job_spec import checked
 from physgrad.optim import build_rule
-from physgrad.refusals import check_applies, check_config
+from physgrad.refusals import check_applies
 from physgrad.results import read_run
 from physgrad.sweeps import sweep_jobs as expand_sweep
 from tests.helpers import REPO, load
@@ -54,12 +53,12 @@ SCENES = {}
 def valid(cfg):
     """Raises on anything a run of cfg would refuse: its settings, its rule, its scene and their
     combination."""
-    settings = check_config(cfg)
-    build_rule(cfg.optim)
-    key = (OmegaConf.to_yaml(cfg.task), effective_unroll(cfg), cfg.precision, cfg.seed)
+    spec = checked(cfg)
+    build_rule(spec.optim)
+    key = spec.scene_key([spec.seed])
     if key not in SCENES:
-        SCENES[key] = prepare(cfg, [cfg.seed], settings)[0]
-    check_applies(SCENES[key], cfg)
+        SCENES[key] = prepare(spec, [spec.seed])[0]
+    check_applies(SCENES[key], spec)
 
 
 def test_every_figure_has_its_experiments():

@@ -191,7 +191,7 @@ def test_built_in_scenes_get_the_form_their_network_allows():
     (the results file names the form: tests/test_cli.py)."""
     from physgrad.configs import compose
     from physgrad.experiment import prepare
-    from physgrad.refusals import check_config
+    from physgrad.job_spec import checked
 
     # one scene of each kind (poisson's form is checked in its results file: tests/test_cli.py)
     expected = {"oscillator": True, "multicart": False, "quantum_control": False}
@@ -205,7 +205,7 @@ def test_built_in_scenes_get_the_form_their_network_allows():
                 "task.train_size=2",
             ]
         )
-        _, rule, _ = prepare(cfg, [0], check_config(cfg))
+        _, rule, _ = prepare(checked(cfg), [0])
         assert (rule.gradient.plan is not None) == factorised, (task, rule.gradient.name)
 
 
@@ -219,14 +219,15 @@ def test_training_steps_are_the_same_on_both_forms(x64):
 
     from physgrad.configs import compose
     from physgrad.experiment import prepare
-    from physgrad.refusals import check_config
+    from physgrad.job_spec import checked
     from physgrad.runner import compile_training
 
     cfg = compose(
         ["task=poisson", "task.grid=4", "optim=hig", "precision=64", "trainer.batch_size=8"]
     )
-    settings = check_config(cfg)
-    scene, rule, seeds = prepare(cfg, [0], settings)
+    spec = checked(cfg)
+    settings = spec.trainer
+    scene, rule, seeds = prepare(spec, [0])
     assert rule.gradient.plan is not None
     results = []
     for gradient in (rule.gradient, dataclasses.replace(rule.gradient, plan=None)):

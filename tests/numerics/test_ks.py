@@ -464,6 +464,7 @@ def test_the_validation_states_are_the_test_family_from_other_seeds(tmp_path, mo
     the test family's members from fixed seeds (test 1000 + the size's index, validation 2000 + it),
     warmed up 2 x warmup model steps by the ground-truth solver."""
     from physgrad.experiment import validation_set
+    from physgrad.job_spec import checked
     from physgrad.tasks.ks_solver import domain_length, test_initial_states, trajectories
 
     monkeypatch.setenv("PHYSGRAD_CACHE", str(tmp_path))
@@ -492,7 +493,7 @@ def test_the_validation_states_are_the_test_family_from_other_seeds(tmp_path, mo
     np.testing.assert_array_equal(dataset(settings)["validation"], data["validation"])
 
     scene = scene_of()
-    held_out = validation_set(load("task=ks", *SMALL), scene, jax.random.PRNGKey(0))
+    held_out = validation_set(checked(load("task=ks", *SMALL)), scene, jax.random.PRNGKey(0))
     assert held_out is scene.validation_set
     assert held_out["state"].shape == scene.test_set["state"].shape
     assert not np.allclose(held_out["state"], scene.test_set["state"])

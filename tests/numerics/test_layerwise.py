@@ -12,6 +12,7 @@ import physgrad
 from physgrad.configs import compose
 from physgrad.errors import UserError
 from physgrad.experiment import prepare
+from physgrad.job_spec import checked
 from physgrad.optim import build_rule, on_tree
 from physgrad.runner import compile_training
 from physgrad.trainer_settings import TrainerSettings
@@ -21,7 +22,7 @@ def toy(optim: str, *extra):
     # two 20 x 20 hidden kernels: matrices a layer-wise rule factors or orthogonalises
     cfg = compose(["task=toy", "task.hidden=[20,20]", f"optim={optim}", *extra])
     settings = TrainerSettings.from_config(cfg.trainer)
-    scene, rule, seeds = prepare(cfg, [0], settings)
+    scene, rule, seeds = prepare(checked(cfg), [0])
     return scene, rule, seeds, settings
 
 

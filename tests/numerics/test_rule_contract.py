@@ -12,9 +12,9 @@ import numpy as np
 import pytest
 
 from physgrad.experiment import prepare
+from physgrad.job_spec import checked
 from physgrad.nets import apply_mlp, init_mlp
 from physgrad.optim.capabilities import capabilities
-from physgrad.refusals import check_config
 from physgrad.tasks import Scene
 from physgrad.training import compile_training
 from tests.helpers import REPO, load
@@ -65,8 +65,9 @@ def config(rule: str):
 @pytest.mark.parametrize("rule", RULES)
 def test_every_rule_trains_a_least_squares_problem_in_its_compiled_step(rule):
     cfg = config(rule)
-    settings = check_config(cfg)
-    scene, update_rule, seeds = prepare(cfg, [0], settings)
+    spec = checked(cfg)
+    settings = spec.trainer
+    scene, update_rule, seeds = prepare(spec, [0])
     compiled = compile_training(scene, update_rule, seeds, settings.batch_size)
     params, state = compiled.params, compiled.opt_state
     first = float(compiled.evaluate(params, seeds.test_sets)["loss"][0])

@@ -11,7 +11,7 @@ import physgrad.tasks.quantum as quantum
 from physgrad import tridiagonal
 from physgrad.configs import compose
 from physgrad.experiment import prepare
-from physgrad.refusals import check_config
+from physgrad.job_spec import checked
 from physgrad.tasks.quantum import crank_nicolson_step, eigenstate, grid
 
 PATHS = sorted(tridiagonal.SOLVES)
@@ -85,7 +85,7 @@ def scene_quantities(monkeypatch, path: str, overrides: list[str]) -> tuple:
     of the outputs (jacrev under vmap, the Jacobian route's form) on one minibatch."""
     monkeypatch.setattr(quantum, "solve_for", lambda backend: tridiagonal.SOLVES[path])
     cfg = compose(overrides)
-    scene, _, seeds = prepare(cfg, [cfg.seed], check_config(cfg))
+    scene, _, seeds = prepare(checked(cfg), [cfg.seed])
     params = seeds.network()
     batch = scene.sample_train(jax.random.PRNGKey(1), 4)
 
@@ -145,7 +145,7 @@ def test_the_jacobian_pass_traces_the_scene_on_the_jacobian_route(monkeypatch):
     monkeypatch.setitem(tridiagonal.FASTEST, ("cpu", "jacobian"), "dense")
     for optim, expected in (("adam", "library"), ("hig", "dense"), ("gauss_newton", "dense")):
         cfg = compose(["task=quantum", f"optim={optim}", "task.unroll=4", "task.batch_size=2"])
-        scene, rule, seeds = prepare(cfg, [cfg.seed], check_config(cfg))
+        scene, rule, seeds = prepare(checked(cfg), [cfg.seed])
         batch = scene.sample_train(jax.random.PRNGKey(0), 2)
         called.clear()  # building the rule traces the scene once (a layer plan): not a step
         jax.eval_shape(lambda p: rule.gradient(scene, p, batch)[0], seeds.network())

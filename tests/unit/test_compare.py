@@ -69,6 +69,7 @@ def test_a_scene_whose_data_ignore_the_key_has_no_default_validation_set():
     import jax
 
     from physgrad.experiment import validation_set
+    from physgrad.job_spec import checked
     from physgrad.tasks import Scene
 
     def build(**_):
@@ -84,7 +85,7 @@ def test_a_scene_whose_data_ignore_the_key_has_no_default_validation_set():
     with pytest.MonkeyPatch.context() as patch:
         patch.setattr("physgrad.experiment.build_scene", lambda *a, **k: build())
         with pytest.raises(UserError, match="give its Scene a validation_set"):
-            validation_set(cfg, build(), jax.random.PRNGKey(0))
+            validation_set(checked(cfg), build(), jax.random.PRNGKey(0))
 
 
 def test_continuing_networks_evaluates_one_job_per_seed():
