@@ -67,25 +67,28 @@ def unit_points(count: int, dimensions: int, seed: int) -> np.ndarray:
     return np.mod(base + shift, 1.0)
 
 
+def is_whole(bounds: tuple) -> bool:
+    """Whether a search range is one of whole numbers (both ends ints: search_space gives a key
+    whose preset is a whole number such a range), drawn log-uniformly and rounded."""
+    return all(isinstance(b, int) and not isinstance(b, bool) for b in bounds)
+
+
+def _mapped(unit: float, bounds: tuple) -> float | int:
+    """A unit coordinate mapped log-uniformly onto bounds; rounded to the nearest whole number of
+    the range for a range of whole numbers."""
+    low, high = bounds
+    value = math.exp(math.log(low) + unit * (math.log(high) - math.log(low)))
+    return min(high, max(low, round(value))) if is_whole(bounds) else float(value)
+
+
 def halton_points(
     space: dict, count: int, seed: int, dimensions: list[str] | None = None
 ) -> list[dict]:
     """count shifted Halton points (unit_points of the tuning seed) mapped log-uniformly onto the
-    space. dimensions: the study's coordinates (point_dimensions of every variant's space;
-    default: this space's), so that every variant of a study is tried at the same points of its
-    own ranges."""
+    space (rounded where a range is of whole numbers, is_whole). dimensions: the study's
+    coordinates (point_dimensions of every variant's space; default: this space's), so that every
+    variant of a study is tried at the same points of its own ranges."""
     dimensions = dimensions or point_dimensions([space])
     column = {key: dimensions.index("learning_rate" if is_rate_key(key) else key) for key in space}
     unit = unit_points(count, len(dimensions), seed)
-    return [
-        {
-            key: float(
-                math.exp(
-                    math.log(space[key][0])
-                    + row[column[key]] * (math.log(space[key][1]) - math.log(space[key][0]))
-                )
-            )
-            for key in sorted(space)
-        }
-        for row in unit
-    ]
+    return [{key: _mapped(row[column[key]], space[key]) for key in sorted(space)} for row in unit]

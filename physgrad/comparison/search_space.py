@@ -1,6 +1,7 @@
 """What a variant of a study is tuned over: its learning rate over its rule family's range, the
 rule's own knobs where the study asks for them, the scene's tuning file's ranges and the command
-line's, each log-uniform (docs/protocol.md)."""
+line's, each log-uniform; over whole numbers for a setting whose preset is one
+(docs/protocol.md)."""
 
 from __future__ import annotations
 
@@ -30,7 +31,10 @@ def search_space(cfg: DictConfig, search: dict, knobs: bool = False) -> dict:
     rule family's range (physgrad.optim.capabilities); with knobs, the rule's own knobs over their
     declared ranges (Capabilities.knobs); then every key of the scene's tuning file's `search`
     (conf/tuning/<task>_<optim>.yaml: the ranges this rule is tuned over on this scene), then
-    every key of search (compare.search), each where the variant's optim has it."""
+    every key of search (compare.search), each where the variant's optim has it. A key other than
+    the learning rate whose preset is a whole number (L-BFGS's memory, SOAP's preconditioning
+    frequency) is searched over the whole numbers of its range (ints: points.is_whole); UserError
+    if the range holds none from 1 up."""
     optim_cfg = cfg.optim
     rate = learning_rate_key(optim_cfg)
     if rate is None:
@@ -65,4 +69,23 @@ def search_space(cfg: DictConfig, search: dict, knobs: bool = False) -> dict:
     for key, bounds in search.items():
         if key in optim_cfg:
             space[rate if key == "learning_rate" else key] = bounds
-    return space
+    counts = {key for key in space if key != rate and _counts(optim_cfg.get(key))}
+    return {
+        key: _whole(key, bounds, optim_cfg) if key in counts else bounds
+        for key, bounds in space.items()
+    }
+
+
+def _counts(preset: object) -> bool:
+    return isinstance(preset, int) and not isinstance(preset, bool)
+
+
+def _whole(key: str, bounds: tuple, optim_cfg: DictConfig) -> tuple[int, int]:
+    """bounds narrowed to the whole numbers inside them, as ints."""
+    low, high = max(1, math.ceil(bounds[0])), math.floor(bounds[1])
+    if low > high:
+        raise UserError(
+            f"optim={optim_cfg.get('name')}'s {key} is a whole number ({optim_cfg.get(key)}) and "
+            f"its range [{bounds[0]:g}, {bounds[1]:g}] holds none from 1 up: widen it"
+        )
+    return low, high

@@ -13,7 +13,7 @@ from typing import TYPE_CHECKING
 
 from physgrad.comparison.job_names import study_prefix, variant_index
 from physgrad.comparison.jobs import Launcher, cadence, job_runs, job_yaml
-from physgrad.comparison.points import halton_points, point_dimensions
+from physgrad.comparison.points import halton_points, is_whole, point_dimensions
 from physgrad.comparison.spec import StudyPlan, StudySettings, Variant
 from physgrad.errors import UserError
 from physgrad.readout import READOUT_VERSION, run_curve
@@ -22,9 +22,10 @@ if TYPE_CHECKING:
     from optuna.storages import JournalStorage
 
 
-def trial_params(trial: object, space: dict) -> dict[str, float] | None:
+def trial_params(trial: object, space: dict) -> dict[str, float | int] | None:
     """A trial's params as data: exactly the variant's search keys, each a finite number inside its
-    log-uniform range (a relative 1e-9 of slack for round-off); None for anything else. The journal
+    log-uniform range (a relative 1e-9 of slack for round-off), a whole number where the range is
+    of whole numbers (points.is_whole); None for anything else. The journal
     lies in the study folder, which someone else may have written: a param named
     `learning_rate._target_` or a value `${oc.env:...}` would otherwise become a config node of a
     job that physgrad instantiates."""
@@ -39,9 +40,10 @@ def trial_params(trial: object, space: dict) -> dict[str, float] | None:
             or not isinstance(value, (int, float))
             or not math.isfinite(value)
             or not low * (1 - 1e-9) <= value <= high * (1 + 1e-9)
+            or (is_whole((low, high)) and not float(value).is_integer())
         ):
             return None
-        checked[key] = float(value)
+        checked[key] = int(value) if is_whole((low, high)) else float(value)
     return checked
 
 
@@ -141,7 +143,8 @@ def trials_together(variant: Variant, axis: str) -> bool:
     """Whether a variant's trials of one study train in one vectorised job (trial_values): the
     budget in iterations or on the calibrated clock (members then stop together), a rule that
     takes its tuned values as inputs of its optax transformation (not Levenberg-Marquardt or
-    K-FAC) and searches no line (capabilities.line_search), top-level keys, no init_from."""
+    K-FAC) and searches no line (capabilities.line_search), top-level keys, no whole-number key (a
+    count such as SOAP's preconditioning frequency shapes the program), no init_from."""
     from physgrad.optim import build_rule
     from physgrad.optim.capabilities import capabilities
 
@@ -151,6 +154,7 @@ def trials_together(variant: Variant, axis: str) -> bool:
         or capabilities(optim).line_search
         or not variant.space
         or any("." in key for key in variant.space)
+        or any(is_whole(bounds) for bounds in variant.space.values())
         or variant.config.get("init_from")
     ):
         return False
@@ -236,7 +240,10 @@ def _open_searches(
                 trial = search.ask()
                 try:
                     for key, (low, high) in sorted(variant.space.items()):
-                        trial.suggest_float(key, low, high, log=True)
+                        if is_whole((low, high)):
+                            trial.suggest_int(key, low, high, log=True)
+                        else:
+                            trial.suggest_float(key, low, high, log=True)
                 except (ValueError, TypeError, OverflowError):
                     # a point enqueued in the journal by someone else that is no number of the
                     # range: failed in the journal, set aside below

@@ -26,9 +26,12 @@ adam.yaml is Adam. Capabilities:
   range spanning physgrad's preset by two decades or more on either side where the setting allows
   (a probability step stops at 1), tuned beside the learning rate with compare.knobs=true: Adam's
   eps, the Jacobian rules' truncation tau (Gauss-Newton, HIG) or damping (Levenberg-Marquardt,
-  K-FAC), PSGD Kron's preconditioner step, Muon's Adam step for the non-matrix parameters. The
-  line-search rules and SOAP have none here: their knobs (memory, the line search's steps, the
-  preconditioning frequency) are whole numbers, which the log-uniform search does not draw.
+  K-FAC), PSGD Kron's preconditioner step, Muon's Adam step for the non-matrix parameters, and
+  two whole numbers, searched log-uniformly over whole numbers: L-BFGS's memory [2, 100] (the
+  curvature pairs it keeps; preset 10) and SOAP's preconditioning frequency [1, 100] (the steps
+  between recomputations of its eigenbasis; preset 10). SSBFGS and SSBroyden have none: they keep
+  no memory (a dense matrix), and their line search's step cap is a safeguard, not a setting
+  their authors tune.
 """
 
 from __future__ import annotations
@@ -53,7 +56,7 @@ class Capabilities:
     needs_layer_factors: bool = False
     line_search: bool = False
     scheduled_update: str | None = None
-    knobs: tuple[tuple[str, float, float], ...] = ()
+    knobs: tuple[tuple[str, float, float], ...] = ()  # ints for a whole-number knob
 
 
 # mean-over-samples loss; presets 0.5 to 1; the truncation tau around its preset 1e-6, the
@@ -75,9 +78,10 @@ RULES: dict[str, Capabilities] = {
         knobs=(DAMPING,),
     ),
     "optax.sgd": Capabilities("sgd", (1e-4, 1e1), elementwise=True),  # plain gradient descent
+    # the rate scales the direction before its line search
     "optax.lbfgs": Capabilities(
-        "lbfgs", (1e-2, 1e1), elementwise=True, line_search=True
-    ),  # scales the direction before its line search
+        "lbfgs", (1e-2, 1e1), elementwise=True, line_search=True, knobs=(("memory_size", 2, 100),)
+    ),
     # a dense inverse Hessian over the flat vector, then the same zoom line search as L-BFGS
     "physgrad.optim.quasi_newton.self_scaled_broyden": Capabilities(
         "lbfgs", (1e-2, 1e1), elementwise=True, line_search=True
@@ -90,7 +94,9 @@ RULES: dict[str, Capabilities] = {
         knobs=(("adam_learning_rate", *ADAPTIVE.search_range),),
     ),
     # Adam in Shampoo's eigenbasis per weight matrix: given the layers, not one flat vector
-    "physgrad.optim.soap.soap": Capabilities("adaptive", ADAPTIVE.search_range),
+    "physgrad.optim.soap.soap": Capabilities(
+        "adaptive", ADAPTIVE.search_range, knobs=(("precondition_frequency", 1, 100),)
+    ),
     # a Kronecker-factored preconditioner per weight matrix: given the layers, not one flat vector
     # the preconditioner's step on its Lie group: preset 0.1, at most 1
     "physgrad.optim.psgd.psgd_kron": Capabilities(

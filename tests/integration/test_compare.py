@@ -56,12 +56,16 @@ def test_comma_lists_are_variants_and_everything_else_is_common():
 def test_with_knobs_each_rule_is_tuned_over_its_own_settings_too():
     """compare.knobs=true: each variant's space is its learning rate and its rule's declared knobs
     (Adam's eps, HIG's tau, Levenberg-Marquardt's and K-FAC's damping, PSGD Kron's preconditioner
-    step, Muon's Adam step; L-BFGS and SOAP none), each range spanning the preset by two decades or
-    more on either side; a tuning file's range (the toy's HIG rate) and compare.search (tau) still
-    win; without knobs the learning rate alone; compare.knobs must be true or false."""
+    step, Muon's Adam step; L-BFGS's memory and SOAP's preconditioning frequency as whole numbers),
+    each range spanning the preset by two decades or more on either side (a whole number: from 2 or
+    less to ten times the preset); a tuning file's range (the toy's HIG rate) and compare.search
+    (damping) still win; a whole-number knob's variant trains one trial per job; without knobs the
+    learning rate alone; compare.knobs must be true or false."""
     import math
 
+    from physgrad.comparison.points import is_whole
     from physgrad.comparison.spec import study_settings
+    from physgrad.comparison.tuning import trials_together
     from physgrad.optim.capabilities import capabilities
 
     rules = "adam,hig,levenberg_marquardt,kfac,psgd_kron,muon,lbfgs,soap"
@@ -77,16 +81,22 @@ def test_with_knobs_each_rule_is_tuned_over_its_own_settings_too():
         "kfac": ["damping", "learning_rate"],
         "psgd_kron": ["learning_rate", "preconditioner_lr"],
         "muon": ["adam_learning_rate", "learning_rate"],
-        "lbfgs": ["learning_rate"],
-        "soap": ["learning_rate"],
+        "lbfgs": ["learning_rate", "memory_size"],
+        "soap": ["learning_rate", "precondition_frequency"],
     }
+    assert spaces["lbfgs"]["memory_size"] == (2, 100) and is_whole(spaces["lbfgs"]["memory_size"])
+    assert spaces["soap"]["precondition_frequency"] == (1, 100)
+    assert not is_whole(spaces["adam"]["eps"])
+    soap = next(v for v in variants if v.name == "soap")
+    assert not trials_together(soap, "iteration")  # the frequency shapes the program
     assert spaces["hig"]["learning_rate"] == (0.01, 100.0)  # conf/tuning/toy_hig.yaml
     assert spaces["kfac"]["damping"] == spaces["levenberg_marquardt"]["damping"] == (1e-4, 1e-2)
     for variant in variants:
         for key, low, high in capabilities(variant.config.optim).knobs:
             preset = float(variant.config.optim[key])
             decades = min(math.log10(preset / low), math.log10(high / preset))
-            assert decades >= 2 or high == 1.0, (variant.name, key)
+            whole = is_whole((low, high)) and low <= 2 and high >= 10 * preset
+            assert decades >= 2 or high == 1.0 or whole, (variant.name, key)
     plain = build_variants(axes, common, study_settings({}), [])
     assert all(list(v.space) == ["learning_rate"] for v in plain)
     with pytest.raises(UserError, match="compare.knobs='yes': use true or false"):

@@ -432,3 +432,34 @@ def test_compare_help_is_wrapped_by_words_and_states_the_protocol_as_the_code_ap
     assert (
         "each holding where 3 of 4 studies (more\n   than half) reach it with none against" in text
     )
+
+
+def test_a_whole_number_setting_is_searched_over_whole_numbers_of_its_range():
+    """A key whose preset is a whole number (here SOAP's preconditioning frequency, given a range on
+    the command line) is searched over the whole numbers inside its range: every shifted Halton
+    point an int in it, log-uniformly spread (the points below the range's geometric middle about
+    half), the learning rate still a float; a trial's value that is no whole number is set aside;
+    a range without a whole number from 1 up is refused in one line."""
+    import math
+    import types
+
+    from physgrad.comparison.points import halton_points, is_whole
+    from physgrad.comparison.search_space import search_space
+    from physgrad.comparison.tuning import trial_params
+
+    cfg = compose(["task=toy", "optim=soap"])
+    space = search_space(cfg, {"precondition_frequency": (1.5, 64.7)})
+    assert space["precondition_frequency"] == (2, 64) and is_whole((2, 64))
+    assert not is_whole(space["learning_rate"])
+    points = [p for seed in range(4) for p in halton_points(space, 16, seed)]
+    counts = [p["precondition_frequency"] for p in points]
+    assert all(isinstance(c, int) and 2 <= c <= 64 for c in counts)
+    assert all(isinstance(p["learning_rate"], float) for p in points)
+    below = sum(c < math.sqrt(2 * 64) for c in counts) / len(counts)
+    assert 0.35 < below < 0.65, below  # log-uniform, not uniform (that would put 1/10 below 11)
+    trial = types.SimpleNamespace(params={"learning_rate": 1e-3, "precondition_frequency": 7.0})
+    assert trial_params(trial, space) == {"learning_rate": 1e-3, "precondition_frequency": 7}
+    trial.params["precondition_frequency"] = 7.5
+    assert trial_params(trial, space) is None
+    with pytest.raises(UserError, match="precondition_frequency is a whole number .* widen it"):
+        search_space(cfg, {"precondition_frequency": (0.2, 0.9)})
