@@ -21,11 +21,10 @@ runs, tuned for X, read earlier).
 from __future__ import annotations
 
 import argparse
-import math
 import sys
 from pathlib import Path
 
-import numpy as np
+from claim_budget import budget_text, main_study, part_study, share, share_text, variants_left_start
 from claim_list import CLAIMS, load_claims  # noqa: F401 - experiments/; load_claims: tests
 from claims_tuned import tuned_table
 from regime_map import regime_map
@@ -51,9 +50,9 @@ from physgrad.claim import (  # noqa: F401 - Close and Lower: the parts' names, 
     tuning_studies,
 )
 from physgrad.claim_parts import claim_verdict, decide_parts
-from physgrad.claim_words import claim_word, left_start
+from physgrad.claim_words import claim_word
 from physgrad.errors import UserError
-from physgrad.files import replace_file
+from physgrad.files import read_own_file, replace_file
 from physgrad.verdict import FRACTIONS
 
 # --- reading a study
@@ -72,14 +71,6 @@ def keep_evidence(root: Path, dest: Path) -> list[str]:
     for study in (s for studies in PROFILES.values() for s in studies if s.joins in columns):
         columns[study.name] = columns[study.joins]
     return keep_studies(root, dest, columns)
-
-
-def _budget_text(runs: StudyRuns) -> str:
-    return {
-        "iteration": f"{runs.budget:g} iterations",
-        "wall_time": f"{runs.budget:g} s (measured clock)",
-        "calibrated_time": f"{runs.budget:g} s (calibrated clock)",
-    }.get(runs.axis, f"{runs.budget:g}")
 
 
 def decide_claim(
@@ -141,10 +132,6 @@ def _fixed_by_twin(decision: Decision, fixed: list[str]) -> Decision:
     return Decision(NOT_RUN, "-", f"the presets' twin runs {fixed[0]} only (the papers' setting)")
 
 
-def _part_study(part) -> str:
-    return getattr(part, "study", None) or f"{part.easy} -> {part.hard}"
-
-
 def claims_table(root: Path, studies=None, only_run: bool = False) -> str:
     """One row per part of every claim whose studies are all among `studies` (default: every
     claim); with only_run, of the claims one of whose studies has finished."""
@@ -164,7 +151,7 @@ def claims_table(root: Path, studies=None, only_run: bool = False) -> str:
         preset_verdict, preset_rows = decide_claim(claim, root, "-preset", profile=profile)
         for i, ((part, d), (_, p)) in enumerate(zip(rows, preset_rows)):
             runs = read_study(root / getattr(part, "study", getattr(part, "hard", "")))
-            budget = _budget_text(runs) if runs else "-"
+            budget = budget_text(runs) if runs else "-"
             head = (
                 (
                     f"**{claim.name}**: tuned **{verdict}**, presets **{preset_verdict}**. "
@@ -174,7 +161,7 @@ def claims_table(root: Path, studies=None, only_run: bool = False) -> str:
                 else ""
             )
             lines.append(
-                f"| {head} | {part.text()} | {_part_study(part)}, {budget} | {d.measured} | "
+                f"| {head} | {part.text()} | {part_study(part)}, {budget} | {d.measured} | "
                 f"{d.verdict} ({d.why}) | {p.measured} | {p.verdict} ({p.why}) |"
             )
     return "\n".join(lines) + "\n"
@@ -191,61 +178,6 @@ def _of_planned(runs: StudyRuns) -> str:
     """ " of N" where fewer of a study's N tuning studies have run (the majority is of N)."""
     ran = len(runs.tuning) or 1
     return f" of {runs.planned}" if runs.planned > ran else ""
-
-
-def _main_study(claim: Claim) -> str:
-    """The study that gives a claim its budget: the first part's (a trend's hard end)."""
-    part = claim.parts[0]
-    return part.hard if isinstance(part, Grows) else part.study
-
-
-def _share_text(claim: Claim, runs: StudyRuns) -> str:
-    """The budget here against the paper's, e.g. "1500 iterations: 4.7% of the paper's 32,000
-    iterations"."""
-    here = _budget_text(runs)
-    seconds = runs.axis in ("wall_time", "calibrated_time")
-    if math.isnan(claim.paper_budget) or seconds != claim.paper_seconds:
-        return f"{here}; the paper's: {claim.paper_budget_text}"
-    share = 100 * runs.budget / claim.paper_budget
-    percent = f"{share:.2g}" if share < 10 else f"{share:.0f}"
-    return f"{here}: {percent}% of the paper's {claim.paper_budget_text}"
-
-
-def _share(claim: Claim, runs: StudyRuns) -> float:
-    """The budget here over the paper's (NaN where the paper states none in these units)."""
-    seconds = runs.axis in ("wall_time", "calibrated_time")
-    if math.isnan(claim.paper_budget) or seconds != claim.paper_seconds:
-        return math.nan
-    return runs.budget / claim.paper_budget
-
-
-def _claim_variants(claim: Claim, study: str) -> list[str]:
-    names = []
-    for part in claim.parts:
-        if _part_study(part) == study:
-            found = [part.variant] if isinstance(part, (Stalls, Reaches)) else [part.a, part.b]
-            names += [n for n in found if n not in names]
-    return names
-
-
-def _left_start(claim: Claim, runs: StudyRuns) -> tuple[bool, str]:
-    """Whether every variant of the claim's main study has left its start at X (the median over
-    its seeds of loss at X / at its first evaluation, physgrad.claim_words.left_start), and each
-    variant's factor."""
-    said, trained = [], True
-    for variant in _claim_variants(claim, _main_study(claim)):
-        if variant not in runs.paths:
-            continue
-        starts, finals = [], []
-        for study in tuning_studies(runs):
-            for curve in study.curves(variant).values():
-                starts.append(float(curve.loss[0]) if len(curve.loss) else math.nan)
-                finals.append(curve.at(study.budget))
-        trained &= left_start(starts, finals)
-        ratios = [f / s for s, f in zip(starts, finals) if s > 0 and not math.isnan(f)]
-        factor = 1 / float(np.median(ratios)) if ratios else math.nan
-        said.append(f"{variant} {short(factor)}x")
-    return trained and bool(said), ", ".join(said)
 
 
 def _verdicts_text(verdicts: dict[float, str]) -> list[str]:
@@ -274,7 +206,7 @@ def headline_table(root: Path, profile: tuple, further: tuple = ()) -> str:
     for claim in sorted((c for c in CLAIMS if studies_of(c) <= names), key=lambda c: c.own):
         if claim.own and not any("own questions" in line for line in lines):
             lines += ["", "physgrad's own questions, not claims of the papers:", "", *header]
-        main = _main_study(claim)
+        main = main_study(claim)
         runs = read_study(root / main)
         longer, seen, elsewhere = _longer_budgets(claim, main, further)
         longer_text = "; ".join(longer)
@@ -296,20 +228,20 @@ def headline_table(root: Path, profile: tuple, further: tuple = ()) -> str:
             else ""
         )
         head = f"{turned}{claim.name}"
-        trained, fell = _left_start(claim, runs)
+        trained, fell = variants_left_start(claim, runs)
         causes = [d.cause for _, d in decide_claim(claim, root, "", 1.0, profile)[1] if d.cause[0]]
         word, why = claim_word(
             tuned[1.0] == HOLDS,
             tuned[1.0] == FAILS,
             tuned[0.5] == FAILS,
             trained,
-            _share(claim, runs),
+            share(claim, runs),
             claim.departs,
             (causes or [("", "")])[0],
         )
         lines.append(
             f"| {head} | **{word}** ({why}) | {trials} x {studies}{_of_planned(runs)}, {seeds} | "
-            f"{_share_text(claim, runs)} | {fell} | "
+            f"{share_text(claim, runs)} | {fell} | "
             + " | ".join(_verdicts_text(tuned))
             + f" | {preset} | {longer_text or 'not in a longer profile'} |"
         )
@@ -337,9 +269,7 @@ def _longer_budgets(claim: Claim, main: str, further: tuple) -> tuple[list, list
             for part, d in decide_claim(claim, folder, "", 1.0, studies_there)[1]
         )
         verdicts = ", ".join(_verdicts_text(found))
-        longer.append(
-            f"{folder.name}, {_budget_text(long_runs)} ({ran}): {verdicts}; at X: {parts}"
-        )
+        longer.append(f"{folder.name}, {budget_text(long_runs)} ({ran}): {verdicts}; at X: {parts}")
     return longer, seen, elsewhere
 
 
@@ -411,10 +341,17 @@ def evidence_block(root: Path) -> str:
     )
 
 
-def write_doc(root: Path, doc: Path) -> str:
-    """Replace the generated block of doc (between the GENERATED markers) with evidence_block."""
+DOC_LIMIT = 1 << 22  # docs/claims.md is about 50 kB
 
-    text = doc.read_text()
+
+def write_doc(root: Path, doc: Path) -> str:
+    """Replace the generated block of doc (between the GENERATED markers) with evidence_block;
+    UserError (one line) for a doc that is missing, not a plain file, too long or not text."""
+    try:  # through the reading door: a link or a FIFO at doc is refused, not followed or waited on
+        text = read_own_file(doc, DOC_LIMIT).decode()
+    except (OSError, ValueError) as error:
+        why = error.strerror if isinstance(error, OSError) and error.strerror else error
+        raise UserError(f"--doc {doc}: cannot be read ({why}): give docs/claims.md") from None
     start, end = (text.find(marker) for marker in GENERATED)
     if start < 0 or end < start:
         raise UserError(f"{doc}: no generated block (the two markers {GENERATED[0][:40]}...)")

@@ -357,6 +357,23 @@ def test_the_command_line_checks_its_folder_before_it_writes(tmp_path, capsys):
     assert list(tmp_path.iterdir()) == []
 
 
+def test_a_doc_that_is_missing_a_fifo_a_link_or_not_text_is_one_line(tmp_path, capsys):
+    """--doc reads the page through the reading door: a missing file, a FIFO (never waited on), a
+    link and bytes that are not text are each one line, and nothing is written."""
+    import os
+
+    os.mkfifo(tmp_path / "fifo.md")
+    (tmp_path / "binary.md").write_bytes(b"\xff\xfe\x00")
+    (tmp_path / "target.md").write_text("x")
+    (tmp_path / "link.md").symlink_to(tmp_path / "target.md")
+    for name in ("missing.md", "fifo.md", "binary.md", "link.md"):
+        assert claims.main([str(tmp_path), "--doc", str(tmp_path / name)]) == 2, name
+        error = capsys.readouterr().err.strip()
+        assert error.startswith(f"claims: error: --doc {tmp_path / name}: cannot be read")
+        assert "\n" not in error
+    assert (tmp_path / "target.md").read_text() == "x"
+
+
 def test_docs_claims_says_what_the_kept_evidence_says(monkeypatch):
     """docs/claims.md's verdicts are the ones its committed evidence gives, regenerated now."""
     monkeypatch.chdir(REPO)

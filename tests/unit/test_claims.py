@@ -14,6 +14,7 @@ from tests.helpers import REPO
 
 sys.path.insert(0, str(REPO / "experiments"))
 
+import claim_budget  # noqa: E402
 import claims  # noqa: E402
 import regime_map  # noqa: E402
 import studies as study_lists  # noqa: E402
@@ -551,12 +552,12 @@ def test_the_headline_states_what_a_study_ran_from_its_own_tables(tmp_path):
     assert claims.study_protocol(tmp_path / "nothing") is None
     cart = next(c for c in claims.CLAIMS if c.name.startswith("cart"))
     runs = claims.read_study(study)
-    assert claims._share_text(cart, runs) == (
+    assert claim_budget.share_text(cart, runs) == (
         "1500 iterations: 4.7% of the paper's 32,000 iterations"
     )
     oscillators = next(c for c in claims.CLAIMS if c.name.startswith("oscillators"))
     timed = replace(runs, axis="calibrated_time", budget=15.0)
-    assert claims._share_text(oscillators, timed) == (
+    assert claim_budget.share_text(oscillators, timed) == (
         "15 s (calibrated clock): 0.42% of the paper's 3,600 s per method "
         "(its run scripts: 60 x 60 s)"
     )

@@ -1,0 +1,80 @@
+"""A claim's study and budget: the study that gives a claim its budget (its first part's), that
+budget in words and against the paper's, the variants of a claim in a study, and whether they have
+left their start at the budget (the regime guard of physgrad.claim_words)."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from study_runs import StudyRuns
+
+from physgrad.claim import Claim, Grows, Reaches, Stalls, short, tuning_studies
+from physgrad.claim_words import left_start
+
+
+def budget_text(runs: StudyRuns) -> str:
+    return {
+        "iteration": f"{runs.budget:g} iterations",
+        "wall_time": f"{runs.budget:g} s (measured clock)",
+        "calibrated_time": f"{runs.budget:g} s (calibrated clock)",
+    }.get(runs.axis, f"{runs.budget:g}")
+
+
+def part_study(part) -> str:
+    return getattr(part, "study", None) or f"{part.easy} -> {part.hard}"
+
+
+def main_study(claim: Claim) -> str:
+    """The study that gives a claim its budget: the first part's (a trend's hard end)."""
+    part = claim.parts[0]
+    return part.hard if isinstance(part, Grows) else part.study
+
+
+def share_text(claim: Claim, runs: StudyRuns) -> str:
+    """The budget here against the paper's, e.g. "1500 iterations: 4.7% of the paper's 32,000
+    iterations"."""
+    here = budget_text(runs)
+    seconds = runs.axis in ("wall_time", "calibrated_time")
+    if math.isnan(claim.paper_budget) or seconds != claim.paper_seconds:
+        return f"{here}; the paper's: {claim.paper_budget_text}"
+    share = 100 * runs.budget / claim.paper_budget
+    percent = f"{share:.2g}" if share < 10 else f"{share:.0f}"
+    return f"{here}: {percent}% of the paper's {claim.paper_budget_text}"
+
+
+def share(claim: Claim, runs: StudyRuns) -> float:
+    """The budget here over the paper's (NaN where the paper states none in these units)."""
+    seconds = runs.axis in ("wall_time", "calibrated_time")
+    if math.isnan(claim.paper_budget) or seconds != claim.paper_seconds:
+        return math.nan
+    return runs.budget / claim.paper_budget
+
+
+def claim_variants(claim: Claim, study: str) -> list[str]:
+    names = []
+    for part in claim.parts:
+        if part_study(part) == study:
+            found = [part.variant] if isinstance(part, (Stalls, Reaches)) else [part.a, part.b]
+            names += [n for n in found if n not in names]
+    return names
+
+
+def variants_left_start(claim: Claim, runs: StudyRuns) -> tuple[bool, str]:
+    """Whether every variant of the claim's main study has left its start at X (the median over
+    its seeds of loss at X / at its first evaluation, physgrad.claim_words.left_start), and each
+    variant's factor."""
+    said, trained = [], True
+    for variant in claim_variants(claim, main_study(claim)):
+        if variant not in runs.paths:
+            continue
+        starts, finals = [], []
+        for study in tuning_studies(runs):
+            for curve in study.curves(variant).values():
+                starts.append(float(curve.loss[0]) if len(curve.loss) else math.nan)
+                finals.append(curve.at(study.budget))
+        trained &= left_start(starts, finals)
+        ratios = [f / s for s, f in zip(starts, finals) if s > 0 and not math.isnan(f)]
+        factor = 1 / float(np.median(ratios)) if ratios else math.nan
+        said.append(f"{variant} {short(factor)}x")
+    return trained and bool(said), ", ".join(said)
