@@ -25,32 +25,23 @@ import sys
 from dataclasses import dataclass
 from pathlib import Path
 
-import numpy as np
 from evidence import (  # experiments/
     CLOCK,
-    commit,
-    keep_clock,
     keep_clock_verdicts,
-    kept_row,
-    merged_rows,
     read_json,
-    read_table,
-    undecided_by_the_clock,
-    write_kept,
 )
 from leaderboard_detail import (
     FOLDER,
     MARKS,
-    charged_by_clock,
     link,
     preset_line,
     scene_notes,
     scene_page,
     scheduled_cost_line,
     wall_line,
-    wall_seconds_in_budget,
 )
 from leaderboard_figure import FEW_STEPS, plot
+from leaderboard_keep import keep
 from leaderboard_scenes import (
     BASELINE,
     LEADERBOARD_SEEDS,
@@ -62,8 +53,7 @@ from leaderboard_scenes import (
     WHY_IT_MAY_DIFFER,
 )
 from scene_kinds import KINDS, both_pages_line, kinds_table, read_kinds
-from studies import STUDY_FOLDER
-from study_runs import read_study, study_overrides
+from study_runs import read_study
 
 from physgrad.files import make_folder, replace_file
 from physgrad.replication import across_studies
@@ -73,83 +63,6 @@ from physgrad.verdict import (
     compare_variants,
     ratio_of,
 )
-
-# --- the evidence
-# ----------------------------------------------------------------------------------------
-
-
-def keep(root: Path, dest: Path) -> list[str]:
-    """Every finished tuning study of the leaderboard under root (<root>/<scene>/study-k) added to
-    the scene's evidence table in dest (experiments/evidence.py), replacing that study's rows if
-    it was kept before and keeping the others' (each study is kept whatever machine ran it): every
-    run's test loss at the kept fractions of the budget; in the .json each study's machine, commit
-    and each rule's median iterations at the budget, and the scene's calibration (its clock, for
-    the studies still to run) beside it. Returns the studies kept, as scene/study-k."""
-
-    from physgrad.errors import UserError
-
-    kept = []
-    for entry in SCENES:
-        finished = {}
-        for k in range(1, LEADERBOARD_STUDIES + 1):
-            folder = root / entry.name / STUDY_FOLDER.format(k=k)
-            runs = read_study(folder) if (folder / "runs.csv").is_file() else None
-            if runs is not None:
-                finished[k] = (folder, runs)
-        if not finished:
-            continue
-        records = {}
-        for k, (folder, runs) in finished.items():
-            if runs.tuning:
-                raise UserError(
-                    f"{folder}: {len(runs.tuning)} tuning studies, where a leaderboard study "
-                    "folder holds one (compare.studies=1)"
-                )
-            rows = [
-                kept_row(k - 1, variant, seed, "loss", curve, runs.budget)
-                for variant in sorted(runs.paths)
-                for seed, curve in sorted(runs.curves(variant).items())
-            ]
-            table = read_table(folder / "runs.csv")
-            records[k] = (
-                rows,
-                {
-                    "machine": runs.machine,
-                    "kept_by": commit(),
-                    "iterations": iterations_in_budget(table),
-                    "wall_seconds": wall_seconds_in_budget(table),
-                    "overrides": study_overrides(folder),
-                    "undecided_by_the_clock": undecided_by_the_clock(folder),
-                    **charged_by_clock(folder / "calibration.json"),
-                },
-            )
-        first = next(iter(finished.values()))[1]
-        rows, by_study = merged_rows(dest, entry.name, records, first.budget)
-        for k, (folder, _) in finished.items():
-            keep_clock(folder / "calibration.json", dest / CLOCK.format(name=entry.name))
-            kept.append(f"{entry.name}/{STUDY_FOLDER.format(k=k)}")
-        machines = sorted({str(s.get("machine") or "") for s in by_study.values()} - {""})
-        per_study = [s.get("iterations") or {} for s in by_study.values()]
-        about = {
-            "study": entry.name,
-            "axis": first.axis,
-            "budget": first.budget,
-            "trials": LEADERBOARD_TRIALS,
-            "studies": len(by_study),
-            "planned": LEADERBOARD_STUDIES,
-            "seeds": LEADERBOARD_SEEDS,
-            "machine": "; ".join(machines),
-            "kept_by": commit(),
-            # each rule's iterations at the budget: the median of the studies' medians
-            "iterations": {
-                rule: float(np.median([its[rule] for its in per_study if rule in its]))
-                for rule in sorted(set().union(*per_study))
-            },
-            "tuning_studies": by_study,
-        }
-        write_kept(dest, entry.name, rows, about)
-    return kept
-
 
 # --- the cells
 # -------------------------------------------------------------------------------------------
@@ -379,15 +292,6 @@ def scene_budget_lines(entry, runs, about: dict) -> list[str]:
     lines += [f"  {wall}"] if wall else []
     lines += [f"  {note}" for note in scene_notes(about)]
     return lines
-
-
-def iterations_in_budget(table) -> dict[str, float]:
-    """Each rule's median iterations over its runs that reached the budget: a run that diverged
-    stopped early, and its iterations say when, not how many the budget gives (a rule none of whose
-    runs reached the budget has none)."""
-    if "status" in table.columns:
-        table = table[table["status"] == "completed"]
-    return {str(v): float(np.median(group["iterations"])) for v, group in table.groupby("variant")}
 
 
 def literature_lines(found: dict) -> list[str]:

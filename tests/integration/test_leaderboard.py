@@ -16,6 +16,7 @@ from tests.helpers import REPO
 sys.path.insert(0, str(REPO / "experiments"))
 import leaderboard  # noqa: E402
 import leaderboard_detail  # noqa: E402
+import leaderboard_keep  # noqa: E402
 import leaderboard_scenes  # noqa: E402
 from evidence import write_kept  # noqa: E402
 
@@ -180,16 +181,16 @@ def test_a_study_run_elsewhere_is_added_to_the_kept_evidence(tmp_path, monkeypat
     (folder / "study.json").write_text(json.dumps({"overrides": ["task=toy", "compare.seed=10"]}))
     clock = {"costs": {rule: {} for rule in ("adam", *leaderboard_scenes.SCENES[0].rules)}}
     (folder / "calibration.json").write_text(json.dumps(clock))
-    read_study = leaderboard.read_study
+    read_study = leaderboard_keep.read_study
 
     def keep(study):  # keep root's one study folder, read as `study`
         monkeypatch.setattr(
-            leaderboard, "read_study", lambda path: study if path == folder else None
+            leaderboard_keep, "read_study", lambda path: study if path == folder else None
         )
         try:
             return leaderboard.keep(root, evidence)
         finally:
-            monkeypatch.setattr(leaderboard, "read_study", read_study)
+            monkeypatch.setattr(leaderboard_keep, "read_study", read_study)
 
     assert keep(study_2) == ["toy/study-2"]
     table = (evidence / "toy.csv").read_text().splitlines()
@@ -356,8 +357,8 @@ def test_the_iterations_in_the_budget_are_those_of_the_runs_that_reached_it():
             "iterations": [1688] * 3 + [110, 300, 438, 482, 500, 560, 585] + [4270, 4270, 12, 40],
         }
     )
-    assert leaderboard.iterations_in_budget(table) == {"ssbroyden": 1688.0, "adam": 4270.0}
-    assert leaderboard.iterations_in_budget(table.drop(columns="status"))["gd"] == 26.0
+    assert leaderboard_keep.iterations_in_budget(table) == {"ssbroyden": 1688.0, "adam": 4270.0}
+    assert leaderboard_keep.iterations_in_budget(table.drop(columns="status"))["gd"] == 26.0
 
 
 @pytest.mark.parametrize("scene", ["oscillator", "ks"])

@@ -269,7 +269,6 @@ MODULE_LINES, FUNCTION_LINES = 450, 80
 OVER = {
     "physgrad/check.py": 452,
     "physgrad/scene_check.py": 452,
-    "experiments/leaderboard.py": 456,
 }
 LONG_FUNCTIONS = {"physgrad/optim/soap.py:soap": 109}
 HOUSE = sorted(
