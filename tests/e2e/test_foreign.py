@@ -59,7 +59,7 @@ def test_config_bombs_are_refused_in_bounded_time_and_memory(tmp_path, bomb):
         from omegaconf import OmegaConf
         from physgrad.report import write_report
         from physgrad.members import comparable_config
-from physgrad.resume import finished_before
+        from physgrad.resume import finished_before
         from physgrad.sweeps import job_folders, read_manifest
         folder = Path({str(tmp_path)!r})
         cfg = OmegaConf.create({CONFIG!r})
