@@ -52,7 +52,7 @@ from physgrad.claim import (  # noqa: F401 - Close and Lower: the parts' names, 
 from physgrad.claim_parts import claim_verdict, decide_parts
 from physgrad.claim_words import claim_word
 from physgrad.errors import UserError
-from physgrad.files import read_own_file, replace_file
+from physgrad.files import clean_text, read_own_file, replace_file
 from physgrad.verdict import FRACTIONS
 
 # --- reading a study
@@ -115,6 +115,15 @@ def _twin_runs(root: Path, name: str, suffix: str, spec: Study | None) -> object
         if suffix and spec is not None and spec.preset is False:
             return Decision(NOT_RUN, "-", f"{name} has no presets' twin (cut for time)")
         return Decision(OPEN, "-", f"{root / (name + suffix)} has no finished study")
+    if spec is not None:  # evidence is data: a variant the study does not run is not its
+        names = sorted({v for study in (runs.tuning or (runs,)) for v in study.paths})
+        most = spec.variants(preset=bool(suffix))
+        if len(names) > most:
+            shown = clean_text(", ".join(names), 200)
+            raise UserError(
+                f"{root / (name + suffix)}: {len(names)} variants ({shown}) where the study runs "
+                f"{most}: not this study's evidence"
+            )
     if (suffix or (spec is not None and not spec.tune)) and isinstance(spec.preset, str):
         # the presets' study fixes one value of an axis (optim.clip=none): its variants are also
         # known by the tuned study's names, which carry that value ("backprop=C" is "backprop=C

@@ -20,6 +20,8 @@ from __future__ import annotations
 
 import json
 import math
+import os
+import stat
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -186,9 +188,19 @@ class Kept:
 
 
 def kept_table(folder: Path) -> Path | None:
-    """The evidence table of a study folder's name (`<root>/<name>.csv`), if there is one."""
+    """The evidence table of a study folder's name (`<root>/<name>.csv`), if there is one; a name
+    that holds something else (a FIFO, a folder) is a UserError, not a study that did not run."""
+    from physgrad.errors import UserError
+    from physgrad.files import file_kind
+
     path = folder.parent / f"{folder.name}.csv"
-    return path if path.is_file() else None
+    try:
+        mode = os.stat(path).st_mode  # a link is read (and refused) by read_kept's door
+    except OSError:
+        return None
+    if not stat.S_ISREG(mode):
+        raise UserError(f"{path}: {file_kind(mode)}, not a file: not an evidence table")
+    return path
 
 
 def read_kept(path: Path) -> Kept:
@@ -198,16 +210,23 @@ def read_kept(path: Path) -> Kept:
     from physgrad.errors import UserError
 
     about_path = path.with_suffix(".json")
+    reading = about_path
     try:
         about = read_json(about_path)
         axis, budget = str(about["axis"]), float(about["budget"])
         protocol = tuple(int(about[k]) for k in ("trials", "studies", "seeds"))
+        for key, value, top in zip(("trials", "studies", "seeds"), protocol, PROTOCOL_TOPS):
+            low = 0 if key == "trials" else 1  # no trials: an untuned evaluation (a presets' twin)
+            if not low <= value <= top or value != about[key]:
+                raise ValueError(f"{key}={about[key]!r} is not a whole number in [{low}, {top}]")
+        reading = path
         table = read_table(path, dtype={"variant": str, "column": str})
     except (OSError, ValueError, KeyError, TypeError) as error:
         why = f"{type(error).__name__}: {error}".splitlines()[0][:200]
-        raise UserError(f"{path}: not a claims evidence table ({why})") from None
+        what = "an evidence table" if reading == path else "an evidence table's record"
+        raise UserError(f"{reading}: not {what} ({why})") from None
     if list(table.columns) != list(COLUMNS) or not math.isfinite(budget) or budget <= 0:
-        raise UserError(f"{path}: not a claims evidence table (columns {list(table.columns)})")
+        raise UserError(f"{path}: not an evidence table (columns {list(table.columns)})")
     numbers = table.drop(columns=["variant", "column"])
     if not all(pd.api.types.is_numeric_dtype(t) for t in numbers.dtypes):
         raise UserError(f"{path}: a value that is not a number")
@@ -224,7 +243,11 @@ def read_kept(path: Path) -> Kept:
 
 # bounds on kept evidence, read as data: a study's table is kilobytes (10 seeds x variants x
 # columns x tuning studies); beyond these it is not one of physgrad's
-KEPT_ROWS, KEPT_STUDIES, KEPT_SEED, KEPT_NAME = 200_000, 100, 2**32, 200
+# (a leaderboard scene: 4 tuning studies x 12 rules x 10 seeds = 480 rows; a claims study about
+# 1,000)
+KEPT_ROWS, KEPT_STUDIES, KEPT_SEED, KEPT_NAME = 20_000, 100, 2**32, 200
+# the largest trials per tuning study, tuning studies and seeds a study's record may state
+PROTOCOL_TOPS = (10_000, KEPT_STUDIES, 1024)
 AXES = ("iteration", "wall_time", "calibrated_time")
 
 
@@ -238,7 +261,7 @@ def _check_kept(path: Path, table: object, axis: str) -> None:
     from physgrad.files import clean_text
 
     def refuse(name: str, why: str) -> None:
-        raise UserError(f"{path}: {name}: {why}; not a claims evidence table")
+        raise UserError(f"{path}: {name}: {why}; not an evidence table")
 
     if axis not in AXES:
         refuse("axis", f"{clean_text(axis, 40)!r} is none of {', '.join(AXES)}")

@@ -41,7 +41,7 @@ from leaderboard_detail import (
     wall_line,
 )
 from leaderboard_figure import FEW_STEPS, plot
-from leaderboard_keep import keep
+from leaderboard_keep import checked_record, keep
 from leaderboard_scenes import (
     BASELINE,
     LEADERBOARD_SEEDS,
@@ -55,7 +55,8 @@ from leaderboard_scenes import (
 from scene_kinds import KINDS, both_pages_line, kinds_table, read_kinds
 from study_runs import read_study
 
-from physgrad.files import make_folder, replace_file
+from physgrad.errors import UserError
+from physgrad.files import clean_text, make_folder, replace_file
 from physgrad.replication import across_studies
 from physgrad.verdict import (
     FRACTIONS,
@@ -144,6 +145,7 @@ def board(root: Path) -> dict[str, tuple[dict[str, Cell], object, dict]]:
             continue
         about_path = root / f"{entry.name}.json"
         about = read_json(about_path) if about_path.is_file() else {}
+        checked_record(root / entry.name, runs, about, (BASELINE, *entry.rules))
         found[entry.name] = (cells(runs, about), runs, about)
     return found
 
@@ -347,11 +349,18 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("out", nargs="?", default="docs")
     parser.add_argument("--keep", action="store_true", help="keep root's evidence in OUT")
     options = parser.parse_args(argv)
-    if options.keep:
-        kept = keep(Path(options.root), Path(options.out))
-        print(f"leaderboard: kept {', '.join(kept) or 'nothing (no finished study)'}")
-        return 0
-    write(Path(options.root), Path(options.out))
+    try:
+        if options.keep:
+            kept = keep(Path(options.root), Path(options.out))
+            print(f"leaderboard: kept {', '.join(kept) or 'nothing (no finished study)'}")
+            return 0
+        write(Path(options.root), Path(options.out))
+    except UserError as error:  # evidence or a study folder that is not what it says: one line
+        print(f"leaderboard: error: {clean_text(str(error), None)}", file=sys.stderr)
+        return 2
+    except OSError as error:  # a link planted at a folder the page goes into, a read-only disk
+        print(f"leaderboard: error: {clean_text(str(error), 300)}", file=sys.stderr)
+        return 2
     print(f"leaderboard: wrote {Path(options.out) / 'leaderboard.md'}")
     return 0
 

@@ -24,6 +24,7 @@ from studies import STUDY_FOLDER
 from study_runs import read_study, study_overrides
 
 from physgrad.errors import UserError
+from physgrad.files import clean_text
 
 
 def keep(root: Path, dest: Path) -> list[str]:
@@ -104,3 +105,37 @@ def iterations_in_budget(table) -> dict[str, float]:
     if "status" in table.columns:
         table = table[table["status"] == "completed"]
     return {str(v): float(np.median(group["iterations"])) for v, group in table.groupby("variant")}
+
+
+def checked_record(study: Path, runs, about: object, rules: tuple[str, ...]) -> None:
+    """A scene's kept runs and record read as data: every variant one of the scene's rules, the
+    record a mapping whose iterations (and each tuning study's) map those rules to finite numbers
+    above 0; UserError (one line) naming the study and the field otherwise."""
+    import math
+
+    names = sorted({v for one in (runs.tuning or (runs,)) for v in one.paths})
+    unknown = [n for n in names if n not in rules]
+    if unknown:
+        raise UserError(
+            f"{study}: variant {clean_text(unknown[0], 60)!r} is none of the scene's rules "
+            f"({', '.join(rules)}): not this scene's evidence"
+        )
+    if not isinstance(about, dict):
+        raise UserError(f"{study}.json: a {type(about).__name__}, not a record")
+    tuning = about.get("tuning_studies") or {}
+    if not isinstance(tuning, dict) or not all(isinstance(s, dict) for s in tuning.values()):
+        raise UserError(f"{study}.json: tuning_studies is not a record per tuning study")
+    for where, record in (("", about), *((f"tuning_studies.{k}.", s) for k, s in tuning.items())):
+        iterations = record.get("iterations") or {}
+        if not isinstance(iterations, dict) or not all(
+            rule in rules
+            and isinstance(n, (int, float))
+            and not isinstance(n, bool)
+            and math.isfinite(n)
+            and n > 0
+            for rule, n in iterations.items()
+        ):
+            raise UserError(
+                f"{study}.json: {clean_text(where, 60)}iterations must map the scene's rules to "
+                "numbers above 0"
+            )

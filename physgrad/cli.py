@@ -175,9 +175,13 @@ def dispatch(argv: list[str]) -> int:
         )
         return 1
     except OSError as error:
+        from physgrad.files import LinkedFolder, clean_text
+
+        if isinstance(error, LinkedFolder):  # a link planted at a folder physgrad creates
+            print(f"physgrad: error: {clean_text(str(error), None)}", file=sys.stderr)
+            return 2
         if error.errno not in (errno.ENOSPC, errno.EDQUOT):
             raise
-        from physgrad.files import clean_text
 
         where = clean_text(os.fspath(error.filename), 300) if error.filename else "a file"
         print(

@@ -2,6 +2,7 @@
 kind of claim part exactly as the study folder does."""
 
 import json
+import os
 import shutil
 import sys
 
@@ -84,7 +85,7 @@ def _replace(path, old, new):
         ),
         (lambda csv, about: about.unlink(), "FileNotFoundError"),
         (lambda csv, about: about.write_text('{"axis": "iteration"}'), "KeyError"),
-        (lambda csv, about: csv.write_bytes(b"\x00\xff" * 50), "not a claims evidence table"),
+        (lambda csv, about: csv.write_bytes(b"\x00\xff" * 50), "not an evidence table"),
         # a study number far past any study (it allocated a list of 1e9), a negative one (it
         # wrapped to the last study), a NaN seed, a name with a terminal escape, an unknown axis
         # (make test checks the negative one; make test-long the others)
@@ -108,6 +109,12 @@ def _replace(path, old, new):
             lambda csv, about: _replace(about, '"iteration"', '"hours"'),
             "axis: 'hours'",
             marks=pytest.mark.long,
+        ),
+        # a FIFO is refused, never read as a study that did not run; a record's protocol in range
+        (lambda csv, about: (csv.unlink(), os.mkfifo(csv)), "a FIFO, not a file"),
+        (
+            lambda csv, about: _replace(about, '"seeds": ', '"seeds": -'),
+            r"small.json: .*seeds=-\d+ is not a whole number",
         ),
     ],
 )

@@ -5,6 +5,8 @@ undecided or worse, never better; rules that do not apply are marked, scenes not
 
 import json
 import math
+import os
+import shutil
 import sys
 from dataclasses import replace
 
@@ -503,3 +505,33 @@ def test_the_rules_a_studys_clock_charged_their_evaluations_are_read_and_said(tm
     assert "each run was charged those it made" in leaderboard_detail.wall_line(about)
     about["tuning_studies"]["1"]["charged_by_evaluations"] = []
     assert "charged each step at its calibrated cost" in leaderboard_detail.wall_line(about)
+
+
+@pytest.mark.parametrize(
+    "damage, why",
+    [
+        (
+            lambda d: _swap(d / "toy.csv", "\n0,adam,0,", "\n0,nosuchrule,0,"),
+            "'nosuchrule' is none",
+        ),
+        (lambda d: _swap(d / "toy.json", '"adam": 75312.0', '"adam": "many"'), "toy.json: iter"),
+        (lambda d: ((d / "toy.csv").unlink(), os.mkfifo(d / "toy.csv")), "a FIFO, not a file"),
+    ],
+)
+def test_crafted_leaderboard_evidence_is_one_line_and_writes_nothing(tmp_path, capsys, damage, why):
+    """The page's script reads its evidence as data: a variant that is none of the scene's rules,
+    iterations that are not numbers and a FIFO at a table's name each end it with one line (exit
+    2) before a file is written."""
+    evidence, out = tmp_path / "evidence", tmp_path / "out"
+    shutil.copytree(REPO / "docs" / "evidence" / "leaderboard", evidence)
+    damage(evidence)
+    assert leaderboard.main([str(evidence), str(out)]) == 2
+    error = capsys.readouterr().err.strip()
+    assert error.startswith("leaderboard: error: ") and why in error and "\n" not in error
+    assert not out.exists()
+
+
+def _swap(path, old, new):
+    text = path.read_text()
+    assert old in text, old
+    path.write_text(text.replace(old, new, 1))

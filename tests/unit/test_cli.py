@@ -99,3 +99,21 @@ def test_members_trained_together_get_the_scheduler_that_does_not_wedge_and_alon
     assert members_environment({})["XLA_FLAGS"] == MEMBERS_XLA_FLAG
     own = {"XLA_FLAGS": "--xla_cpu_enable_concurrency_optimized_scheduler=true"}
     assert members_environment(own) == own
+
+
+def test_a_link_planted_at_a_folder_physgrad_creates_is_one_line(monkeypatch, capsys, tmp_path):
+    """A study's configs/ (or any folder physgrad makes through the write door) planted as a link:
+    the LinkedFolder refusal ends the command with one line and exit 2, not a traceback."""
+    import physgrad.comparison
+    from physgrad.files import make_folder
+
+    outside = tmp_path / "outside"
+    outside.mkdir()
+    (tmp_path / "configs").symlink_to(outside)
+    monkeypatch.setattr(
+        physgrad.comparison, "main", lambda args: make_folder(tmp_path / "configs" / "job", 2)
+    )
+    assert main(["compare", "task=toy"]) == 2
+    error = capsys.readouterr().err.strip()
+    assert error.startswith("physgrad: error: ") and "is a link, not a folder" in error
+    assert "\n" not in error and not any(outside.iterdir())
