@@ -272,8 +272,10 @@ def _check_hydra_targets(overrides: list[str]) -> None:
 
     from physgrad.validate import allowed_target
 
-    try:
-        cfg = hydra_compose("config", overrides=list(overrides), return_hydra_config=True)
+    try:  # a sweep's first job: the hydra section is one for all its jobs
+        cfg = hydra_compose(
+            "config", overrides=first_of_sweeps(overrides), return_hydra_config=True
+        )
     except HydraException:
         return  # the composition's own errors are said where the run composes it
     hydra = OmegaConf.to_container(cfg.hydra, resolve=False)
@@ -292,6 +294,22 @@ def _check_hydra_targets(overrides: list[str]) -> None:
         except Exception:  # noqa: BLE001 - Hydra says why it cannot import it
             continue
         allowed_target(where, target, resolved)
+
+
+def first_of_sweeps(overrides: list[str]) -> list[str]:
+    """The overrides with each sweep (a,b,c; range(...); choice(...)) replaced by its first value:
+    the overrides of the sweep's first job."""
+    from hydra.core.override_parser.overrides_parser import OverridesParser
+
+    first = []
+    for override in OverridesParser.create().parse_overrides(list(overrides)):
+        if not override.is_sweep_override():
+            first.append(override.input_line)
+            continue
+        value = next(iter(override.sweep_string_iterator()), None)
+        if value is not None:
+            first.append(f"{override.input_line.partition('=')[0]}={value}")
+    return first
 
 
 def _check_key(cfg: DictConfig, key: str, combo: dict) -> None:

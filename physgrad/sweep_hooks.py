@@ -8,6 +8,7 @@ from __future__ import annotations
 import hashlib
 import logging
 import os
+import stat
 import sys
 from collections import Counter
 from collections.abc import Iterable
@@ -87,6 +88,28 @@ class JobLogFile(logging.FileHandler):
             )
 
 
+def _clear_hydra_record(path: Path) -> None:
+    """Hydra's sweeper writes its record (multirun.yaml) with a plain open: a link, a second name
+    of another file (a hard link) or a FIFO planted at that name in a sweep folder from someone
+    else is removed first, so that Hydra creates a file of its own; a folder there ends the sweep
+    in one line (exit 2)."""
+    try:
+        found = os.lstat(path)
+    except FileNotFoundError:
+        return
+    if stat.S_ISREG(found.st_mode) and found.st_nlink == 1:
+        return
+    try:
+        path.unlink()
+    except OSError as error:
+        print(
+            f"physgrad: error: {path} is not a file physgrad can replace "
+            f"({error.strerror or error}): remove it and run again",
+            file=sys.stderr,
+        )
+        sys.exit(2)
+
+
 class SweepSummary(Callback):
     """Around a sweep, in the process that launched it (whatever the launcher): holds the sweep
     folder (a second sweep into it is refused while this one runs), writes the manifest of expected
@@ -121,6 +144,7 @@ class SweepSummary(Callback):
             )
             sys.exit(2)
         (folder / STOP_MARK).unlink(missing_ok=True)
+        _clear_hydra_record(folder / "multirun.yaml")
         use_physgrad_launcher(config)  # before Hydra builds the launcher (physgrad.cluster)
         jobs = expected_jobs(config)
         if jobs is not None:

@@ -315,3 +315,27 @@ def test_hydra_s_own_targets_from_a_config_folder_pass_the_same_policy(tmp_path,
         check_overrides(["task=toy", *line], False)
     assert not mark.exists()
     check_overrides(["task=toy", "hydra/launcher=basic"], False)  # physgrad's and Hydra's own
+
+
+@pytest.mark.parametrize(
+    "planted",
+    [
+        ["hydra.launcher._target_=os.makedirs", "+hydra.launcher.name={mark}"],
+        ["hydra.sweeper._target_=os.makedirs", "+hydra.sweeper.name={mark}"],
+    ],
+)
+def test_a_sweep_s_launcher_and_sweeper_targets_pass_the_policy_too(tmp_path, planted):
+    """A launcher or sweeper target naming os.makedirs on the command line of a sweep (seed=0,1, a
+    range, a list of options: the hydra section is composed for the sweep's first job) is refused
+    in one line by physgrad's policy, not left to Hydra's own traceback; physgrad's SLURM
+    launcher and Hydra's basic sweeper pass."""
+    from physgrad.configs import check_overrides
+    from physgrad.errors import UserError
+
+    mark = tmp_path / "MARK"
+    line = [override.format(mark=mark) for override in planted]
+    for sweep in (["seed=0,1"], ["seed=range(0,3)", "optim=adam,gd"]):
+        with pytest.raises(UserError, match=r"hydra\.(launcher|sweeper)\._target_=os.makedirs"):
+            check_overrides(["task=toy", *sweep, *line], True)
+    assert not mark.exists()
+    check_overrides(["task=toy", "seed=0,1", "hydra/launcher=slurm"], True)

@@ -84,3 +84,35 @@ def test_a_run_a_job_record_and_the_pages_refuse_a_planted_link(tmp_path):
     with pytest.raises(LinkedFolder, match=".hydra is a link"):
         write_provenance(job, OmegaConf.create({"seed": 0}), OmegaConf.create({}))
     assert list(target.iterdir()) == []
+
+
+def test_hydra_s_sweep_record_is_never_written_through_a_planted_name(tmp_path):
+    """Hydra's sweeper writes multirun.yaml itself, with a plain open: a link (dangling too), a
+    second name of another file or a FIFO planted there is removed before the sweep, so Hydra
+    makes a file of its own and theirs is untouched; a file of the sweep's own stays; a folder
+    there ends the sweep in one line."""
+    import os
+
+    from physgrad.sweep_hooks import _clear_hydra_record
+
+    theirs = tmp_path / "theirs.yaml"
+    record = tmp_path / "sweep" / "multirun.yaml"
+    record.parent.mkdir()
+    for plant in (
+        lambda: record.symlink_to(theirs),
+        lambda: record.symlink_to(tmp_path / "nowhere"),
+        lambda: os.link(theirs, record),
+        lambda: os.mkfifo(record),
+    ):
+        theirs.write_text("theirs\n")
+        plant()
+        _clear_hydra_record(record)
+        assert not os.path.lexists(record) and theirs.read_text() == "theirs\n"
+    record.write_text("hydra: own\n")
+    _clear_hydra_record(record)
+    assert record.read_text() == "hydra: own\n"
+    record.unlink()
+    record.mkdir()
+    with pytest.raises(SystemExit) as refused:
+        _clear_hydra_record(record)
+    assert refused.value.code == 2
