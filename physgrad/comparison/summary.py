@@ -184,7 +184,8 @@ def trial_rows(folder: Path, variants: list[Variant], studies: int = 1) -> list[
     study."""
     import optuna
 
-    from physgrad.comparison.tuning import journal_storage, optuna_study_name, trial_params
+    from physgrad.comparison.journal import journal_storage
+    from physgrad.comparison.tuning import optuna_study_name, trial_params
 
     path = folder / "tuning.journal"
     if not path.exists():

@@ -13,13 +13,20 @@ from typing import TYPE_CHECKING
 
 from physgrad.comparison.job_names import study_prefix, variant_index
 from physgrad.comparison.jobs import Launcher, cadence, job_runs, job_yaml
+from physgrad.comparison.journal import (
+    journal_replay,
+    journal_storage,
+    set_aside_damage,
+    set_aside_stale,
+)
 from physgrad.comparison.points import halton_points, is_whole, point_dimensions
 from physgrad.comparison.spec import StudyPlan, StudySettings, Variant
 from physgrad.errors import UserError
+from physgrad.files import clean_text
 from physgrad.readout import READOUT_VERSION, run_curve
 
 if TYPE_CHECKING:
-    from optuna.storages import JournalStorage
+    pass
 
 
 def trial_params(trial: object, space: dict) -> dict[str, float | int] | None:
@@ -68,7 +75,8 @@ def tuning(plan: StudyPlan, launcher: Launcher) -> list[dict[str, dict]]:
     best = [{v.name: {} for v in variants} for _ in range(count)]
     if not settings.tune:
         return best
-    searches, pending, reread = _open_searches(folder, variants, settings, launcher.say)
+    with journal_replay(folder / "tuning.journal"):
+        searches, pending, reread = _open_searches(folder, variants, settings, launcher.say)
     if reread:
         told = _tell_trained(folder, variants, settings, searches, pending, axis, budget)
         launcher.say(f"tune: {told} trials read again from the runs that trained them")
@@ -231,6 +239,7 @@ def _open_searches(
             if "readout" not in search.user_attrs:
                 search.set_user_attr("readout", READOUT_VERSION)
             searches[tuning_study, variant.name] = search
+            _refuse_unasked(folder, search, settings.trials)
             points = halton_points(
                 variant.space, settings.trials, settings.tune_seed + tuning_study, dimensions
             )
@@ -256,97 +265,24 @@ def _open_searches(
     return searches, pending, reread
 
 
-def journal_storage(path: Path) -> JournalStorage:
-    """Optuna's storage over the journal file at path (one JSON record per line, appended), through
-    a file physgrad opened itself (OwnJournal); a journal that is a link, not a file, or a file
-    with another name (a hard link) is a UserError (one line)."""
-    import optuna
-
-    from physgrad.comparison.journal import OwnJournal
-
-    try:
-        return optuna.storages.JournalStorage(OwnJournal(path))
-    except ValueError as error:
-        raise UserError(f"{error}; remove it or give another compare.dir") from None
-
-
-def set_aside_damage(path: Path, say: Callable[[str], object]) -> None:
-    """Optuna's journal is one JSON object per line, appended. A kill or a full disk during an
-    append leaves the last line cut short: it is moved to <journal>.damaged-<time> with a one-line
-    note, and the trials it would have told run again. Any other line that is not a JSON object is a
-    UserError (one line): the journal is not Optuna's, or was changed by hand."""
-    import os
-
-    from physgrad.comparison.journal import JOURNAL_LIMIT, OP_CODES
-    from physgrad.files import load_json, read_own_file, replace_file, timestamp
-
-    if not os.path.lexists(path):
-        return
-    try:  # a journal is data from the study folder: no link followed, no FIFO waited on
-        data = read_own_file(path, JOURNAL_LIMIT)
-    except (OSError, ValueError) as error:
-        raise UserError(f"{error}; remove it or give another compare.dir") from None
-    lines = data.split(b"\n")
-    kept = 0  # bytes of whole records
-    for number, line in enumerate(lines):
-        try:
-            record = load_json(line) if line.strip() else {"op_code": 0}
-            whole = isinstance(record, dict) and record.get("op_code") in OP_CODES
-        except ValueError:  # no JSON (nested too deep included)
-            whole = False
-        if whole:
-            kept += len(line) + 1
-            continue
-        if any(rest.strip() for rest in lines[number + 1 :]):
-            raise UserError(
-                f"{path}: line {number + 1} is not a record of Optuna's journal: move the file "
-                "away to tune again (its trials will run again)"
-            )
-        damaged = path.with_name(f"{path.name}.damaged-{timestamp()}")
-        replace_file(damaged, data[kept:])
-        replace_file(path, data[:kept])
-        say(
-            f"note: the last line of {path} was cut short (a stop or a full disk while it was "
-            f"written): moved to {damaged.name}; the trials it would have told run again"
-        )
-        return
-
-
-def set_aside_stale(path: Path, say: Callable[[str], object]) -> bool:
-    """A journal with a trial told under another read-out (its Optuna study's "readout" differs
-    from physgrad.readout.READOUT_VERSION, or is not recorded: written before it was) is moved to
-    <journal>.read-out-<version>-<time> with a one-line note. Its trials are then asked again at the
-    same points and read from their runs by this read-out; a job that finished is not trained
-    again. Returns whether it was set aside."""
-    import optuna
+def _refuse_unasked(folder: Path, search: object, trials: int) -> None:
+    """physgrad enqueues a search's first `trials` points and nothing more. A few trials beyond them
+    still to be run (waiting or running) are asked and set aside like any trial whose params are not
+    the study's; more of them than the study's own trials were put in the journal by someone else
+    to make work (each is asked and answered: a journal padded with a thousand ran for minutes),
+    and are a UserError (one line) before anything is asked."""
     from optuna.trial import TrialState
 
-    from physgrad.files import safe_name, timestamp
-
-    if not path.is_file():
-        return False
-    storage = journal_storage(path)
-    versions = set()
-    for name in optuna.get_all_study_names(storage):
-        search = optuna.load_study(study_name=name, storage=storage)
-        version = search.user_attrs.get("readout")
-        if version != READOUT_VERSION and search.get_trials(
-            deepcopy=False, states=(TrialState.COMPLETE,)
-        ):
-            # the attribute is data from the folder: in a file name and on the console only as
-            # safe characters (a terminal escape there was printed raw and named a file)
-            versions.add("unrecorded" if version is None else safe_name(str(version)))
-    if not versions:
-        return False
-    older = "-".join(sorted(versions))
-    aside = path.with_name(f"{path.name}.read-out-{older}-{timestamp()}")
-    path.rename(aside)
-    say(
-        f"note: {path} holds trials scored by another read-out (version {older}; this physgrad "
-        f"reads with version {READOUT_VERSION}): moved to {aside.name}; its trials are read again "
-        "from their runs, and a job that finished is not trained again"
+    unasked = sum(
+        t.number >= trials and t.state in (TrialState.WAITING, TrialState.RUNNING)
+        for t in search.get_trials(deepcopy=False)
     )
-    return True
+    if unasked > trials:
+        raise UserError(
+            f"{folder / 'tuning.journal'}: {unasked} trials of {clean_text(search.study_name, 80)} "
+            f"to run beyond the {trials} the study asks (compare.trials): not physgrad's; move "
+            "the file away to tune again, or give compare.trials as the study was run"
+        )
 
 
 def _tell_trained(

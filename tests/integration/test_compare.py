@@ -992,7 +992,7 @@ def test_a_crafted_tuning_journal_runs_no_code_and_its_trials_are_set_aside(tmp_
     import optuna
 
     from physgrad.comparison import run_study
-    from physgrad.comparison.tuning import journal_storage
+    from physgrad.comparison.journal import journal_storage
 
     marker, first = tmp_path / "ran", small_study
     args = copy_of(small_study, tmp_path / "s")

@@ -112,7 +112,7 @@ def test_a_tuning_journal_cut_short_is_repaired_and_a_foreign_one_refused(tmp_pa
     the middle: one line."""
     import optuna
 
-    from physgrad.comparison.tuning import set_aside_damage
+    from physgrad.comparison.journal import set_aside_damage
 
     path = tmp_path / "tuning.journal"
     storage = optuna.storages.JournalStorage(optuna.storages.journal.JournalFileBackend(str(path)))
@@ -162,7 +162,7 @@ def test_a_planted_tuning_journal_is_refused_in_one_line_never_followed_or_waite
     wait on the FIFO, no RecursionError."""
     import signal
 
-    from physgrad.comparison.tuning import set_aside_damage
+    from physgrad.comparison.journal import set_aside_damage
 
     path, elsewhere = tmp_path / "tuning.journal", tmp_path / "elsewhere"
     elsewhere.write_text('{"op_code": 0}\nsecret, cut')
@@ -241,7 +241,7 @@ def test_a_tuning_journal_scored_by_another_read_out_is_set_aside(tmp_path, stud
     """A study with a told trial and another read-out's version (or none: before it was recorded)
     sends the whole journal aside under a name that says which, with a one-line note; trials only
     asked, or told under this version, keep it."""
-    from physgrad.comparison.tuning import set_aside_stale
+    from physgrad.comparison.journal import set_aside_stale
     from physgrad.readout import READOUT_VERSION
 
     path = tmp_path / "tuning.journal"

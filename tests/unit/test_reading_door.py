@@ -79,7 +79,7 @@ def test_a_file_longer_than_its_bound_is_refused_not_cut(tmp_path):
 def test_a_journal_line_that_is_not_a_record_is_one_line(tmp_path, line):
     """A crafted tuning.journal: a UserError naming the file and the line, whoever opens it (the
     tuning, or the tables of a study run with compare.tune=false)."""
-    from physgrad.comparison.tuning import journal_storage
+    from physgrad.comparison.journal import journal_storage
 
     path = tmp_path / "tuning.journal"
     path.write_bytes(line)
@@ -90,7 +90,7 @@ def test_a_journal_line_that_is_not_a_record_is_one_line(tmp_path, line):
 
 def test_a_journal_over_its_bound_is_refused(tmp_path, monkeypatch):
     from physgrad.comparison import journal
-    from physgrad.comparison.tuning import journal_storage
+    from physgrad.comparison.journal import journal_storage
 
     monkeypatch.setattr(journal, "JOURNAL_LIMIT", 1000)
     path = tmp_path / "tuning.journal"
