@@ -6,6 +6,7 @@ clock)."""
 
 from __future__ import annotations
 
+from pathlib import Path
 from typing import TYPE_CHECKING
 
 from physgrad.comparison.job_names import study_prefix, variant_index
@@ -114,6 +115,13 @@ def evaluation(
             missing = set(plan.settings.study_seeds(study)) - set(curves[study][variant.name])
             if missing and not any(p.startswith(whole) for p in problems):
                 problems.append(f"{whole}: no results for seed {min(missing)}")
+                planted = _planted_link(folder / "eval", jobs, whole, min(missing))
+                if planted is not None:  # no run will write there: resuming cannot help
+                    raise UserError(
+                        f"the evaluation did not run as asked: {planted} is a link, not a "
+                        "folder: physgrad writes through no link planted at a name it creates; "
+                        "remove it and run the same command again"
+                    )
     if problems:
         more = f" (and {len(problems) - 1} more)" if len(problems) > 1 else ""
         raise UserError(
@@ -121,6 +129,17 @@ def evaluation(
             f"{folder / 'eval.log'}): run the same command again to resume"
         )
     return curves, statuses
+
+
+def _planted_link(phase: Path, jobs: dict, whole: str, seed: int) -> Path | None:
+    """The link planted at a folder an evaluation job of `whole` creates for `seed` (its job folder,
+    its seed=S/, its .hydra/), where one is: such a job fails on every resume."""
+    for name in (n for n in jobs if n == whole or n.startswith(whole + "_s")):
+        job = phase / f"+compare_job={name}"
+        for path in (job, job / f"seed={seed}", job / ".hydra"):
+            if path.is_symlink():
+                return path
+    return None
 
 
 def _not_asked_for(run: Run, tuned: dict, seeds: list[int]) -> str | None:

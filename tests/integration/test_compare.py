@@ -1114,7 +1114,7 @@ def test_a_job_folder_that_is_a_link_is_neither_read_nor_written_through(tmp_pat
     """A study folder from someone else in which an evaluation job's folder, or the whole eval/,
     is a link to runs elsewhere: their runs never enter the verdicts and no job writes through
     the link; the study is refused in one line naming it. A member folder that is a link is not
-    read."""
+    read, nor written through, and the study stops in one line that names it."""
     import shutil
 
     from physgrad.comparison.jobs import job_runs
@@ -1138,6 +1138,10 @@ def test_a_job_folder_that_is_a_link_is_neither_read_nor_written_through(tmp_pat
     assert [Path(r.path).parent.name for r in job_runs(study / "eval", "eval_st1_v0")] == [
         m for m in sorted(members, key=lambda m: int(m.split("=")[1])) if m != member.name
     ]
+    before = sorted(p.name for p in (tmp_path / "their member").iterdir())
+    with pytest.raises(UserError, match=f"{member.name} is a link, not a folder: .* remove it"):
+        physgrad.compare(*args)  # the link named: resuming alone would fail the same way
+    assert sorted(p.name for p in (tmp_path / "their member").iterdir()) == before
     shutil.move(study / "eval", tmp_path / "their eval")
     (study / "eval").symlink_to(tmp_path / "their eval")
     with pytest.raises(UserError, match="eval: a link: refused"):
