@@ -251,8 +251,11 @@ def main(args: list[str]) -> int:
         return 130
     print(study.text)
     drawn = ", sensitivity.png" if (study.folder / "sensitivity.png").is_file() else ""
+    # report/ only where this study wrote it (a link planted there is refused, not written into)
+    report = study.folder / "report"
+    reported = ", report/" if report.is_dir() and not report.is_symlink() else ""
     print(
-        f"wrote {study.folder / 'compare.md'}, trials.csv, runs.csv, comparisons.csv{drawn}, "
-        "report/"
+        f"wrote {study.folder / 'compare.md'}, trials.csv, runs.csv, comparisons.csv{drawn}"
+        f"{reported}"
     )
     return 0
