@@ -52,7 +52,7 @@ from physgrad.claim import (  # noqa: F401 - Close and Lower: the parts' names, 
 from physgrad.claim_parts import claim_verdict, decide_parts
 from physgrad.claim_words import claim_word
 from physgrad.errors import UserError
-from physgrad.files import clean_text, read_own_file, replace_file
+from physgrad.files import clean_text, make_folder, read_own_file, replace_file
 from physgrad.verdict import FRACTIONS
 
 # --- reading a study
@@ -116,13 +116,13 @@ def _twin_runs(root: Path, name: str, suffix: str, spec: Study | None) -> object
             return Decision(NOT_RUN, "-", f"{name} has no presets' twin (cut for time)")
         return Decision(OPEN, "-", f"{root / (name + suffix)} has no finished study")
     if spec is not None:  # evidence is data: a variant the study does not run is not its
-        names = sorted({v for study in (runs.tuning or (runs,)) for v in study.paths})
-        most = spec.variants(preset=bool(suffix))
-        if len(names) > most:
-            shown = clean_text(", ".join(names), 200)
+        names = {v for study in (runs.tuning or (runs,)) for v in study.paths}
+        known = spec.variant_names(preset=bool(suffix))
+        unknown = sorted(names - set(known))
+        if unknown:
             raise UserError(
-                f"{root / (name + suffix)}: {len(names)} variants ({shown}) where the study runs "
-                f"{most}: not this study's evidence"
+                f"{root / (name + suffix)}: variant {clean_text(unknown[0], 60)!r} is none of the "
+                f"study's ({clean_text(', '.join(known), 200)}): not this study's evidence"
             )
     if (suffix or (spec is not None and not spec.tune)) and isinstance(spec.preset, str):
         # the presets' study fixes one value of an axis (optim.clip=none): its variants are also
@@ -289,7 +289,6 @@ def _longer_budgets(claim: Claim, main: str, further: tuple) -> tuple[list, list
 def write(root: Path, out: Path, note: str = "", profile: str = "claims") -> str:
     """<profile>.md (claims.md, claims-long.md) into out from the studies under root, with the
     regime map (payoff.png) where the profile has it; returns the markdown."""
-    out.mkdir(parents=True, exist_ok=True)
     rule = __doc__.split("\n\n")[2]
     studies = PROFILES[profile]
     # the claims profile's headline also reads the profiles of longer budgets beside its folder
@@ -298,6 +297,8 @@ def write(root: Path, out: Path, note: str = "", profile: str = "claims") -> str
         if profile == "claims"
         else ()
     )
+    tables = headline_table(root, studies, further) + "\n" + claims_table(root, studies)
+    make_folder(out)  # once the evidence is read: refused evidence leaves no folder behind
     text = (
         f"# The papers' claims, measured\n\n{note + chr(10) + chr(10) if note else ''}"
         + rule
@@ -305,9 +306,7 @@ def write(root: Path, out: Path, note: str = "", profile: str = "claims") -> str
         f"Studies under {root}; each study's own table (variants, tuned settings, every pair, "
         "timing): `<study>/compare.md`. X is a study's budget; a verdict at X/4 or X/2 reads "
         "the same runs (tuned for X) earlier.\n\n"
-        + headline_table(root, studies, further)
-        + "\n"
-        + claims_table(root, studies)
+        + tables
         + (regime_map(root, out, note) if set(MAP) <= set(studies) else "")
     )
     replace_file(out / f"{profile}.md", text.encode())  # the write door: no link followed
@@ -414,6 +413,9 @@ def main(argv: list[str] | None = None) -> int:
         print(write(args.studies, args.out or args.studies, profile=profile))
     except UserError as error:  # a study folder that is not what its tables say: one line
         print(f"claims: error: {error}", file=sys.stderr)
+        return 2
+    except OSError as error:  # a link planted at a folder the page goes into, a read-only disk
+        print(f"claims: error: {clean_text(str(error), 300)}", file=sys.stderr)
         return 2
     return 0
 

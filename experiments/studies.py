@@ -87,6 +87,15 @@ class Study:
         also evaluated untuned."""
         return self.tune and self.preset is not False
 
+    def variant_names(self, preset: bool = False) -> list[str]:
+        """The names compare gives the study's variants (with preset: its presets' twin's)."""
+        import itertools
+
+        from physgrad.comparison.spec import split_overrides, variant_name
+
+        _, axes, _, _ = split_overrides(self.preset_overrides(preset))
+        return [variant_name(list(c)) for c in itertools.product(*(v for _, v in axes))]
+
     def variants(self, preset: bool = False) -> int:
         return math.prod(
             len(_values(o)) for o in self.preset_overrides(preset) if len(_values(o)) > 1

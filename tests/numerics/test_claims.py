@@ -374,6 +374,23 @@ def test_a_doc_that_is_missing_a_fifo_a_link_or_not_text_is_one_line(tmp_path, c
     assert (tmp_path / "target.md").read_text() == "x"
 
 
+def test_kept_evidence_with_a_variant_its_study_does_not_run_is_one_line(tmp_path, capsys):
+    """A row of the kept evidence renamed to a variant the study does not run (it was dropped
+    silently, changing a claim's seed counts) ends the page in one line naming it."""
+    import shutil
+
+    evidence = tmp_path / "claims"
+    shutil.copytree(REPO / "docs" / "evidence" / "claims", evidence)
+    table = evidence / "toy_1.csv"
+    text = table.read_text()
+    assert "\n0,adam,0," in text
+    table.write_text(text.replace("\n0,adam,0,", "\n0,nosuchrule,0,", 1))
+    assert claims.main([str(evidence), str(tmp_path / "out")]) == 2
+    error = capsys.readouterr().err.strip()
+    assert "variant 'nosuchrule' is none of the study's (adam, gauss_newton, hig)" in error
+    assert "\n" not in error and not (tmp_path / "out").exists()
+
+
 def test_docs_claims_says_what_the_kept_evidence_says(monkeypatch):
     """docs/claims.md's verdicts are the ones its committed evidence gives, regenerated now."""
     monkeypatch.chdir(REPO)
