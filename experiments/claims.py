@@ -26,11 +26,11 @@ from pathlib import Path
 
 from claim_budget import budget_text, main_study, part_study, share, share_text, variants_left_start
 from claim_list import CLAIMS, load_claims  # noqa: F401 - experiments/; load_claims: tests
-from claims_tuned import tuned_table
 from regime_map import regime_map
 from scene_kinds import scene_kinds_block
 from studies import GPU, MAP, PROFILES, STUDIES, Study, where_it_runs
 from study_runs import StudyRuns, keep_studies, read_study, study_protocol, uncommitted_note
+from tuned_settings import tuned_table
 
 from physgrad.claim import (  # noqa: F401 - Close and Lower: the parts' names, for callers
     FAILS,

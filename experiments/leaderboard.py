@@ -54,6 +54,7 @@ from leaderboard_scenes import (
 )
 from scene_kinds import KINDS, both_pages_line, kinds_table, read_kinds
 from study_runs import read_study
+from tuned_settings import tuned_table
 
 from physgrad.errors import UserError
 from physgrad.files import clean_text, make_folder, replace_file
@@ -330,10 +331,10 @@ def write(root: Path, out: Path) -> str:
             keep(root, Path(evidence))
             return write(Path(evidence), out)
     found = board(root)
-    out.mkdir(parents=True, exist_ok=True)
+    make_folder(out)  # through the write door: a link planted at the folder is refused
     if found:
         plot(found, out / "leaderboard")
-    text = page(found, "leaderboard.png", root)
+    text = page(found, "leaderboard.png", root) + tuned_table(root)
     # through the write door: a link at a page's name, or at its folder, is not written through
     replace_file(out / "leaderboard.md", text.encode())
     make_folder(out / FOLDER)

@@ -21,7 +21,7 @@ from evidence import (  # experiments/
 from leaderboard_detail import charged_by_clock, wall_seconds_in_budget
 from leaderboard_scenes import LEADERBOARD_SEEDS, LEADERBOARD_STUDIES, LEADERBOARD_TRIALS, SCENES
 from studies import STUDY_FOLDER
-from study_runs import read_study, study_overrides
+from study_runs import read_study, study_overrides, tuned_trials
 
 from physgrad.errors import UserError
 from physgrad.files import clean_text
@@ -68,6 +68,8 @@ def keep(root: Path, dest: Path) -> list[str]:
                     "overrides": study_overrides(folder),
                     "undecided_by_the_clock": undecided_by_the_clock(folder),
                     **charged_by_clock(folder / "calibration.json"),
+                    # what its tuning chose per rule, and the trials it chose from
+                    **tuned_trials(folder),
                 },
             )
         first = next(iter(finished.values()))[1]

@@ -20,6 +20,7 @@ import leaderboard  # noqa: E402
 import leaderboard_detail  # noqa: E402
 import leaderboard_keep  # noqa: E402
 import leaderboard_scenes  # noqa: E402
+import tuned_settings  # noqa: E402
 from evidence import write_kept  # noqa: E402
 
 from physgrad.verdict import A_BETTER, B_BETTER, EQUIVALENT  # noqa: E402
@@ -183,6 +184,11 @@ def test_a_study_run_elsewhere_is_added_to_the_kept_evidence(tmp_path, monkeypat
     (folder / "study.json").write_text(json.dumps({"overrides": ["task=toy", "compare.seed=10"]}))
     clock = {"costs": {rule: {} for rule in ("adam", *leaderboard_scenes.SCENES[0].rules)}}
     (folder / "calibration.json").write_text(json.dumps(clock))
+    (folder / "trials.csv").write_text(
+        "variant,study,trial,learning_rate,validation_loss,state\n"
+        "adam,0,0,0.001,0.5,COMPLETE\nadam,0,1,0.01,0.2,COMPLETE\nadam,0,2,0.1,0.3,COMPLETE\n"
+        "hig,0,0,0.1,0.4,COMPLETE\nhig,0,1,1.0,0.6,COMPLETE\nhig,0,2,10.0,0.1,COMPLETE\n"
+    )
     read_study = leaderboard_keep.read_study
 
     def keep(study):  # keep root's one study folder, read as `study`
@@ -202,6 +208,14 @@ def test_a_study_run_elsewhere_is_added_to_the_kept_evidence(tmp_path, monkeypat
     assert about["tuning_studies"]["2"]["iterations"] == {"adam": 300.0, "hig": 120.0}
     assert about["tuning_studies"]["1"]["iterations"] == {"adam": 100.0, "hig": 200.0}
     assert about["iterations"] == {"adam": 200.0, "hig": 160.0}  # medians of the studies'
+    # what the study's tuning chose, and the trials it chose from, shown on the page
+    assert about["tuning_studies"]["2"]["tuned"] == {
+        "adam": {"learning_rate": 0.01},
+        "hig": {"learning_rate": 10.0},
+    }
+    assert len(about["tuning_studies"]["2"]["trials"]) == 6
+    shown = tuned_settings.tuned_table(evidence)
+    assert "| toy | hig | study 2: learning_rate=10 *edge* |" in shown, shown
     toy = leaderboard_scenes.SCENES[0]
     assert json.loads((evidence / "toy.calibration.json").read_text()) == clock
     assert leaderboard_scenes.kept_clock(toy, evidence) == evidence / "toy.calibration.json"

@@ -1,6 +1,7 @@
-"""The tuned settings behind the claims' verdicts, from the kept evidence (each tuning study's
-`tuned` and `trials`, experiments/study_runs.tuned_trials): what each study's tuning chose per
-variant, and where a choice sits in the outer tenth of the values its trials tried."""
+"""The tuned settings behind the claims' and the leaderboard's verdicts, from the kept evidence
+(each tuning study's `tuned` and `trials`, experiments/study_runs.tuned_trials): what each study's
+tuning chose per variant, and where a choice sits in the outer tenth of the values its trials
+tried."""
 
 from __future__ import annotations
 
