@@ -118,6 +118,10 @@ def _twin_runs(root: Path, name: str, suffix: str, spec: Study | None) -> object
     if spec is not None:  # evidence is data: a variant the study does not run is not its
         names = {v for study in (runs.tuning or (runs,)) for v in study.paths}
         known = spec.variant_names(preset=bool(suffix))
+        if suffix and isinstance(spec.preset, str):  # also by the tuned study's names (below)
+            key, _, value = spec.preset.partition("=")
+            fixed = f"{key.rsplit('.', 1)[-1]}={value}"
+            known += [f"{n} {fixed}" for n in known]
         unknown = sorted(names - set(known))
         if unknown:
             raise UserError(
