@@ -306,7 +306,10 @@ def first_of_sweeps(overrides: list[str]) -> list[str]:
         if not override.is_sweep_override():
             first.append(override.input_line)
             continue
-        value = next(iter(override.sweep_string_iterator()), None)
+        try:  # a glob over a group's options needs the loader: left as it is (not composed)
+            value = next(iter(override.sweep_string_iterator()), None)
+        except Exception:  # noqa: BLE001 - Hydra's own sweep kinds raise their own errors
+            value = None
         if value is not None:
             first.append(f"{override.input_line.partition('=')[0]}={value}")
     return first
