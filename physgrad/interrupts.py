@@ -63,6 +63,9 @@ ABANDONED: list[threading.Thread] = []
 # threads all idle, the step's result never ready; physgrad.machine.MEMBERS_XLA_FLAG avoids it)
 STALL_SECONDS = 300.0
 STALL_CPU_SECONDS = 1.0
+# a wait of one WAKE_SECONDS slice that returns this much later found the whole process stopped
+# (SIGSTOP, Ctrl-Z, a suspended machine): no thread computed, so that gap is no evidence of a stall
+PAUSED_SECONDS = 2.0
 STALL_HINT = (
     "XLA's CPU scheduler wedged (seen with steps of several members trained together); run again "
     "with XLA_FLAGS=--xla_cpu_enable_concurrency_optimized_scheduler=false"
@@ -184,7 +187,8 @@ class StopRequest:
         that calls it; fn returns once its results are ready), while this thread waits in slices so
         that the signal handler runs; raises KeyboardInterrupt if a second signal came first, and
         StepStalled if the process used less than stall_cpu_seconds of CPU in stall_seconds without
-        fn returning (either way the computation is left unseen)."""
+        fn returning (either way the computation is left unseen). A slice that returns more than
+        PAUSED_SECONDS late restarts that window: the whole process was stopped, not the step."""
         ready, result = threading.Event(), []
 
         def compute() -> None:
@@ -197,16 +201,18 @@ class StopRequest:
         self._waiting = ready
         thread = threading.Thread(target=compute, daemon=True, name="physgrad-step")
         thread.start()
-        # the process's CPU time since the last look that found it computing
+        # the process's CPU time since the last look that found it computing (or found it resumed)
         since, cpu = time.monotonic(), time.process_time()
-        stalled = False
+        woke, stalled = since, False
         try:
             # a signal delivered to another thread (XLA's) wakes nobody: its handler runs when this
             # thread is back in Python, which the slices ensure
             while not self.at_once and not ready.wait(WAKE_SECONDS):
-                if time.process_time() - cpu >= stall_cpu_seconds:
-                    since, cpu = time.monotonic(), time.process_time()
-                elif time.monotonic() - since > stall_seconds:
+                now = time.monotonic()
+                paused, woke = now - woke > PAUSED_SECONDS, now
+                if paused or time.process_time() - cpu >= stall_cpu_seconds:
+                    since, cpu = now, time.process_time()
+                elif now - since > stall_seconds:
                     stalled = True
                     break
         finally:

@@ -44,6 +44,22 @@ WRITER = textwrap.dedent("""
 """)
 
 
+STEPPER = textwrap.dedent("""
+    import sys, time
+    from physgrad.interrupts import StopRequest
+
+    def busy(seconds):  # a step that computes: the process's CPU time grows
+        end, total = time.perf_counter() + seconds, 0
+        while time.perf_counter() < end:
+            total += 1
+        return total
+
+    print("ready", flush=True)
+    StopRequest().call(busy, float(sys.argv[1]), stall_seconds=1.0, stall_cpu_seconds=0.05)
+    print("returned", flush=True)
+""")
+
+
 def start_writer(path: Path) -> subprocess.Popen:
     process = subprocess.Popen(
         [sys.executable, "-c", WRITER, str(path)], stdout=subprocess.PIPE, text=True
@@ -505,3 +521,22 @@ def test_a_held_folder_names_the_process_holding_its_lock_not_only_what_its_file
     finally:
         holder.kill()
         holder.wait()
+
+
+@pytest.mark.long
+def test_a_process_stopped_at_random_instants_of_a_step_is_not_stalled():
+    """SIGSTOP for longer than the stall window (1 s) and the pause threshold, at random instants
+    of a step that computes, then SIGCONT: the step returns instead of being abandoned as wedged."""
+    rng = random.Random(7)
+    for trial in range(REPEATS):
+        process = subprocess.Popen(
+            [sys.executable, "-c", STEPPER, "3.0"], stdout=subprocess.PIPE, text=True
+        )
+        assert process.stdout.readline().strip() == "ready"
+        for _ in range(2):
+            time.sleep(rng.uniform(0.1, 1.2))
+            process.send_signal(signal.SIGSTOP)
+            time.sleep(2.5)
+            process.send_signal(signal.SIGCONT)
+        out, _ = process.communicate(timeout=30)
+        assert (process.returncode, out.strip()) == (0, "returned"), (trial, out)

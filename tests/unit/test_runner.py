@@ -68,6 +68,55 @@ def test_a_step_that_stops_computing_without_returning_ends_in_one_line_one_that
     assert request.call(busy, 1.5, stall_seconds=0.5, stall_cpu_seconds=0.05) > 0
 
 
+@pytest.mark.parametrize("trial", range(4))
+def test_a_process_stopped_and_resumed_is_not_a_stalled_step(monkeypatch, trial):
+    """SIGSTOP (or Ctrl-Z, or a suspended machine) stops every thread: on resuming, the wall clock
+    has jumped while the CPU clock has not. The jump is injected at random instants of a step that
+    computes (a clock whose monotonic time leaps by 30 s, five times, the stall window 1 s): the
+    step returns. The same leaps read as a stall when a pause is not recognised (the control), and
+    a step that truly computes nothing still stalls between leaps."""
+    import random
+    import threading
+    import time
+    import types
+
+    from physgrad import interrupts
+    from physgrad.interrupts import ABANDONED, StepStalled, StopRequest
+
+    leaps = []
+    clock = types.SimpleNamespace(
+        monotonic=lambda: time.monotonic() + 30.0 * len(leaps), process_time=time.process_time
+    )
+    monkeypatch.setattr(interrupts, "time", clock)
+    rng = random.Random(trial)
+
+    def busy_with_pauses(seconds, pauses):
+        instants = sorted(rng.uniform(0.05, seconds) for _ in range(pauses))
+        start, total = time.perf_counter(), 0
+        while time.perf_counter() - start < seconds:
+            total += 1
+            if instants and time.perf_counter() - start > instants[0]:
+                instants.pop(0)
+                leaps.append(1)
+        return len(leaps)
+
+    request = StopRequest()
+    window = {"stall_seconds": 1.0, "stall_cpu_seconds": 1e3}  # no CPU share ever counts
+    assert request.call(busy_with_pauses, 0.6, 5, **window) == 5
+    monkeypatch.setattr(interrupts, "PAUSED_SECONDS", float("inf"))
+    with pytest.raises(StepStalled):  # control: unrecognised, the first leap reads as a stall
+        request.call(busy_with_pauses, 0.6, 5, **window)
+    monkeypatch.setattr(interrupts, "PAUSED_SECONDS", 2.0)
+    release = threading.Event()
+    threading.Timer(0.2, leaps.append, (1,)).start()
+    start = time.perf_counter()
+    with pytest.raises(StepStalled):  # a wedged step resumed still stalls, a window later
+        request.call(lambda: release.wait(30), stall_seconds=0.5, stall_cpu_seconds=0.05)
+    assert 0.7 <= time.perf_counter() - start < 5
+    release.set()
+    ABANDONED[-1].join(5)
+
+
 def test_first_signal_asks_to_stop_second_ends_a_step_still_computing():
     import signal
     import threading
