@@ -58,6 +58,91 @@ def _eigenbasis(factor: jax.Array) -> jax.Array:
     return jnp.linalg.eigh(factor + jitter * jnp.eye(size, dtype=factor.dtype))[1]
 
 
+def _sides(leaf: jax.Array, max_dim: int) -> tuple[int, int]:
+    """The sizes of a leaf's factors L and R: 0 for a side without Shampoo's basis."""
+    use_left, use_right = _preconditioned(leaf, max_dim)
+    return (leaf.shape[0] if use_left else 0), (leaf.shape[1] if use_right else 0)
+
+
+def _initial_state(params: optax.Params, max_dim: int) -> SoapState:
+    """Zero moments and factors, and the identity basis, per leaf."""
+
+    def square(leaf: jax.Array, side: int) -> jax.Array:
+        size = _sides(leaf, max_dim)[side]
+        return jnp.zeros((size, size), leaf.dtype)
+
+    def identity(leaf: jax.Array, side: int) -> jax.Array:
+        return jnp.eye(_sides(leaf, max_dim)[side], dtype=leaf.dtype)
+
+    return SoapState(
+        count=jnp.zeros((), jnp.int32),
+        mu=jax.tree_util.tree_map(jnp.zeros_like, params),
+        nu=jax.tree_util.tree_map(jnp.zeros_like, params),
+        left=jax.tree_util.tree_map(lambda p: square(p, 0), params),
+        right=jax.tree_util.tree_map(lambda p: square(p, 1), params),
+        basis_left=jax.tree_util.tree_map(lambda p: identity(p, 0), params),
+        basis_right=jax.tree_util.tree_map(lambda p: identity(p, 1), params),
+    )
+
+
+def _rotate(x: jax.Array, q_left: jax.Array, q_right: jax.Array) -> jax.Array:
+    """Into the eigenbasis: Q_L^T x Q_R (the identity on a side without a basis)."""
+    if q_left.shape[0]:
+        x = q_left.T @ x
+    if q_right.shape[0]:
+        x = x @ q_right
+    return x
+
+
+def _rotate_back(x: jax.Array, q_left: jax.Array, q_right: jax.Array) -> jax.Array:
+    """Out of the eigenbasis: Q_L x Q_R^T."""
+    if q_left.shape[0]:
+        x = q_left @ x
+    if q_right.shape[0]:
+        x = x @ q_right.T
+    return x
+
+
+class _Moments(NamedTuple):
+    b1: float
+    b2: float
+    factor_b2: float
+    eps: float
+
+
+def _leaf_step(
+    arrays: tuple[jax.Array, ...], count: jax.Array, refresh: jax.Array, moments: _Moments
+) -> tuple[jax.Array, ...]:
+    """One leaf's normalised step (zero on the first step), and its state after it: (step, mu,
+    nu, L, R, Q_L, Q_R)."""
+    g, mu, nu, left, right, q_left, q_right = arrays
+    b1, b2, factor_b2, eps = moments
+    first = count == 1
+    # this step, in the basis the earlier steps found (the first step moves nothing)
+    steps = jnp.maximum(count - 1, 1).astype(g.dtype)  # Adam's steps: the first skipped
+    new_mu = b1 * mu + (1 - b1) * g
+    new_nu = b2 * nu + (1 - b2) * _rotate(g, q_left, q_right) ** 2
+    m_hat = _rotate(new_mu, q_left, q_right) / (1 - b1**steps)
+    v_hat = new_nu / (1 - b2**steps)
+    step = _rotate_back(m_hat / (jnp.sqrt(v_hat) + eps), q_left, q_right)
+    # then Shampoo's factors, and every `frequency` steps the basis, for the next steps
+    if left.shape[0]:
+        left = factor_b2 * left + (1 - factor_b2) * (g @ g.T)
+        q_left = jax.lax.cond(refresh, _eigenbasis, lambda _: q_left, left)
+    if right.shape[0]:
+        right = factor_b2 * right + (1 - factor_b2) * (g.T @ g)
+        q_right = jax.lax.cond(refresh, _eigenbasis, lambda _: q_right, right)
+    return (
+        jnp.where(first, jnp.zeros_like(step), step),
+        jnp.where(first, mu, new_mu),
+        jnp.where(first, nu, new_nu),
+        left,
+        right,
+        q_left,
+        q_right,
+    )
+
+
 def soap(
     learning_rate: optax.ScalarOrSchedule,
     b1: float = 0.95,
@@ -70,97 +155,24 @@ def soap(
     """SOAP as in the module docstring. shampoo_b2: the factors' averaging (default b2, as the
     authors' code); precondition_frequency: the steps between recomputations of the basis;
     max_precondition_dim: a longer side of a matrix keeps the identity basis."""
-    factor_b2 = b2 if shampoo_b2 is None else shampoo_b2
+    moments = _Moments(b1, b2, b2 if shampoo_b2 is None else shampoo_b2, eps)
     frequency = int(precondition_frequency)
     if frequency < 1:
         raise ValueError(f"precondition_frequency={precondition_frequency}: give 1 or more")
 
-    def sides(leaf: jax.Array) -> tuple[int, int]:
-        use_left, use_right = _preconditioned(leaf, max_precondition_dim)
-        return (leaf.shape[0] if use_left else 0), (leaf.shape[1] if use_right else 0)
-
     def init(params: optax.Params) -> SoapState:
-        def square(leaf: jax.Array, side: int) -> jax.Array:
-            size = sides(leaf)[side]
-            return jnp.zeros((size, size), leaf.dtype)
-
-        def identity(leaf: jax.Array, side: int) -> jax.Array:
-            return jnp.eye(sides(leaf)[side], dtype=leaf.dtype)
-
-        zeros = jax.tree_util.tree_map(jnp.zeros_like, params)
-        return SoapState(
-            count=jnp.zeros((), jnp.int32),
-            mu=zeros,
-            nu=jax.tree_util.tree_map(jnp.zeros_like, params),
-            left=jax.tree_util.tree_map(lambda p: square(p, 0), params),
-            right=jax.tree_util.tree_map(lambda p: square(p, 1), params),
-            basis_left=jax.tree_util.tree_map(lambda p: identity(p, 0), params),
-            basis_right=jax.tree_util.tree_map(lambda p: identity(p, 1), params),
-        )
-
-    def rotate(x: jax.Array, q_left: jax.Array, q_right: jax.Array) -> jax.Array:
-        """Into the eigenbasis: Q_L^T x Q_R (the identity on a side without a basis)."""
-        if q_left.shape[0]:
-            x = q_left.T @ x
-        if q_right.shape[0]:
-            x = x @ q_right
-        return x
-
-    def rotate_back(x: jax.Array, q_left: jax.Array, q_right: jax.Array) -> jax.Array:
-        if q_left.shape[0]:
-            x = q_left @ x
-        if q_right.shape[0]:
-            x = x @ q_right.T
-        return x
+        return _initial_state(params, max_precondition_dim)
 
     def update(
         updates: optax.Updates, state: SoapState, params: optax.Params | None = None
     ) -> tuple[optax.Updates, SoapState]:
         del params
         count = state.count + 1
-        first = state.count == 0
         # after the first step, and after every `frequency` of Adam's steps (count - 1)
-        refresh = jnp.logical_or(first, (count - 1) % frequency == 0)
-
-        def leaf_step(*arrays: jax.Array) -> tuple[jax.Array, ...]:
-            g, mu, nu, left, right, q_left, q_right = arrays
-            # this step, in the basis the earlier steps found (the first step moves nothing)
-            steps = jnp.maximum(count - 1, 1).astype(g.dtype)  # Adam's steps: the first skipped
-            new_mu = b1 * mu + (1 - b1) * g
-            new_nu = b2 * nu + (1 - b2) * rotate(g, q_left, q_right) ** 2
-            m_hat = rotate(new_mu, q_left, q_right) / (1 - b1**steps)
-            v_hat = new_nu / (1 - b2**steps)
-            step = rotate_back(m_hat / (jnp.sqrt(v_hat) + eps), q_left, q_right)
-            # then Shampoo's factors, and every `frequency` steps the basis, for the next steps
-            if left.shape[0]:
-                left = factor_b2 * left + (1 - factor_b2) * (g @ g.T)
-                q_left = jax.lax.cond(refresh, _eigenbasis, lambda _: q_left, left)
-            if right.shape[0]:
-                right = factor_b2 * right + (1 - factor_b2) * (g.T @ g)
-                q_right = jax.lax.cond(refresh, _eigenbasis, lambda _: q_right, right)
-            return (
-                jnp.where(first, jnp.zeros_like(step), step),
-                jnp.where(first, mu, new_mu),
-                jnp.where(first, nu, new_nu),
-                left,
-                right,
-                q_left,
-                q_right,
-            )
-
+        refresh = jnp.logical_or(state.count == 0, (count - 1) % frequency == 0)
         leaves, tree = jax.tree_util.tree_flatten(updates)
-        parts = [
-            jax.tree_util.tree_leaves(part)
-            for part in (
-                state.mu,
-                state.nu,
-                state.left,
-                state.right,
-                state.basis_left,
-                state.basis_right,
-            )
-        ]
-        stepped = [leaf_step(g, *others) for g, *others in zip(leaves, *parts)]
+        parts = [jax.tree_util.tree_leaves(part) for part in state[1:]]
+        stepped = [_leaf_step(arrays, count, refresh, moments) for arrays in zip(leaves, *parts)]
         columns = [jax.tree_util.tree_unflatten(tree, list(c)) for c in zip(*stepped)]
         rate = learning_rate(state.count) if callable(learning_rate) else learning_rate
         directions = jax.tree_util.tree_map(lambda s: -rate * s, columns[0])
