@@ -20,7 +20,7 @@ from physgrad.configs import CONF_DIR, name_options
 from physgrad.errors import UserError, innermost_cause
 from physgrad.experiment import run_job
 from physgrad.gpus import claim_gpu
-from physgrad.job_spec import check
+from physgrad.job_spec import Calibration, calibration_of, check
 from physgrad.runner import Outcome
 from physgrad.sweeps import record_job, stop_count
 from physgrad.trackers import build_trackers, track
@@ -159,10 +159,14 @@ def job(cfg: DictConfig) -> float:
     if stopped is not None:
         log.warning("%s not started: the sweep was stopped (%s)", this.name, stopped[0])
         return float("inf")
-    if cfg.get("calibrate") is not None:
-        return calibration_job(cfg, this)
+    try:
+        calibration = calibration_of(cfg)
+    except UserError as error:
+        return job_failed(this, error)
+    if calibration is not None:
+        return calibration_job(calibration, this)
     spec = check(cfg)
-    trackers = job_trackers(cfg, this)
+    trackers = job_trackers(spec.trackers, this)
     if trackers is None:
         return float("inf")
 
@@ -181,9 +185,9 @@ def job(cfg: DictConfig) -> float:
     return job_ended(this, outcome, path)
 
 
-def calibration_job(cfg: DictConfig, this: Job) -> float:
+def calibration_job(calibration: Calibration, this: Job) -> float:
     """A study's calibration as one of its jobs, so that the step costs are measured where the jobs
-    run: the step costs of the configs in cfg.calibrate ({variant: config}) on cfg.seed
+    run: the step costs of the calibration's configs ({variant: config}) on its seed
     (physgrad.timing.calibrate, with the host and device) into the job folder's calibration.json. A
     signal ends it at once, interrupted (no file)."""
     from physgrad.files import own_folder
@@ -197,7 +201,7 @@ def calibration_job(cfg: DictConfig, this: Job) -> float:
                 record_job(this.sweep, this.out_dir, this.overrides, "started")
             stop.raising = True
             stop.raise_if_stopped()
-            path = write_calibration_of(cfg.calibrate, int(cfg.seed), this.out_dir)
+            path = write_calibration_of(calibration.configs, calibration.seed, this.out_dir)
             stop.raising = False
     except KeyboardInterrupt as interrupt:
         why = f"{interrupt.args[0] if interrupt.args else 'SIGINT'} while calibrating"
@@ -209,15 +213,15 @@ def calibration_job(cfg: DictConfig, this: Job) -> float:
         return job_failed(this, error)
     if this.sweep is not None:
         record_job(this.sweep, this.out_dir, this.overrides, "completed")
-    log.info("calibrated the step costs of %d variants -> %s", len(cfg.calibrate), path)
+    log.info("calibrated the step costs of %d variants -> %s", len(calibration.configs), path)
     return 0.0
 
 
-def job_trackers(cfg: DictConfig, this: Job) -> list | None:
-    """The experiment trackers of logger=...; None when their settings are refused (the job is
-    skipped in a sweep; a single run exits 2)."""
+def job_trackers(settings: dict[str, dict], this: Job) -> list | None:
+    """The experiment trackers of logger=... (their settings, checked at the door); None when one
+    cannot be built (the job is skipped in a sweep; a single run exits 2)."""
     try:
-        return build_trackers(cfg.get("logger"))
+        return build_trackers(settings)
     except UserError as error:
         if not this.multirun:
             print(f"physgrad: error: {error}", file=sys.stderr)

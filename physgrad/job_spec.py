@@ -57,7 +57,8 @@ class JobSpec:
     clock charges one); the seeds (seed, and one Member per seed or trial); the precision (32 or
     64 bits); the effective number of time steps (None for a scene without time); whether held-out
     validation data are built; the trial values (optim key -> one value per member) or None; the
-    results file a network starts from (init_from) or None; overwrite and figures."""
+    results file a network starts from (init_from) or None; overwrite and figures; the experiment
+    trackers of logger=... (name -> its settings, plain data, built by physgrad.trackers)."""
 
     task: dict
     optim: dict
@@ -71,6 +72,7 @@ class JobSpec:
     overwrite: bool
     figures: bool
     members: tuple[Member, ...]
+    trackers: dict[str, dict] = dataclasses.field(default_factory=dict)
 
     @property
     def task_name(self) -> str:
@@ -108,18 +110,33 @@ class Refusal:
 
     reason: str
     members: tuple[Member, ...]
+    trackers: dict[str, dict] = dataclasses.field(default_factory=dict)
+
+
+@dataclass(frozen=True)
+class Calibration:
+    """A study's calibration job (calibrate={variant: config}): each variant's whole run config,
+    resolved into plain data, and the seed its step costs are measured on."""
+
+    configs: dict[str, dict]
+    seed: int
 
 
 def check(cfg: DictConfig) -> JobSpec | Refusal:
     """The door: the composed config checked into a JobSpec, or the Refusal that says why not."""
     why = too_many_seeds(cfg) or trial_values_refusal(cfg)
+    try:
+        trackers = tracker_settings(cfg)
+    except UserError as error:
+        why = why or str(error)
+        trackers = {}
     if why is not None:
-        return Refusal(why, ())
+        return Refusal(why, (), trackers)
     members = _members(cfg)
     try:
         trainer = check_config(cfg)
     except UserError as error:
-        return Refusal(str(error), members)
+        return Refusal(str(error), members, trackers)
     values = cfg.get("trial_values")
     return JobSpec(
         task=OmegaConf.to_container(cfg.task, resolve=True),
@@ -138,6 +155,39 @@ def check(cfg: DictConfig) -> JobSpec | Refusal:
         overwrite=bool(cfg.get("overwrite", False)),
         figures=bool(cfg.get("figures", True)),
         members=members,
+        trackers=trackers,
+    )
+
+
+def tracker_settings(cfg: DictConfig) -> dict[str, dict]:
+    """logger=...: each tracker's settings (name -> its node, resolved; entries that are not a
+    mapping, as a tracker switched off with null, are left out); UserError when the section is
+    not a mapping."""
+    logger = cfg.get("logger")
+    if not logger:
+        return {}
+    if not isinstance(logger, DictConfig):
+        raise UserError(
+            f"logger={logger!r}: give a mapping of tracker name -> settings (logger=tensorboard; "
+            "see docs/configuration.md), or leave it out"
+        )
+    nodes = OmegaConf.to_container(logger, resolve=True)
+    return {str(name): node for name, node in nodes.items() if isinstance(node, dict)}
+
+
+def calibration_of(cfg: DictConfig) -> Calibration | None:
+    """A calibration job's request (calibrate={variant: config}), or None for a training job;
+    UserError when calibrate is not such a mapping."""
+    configs = cfg.get("calibrate")
+    if configs is None:
+        return None
+    if not isinstance(configs, DictConfig) or not all(
+        isinstance(config, DictConfig) for config in configs.values()
+    ):
+        raise UserError("calibrate: give a mapping of variant -> its whole run config")
+    return Calibration(
+        {str(name): OmegaConf.to_container(c, resolve=True) for name, c in configs.items()},
+        int(cfg.seed),
     )
 
 

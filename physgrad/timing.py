@@ -341,18 +341,16 @@ def update_cost(step_seconds: float, advanced_seconds: float, schedule: object) 
 
 
 def write_calibration_of(configs: Mapping, seed: int, folder: Path) -> Path:
-    """calibrate() of {name: config} (each a whole resolved run config) into
-    folder/calibration.json, written by rename; returns its path."""
+    """calibrate() of {name: config} (each a whole run config as plain data, resolved: the door's
+    physgrad.job_spec.Calibration) into folder/calibration.json, written by rename; returns its
+    path."""
     import json
 
     from omegaconf import OmegaConf
 
     from physgrad.files import replace_file
 
-    plain = {
-        str(name): OmegaConf.create(OmegaConf.to_container(config, resolve=True))
-        for name, config in configs.items()
-    }
+    plain = {str(name): OmegaConf.create(config) for name, config in configs.items()}
     path = Path(folder) / "calibration.json"
     replace_file(path, json.dumps(calibrate(plain, seed), indent=1).encode())
     return path

@@ -199,25 +199,13 @@ class WandB:
             log.info("W&B offline run of %s in %s: upload it with `wandb sync`", name, tracked.dir)
 
 
-def build_trackers(logger_cfg: Mapping | None) -> list:
-    """The trackers a `logger` config names (a mapping of name -> node with _target_); UserError
-    (one line) for an entry that cannot be built."""
-    from omegaconf import OmegaConf
-
+def build_trackers(settings: Mapping[str, Mapping]) -> list:
+    """The trackers of logger=... (name -> the settings of one, with its _target_, as the door
+    checked them: physgrad.job_spec.tracker_settings); UserError (one line) for an entry that
+    cannot be built."""
     from physgrad.validate import call_target
 
-    if not logger_cfg:
-        return []
-    nodes = (
-        OmegaConf.to_container(logger_cfg, resolve=True)
-        if OmegaConf.is_config(logger_cfg)
-        else logger_cfg
-    )
-    return [
-        call_target(f"logger.{name}", node)
-        for name, node in nodes.items()
-        if isinstance(node, dict)
-    ]
+    return [call_target(f"logger.{name}", node) for name, node in settings.items()]
 
 
 def track(trackers: list, paths: list[Path], job_folder: Path) -> None:

@@ -7,8 +7,10 @@ import dataclasses
 from pathlib import Path
 
 import pytest
+from omegaconf import OmegaConf
 
-from physgrad.job_spec import JobSpec, Refusal, check, checked
+from physgrad.errors import UserError
+from physgrad.job_spec import JobSpec, Refusal, calibration_of, check, checked
 from physgrad.members import comparable_config
 from tests.helpers import load
 
@@ -65,8 +67,41 @@ def test_the_members_config_is_the_config_a_re_run_compares():
     assert member.config == comparable_config(cfg) and "overwrite" not in member.config
 
 
+def test_trackers_and_a_calibration_are_checked_at_the_door_into_plain_data():
+    """logger=... reaches the trackers as plain settings (a refused job keeps them, its outcome is
+    still tracked); a logger or calibrate that is not a mapping is one line."""
+    spec = check(load("task=toy", "logger=tensorboard"))
+    assert isinstance(spec.trackers["tensorboard"], dict)
+    assert spec.trackers["tensorboard"]["_target_"] == "physgrad.trackers.TensorBoard"
+    refused = check(load("task=toy", "logger=tensorboard", "trainer.iterations=-1"))
+    assert isinstance(refused, Refusal) and "tensorboard" in refused.trackers
+    assert check(load("task=toy")).trackers == {}
+    cfg = load("task=toy")
+    OmegaConf.update(cfg, "logger", 7, force_add=True)
+    bad = check(cfg)
+    assert isinstance(bad, Refusal) and bad.reason.startswith("logger=7: give a mapping")
+    assert calibration_of(load("task=toy")) is None
+    cfg = load("task=toy", "seed=3")
+    OmegaConf.update(cfg, "calibrate", {}, force_add=True)
+    cfg.calibrate = {"adam": load("task=toy"), "gd": load("task=toy", "optim=gd")}
+    request = calibration_of(cfg)
+    assert request.seed == 3 and request.configs["gd"]["optim"]["name"] == "gd"
+    assert isinstance(request.configs["adam"], dict)
+    cfg.calibrate = {"adam": 1}
+    with pytest.raises(UserError, match="calibrate: give a mapping of variant"):
+        calibration_of(cfg)
+
+
 # the modules below the door: they take a JobSpec, never the composed config
-BELOW_THE_DOOR = ["experiment", "refusals", "resume", "runner", "training", "run_figures"]
+BELOW_THE_DOOR = [
+    "experiment",
+    "refusals",
+    "resume",
+    "runner",
+    "training",
+    "run_figures",
+    "trackers",
+]
 # the one convenience that takes a config: it hands it to the door first
 DOOR_ENTRIES = {("experiment", "run_experiment")}
 
