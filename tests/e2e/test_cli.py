@@ -121,7 +121,11 @@ def test_hydra_flags_keep_working(tmp_path):
         (["optim=hgi"], "unknown optim 'hgi': did you mean hig?"),
         # refused by the job, once its config is composed (tests/integration/test_configs.py)
         (["unroll=8"], "task=poisson has no time axis: remove unroll=8"),
-        (["optim=stable_bptt"], "optim=stable_bptt needs a closed-loop controller"),
+        pytest.param(  # a second refusal by the job: make test-long
+            ["optim=stable_bptt"],
+            "optim=stable_bptt needs a closed-loop controller",
+            marks=pytest.mark.long,
+        ),
     ],
 )
 def test_a_user_mistake_is_one_line_on_the_console(args, fragment, tmp_path):

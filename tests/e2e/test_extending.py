@@ -282,7 +282,12 @@ def build(key, *, test_size, limit):
 """
 
 
-@pytest.mark.parametrize("limit", [300, 0], ids=["in a step", "in the first evaluation"])
+# the fault's second instant (the first evaluation, before any step): make test-long
+@pytest.mark.parametrize(
+    "limit",
+    [300, pytest.param(0, marks=pytest.mark.long)],
+    ids=["in a step", "in the first evaluation"],
+)
 def test_a_solver_that_gives_up_in_a_step_ends_the_run_diverged_with_its_cause(
     tmp_path, monkeypatch, caplog, limit
 ):

@@ -21,7 +21,8 @@ def test_long_unroll_runs_for_adam(tmp_path):
     assert read_run(path).attrs["unroll"] == 1024
 
 
-@pytest.mark.parametrize("optim", ["hig", "gauss_newton"])
+# HIG in make test, Gauss-Newton (the same Jacobian pass, another direction) in make test-long
+@pytest.mark.parametrize("optim", ["hig", pytest.param("gauss_newton", marks=pytest.mark.long)])
 def test_jacobian_rules_take_finite_steps_at_the_reference_settings(optim, tmp_path):
     from physgrad.experiment import run_experiment
     from physgrad.results import read_run

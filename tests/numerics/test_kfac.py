@@ -181,6 +181,9 @@ def test_a_dense_jacobian_is_refused():
         rule.update(flat, rule.init(flat), flat, jacobian=jnp.ones((3, 4)), output_grad=jnp.ones(3))
 
 
+# a 100-iteration run: make test-long (make test checks the step against its closed form above, and
+# runs K-FAC and its refusal through the runner in test_configs.py's pairs)
+@pytest.mark.long
 def test_kfac_trains_the_toy_and_is_refused_where_the_network_is_not_layer_factorised(tmp_path):
     run = physgrad.run(
         "task=toy",

@@ -85,7 +85,8 @@ def test_muon_orthogonalises_each_layer_not_one_flat_vector(x64):
         assert su[0] / su[1] < sg[0] / sg[1]
 
 
-@pytest.mark.parametrize("optim", ["adam", "gd"])
+# Adam in make test, plain gradient descent (the simpler element-wise rule) in make test-long
+@pytest.mark.parametrize("optim", ["adam", pytest.param("gd", marks=pytest.mark.long)])
 def test_element_wise_rules_compute_the_same_on_the_flat_vector(optim):
     scene, rule, seeds, settings = toy(optim)
     assert not rule.on_layers

@@ -98,10 +98,14 @@ def test_a_step_that_raises_the_loss_is_rejected_and_the_damping_grows(x64):
     )
 
 
-# L-BFGS through the runner in make test-long (its rule is in test_rule_contract.py)
+# both through the runner in make test-long (make test: their rules in test_rule_contract.py, and
+# Levenberg-Marquardt through the runner in test_configs.py's pairs)
 @pytest.mark.parametrize(
     "optim, batch",
-    [("levenberg_marquardt", 64), pytest.param("lbfgs", 1024, marks=pytest.mark.long)],
+    [
+        pytest.param("levenberg_marquardt", 64, marks=pytest.mark.long),
+        pytest.param("lbfgs", 1024, marks=pytest.mark.long),
+    ],
 )
 def test_the_rules_train_a_scene_through_the_runner(optim, batch, tmp_path):
     """The well-conditioned toy's loss (lambda = 1) at least halves in 100 steps. L-BFGS gets a

@@ -176,7 +176,8 @@ def test_a_network_larger_than_max_parameters_is_refused_in_one_line():
         self_scaled_broyden(variant="dfp")
 
 
-@pytest.mark.parametrize("rule", ["lbfgs", "ssbroyden"])
+# L-BFGS in make test; SSBroyden (the same zoom line search, read the same way) in make test-long
+@pytest.mark.parametrize("rule", ["lbfgs", pytest.param("ssbroyden", marks=pytest.mark.long)])
 def test_the_logged_line_search_evaluations_are_the_evaluations_made(rule):
     """What the calibrated clock charges a line-search step (physgrad.optim.state_logs'
     linesearch_evaluations) against a count kept outside the rule: every evaluation of the loss the
