@@ -9,8 +9,9 @@ import math
 import numpy as np
 from study_runs import StudyRuns
 
-from physgrad.claim import Claim, Grows, Reaches, Stalls, short, tuning_studies
+from physgrad.claim import Claim, Grows, Reaches, Stalls, tuning_studies
 from physgrad.claim_words import left_start
+from physgrad.readout import fmt
 
 
 def budget_text(runs: StudyRuns) -> str:
@@ -76,5 +77,5 @@ def variants_left_start(claim: Claim, runs: StudyRuns) -> tuple[bool, str]:
         trained &= left_start(starts, finals)
         ratios = [f / s for s, f in zip(starts, finals) if s > 0 and not math.isnan(f)]
         factor = 1 / float(np.median(ratios)) if ratios else math.nan
-        said.append(f"{variant} {short(factor)}x")
+        said.append(f"{variant} {fmt(factor)}x")
     return trained and bool(said), ", ".join(said)

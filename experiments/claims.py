@@ -45,7 +45,6 @@ from physgrad.claim import (  # noqa: F401 - Close and Lower: the parts' names, 
     Reaches,
     Stalls,
     claim_of_part,
-    short,
     studies_of,
     tuning_studies,
 )

@@ -58,6 +58,7 @@ from tuned_settings import tuned_table
 
 from physgrad.errors import UserError
 from physgrad.files import clean_text, make_folder, replace_file
+from physgrad.readout import fmt
 from physgrad.replication import across_studies
 from physgrad.verdict import (
     FRACTIONS,
@@ -155,12 +156,6 @@ def board(root: Path) -> dict[str, tuple[dict[str, Cell], object, dict]]:
 # --------------------------------------------------------------------------------------------
 
 
-def _r(x: float) -> str:
-    if not math.isfinite(x):
-        return "inf" if x == math.inf else "-"
-    return f"{x:.3g}"
-
-
 def cell_text(cell: Cell, scene_studies: int = 0, to: str = "") -> str:
     """A cell as the table prints it, its verdict a link to its scene's page (to) where given;
     with the tuning studies that ran the rule where they are fewer than the scene's."""
@@ -168,7 +163,7 @@ def cell_text(cell: Cell, scene_studies: int = 0, to: str = "") -> str:
     fewer = len(cell.studies) < scene_studies
     return (
         (f"[**{mark}**]({to})" if to else f"**{mark}**")
-        + f" {_r(cell.ratio)}x [{_r(cell.low)}, {_r(cell.high)}], {cell.wins}/{cell.pairs}"
+        + f" {fmt(cell.ratio)}x [{fmt(cell.low)}, {fmt(cell.high)}], {cell.wins}/{cell.pairs}"
         + (f" ({len(cell.studies)} of {scene_studies} studies ran it)" if fewer else "")
         + (
             f", {cell.iterations:.0f} steps: decided by a step's cost, not the rule"

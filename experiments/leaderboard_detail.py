@@ -14,6 +14,7 @@ from pathlib import Path
 
 from leaderboard_scenes import BASELINE, LEADERBOARD_STUDIES, RULES
 
+from physgrad.readout import fmt
 from physgrad.verdict import A_BETTER, B_BETTER, EQUIVALENT, MARGIN
 
 FOLDER = "leaderboard"  # beside leaderboard.md
@@ -23,12 +24,6 @@ MARKS = {A_BETTER: "better", B_BETTER: "worse", EQUIVALENT: "equivalent"}
 
 def mark(verdict: str) -> str:
     return MARKS.get(verdict, "undecided")
-
-
-def _r(x: float) -> str:
-    if not math.isfinite(x):
-        return "inf" if x == math.inf else "-"
-    return f"{x:.3g}"
 
 
 def link(scene: str, rule: str) -> str:
@@ -300,7 +295,7 @@ def _its(iterations: dict, rule: str) -> str:
 def _ratio(p) -> str:
     from physgrad.verdict import ratio_of
 
-    return f"{_r(p.ratio)} [{_r(ratio_of(p.low))}, {_r(ratio_of(p.high))}]"
+    return f"{fmt(p.ratio)} [{fmt(ratio_of(p.low))}, {fmt(ratio_of(p.high))}]"
 
 
 def scene_page(entry, cells: dict, runs, about: dict) -> str:
@@ -347,13 +342,14 @@ def scene_page(entry, cells: dict, runs, about: dict) -> str:
                 f"| {keys[k] if keys else k + 1} | {mark(verdict)} ({why}) | {_ratio(p)} | "
                 f"{p.wins_a} of {p.pairs} | "
                 + " | ".join(
-                    f"{_r(result.at[f].ratio)} ({mark(result.verdicts[f][0])})" for f in (0.25, 0.5)
+                    f"{fmt(result.at[f].ratio)} ({mark(result.verdicts[f][0])})"
+                    for f in (0.25, 0.5)
                 )
                 + f" | {rule} {_its(its, rule)}, {BASELINE} {_its(its, BASELINE)} |"
             )
         lines.append(
-            f"| over the studies | **{mark(cell.verdict)}** | {_r(cell.ratio)} [{_r(cell.low)}, "
-            f"{_r(cell.high)}] | {cell.wins} of {cell.pairs} | | | |"
+            f"| over the studies | **{mark(cell.verdict)}** | {fmt(cell.ratio)} [{fmt(cell.low)}, "
+            f"{fmt(cell.high)}] | {cell.wins} of {cell.pairs} | | | |"
         )
         lines += ["", detectable_line(cell, len(cells))]
     return "\n".join(lines) + "\n"

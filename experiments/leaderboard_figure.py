@@ -7,10 +7,11 @@ import math
 from pathlib import Path
 
 import numpy as np
-from leaderboard_detail import MARKS, _r  # experiments/
+from leaderboard_detail import MARKS  # experiments/
 from leaderboard_scenes import LEADERBOARD_STUDIES, RULES, SCENES
 
 from physgrad.comparison.coverage import FEW_STEPS  # noqa: F401 - a cell on fewer is marked
+from physgrad.readout import fmt
 from physgrad.verdict import A_BETTER, B_BETTER, EQUIVALENT, MARGIN
 
 
@@ -58,7 +59,7 @@ def plot(found: dict, path: Path) -> None:
                 ax.text(
                     j,
                     i,
-                    f"{symbol}{_r(cell.ratio)}x{few}",
+                    f"{symbol}{fmt(cell.ratio)}x{few}",
                     ha="center",
                     va="center",
                     fontsize=8,

@@ -17,9 +17,8 @@ from evidence import read_json  # experiments/
 from studies import MAP, Study
 from study_runs import read_study
 
-from physgrad.claim import short
 from physgrad.files import write_figure
-from physgrad.readout import highest_median
+from physgrad.readout import fmt, highest_median
 from physgrad.verdict import A_BETTER, B_BETTER, EQUIVALENT, compare_variants, ratio_of
 
 
@@ -135,8 +134,8 @@ def plot_map(cells: dict[str, list[Cell]], path: Path, machine: str, note: str =
             ax.text(
                 j,
                 i,
-                f"{MAP_VERDICTS.get(c.verdict, c.verdict)}\n{short(c.ratio)} [{short(c.low)}, "
-                f"{short(c.high)}]\n"
+                f"{MAP_VERDICTS.get(c.verdict, c.verdict)}\n{fmt(c.ratio)} [{fmt(c.low)}, "
+                f"{fmt(c.high)}]\n"
                 f"reached: HIG {c.reached[0]}, Adam {c.reached[1]} of {c.reached[2]}",
                 ha="center",
                 va="center",
@@ -156,7 +155,7 @@ def plot_map(cells: dict[str, list[Cell]], path: Path, machine: str, note: str =
             for r in rows
         }
         labels = [
-            (f"batch {r}\n" if r else "") + f"HIG step\n= {short(costs[r])} x Adam's" for r in rows
+            (f"batch {r}\n" if r else "") + f"HIG step\n= {fmt(costs[r])} x Adam's" for r in rows
         ]
         ax.set_yticks(range(len(rows)), labels, fontsize=8)
         ax.set_xticks(range(len(xs)), [f"{x:g}" for x in xs])
@@ -207,8 +206,8 @@ def regime_map(root: Path, out: Path, note: str = "") -> str:
     for found in cells.values():
         for c in found:
             lines.append(
-                f"| {c.study} | {c.conditioning:g} | {short(c.cost_ratio)} | {short(c.ratio)} "
-                f"[{short(c.low)}, {short(c.high)}] | "
+                f"| {c.study} | {c.conditioning:g} | {fmt(c.cost_ratio)} | {fmt(c.ratio)} "
+                f"[{fmt(c.low)}, {fmt(c.high)}] | "
                 f"{c.reached[0]}, {c.reached[1]} of {c.reached[2]} | "
                 f"{MAP_VERDICTS.get(c.verdict, c.verdict)} |"
             )

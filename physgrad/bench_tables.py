@@ -5,12 +5,14 @@ from __future__ import annotations
 
 import os
 
+from physgrad.readout import fmt
+
 
 def duration(seconds: float | None) -> str:
     """Milliseconds below a second, else seconds, to three figures; "" for None."""
     if seconds is None:
         return ""
-    return f"{seconds * 1e3:.3g} ms" if seconds < 1 else f"{seconds:.3g} s"
+    return f"{fmt(seconds * 1e3)} ms" if seconds < 1 else f"{fmt(seconds)} s"
 
 
 def table(rows: list[dict]) -> str:

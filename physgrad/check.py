@@ -28,6 +28,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from physgrad.files import write_text
+from physgrad.readout import fmt
 from physgrad.stability_probes import (
     bptt_gradient_growth,
     quantum_norm_drift,
@@ -205,7 +206,9 @@ def run_row(case: RunCase, out_dir: Path) -> dict:
     if outcome.status == "completed":
         initial = float(test[0]) if test.size else math.nan
         label = "converged" if final < 0.5 * initial else ("grew" if final > initial else "stalled")
-        detail = f"test loss {float(test[0]):.3g} -> {final:.3g} in {outcome.iterations} iterations"
+        detail = (
+            f"test loss {fmt(float(test[0]))} -> {fmt(final)} in {outcome.iterations} iterations"
+        )
     else:
         label = outcome.status
         train_loss = run.train.get("loss", np.empty(0))

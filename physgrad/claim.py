@@ -28,6 +28,7 @@ from pathlib import Path
 from typing import Protocol
 
 from physgrad.claim_words import SEEDS_DISAGREE, STUDIES_DISAGREE
+from physgrad.readout import fmt
 from physgrad.replication import across_studies, majority, over_studies
 from physgrad.verdict import (
     A_BETTER,
@@ -162,15 +163,6 @@ class Decision:
     cause: tuple[str, str] = ("", "")
 
 
-def short(x: float) -> str:
-    """x in three significant figures; "-" for NaN."""
-    if math.isnan(x):
-        return "-"
-    if math.isinf(x) or x == 0:
-        return {0.0: "0", math.inf: "inf"}.get(x, str(x))
-    return f"{x:.3g}"
-
-
 def fraction_text(fraction: float) -> str:
     """1/4 of the budget: "X/4"; the budget: "X"."""
     if fraction == 1.0:
@@ -240,13 +232,13 @@ def decide_pairs(runs: Runs, parts: list, fraction: float = 1.0) -> list[Decisio
             if k
         )
         earlier = "; ".join(
-            f"at {fraction_text(f)} {short(result.at[f].ratio)} ({result.verdicts[f][0]})"
+            f"at {fraction_text(f)} {fmt(result.at[f].ratio)} ({result.verdicts[f][0]})"
             for f in fractions
             if f < fraction
         )
         measured = (
-            f"{part.a} / {part.b} = {short(p.ratio)} "
-            f"[{short(ratio_of(p.low))}, {short(ratio_of(p.high))}], "
+            f"{part.a} / {part.b} = {fmt(p.ratio)} "
+            f"[{fmt(ratio_of(p.low))}, {fmt(ratio_of(p.high))}], "
             f"{part.a} lower in {p.wins_a} of {p.pairs}{diverged}"
             + (f"; {earlier}" if earlier else "")
             + (f"; over {len(runs.tuning)} tuning studies" if runs.tuning else "")

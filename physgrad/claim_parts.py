@@ -26,10 +26,10 @@ from physgrad.claim import (
     _over_studies,
     decide_pairs,
     log_ratios_at_budget,
-    short,
     tuning_studies,
 )
 from physgrad.claim_words import ABOVE, BELOW, SEEDS_DISAGREE, against_level
+from physgrad.readout import fmt
 from physgrad.trend import GROWS, interaction
 from physgrad.verdict import (
     A_BETTER,
@@ -74,13 +74,12 @@ def decide_grows(easy: Runs, hard: Runs, part: Grows, fraction: float = 1.0) -> 
     finite = lambda r: [v for v in r if not math.isnan(v)]  # noqa: E731
     pooled_easy = finite([v for r, _ in ratios for v in r])
     pooled_hard = finite([v for _, r in ratios for v in r])
-    median = lambda r: short(ratio_of(float(np.median(r)))) if r else "-"  # noqa: E731
+    median = lambda r: fmt(ratio_of(float(np.median(r)))) if r else "-"  # noqa: E731
     measured = (
         f"{part.a} / {part.b}: {median(pooled_easy)} at {part.easy}, {median(pooled_hard)} at "
         f"{part.hard}; hard / easy = "
         + ", ".join(
-            f"{short(r.factor)} [{short(ratio_of(r.low))}, {short(ratio_of(r.high))}]"
-            for r in results
+            f"{fmt(r.factor)} [{fmt(ratio_of(r.low))}, {fmt(ratio_of(r.high))}]" for r in results
         )
         + (f" in {len(results)} tuning studies" if len(results) > 1 else "")
     )
@@ -125,11 +124,10 @@ def decide_stall(runs: Runs, part: Stalls, fraction: float = 1.0) -> Decision:
     measured = (
         f"{part.column} at the budget / at half of it = "
         + ", ".join(
-            f"{short(p.ratio)} [{short(ratio_of(p.low))}, {short(ratio_of(p.high))}]"
-            for p, *_ in tests
+            f"{fmt(p.ratio)} [{fmt(ratio_of(p.low))}, {fmt(ratio_of(p.high))}]" for p, *_ in tests
         )
         + (f" in {len(tests)} tuning studies" if len(tests) > 1 else "")
-        + f"; at the budget / at the start: {short(float(np.nanmedian(np.divide(full, first))))}"
+        + f"; at the budget / at the start: {fmt(float(np.nanmedian(np.divide(full, first))))}"
         + (f"; diverged in {diverged} of {len(full)}" if diverged else "")
     )
     return Decision(claim, measured, why)
@@ -166,7 +164,7 @@ def decide_reach(runs: Runs, part: Reaches, fraction: float = 1.0) -> Decision:
         )
     measured = (
         f"{part.column} at the budget: median "
-        + ", ".join(short(_median(values)) for values in found)
+        + ", ".join(fmt(_median(values)) for values in found)
         + (f" in {len(found)} tuning studies" if len(found) > 1 else "")
         + f"; below {part.level:g} in {sum(v < part.level for v in pooled)} of {len(pooled)}"
         + (f"; diverged in {diverged}" if diverged else "")

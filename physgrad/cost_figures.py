@@ -24,7 +24,7 @@ from physgrad.plots import (  # noqa: E402
     save_figure,
     styles_for,
 )
-from physgrad.readout import loss_at, targets, time_to_target  # noqa: E402
+from physgrad.readout import fmt, loss_at, targets, time_to_target  # noqa: E402
 from physgrad.results import Run, natural_key  # noqa: E402
 
 if TYPE_CHECKING:
@@ -138,7 +138,7 @@ def _tradeoff_axes(top: Axes, bottom: Axes, groups: list[tuple[str, dict]], limi
         (top, "seconds per iteration"),
         (
             bottom,
-            f"training seconds to test loss {limit:.3g}"
+            f"training seconds to test loss {fmt(float(limit))}"
             if np.isfinite(limit)
             else "training seconds to the threshold (none)",
         ),

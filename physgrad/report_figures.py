@@ -27,6 +27,7 @@ from physgrad.plots import (  # noqa: E402
     save_figure,
     styles_for,
 )
+from physgrad.readout import fmt  # noqa: E402
 from physgrad.results import Run, natural_key  # noqa: E402
 
 if TYPE_CHECKING:
@@ -242,7 +243,7 @@ def _draw_diverged(ax: Axes, groups: dict, styles: dict) -> None:
             )
             note = f"{len(notes) + 1}: {label}: {_short_reason(reason)}"
             notes.append(
-                ((x[-1], min(y[-1], top)), note + (f" (loss {y[-1]:.3g})" if above else ""))
+                ((x[-1], min(y[-1], top)), note + (f" (loss {fmt(float(y[-1]))})" if above else ""))
             )
     if notes:
         shown = [note for _, note in notes[:MAX_DIVERGED_NOTES]]

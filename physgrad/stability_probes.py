@@ -10,6 +10,8 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
+from physgrad.readout import fmt
+
 if TYPE_CHECKING:
     from physgrad.nets import Params
 
@@ -106,7 +108,7 @@ def bptt_gradient_growth(small: bool) -> list[dict]:
                 "outcome": "finite" if all(map(math.isfinite, norms)) else "non-finite",
                 "final loss": math.nan,
                 "detail": ", ".join(f"{h}: {n:.2e}" for h, n in zip(unrolls, norms))
-                + f"; x{growth:.3g} per doubling",
+                + f"; x{fmt(float(growth))} per doubling",
             }
         )
     set_precision(32)

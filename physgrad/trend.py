@@ -12,6 +12,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from physgrad.paired_stats import CONFIDENCE, MARGIN, RESAMPLES, ratio_of
+from physgrad.readout import fmt
 from physgrad.verdict import ALPHA, MIN_PAIRS, UNDECIDED
 
 
@@ -94,6 +95,6 @@ def interaction(
     else:
         verdict, why = (
             UNDECIDED,
-            f"p = {p:.2g}, interval [{ratio_of(low):.3g}, {ratio_of(high):.3g}]",
+            f"p = {p:.2g}, interval [{fmt(ratio_of(low))}, {fmt(ratio_of(high))}]",
         )
     return Interaction(d, low, high, p, easy.size, hard.size, verdict, why)
