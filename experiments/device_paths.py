@@ -31,6 +31,7 @@ import sys
 from pathlib import Path
 
 from physgrad.files import open_append, write_text
+from physgrad.readout import fmt
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
@@ -121,7 +122,8 @@ def tridiagonal(
             route = "gradient" if optim == "adam" else "jacobian"
             chosen = paths.fastest(backend, route)
             cells = [
-                f"{medians[n] * 1e3:.3g} ms ({medians[n] / base:.2f}x){' *' if n == chosen else ''}"
+                f"{fmt(medians[n] * 1e3)} ms ({medians[n] / base:.2f}x)"
+                + (" *" if n == chosen else "")
                 for n in paths.SOLVES
             ]
             rows.append(f"| {task} | {optim} | " + " | ".join(cells) + " |")
@@ -176,7 +178,7 @@ def eigh(repeats: int, min_seconds: float, seeds: int = 8, m: int = 512, n: int 
     rows = ["| path | seconds | throughput vs one seed's eigh |", "|---|---|---|"]
     for name, seconds in medians.items():
         count = 1 if name.startswith("one") else seeds
-        rows.append(f"| {name} | {seconds * 1e3:.3g} ms | {count * one / seconds:.2f}x |")
+        rows.append(f"| {name} | {fmt(seconds * 1e3)} ms | {count * one / seconds:.2f}x |")
     rows.append(f"\n{seeds} Gram matrices {m} x {m} (J {m} x {n}); throughput = seeds x t1 / tN")
     return rows, medians
 
@@ -249,7 +251,7 @@ def overhead(repeats: int, min_seconds: float, task: str = "oscillator") -> tupl
     medians = _medians(fns, repeats, min_seconds)
     base = medians["hand-written: draw, value_and_grad, optax adam"]
     rows = [f"| {task} adam step | seconds | vs hand-written |", "|---|---|---|"]
-    rows += [f"| {n} | {s * 1e3:.3g} ms | {s / base:.3f}x |" for n, s in medians.items()]
+    rows += [f"| {n} | {fmt(s * 1e3)} ms | {s / base:.3f}x |" for n, s in medians.items()]
     return rows, medians
 
 

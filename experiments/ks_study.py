@@ -15,7 +15,7 @@ from pathlib import Path
 import numpy as np
 
 from physgrad.files import write_figure, write_text
-from physgrad.readout import config_row
+from physgrad.readout import config_row, fmt
 from physgrad.results import find_results, read_run
 
 MODALITIES = ("ONE", "NOG", "WIG")
@@ -68,7 +68,7 @@ def paired(table, better, worse) -> tuple[int, int, float]:
 
 
 def _fmt(value: float) -> str:
-    return "inf (diverged)" if value == np.inf else f"{value:.3g}"
+    return "inf (diverged)" if value == np.inf else fmt(value)
 
 
 def claims(table) -> str:
@@ -88,8 +88,8 @@ def claims(table) -> str:
     compared = sum(paired(table, a, b)[1] for a, b in pairs)
     ratios = [r for r in (paired(table, a, b)[2] for a, b in pairs) if not np.isnan(r)]
     measured = (
-        f"median over settings of predict/correct error ratio: {median(ratios):.3g} (range "
-        f"{min(ratios):.3g} to {max(ratios):.3g})"
+        f"median over settings of predict/correct error ratio: {fmt(median(ratios))} (range "
+        f"{fmt(min(ratios))} to {fmt(max(ratios))})"
         if ratios
         else "no setting has finished runs of both steppers: nothing to compare"
     )
@@ -115,8 +115,8 @@ def claims(table) -> str:
                 f"| WIG best, NOG close, WIG below ONE ({stepper}, m={m}) | median error "
                 + ", ".join(f"{t} {_fmt(medians[t])}" for t in MODALITIES)
                 + f"; order {order} | "
-                f"WIG < NOG {w_nog}/{n_nog} (NOG/WIG {r_nog:.3g}), WIG < ONE {w_one}/{n_one} "
-                f"(ONE/WIG {r_one:.3g}) |"
+                f"WIG < NOG {w_nog}/{n_nog} (NOG/WIG {fmt(r_nog)}), WIG < ONE {w_one}/{n_one} "
+                f"(ONE/WIG {fmt(r_one)}) |"
             )
     # 3: an unroll length with the lowest error
     for stepper in STEPPERS:

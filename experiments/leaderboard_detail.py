@@ -385,7 +385,7 @@ def detectable_line(cell, comparisons: int) -> str:
     elif math.isinf(ratio):
         said = "none (too few seeds, or too many divergences)"
     else:
-        said = f"{ratio:.3g}x"
+        said = f"{fmt(ratio)}x"
     return (
         f"Detectable: {said}: the smallest ratio either way that these {len(results)} tuning "
         f"{'study finds' if len(results) == 1 else 'studies find'} with {POWER:.0%} power (the "

@@ -17,6 +17,8 @@ import sys
 from dataclasses import dataclass
 from pathlib import Path
 
+from physgrad.readout import fmt
+
 KINDS = Path(__file__).resolve().parent.parent / "docs" / "evidence" / "scenes.csv"
 JACOBIAN_RULES = ("gauss_newton", "hig")  # a step through the network-through-physics Jacobian
 COLUMNS = ("scene", "loop", "unroll", "batch", "train_size", "parameters")
@@ -136,10 +138,10 @@ def _step_costs(calibration: Path) -> tuple[str, str]:
         for r in JACOBIAN_RULES
         if isinstance(costs.get(r), dict) and "step_seconds" in costs[r]
     ]
-    ratio = f"{min(jacobian):.3g}-{max(jacobian):.3g}" if jacobian else "-"
-    if jacobian and f"{min(jacobian):.3g}" == f"{max(jacobian):.3g}":
-        ratio = f"{jacobian[0]:.3g}"
-    return f"{adam * 1e3:.3g}", ratio
+    ratio = f"{fmt(min(jacobian))}-{fmt(max(jacobian))}" if jacobian else "-"
+    if jacobian and fmt(min(jacobian)) == fmt(max(jacobian)):
+        ratio = fmt(jacobian[0])
+    return fmt(adam * 1e3), ratio
 
 
 def kinds_table(rows: list[tuple[str, str, Path | None]], kinds: dict[str, dict]) -> str:

@@ -20,7 +20,7 @@ from pathlib import Path
 import numpy as np
 
 from physgrad.files import write_figure, write_text
-from physgrad.readout import config_row
+from physgrad.readout import config_row, fmt
 from physgrad.results import Run, find_results, read_run
 
 PROBE = 0.3  # physgrad.tasks.toy.PROBE, repeated so that this script reads results without JAX
@@ -138,7 +138,7 @@ def summary(table: dict) -> str:
             loss, width, saturated = np.median(np.array(final), axis=0)
             diverged = sum(r.attrs.get("status") == "diverged" for r in runs)
             lines.append(
-                f"| {scale:g} | {variant} | {len(runs)} | {diverged} | {loss:.3g} | {width:.2f} | "
+                f"| {scale:g} | {variant} | {len(runs)} | {diverged} | {fmt(loss)} | {width:.2f} | "
                 f"{saturated:.0%} |"
             )
     return "\n".join(lines) + "\n"

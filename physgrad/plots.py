@@ -17,6 +17,7 @@ import numpy as np  # noqa: E402
 from matplotlib.ticker import FuncFormatter, MaxNLocator, NullFormatter, NullLocator  # noqa: E402
 
 from physgrad.files import write_figure
+from physgrad.readout import fmt
 from physgrad.results import Run, natural_key  # noqa: E402
 
 if TYPE_CHECKING:
@@ -98,7 +99,8 @@ def limit_to(ax: Axes, values: Iterable[float], pad: float = 3.0) -> None:
 
 
 def _three_figures(value: float, _position: int | None = None) -> str:
-    return f"{value:.3g}"
+    """A tick label: the tables' number format (readout.fmt)."""
+    return fmt(float(value))
 
 
 def log_axis(ax: Axes, which: str = "y") -> None:

@@ -331,6 +331,8 @@ def config_row(run: Run) -> dict:
 def fmt(value: object) -> str:
     """A number as printed in every table: three significant figures, '-' for a missing one (None,
     NaN), inf and -inf as such; any other value as its text."""
+    if isinstance(value, np.floating):
+        value = float(value)
     if value is None or (isinstance(value, float) and math.isnan(value)):
         return "-"
     if isinstance(value, float) and math.isinf(value):

@@ -5,6 +5,7 @@ cycle, and inside the packages comparison/ and tasks/ each module imports only t
 own."""
 
 import ast
+import re
 from pathlib import Path
 
 import pytest
@@ -351,3 +352,16 @@ def test_signals_are_installed_in_one_place():
         if path.name != "interrupts.py" and "signal.signal(" in path.read_text()
     ]
     assert not found, found
+
+
+# the scenes' own figures sit in the JAX core, below the reading layer that holds readout.fmt
+OWN_NUMBER_FORMAT = {"physgrad/readout.py", "physgrad/tasks/guidance.py", "physgrad/tasks/ks.py"}
+
+
+@pytest.mark.parametrize("path", HOUSE, ids=lambda p: str(p.relative_to(REPO)))
+def test_a_number_in_a_table_or_message_has_one_format(path):
+    """Three significant figures are readout.fmt's (with "-" for a missing number and inf as
+    such): no module writes that format itself, but fmt's and the scenes' figures."""
+    name = str(path.relative_to(REPO))
+    inline = re.findall(r"\{[^{}]*:\.3g\}", path.read_text())
+    assert name in OWN_NUMBER_FORMAT or not inline, f"{name}: {inline}: use physgrad.readout.fmt"
