@@ -14,15 +14,23 @@ from hydra.core.hydra_config import HydraConfig
 from hydra.types import RunMode
 from omegaconf import DictConfig, OmegaConf
 
+# files.replace_file looked up when called: every renamed write goes through it (the fault tests
+# fill the disk there)
+import physgrad.files as files
+
 # the resolver of hydra.sweep.subdir (physgrad_job_folder), registered before Hydra composes a job
 import physgrad.sweep_hooks  # noqa: E402, F401, I001
 from physgrad.configs import CONF_DIR, name_options
 from physgrad.errors import UserError, innermost_cause
 from physgrad.experiment import run_job
+from physgrad.files import make_folder, own_folder
 from physgrad.gpus import claim_gpu
+from physgrad.interrupts import stop_on_signals
 from physgrad.job_spec import Calibration, calibration_of, check
+from physgrad.results import member_order, read_final
 from physgrad.runner import Outcome
 from physgrad.sweeps import record_job, stop_count
+from physgrad.timing import write_calibration_of
 from physgrad.trackers import build_trackers, track
 
 log = logging.getLogger("physgrad")
@@ -33,12 +41,10 @@ def save_traceback(folder: Path) -> Path | None:
     either)."""
     import traceback
 
-    from physgrad.files import replace_file
-
     try:
         folder.mkdir(parents=True, exist_ok=True)
         # beside and renamed: a link planted at error.txt is replaced, not written through
-        replace_file(folder / "error.txt", traceback.format_exc().encode())
+        files.replace_file(folder / "error.txt", traceback.format_exc().encode())
         return folder / "error.txt"
     except OSError:
         return None
@@ -48,8 +54,6 @@ def write_provenance(out_dir: Path, cfg: DictConfig, hydra_cfg: DictConfig) -> N
     """What Hydra writes into .hydra/ when hydra.output_subdir is set (config.yaml, hydra.yaml,
     overrides.yaml), written here instead, once the job holds its folder: a second process refused
     for that folder must not replace a live job's record of how it was started."""
-    from physgrad.files import make_folder, replace_file
-
     folder = make_folder(out_dir / ".hydra")
     hydra_node = OmegaConf.create({"hydra": OmegaConf.to_container(hydra_cfg, resolve=False)})
     for name, node in (
@@ -57,7 +61,7 @@ def write_provenance(out_dir: Path, cfg: DictConfig, hydra_cfg: DictConfig) -> N
         ("hydra.yaml", hydra_node),
         ("overrides.yaml", OmegaConf.create(list(hydra_cfg.overrides.task))),
     ):
-        replace_file(folder / name, OmegaConf.to_yaml(node).encode())
+        files.replace_file(folder / name, OmegaConf.to_yaml(node).encode())
 
 
 SEED_LINES = 8
@@ -66,8 +70,6 @@ SEED_LINES = 8
 def seed_lines(folder: Path) -> list[str]:
     """For a job of several seeds (folder/seed=<s>/results.h5): each seed's status and test loss,
     the first SEED_LINES of them, then the median [min, max] over all that completed."""
-    from physgrad.results import member_order, read_final
-
     rows = []
     for path in sorted(folder.glob("seed=*/results.h5"), key=member_order):
         try:
@@ -190,10 +192,6 @@ def calibration_job(calibration: Calibration, this: Job) -> float:
     run: the step costs of the calibration's configs ({variant: config}) on its seed
     (physgrad.timing.calibrate, with the host and device) into the job folder's calibration.json. A
     signal ends it at once, interrupted (no file)."""
-    from physgrad.files import own_folder
-    from physgrad.interrupts import stop_on_signals
-    from physgrad.timing import write_calibration_of
-
     try:
         with own_folder(this.out_dir), stop_on_signals() as stop:
             this.owned = True

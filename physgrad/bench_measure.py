@@ -12,7 +12,14 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import TYPE_CHECKING
 
+# runner.compile_training looked up when called: the timing tests slow its steps there
+import physgrad.runner as runner
 from physgrad.configs import compose
+from physgrad.errors import UserError
+from physgrad.nets import count_params
+from physgrad.optim.spectral import resolve_route
+from physgrad.results import ResultsWriter
+from physgrad.runner import train
 from physgrad.timing import compiled_step, interleaved_times
 
 if TYPE_CHECKING:
@@ -64,11 +71,6 @@ def measure_variant(overrides: list[str], repeats: int, min_seconds: float) -> d
     import jax
     import numpy as np
 
-    from physgrad.errors import UserError
-    from physgrad.nets import count_params
-    from physgrad.optim.spectral import resolve_route
-    from physgrad.runner import compile_training
-
     cfg = compose(overrides)
     try:
         settings, scene, rule, seeds, compiled, compile_s, one_step = compiled_step(cfg, [cfg.seed])
@@ -97,7 +99,7 @@ def measure_variant(overrides: list[str], repeats: int, min_seconds: float) -> d
         )
         # the per-sample Jacobian against the layer-factorised one (K-FAC needs the factors)
         if rule.gradient.plan is not None and "route" in cfg.optim:
-            per_sample = compile_training(
+            per_sample = runner.compile_training(
                 scene,
                 rule._replace(gradient=dataclasses.replace(rule.gradient, plan=None)),
                 seeds,
@@ -171,9 +173,6 @@ def runner_overhead(
     import dataclasses
 
     import h5py
-
-    from physgrad.results import ResultsWriter
-    from physgrad.runner import train
 
     iterations = max(200, min(20_000, int(10.0 / step_s)))
     settings = dataclasses.replace(

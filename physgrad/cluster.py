@@ -20,6 +20,10 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
+from physgrad.errors import LauncherRefused
+from physgrad.files import clean_text
+from physgrad.sweeps import ON_STOP, job_states, record_job
+
 log = logging.getLogger("physgrad")
 
 
@@ -32,8 +36,6 @@ def own_submitit_folder(template: str) -> str:
     import os
     import stat
     import time
-
-    from physgrad.errors import LauncherRefused
 
     base, jobs, rest = template.partition("%j")
     parent = Path(base)
@@ -66,10 +68,6 @@ def launch_array(launcher: Any, job_overrides: Sequence[Sequence[str]], first: i
     from hydra.core.singleton import Singleton
     from hydra.core.utils import JobReturn, JobStatus, filter_overrides
     from hydra_plugins.hydra_submitit_launcher.config import BaseQueueConf
-
-    from physgrad.errors import LauncherRefused
-    from physgrad.files import clean_text
-    from physgrad.sweeps import ON_STOP
 
     sweep = Path(str(launcher.config.hydra.sweep.dir))
     sweep.mkdir(parents=True, exist_ok=True)
@@ -152,8 +150,6 @@ def record_lost_job(
     """A job that ended without a result, in the sweep's job states (where the job recorded nothing
     itself: it never started, or was killed before it could): `not run` (cancelled or failed
     waiting) or `killed`, with its SLURM id and state."""
-    from physgrad.sweeps import job_states, record_job
-
     known = job_states(sweep).get(frozenset(overrides))
     log.warning("SLURM job %s ended without a result (%s): %s", job_id, state, error)
     if known is not None and known["state"] != "started":

@@ -19,6 +19,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from physgrad.errors import UserError
+from physgrad.validate import allowed_target
 
 if TYPE_CHECKING:  # omegaconf (Hydra's) is loaded where a config is composed, not on import
     from omegaconf import DictConfig
@@ -269,8 +270,6 @@ def _check_hydra_targets(overrides: list[str]) -> None:
     from hydra import compose as hydra_compose
     from hydra.errors import HydraException
     from omegaconf import OmegaConf
-
-    from physgrad.validate import allowed_target
 
     try:  # a sweep's first job: the hydra section is one for all its jobs
         cfg = hydra_compose(

@@ -25,6 +25,8 @@ from pathlib import Path
 
 import numpy as np
 
+from physgrad.version import __version__
+
 CONTENTION_SPREAD = 1.5
 CONTENTION_JITTER_SECONDS = 1e-3
 CONTENTION_MIN_STEPS = 20
@@ -126,8 +128,6 @@ def machine_attributes() -> dict:
     """The machine and software a run is measured on (root attributes of results.h5)."""
     import jax
     import jaxlib
-
-    from physgrad.version import __version__
 
     threads = "; ".join(
         f"{name}={os.environ[name]}" for name in THREAD_VARIABLES if name in os.environ

@@ -28,9 +28,13 @@ from typing import TYPE_CHECKING
 import jax
 import jax.numpy as jnp
 
+from physgrad.configs import check_overrides, compose
+from physgrad.errors import UserError, innermost_cause
 from physgrad.experiment import build_seeds
+from physgrad.job_spec import checked
 from physgrad.loop_reference import loop_output, relative_error
 from physgrad.members import set_precision
+from physgrad.refusals import check_scene_values
 from physgrad.scene_derivatives import (
     Check,
     batch_loss,
@@ -71,10 +75,6 @@ def check_scene(cfg: DictConfig) -> list[Check]:
 
 
 def _check_scene(cfg: DictConfig) -> list[Check]:
-    from physgrad.errors import UserError
-    from physgrad.job_spec import checked
-    from physgrad.refusals import check_scene_values
-
     set_precision(64)
     name = str(cfg.task.get("name", "?"))
     try:
@@ -118,8 +118,6 @@ def _precision_check(spec: JobSpec) -> Check:
     minibatch, and the held-out evaluation, each finite. A scene that works in float64 only (a
     solver's save times past its end in float32 round-off, a tolerance float32 cannot meet) fails
     here in one line that names precision=64, not in a study's first job."""
-    from physgrad.errors import innermost_cause
-
     bits = spec.precision
     if bits == 64:
         return Check("precision", True, "the runs use float64, as the checks above")
@@ -231,9 +229,6 @@ def check_one_scene(overrides: list[str], config_dirs: list[str]) -> int:
     line each; 1 if one fails, 2 for a configuration mistake."""
     import os
     import sys
-
-    from physgrad.configs import check_overrides, compose
-    from physgrad.errors import UserError
 
     if (
         os.getcwd() not in sys.path

@@ -16,6 +16,7 @@ import jax.numpy as jnp
 from jax.flatten_util import ravel_pytree
 
 from physgrad.experiment import build_seeds
+from physgrad.gradients import JacobianPass
 from physgrad.loop_reference import (
     DIRECTIONS,
     dynamics_forward_states,
@@ -159,8 +160,6 @@ def _tolerance_hint(
 
 
 def jacobian_check(scene: Scene, params: Params, batch: Pytree) -> Check:
-    from physgrad.gradients import JacobianPass
-
     first = sample_of(batch, 0)
     route = JacobianPass.for_network(scene.sample_output, params, first)
     loss, gradient, extra, _ = route(scene, params, batch)

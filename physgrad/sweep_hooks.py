@@ -19,7 +19,17 @@ from typing import IO, Any
 from hydra.experimental.callback import Callback
 from omegaconf import DictConfig, OmegaConf
 
-from physgrad.sweeps import stop_count
+from physgrad.errors import FolderOwned
+from physgrad.files import open_append, own_folder
+from physgrad.results import find_results, read_final
+from physgrad.sweeps import (
+    STOP_MARK,
+    expected_jobs,
+    launcher_signals,
+    stop_count,
+    unfinished_jobs,
+    write_manifest,
+)
 
 log = logging.getLogger("physgrad")
 
@@ -70,7 +80,6 @@ class JobLogFile(logging.FileHandler):
 
     def _open(self) -> IO[str]:
         # appended without following a link: a rerun sweep's folder may come from someone else
-        from physgrad.files import open_append
 
         return open_append(Path(self.baseFilename))
 
@@ -124,10 +133,6 @@ class SweepSummary(Callback):
 
     def on_multirun_start(self, config: DictConfig, **kwargs: Any) -> None:
         from hydra_plugins.physgrad_launchers.slurm import use_physgrad_launcher
-        from physgrad.errors import FolderOwned
-        from physgrad.files import own_folder
-        from physgrad.results import find_results
-        from physgrad.sweeps import STOP_MARK, expected_jobs, launcher_signals, write_manifest
 
         folder = Path(str(config.hydra.sweep.dir))
         self.held = ExitStack()
@@ -156,9 +161,6 @@ class SweepSummary(Callback):
         INTERRUPTED_BY_SIGNAL.clear()
 
     def on_multirun_end(self, config: DictConfig, **kwargs: Any) -> None:
-        from physgrad.results import find_results, read_final
-        from physgrad.sweeps import unfinished_jobs
-
         folder = Path(str(config.hydra.sweep.dir))
         written, earlier = Counter(), 0
         for path in find_results([folder]) if folder.is_dir() else []:

@@ -21,7 +21,9 @@ from pathlib import Path
 
 import yaml
 
-from physgrad.results import Run
+from physgrad.readout import config_row
+from physgrad.results import Run, read_run
+from physgrad.validate import call_target
 
 log = logging.getLogger("physgrad")
 TAGS = ("task", "optim", "variant", "seed", "status", "stopped_by", "unroll")
@@ -45,8 +47,6 @@ def run_metrics(run: Run) -> Iterator[tuple[str, int, float]]:
 
 def run_params(run: Run) -> dict:
     """The stored configuration flattened to dotted keys (lists as text), as a report's columns."""
-    from physgrad.readout import config_row
-
     return {
         key: value if isinstance(value, (int, float, str, bool)) or value is None else str(value)
         for key, value in config_row(run).items()
@@ -203,16 +203,12 @@ def build_trackers(settings: Mapping[str, Mapping]) -> list:
     """The trackers of logger=... (name -> the settings of one, with its _target_, as the door
     checked them: physgrad.job_spec.tracker_settings); UserError (one line) for an entry that
     cannot be built."""
-    from physgrad.validate import call_target
-
     return [call_target(f"logger.{name}", node) for name, node in settings.items()]
 
 
 def track(trackers: list, paths: list[Path], job_folder: Path) -> None:
     """Each results file to each tracker; a failure is one warning line (the results file has it
     all)."""
-    from physgrad.results import read_run
-
     for path in paths:
         try:
             run = read_run(path)

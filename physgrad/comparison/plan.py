@@ -9,9 +9,17 @@ import statistics
 import time
 from dataclasses import dataclass
 
+# timing.compiled_step looked up when called: a test reads what it was asked to build there
+import physgrad.timing as timing
 from physgrad.comparison.coverage import coverage_lines, few_steps_lines, planned_points
+from physgrad.comparison.jobs import _run_multirun, job_environment, job_yaml, multirun_command
 from physgrad.comparison.spec import StudyPlan, Variant
+from physgrad.comparison.tuning import seeds_together, trials_together
+from physgrad.job_spec import checked
+from physgrad.machine import load_average, machine_attributes, machine_label
+from physgrad.power import POWER, detectable_ratio, seeds_for_ratio
 from physgrad.readout import fmt
+from physgrad.trainer_settings import EVALUATIONS_PER_BUDGET
 
 MIN_STEPS = 8  # steps timed per variant, at least ...
 STEP_SECONDS = 1.0  # ... and for about this long, at most MAX_STEPS
@@ -53,8 +61,6 @@ def use_job_cache() -> None:
     too: a second plan reads what the first compiled, and a job what the plan compiled alike."""
     import jax
 
-    from physgrad.comparison.jobs import job_environment
-
     env = job_environment()
     jax.config.update("jax_compilation_cache_dir", env["JAX_COMPILATION_CACHE_DIR"])
     jax.config.update(
@@ -86,8 +92,6 @@ def measure(
     the runs trained together."""
     import jax
 
-    from physgrad.timing import compiled_step
-
     cfg = run_config(variant)
     if trial_values:
         from omegaconf import open_dict
@@ -97,7 +101,7 @@ def measure(
         members = len(next(iter(trial_values.values())))
     begin = time.perf_counter()
     seeds = [seed] * members if trial_values else [seed + i for i in range(members)]
-    _, _, _, stacked, compiled, compile_seconds, one_step = compiled_step(cfg, seeds)
+    _, _, _, stacked, compiled, compile_seconds, one_step = timing.compiled_step(cfg, seeds)
     build_seconds = max(0.0, time.perf_counter() - begin - compile_seconds)
     one_step()
     times, start = [], time.perf_counter()
@@ -120,8 +124,6 @@ def members(plan: StudyPlan, variant: Variant) -> tuple[int, dict | None]:
     """How a job of the variant trains its runs, as the plan times it: (1, the first tuning
     study's trial points, key by key) where its trials train in one vectorised job, as that job
     takes them; else (a study's seeds, None) where its seeds train in one, else (1, None)."""
-    from physgrad.comparison.tuning import seeds_together, trials_together
-
     settings = plan.settings
     if settings.tune and trials_together(variant, plan.members_axis):
         points = planned_points(plan)[variant.name]  # the first tuning study's come first
@@ -133,9 +135,6 @@ def members(plan: StudyPlan, variant: Variant) -> tuple[int, dict | None]:
 def evaluations_per_run(variant: Variant, axis: str, budget: float, step_seconds: float) -> float:
     """The held-out evaluations of one run: at the start, every trainer.eval_every iterations, and
     with a time budget also every trainer.eval_seconds (budget / 20 unless set) of training."""
-    from physgrad.job_spec import checked
-    from physgrad.trainer_settings import EVALUATIONS_PER_BUDGET
-
     settings = checked(run_config(variant)).trainer
     if axis == "iteration":
         return 1 + budget / settings.eval_every
@@ -170,8 +169,6 @@ def phase_costs(
     import tempfile
     from datetime import datetime
     from pathlib import Path
-
-    from physgrad.comparison.jobs import _run_multirun, job_environment, job_yaml, multirun_command
 
     first = plan.variants[0]
     values = {"seed": plan.settings.tune_seed, "figures": False, **first.job_values}
@@ -251,7 +248,6 @@ def variant_cost(
     held_out = measured.first_evaluation_seconds + (count - 1) * measured.evaluation_seconds
     per_job = start_up + measured.build_seconds + measured.compile_seconds
     tuning_runs = settings.trials * studies if settings.tune else 0
-    from physgrad.comparison.tuning import seeds_together, trials_together
 
     # a study's trials of a variant in one vectorised job where the tuning trains them together
     together = tuning_runs and trials_together(variant, plan.members_axis)
@@ -288,8 +284,6 @@ def plan_text(
     composing and checking its variants before its phases (composed_seconds, as measured where the
     plan composed them) and the phases' own costs (phase_costs, run from config_dir with the
     study's hydra.searchpath, never its launcher: a plan runs here)."""
-    from physgrad.machine import load_average, machine_attributes, machine_label
-
     use_job_cache()
     load_before = load_average()
     seed = plan.settings.tune_seed
@@ -390,8 +384,6 @@ def power_lines(plan: StudyPlan) -> list[str]:
     """What the design can detect with verdict.POWER, before anything runs: for a few spreads of
     the per-seed log ratio (the run noise, unknown until the study has run), the smallest
     detectable ratio at these settings and the seeds per study that 1.5x and 2x would need."""
-    from physgrad.power import POWER, detectable_ratio, seeds_for_ratio
-
     settings = plan.settings
     count = len(plan.variants)
     comparisons = settings.comparisons(count)

@@ -42,6 +42,8 @@ from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field, replace
 from typing import TYPE_CHECKING, Any
 
+from physgrad.errors import UserError
+
 if TYPE_CHECKING:
     import numpy as np
 
@@ -174,8 +176,6 @@ _SAID = {
 def check_settings(optim_cfg: Mapping[str, Any]) -> None:
     """Every declared setting of the rule (SETTINGS) that the config gives, within its values;
     UserError (one line) naming the key and what it takes otherwise."""
-    from physgrad.errors import UserError
-
     for key, kind in SETTINGS.get(str(optim_cfg.get("_target_", "")), {}).items():
         value = optim_cfg.get(key)
         if value is None:

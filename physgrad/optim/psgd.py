@@ -41,6 +41,8 @@ import jax
 import jax.numpy as jnp
 import optax
 
+from physgrad.optim.capabilities import ScheduledUpdate
+
 if TYPE_CHECKING:
     import numpy as np
 
@@ -77,8 +79,6 @@ def scheduled_update(optim_cfg: Mapping[str, Any]) -> ScheduledUpdate | None:
     """The ScheduledUpdate (physgrad.optim.capabilities) of a psgd_kron config: psgdax's annealed
     schedule (1 for the first flat_start steps, at min_prob from floor_step on), or None where it
     fixes preconditioner_update_probability (every step then costs the same on average)."""
-    from physgrad.optim.capabilities import ScheduledUpdate
-
     if optim_cfg.get("preconditioner_update_probability") is not None:
         return None
     floor_step = (

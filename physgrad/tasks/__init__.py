@@ -21,6 +21,7 @@ from jax.flatten_util import ravel_pytree
 
 from physgrad.errors import UserError
 from physgrad.unroll import REGULAR, Backprop, Dynamics
+from physgrad.validate import call_target
 
 if TYPE_CHECKING:
     from physgrad.nets import Params, Pytree
@@ -181,8 +182,6 @@ def build_scene(task_cfg: Mapping[str, Any], key: jax.Array, unroll: int | None 
     temporal scene's number of time steps (task.unroll). UserError (one line) for a setting the
     build function does not take or refuses, and if the function does not return a Scene."""
     from omegaconf import OmegaConf
-
-    from physgrad.validate import call_target
 
     node = (
         OmegaConf.to_container(task_cfg, resolve=True)

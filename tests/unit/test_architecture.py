@@ -365,3 +365,39 @@ def test_a_number_in_a_table_or_message_has_one_format(path):
     name = str(path.relative_to(REPO))
     inline = re.findall(r"\{[^{}]*:\.3g\}", path.read_text())
     assert name in OWN_NUMBER_FORMAT or not inline, f"{name}: {inline}: use physgrad.readout.fmt"
+
+
+def test_physgrad_s_own_imports_stand_at_the_top_but_where_help_would_load_them():
+    """A module imports physgrad's own modules at its top. Function-local imports of them are kept
+    only in the modules `physgrad --help` and `physgrad compare --help` load (measured here in a
+    fresh interpreter), where importing at the top would load JAX, Hydra, pandas or matplotlib
+    before help answers (docs/architecture.md)."""
+    import subprocess
+    import sys
+
+    probe = (
+        "import contextlib, io, sys\nfrom physgrad.cli import main\n"
+        "for args in (['--help'], ['compare', '--help']):\n"
+        "    try:\n        with contextlib.redirect_stdout(io.StringIO()):\n"
+        "            main(args)\n    except SystemExit:\n        pass\n"
+        "print(' '.join(m for m in sys.modules if m.startswith('physgrad')))"
+    )
+    result = subprocess.run(
+        [sys.executable, "-c", probe], capture_output=True, text=True, cwd=REPO, check=True
+    )
+    at_help = set(result.stdout.split())
+    local = {}
+    for path in sorted(PACKAGE.rglob("*.py")):
+        name = ".".join(path.relative_to(REPO).with_suffix("").parts).removesuffix(".__init__")
+        if name in at_help:
+            continue
+        found = [
+            f"line {sub.lineno}: {sub.module}"
+            for node in ast.walk(ast.parse(path.read_text()))
+            if isinstance(node, ast.FunctionDef | ast.AsyncFunctionDef)
+            for sub in ast.walk(node)
+            if isinstance(sub, ast.ImportFrom) and (sub.module or "").startswith("physgrad")
+        ]
+        if found:
+            local[name] = found
+    assert not local, f"import these at the top: {local}"
