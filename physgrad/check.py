@@ -27,13 +27,8 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from physgrad.configs import compose
-from physgrad.experiment import run_experiment
 from physgrad.files import write_text
-from physgrad.members import variant_label
 from physgrad.readout import fmt
-from physgrad.results import read_run
-from physgrad.scene_check import check_one_scene
 from physgrad.stability_probes import (
     bptt_gradient_growth,
     quantum_norm_drift,
@@ -187,6 +182,11 @@ def _too_large_cases(
 
 
 def run_row(case: RunCase, out_dir: Path) -> dict:
+    from physgrad.configs import compose
+    from physgrad.experiment import run_experiment
+    from physgrad.members import variant_label
+    from physgrad.results import read_run
+
     # no per-case figures: the table is the output (the curves stay in the results files)
     cfg = compose([*case.overrides, "overwrite=true", "figures=false"])
     try:
@@ -277,6 +277,8 @@ def main(argv: list[str] | None = None) -> int:
 
     logging.getLogger("jax").setLevel(logging.WARNING)
     if options.overrides or options.config_dir:
+        from physgrad.scene_check import check_one_scene
+
         return check_one_scene(options.overrides, options.config_dir)
     out = Path(options.out)
     start = time.perf_counter()

@@ -18,7 +18,6 @@ import numpy as np
 from physgrad.errors import UserError
 from physgrad.files import clean_text, read_small_yaml, replaced
 from physgrad.readout import fmt, loss_at, run_budget, run_record, targets
-from physgrad.report_figures import write_figures
 from physgrad.results import Run, natural_key
 from physgrad.runs import Dropped, collect, label_runs, parse_sources, setting_text
 from physgrad.sweeps import unfinished_jobs
@@ -296,6 +295,7 @@ def write_report(
     if not figures:
         return body + written + "\n"
     chosen = {scene: threshold for scene in limits} if threshold is not None else limits
+    from physgrad.report_figures import write_figures  # matplotlib only once it draws
 
     drawn = write_figures(runs, out, note, logx, chosen, design)
     return body + f"{written} and {', '.join(drawn)} (and .pdf)\n"

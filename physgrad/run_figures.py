@@ -10,7 +10,6 @@ import jax.numpy as jnp
 from jax.flatten_util import ravel_pytree
 
 from physgrad.interrupts import StopRequest
-from physgrad.plots import plot_run
 from physgrad.results import ResultsWriter, read_params, read_run
 from physgrad.runner import Outcome
 from physgrad.tasks import Scene
@@ -32,6 +31,8 @@ def draw_run_figures(
     together), and the scene's own figure of the trained network where it has one; none for a run
     written aside of a completed results.h5 it did not replace (the figures beside it are that
     run's). A signal (stop) ends the drawing: the results are final already."""
+    from physgrad.plots import plot_run  # matplotlib only once training is over
+
     unravel = ravel_pytree(seeds.network())[1]
     if len(writers) > FIGURE_SEEDS:
         log.info(

@@ -10,13 +10,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from physgrad.configs import compose
-from physgrad.members import set_precision
-from physgrad.optim.spectral import truncated_spectral_direction
 from physgrad.readout import fmt
-from physgrad.tasks import build_scene
-from physgrad.tasks.quantum import crank_nicolson_step, eigenstate, grid
-from physgrad.unroll import MODES
 
 if TYPE_CHECKING:
     from physgrad.nets import Params
@@ -28,6 +22,9 @@ def quantum_norm_drift(small: bool) -> list[dict]:
     unitary, so only round-off may move the norm."""
     import jax
     import jax.numpy as jnp
+
+    from physgrad.members import set_precision
+    from physgrad.tasks.quantum import crank_nicolson_step, eigenstate, grid
 
     unroll = 1024 if small else 4096
     rows = []
@@ -69,6 +66,11 @@ def bptt_gradient_growth(small: bool) -> list[dict]:
     coincide)."""
     import jax
     import optax
+
+    from physgrad.configs import compose
+    from physgrad.members import set_precision
+    from physgrad.tasks import build_scene
+    from physgrad.unroll import MODES
 
     set_precision(64)
     unrolls = (25, 50, 100) if small else (25, 50, 100, 200, 400)
@@ -119,6 +121,9 @@ def rank_deficient_kernels(small: bool) -> list[dict]:
     and float64; the detail is the worst relative error against a numpy float64 SVD of the same
     matrix with the same truncation."""
     import jax.numpy as jnp
+
+    from physgrad.members import set_precision
+    from physgrad.optim.spectral import truncated_spectral_direction
 
     rng = np.random.default_rng(0)
     m, n = (48, 120) if small else (256, 1024)

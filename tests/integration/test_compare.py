@@ -171,6 +171,10 @@ def test_equal_time_evaluations_interleave_the_variants_and_equal_iterations_tra
     assert "seeds: 1" in counted["eval_v1_s2"] and "seed: 2" in counted["eval_v1_s2"]
 
 
+# make test-long: two toy runs, with and without validation; make test keeps
+# test_validation_reads_the_held_out_loss_without_paying_for_the_scene_metrics (the held-out loss
+# on sets that are not the test sets, through physgrad.run with trainer.validation=true)
+@pytest.mark.long
 def test_validation_data_are_held_out_and_evaluated_beside_the_test_set(tmp_path):
     run = physgrad.run(
         "task=toy",

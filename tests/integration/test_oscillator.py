@@ -8,6 +8,10 @@ import pytest
 from tests.helpers import load
 
 
+# the larger size (a 1024-step unroll at the reference batch): make test-long; make test keeps the
+# oscillator trained through the runner at small sizes (test_configs.py's pairs oscillator-gd and
+# oscillator task.closed_loop=true-muon)
+@pytest.mark.long
 def test_long_unroll_runs_for_adam(tmp_path):
     """unroll=1024 at the reference batch size (512) trains without exhausting memory."""
     from physgrad.experiment import run_experiment

@@ -156,6 +156,9 @@ def test_init_from_continues_from_the_saved_network(tmp_path):
     assert second.offset("wall_time") == pytest.approx(first.final("train", "wall_time"))
 
 
+# make test-long: a further check of init_from's source (its status), as the wrong runs below; make
+# test keeps test_init_from_continues_from_the_saved_network and the refusal of the job's own file
+@pytest.mark.long
 def test_init_from_a_run_that_did_not_complete_says_so(tmp_path, caplog):
     """A network from an interrupted (or diverged) run may be gone on from, with one warning that
     names its status; a completed one gives none."""
@@ -192,7 +195,8 @@ def test_init_from_a_wrong_run_is_refused(tmp_path, source, fragment):
     assert outcome.status == "refused" and fragment in outcome.reason and "\n" not in outcome.reason
 
 
-@pytest.mark.parametrize("overwrite", [False, True])
+# make test-long: the refusal with overwrite=true; make test keeps it without ([False])
+@pytest.mark.parametrize("overwrite", [False, pytest.param(True, marks=pytest.mark.long)])
 def test_init_from_the_job_s_own_results_file_is_refused_and_leaves_it_intact(tmp_path, overwrite):
     _, source = run_experiment(load(*TINY, "trainer.iterations=3"), tmp_path / "run")
     before = source.read_bytes()

@@ -277,6 +277,11 @@ def test_a_real_line_search_is_calibrated_per_evaluation():
     assert "evaluation_seconds" not in costs["adam"]
 
 
+# a real calibration of two rules (40 rounds of bursts): make test-long, as the real line search's
+# above; make test keeps the calibrations on a simulated clock (tests/unit/test_timing.py) and a
+# real compiled step timed through the calibration's compiled_step in
+# test_a_scheduled_update_is_charged_its_expected_cost_and_only_for_a_rule_with_one
+@pytest.mark.long
 def test_the_calibration_ranks_real_steps_by_their_cost():
     """Two configurations interleaved in one process: a Jacobian rule's step costs more than Adam's
     on the same scene (about 9 to 26 times on the 2-core machine, quiet or beside a 2-core job),

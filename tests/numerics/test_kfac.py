@@ -119,6 +119,10 @@ def test_on_an_exactly_factored_problem_it_is_the_gauss_newton_step(x64):
     np.testing.assert_allclose(np.asarray(solved[0]["b"]), best[fan_in], rtol=1e-8)
 
 
+# make test-long: K-FAC is not Gauss-Newton on a network with a hidden layer; make test keeps
+# test_the_step_is_the_kronecker_factored_gauss_newton_step[0.01], whose closed form on such a
+# network is not Gauss-Newton's step either
+@pytest.mark.long
 def test_on_a_deep_network_it_differs_from_gauss_newton(x64):
     """The factorisation is an approximation: on a network with a hidden layer it is not J^+ g (a
     test that would pass for a rule that computed the exact Gauss-Newton step is no test of

@@ -139,6 +139,10 @@ def test_muon_on_a_network_without_matrices_is_refused_in_one_line(monkeypatch):
         toy("muon", "task.batch_size=4")
 
 
+# a 60-iteration run: make test-long; make test keeps Muon training a least-squares problem in its
+# compiled step (test_rule_contract.py[muon]) and through the runner (test_configs.py's pair
+# oscillator task.closed_loop=true-muon)
+@pytest.mark.long
 def test_muon_trains_the_toy(tmp_path):
     run = physgrad.run(
         "task=toy", "optim=muon", "trainer.iterations=60", "trainer.eval_every=30", out_dir=tmp_path

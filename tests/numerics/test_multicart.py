@@ -33,7 +33,10 @@ def numpy_step(state, force, dt=0.01, g=9.8, m=0.1, big_m=1.1, half_length=0.5):
     )
 
 
-@pytest.mark.parametrize("poles", [1, 2, 4])
+# make test-long: one and two poles; make test keeps four (every pole coupled through the cart)
+@pytest.mark.parametrize(
+    "poles", [pytest.param(1, marks=pytest.mark.long), pytest.param(2, marks=pytest.mark.long), 4]
+)
 def test_step_matches_independent_numpy(x64, poles):
     rng = np.random.default_rng(poles)
     for _ in range(5):
@@ -118,6 +121,10 @@ def test_bptt_gradients_match_finite_differences_of_stopped_functions(x64, mode)
     check_gradient(loop_loss, scan_loss, params)
 
 
+# make test-long: the modes' gradients differ on the multicart; make test keeps the three modes'
+# gradients in closed form, each different, in
+# tests/numerics/test_oscillator.py::test_modes_on_a_linear_system_by_hand
+@pytest.mark.long
 def test_modes_give_different_gradients():
     scene = build_scene(
         load("task=multicart", "task.poles=2", "task.test_size=4").task, jax.random.PRNGKey(2)

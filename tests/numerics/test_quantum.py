@@ -22,7 +22,8 @@ from tests.helpers import load
 from tests.reference import check_gradient, forward_states, loop_states
 
 
-@pytest.mark.parametrize("points", [14, 32])
+# make test-long: the larger grid; make test keeps the scenes' 14 points
+@pytest.mark.parametrize("points", [14, pytest.param(32, marks=pytest.mark.long)])
 def test_eigenstates_and_energies_match_closed_forms(x64, points):
     x = grid(points, jnp.float64)
     assert x[0] == 2.0 / (points + 1) and abs(float(x[-1]) - 2.0 * points / (points + 1)) < 1e-15
@@ -49,8 +50,17 @@ def test_free_eigenstate_gains_only_the_crank_nicolson_phase(x64):
         np.testing.assert_allclose(final, factor**steps * phi, atol=1e-12)
 
 
-@pytest.mark.parametrize("precision, tolerance", [(32, 2e-5), (64, 1e-12)])
-@pytest.mark.parametrize("points, dt, steps", [(14, 0.05, 384), (32, 0.0625, 128)])
+# make test-long: the other precision of each grid; make test keeps both grids and both precisions,
+# one pair each ([14-0.05-384-64-1e-12], [32-0.0625-128-32-2e-05])
+@pytest.mark.parametrize(
+    "points, dt, steps, precision, tolerance",
+    [
+        pytest.param(14, 0.05, 384, 32, 2e-5, marks=pytest.mark.long),
+        (14, 0.05, 384, 64, 1e-12),
+        (32, 0.0625, 128, 32, 2e-5),
+        pytest.param(32, 0.0625, 128, 64, 1e-12, marks=pytest.mark.long),
+    ],
+)
 def test_norm_stays_one_for_bounded_random_controls(points, dt, steps, precision, tolerance):
     previous = jax.config.jax_enable_x64
     jax.config.update("jax_enable_x64", precision == 64)

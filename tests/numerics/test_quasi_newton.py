@@ -136,7 +136,12 @@ def rosenbrock(x):
     return jnp.sum(100.0 * (x[1:] - x[:-1] ** 2) ** 2 + (1.0 - x[:-1]) ** 2)
 
 
-@pytest.mark.parametrize("variant", VARIANTS)
+# make test-long: SSBFGS and SSBroyden (the same zoom line search, another update); make test keeps
+# BFGS here and every variant's update against its Hessian form
+# (test_the_update_is_the_inverse_of_the_hessian_form)
+@pytest.mark.parametrize(
+    "variant", [v if v == "bfgs" else pytest.param(v, marks=pytest.mark.long) for v in VARIANTS]
+)
 def test_the_rule_with_its_line_search_finds_scipys_bfgs_minimum_of_rosenbrock(variant, x64):
     start = np.array([-1.2, 1.0, -0.5, 0.8])
     scipy_result = scipy.optimize.minimize(

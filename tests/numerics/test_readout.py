@@ -99,7 +99,10 @@ def same(a: float, b: float) -> bool:
     return (math.isnan(a) and math.isnan(b)) or a == b
 
 
-@pytest.mark.parametrize("time_budget", [None, 1.5])
+# make test-long: the time budget (the same read-out on the wall_time axis); make test keeps the
+# iteration budget here, and the last evaluation at or before a budget in
+# tests/unit/test_readout.py::test_loss_at_reads_the_last_evaluation_at_or_before_the_budget
+@pytest.mark.parametrize("time_budget", [None, pytest.param(1.5, marks=pytest.mark.long)])
 def test_compare_and_report_give_one_number_per_run_at_the_budget(tmp_path, time_budget):
     study(tmp_path, time_budget)
     axis, budget = ("wall_time", time_budget) if time_budget else ("iteration", 100.0)

@@ -36,8 +36,13 @@ def dense_reference(lower, diagonal, upper, rhs):
     return np.linalg.solve(matrix, rhs)
 
 
+# make test-long: the larger systems (32 and 200 points); make test keeps every path at 3 points and
+# at the quantum scenes' 14
 @pytest.mark.parametrize("path", PATHS)
-@pytest.mark.parametrize("points", [3, 14, 32, 200])
+@pytest.mark.parametrize(
+    "points",
+    [3, 14, pytest.param(32, marks=pytest.mark.long), pytest.param(200, marks=pytest.mark.long)],
+)
 def test_every_path_solves_the_crank_nicolson_system(x64, path, points):
     rng = np.random.default_rng(points)
     for _ in range(5):
