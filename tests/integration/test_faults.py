@@ -85,12 +85,22 @@ def test_a_run_stopped_by_one_signal_keeps_the_held_out_loss_it_reached(tmp_path
     settings = TrainerSettings.from_config(cfg.trainer)
     settings = dataclasses.replace(settings, iterations=None, time_budget=60.0)
     scene, rule, seeds = prepare(checked(cfg), [0])
-    writer = ResultsWriter(tmp_path / "results.h5", {"task": "toy", "optim": "adam", "seed": 0})
+
+    class SignalledAtRow(ResultsWriter):
+        """Sends the process SIGINT once, as it buffers its 50th training row: after 50 steps
+        however long compiling took on a loaded machine (a timer could fire before the first)."""
+
+        rows = 0
+
+        def append_row(self, group: str, values: tuple) -> None:
+            super().append_row(group, values)
+            self.rows += group == "train"
+            if self.rows == 50:
+                os.kill(os.getpid(), signal.SIGINT)
+
+    writer = SignalledAtRow(tmp_path / "results.h5", {"task": "toy", "optim": "adam", "seed": 0})
     with stop_on_signals() as stop:
-        timer = threading.Timer(4.0, os.kill, (os.getpid(), signal.SIGINT))
-        timer.start()
         (outcome,) = train(scene, rule, seeds, [writer], settings, stop=stop)
-        timer.join()
     run = read_run(writer.path)
     assert outcome.status == run.attrs["status"] == "interrupted"
     evaluated = run.eval["iteration"].tolist()
