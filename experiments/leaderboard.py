@@ -48,9 +48,11 @@ from leaderboard_scenes import (
     LEADERBOARD_STUDIES,
     LEADERBOARD_TRIALS,
     LITERATURE,
+    RERUN,
     RULES,
     SCENES,
     WHY_IT_MAY_DIFFER,
+    planned_studies,
 )
 from scene_kinds import KINDS, both_pages_line, kinds_table, read_kinds
 from study_runs import read_study
@@ -173,6 +175,50 @@ def cell_text(cell: Cell, scene_studies: int = 0, to: str = "") -> str:
     )
 
 
+def protocol_text(found: dict) -> str:
+    """The protocol the scenes' kept studies ran, as their records say: the tuning studies planned,
+    whether the rules' own knobs were tuned beside the learning rate (compare.knobs), and whether
+    line searches were charged per evaluation."""
+    planned = max((planned_studies(runs) for _, runs, _ in found.values()), default=0)
+    planned = planned or LEADERBOARD_STUDIES
+    abouts = [about for *_, about in found.values()]
+    knobs = bool(abouts) and all(about.get("knobs") for about in abouts)
+    per_evaluation = any(
+        record.get("charged_by_evaluations")
+        for about in abouts
+        for record in (about.get("tuning_studies") or {}).values()
+    )
+    return (
+        f"{LEADERBOARD_TRIALS} trial points "
+        + ("of the learning rate and the rule's knobs" if knobs else "of the learning rate")
+        + f" per rule in each of {planned} independent tuning "
+        f"studies, {LEADERBOARD_SEEDS} paired evaluation seeds per study, the verdict over the "
+        f"studies by the package's rule (a majority of the {planned}, none against, and the "
+        "studies as draws excluding 1"
+        + (
+            "; `physgrad compare` and the claims run 4 studies, so a verdict here rests on fewer"
+            if planned < 4
+            else ""
+        )
+        + ") with Holm's correction over each scene's comparisons with Adam "
+        "(`compare.baseline=adam`). "
+        + (
+            "Each rule is tuned on its own knobs beside its learning rate (`compare.knobs=true`: "
+            "docs/protocol.md lists them and their ranges), a knob that changes a step's cost "
+            "charged at its value."
+            if knobs
+            else "Only the learning rate is tuned; every other setting stays at its preset (the "
+            "rules' own knobs, tuned, are not tested here)."
+        )
+        + (
+            " Line searches are charged the evaluations they made."
+            if per_evaluation
+            else " Line searches are charged each step's calibrated cost, whatever evaluations "
+            "they made (the wall-clock ratios below)."
+        )
+    )
+
+
 def page(found: dict, image: str, root: Path | None = None) -> str:
     """docs/leaderboard.md's text (root: the evidence, whose kept calibrations give the scenes'
     step costs)."""
@@ -184,14 +230,8 @@ def page(found: dict, image: str, root: Path | None = None) -> str:
         "",
         "Every rule against Adam on the same scenes, each tuned and evaluated by `physgrad "
         "compare`'s protocol (docs/protocol.md) at the same calibrated training time: "
-        f"{LEADERBOARD_TRIALS} trial points of the learning rate per rule in each of "
-        f"{LEADERBOARD_STUDIES} independent tuning studies, {LEADERBOARD_SEEDS} paired evaluation "
-        "seeds per study, the verdict over the studies by the package's rule (a majority of the "
-        f"{LEADERBOARD_STUDIES}, none against, and the studies as draws excluding 1; "
-        "`physgrad compare` and the claims run 4 studies, so a verdict here rests on fewer) with "
-        "Holm's correction over each scene's comparisons with Adam (`compare.baseline=adam`). "
-        "Only the learning rate is tuned; every other setting stays at its preset (the rules' "
-        "own knobs, tuned, are not tested here). A cell: the "
+        + protocol_text(found)
+        + " A cell: the "
         "verdict (a link to the scene's tuning studies one by one), the median ratio of the "
         "rule's test loss to Adam's at the budget with its interval, and the seeds where the rule "
         "was lower. Below 1: the rule reached a lower loss; "
@@ -270,10 +310,10 @@ def scene_budget_lines(entry, runs, about: dict) -> list[str]:
     budget = f"{runs.budget:g} s ({clock})"
     lines.append(
         f"- **{entry.title}** (`{' '.join(entry.overrides)}`): {budget}; "
-        f"{studies} of {LEADERBOARD_STUDIES} tuning studies finished"
+        f"{studies} of {planned_studies(runs)} tuning studies finished"
         + (
             " (its verdicts are those of the studies run so far: preliminary)"
-            if studies < LEADERBOARD_STUDIES
+            if studies < planned_studies(runs)
             else ""
         )
         + (f"; on {runs.machine}" if runs.machine else "")
@@ -316,6 +356,51 @@ def literature_lines(found: dict) -> list[str]:
     return lines + ["", WHY_IT_MAY_DIFFER]
 
 
+def rerun_text(root: Path) -> str:
+    """The section on the re-run under the profile's current protocol, whose studies are kept in
+    root (docs/evidence/leaderboard/rerun) until every scene has all of them: what the protocol
+    is, each scene's studies kept, and the cells of those (preliminary); "" without such a
+    folder."""
+    if not root.is_dir():
+        return ""
+    found = board(root)
+    lines = [
+        "",
+        "## The re-run under the current protocol (in progress)",
+        "",
+        f"The profile now runs {LEADERBOARD_STUDIES} tuning studies a scene, each rule tuned on "
+        "its own knobs beside its learning rate (`compare.knobs=true`), every scene on a clock "
+        "measured afresh that charges a line search its evaluations and a knob that changes a "
+        "step's cost its cost at the tuned value (docs/protocol.md). Its studies are kept in "
+        "docs/evidence/leaderboard/rerun; the table above moves to them once every scene has "
+        "all of its studies, and until then the cells below are preliminary.",
+        "",
+    ]
+    kept = {name: len(runs.tuning or (runs,)) for name, (_, runs, _) in found.items()}
+    progress = [f"{e.title}: {kept.get(e.name, 0)} of {LEADERBOARD_STUDIES}" for e in SCENES]
+    lines.append("Studies kept: " + "; ".join(progress) + ".")
+    scenes = [e for e in SCENES if e.name in found]
+    if scenes:
+        lines += [
+            "",
+            "| rule | " + " | ".join(e.title for e in scenes) + " |",
+            "|---|" + "---|" * len(scenes),
+        ]
+        for rule in RULES:
+            row = [
+                f"n/a: {e.refused[rule]}"
+                if rule in e.refused
+                else (
+                    cell_text(found[e.name][0][rule], kept[e.name])
+                    if rule in found[e.name][0]
+                    else "not run"
+                )
+                for e in scenes
+            ]
+            lines.append(f"| {rule} | " + " | ".join(row) + " |")
+    return "\n".join(lines) + "\n"
+
+
 def write(root: Path, out: Path) -> str:
     """leaderboard.md and leaderboard.png (and .pdf) in out, from kept evidence under root or from
     the study folders under root (kept first, into a temporary folder); returns the markdown."""
@@ -329,7 +414,7 @@ def write(root: Path, out: Path) -> str:
     make_folder(out)  # through the write door: a link planted at the folder is refused
     if found:
         plot(found, out / "leaderboard")
-    text = page(found, "leaderboard.png", root) + tuned_table(root)
+    text = page(found, "leaderboard.png", root) + tuned_table(root) + rerun_text(root / RERUN.name)
     # through the write door: a link at a page's name, or at its folder, is not written through
     replace_file(out / "leaderboard.md", text.encode())
     make_folder(out / FOLDER)

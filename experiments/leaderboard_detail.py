@@ -12,7 +12,7 @@ import math
 import statistics
 from pathlib import Path
 
-from leaderboard_scenes import BASELINE, LEADERBOARD_STUDIES, RULES
+from leaderboard_scenes import BASELINE, RULES, planned_studies
 
 from physgrad.readout import fmt
 from physgrad.verdict import A_BETTER, B_BETTER, EQUIVALENT, MARGIN
@@ -310,7 +310,7 @@ def scene_page(entry, cells: dict, runs, about: dict) -> str:
         "edit -->",
         "",
         f"`physgrad compare {' '.join(entry.overrides)}` with `compare.baseline={BASELINE}`, "
-        f"{runs.budget:g} s on the calibrated clock; {studies} of {LEADERBOARD_STUDIES} tuning "
+        f"{runs.budget:g} s on the calibrated clock; {studies} of {planned_studies(runs)} tuning "
         f"studies kept; on {runs.machine or 'a machine not recorded'}. Back to the "
         "[leaderboard](../leaderboard.md).",
         "",

@@ -8,7 +8,7 @@ from pathlib import Path
 
 import numpy as np
 from leaderboard_detail import MARKS  # experiments/
-from leaderboard_scenes import LEADERBOARD_STUDIES, RULES, SCENES
+from leaderboard_scenes import RULES, SCENES, planned_studies
 
 from physgrad.comparison.coverage import FEW_STEPS  # noqa: F401 - a cell on fewer is marked
 from physgrad.readout import fmt
@@ -66,12 +66,15 @@ def plot(found: dict, path: Path) -> None:
                     color="white" if strong else "black",
                     fontweight="bold" if decided else "normal",
                 )
-    ran = {name: len(runs.tuning or (runs,)) for name, (_, runs, _) in found.items()}
+    ran = {
+        name: (len(runs.tuning or (runs,)), planned_studies(runs))
+        for name, (_, runs, _) in found.items()
+    }
     labels = [
         e.title
         + (
-            f"\n({ran[e.name]} of {LEADERBOARD_STUDIES} studies)"
-            if 0 < ran.get(e.name, 0) < LEADERBOARD_STUDIES
+            f"\n({ran[e.name][0]} of {ran[e.name][1]} studies)"
+            if 0 < ran.get(e.name, (0, 0))[0] < ran.get(e.name, (0, 0))[1]
             else ""
         )
         for e in scenes

@@ -14,6 +14,7 @@ from evidence import (  # experiments/
     keep_clock,
     kept_row,
     merged_rows,
+    read_json,
     read_table,
     undecided_by_the_clock,
     write_kept,
@@ -45,6 +46,7 @@ def keep(root: Path, dest: Path) -> list[str]:
                 finished[k] = (folder, runs)
         if not finished:
             continue
+        knobs = _same_protocol(dest, entry.name, finished)
         records = {}
         for k, (folder, runs) in finished.items():
             if runs.tuning:
@@ -86,6 +88,7 @@ def keep(root: Path, dest: Path) -> list[str]:
             "trials": LEADERBOARD_TRIALS,
             "studies": len(by_study),
             "planned": LEADERBOARD_STUDIES,
+            "knobs": knobs,
             "seeds": LEADERBOARD_SEEDS,
             "machine": "; ".join(machines),
             "kept_by": commit(),
@@ -98,6 +101,27 @@ def keep(root: Path, dest: Path) -> list[str]:
         }
         write_kept(dest, entry.name, rows, about)
     return kept
+
+
+def _same_protocol(dest: Path, scene: str, finished: dict) -> bool:
+    """Whether the finished studies tuned the rules' own knobs (compare.knobs=true), checked to be
+    the protocol of the scene's studies kept in dest: the tuning studies planned and the knobs
+    alike; UserError (one line) otherwise, so that no scene is decided on two protocols."""
+    knobs = {"compare.knobs=true" in study_overrides(folder) for folder, _ in finished.values()}
+    if len(knobs) > 1:
+        raise UserError(f"{scene}: studies with and without compare.knobs=true; keep them apart")
+    about_path = dest / f"{scene}.json"
+    if about_path.is_file():
+        about = read_json(about_path)
+        kept = (about.get("planned"), bool(about.get("knobs")))
+        if kept != (LEADERBOARD_STUDIES, *knobs):
+            raise UserError(
+                f"{about_path} keeps studies of another protocol ({kept[0]} tuning studies, "
+                f"{'the rules own knobs' if kept[1] else 'the learning rate alone'} tuned): "
+                "keep these in another folder (the current protocol's: "
+                "docs/evidence/leaderboard/rerun)"
+            )
+    return knobs.pop()
 
 
 def iterations_in_budget(table) -> dict[str, float]:

@@ -1,6 +1,13 @@
 """The leaderboard's scenes (docs/leaderboard.md): each scene's compare overrides, the rules that
 apply to it (the others with why not), its budget in calibrated seconds, and each of its tuning
 studies as a compare of its own in <scene>/study-k, on the scene's kept clock.
+
+The profile runs the current protocol: LEADERBOARD_STUDIES tuning studies, each rule tuned on its
+own knobs beside its learning rate (compare.knobs=true), line searches charged per evaluation and
+a knob that shapes a step's cost charged at its value (the scenes' clocks in RERUN measure both).
+Its studies are kept in RERUN until every scene has all of them; the page shows the published
+evidence (EVIDENCE, an earlier protocol) and the re-run's progress beside it
+(docs/evidence/leaderboard/README.md).
 """
 
 from __future__ import annotations
@@ -15,7 +22,7 @@ from studies import STUDY_FOLDER, TUNE_SEED, Study
 from physgrad.bench import OPTIMS as BENCH_OPTIMS
 
 BASELINE = "adam"
-LEADERBOARD_TRIALS, LEADERBOARD_STUDIES, LEADERBOARD_SEEDS = 8, 3, 10
+LEADERBOARD_TRIALS, LEADERBOARD_STUDIES, LEADERBOARD_SEEDS = 8, 4, 10
 # every rule of make bench's list (conf/optim) but Adam and its backprop modes, in that order
 RULES = tuple(o for o in BENCH_OPTIMS if o not in (BASELINE, "bptt", "stable_bptt"))
 NO_FACTORS = "no layer factors (the controller or convolution runs many times per sample)"
@@ -51,6 +58,7 @@ class Entry:
             f"optim={','.join((BASELINE, *self.rules))}",
             f"trainer.time_budget={self.budget:g}",
             f"compare.baseline={BASELINE}",
+            "compare.knobs=true",
             f"compare.seed={(k - 1) * LEADERBOARD_SEEDS}",
             f"compare.tune_seed={TUNE_SEED + k - 1}",
             *((f"compare.calibration={calibration}",) if calibration else ()),
@@ -133,6 +141,8 @@ SCENES = (
     ),
 )
 EVIDENCE = Path(__file__).resolve().parent.parent / "docs" / "evidence" / "leaderboard"
+# the current protocol's studies and clocks, kept apart until every scene has all of its studies
+RERUN = EVIDENCE / "rerun"
 
 # what the rules' papers report on problems the leaderboard has, and the cells of the same rules in
 # physgrad's setting (each citation checked against its arXiv abstract)
@@ -174,7 +184,13 @@ WHY_IT_MAY_DIFFER = (
 )
 
 
-def kept_clock(entry: Entry, evidence: Path = EVIDENCE) -> Path | None:
+def planned_studies(runs) -> int:
+    """The tuning studies a scene's kept evidence is to have (its record's `planned`, the protocol
+    it was run under), or the current protocol's for evidence that does not say."""
+    return runs.planned or LEADERBOARD_STUDIES
+
+
+def kept_clock(entry: Entry, evidence: Path = RERUN) -> Path | None:
     """The scene's kept calibration (its step costs, measured once on a quiet machine) if it has a
     cost for every rule the scene runs now (a rule added since calibrates the study again)."""
     path = evidence / CLOCK.format(name=entry.name)

@@ -184,7 +184,7 @@ def _budget(overrides) -> str:
 def both_pages_line(page: str) -> str:
     """One line, for the claims page or the leaderboard (page), on the scenes both show and why
     their verdicts may differ: the question, the rules compared, the tuning studies, the budgets."""
-    from leaderboard_scenes import LEADERBOARD_STUDIES, SCENES
+    from leaderboard_scenes import SCENES
     from studies import PROFILES
 
     claims = {}
@@ -204,7 +204,8 @@ def both_pages_line(page: str) -> str:
         f"Scenes on both this page and {other} ({budgets}): the claims ask a paper's question "
         "with the rules the paper compares, in 4 tuning studies, at budgets set from the paper's "
         "(and the scene's settings the paper uses); the leaderboard compares every rule with "
-        f"Adam in {LEADERBOARD_STUDIES} tuning studies at its own calibrated budgets, with Holm's "
+        "Adam in its own tuning studies (the leaderboard says how many) at its own calibrated "
+        "budgets, with Holm's "
         "correction over a scene's comparisons. A verdict may differ between the pages by budget, "
         "by the scene's settings, by the number of studies and by the correction, without either "
         "being wrong."

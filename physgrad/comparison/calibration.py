@@ -37,7 +37,7 @@ import math
 from pathlib import Path
 
 from physgrad.comparison.jobs import Launcher
-from physgrad.comparison.spec import StudyPlan
+from physgrad.comparison.spec import StudyPlan, Variant
 from physgrad.errors import UserError
 
 CALIBRATION_FILE = "calibration.json"
@@ -172,13 +172,15 @@ def calibrated_clock(plan: StudyPlan, launcher: Launcher, given: str | None) -> 
 
     folder, variants = launcher.folder, plan.variants
     path = folder / CALIBRATION_FILE
-    names = [v.name for v in variants]
+    ends = {v.name: knob_ends(v) for v in variants}
+    names = [v.name for v in variants] + [name for e in ends.values() for name in e]
     if given is not None:
         calibration = read_calibration(Path(given), names, given=True)
         if calibration is None:
             raise UserError(
                 f"compare.calibration={given}: not a calibration.json with a step cost for every "
-                f"variant ({', '.join(names)}); leave it out to calibrate"
+                f"variant ({', '.join(names)}; name@key=value: a tuned setting that shapes the "
+                "step's cost, at its range's ends); leave it out to calibrate"
             )
         write_calibration(path, calibration)
     calibration = read_calibration(path, names)
@@ -192,6 +194,9 @@ def calibrated_clock(plan: StudyPlan, launcher: Launcher, given: str | None) -> 
             with open_dict(cfg):
                 del cfg["hydra"]
             configs[variant.name] = OmegaConf.to_container(cfg, resolve=True)
+            for name, (key, value) in ends[variant.name].items():
+                configs[name] = {**configs[variant.name]}
+                configs[name]["optim"] = {**configs[variant.name]["optim"], key: value}
         values = {"seed": plan.settings.tune_seed, "calibrate": configs, "figures": False}
         first = variants[0]
         launcher.run(
@@ -206,30 +211,54 @@ def calibrated_clock(plan: StudyPlan, launcher: Launcher, given: str | None) -> 
                 "command again to resume"
             )
         write_calibration(path, calibration)
+    for variant in variants:
+        charge(variant, calibration["costs"], ends[variant.name], given or path)
+    return calibration
+
+
+def charge(variant: Variant, costs: dict, ends: dict, where: object) -> None:
+    """Set what a variant's jobs are charged from the calibration's costs: its step cost, a
+    scheduled update's and a line search's evaluations' where it has them, and the costs at its
+    cost-shaping knob's ends (Variant.cost_knob); UserError where a cost does not fit its rule."""
     from physgrad.optim.capabilities import capabilities, scheduled_update
 
-    for variant in variants:
-        cost = calibration["costs"][variant.name]
-        if "evaluation_seconds" in cost and not capabilities(variant.config.optim).line_search:
-            raise UserError(
-                f"{given or path}: {variant.name}'s cost has a line search's evaluation cost "
-                "(evaluation_seconds), and its rule searches no line: give a calibration of this "
-                "study's variants, or leave compare.calibration out to calibrate"
-            )
-        if "update_seconds" in cost and scheduled_update(variant.config.optim) is None:
-            raise UserError(
-                f"{given or path}: {variant.name}'s cost has an update cost (update_seconds), and "
-                "its rule updates on no schedule (only psgd_kron with "
-                "preconditioner_update_probability=null does): give a calibration of this study's "
-                "variants, or leave compare.calibration out to calibrate"
-            )
-        variant.job_values = {
-            "trainer.step_cost": float(cost["step_seconds"]),
-            "trainer.clock": "calibrated",
-        }
-        if "update_seconds" in cost:
-            variant.job_values["trainer.update_cost"] = float(cost["update_seconds"])
-        if "evaluation_seconds" in cost:
-            variant.job_values["trainer.evaluation_cost"] = float(cost["evaluation_seconds"])
-            variant.job_values["trainer.step_evaluations"] = float(cost["step_evaluations"])
-    return calibration
+    cost, kind = costs[variant.name], capabilities(variant.config.optim)
+    if "evaluation_seconds" in cost and not kind.line_search:
+        raise UserError(
+            f"{where}: {variant.name}'s cost has a line search's evaluation cost "
+            "(evaluation_seconds), and its rule searches no line: give a calibration of this "
+            "study's variants, or leave compare.calibration out to calibrate"
+        )
+    if "update_seconds" in cost and scheduled_update(variant.config.optim) is None:
+        raise UserError(
+            f"{where}: {variant.name}'s cost has an update cost (update_seconds), and "
+            "its rule updates on no schedule (only psgd_kron with "
+            "preconditioner_update_probability=null does): give a calibration of this study's "
+            "variants, or leave compare.calibration out to calibrate"
+        )
+    variant.job_values = {
+        "trainer.step_cost": float(cost["step_seconds"]),
+        "trainer.clock": "calibrated",
+    }
+    if "update_seconds" in cost:
+        variant.job_values["trainer.update_cost"] = float(cost["update_seconds"])
+    if "evaluation_seconds" in cost:
+        variant.job_values["trainer.evaluation_cost"] = float(cost["evaluation_seconds"])
+        variant.job_values["trainer.step_evaluations"] = float(cost["step_evaluations"])
+    if ends:
+        (key, low), (_, high) = ends.values()
+        low_cost, high_cost = (costs[name]["step_seconds"] for name in ends)
+        variant.cost_knob = (key, kind.cost_knob[1], low, low_cost, high, high_cost)
+
+
+def knob_ends(variant: Variant) -> dict[str, tuple[str, float]]:
+    """The calibration's further configs of a variant tuned over the setting that shapes its step
+    cost (physgrad.optim.capabilities: cost_knob): `name@key=value` -> (key, value) at the two
+    ends of its range, {} for the others."""
+    from physgrad.optim.capabilities import capabilities
+
+    knob = capabilities(variant.config.optim).cost_knob
+    if knob is None or knob[0] not in variant.space:
+        return {}
+    key = knob[0]
+    return {f"{variant.name}@{key}={value}": (key, value) for value in variant.space[key]}

@@ -112,6 +112,9 @@ def _calibration_lines(variants: list[Variant], runs: pd.DataFrame, calibration:
         )
     if scheduled:
         lines += ["", scheduled_update_text(scheduled, calibration)]
+    priced = [v for v in variants if v.cost_knob]
+    if priced:
+        lines += ["", knob_cost_text(priced)]
     shared = _shared_programs(variants, calibration)
     if shared:
         lines += [
@@ -166,6 +169,24 @@ def scheduled_update_text(names: list[str], calibration: dict) -> str:
         "run) was timed where every step does it (the cost above) and where p_t is at its floor, "
         f"which gives the update's cost u ({each}); a run of n steps is charged "
         "n (cost - u) + u sum_{t<=n} p_t, what its steps cost on average."
+    )
+
+
+def knob_cost_text(variants: list[Variant]) -> str:
+    """Where a tuned setting shapes a step's cost: its costs at its range's ends, and that each
+    trial and evaluation is charged at its own value (physgrad.optim.capabilities.knob_cost)."""
+    shapes = {"inverse": "c + u / f", "linear": "a + b m"}
+    said = [
+        f"{v.name}'s {key}: a step {fmt(low_cost)} s at {low:g} and {fmt(high_cost)} s at "
+        f"{high:g} ({shapes.get(shape, shape)} between them)"
+        for v in variants
+        for key, shape, low, low_cost, high, high_cost in [v.cost_knob]
+    ]
+    return (
+        "A tuned setting that changes what a step costs was calibrated at its range's two ends, "
+        "and each trial and evaluation is charged the cost at its own value: "
+        + "; ".join(said)
+        + "."
     )
 
 

@@ -49,6 +49,7 @@ def evaluation_jobs(
                 "figures": False,  # the study's report/ draws every run
                 **cadence(variant.config, axis, budget),
                 **variant.job_values,
+                **variant.priced(best[study][variant.name]),
             }
         )
         return job_yaml([*common, *variant.overrides], groups, values)

@@ -138,6 +138,25 @@ class Variant:
     job_values: dict = field(default_factory=dict)
     # its tuning trials train together in one vectorised job per study (tuning.trials_together)
     trials_together: bool = False
+    # the setting that shapes its step cost, where it is tuned, and the costs calibrated at its
+    # range's two ends: (key, shape, low, low's step cost, high, high's step cost)
+    cost_knob: tuple = ()
+
+    def priced(self, params: dict) -> dict:
+        """The step cost of a job at params (a trial's or the tuned values) where the variant's
+        tuned settings shape it (physgrad.optim.capabilities.knob_cost), as the job's
+        trainer.step_cost; {} for a variant whose steps cost the same at every value."""
+        if not self.cost_knob or self.cost_knob[0] not in params:
+            return {}
+        from physgrad.optim.capabilities import knob_cost  # JAX: not for compare --help
+
+        key, shape, *ends = self.cost_knob
+        cost = knob_cost(shape, params[key], *ends)
+        # a line search's evaluations are part of a step: its step costs at least those
+        floor = float(self.job_values.get("trainer.evaluation_cost", 0.0)) * float(
+            self.job_values.get("trainer.step_evaluations", 0.0)
+        )
+        return {"trainer.step_cost": max(cost, floor)}
 
     @property
     def preset(self) -> dict:

@@ -119,7 +119,7 @@ def tuning(plan: StudyPlan, launcher: Launcher) -> list[dict[str, dict]]:
                 if trial is None or variant.trials_together:
                     continue
                 values = {f"optim.{key}": value for key, value in trial.params.items()}
-                values.update(job_values(tuning_study, variant))
+                values |= job_values(tuning_study, variant) | variant.priced(trial.params)
                 jobs[trial_job(tuning_study, index, k)] = job_yaml(
                     [*common, *variant.overrides], groups, values
                 )
@@ -152,7 +152,8 @@ def trials_together(variant: Variant, axis: str) -> bool:
     budget in iterations or on the calibrated clock (members then stop together), a rule that
     takes its tuned values as inputs of its optax transformation (not Levenberg-Marquardt or
     K-FAC) and searches no line (capabilities.line_search), top-level keys, no whole-number key (a
-    count such as SOAP's preconditioning frequency shapes the program), no init_from."""
+    count such as SOAP's preconditioning frequency shapes the program) and no key that shapes the
+    step's cost (each trial is charged its own: Variant.priced), no init_from."""
     from physgrad.optim import build_rule
     from physgrad.optim.capabilities import capabilities
 
@@ -163,6 +164,7 @@ def trials_together(variant: Variant, axis: str) -> bool:
         or not variant.space
         or any("." in key for key in variant.space)
         or any(is_whole(bounds) for bounds in variant.space.values())
+        or variant.cost_knob
         or variant.config.get("init_from")
     ):
         return False

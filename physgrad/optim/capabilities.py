@@ -31,7 +31,11 @@ adam.yaml is Adam. Capabilities:
   curvature pairs it keeps; preset 10) and SOAP's preconditioning frequency [1, 100] (the steps
   between recomputations of its eigenbasis; preset 10). SSBFGS and SSBroyden have none: they keep
   no memory (a dense matrix), and their line search's step cap is a safeguard, not a setting
-  their authors tune.
+  their authors tune;
+- cost_knob: (key, shape) of the setting that changes what the rule's step costs, so that a tuned
+  value is charged its own cost (knob_cost, below): "inverse" for a
+  period f (a step costs c + u / f: SOAP's eigenbasis every f steps), "linear" for a count m (a
+  step costs a + b m: L-BFGS's two-loop recursion over m curvature pairs).
 """
 
 from __future__ import annotations
@@ -59,6 +63,7 @@ class Capabilities:
     line_search: bool = False
     scheduled_update: str | None = None
     knobs: tuple[tuple[str, float, float], ...] = ()  # ints for a whole-number knob
+    cost_knob: tuple[str, str] | None = None  # (key, "inverse" or "linear")
 
 
 # mean-over-samples loss; presets 0.5 to 1; the truncation tau around its preset 1e-6, the
@@ -82,7 +87,12 @@ RULES: dict[str, Capabilities] = {
     "optax.sgd": Capabilities("sgd", (1e-4, 1e1), elementwise=True),  # plain gradient descent
     # the rate scales the direction before its line search
     "optax.lbfgs": Capabilities(
-        "lbfgs", (1e-2, 1e1), elementwise=True, line_search=True, knobs=(("memory_size", 2, 100),)
+        "lbfgs",
+        (1e-2, 1e1),
+        elementwise=True,
+        line_search=True,
+        knobs=(("memory_size", 2, 100),),
+        cost_knob=("memory_size", "linear"),
     ),
     # a dense inverse Hessian over the flat vector, then the same zoom line search as L-BFGS
     "physgrad.optim.quasi_newton.self_scaled_broyden": Capabilities(
@@ -97,7 +107,10 @@ RULES: dict[str, Capabilities] = {
     ),
     # Adam in Shampoo's eigenbasis per weight matrix: given the layers, not one flat vector
     "physgrad.optim.soap.soap": Capabilities(
-        "adaptive", ADAPTIVE.search_range, knobs=(("precondition_frequency", 1, 100),)
+        "adaptive",
+        ADAPTIVE.search_range,
+        knobs=(("precondition_frequency", 1, 100),),
+        cost_knob=("precondition_frequency", "inverse"),
     ),
     # a Kronecker-factored preconditioner per weight matrix: given the layers, not one flat vector
     # the preconditioner's step on its Lie group: preset 0.1, at most 1
@@ -251,3 +264,23 @@ def scheduled_update(optim_cfg: Mapping[str, Any]) -> ScheduledUpdate | None:
         return None
     module, name = factory.rsplit(".", 1)
     return getattr(importlib.import_module(module), name)(optim_cfg)
+
+
+def knob_cost(
+    shape: str, value: float, low: float, low_cost: float, high: float, high_cost: float
+) -> float:
+    """A step's cost at a setting's value, from its costs calibrated at the range's ends: for a
+    period f ("inverse": an expensive part every f steps) c + u / f, for a count m ("linear")
+    a + b m, each through the two ends, so a value between them costs between their costs:
+
+        cost = low_cost + t (high_cost - low_cost),
+        t = (1/f - 1/low) / (1/high - 1/low)  or  (m - low) / (high - low)."""
+    if high == low:
+        return low_cost
+    if shape == "inverse":
+        t = (1 / value - 1 / low) / (1 / high - 1 / low)
+    elif shape == "linear":
+        t = (value - low) / (high - low)
+    else:
+        raise ValueError(f"cost_knob shape {shape!r}: give inverse or linear")
+    return low_cost + t * (high_cost - low_cost)

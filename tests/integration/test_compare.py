@@ -1269,3 +1269,60 @@ def test_a_run_from_python_shows_the_console_s_progress_or_none(tmp_path, capsys
     assert compiled.search(capsys.readouterr().err)
     physgrad.run(*args, out_dir=tmp_path / "c", progress=False)
     assert not compiled.search(capsys.readouterr().err)
+
+
+@pytest.mark.long
+def test_a_knob_that_shapes_the_step_cost_charges_each_trial_and_evaluation_its_own_cost(
+    tmp_path,
+):
+    """compare.knobs=true with SOAP (preconditioning frequency [1, 100]) and L-BFGS (memory
+    [2, 100]) on the calibrated clock: the calibration times each rule at its range's two ends
+    as well, every tuning and evaluation job is charged the step cost at its own value
+    (physgrad.optim.capabilities.knob_cost), and compare.md says so. (The measured costs
+    themselves are the machine's: on the toy the frequency barely changes a step's, the memory
+    does.)"""
+    import json
+
+    from omegaconf import OmegaConf
+
+    from physgrad.optim.capabilities import knob_cost
+
+    study = physgrad.compare(
+        "task=toy",
+        "optim=soap,lbfgs",
+        "compare.knobs=true",
+        "trainer.time_budget=0.3",
+        "compare.trials=3",
+        "compare.studies=1",
+        "compare.seeds=2",
+        "trainer.batch_size=16",
+        "figures=false",
+        f"compare.dir={tmp_path}",
+    )
+    costs = json.loads((study.folder / "calibration.json").read_text())["costs"]
+    ends = {
+        "soap": ("precondition_frequency", "inverse", 1, 100),
+        "lbfgs": ("memory_size", "linear", 2, 100),
+    }
+    names = {f"{rule}@{key}={v}" for rule, (key, _, *vs) in ends.items() for v in vs}
+    assert set(costs) == {"soap", "lbfgs"} | names
+    jobs = sorted((study.folder / "tune").glob("+compare_job=*")) + sorted(
+        (study.folder / "eval").glob("+compare_job=*")
+    )
+    assert len(jobs) == 6 + 3  # one trial a job; SOAP's 2 seeds together, L-BFGS's one a job
+    values = set()
+    for job in jobs:
+        config = OmegaConf.load(job / ".hydra" / "config.yaml")
+        rule = config.optim.name
+        key, shape, low, high = ends[rule]
+        value = config.optim[key]
+        at = [costs[f"{rule}@{key}={v}"]["step_seconds"] for v in (low, high)]
+        expected = knob_cost(shape, value, low, at[0], high, at[1])
+        if rule == "lbfgs":  # never below its line search's evaluations
+            expected = max(
+                expected, costs["lbfgs"]["evaluation_seconds"] * costs["lbfgs"]["step_evaluations"]
+            )
+        assert config.trainer.step_cost == pytest.approx(expected, rel=1e-12), job.name
+        values.add((rule, value))
+    assert len(values) >= 4  # the trials tried other frequencies and memories than the preset's
+    assert "each trial and evaluation is charged the cost at its own value" in study.text

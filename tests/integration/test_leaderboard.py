@@ -26,9 +26,10 @@ from evidence import write_kept  # noqa: E402
 from physgrad.verdict import A_BETTER, B_BETTER, EQUIVALENT  # noqa: E402
 
 
-def kept_scene(folder, name, levels, studies=3, seeds=10, budget=10.0, first_seed=0):
+def kept_scene(folder, name, levels, studies=3, seeds=10, budget=10.0, first_seed=0, planned=4):
     """Evidence of one scene: variant -> (loss at the budget per tuning study), times a small
-    per-seed noise shared by every variant (paired seeds)."""
+    per-seed noise shared by every variant (paired seeds), of a protocol of `planned` tuning
+    studies."""
     rng = np.random.default_rng(1)
     noise = np.exp(0.05 * rng.normal(size=(studies, seeds)))
     rows = []
@@ -52,6 +53,7 @@ def kept_scene(folder, name, levels, studies=3, seeds=10, budget=10.0, first_see
         "budget": budget,
         "trials": 8,
         "studies": studies,
+        "planned": planned,
         "seeds": seeds,
         "machine": "test machine",
         "iterations": {v: 100.0 * (i + 1) for i, v in enumerate(levels)},
@@ -71,6 +73,7 @@ def test_cells_verdicts_and_page_from_kept_evidence(tmp_path):
             "soap": [10.0, 10.0, 10.0],
             "muon": [0.1, 10.0, 10.0],
         },
+        planned=3,  # an earlier protocol's: three tuning studies, the learning rate alone
     )
     found = leaderboard.board(evidence)
     assert set(found) == {"toy"}
@@ -92,6 +95,9 @@ def test_cells_verdicts_and_page_from_kept_evidence(tmp_path):
     assert "not run" in rows["kfac"]  # a rule that applies but has no runs in the evidence
     assert "Not run yet:" in text and "`guidance`" in text
     assert "3 of 3 tuning studies finished" in text and "hig 200" in text
+    # the protocol as the evidence records it
+    assert "in each of 3 independent tuning studies" in text and "rests on fewer" in text
+    assert "Only the learning rate is tuned" in text and "re-run under" not in text
     # the literature's claims beside the cells that answer them (none run here)
     assert "ssbfgs on KS correction (small): not run yet" in text
     # each cell's link: its rule's section of the scene's page, a row per tuning study and the cell
@@ -130,10 +136,10 @@ def test_rules_that_do_not_apply_are_marked_with_why(tmp_path):
     assert "n/a: a dense inverse Hessian of 13,004 parameters" in ssbfgs
     about = json.loads((evidence / "guidance.json").read_text())
     assert about["budget"] == 10.0
-    # a scene with one of its three tuning studies run: its verdicts said to be preliminary
+    # a scene with one of its four tuning studies run: its verdicts said to be preliminary
     kept_scene(evidence, "oscillator", {"adam": [1.0], "hig": [0.5]}, studies=1)
     text = leaderboard.write(evidence, tmp_path / "docs")
-    assert "1 of 3 tuning studies finished (its verdicts are those of the studies run" in text
+    assert "1 of 4 tuning studies finished (its verdicts are those of the studies run" in text
 
 
 def test_every_scene_is_a_compare_with_adam_as_baseline_and_parts_stay_near_80_minutes():
@@ -549,3 +555,53 @@ def _swap(path, old, new):
     text = path.read_text()
     assert old in text, old
     path.write_text(text.replace(old, new, 1))
+
+
+def test_the_current_protocols_studies_are_kept_apart_and_shown_as_a_re_run(tmp_path, monkeypatch):
+    """Studies of the current protocol (4 tuning studies, compare.knobs=true) are refused in one
+    line where a scene's kept evidence is of another (3 studies, the learning rate alone), kept in
+    rerun/ instead; the page then keeps its table from the published evidence and adds the re-run's
+    progress and preliminary cells; a study folder mixing knobs and none is refused too."""
+    from physgrad.errors import UserError
+
+    evidence, root = tmp_path / "evidence", tmp_path / "studies"
+    kept_scene(evidence, "toy", {"adam": [1.0] * 3, "hig": [0.1] * 3}, planned=3)
+    folder = root / "toy" / "study-1"
+    folder.mkdir(parents=True)
+    (folder / "runs.csv").write_text("variant,iterations\nadam,300\nhig,100\n")
+    (folder / "study.json").write_text(
+        json.dumps({"overrides": ["task=toy", "compare.knobs=true", "compare.seed=0"]})
+    )
+    kept_scene(tmp_path / "elsewhere", "toy", {"adam": [1.0], "hig": [10.0]}, studies=1)
+    study = leaderboard.read_study(tmp_path / "elsewhere" / "toy")
+    monkeypatch.setattr(
+        leaderboard_keep, "read_study", lambda path: study if path == folder else None
+    )
+    with pytest.raises(
+        UserError,
+        match="keeps studies of another protocol .3 tuning studies, "
+        "the learning rate alone tuned.: keep these in another folder",
+    ) as error:
+        leaderboard.keep(root, evidence)
+    assert "\n" not in str(error.value)
+    assert leaderboard.keep(root, evidence / "rerun") == ["toy/study-1"]
+    about = json.loads((evidence / "rerun" / "toy.json").read_text())
+    assert about["knobs"] is True and about["planned"] == 4
+    text = leaderboard.write(evidence, tmp_path / "docs")
+    assert "Only the learning rate is tuned" in text  # the published table's protocol
+    rerun = text[text.index("## The re-run under the current protocol") :]
+    assert "toy, lambda 0.01: 1 of 4" in rerun and "oscillators: 0 of 4" in rerun
+    hig = next(line for line in rerun.splitlines() if line.startswith("| hig |"))
+    assert "**worse**" in hig and "10x" in hig
+    main = text[: text.index("## The re-run")]
+    assert "[**better**](leaderboard/toy.md#hig) 0.1" in main  # the published cell, unchanged
+    # a scene's kept clock for the profile's studies is the re-run's
+    assert leaderboard_scenes.kept_clock.__defaults__[0] == leaderboard_scenes.RERUN
+    (root / "toy" / "study-2").mkdir()
+    shutil.copy(folder / "runs.csv", root / "toy" / "study-2" / "runs.csv")
+    (root / "toy" / "study-2" / "study.json").write_text(json.dumps({"overrides": ["task=toy"]}))
+    monkeypatch.setattr(
+        leaderboard_keep, "read_study", lambda path: study if path.parent.name == "toy" else None
+    )
+    with pytest.raises(UserError, match="with and without compare.knobs=true"):
+        leaderboard.keep(root, tmp_path / "fresh")

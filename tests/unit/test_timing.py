@@ -2,6 +2,7 @@
 compiled program, cost intervals), the charge of a scheduled update and of a line search's
 evaluations in closed form, and a given calibration's costs reaching its jobs, and its refusals."""
 
+import numpy as np
 import pytest
 
 
@@ -244,7 +245,7 @@ def test_a_calibrations_update_cost_goes_to_its_variants_jobs(tmp_path):
     given.write_text(json.dumps(calibration))
     rules = {"adam": {"_target_": "optax.adam"}, "psgd_kron": {"_target_": psgd_target}}
     variants = [
-        types.SimpleNamespace(name=name, config=types.SimpleNamespace(optim=optim))
+        types.SimpleNamespace(name=name, config=types.SimpleNamespace(optim=optim), space={})
         for name, optim in rules.items()
     ]
     plan = types.SimpleNamespace(variants=variants)
@@ -384,7 +385,7 @@ def test_a_calibrations_evaluation_cost_goes_to_its_line_search_jobs(tmp_path):
     given.write_text(json.dumps(calibration))
     rules = {"adam": {"_target_": "optax.adam"}, "lbfgs": {"_target_": "optax.lbfgs"}}
     variants = [
-        types.SimpleNamespace(name=name, config=types.SimpleNamespace(optim=optim))
+        types.SimpleNamespace(name=name, config=types.SimpleNamespace(optim=optim), space={})
         for name, optim in rules.items()
     ]
     plan = types.SimpleNamespace(variants=variants)
@@ -406,3 +407,97 @@ def test_a_calibrations_evaluation_cost_goes_to_its_line_search_jobs(tmp_path):
         given.write_text(json.dumps(calibration))
         assert read_calibration(given, ["adam", "lbfgs"], given=True) is None, wrong
         calibration["costs"]["lbfgs"].update(evaluation_seconds=5e-4, step_evaluations=2.5)
+
+
+@pytest.mark.parametrize("shape", ["inverse", "linear"])
+def test_a_setting_that_shapes_the_step_cost_is_charged_the_cost_at_its_value(shape):
+    """knob_cost through the costs at the range's ends recovers the cost model exactly at every
+    value between them: c + u / f for a period f (SOAP's eigenbasis every f steps), a + b m for a
+    count m (L-BFGS's memory), with c, u, a, b drawn at random; a value between the ends costs
+    between their costs; an unknown shape is refused."""
+    from physgrad.optim.capabilities import knob_cost
+
+    rng = np.random.default_rng(3)
+    for _ in range(20):
+        base, part = rng.uniform(1e-4, 1e-2, 2)
+        low, high = sorted(rng.integers(1, 200, 2) + np.array([0, 1]))
+        cost = (lambda x: base + part / x) if shape == "inverse" else (lambda x: base + part * x)
+        for value in np.linspace(low, high, 7):
+            charged = knob_cost(shape, value, low, cost(low), high, cost(high))
+            assert charged == pytest.approx(cost(value), rel=1e-12)
+            ends = sorted((cost(low), cost(high)))
+            assert ends[0] * (1 - 1e-12) <= charged <= ends[1] * (1 + 1e-12)
+    with pytest.raises(ValueError, match="give inverse or linear"):
+        knob_cost("square", 2, 1, 1e-3, 4, 2e-3)
+
+
+def test_a_calibrations_costs_at_a_knobs_ends_price_each_trial_and_evaluation(tmp_path):
+    """calibrated_clock for SOAP tuned over its preconditioning frequency [1, 100] and L-BFGS over
+    its memory [2, 100] (compare.knobs=true): the calibration holds each one's step cost at its
+    range's two ends (name@key=value), the variant keeps them, and a job at a trial's or the tuned
+    value is charged the cost at that value (L-BFGS's never below its line search's evaluations);
+    Adam, whose eps does not change a step's cost, keeps one cost. A given calibration without the
+    ends is refused in one line that names them."""
+    import json
+    import types
+
+    from physgrad.comparison.calibration import calibrated_clock
+    from physgrad.comparison.spec import Variant
+    from physgrad.errors import UserError
+    from physgrad.optim.capabilities import knob_cost
+
+    def cost(seconds: float, **more) -> dict:
+        return {"step_seconds": seconds, "median_seconds": seconds, "rounds": 30, **more}
+
+    calibration = {
+        "quantile": 0.2,
+        "load_start": 0.1,
+        "load_end": 0.1,
+        "machine": {},
+        "costs": {
+            "adam": cost(1e-3),
+            "soap": cost(2e-3),
+            "soap@precondition_frequency=1": cost(9e-3),
+            "soap@precondition_frequency=100": cost(1.2e-3),
+            "lbfgs": cost(3e-3, evaluation_seconds=1e-3, step_evaluations=2.0),
+            "lbfgs@memory_size=2": cost(2.5e-3),
+            "lbfgs@memory_size=100": cost(6e-3),
+        },
+    }
+    given = tmp_path / "given.json"
+    given.write_text(json.dumps(calibration))
+    optims = {
+        "adam": ({"_target_": "optax.adam"}, {"learning_rate": (1e-5, 0.1), "eps": (1e-10, 1e-4)}),
+        "soap": (
+            {"_target_": "physgrad.optim.soap.soap"},
+            {"learning_rate": (1e-5, 0.1), "precondition_frequency": (1, 100)},
+        ),
+        "lbfgs": (
+            {"_target_": "optax.lbfgs"},
+            {"learning_rate": (0.01, 10.0), "memory_size": (2, 100)},
+        ),
+    }
+    variants = [
+        Variant(name, [], types.SimpleNamespace(optim=optim), space)
+        for name, (optim, space) in optims.items()
+    ]
+    launcher = types.SimpleNamespace(folder=tmp_path, say=print)
+    calibrated_clock(types.SimpleNamespace(variants=variants), launcher, str(given))
+    adam, soap, lbfgs = variants
+    assert adam.cost_knob == () and adam.priced({"eps": 1e-9, "learning_rate": 1e-3}) == {}
+    assert soap.cost_knob == ("precondition_frequency", "inverse", 1, 9e-3, 100, 1.2e-3)
+    for frequency in (1, 7, 10, 100):
+        expected = knob_cost("inverse", frequency, 1, 9e-3, 100, 1.2e-3)
+        priced = soap.priced({"learning_rate": 1e-3, "precondition_frequency": frequency})
+        assert priced == {"trainer.step_cost": pytest.approx(expected)}
+    assert soap.priced({"learning_rate": 1e-3}) == {}  # untuned: the preset's calibrated cost
+    # L-BFGS at memory 2 costs 2.5 ms, above its line search's two evaluations of 1 ms ...
+    assert lbfgs.priced({"memory_size": 2}) == {"trainer.step_cost": pytest.approx(2.5e-3)}
+    # ... and with cheaper ends a step is never charged less than its evaluations
+    lbfgs.cost_knob = ("memory_size", "linear", 2, 1e-3, 100, 6e-3)
+    assert lbfgs.priced({"memory_size": 2}) == {"trainer.step_cost": pytest.approx(2e-3)}
+    del calibration["costs"]["soap@precondition_frequency=100"]
+    given.write_text(json.dumps(calibration))
+    with pytest.raises(UserError, match="soap@precondition_frequency=100") as error:
+        calibrated_clock(types.SimpleNamespace(variants=variants), launcher, str(given))
+    assert "\n" not in str(error.value)
