@@ -22,17 +22,14 @@ from __future__ import annotations
 import argparse
 import math
 import sys
-from dataclasses import dataclass
 from pathlib import Path
 
 from evidence import (  # experiments/
     CLOCK,
-    keep_clock_verdicts,
-    read_json,
 )
+from leaderboard_cells import board, cell_text, longer_lines
 from leaderboard_detail import (
     FOLDER,
-    MARKS,
     link,
     preset_line,
     scene_notes,
@@ -40,139 +37,36 @@ from leaderboard_detail import (
     scheduled_cost_line,
     wall_line,
 )
-from leaderboard_figure import FEW_STEPS, plot
-from leaderboard_keep import checked_record, keep
+from leaderboard_figure import plot
+from leaderboard_keep import keep
 from leaderboard_scenes import (
     BASELINE,
+    EXPENSIVE,
+    LEADERBOARD,
     LEADERBOARD_SEEDS,
     LEADERBOARD_STUDIES,
     LEADERBOARD_TRIALS,
     LITERATURE,
+    LONGER,
+    LONGER_SUFFIX,
     RERUN,
     RULES,
     SCENES,
     WHY_IT_MAY_DIFFER,
+    kept_clock,
     planned_studies,
 )
 from scene_kinds import KINDS, both_pages_line, kinds_table, read_kinds
-from study_runs import read_study
 from tuned_settings import tuned_table
 
 from physgrad.errors import UserError
 from physgrad.files import clean_text, make_folder, replace_file
-from physgrad.readout import fmt
-from physgrad.replication import across_studies
 from physgrad.verdict import (
-    FRACTIONS,
     MARGIN,
-    compare_variants,
-    ratio_of,
 )
-
-# --- the cells
-# -------------------------------------------------------------------------------------------
-
-
-@dataclass(frozen=True)
-class Cell:
-    """A rule against Adam on one scene: the verdict over the tuning studies, the median ratio rule
-    / Adam at the budget with its interval, seeds where the rule was lower, and each study's own
-    verdict."""
-
-    verdict: str
-    ratio: float
-    low: float
-    high: float
-    wins: int
-    pairs: int
-    studies: tuple[str, ...]
-    iterations: float = math.nan
-    detail: tuple = ()  # (k, the rule's PairVerdict in tuning study k) for the studies that ran it
-
-
-def cells(runs, about: dict | None = None) -> dict[str, Cell]:
-    """rule -> Cell for every rule the study ran, by the package's rule: each tuning study decided
-    with Holm's correction over the comparisons with Adam of the rules it ran (compare.baseline),
-    a "better" its compare found undecided by the clock kept so (the kept record's
-    undecided_by_the_clock), then each rule over the studies that ran it
-    (physgrad.replication.across_studies; a rule added to the leaderboard after a scene's first
-    studies is decided over the later ones)."""
-    about = about or {}
-    iterations = about.get("iterations")
-    studies = runs.tuning or (runs,)
-    ran = [sorted(r for r in study.paths if r != BASELINE) for study in studies]
-    per_study = [
-        dict(
-            zip(
-                rules,
-                compare_variants(
-                    {name: study.curves(name) for name in (*rules, BASELINE)},
-                    runs.budget,
-                    pairs=[(rule, BASELINE) for rule in rules],
-                    fractions=FRACTIONS,
-                ),
-            )
-        )
-        if rules and BASELINE in study.paths
-        else {}
-        for study, rules in zip(studies, ran)
-    ]
-    keep_clock_verdicts(per_study, about.get("tuning_studies") or {})
-    found = {}
-    for rule in sorted({r for rules in ran for r in rules}):
-        verdicts = [by_rule[rule] for by_rule in per_study if rule in by_rule]
-        if not verdicts:
-            continue
-        result = across_studies([[v] for v in verdicts])[0]
-        p = result.at[1.0]
-        found[rule] = Cell(
-            result.verdict,
-            p.ratio,
-            ratio_of(p.low),
-            ratio_of(p.high),
-            p.wins_a,
-            p.pairs,
-            tuple(s.verdicts[1.0][0] for s in (result.studies or [result])),
-            (iterations or {}).get(rule, math.nan),
-            tuple((k, by_rule[rule]) for k, by_rule in enumerate(per_study) if rule in by_rule),
-        )
-    return found
-
-
-def board(root: Path) -> dict[str, tuple[dict[str, Cell], object, dict]]:
-    """scene -> (its cells, its runs, its kept record) for every scene with runs under root (study
-    folders or their kept evidence)."""
-    found = {}
-    for entry in SCENES:
-        runs = read_study(root / entry.name)
-        if runs is None:
-            continue
-        about_path = root / f"{entry.name}.json"
-        about = read_json(about_path) if about_path.is_file() else {}
-        checked_record(root / entry.name, runs, about, (BASELINE, *entry.rules))
-        found[entry.name] = (cells(runs, about), runs, about)
-    return found
-
 
 # --- the page
 # --------------------------------------------------------------------------------------------
-
-
-def cell_text(cell: Cell, scene_studies: int = 0, to: str = "") -> str:
-    """A cell as the table prints it, its verdict a link to its scene's page (to) where given;
-    with the tuning studies that ran the rule where they are fewer than the scene's."""
-    mark = MARKS.get(cell.verdict, "undecided")
-    fewer = len(cell.studies) < scene_studies
-    return (
-        (f"[**{mark}**]({to})" if to else f"**{mark}**")
-        + f" {fmt(cell.ratio)}x [{fmt(cell.low)}, {fmt(cell.high)}], {cell.wins}/{cell.pairs}"
-        + (f" ({len(cell.studies)} of {scene_studies} studies ran it)" if fewer else "")
-        + (
-            f", {cell.iterations:.0f} steps: decided by a step's cost, not the rule"
-            if cell.iterations < FEW_STEPS
-            else ""
-        )
-    )
 
 
 def protocol_text(found: dict) -> str:
@@ -219,9 +113,9 @@ def protocol_text(found: dict) -> str:
     )
 
 
-def page(found: dict, image: str, root: Path | None = None) -> str:
+def page(found: dict, image: str, root: Path | None = None, longer: dict | None = None) -> str:
     """docs/leaderboard.md's text (root: the evidence, whose kept calibrations give the scenes'
-    step costs)."""
+    step costs; longer: the scenes' studies at the longer budget, board(root, LONGER_SUFFIX))."""
     lines = [
         "# Leaderboard: which update rule, for which physics",
         "",
@@ -261,6 +155,7 @@ def page(found: dict, image: str, root: Path | None = None) -> str:
         lines += ["", "## The scenes and their budgets", "", *scene_kind_lines(scenes, root), ""]
         for entry in scenes:
             lines += scene_budget_lines(entry, *found[entry.name][1:])
+            lines += longer_lines(entry, (longer or {}).get(entry.name), entry.budget)
         scheduled = scheduled_cost_line(
             {e.name: found[e.name][2] for e in scenes}, {e.name: e.title for e in scenes}
         )
@@ -378,7 +273,17 @@ def rerun_text(root: Path) -> str:
     ]
     kept = {name: len(runs.tuning or (runs,)) for name, (_, runs, _) in found.items()}
     progress = [f"{e.title}: {kept.get(e.name, 0)} of {LEADERBOARD_STUDIES}" for e in SCENES]
-    lines.append("Studies kept: " + "; ".join(progress) + ".")
+    expensive = {e.title: e.expensive(kept_clock(e, root)) for e in SCENES}
+    hours = sum(study.seconds() for study in LEADERBOARD) / 3600
+    lines += [
+        "Studies kept: " + "; ".join(progress) + ".",
+        "",
+        f"Read again at {LONGER}x the budget (a step above {EXPENSIVE:g} of Adam's on the scene's "
+        "clock, at the settings tuned at the budget: docs/protocol.md, section 7): "
+        + "; ".join(f"{title}: {', '.join(rules)}" for title, rules in expensive.items() if rules)
+        + f". The profile's {len(LEADERBOARD)} parts are planned at about {hours:.0f} h on 2 cores "
+        "(an upper bound: `make reproduce-figures PROFILE=leaderboard ARGS=--plan`).",
+    ]
     scenes = [e for e in SCENES if e.name in found]
     if scenes:
         lines += [
@@ -398,6 +303,9 @@ def rerun_text(root: Path) -> str:
                 for e in scenes
             ]
             lines.append(f"| {rule} | " + " | ".join(row) + " |")
+    longer = board(root, LONGER_SUFFIX)
+    for entry in (e for e in SCENES if e.name in longer):
+        lines += ["", f"{entry.title}:", *longer_lines(entry, longer[entry.name], entry.budget)]
     return "\n".join(lines) + "\n"
 
 
@@ -414,7 +322,9 @@ def write(root: Path, out: Path) -> str:
     make_folder(out)  # through the write door: a link planted at the folder is refused
     if found:
         plot(found, out / "leaderboard")
-    text = page(found, "leaderboard.png", root) + tuned_table(root) + rerun_text(root / RERUN.name)
+    longer = board(root, LONGER_SUFFIX)
+    text = page(found, "leaderboard.png", root, longer) + tuned_table(root)
+    text += rerun_text(root / RERUN.name)
     # through the write door: a link at a page's name, or at its folder, is not written through
     replace_file(out / "leaderboard.md", text.encode())
     make_folder(out / FOLDER)

@@ -20,7 +20,14 @@ from evidence import (  # experiments/
     write_kept,
 )
 from leaderboard_detail import charged_by_clock, wall_seconds_in_budget
-from leaderboard_scenes import LEADERBOARD_SEEDS, LEADERBOARD_STUDIES, LEADERBOARD_TRIALS, SCENES
+from leaderboard_scenes import (
+    LEADERBOARD_SEEDS,
+    LEADERBOARD_STUDIES,
+    LEADERBOARD_TRIALS,
+    LONGER_FOLDER,
+    LONGER_SUFFIX,
+    SCENES,
+)
 from studies import STUDY_FOLDER
 from study_runs import read_study, study_overrides, tuned_trials
 
@@ -34,72 +41,82 @@ def keep(root: Path, dest: Path) -> list[str]:
     it was kept before and keeping the others' (each study is kept whatever machine ran it): every
     run's test loss at the kept fractions of the budget; in the .json each study's machine, commit
     and each rule's median iterations at the budget, and the scene's calibration (its clock, for
-    the studies still to run) beside it. Returns the studies kept, as scene/study-k."""
-
+    the studies still to run) beside it. A scene's studies at the longer budget
+    (<scene>/longer-k) are kept alike as <scene>_longer. Returns the studies kept, as
+    scene/study-k (or scene/longer-k)."""
     kept = []
     for entry in SCENES:
-        finished = {}
-        for k in range(1, LEADERBOARD_STUDIES + 1):
-            folder = root / entry.name / STUDY_FOLDER.format(k=k)
-            runs = read_study(folder) if (folder / "runs.csv").is_file() else None
-            if runs is not None:
-                finished[k] = (folder, runs)
-        if not finished:
-            continue
-        knobs = _same_protocol(dest, entry.name, finished)
-        records = {}
-        for k, (folder, runs) in finished.items():
-            if runs.tuning:
-                raise UserError(
-                    f"{folder}: {len(runs.tuning)} tuning studies, where a leaderboard study "
-                    "folder holds one (compare.studies=1)"
-                )
-            rows = [
-                kept_row(k - 1, variant, seed, "loss", curve, runs.budget)
-                for variant in sorted(runs.paths)
-                for seed, curve in sorted(runs.curves(variant).items())
-            ]
-            table = read_table(folder / "runs.csv")
-            records[k] = (
-                rows,
-                {
-                    "machine": runs.machine,
-                    "kept_by": commit(),
-                    "iterations": iterations_in_budget(table),
-                    "wall_seconds": wall_seconds_in_budget(table),
-                    "overrides": study_overrides(folder),
-                    "undecided_by_the_clock": undecided_by_the_clock(folder),
-                    **charged_by_clock(folder / "calibration.json"),
-                    # what its tuning chose per rule, and the trials it chose from
-                    **tuned_trials(folder),
-                },
+        kept += _keep_scene(root, dest, entry, entry.name, STUDY_FOLDER)
+        kept += _keep_scene(root, dest, entry, entry.name + LONGER_SUFFIX, LONGER_FOLDER)
+    return kept
+
+
+def _keep_scene(root: Path, dest: Path, entry, name: str, pattern: str) -> list[str]:
+    """keep for one scene's studies in folders named by pattern, as evidence `name`."""
+    kept = []
+    finished = {}
+    for k in range(1, LEADERBOARD_STUDIES + 1):
+        folder = root / entry.name / pattern.format(k=k)
+        runs = read_study(folder) if (folder / "runs.csv").is_file() else None
+        if runs is not None:
+            finished[k] = (folder, runs)
+    if not finished:
+        return kept
+    knobs = _same_protocol(dest, name, finished)
+    records = {}
+    for k, (folder, runs) in finished.items():
+        if runs.tuning:
+            raise UserError(
+                f"{folder}: {len(runs.tuning)} tuning studies, where a leaderboard study "
+                "folder holds one (compare.studies=1)"
             )
-        first = next(iter(finished.values()))[1]
-        rows, by_study = merged_rows(dest, entry.name, records, first.budget)
-        for k, (folder, _) in finished.items():
-            keep_clock(folder / "calibration.json", dest / CLOCK.format(name=entry.name))
-            kept.append(f"{entry.name}/{STUDY_FOLDER.format(k=k)}")
-        machines = sorted({str(s.get("machine") or "") for s in by_study.values()} - {""})
-        per_study = [s.get("iterations") or {} for s in by_study.values()]
-        about = {
-            "study": entry.name,
-            "axis": first.axis,
-            "budget": first.budget,
-            "trials": LEADERBOARD_TRIALS,
-            "studies": len(by_study),
-            "planned": LEADERBOARD_STUDIES,
-            "knobs": knobs,
-            "seeds": LEADERBOARD_SEEDS,
-            "machine": "; ".join(machines),
-            "kept_by": commit(),
-            # each rule's iterations at the budget: the median of the studies' medians
-            "iterations": {
-                rule: float(np.median([its[rule] for its in per_study if rule in its]))
-                for rule in sorted(set().union(*per_study))
+        rows = [
+            kept_row(k - 1, variant, seed, "loss", curve, runs.budget)
+            for variant in sorted(runs.paths)
+            for seed, curve in sorted(runs.curves(variant).items())
+        ]
+        table = read_table(folder / "runs.csv")
+        records[k] = (
+            rows,
+            {
+                "machine": runs.machine,
+                "kept_by": commit(),
+                "iterations": iterations_in_budget(table),
+                "wall_seconds": wall_seconds_in_budget(table),
+                "overrides": study_overrides(folder),
+                "undecided_by_the_clock": undecided_by_the_clock(folder),
+                **charged_by_clock(folder / "calibration.json"),
+                # what its tuning chose per rule, and the trials it chose from
+                **tuned_trials(folder),
             },
-            "tuning_studies": by_study,
-        }
-        write_kept(dest, entry.name, rows, about)
+        )
+    first = next(iter(finished.values()))[1]
+    rows, by_study = merged_rows(dest, name, records, first.budget)
+    for k, (folder, _) in finished.items():
+        if pattern == STUDY_FOLDER:  # the longer studies run on the kept clock
+            keep_clock(folder / "calibration.json", dest / CLOCK.format(name=entry.name))
+        kept.append(f"{entry.name}/{pattern.format(k=k)}")
+    machines = sorted({str(s.get("machine") or "") for s in by_study.values()} - {""})
+    per_study = [s.get("iterations") or {} for s in by_study.values()]
+    about = {
+        "study": name,
+        "axis": first.axis,
+        "budget": first.budget,
+        "trials": LEADERBOARD_TRIALS,
+        "studies": len(by_study),
+        "planned": LEADERBOARD_STUDIES,
+        "knobs": knobs,
+        "seeds": LEADERBOARD_SEEDS,
+        "machine": "; ".join(machines),
+        "kept_by": commit(),
+        # each rule's iterations at the budget: the median of the studies' medians
+        "iterations": {
+            rule: float(np.median([its[rule] for its in per_study if rule in its]))
+            for rule in sorted(set().union(*per_study))
+        },
+        "tuning_studies": by_study,
+    }
+    write_kept(dest, name, rows, about)
     return kept
 
 

@@ -12,6 +12,7 @@ evidence (EVIDENCE, an earlier protocol) and the re-run's progress beside it
 
 from __future__ import annotations
 
+import json
 import os
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -23,6 +24,10 @@ from physgrad.bench import OPTIMS as BENCH_OPTIMS
 
 BASELINE = "adam"
 LEADERBOARD_TRIALS, LEADERBOARD_STUDIES, LEADERBOARD_SEEDS = 8, 4, 10
+# a rule whose step costs more than EXPENSIVE of Adam's gets few steps in the budget: its verdict is
+# also read at LONGER times the budget, at the settings tuned at the budget (compare.tuned_in)
+EXPENSIVE, LONGER = 10.0, 4
+LONGER_FOLDER, LONGER_SUFFIX = "longer-{k}", "_longer"  # its folders; its evidence: <scene>_longer
 # every rule of make bench's list (conf/optim) but Adam and its backprop modes, in that order
 RULES = tuple(o for o in BENCH_OPTIMS if o not in (BASELINE, "bptt", "stable_bptt"))
 NO_FACTORS = "no layer factors (the controller or convolution runs many times per sample)"
@@ -45,6 +50,40 @@ class Entry:
     @property
     def rules(self) -> tuple[str, ...]:
         return tuple(r for r in RULES if r not in self.refused)
+
+    def expensive(self, clock: Path | None) -> tuple[str, ...]:
+        """The scene's rules whose calibrated step costs more than EXPENSIVE of Adam's on its kept
+        clock (none without one)."""
+        if clock is None:
+            return ()
+        costs = json.loads(clock.read_text())["costs"]
+        adam = costs[BASELINE]["step_seconds"]
+        return tuple(r for r in self.rules if costs[r]["step_seconds"] > EXPENSIVE * adam)
+
+    def longer(self, k: int, clock: Path | None) -> Study | None:
+        """Tuning study k's expensive rules and Adam at LONGER times the budget, each at the
+        settings study k tuned (compare.tuned_in: its folder in the profile's root), on study
+        k's evaluation seeds, as a compare of its own in <root>/<scene>/longer-k; None where no
+        rule is expensive."""
+        rules = self.expensive(clock)
+        if not rules:
+            return None
+        overrides = (
+            *(("-cd", self.config_dir) if self.config_dir else ()),
+            *self.overrides,
+            f"optim={','.join((BASELINE, *rules))}",
+            f"trainer.time_budget={LONGER * self.budget:g}",
+            f"compare.baseline={BASELINE}",
+            "compare.knobs=true",
+            f"compare.seed={(k - 1) * LEADERBOARD_SEEDS}",
+            f"compare.tune_seed={TUNE_SEED + k - 1}",
+            f"compare.calibration={clock}",
+            f"compare.tuned_in={{root}}/{self.name}/{STUDY_FOLDER.format(k=k)}",
+        )
+        job = LONGER * self.budget + self.overhead
+        name = f"{self.name}/{LONGER_FOLDER.format(k=k)}"
+        # no tuning (tune_seconds 0: the settings are study k's)
+        return Study(name, overrides, LEADERBOARD_TRIALS, LEADERBOARD_SEEDS, 0.0, job, preset=False)
 
     def study(self, k: int, calibration: Path | None = None) -> Study:
         """Tuning study k (1, 2, ...) of the scene as a compare of its own, in
@@ -197,10 +236,17 @@ def kept_clock(entry: Entry, evidence: Path = RERUN) -> Path | None:
     return path if path.is_file() and {BASELINE, *entry.rules} <= clock_rules(path) else None
 
 
+def scene_studies(entry: Entry) -> tuple[Study, ...]:
+    """A scene's parts in the order they run: its tuning studies, then each one's expensive rules
+    at the longer budget (which read the tuning study's folder)."""
+    clock = kept_clock(entry)
+    studies = tuple(entry.study(k, clock) for k in range(1, LEADERBOARD_STUDIES + 1))
+    longer = (entry.longer(k, clock) for k in range(1, LEADERBOARD_STUDIES + 1))
+    return studies + tuple(s for s in longer if s is not None)
+
+
 # the profile's studies: every tuning study of every scene, each a compare of its own
-LEADERBOARD = tuple(
-    entry.study(k, kept_clock(entry)) for entry in SCENES for k in range(1, LEADERBOARD_STUDIES + 1)
-)
+LEADERBOARD = tuple(study for entry in SCENES for study in scene_studies(entry))
 
 
 def environment(study: Study) -> dict | None:

@@ -152,6 +152,12 @@ def _seeds_text(settings: StudySettings) -> str:
 def _tuning_text(settings: StudySettings) -> str:
     if not settings.tune:
         return "Not tuned: every variant at its configured settings."
+    if settings.tuned_in is not None:
+        return (
+            f"Not tuned here: every variant at the settings tuned in {settings.tuned_in} (the "
+            "best trial of each of its tuning studies, by their validation loss at that study's "
+            "budget), evaluated at this study's budget."
+        )
     if settings.study_count == 1:
         return (
             f"Tuning: {settings.trials} trials per variant on seed {settings.tune_seed}, the same "

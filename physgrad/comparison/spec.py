@@ -47,6 +47,11 @@ SETTINGS = {  # compare.<key>: default, meaning
         "with that key",
     ),
     "tune": (True, "false: evaluate the variants at their configured settings without tuning"),
+    "tuned_in": (
+        None,
+        "a finished study's folder: evaluate each variant at the settings it tuned (its "
+        "trials.csv) instead of tuning here, e.g. the same settings at a longer budget",
+    ),
     "knobs": (
         False,
         "true: tune each rule's own settings that its authors tune (Adam's eps, the Jacobian "
@@ -91,6 +96,7 @@ class StudySettings:
     calibration: str | None
     baseline: str | None = None
     knobs: bool = False
+    tuned_in: str | None = None
 
     def __getitem__(self, key: str) -> Any:
         """settings["seeds"] as settings.seeds, for callers of the dict these settings were."""
@@ -326,6 +332,11 @@ def study_settings(given: dict) -> StudySettings:
     for flag in ("tune", "knobs"):
         if not isinstance(settings[flag], bool):
             raise UserError(f"compare.{flag}={settings[flag]!r}: use true or false")
+    if settings.tuned_in is not None and not settings.tune:
+        raise UserError(
+            f"compare.tuned_in={settings.tuned_in} evaluates another study's tuned settings: "
+            "leave compare.tune=false out"
+        )
     last_tuning = settings.tune_seed + settings.studies - 1
     last_evaluation = settings.evaluation_seeds[-1]
     if settings.tune_seed <= last_evaluation and settings.seed <= last_tuning:

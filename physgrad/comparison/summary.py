@@ -96,7 +96,7 @@ def analyse(
     searched = (
         coverage_lines(variants, tried_values(trials_rows), settings.trials, settings.study_count)
         + same_point_line(variants, best)
-        if settings.tune
+        if settings.tune and settings.tuned_in is None
         else []
     )
     lines += variant_lines(variants, runs, best, target_variant, target, searched, trials_rows)

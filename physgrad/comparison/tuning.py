@@ -21,6 +21,7 @@ from physgrad.comparison.journal import (
 )
 from physgrad.comparison.points import halton_points, is_whole, point_dimensions
 from physgrad.comparison.spec import StudyPlan, StudySettings, Variant
+from physgrad.comparison.tuned_in import tuned_in
 from physgrad.errors import UserError
 from physgrad.files import clean_text
 from physgrad.readout import READOUT_VERSION, run_curve
@@ -73,8 +74,8 @@ def tuning(plan: StudyPlan, launcher: Launcher) -> list[dict[str, dict]]:
     common, groups, axis, budget = plan.common, plan.groups, plan.axis, plan.budget
     count = settings.study_count
     best = [{v.name: {} for v in variants} for _ in range(count)]
-    if not settings.tune:
-        return best
+    if not settings.tune or settings.tuned_in is not None:  # untuned, or another study's best
+        return tuned_in(Path(settings.tuned_in), variants, count) if settings.tune else best
     with journal_replay(folder / "tuning.journal"):
         searches, pending, reread = _open_searches(folder, variants, settings, launcher.say)
     if reread:

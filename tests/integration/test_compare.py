@@ -1326,3 +1326,67 @@ def test_a_knob_that_shapes_the_step_cost_charges_each_trial_and_evaluation_its_
         values.add((rule, value))
     assert len(values) >= 4  # the trials tried other frequencies and memories than the preset's
     assert "each trial and evaluation is charged the cost at its own value" in study.text
+
+
+@pytest.mark.long
+def test_a_study_evaluates_another_studys_tuned_settings_at_a_longer_budget(tmp_path):
+    """compare.tuned_in: a study at three times another's budget, on its clock and seeds, tunes
+    nothing (no tuning folder, no trials) and evaluates each variant at the settings the other
+    chose by its validation loss (its trials.csv); its runs go three times as far, and compare.md
+    says where the settings were tuned. A folder without a finished study is one line."""
+    import pandas as pd
+
+    from physgrad.comparison.spec import Variant
+    from physgrad.comparison.tuned_in import tuned_in
+
+    common = [
+        "task=toy",
+        "optim=adam,gd",
+        "compare.trials=3",
+        "compare.studies=1",
+        "compare.seeds=2",
+        "trainer.batch_size=16",
+        "figures=false",
+    ]
+    first = physgrad.compare(*common, "trainer.time_budget=0.2", f"compare.dir={tmp_path / 'a'}")
+    longer = physgrad.compare(
+        *common,
+        "trainer.time_budget=0.6",
+        f"compare.calibration={first.folder / 'calibration.json'}",
+        f"compare.tuned_in={first.folder}",
+        f"compare.dir={tmp_path / 'b'}",
+    )
+    assert not (longer.folder / "tune").exists()
+    spaces = {
+        name: {"learning_rate": rng} for name, rng in (("adam", (1e-5, 0.1)), ("gd", (1e-4, 10.0)))
+    }
+    chosen = tuned_in(first.folder, [Variant(n, [], None, s) for n, s in spaces.items()], 1)[0]
+    trials = pd.read_csv(first.folder / "trials.csv")
+    for name, settings in chosen.items():
+        mine = trials[(trials.variant == name) & (trials.state == "COMPLETE")]
+        assert settings["learning_rate"] == mine.loc[mine.validation_loss.idxmin(), "learning_rate"]
+        jobs = list((longer.folder / "eval").glob("+compare_job=*"))
+        rates = {
+            physgrad_config(job).optim.learning_rate
+            for job in jobs
+            if physgrad_config(job).optim.name == name
+        }
+        assert rates == {pytest.approx(settings["learning_rate"])}
+    for name in ("adam", "gd"):
+        short = first.runs[first.runs.variant == name].iterations.median()
+        long = longer.runs[longer.runs.variant == name].iterations.median()
+        assert long == pytest.approx(3 * short, rel=0.02)
+    assert f"settings tuned in {first.folder}" in longer.text
+    with pytest.raises(UserError, match="no finished study's trials.csv"):
+        physgrad.compare(
+            *common,
+            "trainer.time_budget=0.6",
+            f"compare.tuned_in={tmp_path}",
+            f"compare.dir={tmp_path / 'c'}",
+        )
+
+
+def physgrad_config(job: Path):
+    from omegaconf import OmegaConf
+
+    return OmegaConf.load(job / ".hydra" / "config.yaml")

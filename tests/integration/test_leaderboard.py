@@ -20,6 +20,7 @@ import leaderboard  # noqa: E402
 import leaderboard_detail  # noqa: E402
 import leaderboard_keep  # noqa: E402
 import leaderboard_scenes  # noqa: E402
+import study_runs  # noqa: E402
 import tuned_settings  # noqa: E402
 from evidence import write_kept  # noqa: E402
 
@@ -165,7 +166,10 @@ def test_every_scene_is_a_compare_with_adam_as_baseline_and_parts_stay_near_80_m
     parts = chunks(leaderboard_scenes.LEADERBOARD)
     # every part is one tuning study of one scene (the plan's figure is an upper bound: one job
     # per trial), each in a folder of its own
-    assert len(parts) == len(leaderboard_scenes.SCENES) * leaderboard_scenes.LEADERBOARD_STUDIES
+    longer = [p[0] for p in parts if "/longer-" in p[0].name]
+    assert len(parts) - len(longer) == (
+        len(leaderboard_scenes.SCENES) * leaderboard_scenes.LEADERBOARD_STUDIES
+    )
     assert all(len(part) == 1 for part in parts)
     assert len({part[0].name for part in parts}) == len(parts)
 
@@ -183,7 +187,7 @@ def test_a_study_run_elsewhere_is_added_to_the_kept_evidence(tmp_path, monkeypat
     about = json.loads((evidence / "toy.json").read_text())
     assert "tuning_studies" not in about
     kept_scene(tmp_path / "elsewhere", "toy", levels, studies=1, first_seed=10)
-    study_2 = leaderboard.read_study(tmp_path / "elsewhere" / "toy")
+    study_2 = study_runs.read_study(tmp_path / "elsewhere" / "toy")
     folder = root / "toy" / "study-2"
     folder.mkdir(parents=True)
     (folder / "runs.csv").write_text("variant,iterations\nadam,300\nhig,100\nhig,140\n")
@@ -573,7 +577,7 @@ def test_the_current_protocols_studies_are_kept_apart_and_shown_as_a_re_run(tmp_
         json.dumps({"overrides": ["task=toy", "compare.knobs=true", "compare.seed=0"]})
     )
     kept_scene(tmp_path / "elsewhere", "toy", {"adam": [1.0], "hig": [10.0]}, studies=1)
-    study = leaderboard.read_study(tmp_path / "elsewhere" / "toy")
+    study = study_runs.read_study(tmp_path / "elsewhere" / "toy")
     monkeypatch.setattr(
         leaderboard_keep, "read_study", lambda path: study if path == folder else None
     )
@@ -605,3 +609,45 @@ def test_the_current_protocols_studies_are_kept_apart_and_shown_as_a_re_run(tmp_
     )
     with pytest.raises(UserError, match="with and without compare.knobs=true"):
         leaderboard.keep(root, tmp_path / "fresh")
+
+
+def test_the_expensive_rules_are_read_again_at_four_times_the_budget(tmp_path, monkeypatch):
+    """A rule whose calibrated step costs more than 10 of Adam's gets a study of its own at 4x the
+    budget per tuning study: Adam and those rules at the settings tuning study k chose
+    (compare.tuned_in=<root>/<scene>/study-k), on study k's seeds and the scene's kept clock; none
+    for a scene whose rules all cost less. Its runs are kept as <scene>_longer and the page reads
+    each expensive rule's cell there beside the budget's."""
+    clock = tmp_path / "toy.calibration.json"
+    costs = {rule: {"step_seconds": 1e-3} for rule in ("adam", *leaderboard_scenes.RULES)}
+    costs["hig"]["step_seconds"] = 2e-2  # 20 of Adam's steps
+    costs["gauss_newton"]["step_seconds"] = 9e-3  # 9: not expensive
+    clock.write_text(json.dumps({"costs": costs}))
+    toy = leaderboard_scenes.SCENES[0]
+    assert toy.expensive(clock) == ("hig",) and toy.expensive(None) == ()
+    longer = toy.longer(2, clock)
+    command = longer.command(tmp_path / "root")
+    assert longer.name == "toy/longer-2" and "optim=adam,hig" in command
+    assert f"trainer.time_budget={4 * toy.budget:g}" in command
+    assert f"compare.tuned_in={tmp_path / 'root'}/toy/study-2" in command
+    assert f"compare.calibration={clock}" in command and "compare.seed=10" in command
+    assert f"compare.dir={tmp_path / 'root'}/toy/longer-2" in command
+    costs["hig"]["step_seconds"] = 5e-3
+    clock.write_text(json.dumps({"costs": costs}))
+    assert toy.longer(2, clock) is None
+
+    root, evidence = tmp_path / "studies", tmp_path / "evidence"
+    kept_scene(evidence, "toy", {"adam": [1.0] * 4, "hig": [2.0] * 4}, studies=4)
+    folder = root / "toy" / "longer-1"
+    folder.mkdir(parents=True)
+    (folder / "runs.csv").write_text("variant,iterations\nadam,3000\nhig,150\n")
+    (folder / "study.json").write_text(json.dumps({"overrides": ["task=toy"]}))
+    kept_scene(tmp_path / "elsewhere", "toy", {"adam": [1.0], "hig": [0.1]}, studies=1, budget=40.0)
+    study = study_runs.read_study(tmp_path / "elsewhere" / "toy")
+    monkeypatch.setattr(leaderboard_keep, "read_study", lambda p: study if p == folder else None)
+    assert leaderboard.keep(root, evidence) == ["toy/longer-1"]
+    assert json.loads((evidence / "toy_longer.json").read_text())["budget"] == 40.0
+    text = leaderboard.write(evidence, tmp_path / "docs")
+    line = next(line for line in text.splitlines() if line.startswith("  At 4x the budget (40 s"))
+    assert "1 of 4 studies" in line and "hig **better** 0.1x" in line and "150 steps" in line
+    hig = next(line for line in text.splitlines() if line.startswith("| hig |"))
+    assert "worse" in hig  # at the budget, from the scene's own studies

@@ -111,7 +111,7 @@ INNER = {
         {"compare_text"},
         {"coverage"},
         {"tuning", "clock_text", "calibration"},
-        {"journal"},
+        {"journal", "tuned_in"},
         {"jobs", "study_folder"},
         {"progress"},
         {"spec"},

@@ -463,3 +463,59 @@ def test_a_whole_number_setting_is_searched_over_whole_numbers_of_its_range():
     assert trial_params(trial, space) is None
     with pytest.raises(UserError, match="precondition_frequency is a whole number .* widen it"):
         search_space(cfg, {"precondition_frequency": (0.2, 0.9)})
+
+
+def test_another_studys_tuned_settings_are_read_as_data_by_tunings_own_rule(tmp_path):
+    """compare.tuned_in: per tuning study and variant the trial with the lowest finite validation
+    loss among the COMPLETE ones (the first where two tie; a NaN, an infinite or a FAIL trial never
+    chosen), a count read back as a whole number, {} where every trial diverged; a missing file,
+    variant or tuning study, a value outside the space or a fraction for a count refused in one
+    line each; compare.tune=false with it refused."""
+    from physgrad.comparison.spec import Variant, study_settings
+    from physgrad.comparison.tuned_in import tuned_in
+    from physgrad.errors import UserError
+
+    adam = Variant("adam", [], None, {"learning_rate": (1e-5, 0.1)})
+    soap = Variant(
+        "soap", [], None, {"learning_rate": (1e-5, 0.1), "precondition_frequency": (1, 100)}
+    )
+    rows = [
+        "variant,study,trial,learning_rate,precondition_frequency,validation_loss,state",
+        "adam,0,0,0.001,,0.5,COMPLETE",
+        "adam,0,1,0.01,,0.2,COMPLETE",
+        "adam,0,2,0.02,,0.2,COMPLETE",  # ties with trial 1: the first is chosen
+        "adam,0,3,0.05,,nan,COMPLETE",
+        "adam,0,4,0.06,,0.01,FAIL",
+        "adam,1,0,0.003,,inf,COMPLETE",
+        "adam,1,1,0.004,,0.7,COMPLETE",
+        "soap,0,0,0.001,6.0,0.3,COMPLETE",
+        "soap,0,1,0.002,40.0,0.1,COMPLETE",
+        "soap,1,0,0.001,6.0,inf,COMPLETE",
+        "soap,1,1,0.002,40.0,nan,COMPLETE",
+    ]
+    (tmp_path / "trials.csv").write_text("\n".join(rows) + "\n")
+    best = tuned_in(tmp_path, [adam, soap], 2)
+    assert best == [
+        {
+            "adam": {"learning_rate": 0.01},
+            "soap": {"learning_rate": 0.002, "precondition_frequency": 40},
+        },
+        {"adam": {"learning_rate": 0.004}, "soap": {}},  # every trial of soap diverged
+    ]
+    assert isinstance(best[0]["soap"]["precondition_frequency"], int)
+    for wrong, said in (
+        (rows[:1] + rows[1:7], "no trial of soap in tuning study 0"),
+        ([r.replace("0.002,40.0", "0.5,40.0") for r in rows], "learning_rate='0.5' is not inside"),
+        ([r.replace("40.0", "40.5") for r in rows], "precondition_frequency='40.5' is not inside"),
+    ):
+        (tmp_path / "trials.csv").write_text("\n".join(wrong) + "\n")
+        with pytest.raises(UserError, match=said) as error:
+            tuned_in(tmp_path, [adam, soap], 2)
+        assert "\n" not in str(error.value)
+    with pytest.raises(UserError, match="no trial of adam in tuning study 2"):
+        (tmp_path / "trials.csv").write_text("\n".join(rows) + "\n")
+        tuned_in(tmp_path, [adam, soap], 3)
+    with pytest.raises(UserError, match="no finished study's trials.csv there"):
+        tuned_in(tmp_path / "nowhere", [adam], 1)
+    with pytest.raises(UserError, match="leave compare.tune=false out"):
+        study_settings({"tuned_in": str(tmp_path), "tune": False})

@@ -1,0 +1,139 @@
+"""The leaderboard's cells: each rule against Adam on a scene, decided over its tuning studies by
+the package's rule, read from the study folders or their kept evidence, and a cell as the page
+prints it (experiments/leaderboard.py)."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from pathlib import Path
+
+from evidence import keep_clock_verdicts, read_json  # experiments/
+from leaderboard_detail import MARKS
+from leaderboard_figure import FEW_STEPS
+from leaderboard_keep import checked_record
+from leaderboard_scenes import BASELINE, EXPENSIVE, LONGER, SCENES, planned_studies
+from study_runs import read_study
+
+from physgrad.readout import fmt
+from physgrad.replication import across_studies
+from physgrad.verdict import FRACTIONS, compare_variants, ratio_of
+
+
+@dataclass(frozen=True)
+class Cell:
+    """A rule against Adam on one scene: the verdict over the tuning studies, the median ratio rule
+    / Adam at the budget with its interval, seeds where the rule was lower, and each study's own
+    verdict."""
+
+    verdict: str
+    ratio: float
+    low: float
+    high: float
+    wins: int
+    pairs: int
+    studies: tuple[str, ...]
+    iterations: float = math.nan
+    detail: tuple = ()  # (k, the rule's PairVerdict in tuning study k) for the studies that ran it
+
+
+def cells(runs, about: dict | None = None) -> dict[str, Cell]:
+    """rule -> Cell for every rule the study ran, by the package's rule: each tuning study decided
+    with Holm's correction over the comparisons with Adam of the rules it ran (compare.baseline),
+    a "better" its compare found undecided by the clock kept so (the kept record's
+    undecided_by_the_clock), then each rule over the studies that ran it
+    (physgrad.replication.across_studies; a rule added to the leaderboard after a scene's first
+    studies is decided over the later ones)."""
+    about = about or {}
+    iterations = about.get("iterations")
+    studies = runs.tuning or (runs,)
+    ran = [sorted(r for r in study.paths if r != BASELINE) for study in studies]
+    per_study = [
+        dict(
+            zip(
+                rules,
+                compare_variants(
+                    {name: study.curves(name) for name in (*rules, BASELINE)},
+                    runs.budget,
+                    pairs=[(rule, BASELINE) for rule in rules],
+                    fractions=FRACTIONS,
+                ),
+            )
+        )
+        if rules and BASELINE in study.paths
+        else {}
+        for study, rules in zip(studies, ran)
+    ]
+    keep_clock_verdicts(per_study, about.get("tuning_studies") or {})
+    found = {}
+    for rule in sorted({r for rules in ran for r in rules}):
+        verdicts = [by_rule[rule] for by_rule in per_study if rule in by_rule]
+        if not verdicts:
+            continue
+        result = across_studies([[v] for v in verdicts])[0]
+        p = result.at[1.0]
+        found[rule] = Cell(
+            result.verdict,
+            p.ratio,
+            ratio_of(p.low),
+            ratio_of(p.high),
+            p.wins_a,
+            p.pairs,
+            tuple(s.verdicts[1.0][0] for s in (result.studies or [result])),
+            (iterations or {}).get(rule, math.nan),
+            tuple((k, by_rule[rule]) for k, by_rule in enumerate(per_study) if rule in by_rule),
+        )
+    return found
+
+
+def board(root: Path, suffix: str = "") -> dict[str, tuple[dict[str, Cell], object, dict]]:
+    """scene -> (its cells, its runs, its kept record) for every scene with runs under root (study
+    folders or their kept evidence); with suffix LONGER_SUFFIX, its studies at the longer
+    budget."""
+    found = {}
+    for entry in SCENES:
+        runs = read_study(root / (entry.name + suffix))
+        if runs is None:
+            continue
+        about_path = root / f"{entry.name}{suffix}.json"
+        about = read_json(about_path) if about_path.is_file() else {}
+        checked_record(root / (entry.name + suffix), runs, about, (BASELINE, *entry.rules))
+        found[entry.name] = (cells(runs, about), runs, about)
+    return found
+
+
+def longer_lines(entry, found: tuple | None, budget: float) -> list[str]:
+    """A scene's expensive rules against Adam at LONGER times the budget, at the settings tuned at
+    the budget (its <scene>_longer evidence): each rule's cell and its steps there."""
+    if found is None:
+        return []
+    longer, runs, _ = found
+    said = [
+        f"{rule} {cell_text(cell, planned_studies(runs))}"
+        + (f", {cell.iterations:,.0f} steps" if math.isfinite(cell.iterations) else "")
+        for rule, cell in sorted(longer.items())
+    ]
+    return [
+        f"  At {LONGER}x the budget ({LONGER * budget:g} s; the rules whose step costs more than "
+        f"{EXPENSIVE:g} of Adam's, at the settings tuned at the budget, on the same seeds; "
+        f"{len(runs.tuning or (runs,))} of {planned_studies(runs)} studies): "
+        + "; ".join(said)
+        + "."
+    ]
+
+
+def cell_text(cell: Cell, scene_studies: int = 0, to: str = "") -> str:
+    """A cell as the table prints it, its verdict a link to its scene's page (to) where given;
+    with the tuning studies that ran the rule where they are fewer than the scene's."""
+    mark = MARKS.get(cell.verdict, "undecided")
+    fewer = len(cell.studies) < scene_studies
+    return (
+        (f"[**{mark}**]({to})" if to else f"**{mark}**")
+        + f" {fmt(cell.ratio)}x [{fmt(cell.low)}, {fmt(cell.high)}], {cell.wins}/{cell.pairs}"
+        + (f" ({len(cell.studies)} of {scene_studies} studies ran it)" if fewer else "")
+        + (
+            f", {cell.iterations:.0f} steps: decided by a step's cost, not the rule"
+            if cell.iterations < FEW_STEPS
+            else ""
+        )
+    )
