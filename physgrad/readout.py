@@ -204,7 +204,8 @@ def run_record(
     run: Run, target: float, axis: str | None = None, budget: float | None = None
 ) -> dict:
     """One run at a budget as a row, the same in every runs table (compare's runs.csv, the
-    report's runs.csv and read_runs, the claims): the run (path, its variant as its file names it,
+    report's runs.csv and read_runs, the claims): the run (path, its variant as its file names it:
+    compare's tables put the study's name of the variant there, its report's too,
     seed), how it ended (status, stopped_by, reason), the budget (axis, budget: by default the
     run's own), its held-out loss at 1/4, 1/2 and all of the budget (test_loss_at_0.25, _0.5, _1:
     inf if it had diverged by then, NaN if it ended before without a loss), diverged_by_budget, the

@@ -63,11 +63,16 @@ def metric_names(runs: list[Run]) -> list[str]:
     return sorted({k for run in runs for k in run.eval if k not in (*METADATA, "loss")})
 
 
-def run_rows(runs: list[Run], threshold: float | None = None) -> list[dict]:
+def run_rows(
+    runs: list[Run],
+    threshold: float | None = None,
+    variant_of: Callable[[Run], str] | None = None,
+) -> list[dict]:
     """One row per run (the per-seed table and runs.csv): where it stands in the report (set,
     task, scene, setting, label), its record at its own budget with the scene's target
     (readout.run_record), its last minibatch losses, its loss at the scene's common time, its
-    step time and its scene metrics."""
+    step time and its scene metrics. variant: the run's variant as its study names it
+    (variant_of, a compare's report) or as its file does."""
     limits, common = targets(runs), common_times(runs)
     names = metric_names(runs)
     rows = []
@@ -82,6 +87,7 @@ def run_rows(runs: list[Run], threshold: float | None = None) -> list[dict]:
             run, threshold if threshold is not None else limits.get(run.scene, math.nan)
         )
         reason = record.pop("reason")
+        named = record.pop("variant")  # as the file names it
         rows.append(
             {
                 "path": record.pop("path"),
@@ -89,7 +95,7 @@ def run_rows(runs: list[Run], threshold: float | None = None) -> list[dict]:
                 "task": run.attrs.get("task"),
                 "scene": run.scene,
                 "setting": run.setting,
-                "variant": record.pop("variant"),
+                "variant": variant_of(run) if variant_of else named,
                 "label": run.label,
                 **record,
                 "train_loss": float(np.median(train_loss[-10:])) if train_loss.size else math.nan,
@@ -264,6 +270,7 @@ def write_report(
     logx: str = "auto",
     figures: bool = True,
     study_of: Callable[[Run], int] | None = None,
+    variant_of: Callable[[Run], str] | None = None,
 ) -> str:
     """Print-ready text; also writes into out_dir (default: the first path's folder) report.md,
     runs.csv, curves.csv and, with ``figures``, the figures (PNG and PDF): loss_vs_time,
@@ -271,7 +278,9 @@ def write_report(
     where runs differ in unroll length, unroll. ``note`` is printed on every figure; ``logx`` is
     auto (log where the curves' ends span a decade or more), on or off. ``study_of``: a run's
     tuning study (1, 2, ...) in a compare: each group is then labelled "variant, tuning study k:
-    its tuned settings" and drawn in its variant's colour and its study's line style."""
+    its tuned settings" and drawn in its variant's colour and its study's line style;
+    ``variant_of``: a run's variant as its compare names it (runs.csv's `variant`, as in the
+    study's own runs.csv)."""
     runs, unreadable, dropped = collect(paths)
     if not runs:
         raise UserError(
@@ -281,7 +290,7 @@ def write_report(
     out = output_folder(paths, out_dir)
     label_runs(runs)
     design = _label_studies(runs, study_of) if study_of is not None else {}
-    rows = run_rows(runs, threshold)
+    rows = run_rows(runs, threshold, variant_of)
     limits = targets(runs)
     text = summary_lines(paths, runs, rows, threshold, limits)
     text += timing_notes(rows, sorted({run.scene for run in runs}, key=natural_key))

@@ -43,7 +43,7 @@ from typing import TYPE_CHECKING
 from physgrad.comparison.calibration import calibrated_clock
 from physgrad.comparison.evaluation import evaluation
 from physgrad.comparison.figure import plot_sensitivity
-from physgrad.comparison.job_names import tuning_study_of
+from physgrad.comparison.job_names import tuning_study_of, variant_index
 from physgrad.comparison.jobs import Launcher
 from physgrad.comparison.spec import (
     SETTINGS,
@@ -150,7 +150,8 @@ def run_study(
         runs, comparisons, trials, verdicts, text = analyse(
             folder, variants, best, curves, statuses, settings, axis, budget, rows, calibration
         )
-        write_curves_report(folder, say, figures, studies=settings.study_count)
+        names = [v.name for v in variants]
+        write_curves_report(folder, say, figures, settings.study_count, names)
     return Study(folder, trials, runs, comparisons, verdicts, text)
 
 
@@ -189,12 +190,27 @@ def tuning_study(run: Run) -> int:
     return next((k for k in found if k is not None), 1)
 
 
+def study_variant(run: Run, names: list[str]) -> str:
+    """The study's name of the variant whose evaluation job wrote the run (its job folder's
+    v<index>), or the file's own where the path names no evaluation job of the study."""
+    for part in reversed(Path(run.path).parts):
+        if tuning_study_of(part) is not None:
+            index = variant_index(part.rpartition("=")[2])
+            return names[index] if index < len(names) else run.variant
+    return run.variant
+
+
 def write_curves_report(
-    folder: Path, say: Callable[[str], object], figures: bool = True, studies: int = 1
+    folder: Path,
+    say: Callable[[str], object],
+    figures: bool = True,
+    studies: int = 1,
+    names: list[str] | None = None,
 ) -> None:
     """The sweep's report (its tables and, with figures, the evaluation curves) under
-    folder/report, each group labelled with its tuning study where there are several; a failure
-    is said, not raised."""
+    folder/report, each group labelled with its tuning study where there are several, each run's
+    variant named as the study names it (names: the variants in order); a failure is said, not
+    raised."""
     try:
         from physgrad.files import make_folder
         from physgrad.report import write_report
@@ -207,6 +223,7 @@ def write_curves_report(
                 out_dir=out,
                 figures=figures,
                 study_of=tuning_study if studies > 1 else None,
+                variant_of=(lambda run: study_variant(run, names)) if names else None,
             )
     except (UserError, OSError, ValueError) as error:
         say(f"report of the curves not written: {error}")

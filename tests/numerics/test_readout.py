@@ -10,8 +10,8 @@ import pytest
 from omegaconf import OmegaConf
 
 from physgrad.comparison import StudySettings, Variant, analyse, study_settings
+from physgrad.comparison.study import write_curves_report
 from physgrad.readout import budget_of, run_curve
-from physgrad.report import write_report
 from physgrad.results import read_run
 from tests.unit.test_readout import (
     write_run,
@@ -43,7 +43,7 @@ def study(tmp_path, time_budget=None):
         if seed == 5:
             hig, hig_x, status["hig"] = hig[:3], x[:3], "interrupted"
         write_run(
-            tmp_path / "eval" / f"adam_s{seed}" / "results.h5",
+            tmp_path / "eval" / f"+compare_job=eval_v0_s{seed}" / "results.h5",
             "adam",
             seed,
             x,
@@ -53,7 +53,7 @@ def study(tmp_path, time_budget=None):
             step,
         )
         write_run(
-            tmp_path / "eval" / f"hig_s{seed}" / "results.h5",
+            tmp_path / "eval" / f"+compare_job=eval_v1_s{seed}" / "results.h5",
             "hig",
             seed,
             hig_x,
@@ -67,20 +67,23 @@ def study(tmp_path, time_budget=None):
 def analysed(tmp_path, axis, budget):
     """compare's phase 3 on the evaluation files, then `physgrad report` on the same files, as a
     study writes them: (compare's runs.csv, report/runs.csv), each by path."""
+    # named as a study with a second axis names them: not as their files do ("adam", "hig")
     variants = [
         Variant(name, [f"optim={name}"], OmegaConf.create({"task": {"name": "toy"}, "optim": {}}))
-        for name in ("adam", "hig")
+        for name in ("adam tau=1e-06", "hig tau=1e-06")
     ]
     curves, statuses = {}, {}
-    for variant in variants:
+    for index, variant in enumerate(variants):
         curves[variant.name], statuses[variant.name] = {}, {}
         for seed in SEEDS:
-            run = read_run(tmp_path / "eval" / f"{variant.name}_s{seed}" / "results.h5")
+            run = read_run(tmp_path / "eval" / f"+compare_job=eval_v{index}_s{seed}" / "results.h5")
             curves[variant.name][seed], statuses[variant.name][seed] = run_curve(run, axis), run
     settings: StudySettings = study_settings({"seeds": len(SEEDS), "studies": 1})
-    best = [{"adam": {}, "hig": {}}]
+    best = [{v.name: {} for v in variants}]
     analyse(tmp_path, variants, best, [curves], [statuses], settings, axis, budget, [])
-    write_report([tmp_path / "eval"], out_dir=tmp_path / "report")
+    said = []
+    write_curves_report(tmp_path, said.append, False, 1, [v.name for v in variants])
+    assert not said  # the report was written
     with (
         open(tmp_path / "runs.csv") as compare_csv,
         open(tmp_path / "report" / "runs.csv") as report_csv,
@@ -108,10 +111,11 @@ def test_compare_and_report_give_one_number_per_run_at_the_budget(tmp_path, time
     axis, budget = ("wall_time", time_budget) if time_budget else ("iteration", 100.0)
     compare, report = analysed(tmp_path, axis, budget)
     assert sorted(compare) == sorted(report) and len(compare) == 12
-    # one record per run: every column the two tables share is the same text in both (the variant
-    # is the study's name in compare's table and the file's in the report's)
-    shared = (set(next(iter(compare.values()))) & set(next(iter(report.values())))) - {"variant"}
+    # one record per run: every column the two tables share is the same text in both, the variant
+    # as the study names it included
+    shared = set(next(iter(compare.values()))) & set(next(iter(report.values())))
     assert {
+        "variant",
         "seed",
         "status",
         "axis",
@@ -128,8 +132,8 @@ def test_compare_and_report_give_one_number_per_run_at_the_budget(tmp_path, time
     } <= shared
     for path, row in compare.items():
         assert {c: row[c] for c in shared} == {c: report[path][c] for c in shared}, path
-    by_name = {
-        (row["variant"], int(row["seed"])): number(row["test_loss_at_1"])
+    by_name = {  # by the rule's name
+        (row["variant"].split()[0], int(row["seed"])): number(row["test_loss_at_1"])
         for row in compare.values()
     }
     assert by_name[("hig", 2)] == math.inf  # diverged (a NaN evaluation)

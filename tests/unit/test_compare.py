@@ -519,3 +519,24 @@ def test_another_studys_tuned_settings_are_read_as_data_by_tunings_own_rule(tmp_
         tuned_in(tmp_path / "nowhere", [adam], 1)
     with pytest.raises(UserError, match="leave compare.tune=false out"):
         study_settings({"tuned_in": str(tmp_path), "tune": False})
+
+
+def test_a_compares_report_names_each_run_as_the_study_names_its_variant():
+    """study_variant: the variant of the evaluation job whose folder holds the run (eval_v<i>,
+    eval_st<k>_v<i>, with or without a seed), the file's own name for a run outside the study's
+    evaluation jobs or of an index the study does not have."""
+    import types
+
+    from physgrad.comparison.study import study_variant
+
+    names = ["adam scale=1", "hig scale=1", "hig scale=0.01"]
+    for path, expected in (
+        ("s/eval/+compare_job=eval_v1/seed=3/results.h5", "hig scale=1"),
+        ("s/eval/+compare_job=eval_st2_v2_s13/results.h5", "hig scale=0.01"),
+        ("s/eval/+compare_job=eval_v0_s0/results.h5", "adam scale=1"),
+        ("s/eval/+compare_job=eval_v7/results.h5", "hig"),
+        ("elsewhere/run/results.h5", "hig"),
+        ("s/tune/+compare_job=tune_v1_t000/results.h5", "hig"),
+    ):
+        run = types.SimpleNamespace(path=path, variant="hig")
+        assert study_variant(run, names) == expected, path
