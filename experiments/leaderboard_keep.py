@@ -121,24 +121,34 @@ def _keep_scene(root: Path, dest: Path, entry, name: str, pattern: str) -> list[
 
 
 def _same_protocol(dest: Path, scene: str, finished: dict) -> bool:
-    """Whether the finished studies tuned the rules' own knobs (compare.knobs=true), checked to be
-    the protocol of the scene's studies kept in dest: the tuning studies planned and the knobs
-    alike; UserError (one line) otherwise, so that no scene is decided on two protocols."""
-    knobs = {"compare.knobs=true" in study_overrides(folder) for folder, _ in finished.values()}
-    if len(knobs) > 1:
-        raise UserError(f"{scene}: studies with and without compare.knobs=true; keep them apart")
-    about_path = dest / f"{scene}.json"
-    if about_path.is_file():
+    """The finished studies checked to be of the profile's protocol (compare.knobs=true, whatever
+    its spelling) and dest to hold no scene of another (its records' tuning studies planned and
+    knobs), so that no table is decided on two protocols; UserError (one line) otherwise."""
+
+    def knobs(folder: Path) -> bool:
+        said = [
+            o.partition("=")[2] for o in study_overrides(folder) if o.startswith("compare.knobs=")
+        ]
+        return bool(said) and said[-1].strip().lower() == "true"
+
+    if not all(knobs(folder) for folder, _ in finished.values()):
+        raise UserError(
+            f"{scene}: a study run without compare.knobs=true, where the profile's protocol tunes "
+            "each rule's knobs: run it with the current profile"
+        )
+    for about_path in sorted(dest.glob("*.json")) if dest.is_dir() else ():
         about = read_json(about_path)
+        if not isinstance(about, dict) or "planned" not in about:
+            continue  # a calibration, not a scene's record
         kept = (about.get("planned"), bool(about.get("knobs")))
-        if kept != (LEADERBOARD_STUDIES, *knobs):
+        if kept != (LEADERBOARD_STUDIES, True):
             raise UserError(
                 f"{about_path} keeps studies of another protocol ({kept[0]} tuning studies, "
                 f"{'the rules own knobs' if kept[1] else 'the learning rate alone'} tuned): "
-                "keep these in another folder (the current protocol's: "
+                f"keep {scene}'s in another folder (the current protocol's: "
                 "docs/evidence/leaderboard/rerun)"
             )
-    return knobs.pop()
+    return True
 
 
 def iterations_in_budget(table) -> dict[str, float]:

@@ -231,9 +231,29 @@ def planned_studies(runs) -> int:
 
 def kept_clock(entry: Entry, evidence: Path = RERUN) -> Path | None:
     """The scene's kept calibration (its step costs, measured once on a quiet machine) if it has a
-    cost for every rule the scene runs now (a rule added since calibrates the study again)."""
+    cost for every rule the scene runs now and for the cost-shaping knobs' ends (a rule added
+    since, or a clock from before the knobs, calibrates the study again)."""
     path = evidence / CLOCK.format(name=entry.name)
-    return path if path.is_file() and {BASELINE, *entry.rules} <= clock_rules(path) else None
+    needed = {BASELINE, *entry.rules, *knob_ends(entry.rules)}
+    return path if path.is_file() and needed <= clock_rules(path) else None
+
+
+def knob_ends(rules: tuple[str, ...]) -> set[str]:
+    """The calibration's names of the rules' cost-shaping knobs at their ranges' ends
+    (`soap@precondition_frequency=1`, ...: physgrad.comparison.calibration.knob_ends), which a
+    clock for the profile's knob-tuning studies must have."""
+    import yaml
+
+    from physgrad.configs import CONF_DIR
+    from physgrad.optim.capabilities import capabilities
+
+    names = set()
+    for rule in rules:
+        kind = capabilities(yaml.safe_load((CONF_DIR / "optim" / f"{rule}.yaml").read_text()))
+        for key, low, high in kind.knobs if kind.cost_knob else ():
+            if key == kind.cost_knob[0]:
+                names |= {f"{rule}@{key}={value}" for value in (low, high)}
+    return names
 
 
 def scene_studies(entry: Entry) -> tuple[Study, ...]:

@@ -174,6 +174,16 @@ def calibrated_clock(plan: StudyPlan, launcher: Launcher, given: str | None) -> 
     path = folder / CALIBRATION_FILE
     ends = {v.name: knob_ends(v) for v in variants}
     names = [v.name for v in variants] + [name for e in ends.values() for name in e]
+    if any(ends.values()) and read_calibration(path, names) is None:
+        older = read_calibration(path, [v.name for v in variants])
+        if older is not None:  # calibrated before a knob's costs were: resumed as it ran
+            launcher.say(
+                f"note: {path} has no costs at the ends of a tuned setting that changes a step's "
+                "cost: every trial is charged its variant's preset cost, as the study began"
+            )
+            ends = {name: {} for name in ends}
+            names = [v.name for v in variants]
+            given = None
     if given is not None:
         calibration = read_calibration(Path(given), names, given=True)
         if calibration is None:
@@ -245,10 +255,21 @@ def charge(variant: Variant, costs: dict, ends: dict, where: object) -> None:
     if "evaluation_seconds" in cost:
         variant.job_values["trainer.evaluation_cost"] = float(cost["evaluation_seconds"])
         variant.job_values["trainer.step_evaluations"] = float(cost["step_evaluations"])
+    variant.cost_knob = ()
     if ends:
-        (key, low), (_, high) = ends.values()
-        low_cost, high_cost = (costs[name]["step_seconds"] for name in ends)
-        variant.cost_knob = (key, kind.cost_knob[1], low, low_cost, high, high_cost)
+        # each point's own part of a step: its line search's evaluations are charged as the run
+        # makes them (the preset's e v added back in Variant.priced), not as that point made them
+        def own(c: dict) -> float:
+            return c["step_seconds"] - c.get("evaluation_seconds", 0.0) * c.get(
+                "step_evaluations", 0.0
+            )
+
+        key = next(iter(ends.values()))[0]
+        points = {value: own(costs[name]) for name, (_, value) in ends.items()}
+        preset = variant.config.optim.get(key)
+        if isinstance(preset, (int, float)) and min(points) < preset < max(points):
+            points[preset] = own(cost)  # measured there: the piecewise model passes through it
+        variant.cost_knob = (key, kind.cost_knob[1], tuple(sorted(points.items())))
 
 
 def knob_ends(variant: Variant) -> dict[str, tuple[str, float]]:

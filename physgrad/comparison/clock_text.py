@@ -177,16 +177,16 @@ def knob_cost_text(variants: list[Variant]) -> str:
     trial and evaluation is charged at its own value (physgrad.optim.capabilities.knob_cost)."""
     shapes = {"inverse": "c + u / f", "linear": "a + b m"}
     said = [
-        f"{v.name}'s {key}: a step {fmt(low_cost)} s at {low:g} and {fmt(high_cost)} s at "
-        f"{high:g} ({shapes.get(shape, shape)} between them)"
+        f"{v.name}'s {key}: a step's own part "
+        + ", ".join(f"{fmt(seconds)} s at {value:g}" for value, seconds in points)
+        + f" ({shapes.get(shape, shape)} between them)"
         for v in variants
-        for key, shape, low, low_cost, high, high_cost in [v.cost_knob]
+        for key, shape, points in [v.cost_knob]
     ]
     return (
-        "A tuned setting that changes what a step costs was calibrated at its range's two ends, "
-        "and each trial and evaluation is charged the cost at its own value: "
-        + "; ".join(said)
-        + "."
+        "A tuned setting that changes what a step costs was calibrated at its range's two ends "
+        "and its preset, and each trial and evaluation is charged the cost at its own value "
+        "(a line search's evaluations as the run made them): " + "; ".join(said) + "."
     )
 
 

@@ -144,25 +144,25 @@ class Variant:
     job_values: dict = field(default_factory=dict)
     # its tuning trials train together in one vectorised job per study (tuning.trials_together)
     trials_together: bool = False
-    # the setting that shapes its step cost, where it is tuned, and the costs calibrated at its
-    # range's two ends: (key, shape, low, low's step cost, high, high's step cost)
+    # the setting that shapes its step cost, where it is tuned, and the own part of a step
+    # calibrated at its range's two ends and its preset: (key, shape, ((value, seconds), ...)))
     cost_knob: tuple = ()
 
     def priced(self, params: dict) -> dict:
-        """The step cost of a job at params (a trial's or the tuned values) where the variant's
-        tuned settings shape it (physgrad.optim.capabilities.knob_cost), as the job's
-        trainer.step_cost; {} for a variant whose steps cost the same at every value."""
+        """The job's trainer.step_cost at params (a trial's or the tuned values) where the
+        variant's tuned setting shapes it (physgrad.optim.capabilities.knob_step_cost, with the
+        preset's line-search evaluations); {} for a variant whose steps cost the same at every
+        value."""
         if not self.cost_knob or self.cost_knob[0] not in params:
             return {}
-        from physgrad.optim.capabilities import knob_cost  # JAX: not for compare --help
+        from physgrad.optim.capabilities import knob_step_cost  # JAX: not for compare --help
 
-        key, shape, *ends = self.cost_knob
-        cost = knob_cost(shape, params[key], *ends)
-        # a line search's evaluations are part of a step: its step costs at least those
-        floor = float(self.job_values.get("trainer.evaluation_cost", 0.0)) * float(
-            self.job_values.get("trainer.step_evaluations", 0.0)
+        values = self.job_values
+        evaluations = values.get("trainer.evaluation_cost", 0.0) * values.get(
+            "trainer.step_evaluations", 0.0
         )
-        return {"trainer.step_cost": max(cost, floor)}
+        cost = knob_step_cost(self.cost_knob, params[self.cost_knob[0]], evaluations)
+        return {"trainer.step_cost": cost}
 
     @property
     def preset(self) -> dict:
@@ -332,11 +332,11 @@ def study_settings(given: dict) -> StudySettings:
     for flag in ("tune", "knobs"):
         if not isinstance(settings[flag], bool):
             raise UserError(f"compare.{flag}={settings[flag]!r}: use true or false")
+    for key in ("tuned_in", "calibration"):
+        if settings[key] is not None and not isinstance(settings[key], str):
+            raise UserError(f"compare.{key}={settings[key]!r}: give a path")
     if settings.tuned_in is not None and not settings.tune:
-        raise UserError(
-            f"compare.tuned_in={settings.tuned_in} evaluates another study's tuned settings: "
-            "leave compare.tune=false out"
-        )
+        raise UserError("compare.tuned_in tunes nothing here: leave compare.tune=false out")
     last_tuning = settings.tune_seed + settings.studies - 1
     last_evaluation = settings.evaluation_seeds[-1]
     if settings.tune_seed <= last_evaluation and settings.seed <= last_tuning:

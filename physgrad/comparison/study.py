@@ -58,6 +58,7 @@ from physgrad.comparison.spec import (
 )
 from physgrad.comparison.study_folder import configuration_of, default_folder, record_study
 from physgrad.comparison.summary import analyse, trial_rows
+from physgrad.comparison.tuned_in import tuned_in
 from physgrad.comparison.tuning import tuning
 from physgrad.errors import UserError
 from physgrad.interrupts import handling_signals, raise_interrupt
@@ -134,6 +135,9 @@ def run_study(
         if gpus > 1:
             say(f"{gpus} GPUs: each phase runs {gpus} jobs side by side, one per GPU")
         calibration = None
+        if settings.tuned_in and not (Path(settings.tuned_in) / "trials.csv").is_file():
+            # before the calibration: minutes that a missing study would waste
+            tuned_in(Path(settings.tuned_in), variants, settings.study_count)
         launcher = Launcher(folder, config_dir, hydra_args, say)
         if axis == "wall_time" and settings.clock == "calibrated":
             calibration = calibrated_clock(plan, launcher, settings.calibration)

@@ -32,7 +32,7 @@ def tuned_in(folder: Path, variants: list[Variant], count: int) -> list[dict[str
     except (OSError, UnicodeDecodeError, csv.Error) as error:
         raise UserError(
             f"compare.tuned_in={folder}: no finished study's trials.csv there ({error}); give "
-            "the folder of a study whose tuning finished"
+            "the folder of a finished study, or finish that study first (its command resumes it)"
         ) from None
     best = []
     for k in range(count):

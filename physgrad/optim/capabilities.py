@@ -284,3 +284,15 @@ def knob_cost(
     else:
         raise ValueError(f"cost_knob shape {shape!r}: give inverse or linear")
     return low_cost + t * (high_cost - low_cost)
+
+
+def knob_step_cost(cost_knob: tuple, value: float, evaluations: float = 0.0) -> float:
+    """A step's cost at a cost-shaping setting's value (Variant.cost_knob: (key, shape, ((value,
+    own seconds), ...)) at the calibrated points, the range's ends and the preset): its own part
+    through the two points around the value (knob_cost; a value outside them taken at the nearer
+    end), plus the line-search evaluations a step is charged besides (seconds)."""
+    _, shape, points = cost_knob
+    value = min(max(value, points[0][0]), points[-1][0])
+    upper = max(next(i for i, (v, _) in enumerate(points) if v >= value), 1)
+    (low, low_cost), (high, high_cost) = points[upper - 1], points[upper]
+    return max(knob_cost(shape, value, low, low_cost, high, high_cost), 0.0) + evaluations

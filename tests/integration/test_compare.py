@@ -1278,7 +1278,9 @@ def test_a_knob_that_shapes_the_step_cost_charges_each_trial_and_evaluation_its_
     """compare.knobs=true with SOAP (preconditioning frequency [1, 100]) and L-BFGS (memory
     [2, 100]) on the calibrated clock: the calibration times each rule at its range's two ends
     as well, every tuning and evaluation job is charged the step cost at its own value
-    (physgrad.optim.capabilities.knob_cost), and compare.md says so. (The measured costs
+    (its own part through the calibrated points around it, the ends and the preset, plus the
+    preset's line-search evaluations: physgrad.optim.capabilities.knob_step_cost), and compare.md
+    says so. (The measured costs
     themselves are the machine's: on the toy the frequency barely changes a step's, the memory
     does.)"""
     import json
@@ -1310,18 +1312,25 @@ def test_a_knob_that_shapes_the_step_cost_charges_each_trial_and_evaluation_its_
         (study.folder / "eval").glob("+compare_job=*")
     )
     assert len(jobs) == 6 + 3  # one trial a job; SOAP's 2 seeds together, L-BFGS's one a job
+
+    def own(cost: dict) -> float:  # a step less its line search's evaluations
+        return cost["step_seconds"] - cost.get("evaluation_seconds", 0) * cost.get(
+            "step_evaluations", 0
+        )
+
     values = set()
     for job in jobs:
         config = OmegaConf.load(job / ".hydra" / "config.yaml")
         rule = config.optim.name
         key, shape, low, high = ends[rule]
         value = config.optim[key]
-        at = [costs[f"{rule}@{key}={v}"]["step_seconds"] for v in (low, high)]
-        expected = knob_cost(shape, value, low, at[0], high, at[1])
-        if rule == "lbfgs":  # never below its line search's evaluations
-            expected = max(
-                expected, costs["lbfgs"]["evaluation_seconds"] * costs["lbfgs"]["step_evaluations"]
-            )
+        # the points around the value: an end and the preset (10 for both rules)
+        a, b = (low, 10) if value <= 10 else (10, high)
+        at = [own(costs[f"{rule}@{key}={v}"] if v != 10 else costs[rule]) for v in (a, b)]
+        expected = knob_cost(shape, value, a, at[0], b, at[1])
+        expected += costs[rule].get("evaluation_seconds", 0) * costs[rule].get(
+            "step_evaluations", 0
+        )
         assert config.trainer.step_cost == pytest.approx(expected, rel=1e-12), job.name
         values.add((rule, value))
     assert len(values) >= 4  # the trials tried other frequencies and memories than the preset's

@@ -27,7 +27,7 @@ from evidence import write_kept  # noqa: E402
 from physgrad.verdict import A_BETTER, B_BETTER, EQUIVALENT  # noqa: E402
 
 
-def kept_scene(folder, name, levels, studies=3, seeds=10, budget=10.0, first_seed=0, planned=4):
+def kept_scene(folder, name, levels, studies=3, seeds=10, budget=10.0, first_seed=0, planned=4):  # noqa: E501
     """Evidence of one scene: variant -> (loss at the budget per tuning study), times a small
     per-seed noise shared by every variant (paired seeds), of a protocol of `planned` tuning
     studies."""
@@ -55,6 +55,7 @@ def kept_scene(folder, name, levels, studies=3, seeds=10, budget=10.0, first_see
         "trials": 8,
         "studies": studies,
         "planned": planned,
+        "knobs": planned == 4,  # the current protocol's: 4 tuning studies, the rules' knobs
         "seeds": seeds,
         "machine": "test machine",
         "iterations": {v: 100.0 * (i + 1) for i, v in enumerate(levels)},
@@ -191,8 +192,12 @@ def test_a_study_run_elsewhere_is_added_to_the_kept_evidence(tmp_path, monkeypat
     folder = root / "toy" / "study-2"
     folder.mkdir(parents=True)
     (folder / "runs.csv").write_text("variant,iterations\nadam,300\nhig,100\nhig,140\n")
-    (folder / "study.json").write_text(json.dumps({"overrides": ["task=toy", "compare.seed=10"]}))
-    clock = {"costs": {rule: {} for rule in ("adam", *leaderboard_scenes.SCENES[0].rules)}}
+    (folder / "study.json").write_text(
+        json.dumps({"overrides": ["task=toy", "compare.knobs=True", "compare.seed=10"]})
+    )
+    rules = ("adam", *leaderboard_scenes.SCENES[0].rules)
+    ends = leaderboard_scenes.knob_ends(rules)  # the cost-shaping knobs' ends: soap@..., lbfgs@...
+    clock = {"costs": {rule: {} for rule in (*rules, *sorted(ends))}}
     (folder / "calibration.json").write_text(json.dumps(clock))
     (folder / "trials.csv").write_text(
         "variant,study,trial,learning_rate,validation_loss,state\n"
@@ -234,9 +239,10 @@ def test_a_study_run_elsewhere_is_added_to_the_kept_evidence(tmp_path, monkeypat
         in toy.study(3, leaderboard_scenes.kept_clock(toy, evidence)).overrides
     )
     # a clock without a rule the scene runs now is not used (the study calibrates again)
-    del clock["costs"]["soap"]
-    (evidence / "toy.calibration.json").write_text(json.dumps(clock))
-    assert leaderboard_scenes.kept_clock(toy, evidence) is None
+    for name in ("soap", "lbfgs@memory_size=100"):  # a rule, or a cost-shaping knob's end
+        without = {"costs": {k: v for k, v in clock["costs"].items() if k != name}}
+        (evidence / "toy.calibration.json").write_text(json.dumps(without))
+        assert leaderboard_scenes.kept_clock(toy, evidence) is None, name
     cells = leaderboard.board(evidence)["toy"][0]
     assert cells["hig"].studies == (A_BETTER, A_BETTER) and cells["hig"].pairs == 20
 
@@ -584,7 +590,7 @@ def test_the_current_protocols_studies_are_kept_apart_and_shown_as_a_re_run(tmp_
     with pytest.raises(
         UserError,
         match="keeps studies of another protocol .3 tuning studies, "
-        "the learning rate alone tuned.: keep these in another folder",
+        "the learning rate alone tuned.: keep toy.s in another folder",
     ) as error:
         leaderboard.keep(root, evidence)
     assert "\n" not in str(error.value)
@@ -607,8 +613,22 @@ def test_the_current_protocols_studies_are_kept_apart_and_shown_as_a_re_run(tmp_
     monkeypatch.setattr(
         leaderboard_keep, "read_study", lambda path: study if path.parent.name == "toy" else None
     )
-    with pytest.raises(UserError, match="with and without compare.knobs=true"):
+    with pytest.raises(UserError, match="a study run without compare.knobs=true"):
         leaderboard.keep(root, tmp_path / "fresh")
+    # a scene the published evidence never ran is not kept beside its other protocol's scenes
+    shutil.rmtree(root / "toy" / "study-2")
+    (root / "oscillator" / "study-1").mkdir(parents=True)
+    shutil.copy(folder / "runs.csv", root / "oscillator" / "study-1" / "runs.csv")
+    shutil.copy(folder / "study.json", root / "oscillator" / "study-1" / "study.json")
+    shutil.rmtree(root / "toy")
+    monkeypatch.setattr(
+        leaderboard_keep,
+        "read_study",
+        lambda path: study if path.parent.name == "oscillator" else None,
+    )
+    with pytest.raises(UserError, match="toy.json keeps studies of another protocol"):
+        leaderboard.keep(root, evidence)
+    assert not (evidence / "oscillator.json").exists()
 
 
 def test_the_expensive_rules_are_read_again_at_four_times_the_budget(tmp_path, monkeypatch):
@@ -640,7 +660,9 @@ def test_the_expensive_rules_are_read_again_at_four_times_the_budget(tmp_path, m
     folder = root / "toy" / "longer-1"
     folder.mkdir(parents=True)
     (folder / "runs.csv").write_text("variant,iterations\nadam,3000\nhig,150\n")
-    (folder / "study.json").write_text(json.dumps({"overrides": ["task=toy"]}))
+    (folder / "study.json").write_text(
+        json.dumps({"overrides": ["task=toy", "compare.knobs=true"]})
+    )
     kept_scene(tmp_path / "elsewhere", "toy", {"adam": [1.0], "hig": [0.1]}, studies=1, budget=40.0)
     study = study_runs.read_study(tmp_path / "elsewhere" / "toy")
     monkeypatch.setattr(leaderboard_keep, "read_study", lambda p: study if p == folder else None)

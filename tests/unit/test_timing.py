@@ -434,10 +434,12 @@ def test_a_setting_that_shapes_the_step_cost_is_charged_the_cost_at_its_value(sh
 def test_a_calibrations_costs_at_a_knobs_ends_price_each_trial_and_evaluation(tmp_path):
     """calibrated_clock for SOAP tuned over its preconditioning frequency [1, 100] and L-BFGS over
     its memory [2, 100] (compare.knobs=true): the calibration holds each one's step cost at its
-    range's two ends (name@key=value), the variant keeps them, and a job at a trial's or the tuned
-    value is charged the cost at that value (L-BFGS's never below its line search's evaluations);
-    Adam, whose eps does not change a step's cost, keeps one cost. A given calibration without the
-    ends is refused in one line that names them."""
+    range's two ends (name@key=value), the variant keeps the own part of a step there and at its
+    preset, and a job at a trial's or the tuned value is charged that own part piecewise at the
+    value (the preset's measured cost at the preset) plus the preset's line-search evaluations,
+    never an end's own evaluations again; Adam, whose eps does not change a step's cost, keeps one
+    cost. A given calibration without the ends is refused in one line that names them; a study
+    folder calibrated before the ends were resumes at the preset costs, with a note."""
     import json
     import types
 
@@ -460,8 +462,9 @@ def test_a_calibrations_costs_at_a_knobs_ends_price_each_trial_and_evaluation(tm
             "soap@precondition_frequency=1": cost(9e-3),
             "soap@precondition_frequency=100": cost(1.2e-3),
             "lbfgs": cost(3e-3, evaluation_seconds=1e-3, step_evaluations=2.0),
-            "lbfgs@memory_size=2": cost(2.5e-3),
-            "lbfgs@memory_size=100": cost(6e-3),
+            # own parts: 1.5 ms at memory 2, 1 ms at the preset 10, 3 ms at 100
+            "lbfgs@memory_size=2": cost(2.5e-3, evaluation_seconds=1e-3, step_evaluations=1.0),
+            "lbfgs@memory_size=100": cost(6e-3, evaluation_seconds=1e-3, step_evaluations=3.0),
         },
     }
     given = tmp_path / "given.json"
@@ -469,11 +472,11 @@ def test_a_calibrations_costs_at_a_knobs_ends_price_each_trial_and_evaluation(tm
     optims = {
         "adam": ({"_target_": "optax.adam"}, {"learning_rate": (1e-5, 0.1), "eps": (1e-10, 1e-4)}),
         "soap": (
-            {"_target_": "physgrad.optim.soap.soap"},
+            {"_target_": "physgrad.optim.soap.soap", "precondition_frequency": 10},
             {"learning_rate": (1e-5, 0.1), "precondition_frequency": (1, 100)},
         ),
         "lbfgs": (
-            {"_target_": "optax.lbfgs"},
+            {"_target_": "optax.lbfgs", "memory_size": 10},
             {"learning_rate": (0.01, 10.0), "memory_size": (2, 100)},
         ),
     }
@@ -485,19 +488,35 @@ def test_a_calibrations_costs_at_a_knobs_ends_price_each_trial_and_evaluation(tm
     calibrated_clock(types.SimpleNamespace(variants=variants), launcher, str(given))
     adam, soap, lbfgs = variants
     assert adam.cost_knob == () and adam.priced({"eps": 1e-9, "learning_rate": 1e-3}) == {}
-    assert soap.cost_knob == ("precondition_frequency", "inverse", 1, 9e-3, 100, 1.2e-3)
-    for frequency in (1, 7, 10, 100):
-        expected = knob_cost("inverse", frequency, 1, 9e-3, 100, 1.2e-3)
+    points = ((1, 9e-3), (10, 2e-3), (100, 1.2e-3))
+    assert soap.cost_knob == ("precondition_frequency", "inverse", points)
+    for frequency, (low, high) in ((1, (0, 1)), (7, (0, 1)), (10, (1, 2)), (40, (1, 2))):
+        (a, ca), (b, cb) = points[low], points[high]
         priced = soap.priced({"learning_rate": 1e-3, "precondition_frequency": frequency})
-        assert priced == {"trainer.step_cost": pytest.approx(expected)}
+        expected = knob_cost("inverse", frequency, a, ca, b, cb)
+        assert priced == {"trainer.step_cost": pytest.approx(expected, rel=1e-12)}
+    assert soap.priced({"precondition_frequency": 10}) == {"trainer.step_cost": 2e-3}
     assert soap.priced({"learning_rate": 1e-3}) == {}  # untuned: the preset's calibrated cost
-    # L-BFGS at memory 2 costs 2.5 ms, above its line search's two evaluations of 1 ms ...
-    assert lbfgs.priced({"memory_size": 2}) == {"trainer.step_cost": pytest.approx(2.5e-3)}
-    # ... and with cheaper ends a step is never charged less than its evaluations
-    lbfgs.cost_knob = ("memory_size", "linear", 2, 1e-3, 100, 6e-3)
-    assert lbfgs.priced({"memory_size": 2}) == {"trainer.step_cost": pytest.approx(2e-3)}
+    # L-BFGS: the own part through (2, 1.5 ms), (10, 1 ms), (100, 3 ms), plus the preset's 2 ms
+    # of evaluations (the run is charged the evaluations it makes): 3 ms at the preset, as
+    # measured, and 5 ms at memory 100, not the 6 ms that hold that end's own evaluations
+    for memory, own in ((2, 1.5e-3), (10, 1e-3), (55, 2e-3), (100, 3e-3)):
+        assert lbfgs.priced({"memory_size": memory}) == {
+            "trainer.step_cost": pytest.approx(own + 2e-3, rel=1e-12)
+        }
+    assert lbfgs.job_values["trainer.step_cost"] == 3e-3
     del calibration["costs"]["soap@precondition_frequency=100"]
     given.write_text(json.dumps(calibration))
     with pytest.raises(UserError, match="soap@precondition_frequency=100") as error:
         calibrated_clock(types.SimpleNamespace(variants=variants), launcher, str(given))
     assert "\n" not in str(error.value)
+    # a study folder calibrated before the ends were (its own calibration.json without them)
+    older = tmp_path / "older"
+    older.mkdir()
+    del calibration["costs"]["soap@precondition_frequency=1"]
+    (older / "calibration.json").write_text(json.dumps(calibration))
+    said = []
+    resumed = types.SimpleNamespace(folder=older, say=said.append)
+    calibrated_clock(types.SimpleNamespace(variants=variants), resumed, None)
+    assert soap.cost_knob == () and soap.priced({"precondition_frequency": 1}) == {}
+    assert soap.job_values["trainer.step_cost"] == 2e-3 and "preset cost" in said[0]
