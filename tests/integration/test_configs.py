@@ -101,8 +101,7 @@ SHORT = {
     "quantum_control": ("bptt",),
     "multicart": ("gauss_newton", "kfac"),
     "guidance": ("stable_bptt", "ssbfgs"),
-    # ks with its defaults: make test-long (8 s); make test keeps the KS scene's pair below and
-    # tests/numerics/test_ks.py
+    "ks": ("gd",),
     "oscillator task.closed_loop=true": ("muon",),
     "quantum task.closed_loop=true": ("soap",),
     "ks task.training=ONE task.stepper=predict": ("adam",),
