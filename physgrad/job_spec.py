@@ -28,7 +28,7 @@ from physgrad.members import (
 )
 from physgrad.optim.capabilities import capabilities, scheduled_update
 from physgrad.trainer_settings import TrainerSettings
-from physgrad.validate import choice, finite_numbers, flag, number
+from physgrad.validate import choice, finite_numbers, flag, number, targets_by_name
 
 SEED_LIMIT = 2**32
 # seeds trained together in one vectorised step: each has its own data, network and results file, so
@@ -133,6 +133,9 @@ def check(cfg: DictConfig) -> JobSpec | Refusal:
     if why is not None:
         return Refusal(why, (), trackers)
     members = _members(cfg)
+    why = targets_refusal(cfg)
+    if why is not None:
+        return Refusal(why, members, trackers)
     try:
         trainer = check_config(cfg)
     except UserError as error:
@@ -157,6 +160,27 @@ def check(cfg: DictConfig) -> JobSpec | Refusal:
         members=members,
         trackers=trackers,
     )
+
+
+def targets_refusal(cfg: DictConfig) -> str | None:
+    """Why the task's or the rule's `_target_`s (nested ones included) are refused, by their names
+    alone (validate.allowed_target: nothing is imported), or None. The functions they import to
+    are looked at again as they are built (validate.call_target); the trackers' as they are built,
+    right after the door; Hydra's own sections before Hydra composes (configs.py), since Hydra
+    calls them before any job starts."""
+    for section in ("task", "optim"):
+        node = cfg.get(section)
+        if not isinstance(node, DictConfig):
+            continue
+        try:
+            tree = OmegaConf.to_container(node, resolve=True)
+        except Exception:  # noqa: BLE001 - an interpolation that does not resolve: check_config says so
+            continue
+        try:
+            targets_by_name(section, tree)
+        except UserError as error:
+            return str(error)
+    return None
 
 
 def tracker_settings(cfg: DictConfig) -> dict[str, dict]:

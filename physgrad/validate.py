@@ -193,8 +193,15 @@ def allowed_target(section: str, target: str, function: object = None) -> None:
         raise refused
 
 
-def _nested_targets(section: str, node: Any) -> None:
-    """allowed_target for every `_target_` under node, without recursion."""
+def targets_by_name(section: str, node: Any) -> None:
+    """allowed_target, by name alone (nothing imported), for node's `_target_` and every nested
+    one: the check of a section's targets at a job's door (physgrad.job_spec.check)."""
+    _nested_targets(section, node, resolve=False)
+
+
+def _nested_targets(section: str, node: Any, resolve: bool = True) -> None:
+    """allowed_target for every `_target_` under node, without recursion; with resolve, also the
+    function each one imports to (call_target's second look)."""
     pending = [(section, node)]
     while pending:
         where, value = pending.pop()
@@ -202,6 +209,7 @@ def _nested_targets(section: str, node: Any) -> None:
             if isinstance(value.get("_target_"), str):
                 target = value["_target_"]
                 allowed_target(where, target)  # by its name, before anything is imported
+            if isinstance(value.get("_target_"), str) and resolve:
                 from hydra.utils import get_object
 
                 try:

@@ -120,3 +120,28 @@ def test_below_the_door_no_function_takes_a_dict_config(module):
         )
     ]
     assert not taking, f"{module}.py: {taking} take a DictConfig; pass the JobSpec"
+
+
+@pytest.mark.parametrize(
+    "override, named",
+    [
+        ("task._target_=os.system", "task._target_=os.system"),
+        ("optim._target_=subprocess.run", "optim._target_=subprocess.run"),
+        ("+optim.learning_rate={_target_:os.system}", "optim.learning_rate._target_=os.system"),
+    ],
+)
+def test_a_target_outside_the_allow_list_is_refused_at_the_door_before_anything_is_imported(
+    override, named, monkeypatch
+):
+    import importlib
+
+    cfg = load("task=toy", override)
+    imported = []
+    real = importlib.import_module
+    monkeypatch.setattr(
+        importlib, "import_module", lambda name, *a: imported.append(name) or real(name, *a)
+    )
+    spec = check(cfg)
+    assert isinstance(spec, Refusal) and named in spec.reason and "is not allowed" in spec.reason
+    assert spec.members  # each member's results file says why
+    assert imported == []  # refused by name: neither the module nor the function was imported
