@@ -2,6 +2,7 @@
 forces of simple configurations, the zero-control loss, and BPTT gradients against plain loops and
 finite differences of correspondingly stopped functions (float64)."""
 
+import functools
 import math
 
 import jax
@@ -61,6 +62,15 @@ def numpy_step(state, gains, drivers, dt=DT, p=PHYSICS):
     return np.stack([x + dt * v, v + dt * a], axis=1)
 
 
+@functools.cache
+def compiled_step(drivers):
+    """euler_step with the paper's physics, compiled as the scene's rollout compiles it (once per
+    number of drivers and of agents): called eagerly, each of the step's dozens of small operations
+    was compiled one by one, most of these tests' time. The same operations, compared at the same
+    tolerances."""
+    return jax.jit(lambda state, gains: euler_step(state, gains, DT, drivers, PHYSICS))
+
+
 def test_step_matches_independent_numpy(x64):
     rng = np.random.default_rng(0)
     for drivers, evaders in ((2, 4), (1, 1), (3, 2)):
@@ -68,7 +78,7 @@ def test_step_matches_independent_numpy(x64):
             state = rng.uniform(-3, 3, (drivers + evaders, 2, 2))
             gains = rng.uniform(-2, 2, (drivers, 2))
             np.testing.assert_allclose(
-                euler_step(jnp.asarray(state), jnp.asarray(gains), DT, drivers, PHYSICS),
+                compiled_step(drivers)(jnp.asarray(state), jnp.asarray(gains)),
                 numpy_step(state, gains, drivers),
                 rtol=1e-13,
                 atol=1e-13,
@@ -84,16 +94,14 @@ def test_agents_at_rest_move_as_the_forces_say(x64):
     """Zero control, everything at rest: positions stay for one step and velocities become dt times
     the forces, computed by hand for configurations with simple numbers."""
     # one driver at the origin, one evader at (1, 0): repelled along +x with 15 / d^2, d = 0.1 + 1
-    moved = euler_step(at_rest([0.0, 0.0], [1.0, 0.0]), jnp.zeros((1, 2)), DT, 1, PHYSICS)
+    moved = compiled_step(1)(at_rest([0.0, 0.0], [1.0, 0.0]), jnp.zeros((1, 2)))
     np.testing.assert_allclose(moved[:, 0], [[0.0, 0.0], [1.0, 0.0]], atol=1e-15)
     np.testing.assert_allclose(
         moved[:, 1], DT * np.array([[0.0, 0.0], [15.0 / 1.1**2, 0.0]]), rtol=1e-14
     )
     # two drivers at (+-1, 0) spread apart with 0.2 * 2 / 2.1^2; the evader at (0, 10) between them
     # feels the repulsion of both, whose x parts cancel
-    moved = euler_step(
-        at_rest([1.0, 0.0], [-1.0, 0.0], [0.0, 10.0]), jnp.zeros((2, 2)), DT, 2, PHYSICS
-    )
+    moved = compiled_step(2)(at_rest([1.0, 0.0], [-1.0, 0.0], [0.0, 10.0]), jnp.zeros((2, 2)))
     d = 0.1 + math.sqrt(101.0)
     np.testing.assert_allclose(
         moved[:2, 1], DT * np.array([[0.4 / 2.1**2, 0.0], [-0.4 / 2.1**2, 0.0]]), rtol=1e-14
@@ -105,7 +113,7 @@ def test_agents_at_rest_move_as_the_forces_say(x64):
     # they attract (p > 0 below flock_distance, as the equations are written), farther they repel
     far = [1e6, 0.0]
     for gap, sign in ((0.4, 0.0), (0.15, 1.0), (1.0, -1.0)):
-        moved = euler_step(at_rest(far, [0.0, 0.0], [gap, 0.0]), jnp.zeros((1, 2)), DT, 1, PHYSICS)
+        moved = compiled_step(1)(at_rest(far, [0.0, 0.0], [gap, 0.0]), jnp.zeros((1, 2)))
         d = 0.1 + gap
         flock = 0.2 * (0.5 / d - 1.0) / d * gap  # on the first evader, towards the second (+x)
         repelled = 15.0 / (1e6 + 0.1) ** 2 * 1e6
@@ -199,5 +207,7 @@ def test_agents_on_top_of_each_other_give_finite_gradients(x64):
             euler_step(euler_step(state, gains, DT, 2, PHYSICS), gains, DT, 2, PHYSICS) ** 2
         )
 
-    gradient = jax.grad(loss)(jnp.ones((2, 2)))
+    # compiled, as a training step is: eagerly, every operation of the two steps and of their
+    # gradient was compiled one by one; the gradient is the same
+    gradient = jax.jit(jax.grad(loss))(jnp.ones((2, 2)))
     assert np.isfinite(np.asarray(gradient)).all() and np.abs(np.asarray(gradient)).max() > 0

@@ -207,6 +207,10 @@ def test_the_factorised_form_is_chosen_only_where_it_is_exact(output, reason):
         assert route.plan is None and reason in route.name and route.name.startswith("per-sample: ")
 
 
+# make test-long: three built-in scenes' forms (6.7 s of building); make test keeps the choice on
+# every kind of network (test_the_factorised_form_is_chosen_only_where_it_is_exact) and on built-in
+# scenes (test_configs.py's pairs quantum-kfac, factorised, and multicart-kfac, refused per sample)
+@pytest.mark.long
 def test_built_in_scenes_get_the_form_their_network_allows():
     """Open-loop scenes (the network applied once per sample) are factorised; closed-loop ones,
     whose network acts at every step of the rollout, and the CNN controller keep the per-sample pass

@@ -152,8 +152,11 @@ def test_data_are_the_ground_truth_solver(x64):
     scene = scene_of()
     frames, size = np.asarray(scene.train_set["frames"]), np.asarray(scene.train_set["size"])
     length = 2 * math.pi * 8 * size[3]
+    # compiled, as the data's generator compiles it: eagerly, each ETD step's small operations were
+    # compiled one by one; the same operations, at the same tolerance
+    step = jax.jit(solver_step, static_argnums=(2, 3, 4))
     np.testing.assert_allclose(
-        solver_step(jnp.asarray(frames[3]), length, 0.5, 2, 2), frames[4], atol=1e-12
+        step(jnp.asarray(frames[3]), length, 0.5, 2, 2), frames[4], atol=1e-12
     )
     assert set(np.unique(size)) == {0.9, 1.1}
     test = scene.test_set
@@ -394,11 +397,18 @@ def test_held_out_error_is_the_studys_relative_error(x64):
     metrics = jax.jit(scene.evaluate)(params, test)
     horizon = 4
     errors = []
+
+    # one model step of the correction stepper, compiled as the scene's rollout compiles it
+    # (eagerly, each of its small operations was compiled one by one); the same operations
+    @jax.jit
+    def model_step(u, length, size):
+        return solver_step(u, length, 0.5, 2, 1) + 0.5 * apply_resnet(params, u, size)
+
     for i in range(test["state"].shape[0]):
         u, states = test["state"][i], []
         for _ in range(horizon):
             length = 2 * math.pi * 8 * float(test["size"][i])
-            u = solver_step(u, length, 0.5, 2, 1) + 0.5 * apply_resnet(params, u, test["size"][i])
+            u = model_step(u, length, test["size"][i])
             states.append(np.asarray(u))
         truth = np.asarray(test["target"][i, :horizon])
         # the study's normaliser: frames 0..horizon, the test state itself included

@@ -68,7 +68,10 @@ def test_a_step_that_stops_computing_without_returning_ends_in_one_line_one_that
     assert request.call(busy, 1.5, stall_seconds=0.5, stall_cpu_seconds=0.05) > 0
 
 
-@pytest.mark.parametrize("trial", range(4))
+# make test-long: three more draws of the instants (1.7 s each, computing); make test keeps [0]
+@pytest.mark.parametrize(
+    "trial", [0, *(pytest.param(k, marks=pytest.mark.long) for k in range(1, 4))]
+)
 def test_a_process_stopped_and_resumed_is_not_a_stalled_step(monkeypatch, trial):
     """SIGSTOP (or Ctrl-Z, or a suspended machine) stops every thread: on resuming, the wall clock
     has jumped while the CPU clock has not. The jump is injected at random instants of a step that
