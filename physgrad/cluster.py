@@ -2,9 +2,11 @@
 `hydra/launcher=submitit_slurm` through physgrad's subclass of submitit's launcher
 (hydra_plugins.physgrad_launchers.slurm), which sends the jobs as one job array as submitit's
 does, and then:
-- waits for every job: one that ends without a result (scancel of a waiting job, SIGKILL after the
-  scheduler's grace period, a lost node) is recorded in the sweep with its SLURM id and state, and
-  the others go on (submitit's launcher stops the whole sweep at the first such job);
+- waits for every job, a job that SLURM puts back in the queue (a lost node, JobRequeue) until it
+  ends again: one that ends without a result (scancel of a waiting job, SIGKILL after the
+  scheduler's grace period, a lost node without a requeue) is recorded in the sweep with its
+  SLURM id and state, and the others go on (submitit's launcher stops the whole sweep at the
+  first such job);
 - at a stop of the sweep (a signal to the launching command, or the end of `physgrad compare`
   above it), cancels the tasks of the array still waiting, instead of starting them to be skipped.
 A job's own signal (scancel, its time limit, preemption, submitit's SIGUSR2 warning) ends that job
@@ -16,6 +18,7 @@ from __future__ import annotations
 import dataclasses
 import logging
 import subprocess
+import time
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
@@ -35,7 +38,6 @@ def own_submitit_folder(template: str) -> str:
     LauncherRefused (one line) otherwise."""
     import os
     import stat
-    import time
 
     base, jobs, rest = template.partition("%j")
     parent = Path(base)
@@ -114,19 +116,63 @@ def launch_array(launcher: Any, job_overrides: Sequence[Sequence[str]], first: i
         ON_STOP.append(lambda: cancel_waiting(jobs))
     returns = []
     for job, overrides in zip(jobs, job_overrides):
-        try:
-            returns.append(job.results()[0])
-        except Exception as error:  # noqa: BLE001 - one job's end is not the sweep's
-            state = job.state
-            record_lost_job(sweep, list(overrides), job.job_id, state, error)
-            returns.append(
-                JobReturn(
-                    overrides=list(overrides),
-                    _return_value=float("inf"),
-                    status=JobStatus.COMPLETED,
-                )
+        outcome = job_result(job)
+        if isinstance(outcome, Exception):
+            record_lost_job(sweep, list(overrides), job.job_id, job.state, outcome)
+            outcome = JobReturn(
+                overrides=list(overrides), _return_value=float("inf"), status=JobStatus.COMPLETED
             )
+        returns.append(outcome)
     return returns
+
+
+# states after which SLURM may put a job back in the queue (JobRequeue, preemption by requeue)
+REQUEUED_AFTER = frozenset({"NODE_FAIL", "BOOT_FAIL", "PREEMPTED", "REQUEUED"})
+# a job in slurmctld's queue with one of these states has not ended
+QUEUED = frozenset(
+    {"PENDING", "CONFIGURING", "RUNNING", "COMPLETING", "SUSPENDED", "RESIZING", "REQUEUED"}
+    | {"REQUEUE_HOLD", "REQUEUE_FED", "STAGE_OUT", "SIGNALING"}
+)
+
+
+def job_result(job: Any, patience: float = 60.0, poll: float = 2.0) -> Any:
+    """A submitit job's result, or the exception of a job that ended without one. submitit reads
+    the state from the accounting (sacct), which says NODE_FAIL for a job on a lost node before,
+    or while, slurmctld puts it back in the queue: so a job that ended without a result is asked
+    of slurmctld (squeue), for up to `patience` seconds after a state that a requeue follows, and
+    one that is queued again is waited for again."""
+    while True:
+        try:
+            return job.results()[0]
+        except Exception as error:  # noqa: BLE001 - one job's end is not the sweep's
+            wait = patience if str(job.state).upper() in REQUEUED_AFTER else 0.0
+            if not queued_again(job.job_id, wait, poll):
+                return error
+            log.warning(
+                "SLURM job %s was put back in the queue (%s): waiting for it", job.job_id, job.state
+            )
+            job.watcher.clear()  # submitit keeps a finished job finished
+
+
+def queued_again(job_id: str, patience: float, poll: float = 2.0) -> bool:
+    """Whether slurmctld holds the job in its queue, not ended (QUEUED), within `patience` s."""
+    deadline = time.monotonic() + patience
+    while True:
+        try:
+            found = subprocess.run(
+                ["squeue", "-h", "-j", str(job_id), "-o", "%T"],
+                check=False,
+                capture_output=True,
+                text=True,
+                timeout=60,
+            ).stdout.split()
+        except (OSError, subprocess.SubprocessError):  # no answer: taken as not queued
+            found = []
+        if any(state.upper() in QUEUED for state in found):
+            return True
+        if time.monotonic() >= deadline:
+            return False
+        time.sleep(poll)
 
 
 def array_id(job_id: str) -> str:

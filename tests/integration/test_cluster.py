@@ -124,3 +124,67 @@ def test_submitits_folder_is_this_launchs_own(tmp_path):
     with pytest.raises(LauncherRefused, match=r"\.submitit: submitit's folder is a link: refused"):
         own_submitit_folder(f"{linked}/.submitit/%j")
     assert not any(elsewhere.iterdir())
+
+
+class _LostThenRequeued:
+    """A submitit job whose accounting says NODE_FAIL `lost` times before its result arrives (the
+    requeued run's), as sacct does while slurmctld requeues a job from a lost node."""
+
+    def __init__(self, lost: int, state: str = "NODE_FAIL"):
+        self.job_id, self.state, self.lost, self.cleared = "7_1", state, lost, 0
+
+        class Watcher:
+            def clear(inner) -> None:
+                self.cleared += 1
+
+        self.watcher = Watcher()
+
+    def results(self) -> list:
+        if self.lost > 0:
+            self.lost -= 1
+            raise RuntimeError("Job 7_1 (task: 0) with path ... has not produced any output")
+        return ["the requeued run's result"]
+
+
+def _squeue_says(tmp_path, monkeypatch, *answers: str) -> Path:
+    """A stub squeue on the PATH answering `answers` in turn (the last one from then on)."""
+    script = tmp_path / "bin" / "squeue"
+    script.parent.mkdir(exist_ok=True)
+    count = tmp_path / "calls"
+    count.write_text("0")
+    cases = "\n".join(f"  {i}) echo '{a}' ;;" for i, a in enumerate(answers[:-1]))
+    script.write_text(
+        f"#!/bin/bash\nn=$(cat {count}); echo $((n + 1)) > {count}\n"
+        f"case $n in\n{cases}\n  *) echo '{answers[-1]}' ;;\nesac\n"
+    )
+    script.chmod(0o755)
+    monkeypatch.setenv("PATH", f"{script.parent}:{Path('/usr/bin')}:{Path('/bin')}")
+    return count
+
+
+@pytest.mark.parametrize("lost", [1, 2, 5])
+@pytest.mark.parametrize("answers", [("PENDING",), ("NODE_FAIL", "NODE_FAIL", "PENDING")])
+def test_a_job_requeued_from_a_lost_node_is_waited_for(tmp_path, monkeypatch, lost, answers):
+    """However many times the accounting says NODE_FAIL before the requeued run's result, and
+    whether slurmctld shows the job queued again at once or after a while, the sweep gets the
+    result and never records the job lost."""
+    from physgrad.cluster import job_result
+
+    _squeue_says(tmp_path, monkeypatch, *answers)
+    job = _LostThenRequeued(lost)
+    assert job_result(job, patience=30.0, poll=0.02) == "the requeued run's result"
+    assert job.cleared == lost
+
+
+@pytest.mark.parametrize("state, patience_used", [("FAILED", False), ("NODE_FAIL", True)])
+def test_a_job_slurm_does_not_queue_again_is_lost(tmp_path, monkeypatch, state, patience_used):
+    """A job that ended without a result and is not in slurmctld's queue (squeue says it ended):
+    its error is returned, at once for a state no requeue follows, after the patience for one
+    that a requeue may follow."""
+    from physgrad.cluster import job_result
+
+    calls = _squeue_says(tmp_path, monkeypatch, state)
+    job = _LostThenRequeued(lost=100, state=state)
+    outcome = job_result(job, patience=0.2, poll=0.02)
+    assert isinstance(outcome, RuntimeError) and job.cleared == 0
+    assert (int(calls.read_text()) > 1) == patience_used
