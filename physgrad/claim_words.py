@@ -83,11 +83,13 @@ def claim_word(
     - CONTRADICTED where it does not hold at X and either X is the paper's budget or more (share =
       X / the paper's, NaN where the paper states none) or every variant has left its start and it
       did not hold at X/2 either; not holding before that is NOT_TESTED;
-    - not settled at X, by its cause: `cause` (SEEDS_DISAGREE or STUDIES_DISAGREE, and what the
-      evidence shows: stuck or diverged seeds with counts, studies that reached opposite verdicts
-      or whose sizes differ beyond what tuning luck explains) where the parts found one; else
-      NOT_TESTED where the budget is below the paper's and a variant has not left its start; else
-      NOT_SETTLED (the seeds could not resolve it at this budget)."""
+    - not settled at X, by its cause: NOT_TESTED where X is below a budget the paper states and a
+      variant has not left its start (seeds or studies that disagree about untrained networks say
+      nothing of the claim; their cause is added to the reason); else `cause` (SEEDS_DISAGREE or
+      STUDIES_DISAGREE, and what the evidence shows: stuck or diverged seeds with counts, studies
+      that reached opposite verdicts or whose sizes differ beyond what tuning luck explains) where
+      the parts found one; else NOT_TESTED where the paper states no budget and a variant has not
+      left its start; else NOT_SETTLED (the seeds could not resolve it at this budget)."""
     if departs:
         return DIFFERENT_SETUP, departs
     budget = share_text(share)
@@ -117,11 +119,13 @@ def claim_word(
         )
         return NOT_TESTED, why + within
     word, shown = cause
+    untrained = f"not settled at X, and a variant fell less than {TRAINED_FACTOR:g}x from its start"
+    if not trained and share < 1.0:  # below a budget the paper states: the budget comes first
+        return NOT_TESTED, untrained + within + (
+            f"; {word.removeprefix(NOT_SETTLED + ': ')} as well: {shown}" if word else ""
+        )
     if word:
         return word, shown
     if below_paper and not trained:
-        return NOT_TESTED, (
-            f"not settled at X, and a variant fell less than {TRAINED_FACTOR:g}x from its start"
-            + within
-        )
+        return NOT_TESTED, untrained + within
     return NOT_SETTLED, "not settled at X: the seeds could not resolve it" + within

@@ -512,10 +512,18 @@ def test_a_claim_is_contradicted_only_where_the_budget_could_test_it():
     assert claim_word(False, True, False, True, 0.05)[0] == NOT_TESTED
     # at the paper's budget a failure is a contradiction, trained or not
     assert claim_word(False, True, False, False, 1.0)[0] == CONTRADICTED
-    # not settled: by its cause where the parts found one, whatever the budget
+    # not settled: by its cause where the parts found one, unless the variants have not left
+    # their start below a budget the paper states: then the budget, the cause said beside it
     stuck = (SEEDS_DISAGREE, "adam: 32 of 40 seeds below 0.01, 8 stuck at or above it")
     assert claim_word(False, False, False, True, nan, cause=stuck) == stuck
-    assert claim_word(False, False, False, False, 0.01, cause=stuck) == stuck
+    assert claim_word(False, False, False, True, 0.01, cause=stuck) == stuck
+    assert claim_word(False, False, False, False, nan, cause=stuck) == stuck
+    word, why = claim_word(False, False, False, False, 0.0047, cause=stuck)
+    assert word == NOT_TESTED and "0.47% of the paper's budget" in why
+    assert why.endswith(
+        "; seeds disagree as well: adam: 32 of 40 seeds below 0.01, 8 stuck at or above it"
+    )
+    assert claim_word(False, False, False, False, 1.0, cause=stuck) == stuck
     apart = (STUDIES_DISAGREE, "a vs b in 4 tuning studies: A better, B better, ...")
     assert claim_word(False, False, False, True, 1.0, cause=apart) == apart
     # without one: the budget where a variant has not trained below the paper's, else the seeds
