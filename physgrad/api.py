@@ -47,14 +47,13 @@ def run(
     instead."""
     from omegaconf import OmegaConf, open_dict
 
-    from physgrad.configs import check_overrides, compose
+    from physgrad.configs import checked_config
     from physgrad.errors import UserError
     from physgrad.experiment import run_experiment
     from physgrad.results import member_order, read_run
 
     config_dirs = [config_dir] if config_dir else []
-    check_overrides(list(overrides), multirun=False, config_dirs=config_dirs)
-    cfg = compose(list(overrides), config_dirs=config_dirs, return_hydra_config=True)
+    cfg = checked_config(list(overrides), config_dirs)
     folder = (Path(out_dir) if out_dir else Path(OmegaConf.select(cfg, "hydra.run.dir"))).resolve()
     with open_dict(cfg):
         del cfg["hydra"]

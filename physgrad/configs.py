@@ -113,16 +113,41 @@ def unknown_option(group: str, value: str, options: list[str]) -> UserError:
 
 
 def check_overrides(
-    overrides: list[str], multirun: bool, config_dirs: Iterable[str | os.PathLike] = ()
-) -> None:
+    overrides: list[str],
+    multirun: bool,
+    config_dirs: Iterable[str | os.PathLike] = (),
+    combinations: dict | None = None,
+) -> DictConfig | None:
     """Raise UserError (one line) for an unknown option of a config group (the built-in ones and
-    those in the user's folders), a key no config has, or a sweep without -m."""
+    those in the user's folders), a key no config has, a sweep without -m, or a target of the
+    hydra section physgrad does not allow. Returns the first job's config as composed for that
+    check (hydra section included; None where Hydra could not compose it). combinations: the
+    group choices' configs composed so far, by search path and choices (filled in; a caller
+    checking several runs over the same folders passes one to compose each choice once)."""
     parsed = _parse_overrides(overrides)
     sweeper = _sweeper(parsed)
-    with initialized([*config_dirs, *searchpath_entries(overrides)]) as loader:
+    folders = [*config_dirs, *searchpath_entries(overrides)]
+    with initialized(folders) as loader:
         group_values, keys = _group_choices_and_keys(parsed, loader, multirun, sweeper)
-        _check_combinations(group_values, keys)
-        _check_hydra_targets(overrides)
+        known = (
+            {} if combinations is None else combinations.setdefault(tuple(map(str, folders)), {})
+        )
+        _check_combinations(group_values, keys, known)
+        return _check_hydra_targets(overrides)
+
+
+def checked_config(
+    overrides: list[str],
+    config_dirs: Iterable[str | os.PathLike] = (),
+    combinations: dict | None = None,
+) -> DictConfig:
+    """One run's overrides checked (check_overrides) and its config, hydra section included, as
+    compose gives it, composed once for both."""
+    cfg = check_overrides(overrides, False, config_dirs, combinations)
+    if cfg is None:  # Hydra's own error, in one line
+        return compose(overrides, config_dirs, return_hydra_config=True)
+    name_options(cfg, cfg.hydra.runtime.choices)
+    return cfg
 
 
 def _parse_overrides(overrides: list[str]) -> list[Any]:
@@ -208,15 +233,20 @@ def _check_sweep(override: Any, multirun: bool, sweeper: str) -> None:
         )
 
 
-def _check_combinations(group_values: dict[str, list[str]], keys: list[str]) -> None:
-    """Every combination of the chosen options composed, and each key looked up in it."""
+def _check_combinations(
+    group_values: dict[str, list[str]], keys: list[str], known: dict | None = None
+) -> None:
+    """Every combination of the chosen options composed (or taken from `known`, filled in), and
+    each key looked up in it."""
     from hydra import compose as hydra_compose
     from hydra.errors import HydraException, MissingConfigException
 
+    known = {} if known is None else known
     for combo in itertools.product(*group_values.values()):
         combo = dict(zip(group_values, combo))
+        chosen = tuple(f"{g}={v}" for g, v in combo.items())
         try:
-            cfg = hydra_compose("config", overrides=[f"{g}={v}" for g, v in combo.items()])
+            cfg = known.get(chosen) or hydra_compose("config", overrides=list(chosen))
         except MissingConfigException as error:
             group, _, choice = (error.missing_cfg_file or "").rpartition("/")
             if group and error.options is not None:
@@ -224,6 +254,7 @@ def _check_combinations(group_values: dict[str, list[str]], keys: list[str]) -> 
             raise UserError(str(error).strip().splitlines()[0]) from None
         except HydraException as error:
             raise UserError(str(error).strip().splitlines()[0]) from None
+        known[chosen] = cfg
         for key in keys:
             _check_key(cfg, key, combo)
 
@@ -260,7 +291,7 @@ def hydra_targets(hydra: dict) -> list[tuple[str, str]]:
     return found
 
 
-def _check_hydra_targets(overrides: list[str]) -> None:
+def _check_hydra_targets(overrides: list[str]) -> DictConfig | None:
     """The door for what Hydra itself would instantiate before physgrad's job runs: every target
     of the composed hydra section (hydra_targets) is physgrad's, the standard logging handlers,
     an installed Hydra plugin's launcher or sweeper, or passes physgrad's one policy for targets
@@ -276,7 +307,7 @@ def _check_hydra_targets(overrides: list[str]) -> None:
             "config", overrides=first_of_sweeps(overrides), return_hydra_config=True
         )
     except HydraException:
-        return  # the composition's own errors are said where the run composes it
+        return None  # the composition's own errors are said where the run composes it
     hydra = OmegaConf.to_container(cfg.hydra, resolve=False)
     for where, target in hydra_targets(hydra if isinstance(hydra, dict) else {}):
         if target in HYDRA_OWN_TARGETS or target in LOGGING_CLASSES:
@@ -293,6 +324,7 @@ def _check_hydra_targets(overrides: list[str]) -> None:
         except Exception:  # noqa: BLE001 - Hydra says why it cannot import it
             continue
         allowed_target(where, target, resolved)
+    return cfg
 
 
 def first_of_sweeps(overrides: list[str]) -> list[str]:

@@ -375,17 +375,16 @@ def build_variants(
     settings: StudySettings,
     config_dirs: list[str],
 ) -> list[Variant]:
-    from physgrad.configs import check_overrides, compose
+    from physgrad.configs import checked_config
 
     if not axes:
         raise UserError(
             "nothing to compare: list two or more variants, e.g. optim=adam,gauss_newton,hig"
         )
-    variants = []
+    variants, combinations = [], {}  # variants that share their options compose them once
     for combo in itertools.product(*(values for _, values in axes)):
         overrides = list(combo)
-        check_overrides([*common, *overrides], multirun=False, config_dirs=config_dirs)
-        cfg = compose([*common, *overrides], config_dirs=config_dirs, return_hydra_config=True)
+        cfg = checked_config([*common, *overrides], config_dirs, combinations)
         space = search_space(cfg, settings.search, settings.knobs) if settings.tune else {}
         variants.append(Variant(variant_name(overrides), overrides, cfg, space))
     if len(variants) < 2:
