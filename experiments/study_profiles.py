@@ -60,12 +60,19 @@ def print_claims_plan(profile: str, root: Path) -> None:
         for study in part:
             longest = max(longest, study.eval_seconds)
             print(f"    {study.label}: {_study_plan(study)}")
-            print(f"        physgrad compare {' '.join(study.command(root))}")
+            for _, overrides in study_commands(study, root):
+                print(f"        physgrad compare {' '.join(overrides)}")
     print(
         f"expected total: about {total / 3600:.1f} h {PLAN_MACHINE.get(profile, ON_2_CORES)}, in "
         "parts run one after another (each resumes where it stopped; finished jobs are skipped)"
         + (f"; its longest job about {longest / 60:.0f} min" if longest > PART_SECONDS else "")
     )
+
+
+def study_commands(study, root: Path) -> list[tuple[bool, list[str]]]:
+    """The compares a part runs for a study, in order, as (presets' twin?, overrides): the study,
+    then its presets' twin where it has one (the plan lists what the part runs)."""
+    return [(preset, study.command(root, preset)) for preset in (False, True)[: 1 + study.twin]]
 
 
 def _study_plan(study) -> str:
@@ -156,14 +163,8 @@ def run_claims(profile: str, parts: list[int], root: Path, out: Path, note: str)
             if code != 0:
                 failed.append(start.name)
         for study in part:
-            for preset in (False, True) if study.twin else (False,):
-                command = [
-                    sys.executable,
-                    "-m",
-                    "physgrad.cli",
-                    "compare",
-                    *study.command(root, preset),
-                ]
+            for preset, overrides in study_commands(study, root):
+                command = [sys.executable, "-m", "physgrad.cli", "compare", *overrides]
                 print("reproduce:", " ".join(command[2:]), flush=True)
                 code = run_child(command, env=study_environment(profile, study))
                 if code == 130:

@@ -784,3 +784,20 @@ def test_a_level_part_can_ask_that_a_variant_stays_at_or_above_it(tmp_path, stud
         assert part.text() == "adam stays at or above loss 0.01"
         found, ((_, d),) = claims.decide_claim(claim_of(part), tmp_path)
         assert found == verdict, d
+
+
+def test_the_plan_lists_every_compare_a_part_runs_the_presets_twins_included(capsys):
+    """--plan prints each study's command and, for a study with a presets' twin, the twin's
+    (compare.tune=false into <name>-preset), once: a part run from the plan's lines alone runs
+    the twins too."""
+    import study_profiles
+
+    study_profiles.print_claims_plan("claims", Path("outputs/experiments/claims"))
+    lines = [line.strip() for line in capsys.readouterr().out.splitlines()]
+    commands = [line for line in lines if line.startswith("physgrad compare ")]
+    twins = [s for part in study_profiles.claims_parts("claims") for s in part if s.twin]
+    listed = [c for c in commands if "-preset " in c]
+    assert twins and len(listed) == len(twins)
+    assert all("compare.tune=false" in c for c in listed)
+    folders = {c.split("compare.dir=")[1].split()[0] for c in listed}
+    assert folders == {f"outputs/experiments/claims/{s.name}-preset" for s in twins}
