@@ -215,7 +215,12 @@ def test_physgrads_slurm_launcher_waits_for_every_job_and_cancels_the_waiting(
 
     monkeypatch.setattr(submitit, "AutoExecutor", FakeExecutor)
     ran = []
-    monkeypatch.setattr(cluster.subprocess, "run", lambda command, **kw: ran.append(command))
+
+    def run(command, **kw):  # squeue: the cancelled job is not queued again; scancel: recorded
+        ran.append(command)
+        return subprocess.CompletedProcess(command, 0, stdout="", stderr="")
+
+    monkeypatch.setattr(cluster.subprocess, "run", run)
 
     class Launcher:
         params = {
@@ -231,9 +236,11 @@ def test_physgrads_slurm_launcher_waits_for_every_job_and_cancels_the_waiting(
     lost = job_states(sweep)[frozenset(["optim=hig"])]
     assert lost["state"] == "not run" and lost["scheduler"] == "88_1"
     assert "CANCELLED" in lost["reason"]
+    # asked once whether SLURM queued the cancelled job again (no wait: no requeue follows)
+    assert ran == [["squeue", "-h", "-j", "88_1", "-o", "%T"]]
     assert len(ON_STOP) == 1
     cancel_waiting()
-    assert ran == [["scancel", "--state=PENDING", "88"]] and not ON_STOP
+    assert ran[1:] == [["scancel", "--state=PENDING", "88"]] and not ON_STOP
 
 
 def test_the_cluster_harness_ends_only_its_own_job_steps(tmp_path):
