@@ -122,7 +122,9 @@ def claim_word(
     untrained = f"not settled at X, and a variant fell less than {TRAINED_FACTOR:g}x from its start"
     if not trained and share < 1.0:  # below a budget the paper states: the budget comes first
         return NOT_TESTED, untrained + within + (
-            f"; {word.removeprefix(NOT_SETTLED + ': ')} as well: {shown}" if word else ""
+            f"; {word.removeprefix(NOT_SETTLED + ': ')} as well" + (f": {shown}" if shown else "")
+            if word
+            else ""
         )
     if word:
         return word, shown

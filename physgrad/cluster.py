@@ -128,23 +128,28 @@ def launch_array(launcher: Any, job_overrides: Sequence[Sequence[str]], first: i
 
 # states after which SLURM may put a job back in the queue (JobRequeue, preemption by requeue)
 REQUEUED_AFTER = frozenset({"NODE_FAIL", "BOOT_FAIL", "PREEMPTED", "REQUEUED"})
-# a job in slurmctld's queue with one of these states has not ended
+# a job in slurmctld's queue with one of these states has not ended (squeue prints a flag such as
+# COMPLETING, STAGE_OUT or SIGNALING before the base state: a job winding down after its end shows
+# them, so they decide nothing)
 QUEUED = frozenset(
-    {"PENDING", "CONFIGURING", "RUNNING", "COMPLETING", "SUSPENDED", "RESIZING", "REQUEUED"}
-    | {"REQUEUE_HOLD", "REQUEUE_FED", "STAGE_OUT", "SIGNALING"}
+    {"PENDING", "CONFIGURING", "RUNNING", "SUSPENDED", "STOPPED", "RESIZING", "REQUEUED"}
+    | {"REQUEUE_HOLD", "REQUEUE_FED", "SPECIAL_EXIT", "RESV_DEL_HOLD"}
 )
 
 
 def job_result(job: Any, patience: float = 60.0, poll: float = 2.0) -> Any:
     """A submitit job's result, or the exception of a job that ended without one. submitit reads
     the state from the accounting (sacct), which says NODE_FAIL for a job on a lost node before,
-    or while, slurmctld puts it back in the queue: so a job that ended without a result is asked
-    of slurmctld (squeue), for up to `patience` seconds after a state that a requeue follows, and
-    one that is queued again is waited for again."""
+    or while, slurmctld puts it back in the queue: so a job that ended without a result (no
+    result or error file of submitit's) is asked of slurmctld (squeue), for up to `patience`
+    seconds after a state that a requeue follows, and one that is queued again is waited for
+    again."""
     while True:
         try:
             return job.results()[0]
         except Exception as error:  # noqa: BLE001 - one job's end is not the sweep's
+            if job.paths.result_pickle.exists():  # it ended with its own outcome, an error
+                return error
             wait = patience if str(job.state).upper() in REQUEUED_AFTER else 0.0
             if not queued_again(job.job_id, wait, poll):
                 return error
@@ -152,6 +157,7 @@ def job_result(job: Any, patience: float = 60.0, poll: float = 2.0) -> Any:
                 "SLURM job %s was put back in the queue (%s): waiting for it", job.job_id, job.state
             )
             job.watcher.clear()  # submitit keeps a finished job finished
+            time.sleep(poll)
 
 
 def queued_again(job_id: str, patience: float, poll: float = 2.0) -> bool:

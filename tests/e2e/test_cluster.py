@@ -174,7 +174,10 @@ def test_a_rerun_launches_only_the_jobs_without_finished_results(tmp_path):
 
 class FakeJob:
     def __init__(self, job_id: str, result=None, state: str = "COMPLETED"):
+        from types import SimpleNamespace
+
         self.job_id, self.result, self.state = job_id, result, state
+        self.paths = SimpleNamespace(result_pickle=Path("/nonexistent/result.pkl"))  # none written
 
     def results(self):
         if self.result is None:

@@ -130,8 +130,12 @@ class _LostThenRequeued:
     """A submitit job whose accounting says NODE_FAIL `lost` times before its result arrives (the
     requeued run's), as sacct does while slurmctld requeues a job from a lost node."""
 
-    def __init__(self, lost: int, state: str = "NODE_FAIL"):
+    def __init__(self, lost: int, state: str = "NODE_FAIL", outcome: Path | None = None):
+        from types import SimpleNamespace
+
         self.job_id, self.state, self.lost, self.cleared = "7_1", state, lost, 0
+        # submitit's result or error file: none where the job was killed
+        self.paths = SimpleNamespace(result_pickle=outcome or Path("/nonexistent/result.pkl"))
 
         class Watcher:
             def clear(inner) -> None:
@@ -172,7 +176,7 @@ def test_a_job_requeued_from_a_lost_node_is_waited_for(tmp_path, monkeypatch, lo
 
     _squeue_says(tmp_path, monkeypatch, *answers)
     job = _LostThenRequeued(lost)
-    assert job_result(job, patience=30.0, poll=0.02) == "the requeued run's result"
+    assert job_result(job, patience=30.0, poll=0.001) == "the requeued run's result"
     assert job.cleared == lost
 
 
@@ -188,3 +192,28 @@ def test_a_job_slurm_does_not_queue_again_is_lost(tmp_path, monkeypatch, state, 
     outcome = job_result(job, patience=0.2, poll=0.02)
     assert isinstance(outcome, RuntimeError) and job.cleared == 0
     assert (int(calls.read_text()) > 1) == patience_used
+
+
+@pytest.mark.parametrize("squeue", ["RUNNING", "COMPLETING", "PENDING"])
+def test_a_job_that_wrote_its_own_error_is_not_waited_for(tmp_path, monkeypatch, squeue):
+    """A job whose error submitit wrote (its code raised) has ended, whatever squeue shows while
+    it winds down: its error at once, slurmctld not asked."""
+    from physgrad.cluster import job_result
+
+    calls = _squeue_says(tmp_path, monkeypatch, squeue)
+    written = tmp_path / "7_1_0_result.pkl"
+    written.write_bytes(b"error")
+    job = _LostThenRequeued(lost=100, state="FAILED", outcome=written)
+    assert isinstance(job_result(job, patience=5.0, poll=0.01), RuntimeError)
+    assert int(calls.read_text()) == 0 and job.cleared == 0
+
+
+def test_a_job_winding_down_is_not_taken_for_queued_again(tmp_path, monkeypatch):
+    """squeue shows a job that ended as COMPLETING (or STAGE_OUT, SIGNALING) while it winds down:
+    not queued again, so a job lost without a requeue is recorded after the patience."""
+    from physgrad.cluster import job_result
+
+    _squeue_says(tmp_path, monkeypatch, "COMPLETING", "STAGE_OUT", "SIGNALING")
+    job = _LostThenRequeued(lost=100)
+    assert isinstance(job_result(job, patience=0.2, poll=0.02), RuntimeError)
+    assert job.cleared == 0
