@@ -121,19 +121,23 @@ def check_overrides(
     """Raise UserError (one line) for an unknown option of a config group (the built-in ones and
     those in the user's folders), a key no config has, a sweep without -m, or a target of the
     hydra section physgrad does not allow. Returns the first job's config as composed for that
-    check (hydra section included; None where Hydra could not compose it). combinations: the
+    check (hydra section included; None where Hydra could not compose it, or where
+    hydra.searchpath adds folders). combinations: the
     group choices' configs composed so far, by search path and choices (filled in; a caller
     checking several runs over the same folders passes one to compose each choice once)."""
     parsed = _parse_overrides(overrides)
     sweeper = _sweeper(parsed)
-    folders = [*config_dirs, *searchpath_entries(overrides)]
+    added = searchpath_entries(overrides)
+    folders = [*config_dirs, *added]
     with initialized(folders) as loader:
         group_values, keys = _group_choices_and_keys(parsed, loader, multirun, sweeper)
         known = (
             {} if combinations is None else combinations.setdefault(tuple(map(str, folders)), {})
         )
         _check_combinations(group_values, keys, known)
-        return _check_hydra_targets(overrides)
+        cfg = _check_hydra_targets(overrides)
+    # hydra.searchpath's folders stand ahead of Hydra's own order here: compose says what runs
+    return None if added else cfg
 
 
 def checked_config(

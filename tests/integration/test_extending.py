@@ -147,3 +147,33 @@ def test_an_option_without_a_name_is_named_after_its_file(tmp_path):
     assert cfg.task.name == "heat" and cfg.optim.name == "adam"
     outcome, path = run_experiment(cfg, tmp_path / "run")
     assert outcome.status == "completed" and read_run(path).attrs["task"] == "heat"
+
+
+@pytest.mark.parametrize(
+    "overrides",
+    [
+        ["task=pendulum", "optim=lion", "task.gravity=3.7"],  # the user's folder's options
+        ["task=toy", "optim=hig", "seed=3"],  # physgrad's own
+        ["task=heat"],  # an option without a name, named after its file
+    ],
+)
+def test_a_checked_config_is_the_config_compose_gives(in_example, tmp_path, overrides):
+    """checked_config composes once for its checks and the run: the same config, hydra section
+    and names included, as compose(return_hydra_config=True) after check_overrides, and the
+    memo of group choices shared by several runs does not change it."""
+    from omegaconf import OmegaConf
+
+    from physgrad.configs import checked_config, compose
+
+    (tmp_path / "task").mkdir()
+    (tmp_path / "task" / "heat.yaml").write_text(
+        "_target_: physgrad.tasks.toy.build\nbatch_size: 4\nscale: 0.01\nhidden: [8]\n"
+        "test_size: 8\n"
+    )
+    folders = ["conf", tmp_path]
+    memo: dict = {}
+    for _ in range(2):
+        got = checked_config(overrides, folders, memo)
+        want = compose(overrides, folders, return_hydra_config=True)
+        assert OmegaConf.to_container(got) == OmegaConf.to_container(want)
+    assert memo and all(len(by_choice) == 1 for by_choice in memo.values())
