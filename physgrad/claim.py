@@ -27,7 +27,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Protocol
 
-from physgrad.claim_words import SEEDS_DISAGREE, STUDIES_DISAGREE
+from physgrad.claim_words import SEEDS_DISAGREE, STUDIES_DISAGREE, STUDIES_TO_RUN
 from physgrad.readout import fmt
 from physgrad.replication import across_studies, majority, over_studies
 from physgrad.verdict import (
@@ -243,7 +243,11 @@ def decide_pairs(runs: Runs, parts: list, fraction: float = 1.0) -> list[Decisio
             + (f"; {earlier}" if earlier else "")
             + (f"; over {len(runs.tuning)} tuning studies" if runs.tuning else "")
         )
-        cause = _pair_cause(part, result, fraction) if claim == OPEN else ("", "")
+        cause = (
+            (studies_to_run(runs) or _pair_cause(part, result, fraction))
+            if claim == OPEN
+            else ("", "")
+        )
         decisions.append(Decision(claim, measured, why, cause))
     return decisions
 
@@ -294,6 +298,16 @@ def log_ratios_at_budget(runs: Runs, a: str, b: str, fraction: float = 1.0) -> l
         [cb[s].at(x) if s in cb else math.nan for s in seeds],
     )
     return list(p.log_ratios)
+
+
+def studies_to_run(runs: Runs) -> tuple[str, str] | None:
+    """Why a part is not settled while tuning studies of the study are still to run
+    (STUDIES_TO_RUN, with how many have run): what the seeds of those run show is not yet the
+    study's; None when every planned study has run."""
+    ran = len(tuning_studies(runs))
+    if runs.planned > ran:
+        return STUDIES_TO_RUN, f"{ran} of {runs.planned} tuning studies run"
+    return None
 
 
 def tuning_studies(runs: Runs) -> tuple:

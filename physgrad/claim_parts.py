@@ -26,6 +26,7 @@ from physgrad.claim import (
     _over_studies,
     decide_pairs,
     log_ratios_at_budget,
+    studies_to_run,
     tuning_studies,
 )
 from physgrad.claim_words import ABOVE, BELOW, SEEDS_DISAGREE, against_level
@@ -155,7 +156,9 @@ def decide_reach(runs: Runs, part: Reaches, fraction: float = 1.0) -> Decision:
     below = sum(v < part.level for v in pooled)
     known = sum(not math.isnan(v) for v in pooled)
     cause = ("", "")
-    if claim == OPEN and 0 < below < known:
+    if claim == OPEN and studies_to_run(runs):
+        cause = studies_to_run(runs)
+    elif claim == OPEN and 0 < below < known:
         stuck = known - below - diverged
         cause = (
             SEEDS_DISAGREE,

@@ -38,9 +38,10 @@ def against_level(values: Sequence[float], level: float, alpha: float = ALPHA) -
 SUPPORTED, CONTRADICTED = "supported", "contradicted"
 NOT_TESTED, DIFFERENT_SETUP = "not tested at the paper's budget", "different setup"
 # "not settled", split by its cause (claim_word)
-SEEDS_DISAGREE, STUDIES_DISAGREE = (
+SEEDS_DISAGREE, STUDIES_DISAGREE, STUDIES_TO_RUN = (
     "not settled: seeds disagree",
     "not settled: tuning studies disagree",
+    "not settled: tuning studies still to run",
 )
 NOT_SETTLED = "not settled"
 TRAINED_FACTOR = 2.0  # a variant has left its start when its median loss fell by this factor
@@ -85,11 +86,12 @@ def claim_word(
       did not hold at X/2 either; not holding before that is NOT_TESTED;
     - not settled at X, by its cause: NOT_TESTED where X is below a budget the paper states and a
       variant has not left its start (seeds or studies that disagree about untrained networks say
-      nothing of the claim; their cause is added to the reason); else `cause` (SEEDS_DISAGREE or
-      STUDIES_DISAGREE, and what the evidence shows: stuck or diverged seeds with counts, studies
-      that reached opposite verdicts or whose sizes differ beyond what tuning luck explains) where
-      the parts found one; else NOT_TESTED where the paper states no budget and a variant has not
-      left its start; else NOT_SETTLED (the seeds could not resolve it at this budget)."""
+      nothing of the claim; their cause is added to the reason); else `cause` (STUDIES_TO_RUN,
+      SEEDS_DISAGREE or STUDIES_DISAGREE, and what the evidence shows: the tuning studies run of
+      those planned, stuck or diverged seeds with counts, studies that reached opposite verdicts
+      or whose sizes differ beyond what tuning luck explains) where the parts found one; else
+      NOT_TESTED where the paper states no budget and a variant has not left its start; else
+      NOT_SETTLED (the seeds could not resolve it at this budget)."""
     if departs:
         return DIFFERENT_SETUP, departs
     budget = share_text(share)

@@ -476,7 +476,10 @@ def test_a_study_with_tuning_studies_still_to_run_needs_a_majority_of_those_plan
 ):
     """A study whose tuning studies run one compare each (on any machine) is decided over the
     studies kept so far, by a majority of all it is to have: two of four agreeing do not settle a
-    part, and the why says how many ran."""
+    part, the why says how many ran, and an unsettled part's cause is the studies still to run
+    (not what the seeds of those run show)."""
+    from physgrad.claim_words import STUDIES_TO_RUN
+
     first = tuned("s", factors)
     for study in first.tuning or (first,):
         study.planned = planned
@@ -485,6 +488,32 @@ def test_a_study_with_tuning_studies_still_to_run_needs_a_majority_of_those_plan
     assert found == verdict, decision
     if planned > len(factors):
         assert f"({len(factors)} of {planned} tuning studies run)" in decision.why
+    if found == OPEN:
+        assert decision.cause == (STUDIES_TO_RUN, f"{len(factors)} of {planned} tuning studies run")
+    else:
+        assert decision.cause == ("", "")
+
+
+def test_a_level_part_with_tuning_studies_still_to_run_says_so_before_stuck_seeds(
+    tmp_path, studies
+):
+    """Stuck seeds in the one tuning study run of four: the cause is the studies still to run;
+    with all four run, the stuck seeds."""
+    from physgrad.claim_words import SEEDS_DISAGREE, STUDIES_TO_RUN
+
+    finals = [1e-3] * 8 + [0.45, 0.45]
+    for count, planned, cause in ((1, 4, STUDIES_TO_RUN), (4, 4, SEEDS_DISAGREE)):
+        study = three_studies(
+            "toy_1",
+            [{"adam": {s: falling(v, 1.0, 2 * v) for s, v in zip(TEN, finals)}}] * count,
+        )
+        for each in study.tuning or (study,):
+            each.planned = planned
+        studies["toy_1"] = study
+        found, ((_, d),) = claims.decide_claim(
+            claim_of(claims.Reaches("toy_1", "adam", 1e-2)), tmp_path
+        )
+        assert found == claims.OPEN and d.cause[0] == cause, d
 
 
 def poisson_row_with_the_gpu_holding(tmp_path, studies) -> str:
