@@ -185,7 +185,7 @@ def test_a_claim_without_its_study_is_open_and_says_why(tmp_path, studies):
 
 
 def test_a_presets_twin_that_fixes_the_clipping_says_why_it_leaves_a_part_out(tmp_path, studies):
-    """The StableBPTT twins run the papers' setting (no clipping) only: the clipped parts say so,
+    """The StableBPTT twins run one clipping mode (none) only: the clipped parts say so,
     and the claim's presets' verdict speaks for the unclipped part."""
     study = study_lists.Study(
         "cartx",
@@ -209,7 +209,10 @@ def test_a_presets_twin_that_fixes_the_clipping_says_why_it_leaves_a_part_out(tm
     )
     verdict, rows = claims.decide_claim(claim, tmp_path, "-preset", profile=(study,))
     assert verdict == HOLDS and [d.verdict for _, d in rows] == [HOLDS, claims.NOT_RUN]
-    assert rows[1][1].why == "the presets' twin runs optim.clip=none only (the papers' setting)"
+    assert rows[1][1].why == (
+        "the presets' twin runs optim.clip=none only "
+        "(to save time; the tuned study runs the others)"
+    )
 
 
 def test_a_presets_only_study_at_the_papers_budget_decides_the_claim_alone(tmp_path, studies):
