@@ -87,6 +87,23 @@ class Study:
         also evaluated untuned."""
         return self.tune and self.preset is not False
 
+    def kept(self, evidence: Path, preset: bool = False) -> bool:
+        """Whether its runs are kept as evidence in `evidence` (docs/evidence/<profile>): the
+        presets' twin's table, or this tuning study in the study's record (every planned one for
+        a study of all its tuning studies in one compare). A part run again skips what is kept:
+        its folder may have gone with its machine. UserError for a damaged table."""
+        from evidence import read_json, read_kept
+
+        path = evidence / f"{self.name}{'-preset' if preset else ''}.csv"
+        if not path.is_file():
+            return False
+        kept = read_kept(path)
+        if preset or not self.tune:
+            return bool(kept.studies)
+        records = read_json(path.with_suffix(".json")).get("tuning_studies") or {}
+        wanted = [self.tuning_study] if self.tuning_study else range(1, self.studies + 1)
+        return isinstance(records, dict) and all(str(k) in records for k in wanted)
+
     def variant_names(self, preset: bool = False) -> list[str]:
         """The names compare gives the study's variants (with preset: its presets' twin's)."""
         import itertools

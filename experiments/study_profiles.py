@@ -140,12 +140,24 @@ def run_claims(profile: str, parts: list[int], root: Path, out: Path, note: str)
     """The studies of the chosen parts (all: every part), each tuned and untuned; then claims.md
     from every study that has finished."""
     from claims import write
-    from studies import starts
+    from studies import EVIDENCE, starts
 
     failed = []
     all_parts = claims_parts(profile)
+    # what is kept as evidence is not run again (the leaderboard keeps its own way)
+    evidence = EVIDENCE.parent / profile if profile != "leaderboard" else None
     for index in parts or range(1, len(all_parts) + 1):
         part = all_parts[index - 1]
+        # (label, twin?) of what is kept; a damaged table is a UserError (one line, below)
+        kept = {
+            (study.label, preset)
+            for study in part
+            for preset, _ in study_commands(study, root)
+            if evidence is not None and study.kept(evidence, preset)
+        }
+        for label, preset in sorted(kept):
+            name = f"{label.partition(' ')[0]}-preset" if preset else label
+            print(f"reproduce: {name} is kept in {evidence}: skipped", flush=True)
         for start in starts(part):
             # each tuning study's evaluation and tuning seeds, the presets' twin's
             seeds = {
@@ -153,9 +165,11 @@ def run_claims(profile: str, parts: list[int], root: Path, out: Path, note: str)
                 for s in part
                 if s.start == start
                 for preset in (False, True)
-                if s.twin or not preset
+                if (s.twin or not preset) and (s.label, preset) not in kept
                 for seed in s.start_seeds(preset)
             }
+            if not seeds:
+                continue
             code = run_start(start, sorted(seeds), root)
             if code == 130:
                 print(INTERRUPTED, file=sys.stderr)
@@ -164,6 +178,8 @@ def run_claims(profile: str, parts: list[int], root: Path, out: Path, note: str)
                 failed.append(start.name)
         for study in part:
             for preset, overrides in study_commands(study, root):
+                if (study.label, preset) in kept:
+                    continue
                 command = [sys.executable, "-m", "physgrad.cli", "compare", *overrides]
                 print("reproduce:", " ".join(command[2:]), flush=True)
                 code = run_child(command, env=study_environment(profile, study))
@@ -208,4 +224,10 @@ def study_profile(profile: str, part: str, plan: bool, out: Path, note: str) -> 
     if plan:
         print_claims_plan(profile, root)
         return 0
-    return run_claims(profile, parts, root, out, note)
+    from physgrad.errors import UserError
+
+    try:
+        return run_claims(profile, parts, root, out, note)
+    except UserError as error:  # a damaged evidence table: one line
+        print(f"reproduce: error: {error}", file=sys.stderr)
+        return 2

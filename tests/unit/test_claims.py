@@ -833,3 +833,43 @@ def test_the_plan_lists_every_compare_a_part_runs_the_presets_twins_included(cap
     assert all("compare.tune=false" in c for c in listed)
     folders = {c.split("compare.dir=")[1].split()[0] for c in listed}
     assert folders == {f"outputs/experiments/claims/{s.name}-preset" for s in twins}
+
+
+def test_a_part_run_again_skips_what_is_kept_as_evidence(tmp_path, monkeypatch, capsys):
+    """Part 3 of the claims (a quantum tuning study, then Poisson's first tuning study from the
+    networks it continues, with its presets' twin): with quantum's four tuning studies kept, only
+    Poisson's start networks and its two compares run, and the skipped study is named; a damaged
+    evidence table stops the part in one line, running nothing."""
+    import shutil
+
+    import study_profiles
+
+    evidence = tmp_path / "evidence" / "claims"
+    evidence.mkdir(parents=True)
+    for suffix in (".csv", ".json"):
+        shutil.copy(REPO / "docs" / "evidence" / "claims" / f"quantum{suffix}", evidence)
+    monkeypatch.setattr(study_lists, "EVIDENCE", evidence)
+    ran = []
+    monkeypatch.setattr(study_profiles, "run_child", lambda command, env=None: ran.append(command))
+    monkeypatch.setattr(
+        study_profiles, "run_start", lambda start, seeds, root: ran.append([start.name]) or 0
+    )
+    monkeypatch.setattr(claims, "write", lambda *args: None)
+    part = study_profiles.claims_parts("claims")[2]
+    assert [s.label for s in part][:2] == [
+        "quantum (tuning study 4 of 4)",
+        "poisson_continue (tuning study 1 of 4)",
+    ]
+    study_profiles.run_claims("claims", [3], tmp_path / "root", tmp_path / "out", "")
+    folders = [next(a for a in c if a.startswith("compare.dir=")) for c in ran if len(c) > 1]
+    assert ran[0] == ["poisson_start"]
+    assert [f.rsplit("/", 2)[-2:] for f in folders] == [
+        ["poisson_continue", "study-1"],
+        ["root", "poisson_continue-preset"],
+    ]
+    assert "reproduce: quantum (tuning study 4 of 4) is kept in" in capsys.readouterr().out
+    (evidence / "quantum.csv").write_text("study,variant\n0,adam\n")
+    ran.clear()
+    code = study_profiles.study_profile("claims", "3", False, tmp_path / "out", "")
+    assert code == 2 and not ran
+    assert capsys.readouterr().err.startswith("reproduce: error: ")
