@@ -41,7 +41,7 @@ def share_text(claim: Claim, runs: StudyRuns) -> str:
         return f"{here}; the paper's: {claim.paper_budget_text}"
     share = 100 * runs.budget / claim.paper_budget
     percent = f"{share:.2g}" if share < 10 else f"{share:.0f}"
-    return f"{here}: {percent}% of the paper's {claim.paper_budget_text}"
+    return f"{here}: {percent}% of {claim.budget_of} {claim.paper_budget_text}"
 
 
 def share(claim: Claim, runs: StudyRuns) -> float:

@@ -49,7 +49,7 @@ from physgrad.claim import (  # noqa: F401 - Close and Lower: the parts' names, 
     tuning_studies,
 )
 from physgrad.claim_parts import claim_verdict, decide_parts
-from physgrad.claim_words import claim_word
+from physgrad.claim_words import NOT_TESTED, claim_word, combined_causes
 from physgrad.errors import UserError
 from physgrad.files import clean_text, make_folder, read_own_file, replace_file
 from physgrad.verdict import FRACTIONS
@@ -225,7 +225,7 @@ def headline_table(root: Path, profile: tuple, further: tuple = ()) -> str:
             lines += ["", "physgrad's own questions, not claims of the papers:", "", *header]
         main = main_study(claim)
         runs = read_study(root / main)
-        longer, seen, elsewhere = _longer_budgets(claim, main, further)
+        longer, seen, elsewhere, at_paper = _longer_budgets(claim, main, further)
         longer_text = "; ".join(longer)
         if runs is None:  # a longer profile's verdicts stand on their own
             tail = f"{' |' * 8} {longer_text} |" if longer_text else f"{' |' * 8} |"
@@ -246,7 +246,7 @@ def headline_table(root: Path, profile: tuple, further: tuple = ()) -> str:
         )
         head = f"{turned}{claim.name}"
         trained, fell = variants_left_start(claim, runs)
-        causes = [d.cause for _, d in decide_claim(claim, root, "", 1.0, profile)[1] if d.cause[0]]
+        at_x = decide_claim(claim, root, "", 1.0, profile)[1]
         word, why = claim_word(
             tuned[1.0] == HOLDS,
             tuned[1.0] == FAILS,
@@ -254,8 +254,13 @@ def headline_table(root: Path, profile: tuple, further: tuple = ()) -> str:
             trained,
             share(claim, runs),
             claim.departs,
-            (causes or [("", "")])[0],
+            combined_causes([d.cause for _, d in at_x]),
+            "; ".join(f"{part.text()}: does not hold" for part, d in at_x if d.verdict == FAILS),
         )
+        if at_paper:  # measured at the paper's budget too (a longer profile): said beside it
+            if word == NOT_TESTED:
+                word = f"{NOT_TESTED} with tuning"
+            why += "; at the paper's budget: " + "; ".join(at_paper)
         lines.append(
             f"| {head} | **{word}** ({why}) | {trials} x {studies}{_of_planned(runs)}, {seeds} | "
             f"{share_text(claim, runs)} | {fell} | "
@@ -265,10 +270,11 @@ def headline_table(root: Path, profile: tuple, further: tuple = ()) -> str:
     return "\n".join(lines) + "\n"
 
 
-def _longer_budgets(claim: Claim, main: str, further: tuple) -> tuple[list, list, list]:
+def _longer_budgets(claim: Claim, main: str, further: tuple) -> tuple[list, list, list, list]:
     """Per longer profile that ran the claim (further: (folder, studies) pairs), its budget, what
-    it ran and its verdicts at X/4, X/2, X; and the verdicts, the GPU profile's apart."""
-    longer, seen, elsewhere = [], [], []
+    it ran and its verdicts at X/4, X/2, X; the verdicts, the GPU profile's apart; and, of those
+    at the paper's budget or beyond, their verdict at X with what they ran."""
+    longer, seen, elsewhere, at_paper = [], [], [], []
     for folder, studies_there in further:
         if not studies_of(claim) <= {s.name for s in studies_there}:
             continue
@@ -286,8 +292,10 @@ def _longer_budgets(claim: Claim, main: str, further: tuple) -> tuple[list, list
             for part, d in decide_claim(claim, folder, "", 1.0, studies_there)[1]
         )
         verdicts = ", ".join(_verdicts_text(found))
+        if share(claim, long_runs) >= 1.0:  # NaN (no paper budget) is not
+            at_paper.append(f"{folder.name}, {budget_text(long_runs)} ({ran}): {found[1.0]}")
         longer.append(f"{folder.name}, {budget_text(long_runs)} ({ran}): {verdicts}; at X: {parts}")
-    return longer, seen, elsewhere
+    return longer, seen, elsewhere, at_paper
 
 
 # --- the regime map

@@ -27,9 +27,21 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Protocol
 
-from physgrad.claim_words import SEEDS_DISAGREE, STUDIES_DISAGREE, STUDIES_TO_RUN
+from physgrad.claim_words import (
+    LEANS_AGAINST,
+    SEEDS_DISAGREE,
+    STUDIES_DISAGREE,
+    STUDIES_TO_RUN,
+    TUNING_LUCK,
+)
 from physgrad.readout import fmt
-from physgrad.replication import across_studies, majority, over_studies
+from physgrad.replication import (
+    STUDY_ALPHA,
+    across_studies,
+    between_studies,
+    majority,
+    over_studies,
+)
 from physgrad.verdict import (
     A_BETTER,
     B_BETTER,
@@ -147,6 +159,8 @@ class Claim:
     paper_budget: float = math.nan
     paper_budget_text: str = "-"
     paper_seconds: bool = False
+    # whose budget paper_budget is, where the paper states none and its reference code does
+    budget_of: str = "the paper's"
     # where physgrad's scene or comparison departs from the paper's in a way that matters: how
     # (the claim's word is then "different setup", physgrad.claim_words.claim_word)
     departs: str = ""
@@ -254,20 +268,29 @@ def decide_pairs(runs: Runs, parts: list, fraction: float = 1.0) -> list[Decisio
 
 def _pair_cause(part: Lower | Close, result: PairVerdict, fraction: float) -> tuple[str, str]:
     """Why a pair part is not settled, where the evidence says: the tuning studies reached
-    opposite outcomes, or their sizes differ beyond what tuning luck explains (STUDIES_DISAGREE);
-    the pooled median on the claim's side with a tenth or more of the seeds against it or the
-    claimed winner diverged on some (SEEDS_DISAGREE, with the counts); else none (the budget or
-    the seeds' number)."""
+    opposite outcomes (STUDIES_DISAGREE); they agree, but taken as one draw each their interval
+    (Hartung-Knapp at 1 - STUDY_ALPHA) still holds a ratio of 1, so tuning luck could have made
+    them agree (TUNING_LUCK); a study went against the claim and none for it (LEANS_AGAINST); the
+    pooled median on the claim's side with a tenth or more of the seeds against it or the claimed
+    winner diverged on some (SEEDS_DISAGREE, with the counts); else none (the budget or the
+    seeds' number)."""
     studies = result.studies or [result]
-    outcomes = {_pair_outcome(part, v.verdicts[fraction][0]) for v in studies}
-    reason = result.verdicts[fraction][1]
-    if {HOLDS, FAILS} <= outcomes or "taken as draws" in reason:
-        listed = ", ".join(v.verdicts[fraction][0] for v in studies)
-        return STUDIES_DISAGREE, (
-            f"{part.a} vs {part.b} in {len(studies)} tuning studies: {listed}"
-            + ("; their sizes differ beyond tuning luck" if "taken as draws" in reason else "")
-        )
+    verdicts = [v.verdicts[fraction][0] for v in studies]
+    outcomes = {_pair_outcome(part, v) for v in verdicts}
+    listed = f"{part.a} vs {part.b} in {len(studies)} tuning studies: {', '.join(verdicts)}"
     p = result.at[fraction]
+    seeds = f"{part.a} lower in {p.wins_a} of {p.pairs} seeds"
+    if {HOLDS, FAILS} <= outcomes:
+        return STUDIES_DISAGREE, listed
+    if "taken as draws" in result.verdicts[fraction][1]:
+        draws = between_studies([v.at[fraction].median for v in studies])
+        return TUNING_LUCK, (
+            f"{listed}; taken as draws, {fmt(ratio_of(draws.mean))} "
+            f"[{fmt(ratio_of(draws.low))}, {fmt(ratio_of(draws.high))}] "
+            f"({100 * (1 - STUDY_ALPHA):.0f}% interval, Hartung-Knapp), which holds 1"
+        )
+    if FAILS in outcomes:
+        return LEANS_AGAINST, f"{listed}; {seeds}"
     against = p.pairs - p.wins_a
     if (
         not isinstance(part, Close)
@@ -275,7 +298,7 @@ def _pair_cause(part: Lower | Close, result: PairVerdict, fraction: float) -> tu
         and (against >= max(1, p.pairs / 10) or p.diverged_a)
     ):
         return SEEDS_DISAGREE, (
-            f"{part.a} lower in {p.wins_a} of {p.pairs} seeds"
+            f"{seeds} ({against} against)"
             + (f", diverged in {p.diverged_a}" if p.diverged_a else "")
         )
     return "", ""

@@ -29,7 +29,7 @@ from physgrad.claim import (
     studies_to_run,
     tuning_studies,
 )
-from physgrad.claim_words import ABOVE, BELOW, SEEDS_DISAGREE, against_level
+from physgrad.claim_words import ABOVE, BELOW, SEEDS_DISAGREE, STUDIES_DISAGREE, against_level
 from physgrad.readout import fmt
 from physgrad.trend import GROWS, interaction
 from physgrad.verdict import (
@@ -72,6 +72,11 @@ def decide_grows(easy: Runs, hard: Runs, part: Grows, fraction: float = 1.0) -> 
         [r.verdict for r in results],
         max(easy.planned, hard.planned),
     )
+    cause = ("", "")
+    if verdict == OPEN:
+        cause = studies_to_run(easy) or studies_to_run(hard) or cause
+        if not cause[0] and why.startswith("the tuning studies disagree"):
+            cause = (STUDIES_DISAGREE, f"{part.text()}: {why.split(': ', 1)[1]}")
     finite = lambda r: [v for v in r if not math.isnan(v)]  # noqa: E731
     pooled_easy = finite([v for r, _ in ratios for v in r])
     pooled_hard = finite([v for _, r in ratios for v in r])
@@ -84,7 +89,7 @@ def decide_grows(easy: Runs, hard: Runs, part: Grows, fraction: float = 1.0) -> 
         )
         + (f" in {len(results)} tuning studies" if len(results) > 1 else "")
     )
-    return Decision(verdict, measured, why)
+    return Decision(verdict, measured, why, cause)
 
 
 def _stall_in(runs: Runs, part: Stalls, fraction: float) -> tuple:

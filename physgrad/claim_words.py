@@ -43,7 +43,12 @@ SEEDS_DISAGREE, STUDIES_DISAGREE, STUDIES_TO_RUN = (
     "not settled: tuning studies disagree",
     "not settled: tuning studies still to run",
 )
+# the tuning studies agree, but their spread leaves no difference inside the interval over them
+TUNING_LUCK = "not settled: tuning luck not excluded"
+LEANS_AGAINST = "not settled: leans against the claim"  # studies against it, none for it
 NOT_SETTLED = "not settled"
+# a variant that did not leave its start where the paper states no budget to blame
+UNTRAINED = "not tested: a variant did not leave its start"
 TRAINED_FACTOR = 2.0  # a variant has left its start when its median loss fell by this factor
 
 
@@ -75,6 +80,7 @@ def claim_word(
     share: float,
     departs: str = "",
     cause: tuple[str, str] = ("", ""),
+    failing: str = "",
 ) -> tuple[str, str]:
     """What a measurement says of a paper's claim, and why:
     - DIFFERENT_SETUP where the comparison departs from the paper's in a way that matters;
@@ -91,17 +97,24 @@ def claim_word(
       those planned, stuck or diverged seeds with counts, studies that reached opposite verdicts
       or whose sizes differ beyond what tuning luck explains) where the parts found one; else
       NOT_TESTED where the paper states no budget and a variant has not left its start; else
-      NOT_SETTLED (the seeds could not resolve it at this budget)."""
+      NOT_SETTLED (the seeds could not resolve it at this budget). Where the paper states no
+      budget (share NaN), a variant that has not left its start makes the word UNTRAINED, not
+      NOT_TESTED: there is no paper's budget to fall short of.
+    Every reason names the share of the paper's budget where the paper states one; a "does not
+    hold" names the parts that do not (failing), so that a claim contradicted in one part (its
+    mechanism) is not read as contradicted in all."""
     if departs:
         return DIFFERENT_SETUP, departs
     budget = share_text(share)
     within = f"; {budget}" if budget else ""
     below_paper = math.isnan(share) or share < 1.0
+    not_holding = f" ({failing})" if failing else ""
+    untested = UNTRAINED if math.isnan(share) else NOT_TESTED
     if holds:
         if trained and not fails_at_half:
-            return SUPPORTED, "holds at X, every variant having left its start"
+            return SUPPORTED, "holds at X, every variant having left its start" + within
         if not trained:
-            return NOT_TESTED, (
+            return untested, (
                 f"holds at X, but a variant fell less than {TRAINED_FACTOR:g}x from its start"
                 + within
             )
@@ -112,14 +125,14 @@ def claim_word(
             "does not hold at the paper's budget"
             if at_paper
             else "does not hold at X/2 and X, every variant having left its start"
-        )
+        ) + not_holding
     if fails:
         why = (
             f"does not hold at X, but a variant fell less than {TRAINED_FACTOR:g}x from its start"
             if not trained
             else "does not hold at X, but did not fail at X/2 (it turned with the budget)"
         )
-        return NOT_TESTED, why + within
+        return (untested if not trained else NOT_TESTED), why + not_holding + within
     word, shown = cause
     untrained = f"not settled at X, and a variant fell less than {TRAINED_FACTOR:g}x from its start"
     if not trained and share < 1.0:  # below a budget the paper states: the budget comes first
@@ -131,5 +144,18 @@ def claim_word(
     if word:
         return word, shown
     if below_paper and not trained:
-        return NOT_TESTED, untrained + within
+        return untested, untrained + within
     return NOT_SETTLED, "not settled at X: the seeds could not resolve it" + within
+
+
+def combined_causes(causes: list[tuple[str, str]]) -> tuple[str, str]:
+    """The parts' causes of "not settled" as one, for claim_word: the first's word, and every
+    distinct cause's evidence (the others named "... as well")."""
+    found = [c for c in causes if c[0]]
+    if not found:
+        return "", ""
+    word, shown = found[0]
+    for other, evidence in found[1:]:
+        if evidence not in shown:
+            shown += f"; {other.removeprefix(NOT_SETTLED + ': ')} as well: {evidence}"
+    return word, shown

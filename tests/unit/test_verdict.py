@@ -538,3 +538,26 @@ def test_a_claim_is_contradicted_only_where_the_budget_could_test_it():
     assert not left_start([1.0, 1.0, 1.0], [0.4, 0.6, 0.9])
     assert not left_start([1.0, 1.0, 1.0], [0.1, math.inf, math.inf])
     assert left_start([1.0, 1.0], [0.1, nan]) and not left_start([1.0], [nan])
+
+
+def test_a_claims_word_names_the_budget_share_the_failing_parts_and_an_untrained_variant():
+    """Every word's reason carries the share of the paper's budget where it states one (a
+    "supported" at 0.42% says so); a "does not hold" names the parts that do not; where the paper
+    states no budget, a variant that has not left its start is "not tested: a variant did not leave
+    its start", since there is no paper's budget to fall short of."""
+    from physgrad.claim_words import CONTRADICTED, NOT_TESTED, SUPPORTED, UNTRAINED, claim_word
+
+    nan = math.nan
+    word, why = claim_word(True, False, False, True, 0.0042)
+    assert word == SUPPORTED and why.endswith("; 0.42% of the paper's budget")
+    assert claim_word(True, False, False, True, nan) == (
+        SUPPORTED,
+        "holds at X, every variant having left its start",
+    )
+    word, why = claim_word(False, True, True, True, nan, failing="g saturates: does not hold")
+    assert word == CONTRADICTED and why.endswith("(g saturates: does not hold)")
+    for holds, fails in ((True, False), (False, True), (False, False)):
+        assert claim_word(holds, fails, fails, False, nan)[0] == UNTRAINED
+        assert claim_word(holds, fails, fails, False, 0.1)[0] == NOT_TESTED
+    word, why = claim_word(False, True, True, False, nan, failing="hig below adam: does not hold")
+    assert "less than 2x" in why and "(hig below adam: does not hold)" in why
