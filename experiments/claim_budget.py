@@ -7,6 +7,7 @@ from __future__ import annotations
 import math
 
 import numpy as np
+from evidence import CLOCK, busy_clock
 from study_runs import StudyRuns
 
 from physgrad.claim import Claim, Grows, Reaches, Stalls, tuning_studies
@@ -20,6 +21,21 @@ def budget_text(runs: StudyRuns) -> str:
         "wall_time": f"{runs.budget:g} s (measured clock)",
         "calibrated_time": f"{runs.budget:g} s (calibrated clock)",
     }.get(runs.axis, f"{runs.budget:g}")
+
+
+def busy_clock_text(root, main: str) -> str:
+    """ "; its clock was calibrated on a busy machine (...)" where the study's kept clock
+    (root/<main>.calibration.json) or its folder's calibration was measured beside other work,
+    "" otherwise: every step was then charged more than it costs, and the budget bought fewer
+    steps than it says."""
+    for path in (root / CLOCK.format(name=main), root / main / "calibration.json"):
+        why = busy_clock(path) if path.is_file() else ""
+        if why:
+            return (
+                f"; its clock was calibrated on a busy machine ({why}): every step was charged "
+                "more than it costs, so the budget bought fewer steps than it says"
+            )
+    return ""
 
 
 def part_study(part) -> str:

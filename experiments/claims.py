@@ -24,7 +24,15 @@ import argparse
 import sys
 from pathlib import Path
 
-from claim_budget import budget_text, main_study, part_study, share, share_text, variants_left_start
+from claim_budget import (
+    budget_text,
+    busy_clock_text,
+    main_study,
+    part_study,
+    share,
+    share_text,
+    variants_left_start,
+)
 from claim_list import CLAIMS, load_claims  # noqa: F401 - experiments/; load_claims: tests
 from regime_map import regime_map
 from scene_kinds import scene_kinds_block
@@ -257,6 +265,7 @@ def headline_table(root: Path, profile: tuple, further: tuple = ()) -> str:
             combined_causes([d.cause for _, d in at_x]),
             "; ".join(f"{part.text()}: does not hold" for part, d in at_x if d.verdict == FAILS),
         )
+        why += busy_clock_text(root, main)
         if at_paper:  # measured at the paper's budget too (a longer profile): said beside it
             if word == NOT_TESTED:
                 word = f"{NOT_TESTED} with tuning"

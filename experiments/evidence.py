@@ -163,11 +163,25 @@ def clock_rules(path: Path) -> set[str]:
     return set(costs) if isinstance(costs, dict) else set()
 
 
+def busy_clock(path: Path) -> str:
+    """Why a calibration.json was measured on a busy machine (its load average against its cores,
+    physgrad's rule), or "" (also where it cannot be read)."""
+    from physgrad.comparison.clock_text import busy_calibration
+
+    try:
+        return busy_calibration(read_json(path))
+    except (OSError, ValueError, AttributeError, KeyError, TypeError):
+        return ""
+
+
 def keep_clock(measured: Path, clock: Path) -> None:
     """A study's calibration kept as its clock (for its tuning studies still to run, on any
-    machine): the first kept, or one with a variant the kept one lacks."""
+    machine): the first kept, or one with a variant the kept one lacks; never one measured on a
+    busy machine, which would charge every later study's steps what they cost beside other work."""
     from physgrad.files import read_own_file, replace_file
 
+    if busy_clock(measured):
+        return
     if measured.is_file() and not clock_rules(measured) <= clock_rules(clock):
         clock.parent.mkdir(parents=True, exist_ok=True)
         replace_file(clock, read_own_file(measured, FILE_LIMIT))

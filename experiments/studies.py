@@ -19,7 +19,7 @@ from dataclasses import dataclass, replace
 from pathlib import Path
 
 import yaml
-from evidence import CLOCK, STUDY_FOLDER  # experiments/
+from evidence import CLOCK, STUDY_FOLDER, busy_clock  # experiments/
 
 from physgrad.errors import UserError
 
@@ -168,10 +168,11 @@ class Study:
     def clock(self, root: Path) -> Path | None:
         """The calibration a tuning study after the first and the presets' twin run on: the
         study's kept clock (whatever machine ran its first study), else the first study's own in
-        root; None (the study calibrates itself) if there is neither."""
+        root; None (the study calibrates itself) if there is neither. A calibration measured on a
+        busy machine is none: it would charge this study's steps their cost beside other work."""
         for path in (EVIDENCE / CLOCK.format(name=self.name), root / self.name / "study-1"):
             path = path / "calibration.json" if path.suffix != ".json" else path
-            if path.is_file():
+            if path.is_file() and not busy_clock(path):
                 return path
         return None
 

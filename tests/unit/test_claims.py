@@ -971,3 +971,51 @@ def test_a_claim_short_of_the_papers_budget_says_what_its_run_at_that_budget_fou
     alone = claims.headline_table(tmp_path, study_lists.PROFILES["claims"])
     row = next(line for line in alone.splitlines() if line.startswith("| cart (4 poles)"))
     assert "| **not tested at the paper's budget** (" in row and "at the paper's budget:" not in row
+
+
+def test_a_clock_calibrated_on_a_busy_machine_is_flagged_and_never_kept_for_later_studies(
+    tmp_path, monkeypatch
+):
+    """A calibration at load 5.4 on 2 cores charged every step several times its cost (Poisson's
+    HIG 45 s, where a quiet machine measures 7 s): the claim's row says so, and it is not kept as
+    the clock of the study's tuning studies still to run; a quiet one is."""
+    import json
+
+    from evidence import CLOCK, keep_clock
+
+    def calibration(load: float) -> dict:
+        return {
+            "costs": {"adam": {"step_seconds": 0.004}, "hig": {"step_seconds": 45.0}},
+            "load_start": load,
+            "load_end": load,
+            "machine": {"cpu_count": 2},
+        }
+
+    busy, quiet = tmp_path / "busy.json", tmp_path / "quiet.json"
+    busy.write_text(json.dumps(calibration(5.42)))
+    quiet.write_text(json.dumps(calibration(1.6)))
+    clock = tmp_path / "kept" / CLOCK.format(name="poisson_scratch")
+    keep_clock(busy, clock)
+    assert not clock.exists()
+    keep_clock(quiet, clock)
+    assert json.loads(clock.read_text())["load_start"] == 1.6
+    assert claim_budget.busy_clock_text(tmp_path / "kept", "poisson_scratch") == ""
+    clock.write_text(busy.read_text())  # kept before the rule
+    why = claim_budget.busy_clock_text(tmp_path / "kept", "poisson_scratch")
+    assert why.startswith("; its clock was calibrated on a busy machine (load average 5.42")
+    assert "fewer steps than it says" in why
+    clock.write_text("not json")  # unreadable evidence is no flag, and no error here
+    assert claim_budget.busy_clock_text(tmp_path / "kept", "poisson_scratch") == ""
+    # the later tuning studies and the presets' twin run on the first study's clock, not a busy one
+    spec = next(s for s in study_lists.PROFILES["claims"] if s.name == "poisson_scratch")
+    first = tmp_path / "root" / "poisson_scratch" / "study-1" / "calibration.json"
+    first.parent.mkdir(parents=True)
+    evidence = tmp_path / "evidence"
+    evidence.mkdir()
+    (evidence / CLOCK.format(name="poisson_scratch")).write_text(busy.read_text())
+    monkeypatch.setattr(study_lists, "EVIDENCE", evidence)
+    first.write_text(busy.read_text())
+    assert spec.clock(tmp_path / "root") is None
+    first.write_text(quiet.read_text())
+    assert spec.clock(tmp_path / "root") == first
+    assert f"compare.calibration={first}" in spec.command(tmp_path / "root", preset=True)
