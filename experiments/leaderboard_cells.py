@@ -35,6 +35,7 @@ class Cell:
     studies: tuple[str, ...]
     iterations: float = math.nan
     detail: tuple = ()  # (k, the rule's PairVerdict in tuning study k) for the studies that ran it
+    why: str = ""  # why the verdict over the studies is what it is (the package's rule)
 
 
 def cells(runs, about: dict | None = None) -> dict[str, Cell]:
@@ -82,6 +83,7 @@ def cells(runs, about: dict | None = None) -> dict[str, Cell]:
             tuple(s.verdicts[1.0][0] for s in (result.studies or [result])),
             (iterations or {}).get(rule, math.nan),
             tuple((k, by_rule[rule]) for k, by_rule in enumerate(per_study) if rule in by_rule),
+            result.verdicts[1.0][1],
         )
     return found
 

@@ -321,7 +321,9 @@ def scene_page(entry, cells: dict, runs, about: dict) -> str:
         f"{BASELINE}), the median ratio rule / {BASELINE} of the test loss with its 95% interval, "
         "the seeds where the rule was lower, the ratios at X/4 and X/2, and each rule's median "
         "iterations in the budget. The last row is the leaderboard's cell: the verdict over the "
-        "studies (physgrad.replication.across_studies).",
+        "studies (physgrad.replication.across_studies) with why, the median ratio over every "
+        "study's seeds, and the span of the studies' intervals (lowest low to highest high: "
+        "descriptive, not a confidence interval).",
     ]
     keys = sorted(by_study, key=int) if len(by_study) == studies else []
     for rule, cell in sorted(cells.items(), key=lambda item: RULES.index(item[0])):
@@ -348,7 +350,9 @@ def scene_page(entry, cells: dict, runs, about: dict) -> str:
                 + f" | {rule} {_its(its, rule)}, {BASELINE} {_its(its, BASELINE)} |"
             )
         lines.append(
-            f"| over the studies | **{mark(cell.verdict)}** | {fmt(cell.ratio)} [{fmt(cell.low)}, "
+            f"| over the studies | **{mark(cell.verdict)}**"
+            + (f" ({cell.why})" if cell.why else "")
+            + f" | {fmt(cell.ratio)} [{fmt(cell.low)}, "
             f"{fmt(cell.high)}] | {cell.wins} of {cell.pairs} | | | |"
         )
         lines += ["", detectable_line(cell, len(cells))]

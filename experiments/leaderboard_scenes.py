@@ -184,7 +184,8 @@ EVIDENCE = Path(__file__).resolve().parent.parent / "docs" / "evidence" / "leade
 RERUN = EVIDENCE / "rerun"
 
 # what the rules' papers report on problems the leaderboard has, and the cells of the same rules in
-# physgrad's setting (each citation checked against its arXiv abstract)
+# physgrad's setting on the scenes whose equations the papers name (the table has the rules on every
+# scene; each citation checked against its arXiv abstract)
 LITERATURE = (
     (
         "Self-scaled BFGS and Broyden: Kiyani et al. 2025 (arXiv 2501.16371) report orders-of-"
@@ -207,17 +208,20 @@ LITERATURE = (
     ),
 )
 WHY_IT_MAY_DIFFER = (
-    "These cells are the same rules in physgrad's setting; the literature's setting is not tested "
+    "These cells are the same rules in physgrad's setting, on the scenes whose equations the "
+    "papers name (the table above has them on every scene); the literature's setting is not tested "
     "here, so they neither confirm nor contradict it. The papers train physics-informed residuals "
     "over collocation points for tens of thousands of iterations (Kiyani et al. full-batch; Jnini "
     "et al. also batched); here the physics is in the loop (a solver between the network and the "
     "loss: the Burgers scene's network proposes the start that exponax's stepper carries to an "
-    "observed field), every scene but the two full-batch columns draws a small fresh batch each "
-    "step (Burgers and guidance 8 of 256 samples, the pendulum 16 of 256, Kuramoto-Sivashinsky "
-    "16, the oscillators 512 of 4,096; a quasi-Newton rule's curvature pairs and line search see "
-    "another batch at every step, the regime in which such rules are known to struggle; the "
-    "pendulum and Burgers full-batch columns train on all 256 samples at every step, the "
-    "quasi-Newton rules' own regime), and the budget is seconds of calibrated "
+    "observed field), every scene but the two full-batch columns draws a small minibatch of its "
+    "training set afresh each step (Burgers and guidance 8 of 256 samples, the pendulum 16 of "
+    "256, Kuramoto-Sivashinsky 16, the oscillators 512 of 4,096; the toy new samples): a "
+    "quasi-Newton rule's curvature pairs and line search see another batch at every step, a "
+    "regime in which gradients dominated by noise undo a line search and quasi-Newton updating "
+    "(Bollapragada et al., ICML 2018, arXiv 1802.05374); the pendulum and "
+    "Burgers full-batch columns train on all 256 samples at every step, the quasi-Newton rules' "
+    "own regime), and the budget is seconds of calibrated "
     "time on 2 cores (a quasi-Newton step and its line search cost several of Adam's: the "
     "iterations above)."
 )

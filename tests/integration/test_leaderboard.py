@@ -369,6 +369,8 @@ def test_a_better_its_compare_found_undecided_by_the_clock_stays_undecided(tmp_p
     (evidence / "toy.json").write_text(json.dumps({**about, "tuning_studies": records}))
     hig = leaderboard.board(evidence)["toy"][0]["hig"]
     assert hig.studies == (A_BETTER, UNDECIDED, UNDECIDED) and hig.verdict == UNDECIDED
+    # the cell says why over the studies, and the scene page shows it
+    assert hig.why.startswith("1 of 3 tuning studies decided, 2 needed: "), hig.why
     records["3"] = {"undecided_by_the_clock": {"hig vs adam": "1.0"}}  # not fractions
     (evidence / "toy.json").write_text(json.dumps({**about, "tuning_studies": records}))
     with pytest.raises(UserError, match="undecided_by_the_clock: not pairs and fractions"):
@@ -605,6 +607,13 @@ def test_the_current_protocols_studies_are_kept_apart_and_shown_as_a_re_run(tmp_
     assert "**worse**" in hig and "10x" in hig
     main = text[: text.index("## The re-run")]
     assert "[**better**](leaderboard/toy.md#hig) 0.1" in main  # the published cell, unchanged
+    # the page says at its head that its table is the earlier protocol's, and how far the re-run is
+    head = text[: text.index("![leaderboard]")]
+    assert "**The table and figure below are from an earlier protocol**" in head
+    assert "has kept 1 of 32 studies so far" in head
+    without = tmp_path / "without"
+    shutil.copytree(evidence, without, ignore=shutil.ignore_patterns("rerun"))
+    assert "earlier protocol" not in leaderboard.write(without, tmp_path / "docs2")
     # a scene's kept clock for the profile's studies is the re-run's
     assert leaderboard_scenes.kept_clock.__defaults__[0] == leaderboard_scenes.RERUN
     (root / "toy" / "study-2").mkdir()
