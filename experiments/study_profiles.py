@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import subprocess
 import sys
+from collections.abc import Iterator
 from pathlib import Path
 
 STUDY_PROFILES = ("claims", "claims-long", "claims-gpu", "claims-paper", "leaderboard")
@@ -69,10 +70,12 @@ def print_claims_plan(profile: str, root: Path) -> None:
     )
 
 
-def study_commands(study, root: Path) -> list[tuple[bool, list[str]]]:
+def study_commands(study, root: Path) -> Iterator[tuple[bool, list[str]]]:
     """The compares a part runs for a study, in order, as (presets' twin?, overrides): the study,
-    then its presets' twin where it has one (the plan lists what the part runs)."""
-    return [(preset, study.command(root, preset)) for preset in (False, True)[: 1 + study.twin]]
+    then its presets' twin where it has one (the plan lists what the part runs). Each command is
+    made as it is asked for, so that a twin made after its study ran runs on that study's clock
+    (Study.clock) instead of calibrating one of its own."""
+    return ((preset, study.command(root, preset)) for preset in (False, True)[: 1 + study.twin])
 
 
 def _study_plan(study) -> str:

@@ -1019,3 +1019,30 @@ def test_a_clock_calibrated_on_a_busy_machine_is_flagged_and_never_kept_for_late
     first.write_text(quiet.read_text())
     assert spec.clock(tmp_path / "root") == first
     assert f"compare.calibration={first}" in spec.command(tmp_path / "root", preset=True)
+
+
+def test_a_presets_twin_is_commanded_after_its_study_ran_so_it_runs_on_that_clock(
+    tmp_path, monkeypatch
+):
+    """A part runs a timed study's first tuning study, then its presets' twin: the twin's command
+    is made once the study has run, on the clock it calibrated, not before it (when it has none,
+    so the twin would calibrate one of its own, perhaps beside other work)."""
+    import json
+
+    from study_profiles import claims_parts, study_commands
+
+    monkeypatch.setattr(study_lists, "EVIDENCE", tmp_path / "no evidence")
+    study = next(
+        s
+        for part in claims_parts("claims")
+        for s in part
+        if s.name == "poisson_continue" and s.tuning_study == 1
+    )
+    commands = study_commands(study, tmp_path)
+    preset, first = next(commands)
+    assert not preset and not any(o.startswith("compare.calibration=") for o in first)
+    clock = tmp_path / "poisson_continue" / "study-1" / "calibration.json"
+    clock.parent.mkdir(parents=True)  # the study ran and calibrated
+    clock.write_text(json.dumps({"load_start": 1.5, "load_end": 1.9, "machine": {"cpu_count": 2}}))
+    preset, twin = next(commands)
+    assert preset and f"compare.calibration={clock}" in twin
