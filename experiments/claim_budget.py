@@ -77,10 +77,10 @@ def claim_variants(claim: Claim, study: str) -> list[str]:
     return names
 
 
-def variants_left_start(claim: Claim, runs: StudyRuns) -> tuple[bool, str]:
-    """Whether every variant of the claim's main study has left its start at X (the median over
-    its seeds of loss at X / at its first evaluation, physgrad.claim_words.left_start), and each
-    variant's factor."""
+def variants_left_start(claim: Claim, runs: StudyRuns, fraction: float = 1.0) -> tuple[bool, str]:
+    """Whether every variant of the claim's main study has left its start by `fraction` of X (the
+    median over its seeds of loss there / at its first evaluation,
+    physgrad.claim_words.left_start), and each variant's factor."""
     said, trained = [], True
     for variant in claim_variants(claim, main_study(claim)):
         if variant not in runs.paths:
@@ -89,9 +89,29 @@ def variants_left_start(claim: Claim, runs: StudyRuns) -> tuple[bool, str]:
         for study in tuning_studies(runs):
             for curve in study.curves(variant).values():
                 starts.append(float(curve.loss[0]) if len(curve.loss) else math.nan)
-                finals.append(curve.at(study.budget))
+                finals.append(curve.at(study.budget * fraction))
         trained &= left_start(starts, finals)
         ratios = [f / s for s, f in zip(starts, finals) if s > 0 and not math.isnan(f)]
         factor = 1 / float(np.median(ratios)) if ratios else math.nan
         said.append(f"{variant} {fmt(factor)}x")
     return trained and bool(said), ", ".join(said)
+
+
+def untrained_failures_open(claim: Claim, runs: StudyRuns, verdicts: dict) -> dict:
+    """The claim's verdicts at X/4 and X/2 (fraction -> verdict) with a "does not hold" between
+    variants that had not left their start there read as not settled: it says nothing of the
+    claim (as claim_word reads X)."""
+    from physgrad.claim import FAILS, OPEN
+
+    return {
+        f: f"{OPEN} (a variant had not left its start)"
+        if f < 1.0 and v == FAILS and not variants_left_start(claim, runs, f)[0]
+        else v
+        for f, v in verdicts.items()
+    }
+
+
+def of_planned(runs: StudyRuns) -> str:
+    """ " of N" where fewer of a study's N tuning studies have run (the majority is of N)."""
+    ran = len(runs.tuning) or 1
+    return f" of {runs.planned}" if runs.planned > ran else ""

@@ -28,9 +28,11 @@ from claim_budget import (
     budget_text,
     busy_clock_text,
     main_study,
+    of_planned,
     part_study,
     share,
     share_text,
+    untrained_failures_open,
     variants_left_start,
 )
 from claim_list import CLAIMS, load_claims  # noqa: F401 - experiments/; load_claims: tests
@@ -199,12 +201,6 @@ def claim_verdicts(
     return {f: decide_claim(claim, root, suffix, f, profile)[0] for f in FRACTIONS}
 
 
-def _of_planned(runs: StudyRuns) -> str:
-    """ " of N" where fewer of a study's N tuning studies have run (the majority is of N)."""
-    ran = len(runs.tuning) or 1
-    return f" of {runs.planned}" if runs.planned > ran else ""
-
-
 def _verdicts_text(verdicts: dict[float, str]) -> list[str]:
     return [f"**{verdicts[f]}**" if f == 1.0 else verdicts[f] for f in FRACTIONS]
 
@@ -241,6 +237,7 @@ def headline_table(root: Path, profile: tuple, further: tuple = ()) -> str:
             continue
         trials, studies, seeds = study_protocol(root / main)
         tuned = claim_verdicts(claim, root, profile=profile)
+        tuned = untrained_failures_open(claim, runs, tuned)
         preset, _ = decide_claim(claim, root, "-preset", 1.0, profile)
         if preset == OPEN and read_study(root / f"{main}-preset") is None:
             preset = NOT_YET  # the twin's study has not finished
@@ -271,7 +268,7 @@ def headline_table(root: Path, profile: tuple, further: tuple = ()) -> str:
                 word = f"{NOT_TESTED} with tuning"
             why += "; at the paper's budget: " + "; ".join(at_paper)
         lines.append(
-            f"| {head} | **{word}** ({why}) | {trials} x {studies}{_of_planned(runs)}, {seeds} | "
+            f"| {head} | **{word}** ({why}) | {trials} x {studies}{of_planned(runs)}, {seeds} | "
             f"{share_text(claim, runs)} | {fell} | "
             + " | ".join(_verdicts_text(tuned))
             + f" | {preset} | {longer_text or 'not in a longer profile'} |"
@@ -294,7 +291,7 @@ def _longer_budgets(claim: Claim, main: str, further: tuple) -> tuple[list, list
         found = claim_verdicts(claim, folder, profile=studies_there)
         (elsewhere if studies_there == GPU else seen).extend(found.values())
         t, k, n = study_protocol(folder / main)
-        ran = f"{t} x {k}{_of_planned(long_runs)}, {n}" if t else f"presets untuned, {n} seeds"
+        ran = f"{t} x {k}{of_planned(long_runs)}, {n}" if t else f"presets untuned, {n} seeds"
         parts = "; ".join(  # each part at its X: a claim's word hides which part decided it
             f"{part.text()}: {d.verdict}"
             + (f" ({d.measured.split(';')[0]})" if d.measured != "-" else "")

@@ -12,6 +12,7 @@ from tests.helpers import REPO, plant
 from tests.integration.test_compare import small_study  # noqa: F401 - the session's finished study
 
 sys.path.insert(0, str(REPO / "experiments"))
+import claim_budget  # noqa: E402
 import claims  # noqa: E402
 import study_runs  # noqa: E402
 
@@ -184,7 +185,7 @@ def test_tuning_studies_run_as_compares_of_their_own_are_kept_and_decided_as_one
     claims.keep_evidence(machines[1], kept)
     for root in (both.parent, kept):
         runs = claims.read_study(root / "small")
-        assert runs.planned == 4 and claims._of_planned(runs) == " of 4"
+        assert runs.planned == 4 and claim_budget.of_planned(runs) == " of 4"
         _, ((_, decision),) = claims.decide_claim(lower, root)
         assert "(2 of 4 tuning studies run)" in decision.why
 

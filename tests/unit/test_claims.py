@@ -1046,3 +1046,31 @@ def test_a_presets_twin_is_commanded_after_its_study_ran_so_it_runs_on_that_cloc
     clock.write_text(json.dumps({"load_start": 1.5, "load_end": 1.9, "machine": {"cpu_count": 2}}))
     preset, twin = next(commands)
     assert preset and f"compare.calibration={clock}" in twin
+
+
+def test_a_failure_at_x4_between_networks_that_have_not_left_their_start_is_not_shown_as_one(
+    tmp_path, monkeypatch
+):
+    """C, M and S all at 1.975 from 2 at X/4 (equivalent: "does not hold" for "C below M"), C at
+    0.5 by X: the X/4 cell says not settled, a variant not having left its start, since
+    equivalence between untrained networks is no evidence against the claim."""
+    modes = next(c for c in claims.CLAIMS if c.name.startswith("cart (4 poles)"))
+    monkeypatch.setattr(claims, "CLAIMS", (modes,))
+
+    def study():
+        by = {
+            v: {s: falling(final * base(s), 2 * base(s), 1.95 * base(s)) for s in TEN}
+            for v, final in (("backprop=C", 0.5), ("backprop=M", 1.9), ("backprop=S", 1.9))
+        }
+        return FakeStudy("cart_4_modes", by)
+
+    monkeypatch.setattr(
+        claims, "read_study", lambda f: study() if f == tmp_path / "cart_4_modes" else None
+    )
+    monkeypatch.setattr(claims, "study_protocol", lambda f: (8, 4, 10))
+    assert claims.claim_verdicts(modes, tmp_path)[0.25] == FAILS  # as decided, untrained
+    table = claims.headline_table(tmp_path, study_lists.PROFILES["claims"])
+    row = next(line for line in table.splitlines() if line.startswith("| cart (4 poles)"))
+    cells = [c.strip() for c in row.split("|")]
+    assert cells[6] == "not settled (a variant had not left its start)", row
+    assert cells[8] == "**holds**", row
