@@ -350,18 +350,20 @@ def evidence_block(root: Path) -> str:
     further = tuple(
         (root.parent / name, PROFILES[name]) for name in FURTHER if (root.parent / name).is_dir()
     )
-    machines = sorted(
+    machines = sorted(  # a study run on several machines records them joined by "; "
         {
-            runs.machine
+            machine
             for s in studies
             for suffix in ("", "-preset")
             if (runs := read_study(root / f"{s.name}{suffix}")) is not None and runs.machine
+            for machine in runs.machine.split("; ")
         }
     )
     return (
         f"Decided from the per-seed tables in `{root}` (one per study and per presets' twin, with "
         "the command, commit and machine that produced it beside it); machines: "
-        f"{'; '.join(machines) or '-'}{uncommitted_note(root)}. A claim without evidence says "
+        f"{'; '.join(machines) or '-'}{uncommitted_note(root, *(f for f, _ in further))}. A "
+        "claim without evidence says "
         '"not run yet" and where it runs. X is a study\'s budget; bold, the verdict at X.\n\n'
         + headline_table(root, studies, further)
         + scene_kinds_block(root)

@@ -390,13 +390,18 @@ def keep_studies(root: Path, dest: Path, columns: dict[str, set]) -> list[str]:
     return kept
 
 
-def uncommitted_note(root: Path) -> str:
-    """ "; runs from uncommitted changes: NAME (COMMIT), ..." for the kept studies under root whose
-    runs recorded a commit with uncommitted changes ('+dirty'), "" where none did."""
+def uncommitted_note(root: Path, *others: Path) -> str:
+    """ "; runs from uncommitted changes: NAME (COMMIT), ..." for the kept studies under root (and
+    under each of others, named FOLDER/NAME) whose runs recorded a commit with uncommitted changes
+    ('+dirty'), "" where none did."""
     from evidence import read_json
 
     found = []
-    for path in sorted(root.glob("*.json")):
+    paths = [(p, p.stem) for p in sorted(root.glob("*.json"))]
+    paths += [
+        (p, f"{other.name}/{p.stem}") for other in others for p in sorted(other.glob("*.json"))
+    ]
+    for path, name in paths:
         try:
             record = read_json(path)
         except (OSError, ValueError):
@@ -409,5 +414,5 @@ def uncommitted_note(root: Path) -> str:
             for c in (r.get("commits") or [])
             if "+dirty" in str(c)
         }
-        found += [f"{path.stem} ({c[:12]}{c[c.index('+') :]})" for c in sorted(commits)]
+        found += [f"{name} ({c[:12]}{c[c.index('+') :]})" for c in sorted(commits)]
     return "; runs from uncommitted changes: " + ", ".join(found) if found else ""

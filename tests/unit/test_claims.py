@@ -1074,3 +1074,27 @@ def test_a_failure_at_x4_between_networks_that_have_not_left_their_start_is_not_
     cells = [c.strip() for c in row.split("|")]
     assert cells[6] == "not settled (a variant had not left its start)", row
     assert cells[8] == "**holds**", row
+
+
+def test_runs_from_uncommitted_changes_are_named_in_every_profile_kept_beside(tmp_path):
+    """claims.md names the kept studies whose runs came from a dirty tree, the longer profiles'
+    (claims-paper/NAME) as well as the claims profile's."""
+    import json
+
+    from study_runs import uncommitted_note
+
+    claims_folder, paper = tmp_path / "claims", tmp_path / "claims-paper"
+    for folder, name, commit in (
+        (claims_folder, "toy_1", "283e262e0a28aaaa+dirty:b15f32bd9203"),
+        (claims_folder, "oscillator", "0123456789abcdef"),
+        (paper, "guidance_0.001", "78ac030950abffff+dirty:7661bd74117c"),
+    ):
+        folder.mkdir(exist_ok=True)
+        (folder / f"{name}.json").write_text(json.dumps({"commits": [commit]}))
+    assert uncommitted_note(claims_folder) == (
+        "; runs from uncommitted changes: toy_1 (283e262e0a28+dirty:b15f32bd9203)"
+    )
+    assert uncommitted_note(claims_folder, paper).endswith(
+        "toy_1 (283e262e0a28+dirty:b15f32bd9203), "
+        "claims-paper/guidance_0.001 (78ac030950ab+dirty:7661bd74117c)"
+    )
