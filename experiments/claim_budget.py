@@ -115,3 +115,11 @@ def of_planned(runs: StudyRuns) -> str:
     """ " of N" where fewer of a study's N tuning studies have run (the majority is of N)."""
     ran = len(runs.tuning) or 1
     return f" of {runs.planned}" if runs.planned > ran else ""
+
+
+def measured_briefly(part, decision) -> str:
+    """ " (numbers)" of a part as a longer profile's cell shows it: a pair's ratio and seeds, a
+    trend's two ratios and its hard / easy factor; "" where it has none."""
+    if decision.measured == "-":
+        return ""
+    return f" ({', '.join(decision.measured.split('; ')[: 2 if isinstance(part, Grows) else 1])})"

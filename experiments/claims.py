@@ -28,6 +28,7 @@ from claim_budget import (
     budget_text,
     busy_clock_text,
     main_study,
+    measured_briefly,
     of_planned,
     part_study,
     share,
@@ -293,14 +294,15 @@ def _longer_budgets(claim: Claim, main: str, further: tuple) -> tuple[list, list
         t, k, n = study_protocol(folder / main)
         ran = f"{t} x {k}{of_planned(long_runs)}, {n}" if t else f"presets untuned, {n} seeds"
         parts = "; ".join(  # each part at its X: a claim's word hides which part decided it
-            f"{part.text()}: {d.verdict}"
-            + (f" ({d.measured.split(';')[0]})" if d.measured != "-" else "")
+            f"{part.text()}: {d.verdict}{measured_briefly(part, d)}"
             for part, d in decide_claim(claim, folder, "", 1.0, studies_there)[1]
         )
         verdicts = ", ".join(_verdicts_text(found))
         if share(claim, long_runs) >= 1.0:  # NaN (no paper budget) is not
             at_paper.append(f"{folder.name}, {budget_text(long_runs)} ({ran}): {found[1.0]}")
-        longer.append(f"{folder.name}, {budget_text(long_runs)} ({ran}): {verdicts}; at X: {parts}")
+        longer.append(
+            f"{folder.name}, {budget_text(long_runs)} ({ran}): {verdicts}; at its X: {parts}"
+        )
     return longer, seen, elsewhere, at_paper
 
 

@@ -45,9 +45,15 @@ def tuned_table(root: Path) -> str:
                         for t in trials
                         if isinstance(t, dict) and t.get("variant") == variant and key in t
                     ]
-                    said.append(f"{key}={fmt(float(value))}{_edge(float(value), tried)}")
+                    span = f" of [{fmt(min(tried))}, {fmt(max(tried))}]" if tried else ""
+                    said.append(f"{key}={fmt(float(value))}{span}{_edge(float(value), tried)}")
                 by_variant.setdefault(str(variant), []).append(f"study {k}: " + ", ".join(said))
         rows += [f"| {path.stem} | {v} | {'; '.join(t)} |" for v, t in by_variant.items()]
+        if not by_variant and _tuned(record) and not path.stem.endswith("-preset"):
+            rows.append(
+                f"| {path.stem} | every variant | not recorded (kept before the evidence kept "
+                "its tuning) |"
+            )
     if not rows:
         return (
             "\nTuned settings: none of these studies' evidence records its tuning (it was kept "
@@ -55,10 +61,17 @@ def tuned_table(root: Path) -> str:
         )
     return (
         "\nTuned settings, per study, variant and tuning study (the setting of lowest validation "
-        "loss among its trials; the presets are in conf/optim and conf/tuning); *edge*: in the "
-        "outer tenth of the values its trials tried, so the best may lie beyond them:\n\n"
+        "loss among its trials, and the span its trials tried; the presets are in conf/optim and "
+        "conf/tuning); *edge*: in the outer tenth of that span, so the best may lie beyond "
+        "it:\n\n"
         "| study | variant | tuned |\n|---|---|---|\n" + "\n".join(rows) + "\n"
     )
+
+
+def _tuned(record: dict) -> bool:
+    """Whether a kept study was tuned (trials per variant in its record), not presets alone."""
+    trials = record.get("trials")
+    return isinstance(trials, (int, float)) and trials > 0
 
 
 def _edge(value: float, tried: list[float]) -> str:

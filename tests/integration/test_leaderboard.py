@@ -230,7 +230,13 @@ def test_a_study_run_elsewhere_is_added_to_the_kept_evidence(tmp_path, monkeypat
     }
     assert len(about["tuning_studies"]["2"]["trials"]) == 6
     shown = tuned_settings.tuned_table(evidence)
-    assert "| toy | hig | study 2: learning_rate=10 *edge* |" in shown, shown
+    from physgrad.readout import fmt
+
+    tried = [
+        t["learning_rate"] for t in about["tuning_studies"]["2"]["trials"] if t["variant"] == "hig"
+    ]
+    span = f"of [{fmt(min(tried))}, {fmt(max(tried))}]"
+    assert f"| toy | hig | study 2: learning_rate=10 {span} *edge* |" in shown, shown
     toy = leaderboard_scenes.SCENES[0]
     assert json.loads((evidence / "toy.calibration.json").read_text()) == clock
     assert leaderboard_scenes.kept_clock(toy, evidence) == evidence / "toy.calibration.json"

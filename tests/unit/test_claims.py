@@ -1098,3 +1098,23 @@ def test_runs_from_uncommitted_changes_are_named_in_every_profile_kept_beside(tm
         "toy_1 (283e262e0a28+dirty:b15f32bd9203), "
         "claims-paper/guidance_0.001 (78ac030950ab+dirty:7661bd74117c)"
     )
+
+
+def test_a_tuned_study_without_its_tuning_recorded_says_so_and_a_tuned_value_its_span(tmp_path):
+    """Kept evidence from before the tuning was kept says "not recorded" for a tuned study (not for
+    presets); a recorded value comes with the span its trials tried and the edge mark."""
+    import json
+
+    from tuned_settings import tuned_table
+
+    (tmp_path / "old.json").write_text(json.dumps({"trials": 8, "tuning_studies": {"1": {}}}))
+    (tmp_path / "old-preset.json").write_text(json.dumps({"trials": 0}))
+    trials = [{"variant": "adam", "learning_rate": r} for r in (1e-4, 1e-3, 1e-2, 1e-1)]
+    record = {"trials": trials, "tuned": {"adam": {"learning_rate": 0.1}}}
+    (tmp_path / "new.json").write_text(json.dumps({"trials": 4, "tuning_studies": {"1": record}}))
+    table = tuned_table(tmp_path)
+    assert (
+        "| old | every variant | not recorded (kept before the evidence kept its tuning) |" in table
+    )
+    assert "old-preset" not in table
+    assert "| new | adam | study 1: learning_rate=0.1 of [0.0001, 0.1] *edge* |" in table
