@@ -39,7 +39,7 @@ from claim_budget import (
 from claim_list import CLAIMS, load_claims  # noqa: F401 - experiments/; load_claims: tests
 from regime_map import regime_map
 from scene_kinds import scene_kinds_block
-from studies import GPU, MAP, PROFILES, STUDIES, Study, where_it_runs
+from studies import GPU, MAP, PROFILES, STUDIES, Study, longer_not_run, where_it_runs
 from study_runs import StudyRuns, keep_studies, read_study, study_protocol, uncommitted_note
 from tuned_settings import tuned_table
 
@@ -287,7 +287,7 @@ def _longer_budgets(claim: Claim, main: str, further: tuple) -> tuple[list, list
             continue
         long_runs = read_study(folder / main)
         if long_runs is None:
-            longer.append(f"{NOT_YET} ({folder.name})")
+            longer.append(longer_not_run(studies_of(claim), folder.name))
             continue
         found = claim_verdicts(claim, folder, profile=studies_there)
         (elsewhere if studies_there == GPU else seen).extend(found.values())

@@ -320,12 +320,16 @@ def chunks(studies, limit_seconds: float = PART_SECONDS) -> list[list[Study]]:
     return parts + ([current] if current else [])
 
 
-def where_it_runs(names: set[str]) -> str:
+WHERE = (("claims", "decidable on 2 cores"), ("claims-gpu", "needs a GPU"))
+
+
+def where_it_runs(names: set[str], profiles: tuple = WHERE) -> str:
     """Where a claim whose studies are `names` can be decided, from the profiles' plans: the parts
     of the claims profile (2 cores) that run them and their expected hours, and the claims-gpu
-    parts where a GPU's budget is planned; "no profile runs it yet" otherwise."""
+    parts where a GPU's budget is planned (profiles: other (profile, what it needs) pairs, e.g. a
+    longer profile's); "no profile runs it yet" otherwise."""
     said = []
-    for profile, machine in (("claims", "decidable on 2 cores"), ("claims-gpu", "needs a GPU")):
+    for profile, machine in profiles:
         parts = _parts_and_seconds(profile)
         used = [k for k, part in enumerate(parts, 1) if any(n in names for n, _ in part)]
         if not used or not names <= {n for k in used for n, _ in parts[k - 1]}:
@@ -340,6 +344,12 @@ def where_it_runs(names: set[str]) -> str:
             + (" on one GPU" if profile == "claims-gpu" else "")
         )
     return "; ".join(said) or "no profile runs it yet"
+
+
+def longer_not_run(names: set[str], profile: str) -> str:
+    """A longer profile's cell for a claim it has not run: "not run yet" and where it runs."""
+    needs = "needs a GPU" if profile == "claims-gpu" else "on 2 cores"
+    return f"not run yet: {where_it_runs(names, ((profile, needs),))}"
 
 
 @functools.lru_cache(maxsize=8)

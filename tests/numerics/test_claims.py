@@ -275,7 +275,7 @@ def test_a_claim_is_decided_at_each_fraction_of_its_budget_and_a_reversal_heads_
     row = next(line for line in table.splitlines() if line.startswith("| quantum dipole"))
     assert "not in a longer profile" in row
     row = next(line for line in table.splitlines() if "WIG best" in line)
-    assert "not run yet (claims-gpu)" in row
+    assert "| not run yet: needs a GPU: claims-gpu parts 5, 6, 7, 8, about " in row
 
 
 def test_the_presets_verdict_reads_the_profile_that_ran_the_study(tmp_path, studies):
