@@ -55,6 +55,7 @@ from leaderboard_scenes import (
     WHY_IT_MAY_DIFFER,
     kept_clock,
     planned_studies,
+    where_scene_runs,
 )
 from scene_kinds import KINDS, both_pages_line, kinds_table, read_kinds
 from tuned_settings import tuned_table
@@ -174,7 +175,9 @@ def page(found: dict, image: str, root: Path | None = None, longer: dict | None 
     if missing:
         lines += [
             "",
-            "Not run yet: " + ", ".join(f"{e.title} (`{e.name}`)" for e in missing) + ".",
+            "Not run yet: "
+            + ", ".join(f"{e.title} (`{e.name}`: {where_scene_runs(e)})" for e in missing)
+            + ".",
         ]
     return "\n".join(lines + literature_lines(found)) + "\n"
 

@@ -283,3 +283,20 @@ def environment(study: Study) -> dict | None:
     modules = str(Path(entry.config_dir).resolve().parent)
     path = os.environ.get("PYTHONPATH", "")
     return {**os.environ, "PYTHONPATH": modules + (os.pathsep + path if path else "")}
+
+
+def where_scene_runs(entry: Entry) -> str:
+    """The leaderboard profile's parts that run a scene's studies, and their expected hours on 2
+    cores (an upper bound, as the plan's)."""
+    from studies import chunks
+
+    parts = [
+        (k, sum(s.seconds() for s in part if s.name.split("/")[0] == entry.name))
+        for k, part in enumerate(chunks(LEADERBOARD), 1)
+    ]
+    used = [(k, seconds) for k, seconds in parts if seconds]
+    if not used:
+        return "no part runs it"
+    which = ", ".join(str(k) for k, _ in used)
+    hours = sum(seconds for _, seconds in used) / 3600
+    return f"leaderboard part{'s' if len(used) > 1 else ''} {which}, about {hours:.1f} h on 2 cores"

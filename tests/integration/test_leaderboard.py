@@ -96,6 +96,11 @@ def test_cells_verdicts_and_page_from_kept_evidence(tmp_path):
     assert "**worse**" in rows["soap"] and "**equivalent**" in rows["gd"]
     assert "not run" in rows["kfac"]  # a rule that applies but has no runs in the evidence
     assert "Not run yet:" in text and "`guidance`" in text
+    # with the profile's parts that would run it and their hours
+    guidance = next(e for e in leaderboard_scenes.SCENES if e.name == "guidance")
+    where = leaderboard_scenes.where_scene_runs(guidance)
+    assert f"`guidance`: {where})" in text
+    assert where.startswith("leaderboard parts ") and where.endswith(" h on 2 cores"), where
     assert "3 of 3 tuning studies finished" in text and "hig 200" in text
     # the protocol as the evidence records it
     assert "in each of 3 independent tuning studies" in text and "rests on fewer" in text
