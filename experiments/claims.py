@@ -349,9 +349,8 @@ def evidence_block(root: Path) -> str:
     """The verdicts of every claim of the claims profile from its kept evidence under root: the
     headline table, then every part with its numbers."""
     studies = PROFILES["claims"]
-    further = tuple(
-        (root.parent / name, PROFILES[name]) for name in FURTHER if (root.parent / name).is_dir()
-    )
+    # every longer profile, run or not: one not run yet says where it would run
+    further = tuple((root.parent / name, PROFILES[name]) for name in FURTHER)
     machines = sorted(  # a study run on several machines records them joined by "; "
         {
             machine
