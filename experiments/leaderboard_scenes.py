@@ -12,6 +12,7 @@ evidence (EVIDENCE, an earlier protocol) and the re-run's progress beside it
 
 from __future__ import annotations
 
+import functools
 import json
 import os
 from dataclasses import dataclass, field
@@ -288,15 +289,26 @@ def environment(study: Study) -> dict | None:
 def where_scene_runs(entry: Entry) -> str:
     """The leaderboard profile's parts that run a scene's studies, and their expected hours on 2
     cores (an upper bound, as the plan's)."""
-    from studies import chunks
-
-    parts = [
-        (k, sum(s.seconds() for s in part if s.name.split("/")[0] == entry.name))
-        for k, part in enumerate(chunks(LEADERBOARD), 1)
+    used = [
+        (k, seconds) for k, by_scene in _part_seconds() if (seconds := by_scene.get(entry.name))
     ]
-    used = [(k, seconds) for k, seconds in parts if seconds]
     if not used:
         return "no part runs it"
     which = ", ".join(str(k) for k, _ in used)
     hours = sum(seconds for _, seconds in used) / 3600
     return f"leaderboard part{'s' if len(used) > 1 else ''} {which}, about {hours:.1f} h on 2 cores"
+
+
+@functools.lru_cache(maxsize=1)
+def _part_seconds() -> tuple[tuple[int, dict[str, float]], ...]:
+    """Each part of the profile (its number) with its expected seconds per scene, planned once."""
+    from studies import chunks
+
+    found = []
+    for k, part in enumerate(chunks(LEADERBOARD), 1):
+        by_scene: dict[str, float] = {}
+        for study in part:
+            scene = study.name.split("/")[0]
+            by_scene[scene] = by_scene.get(scene, 0.0) + study.seconds()
+        found.append((k, by_scene))
+    return tuple(found)
