@@ -203,7 +203,9 @@ def both_pages_line(page: str) -> str:
     return (
         f"Scenes on both this page and {other} ({budgets}): the claims ask a paper's question "
         "with the rules the paper compares, in 4 tuning studies, at budgets set from the paper's "
-        "(and the scene's settings the paper uses); the leaderboard compares every rule with "
+        "and with the scene's settings the paper uses, which may differ from the leaderboard's "
+        "(a network's size, a control cost: the same scene, not the same problem); the "
+        "leaderboard compares every rule with "
         "Adam in its own tuning studies (the leaderboard says how many) at its own calibrated "
         "budgets, with Holm's "
         "correction over a scene's comparisons. A verdict may differ between the pages by budget, "
