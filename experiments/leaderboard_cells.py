@@ -9,7 +9,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from evidence import keep_clock_verdicts, read_json  # experiments/
-from leaderboard_detail import MARKS
+from leaderboard_detail import MARKS, WALL_FACTOR, wall_ratios
 from leaderboard_figure import FEW_STEPS
 from leaderboard_keep import checked_record
 from leaderboard_scenes import BASELINE, EXPENSIVE, LONGER, SCENES, planned_studies
@@ -36,6 +36,8 @@ class Cell:
     iterations: float = math.nan
     detail: tuple = ()  # (k, the rule's PairVerdict in tuning study k) for the studies that ran it
     why: str = ""  # why the verdict over the studies is what it is (the package's rule)
+    # the rule's runs' wall-clock time over Adam's at the same calibrated budget (median)
+    wall_ratio: float = math.nan
 
 
 def cells(runs, about: dict | None = None) -> dict[str, Cell]:
@@ -66,6 +68,7 @@ def cells(runs, about: dict | None = None) -> dict[str, Cell]:
         for study, rules in zip(studies, ran)
     ]
     keep_clock_verdicts(per_study, about.get("tuning_studies") or {})
+    walls = wall_ratios(about)
     found = {}
     for rule in sorted({r for rules in ran for r in rules}):
         verdicts = [by_rule[rule] for by_rule in per_study if rule in by_rule]
@@ -84,6 +87,7 @@ def cells(runs, about: dict | None = None) -> dict[str, Cell]:
             (iterations or {}).get(rule, math.nan),
             tuple((k, by_rule[rule]) for k, by_rule in enumerate(per_study) if rule in by_rule),
             result.verdicts[1.0][1],
+            walls.get(rule, math.nan),
         )
     return found
 
@@ -136,6 +140,12 @@ def cell_text(cell: Cell, scene_studies: int = 0, to: str = "") -> str:
         + (
             f", {cell.iterations:.0f} steps: decided by a step's cost, not the rule"
             if cell.iterations < FEW_STEPS
+            else ""
+        )
+        + (
+            f", its runs {cell.wall_ratio:.2g}x Adam's wall-clock time"
+            if not 1 / WALL_FACTOR < cell.wall_ratio < WALL_FACTOR  # NaN: not recorded
+            and math.isfinite(cell.wall_ratio)
             else ""
         )
     )

@@ -471,6 +471,20 @@ def test_the_wall_clock_ratios_are_within_a_study_then_the_median_over_studies()
     assert "within 1.5x" in leaderboard_detail.wall_line({"tuning_studies": even})
     assert leaderboard_detail.wall_line({"tuning_studies": {"1": {}}}) is None
     assert leaderboard_detail.wall_seconds_in_budget(table.drop(columns="train_seconds")) == {}
+    # a cell whose rule's runs took 1.5x Adam's wall-clock time or more (or 1/1.5 or less) says so
+    from leaderboard_cells import Cell, cell_text
+
+    def cell(ratio):
+        return Cell("undecided", 1.0, 0.5, 2.0, 5, 10, ("undecided",), 100.0, wall_ratio=ratio)
+
+    for ratio, said in (
+        (3.0, ", its runs 3x"),
+        (0.6, ", its runs 0.6x"),
+        (1.2, ""),
+        (math.nan, ""),
+    ):
+        text = cell_text(cell(ratio))
+        assert ("Adam's wall-clock time" in text) == bool(said) and said in text, text
 
 
 def test_psgd_krons_time_is_said_per_scene_beside_the_fixed_cost_rules():
