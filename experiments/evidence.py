@@ -176,13 +176,14 @@ def busy_clock(path: Path) -> str:
 
 def keep_clock(measured: Path, clock: Path) -> None:
     """A study's calibration kept as its clock (for its tuning studies still to run, on any
-    machine): the first kept, or one with a variant the kept one lacks; never one measured on a
-    busy machine, which would charge every later study's steps what they cost beside other work."""
+    machine): the first kept, or one with a variant the kept one lacks, or a quiet one where the
+    kept one was measured on a busy machine; never one measured on a busy machine, which would
+    charge every later study's steps what they cost beside other work."""
     from physgrad.files import read_own_file, replace_file
 
-    if busy_clock(measured):
+    if busy_clock(measured) or not measured.is_file():
         return
-    if measured.is_file() and not clock_rules(measured) <= clock_rules(clock):
+    if not clock_rules(measured) <= clock_rules(clock) or busy_clock(clock):
         clock.parent.mkdir(parents=True, exist_ok=True)
         replace_file(clock, read_own_file(measured, FILE_LIMIT))
 

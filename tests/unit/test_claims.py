@@ -1004,6 +1004,9 @@ def test_a_clock_calibrated_on_a_busy_machine_is_flagged_and_never_kept_for_late
     why = claim_budget.busy_clock_text(tmp_path / "kept", "poisson_scratch")
     assert why.startswith("; its clock was calibrated on a busy machine (load average 5.42")
     assert "fewer steps than it says" in why
+    keep_clock(quiet, clock)  # a study run again on a quiet clock replaces the busy one
+    assert json.loads(clock.read_text())["load_start"] == 1.6
+    clock.write_text(busy.read_text())
     clock.write_text("not json")  # unreadable evidence is no flag, and no error here
     assert claim_budget.busy_clock_text(tmp_path / "kept", "poisson_scratch") == ""
     # the later tuning studies and the presets' twin run on the first study's clock, not a busy one
