@@ -220,7 +220,7 @@ CLAIM_SCENES = (
     ("toy", "toy_0.01"),
     ("oscillator", "oscillator"),
     ("quantum", "quantum"),
-    ("poisson", None),
+    ("poisson", "poisson_continue"),
     ("cart_4", None),
     ("quantum_control", None),
     ("guidance", None),
