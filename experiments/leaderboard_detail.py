@@ -281,8 +281,9 @@ def scene_notes(about: dict) -> list[str]:
     unchecked = [k for k, r in by_study.items() if "undecided_by_the_clock" not in r]
     if unchecked:
         notes.append(
-            f"{_studies(unchecked).capitalize()}: kept before the clock check's outcome, so a "
-            "better its compare found undecided by the clock may count as better here."
+            f"{_studies(unchecked).capitalize()}: kept before the evidence recorded the clock "
+            "check (a better that does not survive the step costs' uncertainty is undecided), so a "
+            "better there may be one its compare called undecided."
         )
     return notes
 
