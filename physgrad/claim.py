@@ -34,6 +34,7 @@ from physgrad.claim_words import (
     STUDIES_TO_RUN,
     TUNING_LUCK,
 )
+from physgrad.paired_stats import Paired
 from physgrad.readout import fmt
 from physgrad.replication import (
     STUDY_ALPHA,
@@ -251,7 +252,7 @@ def decide_pairs(runs: Runs, parts: list, fraction: float = 1.0) -> list[Decisio
             if f < fraction
         )
         measured = (
-            f"{part.a} / {part.b} = {fmt(p.ratio)} "
+            f"{part.a} / {part.b} = {_ratio_said(p, part.a, part.b)} "
             f"[{fmt(ratio_of(p.low))}, {fmt(ratio_of(p.high))}], "
             f"{part.a} lower in {p.wins_a} of {p.pairs}{diverged}"
             + (f"; {earlier}" if earlier else "")
@@ -302,6 +303,16 @@ def _pair_cause(part: Lower | Close, result: PairVerdict, fraction: float) -> tu
             + (f", diverged in {p.diverged_a}" if p.diverged_a else "")
         )
     return "", ""
+
+
+def _ratio_said(p: Paired, a: str, b: str) -> str:
+    """The median ratio A / B, saying why where a divergence makes it 0 or inf (the median seed's
+    B or A diverged), so that "0" is not read as a measured ratio."""
+    if p.ratio == 0 and p.diverged_b:
+        return f"0 (the median seed's {b} diverged)"
+    if math.isinf(p.ratio) and p.diverged_a:
+        return f"inf (the median seed's {a} diverged)"
+    return fmt(p.ratio)
 
 
 def _pair_outcome(part: Lower | Close, verdict: str) -> str:

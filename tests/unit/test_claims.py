@@ -1121,3 +1121,19 @@ def test_a_tuned_study_without_its_tuning_recorded_says_so_and_a_tuned_value_its
     )
     assert "old-preset" not in table
     assert "| new | adam | study 1: learning_rate=0.1 of [0.0001, 0.1] *edge* |" in table
+
+
+def test_a_ratio_that_a_divergence_makes_0_says_so(tmp_path, studies):
+    """B diverged on 7 of 10 seeds: the median ratio A / B is 0, which the part says comes from
+    B's divergence, not from a measured difference."""
+    a = {s: falling(0.1 * base(s)) for s in TEN}
+    b = {
+        s: Curve(X, np.array([1.0] * 5 + [math.inf] * 6), X[-1], diverged=True)
+        if s < 7
+        else falling(base(s))
+        for s in TEN
+    }
+    studies["s"] = FakeStudy("s", {"a": a, "b": b})
+    _, ((_, d),) = claims.decide_claim(claim_of(claims.Lower("s", "a", "b")), tmp_path)
+    assert d.measured.startswith("a / b = 0 (the median seed's b diverged) ["), d.measured
+    assert "b diverged in 7 of 10" in d.measured
