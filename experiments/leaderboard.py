@@ -347,7 +347,8 @@ def write(root: Path, out: Path) -> str:
     found = board(root)
     make_folder(out)  # through the write door: a link planted at the folder is refused
     if found:
-        plot(found, out / "leaderboard")
+        earlier = "earlier protocol: 3 tuning studies, the learning rate alone tuned"
+        plot(found, out / "leaderboard", earlier if earlier_protocol_banner(root) else "")
     longer = board(root, LONGER_SUFFIX)
     text = page(found, "leaderboard.png", root, longer) + tuned_table(root)
     text += rerun_text(root / RERUN.name)

@@ -15,9 +15,10 @@ from physgrad.readout import fmt
 from physgrad.verdict import A_BETTER, B_BETTER, EQUIVALENT, MARGIN
 
 
-def plot(found: dict, path: Path) -> None:
+def plot(found: dict, path: Path, protocol: str = "") -> None:
     """The heat map: log10 of the median ratio rule / Adam (blue: the rule lower), a verdict in
-    every decided cell, undecided cells hatched, rules that do not apply grey."""
+    every decided cell, undecided cells hatched, rules that do not apply grey; protocol: a line
+    in its title on the protocol its studies ran under, where the page's is not the current one."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -84,7 +85,9 @@ def plot(found: dict, path: Path) -> None:
     bar = fig.colorbar(image, ax=ax, fraction=0.04, pad=0.02)
     bar.set_label("log10 (test loss of the rule / Adam's), median over seeds")
     ax.set_title(
-        "Each rule against Adam at equal calibrated time\n"
+        "Each rule against Adam at equal calibrated time"
+        + (f" ({protocol})" if protocol else "")
+        + "\n"
         f"\u25bc lower than Adam, \u25b2 higher (beyond {MARGIN:g}x), = within {MARGIN:g}x, "
         f"? undecided (hatched), n/a: does not apply; <{FEW_STEPS} steps: decided on fewer than "
         f"{FEW_STEPS} of the rule's steps",
