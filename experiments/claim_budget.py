@@ -8,9 +8,18 @@ import math
 
 import numpy as np
 from evidence import CLOCK, busy_clock
-from study_runs import StudyRuns
+from study_runs import StudyRuns, read_study, study_protocol
 
-from physgrad.claim import Claim, Grows, Reaches, Stalls, tuning_studies
+from physgrad.claim import (
+    NOT_RUN,
+    Claim,
+    Decision,
+    Grows,
+    Reaches,
+    Stalls,
+    studies_of,
+    tuning_studies,
+)
 from physgrad.claim_words import left_start
 from physgrad.readout import fmt
 
@@ -123,3 +132,39 @@ def measured_briefly(part, decision) -> str:
     if decision.measured == "-":
         return ""
     return f" ({', '.join(decision.measured.split('; ')[: 2 if isinstance(part, Grows) else 1])})"
+
+
+def presets_at_paper_budget(claim: Claim, further: tuple, decide) -> dict[str, str]:
+    """{part's text: "with the presets at the paper's budget (claims-paper, 32000 iterations):
+    verdict (numbers)"} of the parts a longer profile ran untuned at the paper's budget or beyond
+    (further: (folder, that profile's studies) pairs; decide: claims.decide_claim). A presets'
+    cell here that did not run a part (the twin fixes an axis the paper's runs sweep) says it."""
+    found: dict[str, str] = {}
+    for folder, there in further:
+        main = main_study(claim)
+        if not studies_of(claim) <= {s.name for s in there}:
+            continue
+        runs = read_study(folder / main)
+        if runs is None or study_protocol(folder / main)[0] or not share(claim, runs) >= 1.0:
+            continue  # tuned, or short of the paper's budget (NaN: none stated)
+        for part, d in decide(claim, folder, "", 1.0, there)[1]:
+            if d.verdict != NOT_RUN:
+                found.setdefault(
+                    part.text(),
+                    f"; with the presets at {claim.budget_of} budget ({folder.name}, "
+                    f"{budget_text(runs)}): {d.verdict}{measured_briefly(part, d)}",
+                )
+    return found
+
+
+def fixed_by_twin(decision: Decision, fixed: list[str]) -> Decision:
+    """A part the presets' twin does not run because the twin fixes an axis (optim.clip=none, the
+    one clipping mode of the three the reference sweeps, to save time) says that, not which
+    variants are missing."""
+    if decision.verdict != NOT_RUN or not fixed:
+        return decision
+    return Decision(
+        NOT_RUN,
+        "-",
+        f"the presets' twin runs {fixed[0]} only (to save time; the tuned study runs the others)",
+    )

@@ -27,10 +27,12 @@ from pathlib import Path
 from claim_budget import (
     budget_text,
     busy_clock_text,
+    fixed_by_twin,
     main_study,
     measured_briefly,
     of_planned,
     part_study,
+    presets_at_paper_budget,
     share,
     share_text,
     untrained_failures_open,
@@ -108,7 +110,7 @@ def decide_claim(
         rows = [
             (
                 part,
-                _fixed_by_twin(
+                fixed_by_twin(
                     d, [fixed[n] for n in sorted(studies_of(claim_of_part(part))) if n in fixed]
                 ),
             )
@@ -147,22 +149,10 @@ def _twin_runs(root: Path, name: str, suffix: str, spec: Study | None) -> object
     return runs
 
 
-def _fixed_by_twin(decision: Decision, fixed: list[str]) -> Decision:
-    """A part the presets' twin does not run because the twin fixes an axis (optim.clip=none, the
-    one clipping mode of the three the reference sweeps, to save time) says that, not which
-    variants are missing."""
-    if decision.verdict != NOT_RUN or not fixed:
-        return decision
-    return Decision(
-        NOT_RUN,
-        "-",
-        f"the presets' twin runs {fixed[0]} only (to save time; the tuned study runs the others)",
-    )
-
-
-def claims_table(root: Path, studies=None, only_run: bool = False) -> str:
+def claims_table(root: Path, studies=None, only_run: bool = False, further: tuple = ()) -> str:
     """One row per part of every claim whose studies are all among `studies` (default: every
-    claim); with only_run, of the claims one of whose studies has finished."""
+    claim); with only_run, of the claims one of whose studies has finished; a part the presets'
+    twin did not run gives the presets' verdict at the paper's budget where `further` ran it."""
     names = {s.name for s in studies} if studies is not None else None
     lines = [
         "| claim (paper, where) | part | study, budget | tuned: measured | tuned: verdict | "
@@ -177,6 +167,7 @@ def claims_table(root: Path, studies=None, only_run: bool = False) -> str:
         profile = tuple(studies) if studies is not None else ()
         verdict, rows = decide_claim(claim, root, profile=profile)
         preset_verdict, preset_rows = decide_claim(claim, root, "-preset", profile=profile)
+        elsewhere = presets_at_paper_budget(claim, further, decide_claim)
         for i, ((part, d), (_, p)) in enumerate(zip(rows, preset_rows)):
             runs = read_study(root / getattr(part, "study", getattr(part, "hard", "")))
             budget = budget_text(runs) if runs else "-"
@@ -190,7 +181,8 @@ def claims_table(root: Path, studies=None, only_run: bool = False) -> str:
             )
             lines.append(
                 f"| {head} | {part.text()} | {part_study(part)}, {budget} | {d.measured} | "
-                f"{d.verdict} ({d.why}) | {p.measured} | {p.verdict} ({p.why}) |"
+                f"{d.verdict} ({d.why}) | {p.measured} | {p.verdict} ({p.why})"
+                f"{elsewhere.get(part.text(), '') if p.verdict == NOT_RUN else ''} |"
             )
     return "\n".join(lines) + "\n"
 
@@ -369,7 +361,7 @@ def evidence_block(root: Path) -> str:
         + headline_table(root, studies, further)
         + scene_kinds_block(root)
         + "\nEvery part of the claims run so far (tuned and with the presets):\n\n"
-        + claims_table(root, studies, only_run=True)
+        + claims_table(root, studies, only_run=True, further=further)
         + tuned_table(root)
     )
 

@@ -1137,3 +1137,43 @@ def test_a_ratio_that_a_divergence_makes_0_says_so(tmp_path, studies):
     _, ((_, d),) = claims.decide_claim(claim_of(claims.Lower("s", "a", "b")), tmp_path)
     assert d.measured.startswith("a / b = 0 (the median seed's b diverged) ["), d.measured
     assert "b diverged in 7 of 10" in d.measured
+
+
+def test_a_part_the_presets_twin_skips_is_read_from_the_presets_at_the_papers_budget(
+    tmp_path, monkeypatch
+):
+    """The cart's presets' twin runs clip=none only; claims-paper ran the presets under every
+    clipping at the paper's 32,000 iterations: the twin's "not run" cell gives that run's verdict.
+    A tuned longer run, or one short of the paper's budget, is no presets' verdict there."""
+    import claim_budget
+
+    cart = next(c for c in claims.CLAIMS if c.name.startswith("cart: C keeps"))
+    paper = tmp_path / "claims-paper"
+    budget = {"value": 32000.0}
+    trials = {"value": 0}
+
+    def decide(claim, folder, suffix, fraction, there):
+        assert folder == paper and suffix == "" and fraction == 1.0
+        part, other = claim.parts[0], claim.parts[1]
+        return HOLDS, [
+            (part, claims.Decision(HOLDS, "C / R = 0.07 [0.02, 0.1]; C lower in 9 of 10", "")),
+            (other, claims.Decision(claims.NOT_RUN, "-", "not in this profile")),
+        ]
+
+    monkeypatch.setattr(
+        claim_budget,
+        "read_study",
+        lambda f: FakeStudy(str(f), {}, budget=budget["value"]) if f.parent == paper else None,
+    )
+    monkeypatch.setattr(claim_budget, "study_protocol", lambda f: (trials["value"], 1, 10))
+    further = ((paper, study_lists.PROFILES["claims-paper"]),)
+    found = claim_budget.presets_at_paper_budget(cart, further, decide)
+    assert found == {
+        cart.parts[0].text(): "; with the presets at the paper's budget (claims-paper, 32000 "
+        "iterations): holds (C / R = 0.07 [0.02, 0.1])"
+    }
+    budget["value"] = 16000.0  # half the paper's: not its budget
+    assert claim_budget.presets_at_paper_budget(cart, further, decide) == {}
+    budget["value"], trials["value"] = 32000.0, 8  # tuned: not the presets
+    assert claim_budget.presets_at_paper_budget(cart, further, decide) == {}
+    assert claim_budget.presets_at_paper_budget(cart, (), decide) == {}
