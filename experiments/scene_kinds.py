@@ -144,6 +144,32 @@ def _step_costs(calibration: Path) -> tuple[str, str]:
     return fmt(adam * 1e3), ratio
 
 
+CONF = Path(__file__).resolve().parent.parent / "conf"
+
+
+def rule_batches(kind: SceneKind, batch: int) -> str:
+    """ " (gauss_newton, hig: 16)": the rules whose preset on this scene
+    (conf/tuning/<task>_<rule>.yaml, applied to every run of the rule there) sets another batch
+    than the scene's (the HIG paper's quantum dipole: HIG at 16 where Adam is at 256); "" where
+    none does."""
+    from omegaconf import OmegaConf
+
+    task = _task(kind.overrides)
+    folders = [Path(kind.config_dir) if kind.config_dir else CONF]
+    rules = {p.stem for f in (*folders, CONF) for p in (f / "optim").glob("*.yaml")}
+    by_batch: dict[int, list[str]] = {}
+    for folder in folders:
+        for path in sorted((folder / "tuning").glob(f"{task}_*.yaml")):
+            rule = path.stem[len(task) + 1 :]
+            if rule not in rules:  # quantum_control_adam is quantum_control's, not quantum's
+                continue
+            found = OmegaConf.select(OmegaConf.load(path), "task.batch_size")
+            if found is not None and int(found) != batch:
+                by_batch.setdefault(int(found), []).append(rule)
+    said = "; ".join(f"{', '.join(r)}: {b:,}" for b, r in sorted(by_batch.items()))
+    return f" ({said})" if said else ""
+
+
 def kinds_table(rows: list[tuple[str, str, Path | None]], kinds: dict[str, dict]) -> str:
     """A page's table of its scenes' kinds: rows are (scene key, the page's name for it, the
     calibration kept for it or None)."""
@@ -160,6 +186,8 @@ def kinds_table(rows: list[tuple[str, str, Path | None]], kinds: dict[str, dict]
         loop = row["loop"] + (f" ({row['unroll']})" if row["unroll"] else "")
         size = row["train_size"]
         batch = f"{int(row['batch']):,} of {f'{int(size):,}' if size else 'fresh samples'}"
+        kind = next((k for k in SCENES if k.key == key), None)  # None: a table's own scene
+        batch += rule_batches(kind, int(row["batch"])) if kind else ""
         adam, jacobian = _step_costs(calibration) if calibration else ("-", "-")
         lines.append(
             f"| {name} | {loop} | {batch} | {int(row['parameters']):,} | {adam} | {jacobian} |"

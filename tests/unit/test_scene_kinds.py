@@ -67,3 +67,25 @@ def test_the_table_gives_step_costs_in_adam_steps_and_says_where_there_are_none(
     assert lines[2] == "| A | closed (5) | 8 of 256 | 1,200 | 2 | 10-15 |"
     assert lines[3] == "| B | one solve | 64 of fresh samples | 30 | - | - |"
     assert len(lines) == 4  # a scene without a kept row is left out, not invented
+
+
+def test_a_rule_whose_preset_sets_another_batch_is_said_beside_the_scenes_batch(tmp_path):
+    """The HIG paper's quantum dipole trains Adam at a batch of 256 and HIG at 16: the batch cell
+    names the rules whose preset on the scene (tuning/<task>_<rule>.yaml) sets another batch, and
+    no file of a scene whose name starts with this one's (quantum_control_adam) counts."""
+    for folder in ("optim", "tuning"):
+        (tmp_path / folder).mkdir()
+    for rule in ("adam", "hig", "gauss_newton"):
+        (tmp_path / "optim" / f"{rule}.yaml").write_text(f"name: {rule}\n")
+    tuning = tmp_path / "tuning"
+    (tuning / "wave_hig.yaml").write_text("optim:\n  tau: 1e-5\ntask:\n  batch_size: 16\n")
+    (tuning / "wave_gauss_newton.yaml").write_text("task:\n  batch_size: 16\n")
+    (tuning / "wave_adam.yaml").write_text("task:\n  batch_size: 256\n")  # the scene's own
+    (tuning / "wave_control_adam.yaml").write_text("task:\n  batch_size: 8\n")
+    kind = scene_kinds.SceneKind("wave", "wave", ("task=wave",), str(tmp_path))
+    assert scene_kinds.rule_batches(kind, 256) == " (gauss_newton, hig: 16)"
+    assert scene_kinds.rule_batches(kind, 16) == " (adam: 256)"
+    (tuning / "wave_hig.yaml").write_text("task:\n  batch_size: 32\n")
+    assert scene_kinds.rule_batches(kind, 256) == " (gauss_newton: 16; hig: 32)"
+    other = scene_kinds.SceneKind("calm", "calm", ("task=calm",), str(tmp_path))
+    assert scene_kinds.rule_batches(other, 256) == ""
