@@ -134,12 +134,15 @@ def measured_briefly(part, decision) -> str:
     return f" ({', '.join(decision.measured.split('; ')[: 2 if isinstance(part, Grows) else 1])})"
 
 
-def presets_at_paper_budget(claim: Claim, further: tuple, decide) -> dict[str, str]:
-    """{part's text: "with the presets at the paper's budget (claims-paper, 32000 iterations):
-    verdict (numbers)"} of the parts a longer profile ran untuned at the paper's budget or beyond
-    (further: (folder, that profile's studies) pairs; decide: claims.decide_claim). A presets'
-    cell here that did not run a part (the twin fixes an axis the paper's runs sweep) says it."""
-    found: dict[str, str] = {}
+def presets_at_paper_budget(
+    claim: Claim, further: tuple, decide
+) -> dict[str, tuple[str, str, str]]:
+    """{part's text: (verdict, "with the presets at the paper's budget (claims-paper, 32000
+    iterations)", " (numbers)")} of the parts a longer profile ran untuned at the paper's budget or
+    beyond (further: (folder, that profile's studies) pairs; decide: claims.decide_claim): a
+    presets' cell here that did not run a part (the twin fixes an axis the paper's runs sweep), or
+    a part that fails here, says it."""
+    found: dict[str, tuple[str, str, str]] = {}
     for folder, there in further:
         main = main_study(claim)
         if not studies_of(claim) <= {s.name for s in there}:
@@ -147,13 +150,10 @@ def presets_at_paper_budget(claim: Claim, further: tuple, decide) -> dict[str, s
         runs = read_study(folder / main)
         if runs is None or study_protocol(folder / main)[0] or not share(claim, runs) >= 1.0:
             continue  # tuned, or short of the paper's budget (NaN: none stated)
+        where = f"with the presets at {claim.budget_of} budget ({folder.name}, {budget_text(runs)})"
         for part, d in decide(claim, folder, "", 1.0, there)[1]:
             if d.verdict != NOT_RUN:
-                found.setdefault(
-                    part.text(),
-                    f"; with the presets at {claim.budget_of} budget ({folder.name}, "
-                    f"{budget_text(runs)}): {d.verdict}{measured_briefly(part, d)}",
-                )
+                found.setdefault(part.text(), (d.verdict, where, measured_briefly(part, d)))
     return found
 
 

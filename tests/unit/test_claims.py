@@ -1169,8 +1169,11 @@ def test_a_part_the_presets_twin_skips_is_read_from_the_presets_at_the_papers_bu
     further = ((paper, study_lists.PROFILES["claims-paper"]),)
     found = claim_budget.presets_at_paper_budget(cart, further, decide)
     assert found == {
-        cart.parts[0].text(): "; with the presets at the paper's budget (claims-paper, 32000 "
-        "iterations): holds (C / R = 0.07 [0.02, 0.1])"
+        cart.parts[0].text(): (
+            HOLDS,
+            "with the presets at the paper's budget (claims-paper, 32000 iterations)",
+            " (C / R = 0.07 [0.02, 0.1])",
+        )
     }
     budget["value"] = 16000.0  # half the paper's: not its budget
     assert claim_budget.presets_at_paper_budget(cart, further, decide) == {}
