@@ -168,3 +168,16 @@ def fixed_by_twin(decision: Decision, fixed: list[str]) -> Decision:
         "-",
         f"the presets' twin runs {fixed[0]} only (to save time; the tuned study runs the others)",
     )
+
+
+def failing_text(decided: list, at_paper: dict) -> str:
+    """ "part: does not hold" for each part decided (part, Decision) to fail, with its verdict at
+    the paper's budget where a longer profile ran it (at_paper: presets_at_paper_budget)."""
+    from physgrad.claim import FAILS
+
+    return "; ".join(
+        f"{part.text()}: does not hold"
+        + (f" ({paper[0]} {paper[1]})" if (paper := at_paper.get(part.text())) else "")
+        for part, d in decided
+        if d.verdict == FAILS
+    )

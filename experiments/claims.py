@@ -27,6 +27,7 @@ from pathlib import Path
 from claim_budget import (
     budget_text,
     busy_clock_text,
+    failing_text,
     fixed_by_twin,
     main_study,
     measured_briefly,
@@ -179,15 +180,11 @@ def claims_table(root: Path, studies=None, only_run: bool = False, further: tupl
                 if i == 0
                 else ""
             )
+            there = elsewhere.get(part.text()) if p.verdict == NOT_RUN else None
             lines.append(
                 f"| {head} | {part.text()} | {part_study(part)}, {budget} | {d.measured} | "
                 f"{d.verdict} ({d.why}) | {p.measured} | {p.verdict} ({p.why})"
-                + (
-                    "; {1}: {0}{2}".format(*elsewhere[part.text()])
-                    if p.verdict == NOT_RUN and part.text() in elsewhere
-                    else ""
-                )
-                + " |"
+                f"{'; {1}: {0}{2}'.format(*there) if there else ''} |"
             )
     return "\n".join(lines) + "\n"
 
@@ -250,7 +247,6 @@ def headline_table(root: Path, profile: tuple, further: tuple = ()) -> str:
         head = f"{turned}{claim.name}"
         trained, fell = variants_left_start(claim, runs)
         at_x = decide_claim(claim, root, "", 1.0, profile)[1]
-        at_paper_parts = presets_at_paper_budget(claim, further, decide_claim)
         word, why = claim_word(
             tuned[1.0] == HOLDS,
             tuned[1.0] == FAILS,
@@ -259,16 +255,7 @@ def headline_table(root: Path, profile: tuple, further: tuple = ()) -> str:
             share(claim, runs),
             claim.departs,
             combined_causes([d.cause for _, d in at_x]),
-            "; ".join(
-                f"{part.text()}: does not hold"
-                + (
-                    f" ({paper[0]} {paper[1]})"
-                    if (paper := at_paper_parts.get(part.text()))
-                    else ""
-                )
-                for part, d in at_x
-                if d.verdict == FAILS
-            ),
+            failing_text(at_x, presets_at_paper_budget(claim, further, decide_claim)),
         )
         why += busy_clock_text(root, main)
         if at_paper:  # measured at the paper's budget too (a longer profile): said beside it

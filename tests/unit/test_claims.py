@@ -1180,3 +1180,17 @@ def test_a_part_the_presets_twin_skips_is_read_from_the_presets_at_the_papers_bu
     budget["value"], trials["value"] = 32000.0, 8  # tuned: not the presets
     assert claim_budget.presets_at_paper_budget(cart, further, decide) == {}
     assert claim_budget.presets_at_paper_budget(cart, (), decide) == {}
+
+
+def test_a_failing_part_says_its_verdict_at_the_papers_budget_where_one_was_run():
+    """Only the parts that fail are named; one the presets held at the paper's budget says so, one
+    never run there is named alone."""
+    fails, holds = claims.Decision(FAILS, "-", ""), claims.Decision(HOLDS, "-", "")
+    first, second, third = (claims.Lower("s", a, "r") for a in ("a", "b", "c"))
+    where = "with the presets at the paper's budget (claims-paper, 32000 iterations)"
+    text = claim_budget.failing_text(
+        [(first, fails), (second, holds), (third, fails)],
+        {first.text(): (HOLDS, where, " (0.03)"), second.text(): (HOLDS, where, "")},
+    )
+    assert text == f"{first.text()}: does not hold (holds {where}); {third.text()}: does not hold"
+    assert claim_budget.failing_text([(second, holds)], {}) == ""
