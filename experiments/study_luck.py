@@ -93,22 +93,30 @@ def simulate(model: Model, seed: int = 0) -> dict[str, dict[str, int]]:
     first (found)."""
     rng = np.random.default_rng([seed, *(int(1000 * float(v)) for v in model.key[1:-1])])
     counts = {rule: {"family": 0, "pairs": 0, "found": 0} for rule in RULES}
-    last = model.variants - 1
     pairs = [(i, j) for i in range(model.variants) for j in range(i + 1, model.variants)]
     for _ in range(model.sims):
         per_study = one_compare(rng, model)
         for rule, alpha in RULES.items():
             verdicts = [v.verdicts[1.0][0] for v in across_studies(per_study, study_alpha=alpha)]
-            false = 0
-            for (i, j), verdict in zip(pairs, verdicts):
-                equal = model.effect == 1.0 or j != last
-                if verdict in (A_BETTER, B_BETTER) and (equal or verdict == B_BETTER):
-                    false += 1
-                if not equal and i == 0 and verdict == A_BETTER:
-                    counts[rule]["found"] += 1
-            counts[rule]["pairs"] += false
-            counts[rule]["family"] += false > 0
+            tally(counts[rule], pairs, verdicts, model.effect)
     return counts
+
+
+def tally(counts: dict[str, int], pairs: list, verdicts: list, effect: float) -> None:
+    """One simulated compare's verdicts (one per pair (i, j), i < j, of variants all equal but the
+    last, `effect` times worse) added to counts: "pairs", the false "better" verdicts (any between
+    equal variants, "B better" against the worse last); "family", 1 if there was one; "found", the
+    first variant found better than a worse last."""
+    last = max(j for _, j in pairs)
+    false = 0
+    for (i, j), verdict in zip(pairs, verdicts):
+        equal = effect == 1.0 or j != last
+        if verdict in (A_BETTER, B_BETTER) and (equal or verdict == B_BETTER):
+            false += 1
+        if not equal and i == 0 and verdict == A_BETTER:
+            counts["found"] += 1
+    counts["pairs"] += false
+    counts["family"] += false > 0
 
 
 def models(sims: int) -> list[Model]:
@@ -133,25 +141,41 @@ def models(sims: int) -> list[Model]:
 FIELDS = [*Model.__dataclass_fields__, "rule", "family", "pairs", "found"]
 
 
-def write(path: Path, sims: int) -> None:
-    """Every row not yet in the CSV at path, appended row by row (a stopped run resumes)."""
+def append_missing(path: Path, items: list, key_fields: tuple, simulate, fields: list) -> None:
+    """Each item (a dataclass) whose key_fields' values (as text) are not yet a row of the CSV at
+    path simulated and appended, one row per rule of what simulate returns (rule -> counts), item by
+    item: a stopped run resumes where it stopped."""
     done = set()
     if path.exists():
         with open(path) as file:
-            done = {tuple(r[f] for f in Model.__dataclass_fields__) for r in csv.DictReader(file)}
+            done = {tuple(r[f] for f in key_fields) for r in csv.DictReader(file)}
     path.parent.mkdir(parents=True, exist_ok=True)
-    for model in models(sims):
-        if model.key in done:
+    for item in items:
+        row = asdict(item)
+        if tuple(str(row[f]) for f in key_fields) in done:
             continue
-        counts = simulate(model)
+        counts = simulate(item)
         new = not path.exists()
         with open_append(path) as file:
-            writer = csv.DictWriter(file, FIELDS)
+            writer = csv.DictWriter(file, fields)
             if new:
                 writer.writeheader()
-            for rule in RULES:
-                writer.writerow({**asdict(model), "rule": rule, **counts[rule]})
-        print(model, counts, flush=True)
+            for rule, numbers in counts.items():
+                writer.writerow({**row, "rule": rule, **numbers})
+        print(item, counts, flush=True)
+
+
+def write(path: Path, sims: int) -> None:
+    """Every row not yet in the CSV at path, appended row by row (a stopped run resumes)."""
+    append_missing(path, models(sims), tuple(Model.__dataclass_fields__), simulate, FIELDS)
+
+
+def write_block(doc: Path, begin: str, end: str, text: str) -> None:
+    """The lines between the line that starts with begin and the one that starts with end of a
+    markdown file, replaced by text."""
+    page = doc.read_text()
+    start = page.index("\n", page.index(begin)) + 1
+    write_text(doc, page[:start] + text + "\n" + page[page.index(end) :])
 
 
 def rate(count: int, total: int) -> str:
@@ -217,9 +241,7 @@ def main() -> None:
     if args.table:
         text = table(args.table)
         if args.docs:
-            doc = args.docs.read_text()
-            start = doc.index("\n", doc.index(BEGIN)) + 1
-            write_text(args.docs, doc[:start] + text + "\n" + doc[doc.index(END) :])
+            write_block(args.docs, BEGIN, END, text)
         else:
             print(text)
         return

@@ -46,17 +46,17 @@ from __future__ import annotations
 import argparse
 import csv
 import math
-from dataclasses import asdict, dataclass
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
+from experiments.study_luck import append_missing, rate, tally, write_block
 from physgrad.comparison.points import halton_points
-from physgrad.files import open_append, write_text
 from physgrad.optim.capabilities import ADAPTIVE
 from physgrad.readout import Curve
 from physgrad.replication import across_studies, majority
-from physgrad.verdict import A_BETTER, B_BETTER, compare_variants
+from physgrad.verdict import compare_variants
 
 RANGE = ADAPTIVE.search_range
 BUDGET = 1.0
@@ -173,19 +173,10 @@ def simulate(cell: Cell, seed: int = 0) -> dict[str, dict[str, int]]:
     rng = np.random.default_rng([seed, *(ord(c) for c in cell.null + cell.design), cell.trials])
     counts = {rule: {"family": 0, "pairs": 0, "found": 0} for rule in RULES}
     pairs = [(i, j) for i in range(cell.variants) for j in range(i + 1, cell.variants)]
-    last = cell.variants - 1
     for _ in range(cell.sims):
         verdicts = one_study(rng, cell)
         for rule in RULES:
-            false = 0
-            for (i, j), verdict in zip(pairs, verdicts[rule]):
-                equal = cell.effect == 1.0 or j != last
-                if verdict in (A_BETTER, B_BETTER) and (equal or verdict == B_BETTER):
-                    false += 1
-                if not equal and i == 0 and verdict == A_BETTER:
-                    counts[rule]["found"] += 1
-            counts[rule]["pairs"] += false
-            counts[rule]["family"] += false > 0
+            tally(counts[rule], pairs, verdicts[rule], cell.effect)
     return counts
 
 
@@ -219,41 +210,8 @@ FIELDS = [*Cell.__dataclass_fields__, "rule", "family", "pairs", "found"]
 
 def write_cells(path: Path, sims: int) -> None:
     """Every cell not yet in the CSV at path, appended row by row (a stopped run resumes)."""
-    done = set()
-    if path.exists():
-        with open(path) as file:
-            done = {
-                (
-                    r["null"],
-                    r["design"],
-                    int(r["variants"]),
-                    int(r["trials"]),
-                    int(r["studies"]),
-                    float(r["effect"]),
-                )
-                for r in csv.DictReader(file)
-            }
-    path.parent.mkdir(parents=True, exist_ok=True)
-    for cell in cells(sims):
-        if cell.key in done:
-            continue
-        counts = simulate(cell)
-        new = not path.exists()
-        with open_append(path) as file:
-            writer = csv.DictWriter(file, FIELDS)
-            if new:
-                writer.writeheader()
-            for rule in RULES:
-                writer.writerow({**asdict(cell), "rule": rule, **counts[rule]})
-        print(cell, counts, flush=True)
-
-
-def rate_text(count: int, total: int) -> str:
-    """count / total as a percentage with its 95% Wilson interval."""
-    from scipy.stats import binomtest
-
-    ci = binomtest(count, total).proportion_ci(method="wilson")
-    return f"{100 * count / total:.2f}% [{100 * ci.low:.1f}, {100 * ci.high:.1f}]"
+    key = ("null", "design", "variants", "trials", "studies", "effect")
+    append_missing(path, cells(sims), key, simulate, FIELDS)
 
 
 def table(path: Path) -> str:
@@ -291,7 +249,7 @@ def table(path: Path) -> str:
                         return "-"
                     sims = int(row["sims"])
                     total = sims * (variants * (variants - 1) // 2) if what == "pairs" else sims
-                    return rate_text(int(row[what]), total)
+                    return rate(int(row[what]), total)
 
                 label = {
                     PHYSGRAD: f"**{rule}: physgrad** (before studies as draws)",
@@ -307,13 +265,6 @@ def table(path: Path) -> str:
 BEGIN, END = "<!-- generated: python -m experiments.tuning_power", "<!-- end of generated table -->"
 
 
-def write_docs(path: Path, text: str) -> None:
-    """The table between the BEGIN line and END of a markdown file, replaced by text."""
-    doc = path.read_text()
-    start = doc.index("\n", doc.index(BEGIN)) + 1
-    write_text(path, doc[:start] + text + "\n" + doc[doc.index(END) :])
-
-
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--sims", type=int, default=1600)
@@ -322,7 +273,7 @@ def main() -> None:
     parser.add_argument("--docs", type=Path, help="with --table: write it into this markdown file")
     args = parser.parse_args()
     if args.table and args.docs:
-        write_docs(args.docs, table(args.table))
+        write_block(args.docs, BEGIN, END, table(args.table))
         return
     if args.table:
         print(table(args.table))
