@@ -4,7 +4,9 @@ left their start at the budget (the regime guard of physgrad.claim_words)."""
 
 from __future__ import annotations
 
+import inspect
 import math
+from contextlib import contextmanager
 
 import numpy as np
 from evidence import CLOCK, busy_clock
@@ -181,3 +183,31 @@ def failing_text(decided: list, at_paper: dict) -> str:
         for part, d in decided
         if d.verdict == FAILS
     )
+
+
+class PageMemo:
+    """A pure function of the evidence (claims.decide_claim) whose calls are remembered while one
+    page is written (`with memo.page():`), and only then: the evidence does not change within a
+    page (its headline and its parts' table decide a claim at the same budgets again), but may
+    between two pages written in one process."""
+
+    def __init__(self, function):
+        self.function, self.signature, self.memo = function, inspect.signature(function), None
+
+    def __call__(self, *args, **kwargs):
+        if self.memo is None:
+            return self.function(*args, **kwargs)
+        bound = self.signature.bind(*args, **kwargs)
+        bound.apply_defaults()
+        key = tuple(bound.arguments.values())
+        if key not in self.memo:
+            self.memo[key] = self.function(*args, **kwargs)
+        return self.memo[key]
+
+    @contextmanager
+    def page(self):
+        self.memo = {}
+        try:
+            yield
+        finally:
+            self.memo = None

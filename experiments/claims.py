@@ -25,6 +25,7 @@ import sys
 from pathlib import Path
 
 from claim_budget import (
+    PageMemo,
     budget_text,
     busy_clock_text,
     failing_text,
@@ -118,6 +119,9 @@ def decide_claim(
             for part, d in rows
         ]
     return claim_verdict(rows, twin=presets), rows
+
+
+decide_claim = PageMemo(decide_claim)
 
 
 def _twin_runs(root: Path, name: str, suffix: str, spec: Study | None) -> object:
@@ -315,7 +319,8 @@ def write(root: Path, out: Path, note: str = "", profile: str = "claims") -> str
         if profile == "claims"
         else ()
     )
-    tables = headline_table(root, studies, further) + "\n" + claims_table(root, studies)
+    with decide_claim.page():  # a page decides a claim at one budget once
+        tables = headline_table(root, studies, further) + "\n" + claims_table(root, studies)
     make_folder(out)  # once the evidence is read: refused evidence leaves no folder behind
     text = (
         f"# The papers' claims, measured\n\n{note + chr(10) + chr(10) if note else ''}"
@@ -342,30 +347,31 @@ GENERATED = (
 def evidence_block(root: Path) -> str:
     """The verdicts of every claim of the claims profile from its kept evidence under root: the
     headline table, then every part with its numbers."""
-    studies = PROFILES["claims"]
-    # every longer profile, run or not: one not run yet says where it would run
-    further = tuple((root.parent / name, PROFILES[name]) for name in FURTHER)
-    machines = sorted(  # a study run on several machines records them joined by "; "
-        {
-            machine
-            for s in studies
-            for suffix in ("", "-preset")
-            if (runs := read_study(root / f"{s.name}{suffix}")) is not None and runs.machine
-            for machine in runs.machine.split("; ")
-        }
-    )
-    return (
-        f"Decided from the per-seed tables in `{root}` (one per study and per presets' twin, with "
-        "the command, commit and machine that produced it beside it); machines: "
-        f"{'; '.join(machines) or '-'}{uncommitted_note(root, *(f for f, _ in further))}. A "
-        "claim without evidence says "
-        '"not run yet" and where it runs. X is a study\'s budget; bold, the verdict at X.\n\n'
-        + headline_table(root, studies, further)
-        + scene_kinds_block(root)
-        + "\nEvery part of the claims run so far (tuned and with the presets):\n\n"
-        + claims_table(root, studies, only_run=True, further=further)
-        + tuned_table(root)
-    )
+    with decide_claim.page():
+        studies = PROFILES["claims"]
+        # every longer profile, run or not: one not run yet says where it would run
+        further = tuple((root.parent / name, PROFILES[name]) for name in FURTHER)
+        machines = sorted(  # a study run on several machines records them joined by "; "
+            {
+                machine
+                for s in studies
+                for suffix in ("", "-preset")
+                if (runs := read_study(root / f"{s.name}{suffix}")) is not None and runs.machine
+                for machine in runs.machine.split("; ")
+            }
+        )
+        return (
+            f"Decided from the per-seed tables in `{root}` (one per study and per presets' twin, "
+            "with the command, commit and machine that produced it beside it); machines: "
+            f"{'; '.join(machines) or '-'}{uncommitted_note(root, *(f for f, _ in further))}. A "
+            "claim without evidence says "
+            '"not run yet" and where it runs. X is a study\'s budget; bold, the verdict at X.\n\n'
+            + headline_table(root, studies, further)
+            + scene_kinds_block(root)
+            + "\nEvery part of the claims run so far (tuned and with the presets):\n\n"
+            + claims_table(root, studies, only_run=True, further=further)
+            + tuned_table(root)
+        )
 
 
 DOC_LIMIT = 1 << 22  # docs/claims.md is about 50 kB

@@ -227,6 +227,7 @@ class Study:
         return total + (30.0 * self.variants() if calibrates else 0.0)
 
 
+@functools.cache  # a plan asks it of every study's rules, often: a file of the package, read once
 def _searches(optim: str) -> bool:
     """Whether the rule of conf/optim/<optim>.yaml searches a line (capabilities.line_search)."""
     from physgrad.configs import CONF_DIR
