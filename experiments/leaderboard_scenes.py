@@ -21,7 +21,7 @@ from pathlib import Path
 from evidence import CLOCK, clock_rules  # experiments/
 from studies import STUDY_FOLDER, TUNE_SEED, Study
 
-from physgrad.bench import OPTIMS as BENCH_OPTIMS
+from physgrad.bench_tables import OPTIMS as BENCH_OPTIMS
 
 BASELINE = "adam"
 LEADERBOARD_TRIALS, LEADERBOARD_STUDIES, LEADERBOARD_SEEDS = 8, 4, 10

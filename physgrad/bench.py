@@ -30,26 +30,9 @@ from collections.abc import Callable, Iterable
 from pathlib import Path
 
 from physgrad.bench_measure import measure_floors, measure_seeds, measure_variant
-from physgrad.bench_tables import machine, page
+from physgrad.bench_tables import OPTIMS, SCENES, machine, page
 from physgrad.files import write_text
 
-SCENES = ("oscillator", "quantum", "poisson", "multicart", "quantum_control", "guidance", "ks")
-OPTIMS = (
-    "adam",
-    "gd",
-    "gauss_newton",
-    "hig",
-    "levenberg_marquardt",
-    "kfac",
-    "lbfgs",
-    "ssbfgs",
-    "ssbroyden",
-    "muon",
-    "soap",
-    "psgd_kron",
-    "bptt",
-    "stable_bptt",
-)
 # variants measured in another precision as well
 EXTRA = {
     "poisson": [("hig", ["precision=64"])],

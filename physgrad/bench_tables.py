@@ -7,6 +7,25 @@ import os
 
 from physgrad.readout import fmt
 
+# the benchmark's scenes and rules (make bench), here where a page can read them without JAX
+SCENES = ("oscillator", "quantum", "poisson", "multicart", "quantum_control", "guidance", "ks")
+OPTIMS = (
+    "adam",
+    "gd",
+    "gauss_newton",
+    "hig",
+    "levenberg_marquardt",
+    "kfac",
+    "lbfgs",
+    "ssbfgs",
+    "ssbroyden",
+    "muon",
+    "soap",
+    "psgd_kron",
+    "bptt",
+    "stable_bptt",
+)
+
 
 def duration(seconds: float | None) -> str:
     """Milliseconds below a second, else seconds, to three figures; "" for None."""
