@@ -91,12 +91,14 @@ class Study:
         """Whether its runs are kept as evidence in `evidence` (docs/evidence/<profile>): the
         presets' twin's table, or this tuning study in the study's record (every planned one for
         a study of all its tuning studies in one compare). A part run again skips what is kept:
-        its folder may have gone with its machine. UserError for a damaged table."""
+        its folder may have gone with its machine; but not a timed study whose kept clock was
+        calibrated on a busy machine, which runs again. UserError for a damaged table."""
         from evidence import read_json, read_kept
 
         path = evidence / f"{self.name}{'-preset' if preset else ''}.csv"
-        if not path.is_file():
-            return False
+        clock = evidence / CLOCK.format(name=self.name)
+        if not path.is_file() or (self.timed and busy_clock(clock)):
+            return False  # a busy kept clock bought fewer steps than the budget says: run again
         kept = read_kept(path)
         if preset or not self.tune:
             return bool(kept.studies)

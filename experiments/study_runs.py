@@ -15,6 +15,7 @@ from dataclasses import dataclass, replace
 from pathlib import Path
 
 from evidence import (  # experiments/
+    busy_clock,
     commit,
     keep_clock,
     kept_row,
@@ -359,6 +360,12 @@ def keep_studies(root: Path, dest: Path, columns: dict[str, set]) -> list[str]:
                 )
                 kept.append(f"{folder.name}/{where.name}" if split else folder.name)
             kept = list(dict.fromkeys(kept))  # a study run in one compare: its name once
+            clock = dest / CLOCK.format(name=name)
+            if split and 1 in finished and busy_clock(clock):
+                # the first study run again replaces a busy kept clock, and every tuning study
+                # kept on it: their budget bought fewer steps than it says (they run again)
+                for suffix in (".csv", ".json"):
+                    (dest / f"{folder.name}{suffix}").unlink(missing_ok=True)
             if split:
                 rows, by_study = merged_rows(dest, folder.name, finished, runs.budget)
             else:  # one compare: it replaces what was kept
@@ -386,7 +393,7 @@ def keep_studies(root: Path, dest: Path, columns: dict[str, set]) -> list[str]:
             }
             write_kept(dest, folder.name, rows, about)
             if split:
-                keep_clock(folder / "study-1" / "calibration.json", dest / CLOCK.format(name=name))
+                keep_clock(folder / "study-1" / "calibration.json", clock)
     return kept
 
 

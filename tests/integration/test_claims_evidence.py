@@ -188,6 +188,15 @@ def test_tuning_studies_run_as_compares_of_their_own_are_kept_and_decided_as_one
         assert runs.planned == 4 and claim_budget.of_planned(runs) == " of 4"
         _, ((_, decision),) = claims.decide_claim(lower, root)
         assert "(2 of 4 tuning studies run)" in decision.why
+    # a kept clock measured on a busy machine: the first study kept again replaces every tuning
+    # study kept on it (their budget bought fewer steps than it says), which then run again
+    busy = {"costs": {"adam": {"step_seconds": 0.01}}, "load_start": 5.4, "load_end": 5.4}
+    (kept / "small.calibration.json").write_text(json.dumps({**busy, "machine": {"cpu_count": 2}}))
+    claims.keep_evidence(machines[2], kept)  # a later study: kept beside the others
+    assert sorted(json.loads((kept / "small.json").read_text())["tuning_studies"]) == ["1", "2"]
+    assert claims.keep_evidence(machines[1], kept) == ["small/study-1"]
+    assert sorted(json.loads((kept / "small.json").read_text())["tuning_studies"]) == ["1"]
+    assert claims.read_study(kept / "small").planned == 4
 
 
 @pytest.mark.parametrize("kind", ["link", "fifo"])

@@ -3,6 +3,7 @@ level parts, the regime map's time-to-target ratio, the presets' twins, decision
 studies, joining studies, runs tables read as data, and what a claim not run or not settled says."""
 
 import math
+import shutil
 import sys
 from dataclasses import replace
 from pathlib import Path
@@ -840,7 +841,6 @@ def test_a_part_run_again_skips_what_is_kept_as_evidence(tmp_path, monkeypatch, 
     networks it continues, with its presets' twin): with quantum's four tuning studies kept, only
     Poisson's start networks and its two compares run, and the skipped study is named; a damaged
     evidence table stops the part in one line, running nothing."""
-    import shutil
 
     import study_profiles
 
@@ -1022,6 +1022,12 @@ def test_a_clock_calibrated_on_a_busy_machine_is_flagged_and_never_kept_for_late
     first.write_text(quiet.read_text())
     assert spec.clock(tmp_path / "root") == first
     assert f"compare.calibration={first}" in spec.command(tmp_path / "root", preset=True)
+    # studies kept on a busy clock are not kept for a part: they run again (a part skips the kept)
+    shutil.copy(REPO / "docs/evidence/claims/poisson_scratch.csv", evidence)
+    shutil.copy(REPO / "docs/evidence/claims/poisson_scratch.json", evidence)
+    assert not spec.kept(evidence)
+    (evidence / CLOCK.format(name="poisson_scratch")).write_text(quiet.read_text())
+    assert spec.kept(evidence)
 
 
 def test_a_presets_twin_is_commanded_after_its_study_ran_so_it_runs_on_that_clock(
