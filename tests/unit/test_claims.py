@@ -1200,3 +1200,24 @@ def test_a_failing_part_says_its_verdict_at_the_papers_budget_where_one_was_run(
     )
     assert text == f"{first.text()}: does not hold (holds {where}); {third.text()}: does not hold"
     assert claim_budget.failing_text([(second, holds)], {}) == ""
+
+
+def test_a_page_decides_a_claim_at_a_budget_once_and_only_while_it_is_written():
+    """claim_budget.PageMemo: calls with the same arguments (defaults or not) are decided once
+    within `page()`, every time outside it, and afresh in the next page (the evidence may change
+    between two pages written in one process)."""
+    calls = []
+
+    def decide(claim, root, suffix="", fraction=1.0):
+        calls.append((claim, root, suffix, fraction))
+        return len(calls)
+
+    memo = claim_budget.PageMemo(decide)
+    assert memo("c", "r") == 1 and memo("c", "r") == 2  # outside a page: every call decides
+    with memo.page():
+        first = memo("c", "r")
+        assert memo("c", "r", "", 1.0) == memo("c", root="r") == first == 3
+        assert memo("c", "r", fraction=0.5) == 4 and memo("c", "r", "-preset") == 5
+    with memo.page():
+        assert memo("c", "r") == 6
+    assert memo("c", "r") == 7 and len(calls) == 7
