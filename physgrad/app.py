@@ -25,7 +25,7 @@ from physgrad.errors import UserError, innermost_cause
 from physgrad.experiment import run_job
 from physgrad.files import make_folder, own_folder
 from physgrad.gpus import claim_gpu
-from physgrad.interrupts import stop_on_signals
+from physgrad.interrupts import raising_interrupts, stop_on_signals
 from physgrad.job_spec import Calibration, calibration_of, check
 from physgrad.results import member_order, read_final
 from physgrad.runner import Outcome
@@ -154,6 +154,12 @@ def job(cfg: DictConfig) -> float:
     (run_job: a refused job's files say why), then its record in the sweep, its trackers fed and its
     end told; returns what a sweeper optimises (objective). A single run exits 2 when refused, 1
     when failed, 130 when interrupted."""
+    with raising_interrupts():  # physgrad's own code, inside cli's composing()
+        return run_this_job(cfg)
+
+
+def run_this_job(cfg: DictConfig) -> float:
+    """The job function's body (job), with signals raising."""
     hydra_cfg = HydraConfig.get()
     claim_gpu(int(hydra_cfg.job.get("num") or 0))  # before jax starts: one GPU per job process
     this = job_of(cfg, hydra_cfg)

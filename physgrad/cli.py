@@ -19,6 +19,7 @@ from physgrad.errors import LauncherRefused, UserError
 from physgrad.interrupts import (
     ABANDONED,
     SignalInterrupt,
+    composing,
     install,
     keeping_lost_interrupts,
     raise_interrupt,
@@ -198,6 +199,12 @@ def run_command(args: list[str]) -> int:
     parsed = get_args_parser().parse_args(args)
     if parsed.shell_completion:
         return shell_completion(args)
+    with composing():  # Hydra composes before the job and after it (physgrad.interrupts)
+        return run_app(args, parsed)
+
+
+def run_app(args: list[str], parsed: argparse.Namespace) -> int:
+    """The overrides checked, then the Hydra app run on the untouched argument list."""
     if (
         not INFO_FLAGS.intersection(args)
         and parsed.config_path is None

@@ -19,6 +19,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from physgrad.errors import UserError
+from physgrad.interrupts import composing
 from physgrad.validate import allowed_target
 
 if TYPE_CHECKING:  # omegaconf (Hydra's) is loaded where a config is composed, not on import
@@ -71,12 +72,12 @@ def compose(
     from hydra.errors import HydraException
     from omegaconf import open_dict
 
-    with initialized(config_dirs):
+    with composing(), initialized(config_dirs):
         try:
             cfg = hydra_compose("config", overrides=list(overrides), return_hydra_config=True)
         except HydraException as error:
             raise UserError(str(error).strip().splitlines()[0]) from None
-    name_options(cfg, cfg.hydra.runtime.choices)
+        name_options(cfg, cfg.hydra.runtime.choices)
     if not return_hydra_config:
         with open_dict(cfg):
             del cfg["hydra"]
@@ -129,7 +130,7 @@ def check_overrides(
     sweeper = _sweeper(parsed)
     added = searchpath_entries(overrides)
     folders = [*config_dirs, *added]
-    with initialized(folders) as loader:
+    with composing(), initialized(folders) as loader:
         group_values, keys = _group_choices_and_keys(parsed, loader, multirun, sweeper)
         known = (
             {} if combinations is None else combinations.setdefault(tuple(map(str, folders)), {})

@@ -1,14 +1,16 @@
 """SIGINT and SIGTERM: how physgrad is stopped, in every phase of a command, without losing a
 signal.
 
-Two handlers, one per phase. Before a job (the console script's start-up, composing, a sweep's
-launcher) a signal raises at once: `raise_interrupt` turns it into a SignalInterrupt naming the
-signal. During a job (start-up, training and writing the final files) the job's `StopRequest`
-handles it: the first signal asks the training loop to stop after the current step, a second one
-ends the wait for a step still computing; it raises only while the job is setting up
-(StopInterrupt), where nothing is half done. `handling_signals` installs a handler for both signals,
-`stop_on_signals` the job's (which also takes a scheduler's warning signal, SIGUSR2, as a stop:
-a job ends `interrupted` before its time limit, its rows kept).
+Two handlers, one per phase. Before a job (the console script's start-up, a sweep's launcher) a
+signal raises at once: `raise_interrupt` turns it into a SignalInterrupt naming the signal; while
+Hydra and OmegaConf compose a config (`composing`), where an exception leaves half-built config
+nodes behind, it is kept for the next check (the job's start, the command's end). During a job
+(start-up, training and writing the final files) the job's `StopRequest` handles it: the first
+signal asks the training loop to stop after the current step, a second one ends the wait for a step
+still computing; it raises only while the job is setting up (StopInterrupt), where nothing is half
+done. `handling_signals` installs a handler for both signals, `stop_on_signals` the job's (which
+also takes a scheduler's warning signal, SIGUSR2, as a stop: a job ends `interrupted` before its
+time limit, its rows kept).
 
 A signal handler's exception is raised in whatever Python code runs when the signal arrives. If that
 code is one the interpreter runs on its own (a garbage-collector callback such as jaxlib's, a
@@ -90,6 +92,14 @@ def raise_interrupt(signum: int, frame: FrameType | None) -> NoReturn:
     raise SignalInterrupt(signal.Signals(signum).name)
 
 
+def keep_interrupt(signum: int, frame: FrameType | None) -> None:
+    """Signal handler while Hydra and OmegaConf compose a config (`composing`): the signal is kept
+    in LOST, not raised. An exception raised inside OmegaConf can leave a node half built, and the
+    `finally` blocks that restore its flags then fail on it: the interrupt comes out as an unrelated
+    config error (exit 1), or is swallowed. The next check acts on it."""
+    LOST.append(signal.Signals(signum).name)
+
+
 def take_lost() -> str | None:
     """The first lost signal's name, forgetting all of them (one stop acts on every signal before
     it)."""
@@ -121,6 +131,36 @@ def handling_signals(handler: SignalHandler, signals: tuple = INTERRUPTS) -> Ite
     finally:
         for sig, old in previous.items():
             signal.signal(sig, old)
+
+
+@contextmanager
+def composing() -> Iterator[None]:
+    """While inside, where signals would raise (raise_interrupt: before a job): SIGINT and SIGTERM
+    are kept (keep_interrupt) while library code composes configs, and one kept meanwhile is raised
+    on leaving; physgrad's own code inside raises again (`raising_interrupts`). Where another
+    handler is installed (a job's StopRequest, a sweep's LauncherSignals, which do not raise) or
+    outside the main thread, nothing changes."""
+    if signal.getsignal(signal.SIGINT) is not raise_interrupt:
+        yield
+        return
+    with handling_signals(keep_interrupt):
+        yield
+    lost = take_lost()
+    if lost is not None:
+        raise SignalInterrupt(lost)
+
+
+@contextmanager
+def raising_interrupts() -> Iterator[None]:
+    """physgrad's own code inside `composing` (a job's task function, which Hydra calls after
+    composing): new signals raise again (raise_interrupt); one kept while composing stays in LOST
+    for the job's first check (stop_on_signals: the job ends interrupted, its files saying so, as
+    for any signal before training); on leaving, signals are kept again."""
+    if signal.getsignal(signal.SIGINT) is not keep_interrupt:
+        yield
+        return
+    with handling_signals(raise_interrupt):
+        yield
 
 
 @contextmanager

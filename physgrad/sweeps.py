@@ -38,7 +38,7 @@ from physgrad.files import (
     timestamp,
     walk_files,
 )
-from physgrad.interrupts import StopRequest, handling_signals
+from physgrad.interrupts import StopRequest, handling_signals, take_lost
 
 log = logging.getLogger("physgrad")
 MANIFEST = "jobs.yaml"
@@ -307,10 +307,14 @@ def end_with_study() -> None:
 def launcher_signals(sweep: Path) -> Iterator[None]:
     """LauncherSignals handling SIGINT and SIGTERM in the process that launches the sweep (its main
     thread), whose pid its workers inherit (LAUNCHER_ENV)."""
-    with handling_signals(LauncherSignals(sweep)) as installed:
+    handler = LauncherSignals(sweep)
+    with handling_signals(handler) as installed:
         if not installed:  # not the main thread
             yield
             return
+        lost = take_lost()  # one kept while Hydra composed the sweep (physgrad.interrupts)
+        if lost is not None:
+            handler(signal.Signals[lost], None)
         os.environ[LAUNCHER_ENV] = f"{os.getpid()} {socket.gethostname()}"
         end_with_study()
         try:

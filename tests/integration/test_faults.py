@@ -421,3 +421,108 @@ def test_a_file_too_large_for_memory_is_left_out_and_the_rest_is_read(two_runs, 
     found, unreadable, _ = runs.collect([str(two_runs)])
     assert [r.attrs["optim"] for r in found] == ["adam"]
     assert len(unreadable) == 1 and "memory" in unreadable[0][1]
+
+
+def test_a_signal_while_composing_is_kept_and_raised_where_physgrad_resumes(tmp_path):
+    """Inside composing() a signal is kept, not raised (library code runs there); physgrad's own
+    code inside (raising_interrupts) leaves a kept one to the job's first check (stop_on_signals)
+    and raises new ones as they come; leaving composing raises one kept and not taken; a sweep's
+    launcher takes a kept one as its first stop."""
+    from physgrad.interrupts import (
+        SignalInterrupt,
+        composing,
+        handling_signals,
+        raise_interrupt,
+        raising_interrupts,
+        stop_on_signals,
+    )
+    from physgrad.sweeps import launcher_signals, stop_count
+
+    def kill_and_run(sig=signal.SIGTERM):
+        os.kill(os.getpid(), sig)
+        for _ in range(10_000):  # Python bytecode: the handler runs in here
+            pass
+
+    with handling_signals(raise_interrupt):
+        with pytest.raises(SignalInterrupt, match="SIGTERM"), composing():
+            kill_and_run()  # kept: nothing raised here
+            with raising_interrupts():
+                pass
+        with composing():
+            kill_and_run()
+            with raising_interrupts(), stop_on_signals() as stop:  # the job's first check
+                assert stop.signal_name == "SIGTERM"
+        with pytest.raises(SignalInterrupt, match="SIGINT"), composing():
+            with raising_interrupts():
+                kill_and_run(signal.SIGINT)  # raised at once
+                pytest.fail("a signal in physgrad's own code was not raised")
+        with pytest.raises(SignalInterrupt, match="SIGTERM"), composing():
+            with raising_interrupts():
+                pass
+            kill_and_run()  # kept, raised on leaving
+        with composing():
+            kill_and_run()
+            with launcher_signals(tmp_path):
+                assert stop_count(tmp_path) == ("SIGTERM", 1)
+    assert signal.getsignal(signal.SIGINT) is not raise_interrupt
+
+
+@pytest.mark.long
+def test_a_signal_at_many_instants_of_composing_a_run_ends_it_in_one_line(tmp_path, monkeypatch):
+    """`physgrad run` as the console script runs it, its job's body replaced by a stub: SIGTERM at
+    60 instants spread over every OmegaConf call of the run (the overrides' check, Hydra composing,
+    Hydra after the job). An interrupt raised inside OmegaConf leaves half-built nodes whose cleanup
+    then fails: the run ended with a config error (exit 1), an AttributeError or no stop at all in
+    about 1 of 20 such instants. Here every one ends with 130 and one line, and a signal before the
+    job is waiting for the job's first check (LOST: the job ends interrupted before training)."""
+    import contextlib
+    import io
+    import sys
+
+    from hydra.core.global_hydra import GlobalHydra
+
+    import physgrad.app as app
+    from physgrad import cli
+    from physgrad.interrupts import LOST, handling_signals, raise_interrupt
+
+    calls = {"count": 0, "at": -1, "job_at": None, "waiting": None}
+
+    def job_body(cfg):
+        calls.update(job_at=calls["count"], waiting=list(LOST))
+
+    monkeypatch.setattr(app, "run_this_job", job_body)
+
+    def profile(frame, event, arg):
+        if event == "call" and "omegaconf" in frame.f_code.co_filename:
+            calls["count"] += 1
+            if calls["count"] == calls["at"]:
+                os.kill(os.getpid(), signal.SIGTERM)
+
+    def run(at):
+        calls.update(count=0, at=at, job_at=None, waiting=None)
+        GlobalHydra.instance().clear()
+        err = io.StringIO()
+        monkeypatch.setattr(sys, "argv", ["physgrad", "run"])
+        args = ["run", "task=toy", f"hydra.run.dir={tmp_path / str(at)}"]
+        with handling_signals(raise_interrupt), contextlib.redirect_stderr(err):
+            sys.setprofile(profile)
+            try:
+                code = cli._main(args)
+            except SystemExit as leaving:
+                code = leaving.code
+            finally:
+                sys.setprofile(None)
+        return code, err.getvalue()
+
+    run(-1)  # Hydra's caches filled: later runs make the same calls
+    code, err = run(-1)
+    total = calls["count"]
+    assert code == 0 and calls["job_at"] is not None and total > 10_000, (code, err)
+    rng = random.Random(0)
+    instants = [rng.randrange(total * i // 60, total * (i + 1) // 60) + 1 for i in range(60)]
+    for at in instants:
+        code, err = run(at)
+        assert calls["count"] >= at, (at, calls["count"])
+        assert code == 130 and err == "physgrad: stopped by SIGTERM\n", (at, code, err[-2000:])
+        before_job = calls["job_at"] >= at
+        assert calls["waiting"] == (["SIGTERM"] if before_job else []), (at, calls)
