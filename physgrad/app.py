@@ -26,7 +26,7 @@ from physgrad.experiment import run_job
 from physgrad.files import make_folder, own_folder
 from physgrad.gpus import claim_gpu
 from physgrad.interrupts import raising_interrupts, stop_on_signals
-from physgrad.job_spec import Calibration, calibration_of, check
+from physgrad.job_spec import Calibration, JobSpec, calibration_of, check
 from physgrad.results import member_order, read_final
 from physgrad.runner import Outcome
 from physgrad.sweeps import record_job, stop_count
@@ -153,13 +153,9 @@ def job(cfg: DictConfig) -> float:
     (physgrad.job_spec.check: below it nothing reads the config), its trackers built, the run
     (run_job: a refused job's files say why), then its record in the sweep, its trackers fed and its
     end told; returns what a sweeper optimises (objective). A single run exits 2 when refused, 1
-    when failed, 130 when interrupted."""
-    with raising_interrupts():  # physgrad's own code, inside cli's composing()
-        return run_this_job(cfg)
-
-
-def run_this_job(cfg: DictConfig) -> float:
-    """The job function's body (job), with signals raising."""
+    when failed, 130 when interrupted. Up to the door, where OmegaConf still builds and reads
+    nodes, a signal is kept for the job's first check (cli's composing()); past it signals raise
+    again."""
     hydra_cfg = HydraConfig.get()
     claim_gpu(int(hydra_cfg.job.get("num") or 0))  # before jax starts: one GPU per job process
     this = job_of(cfg, hydra_cfg)
@@ -174,6 +170,12 @@ def run_this_job(cfg: DictConfig) -> float:
     if calibration is not None:
         return calibration_job(calibration, this)
     spec = check(cfg)
+    with raising_interrupts():
+        return checked_job(spec, this, cfg, hydra_cfg)
+
+
+def checked_job(spec: JobSpec, this: Job, cfg: DictConfig, hydra_cfg: DictConfig) -> float:
+    """A job past the door: its trackers built, the run, its record and its end (job)."""
     trackers = job_trackers(spec.trackers, this)
     if trackers is None:
         return float("inf")

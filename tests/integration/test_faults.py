@@ -469,12 +469,13 @@ def test_a_signal_while_composing_is_kept_and_raised_where_physgrad_resumes(tmp_
 
 @pytest.mark.long
 def test_a_signal_at_many_instants_of_composing_a_run_ends_it_in_one_line(tmp_path, monkeypatch):
-    """`physgrad run` as the console script runs it, its job's body replaced by a stub: SIGTERM at
-    60 instants spread over every OmegaConf call of the run (the overrides' check, Hydra composing,
-    Hydra after the job). An interrupt raised inside OmegaConf leaves half-built nodes whose cleanup
-    then fails: the run ended with a config error (exit 1), an AttributeError or no stop at all in
-    about 1 of 20 such instants. Here every one ends with 130 and one line, and a signal before the
-    job is waiting for the job's first check (LOST: the job ends interrupted before training)."""
+    """`physgrad run` as the console script runs it, its job past the door replaced by a stub:
+    SIGTERM at 60 instants spread over every OmegaConf call of the run (the overrides' check, Hydra
+    composing, the job's config read up to its door, Hydra after the job). An interrupt raised
+    inside OmegaConf leaves half-built nodes whose cleanup then fails: the run ended with a config
+    error (exit 1), an AttributeError or no stop at all in about 1 of 20 such instants. Here every
+    one ends with 130 and one line, and a signal before the job is waiting for the job's first check
+    (LOST: the job ends interrupted before training)."""
     import contextlib
     import io
     import sys
@@ -487,10 +488,10 @@ def test_a_signal_at_many_instants_of_composing_a_run_ends_it_in_one_line(tmp_pa
 
     calls = {"count": 0, "at": -1, "job_at": None, "waiting": None}
 
-    def job_body(cfg):
+    def job_body(spec, this, cfg, hydra_cfg):
         calls.update(job_at=calls["count"], waiting=list(LOST))
 
-    monkeypatch.setattr(app, "run_this_job", job_body)
+    monkeypatch.setattr(app, "checked_job", job_body)
 
     def profile(frame, event, arg):
         if event == "call" and "omegaconf" in frame.f_code.co_filename:
