@@ -200,7 +200,7 @@ class Study:
             settings.append("compare.tune=false")
         clock = self.clock(root) if self.timed and (preset or k > 1) else None
         if clock is not None:  # on the first tuning study's clock
-            settings.append(f"compare.calibration={clock}")
+            settings.append(f"compare.calibration={started_clock(root / folder, clock)}")
         return [*overrides, *settings]
 
     def start_seeds(self, preset: bool = False) -> list[int]:
@@ -360,3 +360,25 @@ def _parts_and_seconds(profile: str) -> tuple[tuple[tuple[str, float], ...], ...
     """A profile's parts as (study name, expected seconds) pairs, computed once (where_it_runs asks
     for every claim)."""
     return tuple(tuple((s.name, s.seconds()) for s in part) for part in chunks(PROFILES[profile]))
+
+
+def started_clock(folder: Path, clock: Path) -> Path:
+    """The calibration a half-run study in folder was started on where it is the same clock as
+    `clock` under another name (the first study's own file, kept into the evidence since): the
+    study resumes, where the new name would make compare refuse its folder as another study's;
+    `clock` otherwise (no study there, another clock, an unreadable record)."""
+    from evidence import read_json
+
+    try:
+        record = read_json(folder / "study.json")
+        given = [
+            o.split("=", 1)[1]
+            for o in record["overrides"]
+            if isinstance(o, str) and o.startswith("compare.calibration=")
+        ]
+        earlier = Path(given[0])
+        if earlier != clock and earlier.is_file() and read_json(earlier) == read_json(clock):
+            return earlier
+    except (OSError, ValueError, KeyError, TypeError, IndexError, AttributeError):
+        pass
+    return clock

@@ -1225,3 +1225,28 @@ def test_a_page_decides_a_claim_at_a_budget_once_and_only_while_it_is_written():
     with memo.page():
         assert memo("c", "r") == 6
     assert memo("c", "r") == 7 and len(calls) == 7
+
+
+def test_a_half_run_study_resumes_on_its_clock_kept_since_under_another_name(tmp_path):
+    """A later tuning study started on the first study's own calibration.json resumes on that file
+    after the clock was kept into the evidence (the same clock: compare would refuse the folder as
+    another study's under the new name); another clock, no record or a damaged one: the kept
+    clock."""
+    import json
+
+    kept = tmp_path / "kept.calibration.json"
+    kept.write_text(json.dumps({"costs": {"adam": {"step_seconds": 0.001}}, "load_start": 1.0}))
+    own = tmp_path / "study-1" / "calibration.json"
+    own.parent.mkdir()
+    own.write_text(json.dumps(json.loads(kept.read_text()), indent=3))  # same clock, other bytes
+    folder = tmp_path / "study-2"
+    assert study_lists.started_clock(folder, kept) == kept  # nothing started there
+    folder.mkdir()
+    record = {"overrides": ["task=poisson", f"compare.calibration={own}"]}
+    (folder / "study.json").write_text(json.dumps(record))
+    assert study_lists.started_clock(folder, kept) == own
+    own.write_text(json.dumps({"costs": {"adam": {"step_seconds": 0.002}}, "load_start": 1.0}))
+    assert study_lists.started_clock(folder, kept) == kept  # another clock: not resumed on it
+    for damaged in ("not json", '{"overrides": 3}', '{"overrides": ["task=poisson"]}'):
+        (folder / "study.json").write_text(damaged)
+        assert study_lists.started_clock(folder, kept) == kept
