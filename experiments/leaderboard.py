@@ -62,6 +62,7 @@ from tuned_settings import tuned_table
 
 from physgrad.errors import UserError
 from physgrad.files import clean_text, make_folder, replace_file
+from physgrad.replication import majority
 from physgrad.verdict import (
     MARGIN,
 )
@@ -213,7 +214,8 @@ def scene_budget_lines(entry, runs, about: dict) -> list[str]:
         f"- **{entry.title}** (`{' '.join(entry.overrides)}`): {budget}; "
         f"{studies} of {planned_studies(runs)} tuning studies finished"
         + (
-            " (its verdicts are those of the studies run so far: preliminary)"
+            f" (preliminary: a verdict needs {majority(planned_studies(runs))} of the "
+            f"{planned_studies(runs)}, and each study's verdict so far is said beside it)"
             if studies < planned_studies(runs)
             else ""
         )
@@ -294,7 +296,13 @@ def rerun_text(root: Path) -> str:
         "step's cost its cost at the tuned value (docs/protocol.md). Its studies are kept in "
         "docs/evidence/leaderboard/rerun; the table above moves to them once every scene has "
         "all of its studies"
-        + (", and until then the cells below are preliminary." if found else "."),
+        + (
+            ", and until then the cells below are preliminary: a cell is decided when "
+            f"{majority(LEADERBOARD_STUDIES)} of the {LEADERBOARD_STUDIES} studies agree, none "
+            "against, as a claim is, and each kept study's verdict is said beside it."
+            if found
+            else "."
+        ),
         "",
     ]
     kept = {name: len(runs.tuning or (runs,)) for name, (_, runs, _) in found.items()}
@@ -322,7 +330,7 @@ def rerun_text(root: Path) -> str:
                 f"n/a: {e.refused[rule]}"
                 if rule in e.refused
                 else (
-                    cell_text(found[e.name][0][rule], kept[e.name])
+                    cell_text(found[e.name][0][rule], kept[e.name], planned=LEADERBOARD_STUDIES)
                     if rule in found[e.name][0]
                     else "not run"
                 )

@@ -16,7 +16,7 @@ from leaderboard_scenes import BASELINE, EXPENSIVE, LONGER, SCENES, planned_stud
 from study_runs import read_study
 
 from physgrad.readout import fmt
-from physgrad.replication import across_studies
+from physgrad.replication import across_studies, majority, over_studies
 from physgrad.verdict import FRACTIONS, compare_variants, ratio_of
 
 
@@ -46,8 +46,12 @@ def cells(runs, about: dict | None = None) -> dict[str, Cell]:
     a "better" its compare found undecided by the clock kept so (the kept record's
     undecided_by_the_clock), then each rule over the studies that ran it
     (physgrad.replication.across_studies; a rule added to the leaderboard after a scene's first
-    studies is decided over the later ones)."""
+    studies is decided over the later ones). Of a scene with fewer tuning studies kept than its
+    protocol plans (about's `planned`: a re-run in progress), a verdict needs a majority of those
+    planned, as a claim's does (physgrad.replication.over_studies), so that a cell of one study is
+    not shown decided."""
     about = about or {}
+    planned = int(about.get("planned") or 0)
     iterations = about.get("iterations")
     studies = runs.tuning or (runs,)
     ran = [sorted(r for r in study.paths if r != BASELINE) for study in studies]
@@ -76,8 +80,16 @@ def cells(runs, about: dict | None = None) -> dict[str, Cell]:
             continue
         result = across_studies([[v] for v in verdicts])[0]
         p = result.at[1.0]
+        verdict, why = result.verdicts[1.0]
+        if planned > len(studies):
+            verdict, why = over_studies(
+                [v.verdict for v in verdicts],
+                need=majority(planned),
+                medians=[v.at[1.0].median for v in verdicts],
+            )
+            why += f" ({len(verdicts)} of {planned} tuning studies run)"
         found[rule] = Cell(
-            result.verdict,
+            verdict,
             p.ratio,
             ratio_of(p.low),
             ratio_of(p.high),
@@ -86,7 +98,7 @@ def cells(runs, about: dict | None = None) -> dict[str, Cell]:
             tuple(s.verdicts[1.0][0] for s in (result.studies or [result])),
             (iterations or {}).get(rule, math.nan),
             tuple((k, by_rule[rule]) for k, by_rule in enumerate(per_study) if rule in by_rule),
-            result.verdicts[1.0][1],
+            why,
             walls.get(rule, math.nan),
         )
     return found
@@ -128,15 +140,22 @@ def longer_lines(entry, found: tuple | None, budget: float) -> list[str]:
     ]
 
 
-def cell_text(cell: Cell, scene_studies: int = 0, to: str = "") -> str:
+def cell_text(cell: Cell, scene_studies: int = 0, to: str = "", planned: int = 0) -> str:
     """A cell as the table prints it, its verdict a link to its scene's page (to) where given;
-    with the tuning studies that ran the rule where they are fewer than the scene's."""
+    with the tuning studies that ran the rule where they are fewer than the scene's, and each
+    study's verdict where fewer than the `planned` have run."""
     mark = MARKS.get(cell.verdict, "undecided")
     fewer = len(cell.studies) < scene_studies
+    so_far = ", ".join(MARKS.get(v, "undecided") for v in cell.studies)
     return (
         (f"[**{mark}**]({to})" if to else f"**{mark}**")
         + f" {fmt(cell.ratio)}x [{fmt(cell.low)}, {fmt(cell.high)}], {cell.wins}/{cell.pairs}"
         + (f" ({len(cell.studies)} of {scene_studies} studies ran it)" if fewer else "")
+        + (
+            f" ({len(cell.studies)} of {planned} studies run: {so_far})"
+            if len(cell.studies) < planned
+            else ""
+        )
         + (
             f", {cell.iterations:.0f} steps: decided by a step's cost, not the rule"
             if cell.iterations < FEW_STEPS

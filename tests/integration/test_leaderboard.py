@@ -17,6 +17,7 @@ from tests.helpers import REPO
 
 sys.path.insert(0, str(REPO / "experiments"))
 import leaderboard  # noqa: E402
+import leaderboard_cells  # noqa: E402
 import leaderboard_detail  # noqa: E402
 import leaderboard_keep  # noqa: E402
 import leaderboard_scenes  # noqa: E402
@@ -27,10 +28,11 @@ from evidence import write_kept  # noqa: E402
 from physgrad.verdict import A_BETTER, B_BETTER, EQUIVALENT  # noqa: E402
 
 
-def kept_scene(folder, name, levels, studies=3, seeds=10, budget=10.0, first_seed=0, planned=4):  # noqa: E501
+def kept_scene(folder, name, levels, studies=3, seeds=10, budget=10.0, first_seed=0, planned=None):  # noqa: E501
     """Evidence of one scene: variant -> (loss at the budget per tuning study), times a small
     per-seed noise shared by every variant (paired seeds), of a protocol of `planned` tuning
-    studies."""
+    studies (by default those it has: a scene whose studies have all run)."""
+    planned = planned or studies
     rng = np.random.default_rng(1)
     noise = np.exp(0.05 * rng.normal(size=(studies, seeds)))
     rows = []
@@ -144,9 +146,9 @@ def test_rules_that_do_not_apply_are_marked_with_why(tmp_path):
     about = json.loads((evidence / "guidance.json").read_text())
     assert about["budget"] == 10.0
     # a scene with one of its four tuning studies run: its verdicts said to be preliminary
-    kept_scene(evidence, "oscillator", {"adam": [1.0], "hig": [0.5]}, studies=1)
+    kept_scene(evidence, "oscillator", {"adam": [1.0], "hig": [0.5]}, studies=1, planned=4)
     text = leaderboard.write(evidence, tmp_path / "docs")
-    assert "1 of 4 tuning studies finished (its verdicts are those of the studies run" in text
+    assert "1 of 4 tuning studies finished (preliminary: a verdict needs 3 of the 4" in text
 
 
 def test_every_scene_is_a_compare_with_adam_as_baseline_and_parts_stay_near_80_minutes():
@@ -189,10 +191,10 @@ def test_a_study_run_elsewhere_is_added_to_the_kept_evidence(tmp_path, monkeypat
 
     levels = {"adam": [1.0], "hig": [0.1]}
     evidence, root = tmp_path / "evidence", tmp_path / "studies"
-    kept_scene(evidence, "toy", levels, studies=1)  # study 1, kept before
+    kept_scene(evidence, "toy", levels, studies=1, planned=4)  # study 1, kept before
     about = json.loads((evidence / "toy.json").read_text())
     assert "tuning_studies" not in about
-    kept_scene(tmp_path / "elsewhere", "toy", levels, studies=1, first_seed=10)
+    kept_scene(tmp_path / "elsewhere", "toy", levels, studies=1, first_seed=10, planned=4)
     study_2 = study_runs.read_study(tmp_path / "elsewhere" / "toy")
     folder = root / "toy" / "study-2"
     folder.mkdir(parents=True)
@@ -292,6 +294,29 @@ def test_a_rule_added_after_a_scenes_first_studies_is_decided_over_the_studies_t
     assert "| 3 | better" in psgd and "| 1 |" not in psgd  # the study that ran it, by number
     hig = next(line for line in text.splitlines() if line.startswith("| hig |"))
     assert "studies ran it" not in hig
+
+
+@pytest.mark.parametrize(
+    ("hig", "verdict", "why"),
+    [
+        ([0.1, 0.1], "undecided", "2 of 2 tuning studies decided, 3 needed"),
+        ([0.1, 0.1, 0.1], A_BETTER, "3 of 3 tuning studies"),
+        ([0.1, 0.1, 1.0], "undecided", "the tuning studies disagree"),
+    ],
+)
+def test_a_scene_with_studies_still_to_run_needs_a_majority_of_those_planned(
+    tmp_path, hig, verdict, why
+):
+    """A re-run in progress (4 tuning studies planned): a rule ten times lower than Adam in 2 of
+    the 2 kept is not yet better (3 of 4 needed, as for a claim); in 3 of 3 it is; a study at
+    Adam's level (equivalent) leaves it undecided; each says how many studies have run."""
+    evidence = tmp_path / "evidence"
+    kept_scene(evidence, "toy", {"adam": [1.0] * len(hig), "hig": hig}, studies=len(hig), planned=4)
+    cell = leaderboard.board(evidence)["toy"][0]["hig"]
+    assert cell.verdict == verdict
+    assert why in cell.why and f"({len(hig)} of 4 tuning studies run)" in cell.why
+    text = leaderboard_cells.cell_text(cell, len(hig), planned=4)
+    assert f"({len(hig)} of 4 studies run: " in text
 
 
 def test_the_committed_page_is_what_the_committed_evidence_gives(tmp_path):
@@ -629,7 +654,8 @@ def test_the_current_protocols_studies_are_kept_apart_and_shown_as_a_re_run(tmp_
     rerun = text[text.index("## The re-run under the current protocol") :]
     assert "toy, lambda 0.01: 1 of 4" in rerun and "oscillators: 0 of 4" in rerun
     hig = next(line for line in rerun.splitlines() if line.startswith("| hig |"))
-    assert "**worse**" in hig and "10x" in hig
+    # one study of the four planned decides nothing yet; its verdict is said beside the cell
+    assert "**undecided** 10x" in hig and "(1 of 4 studies run: worse)" in hig
     main = text[: text.index("## The re-run")]
     assert "[**better**](leaderboard/toy.md#hig) 0.1" in main  # the published cell, unchanged
     # the page says at its head that its table is the earlier protocol's, and how far the re-run is
@@ -697,13 +723,21 @@ def test_the_expensive_rules_are_read_again_at_four_times_the_budget(tmp_path, m
     (folder / "study.json").write_text(
         json.dumps({"overrides": ["task=toy", "compare.knobs=true"]})
     )
-    kept_scene(tmp_path / "elsewhere", "toy", {"adam": [1.0], "hig": [0.1]}, studies=1, budget=40.0)
+    kept_scene(
+        tmp_path / "elsewhere",
+        "toy",
+        {"adam": [1.0], "hig": [0.1]},
+        studies=1,
+        budget=40.0,
+        planned=4,
+    )
     study = study_runs.read_study(tmp_path / "elsewhere" / "toy")
     monkeypatch.setattr(leaderboard_keep, "read_study", lambda p: study if p == folder else None)
     assert leaderboard.keep(root, evidence) == ["toy/longer-1"]
     assert json.loads((evidence / "toy_longer.json").read_text())["budget"] == 40.0
     text = leaderboard.write(evidence, tmp_path / "docs")
     line = next(line for line in text.splitlines() if line.startswith("  At 4x the budget (40 s"))
-    assert "1 of 4 studies" in line and "hig **better** 0.1x" in line and "150 steps" in line
+    # one of the four longer studies: not yet decided (3 of 4 needed)
+    assert "1 of 4 studies" in line and "hig **undecided** 0.1x" in line and "150 steps" in line
     hig = next(line for line in text.splitlines() if line.startswith("| hig |"))
     assert "worse" in hig  # at the budget, from the scene's own studies
