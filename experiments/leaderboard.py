@@ -28,32 +28,22 @@ from evidence import (  # experiments/
     CLOCK,
 )
 from leaderboard_cells import board, cell_text, longer_lines
-from leaderboard_detail import (
-    FOLDER,
-    link,
-    preset_line,
-    scene_notes,
-    scene_page,
-    scheduled_cost_line,
-    wall_line,
-)
+from leaderboard_detail import FOLDER, link, scene_budget_lines, wall_ratios
 from leaderboard_figure import plot
 from leaderboard_keep import keep
+from leaderboard_rerun import earlier_protocol_banner, rerun_pages, rerun_text
+from leaderboard_scene_page import scene_page
 from leaderboard_scenes import (
     BASELINE,
-    EXPENSIVE,
-    LEADERBOARD,
     LEADERBOARD_SEEDS,
     LEADERBOARD_STUDIES,
     LEADERBOARD_TRIALS,
     LITERATURE,
-    LONGER,
     LONGER_SUFFIX,
     RERUN,
     RULES,
     SCENES,
     WHY_IT_MAY_DIFFER,
-    kept_clock,
     planned_studies,
     where_scene_runs,
 )
@@ -62,7 +52,6 @@ from tuned_settings import tuned_table
 
 from physgrad.errors import UserError
 from physgrad.files import clean_text, make_folder, replace_file
-from physgrad.replication import majority
 from physgrad.verdict import (
     MARGIN,
 )
@@ -202,37 +191,45 @@ def scene_kind_lines(scenes, root: Path | None) -> list[str]:
     return [kinds_table(rows, read_kinds(KINDS)), both_pages_line("leaderboard")]
 
 
-def scene_budget_lines(entry, runs, about: dict) -> list[str]:
-    """A scene's item under "The scenes and their budgets": its overrides, budget, studies run and
-    machine; each rule's iterations in the budget; its per-rule presets; its clocks' notes."""
-    lines = []
-    studies = len(runs.tuning or (runs,))
-    its = about.get("iterations") or {}
-    clock = "calibrated clock" if runs.axis == "calibrated_time" else runs.axis
-    budget = f"{runs.budget:g} s ({clock})"
-    lines.append(
-        f"- **{entry.title}** (`{' '.join(entry.overrides)}`): {budget}; "
-        f"{studies} of {planned_studies(runs)} tuning studies finished"
-        + (
-            f" (preliminary: a verdict needs {majority(planned_studies(runs))} of the "
-            f"{planned_studies(runs)}, and each study's verdict so far is said beside it)"
-            if studies < planned_studies(runs)
-            else ""
-        )
-        + (f"; on {runs.machine}" if runs.machine else "")
-        + "."
+SCHEDULED_COST = "psgd_kron"  # a rule whose step cost falls along a run by its own schedule
+FIXED_COST = ("gd", "muon", "soap")  # element-wise rules whose every step costs the same
+
+
+def scheduled_cost_line(abouts: dict[str, dict], titles: dict[str, str]) -> str | None:
+    """The sentence on PSGD Kron and the clock: per scene, its runs' wall-clock time over Adam's at
+    the same calibrated budget (wall_ratios), beside the range of the fixed-cost element-wise
+    rules' as the noise of such a ratio; none where no scene recorded the rule's."""
+    measured = []
+    for scene, about in abouts.items():
+        charged_alike = {  # the studies whose clock charged PSGD Kron's steps alike
+            k: study
+            for k, study in (about.get("tuning_studies") or {}).items()
+            if SCHEDULED_COST not in (study.get("charged_by_schedule") or [])
+        }
+        ratios = wall_ratios({"tuning_studies": charged_alike})
+        if SCHEDULED_COST not in ratios:
+            continue
+        fixed = [ratios[r] for r in FIXED_COST if r in ratios]
+        span = sorted({f"{min(fixed):.2g}", f"{max(fixed):.2g}"}, key=float) if fixed else []
+        beside = f" (gd, Muon, SOAP: {'-'.join(span)}x)" if fixed else ""
+        measured.append(f"{titles.get(scene, scene)}: {ratios[SCHEDULED_COST]:.2g}x{beside}")
+    if not measured:
+        return None
+    return (
+        "PSGD Kron is charged more than its steps cost. It updates its preconditioner at every "
+        "step for its first 500 and at a falling rate after (to 3% of its steps by step 4,000), "
+        "and a calibration times its first steps (on most scenes a few hundred, nearly all of them "
+        "updating): the clock charges every step about an updating step's cost. Its runs took "
+        f"this much of {BASELINE}'s wall-clock time at the same "
+        "calibrated budget (median over the tuning studies that recorded runs trained alone): "
+        + "; ".join(measured)
+        + ". Where that is below the fixed-cost rules' ratios, PSGD Kron had less time than "
+        f"{BASELINE} by about that factor, and its cells understate it "
+        '(docs/benchmarks.md, "PSGD Kron on the calibrated clock", measures what its update '
+        "costs on each scene). A study whose calibration also timed PSGD Kron's step where its "
+        "schedule is at its floor charges each step its expected cost instead "
+        '(docs/decisions.md, "Timing") and is not counted here.'
     )
-    if its:
-        lines.append(
-            "  Iterations in the budget (median over the runs that reached it): "
-            + ", ".join(f"{v} {its[v]:.0f}" for v in (BASELINE, *entry.rules) if v in its)
-            + "."
-        )
-    presets, wall = preset_line(entry), wall_line(about)
-    lines += [f"  {presets}"] if presets else []
-    lines += [f"  {wall}"] if wall else []
-    lines += [f"  {note}" for note in scene_notes(about)]
-    return lines
 
 
 def literature_lines(found: dict) -> list[str]:
@@ -259,90 +256,6 @@ def literature_lines(found: dict) -> list[str]:
     return lines + ["", WHY_IT_MAY_DIFFER]
 
 
-def earlier_protocol_banner(root: Path | None) -> list[str]:
-    """The lines that head the page while its table is from the earlier protocol, because the
-    re-run under the current one (kept in root/rerun) has not finished every scene; none
-    otherwise."""
-    if root is None or not (root / RERUN.name).is_dir():
-        return []
-    found = board(root / RERUN.name)
-    kept = sum(len(runs.tuning or (runs,)) for _, runs, _ in found.values())
-    return [
-        "**The table and figure below are from an earlier protocol**: 3 tuning studies a scene, "
-        "the learning rate alone tuned, and a line search charged what the first steps cost. "
-        f"The re-run under the current protocol ({LEADERBOARD_STUDIES} tuning studies, each rule "
-        "tuned on its own knobs, line-search evaluations charged) has kept "
-        f"{kept} of {LEADERBOARD_STUDIES * len(SCENES)} studies so far (its section at the end); "
-        "until it has all of them, a cell here is the earlier protocol's.",
-        "",
-    ]
-
-
-def rerun_text(root: Path) -> str:
-    """The section on the re-run under the profile's current protocol, whose studies are kept in
-    root (docs/evidence/leaderboard/rerun) until every scene has all of them: what the protocol
-    is, each scene's studies kept, and the cells of those (preliminary); "" without such a
-    folder."""
-    if not root.is_dir():
-        return ""
-    found = board(root)
-    lines = [
-        "",
-        "## The re-run under the current protocol (in progress)",
-        "",
-        f"The profile now runs {LEADERBOARD_STUDIES} tuning studies a scene, each rule tuned on "
-        "its own knobs beside its learning rate (`compare.knobs=true`), every scene on a clock "
-        "measured afresh that charges a line search its evaluations and a knob that changes a "
-        "step's cost its cost at the tuned value (docs/protocol.md). Its studies are kept in "
-        "docs/evidence/leaderboard/rerun; the table above moves to them once every scene has "
-        "all of its studies"
-        + (
-            ", and until then the cells below are preliminary: a cell is decided when "
-            f"{majority(LEADERBOARD_STUDIES)} of the {LEADERBOARD_STUDIES} studies agree, none "
-            "against, as a claim is, and each kept study's verdict is said beside it."
-            if found
-            else "."
-        ),
-        "",
-    ]
-    kept = {name: len(runs.tuning or (runs,)) for name, (_, runs, _) in found.items()}
-    progress = [f"{e.title}: {kept.get(e.name, 0)} of {LEADERBOARD_STUDIES}" for e in SCENES]
-    expensive = {e.title: e.expensive(kept_clock(e, root)) for e in SCENES}
-    hours = sum(study.seconds() for study in LEADERBOARD) / 3600
-    lines += [
-        "Studies kept: " + "; ".join(progress) + ".",
-        "",
-        f"Read again at {LONGER}x the budget (a step above {EXPENSIVE:g} of Adam's on the scene's "
-        "clock, at the settings tuned at the budget: docs/protocol.md, section 7): "
-        + "; ".join(f"{title}: {', '.join(rules)}" for title, rules in expensive.items() if rules)
-        + f". The profile's {len(LEADERBOARD)} parts are planned at about {hours:.0f} h on 2 cores "
-        "(an upper bound: `make reproduce-figures PROFILE=leaderboard ARGS=--plan`).",
-    ]
-    scenes = [e for e in SCENES if e.name in found]
-    if scenes:
-        lines += [
-            "",
-            "| rule | " + " | ".join(e.title for e in scenes) + " |",
-            "|---|" + "---|" * len(scenes),
-        ]
-        for rule in RULES:
-            row = [
-                f"n/a: {e.refused[rule]}"
-                if rule in e.refused
-                else (
-                    cell_text(found[e.name][0][rule], kept[e.name], planned=LEADERBOARD_STUDIES)
-                    if rule in found[e.name][0]
-                    else "not run"
-                )
-                for e in scenes
-            ]
-            lines.append(f"| {rule} | " + " | ".join(row) + " |")
-    longer = board(root, LONGER_SUFFIX)
-    for entry in (e for e in SCENES if e.name in longer):
-        lines += ["", f"{entry.title}:", *longer_lines(entry, longer[entry.name], entry.budget)]
-    return "\n".join(lines) + "\n"
-
-
 def write(root: Path, out: Path) -> str:
     """leaderboard.md and leaderboard.png (and .pdf) in out, from kept evidence under root or from
     the study folders under root (kept first, into a temporary folder); returns the markdown."""
@@ -359,13 +272,15 @@ def write(root: Path, out: Path) -> str:
         plot(found, out / "leaderboard", earlier if earlier_protocol_banner(root) else "")
     longer = board(root, LONGER_SUFFIX)
     text = page(found, "leaderboard.png", root, longer) + tuned_table(root)
-    text += rerun_text(root / RERUN.name)
+    rerun = board(root / RERUN.name) if (root / RERUN.name).is_dir() else {}
+    text += rerun_text(root / RERUN.name, rerun)
     # through the write door: a link at a page's name, or at its folder, is not written through
     replace_file(out / "leaderboard.md", text.encode())
     make_folder(out / FOLDER)
     for entry in (e for e in SCENES if e.name in found):
         page_text = scene_page(entry, *found[entry.name])
         replace_file(out / FOLDER / f"{entry.name}.md", page_text.encode())
+    rerun_pages(rerun, out)
     return text
 
 

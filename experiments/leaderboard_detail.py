@@ -1,9 +1,7 @@
-"""The leaderboard's page per scene (docs/leaderboard/<scene>.md), which each cell of
-docs/leaderboard.md links to: every rule against Adam in each tuning study (its verdict with why,
-the median ratio with its interval, the seeds where the rule was lower, the ratios at 1/4 and 1/2 of
-the budget, the iterations of both rules) and over the studies; and what a scene's studies ran on
-(the clocks they share, the clock checks they kept). Generated from the kept evidence, as the
-leaderboard is: the study folders' compare.md are not kept, this is what stands in for them.
+"""What docs/leaderboard.md and its scene pages say about each scene beyond its cells: the links
+to the scene pages, the per-rule presets less what was tuned, each rule's wall-clock time against
+Adam's, what a study's clock charged, the scene's budget line, and what its studies ran on (the
+clocks they share, the clock checks they kept), all from the kept evidence.
 """
 
 from __future__ import annotations
@@ -12,12 +10,13 @@ import math
 import statistics
 from pathlib import Path
 
-from leaderboard_scenes import BASELINE, RULES, planned_studies
+from leaderboard_scenes import BASELINE, planned_studies
 
-from physgrad.readout import fmt
-from physgrad.verdict import A_BETTER, B_BETTER, EQUIVALENT, MARGIN
+from physgrad.replication import majority
+from physgrad.verdict import A_BETTER, B_BETTER, EQUIVALENT
 
 FOLDER = "leaderboard"  # beside leaderboard.md
+RERUN_PAGES = f"{FOLDER}/rerun"  # the re-run's scene pages, while it is in progress
 # a verdict of rule (A) against Adam (B) as the leaderboard says it
 MARKS = {A_BETTER: "better", B_BETTER: "worse", EQUIVALENT: "equivalent"}
 
@@ -26,9 +25,10 @@ def mark(verdict: str) -> str:
     return MARKS.get(verdict, "undecided")
 
 
-def link(scene: str, rule: str) -> str:
-    """Where a cell of docs/leaderboard.md points: the rule's section of its scene's page."""
-    return f"{FOLDER}/{scene}.md#{rule}"
+def link(scene: str, rule: str, folder: str = FOLDER) -> str:
+    """Where a cell of docs/leaderboard.md points: the rule's section of its scene's page (in
+    folder: FOLDER, or RERUN_PAGES for the re-run's)."""
+    return f"{folder}/{scene}.md#{rule}"
 
 
 def clock_groups(by_study: dict, tolerance: float = 0.01) -> list[list[str]]:
@@ -75,11 +75,13 @@ def _setting(key: str, value) -> str:
     return f"{key}={_value(value)}"
 
 
-def preset_settings(entry) -> dict[str, list[str]]:
+def preset_settings(entry, tuned: dict | None = None) -> dict[str, list[str]]:
     """Per rule of a scene, the settings its per-scene preset (conf/tuning/<task>_<rule>.yaml,
     composed by physgrad's config for that task and optim: batch sizes, damping, a schedule's shape
-    from the papers) gives it, the learning rate left out (compare tunes it); rules without one
-    run at their conf/optim preset and the scene's settings."""
+    from the papers) gives it, the learning rate left out (compare tunes it), and the rule's keys
+    its studies tuned (tuned: rule -> keys, tuned_keys); rules without one run at their conf/optim
+    preset and the scene's settings."""
+    tuned = tuned or {}
     from omegaconf import OmegaConf
 
     folders = [ROOT / "conf" / "tuning"]
@@ -98,21 +100,37 @@ def preset_settings(entry) -> dict[str, list[str]]:
             for key, value in (values or {}).items():
                 if group == "optim" and key == "learning_rate" and not isinstance(value, dict):
                     continue
+                if group == "optim" and key in tuned.get(rule, ()):
+                    continue  # tuned: what a study ran is in its tuned settings
                 settings.append(_setting(f"{group}.{key}", value))
         if settings:
             found[rule] = settings
     return found
 
 
-def preset_line(entry) -> str | None:
-    """The sentence that names a scene's per-rule presets (none where no rule has one)."""
-    found = preset_settings(entry)
+def tuned_keys(about: dict) -> dict[str, set[str]]:
+    """rule -> the keys a scene's kept tuning studies tuned it on (their trials' keys)."""
+    found: dict[str, set[str]] = {}
+    for record in (about.get("tuning_studies") or {}).values():
+        for trial in record.get("trials") or ():
+            keys = set(trial) - {"variant", "validation_loss"}
+            found.setdefault(str(trial.get("variant")), set()).update(keys)
+    return found
+
+
+def preset_line(entry, tuned: dict | None = None) -> str | None:
+    """The sentence that names a scene's per-rule presets, less the keys tuned (tuned_keys); none
+    where no rule has one."""
+    found = preset_settings(entry, tuned)
     if not found:
         return None
+    knobs = any(keys - {"learning_rate"} for keys in (tuned or {}).values())
     return (
         f"Per-rule settings (conf/tuning/{entry.name}_<rule>.yaml at this commit; a study kept "
         "before a setting changed ran its own commit's, the evidence's `commits`; the learning "
-        "rate, or a schedule's init_value, is tuned): "
+        "rate, or a schedule's init_value, is tuned"
+        + (", and so are the rules' knobs: each study's values are on the scene's page" * knobs)
+        + "): "
         + "; ".join(f"{rule} {', '.join(settings)}" for rule, settings in found.items())
         + ". The other rules run at their presets (conf/optim) with the scene's settings."
     )
@@ -161,12 +179,17 @@ def charged_by_clock(calibration: Path) -> dict[str, list[str]]:
 
 def wall_ratios(about: dict) -> dict[str, float]:
     """Per rule, its median wall-clock seconds of training in a run over Adam's in the same tuning
-    study, the median over the studies that recorded both (a study's load slows its rules alike,
-    so the ratio within a study is what the rule's steps cost)."""
+    study, the median over the studies that recorded the rule's (a study's load slows its rules
+    alike, so the ratio within a study is what the rule's steps cost). Where Adam's seeds trained
+    together (the job's time is not a run's: wall_seconds_in_budget), Adam's is the budget: its
+    steps cost the same all along, which is what the calibration timed, so a run of it alone
+    takes the budget (10.0 to 11.1 s of 10 s, 15.3 s of 15, where the leaderboard's first studies
+    timed Adam's runs alone)."""
+    budget = float(about.get("budget") or math.nan)
     ratios: dict[str, list[float]] = {}
     for record in (about.get("tuning_studies") or {}).values():
         wall = record.get("wall_seconds") or {}
-        adam = wall.get(BASELINE, math.nan)
+        adam = wall.get(BASELINE, budget)
         for rule, seconds in wall.items():
             if rule != BASELINE and adam > 0 and math.isfinite(seconds / adam):
                 ratios.setdefault(rule, []).append(seconds / adam)
@@ -178,22 +201,35 @@ WALL_FACTOR = 1.5  # a rule whose runs took this factor longer (or shorter) than
 
 def wall_line(about: dict) -> str | None:
     """The sentence that names the rules whose runs took a different wall-clock time from Adam's
-    at the same calibrated budget (none where every rule's is within WALL_FACTOR)."""
+    at the same calibrated budget (none where every rule's is within WALL_FACTOR), and which rules
+    were timed: a rule whose seeds trained together was not timed one run at a time."""
     ratios = wall_ratios(about)
-    far = {r: x for r, x in ratios.items() if x >= WALL_FACTOR or x <= 1 / WALL_FACTOR}
     if not ratios:
         return None
-    counted = sum(bool(s.get("wall_seconds")) for s in (about.get("tuning_studies") or {}).values())
+    far = {r: x for r, x in ratios.items() if x >= WALL_FACTOR or x <= 1 / WALL_FACTOR}
+    timed = [s.get("wall_seconds") for s in (about.get("tuning_studies") or {}).values()]
+    counted = sum(bool(wall) for wall in timed)
+    # a study whose Adam runs trained together: its budget stands for a run of Adam's
+    budget = (
+        f"; {BASELINE}'s, where its seeds trained together, the budget: its steps cost what the "
+        "calibration timed"
+        if any(wall and BASELINE not in wall for wall in timed)
+        else ""
+    )
+    over = f"median over {counted} tuning {'study' if counted == 1 else 'studies'}{budget}"
+    untimed = sorted(set(about.get("iterations") or {}) - set(ratios) - {BASELINE})
+    if untimed:  # their runs trained together: a vectorised step's time is not one run's
+        over += f"; not timed one run at a time, their seeds trained together: {', '.join(untimed)}"
+    said = ", ".join(f"{r} {x:.2g}x" for r, x in sorted(ratios.items(), key=lambda i: -i[1]))
     if not far:
         return (
-            f"Wall-clock time of a run: every rule's within {WALL_FACTOR:g}x of {BASELINE}'s "
-            f"(median over {counted} tuning {'study' if counted == 1 else 'studies'})."
+            f"Wall-clock time of a run against {BASELINE}'s at the same calibrated budget "
+            f"({over}): {said}; every one within {WALL_FACTOR:g}x."
         )
     return (
-        f"Wall-clock time of a run against {BASELINE}'s at the same calibrated budget (median "
-        f"over {counted} tuning {'study' if counted == 1 else 'studies'}): "
-        + ", ".join(f"{r} {x:.2g}x" for r, x in sorted(far.items(), key=lambda i: -i[1]))
-        + f"; the others within {WALL_FACTOR:g}x. The clock counts each step at its calibrated "
+        f"Wall-clock time of a run against {BASELINE}'s at the same calibrated budget ({over}): "
+        f"{said}; beyond {WALL_FACTOR:g}x either way: {', '.join(sorted(far))}. "
+        "The clock counts each step at its calibrated "
         "cost, and a step whose cost varies along a run (a line search's evaluations; PSGD "
         "Kron's preconditioner update, at every step for the first 500 and rarer after) can cost "
         "more or less in the runs than in the calibration, which times the first steps (and, "
@@ -216,45 +252,37 @@ def _evaluations_said(about: dict) -> str:
     )
 
 
-SCHEDULED_COST = "psgd_kron"  # a rule whose step cost falls along a run by its own schedule
-FIXED_COST = ("gd", "muon", "soap")  # element-wise rules whose every step costs the same
-
-
-def scheduled_cost_line(abouts: dict[str, dict], titles: dict[str, str]) -> str | None:
-    """The sentence on PSGD Kron and the clock: per scene, its runs' wall-clock time over Adam's at
-    the same calibrated budget (wall_ratios), beside the range of the fixed-cost element-wise
-    rules' as the noise of such a ratio; none where no scene recorded the rule's."""
-    measured = []
-    for scene, about in abouts.items():
-        charged_alike = {  # the studies whose clock charged PSGD Kron's steps alike
-            k: study
-            for k, study in (about.get("tuning_studies") or {}).items()
-            if SCHEDULED_COST not in (study.get("charged_by_schedule") or [])
-        }
-        ratios = wall_ratios({"tuning_studies": charged_alike})
-        if SCHEDULED_COST not in ratios:
-            continue
-        fixed = [ratios[r] for r in FIXED_COST if r in ratios]
-        span = sorted({f"{min(fixed):.2g}", f"{max(fixed):.2g}"}, key=float) if fixed else []
-        beside = f" (gd, Muon, SOAP: {'-'.join(span)}x)" if fixed else ""
-        measured.append(f"{titles.get(scene, scene)}: {ratios[SCHEDULED_COST]:.2g}x{beside}")
-    if not measured:
-        return None
-    return (
-        "PSGD Kron is charged more than its steps cost. It updates its preconditioner at every "
-        "step for its first 500 and at a falling rate after (to 3% of its steps by step 4,000), "
-        "and a calibration times its first steps (on most scenes a few hundred, nearly all of them "
-        "updating): the clock charges every step about an updating step's cost. Its runs took "
-        f"this much of {BASELINE}'s wall-clock time at the same "
-        "calibrated budget (median over the tuning studies that recorded runs trained alone): "
-        + "; ".join(measured)
-        + ". Where that is below the fixed-cost rules' ratios, PSGD Kron had less time than "
-        f"{BASELINE} by about that factor, and its cells understate it "
-        '(docs/benchmarks.md, "PSGD Kron on the calibrated clock", measures what its update '
-        "costs on each scene). A study whose calibration also timed PSGD Kron's step where its "
-        "schedule is at its floor charges each step its expected cost instead "
-        '(docs/decisions.md, "Timing") and is not counted here.'
+def scene_budget_lines(entry, runs, about: dict) -> list[str]:
+    """A scene's item under "The scenes and their budgets": its overrides, budget, studies run and
+    machine; each rule's iterations in the budget; its per-rule presets; its clocks' notes."""
+    lines = []
+    studies = len(runs.tuning or (runs,))
+    its = about.get("iterations") or {}
+    clock = "calibrated clock" if runs.axis == "calibrated_time" else runs.axis
+    budget = f"{runs.budget:g} s ({clock})"
+    lines.append(
+        f"- **{entry.title}** (`{' '.join(entry.overrides)}`): {budget}; "
+        f"{studies} of {planned_studies(runs)} tuning studies finished"
+        + (
+            f" (preliminary: a verdict needs {majority(planned_studies(runs))} of the "
+            f"{planned_studies(runs)}, and each study's verdict so far is said beside it)"
+            if studies < planned_studies(runs)
+            else ""
+        )
+        + (f"; on {runs.machine}" if runs.machine else "")
+        + "."
     )
+    if its:
+        lines.append(
+            "  Iterations in the budget (median over the runs that reached it): "
+            + ", ".join(f"{v} {its[v]:.0f}" for v in (BASELINE, *entry.rules) if v in its)
+            + "."
+        )
+    presets, wall = preset_line(entry, tuned_keys(about)), wall_line(about)
+    lines += [f"  {presets}"] if presets else []
+    lines += [f"  {wall}"] if wall else []
+    lines += [f"  {note}" for note in scene_notes(about)]
+    return lines
 
 
 def _studies(keys: list[str]) -> str:
@@ -286,114 +314,3 @@ def scene_notes(about: dict) -> list[str]:
             "better there may be one its compare called undecided."
         )
     return notes
-
-
-def _its(iterations: dict, rule: str) -> str:
-    value = iterations.get(rule, math.nan)
-    return f"{value:.0f}" if math.isfinite(value) else "-"
-
-
-def _ratio(p) -> str:
-    from physgrad.verdict import ratio_of
-
-    return f"{fmt(p.ratio)} [{fmt(ratio_of(p.low))}, {fmt(ratio_of(p.high))}]"
-
-
-def scene_page(entry, cells: dict, runs, about: dict) -> str:
-    """docs/leaderboard/<scene>.md: per rule a table of its tuning studies and their pooled
-    verdict (the cell)."""
-    by_study = about.get("tuning_studies") or {}
-    studies = len(runs.tuning or (runs,))
-    lines = [
-        f"# {entry.title}: each rule against {BASELINE}, per tuning study",
-        "",
-        "<!-- generated by experiments/leaderboard.py from docs/evidence/leaderboard: do not "
-        "edit -->",
-        "",
-        f"`physgrad compare {' '.join(entry.overrides)}` with `compare.baseline={BASELINE}`, "
-        f"{runs.budget:g} s on the calibrated clock; {studies} of {planned_studies(runs)} tuning "
-        f"studies kept; on {runs.machine or 'a machine not recorded'}. Back to the "
-        "[leaderboard](../leaderboard.md).",
-        "",
-        *(note + "\n" for note in scene_notes(about)),
-        "Per study: the verdict at the budget X with why (A: the rule, B: Adam; better: the "
-        "rule's test loss below "
-        f"{BASELINE}'s beyond a factor {MARGIN:g}; Holm over the study's comparisons with "
-        f"{BASELINE}), the median ratio rule / {BASELINE} of the test loss with its 95% interval, "
-        "the seeds where the rule was lower, the ratios at X/4 and X/2, and each rule's median "
-        "iterations in the budget. The last row is the leaderboard's cell: the verdict over the "
-        "studies (physgrad.replication.across_studies) with why, the median ratio over every "
-        "study's seeds, and the span of the studies' intervals (lowest low to highest high: "
-        "descriptive, not a confidence interval).",
-    ]
-    keys = sorted(by_study, key=int) if len(by_study) == studies else []
-    for rule, cell in sorted(cells.items(), key=lambda item: RULES.index(item[0])):
-        lines += [
-            "",
-            f"## {rule}",
-            "",
-            "| tuning study | verdict at X | ratio at X | lower in | at X/4 | at X/2 | iterations "
-            "|",
-            "|---|---|---|---|---|---|---|",
-        ]
-        for k, result in cell.detail:
-            # each study's iterations where kept per study, else the scene's
-            its = (by_study[keys[k]] if keys else about).get("iterations") or {}
-            verdict, why = result.verdicts[1.0]
-            p = result.at[1.0]
-            lines.append(
-                f"| {keys[k] if keys else k + 1} | {mark(verdict)} ({why}) | {_ratio(p)} | "
-                f"{p.wins_a} of {p.pairs} | "
-                + " | ".join(
-                    f"{fmt(result.at[f].ratio)} ({mark(result.verdicts[f][0])})"
-                    for f in (0.25, 0.5)
-                )
-                + f" | {rule} {_its(its, rule)}, {BASELINE} {_its(its, BASELINE)} |"
-            )
-        lines.append(
-            f"| over the studies | **{mark(cell.verdict)}**"
-            + (f" ({cell.why})" if cell.why else "")
-            + f" | {fmt(cell.ratio)} [{fmt(cell.low)}, "
-            f"{fmt(cell.high)}] | {cell.wins} of {cell.pairs} | | | |"
-        )
-        lines += ["", detectable_line(cell, len(cells))]
-    return "\n".join(lines) + "\n"
-
-
-def detectable_line(cell, comparisons: int) -> str:
-    """The smallest ratio rule / Adam (either way) that a cell's design finds with 80% power
-    (physgrad.power.detectable_ratio, as compare.md states it per pair), from what its tuning
-    studies measured at the budget: the seeds' spread of the log ratios, the spread between the
-    studies and both rules' divergence rates; for its seeds per study, its studies and Holm over
-    the scene's comparisons with Adam."""
-    from types import SimpleNamespace
-
-    from physgrad.power import POWER, detectable_ratio, measured
-
-    results = [result for _, result in cell.detail]
-    sd, between, divergence, other = measured(SimpleNamespace(studies=results))
-    ratio = (
-        detectable_ratio(
-            sd,
-            results[0].at[1.0].seeds,
-            comparisons,
-            len(results),
-            divergence=divergence,
-            between=between,
-            divergence_other=other,
-        )
-        if results
-        else math.nan
-    )
-    if math.isnan(ratio):
-        said = "not measured (fewer than 3 finite log ratios)"
-    elif math.isinf(ratio):
-        said = "none (too few seeds, or too many divergences)"
-    else:
-        said = f"{fmt(ratio)}x"
-    return (
-        f"Detectable: {said}: the smallest ratio either way that these {len(results)} tuning "
-        f"{'study finds' if len(results) == 1 else 'studies find'} with {POWER:.0%} power (the "
-        "seeds' spread, the spread between the studies and the divergences they measured); an "
-        "undecided cell with a large detectable ratio says little."
-    )

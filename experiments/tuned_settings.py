@@ -32,22 +32,8 @@ def tuned_table(root: Path) -> str:
             continue
         by_variant: dict[str, list[str]] = {}
         for k in sorted(studies, key=lambda key: int(key) if str(key).isdigit() else 0):
-            study = studies[k] if isinstance(studies[k], dict) else {}
-            trials = study.get("trials") if isinstance(study.get("trials"), list) else []
-            tuned = study.get("tuned") if isinstance(study.get("tuned"), dict) else {}
-            for variant, values in sorted(tuned.items()):
-                if not isinstance(values, dict):
-                    continue
-                said = []
-                for key, value in sorted(values.items()):
-                    tried = [
-                        float(t[key])
-                        for t in trials
-                        if isinstance(t, dict) and t.get("variant") == variant and key in t
-                    ]
-                    span = f" of [{fmt(min(tried))}, {fmt(max(tried))}]" if tried else ""
-                    said.append(f"{key}={fmt(float(value))}{span}{_edge(float(value), tried)}")
-                by_variant.setdefault(str(variant), []).append(f"study {k}: " + ", ".join(said))
+            for variant, said in tuned_in_study(studies[k]).items():
+                by_variant.setdefault(variant, []).append(f"study {k}: {said}")
         rows += [f"| {path.stem} | {v} | {'; '.join(t)} |" for v, t in by_variant.items()]
         if not by_variant and _tuned(record) and not path.stem.endswith("-preset"):
             rows.append(
@@ -66,6 +52,30 @@ def tuned_table(root: Path) -> str:
         "it:\n\n"
         "| study | variant | tuned |\n|---|---|---|\n" + "\n".join(rows) + "\n"
     )
+
+
+def tuned_in_study(study: object) -> dict[str, str]:
+    """variant -> what one tuning study's record (its `tuned` and `trials`) says it chose: each
+    tuned key as key=value with the span its trials tried, *edge* where the value lies in the
+    outer tenth of that span; {} for a record without them."""
+    study = study if isinstance(study, dict) else {}
+    trials = study.get("trials") if isinstance(study.get("trials"), list) else []
+    tuned = study.get("tuned") if isinstance(study.get("tuned"), dict) else {}
+    found = {}
+    for variant, values in sorted(tuned.items()):
+        if not isinstance(values, dict):
+            continue
+        said = []
+        for key, value in sorted(values.items()):
+            tried = [
+                float(t[key])
+                for t in trials
+                if isinstance(t, dict) and t.get("variant") == variant and key in t
+            ]
+            span = f" of [{fmt(min(tried))}, {fmt(max(tried))}]" if tried else ""
+            said.append(f"{key}={fmt(float(value))}{span}{_edge(float(value), tried)}")
+        found[str(variant)] = ", ".join(said)
+    return found
 
 
 def _tuned(record: dict) -> bool:

@@ -326,12 +326,15 @@ def test_the_committed_page_is_what_the_committed_evidence_gives(tmp_path):
     assert sorted(p.stem for p in evidence.glob("*.csv")), "no kept evidence"
     text = leaderboard.write(evidence, tmp_path)
     assert text == (REPO / "docs" / "leaderboard.md").read_text()
-    pages = sorted(p.name for p in (REPO / "docs" / "leaderboard").glob("*.md"))
-    assert pages == sorted(p.name for p in (tmp_path / "leaderboard").glob("*.md"))
+    pages = sorted(
+        str(p.relative_to(REPO / "docs")) for p in (REPO / "docs").glob("leaderboard/**/*.md")
+    )
+    assert pages == sorted(
+        str(p.relative_to(tmp_path)) for p in tmp_path.glob("leaderboard/**/*.md")
+    )
+    assert "leaderboard/rerun/toy.md" in pages  # the re-run's scene pages too
     for name in pages:
-        assert (tmp_path / "leaderboard" / name).read_text() == (
-            REPO / "docs" / "leaderboard" / name
-        ).read_text()
+        assert (tmp_path / name).read_text() == (REPO / "docs" / name).read_text()
     assert (tmp_path / "leaderboard.png").stat().st_size > 10_000
 
 
@@ -490,11 +493,32 @@ def test_the_wall_clock_ratios_are_within_a_study_then_the_median_over_studies()
     ratios = leaderboard_detail.wall_ratios({"tuning_studies": studies})
     assert ratios == pytest.approx({"lbfgs": 3.0, "psgd_kron": 0.6, "soap": 1.0})
     line = leaderboard_detail.wall_line({"tuning_studies": studies})
-    assert "median over 3 tuning studies" in line
-    assert "lbfgs 3x" in line and "psgd_kron 0.6x" in line and "soap" not in line
+    assert "median over 3 tuning studies)" in line and "lbfgs 3x, soap 1x, psgd_kron 0.6x" in line
+    assert "beyond 1.5x either way: lbfgs, psgd_kron." in line
     even = {"1": {"wall_seconds": {"adam": 20.0, "soap": 21.0}}}
-    assert "within 1.5x" in leaderboard_detail.wall_line({"tuning_studies": even})
+    assert "soap 1.1x; every one within 1.5x" in leaderboard_detail.wall_line(
+        {"tuning_studies": even}
+    )
     assert leaderboard_detail.wall_line({"tuning_studies": {"1": {}}}) is None
+    # Adam's seeds trained together (not timed one run at a time): the budget stands for a run of
+    # Adam's, whose steps cost what the calibration timed; the rules not timed alone are named
+    together = {
+        "budget": 20.0,
+        "iterations": {"adam": 9.0, "lbfgs": 3.0, "soap": 8.0},
+        "tuning_studies": {
+            "1": {"wall_seconds": {"lbfgs": 30.0}},
+            "2": {"wall_seconds": {"lbfgs": 50.0}},
+            "3": {"wall_seconds": {"adam": 25.0, "lbfgs": 50.0}},
+        },
+    }
+    assert leaderboard_detail.wall_ratios(together) == pytest.approx({"lbfgs": 2.0})
+    line = leaderboard_detail.wall_line(together)
+    assert "adam's, where its seeds trained together, the budget" in line
+    assert "not timed one run at a time, their seeds trained together: soap)" in line
+    assert "lbfgs 2x; beyond 1.5x either way: lbfgs." in line
+    assert leaderboard_detail.wall_ratios({**together, "budget": None}) == pytest.approx(
+        {"lbfgs": 2.0}  # no budget recorded: the one study that timed Adam
+    )
     assert leaderboard_detail.wall_seconds_in_budget(table.drop(columns="train_seconds")) == {}
     # a cell whose rule's runs took 1.5x Adam's wall-clock time or more (or 1/1.5 or less) says so
     from leaderboard_cells import Cell, cell_text
@@ -521,7 +545,7 @@ def test_psgd_krons_time_is_said_per_scene_beside_the_fixed_cost_rules():
         "2": {"wall_seconds": {"adam": 10.0, "psgd_kron": 9.0, "muon": 12.0}},
     }
     without = {"1": {"wall_seconds": {"adam": 10.0, "soap": 10.0}}}
-    line = leaderboard_detail.scheduled_cost_line(
+    line = leaderboard.scheduled_cost_line(
         {
             "a": {"tuning_studies": one},
             "b": {"tuning_studies": two},
@@ -531,18 +555,15 @@ def test_psgd_krons_time_is_said_per_scene_beside_the_fixed_cost_rules():
     )
     assert "Scene A: 0.65x (gd, Muon, SOAP: 0.95-1.1x); b: 0.8x (gd, Muon, SOAP: 1.1x)" in line
     assert "c:" not in line and "\n" not in line
-    assert leaderboard_detail.scheduled_cost_line({"c": {"tuning_studies": without}}, {}) is None
+    assert leaderboard.scheduled_cost_line({"c": {"tuning_studies": without}}, {}) is None
     # a study whose clock charged PSGD Kron its expected cost is not counted: scene b's second
     # study alone is left (0.9x), and a scene with only such studies says nothing
     charged = {**two["1"], "charged_by_schedule": ["psgd_kron"]}
-    line = leaderboard_detail.scheduled_cost_line(
+    line = leaderboard.scheduled_cost_line(
         {"b": {"tuning_studies": {"1": charged, "2": two["2"]}}}, {}
     )
     assert "b: 0.9x (gd, Muon, SOAP: 1.2x)" in line
-    assert (
-        leaderboard_detail.scheduled_cost_line({"b": {"tuning_studies": {"1": charged}}}, {})
-        is None
-    )
+    assert leaderboard.scheduled_cost_line({"b": {"tuning_studies": {"1": charged}}}, {}) is None
 
 
 def test_the_rules_a_studys_calibration_charged_by_their_schedule_are_read_from_it(tmp_path):
@@ -655,7 +676,8 @@ def test_the_current_protocols_studies_are_kept_apart_and_shown_as_a_re_run(tmp_
     assert "toy, lambda 0.01: 1 of 4" in rerun and "oscillators: 0 of 4" in rerun
     hig = next(line for line in rerun.splitlines() if line.startswith("| hig |"))
     # one study of the four planned decides nothing yet; its verdict is said beside the cell
-    assert "**undecided** 10x" in hig and "(1 of 4 studies run: worse)" in hig
+    assert "[**undecided**](leaderboard/rerun/toy.md#hig) 10x" in hig
+    assert "(1 of 4 studies run: worse)" in hig
     main = text[: text.index("## The re-run")]
     assert "[**better**](leaderboard/toy.md#hig) 0.1" in main  # the published cell, unchanged
     # the page says at its head that its table is the earlier protocol's, and how far the re-run is
@@ -689,6 +711,60 @@ def test_the_current_protocols_studies_are_kept_apart_and_shown_as_a_re_run(tmp_
     with pytest.raises(UserError, match="toy.json keeps studies of another protocol"):
         leaderboard.keep(root, evidence)
     assert not (evidence / "oscillator.json").exists()
+
+
+def test_the_re_runs_cells_link_to_its_scene_pages_with_what_each_study_tuned(tmp_path):
+    """The re-run's preliminary cells link to its own scene pages (docs/leaderboard/rerun), which
+    give each study's tuned values with the span its trials tried, *edge* in the outer tenth of it
+    (known answers); its section gives each scene's budget line, where a preset the studies tuned
+    is not said as a preset; the published pages stay where they were."""
+    evidence = tmp_path / "evidence"
+    kept_scene(evidence, "toy", {"adam": [1.0] * 3, "hig": [0.1] * 3}, planned=3)
+    rerun = evidence / "rerun"
+    levels = {"adam": [1.0] * 2, "hig": [0.1] * 2, "gauss_newton": [1.0] * 2}
+    kept_scene(rerun, "toy", levels, studies=2, planned=4)
+    about = json.loads((rerun / "toy.json").read_text())
+    tried = [1e-9, 1e-7, 1e-5, 1e-3]
+
+    def trials(rule, k):  # the tau of each trial; the learning rate of the trial the same
+        return [
+            {"variant": rule, "learning_rate": 0.1 * k, "tau": t, "validation_loss": 1.0}
+            for t in tried
+        ]
+
+    about["tuning_studies"] = {
+        str(k): {
+            "iterations": about["iterations"],
+            "undecided_by_the_clock": {},
+            # study 1 chose a tau in the middle of its trials' span, study 2 one at its top
+            "tuned": {"gauss_newton": {"learning_rate": 0.1 * k, "tau": [1e-6, 1e-3][k - 1]}},
+            "trials": trials("gauss_newton", k),
+        }
+        for k in (1, 2)
+    }
+    (rerun / "toy.json").write_text(json.dumps(about))
+    text = leaderboard.write(evidence, tmp_path / "docs")
+    section = text[text.index("## The re-run under the current protocol") :]
+    row = next(line for line in section.splitlines() if line.startswith("| gauss_newton |"))
+    assert "[**undecided**](leaderboard/rerun/toy.md#gauss_newton)" in row
+    assert "- **toy, lambda 0.01** (`task=toy task.scale=0.01`)" in section
+    assert "2 of 4 tuning studies finished (preliminary: a verdict needs 3 of the 4" in section
+    # the toy's preset of Gauss-Newton's tau (conf/tuning/toy_gauss_newton.yaml) is tuned here
+    assert "optim.tau" not in section
+    assert "optim.tau=" in text[: text.index("## The re-run")]  # the published studies': a preset
+    page = (tmp_path / "docs" / "leaderboard" / "rerun" / "toy.md").read_text()
+    assert "(the re-run under the current protocol)" in page.splitlines()[0]
+    assert "[leaderboard](../../leaderboard.md#the-re-run-under-the-current-protocol-in-" in page
+    gauss = page.split("## gauss_newton\n")[1].split("\n## ")[0]
+    rows = [line for line in gauss.splitlines() if line.startswith("| ")]
+    assert rows[0].endswith("| iterations | tuned |")
+    assert rows[1].endswith("| learning_rate=0.1 of [0.1, 0.1], tau=1e-06 of [1e-09, 0.001] |")
+    assert rows[2].startswith("| 2 |") and rows[2].endswith("tau=0.001 of [1e-09, 0.001] *edge* |")
+    assert rows[3].startswith("| over the studies |") and rows[3].count("|") == rows[0].count("|")
+    hig = page.split("## hig\n")[1].split("\n## ")[0]
+    assert "| - |" in hig  # a rule whose tuning the record does not give
+    assert "Detectable:" in gauss
+    assert (tmp_path / "docs" / "leaderboard" / "toy.md").is_file()  # the published scene's
 
 
 def test_the_expensive_rules_are_read_again_at_four_times_the_budget(tmp_path, monkeypatch):

@@ -1,0 +1,135 @@
+"""The leaderboard's re-run under the profile's current protocol while it is in progress: the
+banner that heads docs/leaderboard.md while its table is the earlier protocol's, the re-run's
+section at the page's end (its studies kept, its preliminary cells, each scene's budget and
+clock) and its scene pages in docs/leaderboard/rerun (experiments/leaderboard.py writes them)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from leaderboard_cells import board, cell_text, longer_lines
+from leaderboard_detail import FOLDER, RERUN_PAGES, link, scene_budget_lines
+from leaderboard_scene_page import scene_page
+from leaderboard_scenes import (
+    EXPENSIVE,
+    LEADERBOARD,
+    LEADERBOARD_STUDIES,
+    LONGER,
+    LONGER_SUFFIX,
+    RERUN,
+    RULES,
+    SCENES,
+    kept_clock,
+)
+
+from physgrad.files import make_folder, replace_file
+from physgrad.replication import majority
+
+PAGE = "leaderboard.md"
+RERUN_HEADING = "The re-run under the current protocol (in progress)"
+RERUN_ANCHOR = "the-re-run-under-the-current-protocol-in-progress"  # GitHub's anchor of it
+
+
+def earlier_protocol_banner(root: Path | None) -> list[str]:
+    """The lines that head the page while its table is from the earlier protocol, because the
+    re-run under the current one (kept in root/rerun) has not finished every scene; none
+    otherwise."""
+    if root is None or not (root / RERUN.name).is_dir():
+        return []
+    found = board(root / RERUN.name)
+    kept = sum(len(runs.tuning or (runs,)) for _, runs, _ in found.values())
+    return [
+        "**The table and figure below are from an earlier protocol**: 3 tuning studies a scene, "
+        "the learning rate alone tuned, and a line search charged what the first steps cost. "
+        f"The re-run under the current protocol ({LEADERBOARD_STUDIES} tuning studies, each rule "
+        "tuned on its own knobs, line-search evaluations charged) has kept "
+        f"{kept} of {LEADERBOARD_STUDIES * len(SCENES)} studies so far (its section at the end); "
+        "until it has all of them, a cell here is the earlier protocol's.",
+        "",
+    ]
+
+
+def rerun_text(root: Path, found: dict) -> str:
+    """The section on the re-run under the profile's current protocol, whose studies are kept in
+    root (docs/evidence/leaderboard/rerun) until every scene has all of them: what the protocol
+    is, each scene's studies kept, the cells of those (preliminary, each a link to its scene's
+    page: rerun_pages), and each scene's budget, iterations, presets and wall-clock times; found:
+    board(root). "" without such a folder."""
+    if not root.is_dir():
+        return ""
+    lines = [
+        "",
+        f"## {RERUN_HEADING}",
+        "",
+        f"The profile now runs {LEADERBOARD_STUDIES} tuning studies a scene, each rule tuned on "
+        "its own knobs beside its learning rate (`compare.knobs=true`), every scene on a clock "
+        "measured afresh that charges a line search its evaluations and a knob that changes a "
+        "step's cost its cost at the tuned value (docs/protocol.md). Its studies are kept in "
+        "docs/evidence/leaderboard/rerun; the table above moves to them once every scene has "
+        "all of its studies"
+        + (
+            ", and until then the cells below are preliminary: a cell is decided when "
+            f"{majority(LEADERBOARD_STUDIES)} of the {LEADERBOARD_STUDIES} studies agree, none "
+            "against, as a claim is, and each kept study's verdict is said beside it."
+            if found
+            else "."
+        ),
+        "",
+    ]
+    kept = {name: len(runs.tuning or (runs,)) for name, (_, runs, _) in found.items()}
+    progress = [f"{e.title}: {kept.get(e.name, 0)} of {LEADERBOARD_STUDIES}" for e in SCENES]
+    expensive = {e.title: e.expensive(kept_clock(e, root)) for e in SCENES}
+    hours = sum(study.seconds() for study in LEADERBOARD) / 3600
+    lines += [
+        "Studies kept: " + "; ".join(progress) + ".",
+        "",
+        f"Read again at {LONGER}x the budget (a step above {EXPENSIVE:g} of Adam's on the scene's "
+        "clock, at the settings tuned at the budget: docs/protocol.md, section 7): "
+        + "; ".join(f"{title}: {', '.join(rules)}" for title, rules in expensive.items() if rules)
+        + f". The profile's {len(LEADERBOARD)} parts are planned at about {hours:.0f} h on 2 cores "
+        "(an upper bound: `make reproduce-figures PROFILE=leaderboard ARGS=--plan`).",
+    ]
+    scenes = [e for e in SCENES if e.name in found]
+    if scenes:
+        lines += [
+            "",
+            "| rule | " + " | ".join(e.title for e in scenes) + " |",
+            "|---|" + "---|" * len(scenes),
+        ]
+        for rule in RULES:
+            row = [
+                f"n/a: {e.refused[rule]}"
+                if rule in e.refused
+                else (
+                    cell_text(
+                        found[e.name][0][rule],
+                        kept[e.name],
+                        link(e.name, rule, RERUN_PAGES),
+                        planned=LEADERBOARD_STUDIES,
+                    )
+                    if rule in found[e.name][0]
+                    else "not run"
+                )
+                for e in scenes
+            ]
+            lines.append(f"| {rule} | " + " | ".join(row) + " |")
+        lines += ["", "The re-run's scenes so far:", ""]
+    longer = board(root, LONGER_SUFFIX)
+    for entry in scenes:
+        lines += scene_budget_lines(entry, *found[entry.name][1:])
+        lines += longer_lines(entry, longer.get(entry.name), entry.budget)
+    for entry in (e for e in SCENES if e.name in longer and e.name not in found):
+        lines += ["", f"{entry.title}:", *longer_lines(entry, longer[entry.name], entry.budget)]
+    return "\n".join(lines) + "\n"
+
+
+def rerun_pages(found: dict, out: Path) -> None:
+    """The re-run's page per scene in out/RERUN_PAGES (each scene of found: board(root)), beside
+    the published table's; written through the write door."""
+    if not found:
+        return
+    make_folder(out / FOLDER)
+    make_folder(out / RERUN_PAGES)
+    for entry in (e for e in SCENES if e.name in found):
+        text = scene_page(entry, *found[entry.name], back=f"../../{PAGE}#{RERUN_ANCHOR}")
+        replace_file(out / RERUN_PAGES / f"{entry.name}.md", text.encode())
