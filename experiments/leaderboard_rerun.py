@@ -87,7 +87,7 @@ def rerun_text(root: Path, found: dict) -> str:
         "clock, at the settings tuned at the budget: docs/protocol.md, section 7): "
         + "; ".join(f"{title}: {', '.join(rules)}" for title, rules in expensive.items() if rules)
         + f". The profile's {len(LEADERBOARD)} parts are planned at about {hours:.0f} h on 2 cores "
-        "(an upper bound: `make reproduce-figures PROFILE=leaderboard ARGS=--plan`).",
+        "(an estimate, not a bound: `make reproduce-figures PROFILE=leaderboard ARGS=--plan`).",
     ]
     scenes = [e for e in SCENES if e.name in found]
     if scenes:

@@ -288,7 +288,7 @@ def environment(study: Study) -> dict | None:
 
 def where_scene_runs(entry: Entry) -> str:
     """The leaderboard profile's parts that run a scene's studies, and their expected hours on 2
-    cores (an upper bound, as the plan's)."""
+    cores (an estimate, as the plan's)."""
     used = [
         (k, seconds) for k, by_scene in _part_seconds() if (seconds := by_scene.get(entry.name))
     ]

@@ -93,7 +93,8 @@ def _study_plan(study) -> str:
         f"{new * study.trials * study.variants()} tuning jobs: the trials of an optax rule train "
         f"together), {evaluation}"
         f"{f', {study.eval_jobs(preset=True)} untuned' if study.twin else ''}), about "
-        f"{study.seconds() / 60:.0f} min (an upper bound: one job per trial)"
+        f"{study.seconds() / 60:.0f} min (an estimate: one job per trial, a vectorised job at its "
+        "members' summed budgets, which it can exceed)"
     )
 
 

@@ -172,7 +172,7 @@ def test_every_scene_is_a_compare_with_adam_as_baseline_and_parts_stay_near_80_m
     # on the calibrated clock a rule's seeds train in one job, but for the three that search a line
     assert ks.searching() == 3 and ks.eval_jobs() == 8 + 3 * ks.seeds
     parts = chunks(leaderboard_scenes.LEADERBOARD)
-    # every part is one tuning study of one scene (the plan's figure is an upper bound: one job
+    # every part is one tuning study of one scene (the plan's figure is an estimate: one job
     # per trial), each in a folder of its own
     longer = [p[0] for p in parts if "/longer-" in p[0].name]
     assert len(parts) - len(longer) == (
