@@ -63,7 +63,8 @@ class Entry:
 
     def longer(self, k: int, clock: Path | None) -> Study | None:
         """Tuning study k's expensive rules and Adam at LONGER times the budget, each at the
-        settings study k tuned (compare.tuned_in: its folder in the profile's root), on study
+        settings study k tuned (compare.tuned_in: its folder in the profile's root, else its
+        trials kept in RERUN), on study
         k's evaluation seeds, as a compare of its own in <root>/<scene>/longer-k; None where no
         rule is expensive."""
         rules = self.expensive(clock)
@@ -84,7 +85,18 @@ class Entry:
         job = LONGER * self.budget + self.overhead
         name = f"{self.name}/{LONGER_FOLDER.format(k=k)}"
         # no tuning (tune_seconds 0: the settings are study k's)
-        return Study(name, overrides, LEADERBOARD_TRIALS, LEADERBOARD_SEEDS, 0.0, job, preset=False)
+        # where study k's folder has gone with its machine, the trials kept of it stand for it
+        kept = (RERUN / f"{self.name}.json", k)
+        return Study(
+            name,
+            overrides,
+            LEADERBOARD_TRIALS,
+            LEADERBOARD_SEEDS,
+            0.0,
+            job,
+            preset=False,
+            tuned_from=kept,
+        )
 
     def study(self, k: int, calibration: Path | None = None) -> Study:
         """Tuning study k (1, 2, ...) of the scene as a compare of its own, in

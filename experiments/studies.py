@@ -68,6 +68,9 @@ class Study:
     # budget and seeds, e.g. the clipping modes beside a kept study without clipping): its runs
     # are kept as its own evidence and read as that study's
     joins: str = ""
+    # (a scene's kept record, k): where the folder compare.tuned_in names has no trials.csv (the
+    # machine that ran it is gone), the trials tuning study k kept in that record stand for it
+    tuned_from: tuple[Path, int] | None = None
 
     @property
     def label(self) -> str:
@@ -180,6 +183,8 @@ class Study:
 
     def command(self, root: Path, preset: bool = False) -> list[str]:
         overrides = [o.replace("{root}", str(root)) for o in self.preset_overrides(preset)]
+        if self.tuned_from is not None:
+            overrides = [kept_tuned_in(o, *self.tuned_from) for o in overrides]
         k = self.tuning_study
         folder = f"{self.name}-preset" if preset else self.folder
         settings = [
@@ -382,3 +387,47 @@ def started_clock(folder: Path, clock: Path) -> Path:
     except (OSError, ValueError, KeyError, TypeError, IndexError, AttributeError):
         pass
     return clock
+
+
+TUNED_IN = "compare.tuned_in="
+
+
+def kept_tuned_in(override: str, record: Path, k: int) -> str:
+    """compare.tuned_in=F itself where F holds a trials.csv or `record` (a scene's kept .json)
+    holds no trials of tuning study k; else compare.tuned_in=F.kept, a folder whose trials.csv
+    holds those kept trials (each trial's variant, values and validation loss, in the order kept;
+    a finite loss COMPLETE, any other FAIL), from which compare picks each variant's best by its
+    own rule, so that a study read at a longer budget runs where its tuning study's folder has
+    gone. Any other override unchanged."""
+    import csv
+    import io
+
+    from evidence import read_json
+
+    from physgrad.files import make_folder, replace_file
+
+    if not override.startswith(TUNED_IN):
+        return override
+    folder = Path(override.removeprefix(TUNED_IN))
+    if (folder / "trials.csv").is_file():
+        return override
+    try:
+        trials = read_json(record)["tuning_studies"][str(k)]["trials"]
+        assert isinstance(trials, list) and all(isinstance(t, dict) for t in trials)
+    except (OSError, ValueError, KeyError, TypeError, AssertionError):
+        return override  # nothing kept: compare says in one line that F has no finished study
+    keys = sorted({key for t in trials for key in t} - {"variant", "validation_loss"})
+    out = io.StringIO()
+    table = csv.writer(out, lineterminator="\n")
+    table.writerow(["variant", "study", "trial", "state", *keys, "validation_loss"])
+    for number, trial in enumerate(trials):
+        loss = trial.get("validation_loss")
+        done = isinstance(loss, (int, float)) and math.isfinite(loss)
+        values = [trial.get(key, "") for key in keys]
+        table.writerow(
+            [trial.get("variant"), 0, number, "COMPLETE" if done else "FAIL", *values, loss]
+        )
+    kept = folder.with_name(folder.name + ".kept")
+    make_folder(kept, levels=3)
+    replace_file(kept / "trials.csv", out.getvalue().encode())
+    return TUNED_IN + str(kept)

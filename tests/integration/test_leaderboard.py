@@ -9,6 +9,7 @@ import os
 import shutil
 import sys
 from dataclasses import replace
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -784,7 +785,11 @@ def test_the_expensive_rules_are_read_again_at_four_times_the_budget(tmp_path, m
     command = longer.command(tmp_path / "root")
     assert longer.name == "toy/longer-2" and "optim=adam,hig" in command
     assert f"trainer.time_budget={4 * toy.budget:g}" in command
-    assert f"compare.tuned_in={tmp_path / 'root'}/toy/study-2" in command
+    # the toy's study 2 is kept in the re-run: its kept trials, until its folder holds its own
+    assert f"compare.tuned_in={tmp_path / 'root'}/toy/study-2.kept" in command
+    (tmp_path / "root" / "toy" / "study-2").mkdir()
+    (tmp_path / "root" / "toy" / "study-2" / "trials.csv").write_text("variant,study\n")
+    assert f"compare.tuned_in={tmp_path / 'root'}/toy/study-2" in longer.command(tmp_path / "root")
     assert f"compare.calibration={clock}" in command and "compare.seed=10" in command
     assert f"compare.dir={tmp_path / 'root'}/toy/longer-2" in command
     costs["hig"]["step_seconds"] = 5e-3
@@ -817,3 +822,77 @@ def test_the_expensive_rules_are_read_again_at_four_times_the_budget(tmp_path, m
     assert "1 of 4 studies" in line and "hig **undecided** 0.1x" in line and "150 steps" in line
     hig = next(line for line in text.splitlines() if line.startswith("| hig |"))
     assert "worse" in hig  # at the budget, from the scene's own studies
+
+
+def test_a_longer_study_reads_the_kept_trials_where_its_tuning_studys_folder_has_gone(tmp_path):
+    """compare.tuned_in=<root>/<scene>/study-k, whose folder went with the machine that ran it,
+    becomes <root>/<scene>/study-k.kept: the trials tuning study k kept in the scene's record, from
+    which compare's own rule picks what the study tuned (the lowest finite validation loss, the
+    first of a tie; NaN and infinity never); a folder with its trials.csv, a record without study k
+    and any other override are left as they are. On every study kept in the re-run, compare's pick
+    from the kept trials is the tuned setting the record states."""
+    from studies import kept_tuned_in
+
+    from physgrad.comparison.spec import Variant
+    from physgrad.comparison.tuned_in import tuned_in
+
+    nan, inf = float("nan"), float("inf")
+    trials = [
+        {"variant": "adam", "learning_rate": 1e-3, "validation_loss": 0.5},
+        {"variant": "adam", "learning_rate": 1e-2, "validation_loss": 0.2},
+        {"variant": "adam", "learning_rate": 2e-2, "validation_loss": 0.2},  # a tie: not chosen
+        {"variant": "adam", "learning_rate": 5e-2, "validation_loss": nan},
+        {
+            "variant": "soap",
+            "learning_rate": 1e-3,
+            "precondition_frequency": 6.0,
+            "validation_loss": inf,
+        },  # fmt: skip
+        {
+            "variant": "soap",
+            "learning_rate": 2e-3,
+            "precondition_frequency": 40.0,
+            "validation_loss": 0.1,
+        },  # fmt: skip
+    ]
+    record = tmp_path / "toy.json"
+    record.write_text(json.dumps({"tuning_studies": {"2": {"trials": trials}}}))
+    folder = tmp_path / "root" / "toy" / "study-2"
+    said = kept_tuned_in(f"compare.tuned_in={folder}", record, 2)
+    assert said == f"compare.tuned_in={folder}.kept"
+    adam = Variant("adam", [], None, {"learning_rate": (1e-5, 0.1)})
+    soap = Variant(
+        "soap", [], None, {"learning_rate": (1e-5, 0.1), "precondition_frequency": (1, 100)}
+    )
+    assert tuned_in(Path(f"{folder}.kept"), [adam, soap], 1) == [
+        {
+            "adam": {"learning_rate": 1e-2},
+            "soap": {"learning_rate": 2e-3, "precondition_frequency": 40},
+        }  # noqa: E501
+    ]
+    assert kept_tuned_in(f"compare.tuned_in={folder}", record, 3).endswith("study-2")
+    assert kept_tuned_in("compare.seed=10", record, 2) == "compare.seed=10"
+    folder.mkdir(parents=True)
+    (folder / "trials.csv").write_text("variant,study\n")
+    assert kept_tuned_in(f"compare.tuned_in={folder}", record, 2).endswith("study-2")
+
+    checked = 0
+    for path in sorted(leaderboard_scenes.RERUN.glob("*.json")):
+        if path.name.endswith("calibration.json"):
+            continue
+        for k, study in json.loads(path.read_text())["tuning_studies"].items():
+            if "trials" not in study:
+                continue
+            spaces = {}
+            for t in study["trials"]:
+                for key, value in t.items():
+                    if key not in ("variant", "validation_loss") and math.isfinite(value):
+                        low, high = spaces.setdefault(t["variant"], {}).get(key, (value, value))
+                        spaces[t["variant"]][key] = (min(low, value), max(high, value))
+            variants = [Variant(name, [], None, space) for name, space in spaces.items()]
+            where = tmp_path / "kept" / path.stem / "study-9"
+            override = kept_tuned_in(f"compare.tuned_in={where}", path, int(k))
+            (picked,) = tuned_in(Path(override.partition("=")[2]), variants, 1)
+            assert picked == {v.name: study["tuned"].get(v.name, {}) for v in variants}
+            checked += 1
+    assert checked >= 2  # the toy's four and the oscillators' first at least
