@@ -87,6 +87,11 @@ def _study_plan(study) -> str:
             f"{study.variants()} variants, the presets untuned, {evaluation}), about "
             f"{study.seconds() / 60:.0f} min"
         )
+    if any(o.startswith("compare.tuned_in=") for o in study.overrides):
+        return (
+            f"{study.variants()} variants, not tuned here (each at the settings another study "
+            f"tuned: compare.tuned_in), {evaluation}), about {study.seconds() / 60:.0f} min"
+        )
     return (
         f"{study.variants()} variants, {study.trials} trials each in "
         f"{new} tuning stud{'y' if new == 1 else 'ies'} (at most "

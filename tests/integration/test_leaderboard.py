@@ -784,6 +784,10 @@ def test_the_expensive_rules_are_read_again_at_four_times_the_budget(tmp_path, m
     longer = toy.longer(2, clock)
     command = longer.command(tmp_path / "root")
     assert longer.name == "toy/longer-2" and "optim=adam,hig" in command
+    from study_profiles import _study_plan
+
+    assert "not tuned here" in _study_plan(longer) and "tuning jobs" not in _study_plan(longer)
+    assert "tuning jobs" in _study_plan(toy.study(2))
     assert f"trainer.time_budget={4 * toy.budget:g}" in command
     # the toy's study 2 is kept in the re-run: its kept trials, until its folder holds its own
     assert f"compare.tuned_in={tmp_path / 'root'}/toy/study-2.kept" in command
