@@ -19,7 +19,7 @@ from leaderboard_scenes import (
     RERUN,
     RULES,
     SCENES,
-    kept_clock,
+    scene_clock,
 )
 
 from physgrad.files import make_folder, replace_file
@@ -78,7 +78,7 @@ def rerun_text(root: Path, found: dict) -> str:
     ]
     kept = {name: len(runs.tuning or (runs,)) for name, (_, runs, _) in found.items()}
     progress = [f"{e.title}: {kept.get(e.name, 0)} of {LEADERBOARD_STUDIES}" for e in SCENES]
-    expensive = {e.title: e.expensive(kept_clock(e, root)) for e in SCENES}
+    expensive = {e.title: e.expensive(scene_clock(e, root)) for e in SCENES}
     hours = sum(study.seconds() for study in LEADERBOARD) / 3600
     lines += [
         "Studies kept: " + "; ".join(progress) + ".",

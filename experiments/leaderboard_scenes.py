@@ -61,15 +61,19 @@ class Entry:
         adam = costs[BASELINE]["step_seconds"]
         return tuple(r for r in self.rules if costs[r]["step_seconds"] > EXPENSIVE * adam)
 
-    def longer(self, k: int, clock: Path | None) -> Study | None:
+    def longer(self, k: int, clock: Path | None, costs: Path | None = None) -> Study | None:
         """Tuning study k's expensive rules and Adam at LONGER times the budget, each at the
         settings study k tuned (compare.tuned_in: its folder in the profile's root, else its
-        trials kept in RERUN), on study
-        k's evaluation seeds, as a compare of its own in <root>/<scene>/longer-k; None where no
-        rule is expensive."""
-        rules = self.expensive(clock)
+        trials kept in RERUN), on study k's evaluation seeds and clock (the scene's kept clock,
+        else the one study k ran on, in its folder), as a compare of its own in
+        <root>/<scene>/longer-k; None where no rule is expensive on `costs` (a clock of the
+        scene's that may lack a knob's points: the presets' costs tell which rules get few
+        steps), by default the kept clock."""
+        rules = self.expensive(costs or clock)
         if not rules:
             return None
+        if clock is None:  # study k calibrated itself: the same clock, from its folder
+            clock = f"{{root}}/{self.name}/{STUDY_FOLDER.format(k=k)}/calibration.json"
         overrides = (
             *(("-cd", self.config_dir) if self.config_dir else ()),
             *self.overrides,
@@ -255,6 +259,13 @@ def kept_clock(entry: Entry, evidence: Path = RERUN) -> Path | None:
     return path if path.is_file() and needed <= clock_rules(path) else None
 
 
+def scene_clock(entry: Entry, evidence: Path = RERUN) -> Path | None:
+    """The scene's kept clock whatever costs it holds (kept_clock: only one that has them all),
+    for what its presets' costs tell: which rules get few steps in the budget."""
+    path = evidence / CLOCK.format(name=entry.name)
+    return path if path.is_file() else None
+
+
 def knob_ends(rules: tuple[str, ...]) -> set[str]:
     """The calibration's names of the rules' cost-shaping knobs at their ranges' ends
     (`soap@precondition_frequency=1`, ...: physgrad.comparison.calibration.knob_ends), which a
@@ -262,23 +273,23 @@ def knob_ends(rules: tuple[str, ...]) -> set[str]:
     import yaml
 
     from physgrad.configs import CONF_DIR
-    from physgrad.optim.capabilities import capabilities
+    from physgrad.optim.capabilities import capabilities, cost_points
 
     names = set()
     for rule in rules:
         kind = capabilities(yaml.safe_load((CONF_DIR / "optim" / f"{rule}.yaml").read_text()))
         for key, low, high in kind.knobs if kind.cost_knob else ():
             if key == kind.cost_knob[0]:
-                names |= {f"{rule}@{key}={value}" for value in (low, high)}
+                names |= {f"{rule}@{key}={value}" for value in cost_points(kind, low, high)}
     return names
 
 
 def scene_studies(entry: Entry) -> tuple[Study, ...]:
     """A scene's parts in the order they run: its tuning studies, then each one's expensive rules
     at the longer budget (which read the tuning study's folder)."""
-    clock = kept_clock(entry)
+    clock, costs = kept_clock(entry), scene_clock(entry)
     studies = tuple(entry.study(k, clock) for k in range(1, LEADERBOARD_STUDIES + 1))
-    longer = (entry.longer(k, clock) for k in range(1, LEADERBOARD_STUDIES + 1))
+    longer = (entry.longer(k, clock, costs) for k in range(1, LEADERBOARD_STUDIES + 1))
     return studies + tuple(s for s in longer if s is not None)
 
 

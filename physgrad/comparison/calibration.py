@@ -275,11 +275,12 @@ def charge(variant: Variant, costs: dict, ends: dict, where: object) -> None:
 def knob_ends(variant: Variant) -> dict[str, tuple[str, float]]:
     """The calibration's further configs of a variant tuned over the setting that shapes its step
     cost (physgrad.optim.capabilities: cost_knob): `name@key=value` -> (key, value) at the two
-    ends of its range, {} for the others."""
-    from physgrad.optim.capabilities import capabilities
+    ends of its range and at the rule's breaks inside it (cost_points), {} for the others."""
+    from physgrad.optim.capabilities import capabilities, cost_points
 
-    knob = capabilities(variant.config.optim).cost_knob
-    if knob is None or knob[0] not in variant.space:
+    kind = capabilities(variant.config.optim)
+    if kind.cost_knob is None or kind.cost_knob[0] not in variant.space:
         return {}
-    key = knob[0]
-    return {f"{variant.name}@{key}={value}": (key, value) for value in variant.space[key]}
+    key = kind.cost_knob[0]
+    values = cost_points(kind, *variant.space[key])
+    return {f"{variant.name}@{key}={value}": (key, value) for value in values}

@@ -175,7 +175,7 @@ def scheduled_update_text(names: list[str], calibration: dict) -> str:
 def knob_cost_text(variants: list[Variant]) -> str:
     """Where a tuned setting shapes a step's cost: its costs at its range's ends, and that each
     trial and evaluation is charged at its own value (physgrad.optim.capabilities.knob_cost)."""
-    shapes = {"inverse": "c + u / f", "linear": "a + b m"}
+    shapes = {"inverse": "c + u / f", "linear": "a + b m", "floor": "each point's up to the next"}
     said = [
         f"{v.name}'s {key}: a step's own part "
         + ", ".join(f"{fmt(seconds)} s at {value:g}" for value, seconds in points)
@@ -184,9 +184,11 @@ def knob_cost_text(variants: list[Variant]) -> str:
         for key, shape, points in [v.cost_knob]
     ]
     return (
-        "A tuned setting that changes what a step costs was calibrated at its range's two ends "
-        "and its preset, and each trial and evaluation is charged the cost at its own value "
-        "(a line search's evaluations as the run made them): " + "; ".join(said) + "."
+        "A tuned setting that changes what a step costs was calibrated at its range's two ends, "
+        "its preset and where it changes the computation, and each trial and evaluation is "
+        "charged the cost at its own value (a line search's evaluations as the run made them): "
+        + "; ".join(said)
+        + "."
     )
 
 

@@ -145,7 +145,8 @@ class Variant:
     # its tuning trials train together in one vectorised job per study (tuning.trials_together)
     trials_together: bool = False
     # the setting that shapes its step cost, where it is tuned, and the own part of a step
-    # calibrated at its range's two ends and its preset: (key, shape, ((value, seconds), ...)))
+    # calibrated at its range's two ends, its breaks and its preset:
+    # (key, shape, ((value, seconds), ...)))
     cost_knob: tuple = ()
 
     def priced(self, params: dict) -> dict:

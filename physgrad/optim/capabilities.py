@@ -35,7 +35,11 @@ adam.yaml is Adam. Capabilities:
 - cost_knob: (key, shape) of the setting that changes what the rule's step costs, so that a tuned
   value is charged its own cost (knob_cost, below): "inverse" for a
   period f (a step costs c + u / f: SOAP's eigenbasis every f steps), "linear" for a count m (a
-  step costs a + b m: L-BFGS's two-loop recursion over m curvature pairs).
+  step costs a + b m: L-BFGS's two-loop recursion over m curvature pairs), "floor" for a value
+  that picks the computation (the Jacobian rules' truncation tau: the thin SVD of J below
+  GRAM_MIN_TAU, the float64 Gram eigendecomposition at or above it where J is wide, up to 5x
+  cheaper on the oscillators); cost_breaks: the values inside the range where the cost changes at
+  once, calibrated besides the range's ends.
 """
 
 from __future__ import annotations
@@ -63,7 +67,13 @@ class Capabilities:
     line_search: bool = False
     scheduled_update: str | None = None
     knobs: tuple[tuple[str, float, float], ...] = ()  # ints for a whole-number knob
-    cost_knob: tuple[str, str] | None = None  # (key, "inverse" or "linear")
+    cost_knob: tuple[str, str] | None = None  # (key, "inverse", "linear" or "floor")
+    cost_breaks: tuple[float, ...] = ()  # where a "floor" cost changes at once
+
+
+# the smallest truncation the float64 Gram route resolves (physgrad.optim.spectral.route_for):
+# below it the Jacobian rules factorise J by its thin SVD, a step that costs several times more
+GRAM_MIN_TAU = 1e-6
 
 
 # mean-over-samples loss; presets 0.5 to 1; the truncation tau around its preset 1e-6, the
@@ -75,7 +85,9 @@ ADAPTIVE = Capabilities("adaptive", (1e-5, 1e-1))
 ADAPTIVE_ELEMENTWISE = Capabilities("adaptive", ADAPTIVE.search_range, elementwise=True)
 
 RULES: dict[str, Capabilities] = {
-    "physgrad.optim.spectral.spectral_rule": replace(JACOBIAN, knobs=(TRUNCATION,)),
+    "physgrad.optim.spectral.spectral_rule": replace(
+        JACOBIAN, knobs=(TRUNCATION,), cost_knob=("tau", "floor"), cost_breaks=(GRAM_MIN_TAU,)
+    ),
     "physgrad.optim.spectral.marquardt_rule": replace(JACOBIAN, knobs=(DAMPING,)),
     "physgrad.optim.kfac.kfac": Capabilities(
         "jacobian",
@@ -274,7 +286,12 @@ def knob_cost(
     a + b m, each through the two ends, so a value between them costs between their costs:
 
         cost = low_cost + t (high_cost - low_cost),
-        t = (1/f - 1/low) / (1/high - 1/low)  or  (m - low) / (high - low)."""
+        t = (1/f - 1/low) / (1/high - 1/low)  or  (m - low) / (high - low);
+
+    for a value that picks the computation ("floor", calibrated at each break) the cost of the
+    point at or below it: low_cost for low <= value < high, high_cost at high."""
+    if shape == "floor":
+        return high_cost if value >= high else low_cost
     if high == low:
         return low_cost
     if shape == "inverse":
@@ -282,7 +299,7 @@ def knob_cost(
     elif shape == "linear":
         t = (value - low) / (high - low)
     else:
-        raise ValueError(f"cost_knob shape {shape!r}: give inverse or linear")
+        raise ValueError(f"cost_knob shape {shape!r}: give inverse, linear or floor")
     return low_cost + t * (high_cost - low_cost)
 
 
@@ -296,3 +313,9 @@ def knob_step_cost(cost_knob: tuple, value: float, evaluations: float = 0.0) -> 
     upper = max(next(i for i, (v, _) in enumerate(points) if v >= value), 1)
     (low, low_cost), (high, high_cost) = points[upper - 1], points[upper]
     return max(knob_cost(shape, value, low, low_cost, high, high_cost), 0.0) + evaluations
+
+
+def cost_points(kind: Capabilities, low: float, high: float) -> tuple[float, ...]:
+    """The values a cost-shaping setting tuned over [low, high] is calibrated at: the range's ends
+    and the rule's breaks inside it (Capabilities.cost_breaks)."""
+    return (low, *(b for b in kind.cost_breaks if low < b < high), high)

@@ -21,6 +21,7 @@ import optax
 from jax.flatten_util import ravel_pytree
 
 from physgrad.jacobians import as_jacobian
+from physgrad.optim.capabilities import GRAM_MIN_TAU
 from physgrad.validate import choice, flag, number
 
 if TYPE_CHECKING:
@@ -28,8 +29,9 @@ if TYPE_CHECKING:
 
 ROUTES = ("auto", "svd", "gram")
 # The Gram route resolves singular values down to about sqrt(m * eps_64) * max(s) (~1e-6 at m =
-# 4096), so it is used for truncations at or above this; smaller tau (and m > n) take the SVD.
-GRAM_MIN_TAU = 1e-6
+# 4096), so it is used for truncations at or above GRAM_MIN_TAU (kept with the rules'
+# capabilities, which charge a tuned tau below it the SVD's cost); smaller tau (and m > n) take
+# the SVD.
 
 
 def _kept_scale(s: jax.Array, kappa: float, tau: float, power: float = 1.0) -> jax.Array:

@@ -796,6 +796,12 @@ def test_the_expensive_rules_are_read_again_at_four_times_the_budget(tmp_path, m
     assert f"compare.tuned_in={tmp_path / 'root'}/toy/study-2" in longer.command(tmp_path / "root")
     assert f"compare.calibration={clock}" in command and "compare.seed=10" in command
     assert f"compare.dir={tmp_path / 'root'}/toy/longer-2" in command
+    # a scene without a complete kept clock (one from before a knob's points): which rules get few
+    # steps from its presets' costs, and the clock study k calibrated for itself, from its folder
+    command = toy.longer(2, None, clock).command(tmp_path / "root")
+    assert "optim=adam,hig" in command
+    assert f"compare.calibration={tmp_path / 'root'}/toy/study-2/calibration.json" in command
+    assert toy.longer(2, None) is None
     costs["hig"]["step_seconds"] = 5e-3
     clock.write_text(json.dumps({"costs": costs}))
     assert toy.longer(2, clock) is None

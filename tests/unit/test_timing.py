@@ -427,7 +427,7 @@ def test_a_setting_that_shapes_the_step_cost_is_charged_the_cost_at_its_value(sh
             assert charged == pytest.approx(cost(value), rel=1e-12)
             ends = sorted((cost(low), cost(high)))
             assert ends[0] * (1 - 1e-12) <= charged <= ends[1] * (1 + 1e-12)
-    with pytest.raises(ValueError, match="give inverse or linear"):
+    with pytest.raises(ValueError, match="give inverse, linear or floor"):
         knob_cost("square", 2, 1, 1e-3, 4, 2e-3)
 
 
@@ -520,3 +520,57 @@ def test_a_calibrations_costs_at_a_knobs_ends_price_each_trial_and_evaluation(tm
     calibrated_clock(types.SimpleNamespace(variants=variants), resumed, None)
     assert soap.cost_knob == () and soap.priced({"precondition_frequency": 1}) == {}
     assert soap.job_values["trainer.step_cost"] == 2e-3 and "preset cost" in said[0]
+
+
+def test_a_truncation_below_the_gram_route_is_charged_the_svds_cost(tmp_path):
+    """HIG tuned over tau [1e-9, 1e-3] (preset 1e-6): the calibration times it at the range's ends
+    and at the Gram route's break 1e-6 (GRAM_MIN_TAU, the value physgrad.optim.spectral takes the
+    route by), and a trial is charged the cost of the calibrated point at or below its tau: the
+    SVD's for every tau below 1e-6, the Gram route's at and above it, never a blend. A given
+    calibration without the break is refused in one line that names it."""
+    import json
+    import types
+
+    from physgrad.comparison.calibration import calibrated_clock, knob_ends
+    from physgrad.comparison.spec import Variant
+    from physgrad.errors import UserError
+    from physgrad.optim import spectral
+    from physgrad.optim.capabilities import GRAM_MIN_TAU, knob_cost
+
+    assert spectral.GRAM_MIN_TAU == GRAM_MIN_TAU == 1e-6
+    wide, tall = (4, 8), (8, 4)
+    assert spectral.resolve_route("auto", 0.99e-6, wide) == "svd"
+    assert spectral.resolve_route("auto", 1e-6, wide) == "gram"
+    assert spectral.resolve_route("auto", 1e-3, tall) == "svd"
+    for value, expected in ((1e-9, 5.0), (5e-7, 5.0), (0.999e-6, 5.0), (1e-6, 1.0)):
+        assert knob_cost("floor", value, 1e-9, 5.0, 1e-6, 1.0) == expected
+
+    def cost(seconds: float) -> dict:
+        return {"step_seconds": seconds, "median_seconds": seconds, "rounds": 30}
+
+    costs = {
+        "hig": cost(2e-3),
+        "hig@tau=1e-09": cost(1.1e-2),
+        "hig@tau=1e-06": cost(2.1e-3),
+        "hig@tau=0.001": cost(1.9e-3),
+    }
+    given = tmp_path / "given.json"
+    calibration = {"quantile": 0.2, "load_start": 0.1, "load_end": 0.1, "machine": {}}
+    given.write_text(json.dumps({**calibration, "costs": costs}))
+    optim = {"_target_": "physgrad.optim.spectral.spectral_rule", "kappa": 0.5, "tau": 1e-6}
+    hig = Variant("hig", [], types.SimpleNamespace(optim=optim), {"tau": (1e-9, 1e-3)})
+    assert set(knob_ends(hig)) == set(costs) - {"hig"}
+    launcher = types.SimpleNamespace(folder=tmp_path, say=print)
+    calibrated_clock(types.SimpleNamespace(variants=[hig]), launcher, str(given))
+    assert hig.cost_knob == ("tau", "floor", ((1e-9, 1.1e-2), (1e-6, 2e-3), (1e-3, 1.9e-3)))
+    rng = np.random.default_rng(5)
+    for tau in 10 ** rng.uniform(-9, -3, 200):
+        charged = hig.priced({"tau": tau})["trainer.step_cost"]
+        assert charged == (1.1e-2 if tau < GRAM_MIN_TAU else 2e-3 if tau < 1e-3 else 1.9e-3)
+    assert hig.priced({"tau": 1e-6}) == {"trainer.step_cost": 2e-3}
+    del costs["hig@tau=1e-06"]
+    given.write_text(json.dumps({**calibration, "costs": costs}))
+    (tmp_path / "calibration.json").unlink()
+    with pytest.raises(UserError, match="hig@tau=1e-06") as error:
+        calibrated_clock(types.SimpleNamespace(variants=[hig]), launcher, str(given))
+    assert "\n" not in str(error.value)
