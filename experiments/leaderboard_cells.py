@@ -72,7 +72,8 @@ def cells(runs, about: dict | None = None) -> dict[str, Cell]:
         for study, rules in zip(studies, ran)
     ]
     keep_clock_verdicts(per_study, about.get("tuning_studies") or {})
-    walls = wall_ratios(about)
+    # a rule timed alone, else its seeds' share of their job against Adam's share of its own
+    walls = {**wall_ratios(about, "wall_seconds_together"), **wall_ratios(about)}
     found = {}
     for rule in sorted({r for rules in ran for r in rules}):
         verdicts = [by_rule[rule] for by_rule in per_study if rule in by_rule]

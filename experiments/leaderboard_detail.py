@@ -155,6 +155,20 @@ def wall_seconds_in_budget(table) -> dict[str, float]:
     }
 
 
+def wall_seconds_together(table) -> dict[str, float]:
+    """Each rule's median wall-clock training seconds per seed over its completed runs whose job
+    trained N seeds together (the job's time over N): a vectorised step of N costs against N of
+    one differently from rule to rule, so this is read against Adam's own job of N seeds, never
+    against a run alone; none from a runs.csv without train_seconds."""
+    if not {"train_seconds", "wall_time_shared_by"} <= set(table.columns):
+        return {}
+    if "status" in table.columns:
+        table = table[table["status"] == "completed"]
+    table = table[table["wall_time_shared_by"].fillna(1) > 1]
+    share = table["train_seconds"] / table["wall_time_shared_by"]
+    return {str(v): float(statistics.median(group)) for v, group in share.groupby(table["variant"])}
+
+
 def charged_by_schedule(calibration: Path, key: str = "update_seconds") -> list[str]:
     """The rules a study's calibration charged a scheduled update at its expected cost (those with
     update_seconds: trainer.update_cost; with key "evaluation_seconds", those it charged the
@@ -177,18 +191,19 @@ def charged_by_clock(calibration: Path) -> dict[str, list[str]]:
     }
 
 
-def wall_ratios(about: dict) -> dict[str, float]:
+def wall_ratios(about: dict, key: str = "wall_seconds") -> dict[str, float]:
     """Per rule, its median wall-clock seconds of training in a run over Adam's in the same tuning
     study, the median over the studies that recorded the rule's (a study's load slows its rules
     alike, so the ratio within a study is what the rule's steps cost). Where Adam's seeds trained
     together (the job's time is not a run's: wall_seconds_in_budget), Adam's is the budget: its
     steps cost the same all along, which is what the calibration timed, so a run of it alone
     takes the budget (10.0 to 11.1 s of 10 s, 15.3 s of 15, where the leaderboard's first studies
-    timed Adam's runs alone)."""
-    budget = float(about.get("budget") or math.nan)
+    timed Adam's runs alone). With key "wall_seconds_together": a seed's share of a job of seeds
+    trained together over Adam's share of its own such job (wall_seconds_together)."""
+    budget = float(about.get("budget") or math.nan) if key == "wall_seconds" else math.nan
     ratios: dict[str, list[float]] = {}
     for record in (about.get("tuning_studies") or {}).values():
-        wall = record.get("wall_seconds") or {}
+        wall = record.get(key) or {}
         adam = wall.get(BASELINE, budget)
         for rule, seconds in wall.items():
             if rule != BASELINE and adam > 0 and math.isfinite(seconds / adam):
@@ -203,10 +218,13 @@ def wall_line(about: dict) -> str | None:
     """The sentence that names the rules whose runs took a different wall-clock time from Adam's
     at the same calibrated budget (none where every rule's is within WALL_FACTOR), and which rules
     were timed: a rule whose seeds trained together was not timed one run at a time."""
-    ratios = wall_ratios(about)
-    if not ratios:
+    ratios, together = wall_ratios(about), wall_ratios(about, "wall_seconds_together")
+    together = {r: x for r, x in together.items() if r not in ratios}
+    if not ratios and not together:
         return None
-    far = {r: x for r, x in ratios.items() if x >= WALL_FACTOR or x <= 1 / WALL_FACTOR}
+    far = {
+        r: x for r, x in {**ratios, **together}.items() if x >= WALL_FACTOR or x <= 1 / WALL_FACTOR
+    }
     timed = [s.get("wall_seconds") for s in (about.get("tuning_studies") or {}).values()]
     counted = sum(bool(wall) for wall in timed)
     # a study whose Adam runs trained together: its budget stands for a run of Adam's
@@ -217,10 +235,15 @@ def wall_line(about: dict) -> str | None:
         else ""
     )
     over = f"median over {counted} tuning {'study' if counted == 1 else 'studies'}{budget}"
-    untimed = sorted(set(about.get("iterations") or {}) - set(ratios) - {BASELINE})
+    untimed = sorted(set(about.get("iterations") or {}) - set(ratios) - set(together) - {BASELINE})
     if untimed:  # their runs trained together: a vectorised step's time is not one run's
         over += f"; not timed one run at a time, their seeds trained together: {', '.join(untimed)}"
     said = ", ".join(f"{r} {x:.2g}x" for r, x in sorted(ratios.items(), key=lambda i: -i[1]))
+    if together:  # a job of N seeds against Adam's job of N: what the budget cost them together
+        said += ("; " if said else "") + (
+            f"seeds trained together, a seed's share of its job against {BASELINE}'s in its own: "
+            + ", ".join(f"{r} {x:.2g}x" for r, x in sorted(together.items(), key=lambda i: -i[1]))
+        )
     if not far:
         return (
             f"Wall-clock time of a run against {BASELINE}'s at the same calibrated budget "

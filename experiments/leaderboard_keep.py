@@ -19,7 +19,7 @@ from evidence import (  # experiments/
     undecided_by_the_clock,
     write_kept,
 )
-from leaderboard_detail import charged_by_clock, wall_seconds_in_budget
+from leaderboard_detail import charged_by_clock, wall_seconds_in_budget, wall_seconds_together
 from leaderboard_scenes import (
     LEADERBOARD_SEEDS,
     LEADERBOARD_STUDIES,
@@ -83,6 +83,7 @@ def _keep_scene(root: Path, dest: Path, entry, name: str, pattern: str) -> list[
                 "kept_by": commit(),
                 "iterations": iterations_in_budget(table),
                 "wall_seconds": wall_seconds_in_budget(table),
+                "wall_seconds_together": wall_seconds_together(table),
                 "overrides": study_overrides(folder),
                 "undecided_by_the_clock": undecided_by_the_clock(folder),
                 **charged_by_clock(folder / "calibration.json"),

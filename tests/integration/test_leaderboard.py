@@ -521,6 +521,37 @@ def test_the_wall_clock_ratios_are_within_a_study_then_the_median_over_studies()
         {"lbfgs": 2.0}  # no budget recorded: the one study that timed Adam
     )
     assert leaderboard_detail.wall_seconds_in_budget(table.drop(columns="train_seconds")) == {}
+    # seeds trained together: a seed's share of its job (the job's time over its N seeds), read
+    # against Adam's share of its own job of seeds, never against the budget or a run alone
+    jobs = pd.DataFrame(
+        {
+            "variant": ["adam"] * 3 + ["hig"] * 3 + ["lbfgs", "soap", "soap"],
+            "status": ["completed"] * 5 + ["diverged", "completed", "completed", "completed"],
+            "train_seconds": [150.0] * 3 + [1020.0] * 2 + [7.0, 16.0, 180.0, 180.0],
+            "wall_time_shared_by": [10] * 6 + [1, 10, 10],
+        }
+    )
+    shares = leaderboard_detail.wall_seconds_together(jobs)
+    assert shares == pytest.approx({"adam": 15.0, "hig": 102.0, "soap": 18.0})
+    assert leaderboard_detail.wall_seconds_together(jobs.drop(columns="wall_time_shared_by")) == {}
+    vectorised = {
+        "budget": 15.0,
+        "iterations": {"adam": 9.0, "hig": 3.0, "lbfgs": 5.0, "soap": 8.0, "gd": 9.0},
+        "tuning_studies": {
+            "1": {
+                "wall_seconds": leaderboard_detail.wall_seconds_in_budget(jobs),
+                "wall_seconds_together": shares,
+            },
+            "2": {"wall_seconds_together": {"hig": 30.0, "soap": 20.0}},  # no Adam: not read
+        },
+    }
+    assert leaderboard_detail.wall_ratios(vectorised, "wall_seconds_together") == pytest.approx(
+        {"hig": 6.8, "soap": 1.2}
+    )
+    line = leaderboard_detail.wall_line(vectorised)
+    assert "lbfgs 1.1x; seeds trained together, a seed's share of its job" in line
+    assert "hig 6.8x, soap 1.2x; beyond 1.5x either way: hig." in line
+    assert "not timed one run at a time, their seeds trained together: gd)" in line
     # a cell whose rule's runs took 1.5x Adam's wall-clock time or more (or 1/1.5 or less) says so
     from leaderboard_cells import Cell, cell_text
 
