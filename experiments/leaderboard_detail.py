@@ -165,8 +165,9 @@ def wall_seconds_together(table) -> dict[str, float]:
     if "status" in table.columns:
         table = table[table["status"] == "completed"]
     table = table[table["wall_time_shared_by"].fillna(1) > 1]
-    share = table["train_seconds"] / table["wall_time_shared_by"]
-    return {str(v): float(statistics.median(group)) for v, group in share.groupby(table["variant"])}
+    share = (table["train_seconds"] / table["wall_time_shared_by"]).dropna()
+    by_rule = share.groupby(table["variant"][share.index])
+    return {str(v): float(statistics.median(group)) for v, group in by_rule}
 
 
 def charged_by_schedule(calibration: Path, key: str = "update_seconds") -> list[str]:
@@ -225,8 +226,9 @@ def wall_line(about: dict) -> str | None:
     far = {
         r: x for r, x in {**ratios, **together}.items() if x >= WALL_FACTOR or x <= 1 / WALL_FACTOR
     }
-    timed = [s.get("wall_seconds") for s in (about.get("tuning_studies") or {}).values()]
-    counted = sum(bool(wall) for wall in timed)
+    records = (about.get("tuning_studies") or {}).values()
+    timed = [s.get("wall_seconds") for s in records]
+    counted = sum(bool(s.get("wall_seconds") or s.get("wall_seconds_together")) for s in records)
     # a study whose Adam runs trained together: its budget stands for a run of Adam's
     budget = (
         f"; {BASELINE}'s, where its seeds trained together, the budget: its steps cost what the "

@@ -19,7 +19,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from evidence import CLOCK, clock_rules  # experiments/
-from studies import STUDY_FOLDER, TUNE_SEED, Study
+from studies import STUDY_FOLDER, TUNE_SEED, Study, rule_config
 
 from physgrad.bench_tables import OPTIMS as BENCH_OPTIMS
 
@@ -59,7 +59,10 @@ class Entry:
             return ()
         costs = json.loads(clock.read_text())["costs"]
         adam = costs[BASELINE]["step_seconds"]
-        return tuple(r for r in self.rules if costs[r]["step_seconds"] > EXPENSIVE * adam)
+        # a rule the clock lacks (added since an older clock) is not known to be expensive
+        return tuple(
+            r for r in self.rules if costs.get(r, {}).get("step_seconds", 0) > EXPENSIVE * adam
+        )
 
     def longer(self, k: int, clock: Path | None, costs: Path | None = None) -> Study | None:
         """Tuning study k's expensive rules and Adam at LONGER times the budget, each at the
@@ -270,14 +273,11 @@ def knob_ends(rules: tuple[str, ...]) -> set[str]:
     """The calibration's names of the rules' cost-shaping knobs at their ranges' ends
     (`soap@precondition_frequency=1`, ...: physgrad.comparison.calibration.knob_ends), which a
     clock for the profile's knob-tuning studies must have."""
-    import yaml
-
-    from physgrad.configs import CONF_DIR
     from physgrad.optim.capabilities import capabilities, cost_points
 
     names = set()
     for rule in rules:
-        kind = capabilities(yaml.safe_load((CONF_DIR / "optim" / f"{rule}.yaml").read_text()))
+        kind = capabilities(rule_config(rule))
         for key, low, high in kind.knobs if kind.cost_knob else ():
             if key == kind.cost_knob[0]:
                 names |= {f"{rule}@{key}={value}" for value in cost_points(kind, low, high)}

@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import functools
 import math
+import os
 from dataclasses import dataclass, replace
 from pathlib import Path
 
@@ -241,7 +242,20 @@ def _searches(optim: str) -> bool:
     from physgrad.optim.capabilities import capabilities
 
     path = CONF_DIR / "optim" / f"{optim}.yaml"
-    return path.is_file() and capabilities(yaml.safe_load(path.read_text())).line_search
+    return path.is_file() and capabilities(rule_config(optim)).line_search
+
+
+def rule_config(optim: str) -> dict:
+    """conf/optim/<optim>.yaml with the rule files its `defaults` name merged under it (Hydra's
+    order: each default, then the file itself), so that a rule defined on another's kernel
+    (gauss_newton on hig's) has that kernel's _target_ and capabilities."""
+    from physgrad.configs import CONF_DIR
+
+    own = yaml.safe_load((CONF_DIR / "optim" / f"{optim}.yaml").read_text()) or {}
+    merged: dict = {}
+    for default in own.pop("defaults", None) or ["_self_"]:
+        merged.update(own if default == "_self_" else rule_config(str(default)))
+    return merged
 
 
 def _values(override: str) -> list[str]:
@@ -393,12 +407,13 @@ TUNED_IN = "compare.tuned_in="
 
 
 def kept_tuned_in(override: str, record: Path, k: int) -> str:
-    """compare.tuned_in=F itself where F holds a trials.csv or `record` (a scene's kept .json)
-    holds no trials of tuning study k; else compare.tuned_in=F.kept, a folder whose trials.csv
-    holds those kept trials (each trial's variant, values and validation loss, in the order kept;
-    a finite loss COMPLETE, any other FAIL), from which compare picks each variant's best by its
-    own rule, so that a study read at a longer budget runs where its tuning study's folder has
-    gone. Any other override unchanged."""
+    """compare.tuned_in=F itself where F exists (finished or not) or `record` (a scene's kept
+    .json) holds no trials of tuning study k; else compare.tuned_in=F.kept, a folder whose
+    trials.csv holds those kept trials (each trial's variant, values and validation loss, in the
+    order kept; a finite loss COMPLETE, any other FAIL), from which compare picks each variant's
+    best by its own rule, so that a study read at a longer budget runs where its tuning study's
+    folder has gone (written when the command is made, the plan's included: a small table). Any
+    other override unchanged."""
     import csv
     import io
 
@@ -409,7 +424,7 @@ def kept_tuned_in(override: str, record: Path, k: int) -> str:
     if not override.startswith(TUNED_IN):
         return override
     folder = Path(override.removeprefix(TUNED_IN))
-    if (folder / "trials.csv").is_file():
+    if os.path.lexists(folder):  # the study is here, finished or not: compare reads it (or says)
         return override
     try:
         trials = read_json(record)["tuning_studies"][str(k)]["trials"]

@@ -177,12 +177,14 @@ def calibrated_clock(plan: StudyPlan, launcher: Launcher, given: str | None) -> 
     if any(ends.values()) and read_calibration(path, names) is None:
         older = read_calibration(path, [v.name for v in variants])
         if older is not None:  # calibrated before a knob's costs were: resumed as it ran
+            lacking = sorted(n for n, e in ends.items() if not set(e) <= set(older["costs"]))
             launcher.say(
-                f"note: {path} has no costs at the ends of a tuned setting that changes a step's "
-                "cost: every trial is charged its variant's preset cost, as the study began"
+                f"note: {path} has no costs at the points of a tuned setting that changes a "
+                f"step's cost for {', '.join(lacking)}: their trials are charged their preset "
+                "cost, as the study began"
             )
-            ends = {name: {} for name in ends}
-            names = [v.name for v in variants]
+            ends = {n: {} if n in lacking else e for n, e in ends.items()}
+            names = [v.name for v in variants] + [name for e in ends.values() for name in e]
             given = None
     if given is not None:
         calibration = read_calibration(Path(given), names, given=True)

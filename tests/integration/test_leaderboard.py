@@ -552,6 +552,13 @@ def test_the_wall_clock_ratios_are_within_a_study_then_the_median_over_studies()
     assert "lbfgs 1.1x; seeds trained together, a seed's share of its job" in line
     assert "hig 6.8x, soap 1.2x; beyond 1.5x either way: hig." in line
     assert "not timed one run at a time, their seeds trained together: gd)" in line
+    only = {"1": {"wall_seconds_together": {"adam": 15.0, "hig": 30.0}}}
+    assert "(median over 1 tuning study" in leaderboard_detail.wall_line({"tuning_studies": only})
+    for order in ([np.nan, 50.0, 300.0], [300.0, np.nan, 50.0]):  # NaN: not a share
+        nan = pd.DataFrame(
+            {"variant": ["hig"] * 3, "train_seconds": order, "wall_time_shared_by": [10] * 3}
+        )
+        assert leaderboard_detail.wall_seconds_together(nan) == {"hig": 17.5}
     # a cell whose rule's runs took 1.5x Adam's wall-clock time or more (or 1/1.5 or less) says so
     from leaderboard_cells import Cell, cell_text
 
@@ -812,6 +819,12 @@ def test_the_expensive_rules_are_read_again_at_four_times_the_budget(tmp_path, m
     clock.write_text(json.dumps({"costs": costs}))
     toy = leaderboard_scenes.SCENES[0]
     assert toy.expensive(clock) == ("hig",) and toy.expensive(None) == ()
+    # the points a clock must have, Gauss-Newton's too (its file names hig's kernel as a default)
+    needed = leaderboard_scenes.knob_ends(("hig", "gauss_newton", "adam"))
+    assert needed == {f"{r}@tau={t}" for r in ("hig", "gauss_newton") for t in (1e-9, 1e-6, 1e-3)}
+    older = tmp_path / "older.json"  # an older clock, without a rule added since: not expensive
+    older.write_text(json.dumps({"costs": {k: v for k, v in costs.items() if k != "soap"}}))
+    assert toy.expensive(older) == ("hig",)
     longer = toy.longer(2, clock)
     command = longer.command(tmp_path / "root")
     assert longer.name == "toy/longer-2" and "optim=adam,hig" in command
@@ -913,8 +926,7 @@ def test_a_longer_study_reads_the_kept_trials_where_its_tuning_studys_folder_has
     ]
     assert kept_tuned_in(f"compare.tuned_in={folder}", record, 3).endswith("study-2")
     assert kept_tuned_in("compare.seed=10", record, 2) == "compare.seed=10"
-    folder.mkdir(parents=True)
-    (folder / "trials.csv").write_text("variant,study\n")
+    folder.mkdir(parents=True)  # the study runs again here, unfinished: compare reads it (or says)
     assert kept_tuned_in(f"compare.tuned_in={folder}", record, 2).endswith("study-2")
 
     checked = 0

@@ -439,7 +439,8 @@ def test_a_calibrations_costs_at_a_knobs_ends_price_each_trial_and_evaluation(tm
     value (the preset's measured cost at the preset) plus the preset's line-search evaluations,
     never an end's own evaluations again; Adam, whose eps does not change a step's cost, keeps one
     cost. A given calibration without the ends is refused in one line that names them; a study
-    folder calibrated before the ends were resumes at the preset costs, with a note."""
+    folder calibrated before a variant's ends were resumes that variant at its preset cost, with a
+    note that names it, and the others at their own points."""
     import json
     import types
 
@@ -520,6 +521,10 @@ def test_a_calibrations_costs_at_a_knobs_ends_price_each_trial_and_evaluation(tm
     calibrated_clock(types.SimpleNamespace(variants=variants), resumed, None)
     assert soap.cost_knob == () and soap.priced({"precondition_frequency": 1}) == {}
     assert soap.job_values["trainer.step_cost"] == 2e-3 and "preset cost" in said[0]
+    # only the variant whose points are missing falls back: L-BFGS keeps its memory's costs
+    assert "for soap:" in said[0] and "lbfgs" not in said[0]
+    assert lbfgs.cost_knob[0] == "memory_size"
+    assert lbfgs.priced({"memory_size": 100}) == {"trainer.step_cost": pytest.approx(5e-3)}
 
 
 def test_a_truncation_below_the_gram_route_is_charged_the_svds_cost(tmp_path):
