@@ -134,9 +134,10 @@ def detectable_line(cell, comparisons: int) -> str:
         said = "none (too few seeds, or too many divergences)"
     else:
         said = f"{fmt(ratio)}x"
+    count = len(results)
+    which = "this tuning study finds" if count == 1 else f"these {count} tuning studies find"
     return (
-        f"Detectable: {said}: the smallest ratio either way that these {len(results)} tuning "
-        f"{'study finds' if len(results) == 1 else 'studies find'} with {POWER:.0%} power (the "
-        "seeds' spread, the spread between the studies and the divergences they measured); an "
+        f"Detectable: {said}: the smallest ratio either way that {which} with {POWER:.0%} power "
+        "(the seeds' spread, the spread between the studies and the divergences they measured); an "
         "undecided cell with a large detectable ratio says little."
     )
