@@ -29,6 +29,15 @@ def load(*overrides: str):
     return compose(with_defaults(overrides))
 
 
+def session_folder(tmp_path_factory) -> Path:
+    """The test session's own folder, shared by its pytest-xdist workers (each has its own below
+    it): where a fixture computed once for the whole session keeps what the others read."""
+    import os
+
+    root = tmp_path_factory.getbasetemp()
+    return root.parent if "PYTEST_XDIST_WORKER" in os.environ else root
+
+
 def console(*args, check=True, **kwargs):
     """`physgrad ARGS` through the installed console script; with check, it must succeed."""
     result = subprocess.run(

@@ -12,22 +12,14 @@ from physgrad.experiment import run_experiment
 from tests.helpers import REPO, load
 
 
-@pytest.fixture(scope="module")
-def small_check(tmp_path_factory):
-    rows = run_check(small=True, out_dir=tmp_path_factory.mktemp("check"))
-    print(markdown(rows))
-    return rows
-
-
 def rows_of(rows, case_start):
     found = [row for row in rows if row["case"].startswith(case_start)]
     assert found, case_start
     return found
 
 
-@pytest.mark.long
-def test_small_check_has_no_failures_and_every_outcome_is_named(small_check):
-    for row in small_check:
+def every_outcome_is_named(check_rows):
+    for row in check_rows:
         assert row["outcome"] in (
             "converged",
             "stalled",
@@ -38,9 +30,8 @@ def test_small_check_has_no_failures_and_every_outcome_is_named(small_check):
         ), row
 
 
-@pytest.mark.long
-def test_far_too_large_learning_rates_end_as_outcomes(small_check):
-    rows = [row for row in small_check if "learning rate 1e6" in row["case"]]
+def far_too_large_learning_rates_end_as_outcomes(check_rows):
+    rows = [row for row in check_rows if "learning rate 1e6" in row["case"]]
     assert len(rows) == 3
     for row in rows:
         assert row["outcome"] in ("diverged", "stalled", "grew"), row
@@ -50,9 +41,8 @@ def test_far_too_large_learning_rates_end_as_outcomes(small_check):
             )
 
 
-@pytest.mark.long
-def test_rank_deficient_jacobians_give_finite_directions(small_check):
-    rows = rows_of(small_check, "rank-deficient J")
+def rank_deficient_jacobians_give_finite_directions(check_rows):
+    rows = rows_of(check_rows, "rank-deficient J")
     assert len(rows) == 12 and all(row["outcome"] == "finite" for row in rows)
     for row in rows:
         errors = dict(re.findall(r"(\de[-+]\d+): (\S+?)(?:,|$)", row["detail"].split("tau ", 1)[1]))
@@ -64,21 +54,32 @@ def test_rank_deficient_jacobians_give_finite_directions(small_check):
             assert all(float(errors[t]) < 1e-6 for t in ("1e-06", "1e-04", "1e-02")), row
 
 
-@pytest.mark.long
-def test_schroedinger_norm_drift_is_round_off(small_check):
-    for row in rows_of(small_check, "quantum norm"):
+def schroedinger_norm_drift_is_round_off(check_rows):
+    for row in rows_of(check_rows, "quantum norm"):
         drift = float(row["detail"].rsplit(": ", 1)[1])
         assert drift < (1e-12 if row["precision"] == "64" else 1e-3), row
 
 
-@pytest.mark.long
-def test_bptt_gradient_growth_is_measured(small_check):
-    rows = {row["variant"]: row for row in rows_of(small_check, "multicart 4 poles: gradient norm")}
+def bptt_gradient_growth_is_measured(check_rows):
+    rows = {row["variant"]: row for row in rows_of(check_rows, "multicart 4 poles: gradient norm")}
     assert set(rows) == {"bptt backprop=R", "bptt backprop=M"} and all(
         row["outcome"] == "finite" for row in rows.values()
     )
     # the modes differ (with the zero output layer of the initial network they would coincide)
     assert rows["bptt backprop=R"]["detail"] != rows["bptt backprop=M"]["detail"]
+
+
+@pytest.mark.long
+def test_the_small_check_names_every_outcome_and_measures_what_it_says(tmp_path):
+    """`physgrad check --small` (about half a minute), run once and read by five checks: one test,
+    so that pytest-xdist's workers do not each run it."""
+    rows = run_check(small=True, out_dir=tmp_path)
+    print(markdown(rows))
+    every_outcome_is_named(rows)
+    far_too_large_learning_rates_end_as_outcomes(rows)
+    rank_deficient_jacobians_give_finite_directions(rows)
+    schroedinger_norm_drift_is_round_off(rows)
+    bptt_gradient_growth_is_measured(rows)
 
 
 @pytest.mark.parametrize(

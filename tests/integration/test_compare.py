@@ -19,6 +19,7 @@ from physgrad.comparison import (
 )
 from physgrad.errors import UserError
 from physgrad.optim.capabilities import ADAPTIVE, JACOBIAN
+from tests.helpers import session_folder
 
 
 def test_comma_lists_are_variants_and_everything_else_is_common():
@@ -266,14 +267,11 @@ def small_study(tmp_path_factory):
     """SMALL_STUDY, run once for the whole test session: the first process of the session to ask
     runs it (under a lock), every other one resumes the finished study, which reads it."""
     import fcntl
-    import os
 
     import physgrad.comparison  # noqa: F401 - importing the module leaves the function physgrad.compare in place
     from physgrad.comparison.jobs import hydra_quoted
 
-    root = tmp_path_factory.getbasetemp()
-    if "PYTEST_XDIST_WORKER" in os.environ:
-        root = root.parent  # the session's folder, above each worker's own
+    root = session_folder(tmp_path_factory)
     folder = root / "small study" / "a,b ü's [x]"
     folder.parent.mkdir(exist_ok=True)
     with open(root / "small study.lock", "w") as lock:
