@@ -84,7 +84,8 @@ def rerun_text(root: Path, found: dict) -> str:
         "Studies kept: " + "; ".join(progress) + ".",
         "",
         f"Read again at {LONGER}x the budget (a step above {EXPENSIVE:g} of Adam's on the scene's "
-        "clock, at the settings tuned at the budget: docs/protocol.md, section 7): "
+        "clock, at the preset or at a knob's value the tuning may choose; each at the settings "
+        "tuned at the budget: docs/protocol.md, section 7): "
         + "; ".join(f"{title}: {', '.join(rules)}" for title, rules in expensive.items() if rules)
         + f". The profile's {len(LEADERBOARD)} parts are planned at about {hours:.0f} h on 2 cores "
         "(an estimate, not a bound: `make reproduce-figures PROFILE=leaderboard ARGS=--plan`).",

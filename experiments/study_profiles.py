@@ -22,9 +22,9 @@ def claims_parts(profile: str) -> list:
     from studies import PROFILES, chunks  # experiments/ is this script's folder
 
     if profile == "leaderboard":
-        from leaderboard_scenes import LEADERBOARD
+        from leaderboard_scenes import leaderboard_parts
 
-        return chunks(LEADERBOARD)
+        return leaderboard_parts()
     return chunks(PROFILES[profile])
 
 

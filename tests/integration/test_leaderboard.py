@@ -172,15 +172,21 @@ def test_every_scene_is_a_compare_with_adam_as_baseline_and_parts_stay_near_80_m
     ks = next(e for e in leaderboard_scenes.SCENES if e.name == "ks").study(2)
     # on the calibrated clock a rule's seeds train in one job, but for the three that search a line
     assert ks.searching() == 3 and ks.eval_jobs() == 8 + 3 * ks.seeds
-    parts = chunks(leaderboard_scenes.LEADERBOARD)
-    # every part is one tuning study of one scene (the plan's figure is an estimate: one job
-    # per trial), each in a folder of its own
+    parts = leaderboard_scenes.leaderboard_parts()
+    # every part is one study of one scene, each in a folder of its own, even where studies
+    # would fit in one part's time (a longer study of 22 min), and a longer study k comes after
+    # tuning study k, whose settings it reads
+    assert sum(len(p) for p in chunks(leaderboard_scenes.LEADERBOARD)) == len(parts)
     longer = [p[0] for p in parts if "/longer-" in p[0].name]
     assert len(parts) - len(longer) == (
         len(leaderboard_scenes.SCENES) * leaderboard_scenes.LEADERBOARD_STUDIES
     )
     assert all(len(part) == 1 for part in parts)
-    assert len({part[0].name for part in parts}) == len(parts)
+    names = [part[0].name for part in parts]
+    assert len(set(names)) == len(parts)
+    for study in longer:
+        tuning = study.name.replace("/longer-", "/study-")
+        assert names.index(tuning) < names.index(study.name), study.name
 
 
 def test_a_study_run_elsewhere_is_added_to_the_kept_evidence(tmp_path, monkeypatch):
@@ -825,6 +831,14 @@ def test_the_expensive_rules_are_read_again_at_four_times_the_budget(tmp_path, m
     older = tmp_path / "older.json"  # an older clock, without a rule added since: not expensive
     older.write_text(json.dumps({"costs": {k: v for k, v in costs.items() if k != "soap"}}))
     assert toy.expensive(older) == ("hig",)
+    # a knob's value the tuning may choose counts: Gauss-Newton's SVD below tau 1e-6 at 11 of
+    # Adam's steps makes it expensive, SOAP's dearest frequency at 9 does not
+    knobs = tmp_path / "knobs.json"
+    timed = {"gauss_newton@tau=1e-09": 1.1e-2, "soap@precondition_frequency=1": 9e-3}
+    knobs.write_text(
+        json.dumps({"costs": {**costs, **{k: {"step_seconds": v} for k, v in timed.items()}}})
+    )
+    assert toy.expensive(knobs) == ("gauss_newton", "hig")
     longer = toy.longer(2, clock)
     command = longer.command(tmp_path / "root")
     assert longer.name == "toy/longer-2" and "optim=adam,hig" in command
