@@ -21,6 +21,7 @@ from leaderboard_scenes import (
     SCENES,
     scene_clock,
 )
+from study_runs import read_study
 
 from physgrad.files import make_folder, replace_file
 from physgrad.replication import majority
@@ -36,8 +37,9 @@ def earlier_protocol_banner(root: Path | None) -> list[str]:
     otherwise."""
     if root is None or not (root / RERUN.name).is_dir():
         return []
-    found = board(root / RERUN.name)
-    kept = sum(len(runs.tuning or (runs,)) for _, runs, _ in found.values())
+    # the studies alone, without deciding their cells (the re-run's section does that, once)
+    found = (read_study(root / RERUN.name / entry.name) for entry in SCENES)
+    kept = sum(len(runs.tuning or (runs,)) for runs in found if runs is not None)
     return [
         "**The table and figure below are from an earlier protocol**: 3 tuning studies a scene, "
         "the learning rate alone tuned, and a line search charged what the first steps cost. "
