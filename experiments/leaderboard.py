@@ -48,6 +48,7 @@ from leaderboard_scenes import (
     where_scene_runs,
 )
 from scene_kinds import KINDS, both_pages_line, kinds_table, read_kinds
+from study_runs import read_study
 from tuned_settings import tuned_table
 
 from physgrad.errors import UserError
@@ -162,11 +163,20 @@ def page(found: dict, image: str, root: Path | None = None, longer: dict | None 
             "oscillators costs 4 to 5 times fewer of Adam's than on 2 cores: docs/benchmarks.md, "
             '"On a GPU"); to answer for a GPU, run the profile there.',
         ]
-    if missing:
+    # a scene the earlier protocol never ran may have studies in the re-run (its section below)
+    in_rerun = [e for e in missing if root and read_study(root / RERUN.name / e.name) is not None]
+    if in_rerun:
+        lines += [
+            "",
+            "Run under the current protocol only (the re-run's section below): "
+            + ", ".join(f"{e.title} (`{e.name}`)" for e in in_rerun)
+            + ".",
+        ]
+    if not_run := [e for e in missing if e not in in_rerun]:
         lines += [
             "",
             "Not run yet: "
-            + ", ".join(f"{e.title} (`{e.name}`: {where_scene_runs(e)})" for e in missing)
+            + ", ".join(f"{e.title} (`{e.name}`: {where_scene_runs(e)})" for e in not_run)
             + ".",
         ]
     return "\n".join(lines + literature_lines(found)) + "\n"

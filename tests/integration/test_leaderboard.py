@@ -788,7 +788,14 @@ def test_the_re_runs_cells_link_to_its_scene_pages_with_what_each_study_tuned(tm
         for k in (1, 2)
     }
     (rerun / "toy.json").write_text(json.dumps(about))
+    # a scene only the re-run has run is said so under the earlier table, not "not run yet"
+    kept_scene(rerun, "ode_control_full", {"adam": [1.0], "hig": [0.1]}, studies=1, planned=4)
     text = leaderboard.write(evidence, tmp_path / "docs")
+    earlier = text[: text.index("## The re-run")]
+    assert "Run under the current protocol only (the re-run's section below): " in earlier
+    assert "full batch (`ode_control_full`)." in earlier
+    not_run = next(line for line in earlier.splitlines() if line.startswith("Not run yet: "))
+    assert "`burgers_inverse_full`" in not_run and "`ode_control_full`" not in not_run
     section = text[text.index("## The re-run under the current protocol") :]
     row = next(line for line in section.splitlines() if line.startswith("| gauss_newton |"))
     assert "[**undecided**](leaderboard/rerun/toy.md#gauss_newton)" in row
