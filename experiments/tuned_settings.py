@@ -18,8 +18,9 @@ EDGE = 0.1  # the outer tenth of the log span the trials tried
 def tuned_table(root: Path) -> str:
     """A markdown table: per kept study and variant, each tuning study's tuned values and the span
     its trials tried, flagged where a tuned value lies in the outer tenth of that span (the best
-    setting may lie beyond it); a line where no kept study recorded its tuning."""
-    rows = []
+    setting may lie beyond it); the kept studies tuned before the evidence kept their tuning
+    named in one line after it."""
+    rows, unrecorded = [], []
     for path in sorted(root.glob("*.json")):
         if path.name.endswith(".calibration.json"):
             continue
@@ -36,21 +37,23 @@ def tuned_table(root: Path) -> str:
                 by_variant.setdefault(variant, []).append(f"study {k}: {said}")
         rows += [f"| {path.stem} | {v} | {'; '.join(t)} |" for v, t in by_variant.items()]
         if not by_variant and _tuned(record) and not path.stem.endswith("-preset"):
-            rows.append(
-                f"| {path.stem} | every variant | not recorded (kept before the evidence kept "
-                "its tuning) |"
-            )
+            unrecorded.append(path.stem)
+    missing = (
+        f"not recorded for {', '.join(unrecorded)} (kept before the evidence kept its tuning; each "
+        "tuning study's compare.md lists it)"
+    )
     if not rows:
-        return (
-            "\nTuned settings: none of these studies' evidence records its tuning (it was kept "
-            "before the evidence did); each study's compare.md lists them.\n"
-        )
+        said = missing if unrecorded else "none of these studies was tuned"
+        return f"\nTuned settings: {said}.\n"
     return (
         "\nTuned settings, per study, variant and tuning study (the setting of lowest validation "
         "loss among its trials, and the span its trials tried; the presets are in conf/optim and "
         "conf/tuning); *edge*: in the outer tenth of that span, so the best may lie beyond "
         "it:\n\n"
-        "| study | variant | tuned |\n|---|---|---|\n" + "\n".join(rows) + "\n"
+        "| study | variant | tuned |\n|---|---|---|\n"
+        + "\n".join(rows)
+        + "\n"
+        + (f"\nTuned settings {missing}.\n" if unrecorded else "")
     )
 
 

@@ -1126,11 +1126,16 @@ def test_a_tuned_study_without_its_tuning_recorded_says_so_and_a_tuned_value_its
     record = {"trials": trials, "tuned": {"adam": {"learning_rate": 0.1}}}
     (tmp_path / "new.json").write_text(json.dumps({"trials": 4, "tuning_studies": {"1": record}}))
     table = tuned_table(tmp_path)
-    assert (
-        "| old | every variant | not recorded (kept before the evidence kept its tuning) |" in table
-    )
-    assert "old-preset" not in table
+    assert "\nTuned settings not recorded for old (kept before the evidence kept" in table
+    assert "old-preset" not in table and "| old |" not in table
     assert "| new | adam | study 1: learning_rate=0.1 of [0.0001, 0.1] *edge* |" in table
+    (tmp_path / "new.json").unlink()
+    assert tuned_table(tmp_path) == (
+        "\nTuned settings: not recorded for old (kept before the evidence kept its tuning; each "
+        "tuning study's compare.md lists it).\n"
+    )
+    (tmp_path / "old.json").unlink()
+    assert tuned_table(tmp_path) == "\nTuned settings: none of these studies was tuned.\n"
 
 
 def test_a_ratio_that_a_divergence_makes_0_says_so(tmp_path, studies):
