@@ -31,7 +31,7 @@ from leaderboard_cells import board, cell_text, longer_lines
 from leaderboard_detail import FOLDER, link, scene_budget_lines, wall_ratios
 from leaderboard_figure import plot
 from leaderboard_keep import keep
-from leaderboard_rerun import earlier_protocol_banner, rerun_pages, rerun_text
+from leaderboard_rerun import RERUN_IMAGE, earlier_protocol_banner, rerun_pages, rerun_text
 from leaderboard_scene_page import scene_page
 from leaderboard_scenes import (
     BASELINE,
@@ -283,6 +283,8 @@ def write(root: Path, out: Path) -> str:
     longer = board(root, LONGER_SUFFIX)
     text = page(found, "leaderboard.png", root, longer) + tuned_table(root)
     rerun = board(root / RERUN.name) if (root / RERUN.name).is_dir() else {}
+    if rerun:  # its own heat map, every scene a column, so that what is still to run shows
+        plot(rerun, out / RERUN_IMAGE, "the re-run under the current protocol, preliminary")
     text += rerun_text(root / RERUN.name, rerun)
     # through the write door: a link at a page's name, or at its folder, is not written through
     replace_file(out / "leaderboard.md", text.encode())

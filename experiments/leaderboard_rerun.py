@@ -27,6 +27,7 @@ from physgrad.files import make_folder, replace_file
 from physgrad.replication import majority
 
 PAGE = "leaderboard.md"
+RERUN_IMAGE = "leaderboard_rerun"  # beside the page: .png and .pdf (experiments/leaderboard.py)
 RERUN_HEADING = "The re-run under the current protocol (in progress)"
 RERUN_ANCHOR = "the-re-run-under-the-current-protocol-in-progress"  # GitHub's anchor of it
 
@@ -95,6 +96,8 @@ def rerun_text(root: Path, found: dict) -> str:
     scenes = [e for e in SCENES if e.name in found]
     if scenes:
         lines += [
+            "",
+            f"![the re-run, preliminary]({RERUN_IMAGE}.png)",
             "",
             "| rule | " + " | ".join(e.title for e in scenes) + " |",
             "|---|" + "---|" * len(scenes),

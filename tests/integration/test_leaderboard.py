@@ -342,7 +342,9 @@ def test_the_committed_page_is_what_the_committed_evidence_gives(tmp_path):
     assert "leaderboard/rerun/toy.md" in pages  # the re-run's scene pages too
     for name in pages:
         assert (tmp_path / name).read_text() == (REPO / "docs" / name).read_text()
-    assert (tmp_path / "leaderboard.png").stat().st_size > 10_000
+    for image in ("leaderboard.png", "leaderboard_rerun.png"):
+        assert (tmp_path / image).stat().st_size > 10_000
+        assert (REPO / "docs" / image).is_file()
 
 
 def test_studies_on_different_clocks_are_said_to_be(tmp_path):
@@ -723,6 +725,9 @@ def test_the_current_protocols_studies_are_kept_apart_and_shown_as_a_re_run(tmp_
     # one study of the four planned decides nothing yet; its verdict is said beside the cell
     assert "[**undecided**](leaderboard/rerun/toy.md#hig) 10x" in hig
     assert "(1 of 4 studies run: worse)" in hig
+    # its own heat map, beside the earlier protocol's
+    assert "![the re-run, preliminary](leaderboard_rerun.png)" in rerun
+    assert (tmp_path / "docs" / "leaderboard_rerun.png").stat().st_size > 10_000
     main = text[: text.index("## The re-run")]
     assert "[**better**](leaderboard/toy.md#hig) 0.1" in main  # the published cell, unchanged
     # the page says at its head that its table is the earlier protocol's, and how far the re-run is
