@@ -290,9 +290,9 @@ def write(root: Path, out: Path) -> str:
     replace_file(out / "leaderboard.md", text.encode())
     make_folder(out / FOLDER)
     for entry in (e for e in SCENES if e.name in found):
-        page_text = scene_page(entry, *found[entry.name])
+        page_text = scene_page(entry, *found[entry.name], longer=longer.get(entry.name))
         replace_file(out / FOLDER / f"{entry.name}.md", page_text.encode())
-    rerun_pages(rerun, out)
+    rerun_pages(root / RERUN.name, rerun, out)
     return text
 
 

@@ -129,13 +129,20 @@ def rerun_text(root: Path, found: dict) -> str:
     return "\n".join(lines) + "\n"
 
 
-def rerun_pages(found: dict, out: Path) -> None:
-    """The re-run's page per scene in out/RERUN_PAGES (each scene of found: board(root)), beside
-    the published table's; written through the write door."""
+def rerun_pages(root: Path, found: dict, out: Path) -> None:
+    """The re-run's page per scene in out/RERUN_PAGES (each scene of found: board(root), with
+    its reading at LONGER times the budget where root has one), beside the published table's;
+    written through the write door."""
     if not found:
         return
     make_folder(out / FOLDER)
     make_folder(out / RERUN_PAGES)
+    longer = board(root, LONGER_SUFFIX)
     for entry in (e for e in SCENES if e.name in found):
-        text = scene_page(entry, *found[entry.name], back=f"../../{PAGE}#{RERUN_ANCHOR}")
+        text = scene_page(
+            entry,
+            *found[entry.name],
+            back=f"../../{PAGE}#{RERUN_ANCHOR}",
+            longer=longer.get(entry.name),
+        )
         replace_file(out / RERUN_PAGES / f"{entry.name}.md", text.encode())

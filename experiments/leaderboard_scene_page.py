@@ -11,7 +11,7 @@ from __future__ import annotations
 import math
 
 from leaderboard_detail import mark, scene_notes
-from leaderboard_scenes import BASELINE, RULES, planned_studies
+from leaderboard_scenes import BASELINE, LONGER, RULES, planned_studies
 
 from physgrad.readout import fmt
 from physgrad.verdict import MARGIN
@@ -28,10 +28,19 @@ def _ratio(p) -> str:
     return f"{fmt(p.ratio)} [{fmt(ratio_of(p.low))}, {fmt(ratio_of(p.high))}]"
 
 
-def scene_page(entry, cells: dict, runs, about: dict, back: str = "../leaderboard.md") -> str:
+def scene_page(
+    entry,
+    cells: dict,
+    runs,
+    about: dict,
+    back: str = "../leaderboard.md",
+    longer: tuple | None = None,
+) -> str:
     """docs/leaderboard/<scene>.md: per rule a table of its tuning studies and their pooled
-    verdict (the cell), with what each study tuned where its evidence records it; back: the
-    leaderboard's page from this one (with an anchor for the re-run's pages)."""
+    verdict (the cell), with what each study tuned where its evidence records it, and the same
+    at LONGER times the budget for a rule read again there (longer: the scene's
+    board(root, LONGER_SUFFIX) entry); back: the leaderboard's page from this one (with an
+    anchor for the re-run's pages)."""
     from tuned_settings import tuned_in_study
 
     by_study = about.get("tuning_studies") or {}
@@ -60,7 +69,7 @@ def scene_page(entry, cells: dict, runs, about: dict, back: str = "../leaderboar
         "study's seeds, and the span of the studies' intervals (lowest low to highest high: "
         "descriptive, not a confidence interval).",
     ]
-    keys = sorted(by_study, key=int) if len(by_study) == studies else []
+    keys = _keys(about, studies)
     tuned = {k: tuned_in_study(by_study[k]) for k in keys}
     if any(tuned.values()):
         lines[-1] += (
@@ -68,39 +77,60 @@ def scene_page(entry, cells: dict, runs, about: dict, back: str = "../leaderboar
             "the span its trials tried; *edge*: in the outer tenth of that span, so the best may "
             "lie beyond it."
         )
+    longer_cells, _, longer_about = longer or ({}, None, {})
     for rule, cell in sorted(cells.items(), key=lambda item: RULES.index(item[0])):
-        lines += [
-            "",
-            f"## {rule}",
-            "",
-            "| tuning study | verdict at X | ratio at X | lower in | at X/4 | at X/2 | iterations "
-            + ("| tuned |" if any(tuned.values()) else "|"),
-            "|---|---|---|---|---|---|---|" + ("---|" if any(tuned.values()) else ""),
-        ]
-        for k, result in cell.detail:
-            # each study's iterations where kept per study, else the scene's
-            its = (by_study[keys[k]] if keys else about).get("iterations") or {}
-            verdict, why = result.verdicts[1.0]
-            p = result.at[1.0]
-            lines.append(
-                f"| {keys[k] if keys else k + 1} | {mark(verdict)} ({why}) | {_ratio(p)} | "
-                f"{p.wins_a} of {p.pairs} | "
-                + " | ".join(
-                    f"{fmt(result.at[f].ratio)} ({mark(result.verdicts[f][0])})"
-                    for f in (0.25, 0.5)
-                )
-                + f" | {rule} {_its(its, rule)}, {BASELINE} {_its(its, BASELINE)} |"
-                + (f" {tuned[keys[k]].get(rule, '-')} |" if any(tuned.values()) else "")
-            )
-        lines.append(
-            f"| over the studies | **{mark(cell.verdict)}**"
-            + (f" ({cell.why})" if cell.why else "")
-            + f" | {fmt(cell.ratio)} [{fmt(cell.low)}, "
-            f"{fmt(cell.high)}] | {cell.wins} of {cell.pairs} | | | |"
-            + (" |" if any(tuned.values()) else "")
-        )
+        lines += ["", f"## {rule}", *study_table(rule, cell, about, keys, tuned)]
         lines += ["", detectable_line(cell, len(cells))]
+        if rule in longer_cells:
+            lines += [
+                "",
+                f"At {LONGER}x the budget ({LONGER * runs.budget:g} s), each study's run of the "
+                "settings it tuned at the budget, on its seeds (X: the longer budget):",
+                *study_table(rule, longer_cells[rule], longer_about, _keys(longer_about, None)),
+            ]
     return "\n".join(lines) + "\n"
+
+
+def _keys(about: dict, studies: int | None) -> list[str]:
+    """The evidence's tuning studies in order where it keeps them per study (all of them, where
+    their number is given), else []."""
+    by_study = about.get("tuning_studies") or {}
+    return sorted(by_study, key=int) if studies in (None, len(by_study)) else []
+
+
+def study_table(rule: str, cell, about: dict, keys: list[str], tuned: dict | None = None):
+    """The lines of a rule's table: a row per tuning study (its verdict at X with why, the ratio
+    with its interval, the seeds where the rule was lower, the ratios at X/4 and X/2, both rules'
+    iterations, what it tuned where tuned has it) and the cell over the studies."""
+    by_study = about.get("tuning_studies") or {}
+    shown = bool(tuned) and any(tuned.values())
+    lines = [
+        "",
+        "| tuning study | verdict at X | ratio at X | lower in | at X/4 | at X/2 | iterations "
+        + ("| tuned |" if shown else "|"),
+        "|---|---|---|---|---|---|---|" + ("---|" if shown else ""),
+    ]
+    for k, result in cell.detail:
+        # each study's iterations where kept per study, else the scene's
+        its = (by_study[keys[k]] if keys else about).get("iterations") or {}
+        verdict, why = result.verdicts[1.0]
+        p = result.at[1.0]
+        lines.append(
+            f"| {keys[k] if keys else k + 1} | {mark(verdict)} ({why}) | {_ratio(p)} | "
+            f"{p.wins_a} of {p.pairs} | "
+            + " | ".join(
+                f"{fmt(result.at[f].ratio)} ({mark(result.verdicts[f][0])})" for f in (0.25, 0.5)
+            )
+            + f" | {rule} {_its(its, rule)}, {BASELINE} {_its(its, BASELINE)} |"
+            + (f" {tuned[keys[k]].get(rule, '-')} |" if shown else "")
+        )
+    lines.append(
+        f"| over the studies | **{mark(cell.verdict)}**"
+        + (f" ({cell.why})" if cell.why else "")
+        + f" | {fmt(cell.ratio)} [{fmt(cell.low)}, "
+        f"{fmt(cell.high)}] | {cell.wins} of {cell.pairs} | | | |" + (" |" if shown else "")
+    )
+    return lines
 
 
 def detectable_line(cell, comparisons: int) -> str:

@@ -902,6 +902,21 @@ def test_the_expensive_rules_are_read_again_at_four_times_the_budget(tmp_path, m
     assert "1 of 4 studies" in line and "hig **undecided** 0.1x" in line and "150 steps" in line
     hig = next(line for line in text.splitlines() if line.startswith("| hig |"))
     assert "worse" in hig  # at the budget, from the scene's own studies
+    # the scene's page: hig's studies at the budget, then its longer study's row and cell
+    page = (tmp_path / "docs" / "leaderboard" / "toy.md").read_text()
+    section = page.split("## hig\n")[1]
+    at_budget, at_longer = section.split("At 4x the budget (40 s)")
+    assert [row[:5] for row in at_budget.splitlines() if row.startswith("| ")][1:] == [
+        "| 1 |",
+        "| 2 |",
+        "| 3 |",
+        "| 4 |",
+        "| ove",
+    ]
+    rows = [row for row in at_longer.splitlines() if row.startswith("| ")][1:]
+    assert rows[0].startswith("| 1 | better") and "0.1 [" in rows[0] and "hig 150" in rows[0]
+    assert rows[1].startswith("| over the studies | **undecided**") and len(rows) == 2
+    assert "At 4x" not in page.split("## hig\n")[0]  # adam is not read again against itself
 
 
 def test_a_longer_study_reads_the_kept_trials_where_its_tuning_studys_folder_has_gone(tmp_path):
