@@ -267,7 +267,8 @@ def literature_lines(found: dict) -> list[str]:
 
 
 def write(root: Path, out: Path) -> str:
-    """leaderboard.md and leaderboard.png (and .pdf) in out, from kept evidence under root or from
+    """leaderboard.md and leaderboard.png (and .pdf; leaderboard_rerun.png and .pdf for a re-run
+    kept in root/rerun) in out, from kept evidence under root or from
     the study folders under root (kept first, into a temporary folder); returns the markdown."""
     if any((root / entry.name).is_dir() for entry in SCENES):
         import tempfile
