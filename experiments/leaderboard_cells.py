@@ -158,7 +158,8 @@ def cell_text(cell: Cell, scene_studies: int = 0, to: str = "", planned: int = 0
             else ""
         )
         + (
-            f", {cell.iterations:.0f} steps: decided by a step's cost, not the rule"
+            f", {cell.iterations:.0f} step{'' if cell.iterations == 1 else 's'}: decided by a "
+            "step's cost, not the rule"
             if cell.iterations < FEW_STEPS
             else ""
         )

@@ -23,6 +23,7 @@ from leaderboard_scenes import (
 )
 from study_runs import read_study
 
+from physgrad.comparison.coverage import FEW_STEPS
 from physgrad.files import make_folder, replace_file
 from physgrad.replication import majority
 
@@ -81,7 +82,11 @@ def rerun_text(root: Path, found: dict) -> str:
     ]
     kept = {name: len(runs.tuning or (runs,)) for name, (_, runs, _) in found.items()}
     progress = [f"{e.title}: {kept.get(e.name, 0)} of {LEADERBOARD_STUDIES}" for e in SCENES]
-    expensive = {e.title: e.expensive(scene_clock(e, root)) for e in SCENES}
+    clocks = {e.name: scene_clock(e, root) for e in SCENES}
+    beyond = {e.name: e.beyond_reach(clocks[e.name]) for e in SCENES}
+    expensive = {
+        e.title: [r for r in e.expensive(clocks[e.name]) if r not in beyond[e.name]] for e in SCENES
+    }
     hours = sum(study.seconds() for study in LEADERBOARD) / 3600
     lines += [
         "Studies kept: " + "; ".join(progress) + ".",
@@ -90,7 +95,17 @@ def rerun_text(root: Path, found: dict) -> str:
         "clock, at the preset or at a knob's value the tuning may choose; each at the settings "
         "tuned at the budget: docs/protocol.md, section 7): "
         + "; ".join(f"{title}: {', '.join(rules)}" for title, rules in expensive.items() if rules)
-        + f". The profile's {len(LEADERBOARD)} parts are planned at about {hours:.0f} h on 2 cores "
+        + "."
+        + "".join(
+            f" Not read again on {e.title}, fewer than {FEW_STEPS} steps even at {LONGER}x its "
+            f"budget ({LONGER * e.budget:g} s), their cells a step's cost at any budget these "
+            "parts afford: "
+            + ", ".join(f"{rule} ({FEW_STEPS} steps take {s:,.0f} s)" for rule, s in far.items())
+            + "."
+            for e in SCENES
+            if (far := beyond[e.name])
+        )
+        + f" The profile's {len(LEADERBOARD)} parts are planned at about {hours:.0f} h on 2 cores "
         "(an estimate, not a bound: `make reproduce-figures PROFILE=leaderboard ARGS=--plan`).",
     ]
     scenes = [e for e in SCENES if e.name in found]

@@ -35,6 +35,11 @@ RULES = tuple(o for o in BENCH_OPTIMS if o not in (BASELINE, "bptt", "stable_bpt
 NO_FACTORS = "no layer factors (the controller or convolution runs many times per sample)"
 
 
+def _timed(costs: dict, rule: str) -> list[float]:
+    """A rule's step costs on a clock: at its preset and at each knob value timed (rule@knob=v)."""
+    return [c["step_seconds"] for name, c in costs.items() if name.split("@")[0] == rule]
+
+
 @dataclass(frozen=True)
 class Entry:
     """One scene of the leaderboard: its compare overrides, the rules that apply (the others with
@@ -63,25 +68,38 @@ class Entry:
             return ()
         costs = json.loads(clock.read_text())["costs"]
         adam = costs[BASELINE]["step_seconds"]
+        # a rule the clock lacks (added since an older clock) is not known to be expensive
+        return tuple(r for r in self.rules if max(_timed(costs, r), default=0) > EXPENSIVE * adam)
 
-        def dearest(rule: str) -> float:
-            # a rule the clock lacks (added since an older clock) is not known to be expensive
-            return max(
-                (c["step_seconds"] for n, c in costs.items() if n.split("@")[0] == rule),
-                default=0.0,
-            )
+    def beyond_reach(self, clock: Path | None) -> dict[str, float]:
+        """The expensive rules that get fewer than FEW_STEPS steps even at LONGER times the
+        budget at the cheapest step the clock timed for them (any knob value), each with the
+        budget FEW_STEPS of those steps take: reading them at LONGER times the budget would again
+        decide a step's cost, so they are not (17-19 s a Jacobian step on the full-batch Burgers
+        scene, 7,000 of Adam's: 3 steps in 40 s)."""
+        from physgrad.comparison.coverage import FEW_STEPS
 
-        return tuple(r for r in self.rules if dearest(r) > EXPENSIVE * adam)
+        if clock is None:
+            return {}
+        costs = json.loads(clock.read_text())["costs"]
+        cheapest = {r: min(_timed(costs, r), default=0.0) for r in self.expensive(clock)}
+        return {
+            rule: FEW_STEPS * step
+            for rule, step in cheapest.items()
+            if FEW_STEPS * step > LONGER * self.budget
+        }
 
     def longer(self, k: int, clock: Path | None, costs: Path | None = None) -> Study | None:
         """Tuning study k's expensive rules and Adam at LONGER times the budget, each at the
         settings study k tuned (compare.tuned_in: its folder in the profile's root, else its
         trials kept in RERUN), on study k's evaluation seeds and clock (the scene's kept clock,
         else the one study k ran on, in its folder), as a compare of its own in
-        <root>/<scene>/longer-k; None where no rule is expensive on `costs` (a clock of the
+        <root>/<scene>/longer-k, without the rules beyond_reach; None where no rule is
+        expensive and within reach on `costs` (a clock of the
         scene's that may lack a knob's points: the presets' costs tell which rules get few
         steps), by default the kept clock."""
-        rules = self.expensive(costs or clock)
+        out_of_reach = self.beyond_reach(costs or clock)
+        rules = tuple(r for r in self.expensive(costs or clock) if r not in out_of_reach)
         if not rules:
             return None
         if clock is None:  # study k calibrated itself: the same clock, from its folder

@@ -21,6 +21,7 @@ import leaderboard  # noqa: E402
 import leaderboard_cells  # noqa: E402
 import leaderboard_detail  # noqa: E402
 import leaderboard_keep  # noqa: E402
+import leaderboard_rerun  # noqa: E402
 import leaderboard_scenes  # noqa: E402
 import study_runs  # noqa: E402
 import tuned_settings  # noqa: E402
@@ -851,6 +852,24 @@ def test_the_expensive_rules_are_read_again_at_four_times_the_budget(tmp_path, m
         json.dumps({"costs": {**costs, **{k: {"step_seconds": v} for k, v in timed.items()}}})
     )
     assert toy.expensive(knobs) == ("gauss_newton", "hig")
+    # a rule with fewer than 100 steps even at 4x the budget at its cheapest timed step is not read
+    # again (3 steps in 40 s would decide its step's cost again), and the page says what 100 steps
+    # take: Levenberg-Marquardt at 0.5 s a step; HIG too at its preset, but 0.3 s at a tau (133)
+    slow = {"levenberg_marquardt": 0.5, "hig": 0.5, "hig@tau=1e-09": 0.3}
+    (tmp_path / "far").mkdir()
+    far = tmp_path / "far" / "toy.calibration.json"
+    far.write_text(
+        json.dumps({"costs": {**costs, **{k: {"step_seconds": v} for k, v in slow.items()}}})
+    )
+    assert toy.expensive(far) == ("hig", "levenberg_marquardt")
+    assert toy.beyond_reach(far) == {"levenberg_marquardt": pytest.approx(50.0)}
+    assert toy.beyond_reach(clock) == {} and toy.beyond_reach(None) == {}
+    assert "optim=adam,hig" in toy.longer(1, far).command(tmp_path / "root")
+    said = leaderboard_rerun.rerun_text(tmp_path / "far", {})
+    assert "Not read again on toy, lambda 0.01, fewer than 100 steps even at 4x its budget " in said
+    assert "(40 s), their cells a step's cost at any budget these parts afford: " in said
+    assert "levenberg_marquardt (100 steps take 50 s)." in said
+    assert "section 7): toy, lambda 0.01: hig. Not read again on toy" in said
     longer = toy.longer(2, clock)
     command = longer.command(tmp_path / "root")
     assert longer.name == "toy/longer-2" and "optim=adam,hig" in command
