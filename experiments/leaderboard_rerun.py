@@ -82,29 +82,11 @@ def rerun_text(root: Path, found: dict) -> str:
     ]
     kept = {name: len(runs.tuning or (runs,)) for name, (_, runs, _) in found.items()}
     progress = [f"{e.title}: {kept.get(e.name, 0)} of {LEADERBOARD_STUDIES}" for e in SCENES]
-    clocks = {e.name: scene_clock(e, root) for e in SCENES}
-    beyond = {e.name: e.beyond_reach(clocks[e.name]) for e in SCENES}
-    expensive = {
-        e.title: [r for r in e.expensive(clocks[e.name]) if r not in beyond[e.name]] for e in SCENES
-    }
     hours = sum(study.seconds() for study in LEADERBOARD) / 3600
     lines += [
         "Studies kept: " + "; ".join(progress) + ".",
         "",
-        f"Read again at {LONGER}x the budget (a step above {EXPENSIVE:g} of Adam's on the scene's "
-        "clock, at the preset or at a knob's value the tuning may choose; each at the settings "
-        "tuned at the budget: docs/protocol.md, section 7): "
-        + "; ".join(f"{title}: {', '.join(rules)}" for title, rules in expensive.items() if rules)
-        + "."
-        + "".join(
-            f" Not read again on {e.title}, fewer than {FEW_STEPS} steps even at {LONGER}x its "
-            f"budget ({LONGER * e.budget:g} s), their cells a step's cost at any budget these "
-            "parts afford: "
-            + ", ".join(f"{rule} ({FEW_STEPS} steps take {s:,.0f} s)" for rule, s in far.items())
-            + "."
-            for e in SCENES
-            if (far := beyond[e.name])
-        )
+        reading_again(root)
         + f" The profile's {len(LEADERBOARD)} parts are planned at about {hours:.0f} h on 2 cores "
         "(an estimate, not a bound: `make reproduce-figures PROFILE=leaderboard ARGS=--plan`).",
     ]
@@ -142,6 +124,33 @@ def rerun_text(root: Path, found: dict) -> str:
     for entry in (e for e in SCENES if e.name in longer and e.name not in found):
         lines += ["", f"{entry.title}:", *longer_lines(entry, longer[entry.name], entry.budget)]
     return "\n".join(lines) + "\n"
+
+
+def reading_again(root: Path) -> str:
+    """Which rules each scene reads again at LONGER times the budget (expensive on its clock in
+    root), and those it does not, fewer than FEW_STEPS steps even there, with what FEW_STEPS of
+    their steps take."""
+    clocks = {e.name: scene_clock(e, root) for e in SCENES}
+    beyond = {e.name: e.beyond_reach(clocks[e.name]) for e in SCENES}
+    expensive = {
+        e.title: [r for r in e.expensive(clocks[e.name]) if r not in beyond[e.name]] for e in SCENES
+    }
+    return (
+        f"Read again at {LONGER}x the budget (a step above {EXPENSIVE:g} of Adam's on the scene's "
+        "clock, at the preset or at a knob's value the tuning may choose; each at the settings "
+        "tuned at the budget: docs/protocol.md, section 7): "
+        + "; ".join(f"{title}: {', '.join(rules)}" for title, rules in expensive.items() if rules)
+        + "."
+        + "".join(
+            f" Not read again on {e.title}, fewer than {FEW_STEPS} steps even at {LONGER}x its "
+            f"budget ({LONGER * e.budget:g} s), their cells a step's cost at any budget these "
+            "parts afford: "
+            + ", ".join(f"{rule} ({FEW_STEPS} steps take {s:,.0f} s)" for rule, s in far.items())
+            + "."
+            for e in SCENES
+            if (far := beyond[e.name])
+        )
+    )
 
 
 def rerun_pages(root: Path, found: dict, out: Path) -> None:
