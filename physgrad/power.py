@@ -62,22 +62,6 @@ def measured(verdict: PairVerdict, fraction: float = 1.0) -> tuple[float, float,
     return sd, between, rates[0], rates[1]
 
 
-@functools.lru_cache(maxsize=256)
-def study_power_needed(studies: int, need: int, power: float = POWER) -> float:
-    """The power each of `studies` independent tuning studies must have for `need` of them to reach
-    a verdict with probability `power` (the binomial tail, solved by bisection)."""
-    from scipy.stats import binom
-
-    low, high = 0.0, 1.0
-    for _ in range(60):
-        middle = (low + high) / 2
-        if binom.sf(need - 1, studies, middle) < power:
-            low = middle
-        else:
-            high = middle
-    return high
-
-
 @functools.lru_cache(maxsize=1024)
 def wrong_side_allowed(seeds: int, comparisons: int = 1, alpha: float = ALPHA) -> int:
     """The most pairs of `seeds` on which the better variant diverged (log ratio +-LOG_CAP on the
