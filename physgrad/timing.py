@@ -30,22 +30,29 @@ def interleaved_times(
     one call each per round, so that a step and its baseline see the same machine (on 2 shared cores
     the speed drifts by tens of percent between measurements taken a few seconds apart). At least
     `repeats` rounds and min_seconds, but stopping once max_seconds are spent (slow steps: fewer,
-    long repeats), after one untimed warm-up call each."""
+    long repeats), after one untimed warm-up call each.
+
+    A fn whose first timed call takes more than max_seconds / repeats sits out the later rounds,
+    and its time does not count against max_seconds: a few calls of seconds each would otherwise
+    spend it in one round and leave every fn a single sample (no interval on any cost)."""
     if warmup:
         for fn in fns:
             fn()
     times: list[list[float]] = [[] for _ in fns]
+    slow_call = max_seconds / max(repeats, 1)
     spent = 0.0
-    while not times[0] or (
-        (len(times[0]) < repeats or spent < min_seconds)
-        and spent < max_seconds
-        and len(times[0]) < 100_000
-    ):
-        for fn, fn_times in zip(fns, times):
+    turn = list(range(len(fns)))
+    while turn:
+        for i in turn:
             start = time.perf_counter()
-            fn()
-            fn_times.append(time.perf_counter() - start)
-            spent += fn_times[-1]
+            fns[i]()
+            times[i].append(time.perf_counter() - start)
+            if len(times[i]) > 1 or times[i][0] <= slow_call:
+                spent += times[i][-1]
+        turn = [i for i in turn if times[i][0] <= slow_call]
+        done = len(times[turn[0]]) if turn else 0
+        if not ((done < repeats or spent < min_seconds) and spent < max_seconds and done < 100_000):
+            break
     return times
 
 
