@@ -5,7 +5,7 @@ prints it (experiments/leaderboard.py)."""
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 from evidence import keep_clock_verdicts, read_json  # experiments/
@@ -14,6 +14,7 @@ from leaderboard_figure import FEW_STEPS
 from leaderboard_keep import checked_record
 from leaderboard_scenes import BASELINE, EXPENSIVE, LONGER, SCENES, planned_studies
 from study_runs import read_study
+from tuned_settings import at_the_edge
 
 from physgrad.readout import fmt
 from physgrad.replication import across_studies, majority, over_studies
@@ -38,6 +39,7 @@ class Cell:
     why: str = ""  # why the verdict over the studies is what it is (the package's rule)
     # the rule's runs' wall-clock time over Adam's at the same calibrated budget (median)
     wall_ratio: float = math.nan
+    edge: int = 0  # the tuning studies whose tuned value sits at the edge of what they tried
 
 
 def cells(runs, about: dict | None = None) -> dict[str, Cell]:
@@ -101,6 +103,7 @@ def cells(runs, about: dict | None = None) -> dict[str, Cell]:
             tuple((k, by_rule[rule]) for k, by_rule in enumerate(per_study) if rule in by_rule),
             why,
             walls.get(rule, math.nan),
+            at_the_edge(about.get("tuning_studies") or {}, rule),
         )
     return found
 
@@ -121,14 +124,16 @@ def board(root: Path, suffix: str = "") -> dict[str, tuple[dict[str, Cell], obje
     return found
 
 
-def longer_lines(entry, found: tuple | None, budget: float) -> list[str]:
+def longer_lines(entry, found: tuple | None, budget: float, tuned: dict | None = None) -> list[str]:
     """A scene's expensive rules against Adam at LONGER times the budget, at the settings tuned at
-    the budget (its <scene>_longer evidence): each rule's cell and its steps there."""
+    the budget (its <scene>_longer evidence): each rule's cell and its steps there, with the edge
+    of its tuning from its cell at the budget (tuned: rule -> Cell)."""
     if found is None:
         return []
     longer, runs, _ = found
+    edges = {rule: cell.edge for rule, cell in (tuned or {}).items()}
     said = [
-        f"{rule} {cell_text(cell, planned_studies(runs))}"
+        f"{rule} {cell_text(replace(cell, edge=edges.get(rule, 0)), planned_studies(runs))}"
         + (f", {cell.iterations:,.0f} steps" if math.isfinite(cell.iterations) else "")
         for rule, cell in sorted(longer.items())
     ]
@@ -157,10 +162,12 @@ def cell_text(cell: Cell, scene_studies: int = 0, to: str = "", planned: int = 0
             if len(cell.studies) < planned
             else ""
         )
+        + few_steps(cell.iterations)
         + (
-            f", {cell.iterations:.0f} step{'' if cell.iterations == 1 else 's'}: decided by a "
-            "step's cost, not the rule"
-            if cell.iterations < FEW_STEPS
+            f", tuned at the edge of what its trials tried in {cell.edge} of "
+            f"{len(cell.studies)} studies (the best setting may lie beyond)"
+            # in most studies: one edge among 8 quasi-random points in 2-3 knobs is common
+            if cell.edge >= majority(max(planned, scene_studies, len(cell.studies)))
             else ""
         )
         + (
@@ -170,3 +177,19 @@ def cell_text(cell: Cell, scene_studies: int = 0, to: str = "", planned: int = 0
             else ""
         )
     )
+
+
+def few_steps(iterations: float) -> str:
+    """What a cell decided on fewer than FEW_STEPS steps says: the steps that ended within the
+    budget (a run's last step crosses it, and its loss is read before that step: docs/protocol.md,
+    section 6), and where none did, that the cell compares Adam with the untrained network."""
+    if not iterations < FEW_STEPS:
+        return ""
+    within = max(iterations - 1, 0)
+    if within < 1:
+        return (
+            ", no step within the budget (its first ends after it): Adam against the untrained "
+            "network, a step's cost and not the rule"
+        )
+    plural = "" if within == 1 else "s"
+    return f", {within:.0f} step{plural} within the budget: decided by a step's cost, not the rule"

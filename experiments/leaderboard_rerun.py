@@ -120,7 +120,7 @@ def rerun_text(root: Path, found: dict) -> str:
     longer = board(root, LONGER_SUFFIX)
     for entry in scenes:
         lines += scene_budget_lines(entry, *found[entry.name][1:])
-        lines += longer_lines(entry, longer.get(entry.name), entry.budget)
+        lines += longer_lines(entry, longer.get(entry.name), entry.budget, found[entry.name][0])
     for entry in (e for e in SCENES if e.name in longer and e.name not in found):
         lines += ["", f"{entry.title}:", *longer_lines(entry, longer[entry.name], entry.budget)]
     return "\n".join(lines) + "\n"

@@ -10,11 +10,14 @@ from __future__ import annotations
 
 import math
 
+import numpy as np
 from leaderboard_detail import mark, scene_notes
 from leaderboard_scenes import BASELINE, LONGER, RULES, planned_studies
 
 from physgrad.readout import fmt
 from physgrad.verdict import MARGIN
+
+OUTLIER = 10.0  # a study's baseline this many times the studies' median loss is said so
 
 
 def _its(iterations: dict, rule: str) -> str:
@@ -77,6 +80,7 @@ def scene_page(
             "the span its trials tried; *edge*: in the outer tenth of that span, so the best may "
             "lie beyond it."
         )
+    lines += baseline_table(runs, keys, tuned)
     longer_cells, _, longer_about = longer or ({}, None, {})
     for rule, cell in sorted(cells.items(), key=lambda item: RULES.index(item[0])):
         lines += ["", f"## {rule}", *study_table(rule, cell, about, keys, tuned)]
@@ -89,6 +93,55 @@ def scene_page(
                 *study_table(rule, longer_cells[rule], longer_about, _keys(longer_about, None)),
             ]
     return "\n".join(lines) + "\n"
+
+
+def baseline_table(runs, keys: list[str], tuned: dict) -> list[str]:
+    """The baseline's own row per tuning study: its median test loss at the budget over the
+    study's seeds with their lowest and highest, and what the study tuned for it, so that a ratio
+    against it can be read (a study whose baseline tuned worse makes every rule look better)."""
+    rows, medians = [], {}
+    for k, study in enumerate(runs.tuning or (runs,)):
+        losses = [curve.at(runs.budget) for curve in study.curves(BASELINE).values()]
+        losses = [v for v in losses if math.isfinite(v)]
+        if not losses:
+            continue
+        name = keys[k] if keys else str(k + 1)
+        medians[name] = float(np.median(losses))
+        said = tuned.get(keys[k], {}).get(BASELINE, "-") if keys else "-"
+        rows.append(
+            f"| {name} | {fmt(medians[name])} | {fmt(min(losses))} | {fmt(max(losses))} | {said} |"
+        )
+    if not rows:
+        return []
+    typical = float(np.median(list(medians.values())))
+    apart = [
+        f"study {name}'s {fmt(m)}, {fmt(m / typical)}x the studies' median"
+        for name, m in medians.items()
+        if len(medians) > 2 and m > OUTLIER * typical
+    ]
+    return [
+        "",
+        f"## {BASELINE} (the baseline)",
+        "",
+        f"Each study's {BASELINE}: its test loss at the budget over its seeds (median, lowest, "
+        "highest) and what the study tuned for it; every ratio on this page is over it.",
+        "",
+        "| tuning study | median test loss at X | lowest | highest | tuned |",
+        "|---|---|---|---|---|",
+        *rows,
+        *(
+            [
+                "",
+                f"{BASELINE.capitalize()} far above the other studies' (its median loss more "
+                f"than {OUTLIER:g}x the studies' median): "
+                + "; ".join(apart)
+                + ". The rules' ratios in that study are over a baseline that tuned or trained "
+                "worse, and lower than the other studies' in part for that reason.",
+            ]
+            if apart
+            else []
+        ),
+    ]
 
 
 def _keys(about: dict, studies: int | None) -> list[str]:

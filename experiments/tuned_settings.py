@@ -60,13 +60,23 @@ def tuned_table(root: Path) -> str:
 def tuned_in_study(study: object) -> dict[str, str]:
     """variant -> what one tuning study's record (its `tuned` and `trials`) says it chose: each
     tuned key as key=value with the span its trials tried, *edge* where the value lies in the
-    outer tenth of that span; {} for a record without them."""
+    outer tenth of that span, "untuned" where every trial's validation loss was the same (a rule
+    that takes no step within the budget); {} for a record without them."""
     study = study if isinstance(study, dict) else {}
     trials = study.get("trials") if isinstance(study.get("trials"), list) else []
     tuned = study.get("tuned") if isinstance(study.get("tuned"), dict) else {}
     found = {}
     for variant, values in sorted(tuned.items()):
         if not isinstance(values, dict):
+            continue
+        losses = {
+            t.get("validation_loss")
+            for t in trials
+            if isinstance(t, dict) and t.get("variant") == variant
+        }
+        count = sum(isinstance(t, dict) and t.get("variant") == variant for t in trials)
+        if count > 1 and len(losses) == 1:  # no trial told the others apart
+            found[str(variant)] = f"untuned: its {count} trials tied (the first one's settings ran)"
             continue
         said = []
         for key, value in sorted(values.items()):
@@ -79,6 +89,15 @@ def tuned_in_study(study: object) -> dict[str, str]:
             said.append(f"{key}={fmt(float(value))}{span}{_edge(float(value), tried)}")
         found[str(variant)] = ", ".join(said)
     return found
+
+
+def at_the_edge(studies: dict, variant: str) -> int:
+    """How many of a kept record's tuning studies (its `tuning_studies`) tuned a value of the
+    variant in the outer tenth of the log span its trials tried (tuned_in_study's *edge*)."""
+    return sum(
+        "*edge*" in tuned_in_study(study).get(variant, "")
+        for study in (studies.values() if isinstance(studies, dict) else ())
+    )
 
 
 def _tuned(record: dict) -> bool:

@@ -6,6 +6,7 @@ undecided or worse, never better; rules that do not apply are marked, scenes not
 import json
 import math
 import os
+import re
 import shutil
 import sys
 from dataclasses import replace
@@ -777,10 +778,11 @@ def test_the_re_runs_cells_link_to_its_scene_pages_with_what_each_study_tuned(tm
     about = json.loads((rerun / "toy.json").read_text())
     tried = [1e-9, 1e-7, 1e-5, 1e-3]
 
-    def trials(rule, k):  # the tau of each trial; the learning rate of the trial the same
+    def trials(rule, k, tied=False):  # the tau of each trial; the learning rate the same
         return [
-            {"variant": rule, "learning_rate": 0.1 * k, "tau": t, "validation_loss": 1.0}
-            for t in tried
+            {"variant": rule, "learning_rate": 0.1 * k, "tau": t, "validation_loss": 1.0 + i}
+            | ({"validation_loss": 1.0} if tied else {})
+            for i, t in enumerate(tried)
         ]
 
     about["tuning_studies"] = {
@@ -788,8 +790,12 @@ def test_the_re_runs_cells_link_to_its_scene_pages_with_what_each_study_tuned(tm
             "iterations": about["iterations"],
             "undecided_by_the_clock": {},
             # study 1 chose a tau in the middle of its trials' span, study 2 one at its top
-            "tuned": {"gauss_newton": {"learning_rate": 0.1 * k, "tau": [1e-6, 1e-3][k - 1]}},
-            "trials": trials("gauss_newton", k),
+            "tuned": {
+                "gauss_newton": {"learning_rate": 0.1 * k, "tau": [1e-6, 1e-3][k - 1]},
+                **({"hig": {"learning_rate": 0.1, "tau": 1e-9}} if k == 1 else {}),
+            },
+            # study 1's HIG: every trial the same loss (no step in the budget), so none was chosen
+            "trials": trials("gauss_newton", k) + (trials("hig", k, tied=True) if k == 1 else []),
         }
         for k in (1, 2)
     }
@@ -820,7 +826,14 @@ def test_the_re_runs_cells_link_to_its_scene_pages_with_what_each_study_tuned(tm
     assert rows[2].startswith("| 2 |") and rows[2].endswith("tau=0.001 of [1e-09, 0.001] *edge* |")
     assert rows[3].startswith("| over the studies |") and rows[3].count("|") == rows[0].count("|")
     hig = page.split("## hig\n")[1].split("\n## ")[0]
+    assert "| untuned: its 4 trials tied (the first one's settings ran) |" in hig
     assert "| - |" in hig  # a rule whose tuning the record does not give
+    # the baseline's own losses per study, which every ratio is over
+    adam = page.split("## adam (the baseline)\n")[1].split("\n## ")[0]
+    assert [line.split(" | ")[0] for line in adam.splitlines() if line[:3] in ("| 1", "| 2")] == [
+        "| 1",
+        "| 2",
+    ]
     assert "Detectable:" in gauss
     assert (tmp_path / "docs" / "leaderboard" / "toy.md").is_file()  # the published scene's
 
@@ -1009,3 +1022,26 @@ def test_a_longer_study_reads_the_kept_trials_where_its_tuning_studys_folder_has
             assert picked == {v.name: study["tuned"].get(v.name, {}) for v in variants}
             checked += 1
     assert checked >= 2  # the toy's four and the oscillators' first at least
+
+
+def test_a_study_whose_baseline_trained_far_worse_is_said_on_the_scene_page(tmp_path):
+    """Known answer: Adam at 1 in studies 1-3 and 100 in study 4 (100x the studies' median) is
+    named on the scene page with its factor; with study 4 at 5 (5x) nothing is said."""
+    for worst, said in ((100.0, True), (5.0, False)):
+        evidence = tmp_path / str(worst)
+        kept_scene(evidence, "toy", {"adam": [1.0, 1.0, 1.0, worst], "hig": [0.1] * 4}, 4)
+        leaderboard.write(evidence, tmp_path / str(worst) / "docs")
+        page = (tmp_path / str(worst) / "docs" / "leaderboard" / "toy.md").read_text()
+        factor = re.search(r"study 4's [0-9.]+, ([0-9.]+)x the studies' median", page)
+        assert (factor is not None and 90 < float(factor[1]) < 110) is said
+        assert ("far above the other studies'" in page) is said
+
+
+def test_a_cell_on_few_steps_says_the_steps_within_its_budget():
+    """A run's last step crosses the budget and is not read (docs/protocol.md, section 6): 79
+    steps taken are 78 within the budget; 1 taken is none, Adam against the untrained network;
+    100 or more say nothing."""
+    assert leaderboard_cells.few_steps(79).startswith(", 78 steps within the budget: decided")
+    assert leaderboard_cells.few_steps(2).startswith(", 1 step within the budget")
+    assert "Adam against the untrained network" in leaderboard_cells.few_steps(1)
+    assert leaderboard_cells.few_steps(100) == leaderboard_cells.few_steps(float("nan")) == ""
