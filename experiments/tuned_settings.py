@@ -69,13 +69,14 @@ def tuned_in_study(study: object) -> dict[str, str]:
     for variant, values in sorted(tuned.items()):
         if not isinstance(values, dict):
             continue
-        losses = {
+        losses = [
             t.get("validation_loss")
             for t in trials
             if isinstance(t, dict) and t.get("variant") == variant
-        }
-        count = sum(isinstance(t, dict) and t.get("variant") == variant for t in trials)
-        if count > 1 and len(losses) == 1:  # no trial told the others apart
+        ]
+        count = len(losses)
+        recorded = all(isinstance(v, (int, float)) and math.isfinite(v) for v in losses)
+        if count > 1 and recorded and len(set(losses)) == 1:  # no trial told the others apart
             found[str(variant)] = f"untuned: its {count} trials tied (the first one's settings ran)"
             continue
         said = []

@@ -177,11 +177,12 @@ def over_studies(
             return undecided, (
                 f"{held}; but the studies taken as draws do not exclude a ratio of "
                 f"{study_margin:g}: {_ratio(draws.mean)} [{_ratio(draws.low)}, "
-                f"{_ratio(draws.high)}] over {draws.studies} studies (Hartung-Knapp, "
-                f"p = {draws.p:.2g}): the tuning's luck could make it"
+                f"{_ratio(draws.high)}] ({1 - study_alpha:.0%} interval over {draws.studies} "
+                f"studies, Hartung-Knapp; p = {draws.p:.2g}, not below {study_alpha:g}): which "
+                "tuning study ran could make the difference"
             )
         if all(abs(e) >= STUDY_CAP for e in draws.estimates):
-            return verdict, f"{held}; every study's median ratio 10x or more"
+            return verdict, f"{held}; every study's median ratio 10x or more from 1 on that side"
         return verdict, f"{held}; over the studies {_ratio(draws.mean)} (p = {draws.p:.2g})"
     if len(decided) > 1:
         return undecided, f"the tuning studies disagree: {listed}"
