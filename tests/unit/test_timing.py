@@ -94,6 +94,7 @@ def test_a_step_of_seconds_leaves_the_other_steps_their_rounds(monkeypatch, slow
     assert got["fast"]["rounds"] == got["medium"]["rounds"] == 30
     for name, cost in costs.items():
         assert got[name]["step_seconds"] == pytest.approx(cost)
+
     # the rounds of the others stay within max_seconds: 30 rounds of 0.05 s and 0.3 s bursts
     def counted(name):
         def call():
