@@ -277,9 +277,10 @@ def _evaluations_said(about: dict) -> str:
     )
 
 
-def scene_budget_lines(entry, runs, about: dict) -> list[str]:
+def scene_budget_lines(entry, runs, about: dict, clock_file: Path | None = None) -> list[str]:
     """A scene's item under "The scenes and their budgets": its overrides, budget, studies run and
-    machine; each rule's iterations in the budget; its per-rule presets; its clocks' notes."""
+    machine (and the clock's, kept beside the evidence, where the runs ran on another kind);
+    each rule's iterations in the budget; its per-rule presets; its clocks' notes."""
     lines = []
     studies = len(runs.tuning or (runs,))
     its = about.get("iterations") or {}
@@ -295,6 +296,7 @@ def scene_budget_lines(entry, runs, about: dict) -> list[str]:
             else ""
         )
         + (f"; on {runs.machine}" if runs.machine else "")
+        + clock_machine_note(clock_file, runs.machine)
         + "."
     )
     if its:
@@ -308,6 +310,26 @@ def scene_budget_lines(entry, runs, about: dict) -> list[str]:
     lines += [f"  {wall}"] if wall else []
     lines += [f"  {note}" for note in scene_notes(about)]
     return lines
+
+
+def clock_machine_note(clock: Path | None, machine: str) -> str:
+    """Where a scene's kept clock was measured on another kind of machine than its runs ran on
+    (its iterations follow that machine's step costs), the clause that says so; "" otherwise."""
+    from evidence import read_json
+
+    try:
+        measured = read_json(clock).get("machine") or {} if clock and clock.is_file() else {}
+    except (OSError, ValueError, AttributeError):
+        return ""
+    cpu = measured.get("cpu_model") if isinstance(measured, dict) else None
+    if not isinstance(cpu, str) or not machine or cpu in machine:
+        return ""
+    cores = measured.get("cpu_count")
+    return (
+        f"; its clock was calibrated on {cpu}"
+        + (f" ({cores} cores)" if isinstance(cores, int) else "")
+        + ", so each rule's iterations in the budget follow that machine's step costs"
+    )
 
 
 def _studies(keys: list[str]) -> str:

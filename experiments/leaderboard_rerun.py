@@ -14,11 +14,13 @@ from leaderboard_scenes import (
     EXPENSIVE,
     LEADERBOARD,
     LEADERBOARD_STUDIES,
+    LEADERBOARD_TRIALS,
     LONGER,
     LONGER_SUFFIX,
     RERUN,
     RULES,
     SCENES,
+    kept_clock,
     scene_clock,
 )
 from study_runs import read_study
@@ -66,7 +68,9 @@ def rerun_text(root: Path, found: dict) -> str:
         f"## {RERUN_HEADING}",
         "",
         f"The profile now runs {LEADERBOARD_STUDIES} tuning studies a scene, each rule tuned on "
-        "its own knobs beside its learning rate (`compare.knobs=true`), every scene on a clock "
+        f"its own knobs beside its learning rate (`compare.knobs=true`; {LEADERBOARD_TRIALS} "
+        "trial points a rule in each study, shared by its knobs, and 10 evaluation seeds), every "
+        "scene on a clock "
         "measured afresh that charges a line search its evaluations and a knob that changes a "
         "step's cost its cost at the tuned value (docs/protocol.md). Its studies are kept in "
         "docs/evidence/leaderboard/rerun; the table above moves to them once every scene has "
@@ -74,7 +78,9 @@ def rerun_text(root: Path, found: dict) -> str:
         + (
             ", and until then the cells below are preliminary: a cell is decided when "
             f"{majority(LEADERBOARD_STUDIES)} of the {LEADERBOARD_STUDIES} studies agree, none "
-            "against, as a claim is, and each kept study's verdict is said beside it."
+            "against, every study's median ratio on the verdict's side and the studies taken as "
+            "draws excluding a ratio of 1 at 99%, as a claim is (docs/protocol.md, section 2, "
+            '"Independent tuning studies"), and each kept study\'s verdict is said beside it.'
             if found
             else "."
         ),
@@ -119,7 +125,7 @@ def rerun_text(root: Path, found: dict) -> str:
         lines += ["", "The re-run's scenes so far:", ""]
     longer = board(root, LONGER_SUFFIX)
     for entry in scenes:
-        lines += scene_budget_lines(entry, *found[entry.name][1:])
+        lines += scene_budget_lines(entry, *found[entry.name][1:], scene_clock(entry, root))
         lines += longer_lines(entry, longer.get(entry.name), entry.budget, found[entry.name][0])
     for entry in (e for e in SCENES if e.name in longer and e.name not in found):
         lines += ["", f"{entry.title}:", *longer_lines(entry, longer[entry.name], entry.budget)]
@@ -132,21 +138,35 @@ def reading_again(root: Path) -> str:
     their steps take."""
     clocks = {e.name: scene_clock(e, root) for e in SCENES}
     beyond = {e.name: e.beyond_reach(clocks[e.name]) for e in SCENES}
-    expensive = {
-        e.title: [r for r in e.expensive(clocks[e.name]) if r not in beyond[e.name]] for e in SCENES
-    }
+    expensive = [
+        (e, [r for r in e.expensive(clocks[e.name]) if r not in beyond[e.name]]) for e in SCENES
+    ]
+
+    def listed(scenes) -> str:
+        return "; ".join(f"{e.title}: {', '.join(rules)}" for e, rules in scenes)
+
+    settled = [(e, rules) for e, rules in expensive if rules and kept_clock(e, root)]
+    provisional = [(e, rules) for e, rules in expensive if rules and not kept_clock(e, root)]
     return (
         f"Read again at {LONGER}x the budget (a step above {EXPENSIVE:g} of Adam's on the scene's "
         "clock, at the preset or at a knob's value the tuning may choose; each at the settings "
         "tuned at the budget: docs/protocol.md, section 7): "
-        + "; ".join(f"{title}: {', '.join(rules)}" for title, rules in expensive.items() if rules)
+        + listed(settled)
+        + (
+            ("; and, " if settled else "")
+            + "provisional, from clocks each scene's first study measures again: "
+            + listed(provisional)
+            if provisional
+            else ""
+        )
         + "."
         + "".join(
-            f" Not read again on {e.title}, fewer than {FEW_STEPS} steps even at {LONGER}x its "
-            f"budget ({LONGER * e.budget:g} s), their cells a step's cost at any budget these "
-            "parts afford: "
-            + ", ".join(f"{rule} ({FEW_STEPS} steps take {s:,.0f} s)" for rule, s in far.items())
-            + "."
+            f" On {e.title}, {' and '.join(far)} {'are' if len(far) > 1 else 'is'} not read again: "
+            f"even at {LONGER}x the budget ({LONGER * e.budget:g} s) "
+            f"{'they get' if len(far) > 1 else 'it gets'} fewer than {FEW_STEPS} steps ("
+            + ", ".join(f"{FEW_STEPS} of {rule}'s take {s:,.0f} s" for rule, s in far.items())
+            + f"), so {'their cells measure' if len(far) > 1 else 'its cell measures'} a step's "
+            "cost, not the rule."
             for e in SCENES
             if (far := beyond[e.name])
         )

@@ -879,10 +879,12 @@ def test_the_expensive_rules_are_read_again_at_four_times_the_budget(tmp_path, m
     assert toy.beyond_reach(clock) == {} and toy.beyond_reach(None) == {}
     assert "optim=adam,hig" in toy.longer(1, far).command(tmp_path / "root")
     said = leaderboard_rerun.rerun_text(tmp_path / "far", {})
-    assert "Not read again on toy, lambda 0.01, fewer than 100 steps even at 4x its budget " in said
-    assert "(40 s), their cells a step's cost at any budget these parts afford: " in said
-    assert "levenberg_marquardt (100 steps take 50 s)." in said
-    assert "section 7): toy, lambda 0.01: hig. Not read again on toy" in said
+    assert (
+        "section 7): provisional, from clocks each scene's first study measures again: toy, "
+        "lambda 0.01: hig. On toy, lambda 0.01, levenberg_marquardt is not read again: even at 4x "
+        "the budget (40 s) it gets fewer than 100 steps (100 of levenberg_marquardt's take 50 s), "
+        "so its cell measures a step's cost, not the rule."
+    ) in said
     longer = toy.longer(2, clock)
     command = longer.command(tmp_path / "root")
     assert longer.name == "toy/longer-2" and "optim=adam,hig" in command
@@ -1045,3 +1047,20 @@ def test_a_cell_on_few_steps_says_the_steps_within_its_budget():
     assert leaderboard_cells.few_steps(2).startswith(", 1 step within the budget")
     assert "Adam against the untrained network" in leaderboard_cells.few_steps(1)
     assert leaderboard_cells.few_steps(100) == leaderboard_cells.few_steps(float("nan")) == ""
+
+
+def test_a_clock_measured_on_another_kind_of_machine_is_said(tmp_path):
+    """A scene whose kept clock names AMD EPYC while its runs ran on a Xeon says so; the same kind,
+    a clock without a machine, or no clock says nothing."""
+    clock = tmp_path / "toy.calibration.json"
+    clock.write_text(json.dumps({"machine": {"cpu_model": "AMD EPYC", "cpu_count": 2}}))
+    xeon = "Intel(R) Xeon(R) Processor (2 cores)"
+    said = leaderboard_detail.clock_machine_note(clock, xeon)
+    assert said == (
+        "; its clock was calibrated on AMD EPYC (2 cores), so each rule's iterations in the "
+        "budget follow that machine's step costs"
+    )
+    assert leaderboard_detail.clock_machine_note(clock, "AMD EPYC (2 cores)") == ""
+    assert leaderboard_detail.clock_machine_note(tmp_path / "none.json", xeon) == ""
+    clock.write_text(json.dumps({"costs": {}}))
+    assert leaderboard_detail.clock_machine_note(clock, xeon) == ""
