@@ -231,19 +231,22 @@ def wall_line(about: dict) -> str | None:
     counted = sum(bool(s.get("wall_seconds") or s.get("wall_seconds_together")) for s in records)
     # a study whose Adam runs trained together: its budget stands for a run of Adam's
     budget = (
-        f"; {BASELINE}'s, where its seeds trained together, the budget: its steps cost what the "
-        "calibration timed"
+        f"; for {BASELINE}, whose seeds trained in one job, its run's time is taken as the "
+        "budget itself (its steps cost what the calibration timed)"
         if any(wall and BASELINE not in wall for wall in timed)
         else ""
     )
     over = f"median over {counted} tuning {'study' if counted == 1 else 'studies'}{budget}"
     untimed = sorted(set(about.get("iterations") or {}) - set(ratios) - set(together) - {BASELINE})
     if untimed:  # their runs trained together: a vectorised step's time is not one run's
-        over += f"; not timed one run at a time, their seeds trained together: {', '.join(untimed)}"
+        over += (
+            f"; not timed one run at a time (their seeds trained in one job): {', '.join(untimed)}"
+        )
     said = ", ".join(f"{r} {x:.2g}x" for r, x in sorted(ratios.items(), key=lambda i: -i[1]))
     if together:  # a job of N seeds against Adam's job of N: what the budget cost them together
         said += ("; " if said else "") + (
-            f"seeds trained together, a seed's share of its job against {BASELINE}'s in its own: "
+            f"seeds trained in one job, its job's time per seed over {BASELINE}'s job's time per "
+            "seed: "
             + ", ".join(f"{r} {x:.2g}x" for r, x in sorted(together.items(), key=lambda i: -i[1]))
         )
     if not far:

@@ -211,7 +211,9 @@ def detectable_line(cell, comparisons: int) -> str:
         if results
         else math.nan
     )
-    if math.isnan(ratio):
+    if len(results) < 2:  # the spread between studies, which a verdict must survive, is unknown
+        said = "not stated from one tuning study (it measures no spread between studies)"
+    elif math.isnan(ratio):
         said = "not measured (fewer than 3 finite log ratios)"
     elif math.isinf(ratio):
         said = "none (too few seeds, or too many divergences)"

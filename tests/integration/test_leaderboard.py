@@ -524,8 +524,8 @@ def test_the_wall_clock_ratios_are_within_a_study_then_the_median_over_studies()
     }
     assert leaderboard_detail.wall_ratios(together) == pytest.approx({"lbfgs": 2.0})
     line = leaderboard_detail.wall_line(together)
-    assert "adam's, where its seeds trained together, the budget" in line
-    assert "not timed one run at a time, their seeds trained together: soap)" in line
+    assert "for adam, whose seeds trained in one job, its run's time is taken as the budget" in line
+    assert "not timed one run at a time (their seeds trained in one job): soap)" in line
     assert "lbfgs 2x; beyond 1.5x either way: lbfgs." in line
     assert leaderboard_detail.wall_ratios({**together, "budget": None}) == pytest.approx(
         {"lbfgs": 2.0}  # no budget recorded: the one study that timed Adam
@@ -559,9 +559,9 @@ def test_the_wall_clock_ratios_are_within_a_study_then_the_median_over_studies()
         {"hig": 6.8, "soap": 1.2}
     )
     line = leaderboard_detail.wall_line(vectorised)
-    assert "lbfgs 1.1x; seeds trained together, a seed's share of its job" in line
+    assert "lbfgs 1.1x; seeds trained in one job, its job's time per seed over adam's" in line
     assert "hig 6.8x, soap 1.2x; beyond 1.5x either way: hig." in line
-    assert "not timed one run at a time, their seeds trained together: gd)" in line
+    assert "not timed one run at a time (their seeds trained in one job): gd)" in line
     only = {"1": {"wall_seconds_together": {"adam": 15.0, "hig": 30.0}}}
     assert "(median over 1 tuning study" in leaderboard_detail.wall_line({"tuning_studies": only})
     for order in ([np.nan, 50.0, 300.0], [300.0, np.nan, 50.0]):  # NaN: not a share
@@ -836,6 +836,8 @@ def test_the_re_runs_cells_link_to_its_scene_pages_with_what_each_study_tuned(tm
     ]
     assert "Detectable:" in gauss
     assert (tmp_path / "docs" / "leaderboard" / "toy.md").is_file()  # the published scene's
+    one = (tmp_path / "docs" / "leaderboard" / "rerun" / "ode_control_full.md").read_text()
+    assert "Detectable: not stated from one tuning study" in one
 
 
 def test_the_expensive_rules_are_read_again_at_four_times_the_budget(tmp_path, monkeypatch):
