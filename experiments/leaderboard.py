@@ -180,7 +180,8 @@ def page(found: dict, image: str, root: Path | None = None, longer: dict | None 
             + ", ".join(f"{e.title} (`{e.name}`: {where_scene_runs(e)})" for e in not_run)
             + ".",
         ]
-    return "\n".join(lines + literature_lines(found)) + "\n"
+    rerun = board(root / RERUN.name) if root and (root / RERUN.name).is_dir() else {}
+    return "\n".join(lines + literature_lines(found, rerun)) + "\n"
 
 
 LEADERBOARD_KINDS = {
@@ -243,17 +244,19 @@ def scheduled_cost_line(abouts: dict[str, dict], titles: dict[str, str]) -> str 
     )
 
 
-def literature_lines(found: dict) -> list[str]:
+def literature_lines(found: dict, rerun: dict | None = None) -> list[str]:
     """What the rules' papers report on the leaderboard's problems, beside the cells measured
     here and the iterations the budget gave the rule and Adam (the papers compare at equal
-    iterations)."""
+    iterations); a scene only the re-run has (the full-batch ones) from its cells, said so."""
     titles = {e.name: e.title for e in SCENES}
     lines = ["", "## What the literature reports, and the same rules here", ""]
     for claim, where in LITERATURE:
         measured = []
         for scene, rule in where:
-            cell, _, about = found.get(scene, ({}, None, {}))
+            again = scene not in found and scene in (rerun or {})
+            cell, runs, about = (rerun if again else found).get(scene, ({}, None, {}))
             cell = cell.get(rule)
+            planned = planned_studies(runs) if again and runs is not None else 0
             adam = (about.get("iterations") or {}).get(BASELINE, math.nan)
             its = (
                 f" ({cell.iterations:,.0f} iterations in the budget, Adam {adam:,.0f})"
@@ -261,7 +264,10 @@ def literature_lines(found: dict) -> list[str]:
                 else ""
             )
             measured.append(
-                f"{rule} on {titles[scene]}: " + (cell_text(cell) + its if cell else "not run yet")
+                f"{rule} on {titles[scene]}"
+                + (" (the re-run, current protocol)" if again else "")
+                + ": "
+                + (cell_text(cell, planned=planned) + its if cell else "not run yet")
             )
         lines.append(f"- {claim} In physgrad's setting: " + "; ".join(measured) + ".")
     return lines + ["", WHY_IT_MAY_DIFFER]

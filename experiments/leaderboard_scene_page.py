@@ -77,8 +77,8 @@ def scene_page(
     if any(tuned.values()):
         lines[-1] += (
             " Tuned: the setting each study chose (lowest validation loss among its trials) and "
-            "the span its trials tried; *edge*: in the outer tenth of that span, so the best may "
-            "lie beyond it."
+            "the span its trials tried; *edge*: in the outer tenth of that span (its log, not the "
+            "search range's, which compare.md's warning reads), so the best may lie beyond it."
         )
     lines += baseline_table(runs, keys, tuned)
     longer_cells, _, longer_about = longer or ({}, None, {})
