@@ -29,7 +29,7 @@ from leaderboard_scenes import (
     SCENES,
 )
 from studies import STUDY_FOLDER
-from study_runs import read_study, study_overrides, tuned_trials
+from study_runs import read_study, run_commits, study_overrides, tuned_trials
 
 from physgrad.errors import UserError
 from physgrad.files import clean_text
@@ -80,6 +80,7 @@ def _keep_scene(root: Path, dest: Path, entry, name: str, pattern: str) -> list[
             rows,
             {
                 "machine": runs.machine,
+                "commits": run_commits(runs),
                 "kept_by": commit(),
                 "iterations": iterations_in_budget(table),
                 "wall_seconds": wall_seconds_in_budget(table),

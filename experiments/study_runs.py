@@ -254,6 +254,18 @@ def _study_record(folder: Path, runs: StudyRuns, study: int = 0) -> dict:
     """What a kept tuning study records of itself: its machine, the physgrad commits its runs
     recorded, the commit that kept it, the compare overrides that ran it, and its tuning
     (tuned_trials), so that what the tuning chose can be audited from the evidence."""
+    return {
+        "machine": runs.machine,
+        "commits": run_commits(runs),
+        "kept_by": commit(),
+        "overrides": study_overrides(folder),
+        **tuned_trials(folder, study),
+    }
+
+
+def run_commits(runs: StudyRuns) -> list[str]:
+    """The physgrad commits a study's evaluation runs recorded in their results files ("+dirty"
+    where the tree had changes), so that the evidence says which code ran it."""
     from physgrad.results import read_final
 
     ran = set()
@@ -263,13 +275,7 @@ def _study_record(folder: Path, runs: StudyRuns, study: int = 0) -> dict:
                 ran.add(str(read_final(Path(path))[0].get("git_commit", "unknown")))
             except (OSError, ValueError):
                 ran.add("unreadable")
-    return {
-        "machine": runs.machine,
-        "commits": sorted(ran),
-        "kept_by": commit(),
-        "overrides": study_overrides(folder),
-        **tuned_trials(folder, study),
-    }
+    return sorted(ran)
 
 
 def tuned_trials(folder: Path, study: int = 0) -> dict:

@@ -41,6 +41,9 @@ def test_kept_evidence_decides_every_part_as_the_study_folder(
     assert (about["trials"], about["studies"], about["seeds"]) == (2, 2, 6)
     assert about["axis"] == "iteration" and about["budget"] == 30
     assert "task=toy" in about["overrides"] and about["kept_by"] and about["commits"]
+    # the code that ran the runs, from their results files (the leaderboard keeps it too)
+    ran = study_runs.run_commits(study_runs.read_study(root / "small"))
+    assert ran and all(c not in ("unknown", "unreadable") for c in ran)
     # 2 tuning studies x 2 variants x 6 seeds x 2 columns, kilobytes
     assert len((kept / "small.csv").read_text().splitlines()) == 1 + 48
     assert (kept / "small.csv").stat().st_size < 10_000
