@@ -149,7 +149,7 @@ def page(found: dict, image: str, root: Path | None = None, longer: dict | None 
             lines.append(f"| {rule} | " + " | ".join(row) + " |")
         lines += ["", "## The scenes and their budgets", "", *scene_kind_lines(scenes, root), ""]
         for entry in scenes:
-            clock = root / CLOCK.format(name=entry.name)
+            clock = root / CLOCK.format(name=entry.name) if root is not None else None
             lines += scene_budget_lines(entry, *found[entry.name][1:], clock)
             lines += longer_lines(entry, (longer or {}).get(entry.name), entry.budget)
         scheduled = scheduled_cost_line(

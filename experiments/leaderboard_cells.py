@@ -40,6 +40,7 @@ class Cell:
     # the rule's runs' wall-clock time over Adam's at the same calibrated budget (median)
     wall_ratio: float = math.nan
     edge: int = 0  # the tuning studies whose tuned value sits at the edge of what they tried
+    edge_of: int = 0  # of how many tuning studies (0: the cell's own)
 
 
 def cells(runs, about: dict | None = None) -> dict[str, Cell]:
@@ -131,9 +132,16 @@ def longer_lines(entry, found: tuple | None, budget: float, tuned: dict | None =
     if found is None:
         return []
     longer, runs, _ = found
-    edges = {rule: cell.edge for rule, cell in (tuned or {}).items()}
+    tuned = tuned or {}
     said = [
-        f"{rule} {cell_text(replace(cell, edge=edges.get(rule, 0)), planned_studies(runs))}"
+        # its settings' tuning is the budget's: the edge of the tuning studies there
+        f"{rule} "
+        + cell_text(
+            replace(cell, edge=tuned[rule].edge, edge_of=len(tuned[rule].studies))
+            if rule in tuned
+            else cell,
+            planned_studies(runs),
+        )
         + (f", {cell.iterations:,.0f} steps" if math.isfinite(cell.iterations) else "")
         for rule, cell in sorted(longer.items())
     ]
@@ -152,6 +160,7 @@ def cell_text(cell: Cell, scene_studies: int = 0, to: str = "", planned: int = 0
     study's verdict where fewer than the `planned` have run."""
     mark = MARKS.get(cell.verdict, "undecided")
     fewer = len(cell.studies) < scene_studies
+    edge_of = cell.edge_of or len(cell.studies)
     so_far = ", ".join(MARKS.get(v, "undecided") for v in cell.studies)
     return (
         (f"[**{mark}**]({to})" if to else f"**{mark}**")
@@ -164,10 +173,10 @@ def cell_text(cell: Cell, scene_studies: int = 0, to: str = "", planned: int = 0
         )
         + few_steps(cell.iterations)
         + (
-            f", tuned at the edge of what its trials tried in {cell.edge} of "
-            f"{len(cell.studies)} studies (the best setting may lie beyond)"
-            # in most studies: one edge among 8 quasi-random points in 2-3 knobs is common
-            if cell.edge >= majority(max(planned, scene_studies, len(cell.studies)))
+            f", tuned at the edge of what its trials tried in {cell.edge} of {edge_of} studies "
+            "(the best setting may lie beyond)"
+            # in most of 2 or more studies: one edge among 8 quasi-random points is common
+            if edge_of > 1 and cell.edge >= majority(max(planned, scene_studies, edge_of))
             else ""
         )
         + (
@@ -185,7 +194,7 @@ def few_steps(iterations: float) -> str:
     section 6), and where none did, that the cell compares Adam with the untrained network."""
     if not iterations < FEW_STEPS:
         return ""
-    within = max(iterations - 1, 0)
+    within = math.floor(iterations - 1)  # a median over the runs can be a half
     if within < 1:
         return (
             ", no step within the budget (its first ends after it): Adam against the untrained "

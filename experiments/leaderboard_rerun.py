@@ -13,6 +13,7 @@ from leaderboard_scene_page import scene_page
 from leaderboard_scenes import (
     EXPENSIVE,
     LEADERBOARD,
+    LEADERBOARD_SEEDS,
     LEADERBOARD_STUDIES,
     LEADERBOARD_TRIALS,
     LONGER,
@@ -69,8 +70,8 @@ def rerun_text(root: Path, found: dict) -> str:
         "",
         f"The profile now runs {LEADERBOARD_STUDIES} tuning studies a scene, each rule tuned on "
         f"its own knobs beside its learning rate (`compare.knobs=true`; {LEADERBOARD_TRIALS} "
-        "trial points a rule in each study, shared by its knobs, and 10 evaluation seeds), every "
-        "scene on a clock "
+        f"trial points a rule in each study, shared by its knobs, and {LEADERBOARD_SEEDS} "
+        "evaluation seeds), every scene on a clock "
         "measured afresh that charges a line search its evaluations and a knob that changes a "
         "step's cost its cost at the tuned value (docs/protocol.md). Its studies are kept in "
         "docs/evidence/leaderboard/rerun; the table above moves to them once every scene has "
@@ -161,7 +162,7 @@ def reading_again(root: Path) -> str:
         )
         + "."
         + "".join(
-            f" On {e.title}, {' and '.join(far)} {'are' if len(far) > 1 else 'is'} not read again: "
+            f" On {e.title}, {_and(list(far))} {'are' if len(far) > 1 else 'is'} not read again: "
             f"even at {LONGER}x the budget ({LONGER * e.budget:g} s) "
             f"{'they get' if len(far) > 1 else 'it gets'} fewer than {FEW_STEPS} steps ("
             + ", ".join(f"{FEW_STEPS} of {rule}'s take {s:,.0f} s" for rule, s in far.items())
@@ -190,3 +191,8 @@ def rerun_pages(root: Path, found: dict, out: Path) -> None:
             longer=longer.get(entry.name),
         )
         replace_file(out / RERUN_PAGES / f"{entry.name}.md", text.encode())
+
+
+def _and(names: list[str]) -> str:
+    """a; a and b; a, b and c."""
+    return ", ".join(names[:-1]) + " and " + names[-1] if len(names) > 1 else "".join(names)

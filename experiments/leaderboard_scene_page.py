@@ -101,15 +101,20 @@ def baseline_table(runs, keys: list[str], tuned: dict) -> list[str]:
     against it can be read (a study whose baseline tuned worse makes every rule look better)."""
     rows, medians = [], {}
     for k, study in enumerate(runs.tuning or (runs,)):
-        losses = [curve.at(runs.budget) for curve in study.curves(BASELINE).values()]
-        losses = [v for v in losses if math.isfinite(v)]
-        if not losses:
+        every = [curve.at(runs.budget) for curve in study.curves(BASELINE).values()]
+        losses = [v for v in every if math.isfinite(v)]
+        if not every:
             continue
         name = keys[k] if keys else str(k + 1)
-        medians[name] = float(np.median(losses))
         said = tuned.get(keys[k], {}).get(BASELINE, "-") if keys else "-"
+        lost = f" (diverged on {len(every) - len(losses)} of {len(every)} seeds)"
+        if not losses:
+            rows.append(f"| {name} | -{lost} | - | - | {said} |")
+            continue
+        medians[name] = float(np.median(losses))
         rows.append(
-            f"| {name} | {fmt(medians[name])} | {fmt(min(losses))} | {fmt(max(losses))} | {said} |"
+            f"| {name} | {fmt(medians[name])}{lost if len(losses) < len(every) else ''} | "
+            f"{fmt(min(losses))} | {fmt(max(losses))} | {said} |"
         )
     if not rows:
         return []
@@ -117,7 +122,7 @@ def baseline_table(runs, keys: list[str], tuned: dict) -> list[str]:
     apart = [
         f"study {name}'s {fmt(m)}, {fmt(m / typical)}x the studies' median"
         for name, m in medians.items()
-        if len(medians) > 2 and m > OUTLIER * typical
+        if len(medians) > 2 and typical > 0 and m > OUTLIER * typical
     ]
     return [
         "",
@@ -211,7 +216,9 @@ def detectable_line(cell, comparisons: int) -> str:
         if results
         else math.nan
     )
-    if len(results) < 2:  # the spread between studies, which a verdict must survive, is unknown
+    if not results:
+        said = "not measured (no tuning study ran it)"
+    elif len(results) < 2:  # the spread between studies, which a verdict must survive, is unknown
         said = "not stated from one tuning study (it measures no spread between studies)"
     elif math.isnan(ratio):
         said = "not measured (fewer than 3 finite log ratios)"

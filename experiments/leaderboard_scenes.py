@@ -80,7 +80,7 @@ class Entry:
         budget at the cheapest step the clock timed for them (any knob value), each with the
         budget FEW_STEPS of those steps take: reading them at LONGER times the budget would again
         decide a step's cost, so they are not (17-19 s a Jacobian step on the full-batch Burgers
-        scene, 7,000 of Adam's: 3 steps in 40 s)."""
+        scene, 7,000 of Adam's: 2 end within 40 s)."""
         from physgrad.comparison.coverage import FEW_STEPS
 
         if clock is None:

@@ -178,8 +178,9 @@ def over_studies(
                 f"{held}; but the studies taken as draws do not exclude a ratio of "
                 f"{study_margin:g}: {_ratio(draws.mean)} [{_ratio(draws.low)}, "
                 f"{_ratio(draws.high)}] ({1 - study_alpha:.0%} interval over {draws.studies} "
-                f"studies, Hartung-Knapp; p = {draws.p:.2g}, not below {study_alpha:g}): which "
-                "tuning study ran could make the difference"
+                f"stud{'y' if draws.studies == 1 else 'ies'}, Hartung-Knapp; p = {draws.p:.2g}"
+                + (f", not below {study_alpha:g}" if study_margin == 1 else "")
+                + "): which tuning study ran could make the difference"
             )
         if all(abs(e) >= STUDY_CAP for e in draws.estimates):
             return verdict, f"{held}; every study's median ratio 10x or more from 1 on that side"

@@ -30,29 +30,22 @@ def interleaved_times(
     one call each per round, so that a step and its baseline see the same machine (on 2 shared cores
     the speed drifts by tens of percent between measurements taken a few seconds apart). At least
     `repeats` rounds and min_seconds, but stopping once max_seconds are spent (slow steps: fewer,
-    long repeats), after one untimed warm-up call each.
-
-    A fn whose first timed call takes more than max_seconds / repeats sits out the later rounds,
-    and its time does not count against max_seconds: a few calls of seconds each would otherwise
-    spend it in one round and leave every fn a single sample (no interval on any cost)."""
+    long repeats), after one untimed warm-up call each."""
     if warmup:
         for fn in fns:
             fn()
     times: list[list[float]] = [[] for _ in fns]
-    slow_call = max_seconds / max(repeats, 1)
     spent = 0.0
-    turn = list(range(len(fns)))
-    while turn:
-        for i in turn:
+    while not times[0] or (
+        (len(times[0]) < repeats or spent < min_seconds)
+        and spent < max_seconds
+        and len(times[0]) < 100_000
+    ):
+        for fn, fn_times in zip(fns, times):
             start = time.perf_counter()
-            fns[i]()
-            times[i].append(time.perf_counter() - start)
-            if len(times[i]) > 1 or times[i][0] <= slow_call:
-                spent += times[i][-1]
-        turn = [i for i in turn if times[i][0] <= slow_call]
-        done = len(times[turn[0]]) if turn else 0
-        if not ((done < repeats or spent < min_seconds) and spent < max_seconds and done < 100_000):
-            break
+            fn()
+            fn_times.append(time.perf_counter() - start)
+            spent += fn_times[-1]
     return times
 
 
@@ -246,7 +239,8 @@ def calibrate(
         if kind == "step":  # line-search evaluations are counted over the timed steps only
             call.steps, call.evaluations = 0, 0.0
     bursts = [burst(key, lengths[key]) for key in timed]
-    times = interleaved_times(bursts, rounds, min_seconds, warmup=False, max_seconds=max_seconds)
+    seconds = [sorted(t)[len(t) // 2] * lengths[key] for key, t in zip(timed, probe)]
+    times = rounds_by_cost(bursts, seconds, rounds, min_seconds, max_seconds)
     measured = _measured_costs(
         {key: [t / lengths[key] for t in samples] for key, samples in zip(timed, times)},
         {key: lengths[key] for key in timed},
@@ -260,6 +254,32 @@ def calibrate(
         "load_end": load_average(),
         "machine": machine_attributes(),
     }
+
+
+def rounds_by_cost(
+    bursts: list[Callable[[], None]],
+    seconds: list[float],
+    rounds: int,
+    min_seconds: float,
+    max_seconds: float,
+) -> list[list[float]]:
+    """interleaved_times of the bursts, those whose probed length (seconds) is above
+    max_seconds / rounds in rounds of their own after the others, on a budget of their own:
+    timed beside the others, a few such bursts would spend max_seconds in one round and leave every
+    burst a single sample, no interval on any cost."""
+    slow = max_seconds / max(rounds, 1)
+    times: list[list[float]] = [[] for _ in bursts]
+    for group in (
+        [i for i, s in enumerate(seconds) if s <= slow],
+        [i for i, s in enumerate(seconds) if s > slow],
+    ):
+        if group:
+            found = interleaved_times(
+                [bursts[i] for i in group], rounds, min_seconds, False, max_seconds
+            )
+            for i, samples in zip(group, found):
+                times[i] = samples
+    return times
 
 
 def _timed_programs(configs: dict, seed: int) -> tuple[dict, dict, dict]:

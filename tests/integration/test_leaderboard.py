@@ -1039,6 +1039,12 @@ def test_a_study_whose_baseline_trained_far_worse_is_said_on_the_scene_page(tmp_
         factor = re.search(r"study 4's [0-9.]+, ([0-9.]+)x the studies' median", page)
         assert (factor is not None and 90 < float(factor[1]) < 110) is said
         assert ("far above the other studies'" in page) is said
+    # a study whose Adam diverged on every seed keeps its row, said so
+    evidence = tmp_path / "diverged"
+    kept_scene(evidence, "toy", {"adam": [1.0, 1.0, 1.0, math.nan], "hig": [0.1] * 4}, 4)
+    leaderboard.write(evidence, evidence / "docs")
+    page = (evidence / "docs" / "leaderboard" / "toy.md").read_text()
+    assert "| 4 | - (diverged on 10 of 10 seeds) | - | - |" in page
 
 
 def test_a_cell_on_few_steps_says_the_steps_within_its_budget():
@@ -1049,6 +1055,28 @@ def test_a_cell_on_few_steps_says_the_steps_within_its_budget():
     assert leaderboard_cells.few_steps(2).startswith(", 1 step within the budget")
     assert "Adam against the untrained network" in leaderboard_cells.few_steps(1)
     assert leaderboard_cells.few_steps(100) == leaderboard_cells.few_steps(float("nan")) == ""
+    # a median over the runs can be a half: 99.5 taken are 98 within; 1.5 are none
+    assert leaderboard_cells.few_steps(99.5).startswith(", 98 steps within the budget")
+    assert "Adam against the untrained network" in leaderboard_cells.few_steps(1.5)
+
+
+def test_a_cell_tuned_at_its_trials_edge_in_most_studies_says_so():
+    """Known answers: an edge in 3 of 4 studies is said, in 2 of 4 not (one edge among 8 random
+    points is common), in 1 of 1 not (one study says nothing of most); a longer cell of 2 studies
+    says the edge of its settings' tuning at the budget, 4 of 4, never of its own 2."""
+    from leaderboard_cells import Cell, cell_text, longer_lines
+
+    def cell(edge, studies):
+        return Cell("undecided", 1.0, 0.5, 2.0, 5, 10, ("undecided",) * studies, 500.0, edge=edge)
+
+    said = "tuned at the edge of what its trials tried in {} of {} studies"
+    assert said.format(3, 4) in cell_text(cell(3, 4), 4)
+    assert "edge" not in cell_text(cell(2, 4), 4)
+    assert "edge" not in cell_text(cell(1, 1), 1)
+    runs = study_runs.StudyRuns(Path("x"), "calibrated_time", 10.0, {}, planned=4)
+    runs = replace(runs, tuning=(runs, runs))
+    line = longer_lines(None, ({"hig": cell(0, 2)}, runs, {}), 10.0, {"hig": cell(4, 4)})[0]
+    assert said.format(4, 4) in line and said.format(4, 2) not in line
 
 
 def test_a_clock_measured_on_another_kind_of_machine_is_said(tmp_path):
